@@ -1,0 +1,19 @@
+// gRPC CameraNode service: translates messages to CameraNode calls, nothing more.
+#pragma once
+
+#include "camera_node.h"
+#include "stage/v1/camera_node.grpc.pb.h"
+
+namespace stage::camera {
+
+class CameraService final : public v1::CameraNode::Service {
+ public:
+  explicit CameraService(CameraNode* node) : node_(node) {}
+  grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
+  grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::CameraStats* response) override;
+
+ private:
+  CameraNode* node_;
+};
+
+}  // namespace stage::camera

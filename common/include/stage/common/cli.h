@@ -1,0 +1,50 @@
+// Command-line handling shared by every program (CLI11): the common flags and one-line errors with a non-zero exit.
+// Include only from main.cc files: CLI11 is a large header.
+#pragma once
+
+#include "absl/strings/string_view.h"
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+
+#include "absl/status/status.h"
+
+namespace grpc {
+class Service;
+}  // namespace grpc
+
+namespace stage {
+
+// Flags every FaStage program takes.
+struct CommonFlags {
+  // Rig file (YAML or JSON), or "builtin:fastage" for the shipped default rig.
+  std::string config = "builtin:fastage";
+  // Where to serve gRPC ("host:port"; port 0 picks a free one).
+  std::string listen;
+  // spdlog level spec, e.g. "debug" or "info,controller.health=debug"; overrides SPDLOG_LEVEL.
+  std::string log_level;
+  // After binding, write the bound "host:port" to this file (for supervisors such as stage-sim).
+  std::string port_file;
+};
+
+// Adds --config, --log-level and --version (and --listen and --port-file when `serves`) to `app`.
+void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves);
+
+// Parses argv. Returns nullopt to go on, or the exit code to return now: 0 after --help/--version (printed to
+// stdout), 2 after a usage error (one line on stderr: "<program>: error: <what>; see --help").
+std::optional<int> ParseCommandLine(CLI::App& app, int argc, char** argv);
+
+// Prints "<program>: error: <message>" as one line on stderr and returns the exit code for it: 2 for bad input
+// (InvalidArgument, NotFound, FailedPrecondition), 1 otherwise.
+int ReportFatal(absl::string_view program, const absl::Status& status);
+
+// Serves `services` on flags.listen (or `default_listen` when the flag is empty) until SIGINT or SIGTERM, writing
+// flags.port_file once serving; then shuts down gracefully. Returns the process exit code. Call
+// BlockShutdownSignals() first thing in main().
+int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
+                     const std::vector<grpc::Service*>& services);
+
+}  // namespace stage

@@ -1,0 +1,19 @@
+// Building the NodeInfo every service returns from GetInfo.
+#pragma once
+
+#include <string>
+
+#include "stage/v1/node.pb.h"
+
+namespace stage {
+
+// Fills id, kind, role, backend and rig hash as given, and version, pid, hostname and uptime from this process.
+v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::string& role,
+                          const std::string& backend, const std::string& rig_hash);
+
+// "camera", "light", "processing-worker", "controller".
+std::string NodeKindName(v1::NodeKind kind);
+// "up", "down", "unreachable", "unknown".
+std::string NodeStateName(v1::NodeState state);
+
+}  // namespace stage

@@ -1,0 +1,78 @@
+// Loading the rig configuration: YAML -> stage.v1.RigConfig, documented defaults, then semantic validation whose
+// errors name the file, the line and the field path ("fastage.yaml:42:7: cameras[3].exposure_us: 0 is not > 0").
+#pragma once
+
+#include "absl/strings/string_view.h"
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/common/yaml_proto.h"
+#include "stage/v1/rig.pb.h"
+
+namespace stage {
+
+// The name by which the shipped default rig is loaded in place of a file.
+inline constexpr absl::string_view kBuiltinRigName = "builtin:fastage";
+
+struct RigValidationOptions {
+  // Require every node to have an `address` (stage-controller needs them; stage-sim assigns them itself).
+  bool require_addresses = false;
+};
+
+struct LoadedRig {
+  v1::RigConfig rig;
+  // The file as named in messages ("rigs/fastage.yaml", or "fastage.yaml (built in)").
+  std::string source_name;
+  // Directory that relative paths in the rig are resolved against.
+  std::string base_dir;
+  SourceMap source_map;
+};
+
+// Loads, fills defaults and validates. `path` is a YAML (or JSON) file, or kBuiltinRigName. On a validation failure
+// the status message is the first error followed by "(and N more errors)" when there are more; `all_errors`, if not
+// null, receives every error, one per entry.
+absl::StatusOr<LoadedRig> LoadRig(absl::string_view path, const RigValidationOptions& options = {},
+                                  std::vector<std::string>* all_errors = nullptr);
+
+// As LoadRig, from text. `source_name` is used in messages only.
+absl::StatusOr<LoadedRig> LoadRigFromText(absl::string_view text, absl::string_view source_name,
+                                          absl::string_view base_dir, const RigValidationOptions& options = {},
+                                          std::vector<std::string>* all_errors = nullptr);
+
+// Fills every documented default that `rig` leaves unset (see rig.proto). Idempotent.
+void ApplyRigDefaults(v1::RigConfig* rig);
+
+// Every semantic error of a rig that has had its defaults applied, each as "<path>: <message>" paired with the path
+// so callers can locate it. Empty when the rig is valid.
+struct RigError {
+  std::string path;
+  std::string message;
+};
+std::vector<RigError> ValidateRig(const v1::RigConfig& rig, absl::string_view base_dir,
+                                  const RigValidationOptions& options = {});
+
+// The text of the shipped default rig (common/rigs/fastage.yaml, compiled in).
+absl::string_view BuiltinRigText();
+
+// A stable 64-bit FNV-1a hash of the rig's deterministic serialization, as 16 hex digits: same rig, same hash.
+// Node addresses are left out: they are deployment detail that stage-sim assigns at run time.
+std::string RigHash(const v1::RigConfig& rig);
+
+// The entry for node `id`, or NotFound naming the id, the rig and the ids that exist.
+absl::StatusOr<const v1::CameraConfig*> FindCamera(const LoadedRig& loaded, absl::string_view id);
+absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded, absl::string_view id);
+absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const LoadedRig& loaded, absl::string_view id);
+
+// Where stage-sim keeps its run directory (endpoint file, logs) unless told otherwise:
+// $XDG_RUNTIME_DIR/fastage/stage-sim, or /tmp/fastage-<uid>/stage-sim.
+std::string DefaultSimRunDir();
+
+// Pattern sets known without a file.
+bool IsBuiltinPatternSet(absl::string_view name);
+
+// Splits "host:port" (or "[v6]:port"); port must be 0..65535. Errors name the address.
+absl::Status ParseHostPort(absl::string_view address, std::string* host, int* port);
+
+}  // namespace stage

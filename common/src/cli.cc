@@ -1,0 +1,82 @@
+// Command-line handling shared by every program.
+#include "stage/common/cli.h"
+
+#include <signal.h>
+
+#include <iostream>
+
+#include "absl/strings/str_replace.h"
+#include "stage/common/logging.h"
+#include "stage/common/rpc_server.h"
+#include "stage/common/shutdown.h"
+#include "stage/common/version.h"
+
+namespace stage {
+
+void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves) {
+  app.set_version_flag("--version", std::string(app.get_name()) + " (FaStage) " + std::string(kVersion));
+  app.add_option("--config", flags->config,
+                 "Rig file (YAML or JSON), or builtin:fastage for the shipped FaStage rig")
+      ->capture_default_str();
+  app.add_option("--log-level", flags->log_level,
+                 "Log levels, e.g. debug or info,controller.health=debug (overrides SPDLOG_LEVEL)");
+  if (serves) {
+    app.add_option("--listen", flags->listen, "Address to serve gRPC on, host:port (port 0 picks a free port)");
+    app.add_option("--port-file", flags->port_file,
+                   "Write the bound host:port to this file once serving (used by stage-sim)");
+  }
+}
+
+std::optional<int> ParseCommandLine(CLI::App& app, int argc, char** argv) {
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    std::cout << app.help();
+    return 0;
+  } catch (const CLI::CallForAllHelp& e) {
+    std::cout << app.help("", CLI::AppFormatMode::All);
+    return 0;
+  } catch (const CLI::CallForVersion& e) {
+    std::cout << e.what() << "\n";
+    return 0;
+  } catch (const CLI::ParseError& e) {
+    std::string what = absl::StrReplaceAll(e.what(), {{"\n", "; "}});
+    std::cerr << app.get_name() << ": error: " << what << "; see --help\n";
+    return 2;
+  }
+  return std::nullopt;
+}
+
+int ReportFatal(absl::string_view program, const absl::Status& status) {
+  std::string message = absl::StrReplaceAll(status.message(), {{"\n", "; "}});
+  std::cerr << program << ": error: " << message << "\n";
+  switch (status.code()) {
+    case absl::StatusCode::kInvalidArgument:
+    case absl::StatusCode::kNotFound:
+    case absl::StatusCode::kFailedPrecondition:
+      return 2;
+    default:
+      return 1;
+  }
+}
+
+int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
+                     const std::vector<grpc::Service*>& services) {
+  RpcServerOptions options;
+  options.listen = flags.listen.empty() ? default_listen : flags.listen;
+  auto server = RpcServer::Start(options, services);
+  if (!server.ok()) return ReportFatal(program, server.status());
+  auto log = Logger("rpc");
+  if (!flags.port_file.empty()) {
+    if (absl::Status s = WriteAddressFile(flags.port_file, (*server)->address()); !s.ok()) {
+      return ReportFatal(program, s);
+    }
+  }
+  log->info("serving on {}", (*server)->address());
+  std::optional<int> sig = WaitForShutdownSignal();
+  log->info("{} received; shutting down", sig && *sig == SIGINT ? "SIGINT" : "SIGTERM");
+  (*server)->Shutdown();
+  return 0;
+}
+
+}  // namespace stage

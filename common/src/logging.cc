@@ -1,0 +1,72 @@
+// spdlog setup with named loggers.
+#include "stage/common/logging.h"
+
+#include <cstdlib>
+#include <mutex>
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/ascii.h"
+#include "absl/strings/str_split.h"
+#include "spdlog/cfg/helpers.h"
+#include "spdlog/sinks/stdout_color_sinks.h"
+#include "spdlog/spdlog.h"
+
+namespace stage {
+namespace {
+
+std::mutex g_mutex;
+spdlog::sink_ptr g_sink;  // guarded by g_mutex
+
+spdlog::sink_ptr Sink() {
+  std::lock_guard<std::mutex> lock(g_mutex);
+  if (!g_sink) g_sink = std::make_shared<spdlog::sinks::stderr_color_sink_mt>();
+  return g_sink;
+}
+
+}  // namespace
+
+absl::Status ValidateLogLevels(absl::string_view levels) {
+  for (absl::string_view part : absl::StrSplit(levels, ',', absl::SkipEmpty())) {
+    absl::string_view level = part;
+    if (auto eq = part.find('='); eq != absl::string_view::npos) level = part.substr(eq + 1);
+    std::string name = absl::AsciiStrToLower(level);
+    if (spdlog::level::from_str(name) == spdlog::level::off && name != "off") {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "log level \"", level, "\" is not one of trace, debug, info, warn, error, critical, off"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status InitLogging(absl::string_view program, absl::string_view levels) {
+  if (absl::Status s = ValidateLogLevels(levels); !s.ok()) return s;
+  auto default_logger = std::make_shared<spdlog::logger>(std::string(program), Sink());
+  spdlog::set_default_logger(default_logger);
+  // The registry's formatter is cloned into every logger created later, so set it there, not on the sink.
+  spdlog::set_pattern(absl::StrCat("%Y-%m-%d %H:%M:%S.%e ", program, "[%P] %^%l%$ %n: %v"));
+  spdlog::set_level(spdlog::level::info);
+  // spdlog replaces its whole level table on each load, so the environment and the flag are loaded as one spec in
+  // which the flag's entries come last and win.
+  std::string spec;
+  const char* env = std::getenv("SPDLOG_LEVEL");
+  if (env != nullptr && ValidateLogLevels(env).ok()) spec = env;
+  if (!levels.empty()) spec = spec.empty() ? std::string(levels) : absl::StrCat(spec, ",", levels);
+  if (!spec.empty()) spdlog::cfg::helpers::load_levels(spec);
+  if (env != nullptr && !ValidateLogLevels(env).ok()) {
+    spdlog::warn("ignoring SPDLOG_LEVEL=\"{}\": not a valid level spec", env);
+  }
+  return absl::OkStatus();
+}
+
+std::shared_ptr<spdlog::logger> Logger(const std::string& name) {
+  // spdlog's registry is thread-safe; creation is serialized so two threads never register the same name.
+  static std::mutex create_mutex;
+  std::lock_guard<std::mutex> lock(create_mutex);
+  if (auto existing = spdlog::get(name)) return existing;
+  auto logger = std::make_shared<spdlog::logger>(name, Sink());
+  spdlog::initialize_logger(logger);  // applies the configured level for `name`
+  return logger;
+}
+
+}  // namespace stage

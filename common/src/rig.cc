@@ -1,0 +1,539 @@
+// Rig loading: parse, defaults, validation.
+#include "stage/common/rig.h"
+
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdlib>
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <set>
+#include <sstream>
+
+#include <google/protobuf/io/coded_stream.h>
+#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+
+extern const char kFastageRigYaml[];
+
+namespace stage {
+namespace {
+
+using v1::CameraConfig;
+using v1::LightNodeConfig;
+using v1::RigConfig;
+
+constexpr absl::string_view kFastage38 = "fastage-38";
+// In fastage-38 the cross-polarized patterns come first: slot 19 of each 38 is the parallel full-on one.
+constexpr uint32_t kFastage38Length = 38;
+constexpr uint32_t kFastage38ParallelFullOn = 19;
+
+const std::set<std::string, std::less<>> kCameraBackends = {"sim", "aravis"};
+
+bool IsRoleHighSpeed(const CameraConfig& c) { return c.role() == v1::CAMERA_ROLE_HIGH_SPEED; }
+
+void ApplyLimitDefaults(v1::LedLimits* limits) {
+  if (!limits->has_max_duty_cycle()) limits->set_max_duty_cycle(0.5);
+  if (!limits->has_thermal_time_constant_s()) limits->set_thermal_time_constant_s(2.0);
+  if (!limits->has_rise_us()) limits->set_rise_us(5.0);
+  if (!limits->has_fall_us()) limits->set_fall_us(5.0);
+}
+
+// Collects errors with their field paths.
+class Checker {
+ public:
+  void Add(std::string path, std::string message) { errors_.push_back({std::move(path), std::move(message)}); }
+
+  // Number checks; `what` describes the bound for the message.
+  void Positive(const std::string& path, double v) {
+    if (!(v > 0)) Add(path, absl::StrCat(Num(v), " is not > 0"));
+  }
+  void InRange(const std::string& path, double v, double lo, double hi) {
+    if (!(v >= lo && v <= hi)) Add(path, absl::StrCat(Num(v), " is not in [", Num(lo), ", ", Num(hi), "]"));
+  }
+  void Required(const std::string& path, bool present) {
+    if (!present) Add(path, "required field is missing");
+  }
+  // A node or unit id: non-empty, [A-Za-z0-9._-], at most 64 characters.
+  void Id(const std::string& path, const std::string& id) {
+    if (id.empty()) {
+      Add(path, "required field is missing");
+      return;
+    }
+    bool ok = id.size() <= 64;
+    for (char c : id) ok = ok && (absl::ascii_isalnum(c) || c == '-' || c == '_' || c == '.');
+    if (!ok) Add(path, absl::StrCat("\"", id, "\" is not a valid id (letters, digits, '-', '_', '.'; <= 64 chars)"));
+  }
+
+  static std::string Num(double v) { return absl::StrFormat("%g", v); }
+
+  std::vector<RigError> Take() { return std::move(errors_); }
+
+ private:
+  std::vector<RigError> errors_;
+};
+
+void CheckAddress(Checker& check, const std::string& path, const std::string& address, bool required) {
+  if (address.empty()) {
+    if (required) check.Add(path, "required by stage-controller (host:port of the node)");
+    return;
+  }
+  std::string host;
+  int port;
+  if (absl::Status s = ParseHostPort(address, &host, &port); !s.ok()) {
+    check.Add(path, std::string(s.message()));
+  } else if (port == 0) {
+    check.Add(path, absl::StrCat("\"", address, "\" has port 0; a node's address needs its real port"));
+  }
+}
+
+void CheckLimits(Checker& check, const std::string& path, const v1::LedLimits& limits) {
+  check.Required(path + ".max_current_ma", limits.has_max_current_ma());
+  if (limits.has_max_current_ma()) check.InRange(path + ".max_current_ma", limits.max_current_ma(), 1e-3, 100000);
+  if (!(limits.max_duty_cycle() > 0 && limits.max_duty_cycle() <= 1)) {
+    check.Add(path + ".max_duty_cycle", absl::StrCat(Checker::Num(limits.max_duty_cycle()), " is not in (0, 1]"));
+  }
+  check.Positive(path + ".thermal_time_constant_s", limits.thermal_time_constant_s());
+  check.InRange(path + ".rise_us", limits.rise_us(), 0, 1000);
+  check.InRange(path + ".fall_us", limits.fall_us(), 0, 1000);
+}
+
+void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c,
+                 const RigValidationOptions& options) {
+  check.Id(p + ".id", c.id());
+  if (c.role() == v1::CAMERA_ROLE_UNSPECIFIED) {
+    check.Add(p + ".role", "required field is missing (machine-vision or high-speed)");
+  }
+  if (!kCameraBackends.count(c.backend())) {
+    check.Add(p + ".backend", absl::StrCat("\"", c.backend(), "\" is not a camera backend; valid: ",
+                                           absl::StrJoin(kCameraBackends, ", ")));
+  }
+  if (c.backend() == "aravis" && c.device().empty()) {
+    check.Add(p + ".device", "required for the aravis backend (serial number, user id or IP address)");
+  }
+  CheckAddress(check, p + ".address", c.address(), options.require_addresses);
+  check.Required(p + ".width", c.has_width());
+  check.Required(p + ".height", c.has_height());
+  if (c.has_width()) check.InRange(p + ".width", c.width(), 1, 65535);
+  if (c.has_height()) check.InRange(p + ".height", c.height(), 1, 65535);
+  check.InRange(p + ".frame_rate_hz", c.frame_rate_hz(), 1e-3, 100000);
+  check.Required(p + ".exposure_us", c.has_exposure_us());
+  if (c.has_exposure_us()) {
+    check.Positive(p + ".exposure_us", c.exposure_us());
+    double period_us = c.frame_rate_hz() > 0 ? 1e6 / c.frame_rate_hz() : 0;
+    if (c.exposure_us() > 0 && period_us > 0 && c.exposure_us() >= period_us) {
+      check.Add(p + ".exposure_us",
+                absl::StrFormat("%g us is not shorter than the frame period %.3f us at %g fps", c.exposure_us(),
+                                period_us, c.frame_rate_hz()));
+    }
+  }
+  check.InRange(p + ".gain_db", c.gain_db(), 0, 48);
+  check.InRange(p + ".readout_us", c.readout_us(), 0, 1e7);
+  const auto& t = c.trigger();
+  if (t.divider() < 1) check.Add(p + ".trigger.divider", "0 is not >= 1");
+  if (!t.has_divider()) {
+    check.Add(p + ".trigger.divider",
+              absl::StrCat("required when pattern_set is not ", kFastage38, " (no default divider)"));
+  }
+  if (!t.has_slot_phase()) {
+    check.Add(p + ".trigger.slot_phase",
+              absl::StrCat("required when pattern_set is not ", kFastage38, " (no default phase)"));
+  } else if (t.divider() >= 1 && t.slot_phase() >= t.divider()) {
+    check.Add(p + ".trigger.slot_phase",
+              absl::StrCat(t.slot_phase(), " is not < the divider ", t.divider()));
+  }
+  check.InRange(p + ".ram_gib", c.ram_gib(), 0, 1e6);
+  if (IsRoleHighSpeed(c) && c.link() == v1::LINK_KIND_ON_CAMERA_RAM && !(c.ram_gib() > 0)) {
+    check.Add(p + ".ram_gib", "required (> 0) for a high-speed camera that records to on-camera RAM");
+  }
+  check.Positive(p + ".intrinsics.focal_length_mm", c.intrinsics().focal_length_mm());
+  check.Positive(p + ".intrinsics.pixel_size_um", c.intrinsics().pixel_size_um());
+  const auto& pose = c.pose();
+  if (!c.has_pose()) {
+    check.Add(p + ".pose", "required field is missing (position_mm of the camera in the stage frame)");
+  } else {
+    double dx = pose.position_mm().x() - pose.look_at_mm().x();
+    double dy = pose.position_mm().y() - pose.look_at_mm().y();
+    double dz = pose.position_mm().z() - pose.look_at_mm().z();
+    if (std::sqrt(dx * dx + dy * dy + dz * dz) < 1.0) {
+      check.Add(p + ".pose.look_at_mm", "is the camera position itself; it must be a point the camera looks at");
+    }
+  }
+}
+
+void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig& n,
+                    const RigValidationOptions& options, std::map<std::string, std::string>* unit_ids) {
+  check.Id(p + ".id", n.id());
+  CheckAddress(check, p + ".address", n.address(), options.require_addresses);
+  check.Required(p + ".channel_count", n.has_channel_count());
+  if (n.has_channel_count()) check.InRange(p + ".channel_count", n.channel_count(), 1, 4096);
+  switch (n.backend()) {
+    case v1::LIGHT_BACKEND_SIM:
+      if (n.device_case() != LightNodeConfig::kSim && n.device_case() != LightNodeConfig::DEVICE_NOT_SET) {
+        check.Add(p + (n.has_gpiod() ? ".gpiod" : ".modbus"), "is set, but backend is sim");
+      }
+      break;
+    case v1::LIGHT_BACKEND_GPIOD:
+      if (!n.has_gpiod()) {
+        check.Add(p + ".gpiod", "required for backend gpiod (chip and channel_lines)");
+      } else {
+        if (n.gpiod().chip().empty()) check.Add(p + ".gpiod.chip", "required field is missing");
+        if (static_cast<uint32_t>(n.gpiod().channel_lines_size()) != n.channel_count()) {
+          check.Add(p + ".gpiod.channel_lines", absl::StrCat("has ", n.gpiod().channel_lines_size(),
+                                                             " lines; channel_count is ", n.channel_count()));
+        }
+      }
+      break;
+    case v1::LIGHT_BACKEND_MODBUS:
+      if (!n.has_modbus()) {
+        check.Add(p + ".modbus", "required for backend modbus (tcp or rtu settings)");
+      } else {
+        const auto& m = n.modbus();
+        if (m.transport_case() == v1::ModbusLightSettings::TRANSPORT_NOT_SET) {
+          check.Add(p + ".modbus", "needs tcp or rtu");
+        } else if (m.has_tcp()) {
+          if (m.tcp().host().empty()) check.Add(p + ".modbus.tcp.host", "required field is missing");
+          check.InRange(p + ".modbus.tcp.port", m.tcp().port(), 1, 65535);
+        } else {
+          if (m.rtu().device().empty()) check.Add(p + ".modbus.rtu.device", "required field is missing");
+          check.Positive(p + ".modbus.rtu.baud", m.rtu().baud());
+          if (m.rtu().parity() != "N" && m.rtu().parity() != "E" && m.rtu().parity() != "O") {
+            check.Add(p + ".modbus.rtu.parity", absl::StrCat("\"", m.rtu().parity(), "\" is not N, E or O"));
+          }
+          check.InRange(p + ".modbus.rtu.data_bits", m.rtu().data_bits(), 5, 8);
+          check.InRange(p + ".modbus.rtu.stop_bits", m.rtu().stop_bits(), 1, 2);
+        }
+        check.InRange(p + ".modbus.unit_id", m.unit_id(), 1, 247);
+        check.InRange(p + ".modbus.timeout_ms", m.timeout_ms(), 1, 60000);
+      }
+      break;
+    default:
+      check.Add(p + ".backend", "required field is missing (sim, gpiod or modbus)");
+  }
+  if (!n.has_unit_limits()) {
+    check.Add(p + ".unit_limits", "required field is missing (max_current_ma at least)");
+  } else {
+    CheckLimits(check, p + ".unit_limits", n.unit_limits());
+  }
+  std::map<uint32_t, std::string> channels;  // channel -> the path that uses it
+  for (int i = 0; i < n.units_size(); ++i) {
+    const auto& u = n.units(i);
+    std::string up = absl::StrCat(p, ".units[", i, "]");
+    check.Id(up + ".id", u.id());
+    if (!u.id().empty()) {
+      auto [it, inserted] = unit_ids->emplace(u.id(), up);
+      if (!inserted) check.Add(up + ".id", absl::StrCat("duplicate LED unit id \"", u.id(), "\" (also ", it->second, ")"));
+    }
+    const auto& d = u.direction();
+    double len = std::sqrt(d.x() * d.x() + d.y() * d.y() + d.z() * d.z());
+    if (!u.has_direction()) {
+      check.Add(up + ".direction", "required field is missing");
+    } else if (std::abs(len - 1.0) > 1e-3) {
+      check.Add(up + ".direction", absl::StrFormat("is not a unit vector (length %.4f)", len));
+    }
+    for (auto [present, channel, name] :
+         {std::tuple{u.has_parallel_channel(), u.parallel_channel(), "parallel_channel"},
+          std::tuple{u.has_cross_channel(), u.cross_channel(), "cross_channel"}}) {
+      std::string cp = absl::StrCat(up, ".", name);
+      if (!present) {
+        check.Add(cp, "required field is missing");
+        continue;
+      }
+      if (n.has_channel_count() && channel >= n.channel_count()) {
+        check.Add(cp, absl::StrCat(channel, " is not < channel_count ", n.channel_count()));
+        continue;
+      }
+      auto [it, inserted] = channels.emplace(channel, cp);
+      if (!inserted) check.Add(cp, absl::StrCat("channel ", channel, " is already used by ", it->second));
+    }
+    if (!(u.intensity_scale() > 0 && u.intensity_scale() <= 10)) {
+      check.Add(up + ".intensity_scale", absl::StrCat(Checker::Num(u.intensity_scale()), " is not in (0, 10]"));
+    }
+    if (u.has_limits()) CheckLimits(check, up + ".limits", u.limits());
+  }
+}
+
+}  // namespace
+
+bool IsBuiltinPatternSet(absl::string_view name) { return name == kFastage38; }
+
+absl::string_view BuiltinRigText() { return kFastageRigYaml; }
+
+absl::Status ParseHostPort(absl::string_view address, std::string* host, int* port) {
+  size_t colon = address.rfind(':');
+  auto bad = [&](absl::string_view why) {
+    return absl::InvalidArgumentError(absl::StrCat("\"", address, "\" is not host:port (", why, ")"));
+  };
+  if (colon == absl::string_view::npos || colon == 0) return bad("missing host or port");
+  absl::string_view h = address.substr(0, colon);
+  if (h.front() == '[') {
+    if (h.back() != ']') return bad("unbalanced '['");
+    h = h.substr(1, h.size() - 2);
+  } else if (h.find(':') != absl::string_view::npos) {
+    return bad("write IPv6 addresses as [addr]:port");
+  }
+  int p;
+  if (!absl::SimpleAtoi(address.substr(colon + 1), &p) || p < 0 || p > 65535) return bad("port is not 0..65535");
+  if (h.empty()) return bad("empty host");
+  *host = std::string(h);
+  *port = p;
+  return absl::OkStatus();
+}
+
+void ApplyRigDefaults(RigConfig* rig) {
+  auto* controller = rig->mutable_controller();
+  if (controller->listen().empty()) controller->set_listen("127.0.0.1:50050");
+  if (!controller->has_health_poll_interval_ms()) controller->set_health_poll_interval_ms(200);
+  if (!controller->has_health_timeout_ms()) controller->set_health_timeout_ms(500);
+  if (controller->node_failure_policy() == v1::NODE_FAILURE_POLICY_UNSPECIFIED) {
+    controller->set_node_failure_policy(v1::NODE_FAILURE_POLICY_CONTINUE_DEGRADED);
+  }
+  auto* timing = rig->mutable_timing();
+  if (!timing->has_slot_rate_hz()) timing->set_slot_rate_hz(912);
+  if (!timing->has_led_switch_delay_us()) timing->set_led_switch_delay_us(20);
+  if (!timing->has_led_settle_us()) timing->set_led_settle_us(30);
+  if (!timing->has_exposure_guard_us()) timing->set_exposure_guard_us(20);
+  if (rig->pattern_set().empty()) rig->set_pattern_set(std::string(kFastage38));
+  auto* storage = rig->mutable_storage();
+  if (storage->root().empty()) storage->set_root("takes");
+  if (!storage->has_host_write_mb_per_s()) storage->set_host_write_mb_per_s(2000);
+  const bool fastage38 = rig->pattern_set() == kFastage38;
+
+  for (auto& c : *rig->mutable_cameras()) {
+    const bool hs = IsRoleHighSpeed(c);
+    if (c.backend().empty()) c.set_backend("sim");
+    if (c.pixel_format() == v1::PIXEL_FORMAT_UNSPECIFIED) c.set_pixel_format(v1::PIXEL_FORMAT_BAYER_RG8);
+    if (!c.has_frame_rate_hz()) c.set_frame_rate_hz(hs ? 912 : 24);
+    if (!c.has_gain_db()) c.set_gain_db(0);
+    if (!c.has_readout_us()) c.set_readout_us(0);
+    auto* t = c.mutable_trigger();
+    if (t->source() == v1::TRIGGER_SOURCE_UNSPECIFIED) t->set_source(v1::TRIGGER_SOURCE_HARDWARE_LINE);
+    if (!t->has_divider() && (hs || fastage38)) t->set_divider(hs ? 1 : kFastage38Length);
+    if (!t->has_slot_phase() && (hs || fastage38)) t->set_slot_phase(hs ? 0 : kFastage38ParallelFullOn);
+    if (c.analyzer() == v1::ANALYZER_UNSPECIFIED) c.set_analyzer(v1::ANALYZER_LINEAR);
+    if (c.link() == v1::LINK_KIND_UNSPECIFIED) c.set_link(hs ? v1::LINK_KIND_ON_CAMERA_RAM : v1::LINK_KIND_GIGE_10);
+    if (!c.has_ram_gib()) c.set_ram_gib(0);
+    if (c.has_pose() && !c.pose().has_up()) c.mutable_pose()->mutable_up()->set_y(1);
+    if (c.recording_host().empty()) c.set_recording_host(c.id());
+  }
+  for (auto& n : *rig->mutable_light_nodes()) {
+    if (n.backend() == v1::LIGHT_BACKEND_UNSPECIFIED) n.set_backend(v1::LIGHT_BACKEND_SIM);
+    if (n.has_unit_limits()) ApplyLimitDefaults(n.mutable_unit_limits());
+    if (n.has_sim() && !n.sim().has_extra_delay_us()) n.mutable_sim()->set_extra_delay_us(0);
+    if (n.has_modbus()) {
+      auto* m = n.mutable_modbus();
+      if (!m->has_unit_id()) m->set_unit_id(1);
+      if (!m->has_timeout_ms()) m->set_timeout_ms(100);
+      if (!m->has_retries()) m->set_retries(2);
+      if (m->has_tcp() && !m->tcp().has_port()) m->mutable_tcp()->set_port(502);
+      if (m->has_rtu()) {
+        auto* rtu = m->mutable_rtu();
+        if (!rtu->has_baud()) rtu->set_baud(115200);
+        if (rtu->parity().empty()) rtu->set_parity("N");
+        if (!rtu->has_data_bits()) rtu->set_data_bits(8);
+        if (!rtu->has_stop_bits()) rtu->set_stop_bits(1);
+      }
+    }
+    for (auto& u : *n.mutable_units()) {
+      if (!u.has_intensity_scale()) u.set_intensity_scale(1.0);
+      if (u.has_limits()) ApplyLimitDefaults(u.mutable_limits());
+    }
+  }
+  for (auto& w : *rig->mutable_processing_workers()) {
+    if (!w.has_threads()) w.set_threads(0);
+  }
+}
+
+std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_dir,
+                                  const RigValidationOptions& options) {
+  Checker check;
+  check.Id("stage.id", rig.stage().id());
+
+  const auto& controller = rig.controller();
+  std::string listen_host;
+  int listen_port;
+  if (absl::Status s = ParseHostPort(controller.listen(), &listen_host, &listen_port); !s.ok()) {
+    check.Add("controller.listen", std::string(s.message()));
+  }
+  check.InRange("controller.health_poll_interval_ms", controller.health_poll_interval_ms(), 10, 60000);
+  check.InRange("controller.health_timeout_ms", controller.health_timeout_ms(), 10, 60000);
+
+  const auto& timing = rig.timing();
+  check.InRange("timing.slot_rate_hz", timing.slot_rate_hz(), 1, 100000);
+  check.InRange("timing.led_switch_delay_us", timing.led_switch_delay_us(), 0, 1e6);
+  check.InRange("timing.led_settle_us", timing.led_settle_us(), 0, 1e6);
+  check.InRange("timing.exposure_guard_us", timing.exposure_guard_us(), 0, 1e6);
+
+  if (!IsBuiltinPatternSet(rig.pattern_set())) {
+    std::filesystem::path p(rig.pattern_set());
+    if (p.is_relative()) p = std::filesystem::path(std::string(base_dir)) / p;
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(p, ec)) {
+      check.Add("pattern_set", absl::StrCat("\"", rig.pattern_set(), "\" is neither a built-in pattern set (",
+                                            kFastage38, ") nor a readable file (looked for ", p.string(), ")"));
+    }
+  }
+  if (rig.storage().root().empty()) check.Add("storage.root", "required field is missing");
+  check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());
+
+  // Node ids share one namespace: the controller, stagectl and the logs address nodes by id alone.
+  std::map<std::string, std::string> node_ids;  // id -> path of its first definition
+  auto check_unique = [&](const std::string& path, const std::string& id) {
+    if (id.empty()) return;
+    auto [it, inserted] = node_ids.emplace(id, path);
+    if (!inserted) check.Add(path, absl::StrCat("duplicate node id \"", id, "\" (also ", it->second, ")"));
+  };
+
+  for (int i = 0; i < rig.cameras_size(); ++i) {
+    std::string p = absl::StrCat("cameras[", i, "]");
+    CheckCamera(check, p, rig.cameras(i), options);
+    check_unique(p + ".id", rig.cameras(i).id());
+  }
+  std::map<std::string, std::string> unit_ids;
+  for (int i = 0; i < rig.light_nodes_size(); ++i) {
+    std::string p = absl::StrCat("light_nodes[", i, "]");
+    CheckLightNode(check, p, rig.light_nodes(i), options, &unit_ids);
+    check_unique(p + ".id", rig.light_nodes(i).id());
+  }
+  for (int i = 0; i < rig.processing_workers_size(); ++i) {
+    std::string p = absl::StrCat("processing_workers[", i, "]");
+    const auto& w = rig.processing_workers(i);
+    check.Id(p + ".id", w.id());
+    check_unique(p + ".id", w.id());
+    CheckAddress(check, p + ".address", w.address(), options.require_addresses);
+    check.InRange(p + ".threads", w.threads(), 0, 1024);
+  }
+
+  if (!timing.sync_generator().empty()) {
+    const LightNodeConfig* generator = nullptr;
+    for (const auto& n : rig.light_nodes()) {
+      if (n.id() == timing.sync_generator()) generator = &n;
+    }
+    if (generator == nullptr) {
+      std::vector<std::string> ids;
+      for (const auto& n : rig.light_nodes()) ids.push_back(n.id());
+      check.Add("timing.sync_generator",
+                absl::StrCat("light node \"", timing.sync_generator(), "\" is not defined (light nodes: ",
+                             ids.empty() ? "none" : absl::StrJoin(ids, ", "), ")"));
+    } else if (!generator->has_gpiod() || !generator->gpiod().drives_slot_clock()) {
+      check.Add("timing.sync_generator",
+                absl::StrCat("light node \"", generator->id(),
+                             "\" cannot generate the slot clock: it needs backend gpiod with "
+                             "gpiod.drives_slot_clock: true"));
+    }
+  }
+  return check.Take();
+}
+
+absl::StatusOr<LoadedRig> LoadRigFromText(absl::string_view text, absl::string_view source_name,
+                                          absl::string_view base_dir, const RigValidationOptions& options,
+                                          std::vector<std::string>* all_errors) {
+  LoadedRig loaded;
+  loaded.source_name = std::string(source_name);
+  loaded.base_dir = std::string(base_dir);
+  absl::Status parsed = ParseYamlToProto(text, source_name, &loaded.rig, &loaded.source_map);
+  if (!parsed.ok()) {
+    if (all_errors != nullptr) all_errors->push_back(std::string(parsed.message()));
+    return parsed;
+  }
+  ApplyRigDefaults(&loaded.rig);
+  std::vector<RigError> errors = ValidateRig(loaded.rig, base_dir, options);
+  if (errors.empty()) return loaded;
+  std::vector<std::string> formatted;
+  for (const RigError& e : errors) {
+    formatted.push_back(FormatConfigError(source_name, loaded.source_map.Find(e.path), e.path, e.message));
+  }
+  std::string message = formatted.front();
+  if (formatted.size() > 1) absl::StrAppend(&message, " (and ", formatted.size() - 1, " more errors)");
+  if (all_errors != nullptr) *all_errors = std::move(formatted);
+  return absl::InvalidArgumentError(message);
+}
+
+absl::StatusOr<LoadedRig> LoadRig(absl::string_view path, const RigValidationOptions& options,
+                                  std::vector<std::string>* all_errors) {
+  if (path == kBuiltinRigName) {
+    return LoadRigFromText(BuiltinRigText(), "fastage.yaml (built in)", ".", options, all_errors);
+  }
+  std::string file(path);
+  std::error_code ec;
+  if (std::filesystem::is_directory(file, ec)) {
+    return absl::InvalidArgumentError(absl::StrCat(file, ": is a directory, not a rig file"));
+  }
+  std::ifstream in(file, std::ios::binary);
+  if (!in) {
+    int err = errno;
+    return absl::NotFoundError(absl::StrCat(file, ": cannot read rig file: ", std::strerror(err)));
+  }
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  if (in.bad()) return absl::DataLossError(absl::StrCat(file, ": read error"));
+  std::string base_dir = std::filesystem::path(file).parent_path().string();
+  if (base_dir.empty()) base_dir = ".";
+  return LoadRigFromText(buffer.str(), file, base_dir, options, all_errors);
+}
+
+std::string RigHash(const RigConfig& rig) {
+  RigConfig copy = rig;
+  for (auto& c : *copy.mutable_cameras()) c.clear_address();
+  for (auto& n : *copy.mutable_light_nodes()) n.clear_address();
+  for (auto& w : *copy.mutable_processing_workers()) w.clear_address();
+  std::string bytes;
+  {
+    google::protobuf::io::StringOutputStream stream(&bytes);
+    google::protobuf::io::CodedOutputStream coded(&stream);
+    coded.SetSerializationDeterministic(true);
+    copy.SerializeToCodedStream(&coded);
+  }
+  uint64_t h = 1469598103934665603ull;
+  for (unsigned char c : bytes) {
+    h ^= c;
+    h *= 1099511628211ull;
+  }
+  return absl::StrFormat("%016x", h);
+}
+
+namespace {
+
+template <typename T>
+absl::StatusOr<const T*> FindNode(const google::protobuf::RepeatedPtrField<T>& nodes, const LoadedRig& loaded,
+                                  absl::string_view id, absl::string_view what) {
+  std::vector<std::string> ids;
+  for (const T& n : nodes) {
+    if (n.id() == id) return &n;
+    ids.push_back(n.id());
+  }
+  return absl::NotFoundError(absl::StrCat(what, " \"", id, "\" is not in ", loaded.source_name, " (", what,
+                                          "s: ", ids.empty() ? "none" : absl::StrJoin(ids, ", "), ")"));
+}
+
+}  // namespace
+
+absl::StatusOr<const v1::CameraConfig*> FindCamera(const LoadedRig& loaded, absl::string_view id) {
+  return FindNode(loaded.rig.cameras(), loaded, id, "camera");
+}
+
+absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded, absl::string_view id) {
+  return FindNode(loaded.rig.light_nodes(), loaded, id, "light node");
+}
+
+absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const LoadedRig& loaded,
+                                                                       absl::string_view id) {
+  return FindNode(loaded.rig.processing_workers(), loaded, id, "processing worker");
+}
+
+std::string DefaultSimRunDir() {
+  if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && *xdg != '\0') {
+    return absl::StrCat(xdg, "/fastage/stage-sim");
+  }
+  return absl::StrCat("/tmp/fastage-", getuid(), "/stage-sim");
+}
+
+}  // namespace stage

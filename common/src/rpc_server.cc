@@ -1,0 +1,98 @@
+// gRPC server wrapper.
+#include "stage/common/rpc_server.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+
+#include "absl/strings/str_cat.h"
+#include "stage/common/rig.h"
+#include "stage/common/status.h"
+
+namespace stage {
+
+absl::Status RpcServerOptions::Validate() const {
+  std::string host;
+  int port;
+  STAGE_RETURN_IF_ERROR(Annotate(ParseHostPort(listen, &host, &port), "listen"));
+  if (max_message_bytes < (1 << 20)) return absl::InvalidArgumentError("max_message_bytes must be >= 1 MiB");
+  if (keepalive_time_ms <= 0 || keepalive_timeout_ms <= 0) {
+    return absl::InvalidArgumentError("keepalive_time_ms and keepalive_timeout_ms must be > 0");
+  }
+  if (shutdown_grace_ms < 0) return absl::InvalidArgumentError("shutdown_grace_ms must be >= 0");
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptions& options,
+                                                            const std::vector<grpc::Service*>& services) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort(options.listen, grpc::InsecureServerCredentials(), &port);
+  builder.SetMaxReceiveMessageSize(options.max_message_bytes);
+  builder.SetMaxSendMessageSize(options.max_message_bytes);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_time_ms);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, options.keepalive_timeout_ms);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 1000);
+  // A port in use must be an error, not a second server sharing it.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  for (grpc::Service* service : services) builder.RegisterService(service);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (server == nullptr || port == 0) {
+    return absl::UnavailableError(
+        absl::StrCat("cannot listen on ", options.listen, " (address in use, or not an address of this host)"));
+  }
+  std::string host;
+  int ignored;
+  (void)ParseHostPort(options.listen, &host, &ignored);
+  if (host == "0.0.0.0" || host == "::" || host == "[::]") host = "127.0.0.1";
+  std::string address = host.find(':') != std::string::npos ? absl::StrCat("[", host, "]:", port)
+                                                             : absl::StrCat(host, ":", port);
+  auto result = std::unique_ptr<RpcServer>(new RpcServer(std::move(server), port, address, options.shutdown_grace_ms));
+  result->SetServing(true);
+  return result;
+}
+
+RpcServer::RpcServer(std::unique_ptr<grpc::Server> server, int port, std::string address, int grace_ms)
+    : server_(std::move(server)), port_(port), address_(std::move(address)), grace_ms_(grace_ms) {}
+
+RpcServer::~RpcServer() { Shutdown(); }
+
+void RpcServer::SetServing(bool serving) {
+  if (auto* health = server_->GetHealthCheckService()) health->SetServingStatus(serving);
+}
+
+void RpcServer::Shutdown() {
+  if (shut_down_.exchange(true)) return;
+  SetServing(false);
+  server_->Shutdown(std::chrono::system_clock::now() + std::chrono::milliseconds(grace_ms_));
+  server_->Wait();
+}
+
+void RpcServer::Wait() { server_->Wait(); }
+
+absl::Status WriteAddressFile(const std::string& path, const std::string& address) {
+  std::string tmp = absl::StrCat(path, ".tmp.", getpid());
+  {
+    std::ofstream out(tmp, std::ios::trunc);
+    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
+    out << address << "\n";
+    out.close();
+    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
+  }
+  if (std::rename(tmp.c_str(), path.c_str()) != 0) {
+    int err = errno;
+    std::remove(tmp.c_str());
+    return ErrnoToStatus(err, absl::StrCat("cannot rename ", tmp, " to ", path));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace stage

@@ -1,0 +1,69 @@
+// An LED controller as the light node sees it. Implementations: SimLightDriver (sim/), ModbusLightDriver and
+// GpiodLightDriver (planned). No backend library appears in this header.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+
+namespace stage::light {
+
+// Intensity per channel, 0..65535 (16-bit, as LED boards hold it). Index = channel.
+using ChannelLevels = std::vector<uint16_t>;
+
+// The rows a driver steps through, one per pattern; row r applies in slots k with k mod rows == r.
+struct PatternTable {
+  std::string pattern_set;
+  std::vector<std::string> row_names;
+  std::vector<ChannelLevels> rows;
+};
+
+enum class DriverMode {
+  kIdle,      // dark, accepting a table
+  kArmed,     // table verified, stepping on the slot clock
+  kBlackout,  // dark and latched until ResetBlackout()
+};
+
+struct DriverState {
+  DriverMode mode = DriverMode::kIdle;
+  uint32_t channel_count = 0;
+  // Row applied now, or -1 when dark.
+  int current_row = -1;
+  uint64_t steps = 0;
+  // Faults in words ("over-temperature on channel 7"); empty when healthy.
+  std::vector<std::string> faults;
+};
+
+struct DriverDescription {
+  std::string backend;  // "sim", "modbus", "gpiod"
+  std::string device;   // board address, chip name
+  uint32_t channel_count = 0;
+};
+
+class LightDriver {
+ public:
+  virtual ~LightDriver() = default;
+
+  virtual DriverDescription Describe() const = 0;
+
+  // Loads `table` into the controller and reads it back. Only in kIdle. InvalidArgument names the row and channel
+  // of a bad entry (wrong row width); FailedPrecondition in another mode.
+  virtual absl::Status LoadPatternTable(const PatternTable& table) = 0;
+
+  // kIdle -> kArmed: from now on each slot-clock edge steps to the next row. Needs a loaded table.
+  virtual absl::Status Arm() = 0;
+
+  // kArmed -> kIdle, outputs dark.
+  virtual absl::Status Disarm() = 0;
+
+  // All channels off now, from any mode, latched until ResetBlackout(). Must succeed even when the controller is
+  // lost; an error means the hardware could not be reached and the lights may still be on.
+  virtual absl::Status Blackout() = 0;
+  virtual absl::Status ResetBlackout() = 0;
+
+  virtual DriverState State() const = 0;
+};
+
+}  // namespace stage::light

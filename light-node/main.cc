@@ -1,0 +1,46 @@
+// light-node: serves one LED controller group of the stage (the LightNode gRPC service).
+#include "backends.h"
+#include "light_node.h"
+#include "light_service.h"
+#include "stage/common/cli.h"
+#include "stage/common/logging.h"
+#include "stage/common/rig.h"
+#include "stage/common/shutdown.h"
+
+int main(int argc, char** argv) {
+  stage::BlockShutdownSignals();
+  CLI::App app{"Serves one light node of the FaStage rig (LightNode gRPC service and grpc.health.v1).",
+               "light-node"};
+  stage::CommonFlags flags;
+  std::string id;
+  std::string backend_name;
+  stage::AddCommonFlags(app, &flags, /*serves=*/true);
+  app.add_option("--id", id, "Id of this light node in the rig file")->required();
+  app.add_option("--backend", backend_name, "Use this backend instead of the rig's (sim, gpiod, modbus)");
+  if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
+  const char* kProgram = "light-node";
+  if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+
+  auto loaded = stage::LoadRig(flags.config);
+  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  auto entry = stage::FindLightNode(*loaded, id);
+  if (!entry.ok()) return stage::ReportFatal(kProgram, entry.status());
+  const stage::v1::LightNodeConfig& config = **entry;
+  stage::v1::LightBackend backend = config.backend();
+  if (!backend_name.empty()) {
+    auto parsed = stage::light::ParseLightBackend(backend_name);
+    if (!parsed.ok()) return stage::ReportFatal(kProgram, parsed.status());
+    backend = *parsed;
+  }
+  auto driver = stage::light::CreateLightDriver(backend, config);
+  if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
+  auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig));
+  if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
+  stage::Logger("light.node")
+      ->info("{}: {} LED units on {} channels, backend {}, rig {}", config.id(), config.units_size(),
+             config.channel_count(), stage::light::LightBackendName(backend), loaded->source_name);
+
+  stage::light::LightService service(node->get());
+  return stage::ServeUntilSignal(kProgram, flags, config.address().empty() ? "127.0.0.1:0" : config.address(),
+                                 {&service});
+}

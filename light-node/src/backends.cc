@@ -1,0 +1,44 @@
+// Light backend selection.
+#include "backends.h"
+
+#include "absl/strings/str_cat.h"
+#include "stage/sim/sim_light_driver.h"
+
+namespace stage::light {
+
+absl::StatusOr<v1::LightBackend> ParseLightBackend(const std::string& name) {
+  if (name == "sim") return v1::LIGHT_BACKEND_SIM;
+  if (name == "gpiod") return v1::LIGHT_BACKEND_GPIOD;
+  if (name == "modbus") return v1::LIGHT_BACKEND_MODBUS;
+  return absl::InvalidArgumentError(absl::StrCat("unknown light backend \"", name, "\" (sim, gpiod, modbus)"));
+}
+
+std::string LightBackendName(v1::LightBackend backend) {
+  switch (backend) {
+    case v1::LIGHT_BACKEND_SIM:
+      return "sim";
+    case v1::LIGHT_BACKEND_GPIOD:
+      return "gpiod";
+    case v1::LIGHT_BACKEND_MODBUS:
+      return "modbus";
+    default:
+      return "unspecified";
+  }
+}
+
+absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend backend,
+                                                               const v1::LightNodeConfig& config) {
+  switch (backend) {
+    case v1::LIGHT_BACKEND_SIM:
+      return std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count());
+    case v1::LIGHT_BACKEND_GPIOD:
+    case v1::LIGHT_BACKEND_MODBUS:
+      return absl::UnimplementedError(absl::StrCat("light node \"", config.id(), "\": the ",
+                                                   LightBackendName(backend),
+                                                   " backend is not implemented yet; run this node with --backend sim"));
+    default:
+      return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(), "\": backend is not set"));
+  }
+}
+
+}  // namespace stage::light

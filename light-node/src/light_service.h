@@ -1,0 +1,19 @@
+// gRPC LightNode service: translates messages to LightNode calls, nothing more.
+#pragma once
+
+#include "light_node.h"
+#include "stage/v1/light_node.grpc.pb.h"
+
+namespace stage::light {
+
+class LightService final : public v1::LightNode::Service {
+ public:
+  explicit LightService(LightNode* node) : node_(node) {}
+  grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
+  grpc::Status GetStats(grpc::ServerContext*, const v1::GetLightStatsRequest*, v1::LightStats* response) override;
+
+ private:
+  LightNode* node_;
+};
+
+}  // namespace stage::light

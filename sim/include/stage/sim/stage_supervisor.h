@@ -1,0 +1,89 @@
+// Brings a whole simulated stage up on this machine and down again: one camera-node per camera, one light-node per
+// light node, one processing-worker per worker, then stage-controller, all on loopback with ports the kernel picks.
+// Children are tied to the supervisor's life (PR_SET_PDEATHSIG), ended by pid with SIGTERM and, after a grace
+// period, SIGKILL, and always reaped: no orphans, even when a child hangs.
+#pragma once
+
+#include <chrono>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "stage/common/rig.h"
+#include "stage/common/subprocess.h"
+#include "stage/v1/sim.pb.h"
+
+namespace stage::sim {
+
+struct StageSupervisorOptions {
+  // Rig file, or "builtin:fastage".
+  std::string rig = "builtin:fastage";
+  // Directory for the endpoint file, the effective rig, the children's logs and port files.
+  std::string run_dir;
+  // Where camera-node, light-node, processing-worker and stage-controller are.
+  std::string bin_dir;
+  // How long the stage may take to come up (every node serving and seen up by the controller).
+  std::chrono::milliseconds startup_timeout{60000};
+  // Time children get between SIGTERM and SIGKILL.
+  std::chrono::milliseconds grace{3000};
+  // --log-level passed to every child.
+  std::string child_log_level;
+
+  absl::Status Validate() const;
+};
+
+class StageSupervisor {
+ public:
+  explicit StageSupervisor(StageSupervisorOptions options);
+  // Stops whatever is still running.
+  ~StageSupervisor();
+
+  // Starts every node, then the controller; waits until the controller sees every node up; writes the endpoint
+  // file. On failure everything started so far is stopped, and the error names the process and its log.
+  absl::Status Start();
+
+  // Reaps children that exited since the last call and returns a line for each ("camera-node mv-03 (pid 123)
+  // exited: killed by signal 9 (Killed); log: ...").
+  std::vector<std::string> ReapExited();
+
+  // SIGTERM to every child, SIGKILL after the grace period to those still there, reap all, remove the endpoint file.
+  // Returns how many needed SIGKILL.
+  int Stop();
+
+  const v1::SimEndpoints& endpoints() const { return endpoints_; }
+  std::string endpoints_path() const { return options_.run_dir + "/endpoints.json"; }
+  const LoadedRig& rig() const { return rig_; }
+
+ private:
+  struct Child {
+    std::string id;
+    v1::NodeKind kind;
+    std::string program;
+    std::string port_file;
+    std::string log_file;
+    std::string address;
+    std::unique_ptr<Subprocess> process;
+    bool reported = false;
+  };
+
+  absl::Status PrepareRunDir();
+  absl::Status SpawnChild(const std::string& program, const std::string& id, v1::NodeKind kind,
+                          const std::string& config, std::vector<std::string> extra_args);
+  absl::Status WaitForAddresses(std::chrono::steady_clock::time_point deadline);
+  absl::Status WaitForStageUp(std::chrono::steady_clock::time_point deadline);
+  absl::Status WriteEffectiveRig(const std::string& path);
+  absl::Status WriteEndpoints();
+  std::string DescribeExit(const Child& child) const;
+
+  StageSupervisorOptions options_;
+  LoadedRig rig_;
+  std::vector<Child> children_;  // nodes first, the controller last
+  v1::SimEndpoints endpoints_;
+  bool started_ = false;
+};
+
+// The last non-empty line of a text file ("" if none), to quote a child's last words.
+std::string LastLineOf(const std::string& path);
+
+}  // namespace stage::sim

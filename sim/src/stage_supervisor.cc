@@ -1,0 +1,328 @@
+// stage-sim's supervisor: start, watch and stop the processes of a simulated stage.
+#include "stage/sim/stage_supervisor.h"
+
+#include <signal.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/string_view.h"
+#include "absl/strings/strip.h"
+#include "stage/common/logging.h"
+#include "stage/common/node_info.h"
+#include "stage/common/rpc_server.h"
+#include "stage/common/status.h"
+#include "stage/v1/controller.grpc.pb.h"
+
+namespace stage::sim {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string ReadFile(const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+absl::Status WriteFileAtomically(const std::string& path, const std::string& text) {
+  std::string tmp = absl::StrCat(path, ".tmp.", getpid());
+  {
+    std::ofstream out(tmp, std::ios::trunc);
+    out << text;
+    out.close();
+    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+bool ProcessAlive(pid_t pid) { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
+
+}  // namespace
+
+std::string LastLineOf(const std::string& path) {
+  std::string text = ReadFile(path);
+  absl::string_view view = absl::StripTrailingAsciiWhitespace(text);
+  size_t cut = view.rfind('\n');
+  return std::string(cut == absl::string_view::npos ? view : view.substr(cut + 1));
+}
+
+absl::Status StageSupervisorOptions::Validate() const {
+  if (run_dir.empty()) return absl::InvalidArgumentError("run_dir is empty");
+  if (bin_dir.empty()) return absl::InvalidArgumentError("bin_dir is empty");
+  for (const char* program : {"camera-node", "light-node", "processing-worker", "stage-controller"}) {
+    std::string path = absl::StrCat(bin_dir, "/", program);
+    if (access(path.c_str(), X_OK) != 0) {
+      return absl::NotFoundError(absl::StrCat(path, " is missing or not executable (build first, or pass --bin-dir)"));
+    }
+  }
+  if (startup_timeout.count() <= 0) return absl::InvalidArgumentError("startup timeout must be > 0");
+  if (grace.count() < 0) return absl::InvalidArgumentError("grace period must be >= 0");
+  return absl::OkStatus();
+}
+
+StageSupervisor::StageSupervisor(StageSupervisorOptions options) : options_(std::move(options)) {}
+
+StageSupervisor::~StageSupervisor() { Stop(); }
+
+absl::Status StageSupervisor::PrepareRunDir() {
+  std::error_code ec;
+  fs::create_directories(options_.run_dir + "/logs", ec);
+  if (!ec) fs::create_directories(options_.run_dir + "/ports", ec);
+  if (ec) return absl::PermissionDeniedError(absl::StrCat("cannot create ", options_.run_dir, ": ", ec.message()));
+  // Another stage-sim on the same run directory would overwrite its endpoint file: refuse.
+  if (fs::exists(endpoints_path())) {
+    v1::SimEndpoints other;
+    google::protobuf::util::JsonParseOptions parse;
+    parse.ignore_unknown_fields = true;
+    if (google::protobuf::util::JsonStringToMessage(ReadFile(endpoints_path()), &other, parse).ok() &&
+        other.stage_sim_pid() != getpid() && ProcessAlive(other.stage_sim_pid())) {
+      return absl::FailedPreconditionError(absl::StrCat("another stage-sim (pid ", other.stage_sim_pid(),
+                                                        ") is running with run directory ", options_.run_dir,
+                                                        "; stop it or pass --run-dir"));
+    }
+    fs::remove(endpoints_path(), ec);
+  }
+  for (const auto& entry : fs::directory_iterator(options_.run_dir + "/ports", ec)) fs::remove(entry.path(), ec);
+  return absl::OkStatus();
+}
+
+absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::string& id, v1::NodeKind kind,
+                                         const std::string& config, std::vector<std::string> extra_args) {
+  Child child;
+  child.id = id;
+  child.kind = kind;
+  child.program = program;
+  child.port_file = absl::StrCat(options_.run_dir, "/ports/", id, ".addr");
+  child.log_file = absl::StrCat(options_.run_dir, "/logs/", id, ".log");
+  SubprocessOptions sp;
+  sp.argv = {absl::StrCat(options_.bin_dir, "/", program), "--config", config, "--listen", "127.0.0.1:0",
+             "--port-file", child.port_file};
+  if (!options_.child_log_level.empty()) {
+    sp.argv.push_back("--log-level");
+    sp.argv.push_back(options_.child_log_level);
+  }
+  for (std::string& a : extra_args) sp.argv.push_back(std::move(a));
+  sp.stdout_path = child.log_file;
+  sp.stderr_path = child.log_file;
+  auto process = Subprocess::Spawn(sp);
+  if (!process.ok()) return Annotate(process.status(), absl::StrCat("starting ", program, " ", id));
+  child.process = std::move(*process);
+  Logger("sim.stage")->debug("started {} {} (pid {})", program, id, child.process->pid());
+  children_.push_back(std::move(child));
+  return absl::OkStatus();
+}
+
+std::string StageSupervisor::DescribeExit(const Child& child) const {
+  std::string last = LastLineOf(child.log_file);
+  return absl::StrCat(child.program, " ", child.id, " (pid ", child.process->pid(), ") exited: ",
+                      child.process->exit_info()->Describe(), "; log ", child.log_file,
+                      last.empty() ? "" : absl::StrCat(" ends: ", last));
+}
+
+absl::Status StageSupervisor::WaitForAddresses(std::chrono::steady_clock::time_point deadline) {
+  while (true) {
+    size_t pending = 0;
+    for (Child& child : children_) {
+      if (!child.address.empty()) continue;
+      if (child.process->Poll()) {
+        child.reported = true;
+        return absl::UnavailableError(absl::StrCat("before serving, ", DescribeExit(child)));
+      }
+      std::string text = ReadFile(child.port_file);
+      absl::string_view address = absl::StripAsciiWhitespace(text);
+      if (address.empty()) {
+        ++pending;
+      } else {
+        child.address = std::string(address);
+      }
+    }
+    if (pending == 0) return absl::OkStatus();
+    if (std::chrono::steady_clock::now() > deadline) {
+      for (const Child& child : children_) {
+        if (child.address.empty()) {
+          return absl::DeadlineExceededError(absl::StrCat(child.program, " ", child.id, " (pid ",
+                                                          child.process->pid(), ") did not start serving in time; log ",
+                                                          child.log_file));
+        }
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+}
+
+absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
+  v1::RigConfig rig = rig_.rig;
+  auto address_of = [&](const std::string& id) {
+    for (const Child& c : children_) {
+      if (c.id == id) return c.address;
+    }
+    return std::string();
+  };
+  for (auto& c : *rig.mutable_cameras()) c.set_address(address_of(c.id()));
+  for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
+  for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
+  // The controller listens where stage-sim says (--listen), whatever the rig's controller.listen is.
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  print.add_whitespace = true;
+  if (auto s = google::protobuf::util::MessageToJsonString(rig, &json, print); !s.ok()) {
+    return absl::InternalError(absl::StrCat("cannot serialize the effective rig: ", s.message().as_string()));
+  }
+  return WriteFileAtomically(path, json);
+}
+
+absl::Status StageSupervisor::WaitForStageUp(std::chrono::steady_clock::time_point deadline) {
+  const Child& controller = children_.back();
+  auto channel = grpc::CreateChannel(controller.address, grpc::InsecureChannelCredentials());
+  auto stub = v1::StageController::NewStub(channel);
+  auto log = Logger("sim.stage");
+  int last_up = -1;
+  std::string not_up;
+  while (true) {
+    for (Child& child : children_) {
+      if (child.process->Poll()) {
+        child.reported = true;
+        return absl::UnavailableError(absl::StrCat("while the stage came up, ", DescribeExit(child)));
+      }
+    }
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
+    v1::StageStatus status;
+    grpc::Status rpc = stub->GetStageStatus(&context, v1::GetStageStatusRequest(), &status);
+    if (rpc.ok()) {
+      if (status.nodes_up() != last_up) {
+        last_up = status.nodes_up();
+        log->info("{} of {} nodes up", status.nodes_up(), status.nodes_total());
+      }
+      if (status.nodes_up() == status.nodes_total()) return absl::OkStatus();
+      not_up.clear();
+      for (const auto& n : status.nodes()) {
+        if (n.state() != v1::NODE_STATE_UP) {
+          absl::StrAppend(&not_up, not_up.empty() ? "" : ", ", n.id(), " (", NodeStateName(n.state()), ": ",
+                          n.reason(), ")");
+        }
+      }
+    }
+    if (std::chrono::steady_clock::now() > deadline) {
+      return absl::DeadlineExceededError(
+          absl::StrCat("the stage did not come up in time; ",
+                       rpc.ok() ? absl::StrCat("not up: ", not_up)
+                                : absl::StrCat("controller does not answer: ", rpc.error_message())));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+}
+
+absl::Status StageSupervisor::WriteEndpoints() {
+  endpoints_.Clear();
+  endpoints_.set_controller(children_.back().address);
+  endpoints_.set_stage_sim_pid(getpid());
+  endpoints_.set_rig_file(options_.run_dir + "/rig.json");
+  endpoints_.set_log_dir(options_.run_dir + "/logs");
+  for (const Child& c : children_) {
+    auto* p = endpoints_.add_processes();
+    p->set_id(c.id);
+    p->set_kind(c.kind);
+    p->set_address(c.address);
+    p->set_pid(c.process->pid());
+    p->set_log_file(c.log_file);
+  }
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  print.add_whitespace = true;
+  if (auto s = google::protobuf::util::MessageToJsonString(endpoints_, &json, print); !s.ok()) {
+    return absl::InternalError(s.message().as_string());
+  }
+  return WriteFileAtomically(endpoints_path(), json);
+}
+
+absl::Status StageSupervisor::Start() {
+  STAGE_RETURN_IF_ERROR(options_.Validate());
+  STAGE_ASSIGN_OR_RETURN(rig_, LoadRig(options_.rig));
+  STAGE_RETURN_IF_ERROR(PrepareRunDir());
+  started_ = true;
+  auto deadline = std::chrono::steady_clock::now() + options_.startup_timeout;
+  auto fail = [&](absl::Status s) {
+    Stop();
+    return s;
+  };
+  std::string config = options_.rig;
+  if (config != kBuiltinRigName) config = fs::absolute(config).string();
+  // Every device is simulated: the rig's hardware backends are overridden.
+  for (const auto& c : rig_.rig.cameras()) {
+    if (auto s = SpawnChild("camera-node", c.id(), v1::NODE_KIND_CAMERA, config, {"--id", c.id(), "--backend", "sim"});
+        !s.ok()) {
+      return fail(s);
+    }
+  }
+  for (const auto& n : rig_.rig.light_nodes()) {
+    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, {"--id", n.id(), "--backend", "sim"});
+        !s.ok()) {
+      return fail(s);
+    }
+  }
+  for (const auto& w : rig_.rig.processing_workers()) {
+    if (auto s = SpawnChild("processing-worker", w.id(), v1::NODE_KIND_PROCESSING_WORKER, config, {"--id", w.id()});
+        !s.ok()) {
+      return fail(s);
+    }
+  }
+  if (auto s = WaitForAddresses(deadline); !s.ok()) return fail(s);
+  std::string effective = options_.run_dir + "/rig.json";
+  if (auto s = WriteEffectiveRig(effective); !s.ok()) return fail(s);
+  if (auto s = SpawnChild("stage-controller", "controller", v1::NODE_KIND_CONTROLLER, effective, {}); !s.ok()) {
+    return fail(s);
+  }
+  if (auto s = WaitForAddresses(deadline); !s.ok()) return fail(s);
+  if (auto s = WaitForStageUp(deadline); !s.ok()) return fail(s);
+  if (auto s = WriteEndpoints(); !s.ok()) return fail(s);
+  return absl::OkStatus();
+}
+
+std::vector<std::string> StageSupervisor::ReapExited() {
+  std::vector<std::string> lines;
+  for (Child& child : children_) {
+    if (!child.reported && child.process->Poll()) {
+      child.reported = true;
+      lines.push_back(DescribeExit(child));
+    }
+  }
+  return lines;
+}
+
+int StageSupervisor::Stop() {
+  if (!started_) return 0;
+  started_ = false;
+  // Signal everyone first, then wait: stopping 35 processes one after another would take 35 grace periods.
+  for (Child& child : children_) child.process->Signal(SIGTERM);
+  auto deadline = std::chrono::steady_clock::now() + options_.grace;
+  int killed = 0;
+  for (Child& child : children_) {
+    auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    if (child.process->Wait(std::max(left, std::chrono::milliseconds(0)))) continue;
+    Logger("sim.stage")->warn("{} {} (pid {}) did not stop within {} ms of SIGTERM; sending SIGKILL", child.program,
+                              child.id, child.process->pid(), options_.grace.count());
+    child.process->Signal(SIGKILL);
+    child.process->Wait();
+    ++killed;
+  }
+  std::error_code ec;
+  fs::remove(endpoints_path(), ec);
+  return killed;
+}
+
+}  // namespace stage::sim

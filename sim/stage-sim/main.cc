@@ -1,0 +1,126 @@
+// stage-sim: brings a whole simulated FaStage up on this machine, keeps it up until SIGINT/SIGTERM (or until a
+// given command finishes), and takes it down with no process left behind.
+#include "absl/strings/string_view.h"
+#include <signal.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <iostream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/string_view.h"
+#include "stage/common/cli.h"
+#include "stage/common/logging.h"
+#include "stage/common/shutdown.h"
+#include "stage/common/subprocess.h"
+#include "stage/sim/stage_supervisor.h"
+
+namespace {
+
+constexpr const char* kProgram = "stage-sim";
+
+std::string SelfDir() {
+  std::error_code ec;
+  auto self = std::filesystem::read_symlink("/proc/self/exe", ec);
+  return ec ? std::string(".") : self.parent_path().string();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  stage::BlockShutdownSignals(/*include_sigchld=*/true);
+  // Everything after "--" is a command to run once the stage is up.
+  std::vector<std::string> command;
+  int own_argc = argc;
+  for (int i = 1; i < argc; ++i) {
+    if (absl::string_view(argv[i]) == "--") {
+      own_argc = i;
+      for (int j = i + 1; j < argc; ++j) command.emplace_back(argv[j]);
+      break;
+    }
+  }
+
+  CLI::App app{"Brings up a simulated FaStage on this machine (every node on loopback, sim backends), waits until "
+               "every node is up, writes an endpoint file, and keeps the stage up until SIGINT/SIGTERM. With "
+               "'-- COMMAND ARGS...' it runs COMMAND once the stage is up (FASTAGE_ENDPOINTS set), takes the stage "
+               "down when it finishes, and exits with its exit code.",
+               "stage-sim"};
+  stage::CommonFlags flags;
+  stage::sim::StageSupervisorOptions options;
+  options.run_dir = stage::DefaultSimRunDir();
+  options.bin_dir = SelfDir();
+  int startup_timeout_ms = 60000;
+  int grace_ms = 3000;
+  stage::AddCommonFlags(app, &flags, /*serves=*/false);
+  app.add_option("--run-dir", options.run_dir, "Directory for the endpoint file, logs and the effective rig")
+      ->capture_default_str();
+  app.add_option("--bin-dir", options.bin_dir, "Directory holding the node programs")->capture_default_str();
+  app.add_option("--startup-timeout-ms", startup_timeout_ms, "How long the stage may take to come up")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 3600000));
+  app.add_option("--grace-ms", grace_ms, "Time children get between SIGTERM and SIGKILL")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 600000));
+  app.add_option("--child-log-level", options.child_log_level, "--log-level passed to every child");
+  app.footer("Example: stage-sim -- stagectl status");
+  if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
+  if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  options.rig = flags.config;
+  options.startup_timeout = std::chrono::milliseconds(startup_timeout_ms);
+  options.grace = std::chrono::milliseconds(grace_ms);
+  if (!options.child_log_level.empty()) {
+    if (auto s = stage::ValidateLogLevels(options.child_log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  }
+  if (!command.empty()) {
+    if (auto found = stage::FindExecutable(command[0]); !found.ok()) return stage::ReportFatal(kProgram, found.status());
+  }
+
+  auto log = stage::Logger("sim.stage");
+  stage::sim::StageSupervisor supervisor(options);
+  auto started_at = std::chrono::steady_clock::now();
+  log->info("bringing up the simulated stage from {} (run directory {})", options.rig, options.run_dir);
+  if (absl::Status s = supervisor.Start(); !s.ok()) return stage::ReportFatal(kProgram, s);
+  const auto& rig = supervisor.rig().rig;
+  double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started_at).count();
+  std::cerr << absl::StrCat("stage-sim: stage \"", rig.stage().id(), "\" is up in ", static_cast<int>(seconds * 10) / 10.0,
+                            " s: ", rig.cameras_size(), " camera nodes, ", rig.light_nodes_size(), " light nodes, ",
+                            rig.processing_workers_size(), " processing worker(s), controller at ",
+                            supervisor.endpoints().controller(), "; endpoints in ", supervisor.endpoints_path())
+            << std::endl;
+
+  std::unique_ptr<stage::Subprocess> user_command;
+  if (!command.empty()) {
+    stage::SubprocessOptions sp;
+    sp.argv = command;
+    sp.env = {"FASTAGE_ENDPOINTS=" + supervisor.endpoints_path(),
+              "FASTAGE_CONTROLLER=" + supervisor.endpoints().controller()};
+    sp.null_stdin = false;
+    auto spawned = stage::Subprocess::Spawn(sp);
+    if (!spawned.ok()) {
+      supervisor.Stop();
+      return stage::ReportFatal(kProgram, spawned.status());
+    }
+    user_command = std::move(*spawned);
+  }
+
+  int exit_code = 0;
+  while (true) {
+    std::optional<int> sig = stage::WaitForShutdownSignal(std::chrono::milliseconds(200));
+    if (sig && (*sig == SIGINT || *sig == SIGTERM)) {
+      log->info("{} received; taking the stage down", *sig == SIGINT ? "SIGINT" : "SIGTERM");
+      if (user_command) user_command->Terminate(options.grace);
+      break;
+    }
+    for (const std::string& line : supervisor.ReapExited()) log->error("{}", line);
+    if (user_command) {
+      if (auto done = user_command->Poll()) {
+        exit_code = done->signal != 0 ? 128 + done->signal : done->exit_code;
+        break;
+      }
+    }
+  }
+  int killed = supervisor.Stop();
+  std::cerr << "stage-sim: stage down"
+            << (killed > 0 ? absl::StrCat(" (", killed, " process(es) needed SIGKILL)") : std::string()) << std::endl;
+  return exit_code;
+}

@@ -1,0 +1,51 @@
+// stage-controller: owns the rig, watches every node's health, serves the StageController gRPC service.
+#include <iostream>
+
+#include "controller_service.h"
+#include "health_monitor.h"
+#include "stage/common/cli.h"
+#include "stage/common/logging.h"
+#include "stage/common/rig.h"
+#include "stage/common/shutdown.h"
+
+int main(int argc, char** argv) {
+  stage::BlockShutdownSignals();
+  CLI::App app{"The FaStage stage controller: loads the rig, polls every node's health, serves StageController.",
+               "stage-controller"};
+  stage::CommonFlags flags;
+  bool check_only = false;
+  stage::AddCommonFlags(app, &flags, /*serves=*/true);
+  app.add_flag("--check-config", check_only, "Validate the rig file, print every error, and exit");
+  if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
+  const char* kProgram = "stage-controller";
+  if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+
+  stage::RigValidationOptions options;
+  options.require_addresses = true;
+  std::vector<std::string> errors;
+  auto loaded = stage::LoadRig(flags.config, options, &errors);
+  if (check_only) {
+    for (const std::string& e : errors) std::cerr << e << "\n";
+    if (!loaded.ok()) return 2;
+    std::cout << loaded->source_name << ": ok (" << loaded->rig.cameras_size() << " cameras, "
+              << loaded->rig.light_nodes_size() << " light nodes, " << loaded->rig.processing_workers_size()
+              << " processing workers)\n";
+    return 0;
+  }
+  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  const stage::v1::RigConfig& rig = loaded->rig;
+
+  stage::controller::HealthMonitorOptions monitor_options;
+  monitor_options.poll_interval = std::chrono::milliseconds(rig.controller().health_poll_interval_ms());
+  monitor_options.timeout = std::chrono::milliseconds(rig.controller().health_timeout_ms());
+  stage::controller::HealthMonitor monitor(stage::controller::TargetsFromRig(rig), monitor_options);
+  stage::Logger("controller")
+      ->info("stage {} ({}): {} cameras, {} light nodes, {} workers from {}; health poll every {} ms",
+             rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),
+             rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
+  monitor.Start();
+  stage::controller::ControllerService service(rig, &monitor);
+  int code = stage::ServeUntilSignal(kProgram, flags, rig.controller().listen(), {&service});
+  monitor.Stop();
+  return code;
+}

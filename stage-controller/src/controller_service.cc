@@ -1,0 +1,78 @@
+// gRPC StageController service.
+#include "controller_service.h"
+
+#include <algorithm>
+#include <chrono>
+
+#include "stage/common/node_info.h"
+#include "stage/common/rig.h"
+
+namespace stage::controller {
+
+std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig) {
+  std::vector<NodeTarget> targets;
+  for (const auto& c : rig.cameras()) {
+    targets.push_back({c.id(), v1::NODE_KIND_CAMERA,
+                       c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision", c.address()});
+  }
+  for (const auto& n : rig.light_nodes()) targets.push_back({n.id(), v1::NODE_KIND_LIGHT, "", n.address()});
+  for (const auto& w : rig.processing_workers()) {
+    targets.push_back({w.id(), v1::NODE_KIND_PROCESSING_WORKER, "", w.address()});
+  }
+  return targets;
+}
+
+ControllerService::ControllerService(const v1::RigConfig& rig, HealthMonitor* monitor)
+    : stage_id_(rig.stage().id()), stage_name_(rig.stage().name()), rig_hash_(RigHash(rig)), monitor_(monitor) {}
+
+v1::StageStatus ControllerService::Status() const {
+  v1::StageStatus status;
+  status.set_stage_id(stage_id_);
+  status.set_stage_name(stage_name_);
+  status.set_time_unix_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(
+                              std::chrono::system_clock::now().time_since_epoch())
+                              .count());
+  int up = 0;
+  for (v1::NodeStatus& node : monitor_->Snapshot()) {
+    if (node.state() == v1::NODE_STATE_UP) ++up;
+    *status.add_nodes() = std::move(node);
+  }
+  status.set_nodes_up(up);
+  status.set_nodes_total(status.nodes_size());
+  status.set_session_state("idle");
+  *status.mutable_controller() = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
+  return status;
+}
+
+grpc::Status ControllerService::GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) {
+  *response = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::GetStageStatus(grpc::ServerContext*, const v1::GetStageStatusRequest*,
+                                               v1::StageStatus* response) {
+  *response = Status();
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
+                                                 const v1::WatchStageStatusRequest* request,
+                                                 grpc::ServerWriter<v1::StageStatus>* writer) {
+  auto heartbeat = std::chrono::milliseconds(request->heartbeat_ms() == 0 ? 1000 : std::max(50u, request->heartbeat_ms()));
+  // Wake at least this often to notice a cancelled call or a shutting-down server.
+  auto tick = std::min<std::chrono::milliseconds>(heartbeat, std::chrono::milliseconds(200));
+  uint64_t seen = monitor_->generation();
+  auto last_sent = std::chrono::steady_clock::now();
+  if (!writer->Write(Status())) return grpc::Status::OK;
+  while (!context->IsCancelled()) {
+    uint64_t now_gen = monitor_->WaitForChange(seen, tick);
+    auto now = std::chrono::steady_clock::now();
+    if (now_gen == seen && now - last_sent < heartbeat) continue;
+    seen = now_gen;
+    last_sent = now;
+    if (!writer->Write(Status())) break;  // the client went away
+  }
+  return grpc::Status::OK;
+}
+
+}  // namespace stage::controller
