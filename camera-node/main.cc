@@ -33,13 +33,12 @@ int main(int argc, char** argv) {
   if (!device.ok()) return stage::ReportFatal(kProgram, device.status());
   auto node = stage::camera::CameraNode::Create(config, std::move(*device), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
-  stage::Logger("camera.node")
-      ->info("{}: {} camera, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}", config.id(),
-             (*node)->Info().role(), config.width(), config.height(),
-             stage::camera::PixelFormatName(config.pixel_format()), config.frame_rate_hz(), config.exposure_us(),
-             backend, loaded->source_name);
+  std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
+                                    config.id(), (*node)->Info().role(), config.width(), config.height(),
+                                    stage::camera::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),
+                                    config.exposure_us(), backend, loaded->source_name);
 
   stage::camera::CameraService service(node->get());
   return stage::ServeUntilSignal(kProgram, flags, config.address().empty() ? "127.0.0.1:0" : config.address(),
-                                 {&service});
+                                 {&service}, summary);
 }

@@ -25,9 +25,10 @@ int main(int argc, char** argv) {
   if (!entry.ok()) return stage::ReportFatal(kProgram, entry.status());
   const stage::v1::ProcessingWorkerConfig& config = **entry;
   uint32_t threads = config.threads() > 0 ? config.threads() : std::max(1u, std::thread::hardware_concurrency());
-  stage::Logger("processing.worker")->info("{}: {} threads, rig {}", config.id(), threads, loaded->source_name);
+  std::string summary =
+      fmt::format("processing worker {}: {} threads, rig {}", config.id(), threads, loaded->source_name);
 
   stage::processing::WorkerService service(config.id(), stage::RigHash(loaded->rig), threads);
   return stage::ServeUntilSignal(kProgram, flags, config.address().empty() ? "127.0.0.1:0" : config.address(),
-                                 {&service});
+                                 {&service}, summary);
 }

@@ -61,7 +61,7 @@ int ReportFatal(absl::string_view program, const absl::Status& status) {
 }
 
 int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
-                     const std::vector<grpc::Service*>& services) {
+                     const std::vector<grpc::Service*>& services, const std::string& summary) {
   RpcServerOptions options;
   options.listen = flags.listen.empty() ? default_listen : flags.listen;
   auto server = RpcServer::Start(options, services);
@@ -72,7 +72,7 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
       return ReportFatal(program, s);
     }
   }
-  log->info("serving on {}", (*server)->address());
+  log->info("serving on {}: {}", (*server)->address(), summary);
   std::optional<int> sig = WaitForShutdownSignal();
   log->info("{} received; shutting down", sig && *sig == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->Shutdown();

@@ -3,7 +3,7 @@
 
 #include <time.h>
 
-#include <cerrno>
+#include <chrono>
 
 namespace stage {
 namespace {
@@ -22,13 +22,30 @@ int64_t RealClock::NowNs() const {
   return static_cast<int64_t>(ts.tv_sec) * kNsPerSec + ts.tv_nsec;
 }
 
-void RealClock::SleepUntilNs(int64_t t_ns) {
-  timespec ts;
-  ts.tv_sec = t_ns / kNsPerSec;
-  ts.tv_nsec = t_ns % kNsPerSec;
-  // Absolute sleeps do not accumulate drift; restart after signals.
-  while (clock_nanosleep(ClockId(kind_), TIMER_ABSTIME, &ts, nullptr) == EINTR) {
+bool RealClock::SleepUntilNs(int64_t t_ns) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  const uint64_t interrupts = interrupts_;
+  // Absolute deadlines on the same clock, so sleeps do not accumulate drift. libstdc++ waits on CLOCK_MONOTONIC for
+  // steady_clock and CLOCK_REALTIME for system_clock, the clocks NowNs() reads.
+  while (true) {
+    if (interrupts_ != interrupts) return false;
+    if (NowNs() >= t_ns) return true;
+    if (kind_ == Kind::kMonotonic) {
+      wake_.wait_until(lock, std::chrono::steady_clock::time_point(std::chrono::nanoseconds(t_ns)));
+    } else {
+      wake_.wait_until(lock, std::chrono::system_clock::time_point(
+                                 std::chrono::duration_cast<std::chrono::system_clock::duration>(
+                                     std::chrono::nanoseconds(t_ns))));
+    }
   }
+}
+
+void RealClock::Interrupt() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++interrupts_;
+  }
+  wake_.notify_all();
 }
 
 int64_t SimClock::NowNs() const {
@@ -36,12 +53,21 @@ int64_t SimClock::NowNs() const {
   return now_ns_;
 }
 
-void SimClock::SleepUntilNs(int64_t t_ns) {
+bool SimClock::SleepUntilNs(int64_t t_ns) {
   std::unique_lock<std::mutex> lock(mutex_);
+  const uint64_t interrupts = interrupts_;
   ++sleepers_;
-  changed_.notify_all();  // a test may be waiting for sleepers() to change
-  changed_.wait(lock, [&] { return now_ns_ >= t_ns; });
+  changed_.wait(lock, [&] { return now_ns_ >= t_ns || interrupts_ != interrupts; });
   --sleepers_;
+  return now_ns_ >= t_ns;
+}
+
+void SimClock::Interrupt() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++interrupts_;
+  }
+  changed_.notify_all();
 }
 
 void SimClock::AdvanceTo(int64_t t_ns) {

@@ -8,6 +8,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_split.h"
+#include <grpc/support/log.h>
+
 #include "spdlog/cfg/helpers.h"
 #include "spdlog/sinks/stdout_color_sinks.h"
 #include "spdlog/spdlog.h"
@@ -22,6 +24,17 @@ spdlog::sink_ptr Sink() {
   std::lock_guard<std::mutex> lock(g_mutex);
   if (!g_sink) g_sink = std::make_shared<spdlog::sinks::stderr_color_sink_mt>();
   return g_sink;
+}
+
+// gRPC's own log lines (gpr_log) go to the "grpc" logger, so they share the format and the level settings. gRPC
+// reports failures to its caller too, and FaStage reports those itself: the "grpc" logger is quiet (error) unless
+// a level spec names it (SPDLOG_LEVEL=grpc=debug).
+void GrpcLogToSpdlog(gpr_log_func_args* args) {
+  static auto logger = Logger("grpc");
+  spdlog::level::level_enum level = spdlog::level::debug;
+  if (args->severity == GPR_LOG_SEVERITY_ERROR) level = spdlog::level::warn;
+  if (args->severity == GPR_LOG_SEVERITY_INFO) level = spdlog::level::info;
+  logger->log(level, "{} ({}:{})", args->message, args->file, args->line);
 }
 
 }  // namespace
@@ -53,6 +66,13 @@ absl::Status InitLogging(absl::string_view program, absl::string_view levels) {
   if (env != nullptr && ValidateLogLevels(env).ok()) spec = env;
   if (!levels.empty()) spec = spec.empty() ? std::string(levels) : absl::StrCat(spec, ",", levels);
   if (!spec.empty()) spdlog::cfg::helpers::load_levels(spec);
+  if (spec.find("grpc=") == std::string::npos) Logger("grpc")->set_level(spdlog::level::err);
+  // Let gRPC format only what the "grpc" logger will print.
+  auto grpc_level = Logger("grpc")->level();
+  gpr_set_log_verbosity(grpc_level <= spdlog::level::debug  ? GPR_LOG_SEVERITY_DEBUG
+                        : grpc_level <= spdlog::level::info ? GPR_LOG_SEVERITY_INFO
+                                                            : GPR_LOG_SEVERITY_ERROR);
+  gpr_set_log_function(GrpcLogToSpdlog);
   if (env != nullptr && !ValidateLogLevels(env).ok()) {
     spdlog::warn("ignoring SPDLOG_LEVEL=\"{}\": not a valid level spec", env);
   }

@@ -31,6 +31,7 @@ absl::Status RpcServerOptions::Validate() const {
 absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptions& options,
                                                             const std::vector<grpc::Service*>& services) {
   STAGE_RETURN_IF_ERROR(options.Validate());
+  if (services.empty()) return absl::InvalidArgumentError("RpcServer needs at least one service");
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
   int port = 0;

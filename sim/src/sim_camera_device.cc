@@ -73,6 +73,7 @@ absl::Status SimCameraDevice::Stop() {
     running_ = false;
   }
   wake_.notify_all();
+  clock_->Interrupt();  // a free-running acquisition sleeps on the clock
   if (thread_.joinable()) thread_.join();
   sink_ = nullptr;
   return absl::OkStatus();
@@ -98,9 +99,10 @@ void SimCameraDevice::Run() {
   while (true) {
     int64_t start_ns;
     if (s.trigger == camera::TriggerMode::kFreeRun) {
-      clock_->SleepUntilNs(next_ns);
+      bool reached = clock_->SleepUntilNs(next_ns);
       std::lock_guard<std::mutex> lock(mutex_);
       if (!running_) return;
+      if (!reached) continue;
       start_ns = next_ns;
       next_ns += period_ns;
     } else {

@@ -254,6 +254,8 @@ absl::Status StageSupervisor::Start() {
   STAGE_RETURN_IF_ERROR(options_.Validate());
   STAGE_ASSIGN_OR_RETURN(rig_, LoadRig(options_.rig));
   STAGE_RETURN_IF_ERROR(PrepareRunDir());
+  Logger("sim.stage")->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(),
+                            rig_.source_name, options_.run_dir);
   started_ = true;
   auto deadline = std::chrono::steady_clock::now() + options_.startup_timeout;
   auto fail = [&](absl::Status s) {

@@ -78,7 +78,6 @@ int main(int argc, char** argv) {
   auto log = stage::Logger("sim.stage");
   stage::sim::StageSupervisor supervisor(options);
   auto started_at = std::chrono::steady_clock::now();
-  log->info("bringing up the simulated stage from {} (run directory {})", options.rig, options.run_dir);
   if (absl::Status s = supervisor.Start(); !s.ok()) return stage::ReportFatal(kProgram, s);
   const auto& rig = supervisor.rig().rig;
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started_at).count();

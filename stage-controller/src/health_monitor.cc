@@ -37,6 +37,19 @@ grpc::Status CallGetInfo(v1::NodeKind kind, const std::shared_ptr<grpc::Channel>
   }
 }
 
+// True when the transport says plainly that no process serves the address (refused, or the connection was closed or
+// reset under the call: a crashed or killed node). Other transport failures (a peer that accepts TCP but never
+// completes the HTTP/2 handshake, routing errors) mean the node may exist but cannot be reached. gRPC reports both as
+// UNAVAILABLE and tells them apart only in words; health_monitor_test pins these words against real peers.
+bool IsNothingListening(const grpc::Status& rpc) {
+  if (rpc.error_code() != grpc::StatusCode::UNAVAILABLE) return true;
+  const std::string& m = rpc.error_message();
+  for (const char* word : {"Connection refused", "Socket closed", "Connection reset", "Broken pipe", "End of TCP"}) {
+    if (m.find(word) != std::string::npos) return true;
+  }
+  return false;
+}
+
 }  // namespace
 
 struct HealthMonitor::Node {
@@ -150,7 +163,7 @@ void HealthMonitor::Poll(size_t index) {
       state = v1::NODE_STATE_UNREACHABLE;
       reason = absl::StrCat("no answer within ", options_.timeout.count(), " ms");
     } else {
-      state = v1::NODE_STATE_DOWN;
+      state = IsNothingListening(rpc) ? v1::NODE_STATE_DOWN : v1::NODE_STATE_UNREACHABLE;
       reason = rpc.error_message();
     }
 

@@ -42,9 +42,10 @@ std::optional<int> ParseCommandLine(CLI::App& app, int argc, char** argv);
 int ReportFatal(absl::string_view program, const absl::Status& status);
 
 // Serves `services` on flags.listen (or `default_listen` when the flag is empty) until SIGINT or SIGTERM, writing
-// flags.port_file once serving; then shuts down gracefully. Returns the process exit code. Call
-// BlockShutdownSignals() first thing in main().
+// flags.port_file once serving; then shuts down gracefully. Once serving it logs "serving on ADDRESS: <summary>"
+// (the effective configuration in a line). Returns the process exit code. Call BlockShutdownSignals() first thing
+// in main().
 int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
-                     const std::vector<grpc::Service*>& services);
+                     const std::vector<grpc::Service*>& services, const std::string& summary);
 
 }  // namespace stage

@@ -13,8 +13,11 @@ class Clock {
   virtual ~Clock() = default;
   // Current time, ns. Monotonic: never goes backwards. Thread-safe.
   virtual int64_t NowNs() const = 0;
-  // Blocks the calling thread until NowNs() >= t_ns. Returns at once if that time has passed.
-  virtual void SleepUntilNs(int64_t t_ns) = 0;
+  // Blocks the calling thread until NowNs() >= t_ns (returns true) or until Interrupt() is called (returns false;
+  // the caller re-checks whatever it waits for). Returns true at once if that time has passed.
+  virtual bool SleepUntilNs(int64_t t_ns) = 0;
+  // Wakes every thread sleeping in SleepUntilNs now, so that a worker can notice it is being stopped.
+  virtual void Interrupt() = 0;
 };
 
 // The host's clock. `kMonotonic` (CLOCK_MONOTONIC) for intervals and deadlines, `kRealtime` (CLOCK_REALTIME,
@@ -24,10 +27,14 @@ class RealClock final : public Clock {
   enum class Kind { kMonotonic, kRealtime };
   explicit RealClock(Kind kind = Kind::kMonotonic) : kind_(kind) {}
   int64_t NowNs() const override;
-  void SleepUntilNs(int64_t t_ns) override;
+  bool SleepUntilNs(int64_t t_ns) override;
+  void Interrupt() override;
 
  private:
   Kind kind_;
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  uint64_t interrupts_ = 0;  // guarded by mutex_
 };
 
 // A virtual clock that moves only when told to. Sleepers wake when the time they wait for is reached.
@@ -35,7 +42,8 @@ class SimClock final : public Clock {
  public:
   explicit SimClock(int64_t start_ns = 0) : now_ns_(start_ns) {}
   int64_t NowNs() const override;
-  void SleepUntilNs(int64_t t_ns) override;
+  bool SleepUntilNs(int64_t t_ns) override;
+  void Interrupt() override;
   // Moves time forward to `t_ns` (ignored if that is in the past) and wakes the sleepers it releases.
   void AdvanceTo(int64_t t_ns);
   void Advance(int64_t delta_ns);
@@ -47,6 +55,7 @@ class SimClock final : public Clock {
   std::condition_variable changed_;
   int64_t now_ns_;   // guarded by mutex_
   int sleepers_ = 0;  // guarded by mutex_
+  uint64_t interrupts_ = 0;  // guarded by mutex_
 };
 
 }  // namespace stage

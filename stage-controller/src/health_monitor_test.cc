@@ -1,0 +1,145 @@
+// HealthMonitor against real gRPC servers on loopback: up, down (nothing listening / server stopped), unreachable
+// (a socket that accepts but never answers), and the wrong node at an address.
+#include "health_monitor.h"
+
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <thread>
+
+#include "camera_node.h"
+#include "camera_service.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/common/clock.h"
+#include "stage/common/rig.h"
+#include "stage/common/rpc_server.h"
+#include "stage/sim/sim_camera_device.h"
+
+namespace stage::controller {
+namespace {
+
+using ::testing::HasSubstr;
+
+// A camera node served on a real port.
+struct ServedCamera {
+  explicit ServedCamera(const std::string& id) {
+    auto rig = LoadRig(kBuiltinRigName);
+    v1::CameraConfig config = rig->rig.cameras(0);
+    config.set_id(id);
+    node = std::move(*camera::CameraNode::Create(config, std::make_unique<sim::SimCameraDevice>(&clock, id), ""));
+    service = std::make_unique<camera::CameraService>(node.get());
+    server = std::move(*RpcServer::Start({.listen = "127.0.0.1:0"}, {service.get()}));
+  }
+  SimClock clock;
+  std::unique_ptr<camera::CameraNode> node;
+  std::unique_ptr<camera::CameraService> service;
+  std::unique_ptr<RpcServer> server;
+};
+
+// A TCP socket that listens but never accepts: connections complete in the kernel and then hear nothing.
+struct SilentSocket {
+  SilentSocket() {
+    fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr));
+    listen(fd, 16);
+    socklen_t len = sizeof(addr);
+    getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len);
+    address = "127.0.0.1:" + std::to_string(ntohs(addr.sin_port));
+  }
+  ~SilentSocket() { close(fd); }
+  int fd;
+  std::string address;
+};
+
+// A port with nothing listening: bind, read the port, close.
+std::string ClosedPortAddress() {
+  SilentSocket s;
+  return s.address;
+}
+
+// Polls the snapshot until `pred` holds for node `index` or 10 s pass.
+v1::NodeStatus WaitFor(const HealthMonitor& monitor, size_t index, v1::NodeState state) {
+  auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (std::chrono::steady_clock::now() < deadline) {
+    v1::NodeStatus s = monitor.Snapshot()[index];
+    if (s.state() == state) return s;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return monitor.Snapshot()[index];
+}
+
+HealthMonitorOptions Fast() { return {std::chrono::milliseconds(50), std::chrono::milliseconds(300)}; }
+
+TEST(HealthMonitorTest, ReportsUpWithInfoAndDownWithReason) {
+  ServedCamera camera("cam-a");
+  std::string closed = ClosedPortAddress();
+  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, "machine-vision", camera.server->address()},
+                         {"cam-b", v1::NODE_KIND_CAMERA, "machine-vision", closed}},
+                        Fast());
+  EXPECT_EQ(monitor.Snapshot()[0].state(), v1::NODE_STATE_UNKNOWN);
+  monitor.Start();
+  v1::NodeStatus up = WaitFor(monitor, 0, v1::NODE_STATE_UP);
+  EXPECT_EQ(up.state(), v1::NODE_STATE_UP);
+  EXPECT_EQ(up.version(), "0.1.0");
+  EXPECT_EQ(up.backend(), "sim");
+  EXPECT_EQ(up.pid(), getpid());
+  EXPECT_GT(up.rtt_ns(), 0);
+  EXPECT_GT(up.last_seen_unix_ns(), 0);
+  EXPECT_EQ(up.reason(), "");
+  v1::NodeStatus down = WaitFor(monitor, 1, v1::NODE_STATE_DOWN);
+  EXPECT_EQ(down.state(), v1::NODE_STATE_DOWN);
+  EXPECT_FALSE(down.reason().empty());
+  EXPECT_EQ(down.last_seen_unix_ns(), 0);
+}
+
+TEST(HealthMonitorTest, NodeThatStopsIsSeenDownAndChangesGeneration) {
+  ServedCamera camera("cam-a");
+  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, "", camera.server->address()}}, Fast());
+  monitor.Start();
+  ASSERT_EQ(WaitFor(monitor, 0, v1::NODE_STATE_UP).state(), v1::NODE_STATE_UP);
+  uint64_t generation = monitor.generation();
+  camera.server->Shutdown();
+  EXPECT_NE(monitor.WaitForChange(generation, std::chrono::seconds(10)), generation);
+  v1::NodeStatus down = WaitFor(monitor, 0, v1::NODE_STATE_DOWN);
+  EXPECT_EQ(down.state(), v1::NODE_STATE_DOWN);
+  // What it knew of the node stays visible while it is down.
+  EXPECT_EQ(down.version(), "0.1.0");
+}
+
+TEST(HealthMonitorTest, SilentPeerIsUnreachableNotDown) {
+  SilentSocket silent;
+  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, "", silent.address}}, Fast());
+  monitor.Start();
+  v1::NodeStatus s = WaitFor(monitor, 0, v1::NODE_STATE_UNREACHABLE);
+  EXPECT_EQ(s.state(), v1::NODE_STATE_UNREACHABLE);
+  // It stays unreachable over later polls (time-outs and failed handshakes alike); it never reads as down.
+  for (int i = 0; i < 20; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    EXPECT_EQ(monitor.Snapshot()[0].state(), v1::NODE_STATE_UNREACHABLE) << monitor.Snapshot()[0].reason();
+  }
+}
+
+TEST(HealthMonitorTest, WrongNodeAtTheAddressIsNotUp) {
+  ServedCamera camera("cam-a");
+  HealthMonitor monitor({{"cam-z", v1::NODE_KIND_CAMERA, "", camera.server->address()}}, Fast());
+  monitor.Start();
+  v1::NodeStatus s = WaitFor(monitor, 0, v1::NODE_STATE_DOWN);
+  EXPECT_THAT(s.reason(), HasSubstr("another node answers"));
+}
+
+TEST(HealthMonitorTest, StopReturnsPromptly) {
+  SilentSocket silent;
+  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, "", silent.address}}, Fast());
+  monitor.Start();
+  monitor.Stop();
+  monitor.Stop();  // idempotent
+  SUCCEED();
+}
+
+}  // namespace
+}  // namespace stage::controller

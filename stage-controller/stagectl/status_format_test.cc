@@ -1,0 +1,66 @@
+// stagectl's table and JSON.
+#include "status_format.h"
+
+#include <nlohmann/json.hpp>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+
+namespace stage::stagectl {
+namespace {
+
+using ::testing::HasSubstr;
+
+v1::StageStatus Example() {
+  v1::StageStatus s;
+  s.set_stage_id("fastage");
+  s.set_stage_name("FaStage");
+  s.set_session_state("idle");
+  s.set_nodes_total(2);
+  s.set_nodes_up(1);
+  auto* a = s.add_nodes();
+  a->set_id("mv-01");
+  a->set_kind(v1::NODE_KIND_CAMERA);
+  a->set_role("machine-vision");
+  a->set_address("127.0.0.1:5000");
+  a->set_state(v1::NODE_STATE_UP);
+  a->set_version("0.1.0");
+  a->set_backend("sim");
+  a->set_rtt_ns(250000);
+  a->set_last_seen_unix_ns(1'000'000'000);
+  auto* b = s.add_nodes();
+  b->set_id("lights-1");
+  b->set_kind(v1::NODE_KIND_LIGHT);
+  b->set_address("127.0.0.1:5001");
+  b->set_state(v1::NODE_STATE_DOWN);
+  b->set_reason("Connection refused");
+  return s;
+}
+
+TEST(StatusFormatTest, TableShowsEveryNodeAndTheSummary) {
+  std::string table = FormatStatusTable(Example(), 1'500'000'000, /*color=*/false);
+  EXPECT_THAT(table, HasSubstr("Stage fastage (FaStage): 1 of 2 nodes up"));
+  EXPECT_THAT(table, HasSubstr("mv-01"));
+  EXPECT_THAT(table, HasSubstr("camera MV"));
+  EXPECT_THAT(table, HasSubstr("0.25 ms"));
+  EXPECT_THAT(table, HasSubstr("500 ms ago"));
+  EXPECT_THAT(table, HasSubstr("Connection refused"));
+  EXPECT_THAT(table, HasSubstr("1 node is not up."));
+  EXPECT_EQ(table.find("\033["), std::string::npos);
+  EXPECT_THAT(FormatStatusTable(Example(), 0, /*color=*/true), HasSubstr("\033[31mdown\033[0m"));
+}
+
+TEST(StatusFormatTest, JsonUsesWordsForStatesAndKinds) {
+  auto j = nlohmann::json::parse(StatusToJson(Example()));
+  EXPECT_EQ(j["stage"]["id"], "fastage");
+  EXPECT_EQ(j["summary"]["nodes_up"], 1);
+  ASSERT_EQ(j["nodes"].size(), 2u);
+  EXPECT_EQ(j["nodes"][0]["state"], "up");
+  EXPECT_EQ(j["nodes"][0]["kind"], "camera");
+  EXPECT_EQ(j["nodes"][0]["rtt_ns"], 250000);
+  EXPECT_EQ(j["nodes"][1]["state"], "down");
+  EXPECT_EQ(j["nodes"][1]["reason"], "Connection refused");
+}
+
+}  // namespace
+}  // namespace stage::stagectl

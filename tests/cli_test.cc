@@ -1,0 +1,138 @@
+// Every program, given bad arguments or a bad rig, prints one line naming the problem and exits non-zero; never a
+// crash, a hang or a wall of text. --help and --version work everywhere.
+#include <string>
+#include <vector>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "test_support.h"
+
+namespace stage::testing {
+namespace {
+
+using ::testing::HasSubstr;
+using ::testing::StartsWith;
+
+constexpr auto kTimeout = std::chrono::seconds(20);
+
+const std::vector<std::string> kPrograms = {"stage-controller", "camera-node", "light-node", "processing-worker",
+                                            "stagectl", "stage-sim"};
+
+// One line of stderr, exit code `code`, not killed by a signal, not timed out.
+void ExpectOneLineError(const CommandResult& r, int code, const std::string& must_contain) {
+  EXPECT_FALSE(r.timed_out);
+  EXPECT_EQ(r.exit.signal, 0) << r.exit.Describe();
+  EXPECT_EQ(r.exit.exit_code, code) << r.err;
+  ASSERT_FALSE(r.err.empty());
+  EXPECT_EQ(r.err.back(), '\n');
+  EXPECT_EQ(r.err.find('\n'), r.err.size() - 1) << "more than one line:\n" << r.err;
+  EXPECT_THAT(r.err, HasSubstr(must_contain));
+}
+
+class EveryProgram : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(EveryProgram, HelpAndVersion) {
+  CommandResult help = RunCommand({GetParam(), "--help"}, kTimeout);
+  EXPECT_EQ(help.exit.exit_code, 0);
+  EXPECT_THAT(help.out, HasSubstr("--help"));
+  CommandResult version = RunCommand({GetParam(), "--version"}, kTimeout);
+  EXPECT_EQ(version.exit.exit_code, 0);
+  EXPECT_THAT(version.out, HasSubstr("(FaStage) 0.1.0"));
+}
+
+TEST_P(EveryProgram, UnknownFlag) {
+  ExpectOneLineError(RunCommand({GetParam(), "--no-such-flag"}, kTimeout), 2, GetParam() + ": error:");
+}
+
+INSTANTIATE_TEST_SUITE_P(Cli, EveryProgram, ::testing::ValuesIn(kPrograms),
+                         [](const auto& param_info) {
+                           std::string name = param_info.param;
+                           for (char& c : name) {
+                             if (c == '-') c = '_';
+                           }
+                           return name;
+                         });
+
+TEST(CliTest, MissingRigFile) {
+  for (const std::string program : {"stage-controller", "stage-sim"}) {
+    ExpectOneLineError(RunCommand({program, "--config", "/nonexistent/rig.yaml"}, kTimeout), 2,
+                       "/nonexistent/rig.yaml: cannot read rig file");
+  }
+  ExpectOneLineError(RunCommand({"camera-node", "--config", "/nonexistent/rig.yaml", "--id", "mv-01"}, kTimeout), 2,
+                     "/nonexistent/rig.yaml: cannot read rig file");
+}
+
+TEST(CliTest, BadRigNamesFileLineAndField) {
+  TempDir dir;
+  std::string rig = dir.Write("bad.yaml", "stage:\n  id: s\ncameras:\n  - id: c\n    role: high-speed\n"
+                                          "    width: zero\n");
+  CommandResult r = RunCommand({"light-node", "--config", rig, "--id", "x"}, kTimeout);
+  ExpectOneLineError(r, 2, "bad.yaml:6:12: cameras[0].width: \"zero\" is not an integer >= 0");
+  EXPECT_THAT(r.err, StartsWith("light-node: error: "));
+}
+
+TEST(CliTest, NodeIdNotInRig) {
+  ExpectOneLineError(RunCommand({"camera-node", "--id", "mv-99"}, kTimeout), 2,
+                     "camera \"mv-99\" is not in fastage.yaml (built in)");
+  ExpectOneLineError(RunCommand({"light-node", "--id", "mv-01"}, kTimeout), 2, "light node \"mv-01\" is not in");
+  ExpectOneLineError(RunCommand({"processing-worker", "--id", "w"}, kTimeout), 2, "processing worker \"w\"");
+}
+
+TEST(CliTest, RequiredIdMissing) {
+  ExpectOneLineError(RunCommand({"camera-node"}, kTimeout), 2, "--id is required");
+}
+
+TEST(CliTest, UnknownBackend) {
+  ExpectOneLineError(RunCommand({"light-node", "--id", "lights-gpio-1", "--backend", "dmx"}, kTimeout), 2,
+                     "unknown light backend \"dmx\"");
+  ExpectOneLineError(RunCommand({"camera-node", "--id", "mv-01", "--backend", "usb"}, kTimeout), 2,
+                     "camera \"mv-01\": unknown backend \"usb\"");
+}
+
+TEST(CliTest, UnimplementedHardwareBackendFailsLoudly) {
+  // The rig says aravis for mv-01: without --backend sim the node must refuse, not quietly simulate.
+  ExpectOneLineError(RunCommand({"camera-node", "--id", "mv-01"}, kTimeout), 1, "aravis backend is not implemented");
+}
+
+TEST(CliTest, BadListenAddress) {
+  ExpectOneLineError(
+      RunCommand({"camera-node", "--id", "mv-01", "--backend", "sim", "--listen", "not-an-address"}, kTimeout), 2,
+      "listen: \"not-an-address\" is not host:port");
+  ExpectOneLineError(
+      RunCommand({"camera-node", "--id", "mv-01", "--backend", "sim", "--listen", "192.0.2.1:0"}, kTimeout), 1,
+      "cannot listen on 192.0.2.1:0");
+}
+
+TEST(CliTest, BadLogLevel) {
+  ExpectOneLineError(RunCommand({"processing-worker", "--id", "worker-1", "--log-level", "chatty"}, kTimeout), 2,
+                     "log level \"chatty\" is not one of");
+}
+
+TEST(CliTest, ControllerNeedsAddresses) {
+  CommandResult r = RunCommand({"stage-controller"}, kTimeout);
+  ExpectOneLineError(r, 2, "cameras[0].address: required by stage-controller");
+  EXPECT_THAT(r.err, HasSubstr("more errors)"));
+}
+
+TEST(CliTest, StagectlWithoutController) {
+  TempDir dir;
+  ExpectOneLineError(RunCommand({"stagectl", "--endpoints", dir.path() + "/none.json", "status"}, kTimeout), 2,
+                     "no controller address");
+  ExpectOneLineError(RunCommand({"stagectl", "--controller", "127.0.0.1:1", "--timeout-ms", "500", "status"}, kTimeout),
+                     1, "controller at 127.0.0.1:1");
+  std::string garbage = dir.Write("e.json", "{not json");
+  ExpectOneLineError(RunCommand({"stagectl", "--endpoints", garbage, "status"}, kTimeout), 2,
+                     "not a stage-sim endpoint file");
+  ExpectOneLineError(RunCommand({"stagectl"}, kTimeout), 2, "stagectl: error:");
+}
+
+TEST(CliTest, StageSimBadCommandAndBinDir) {
+  TempDir dir;
+  ExpectOneLineError(RunCommand({"stage-sim", "--run-dir", dir.path(), "--", "no-such-command-fastage"}, kTimeout), 2,
+                     "no-such-command-fastage: not found in PATH");
+  ExpectOneLineError(RunCommand({"stage-sim", "--run-dir", dir.path(), "--bin-dir", dir.path()}, kTimeout), 2,
+                     "camera-node is missing or not executable");
+}
+
+}  // namespace
+}  // namespace stage::testing

@@ -1,0 +1,181 @@
+// The full FaStage rig under stage-sim, as a user runs it: every node up in `stagectl status --json`; a camera node
+// killed with SIGKILL is reported down within 1 s while the rest stay up; stopping the stage leaves no process, even
+// one that hangs (SIGSTOP) and ignores SIGTERM.
+#include <signal.h>
+#include <sys/stat.h>
+
+#include <chrono>
+#include <filesystem>
+#include <thread>
+
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
+#include <nlohmann/json.hpp>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/v1/controller.grpc.pb.h"
+#include "stage/v1/sim.pb.h"
+#include "test_support.h"
+
+namespace stage::testing {
+namespace {
+
+bool Alive(pid_t pid) { return kill(pid, 0) == 0; }
+
+int64_t UnixNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+class StageSimTest : public ::testing::Test {
+ protected:
+  void StartStage(std::vector<std::string> extra = {}) {
+    std::vector<std::string> argv = {BinDir() + "/stage-sim", "--run-dir", run_dir_.path(), "--grace-ms", "1500"};
+    for (auto& a : extra) argv.push_back(std::move(a));
+    auto sim = Subprocess::Spawn({.argv = argv, .stderr_path = run_dir_.path() + "/stage-sim.log"});
+    ASSERT_TRUE(sim.ok()) << sim.status();
+    sim_ = std::move(*sim);
+    // stage-sim writes the endpoint file once every node is up.
+    std::string path = run_dir_.path() + "/endpoints.json";
+    auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(90);
+    while (!std::filesystem::exists(path)) {
+      ASSERT_FALSE(sim_->Poll().has_value()) << "stage-sim exited: " << ReadFile(run_dir_.path() + "/stage-sim.log");
+      ASSERT_LT(std::chrono::steady_clock::now(), deadline) << ReadFile(run_dir_.path() + "/stage-sim.log");
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    google::protobuf::util::JsonParseOptions options;
+    ASSERT_TRUE(google::protobuf::util::JsonStringToMessage(ReadFile(path), &endpoints_, options).ok());
+    for (const auto& p : endpoints_.processes()) pids_.push_back(p.pid());
+  }
+
+  void TearDown() override {
+    if (sim_ && !sim_->exited()) sim_->Terminate(std::chrono::seconds(10));
+    // stage-sim's children die with it (PR_SET_PDEATHSIG); this is only a backstop for a failed test.
+    for (pid_t pid : pids_) {
+      if (Alive(pid)) kill(pid, SIGKILL);
+    }
+  }
+
+  nlohmann::json StatusJson() {
+    CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status", "--json"},
+                                 std::chrono::seconds(20));
+    EXPECT_FALSE(r.timed_out);
+    return nlohmann::json::parse(r.out);
+  }
+
+  TempDir run_dir_;
+  std::unique_ptr<Subprocess> sim_;
+  v1::SimEndpoints endpoints_;
+  std::vector<pid_t> pids_;
+};
+
+TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
+  ASSERT_NO_FATAL_FAILURE(StartStage());
+  ASSERT_GT(pids_.size(), 30u);
+
+  // 1. Every node up, as stagectl reports it to scripts.
+  nlohmann::json status = StatusJson();
+  int cameras = 0, lights = 0, workers = 0;
+  for (const auto& node : status["nodes"]) {
+    EXPECT_EQ(node["state"], "up") << node.dump();
+    if (node["kind"] == "camera") ++cameras;
+    if (node["kind"] == "light") ++lights;
+    if (node["kind"] == "processing-worker") ++workers;
+  }
+  EXPECT_EQ(cameras, 27);
+  EXPECT_EQ(lights, 6);
+  EXPECT_EQ(workers, 1);
+  EXPECT_EQ(status["summary"]["nodes_up"], status["summary"]["nodes_total"]);
+
+  // 2. SIGKILL one camera node (by pid, from the endpoint file).
+  pid_t victim = 0;
+  for (const auto& p : endpoints_.processes()) {
+    if (p.id() == "mv-07") victim = p.pid();
+  }
+  ASSERT_GT(victim, 0);
+  auto stub = v1::StageController::NewStub(
+      grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  int64_t killed_at = UnixNowNs();
+  ASSERT_EQ(kill(victim, SIGKILL), 0);
+  v1::StageStatus seen;
+  auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  bool down = false;
+  while (!down && std::chrono::steady_clock::now() < deadline) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
+    ASSERT_TRUE(stub->GetStageStatus(&context, v1::GetStageStatusRequest(), &seen).ok());
+    for (const auto& n : seen.nodes()) {
+      if (n.id() == "mv-07" && n.state() == v1::NODE_STATE_DOWN) down = true;
+    }
+    if (!down) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  ASSERT_TRUE(down) << "mv-07 was never reported down";
+  for (const auto& n : seen.nodes()) {
+    if (n.id() == "mv-07") {
+      // The controller's own record of when it saw the change: within 1 s of the kill.
+      EXPECT_LT(n.state_since_unix_ns() - killed_at, 1'000'000'000) << "detected after "
+                                                                     << (n.state_since_unix_ns() - killed_at) / 1e6
+                                                                     << " ms";
+      EXPECT_FALSE(n.reason().empty());
+    } else {
+      EXPECT_EQ(n.state(), v1::NODE_STATE_UP) << n.id() << ": " << n.reason();
+    }
+  }
+  // stagectl agrees, and says so in its exit code (3: not every node up).
+  CommandResult table = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status"},
+                                   std::chrono::seconds(20));
+  EXPECT_EQ(table.exit.exit_code, 3);
+  EXPECT_THAT(table.out, ::testing::HasSubstr("33 of 34 nodes up"));
+
+  // 3. Hang one light node (SIGSTOP: it cannot act on SIGTERM), then stop the stage.
+  pid_t hung = 0;
+  for (const auto& p : endpoints_.processes()) {
+    if (p.id() == "lights-modbus-2") hung = p.pid();
+  }
+  ASSERT_EQ(kill(hung, SIGSTOP), 0);
+  sim_->Signal(SIGTERM);
+  auto exit = sim_->Wait(std::chrono::seconds(30));
+  ASSERT_TRUE(exit.has_value()) << "stage-sim did not stop";
+  EXPECT_EQ(exit->exit_code, 0) << ReadFile(run_dir_.path() + "/stage-sim.log");
+  for (const auto& p : endpoints_.processes()) EXPECT_FALSE(Alive(p.pid())) << p.id() << " (pid " << p.pid() << ")";
+  std::string log = ReadFile(run_dir_.path() + "/stage-sim.log");
+  EXPECT_THAT(log, ::testing::HasSubstr("camera-node mv-07"));  // the killed child was reported
+  EXPECT_THAT(log, ::testing::HasSubstr("lights-modbus-2"));    // and the hung one escalated to SIGKILL
+  EXPECT_FALSE(std::filesystem::exists(run_dir_.path() + "/endpoints.json"));
+}
+
+TEST_F(StageSimTest, KilledSupervisorTakesItsChildrenWithIt) {
+  ASSERT_NO_FATAL_FAILURE(StartStage());
+  ASSERT_EQ(kill(sim_->pid(), SIGKILL), 0);
+  sim_->Wait();
+  auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  for (pid_t pid : pids_) {
+    while (Alive(pid) && std::chrono::steady_clock::now() < deadline) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+    EXPECT_FALSE(Alive(pid)) << "pid " << pid << " outlived stage-sim";
+  }
+}
+
+TEST_F(StageSimTest, CommandModeRunsTheCommandAndReturnsItsExitCode) {
+  CommandResult r = RunCommand({"stage-sim", "--run-dir", run_dir_.path(), "--", BinDir() + "/stagectl", "status"},
+                               std::chrono::seconds(120));
+  ASSERT_FALSE(r.timed_out);
+  EXPECT_EQ(r.exit.exit_code, 0) << r.err;
+  EXPECT_THAT(r.out, ::testing::HasSubstr("34 of 34 nodes up"));
+  EXPECT_THAT(r.err, ::testing::HasSubstr("stage-sim: stage down"));
+  CommandResult fails = RunCommand({"stage-sim", "--run-dir", run_dir_.path(), "--", "sh", "-c", "exit 7"},
+                                   std::chrono::seconds(120));
+  EXPECT_EQ(fails.exit.exit_code, 7);
+}
+
+TEST_F(StageSimTest, SecondStageSimOnTheSameRunDirIsRefused) {
+  ASSERT_NO_FATAL_FAILURE(StartStage());
+  CommandResult r = RunCommand({"stage-sim", "--run-dir", run_dir_.path()}, std::chrono::seconds(30));
+  EXPECT_EQ(r.exit.exit_code, 2);
+  EXPECT_THAT(r.err, ::testing::HasSubstr("another stage-sim (pid " + std::to_string(sim_->pid()) + ")"));
+}
+
+}  // namespace
+}  // namespace stage::testing

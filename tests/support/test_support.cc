@@ -1,0 +1,63 @@
+// Helpers for cross-process suites.
+#include "test_support.h"
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+namespace stage::testing {
+
+std::string BinDir() {
+  const char* dir = std::getenv("FASTAGE_BIN_DIR");
+  return dir != nullptr ? dir : "build/bin";
+}
+
+std::string ReadFile(const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+TempDir::TempDir() {
+  char tmpl[] = "/tmp/fastage-test.XXXXXX";
+  path_ = mkdtemp(tmpl);
+}
+
+TempDir::~TempDir() {
+  std::error_code ec;
+  std::filesystem::remove_all(path_, ec);
+}
+
+std::string TempDir::Write(const std::string& name, const std::string& text) const {
+  std::string p = path_ + "/" + name;
+  std::ofstream(p) << text;
+  return p;
+}
+
+CommandResult RunCommand(std::vector<std::string> argv, std::chrono::milliseconds timeout,
+                         std::vector<std::string> env) {
+  TempDir dir;
+  if (argv[0].find('/') == std::string::npos) argv[0] = BinDir() + "/" + argv[0];
+  SubprocessOptions options{.argv = argv, .env = env, .stdout_path = dir.path() + "/out",
+                            .stderr_path = dir.path() + "/err"};
+  CommandResult result;
+  auto process = Subprocess::Spawn(options);
+  if (!process.ok()) {
+    result.exit.exit_code = -1;
+    result.err = std::string(process.status().message());
+    return result;
+  }
+  auto exit = (*process)->Wait(timeout);
+  if (!exit) {
+    result.timed_out = true;
+    exit = (*process)->Terminate(std::chrono::milliseconds(2000));
+  }
+  result.exit = *exit;
+  result.out = ReadFile(dir.path() + "/out");
+  result.err = ReadFile(dir.path() + "/err");
+  return result;
+}
+
+}  // namespace stage::testing
