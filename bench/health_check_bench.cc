@@ -3,12 +3,11 @@
 // request/response on this machine.
 // Run: build/bin/health_check_bench
 #include <benchmark/benchmark.h>
+#include <grpcpp/grpcpp.h>
 #include <netinet/in.h>
 #include <netinet/tcp.h>
 #include <sys/socket.h>
 #include <unistd.h>
-
-#include <grpcpp/grpcpp.h>
 
 #include <thread>
 

@@ -9,8 +9,7 @@
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
-  CLI::App app{"Serves one camera of the FaStage rig (CameraNode gRPC service and grpc.health.v1).",
-               "camera-node"};
+  CLI::App app{"Serves one camera of the FaStage rig (CameraNode gRPC service and grpc.health.v1).", "camera-node"};
   stage::CommonFlags flags;
   std::string id;
   std::string backend;

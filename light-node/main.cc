@@ -9,8 +9,7 @@
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
-  CLI::App app{"Serves one light node of the FaStage rig (LightNode gRPC service and grpc.health.v1).",
-               "light-node"};
+  CLI::App app{"Serves one light node of the FaStage rig (LightNode gRPC service and grpc.health.v1).", "light-node"};
   stage::CommonFlags flags;
   std::string id;
   std::string backend_name;
@@ -36,9 +35,9 @@ int main(int argc, char** argv) {
   if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
   auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
-  std::string summary = fmt::format("light node {}: {} LED units on {} channels, backend {}, rig {}", config.id(),
-                                    config.units_size(), config.channel_count(),
-                                    stage::light::LightBackendName(backend), loaded->source_name);
+  std::string summary =
+      fmt::format("light node {}: {} LED units on {} channels, backend {}, rig {}", config.id(), config.units_size(),
+                  config.channel_count(), stage::light::LightBackendName(backend), loaded->source_name);
 
   stage::light::LightService service(node->get());
   return stage::ServeUntilSignal(kProgram, flags, config.address().empty() ? "127.0.0.1:0" : config.address(),

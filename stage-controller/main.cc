@@ -39,10 +39,10 @@ int main(int argc, char** argv) {
   monitor_options.poll_interval = std::chrono::milliseconds(rig.controller().health_poll_interval_ms());
   monitor_options.timeout = std::chrono::milliseconds(rig.controller().health_timeout_ms());
   stage::controller::HealthMonitor monitor(stage::controller::TargetsFromRig(rig), monitor_options);
-  std::string summary = fmt::format(
-      "stage {} ({}): {} cameras, {} light nodes, {} processing workers from {}; health poll every {} ms",
-      rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),
-      rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
+  std::string summary =
+      fmt::format("stage {} ({}): {} cameras, {} light nodes, {} processing workers from {}; health poll every {} ms",
+                  rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),
+                  rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
   monitor.Start();
   stage::controller::ControllerService service(rig, &monitor);
   int code = stage::ServeUntilSignal(kProgram, flags, rig.controller().listen(), {&service}, summary);

@@ -15,8 +15,8 @@ using ::testing::StartsWith;
 
 constexpr auto kTimeout = std::chrono::seconds(20);
 
-const std::vector<std::string> kPrograms = {"stage-controller", "camera-node", "light-node", "processing-worker",
-                                            "stagectl", "stage-sim"};
+const std::vector<std::string> kPrograms = {"stage-controller",  "camera-node", "light-node",
+                                            "processing-worker", "stagectl",    "stage-sim"};
 
 // One line of stderr, exit code `code`, not killed by a signal, not timed out.
 void ExpectOneLineError(const CommandResult& r, int code, const std::string& must_contain) {
@@ -44,14 +44,13 @@ TEST_P(EveryProgram, UnknownFlag) {
   ExpectOneLineError(RunCommand({GetParam(), "--no-such-flag"}, kTimeout), 2, GetParam() + ": error:");
 }
 
-INSTANTIATE_TEST_SUITE_P(Cli, EveryProgram, ::testing::ValuesIn(kPrograms),
-                         [](const auto& param_info) {
-                           std::string name = param_info.param;
-                           for (char& c : name) {
-                             if (c == '-') c = '_';
-                           }
-                           return name;
-                         });
+INSTANTIATE_TEST_SUITE_P(Cli, EveryProgram, ::testing::ValuesIn(kPrograms), [](const auto& param_info) {
+  std::string name = param_info.param;
+  for (char& c : name) {
+    if (c == '-') c = '_';
+  }
+  return name;
+});
 
 TEST(CliTest, MissingRigFile) {
   for (const std::string program : {"stage-controller", "stage-sim"}) {
@@ -64,8 +63,9 @@ TEST(CliTest, MissingRigFile) {
 
 TEST(CliTest, BadRigNamesFileLineAndField) {
   TempDir dir;
-  std::string rig = dir.Write("bad.yaml", "stage:\n  id: s\ncameras:\n  - id: c\n    role: high-speed\n"
-                                          "    width: zero\n");
+  std::string rig = dir.Write("bad.yaml",
+                              "stage:\n  id: s\ncameras:\n  - id: c\n    role: high-speed\n"
+                              "    width: zero\n");
   CommandResult r = RunCommand({"light-node", "--config", rig, "--id", "x"}, kTimeout);
   ExpectOneLineError(r, 2, "bad.yaml:6:12: cameras[0].width: \"zero\" is not an integer >= 0");
   EXPECT_THAT(r.err, StartsWith("light-node: error: "));
@@ -78,9 +78,7 @@ TEST(CliTest, NodeIdNotInRig) {
   ExpectOneLineError(RunCommand({"processing-worker", "--id", "w"}, kTimeout), 2, "processing worker \"w\"");
 }
 
-TEST(CliTest, RequiredIdMissing) {
-  ExpectOneLineError(RunCommand({"camera-node"}, kTimeout), 2, "--id is required");
-}
+TEST(CliTest, RequiredIdMissing) { ExpectOneLineError(RunCommand({"camera-node"}, kTimeout), 2, "--id is required"); }
 
 TEST(CliTest, UnknownBackend) {
   ExpectOneLineError(RunCommand({"light-node", "--id", "lights-gpio-1", "--backend", "dmx"}, kTimeout), 2,
@@ -124,6 +122,21 @@ TEST(CliTest, StagectlWithoutController) {
   ExpectOneLineError(RunCommand({"stagectl", "--endpoints", garbage, "status"}, kTimeout), 2,
                      "not a stage-sim endpoint file");
   ExpectOneLineError(RunCommand({"stagectl"}, kTimeout), 2, "stagectl: error:");
+}
+
+TEST(CliTest, StageSimBadListen) {
+  TempDir dir;
+  ExpectOneLineError(RunCommand({"stage-sim", "--run-dir", dir.path(), "--listen", "nowhere"}, kTimeout), 2,
+                     "--listen: \"nowhere\" is not host:port");
+}
+
+TEST(CliTest, StagectlFindsTheControllerInTheRig) {
+  TempDir dir;
+  std::string rig = dir.Write("rig.yaml", "stage: {id: s}\ncontroller: {listen: \"127.0.0.1:1\"}\n");
+  ExpectOneLineError(RunCommand({"stagectl", "--config", rig, "--timeout-ms", "500", "status"}, kTimeout), 1,
+                     "controller at 127.0.0.1:1");
+  ExpectOneLineError(RunCommand({"stagectl", "--config", dir.path() + "/none.yaml", "status"}, kTimeout), 2,
+                     "none.yaml: cannot read rig file");
 }
 
 TEST(CliTest, StageSimBadCommandAndBinDir) {

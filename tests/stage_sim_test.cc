@@ -1,16 +1,15 @@
 // The full FaStage rig under stage-sim, as a user runs it: every node up in `stagectl status --json`; a camera node
 // killed with SIGKILL is reported down within 1 s while the rest stay up; stopping the stage leaves no process, even
 // one that hangs (SIGSTOP) and ignores SIGTERM.
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
 #include <signal.h>
 #include <sys/stat.h>
 
 #include <chrono>
 #include <filesystem>
-#include <thread>
-
-#include <google/protobuf/util/json_util.h>
-#include <grpcpp/grpcpp.h>
 #include <nlohmann/json.hpp>
+#include <thread>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -94,8 +93,8 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
     if (p.id() == "mv-07") victim = p.pid();
   }
   ASSERT_GT(victim, 0);
-  auto stub = v1::StageController::NewStub(
-      grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  auto stub =
+      v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
   int64_t killed_at = UnixNowNs();
   ASSERT_EQ(kill(victim, SIGKILL), 0);
   v1::StageStatus seen;
@@ -114,17 +113,16 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
   for (const auto& n : seen.nodes()) {
     if (n.id() == "mv-07") {
       // The controller's own record of when it saw the change: within 1 s of the kill.
-      EXPECT_LT(n.state_since_unix_ns() - killed_at, 1'000'000'000) << "detected after "
-                                                                     << (n.state_since_unix_ns() - killed_at) / 1e6
-                                                                     << " ms";
+      EXPECT_LT(n.state_since_unix_ns() - killed_at, 1'000'000'000)
+          << "detected after " << (n.state_since_unix_ns() - killed_at) / 1e6 << " ms";
       EXPECT_FALSE(n.reason().empty());
     } else {
       EXPECT_EQ(n.state(), v1::NODE_STATE_UP) << n.id() << ": " << n.reason();
     }
   }
   // stagectl agrees, and says so in its exit code (3: not every node up).
-  CommandResult table = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status"},
-                                   std::chrono::seconds(20));
+  CommandResult table =
+      RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status"}, std::chrono::seconds(20));
   EXPECT_EQ(table.exit.exit_code, 3);
   EXPECT_THAT(table.out, ::testing::HasSubstr("33 of 34 nodes up"));
 
@@ -165,8 +163,8 @@ TEST_F(StageSimTest, CommandModeRunsTheCommandAndReturnsItsExitCode) {
   EXPECT_EQ(r.exit.exit_code, 0) << r.err;
   EXPECT_THAT(r.out, ::testing::HasSubstr("34 of 34 nodes up"));
   EXPECT_THAT(r.err, ::testing::HasSubstr("stage-sim: stage down"));
-  CommandResult fails = RunCommand({"stage-sim", "--run-dir", run_dir_.path(), "--", "sh", "-c", "exit 7"},
-                                   std::chrono::seconds(120));
+  CommandResult fails =
+      RunCommand({"stage-sim", "--run-dir", run_dir_.path(), "--", "sh", "-c", "exit 7"}, std::chrono::seconds(120));
   EXPECT_EQ(fails.exit.exit_code, 7);
 }
 

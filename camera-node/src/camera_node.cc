@@ -62,8 +62,8 @@ absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config
 }
 
 absl::StatusOr<std::unique_ptr<CameraNode>> CameraNode::Create(const v1::CameraConfig& config,
-                                                              std::unique_ptr<CameraDevice> device,
-                                                              std::string rig_hash) {
+                                                               std::unique_ptr<CameraDevice> device,
+                                                               std::string rig_hash) {
   STAGE_ASSIGN_OR_RETURN(CameraSettings settings, SettingsFromConfig(config));
   STAGE_RETURN_IF_ERROR(Annotate(device->Configure(settings), absl::StrCat("camera \"", config.id(), "\"")));
   return std::unique_ptr<CameraNode>(new CameraNode(config, std::move(device), std::move(rig_hash)));

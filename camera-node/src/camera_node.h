@@ -23,8 +23,7 @@ class CameraNode : public FrameSink {
  public:
   // Configures `device` from `config`; fails with the camera id in the message.
   static absl::StatusOr<std::unique_ptr<CameraNode>> Create(const v1::CameraConfig& config,
-                                                            std::unique_ptr<CameraDevice> device,
-                                                            std::string rig_hash);
+                                                            std::unique_ptr<CameraDevice> device, std::string rig_hash);
   ~CameraNode() override;
 
   v1::NodeInfo Info() const;

@@ -15,8 +15,7 @@ namespace stage {
 
 void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves) {
   app.set_version_flag("--version", std::string(app.get_name()) + " (FaStage) " + std::string(kVersion));
-  app.add_option("--config", flags->config,
-                 "Rig file (YAML or JSON), or builtin:fastage for the shipped FaStage rig")
+  app.add_option("--config", flags->config, "Rig file (YAML or JSON), or builtin:fastage for the shipped FaStage rig")
       ->capture_default_str();
   app.add_option("--log-level", flags->log_level,
                  "Log levels, e.g. debug or info,controller.health=debug (overrides SPDLOG_LEVEL)");

@@ -33,9 +33,9 @@ bool RealClock::SleepUntilNs(int64_t t_ns) {
     if (kind_ == Kind::kMonotonic) {
       wake_.wait_until(lock, std::chrono::steady_clock::time_point(std::chrono::nanoseconds(t_ns)));
     } else {
-      wake_.wait_until(lock, std::chrono::system_clock::time_point(
-                                 std::chrono::duration_cast<std::chrono::system_clock::duration>(
-                                     std::chrono::nanoseconds(t_ns))));
+      wake_.wait_until(
+          lock, std::chrono::system_clock::time_point(
+                    std::chrono::duration_cast<std::chrono::system_clock::duration>(std::chrono::nanoseconds(t_ns))));
     }
   }
 }

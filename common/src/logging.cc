@@ -1,15 +1,15 @@
 // spdlog setup with named loggers.
 #include "stage/common/logging.h"
 
+#include <grpc/support/log.h>
+
 #include <cstdlib>
 #include <mutex>
 #include <vector>
 
-#include "absl/strings/str_cat.h"
 #include "absl/strings/ascii.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
-#include <grpc/support/log.h>
-
 #include "spdlog/cfg/helpers.h"
 #include "spdlog/sinks/stdout_color_sinks.h"
 #include "spdlog/spdlog.h"
@@ -45,8 +45,8 @@ absl::Status ValidateLogLevels(absl::string_view levels) {
     if (auto eq = part.find('='); eq != absl::string_view::npos) level = part.substr(eq + 1);
     std::string name = absl::AsciiStrToLower(level);
     if (spdlog::level::from_str(name) == spdlog::level::off && name != "off") {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "log level \"", level, "\" is not one of trace, debug, info, warn, error, critical, off"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("log level \"", level, "\" is not one of trace, debug, info, warn, error, critical, off"));
     }
   }
   return absl::OkStatus();

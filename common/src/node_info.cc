@@ -21,8 +21,8 @@ std::string HostName() {
 
 }  // namespace
 
-v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::string& role,
-                          const std::string& backend, const std::string& rig_hash) {
+v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::string& role, const std::string& backend,
+                          const std::string& rig_hash) {
   v1::NodeInfo info;
   info.set_id(id);
   info.set_kind(kind);
@@ -30,8 +30,7 @@ v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::s
   info.set_version(std::string(kVersion));
   info.set_backend(backend);
   info.set_uptime_ns(
-      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - g_process_start)
-          .count());
+      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now() - g_process_start).count());
   info.set_pid(static_cast<int32_t>(getpid()));
   static const std::string host = HostName();
   info.set_hostname(host);

@@ -1,20 +1,19 @@
 // Rig loading: parse, defaults, validation.
 #include "stage/common/rig.h"
 
+#include <google/protobuf/io/coded_stream.h>
+#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 #include <unistd.h>
 
 #include <cerrno>
-#include <cstdlib>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
 #include <set>
 #include <sstream>
-
-#include <google/protobuf/io/coded_stream.h>
-#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
@@ -106,15 +105,15 @@ void CheckLimits(Checker& check, const std::string& path, const v1::LedLimits& l
   check.InRange(path + ".fall_us", limits.fall_us(), 0, 1000);
 }
 
-void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c,
-                 const RigValidationOptions& options) {
+void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c, const RigValidationOptions& options) {
   check.Id(p + ".id", c.id());
   if (c.role() == v1::CAMERA_ROLE_UNSPECIFIED) {
     check.Add(p + ".role", "required field is missing (machine-vision or high-speed)");
   }
   if (!kCameraBackends.count(c.backend())) {
-    check.Add(p + ".backend", absl::StrCat("\"", c.backend(), "\" is not a camera backend; valid: ",
-                                           absl::StrJoin(kCameraBackends, ", ")));
+    check.Add(
+        p + ".backend",
+        absl::StrCat("\"", c.backend(), "\" is not a camera backend; valid: ", absl::StrJoin(kCameraBackends, ", ")));
   }
   if (c.backend() == "aravis" && c.device().empty()) {
     check.Add(p + ".device", "required for the aravis backend (serial number, user id or IP address)");
@@ -130,9 +129,8 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c,
     check.Positive(p + ".exposure_us", c.exposure_us());
     double period_us = c.frame_rate_hz() > 0 ? 1e6 / c.frame_rate_hz() : 0;
     if (c.exposure_us() > 0 && period_us > 0 && c.exposure_us() >= period_us) {
-      check.Add(p + ".exposure_us",
-                absl::StrFormat("%g us is not shorter than the frame period %.3f us at %g fps", c.exposure_us(),
-                                period_us, c.frame_rate_hz()));
+      check.Add(p + ".exposure_us", absl::StrFormat("%g us is not shorter than the frame period %.3f us at %g fps",
+                                                    c.exposure_us(), period_us, c.frame_rate_hz()));
     }
   }
   check.InRange(p + ".gain_db", c.gain_db(), 0, 48);
@@ -147,8 +145,7 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c,
     check.Add(p + ".trigger.slot_phase",
               absl::StrCat("required when pattern_set is not ", kFastage38, " (no default phase)"));
   } else if (t.divider() >= 1 && t.slot_phase() >= t.divider()) {
-    check.Add(p + ".trigger.slot_phase",
-              absl::StrCat(t.slot_phase(), " is not < the divider ", t.divider()));
+    check.Add(p + ".trigger.slot_phase", absl::StrCat(t.slot_phase(), " is not < the divider ", t.divider()));
   }
   check.InRange(p + ".ram_gib", c.ram_gib(), 0, 1e6);
   if (IsRoleHighSpeed(c) && c.link() == v1::LINK_KIND_ON_CAMERA_RAM && !(c.ram_gib() > 0)) {
@@ -169,8 +166,8 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c,
   }
 }
 
-void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig& n,
-                    const RigValidationOptions& options, std::map<std::string, std::string>* unit_ids) {
+void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig& n, const RigValidationOptions& options,
+                    std::map<std::string, std::string>* unit_ids) {
   check.Id(p + ".id", n.id());
   CheckAddress(check, p + ".address", n.address(), options.require_addresses);
   check.Required(p + ".channel_count", n.has_channel_count());
@@ -230,7 +227,8 @@ void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig&
     check.Id(up + ".id", u.id());
     if (!u.id().empty()) {
       auto [it, inserted] = unit_ids->emplace(u.id(), up);
-      if (!inserted) check.Add(up + ".id", absl::StrCat("duplicate LED unit id \"", u.id(), "\" (also ", it->second, ")"));
+      if (!inserted)
+        check.Add(up + ".id", absl::StrCat("duplicate LED unit id \"", u.id(), "\" (also ", it->second, ")"));
     }
     const auto& d = u.direction();
     double len = std::sqrt(d.x() * d.x() + d.y() * d.y() + d.z() * d.z());
@@ -421,13 +419,12 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       std::vector<std::string> ids;
       for (const auto& n : rig.light_nodes()) ids.push_back(n.id());
       check.Add("timing.sync_generator",
-                absl::StrCat("light node \"", timing.sync_generator(), "\" is not defined (light nodes: ",
-                             ids.empty() ? "none" : absl::StrJoin(ids, ", "), ")"));
+                absl::StrCat("light node \"", timing.sync_generator(),
+                             "\" is not defined (light nodes: ", ids.empty() ? "none" : absl::StrJoin(ids, ", "), ")"));
     } else if (!generator->has_gpiod() || !generator->gpiod().drives_slot_clock()) {
-      check.Add("timing.sync_generator",
-                absl::StrCat("light node \"", generator->id(),
-                             "\" cannot generate the slot clock: it needs backend gpiod with "
-                             "gpiod.drives_slot_clock: true"));
+      check.Add("timing.sync_generator", absl::StrCat("light node \"", generator->id(),
+                                                      "\" cannot generate the slot clock: it needs backend gpiod with "
+                                                      "gpiod.drives_slot_clock: true"));
     }
   }
   return check.Take();
@@ -524,8 +521,7 @@ absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded
   return FindNode(loaded.rig.light_nodes(), loaded, id, "light node");
 }
 
-absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const LoadedRig& loaded,
-                                                                       absl::string_view id) {
+absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const LoadedRig& loaded, absl::string_view id) {
   return FindNode(loaded.rig.processing_workers(), loaded, id, "processing worker");
 }
 

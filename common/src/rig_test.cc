@@ -221,15 +221,15 @@ TEST(RigErrorTest, ExposureLongerThanFramePeriod) {
 }
 
 TEST(RigErrorTest, DuplicateNodeIds) {
-  EXPECT_THAT(LoadError(Replace("  - id: cam-b", "  - id: cam-a")),
-              AllOf(StartsWith("rig.yaml:14:5: cameras[1].id: duplicate node id \"cam-a\""),
-                    HasSubstr("also cameras[0].id")));
+  EXPECT_THAT(
+      LoadError(Replace("  - id: cam-b", "  - id: cam-a")),
+      AllOf(StartsWith("rig.yaml:14:5: cameras[1].id: duplicate node id \"cam-a\""), HasSubstr("also cameras[0].id")));
 }
 
 TEST(RigErrorTest, DuplicateIdsAcrossKinds) {
-  EXPECT_THAT(LoadError(Replace("  - id: worker-1", "  - id: board-a")),
-              AllOf(HasSubstr("processing_workers[0].id: duplicate node id \"board-a\""),
-                    HasSubstr("also light_nodes[1].id")));
+  EXPECT_THAT(
+      LoadError(Replace("  - id: worker-1", "  - id: board-a")),
+      AllOf(HasSubstr("processing_workers[0].id: duplicate node id \"board-a\""), HasSubstr("also light_nodes[1].id")));
 }
 
 TEST(RigErrorTest, DuplicateLedUnitIds) {
@@ -344,7 +344,8 @@ TEST(RigErrorTest, BadAddress) {
 TEST(RigErrorTest, AllErrorsAreListed) {
   std::vector<std::string> errors;
   TempDir dir;
-  std::string text = absl::StrReplaceAll(kGoodRig, {{"exposure_us: 500", "exposure_us: 0"}, {"  id: test-stage\n", ""}});
+  std::string text =
+      absl::StrReplaceAll(kGoodRig, {{"exposure_us: 500", "exposure_us: 0"}, {"  id: test-stage\n", ""}});
   auto loaded = LoadRig(dir.Write("rig.yaml", text), {}, &errors);
   ASSERT_FALSE(loaded.ok());
   ASSERT_EQ(errors.size(), 2u);

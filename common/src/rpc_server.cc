@@ -1,14 +1,13 @@
 // gRPC server wrapper.
 #include "stage/common/rpc_server.h"
 
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
 #include <unistd.h>
 
 #include <chrono>
 #include <cstdio>
 #include <fstream>
-
-#include <grpcpp/grpcpp.h>
-#include <grpcpp/health_check_service_interface.h>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/rig.h"
@@ -54,8 +53,8 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
   int ignored;
   (void)ParseHostPort(options.listen, &host, &ignored);
   if (host == "0.0.0.0" || host == "::" || host == "[::]") host = "127.0.0.1";
-  std::string address = host.find(':') != std::string::npos ? absl::StrCat("[", host, "]:", port)
-                                                             : absl::StrCat(host, ":", port);
+  std::string address =
+      host.find(':') != std::string::npos ? absl::StrCat("[", host, "]:", port) : absl::StrCat(host, ":", port);
   auto result = std::unique_ptr<RpcServer>(new RpcServer(std::move(server), port, address, options.shutdown_grace_ms));
   result->SetServing(true);
   return result;

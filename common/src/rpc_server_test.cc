@@ -2,14 +2,14 @@
 // error naming the address.
 #include "stage/common/rpc_server.h"
 
-#include <fstream>
-
 #include <grpcpp/grpcpp.h>
+
+#include <fstream>
 
 #include "gmock/gmock.h"
 #include "grpc/health/v1/health.grpc.pb.h"
-#include "stage/v1/controller.grpc.pb.h"
 #include "gtest/gtest.h"
+#include "stage/v1/controller.grpc.pb.h"
 
 namespace stage {
 namespace {

@@ -21,9 +21,8 @@ std::string Slurp(const std::string& path) {
 
 TEST(SubprocessTest, RunsAndCapturesOutput) {
   std::string out = "/tmp/fastage-subprocess-test.out";
-  auto p = Subprocess::Spawn({.argv = {"sh", "-c", "echo hello $GREETING; exit 3"},
-                              .env = {"GREETING=world"},
-                              .stdout_path = out});
+  auto p = Subprocess::Spawn(
+      {.argv = {"sh", "-c", "echo hello $GREETING; exit 3"}, .env = {"GREETING=world"}, .stdout_path = out});
   ASSERT_TRUE(p.ok()) << p.status();
   auto exit = (*p)->Wait(std::chrono::seconds(10));
   ASSERT_TRUE(exit.has_value());

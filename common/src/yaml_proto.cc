@@ -1,16 +1,16 @@
 // Strict YAML -> protobuf conversion driven by the message descriptor.
 #include "stage/common/yaml_proto.h"
 
+#include <google/protobuf/descriptor.h>
+#include <google/protobuf/message.h>
+#include <google/protobuf/reflection.h>
+#include <yaml-cpp/yaml.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <set>
 #include <vector>
-
-#include <google/protobuf/descriptor.h>
-#include <google/protobuf/message.h>
-#include <google/protobuf/reflection.h>
-#include <yaml-cpp/yaml.h>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
@@ -112,8 +112,8 @@ class Parser {
           std::vector<std::string> members;
           for (int i = 0; i < oneof->field_count(); ++i) members.push_back(oneof->field(i)->name());
           return Error(key, field_path,
-                       absl::StrCat("only one of ", absl::StrJoin(members, ", "), " may be set, and ",
-                                    other->name(), " is set already"));
+                       absl::StrCat("only one of ", absl::StrJoin(members, ", "), " may be set, and ", other->name(),
+                                    " is set already"));
         }
       }
       absl::Status status = ParseField(value, field_path, field, message);
@@ -203,8 +203,7 @@ class Parser {
                           Message* message, bool repeated) {
     const Reflection* reflection = message->GetReflection();
     if (field->cpp_type() == FieldDescriptor::CPPTYPE_MESSAGE) {
-      Message* child =
-          repeated ? reflection->AddMessage(message, field) : reflection->MutableMessage(message, field);
+      Message* child = repeated ? reflection->AddMessage(message, field) : reflection->MutableMessage(message, field);
       if (value.IsNull()) return absl::OkStatus();
       return ParseMessage(value, path, child);
     }
@@ -214,8 +213,7 @@ class Parser {
   absl::Status SetScalar(const YAML::Node& value, const std::string& path, const FieldDescriptor* field,
                          Message* message, bool repeated) {
     if (!value.IsScalar()) {
-      return Error(value, path,
-                   absl::StrCat("expected ", ExpectedName(field), ", got ", NodeTypeName(value)));
+      return Error(value, path, absl::StrCat("expected ", ExpectedName(field), ", got ", NodeTypeName(value)));
     }
     const Reflection* r = message->GetReflection();
     const std::string& text = value.Scalar();
@@ -296,8 +294,8 @@ class Parser {
         }
         if (found == nullptr) {
           return Error(value, path,
-                       absl::StrCat("\"", text, "\" is not a valid ", type->name(), "; valid values: ",
-                                    absl::StrJoin(valid, ", ")));
+                       absl::StrCat("\"", text, "\" is not a valid ", type->name(),
+                                    "; valid values: ", absl::StrJoin(valid, ", ")));
         }
         repeated ? r->AddEnum(message, field, found) : r->SetEnum(message, field, found);
         return absl::OkStatus();
@@ -394,8 +392,8 @@ std::string FormatConfigError(absl::string_view file_name, SourceLocation locati
   return out;
 }
 
-absl::Status ParseYamlToProto(absl::string_view text, absl::string_view file_name,
-                              google::protobuf::Message* message, SourceMap* source_map) {
+absl::Status ParseYamlToProto(absl::string_view text, absl::string_view file_name, google::protobuf::Message* message,
+                              SourceMap* source_map) {
   message->Clear();
   YAML::Node root;
   try {

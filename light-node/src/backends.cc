@@ -33,9 +33,9 @@ absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend 
       return std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count());
     case v1::LIGHT_BACKEND_GPIOD:
     case v1::LIGHT_BACKEND_MODBUS:
-      return absl::UnimplementedError(absl::StrCat("light node \"", config.id(), "\": the ",
-                                                   LightBackendName(backend),
-                                                   " backend is not implemented yet; run this node with --backend sim"));
+      return absl::UnimplementedError(
+          absl::StrCat("light node \"", config.id(), "\": the ", LightBackendName(backend),
+                       " backend is not implemented yet; run this node with --backend sim"));
     default:
       return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(), "\": backend is not set"));
   }

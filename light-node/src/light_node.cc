@@ -11,9 +11,9 @@ absl::StatusOr<std::unique_ptr<LightNode>> LightNode::Create(const v1::LightNode
                                                              std::unique_ptr<LightDriver> driver,
                                                              std::string rig_hash) {
   if (driver->Describe().channel_count != config.channel_count()) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("light node \"", config.id(), "\": driver has ", driver->Describe().channel_count,
-                     " channels, rig says channel_count ", config.channel_count()));
+    return absl::FailedPreconditionError(absl::StrCat("light node \"", config.id(), "\": driver has ",
+                                                      driver->Describe().channel_count,
+                                                      " channels, rig says channel_count ", config.channel_count()));
   }
   return std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash)));
 }

@@ -15,8 +15,7 @@ namespace stage::light {
 class LightNode {
  public:
   static absl::StatusOr<std::unique_ptr<LightNode>> Create(const v1::LightNodeConfig& config,
-                                                           std::unique_ptr<LightDriver> driver,
-                                                           std::string rig_hash);
+                                                           std::unique_ptr<LightDriver> driver, std::string rig_hash);
   // Blacks out the driver: lights fail dark.
   ~LightNode();
 

@@ -17,7 +17,8 @@ v1::LightNodeConfig TestNode() {
 
 TEST(LightNodeTest, InfoAndStats) {
   v1::LightNodeConfig config = TestNode();
-  auto node = LightNode::Create(config, std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count()), "h");
+  auto node =
+      LightNode::Create(config, std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count()), "h");
   ASSERT_TRUE(node.ok()) << node.status();
   EXPECT_EQ((*node)->Info().id(), config.id());
   EXPECT_EQ((*node)->Info().kind(), v1::NODE_KIND_LIGHT);

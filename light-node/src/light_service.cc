@@ -8,8 +8,7 @@ grpc::Status LightService::GetInfo(grpc::ServerContext*, const v1::GetInfoReques
   return grpc::Status::OK;
 }
 
-grpc::Status LightService::GetStats(grpc::ServerContext*, const v1::GetLightStatsRequest*,
-                                    v1::LightStats* response) {
+grpc::Status LightService::GetStats(grpc::ServerContext*, const v1::GetLightStatsRequest*, v1::LightStats* response) {
   *response = node_->Stats();
   return grpc::Status::OK;
 }

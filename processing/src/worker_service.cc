@@ -14,6 +14,7 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
                                             v1::WorkerStatus* response) {
   response->set_jobs_completed(jobs_completed_.load());
   response->set_jobs_failed(jobs_failed_.load());
+  response->set_threads(threads_);
   return grpc::Status::OK;
 }
 

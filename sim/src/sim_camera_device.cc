@@ -4,8 +4,8 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
-#include "absl/strings/string_view.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/string_view.h"
 
 namespace stage::sim {
 
@@ -43,7 +43,8 @@ absl::Status SimCameraDevice::Configure(const camera::CameraSettings& s) {
   }
   if (!(s.gain_db >= 0 && s.gain_db <= 48)) return bad(absl::StrFormat("gain %g dB is not within [0, 48]", s.gain_db));
   std::lock_guard<std::mutex> lock(mutex_);
-  if (running_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": configure while acquiring"));
+  if (running_)
+    return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": configure while acquiring"));
   settings_ = s;
   configured_ = true;
   return absl::OkStatus();
@@ -56,7 +57,8 @@ camera::CameraSettings SimCameraDevice::settings() const {
 
 absl::Status SimCameraDevice::Start(camera::FrameSink* sink) {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (!configured_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": start before configure"));
+  if (!configured_)
+    return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": start before configure"));
   if (running_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": already acquiring"));
   sink_ = sink;
   running_ = true;
@@ -82,7 +84,8 @@ absl::Status SimCameraDevice::Stop() {
 absl::Status SimCameraDevice::Trigger() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (!running_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": trigger while stopped"));
+    if (!running_)
+      return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": trigger while stopped"));
     if (settings_.trigger == camera::TriggerMode::kFreeRun) {
       return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": trigger in free-run mode"));
     }

@@ -34,8 +34,13 @@ class CollectingSink : public camera::FrameSink {
 };
 
 camera::CameraSettings Small(camera::TriggerMode mode) {
-  return {.width = 8, .height = 4, .pixel_format = "Mono16", .frame_rate_hz = 100, .exposure_us = 500,
-          .gain_db = 0, .trigger = mode};
+  return {.width = 8,
+          .height = 4,
+          .pixel_format = "Mono16",
+          .frame_rate_hz = 100,
+          .exposure_us = 500,
+          .gain_db = 0,
+          .trigger = mode};
 }
 
 TEST(SimCameraDeviceTest, ChecksSettings) {

@@ -18,9 +18,9 @@ absl::Status SimLightDriver::LoadPatternTable(const light::PatternTable& table) 
   }
   for (size_t r = 0; r < table.rows.size(); ++r) {
     if (table.rows[r].size() != channel_count_) {
-      return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id_, "\": pattern table row ", r,
-                                                     " has ", table.rows[r].size(), " levels, the node has ",
-                                                     channel_count_, " channels"));
+      return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id_, "\": pattern table row ", r, " has ",
+                                                     table.rows[r].size(), " levels, the node has ", channel_count_,
+                                                     " channels"));
     }
   }
   std::lock_guard<std::mutex> lock(mutex_);

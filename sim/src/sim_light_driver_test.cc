@@ -10,9 +10,7 @@ namespace {
 using ::testing::ElementsAre;
 using ::testing::HasSubstr;
 
-light::PatternTable Table() {
-  return {"test", {"a", "b", "c"}, {{1, 2}, {3, 4}, {5, 6}}};
-}
+light::PatternTable Table() { return {"test", {"a", "b", "c"}, {{1, 2}, {3, 4}, {5, 6}}}; }
 
 TEST(SimLightDriverTest, StepsThroughRowsWhenArmed) {
   SimLightDriver d("n", 2);

@@ -1,6 +1,8 @@
 // stage-sim's supervisor: start, watch and stop the processes of a simulated stage.
 #include "stage/sim/stage_supervisor.h"
 
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
 #include <signal.h>
 #include <unistd.h>
 
@@ -8,9 +10,6 @@
 #include <fstream>
 #include <sstream>
 #include <thread>
-
-#include <google/protobuf/util/json_util.h>
-#include <grpcpp/grpcpp.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
@@ -67,6 +66,9 @@ absl::Status StageSupervisorOptions::Validate() const {
       return absl::NotFoundError(absl::StrCat(path, " is missing or not executable (build first, or pass --bin-dir)"));
     }
   }
+  std::string host;
+  int port;
+  STAGE_RETURN_IF_ERROR(Annotate(ParseHostPort(controller_listen, &host, &port), "--listen"));
   if (startup_timeout.count() <= 0) return absl::InvalidArgumentError("startup timeout must be > 0");
   if (grace.count() < 0) return absl::InvalidArgumentError("grace period must be >= 0");
   return absl::OkStatus();
@@ -99,7 +101,8 @@ absl::Status StageSupervisor::PrepareRunDir() {
 }
 
 absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::string& id, v1::NodeKind kind,
-                                         const std::string& config, std::vector<std::string> extra_args) {
+                                         const std::string& config, const std::string& listen,
+                                         std::vector<std::string> extra_args) {
   Child child;
   child.id = id;
   child.kind = kind;
@@ -107,8 +110,13 @@ absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::
   child.port_file = absl::StrCat(options_.run_dir, "/ports/", id, ".addr");
   child.log_file = absl::StrCat(options_.run_dir, "/logs/", id, ".log");
   SubprocessOptions sp;
-  sp.argv = {absl::StrCat(options_.bin_dir, "/", program), "--config", config, "--listen", "127.0.0.1:0",
-             "--port-file", child.port_file};
+  sp.argv = {absl::StrCat(options_.bin_dir, "/", program),
+             "--config",
+             config,
+             "--listen",
+             listen,
+             "--port-file",
+             child.port_file};
   if (!options_.child_log_level.empty()) {
     sp.argv.push_back("--log-level");
     sp.argv.push_back(options_.child_log_level);
@@ -126,8 +134,8 @@ absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::
 
 std::string StageSupervisor::DescribeExit(const Child& child) const {
   std::string last = LastLineOf(child.log_file);
-  return absl::StrCat(child.program, " ", child.id, " (pid ", child.process->pid(), ") exited: ",
-                      child.process->exit_info()->Describe(), "; log ", child.log_file,
+  return absl::StrCat(child.program, " ", child.id, " (pid ", child.process->pid(),
+                      ") exited: ", child.process->exit_info()->Describe(), "; log ", child.log_file,
                       last.empty() ? "" : absl::StrCat(" ends: ", last));
 }
 
@@ -152,9 +160,8 @@ absl::Status StageSupervisor::WaitForAddresses(std::chrono::steady_clock::time_p
     if (std::chrono::steady_clock::now() > deadline) {
       for (const Child& child : children_) {
         if (child.address.empty()) {
-          return absl::DeadlineExceededError(absl::StrCat(child.program, " ", child.id, " (pid ",
-                                                          child.process->pid(), ") did not start serving in time; log ",
-                                                          child.log_file));
+          return absl::DeadlineExceededError(absl::StrCat(child.program, " ", child.id, " (pid ", child.process->pid(),
+                                                          ") did not start serving in time; log ", child.log_file));
         }
       }
     }
@@ -211,8 +218,8 @@ absl::Status StageSupervisor::WaitForStageUp(std::chrono::steady_clock::time_poi
       not_up.clear();
       for (const auto& n : status.nodes()) {
         if (n.state() != v1::NODE_STATE_UP) {
-          absl::StrAppend(&not_up, not_up.empty() ? "" : ", ", n.id(), " (", NodeStateName(n.state()), ": ",
-                          n.reason(), ")");
+          absl::StrAppend(&not_up, not_up.empty() ? "" : ", ", n.id(), " (", NodeStateName(n.state()), ": ", n.reason(),
+                          ")");
         }
       }
     }
@@ -254,8 +261,9 @@ absl::Status StageSupervisor::Start() {
   STAGE_RETURN_IF_ERROR(options_.Validate());
   STAGE_ASSIGN_OR_RETURN(rig_, LoadRig(options_.rig));
   STAGE_RETURN_IF_ERROR(PrepareRunDir());
-  Logger("sim.stage")->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(),
-                            rig_.source_name, options_.run_dir);
+  Logger("sim.stage")
+      ->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(), rig_.source_name,
+             options_.run_dir);
   started_ = true;
   auto deadline = std::chrono::steady_clock::now() + options_.startup_timeout;
   auto fail = [&](absl::Status s) {
@@ -266,19 +274,22 @@ absl::Status StageSupervisor::Start() {
   if (config != kBuiltinRigName) config = fs::absolute(config).string();
   // Every device is simulated: the rig's hardware backends are overridden.
   for (const auto& c : rig_.rig.cameras()) {
-    if (auto s = SpawnChild("camera-node", c.id(), v1::NODE_KIND_CAMERA, config, {"--id", c.id(), "--backend", "sim"});
+    if (auto s = SpawnChild("camera-node", c.id(), v1::NODE_KIND_CAMERA, config, "127.0.0.1:0",
+                            {"--id", c.id(), "--backend", "sim"});
         !s.ok()) {
       return fail(s);
     }
   }
   for (const auto& n : rig_.rig.light_nodes()) {
-    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, {"--id", n.id(), "--backend", "sim"});
+    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0",
+                            {"--id", n.id(), "--backend", "sim"});
         !s.ok()) {
       return fail(s);
     }
   }
   for (const auto& w : rig_.rig.processing_workers()) {
-    if (auto s = SpawnChild("processing-worker", w.id(), v1::NODE_KIND_PROCESSING_WORKER, config, {"--id", w.id()});
+    if (auto s = SpawnChild("processing-worker", w.id(), v1::NODE_KIND_PROCESSING_WORKER, config, "127.0.0.1:0",
+                            {"--id", w.id()});
         !s.ok()) {
       return fail(s);
     }
@@ -286,7 +297,9 @@ absl::Status StageSupervisor::Start() {
   if (auto s = WaitForAddresses(deadline); !s.ok()) return fail(s);
   std::string effective = options_.run_dir + "/rig.json";
   if (auto s = WriteEffectiveRig(effective); !s.ok()) return fail(s);
-  if (auto s = SpawnChild("stage-controller", "controller", v1::NODE_KIND_CONTROLLER, effective, {}); !s.ok()) {
+  if (auto s = SpawnChild("stage-controller", "controller", v1::NODE_KIND_CONTROLLER, effective,
+                          options_.controller_listen, {});
+      !s.ok()) {
     return fail(s);
   }
   if (auto s = WaitForAddresses(deadline); !s.ok()) return fail(s);
@@ -316,8 +329,9 @@ int StageSupervisor::Stop() {
   for (Child& child : children_) {
     auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
     if (child.process->Wait(std::max(left, std::chrono::milliseconds(0)))) continue;
-    Logger("sim.stage")->warn("{} {} (pid {}) did not stop within {} ms of SIGTERM; sending SIGKILL", child.program,
-                              child.id, child.process->pid(), options_.grace.count());
+    Logger("sim.stage")
+        ->warn("{} {} (pid {}) did not stop within {} ms of SIGTERM; sending SIGKILL", child.program, child.id,
+               child.process->pid(), options_.grace.count());
     child.process->Signal(SIGKILL);
     child.process->Wait();
     ++killed;

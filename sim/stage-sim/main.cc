@@ -1,6 +1,5 @@
 // stage-sim: brings a whole simulated FaStage up on this machine, keeps it up until SIGINT/SIGTERM (or until a
 // given command finishes), and takes it down with no process left behind.
-#include "absl/strings/string_view.h"
 #include <signal.h>
 #include <unistd.h>
 
@@ -40,11 +39,12 @@ int main(int argc, char** argv) {
     }
   }
 
-  CLI::App app{"Brings up a simulated FaStage on this machine (every node on loopback, sim backends), waits until "
-               "every node is up, writes an endpoint file, and keeps the stage up until SIGINT/SIGTERM. With "
-               "'-- COMMAND ARGS...' it runs COMMAND once the stage is up (FASTAGE_ENDPOINTS set), takes the stage "
-               "down when it finishes, and exits with its exit code.",
-               "stage-sim"};
+  CLI::App app{
+      "Brings up a simulated FaStage on this machine (every node on loopback, sim backends), waits until "
+      "every node is up, writes an endpoint file, and keeps the stage up until SIGINT/SIGTERM. With "
+      "'-- COMMAND ARGS...' it runs COMMAND once the stage is up (FASTAGE_ENDPOINTS set), takes the stage "
+      "down when it finishes, and exits with its exit code.",
+      "stage-sim"};
   stage::CommonFlags flags;
   stage::sim::StageSupervisorOptions options;
   options.run_dir = stage::DefaultSimRunDir();
@@ -61,6 +61,9 @@ int main(int argc, char** argv) {
   app.add_option("--grace-ms", grace_ms, "Time children get between SIGTERM and SIGKILL")
       ->capture_default_str()
       ->check(CLI::Range(0, 600000));
+  app.add_option("--listen", options.controller_listen,
+                 "Where the stage controller listens, host:port (port 0 picks a free port)")
+      ->capture_default_str();
   app.add_option("--child-log-level", options.child_log_level, "--log-level passed to every child");
   app.footer("Example: stage-sim -- stagectl status");
   if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
@@ -72,7 +75,8 @@ int main(int argc, char** argv) {
     if (auto s = stage::ValidateLogLevels(options.child_log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
   }
   if (!command.empty()) {
-    if (auto found = stage::FindExecutable(command[0]); !found.ok()) return stage::ReportFatal(kProgram, found.status());
+    if (auto found = stage::FindExecutable(command[0]); !found.ok())
+      return stage::ReportFatal(kProgram, found.status());
   }
 
   auto log = stage::Logger("sim.stage");
@@ -81,10 +85,11 @@ int main(int argc, char** argv) {
   if (absl::Status s = supervisor.Start(); !s.ok()) return stage::ReportFatal(kProgram, s);
   const auto& rig = supervisor.rig().rig;
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started_at).count();
-  std::cerr << absl::StrCat("stage-sim: stage \"", rig.stage().id(), "\" is up in ", static_cast<int>(seconds * 10) / 10.0,
-                            " s: ", rig.cameras_size(), " camera nodes, ", rig.light_nodes_size(), " light nodes, ",
-                            rig.processing_workers_size(), " processing worker(s), controller at ",
-                            supervisor.endpoints().controller(), "; endpoints in ", supervisor.endpoints_path())
+  std::cerr << absl::StrCat("stage-sim: stage \"", rig.stage().id(), "\" is up in ",
+                            static_cast<int>(seconds * 10) / 10.0, " s: ", rig.cameras_size(), " camera nodes, ",
+                            rig.light_nodes_size(), " light nodes, ", rig.processing_workers_size(),
+                            " processing worker(s), controller at ", supervisor.endpoints().controller(),
+                            "; endpoints in ", supervisor.endpoints_path())
             << std::endl;
 
   std::unique_ptr<stage::Subprocess> user_command;

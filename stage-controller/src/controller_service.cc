@@ -29,9 +29,9 @@ v1::StageStatus ControllerService::Status() const {
   v1::StageStatus status;
   status.set_stage_id(stage_id_);
   status.set_stage_name(stage_name_);
-  status.set_time_unix_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(
-                              std::chrono::system_clock::now().time_since_epoch())
-                              .count());
+  status.set_time_unix_ns(
+      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
+          .count());
   int up = 0;
   for (v1::NodeStatus& node : monitor_->Snapshot()) {
     if (node.state() == v1::NODE_STATE_UP) ++up;
@@ -58,7 +58,8 @@ grpc::Status ControllerService::GetStageStatus(grpc::ServerContext*, const v1::G
 grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
                                                  const v1::WatchStageStatusRequest* request,
                                                  grpc::ServerWriter<v1::StageStatus>* writer) {
-  auto heartbeat = std::chrono::milliseconds(request->heartbeat_ms() == 0 ? 1000 : std::max(50u, request->heartbeat_ms()));
+  auto heartbeat =
+      std::chrono::milliseconds(request->heartbeat_ms() == 0 ? 1000 : std::max(50u, request->heartbeat_ms()));
   // Wake at least this often to notice a cancelled call or a shutting-down server.
   auto tick = std::min<std::chrono::milliseconds>(heartbeat, std::chrono::milliseconds(200));
   uint64_t seen = monitor_->generation();

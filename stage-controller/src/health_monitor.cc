@@ -185,8 +185,8 @@ void HealthMonitor::Poll(size_t index) {
           have_info = false;
         }
       } else {
-        state = s.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED ? v1::NODE_STATE_UNREACHABLE
-                                                                        : v1::NODE_STATE_DOWN;
+        state =
+            s.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED ? v1::NODE_STATE_UNREACHABLE : v1::NODE_STATE_DOWN;
         reason = absl::StrCat("GetInfo failed: ", s.error_message());
       }
     }

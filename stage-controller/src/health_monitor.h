@@ -58,8 +58,8 @@ class HealthMonitor {
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;  // watchers wait here
   std::condition_variable stop_;             // pollers wait here between polls
-  uint64_t generation_ = 0;  // guarded by mutex_
-  bool stopping_ = false;    // guarded by mutex_
+  uint64_t generation_ = 0;                  // guarded by mutex_
+  bool stopping_ = false;                    // guarded by mutex_
 };
 
 }  // namespace stage::controller

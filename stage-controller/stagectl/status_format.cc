@@ -37,14 +37,17 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
     std::string state = NodeStateName(n.state());
     std::string padded = absl::StrFormat("%-12s", state);
     if (color) {
-      const char* code = n.state() == v1::NODE_STATE_UP ? "\033[32m" : n.state() == v1::NODE_STATE_UNKNOWN ? "\033[33m" : "\033[31m";
+      const char* code = n.state() == v1::NODE_STATE_UP        ? "\033[32m"
+                         : n.state() == v1::NODE_STATE_UNKNOWN ? "\033[33m"
+                                                               : "\033[31m";
       padded = absl::StrCat(code, state, "\033[0m", std::string(12 > state.size() ? 12 - state.size() : 0, ' '));
     }
     std::string rtt = n.rtt_ns() > 0 ? absl::StrFormat("%.2f ms", n.rtt_ns() / 1e6) : "-";
-    std::string seen = n.last_seen_unix_ns() > 0 ? FormatDuration(now_unix_ns - n.last_seen_unix_ns()) + " ago" : "never";
+    std::string seen =
+        n.last_seen_unix_ns() > 0 ? FormatDuration(now_unix_ns - n.last_seen_unix_ns()) + " ago" : "never";
     out += absl::StrFormat("%-18s %-10s %-22s %s %-8s %-8s %9s %10s  %s\n", n.id(), KindLabel(n), n.address(), padded,
-                           n.backend().empty() ? "-" : n.backend(), n.version().empty() ? "-" : n.version(), rtt,
-                           seen, n.reason());
+                           n.backend().empty() ? "-" : n.backend(), n.version().empty() ? "-" : n.version(), rtt, seen,
+                           n.reason());
   }
   int down = status.nodes_total() - status.nodes_up();
   if (down > 0) {

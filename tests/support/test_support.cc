@@ -40,8 +40,8 @@ CommandResult RunCommand(std::vector<std::string> argv, std::chrono::millisecond
                          std::vector<std::string> env) {
   TempDir dir;
   if (argv[0].find('/') == std::string::npos) argv[0] = BinDir() + "/" + argv[0];
-  SubprocessOptions options{.argv = argv, .env = env, .stdout_path = dir.path() + "/out",
-                            .stderr_path = dir.path() + "/err"};
+  SubprocessOptions options{
+      .argv = argv, .env = env, .stdout_path = dir.path() + "/out", .stderr_path = dir.path() + "/err"};
   CommandResult result;
   auto process = Subprocess::Spawn(options);
   if (!process.ok()) {

@@ -2,15 +2,13 @@
 // Include only from main.cc files: CLI11 is a large header.
 #pragma once
 
-#include "absl/strings/string_view.h"
+#include <CLI/CLI.hpp>
 #include <optional>
 #include <string>
-#include <string_view>
 #include <vector>
 
-#include <CLI/CLI.hpp>
-
 #include "absl/status/status.h"
+#include "absl/strings/string_view.h"
 
 namespace grpc {
 class Service;

@@ -53,8 +53,8 @@ class SimClock final : public Clock {
  private:
   mutable std::mutex mutex_;
   std::condition_variable changed_;
-  int64_t now_ns_;   // guarded by mutex_
-  int sleepers_ = 0;  // guarded by mutex_
+  int64_t now_ns_;           // guarded by mutex_
+  int sleepers_ = 0;         // guarded by mutex_
   uint64_t interrupts_ = 0;  // guarded by mutex_
 };
 

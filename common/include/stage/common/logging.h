@@ -2,12 +2,11 @@
 // SPDLOG_LEVEL (e.g. "info,camera.sim=debug") and from a program's --log-level flag (same syntax, wins).
 #pragma once
 
-#include "absl/strings/string_view.h"
 #include <memory>
 #include <string>
-#include <string_view>
 
 #include "absl/status/status.h"
+#include "absl/strings/string_view.h"
 #include "spdlog/logger.h"
 
 // absl::string_view is its own type in Debian's Abseil (not std::string_view): teach fmt/spdlog to print it.

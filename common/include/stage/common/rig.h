@@ -2,12 +2,11 @@
 // errors name the file, the line and the field path ("fastage.yaml:42:7: cameras[3].exposure_us: 0 is not > 0").
 #pragma once
 
-#include "absl/strings/string_view.h"
 #include <string>
-#include <string_view>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "stage/common/yaml_proto.h"
 #include "stage/v1/rig.pb.h"
 

@@ -1,17 +1,16 @@
 // absl::Status helpers used across FaStage: early-return macros and errno conversion.
 #pragma once
 
-#include "absl/strings/string_view.h"
-#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 
 // Returns from the enclosing function if `expr` (an absl::Status) is not OK.
-#define STAGE_RETURN_IF_ERROR(expr)                 \
-  do {                                              \
-    ::absl::Status stage_status_ = (expr);          \
-    if (!stage_status_.ok()) return stage_status_;  \
+#define STAGE_RETURN_IF_ERROR(expr)                \
+  do {                                             \
+    ::absl::Status stage_status_ = (expr);         \
+    if (!stage_status_.ok()) return stage_status_; \
   } while (false)
 
 #define STAGE_STATUS_CONCAT_INNER_(a, b) a##b

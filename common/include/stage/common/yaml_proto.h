@@ -3,12 +3,11 @@
 // The schema is the message's descriptor, so every config message gets the same checks for free.
 #pragma once
 
-#include "absl/strings/string_view.h"
 #include <map>
 #include <string>
-#include <string_view>
 
 #include "absl/status/status.h"
+#include "absl/strings/string_view.h"
 
 namespace google::protobuf {
 class Message;
@@ -49,7 +48,7 @@ std::string FormatConfigError(absl::string_view file_name, SourceLocation locati
 //  - integers must be integral and fit their field (no negative values for unsigned fields);
 //  - setting two members of one oneof is an error.
 // On error `message` holds what was parsed so far. `source_map` (may be null) receives the location of every field.
-absl::Status ParseYamlToProto(absl::string_view text, absl::string_view file_name,
-                              google::protobuf::Message* message, SourceMap* source_map);
+absl::Status ParseYamlToProto(absl::string_view text, absl::string_view file_name, google::protobuf::Message* message,
+                              SourceMap* source_map);
 
 }  // namespace stage

@@ -29,6 +29,8 @@ struct StageSupervisorOptions {
   std::chrono::milliseconds grace{3000};
   // --log-level passed to every child.
   std::string child_log_level;
+  // Where the controller listens; port 0 picks a free one.
+  std::string controller_listen = "127.0.0.1:0";
 
   absl::Status Validate() const;
 };
@@ -69,7 +71,7 @@ class StageSupervisor {
 
   absl::Status PrepareRunDir();
   absl::Status SpawnChild(const std::string& program, const std::string& id, v1::NodeKind kind,
-                          const std::string& config, std::vector<std::string> extra_args);
+                          const std::string& config, const std::string& listen, std::vector<std::string> extra_args);
   absl::Status WaitForAddresses(std::chrono::steady_clock::time_point deadline);
   absl::Status WaitForStageUp(std::chrono::steady_clock::time_point deadline);
   absl::Status WriteEffectiveRig(const std::string& path);

@@ -1,0 +1,76 @@
+// StageController through a real server on loopback: GetStageStatus counts nodes by state, WatchStageStatus sends a
+// snapshot at once and another when a node goes down.
+#include "controller_service.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include <thread>
+
+#include "gtest/gtest.h"
+#include "stage/common/rig.h"
+#include "stage/common/rpc_server.h"
+#include "stage/v1/processing_worker.grpc.pb.h"
+
+namespace stage::controller {
+namespace {
+
+// A worker node on a real port: the simplest node there is.
+class FakeWorker final : public v1::ProcessingWorker::Service {
+ public:
+  grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* info) override {
+    info->set_id("worker-1");
+    info->set_version("test");
+    return grpc::Status::OK;
+  }
+};
+
+TEST(ControllerServiceTest, StatusAndWatch) {
+  FakeWorker worker;
+  auto worker_server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&worker});
+  ASSERT_TRUE(worker_server.ok());
+  v1::RigConfig rig;
+  rig.mutable_stage()->set_id("s");
+  rig.mutable_stage()->set_name("Stage");
+  auto* w = rig.add_processing_workers();
+  w->set_id("worker-1");
+  w->set_address((*worker_server)->address());
+
+  HealthMonitor monitor(TargetsFromRig(rig), {std::chrono::milliseconds(50), std::chrono::milliseconds(300)});
+  monitor.Start();
+  ControllerService service(rig, &monitor);
+  auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
+  ASSERT_TRUE(server.ok());
+  auto stub = v1::StageController::NewStub(
+      grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+
+  // GetStageStatus: the worker comes up.
+  v1::StageStatus status;
+  for (int i = 0; i < 200 && status.nodes_up() != 1; ++i) {
+    grpc::ClientContext context;
+    ASSERT_TRUE(stub->GetStageStatus(&context, v1::GetStageStatusRequest(), &status).ok());
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ASSERT_EQ(status.nodes_up(), 1);
+  EXPECT_EQ(status.nodes_total(), 1);
+  EXPECT_EQ(status.stage_id(), "s");
+  EXPECT_EQ(status.nodes(0).version(), "test");
+  EXPECT_EQ(status.controller().kind(), v1::NODE_KIND_CONTROLLER);
+
+  // WatchStageStatus: a snapshot at once, then one showing the worker down after it stops.
+  grpc::ClientContext watch_context;
+  v1::WatchStageStatusRequest request;
+  request.set_heartbeat_ms(60000);  // only changes, no heartbeats, within this test
+  auto reader = stub->WatchStageStatus(&watch_context, request);
+  v1::StageStatus update;
+  ASSERT_TRUE(reader->Read(&update));
+  EXPECT_EQ(update.nodes_up(), 1);
+  (*worker_server)->Shutdown();
+  ASSERT_TRUE(reader->Read(&update));
+  EXPECT_EQ(update.nodes_up(), 0);
+  EXPECT_EQ(update.nodes(0).state(), v1::NODE_STATE_DOWN);
+  watch_context.TryCancel();
+  monitor.Stop();
+}
+
+}  // namespace
+}  // namespace stage::controller
