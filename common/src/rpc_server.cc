@@ -7,9 +7,9 @@
 
 #include <chrono>
 #include <cstdio>
-#include <fstream>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/file_util.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 
@@ -79,20 +79,7 @@ void RpcServer::Shutdown() {
 void RpcServer::Wait() { server_->Wait(); }
 
 absl::Status WriteAddressFile(const std::string& path, const std::string& address) {
-  std::string tmp = absl::StrCat(path, ".tmp.", getpid());
-  {
-    std::ofstream out(tmp, std::ios::trunc);
-    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
-    out << address << "\n";
-    out.close();
-    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
-  }
-  if (std::rename(tmp.c_str(), path.c_str()) != 0) {
-    int err = errno;
-    std::remove(tmp.c_str());
-    return ErrnoToStatus(err, absl::StrCat("cannot rename ", tmp, " to ", path));
-  }
-  return absl::OkStatus();
+  return WriteFileAtomically(path, address + "\n");
 }
 
 }  // namespace stage

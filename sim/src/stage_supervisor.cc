@@ -7,13 +7,12 @@
 #include <unistd.h>
 
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
 #include "absl/strings/strip.h"
+#include "stage/common/file_util.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rpc_server.h"
@@ -25,25 +24,19 @@ namespace {
 
 namespace fs = std::filesystem;
 
-std::string ReadFile(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
-}
+// The file's text, or "" when it does not exist (yet): port files appear once a child serves.
+std::string ReadFile(const std::string& path) { return ReadFileToString(path).value_or(""); }
 
-absl::Status WriteFileAtomically(const std::string& path, const std::string& text) {
-  std::string tmp = absl::StrCat(path, ".tmp.", getpid());
-  {
-    std::ofstream out(tmp, std::ios::trunc);
-    out << text;
-    out.close();
-    if (!out) return ErrnoToStatus(errno, absl::StrCat("cannot write ", tmp));
+// Protobuf's JSON mapping with the proto field names, as the programs that read these files expect.
+absl::StatusOr<std::string> ToJson(const google::protobuf::Message& message) {
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  print.add_whitespace = true;
+  if (auto s = google::protobuf::util::MessageToJsonString(message, &json, print); !s.ok()) {
+    return absl::InternalError(absl::StrCat("cannot serialize ", message.GetTypeName(), ": ", s.message().as_string()));
   }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot rename ", tmp, " to ", path, ": ", ec.message()));
-  return absl::OkStatus();
+  return json;
 }
 
 bool ProcessAlive(pid_t pid) { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
@@ -181,13 +174,7 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
   for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
   for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
   // The controller listens where stage-sim says (--listen), whatever the rig's controller.listen is.
-  std::string json;
-  google::protobuf::util::JsonPrintOptions print;
-  print.preserve_proto_field_names = true;
-  print.add_whitespace = true;
-  if (auto s = google::protobuf::util::MessageToJsonString(rig, &json, print); !s.ok()) {
-    return absl::InternalError(absl::StrCat("cannot serialize the effective rig: ", s.message().as_string()));
-  }
+  STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(rig));
   return WriteFileAtomically(path, json);
 }
 
@@ -247,13 +234,7 @@ absl::Status StageSupervisor::WriteEndpoints() {
     p->set_pid(c.process->pid());
     p->set_log_file(c.log_file);
   }
-  std::string json;
-  google::protobuf::util::JsonPrintOptions print;
-  print.preserve_proto_field_names = true;
-  print.add_whitespace = true;
-  if (auto s = google::protobuf::util::MessageToJsonString(endpoints_, &json, print); !s.ok()) {
-    return absl::InternalError(s.message().as_string());
-  }
+  STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(endpoints_));
   return WriteFileAtomically(endpoints_path(), json);
 }
 

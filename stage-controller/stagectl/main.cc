@@ -5,12 +5,11 @@
 
 #include <chrono>
 #include <cstdlib>
-#include <fstream>
 #include <iostream>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/cli.h"
+#include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
@@ -40,19 +39,16 @@ absl::StatusOr<std::string> ResolveController(const std::string& flag, const std
     const char* env = std::getenv("FASTAGE_ENDPOINTS");
     path = env != nullptr && *env != '\0' ? env : stage::DefaultSimRunDir() + "/endpoints.json";
   }
-  std::ifstream in(path);
-  if (!in) {
-    return absl::NotFoundError(
-        absl::StrCat("no controller address: pass --controller HOST:PORT, or start stage-sim "
-                     "(no endpoint file at ",
-                     path, ")"));
+  auto text = stage::ReadFileToString(path);
+  if (!text.ok()) {
+    return absl::NotFoundError(absl::StrCat(
+        "no controller address: pass --controller HOST:PORT or --config RIG, or start stage-sim (no endpoint file at ",
+        path, ")"));
   }
-  std::stringstream text;
-  text << in.rdbuf();
   stage::v1::SimEndpoints endpoints;
   google::protobuf::util::JsonParseOptions options;
   options.ignore_unknown_fields = true;
-  if (auto s = google::protobuf::util::JsonStringToMessage(text.str(), &endpoints, options); !s.ok()) {
+  if (auto s = google::protobuf::util::JsonStringToMessage(*text, &endpoints, options); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message().as_string()));
   }
   if (endpoints.controller().empty()) {

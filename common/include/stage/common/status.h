@@ -1,7 +1,6 @@
 // absl::Status helpers used across FaStage: early-return macros and errno conversion.
 #pragma once
 
-
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
