@@ -13,9 +13,9 @@
 
 namespace stage {
 
-absl::StatusOr<std::string> ReadFileToString(const std::string& path) {
+absl::StatusOr<std::string> ReadFileToString(const std::string& path, absl::string_view what) {
   std::ifstream in(path, std::ios::binary);
-  if (!in) return ErrnoToStatus(errno, absl::StrCat("cannot read ", path));
+  if (!in) return ErrnoToStatus(errno, absl::StrCat(path, ": cannot read ", what));
   std::stringstream text;
   text << in.rdbuf();
   if (in.bad()) return absl::DataLossError(absl::StrCat(path, ": read error"));

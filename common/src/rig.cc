@@ -5,21 +5,19 @@
 #include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 #include <unistd.h>
 
-#include <cerrno>
 #include <cmath>
 #include <cstdlib>
-#include <cstring>
 #include <filesystem>
-#include <fstream>
 #include <map>
 #include <set>
-#include <sstream>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
 
 extern const char kFastageRigYaml[];
 
@@ -464,17 +462,10 @@ absl::StatusOr<LoadedRig> LoadRig(absl::string_view path, const RigValidationOpt
   if (std::filesystem::is_directory(file, ec)) {
     return absl::InvalidArgumentError(absl::StrCat(file, ": is a directory, not a rig file"));
   }
-  std::ifstream in(file, std::ios::binary);
-  if (!in) {
-    int err = errno;
-    return absl::NotFoundError(absl::StrCat(file, ": cannot read rig file: ", std::strerror(err)));
-  }
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  if (in.bad()) return absl::DataLossError(absl::StrCat(file, ": read error"));
-  std::string base_dir = std::filesystem::path(file).parent_path().string();
-  if (base_dir.empty()) base_dir = ".";
-  return LoadRigFromText(buffer.str(), file, base_dir, options, all_errors);
+  STAGE_ASSIGN_OR_RETURN(std::string text, ReadFileToString(file, "rig file"));
+  std::filesystem::path parent = std::filesystem::path(file).parent_path();
+  std::string base_dir = parent.empty() ? std::string(".") : parent.string();
+  return LoadRigFromText(text, file, base_dir, options, all_errors);
 }
 
 std::string RigHash(const RigConfig& rig) {

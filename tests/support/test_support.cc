@@ -4,7 +4,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
+
+#include "stage/common/file_util.h"
 
 namespace stage::testing {
 
@@ -13,12 +14,7 @@ std::string BinDir() {
   return dir != nullptr ? dir : "build/bin";
 }
 
-std::string ReadFile(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+std::string ReadFile(const std::string& path) { return ReadFileToString(path).value_or(""); }
 
 TempDir::TempDir() {
   char tmpl[] = "/tmp/fastage-test.XXXXXX";

@@ -4,11 +4,13 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 
 namespace stage {
 
-// The whole file; NotFound / PermissionDenied naming the path on failure.
-absl::StatusOr<std::string> ReadFileToString(const std::string& path);
+// The whole file. On failure the message is "<path>: cannot read <what>: <reason>" with a code from the errno
+// (NotFound, PermissionDenied, ...).
+absl::StatusOr<std::string> ReadFileToString(const std::string& path, absl::string_view what = "file");
 
 // Writes `text` to `path` atomically (a temporary file beside it, then rename), so a reader polling for the file never
 // sees it half written.
