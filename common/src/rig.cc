@@ -133,6 +133,10 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c, co
   }
   check.InRange(p + ".gain_db", c.gain_db(), 0, 48);
   check.InRange(p + ".readout_us", c.readout_us(), 0, 1e7);
+  check.InRange(p + ".max_frame_rate_hz", c.max_frame_rate_hz(), 0, 1e6);
+  check.InRange(p + ".packet_size", c.packet_size(), 576, 16384);
+  check.InRange(p + ".frame_buffer_mib", c.frame_buffer_mib(), 0, 1e7);
+  if (c.trigger().has_delay_us()) check.InRange(p + ".trigger.delay_us", c.trigger().delay_us(), 0, 1e7);
   const auto& t = c.trigger();
   if (t.divider() < 1) check.Add(p + ".trigger.divider", "0 is not >= 1");
   if (!t.has_divider()) {
@@ -170,6 +174,7 @@ void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig&
   CheckAddress(check, p + ".address", n.address(), options.require_addresses);
   check.Required(p + ".channel_count", n.has_channel_count());
   if (n.has_channel_count()) check.InRange(p + ".channel_count", n.channel_count(), 1, 4096);
+  if (n.has_switch_delay_us()) check.InRange(p + ".switch_delay_us", n.switch_delay_us(), 0, 1e6);
   switch (n.backend()) {
     case v1::LIGHT_BACKEND_SIM:
       if (n.device_case() != LightNodeConfig::kSim && n.device_case() != LightNodeConfig::DEVICE_NOT_SET) {
@@ -297,6 +302,11 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!timing->has_led_switch_delay_us()) timing->set_led_switch_delay_us(20);
   if (!timing->has_led_settle_us()) timing->set_led_settle_us(30);
   if (!timing->has_exposure_guard_us()) timing->set_exposure_guard_us(20);
+  if (!timing->has_take_length_s()) timing->set_take_length_s(10);
+  if (!timing->has_trigger_pulse_us()) timing->set_trigger_pulse_us(10);
+  if (!timing->has_trigger_lead_slots()) timing->set_trigger_lead_slots(20);
+  if (!timing->has_flicker_warn_modulation()) timing->set_flicker_warn_modulation(0);
+  if (!timing->has_flicker_error_modulation()) timing->set_flicker_error_modulation(0.25);
   if (rig->pattern_set().empty()) rig->set_pattern_set(std::string(kFastage38));
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
@@ -317,6 +327,10 @@ void ApplyRigDefaults(RigConfig* rig) {
     if (c.analyzer() == v1::ANALYZER_UNSPECIFIED) c.set_analyzer(v1::ANALYZER_LINEAR);
     if (c.link() == v1::LINK_KIND_UNSPECIFIED) c.set_link(hs ? v1::LINK_KIND_ON_CAMERA_RAM : v1::LINK_KIND_GIGE_10);
     if (!c.has_ram_gib()) c.set_ram_gib(0);
+    if (!c.has_max_frame_rate_hz()) c.set_max_frame_rate_hz(0);
+    if (!c.has_overlap_exposure_readout()) c.set_overlap_exposure_readout(true);
+    if (!c.has_packet_size()) c.set_packet_size(1500);
+    if (!c.has_frame_buffer_mib()) c.set_frame_buffer_mib(0);
     if (c.has_pose() && !c.pose().has_up()) c.mutable_pose()->mutable_up()->set_y(1);
     if (c.recording_host().empty()) c.set_recording_host(c.id());
   }
@@ -367,6 +381,16 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("timing.led_switch_delay_us", timing.led_switch_delay_us(), 0, 1e6);
   check.InRange("timing.led_settle_us", timing.led_settle_us(), 0, 1e6);
   check.InRange("timing.exposure_guard_us", timing.exposure_guard_us(), 0, 1e6);
+  if (timing.slot_rate_hz() != std::floor(timing.slot_rate_hz())) {
+    check.Add("timing.slot_rate_hz", absl::StrFormat("%g is not a whole number of slots per second (the schedule "
+                                                     "keeps exact integer ticks of 1/lcm(rate, 10^9) s)",
+                                                     timing.slot_rate_hz()));
+  }
+  check.InRange("timing.take_length_s", timing.take_length_s(), 1e-3, 86400.0 * 7);
+  check.InRange("timing.trigger_pulse_us", timing.trigger_pulse_us(), 0.001, 1e6);
+  check.InRange("timing.trigger_lead_slots", timing.trigger_lead_slots(), 1, 100000);
+  check.InRange("timing.flicker_warn_modulation", timing.flicker_warn_modulation(), 0, 10);
+  check.InRange("timing.flicker_error_modulation", timing.flicker_error_modulation(), 0, 10);
 
   if (!IsBuiltinPatternSet(rig.pattern_set())) {
     std::filesystem::path p(rig.pattern_set());

@@ -1,0 +1,344 @@
+// The verifier: the shipped rig passes; each constraint is caught by a rig broken in that one way, with the device,
+// the slot and the numbers in the message.
+#include "stage/timing/verifier.h"
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <functional>
+
+#include "absl/strings/str_join.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/common/rig.h"
+#include "stage/timing/schedule.h"
+
+namespace stage::timing {
+namespace {
+
+using ::testing::AllOf;
+using ::testing::HasSubstr;
+
+v1::TimingReport Verify(const std::function<void(v1::RigConfig*)>& edit = {}, const std::string& base_dir = ".") {
+  auto rig = LoadRig(kBuiltinRigName);
+  EXPECT_TRUE(rig.ok()) << rig.status();
+  if (edit) edit(&rig->rig);
+  // What-if edits must still be a valid rig.
+  std::vector<RigError> errors = ValidateRig(rig->rig, base_dir);
+  for (const auto& e : errors) ADD_FAILURE() << e.path << ": " << e.message;
+  auto report = CheckRigTiming(rig->rig, base_dir);
+  EXPECT_TRUE(report.ok()) << report.status();
+  return report.ok() ? *report : v1::TimingReport();
+}
+
+std::vector<v1::Violation> Of(const v1::TimingReport& report, absl::string_view check) {
+  std::vector<v1::Violation> out;
+  for (const auto& v : report.violations()) {
+    if (v.check() == check) out.push_back(v);
+  }
+  return out;
+}
+
+std::string Dump(const v1::TimingReport& report) {
+  std::vector<std::string> lines;
+  for (const auto& v : report.violations()) {
+    lines.push_back(absl::StrCat(SeverityName(v.severity()), " ", v.check(), " ", v.device(), " slot ", v.slot(), ": ",
+                                 v.message(), " -- fix: ", v.fix()));
+  }
+  return absl::StrJoin(lines, "\n");
+}
+
+v1::CameraConfig* Camera(v1::RigConfig* rig, const std::string& id) {
+  for (auto& c : *rig->mutable_cameras()) {
+    if (c.id() == id) return &c;
+  }
+  ADD_FAILURE() << "no camera " << id;
+  return rig->mutable_cameras(0);
+}
+
+TEST(VerifierTest, ShippedRigPassesWithoutWarnings) {
+  v1::TimingReport report = Verify();
+  EXPECT_EQ(report.errors(), 0) << Dump(report);
+  EXPECT_EQ(report.warnings(), 0) << Dump(report);
+  // The figures behind that: the flicker components below 60 Hz and every budget are reported.
+  ASSERT_EQ(report.flicker_size(), 2);  // 24 and 48 Hz
+  EXPECT_NEAR(report.flicker(0).frequency_hz(), 24, 1e-9);
+  EXPECT_LT(report.flicker(0).modulation(), 1e-9);  // both blocks in the same order: no 24 Hz component
+  EXPECT_NEAR(report.flicker(1).frequency_hz(), 48, 1e-9);
+  EXPECT_LT(report.flicker(1).modulation(), report.flicker(1).warn_modulation());
+  int links = 0, rams = 0, disks = 0, leds = 0;
+  for (const auto& f : report.loads()) {
+    links += f.kind() == "link";
+    rams += f.kind() == "ram";
+    disks += f.kind() == "disk";
+    leds += f.kind() == "led";
+    EXPECT_LE(f.used(), f.budget()) << f.kind() << " " << f.device();
+  }
+  EXPECT_EQ(links, 24);
+  EXPECT_EQ(rams, 3);
+  EXPECT_EQ(disks, 4);  // rec-1..rec-4; the high-speed cameras record to RAM
+  EXPECT_EQ(leds, 6);
+}
+
+TEST(VerifierTest, ShippedRigOnOneGigEGetsOnlyTheLinkWarning) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    for (auto& c : *rig->mutable_cameras()) {
+      if (c.role() == v1::CAMERA_ROLE_MACHINE_VISION) c.set_link(v1::LINK_KIND_GIGE_1);
+    }
+  });
+  EXPECT_EQ(report.errors(), 0) << Dump(report);
+  auto links = Of(report, kCheckLinkBandwidth);
+  EXPECT_EQ(links.size(), 24u);
+  EXPECT_EQ(report.warnings(), 24) << Dump(report);
+  ASSERT_FALSE(links.empty());
+  EXPECT_EQ(links[0].device(), "mv-01");
+  EXPECT_EQ(links[0].severity(), v1::SEVERITY_WARNING);
+  // 2592 x 2048 x 24 = 127.4 MB/s of pixels; per frame 3626 packets of 1464 payload bytes, 1538 bytes each on the
+  // wire, plus leader and trailer: 133.8 MB/s.
+  EXPECT_THAT(links[0].message(),
+              AllOf(HasSubstr("127.4 MB/s of frames"), HasSubstr("2592x2048 bayer-rg8 at 24 fps"),
+                    HasSubstr("133.8 MB/s on the link"), HasSubstr("a 1 GigE link carries 125.0"),
+                    HasSubstr("80 MiB by the end of a 10 s take"), HasSubstr("frame_buffer_mib not declared")));
+  // 2048 rows * 125.0 / 133.8 = 1912 rows fit; jumbo frames: 593 packets of 9038 bytes = 128.6 MB/s.
+  EXPECT_THAT(links[0].fix(), AllOf(HasSubstr("2.5/5/10 GigE"), HasSubstr("<= 1912 rows"),
+                                    HasSubstr("jumbo frames (packet_size 9000: 128.6 MB/s) are not enough")));
+}
+
+TEST(VerifierTest, LinkOverBudgetWithADeclaredFrameBuffer) {
+  v1::TimingReport small = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "mv-07")->set_link(v1::LINK_KIND_GIGE_1);
+    Camera(rig, "mv-07")->set_frame_buffer_mib(32);
+  });
+  auto v = Of(small, kCheckLinkBandwidth);
+  ASSERT_EQ(v.size(), 1u) << Dump(small);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_EQ(v[0].device(), "mv-07");
+  // Backlog grows at (133.8 - 125) / 133.8 of 127.4 MB/s = 8.4 MB/s: 32 MiB last 3.98 s.
+  EXPECT_THAT(v[0].message(),
+              AllOf(HasSubstr("32 MiB frame buffer overflows 3.98 s"), HasSubstr("80 MiB by the end of 10 s")));
+
+  v1::TimingReport big = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "mv-07")->set_link(v1::LINK_KIND_GIGE_1);
+    Camera(rig, "mv-07")->set_frame_buffer_mib(512);
+  });
+  v = Of(big, kCheckLinkBandwidth);
+  ASSERT_EQ(v.size(), 1u) << Dump(big);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
+  // 80 MiB drain over the 125 MB/s link in 0.71 s.
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("512 MiB frame buffer absorbs the 80 MiB backlog"),
+                                    HasSubstr("arrive 0.71 s after the take")));
+}
+
+TEST(VerifierTest, ExposureBeforeTheLightIsSteady) {
+  v1::TimingReport report =
+      Verify([](v1::RigConfig* rig) { Camera(rig, "hs-1")->mutable_trigger()->set_delay_us(40); });
+  auto v = Of(report, kCheckSteadyLight);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_EQ(v[0].device(), "hs-1");
+  EXPECT_EQ(v[0].slot(), 0);
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("starts at 40.000 us"), HasSubstr("slot 0 (cross-full)"),
+                                    HasSubstr("steady at 55.000 us"),
+                                    HasSubstr("switch 20.000 + rise/fall 5.000 + "
+                                              "settle 30.000 us")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("trigger.delay_us >= 55.000"));
+}
+
+TEST(VerifierTest, ExposureIntoTheNextPattern) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { Camera(rig, "mv-03")->set_exposure_us(1050); });
+  auto v = Of(report, kCheckSteadyLight);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "mv-03");
+  EXPECT_EQ(v[0].slot(), 19);
+  // 55 + 1050 = 1105 us; the last moment is 1096.491 + 20 - 20 us.
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("ends at 1105.000 us"), HasSubstr("slot 19 (parallel-full)"),
+                                    HasSubstr("8.509 us after the last moment it may: 1096.491 us")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("exposure_us to <= 1041.491"));
+}
+
+TEST(VerifierTest, LightThatNeverSettles) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    rig->mutable_light_nodes(1)->set_switch_delay_us(20);
+    rig->mutable_timing()->set_led_settle_us(1100);
+  });
+  auto v = Of(report, kCheckSlotTiming);
+  ASSERT_EQ(v.size(), 6u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "lights-modbus-1");
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("never settles"), HasSubstr("settle 1100.000 us = 1125.000 us"),
+                                    HasSubstr("next switch at 1116.491 us")));
+  EXPECT_GT(report.errors(), 6);  // and every camera's exposure with it
+}
+
+TEST(VerifierTest, TriggeredFasterThanTheCameraCan) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { Camera(rig, "hs-2")->set_max_frame_rate_hz(800); });
+  auto v = Of(report, kCheckFrameRate);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_EQ(v[0].device(), "hs-2");
+  EXPECT_EQ(v[0].slot(), 0);
+  EXPECT_THAT(v[0].message(),
+              AllOf(HasSubstr("triggered at 912 Hz"), HasSubstr("4096x2304"), HasSubstr("at most 800 fps")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("trigger.divider >= 2"));
+}
+
+TEST(VerifierTest, ReadoutLongerThanThePeriod) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { Camera(rig, "hs-3")->set_readout_us(1200); });
+  auto v = Of(report, kCheckFrameRate);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "hs-3");
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("readout 1200.000 us"), HasSubstr("trigger period 1096.491 us")));
+}
+
+TEST(VerifierTest, FrameRateSettingThatDisagreesWithTheTriggers) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { Camera(rig, "mv-10")->set_frame_rate_hz(30); });
+  auto v = Of(report, kCheckFrameRate);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
+  EXPECT_EQ(v[0].device(), "mv-10");
+  EXPECT_EQ(v[0].slot(), 19);
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("frame_rate_hz is 30"), HasSubstr("every 38 slot(s) = 24 Hz")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("frame_rate_hz: 24"));
+}
+
+TEST(VerifierTest, TriggerDuringReadoutWithoutOverlap) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "hs-1")->set_readout_us(500);
+    Camera(rig, "hs-1")->set_overlap_exposure_readout(false);
+  });
+  auto v = Of(report, kCheckTriggerOverlap);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "hs-1");
+  EXPECT_EQ(v[0].slot(), 1);
+  EXPECT_THAT(v[0].message(),
+              AllOf(HasSubstr("trigger of slot 1 comes 196.491 us into the readout of slot 0"),
+                    HasSubstr("exposure 900.000 + readout 500.000 = 1400.000 us > trigger period 1096.491 us")));
+  EXPECT_THAT(v[0].fix(), AllOf(HasSubstr("overlap_exposure_readout: true"), HasSubstr("exposure_us to <= 596.491")));
+  // With overlapped exposure the same camera is fine.
+  v1::TimingReport ok = Verify([](v1::RigConfig* rig) { Camera(rig, "hs-1")->set_readout_us(500); });
+  EXPECT_TRUE(Of(ok, kCheckTriggerOverlap).empty()) << Dump(ok);
+}
+
+TEST(VerifierTest, TriggerPulseWiderThanThePeriod) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { rig->mutable_timing()->set_trigger_pulse_us(1100); });
+  auto v = Of(report, kCheckTriggerOverlap);
+  ASSERT_EQ(v.size(), 3u) << Dump(report);  // the high-speed cameras, triggered every slot
+  EXPECT_EQ(v[0].device(), "hs-1");
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("pulse 1100.000 us"), HasSubstr("never returns low")));
+}
+
+TEST(VerifierTest, HighSpeedRamAgainstTheTakeLength) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { rig->mutable_timing()->set_take_length_s(40); });
+  auto v = Of(report, kCheckCameraRam);
+  ASSERT_EQ(v.size(), 3u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "hs-1");
+  // 256 GiB / 9437184 bytes = 29127 frames = 31.94 s at 912 fps.
+  EXPECT_EQ(v[0].slot(), 29127);
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("a 40 s take is 36480 frames x 9.44 MB"),
+                                    HasSubstr("holds 256 GiB = 29127 frames = 31.94 s")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("take_length_s to <= 31.94 s"));
+}
+
+TEST(VerifierTest, RecordingHostDiskRate) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { rig->mutable_storage()->set_host_write_mb_per_s(700); });
+  auto v = Of(report, kCheckDiskWrite);
+  ASSERT_EQ(v.size(), 4u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "rec-1");
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  // Six machine-vision cameras at 127.4 MB/s.
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("writes 764.4 MB/s for 6 camera(s)"), HasSubstr("mv-01"),
+                                    HasSubstr("sustains 700 MB/s")));
+}
+
+TEST(VerifierTest, LedDutyCycleOverTheLimit) {
+  v1::TimingReport report =
+      Verify([](v1::RigConfig* rig) { rig->mutable_light_nodes(4)->mutable_unit_limits()->set_max_duty_cycle(0.2); });
+  auto v = Of(report, kCheckLedDuty);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_THAT(v[0].device(), HasSubstr("lights-gpio-1/ch"));
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("40 channel(s) of lights-gpio-1"), HasSubstr("over the 38-pattern cycle"),
+                                    HasSubstr("limit max_duty_cycle 0.2")));
+  EXPECT_TRUE(Of(report, kCheckLedThermal).empty()) << Dump(report);
+}
+
+TEST(VerifierTest, LedThermalBudgetWithAShortTimeConstant) {
+  // The cycle averages about 0.25 of full drive per emitter, but the cross emitters are driven for the first 19
+  // slots (20.8 ms) in a row: with a 5 ms time constant their load climbs well above the average.
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    auto* limits = rig->mutable_light_nodes(0)->mutable_unit_limits();
+    limits->set_thermal_time_constant_s(0.005);
+    limits->set_max_duty_cycle(0.45);
+  });
+  EXPECT_TRUE(Of(report, kCheckLedDuty).empty()) << Dump(report);
+  auto v = Of(report, kCheckLedThermal);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_THAT(v[0].device(), HasSubstr("lights-modbus-1/ch"));
+  EXPECT_THAT(v[0].message(),
+              AllOf(HasSubstr("of lights-modbus-1 exceed their thermal budget"),
+                    HasSubstr("thermal_time_constant_s 0.005"), HasSubstr("limit max_duty_cycle 0.45")));
+  // A long time constant averages it out.
+  v1::TimingReport ok =
+      Verify([](v1::RigConfig* rig) { rig->mutable_light_nodes(0)->mutable_unit_limits()->set_max_duty_cycle(0.45); });
+  EXPECT_TRUE(Of(ok, kCheckLedThermal).empty()) << Dump(ok);
+}
+
+// fastage-38 in textbook order (gradients, then complements): the order the shipped set avoids.
+std::string TextbookOrderSet() {
+  const std::vector<std::pair<const char*, const char*>> patterns = {
+      {"full", "1"},           {"x+", "(1 + x) / 2"}, {"x-", "(1 - x) / 2"},   {"y+", "(1 + y) / 2"},
+      {"y-", "(1 - y) / 2"},   {"z+", "(1 + z) / 2"}, {"z-", "(1 - z) / 2"},   {"xx", "x^2"},
+      {"xx-c", "1 - x^2"},     {"yy", "y^2"},         {"yy-c", "1 - y^2"},     {"zz", "z^2"},
+      {"zz-c", "1 - z^2"},     {"xy", "0.5 + x * y"}, {"xy-c", "0.5 - x * y"}, {"yz", "0.5 + y * z"},
+      {"yz-c", "0.5 - y * z"}, {"xz", "0.5 + x * z"}, {"xz-c", "0.5 - x * z"}};
+  std::string text = "name: textbook-38\npatterns:\n";
+  for (const char* pol : {"cross", "parallel"}) {
+    for (const auto& [name, formula] : patterns) {
+      absl::StrAppend(&text, "  - {name: ", pol, "-", name, ", polarization: ", pol, ", formula: \"", formula, "\"}\n");
+    }
+  }
+  return text;
+}
+
+TEST(VerifierTest, FlickerOfTheTotalLightBelowSixtyHertz) {
+  auto dir = std::filesystem::temp_directory_path() / ("fastage-flicker-" + std::to_string(getpid()));
+  std::filesystem::create_directories(dir);
+  std::ofstream(dir / "textbook.yaml") << TextbookOrderSet();
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) { rig->set_pattern_set("textbook.yaml"); }, dir.string());
+  auto v = Of(report, kCheckFlicker);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
+  EXPECT_EQ(v[0].device(), "performer");
+  EXPECT_EQ(v[0].slot(), -1);
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("modulated by 11."), HasSubstr("at 48 Hz"), HasSubstr("harmonic 2"),
+                                    HasSubstr("warning line 1.20 %"), HasSubstr("IEEE 1789")));
+  EXPECT_EQ(report.errors(), 0) << Dump(report);
+
+  v1::TimingReport strict = Verify(
+      [](v1::RigConfig* rig) {
+        rig->set_pattern_set("textbook.yaml");
+        rig->mutable_timing()->set_flicker_error_modulation(0.05);
+      },
+      dir.string());
+  std::filesystem::remove_all(dir);
+  v = Of(strict, kCheckFlicker);
+  ASSERT_EQ(v.size(), 1u) << Dump(strict);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_THAT(v[0].message(), HasSubstr("above the error line 5.00 %"));
+}
+
+TEST(VerifierTest, ScheduledSoftwareTriggersWithTooLittleLead) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "mv-02")->mutable_trigger()->set_source(v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE);
+    rig->mutable_timing()->set_trigger_lead_slots(1);
+  });
+  auto v = Of(report, kCheckTriggerLead);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].device(), "mv-02");
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
+  EXPECT_THAT(v[0].message(), HasSubstr("sent 1 slot(s) = 1.096 ms ahead"));
+  EXPECT_THAT(v[0].fix(), HasSubstr("trigger_lead_slots to >= 2"));
+}
+
+}  // namespace
+}  // namespace stage::timing
