@@ -44,7 +44,7 @@ int main(int argc, char** argv) {
                   rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),
                   rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
   monitor.Start();
-  stage::controller::ControllerService service(rig, &monitor);
+  stage::controller::ControllerService service(*loaded, &monitor);
   int code = stage::ServeUntilSignal(kProgram, flags, rig.controller().listen(), {&service}, summary);
   monitor.Stop();
   return code;

@@ -86,6 +86,17 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
   EXPECT_EQ(lights, 6);
   EXPECT_EQ(workers, 1);
   EXPECT_EQ(status["summary"]["nodes_up"], status["summary"]["nodes_total"]);
+  // The controller compiled and verified the live rig's schedule.
+  EXPECT_EQ(status["timing"]["errors"], 0);
+  EXPECT_EQ(status["timing"]["schedule_hash"].get<std::string>().size(), 16u);
+
+  // The live rig's timing, what-if included, through the controller.
+  CommandResult check = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "check",
+                                    "--set", "cameras[hs-2].exposure_us=1050"},
+                                   std::chrono::seconds(20));
+  EXPECT_EQ(check.exit.exit_code, 3) << check.err;
+  EXPECT_THAT(check.out, ::testing::HasSubstr("the live rig of the controller at " + endpoints_.controller()));
+  EXPECT_THAT(check.out, ::testing::HasSubstr("steady-light    hs-2 slot 0"));
 
   // 2. SIGKILL one camera node (by pid, from the endpoint file).
   pid_t victim = 0;

@@ -4,8 +4,12 @@
 #include <algorithm>
 #include <chrono>
 
+#include "stage/common/grpc_status.h"
+#include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
+#include "stage/timing/timing_tool.h"
+#include "stage/timing/verifier.h"
 
 namespace stage::controller {
 
@@ -22,8 +26,32 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig) {
   return targets;
 }
 
-ControllerService::ControllerService(const v1::RigConfig& rig, HealthMonitor* monitor)
-    : stage_id_(rig.stage().id()), stage_name_(rig.stage().name()), rig_hash_(RigHash(rig)), monitor_(monitor) {}
+ControllerService::ControllerService(LoadedRig rig, HealthMonitor* monitor)
+    : rig_(std::move(rig)),
+      stage_id_(rig_.rig.stage().id()),
+      stage_name_(rig_.rig.stage().name()),
+      rig_hash_(RigHash(rig_.rig)),
+      monitor_(monitor) {
+  auto log = Logger("controller.timing");
+  auto report = timing::CheckTiming(rig_, {});
+  if (!report.ok()) {
+    log->error("the rig's schedule cannot be compiled: {}", report.status().message());
+    return;
+  }
+  timing_ = *std::move(report);
+  for (const v1::Violation& v : timing_.violations()) {
+    const std::string line = fmt::format("{} {}{}: {} (fix: {})", v.check(), v.device(),
+                                         v.slot() >= 0 ? fmt::format(" slot {}", v.slot()) : "", v.message(), v.fix());
+    if (v.severity() == v1::SEVERITY_ERROR) {
+      log->error("{}", line);
+    } else {
+      log->warn("{}", line);
+    }
+  }
+  log->info("schedule {}: {} patterns at {} slots/s, {} error(s), {} warning(s)", timing_.schedule().hash(),
+            timing_.schedule().patterns_size(), timing_.schedule().time_base().slot_rate_hz(), timing_.errors(),
+            timing_.warnings());
+}
 
 v1::StageStatus ControllerService::Status() const {
   v1::StageStatus status;
@@ -41,6 +69,9 @@ v1::StageStatus ControllerService::Status() const {
   status.set_nodes_total(status.nodes_size());
   status.set_session_state("idle");
   *status.mutable_controller() = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
+  status.set_schedule_hash(timing_.schedule().hash());
+  status.set_timing_errors(timing_.errors());
+  status.set_timing_warnings(timing_.warnings());
   return status;
 }
 
@@ -73,6 +104,22 @@ grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
     last_sent = now;
     if (!writer->Write(Status())) break;  // the client went away
   }
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::CheckTiming(grpc::ServerContext*, const v1::TimingQuery* request,
+                                           v1::TimingReport* response) {
+  auto report = timing::CheckTiming(rig_, *request);
+  if (!report.ok()) return ToGrpcStatus(report.status());
+  *response = *std::move(report);
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::TimingExportRequest* request,
+                                            v1::TimingExport* response) {
+  auto out = timing::ExportTiming(rig_, *request);
+  if (!out.ok()) return ToGrpcStatus(out.status());
+  *response = *std::move(out);
   return grpc::Status::OK;
 }
 

@@ -1,28 +1,40 @@
-// gRPC StageController service: stage status from the health monitor, nothing more (yet).
+// gRPC StageController service: stage status from the health monitor, and the timing verifier and waveform export on
+// the live rig.
 #pragma once
 
 #include <string>
 
 #include "health_monitor.h"
+#include "stage/common/rig.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/rig.pb.h"
+#include "stage/v1/timing.pb.h"
 
 namespace stage::controller {
 
 class ControllerService final : public v1::StageController::Service {
  public:
-  // `monitor` is not owned and must outlive the service.
-  ControllerService(const v1::RigConfig& rig, HealthMonitor* monitor);
+  // `monitor` is not owned and must outlive the service. The rig's schedule is compiled and verified here, once;
+  // its verdict is logged and shown in every status.
+  ControllerService(LoadedRig rig, HealthMonitor* monitor);
 
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetStageStatus(grpc::ServerContext*, const v1::GetStageStatusRequest*,
                               v1::StageStatus* response) override;
   grpc::Status WatchStageStatus(grpc::ServerContext* context, const v1::WatchStageStatusRequest* request,
                                 grpc::ServerWriter<v1::StageStatus>* writer) override;
+  grpc::Status CheckTiming(grpc::ServerContext*, const v1::TimingQuery* request, v1::TimingReport* response) override;
+  grpc::Status ExportTiming(grpc::ServerContext*, const v1::TimingExportRequest* request,
+                            v1::TimingExport* response) override;
 
   v1::StageStatus Status() const;
 
+  // The live rig's verifier report (the schedule inside), or empty with the error when it could not be compiled.
+  const v1::TimingReport& timing() const { return timing_; }
+
  private:
+  LoadedRig rig_;
+  v1::TimingReport timing_;
   std::string stage_id_;
   std::string stage_name_;
   std::string rig_hash_;

@@ -34,10 +34,13 @@ TEST(ControllerServiceTest, StatusAndWatch) {
   auto* w = rig.add_processing_workers();
   w->set_id("worker-1");
   w->set_address((*worker_server)->address());
+  ApplyRigDefaults(&rig);
+  LoadedRig loaded;
+  loaded.rig = rig;
 
   HealthMonitor monitor(TargetsFromRig(rig), {std::chrono::milliseconds(50), std::chrono::milliseconds(300)});
   monitor.Start();
-  ControllerService service(rig, &monitor);
+  ControllerService service(loaded, &monitor);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
   auto stub = v1::StageController::NewStub(
@@ -55,6 +58,9 @@ TEST(ControllerServiceTest, StatusAndWatch) {
   EXPECT_EQ(status.stage_id(), "s");
   EXPECT_EQ(status.nodes(0).version(), "test");
   EXPECT_EQ(status.controller().kind(), v1::NODE_KIND_CONTROLLER);
+  // A rig without cameras or lights still has a (trivial) schedule.
+  EXPECT_EQ(status.schedule_hash().size(), 16u);
+  EXPECT_EQ(status.timing_errors(), 0);
 
   // WatchStageStatus: a snapshot at once, then one showing the worker down after it stops.
   grpc::ClientContext watch_context;
@@ -70,6 +76,67 @@ TEST(ControllerServiceTest, StatusAndWatch) {
   EXPECT_EQ(update.nodes(0).state(), v1::NODE_STATE_DOWN);
   watch_context.TryCancel();
   monitor.Stop();
+}
+
+// The timing RPCs verify and export the live rig, with what-if overrides.
+TEST(ControllerServiceTest, TimingCheckAndExportOnTheLiveRig) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  HealthMonitor monitor({}, {});
+  ControllerService service(*rig, &monitor);
+  EXPECT_EQ(service.timing().errors(), 0);
+  auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
+  ASSERT_TRUE(server.ok());
+  auto stub = v1::StageController::NewStub(
+      grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+
+  v1::TimingQuery query;
+  v1::TimingReport report;
+  {
+    grpc::ClientContext context;
+    ASSERT_TRUE(stub->CheckTiming(&context, query, &report).ok());
+  }
+  EXPECT_EQ(report.errors(), 0);
+  EXPECT_EQ(report.schedule().hash(), service.Status().schedule_hash());
+
+  // What if hs-1 were triggered 40 us after the edge?
+  query.add_overrides("cameras[hs-1].trigger.delay_us=40");
+  {
+    grpc::ClientContext context;
+    ASSERT_TRUE(stub->CheckTiming(&context, query, &report).ok());
+  }
+  ASSERT_EQ(report.errors(), 1);
+  EXPECT_EQ(report.violations(0).check(), "steady-light");
+  EXPECT_EQ(report.violations(0).device(), "hs-1");
+  EXPECT_NE(report.schedule().hash(), service.Status().schedule_hash());
+
+  // A bad override is the caller's error, named.
+  query.set_overrides(0, "cameras[hs-9].exposure_us=1");
+  {
+    grpc::ClientContext context;
+    grpc::Status s = stub->CheckTiming(&context, query, &report);
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(s.error_message().find("hs-9"), std::string::npos) << s.error_message();
+  }
+
+  v1::TimingExportRequest request;
+  request.set_vcd(true);
+  request.set_svg(true);
+  request.set_json(true);
+  v1::TimingExport out;
+  {
+    grpc::ClientContext context;
+    ASSERT_TRUE(stub->ExportTiming(&context, request, &out).ok());
+  }
+  EXPECT_EQ(out.slot_count(), 38);
+  EXPECT_NE(out.vcd().find("$timescale 1 ns $end"), std::string::npos);
+  EXPECT_NE(out.svg().find("<svg"), std::string::npos);
+  EXPECT_NE(out.json().find("\"pattern_name\": \"parallel-full\""), std::string::npos);
+  request.set_slot_count(1'000'000);
+  {
+    grpc::ClientContext context;
+    EXPECT_EQ(stub->ExportTiming(&context, request, &out).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  }
 }
 
 }  // namespace

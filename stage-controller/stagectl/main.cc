@@ -1,4 +1,5 @@
-// stagectl: the command-line console of the stage (a thin StageController client).
+// stagectl: the command-line console of the stage (a thin StageController client; `timing` also works on a rig file
+// without a controller).
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 #include <unistd.h>
@@ -7,7 +8,10 @@
 #include <cstdlib>
 #include <iostream>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
@@ -15,6 +19,7 @@
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/common/version.h"
+#include "stage/timing/timing_tool.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/sim.pb.h"
 #include "status_format.h"
@@ -22,19 +27,27 @@
 namespace {
 
 constexpr const char* kProgram = "stagectl";
+// Exit code when the answer is "not ready": nodes not up (status), or timing errors (timing check).
+constexpr int kExitNotReady = 3;
+
+struct Connection {
+  std::string controller;
+  std::string endpoints;
+  std::string rig_path;
+  int timeout_ms = 3000;
+};
 
 // Where the controller is: --controller, the rig's controller.listen (--config), $FASTAGE_CONTROLLER, the endpoint
 // file (--endpoints, $FASTAGE_ENDPOINTS, or stage-sim's default run directory), in that order.
-absl::StatusOr<std::string> ResolveController(const std::string& flag, const std::string& rig_path,
-                                              const std::string& endpoints_flag) {
-  if (!flag.empty()) return flag;
-  if (!rig_path.empty()) {
-    auto loaded = stage::LoadRig(rig_path);
+absl::StatusOr<std::string> ResolveController(const Connection& c) {
+  if (!c.controller.empty()) return c.controller;
+  if (!c.rig_path.empty()) {
+    auto loaded = stage::LoadRig(c.rig_path);
     if (!loaded.ok()) return loaded.status();
     return loaded->rig.controller().listen();
   }
   if (const char* env = std::getenv("FASTAGE_CONTROLLER"); env != nullptr && *env != '\0') return std::string(env);
-  std::string path = endpoints_flag;
+  std::string path = c.endpoints;
   if (path.empty()) {
     const char* env = std::getenv("FASTAGE_ENDPOINTS");
     path = env != nullptr && *env != '\0' ? env : stage::DefaultSimRunDir() + "/endpoints.json";
@@ -57,17 +70,39 @@ absl::StatusOr<std::string> ResolveController(const std::string& flag, const std
   return endpoints.controller();
 }
 
-int Status(const std::string& address, int timeout_ms, bool json) {
-  auto channel = grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
-  auto stub = stage::v1::StageController::NewStub(channel);
+absl::StatusOr<std::unique_ptr<stage::v1::StageController::Stub>> Connect(const Connection& c, std::string* address) {
+  auto resolved = ResolveController(c);
+  if (!resolved.ok()) return resolved.status();
+  *address = *resolved;
+  return stage::v1::StageController::NewStub(grpc::CreateChannel(*address, grpc::InsecureChannelCredentials()));
+}
+
+void SetDeadline(grpc::ClientContext* context, const Connection& c) {
+  context->set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(c.timeout_ms));
+}
+
+absl::Status RpcError(const grpc::Status& rpc, const std::string& address) {
+  return stage::Annotate(stage::FromGrpcStatus(rpc), absl::StrCat("controller at ", address));
+}
+
+std::string ToJson(const google::protobuf::Message& message) {
+  google::protobuf::util::JsonPrintOptions options;
+  options.add_whitespace = true;
+  options.preserve_proto_field_names = true;
+  std::string out;
+  (void)google::protobuf::util::MessageToJsonString(message, &out, options);
+  return out;
+}
+
+int Status(const Connection& c, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
   grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(timeout_ms));
+  SetDeadline(&context, c);
   stage::v1::StageStatus status;
-  grpc::Status rpc = stub->GetStageStatus(&context, stage::v1::GetStageStatusRequest(), &status);
-  if (!rpc.ok()) {
-    return stage::ReportFatal(kProgram,
-                              stage::Annotate(stage::FromGrpcStatus(rpc), absl::StrCat("controller at ", address)));
-  }
+  grpc::Status rpc = (*stub)->GetStageStatus(&context, stage::v1::GetStageStatusRequest(), &status);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
   if (json) {
     std::cout << stage::stagectl::StatusToJson(status) << "\n";
   } else {
@@ -76,7 +111,147 @@ int Status(const std::string& address, int timeout_ms, bool json) {
             .count();
     std::cout << stage::stagectl::FormatStatusTable(status, now, isatty(STDOUT_FILENO) != 0);
   }
-  return status.nodes_up() == status.nodes_total() ? 0 : 3;
+  return status.nodes_up() == status.nodes_total() ? 0 : kExitNotReady;
+}
+
+// ---- timing -------------------------------------------------------------------------------------------------------
+
+struct TimingFlags {
+  // A rig file to work on locally; empty = ask the controller about the live rig.
+  std::string rig;
+  std::vector<std::string> overrides;
+  bool json = false;
+  // export
+  std::string vcd_path, svg_path, json_path;
+  int64_t frames = 1;
+  std::string slots;
+  std::string timescale = "1ns";
+};
+
+absl::StatusOr<stage::v1::TimingReport> FetchReport(const Connection& c, const TimingFlags& f, std::string* rig_name) {
+  stage::v1::TimingQuery query;
+  for (const auto& o : f.overrides) query.add_overrides(o);
+  if (!f.rig.empty()) {
+    auto loaded = stage::LoadRig(f.rig);
+    if (!loaded.ok()) return loaded.status();
+    *rig_name = loaded->source_name;
+    return stage::timing::CheckTiming(*loaded, query);
+  }
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stub.status();
+  *rig_name = absl::StrCat("the live rig of the controller at ", address);
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::TimingReport report;
+  grpc::Status rpc = (*stub)->CheckTiming(&context, query, &report);
+  if (!rpc.ok()) return RpcError(rpc, address);
+  return report;
+}
+
+std::string WithOverrides(std::string rig_name, const TimingFlags& f) {
+  if (!f.overrides.empty()) absl::StrAppend(&rig_name, " with ", absl::StrJoin(f.overrides, ", "));
+  return rig_name;
+}
+
+int TimingCheck(const Connection& c, const TimingFlags& f) {
+  std::string rig_name;
+  auto report = FetchReport(c, f, &rig_name);
+  if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
+  if (f.json) {
+    std::cout << ToJson(*report) << "\n";
+  } else {
+    std::cout << stage::timing::FormatViolations(*report, WithOverrides(rig_name, f));
+  }
+  return report->errors() > 0 ? kExitNotReady : 0;
+}
+
+int TimingShow(const Connection& c, const TimingFlags& f) {
+  std::string rig_name;
+  auto report = FetchReport(c, f, &rig_name);
+  if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
+  if (f.json) {
+    std::cout << ToJson(report->schedule()) << "\n";
+  } else {
+    std::cout << stage::timing::FormatScheduleSummary(*report, WithOverrides(rig_name, f));
+  }
+  return 0;
+}
+
+int TimingExport(const Connection& c, const TimingFlags& f) {
+  if (f.vcd_path.empty() && f.svg_path.empty() && f.json_path.empty()) {
+    std::cerr << kProgram << ": error: timing export needs at least one of --vcd, --svg, --json; see --help\n";
+    return 2;
+  }
+  stage::v1::TimingExportRequest request;
+  for (const auto& o : f.overrides) request.add_overrides(o);
+  request.set_vcd(!f.vcd_path.empty());
+  request.set_svg(!f.svg_path.empty());
+  request.set_json(!f.json_path.empty());
+  request.set_timescale(f.timescale);
+  if (!f.slots.empty()) {
+    // A:B, slots A to B-1.
+    std::vector<std::string> parts = absl::StrSplit(f.slots, ':');
+    int64_t a = 0, b = 0;
+    if (parts.size() != 2 || !absl::SimpleAtoi(parts[0], &a) || !absl::SimpleAtoi(parts[1], &b) || a < 0 || b <= a) {
+      std::cerr << kProgram << ": error: --slots " << f.slots
+                << " is not FIRST:END with 0 <= FIRST < END (slots FIRST to END-1); see --help\n";
+      return 2;
+    }
+    request.set_first_slot(a);
+    request.set_slot_count(b - a);
+  }
+  stage::v1::TimingExport out;
+  if (!f.rig.empty()) {
+    auto loaded = stage::LoadRig(f.rig);
+    if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+    if (f.slots.empty()) {
+      // --frames N: N pattern cycles from slot 0 (the cycle length comes with the report).
+      auto report = stage::timing::CheckTiming(*loaded, stage::v1::TimingQuery());
+      if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
+      request.set_slot_count(f.frames * std::max(1, report->schedule().patterns_size()));
+    }
+    auto exported = stage::timing::ExportTiming(*loaded, request);
+    if (!exported.ok()) return stage::ReportFatal(kProgram, exported.status());
+    out = *std::move(exported);
+  } else {
+    std::string address;
+    auto stub = Connect(c, &address);
+    if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+    if (f.slots.empty()) {
+      grpc::ClientContext context;
+      SetDeadline(&context, c);
+      stage::v1::TimingReport report;
+      grpc::Status rpc = (*stub)->CheckTiming(&context, stage::v1::TimingQuery(), &report);
+      if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+      request.set_slot_count(f.frames * std::max(1, report.schedule().patterns_size()));
+    }
+    grpc::ClientContext context;
+    SetDeadline(&context, c);
+    grpc::Status rpc = (*stub)->ExportTiming(&context, request, &out);
+    if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  }
+  for (const auto& [path, text] : {std::pair{f.vcd_path, &out.vcd()}, std::pair{f.svg_path, &out.svg()},
+                                   std::pair{f.json_path, &out.json()}}) {
+    if (path.empty()) continue;
+    if (absl::Status s = stage::WriteFileAtomically(path, *text); !s.ok()) return stage::ReportFatal(kProgram, s);
+    std::cerr << "wrote " << path << " (" << text->size() << " bytes)\n";
+  }
+  std::cerr << "schedule " << out.report().schedule().hash() << ", slots " << out.first_slot() << " to "
+            << out.first_slot() + out.slot_count() - 1 << ": " << out.report().errors() << " error(s), "
+            << out.report().warnings() << " warning(s)\n";
+  return 0;
+}
+
+void AddTimingFlags(CLI::App* cmd, TimingFlags* f) {
+  cmd->add_option("--rig", f->rig,
+                  "Work on this rig file (or builtin:fastage) here instead of asking the controller about the live "
+                  "rig");
+  cmd->add_option("--set", f->overrides,
+                  "What-if: override a rig field, PATH=VALUE (repeatable), e.g. timing.led_switch_delay_us=60 or "
+                  "cameras[hs-1].exposure_us=850")
+      ->expected(1)
+      ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
 }
 
 }  // namespace
@@ -84,32 +259,55 @@ int Status(const std::string& address, int timeout_ms, bool json) {
 int main(int argc, char** argv) {
   CLI::App app{
       "Command-line console of the FaStage stage. Exit codes: 0 ok, 1 failure, 2 bad usage, "
-      "3 status shows nodes that are not up.",
+      "3 not ready (status: nodes not up; timing check: the schedule has errors).",
       "stagectl"};
   app.set_version_flag("--version", std::string("stagectl (FaStage) ") + std::string(stage::kVersion));
-  std::string controller;
-  std::string endpoints;
-  std::string rig_path;
+  Connection c;
   std::string log_level;
-  int timeout_ms = 3000;
-  app.add_option("--controller", controller,
+  app.add_option("--controller", c.controller,
                  "Controller address host:port (default: $FASTAGE_CONTROLLER or the "
                  "stage-sim endpoint file)");
-  app.add_option("--config", rig_path, "Rig file: talk to the controller at its controller.listen address");
+  app.add_option("--config", c.rig_path, "Rig file: talk to the controller at its controller.listen address");
   app.add_option(
-      "--endpoints", endpoints,
+      "--endpoints", c.endpoints,
       "stage-sim endpoint file (default: $FASTAGE_ENDPOINTS or " + stage::DefaultSimRunDir() + "/endpoints.json)");
-  app.add_option("--timeout-ms", timeout_ms, "Deadline of each call to the controller")->check(CLI::Range(1, 600000));
+  app.add_option("--timeout-ms", c.timeout_ms, "Deadline of each call to the controller")->check(CLI::Range(1, 600000));
   app.add_option("--log-level", log_level, "Log levels (spdlog syntax)");
   app.require_subcommand(1);
   bool json = false;
   CLI::App* status = app.add_subcommand("status", "Show every node of the stage: state, address, version, RTT");
   status->add_flag("--json", json, "Print JSON for scripts instead of the table");
+
+  TimingFlags tf;
+  CLI::App* timing = app.add_subcommand(
+      "timing", "The timing schedule: verify it (with what-if overrides), show it per device, export waveforms");
+  timing->require_subcommand(1);
+  CLI::App* check = timing->add_subcommand(
+      "check", "Dry-run the verifier on the live rig (or --rig FILE) with --set overrides; exit 3 if it has errors");
+  AddTimingFlags(check, &tf);
+  check->add_flag("--json", tf.json, "Print the report (violations, figures, schedule) as JSON");
+  CLI::App* show = timing->add_subcommand("show", "Summarize the schedule per light node and camera");
+  AddTimingFlags(show, &tf);
+  show->add_flag("--json", tf.json, "Print the compiled schedule as JSON");
+  CLI::App* exporter = timing->add_subcommand(
+      "export", "Write the schedule as VCD (GTKWave, PulseView, sigrok-cli), an SVG timing diagram and JSON");
+  AddTimingFlags(exporter, &tf);
+  exporter->add_option("--vcd", tf.vcd_path, "Write a VCD (IEEE 1364) file here");
+  exporter->add_option("--svg", tf.svg_path, "Write an SVG timing diagram here");
+  exporter->add_option("--json", tf.json_path, "Write the report and the window's slots as JSON here");
+  exporter->add_option("--frames", tf.frames, "Export this many pattern cycles (frames) from slot 0")
+      ->check(CLI::Range(int64_t{1}, int64_t{2000}))
+      ->capture_default_str();
+  exporter->add_option("--slots", tf.slots, "Export slots FIRST to END-1 instead (FIRST:END)");
+  exporter->add_option("--timescale", tf.timescale, "VCD timescale: 1, 10 or 100 of fs, ps, ns, us, ms, s")
+      ->capture_default_str();
+
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
-  auto address = ResolveController(controller, rig_path, endpoints);
-  if (!address.ok()) return stage::ReportFatal(kProgram, address.status());
-  if (status->parsed()) return Status(*address, timeout_ms, json);
+  if (status->parsed()) return Status(c, json);
+  if (check->parsed()) return TimingCheck(c, tf);
+  if (show->parsed()) return TimingShow(c, tf);
+  if (exporter->parsed()) return TimingExport(c, tf);
   return 2;
 }

@@ -31,6 +31,14 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
   std::string out = absl::StrFormat("Stage %s (%s): %d of %d nodes up, session %s, controller %s\n\n",
                                     status.stage_id(), status.stage_name(), status.nodes_up(), status.nodes_total(),
                                     status.session_state(), status.controller().version());
+  if (!status.schedule_hash().empty()) {
+    out.insert(out.size() - 1, absl::StrFormat("schedule %s: %d timing error(s), %d warning(s)%s\n",
+                                               status.schedule_hash(), status.timing_errors(),
+                                               status.timing_warnings(),
+                                               status.timing_errors() + status.timing_warnings() > 0
+                                                   ? " (stagectl timing check)"
+                                                   : ""));
+  }
   out += absl::StrFormat("%-18s %-10s %-22s %-12s %-8s %-8s %9s %10s  %s\n", "NODE", "KIND", "ADDRESS", "STATE",
                          "BACKEND", "VERSION", "RTT", "LAST SEEN", "REASON");
   for (const v1::NodeStatus& n : status.nodes()) {
@@ -67,6 +75,9 @@ std::string StatusToJson(const v1::StageStatus& status) {
                      {"uptime_ns", status.controller().uptime_ns()},
                      {"rig_hash", status.controller().rig_hash()}};
   j["summary"] = {{"nodes_up", status.nodes_up()}, {"nodes_total", status.nodes_total()}};
+  j["timing"] = {{"schedule_hash", status.schedule_hash()},
+                 {"errors", status.timing_errors()},
+                 {"warnings", status.timing_warnings()}};
   nlohmann::ordered_json nodes = nlohmann::ordered_json::array();
   for (const v1::NodeStatus& n : status.nodes()) {
     nodes.push_back({{"id", n.id()},

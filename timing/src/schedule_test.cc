@@ -66,9 +66,9 @@ TEST(ScheduleTest, ShippedRigOffsets) {
   ASSERT_NE(hs, nullptr);
   EXPECT_EQ(hs->divider(), 1u);
   EXPECT_EQ(hs->period_ticks(), base.ticks_per_slot());
-  // Readout undeclared: the rest of the period.
-  EXPECT_FALSE(hs->readout_declared());
-  EXPECT_EQ(hs->readout_ticks(), base.ticks_per_slot() - base.UsToTicks(900));
+  EXPECT_TRUE(hs->readout_declared());
+  EXPECT_EQ(hs->readout_ticks(), base.UsToTicks(1000));
+  EXPECT_TRUE(hs->overlap_exposure_readout());
   EXPECT_EQ(hs->frame_bytes(), 4096 * 2304);
 }
 
@@ -90,6 +90,14 @@ TEST(ScheduleTest, MultiRateCamerasInDescribedSlots) {
   EXPECT_EQ(NextFiringSlot(*mv, 0), 19);
   EXPECT_EQ(NextFiringSlot(*mv, 19), 19);
   EXPECT_EQ(NextFiringSlot(*mv, 20), 57);
+}
+
+TEST(ScheduleTest, UndeclaredReadoutIsTheRestOfThePeriod) {
+  Compiled c = CompileShipped([](v1::RigConfig* rig) { rig->mutable_cameras(26)->set_readout_us(0); });
+  const TimeBase base = TimeBase::FromProto(c.schedule.time_base());
+  const v1::CameraTiming* hs = FindCameraTiming(c.schedule, "hs-3");
+  EXPECT_FALSE(hs->readout_declared());
+  EXPECT_EQ(hs->readout_ticks(), base.ticks_per_slot() - base.UsToTicks(900));
 }
 
 TEST(ScheduleTest, PatternTablesDriveTheEmitterOfThePatternsPolarization) {

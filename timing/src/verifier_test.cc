@@ -94,14 +94,29 @@ TEST(VerifierTest, ShippedRigOnOneGigEGetsOnlyTheLinkWarning) {
   ASSERT_FALSE(links.empty());
   EXPECT_EQ(links[0].device(), "mv-01");
   EXPECT_EQ(links[0].severity(), v1::SEVERITY_WARNING);
-  // 2592 x 2048 x 24 = 127.4 MB/s of pixels; per frame 3626 packets of 1464 payload bytes, 1538 bytes each on the
-  // wire, plus leader and trailer: 133.8 MB/s.
-  EXPECT_THAT(links[0].message(),
-              AllOf(HasSubstr("127.4 MB/s of frames"), HasSubstr("2592x2048 bayer-rg8 at 24 fps"),
-                    HasSubstr("133.8 MB/s on the link"), HasSubstr("a 1 GigE link carries 125.0"),
-                    HasSubstr("80 MiB by the end of a 10 s take"), HasSubstr("frame_buffer_mib not declared")));
-  // 2048 rows * 125.0 / 133.8 = 1912 rows fit; jumbo frames: 593 packets of 9038 bytes = 128.6 MB/s.
-  EXPECT_THAT(links[0].fix(), AllOf(HasSubstr("2.5/5/10 GigE"), HasSubstr("<= 1912 rows"),
+  // 2592 x 2048 x 24 = 127.4 MB/s of pixels; with the shipped jumbo frames, per frame 593 packets of 8964 payload
+  // bytes, 9038 bytes each on the wire, plus leader and trailer: 128.6 MB/s.
+  EXPECT_THAT(links[0].message(), AllOf(HasSubstr("127.4 MB/s of frames"), HasSubstr("2592x2048 bayer-rg8 at 24 fps"),
+                                        HasSubstr("128.6 MB/s on the link"), HasSubstr("packet size 9000"),
+                                        HasSubstr("a 1 GigE link carries 125.0"),
+                                        HasSubstr("34 MiB by the end of a 10 s take"),
+                                        HasSubstr("frame_buffer_mib not declared")));
+  // 2048 rows * 125.0 / 128.6 = 1990 rows fit.
+  EXPECT_THAT(links[0].fix(), AllOf(HasSubstr("2.5/5/10 GigE"), HasSubstr("<= 1990 rows")));
+}
+
+TEST(VerifierTest, OneGigEWithoutJumboFrames) {
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "mv-13")->set_link(v1::LINK_KIND_GIGE_1);
+    Camera(rig, "mv-13")->set_packet_size(1500);
+  });
+  auto links = Of(report, kCheckLinkBandwidth);
+  ASSERT_EQ(links.size(), 1u) << Dump(report);
+  EXPECT_EQ(links[0].device(), "mv-13");
+  // Per frame 3626 packets of 1464 payload bytes, 1538 bytes each on the wire: 133.8 MB/s.
+  EXPECT_THAT(links[0].message(), AllOf(HasSubstr("133.8 MB/s on the link"), HasSubstr("packet size 1500"),
+                                        HasSubstr("80 MiB by the end of a 10 s take")));
+  EXPECT_THAT(links[0].fix(), AllOf(HasSubstr("<= 1912 rows"),
                                     HasSubstr("jumbo frames (packet_size 9000: 128.6 MB/s) are not enough")));
 }
 
@@ -114,9 +129,9 @@ TEST(VerifierTest, LinkOverBudgetWithADeclaredFrameBuffer) {
   ASSERT_EQ(v.size(), 1u) << Dump(small);
   EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
   EXPECT_EQ(v[0].device(), "mv-07");
-  // Backlog grows at (133.8 - 125) / 133.8 of 127.4 MB/s = 8.4 MB/s: 32 MiB last 3.98 s.
+  // Backlog grows at (128.6 - 125) / 128.6 of 127.4 MB/s = 3.6 MB/s: 32 MiB last 9.32 s of the 10 s take.
   EXPECT_THAT(v[0].message(),
-              AllOf(HasSubstr("32 MiB frame buffer overflows 3.98 s"), HasSubstr("80 MiB by the end of 10 s")));
+              AllOf(HasSubstr("32 MiB frame buffer overflows 9.32 s"), HasSubstr("34 MiB by the end of 10 s")));
 
   v1::TimingReport big = Verify([](v1::RigConfig* rig) {
     Camera(rig, "mv-07")->set_link(v1::LINK_KIND_GIGE_1);
@@ -125,9 +140,9 @@ TEST(VerifierTest, LinkOverBudgetWithADeclaredFrameBuffer) {
   v = Of(big, kCheckLinkBandwidth);
   ASSERT_EQ(v.size(), 1u) << Dump(big);
   EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
-  // 80 MiB drain over the 125 MB/s link in 0.71 s.
-  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("512 MiB frame buffer absorbs the 80 MiB backlog"),
-                                    HasSubstr("arrive 0.71 s after the take")));
+  // 34 MiB drain over the 125 MB/s link in 0.29 s.
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("512 MiB frame buffer absorbs the 34 MiB backlog"),
+                                    HasSubstr("arrive 0.29 s after the take")));
 }
 
 TEST(VerifierTest, ExposureBeforeTheLightIsSteady) {

@@ -134,6 +134,19 @@ std::vector<Signal> PlannedSignals(const v1::Schedule& schedule, const WaveformW
   return signals;
 }
 
+std::string VcdName(absl::string_view name) {
+  std::string out;
+  for (char c : name) {
+    if (c == '[') {
+      absl::StrAppend(&out, name.substr(out.size()));
+      break;
+    }
+    out.push_back(absl::ascii_isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '$' ? c : '_');
+  }
+  if (!out.empty() && absl::ascii_isdigit(static_cast<unsigned char>(out[0]))) out.insert(out.begin(), '_');
+  return out;
+}
+
 absl::StatusOr<std::string> TimescaleName(int64_t timescale_fs) {
   static const char* kUnits[] = {"fs", "ps", "ns", "us", "ms", "s"};
   int64_t unit = 1;
@@ -193,8 +206,16 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
                   " s; each edge is rounded on its own to the nearest ", *timescale, ", so edges are exact to half\n",
                   "  a unit and never drift. Buses are written bit by bit (pattern_id[0] is the LSB): GTKWave joins\n",
                   "  them, and readers that take only one-bit wires (libsigrok 0.5) read them too.\n");
+  // VCD names: identifiers, unique (ids that differ only in '-' vs '_' get a suffix).
+  std::vector<std::string> vcd_names;
+  std::set<std::string> used;
+  for (const Signal& signal : signals) {
+    std::string name = VcdName(signal.name);
+    for (int n = 2; !used.insert(name).second; ++n) name = absl::StrCat(VcdName(signal.name), "_", n);
+    vcd_names.push_back(name);
+  }
   for (size_t i = 0; i < signals.size(); ++i) {
-    absl::StrAppend(&out, "  ", signals[i].name, ": ", signals[i].description, "\n");
+    absl::StrAppend(&out, "  ", vcd_names[i], ": ", signals[i].description, "\n");
   }
   absl::StrAppend(&out, "$end\n$timescale ", *timescale, " $end\n");
 
@@ -203,6 +224,7 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
   std::vector<std::string> open;
   for (size_t i = 0; i < signals.size(); ++i) {
     std::vector<std::string> parts = absl::StrSplit(signals[i].scope, '/', absl::SkipEmpty());
+    for (std::string& part : parts) part = VcdName(part);
     size_t common = 0;
     while (common < open.size() && common < parts.size() && open[common] == parts[common]) ++common;
     for (size_t k = open.size(); k > common; --k) absl::StrAppend(&out, "$upscope $end\n");
@@ -212,7 +234,7 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
       open.push_back(parts[k]);
     }
     // "pattern_id[3]" is written as reference "pattern_id [3]" (a bit select), which GTKWave coalesces into a bus.
-    const std::string& name = signals[i].name;
+    const std::string& name = vcd_names[i];
     const size_t bracket = name.find('[');
     const std::string ref =
         bracket == std::string::npos ? name : absl::StrCat(name.substr(0, bracket), " ", name.substr(bracket));
@@ -308,7 +330,7 @@ absl::StatusOr<std::string> ReportToSvg(const v1::TimingReport& report, const Wa
                                         XmlEscape(schedule.pattern_set()), schedule.time_base().slot_rate_hz(),
                                         base.TicksToUs(T)));
   absl::StrAppend(&svg, absl::StrFormat("<text x=\"10\" y=\"36\" fill=\"#444\">%d error(s), %d warning(s). Blue: "
-                                        "exposure; light blue: readout; black tick: trigger; green: where an exposure "
+                                        "exposure; light blue: readout (thin: assumed); black tick: trigger; green: where an exposure "
                                         "may be; grey: a light node switching; red: a violation.</text>\n",
                                         report.errors(), report.warnings()));
 
@@ -385,7 +407,13 @@ absl::StatusOr<std::string> ReportToSvg(const v1::TimingReport& report, const Wa
     } else if (!row.camera) {
       boxes(row.device + "_step", y + 3, row_h - 6, "#9a9a9a");
     } else {
-      boxes(row.device + "_readout", y + 4, row_h - 8, "#b9d3ee");
+      const v1::CameraTiming* c = FindCameraTiming(schedule, row.device);
+      if (c != nullptr && c->readout_declared()) {
+        boxes(row.device + "_readout", y + 4, row_h - 8, "#b9d3ee");
+      } else {
+        // Not declared: the verifier assumes the rest of the period; a thin line says "assumed".
+        boxes(row.device + "_readout", y + row_h / 2 - 1, 2, "#b9d3ee");
+      }
       boxes(row.device + "_exposure", y + 3, row_h - 6, "#3a6fb0");
       auto it = by_name.find(row.device + "_trigger");
       if (it != by_name.end()) {

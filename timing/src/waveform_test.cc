@@ -103,21 +103,21 @@ TEST(VcdTest, OneFrameOfTheShippedRigHasTheScheduledEdges) {
   for (int k = 0; k < 38; ++k) EXPECT_EQ(bus_at(base.SlotStartNs(k) + 1), k) << k;
 
   // High-speed cameras expose in every slot from 55 us after the edge for 900 us.
-  std::vector<int64_t> hs = Rises(vcd, "hs-1_exposure");
+  std::vector<int64_t> hs = Rises(vcd, "hs_1_exposure");
   ASSERT_EQ(hs.size(), 38u);
   for (int k = 0; k < 38; ++k) {
     EXPECT_EQ(hs[k], base.TicksToNs(base.SlotStartTicks(k) + base.UsToTicks(55))) << k;
   }
   // Machine-vision cameras only in slot 19, the parallel full-on slot.
-  std::vector<int64_t> mv = Rises(vcd, "mv-01_exposure");
+  std::vector<int64_t> mv = Rises(vcd, "mv_01_exposure");
   ASSERT_EQ(mv.size(), 1u);
   EXPECT_EQ(mv[0], base.TicksToNs(base.SlotStartTicks(19) + base.UsToTicks(55)));
-  EXPECT_EQ(Rises(vcd, "mv-01_trigger"), mv);
+  EXPECT_EQ(Rises(vcd, "mv_01_trigger"), mv);
   EXPECT_EQ(Rises(vcd, "clock_div38_phase19"), std::vector<int64_t>{base.SlotStartNs(19)});
   // The readout of slot -1 is still running when the window opens.
-  EXPECT_EQ(vcd.changes.at("hs-1_readout").front(), (std::pair<int64_t, int>{0, 1}));
+  EXPECT_EQ(vcd.changes.at("hs_1_readout").front(), (std::pair<int64_t, int>{0, 1}));
   // Light node switching: 20 us to 55 us after each edge.
-  std::vector<int64_t> step = Rises(vcd, "lights-modbus-3_step");
+  std::vector<int64_t> step = Rises(vcd, "lights_modbus_3_step");
   ASSERT_EQ(step.size(), 38u);
   EXPECT_EQ(step[5], base.TicksToNs(base.SlotStartTicks(5) + base.UsToTicks(20)));
 }
@@ -143,6 +143,13 @@ TEST(VcdTest, SameScheduleSameFile) {
   ASSERT_TRUE(a.ok() && b.ok());
   EXPECT_EQ(*a, *b);
   EXPECT_THAT(*a, HasSubstr(report.schedule().hash()));
+}
+
+TEST(VcdTest, NamesAreVerilogIdentifiers) {
+  EXPECT_EQ(VcdName("mv-01_exposure"), "mv_01_exposure");
+  EXPECT_EQ(VcdName("cam.a-1_trigger"), "cam_a_1_trigger");
+  EXPECT_EQ(VcdName("pattern_id[3]"), "pattern_id[3]");
+  EXPECT_EQ(VcdName("7up"), "_7up");
 }
 
 TEST(VcdTest, Timescales) {

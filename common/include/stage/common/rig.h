@@ -52,6 +52,17 @@ struct RigError {
 std::vector<RigError> ValidateRig(const v1::RigConfig& rig, absl::string_view base_dir,
                                   const RigValidationOptions& options = {});
 
+// Applies one what-if assignment "path=value" to `rig`, as `stagectl timing check --set` takes it. The path names
+// fields as in the rig file; list entries are selected by id, index, "*" or a glob of ids:
+// "timing.led_switch_delay_us=60", "cameras[hs-1].exposure_us=850", "cameras[mv-*].link=gige-1", "light_nodes[0].unit_limits.max_duty_cycle=0.4". The
+// value is parsed by the rig file's rules (enum spellings, ranges of integers). Errors start with "--set <assignment>:"
+// and name the field or id that does not exist.
+absl::Status ApplyRigOverride(v1::RigConfig* rig, absl::string_view assignment);
+
+// `loaded` with every assignment applied, defaults filled and the result validated; the source name says which
+// overrides were applied. Without assignments, a copy of `loaded`.
+absl::StatusOr<LoadedRig> ApplyRigOverrides(const LoadedRig& loaded, const std::vector<std::string>& assignments);
+
 // The text of the shipped default rig (common/rigs/fastage.yaml, compiled in).
 absl::string_view BuiltinRigText();
 

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 #include "stage/v1/timing.pb.h"
 
 namespace stage::timing {
@@ -34,6 +35,11 @@ struct Signal {
 // (clock_div<d>_phase<p>), pattern_id bits (LSB first), steady_window, per light node <id>_step, per camera
 // <id>_trigger, <id>_exposure, <id>_readout.
 std::vector<Signal> PlannedSignals(const v1::Schedule& schedule, const WaveformWindow& window);
+
+// The name a signal gets in the VCD: a Verilog identifier (IEEE 1364 references are identifiers), so '-', '.' and
+// anything else outside [A-Za-z0-9_$] becomes '_': "mv-01_exposure" -> "mv_01_exposure". Bit selects stay
+// ("pattern_id[3]"). sigrok-cli also needs this: its channel lists read '-' as a range.
+std::string VcdName(absl::string_view name);
 
 struct VcdOptions {
   // VCD timescale in femtoseconds: 1, 10 or 100 times a power of 1000 (1 fs .. 100 s). Default 1 ns. Each edge is the
