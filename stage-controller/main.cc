@@ -7,6 +7,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
+#include "stage/timing/timing_tool.h"
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -38,7 +39,12 @@ int main(int argc, char** argv) {
   stage::controller::HealthMonitorOptions monitor_options;
   monitor_options.poll_interval = std::chrono::milliseconds(rig.controller().health_poll_interval_ms());
   monitor_options.timeout = std::chrono::milliseconds(rig.controller().health_timeout_ms());
-  stage::controller::HealthMonitor monitor(stage::controller::TargetsFromRig(rig), monitor_options);
+  monitor_options.clock_sync_interval = std::chrono::milliseconds(rig.controller().clock_sync_interval_ms());
+  monitor_options.clock_sync_burst = static_cast<int>(rig.controller().clock_sync_burst());
+  // The schedule sets how much clock uncertainty each node tolerates.
+  auto timing = stage::timing::CheckTiming(*loaded, {});
+  stage::controller::HealthMonitor monitor(
+      stage::controller::TargetsFromRig(rig, timing.ok() ? &timing->schedule() : nullptr), monitor_options);
   std::string summary =
       fmt::format("stage {} ({}): {} cameras, {} light nodes, {} processing workers from {}; health poll every {} ms",
                   rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),

@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_replace.h"
 #include "stage/common/logging.h"
+#include "stage/common/node_clock.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/version.h"
@@ -23,6 +24,9 @@ void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves) {
     app.add_option("--listen", flags->listen, "Address to serve gRPC on, host:port (port 0 picks a free port)");
     app.add_option("--port-file", flags->port_file,
                    "Write the bound host:port to this file once serving (used by stage-sim)");
+    app.add_option("--ptp-uds", flags->ptp_uds,
+                   "ptp4l management socket whose PTP state this node reports (default: /var/run/ptp4l if it "
+                   "exists; none: off)");
   }
 }
 
@@ -63,7 +67,14 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
                      const std::vector<grpc::Service*>& services, const std::string& summary) {
   RpcServerOptions options;
   options.listen = flags.listen.empty() ? default_listen : flags.listen;
-  auto server = RpcServer::Start(options, services);
+  // Every node answers NodeClock on the clock it stamps and fires with: CLOCK_REALTIME (PTP-disciplined in
+  // production).
+  RealClock clock(RealClock::Kind::kRealtime);
+  std::unique_ptr<PtpProbe> ptp = MakePtpProbe(flags.ptp_uds);
+  NodeClockService clock_service(&clock, "CLOCK_REALTIME", ptp.get());
+  std::vector<grpc::Service*> all = services;
+  all.push_back(&clock_service);
+  auto server = RpcServer::Start(options, all);
   if (!server.ok()) return ReportFatal(program, server.status());
   auto log = Logger("rpc");
   if (!flags.port_file.empty()) {

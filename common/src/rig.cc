@@ -294,6 +294,8 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (controller->listen().empty()) controller->set_listen("127.0.0.1:50050");
   if (!controller->has_health_poll_interval_ms()) controller->set_health_poll_interval_ms(200);
   if (!controller->has_health_timeout_ms()) controller->set_health_timeout_ms(500);
+  if (!controller->has_clock_sync_interval_ms()) controller->set_clock_sync_interval_ms(1000);
+  if (!controller->has_clock_sync_burst()) controller->set_clock_sync_burst(8);
   if (controller->node_failure_policy() == v1::NODE_FAILURE_POLICY_UNSPECIFIED) {
     controller->set_node_failure_policy(v1::NODE_FAILURE_POLICY_CONTINUE_DEGRADED);
   }
@@ -375,6 +377,8 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   }
   check.InRange("controller.health_poll_interval_ms", controller.health_poll_interval_ms(), 10, 60000);
   check.InRange("controller.health_timeout_ms", controller.health_timeout_ms(), 10, 60000);
+  check.InRange("controller.clock_sync_interval_ms", controller.clock_sync_interval_ms(), 50, 600000);
+  check.InRange("controller.clock_sync_burst", controller.clock_sync_burst(), 1, 64);
 
   const auto& timing = rig.timing();
   check.InRange("timing.slot_rate_hz", timing.slot_rate_hz(), 1, 100000);

@@ -8,18 +8,42 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
+#include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/timing/verifier.h"
 
 namespace stage::controller {
 
-std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig) {
+std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Schedule* schedule) {
   std::vector<NodeTarget> targets;
-  for (const auto& c : rig.cameras()) {
-    targets.push_back({c.id(), v1::NODE_KIND_CAMERA,
-                       c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision", c.address()});
+  int64_t quarter_slot_ns = 0;
+  if (schedule != nullptr && schedule->time_base().ticks_per_ns() > 0) {
+    quarter_slot_ns = schedule->time_base().ticks_per_slot() / schedule->time_base().ticks_per_ns() / 4;
   }
-  for (const auto& n : rig.light_nodes()) targets.push_back({n.id(), v1::NODE_KIND_LIGHT, "", n.address()});
+  for (const auto& c : rig.cameras()) {
+    NodeTarget t{c.id(), v1::NODE_KIND_CAMERA, c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision",
+                 c.address()};
+    const v1::CameraTiming* timing = schedule != nullptr ? timing::FindCameraTiming(*schedule, c.id()) : nullptr;
+    if (timing != nullptr && c.trigger().source() == v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) {
+      const int64_t slack_ns = timing->late_slack_ticks() / schedule->time_base().ticks_per_ns();
+      t.clock_limit_ns = std::max<int64_t>(10'000, slack_ns / 2);
+      t.clock_limit_reason =
+          fmt::format("scheduled software triggers: a clock error moves the exposure; half its late slack of {:.1f} us",
+                      slack_ns / 1e3);
+    } else if (quarter_slot_ns > 0) {
+      t.clock_limit_ns = quarter_slot_ns;
+      t.clock_limit_reason = "frames are matched to slots by timestamp: a quarter slot";
+    }
+    targets.push_back(std::move(t));
+  }
+  for (const auto& n : rig.light_nodes()) {
+    NodeTarget t{n.id(), v1::NODE_KIND_LIGHT, "", n.address()};
+    if (quarter_slot_ns > 0) {
+      t.clock_limit_ns = quarter_slot_ns;
+      t.clock_limit_reason = "measured slot edges are compared with the schedule: a quarter slot";
+    }
+    targets.push_back(std::move(t));
+  }
   for (const auto& w : rig.processing_workers()) {
     targets.push_back({w.id(), v1::NODE_KIND_PROCESSING_WORKER, "", w.address()});
   }
@@ -108,7 +132,7 @@ grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
 }
 
 grpc::Status ControllerService::CheckTiming(grpc::ServerContext*, const v1::TimingQuery* request,
-                                           v1::TimingReport* response) {
+                                            v1::TimingReport* response) {
   auto report = timing::CheckTiming(rig_, *request);
   if (!report.ok()) return ToGrpcStatus(report.status());
   *response = *std::move(report);
@@ -116,7 +140,7 @@ grpc::Status ControllerService::CheckTiming(grpc::ServerContext*, const v1::Timi
 }
 
 grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::TimingExportRequest* request,
-                                            v1::TimingExport* response) {
+                                             v1::TimingExport* response) {
   auto out = timing::ExportTiming(rig_, *request);
   if (!out.ok()) return ToGrpcStatus(out.status());
   *response = *std::move(out);

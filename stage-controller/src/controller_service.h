@@ -41,7 +41,10 @@ class ControllerService final : public v1::StageController::Service {
   HealthMonitor* monitor_;
 };
 
-// Targets to poll: every camera, light node and processing worker of the rig, in rig order.
-std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig);
+// Targets to poll: every camera, light node and processing worker of the rig, in rig order. With the rig's schedule,
+// each gets the clock uncertainty its trigger mode tolerates: a camera on scheduled software triggers half its late
+// slack (at least 10 us); other cameras and light nodes a quarter slot (frames and measured edges are matched to slots
+// by time); workers none.
+std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Schedule* schedule = nullptr);
 
 }  // namespace stage::controller

@@ -7,8 +7,10 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/timing/clock_sync.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
+#include "stage/v1/node.grpc.pb.h"
 #include "stage/v1/processing_worker.grpc.pb.h"
 
 namespace stage::controller {
@@ -56,9 +58,13 @@ struct HealthMonitor::Node {
   NodeTarget target;
   std::shared_ptr<grpc::Channel> channel;
   std::unique_ptr<grpc::health::v1::Health::Stub> health;
+  std::unique_ptr<v1::NodeClock::Stub> clock;
   v1::NodeStatus status;  // guarded by HealthMonitor::mutex_
   // When the last GetInfo answered, to extrapolate uptime without asking every poll.
   std::chrono::steady_clock::time_point info_time;
+  // Poller thread only.
+  timing::ClockEstimator estimator;
+  std::chrono::steady_clock::time_point next_sync;
 };
 
 HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptions options) : options_(options) {
@@ -73,6 +79,7 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
     args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
     node->channel = grpc::CreateCustomChannel(t.address, grpc::InsecureChannelCredentials(), args);
     node->health = grpc::health::v1::Health::NewStub(node->channel);
+    node->clock = v1::NodeClock::NewStub(node->channel);
     node->status.set_id(t.id);
     node->status.set_kind(t.kind);
     node->status.set_role(t.role);
@@ -80,6 +87,9 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
     node->status.set_state(v1::NODE_STATE_UNKNOWN);
     node->status.set_reason("not polled yet");
     node->status.set_state_since_unix_ns(UnixNowNs());
+    node->status.mutable_clock()->set_limit_ns(t.clock_limit_ns);
+    node->status.mutable_clock()->set_limit_reason(t.clock_limit_reason);
+    node->status.mutable_clock()->set_within_limit(true);
     node->target = std::move(t);
     nodes_.push_back(std::move(node));
   }
@@ -88,6 +98,12 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
 HealthMonitor::~HealthMonitor() { Stop(); }
 
 void HealthMonitor::Start() {
+  // Spread the nodes' clock measurements over the interval: bursts from every node at once would queue behind each
+  // other and inflate every round trip.
+  const auto now = std::chrono::steady_clock::now();
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    nodes_[i]->next_sync = now + options_.clock_sync_interval * i / std::max<size_t>(1, nodes_.size());
+  }
   for (size_t i = 0; i < nodes_.size(); ++i) threads_.emplace_back([this, i] { Poll(i); });
 }
 
@@ -176,6 +192,8 @@ void HealthMonitor::Poll(size_t index) {
       was_up = node.status.state() == v1::NODE_STATE_UP;
     }
     if (state == v1::NODE_STATE_UP && !was_up) {
+      // A node that comes (back) up may be another process with another clock: measure it afresh, now.
+      node.estimator = timing::ClockEstimator();
       auto info_sent = std::chrono::steady_clock::now();
       grpc::Status s = CallGetInfo(node.target.kind, node.channel, deadline, &info);
       // The health check that found the node up also paid for connecting; GetInfo, on the warm connection, is the
@@ -195,36 +213,97 @@ void HealthMonitor::Poll(size_t index) {
       }
     }
 
-    std::lock_guard<std::mutex> lock(mutex_);
-    v1::NodeStatus& status = node.status;
-    bool changed = status.state() != state || status.reason() != reason;
-    if (status.state() != state) {
-      status.set_state_since_unix_ns(UnixNowNs());
-      if (state == v1::NODE_STATE_UP) {
-        log->info("{} ({} at {}) is up", node.target.id, NodeKindName(node.target.kind), node.target.address);
-      } else if (status.state() != v1::NODE_STATE_UNKNOWN || state != v1::NODE_STATE_DOWN) {
-        log->warn("{} ({} at {}) is {}: {}", node.target.id, NodeKindName(node.target.kind), node.target.address,
-                  NodeStateName(state), reason);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      v1::NodeStatus& status = node.status;
+      bool changed = status.state() != state || status.reason() != reason;
+      if (status.state() != state) {
+        status.set_state_since_unix_ns(UnixNowNs());
+        if (state == v1::NODE_STATE_UP) {
+          log->info("{} ({} at {}) is up", node.target.id, NodeKindName(node.target.kind), node.target.address);
+        } else if (status.state() != v1::NODE_STATE_UNKNOWN || state != v1::NODE_STATE_DOWN) {
+          log->warn("{} ({} at {}) is {}: {}", node.target.id, NodeKindName(node.target.kind), node.target.address,
+                    NodeStateName(state), reason);
+        }
       }
+      status.set_state(state);
+      status.set_reason(reason);
+      if (state == v1::NODE_STATE_UP) {
+        status.set_last_seen_unix_ns(UnixNowNs());
+        status.set_rtt_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(rtt).count());
+      }
+      if (have_info) {
+        changed = changed || status.version() != info.version();
+        status.set_version(info.version());
+        status.set_backend(info.backend());
+        status.set_pid(info.pid());
+        status.set_uptime_ns(info.uptime_ns());
+        node.info_time = std::chrono::steady_clock::now();
+      }
+      if (changed) {
+        ++generation_;
+        changed_.notify_all();
+      }
+    }  // the status lock
+    if (state == v1::NODE_STATE_UP && options_.clock_sync_interval.count() > 0 &&
+        std::chrono::steady_clock::now() >= node.next_sync) {
+      node.next_sync = std::chrono::steady_clock::now() + options_.clock_sync_interval;
+      SyncClock(node);
     }
-    status.set_state(state);
-    status.set_reason(reason);
-    if (state == v1::NODE_STATE_UP) {
-      status.set_last_seen_unix_ns(UnixNowNs());
-      status.set_rtt_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(rtt).count());
+  }
+}
+
+void HealthMonitor::SyncClock(Node& node) {
+  auto log = Logger("controller.clock");
+  std::vector<timing::SyncSample> burst;
+  v1::SyncResponse last;
+  std::string error;
+  for (int i = 0; i < options_.clock_sync_burst; ++i) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + options_.timeout);
+    v1::SyncRequest request;
+    v1::SyncResponse response;
+    const int64_t t1 = UnixNowNs();
+    request.set_t1_ns(t1);
+    grpc::Status rpc = node.clock->Sync(&context, request, &response);
+    const int64_t t4 = UnixNowNs();
+    if (!rpc.ok()) {
+      error = absl::StrCat("NodeClock.Sync failed: ", rpc.error_message());
+      break;
     }
-    if (have_info) {
-      changed = changed || status.version() != info.version();
-      status.set_version(info.version());
-      status.set_backend(info.backend());
-      status.set_pid(info.pid());
-      status.set_uptime_ns(info.uptime_ns());
-      node.info_time = std::chrono::steady_clock::now();
-    }
-    if (changed) {
-      ++generation_;
-      changed_.notify_all();
-    }
+    burst.push_back({t1, response.t2_ns(), response.t3_ns(), t4});
+    last = std::move(response);
+  }
+  const bool accepted = node.estimator.AddBurst(burst);
+  const timing::ClockEstimate e = node.estimator.Current();
+
+  std::lock_guard<std::mutex> lock(mutex_);
+  v1::ClockStatus& c = *node.status.mutable_clock();
+  const bool was_within = c.within_limit();
+  const bool was_measured = c.measured();
+  c.set_error(error);
+  if (!burst.empty() && last.has_ptp()) *c.mutable_ptp() = last.ptp();
+  if (e.valid) {
+    c.set_measured(true);
+    c.set_offset_ns(e.offset_ns);
+    c.set_uncertainty_ns(e.uncertainty_ns);
+    c.set_drift_ppm(e.drift_ppm);
+    c.set_drift_known(e.drift_known);
+    c.set_min_rtt_ns(e.min_delay_ns);
+    c.set_samples(e.samples);
+    if (accepted) c.set_last_sync_unix_ns(UnixNowNs());
+  }
+  c.set_within_limit(!c.measured() || c.limit_ns() <= 0 || c.uncertainty_ns() <= c.limit_ns());
+  if (was_within && !c.within_limit()) {
+    log->warn("{}: clock uncertainty {:.1f} us exceeds the {:.1f} us its trigger mode tolerates ({})", node.target.id,
+              c.uncertainty_ns() / 1e3, c.limit_ns() / 1e3, c.limit_reason());
+  } else if (!was_within && c.within_limit()) {
+    log->info("{}: clock uncertainty {:.1f} us is within {:.1f} us again", node.target.id, c.uncertainty_ns() / 1e3,
+              c.limit_ns() / 1e3);
+  }
+  if (was_within != c.within_limit() || was_measured != c.measured()) {
+    ++generation_;
+    changed_.notify_all();
   }
 }
 

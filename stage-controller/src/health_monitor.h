@@ -1,5 +1,7 @@
 // Polls every node's grpc.health.v1 service on its own thread and keeps each node's state (up, down,
-// unreachable) with the reason, round trip and last GetInfo. A node that hangs delays only its own poller.
+// unreachable) with the reason, round trip and last GetInfo; and, while a node is up, measures its clock against the
+// controller's (bursts of NodeClock.Sync, filtered and fitted by timing::ClockEstimator) and flags it when the
+// uncertainty is more than its trigger mode tolerates. A node that hangs delays only its own poller.
 #pragma once
 
 #include <chrono>
@@ -20,6 +22,9 @@ struct NodeTarget {
   v1::NodeKind kind = v1::NODE_KIND_UNSPECIFIED;
   std::string role;
   std::string address;
+  // The largest clock uncertainty the node's trigger mode tolerates (0 = no requirement), and why.
+  int64_t clock_limit_ns = 0;
+  std::string clock_limit_reason;
 };
 
 struct HealthMonitorOptions {
@@ -27,6 +32,10 @@ struct HealthMonitorOptions {
   std::chrono::milliseconds poll_interval{200};
   // Deadline of one poll; no answer by then means "unreachable".
   std::chrono::milliseconds timeout{500};
+  // Time between clock measurements of a node that is up; 0 = no clock measurements.
+  std::chrono::milliseconds clock_sync_interval{1000};
+  // NodeClock.Sync exchanges per measurement.
+  int clock_sync_burst = 8;
 };
 
 class HealthMonitor {
@@ -51,6 +60,7 @@ class HealthMonitor {
  private:
   struct Node;
   void Poll(size_t index);
+  void SyncClock(Node& node);
 
   HealthMonitorOptions options_;
   std::vector<std::unique_ptr<Node>> nodes_;

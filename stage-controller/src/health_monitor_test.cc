@@ -10,12 +10,15 @@
 
 #include "camera_node.h"
 #include "camera_service.h"
+#include "controller_service.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/clock.h"
+#include "stage/common/node_clock.h"
 #include "stage/common/rig.h"
 #include "stage/common/rpc_server.h"
 #include "stage/sim/sim_camera_device.h"
+#include "stage/timing/timing_tool.h"
 
 namespace stage::controller {
 namespace {
@@ -139,6 +142,92 @@ TEST(HealthMonitorTest, StopReturnsPromptly) {
   monitor.Stop();
   monitor.Stop();  // idempotent
   SUCCEED();
+}
+
+}  // namespace
+}  // namespace stage::controller
+
+namespace stage::controller {
+namespace {
+
+// A node clock that is `offset_ns` ahead of the host's CLOCK_REALTIME and runs `drift_ppm` fast.
+class SkewedClock final : public Clock {
+ public:
+  SkewedClock(int64_t offset_ns, double drift_ppm)
+      : offset_ns_(offset_ns), drift_ppm_(drift_ppm), start_(host_.NowNs()) {}
+  int64_t NowNs() const override {
+    const int64_t now = host_.NowNs();
+    return now + offset_ns_ + static_cast<int64_t>(static_cast<double>(now - start_) * drift_ppm_ * 1e-6);
+  }
+  bool SleepUntilNs(int64_t) override { return false; }
+  void Interrupt() override {}
+  int64_t Offset(int64_t host_ns) const {
+    return offset_ns_ + static_cast<int64_t>(static_cast<double>(host_ns - start_) * drift_ppm_ * 1e-6);
+  }
+
+ private:
+  RealClock host_{RealClock::Kind::kRealtime};
+  int64_t offset_ns_;
+  double drift_ppm_;
+  int64_t start_;
+};
+
+int64_t UnixNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
+// A camera node whose clock is 3 ms ahead and 200 ppm fast: the controller measures both, within its uncertainty, and
+// flags the node against a limit tighter than that uncertainty.
+TEST(HealthMonitorClockTest, MeasuresOffsetAndDriftAndFlagsTooUncertainClocks) {
+  ServedCamera camera("hs-1");
+  SkewedClock skewed(3'000'000, 200);
+  NodeClockService clock_service(&skewed, "CLOCK_REALTIME", nullptr);
+  auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {camera.service.get(), &clock_service});
+  ASSERT_TRUE(server.ok());
+  HealthMonitorOptions options{std::chrono::milliseconds(50), std::chrono::milliseconds(500),
+                               std::chrono::milliseconds(100), 6};
+  NodeTarget tight{"hs-1", v1::NODE_KIND_CAMERA, "high-speed", (*server)->address(), 1, "a test limit of 1 ns"};
+  HealthMonitor monitor({tight}, options);
+  monitor.Start();
+  v1::ClockStatus clock;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while (!clock.drift_known() && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    clock = monitor.Snapshot()[0].clock();
+  }
+  monitor.Stop();
+  ASSERT_TRUE(clock.measured());
+  ASSERT_TRUE(clock.drift_known()) << "drift is fitted over >= 2 s of bursts";
+  const int64_t truth = skewed.Offset(clock.last_sync_unix_ns());
+  // The estimate is within its own bound of the truth (plus what 200 ppm adds between the fit time and the stamp).
+  EXPECT_LE(std::abs(clock.offset_ns() - truth), clock.uncertainty_ns() + 20'000)
+      << "offset " << clock.offset_ns() << " truth " << truth << " uncertainty " << clock.uncertainty_ns();
+  EXPECT_NEAR(clock.drift_ppm(), 200, 60);
+  EXPECT_GT(clock.min_rtt_ns(), 0);
+  EXPECT_GE(clock.samples(), 3);
+  EXPECT_LE(clock.last_sync_unix_ns(), UnixNowNs());
+  EXPECT_EQ(clock.limit_ns(), 1);
+  EXPECT_FALSE(clock.within_limit());
+  EXPECT_EQ(clock.limit_reason(), "a test limit of 1 ns");
+}
+
+TEST(HealthMonitorClockTest, LimitsFollowTheTriggerMode) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  rig->rig.mutable_cameras(1)->mutable_trigger()->set_source(v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE);
+  auto report = timing::CheckTiming(*rig, {});
+  ASSERT_TRUE(report.ok());
+  std::vector<NodeTarget> targets = TargetsFromRig(rig->rig, &report->schedule());
+  // mv-01 on the hardware line: a quarter of 1096.491 us.
+  EXPECT_EQ(targets[0].clock_limit_ns, 274'122);
+  // mv-02 on scheduled software triggers: half its 141.491 us late slack.
+  EXPECT_EQ(targets[1].clock_limit_ns, 70'745);
+  EXPECT_THAT(targets[1].clock_limit_reason, HasSubstr("141.5 us"));
+  EXPECT_EQ(targets[27].kind, v1::NODE_KIND_LIGHT);
+  EXPECT_EQ(targets[27].clock_limit_ns, 274'122);
+  EXPECT_EQ(targets.back().kind, v1::NODE_KIND_PROCESSING_WORKER);
+  EXPECT_EQ(targets.back().clock_limit_ns, 0);
 }
 
 }  // namespace

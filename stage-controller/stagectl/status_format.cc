@@ -1,6 +1,7 @@
 // stagectl status output.
 #include "status_format.h"
 
+#include <cmath>
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
@@ -25,6 +26,52 @@ std::string KindLabel(const v1::NodeStatus& n) {
   return NodeKindName(n.kind());
 }
 
+// "+3.001 ms ±12.4 us", "-" before the first measurement; a trailing " !" when the uncertainty is over the limit.
+std::string FormatClock(const v1::ClockStatus& c) {
+  if (!c.measured()) return "-";
+  auto time = [](int64_t ns, bool sign) {
+    const double a = std::abs(static_cast<double>(ns));
+    std::string s = sign ? (ns < 0 ? "-" : "+") : "";
+    if (a < 1e6) return absl::StrCat(s, absl::StrFormat("%.1f us", a / 1e3));
+    return absl::StrCat(s, absl::StrFormat("%.3f ms", a / 1e6));
+  };
+  return absl::StrCat(time(c.offset_ns(), true), " ±", time(c.uncertainty_ns(), false), c.within_limit() ? "" : " !");
+}
+
+std::string FormatPtp(const v1::PtpStatus& p) {
+  if (p.source().empty()) return "-";
+  if (!p.error().empty()) return "error";
+  return absl::StrFormat("%s %+.1f us", p.port_state(), p.master_offset_ns() / 1e3);
+}
+
+nlohmann::ordered_json ClockJson(const v1::ClockStatus& c) {
+  nlohmann::ordered_json j = {{"measured", c.measured()},
+                              {"offset_ns", c.offset_ns()},
+                              {"uncertainty_ns", c.uncertainty_ns()},
+                              {"drift_ppm", c.drift_known() ? nlohmann::ordered_json(c.drift_ppm()) : nullptr},
+                              {"min_rtt_ns", c.min_rtt_ns()},
+                              {"samples", c.samples()},
+                              {"limit_ns", c.limit_ns()},
+                              {"limit_reason", c.limit_reason()},
+                              {"within_limit", c.within_limit()},
+                              {"last_sync_unix_ns", c.last_sync_unix_ns()},
+                              {"error", c.error()}};
+  if (!c.ptp().source().empty()) {
+    const v1::PtpStatus& p = c.ptp();
+    j["ptp"] = {{"source", p.source()},
+                {"port_state", p.port_state()},
+                {"master_offset_ns", p.master_offset_ns()},
+                {"mean_path_delay_ns", p.mean_path_delay_ns()},
+                {"grandmaster_id", p.grandmaster_id()},
+                {"grandmaster_present", p.grandmaster_present()},
+                {"steps_removed", p.steps_removed()},
+                {"error", p.error()}};
+  } else {
+    j["ptp"] = nullptr;
+  }
+  return j;
+}
+
 }  // namespace
 
 std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns, bool color) {
@@ -32,15 +79,15 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
                                     status.stage_id(), status.stage_name(), status.nodes_up(), status.nodes_total(),
                                     status.session_state(), status.controller().version());
   if (!status.schedule_hash().empty()) {
-    out.insert(out.size() - 1, absl::StrFormat("schedule %s: %d timing error(s), %d warning(s)%s\n",
-                                               status.schedule_hash(), status.timing_errors(),
-                                               status.timing_warnings(),
-                                               status.timing_errors() + status.timing_warnings() > 0
-                                                   ? " (stagectl timing check)"
-                                                   : ""));
+    out.insert(
+        out.size() - 1,
+        absl::StrFormat("schedule %s: %d timing error(s), %d warning(s)%s\n", status.schedule_hash(),
+                        status.timing_errors(), status.timing_warnings(),
+                        status.timing_errors() + status.timing_warnings() > 0 ? " (stagectl timing check)" : ""));
   }
-  out += absl::StrFormat("%-18s %-10s %-22s %-12s %-8s %-8s %9s %10s  %s\n", "NODE", "KIND", "ADDRESS", "STATE",
-                         "BACKEND", "VERSION", "RTT", "LAST SEEN", "REASON");
+  out += absl::StrFormat("%-18s %-10s %-22s %-12s %-8s %-8s %9s %10s %-22s %-16s  %s\n", "NODE", "KIND", "ADDRESS",
+                         "STATE", "BACKEND", "VERSION", "RTT", "LAST SEEN", "CLOCK OFFSET", "PTP", "REASON");
+  int flagged = 0;
   for (const v1::NodeStatus& n : status.nodes()) {
     std::string state = NodeStateName(n.state());
     std::string padded = absl::StrFormat("%-12s", state);
@@ -53,9 +100,22 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
     std::string rtt = n.rtt_ns() > 0 ? absl::StrFormat("%.2f ms", n.rtt_ns() / 1e6) : "-";
     std::string seen =
         n.last_seen_unix_ns() > 0 ? FormatDuration(now_unix_ns - n.last_seen_unix_ns()) + " ago" : "never";
-    out += absl::StrFormat("%-18s %-10s %-22s %s %-8s %-8s %9s %10s  %s\n", n.id(), KindLabel(n), n.address(), padded,
-                           n.backend().empty() ? "-" : n.backend(), n.version().empty() ? "-" : n.version(), rtt, seen,
-                           n.reason());
+    std::string reason = n.reason();
+    if (n.clock().measured() && !n.clock().within_limit()) {
+      ++flagged;
+      if (!reason.empty()) reason += "; ";
+      absl::StrAppend(&reason,
+                      absl::StrFormat("clock uncertainty %.1f us > %.1f us (%s)", n.clock().uncertainty_ns() / 1e3,
+                                      n.clock().limit_ns() / 1e3, n.clock().limit_reason()));
+    }
+    out +=
+        absl::StrFormat("%-18s %-10s %-22s %s %-8s %-8s %9s %10s %-22s %-16s  %s\n", n.id(), KindLabel(n), n.address(),
+                        padded, n.backend().empty() ? "-" : n.backend(), n.version().empty() ? "-" : n.version(), rtt,
+                        seen, FormatClock(n.clock()), FormatPtp(n.clock().ptp()), reason);
+  }
+  if (flagged > 0) {
+    out += absl::StrFormat("\n%d node%s flagged (!): clock uncertainty beyond what the trigger mode tolerates.\n",
+                           flagged, flagged == 1 ? " is" : "s are");
   }
   int down = status.nodes_total() - status.nodes_up();
   if (down > 0) {
@@ -92,7 +152,8 @@ std::string StatusToJson(const v1::StageStatus& status) {
                      {"uptime_ns", n.uptime_ns()},
                      {"last_seen_unix_ns", n.last_seen_unix_ns()},
                      {"rtt_ns", n.rtt_ns()},
-                     {"state_since_unix_ns", n.state_since_unix_ns()}});
+                     {"state_since_unix_ns", n.state_since_unix_ns()},
+                     {"clock", ClockJson(n.clock())}});
   }
   j["nodes"] = std::move(nodes);
   return j.dump(2);

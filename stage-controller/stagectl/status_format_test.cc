@@ -28,6 +28,18 @@ v1::StageStatus Example() {
   a->set_backend("sim");
   a->set_rtt_ns(250000);
   a->set_last_seen_unix_ns(1'000'000'000);
+  auto* clock = a->mutable_clock();
+  clock->set_measured(true);
+  clock->set_offset_ns(-3'001'234);
+  clock->set_uncertainty_ns(42'500);
+  clock->set_drift_known(true);
+  clock->set_drift_ppm(12.5);
+  clock->set_limit_ns(10'000);
+  clock->set_limit_reason("scheduled software triggers");
+  clock->set_within_limit(false);
+  clock->mutable_ptp()->set_source("linuxptp");
+  clock->mutable_ptp()->set_port_state("SLAVE");
+  clock->mutable_ptp()->set_master_offset_ns(-1933);
   auto* b = s.add_nodes();
   b->set_id("lights-1");
   b->set_kind(v1::NODE_KIND_LIGHT);
@@ -46,6 +58,11 @@ TEST(StatusFormatTest, TableShowsEveryNodeAndTheSummary) {
   EXPECT_THAT(table, HasSubstr("500 ms ago"));
   EXPECT_THAT(table, HasSubstr("Connection refused"));
   EXPECT_THAT(table, HasSubstr("1 node is not up."));
+  // Clock offset with its uncertainty, flagged beyond the limit, and the PTP state beside it.
+  EXPECT_THAT(table, HasSubstr("-3.001 ms ±42.5 us !"));
+  EXPECT_THAT(table, HasSubstr("SLAVE -1.9 us"));
+  EXPECT_THAT(table, HasSubstr("clock uncertainty 42.5 us > 10.0 us (scheduled software triggers)"));
+  EXPECT_THAT(table, HasSubstr("1 node is flagged (!)"));
   EXPECT_EQ(table.find("\033["), std::string::npos);
   EXPECT_THAT(FormatStatusTable(Example(), 0, /*color=*/true), HasSubstr("\033[31mdown\033[0m"));
 }
@@ -60,6 +77,11 @@ TEST(StatusFormatTest, JsonUsesWordsForStatesAndKinds) {
   EXPECT_EQ(j["nodes"][0]["rtt_ns"], 250000);
   EXPECT_EQ(j["nodes"][1]["state"], "down");
   EXPECT_EQ(j["nodes"][1]["reason"], "Connection refused");
+  EXPECT_EQ(j["nodes"][0]["clock"]["offset_ns"], -3001234);
+  EXPECT_EQ(j["nodes"][0]["clock"]["within_limit"], false);
+  EXPECT_EQ(j["nodes"][0]["clock"]["drift_ppm"], 12.5);
+  EXPECT_EQ(j["nodes"][0]["clock"]["ptp"]["port_state"], "SLAVE");
+  EXPECT_TRUE(j["nodes"][1]["clock"]["ptp"].is_null());
 }
 
 }  // namespace

@@ -26,6 +26,8 @@ struct CommonFlags {
   std::string log_level;
   // After binding, write the bound "host:port" to this file (for supervisors such as stage-sim).
   std::string port_file;
+  // ptp4l's management socket for the PTP state this node reports; "" = /var/run/ptp4l if it exists; "none" = off.
+  std::string ptp_uds;
 };
 
 // Adds --config, --log-level and --version (and --listen and --port-file when `serves`) to `app`.
@@ -39,7 +41,8 @@ std::optional<int> ParseCommandLine(CLI::App& app, int argc, char** argv);
 // (InvalidArgument, NotFound, FailedPrecondition), 1 otherwise.
 int ReportFatal(absl::string_view program, const absl::Status& status);
 
-// Serves `services` on flags.listen (or `default_listen` when the flag is empty) until SIGINT or SIGTERM, writing
+// Serves `services` and the NodeClock service (on CLOCK_REALTIME, with the PTP state of flags.ptp_uds) on
+// flags.listen (or `default_listen` when the flag is empty) until SIGINT or SIGTERM, writing
 // flags.port_file once serving; then shuts down gracefully. Once serving it logs "serving on ADDRESS: <summary>"
 // (the effective configuration in a line). Returns the process exit code. Call BlockShutdownSignals() first thing
 // in main().
