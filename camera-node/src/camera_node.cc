@@ -1,9 +1,14 @@
 // Camera node logic.
 #include "camera_node.h"
 
+#include <algorithm>
+#include <mutex>
+
 #include "absl/strings/str_cat.h"
+#include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/status.h"
+#include "stage/timing/trigger_scheduler.h"
 
 namespace stage::camera {
 
@@ -89,6 +94,103 @@ v1::CameraStats CameraNode::Stats() const {
 void CameraNode::OnFrame(std::shared_ptr<const Frame> frame) {
   frames_completed_.fetch_add(1);
   bytes_received_.fetch_add(frame->data.size());
+}
+
+class TriggerSessionImpl final : public TriggerSession {
+ public:
+  TriggerSessionImpl(CameraNode* node, const v1::TriggerStreamHeader& header, bool stop_device)
+      : node_(node),
+        header_(header),
+        clock_(header.clock()),
+        stop_device_(stop_device),
+        scheduler_(
+            timing::TriggerSchedulerOptions{.max_late_ns = header.max_late_ns() > 0 ? header.max_late_ns() : 100'000,
+                                            .keep_all_leads = header.report_leads(),
+                                            .realtime_priority = static_cast<int>(header.realtime_priority())},
+            [node](int64_t) { return node->device().Trigger(); }) {}
+
+  void Submit(int64_t slot, int64_t time_ns) override {
+    const int64_t controller_ns = header_.t0_unix_ns() + time_ns;
+    int64_t node_ns;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      const double dt = static_cast<double>(controller_ns - clock_.at_unix_ns());
+      node_ns = controller_ns + clock_.offset_ns() + static_cast<int64_t>(dt * clock_.drift_ppm() * 1e-6);
+    }
+    scheduler_.Submit(slot, node_ns);
+  }
+
+  void UpdateClock(const v1::ClockMapping& clock) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    clock_ = clock;
+  }
+
+  v1::TriggerReport Finish(const std::string& error) override {
+    if (error.empty()) {
+      scheduler_.Drain();
+    } else {
+      scheduler_.Stop();
+    }
+    const timing::TriggerSchedulerStats stats = scheduler_.stats();
+    v1::TriggerReport report;
+    report.set_received(stats.received);
+    report.set_fired(stats.fired);
+    report.set_late(stats.late);
+    report.set_missed(stats.missed);
+    report.mutable_late_slots()->Assign(stats.late_slots.begin(), stats.late_slots.end());
+    report.mutable_missed_slots()->Assign(stats.missed_slots.begin(), stats.missed_slots.end());
+    if (!stats.leads_ns.empty()) {
+      std::vector<int64_t> sorted = stats.leads_ns;
+      std::sort(sorted.begin(), sorted.end());
+      report.set_min_lead_ns(sorted.front());
+      report.set_median_lead_ns(sorted[sorted.size() / 2]);
+    }
+    report.set_max_fire_late_ns(stats.max_fire_late_ns);
+    if (header_.report_leads()) report.mutable_lead_ns()->Assign(stats.leads_ns.begin(), stats.leads_ns.end());
+    report.set_error(error);
+    report.set_warning(stats.warning);
+    auto log = Logger("camera.triggers");
+    const std::string& id = node_->config_.id();
+    if (stats.late + stats.missed > 0) {
+      log->warn("{}: take {}: {} of {} scheduled triggers not fired ({} late, {} missed)", id, header_.take_id(),
+                stats.late + stats.missed, stats.received, stats.late, stats.missed);
+    } else {
+      log->info("{}: take {}: {} scheduled triggers fired", id, header_.take_id(), stats.fired);
+    }
+    if (stop_device_) (void)node_->device().Stop();
+    node_->streaming_.store(false);
+    return report;
+  }
+
+ private:
+  CameraNode* node_;
+  v1::TriggerStreamHeader header_;
+  std::mutex mutex_;
+  v1::ClockMapping clock_;  // guarded by mutex_
+  bool stop_device_;
+  timing::TriggerScheduler scheduler_;
+};
+
+absl::StatusOr<std::unique_ptr<TriggerSession>> CameraNode::BeginTriggerStream(const v1::TriggerStreamHeader& header) {
+  if (config_.trigger().source() != v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("camera \"", config_.id(),
+                     "\" is not triggered by scheduled software triggers (its trigger.source "
+                     "is ",
+                     v1::TriggerSource_Name(config_.trigger().source()), ")"));
+  }
+  if (streaming_.exchange(true)) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("camera \"", config_.id(), "\" is already running a stream of scheduled triggers"));
+  }
+  // The device runs for the stream (until capture control owns it, issue #5).
+  absl::Status started = device_->Start(this);
+  const bool stop_device = started.ok();
+  if (!started.ok() && started.code() != absl::StatusCode::kFailedPrecondition) {
+    streaming_.store(false);
+    return Annotate(started, absl::StrCat("camera \"", config_.id(), "\""));
+  }
+  return std::unique_ptr<TriggerSession>(new TriggerSessionImpl(this, header, stop_device));
 }
 
 }  // namespace stage::camera

@@ -19,6 +19,18 @@ absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config
 // "Mono8", "BayerRG8", ... for the rig's pixel format enum.
 std::string PixelFormatName(v1::PixelFormat format);
 
+// One stream of scheduled software triggers (CameraNode.StreamTriggers): converts controller times to this node's
+// clock with the controller's measurement and fires each through a TriggerScheduler at its time.
+class TriggerSession {
+ public:
+  virtual ~TriggerSession() = default;
+  // A trigger for `slot` at `time_ns` after the take's T0 (controller time).
+  virtual void Submit(int64_t slot, int64_t time_ns) = 0;
+  virtual void UpdateClock(const v1::ClockMapping& clock) = 0;
+  // Waits for every trigger to be fired or counted, stops, and reports. `error` (if any) is why the stream ended.
+  virtual v1::TriggerReport Finish(const std::string& error) = 0;
+};
+
 class CameraNode : public FrameSink {
  public:
   // Configures `device` from `config`; fails with the camera id in the message.
@@ -32,6 +44,10 @@ class CameraNode : public FrameSink {
   // FrameSink: counts frames (recording arrives with the capture issue).
   void OnFrame(std::shared_ptr<const Frame> frame) override;
 
+  // Starts a stream of scheduled software triggers. FailedPrecondition when the camera's trigger source is not
+  // scheduled-software or a stream is already running. The device is started for the stream if it was not.
+  absl::StatusOr<std::unique_ptr<TriggerSession>> BeginTriggerStream(const v1::TriggerStreamHeader& header);
+
   CameraDevice& device() { return *device_; }
 
  private:
@@ -41,6 +57,8 @@ class CameraNode : public FrameSink {
   std::string rig_hash_;
   std::atomic<uint64_t> frames_completed_{0};
   std::atomic<uint64_t> bytes_received_{0};
+  std::atomic<bool> streaming_{false};
+  friend class TriggerSessionImpl;
 };
 
 }  // namespace stage::camera

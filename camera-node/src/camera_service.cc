@@ -1,6 +1,8 @@
 // gRPC CameraNode service.
 #include "camera_service.h"
 
+#include "stage/common/grpc_status.h"
+
 namespace stage::camera {
 
 grpc::Status CameraService::GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) {
@@ -10,6 +12,33 @@ grpc::Status CameraService::GetInfo(grpc::ServerContext*, const v1::GetInfoReque
 
 grpc::Status CameraService::GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::CameraStats* response) {
   *response = node_->Stats();
+  return grpc::Status::OK;
+}
+
+grpc::Status CameraService::StreamTriggers(grpc::ServerContext* context,
+                                           grpc::ServerReader<v1::TriggerStreamMessage>* reader,
+                                           v1::TriggerReport* response) {
+  v1::TriggerStreamMessage message;
+  if (!reader->Read(&message) || !message.has_header()) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "a trigger stream starts with its header");
+  }
+  auto session = node_->BeginTriggerStream(message.header());
+  if (!session.ok()) return ToGrpcStatus(session.status());
+  std::string error;
+  while (reader->Read(&message)) {
+    if (message.has_trigger()) {
+      (*session)->Submit(message.trigger().slot(), message.trigger().time_ns());
+    } else if (message.has_batch()) {
+      for (const auto& t : message.batch().triggers()) (*session)->Submit(t.slot(), t.time_ns());
+    } else if (message.has_clock()) {
+      (*session)->UpdateClock(message.clock());
+    } else {
+      error = "unexpected message in a trigger stream (a second header?)";
+      break;
+    }
+  }
+  if (error.empty() && context->IsCancelled()) error = "the controller cancelled the stream";
+  *response = (*session)->Finish(error);
   return grpc::Status::OK;
 }
 

@@ -11,6 +11,8 @@ class CameraService final : public v1::CameraNode::Service {
   explicit CameraService(CameraNode* node) : node_(node) {}
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::CameraStats* response) override;
+  grpc::Status StreamTriggers(grpc::ServerContext* context, grpc::ServerReader<v1::TriggerStreamMessage>* reader,
+                              v1::TriggerReport* response) override;
 
  private:
   CameraNode* node_;

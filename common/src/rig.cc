@@ -309,6 +309,7 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!timing->has_trigger_lead_slots()) timing->set_trigger_lead_slots(20);
   if (!timing->has_flicker_warn_modulation()) timing->set_flicker_warn_modulation(0);
   if (!timing->has_flicker_error_modulation()) timing->set_flicker_error_modulation(0.25);
+  if (!timing->has_trigger_realtime_priority()) timing->set_trigger_realtime_priority(0);
   if (rig->pattern_set().empty()) rig->set_pattern_set(std::string(kFastage38));
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
@@ -395,6 +396,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("timing.trigger_lead_slots", timing.trigger_lead_slots(), 1, 100000);
   check.InRange("timing.flicker_warn_modulation", timing.flicker_warn_modulation(), 0, 10);
   check.InRange("timing.flicker_error_modulation", timing.flicker_error_modulation(), 0, 10);
+  check.InRange("timing.trigger_realtime_priority", timing.trigger_realtime_priority(), 0, 99);
 
   if (!IsBuiltinPatternSet(rig.pattern_set())) {
     std::filesystem::path p(rig.pattern_set());
