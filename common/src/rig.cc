@@ -503,12 +503,16 @@ std::string RigHash(const RigConfig& rig) {
   for (auto& c : *copy.mutable_cameras()) c.clear_address();
   for (auto& n : *copy.mutable_light_nodes()) n.clear_address();
   for (auto& w : *copy.mutable_processing_workers()) w.clear_address();
+  return StableHash(copy);
+}
+
+std::string StableHash(const google::protobuf::Message& message) {
   std::string bytes;
   {
     google::protobuf::io::StringOutputStream stream(&bytes);
     google::protobuf::io::CodedOutputStream coded(&stream);
     coded.SetSerializationDeterministic(true);
-    copy.SerializeToCodedStream(&coded);
+    message.SerializeToCodedStream(&coded);
   }
   uint64_t h = 1469598103934665603ull;
   for (unsigned char c : bytes) {

@@ -1,9 +1,6 @@
 // The schedule compiler.
 #include "stage/timing/schedule.h"
 
-#include <google/protobuf/io/coded_stream.h>
-#include <google/protobuf/io/zero_copy_stream_impl_lite.h>
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -41,19 +38,7 @@ std::string ScheduleHash(const v1::Schedule& schedule) {
   v1::Schedule copy = schedule;
   copy.clear_hash();
   copy.clear_rig_hash();
-  std::string bytes;
-  {
-    google::protobuf::io::StringOutputStream stream(&bytes);
-    google::protobuf::io::CodedOutputStream coded(&stream);
-    coded.SetSerializationDeterministic(true);
-    copy.SerializeToCodedStream(&coded);
-  }
-  uint64_t h = 1469598103934665603ull;
-  for (unsigned char c : bytes) {
-    h ^= c;
-    h *= 1099511628211ull;
-  }
-  return absl::StrFormat("%016x", h);
+  return StableHash(copy);
 }
 
 absl::StatusOr<v1::Schedule> CompileSchedule(const v1::RigConfig& rig, const PatternSet& patterns) {

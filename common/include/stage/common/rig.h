@@ -70,6 +70,9 @@ absl::string_view BuiltinRigText();
 // Node addresses are left out: they are deployment detail that stage-sim assigns at run time.
 std::string RigHash(const v1::RigConfig& rig);
 
+// FNV-1a 64 of any message's deterministic serialization, 16 hex digits (RigHash, the schedule's hash).
+std::string StableHash(const google::protobuf::Message& message);
+
 // The entry for node `id`, or NotFound naming the id, the rig and the ids that exist.
 absl::StatusOr<const v1::CameraConfig*> FindCamera(const LoadedRig& loaded, absl::string_view id);
 absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded, absl::string_view id);
