@@ -13,6 +13,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "stage/common/rig.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/sim.pb.h"
 #include "test_support.h"
@@ -97,6 +98,11 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
   EXPECT_EQ(check.exit.exit_code, 3) << check.err;
   EXPECT_THAT(check.out, ::testing::HasSubstr("the live rig of the controller at " + endpoints_.controller()));
   EXPECT_THAT(check.out, ::testing::HasSubstr("steady-light    hs-2 slot 0"));
+  // The shipped rig triggers by hardware line: no scheduled triggers to rehearse.
+  CommandResult rehearse = RunCommand(
+      {"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "rehearse"}, std::chrono::seconds(20));
+  EXPECT_EQ(rehearse.exit.exit_code, 2) << rehearse.err;
+  EXPECT_THAT(rehearse.err, ::testing::HasSubstr("no camera of the rig uses trigger.source scheduled-software"));
 
   // 2. SIGKILL one camera node (by pid, from the endpoint file).
   pid_t victim = 0;
@@ -184,6 +190,39 @@ TEST_F(StageSimTest, SecondStageSimOnTheSameRunDirIsRefused) {
   CommandResult r = RunCommand({"stage-sim", "--run-dir", run_dir_.path()}, std::chrono::seconds(30));
   EXPECT_EQ(r.exit.exit_code, 2);
   EXPECT_THAT(r.err, ::testing::HasSubstr("another stage-sim (pid " + std::to_string(sim_->pid()) + ")"));
+}
+
+// Scheduled software triggers rehearsed on the live stage: the controller streams them to the camera nodes of the
+// cameras that use them, converted with its clock measurements; every trigger is accounted for.
+TEST_F(StageSimTest, TriggerRehearsalThroughTheController) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(
+      *loaded, {"cameras[hs-*].trigger.source=scheduled-software", "cameras[*].width=64", "cameras[*].height=32"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  ASSERT_TRUE(google::protobuf::util::MessageToJsonString(rig->rig, &json, print).ok());
+  TempDir rig_dir;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--config", rig_dir.Write("rig.json", json)}));
+  CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "rehearse",
+                                "--slots", "300", "--json"},
+                               std::chrono::seconds(60));
+  ASSERT_TRUE(r.exit.exit_code == 0 || r.exit.exit_code == 3) << r.err;  // 3: some trigger late on a loaded machine
+  nlohmann::json rehearsal = nlohmann::json::parse(r.out);
+  ASSERT_EQ(rehearsal["cameras"].size(), 3u);
+  for (const auto& cam : rehearsal["cameras"]) {
+    EXPECT_THAT(cam["camera_id"].get<std::string>(), ::testing::StartsWith("hs-"));
+    const auto& report = cam["report"];
+    // Protobuf's JSON writes 64-bit integers as strings.
+    EXPECT_EQ(report["received"], "300") << cam.dump();
+    const auto count = [&](const char* key) {
+      return report.contains(key) ? std::stoll(report[key].get<std::string>()) : 0;
+    };
+    EXPECT_EQ(count("fired") + count("late") + count("missed"), 300) << cam.dump();
+    EXPECT_GT(count("fired"), 0) << cam.dump();
+  }
 }
 
 }  // namespace

@@ -3,7 +3,9 @@
 
 #include <algorithm>
 #include <chrono>
+#include <map>
 
+#include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -11,6 +13,7 @@
 #include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/timing/verifier.h"
+#include "trigger_streamer.h"
 
 namespace stage::controller {
 
@@ -136,6 +139,79 @@ grpc::Status ControllerService::CheckTiming(grpc::ServerContext*, const v1::Timi
   auto report = timing::CheckTiming(rig_, *request);
   if (!report.ok()) return ToGrpcStatus(report.status());
   *response = *std::move(report);
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::RehearseTriggers(grpc::ServerContext* context,
+                                                 const v1::RehearseTriggersRequest* request,
+                                                 v1::TriggerRehearsal* response) {
+  if (timing_.schedule().hash().empty()) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "the rig's schedule could not be compiled");
+  }
+  if (timing_.errors() > 0) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("the rig's schedule has ", timing_.errors(),
+                                     " timing error(s); nothing is triggered until they are fixed (stagectl timing "
+                                     "check)"));
+  }
+  const int64_t slots =
+      request->slot_count() > 0 ? request->slot_count() : timing_.schedule().time_base().slot_rate_hz();
+  if (slots > 100 * static_cast<int64_t>(timing_.schedule().time_base().slot_rate_hz())) {
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat("a rehearsal of ", slots, " slots is longer than 100 s; ask for fewer"));
+  }
+  // The clock measurement of every node, for the conversion to its clock.
+  std::map<std::string, v1::ClockStatus> clocks;
+  for (const v1::NodeStatus& n : monitor_->Snapshot()) clocks[n.id()] = n.clock();
+  std::vector<TriggerTarget> targets;
+  for (const v1::CameraConfig& c : rig_.rig.cameras()) {
+    if (c.trigger().source() != v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) continue;
+    TriggerTarget t;
+    t.id = c.id();
+    t.address = c.address();
+    t.timing = *timing::FindCameraTiming(timing_.schedule(), c.id());
+    const v1::ClockStatus& clock = clocks[c.id()];
+    if (clock.measured()) {
+      t.clock.set_offset_ns(clock.offset_ns());
+      t.clock.set_drift_ppm(clock.drift_known() ? clock.drift_ppm() : 0.0);
+      t.clock.set_at_unix_ns(clock.last_sync_unix_ns());
+    }
+    targets.push_back(std::move(t));
+  }
+  if (targets.empty()) {
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        "no camera of the rig uses trigger.source scheduled-software: there is nothing to rehearse");
+  }
+  const v1::Schedule& schedule = timing_.schedule();
+  TriggerStreamOptions options;
+  options.take_id = "rehearsal";
+  options.slot_rate_hz = schedule.time_base().slot_rate_hz();
+  options.t0_unix_ns =
+      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
+          .count() +
+      static_cast<int64_t>(request->start_in_ms() > 0 ? request->start_in_ms() : 500) * 1'000'000;
+  options.slot_count = slots;
+  options.lead_ns =
+      schedule.trigger_lead_slots() * schedule.time_base().ticks_per_slot() / schedule.time_base().ticks_per_ns();
+  options.realtime_priority = rig_.rig.timing().trigger_realtime_priority();
+  auto log = Logger("controller.timing");
+  log->info("trigger rehearsal: {} slots to {} camera(s), {} slots ahead", slots, targets.size(),
+            schedule.trigger_lead_slots());
+  TriggerStreamer streamer(options, targets);
+  streamer.Start();
+  std::vector<absl::StatusOr<v1::TriggerReport>> results = streamer.Wait();
+  response->set_slot_count(slots);
+  response->set_lead_ns(options.lead_ns);
+  for (size_t i = 0; i < targets.size(); ++i) {
+    v1::CameraRehearsal* c = response->add_cameras();
+    c->set_camera_id(targets[i].id);
+    *c->mutable_clock() = targets[i].clock;
+    if (results[i].ok()) {
+      *c->mutable_report() = *results[i];
+    } else {
+      c->set_error(std::string(results[i].status().message()));
+    }
+  }
   return grpc::Status::OK;
 }
 

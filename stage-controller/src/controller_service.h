@@ -26,6 +26,8 @@ class ControllerService final : public v1::StageController::Service {
   grpc::Status CheckTiming(grpc::ServerContext*, const v1::TimingQuery* request, v1::TimingReport* response) override;
   grpc::Status ExportTiming(grpc::ServerContext*, const v1::TimingExportRequest* request,
                             v1::TimingExport* response) override;
+  grpc::Status RehearseTriggers(grpc::ServerContext* context, const v1::RehearseTriggersRequest* request,
+                                v1::TriggerRehearsal* response) override;
 
   v1::StageStatus Status() const;
 

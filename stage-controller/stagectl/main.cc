@@ -10,6 +10,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
@@ -231,8 +232,8 @@ int TimingExport(const Connection& c, const TimingFlags& f) {
     grpc::Status rpc = (*stub)->ExportTiming(&context, request, &out);
     if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
   }
-  for (const auto& [path, text] : {std::pair{f.vcd_path, &out.vcd()}, std::pair{f.svg_path, &out.svg()},
-                                   std::pair{f.json_path, &out.json()}}) {
+  for (const auto& [path, text] :
+       {std::pair{f.vcd_path, &out.vcd()}, std::pair{f.svg_path, &out.svg()}, std::pair{f.json_path, &out.json()}}) {
     if (path.empty()) continue;
     if (absl::Status s = stage::WriteFileAtomically(path, *text); !s.ok()) return stage::ReportFatal(kProgram, s);
     std::cerr << "wrote " << path << " (" << text->size() << " bytes)\n";
@@ -240,6 +241,45 @@ int TimingExport(const Connection& c, const TimingFlags& f) {
   std::cerr << "schedule " << out.report().schedule().hash() << ", slots " << out.first_slot() << " to "
             << out.first_slot() + out.slot_count() - 1 << ": " << out.report().errors() << " error(s), "
             << out.report().warnings() << " warning(s)\n";
+  return 0;
+}
+
+int TimingRehearse(const Connection& c, int64_t slots, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  // The rehearsal takes as long as its slots, plus the start and the reports.
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(c.timeout_ms) +
+                       std::chrono::seconds(5 + slots / 100));
+  stage::v1::RehearseTriggersRequest request;
+  request.set_slot_count(slots);
+  stage::v1::TriggerRehearsal rehearsal;
+  grpc::Status rpc = (*stub)->RehearseTriggers(&context, request, &rehearsal);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (json) {
+    std::cout << ToJson(rehearsal) << "\n";
+  } else {
+    std::cout << absl::StrFormat("trigger rehearsal: %d slots, sent %.3f ms ahead, through the controller at %s\n",
+                                 rehearsal.slot_count(), rehearsal.lead_ns() / 1e6, address);
+    std::cout << absl::StrFormat("%-10s %9s %9s %7s %7s %12s %12s %13s %s\n", "CAMERA", "TRIGGERS", "FIRED", "LATE",
+                                 "MISSED", "MIN LEAD", "MEDIAN LEAD", "CLOCK OFFSET", "NOTE");
+    for (const auto& cam : rehearsal.cameras()) {
+      const auto& r = cam.report();
+      std::string note = cam.error().empty() ? r.warning() : cam.error();
+      if (note.empty() && r.late_slots_size() + r.missed_slots_size() > 0) {
+        note = absl::StrCat("first late/missed slot ",
+                            std::min(r.late_slots_size() > 0 ? r.late_slots(0) : INT64_MAX,
+                                     r.missed_slots_size() > 0 ? r.missed_slots(0) : INT64_MAX));
+      }
+      std::cout << absl::StrFormat("%-10s %9d %9d %7d %7d %9.3f ms %9.3f ms %10.1f us %s\n", cam.camera_id(),
+                                   r.received(), r.fired(), r.late(), r.missed(), r.min_lead_ns() / 1e6,
+                                   r.median_lead_ns() / 1e6, cam.clock().offset_ns() / 1e3, note);
+    }
+  }
+  for (const auto& cam : rehearsal.cameras()) {
+    if (!cam.error().empty() || cam.report().late() + cam.report().missed() > 0) return kExitNotReady;
+  }
   return 0;
 }
 
@@ -302,6 +342,17 @@ int main(int argc, char** argv) {
   exporter->add_option("--timescale", tf.timescale, "VCD timescale: 1, 10 or 100 of fs, ps, ns, us, ms, s")
       ->capture_default_str();
 
+  int64_t rehearse_slots = 912;
+  bool rehearse_json = false;
+  CLI::App* rehearse = timing->add_subcommand(
+      "rehearse",
+      "Stream scheduled software triggers to the live stage's scheduled-software cameras and report what fired, "
+      "late or missed (nothing is recorded); exit 3 if any trigger was not fired");
+  rehearse->add_option("--slots", rehearse_slots, "Slots to rehearse")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 91200));
+  rehearse->add_flag("--json", rehearse_json, "Print the nodes' reports as JSON");
+
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -309,5 +360,6 @@ int main(int argc, char** argv) {
   if (check->parsed()) return TimingCheck(c, tf);
   if (show->parsed()) return TimingShow(c, tf);
   if (exporter->parsed()) return TimingExport(c, tf);
+  if (rehearse->parsed()) return TimingRehearse(c, rehearse_slots, rehearse_json);
   return 2;
 }
