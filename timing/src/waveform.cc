@@ -87,23 +87,27 @@ std::vector<Signal> PlannedSignals(const v1::Schedule& schedule, const WaveformW
   add("cycle_start", "clocks", absl::StrCat("first slot of each ", n, "-pattern cycle (frame clock)"), std::move(v));
   std::set<std::pair<uint32_t, uint32_t>> divided;
   for (const auto& c : schedule.cameras()) {
-    if (c.divider() > 1 && c.source() == v1::TRIGGER_SOURCE_HARDWARE_LINE) divided.insert({c.divider(), c.slot_phase()});
+    if (c.divider() > 1 && c.source() == v1::TRIGGER_SOURCE_HARDWARE_LINE)
+      divided.insert({c.divider(), c.slot_phase()});
   }
   for (const auto& [d, p] : divided) {
     v.clear();
     AddSequence(&v, base.SlotStartTicks(p), d * T, 0, T / 2, w0, w1);
     add(absl::StrCat("clock_div", d, "_phase", p), "clocks",
-        absl::StrCat("slot clock divided by ", d, ", phase ", p, " (hardware trigger line of cameras with that divider)"),
+        absl::StrCat("slot clock divided by ", d, ", phase ", p,
+                     " (hardware trigger line of cameras with that divider)"),
         std::move(v));
   }
+  // Most significant bit first: GTKWave joins bits declared in this order into pattern_id[5:0].
   const int bits = PatternBits(n);
-  for (int b = 0; b < bits; ++b) {
+  for (int b = bits - 1; b >= 0; --b) {
     v.clear();
     for (int64_t p = 0; p < n; ++p) {
       if ((p >> b) & 1) AddSequence(&v, base.SlotStartTicks(p), n * T, 0, T, w0, w1);
     }
     add(absl::StrCat("pattern_id[", b, "]"), "pattern",
-        absl::StrCat("bit ", b, " of the pattern index of the slot (", bits, "-bit bus, LSB first)"), std::move(v));
+        absl::StrCat("bit ", b, " of the pattern index of the slot (", bits, "-bit bus; [0] is the LSB)"),
+        std::move(v));
   }
   v.clear();
   AddSequence(&v, 0, T, schedule.steady_start_ticks(),
@@ -128,7 +132,8 @@ std::vector<Signal> PlannedSignals(const v1::Schedule& schedule, const WaveformW
     v.clear();
     AddSequence(&v, origin, c.period_ticks(), c.trigger_ticks() + c.exposure_ticks(), c.readout_ticks(), w0, w1);
     add(c.id() + "_readout", scope,
-        absl::StrCat("camera ", c.id(), " sensor readout", c.readout_declared() ? "" : " (assumed: rest of the period)"),
+        absl::StrCat("camera ", c.id(), " sensor readout",
+                     c.readout_declared() ? "" : " (assumed: rest of the period)"),
         std::move(v));
   }
   return signals;
@@ -184,7 +189,8 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
   const TimeBase base = TimeBase::FromProto(schedule.time_base());
   const std::vector<Signal> signals = PlannedSignals(schedule, window);
   const int64_t u0 = base.TicksToUnits(base.SlotStartTicks(window.first_slot), options.timescale_fs);
-  const int64_t u1 = base.TicksToUnits(base.SlotStartTicks(window.first_slot + window.slot_count), options.timescale_fs);
+  const int64_t u1 =
+      base.TicksToUnits(base.SlotStartTicks(window.first_slot + window.slot_count), options.timescale_fs);
 
   // Identifier codes: printable ASCII 33..126, base 94.
   auto code = [](size_t i) {
@@ -199,13 +205,15 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
   std::string out;
   absl::StrAppend(&out, "$date\n  (not recorded: the same schedule always writes the same file)\n$end\n");
   absl::StrAppend(&out, "$version\n  FaStage ", kVersion, " schedule export\n$end\n");
-  absl::StrAppend(&out, "$comment\n  schedule ", schedule.hash(), ", pattern set ", schedule.pattern_set(), ", ",
-                  schedule.time_base().slot_rate_hz(), " slots/s\n  slots ", window.first_slot, " to ",
-                  window.first_slot + window.slot_count - 1, "; time 0 is the edge of slot 0\n",
-                  "  exact times are integer ticks of 1/", schedule.time_base().ticks_per_second(),
-                  " s; each edge is rounded on its own to the nearest ", *timescale, ", so edges are exact to half\n",
-                  "  a unit and never drift. Buses are written bit by bit (pattern_id[0] is the LSB): GTKWave joins\n",
-                  "  them, and readers that take only one-bit wires (libsigrok 0.5) read them too.\n");
+  absl::StrAppend(
+      &out, "$comment\n  schedule ", schedule.hash(), ", pattern set ", schedule.pattern_set(), ", ",
+      schedule.time_base().slot_rate_hz(), " slots/s\n  slots ", window.first_slot, " to ",
+      window.first_slot + window.slot_count - 1, "; time 0 is the edge of slot 0\n",
+      "  exact times are integer ticks of 1/", schedule.time_base().ticks_per_second(),
+      " s; each edge is rounded on its own to the nearest ", *timescale, ", so edges are exact to half\n",
+      "  a unit and never drift. Buses are written bit by bit, most significant first (pattern_id[0] is the\n",
+      "  LSB): GTKWave joins them into one bus, and readers that take only one-bit wires (libsigrok 0.5)\n",
+      "  read them too.\n");
   // VCD names: identifiers, unique (ids that differ only in '-' vs '_' get a suffix).
   std::vector<std::string> vcd_names;
   std::set<std::string> used;
@@ -254,7 +262,8 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
   for (size_t i = 0; i < signals.size(); ++i) {
     std::vector<Interval> units;
     for (const Interval& iv : signals[i].high) {
-      units.push_back({base.TicksToUnits(iv.first, options.timescale_fs), base.TicksToUnits(iv.second, options.timescale_fs)});
+      units.push_back(
+          {base.TicksToUnits(iv.first, options.timescale_fs), base.TicksToUnits(iv.second, options.timescale_fs)});
     }
     for (const Interval& iv : Merge(std::move(units))) {
       if (iv.first <= u0) {
@@ -324,15 +333,17 @@ absl::StatusOr<std::string> ReportToSvg(const v1::TimingReport& report, const Wa
       "font-family=\"DejaVu Sans, Helvetica, Arial, sans-serif\" font-size=\"11\">\n",
       width, height, width, height);
   absl::StrAppend(&svg, "<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n");
-  absl::StrAppend(&svg, absl::StrFormat("<text x=\"10\" y=\"18\" font-size=\"14\" font-weight=\"bold\">Schedule %s: "
-                                        "slots %d to %d of %s (%u slots/s, %.3f us each)</text>\n",
-                                        schedule.hash(), window.first_slot, window.first_slot + window.slot_count - 1,
-                                        XmlEscape(schedule.pattern_set()), schedule.time_base().slot_rate_hz(),
-                                        base.TicksToUs(T)));
-  absl::StrAppend(&svg, absl::StrFormat("<text x=\"10\" y=\"36\" fill=\"#444\">%d error(s), %d warning(s). Blue: "
-                                        "exposure; light blue: readout (thin: assumed); black tick: trigger; green: where an exposure "
-                                        "may be; grey: a light node switching; red: a violation.</text>\n",
-                                        report.errors(), report.warnings()));
+  absl::StrAppend(
+      &svg, absl::StrFormat("<text x=\"10\" y=\"18\" font-size=\"14\" font-weight=\"bold\">Schedule %s: "
+                            "slots %d to %d of %s (%u slots/s, %.3f us each)</text>\n",
+                            schedule.hash(), window.first_slot, window.first_slot + window.slot_count - 1,
+                            XmlEscape(schedule.pattern_set()), schedule.time_base().slot_rate_hz(), base.TicksToUs(T)));
+  absl::StrAppend(
+      &svg,
+      absl::StrFormat("<text x=\"10\" y=\"36\" fill=\"#444\">%d error(s), %d warning(s). Blue: "
+                      "exposure; light blue: readout (thin: assumed); black tick: trigger; green: where an exposure "
+                      "may be; grey: a light node switching; red: a violation.</text>\n",
+                      report.errors(), report.warnings()));
 
   // Slot bands, slot numbers and pattern names.
   const int64_t n = CycleLength(schedule);
@@ -349,7 +360,8 @@ absl::StatusOr<std::string> ReportToSvg(const v1::TimingReport& report, const Wa
                                           xa, top - 4, xa, top + plot_h));
     int64_t p = k % n;
     if (p < 0) p += n;
-    const std::string name = XmlEscape(p < schedule.patterns_size() ? schedule.patterns(static_cast<int>(p)).name() : "");
+    const std::string name =
+        XmlEscape(p < schedule.patterns_size() ? schedule.patterns(static_cast<int>(p)).name() : "");
     const double xc = (xa + xb) / 2;
     if (rotate) {
       absl::StrAppend(&svg, absl::StrFormat("<text x=\"%.2f\" y=\"%.1f\" transform=\"rotate(-90 %.2f %.1f)\" "
@@ -439,7 +451,8 @@ absl::StatusOr<std::string> ReportToSvg(const v1::TimingReport& report, const Wa
          k += c->divider()) {
       const int64_t s = base.SlotStartTicks(k);
       std::vector<Interval> bad;
-      if (c->trigger_ticks() < steady) bad.push_back({s + c->trigger_ticks(), s + std::min(steady, c->trigger_ticks() + c->exposure_ticks())});
+      if (c->trigger_ticks() < steady)
+        bad.push_back({s + c->trigger_ticks(), s + std::min(steady, c->trigger_ticks() + c->exposure_ticks())});
       if (c->trigger_ticks() + c->exposure_ticks() > last) {
         bad.push_back({s + std::max(last, c->trigger_ticks()), s + c->trigger_ticks() + c->exposure_ticks()});
       }

@@ -32,8 +32,8 @@ struct Signal {
 };
 
 // Every signal of the window, in a fixed order: slot_clock, cycle_start, divided clocks of the cameras
-// (clock_div<d>_phase<p>), pattern_id bits (LSB first), steady_window, per light node <id>_step, per camera
-// <id>_trigger, <id>_exposure, <id>_readout.
+// (clock_div<d>_phase<p>), pattern_id bits (MSB first; [0] is the LSB), steady_window, per light node <id>_step, per
+// camera <id>_trigger, <id>_exposure, <id>_readout.
 std::vector<Signal> PlannedSignals(const v1::Schedule& schedule, const WaveformWindow& window);
 
 // The name a signal gets in the VCD: a Verilog identifier (IEEE 1364 references are identifiers), so '-', '.' and
