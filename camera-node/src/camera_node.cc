@@ -2,7 +2,9 @@
 #include "camera_node.h"
 
 #include <algorithm>
+#include <chrono>
 #include <mutex>
+#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
@@ -101,6 +103,7 @@ class TriggerSessionImpl final : public TriggerSession {
   TriggerSessionImpl(CameraNode* node, const v1::TriggerStreamHeader& header, bool stop_device)
       : node_(node),
         header_(header),
+        frames_at_start_(node->frames_completed_.load()),
         clock_(header.clock()),
         stop_device_(stop_device),
         scheduler_(
@@ -157,7 +160,16 @@ class TriggerSessionImpl final : public TriggerSession {
     } else {
       log->info("{}: take {}: {} scheduled triggers fired", id, header_.take_id(), stats.fired);
     }
-    if (stop_device_) (void)node_->device().Stop();
+    if (stop_device_) {
+      // The last triggers' exposures and readouts may still be under way: give the camera time to deliver a frame
+      // for every trigger fired before stopping it, so that stopping loses nothing.
+      const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+      while (node_->frames_completed_.load() - frames_at_start_ < stats.fired &&
+             std::chrono::steady_clock::now() < deadline) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      }
+      (void)node_->device().Stop();
+    }
     node_->streaming_.store(false);
     return report;
   }
@@ -165,6 +177,7 @@ class TriggerSessionImpl final : public TriggerSession {
  private:
   CameraNode* node_;
   v1::TriggerStreamHeader header_;
+  uint64_t frames_at_start_;
   std::mutex mutex_;
   v1::ClockMapping clock_;  // guarded by mutex_
   bool stop_device_;
