@@ -14,6 +14,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
+#include "stage/timing/pattern_set.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/sim.pb.h"
 #include "test_support.h"
@@ -200,12 +201,21 @@ TEST_F(StageSimTest, TriggerRehearsalThroughTheController) {
   auto rig = ApplyRigOverrides(
       *loaded, {"cameras[hs-*].trigger.source=scheduled-software", "cameras[*].width=64", "cameras[*].height=32"});
   ASSERT_TRUE(rig.ok()) << rig.status();
+  // A pattern-set file beside the rig file: stage-sim's effective rig (in its run directory) must still find it.
+  TempDir rig_dir;
+  std::string patterns(timing::BuiltinFastage38Text());
+  patterns.replace(patterns.find("name: fastage-38"), 16, "name: fastage-38-copy");
+  rig_dir.Write("patterns.yaml", patterns);
+  rig->rig.set_pattern_set("patterns.yaml");
   std::string json;
   google::protobuf::util::JsonPrintOptions print;
   print.preserve_proto_field_names = true;
   ASSERT_TRUE(google::protobuf::util::MessageToJsonString(rig->rig, &json, print).ok());
-  TempDir rig_dir;
   ASSERT_NO_FATAL_FAILURE(StartStage({"--config", rig_dir.Write("rig.json", json)}));
+  CommandResult show = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "show"},
+                                  std::chrono::seconds(20));
+  EXPECT_EQ(show.exit.exit_code, 0) << show.err;
+  EXPECT_THAT(show.out, ::testing::HasSubstr("pattern set fastage-38-copy: 38 patterns"));
   CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "rehearse",
                                 "--slots", "300", "--json"},
                                std::chrono::seconds(60));

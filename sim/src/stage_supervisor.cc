@@ -173,6 +173,15 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
   for (auto& c : *rig.mutable_cameras()) c.set_address(address_of(c.id()));
   for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
   for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
+  // The effective rig lives in the run directory: paths the rig file gave relative to itself must stay where they
+  // pointed (a pattern-set file, the take root).
+  auto absolute = [&](const std::string& file) {
+    const std::filesystem::path given(file);
+    return given.is_relative() ? std::filesystem::absolute(std::filesystem::path(rig_.base_dir) / given).string()
+                               : file;
+  };
+  if (!IsBuiltinPatternSet(rig.pattern_set())) rig.set_pattern_set(absolute(rig.pattern_set()));
+  rig.mutable_storage()->set_root(absolute(rig.storage().root()));
   // The controller listens where stage-sim says (--listen), whatever the rig's controller.listen is.
   STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(rig));
   return WriteFileAtomically(path, json);
