@@ -124,6 +124,29 @@ TEST_F(ScheduledTriggersTest, EveryTriggerSentAheadIsFiredOrAccountedFor) {
   }
 }
 
+// Newer clock measurements reach the node during the take and move its triggers: a node 8 ms ahead fires 8 ms
+// later on its own clock, so its triggers arrive 8 ms further ahead of their (converted) time.
+TEST_F(ScheduledTriggersTest, ClockUpdatesDuringTheTakeMoveTheTriggers) {
+  controller::TriggerStreamOptions options;
+  options.take_id = "clock-update";
+  options.t0_unix_ns = timing::TriggerScheduler::NowNs() + 200'000'000;
+  options.slot_count = 600;
+  options.lead_ns = schedule_.trigger_lead_slots() * 1'000'000'000LL / 912;
+  options.clock_update_interval_ns = 20'000'000;
+  options.clock_source = [](const std::string&) -> std::optional<v1::ClockMapping> {
+    v1::ClockMapping m;
+    m.set_offset_ns(8'000'000);
+    return m;
+  };
+  controller::TriggerStreamer streamer(options, {Target("hs-1")});
+  streamer.Start();
+  auto reports = streamer.Wait();
+  ASSERT_TRUE(reports[0].ok()) << reports[0].status();
+  EXPECT_EQ(reports[0]->received(), 600u);
+  // Sent 16..22 ms ahead, converted 8 ms later: most arrive 24..30 ms ahead of their time on the node.
+  EXPECT_GT(reports[0]->median_lead_ns(), 22'000'000);
+}
+
 TEST_F(ScheduledTriggersTest, TriggersSentAtTheirOwnTimeArriveTooLate) {
   controller::TriggerStreamOptions options;
   options.take_id = "naive";

@@ -77,9 +77,8 @@ ParsedVcd ParseVcd(const std::string& text) {
 TEST(TimingCliTest, SigrokReadsTheVcdOfOneFrameWithTheScheduledEdges) {
   TempDir dir;
   const std::string vcd_path = dir.path() + "/frame.vcd";
-  CommandResult exported =
-      RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", vcd_path, "--frames", "1"},
-                 kTimeout);
+  CommandResult exported = RunCommand(
+      {"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", vcd_path, "--frames", "1"}, kTimeout);
   ASSERT_EQ(exported.exit.exit_code, 0) << exported.err;
   EXPECT_THAT(exported.err, HasSubstr("slots 0 to 37: 0 error(s), 0 warning(s)"));
   const std::string ours = ReadFile(vcd_path);
@@ -106,8 +105,8 @@ TEST(TimingCliTest, SigrokReadsTheVcdOfOneFrameWithTheScheduledEdges) {
   std::map<std::string, std::set<int64_t>> sigrok;  // channel -> edge times
   const size_t kPerRun = 25;
   for (size_t first = 0; first < channels.size(); first += kPerRun) {
-    std::vector<std::string> argv = {kSigrok, "-I", "vcd", "-i", vcd_path, "--protocol-decoder-samplenum",
-                                     "-A", "timing=time"};
+    std::vector<std::string> argv = {kSigrok, "-I",         "vcd", "-i", vcd_path, "--protocol-decoder-samplenum",
+                                     "-A",    "timing=time"};
     const size_t last = std::min(channels.size(), first + kPerRun);
     for (size_t i = first; i < last; ++i) {
       argv.push_back("-P");
@@ -155,9 +154,7 @@ TEST(TimingCliTest, SigrokReadsTheVcdOfOneFrameWithTheScheduledEdges) {
   auto expect_edge = [&](int64_t reported, int64_t ticks, const std::string& what) {
     EXPECT_LE(std::abs(static_cast<double>(reported) - exact_ns(ticks)), 0.5) << what;
   };
-  auto edges = [&](const std::string& name) {
-    return std::vector<int64_t>(sigrok[name].begin(), sigrok[name].end());
-  };
+  auto edges = [&](const std::string& name) { return std::vector<int64_t>(sigrok[name].begin(), sigrok[name].end()); };
   // Slot clock: up at every edge, down half a slot later.
   std::vector<int64_t> clock = edges("slot_clock");
   ASSERT_EQ(clock.size(), 75u);  // 37 rises (slot 0's is at time 0) and 38 falls
@@ -222,9 +219,9 @@ TEST(TimingCliTest, CheckShowAndWhatIf) {
   EXPECT_THAT(late.out, HasSubstr("fix: shorten cameras[mv-01].exposure_us to <= 821.491"));
   EXPECT_THAT(late.out, HasSubstr("27 error(s), 0 warning(s): nothing arms"));
 
-  CommandResult json = RunCommand({"stagectl", "timing", "check", "--rig", "builtin:fastage", "--json", "--set",
-                                   "cameras[mv-*].link=gige-1"},
-                                  kTimeout);
+  CommandResult json = RunCommand(
+      {"stagectl", "timing", "check", "--rig", "builtin:fastage", "--json", "--set", "cameras[mv-*].link=gige-1"},
+      kTimeout);
   EXPECT_EQ(json.exit.exit_code, 0) << json.err;
   EXPECT_THAT(json.out, HasSubstr("\"check\": \"link-bandwidth\""));
   EXPECT_THAT(json.out, HasSubstr("\"warnings\": 24"));
@@ -258,12 +255,12 @@ TEST(TimingCliTest, BadInputIsOneLineNamingIt) {
            2, "timing.slot_rate_hz: 912.5 is not a whole number");
   one_line(RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage"}, kTimeout), 2,
            "needs at least one of --vcd, --svg, --json");
-  one_line(RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", "/tmp/x.vcd", "--slots",
-                       "9:3"},
-                      kTimeout),
-           2, "--slots 9:3 is not FIRST:END");
-  one_line(RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", "/tmp/x.vcd",
-                       "--timescale", "3ns"},
+  one_line(
+      RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", "/tmp/x.vcd", "--slots", "9:3"},
+                 kTimeout),
+      2, "--slots 9:3 is not FIRST:END");
+  one_line(RunCommand({"stagectl", "timing", "export", "--rig", "builtin:fastage", "--vcd", "/tmp/x.vcd", "--timescale",
+                       "3ns"},
                       kTimeout),
            2, "timescale \"3ns\"");
   one_line(RunCommand({"stagectl", "timing", "show", "--rig", "/nonexistent.yaml"}, kTimeout), 2,

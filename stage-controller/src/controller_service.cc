@@ -17,6 +17,14 @@
 
 namespace stage::controller {
 
+v1::ClockMapping ClockMappingOf(const v1::ClockStatus& clock) {
+  v1::ClockMapping m;
+  m.set_offset_ns(clock.offset_ns());
+  m.set_drift_ppm(clock.drift_known() ? clock.drift_ppm() : 0.0);
+  m.set_at_unix_ns(clock.last_sync_unix_ns());
+  return m;
+}
+
 std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Schedule* schedule) {
   std::vector<NodeTarget> targets;
   int64_t quarter_slot_ns = 0;
@@ -170,12 +178,7 @@ grpc::Status ControllerService::RehearseTriggers(grpc::ServerContext* context,
     t.id = c.id();
     t.address = c.address();
     t.timing = *timing::FindCameraTiming(timing_.schedule(), c.id());
-    const v1::ClockStatus& clock = clocks[c.id()];
-    if (clock.measured()) {
-      t.clock.set_offset_ns(clock.offset_ns());
-      t.clock.set_drift_ppm(clock.drift_known() ? clock.drift_ppm() : 0.0);
-      t.clock.set_at_unix_ns(clock.last_sync_unix_ns());
-    }
+    if (clocks[c.id()].measured()) t.clock = ClockMappingOf(clocks[c.id()]);
     targets.push_back(std::move(t));
   }
   if (targets.empty()) {
@@ -194,6 +197,13 @@ grpc::Status ControllerService::RehearseTriggers(grpc::ServerContext* context,
   options.lead_ns =
       schedule.trigger_lead_slots() * schedule.time_base().ticks_per_slot() / schedule.time_base().ticks_per_ns();
   options.realtime_priority = rig_.rig.timing().trigger_realtime_priority();
+  // The nodes convert with the latest measurement of their clocks, also during the rehearsal.
+  options.clock_source = [this](const std::string& id) -> std::optional<v1::ClockMapping> {
+    for (const v1::NodeStatus& n : monitor_->Snapshot()) {
+      if (n.id() == id && n.clock().measured()) return ClockMappingOf(n.clock());
+    }
+    return std::nullopt;
+  };
   auto log = Logger("controller.timing");
   log->info("trigger rehearsal: {} slots to {} camera(s), {} slots ahead", slots, targets.size(),
             schedule.trigger_lead_slots());

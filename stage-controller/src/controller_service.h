@@ -6,6 +6,7 @@
 
 #include "health_monitor.h"
 #include "stage/common/rig.h"
+#include "stage/v1/camera_node.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/rig.pb.h"
 #include "stage/v1/timing.pb.h"
@@ -42,6 +43,9 @@ class ControllerService final : public v1::StageController::Service {
   std::string rig_hash_;
   HealthMonitor* monitor_;
 };
+
+// What a node needs to convert controller times to its clock, from the controller's measurement of it.
+v1::ClockMapping ClockMappingOf(const v1::ClockStatus& clock);
 
 // Targets to poll: every camera, light node and processing worker of the rig, in rig order. With the rig's schedule,
 // each gets the clock uncertainty its trigger mode tolerates: a camera on scheduled software triggers half its late

@@ -43,8 +43,8 @@ TEST(ControllerServiceTest, StatusAndWatch) {
   ControllerService service(loaded, &monitor);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
-  auto stub = v1::StageController::NewStub(
-      grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub =
+      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
 
   // GetStageStatus: the worker comes up.
   v1::StageStatus status;
@@ -87,8 +87,8 @@ TEST(ControllerServiceTest, TimingCheckAndExportOnTheLiveRig) {
   EXPECT_EQ(service.timing().errors(), 0);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
-  auto stub = v1::StageController::NewStub(
-      grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub =
+      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
 
   v1::TimingQuery query;
   v1::TimingReport report;

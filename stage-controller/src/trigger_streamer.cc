@@ -87,8 +87,21 @@ void TriggerStreamer::Send(size_t index) {
   const int64_t wake_period = std::max<int64_t>(options_.lead_ns / 4, 1);
   int64_t k = timing::NextFiringSlot(camera, options_.first_slot);
   bool ok = true;
+  v1::ClockMapping clock = target.clock;
+  int64_t next_clock_update = RealtimeNs() + options_.clock_update_interval_ns;
   while (ok && k < end && !cancelled_.load()) {
     const int64_t now = RealtimeNs();
+    if (options_.clock_source && now >= next_clock_update) {
+      next_clock_update = now + options_.clock_update_interval_ns;
+      std::optional<v1::ClockMapping> latest = options_.clock_source(target.id);
+      if (latest && latest->SerializeAsString() != clock.SerializeAsString()) {
+        clock = *latest;
+        v1::TriggerStreamMessage update;
+        *update.mutable_clock() = clock;
+        ok = writer->Write(update);
+        if (!ok) break;
+      }
+    }
     v1::TriggerStreamMessage message;
     int64_t sent = 0;
     while (k < end && options_.t0_unix_ns + time_ns(k) - options_.lead_ns <= now) {

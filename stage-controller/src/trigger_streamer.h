@@ -2,12 +2,14 @@
 // of its time (timing.trigger_lead_slots) with its absolute controller time; the node fires it on its own clock.
 // Triggers that fall due within a quarter of the lead are sent together, so a sender wakes a few times per lead, not
 // once per slot; every trigger still leaves at least three quarters of the lead early. A node that fails delays only
-// its own stream.
+// its own stream. Newer clock measurements go to the nodes during the take.
 #pragma once
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -42,6 +44,11 @@ struct TriggerStreamOptions {
   bool report_leads = false;
   // SCHED_FIFO priority for the nodes' firing threads (timing.trigger_realtime_priority).
   uint32_t realtime_priority = 0;
+  // Where newer clock measurements come from during the take (the controller's health monitor), by camera id; each
+  // stream asks every `clock_update_interval_ns` and sends what changed. Null: the targets' mappings for the whole
+  // take.
+  std::function<std::optional<v1::ClockMapping>(const std::string& id)> clock_source;
+  int64_t clock_update_interval_ns = 1'000'000'000;
 };
 
 class TriggerStreamer {
