@@ -10,6 +10,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_server.h"
 #include "stage/common/subprocess.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
@@ -177,6 +178,51 @@ TEST_F(ScheduledTriggersTest, ACameraOnTheHardwareLineRefusesTheStream) {
   EXPECT_EQ(reports[0].status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(reports[0].status().message(),
               AllOf(HasSubstr("camera node mv-02"), HasSubstr("not triggered by scheduled software triggers")));
+}
+
+// A camera node that takes the stream and then never answers: its handler waits until the call is cancelled.
+class StuckCameraNode final : public v1::CameraNode::Service {
+ public:
+  grpc::Status StreamTriggers(grpc::ServerContext* context, grpc::ServerReader<v1::TriggerStreamMessage>*,
+                              v1::TriggerReport*) override {
+    while (!context->IsCancelled()) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    return grpc::Status(grpc::StatusCode::CANCELLED, "cancelled");
+  }
+};
+
+TEST(TriggerStreamerTest, AStuckNodeCannotHoldTheStreamer) {
+  StuckCameraNode stuck;
+  auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&stuck});
+  ASSERT_TRUE(server.ok());
+  auto base = timing::TimeBase::Create(912);
+  controller::TriggerTarget target;
+  target.id = "hs-9";
+  target.address = (*server)->address();
+  target.timing.set_divider(1);
+  target.timing.set_late_slack_ticks(base->UsToTicks(100));
+
+  // Cancel() ends the stream although the node never answers.
+  controller::TriggerStreamOptions options;
+  options.t0_unix_ns = timing::TriggerScheduler::NowNs() + 50'000'000;
+  options.slot_count = 100'000;  // about two minutes of slots
+  options.lead_ns = 20'000'000;
+  controller::TriggerStreamer streamer(options, {target});
+  streamer.Start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  streamer.Cancel();
+  auto results = streamer.Wait();
+  ASSERT_FALSE(results[0].ok());
+  EXPECT_EQ(results[0].status().code(), absl::StatusCode::kCancelled) << results[0].status();
+
+  // Without Cancel(), the deadline (last slot + finish_timeout_ms) ends it.
+  options.t0_unix_ns = timing::TriggerScheduler::NowNs() + 20'000'000;
+  options.slot_count = 50;
+  options.finish_timeout_ms = 300;
+  controller::TriggerStreamer timed(options, {target});
+  timed.Start();
+  results = timed.Wait();
+  ASSERT_FALSE(results[0].ok());
+  EXPECT_EQ(results[0].status().code(), absl::StatusCode::kDeadlineExceeded) << results[0].status();
 }
 
 }  // namespace

@@ -196,13 +196,14 @@ absl::StatusOr<std::unique_ptr<TriggerSession>> CameraNode::BeginTriggerStream(c
     return absl::FailedPreconditionError(
         absl::StrCat("camera \"", config_.id(), "\" is already running a stream of scheduled triggers"));
   }
-  // The device runs for the stream (until capture control owns it, issue #5).
+  // The device runs for the stream (until capture control owns it, issue #5). Nothing else starts it, so any error
+  // here is a real one.
   absl::Status started = device_->Start(this);
-  const bool stop_device = started.ok();
-  if (!started.ok() && started.code() != absl::StatusCode::kFailedPrecondition) {
+  if (!started.ok()) {
     streaming_.store(false);
     return Annotate(started, absl::StrCat("camera \"", config_.id(), "\""));
   }
+  const bool stop_device = true;
   return std::unique_ptr<TriggerSession>(new TriggerSessionImpl(this, header, stop_device));
 }
 

@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <numeric>
 #include <set>
 
 #include "absl/strings/ascii.h"
@@ -392,6 +393,19 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
                                                      timing.slot_rate_hz()));
   }
   check.InRange("timing.take_length_s", timing.take_length_s(), 1e-3, 86400.0 * 7);
+  if (timing.slot_rate_hz() >= 1 && timing.slot_rate_hz() <= 100000 &&
+      timing.slot_rate_hz() == std::floor(timing.slot_rate_hz())) {
+    // The schedule counts time in ticks of 1/lcm(rate, 10^9) s in 64 bits; a take must fit (with room to spare).
+    const double ticks_per_second =
+        static_cast<double>(std::lcm<int64_t>(static_cast<int64_t>(timing.slot_rate_hz()), 1'000'000'000));
+    const double max_take_s = 4.0e18 / ticks_per_second;
+    if (timing.take_length_s() > max_take_s) {
+      check.Add("timing.take_length_s",
+                absl::StrFormat("%g s does not fit the exact time base at %g slots/s (ticks of 1/%.0f s); at most "
+                                "%.0f s at this rate",
+                                timing.take_length_s(), timing.slot_rate_hz(), ticks_per_second, max_take_s));
+    }
+  }
   check.InRange("timing.trigger_pulse_us", timing.trigger_pulse_us(), 0.001, 1e6);
   check.InRange("timing.trigger_lead_slots", timing.trigger_lead_slots(), 1, 100000);
   check.InRange("timing.flicker_warn_modulation", timing.flicker_warn_modulation(), 0, 10);

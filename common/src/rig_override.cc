@@ -117,9 +117,8 @@ absl::Status Apply(Message* root, absl::string_view path, absl::string_view valu
     for (Message* m : targets) {
       if (field->is_repeated()) {
         if (!s.has_selector) {
-          return absl::InvalidArgumentError(
-              absl::StrCat(s.name, " is a list: select entries with ", s.name, "[id], ", s.name, "[index] or ",
-                           s.name, "[*]"));
+          return absl::InvalidArgumentError(absl::StrCat(s.name, " is a list: select entries with ", s.name, "[id], ",
+                                                         s.name, "[index] or ", s.name, "[*]"));
         }
         auto picked = Select(m, field, s.selector);
         if (!picked.ok()) return picked.status();
@@ -128,6 +127,10 @@ absl::Status Apply(Message* root, absl::string_view path, absl::string_view valu
         if (s.has_selector) return absl::InvalidArgumentError(absl::StrCat(s.name, " is not a list"));
         next.push_back(m->GetReflection()->MutableMessage(m, field));
       }
+    }
+    if (next.empty()) {
+      return absl::InvalidArgumentError(absl::StrCat(s.name, s.has_selector ? absl::StrCat("[", s.selector, "]") : "",
+                                                     " selects no entries (the list is empty)"));
     }
     targets = std::move(next);
   }
@@ -163,9 +166,9 @@ absl::Status Apply(Message* root, absl::string_view path, absl::string_view valu
 absl::Status ApplyRigOverride(v1::RigConfig* rig, absl::string_view assignment) {
   const size_t eq = assignment.find('=');
   if (eq == absl::string_view::npos) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("--set \"", assignment, "\": expected path=value, e.g. timing.led_switch_delay_us=60 or "
-                                             "cameras[hs-1].exposure_us=850 or cameras[mv-*].link=gige-1"));
+    return absl::InvalidArgumentError(absl::StrCat("--set \"", assignment,
+                                                   "\": expected path=value, e.g. timing.led_switch_delay_us=60 or "
+                                                   "cameras[hs-1].exposure_us=850 or cameras[mv-*].link=gige-1"));
   }
   absl::string_view path = absl::StripAsciiWhitespace(assignment.substr(0, eq));
   absl::string_view value = absl::StripAsciiWhitespace(assignment.substr(eq + 1));
@@ -186,8 +189,8 @@ absl::StatusOr<LoadedRig> ApplyRigOverrides(const LoadedRig& loaded, const std::
   if (!errors.empty()) {
     std::vector<std::string> lines;
     for (const RigError& e : errors) lines.push_back(absl::StrCat(e.path, ": ", e.message));
-    return absl::InvalidArgumentError(absl::StrCat("the rig with ", absl::StrJoin(assignments, ", "),
-                                                   " is not valid: ", absl::StrJoin(lines, "; ")));
+    return absl::InvalidArgumentError(
+        absl::StrCat("the rig with ", absl::StrJoin(assignments, ", "), " is not valid: ", absl::StrJoin(lines, "; ")));
   }
   out.source_name = absl::StrCat(loaded.source_name, " with ", absl::StrJoin(assignments, ", "));
   return out;

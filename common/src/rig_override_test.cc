@@ -16,9 +16,9 @@ LoadedRig Shipped() {
 }
 
 TEST(RigOverrideTest, ScalarsEnumsAndSelectors) {
-  auto rig = ApplyRigOverrides(Shipped(), {"timing.led_switch_delay_us=60", "cameras[hs-2].exposure_us = 850",
-                                          "cameras[*].link=gige-1", "cameras[0].trigger.delay_us=70",
-                                          "light_nodes[lights-gpio-2].unit_limits.max_duty_cycle=0.4"});
+  auto rig = ApplyRigOverrides(
+      Shipped(), {"timing.led_switch_delay_us=60", "cameras[hs-2].exposure_us = 850", "cameras[*].link=gige-1",
+                  "cameras[0].trigger.delay_us=70", "light_nodes[lights-gpio-2].unit_limits.max_duty_cycle=0.4"});
   ASSERT_TRUE(rig.ok()) << rig.status();
   const v1::RigConfig& r = rig->rig;
   EXPECT_EQ(r.timing().led_switch_delay_us(), 60);
@@ -71,11 +71,31 @@ TEST(RigOverrideTest, ErrorsNameTheProblem) {
   EXPECT_THAT(message("timing.slot_rate_hz.x=1"), HasSubstr("slot_rate_hz is not a message"));
 }
 
+TEST(RigOverrideTest, AnEmptyListSelectsNothingAndSaysSo) {
+  v1::RigConfig rig = Shipped().rig;
+  rig.clear_processing_workers();
+  EXPECT_THAT(std::string(ApplyRigOverride(&rig, "processing_workers[*].threads=2").message()),
+              HasSubstr("processing_workers[*] selects no entries"));
+  rig.mutable_light_nodes(0)->clear_units();
+  EXPECT_THAT(std::string(ApplyRigOverride(&rig, "light_nodes[0].units[*].intensity_scale=2").message()),
+              HasSubstr("units[*] selects no entries"));
+}
+
+TEST(RigOverrideTest, ATakeTooLongForTheExactTimeBaseIsRefused) {
+  // 99991 slots/s (a prime) makes ticks of 1/(99991 * 10^9) s: 64 bits hold about 11 hours of them.
+  auto rig = ApplyRigOverrides(
+      Shipped(), {"timing.slot_rate_hz=99991", "timing.take_length_s=86400", "cameras[*].exposure_us=5",
+                  "cameras[*].frame_rate_hz=99991", "timing.led_switch_delay_us=0", "timing.led_settle_us=0"});
+  ASSERT_FALSE(rig.ok());
+  EXPECT_THAT(rig.status().message(), AllOf(HasSubstr("timing.take_length_s: 86400 s does not fit the exact time base"),
+                                            HasSubstr("at most 40004 s")));
+}
+
 TEST(RigOverrideTest, TheResultIsValidated) {
   auto rig = ApplyRigOverrides(Shipped(), {"cameras[hs-1].exposure_us=0"});
   ASSERT_FALSE(rig.ok());
-  EXPECT_THAT(rig.status().message(),
-              AllOf(HasSubstr("with cameras[hs-1].exposure_us=0 is not valid"), HasSubstr("cameras[24].exposure_us: 0 is not > 0")));
+  EXPECT_THAT(rig.status().message(), AllOf(HasSubstr("with cameras[hs-1].exposure_us=0 is not valid"),
+                                            HasSubstr("cameras[24].exposure_us: 0 is not > 0")));
 }
 
 }  // namespace

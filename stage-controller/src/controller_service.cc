@@ -2,8 +2,10 @@
 #include "controller_service.h"
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <map>
+#include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
@@ -21,7 +23,7 @@ v1::ClockMapping ClockMappingOf(const v1::ClockStatus& clock) {
   v1::ClockMapping m;
   m.set_offset_ns(clock.offset_ns());
   m.set_drift_ppm(clock.drift_known() ? clock.drift_ppm() : 0.0);
-  m.set_at_unix_ns(clock.last_sync_unix_ns());
+  m.set_at_unix_ns(clock.estimate_at_unix_ns());
   return m;
 }
 
@@ -38,6 +40,7 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Sched
     if (timing != nullptr && c.trigger().source() == v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) {
       const int64_t slack_ns = timing->late_slack_ticks() / schedule->time_base().ticks_per_ns();
       t.clock_limit_ns = std::max<int64_t>(10'000, slack_ns / 2);
+      t.clock_required = true;
       t.clock_limit_reason =
           fmt::format("scheduled software triggers: a clock error moves the exposure; half its late slack of {:.1f} us",
                       slack_ns / 1e3);
@@ -209,7 +212,21 @@ grpc::Status ControllerService::RehearseTriggers(grpc::ServerContext* context,
             schedule.trigger_lead_slots());
   TriggerStreamer streamer(options, targets);
   streamer.Start();
+  // A client that gives up (stagectl's deadline, Ctrl-C) ends the rehearsal.
+  std::atomic<bool> done{false};
+  std::thread watcher([&] {
+    while (!done.load()) {
+      if (context->IsCancelled()) {
+        streamer.Cancel();
+        return;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+  });
   std::vector<absl::StatusOr<v1::TriggerReport>> results = streamer.Wait();
+  done.store(true);
+  watcher.join();
+  if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "the rehearsal was cancelled");
   response->set_slot_count(slots);
   response->set_lead_ns(options.lead_ns);
   for (size_t i = 0; i < targets.size(); ++i) {

@@ -132,6 +132,15 @@ TEST(ControllerServiceTest, TimingCheckAndExportOnTheLiveRig) {
   EXPECT_NE(out.vcd().find("$timescale 1 ns $end"), std::string::npos);
   EXPECT_NE(out.svg().find("<svg"), std::string::npos);
   EXPECT_NE(out.json().find("\"pattern_name\": \"parallel-full\""), std::string::npos);
+  request.set_slot_count(38);
+  request.set_first_slot(150'000'000'000);  // past the 64-bit tick range (about five years of slots)
+  {
+    grpc::ClientContext context;
+    grpc::Status s = stub->ExportTiming(&context, request, &out);
+    EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+    EXPECT_NE(s.error_message().find("beyond the exact time base"), std::string::npos) << s.error_message();
+  }
+  request.set_first_slot(0);
   request.set_slot_count(1'000'000);
   {
     grpc::ClientContext context;

@@ -89,7 +89,7 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
     node->status.set_state_since_unix_ns(UnixNowNs());
     node->status.mutable_clock()->set_limit_ns(t.clock_limit_ns);
     node->status.mutable_clock()->set_limit_reason(t.clock_limit_reason);
-    node->status.mutable_clock()->set_within_limit(true);
+    node->status.mutable_clock()->set_flagged(t.clock_required);
     node->target = std::move(t);
     nodes_.push_back(std::move(node));
   }
@@ -194,6 +194,7 @@ void HealthMonitor::Poll(size_t index) {
     if (state == v1::NODE_STATE_UP && !was_up) {
       // A node that comes (back) up may be another process with another clock: measure it afresh, now.
       node.estimator = timing::ClockEstimator();
+      node.next_sync = {};
       auto info_sent = std::chrono::steady_clock::now();
       grpc::Status s = CallGetInfo(node.target.kind, node.channel, deadline, &info);
       // The health check that found the node up also paid for connecting; GetInfo, on the warm connection, is the
@@ -219,6 +220,9 @@ void HealthMonitor::Poll(size_t index) {
       bool changed = status.state() != state || status.reason() != reason;
       if (status.state() != state) {
         status.set_state_since_unix_ns(UnixNowNs());
+        // Whatever was measured belonged to the process that was up; it says nothing about the next one.
+        status.mutable_clock()->set_measured(false);
+        status.mutable_clock()->set_flagged(node.target.clock_required);
         if (state == v1::NODE_STATE_UP) {
           log->info("{} ({} at {}) is up", node.target.id, NodeKindName(node.target.kind), node.target.address);
         } else if (status.state() != v1::NODE_STATE_UNKNOWN || state != v1::NODE_STATE_DOWN) {
@@ -259,6 +263,10 @@ void HealthMonitor::SyncClock(Node& node) {
   v1::SyncResponse last;
   std::string error;
   for (int i = 0; i < options_.clock_sync_burst; ++i) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (stopping_) return;
+    }
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + options_.timeout);
     v1::SyncRequest request;
@@ -279,12 +287,16 @@ void HealthMonitor::SyncClock(Node& node) {
 
   std::lock_guard<std::mutex> lock(mutex_);
   v1::ClockStatus& c = *node.status.mutable_clock();
-  const bool was_within = c.within_limit();
+  const bool was_flagged = c.flagged();
   const bool was_measured = c.measured();
   c.set_error(error);
   if (!burst.empty() && last.has_ptp()) *c.mutable_ptp() = last.ptp();
-  if (e.valid) {
+  if (burst.empty()) {
+    // No exchange at all: the old estimate is not trusted any longer.
+    c.set_measured(false);
+  } else if (e.valid) {
     c.set_measured(true);
+    c.set_estimate_at_unix_ns(e.at_ns);
     c.set_offset_ns(e.offset_ns);
     c.set_uncertainty_ns(e.uncertainty_ns);
     c.set_drift_ppm(e.drift_ppm);
@@ -293,15 +305,22 @@ void HealthMonitor::SyncClock(Node& node) {
     c.set_samples(e.samples);
     if (accepted) c.set_last_sync_unix_ns(UnixNowNs());
   }
-  c.set_within_limit(!c.measured() || c.limit_ns() <= 0 || c.uncertainty_ns() <= c.limit_ns());
-  if (was_within && !c.within_limit()) {
+  if (!c.measured()) {
+    c.set_flagged(node.target.clock_required);
+  } else {
+    c.set_flagged(c.limit_ns() > 0 && c.uncertainty_ns() > c.limit_ns());
+  }
+  if (!was_flagged && c.flagged() && !c.measured()) {
+    log->warn("{}: clock not measured ({}); its scheduled software triggers need it", node.target.id,
+              error.empty() ? "no exchange kept" : error);
+  } else if (!was_flagged && c.flagged()) {
     log->warn("{}: clock uncertainty {:.1f} us exceeds the {:.1f} us its trigger mode tolerates ({})", node.target.id,
               c.uncertainty_ns() / 1e3, c.limit_ns() / 1e3, c.limit_reason());
-  } else if (!was_within && c.within_limit()) {
+  } else if (was_flagged && !c.flagged()) {
     log->info("{}: clock uncertainty {:.1f} us is within {:.1f} us again", node.target.id, c.uncertainty_ns() / 1e3,
               c.limit_ns() / 1e3);
   }
-  if (was_within != c.within_limit() || was_measured != c.measured()) {
+  if (was_flagged != c.flagged() || was_measured != c.measured()) {
     ++generation_;
     changed_.notify_all();
   }

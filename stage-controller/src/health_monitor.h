@@ -25,6 +25,8 @@ struct NodeTarget {
   // The largest clock uncertainty the node's trigger mode tolerates (0 = no requirement), and why.
   int64_t clock_limit_ns = 0;
   std::string clock_limit_reason;
+  // The node cannot work without a measurement (scheduled software triggers): unmeasured, it is flagged.
+  bool clock_required = false;
 };
 
 struct HealthMonitorOptions {

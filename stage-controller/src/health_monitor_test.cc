@@ -208,8 +208,25 @@ TEST(HealthMonitorClockTest, MeasuresOffsetAndDriftAndFlagsTooUncertainClocks) {
   EXPECT_GE(clock.samples(), 3);
   EXPECT_LE(clock.last_sync_unix_ns(), UnixNowNs());
   EXPECT_EQ(clock.limit_ns(), 1);
-  EXPECT_FALSE(clock.within_limit());
+  EXPECT_TRUE(clock.flagged());
   EXPECT_EQ(clock.limit_reason(), "a test limit of 1 ns");
+}
+
+// A camera on scheduled software triggers cannot fire right without a clock measurement: until it has one (here:
+// never, nothing answers) it is flagged; other nodes are merely unmeasured.
+TEST(HealthMonitorClockTest, ANodeThatNeedsAMeasurementAndHasNoneIsFlagged) {
+  NodeTarget needs{"mv-02", v1::NODE_KIND_CAMERA, "machine-vision", ClosedPortAddress(), 70'000, "scheduled", true};
+  NodeTarget other{"mv-03", v1::NODE_KIND_CAMERA, "machine-vision", ClosedPortAddress(), 274'000, "quarter slot"};
+  HealthMonitor monitor({needs, other}, {std::chrono::milliseconds(50), std::chrono::milliseconds(200),
+                                         std::chrono::milliseconds(100), 2});
+  monitor.Start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  std::vector<v1::NodeStatus> s = monitor.Snapshot();
+  monitor.Stop();
+  EXPECT_FALSE(s[0].clock().measured());
+  EXPECT_TRUE(s[0].clock().flagged());
+  EXPECT_FALSE(s[1].clock().measured());
+  EXPECT_FALSE(s[1].clock().flagged());
 }
 
 TEST(HealthMonitorClockTest, LimitsFollowTheTriggerMode) {
@@ -223,6 +240,8 @@ TEST(HealthMonitorClockTest, LimitsFollowTheTriggerMode) {
   EXPECT_EQ(targets[0].clock_limit_ns, 274'122);
   // mv-02 on scheduled software triggers: half its 141.491 us late slack.
   EXPECT_EQ(targets[1].clock_limit_ns, 70'745);
+  EXPECT_TRUE(targets[1].clock_required);
+  EXPECT_FALSE(targets[0].clock_required);
   EXPECT_THAT(targets[1].clock_limit_reason, HasSubstr("141.5 us"));
   EXPECT_EQ(targets[27].kind, v1::NODE_KIND_LIGHT);
   EXPECT_EQ(targets[27].clock_limit_ns, 274'122);

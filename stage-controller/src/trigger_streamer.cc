@@ -6,6 +6,8 @@
 #include <time.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <chrono>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
@@ -23,8 +25,9 @@ int64_t RealtimeNs() {
 }
 
 void SleepUntilRealtime(int64_t ns) {
+  if (ns <= 0) return;
   timespec ts{ns / 1'000'000'000, ns % 1'000'000'000};
-  while (clock_nanosleep(CLOCK_REALTIME, TIMER_ABSTIME, &ts, nullptr) != 0) {
+  while (clock_nanosleep(CLOCK_REALTIME, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
   }
 }
 
@@ -35,6 +38,7 @@ TriggerStreamer::TriggerStreamer(TriggerStreamOptions options, std::vector<Trigg
       targets_(std::move(targets)),
       base_(*timing::TimeBase::Create(std::max<uint32_t>(1, options_.slot_rate_hz))) {
   results_.resize(targets_.size(), absl::UnknownError("not run"));
+  for (size_t i = 0; i < targets_.size(); ++i) contexts_.push_back(std::make_unique<grpc::ClientContext>());
 }
 
 TriggerStreamer::~TriggerStreamer() {
@@ -43,6 +47,13 @@ TriggerStreamer::~TriggerStreamer() {
 }
 
 void TriggerStreamer::Start() {
+  // No stream outlives its take: the deadline is the last slot's time plus the time to finish.
+  const int64_t end_ns = options_.t0_unix_ns + base_.SlotStartNs(options_.first_slot + options_.slot_count) +
+                         options_.finish_timeout_ms * 1'000'000;
+  for (auto& context : contexts_) {
+    context->set_deadline(std::chrono::system_clock::time_point(
+        std::chrono::duration_cast<std::chrono::system_clock::duration>(std::chrono::nanoseconds(end_ns))));
+  }
   for (size_t i = 0; i < targets_.size(); ++i) threads_.emplace_back([this, i] { Send(i); });
 }
 
@@ -53,7 +64,10 @@ std::vector<absl::StatusOr<v1::TriggerReport>> TriggerStreamer::Wait() {
   return results_;
 }
 
-void TriggerStreamer::Cancel() { cancelled_.store(true); }
+void TriggerStreamer::Cancel() {
+  cancelled_.store(true);
+  for (auto& context : contexts_) context->TryCancel();
+}
 
 void TriggerStreamer::Send(size_t index) {
   prctl(PR_SET_TIMERSLACK, 1UL);
@@ -63,9 +77,8 @@ void TriggerStreamer::Send(size_t index) {
   args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
   auto channel = grpc::CreateCustomChannel(target.address, grpc::InsecureChannelCredentials(), args);
   auto stub = v1::CameraNode::NewStub(channel);
-  grpc::ClientContext context;
   v1::TriggerReport report;
-  auto writer = stub->StreamTriggers(&context, &report);
+  auto writer = stub->StreamTriggers(contexts_[index].get(), &report);
 
   v1::TriggerStreamMessage header;
   auto* h = header.mutable_header();

@@ -19,6 +19,10 @@
 #include "stage/v1/camera_node.pb.h"
 #include "stage/v1/timing.pb.h"
 
+namespace grpc {
+class ClientContext;
+}  // namespace grpc
+
 namespace stage::controller {
 
 struct TriggerTarget {
@@ -44,6 +48,8 @@ struct TriggerStreamOptions {
   bool report_leads = false;
   // SCHED_FIFO priority for the nodes' firing threads (timing.trigger_realtime_priority).
   uint32_t realtime_priority = 0;
+  // How long after the last trigger's time a stream may take to end (the node's report), ms.
+  int64_t finish_timeout_ms = 10000;
   // Where newer clock measurements come from during the take (the controller's health monitor), by camera id; each
   // stream asks every `clock_update_interval_ns` and sends what changed. Null: the targets' mappings for the whole
   // take.
@@ -62,7 +68,8 @@ class TriggerStreamer {
   // Waits for every stream to end; the node's report per target, in target order, or why that stream failed
   // (node unreachable, refused the stream).
   std::vector<absl::StatusOr<v1::TriggerReport>> Wait();
-  // Ends every stream now.
+  // Ends every stream now: cancels the calls, so that a node that stopped answering cannot hold a sender. Safe from
+  // any thread.
   void Cancel();
 
  private:
@@ -73,6 +80,8 @@ class TriggerStreamer {
   timing::TimeBase base_;
   std::vector<absl::StatusOr<v1::TriggerReport>> results_;
   std::vector<std::thread> threads_;
+  // One call per target; each has a deadline past the take's last trigger plus finish_timeout_ms.
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts_;
   std::atomic<bool> cancelled_{false};
 };
 

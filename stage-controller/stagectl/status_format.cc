@@ -28,14 +28,14 @@ std::string KindLabel(const v1::NodeStatus& n) {
 
 // "+3.001 ms ±12.4 us", "-" before the first measurement; a trailing " !" when the uncertainty is over the limit.
 std::string FormatClock(const v1::ClockStatus& c) {
-  if (!c.measured()) return "-";
+  if (!c.measured()) return c.flagged() ? "- !" : "-";
   auto time = [](int64_t ns, bool sign) {
     const double a = std::abs(static_cast<double>(ns));
     std::string s = sign ? (ns < 0 ? "-" : "+") : "";
     if (a < 1e6) return absl::StrCat(s, absl::StrFormat("%.1f us", a / 1e3));
     return absl::StrCat(s, absl::StrFormat("%.3f ms", a / 1e6));
   };
-  return absl::StrCat(time(c.offset_ns(), true), " ±", time(c.uncertainty_ns(), false), c.within_limit() ? "" : " !");
+  return absl::StrCat(time(c.offset_ns(), true), " ±", time(c.uncertainty_ns(), false), c.flagged() ? " !" : "");
 }
 
 std::string FormatPtp(const v1::PtpStatus& p) {
@@ -53,8 +53,9 @@ nlohmann::ordered_json ClockJson(const v1::ClockStatus& c) {
                               {"samples", c.samples()},
                               {"limit_ns", c.limit_ns()},
                               {"limit_reason", c.limit_reason()},
-                              {"within_limit", c.within_limit()},
+                              {"flagged", c.flagged()},
                               {"last_sync_unix_ns", c.last_sync_unix_ns()},
+                              {"estimate_at_unix_ns", c.estimate_at_unix_ns()},
                               {"error", c.error()}};
   if (!c.ptp().source().empty()) {
     const v1::PtpStatus& p = c.ptp();
@@ -101,12 +102,16 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
     std::string seen =
         n.last_seen_unix_ns() > 0 ? FormatDuration(now_unix_ns - n.last_seen_unix_ns()) + " ago" : "never";
     std::string reason = n.reason();
-    if (n.clock().measured() && !n.clock().within_limit()) {
+    if (n.clock().flagged()) {
       ++flagged;
       if (!reason.empty()) reason += "; ";
-      absl::StrAppend(&reason,
-                      absl::StrFormat("clock uncertainty %.1f us > %.1f us (%s)", n.clock().uncertainty_ns() / 1e3,
-                                      n.clock().limit_ns() / 1e3, n.clock().limit_reason()));
+      if (n.clock().measured()) {
+        absl::StrAppend(&reason,
+                        absl::StrFormat("clock uncertainty %.1f us > %.1f us (%s)", n.clock().uncertainty_ns() / 1e3,
+                                        n.clock().limit_ns() / 1e3, n.clock().limit_reason()));
+      } else {
+        absl::StrAppend(&reason, "clock not measured; its scheduled software triggers need it");
+      }
     }
     out +=
         absl::StrFormat("%-18s %-10s %-22s %s %-8s %-8s %9s %10s %-22s %-16s  %s\n", n.id(), KindLabel(n), n.address(),

@@ -36,7 +36,7 @@ v1::StageStatus Example() {
   clock->set_drift_ppm(12.5);
   clock->set_limit_ns(10'000);
   clock->set_limit_reason("scheduled software triggers");
-  clock->set_within_limit(false);
+  clock->set_flagged(true);
   clock->mutable_ptp()->set_source("linuxptp");
   clock->mutable_ptp()->set_port_state("SLAVE");
   clock->mutable_ptp()->set_master_offset_ns(-1933);
@@ -78,10 +78,18 @@ TEST(StatusFormatTest, JsonUsesWordsForStatesAndKinds) {
   EXPECT_EQ(j["nodes"][1]["state"], "down");
   EXPECT_EQ(j["nodes"][1]["reason"], "Connection refused");
   EXPECT_EQ(j["nodes"][0]["clock"]["offset_ns"], -3001234);
-  EXPECT_EQ(j["nodes"][0]["clock"]["within_limit"], false);
+  EXPECT_EQ(j["nodes"][0]["clock"]["flagged"], true);
   EXPECT_EQ(j["nodes"][0]["clock"]["drift_ppm"], 12.5);
   EXPECT_EQ(j["nodes"][0]["clock"]["ptp"]["port_state"], "SLAVE");
   EXPECT_TRUE(j["nodes"][1]["clock"]["ptp"].is_null());
+}
+
+TEST(StatusFormatTest, AnUnmeasuredClockThatIsNeededIsFlagged) {
+  v1::StageStatus s = Example();
+  s.mutable_nodes(0)->mutable_clock()->set_measured(false);  // still flagged: it needs one
+  std::string table = FormatStatusTable(s, 1'500'000'000, /*color=*/false);
+  EXPECT_THAT(table, HasSubstr("- !"));
+  EXPECT_THAT(table, HasSubstr("clock not measured; its scheduled software triggers need it"));
 }
 
 }  // namespace

@@ -82,7 +82,9 @@ void ClockEstimator::Refit() {
   std::vector<double> center(n), width(n);
   for (size_t i = 0; i < n; ++i) {
     center[i] = y[i] - slope * x[i];
-    width[i] = half[i] + 2 * slope_se * std::abs(x[i]);
+    // With the drift fitted, its standard error; before, the largest drift a free-running clock may have.
+    const double drift_bound = e.drift_known ? 2 * slope_se : options_.max_drift_ppm * 1e-6;
+    width[i] = half[i] + drift_bound * std::abs(x[i]);
     lo = std::max(lo, center[i] - width[i]);
     hi = std::min(hi, center[i] + width[i]);
   }

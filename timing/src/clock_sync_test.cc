@@ -82,6 +82,24 @@ TEST(ClockSyncTest, DriftNeedsTimeToBeKnown) {
   EXPECT_FALSE(estimator.Current().drift_known);  // 300 ms of bursts
 }
 
+// Before drift is known, older samples only count within the largest plausible drift: a 40 ppm clock measured
+// twice, a second apart, must still be inside the stated bound.
+TEST(ClockSyncTest, BeforeDriftIsKnownOldSamplesAreWidenedByTheLargestPlausibleDrift) {
+  ClockEstimator estimator;
+  auto sample = [](int64_t t, double offset) {
+    // 60 us round trip, symmetric: the sample's offset is exact, its bound +-30 us.
+    const int64_t o = static_cast<int64_t>(offset);
+    return SyncSample{t, t + 30'000 + o, t + 30'000 + o, t + 60'000};
+  };
+  estimator.AddBurst({sample(1'000'000'000, 0)});
+  estimator.AddBurst({sample(2'000'000'000, 40'000)});  // 40 ppm over one second
+  ClockEstimate e = estimator.Current();
+  ASSERT_FALSE(e.drift_known);
+  EXPECT_LE(std::abs(e.offset_ns - 40'000), e.uncertainty_ns) << e.offset_ns << " +- " << e.uncertainty_ns;
+  // The newest sample alone bounds it to its round trip: the estimate is never looser than that.
+  EXPECT_LE(e.uncertainty_ns, 30'000);
+}
+
 TEST(ClockSyncTest, QueueingSpikesAreSkippedButAPersistentlySlowerPathIsAccepted) {
   ClockEstimator estimator;
   auto sample = [](int64_t t, int64_t delay) {

@@ -13,13 +13,7 @@ constexpr int64_t kNsPerSecond = 1'000'000'000;
 // 128-bit intermediates (a GCC/Clang extension; __extension__ keeps -Wpedantic quiet).
 __extension__ typedef __int128 Int128;
 
-// Floor division and rounding to the nearest multiple for either sign (C++ division truncates towards zero).
-int64_t FloorDiv(int64_t a, int64_t b) {
-  int64_t q = a / b;
-  if ((a % b != 0) && ((a < 0) != (b < 0))) --q;
-  return q;
-}
-
+// Rounding to the nearest for either sign (C++ division truncates towards zero).
 int64_t RoundDiv(Int128 a, Int128 b) {
   // floor((2a + b) / 2b): nearest, halves up.
   Int128 num = 2 * a + b;
@@ -61,7 +55,18 @@ v1::TimeBase TimeBase::ToProto() const {
   return proto;
 }
 
-int64_t TimeBase::SlotAtNs(int64_t t_ns) const { return FloorDiv(t_ns * ticks_per_ns_, ticks_per_slot_); }
+int64_t TimeBase::SlotAtNs(int64_t t_ns) const {
+  // t_ns * slot_rate / 10^9 without the intermediate product overflowing.
+  const Int128 num = static_cast<Int128>(t_ns) * slot_rate_hz_;
+  const Int128 den = 1'000'000'000;
+  Int128 q = num / den;
+  if ((num % den != 0) && (num < 0)) --q;
+  return static_cast<int64_t>(q);
+}
+
+int64_t TimeBase::SlotStartNs(int64_t slot) const {
+  return RoundDiv(static_cast<Int128>(slot) * 1'000'000'000, static_cast<Int128>(slot_rate_hz_));
+}
 
 int64_t TimeBase::TicksToNs(int64_t ticks) const { return RoundDiv(ticks, ticks_per_ns_); }
 

@@ -44,13 +44,17 @@ TEST(TimeBaseTest, NoCumulativeDriftOverTwentyFourHours) {
     const long double exact = static_cast<long double>(k) * 1e9L / 912.0L;
     ASSERT_LE(std::fabs(static_cast<long double>(base.SlotStartNs(k)) - exact), 0.5L) << k;
   }
-  // The rounded periods still sum to the exact day: rounding never accumulates.
-  int64_t sum = 0;
-  for (int64_t k = slots_per_day - 1000; k < slots_per_day; ++k) sum += base.SlotStartNs(k + 1) - base.SlotStartNs(k);
-  EXPECT_EQ(sum, base.SlotStartNs(slots_per_day) - base.SlotStartNs(slots_per_day - 1000));
-  // What rounding the period once would do: 1096491 ns per slot loses 0.228 ns a slot, 18 ms over the day.
-  const int64_t naive_day = slots_per_day * 1'096'491;
-  EXPECT_GT(86'400'000'000'000 - naive_day, 17'000'000);
+  // Periods in whole ns are 1096491 or 1096492; in every second exactly 208 of the 912 are the longer one
+  // (912 * 1096491 = 999999792 ns), at the start of the day and at its end alike.
+  for (int64_t first : {int64_t{0}, slots_per_day - 912}) {
+    int longer = 0;
+    for (int64_t k = first; k < first + 912; ++k) {
+      const int64_t period = base.SlotStartNs(k + 1) - base.SlotStartNs(k);
+      ASSERT_TRUE(period == 1'096'491 || period == 1'096'492) << k << ": " << period;
+      longer += period == 1'096'492;
+    }
+    EXPECT_EQ(longer, 208) << "second starting at slot " << first;
+  }
 }
 
 TEST(TimeBaseTest, SlotAtNsIsTheInverse) {
@@ -81,6 +85,18 @@ TEST(TimeBaseTest, TicksToUnitsRoundsEachEdgeToTheTimescale) {
   EXPECT_EQ(base.TicksToUnits(base.SlotStartTicks(1), 1'000), 1'096'491'228);
   // A day in picoseconds does not overflow.
   EXPECT_EQ(base.TicksToUnits(base.SlotStartTicks(912LL * 86400), 1'000), 86'400'000'000'000'000);
+}
+
+TEST(TimeBaseTest, FarSlotsAndTimesDoNotOverflow) {
+  TimeBase base = Base912();
+  EXPECT_EQ(base.max_slot(), INT64_MAX / 62'500'000);
+  // Slot 10^12 (about 35 years) in ns, from the exact rational: 10^21 / 912 = 1096491228070175438.6 ns.
+  EXPECT_EQ(base.SlotStartNs(1'000'000'000'000), 1'096'491'228'070'175'439);
+  // A CLOCK_REALTIME nanosecond count today (2026) maps to its slot since the Unix epoch.
+  const int64_t now_ns = 1'795'420'255'732'880'332;
+  const int64_t k = base.SlotAtNs(now_ns);
+  EXPECT_LE(base.SlotStartNs(k), now_ns);
+  EXPECT_GT(base.SlotStartNs(k + 1), now_ns);
 }
 
 TEST(TimeBaseTest, RejectsImpossibleRates) {

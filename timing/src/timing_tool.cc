@@ -49,9 +49,16 @@ absl::StatusOr<v1::TimingExport> ExportTiming(const LoadedRig& rig, const v1::Ti
   if (window.first_slot < 0) {
     return absl::InvalidArgumentError(absl::StrCat("first slot ", window.first_slot, " is negative"));
   }
+  const TimeBase base = TimeBase::FromProto(report.schedule().time_base());
+  if (window.first_slot > base.max_slot() - window.slot_count) {
+    return absl::InvalidArgumentError(
+        absl::StrFormat("slots %d to %d are beyond the exact time base (up to slot %d, %.0f days at %u slots/s)",
+                        window.first_slot, window.first_slot + window.slot_count - 1, base.max_slot(),
+                        static_cast<double>(base.max_slot()) / base.slot_rate_hz() / 86400, base.slot_rate_hz()));
+  }
   if (window.slot_count > kMaxExportSlots) {
-    return absl::InvalidArgumentError(absl::StrCat("a window of ", window.slot_count,
-                                                   " slots is too long to export; at most ", kMaxExportSlots));
+    return absl::InvalidArgumentError(
+        absl::StrCat("a window of ", window.slot_count, " slots is too long to export; at most ", kMaxExportSlots));
   }
   VcdOptions vcd_options;
   if (!request.timescale().empty()) {
@@ -117,10 +124,11 @@ std::string FormatScheduleSummary(const v1::TimingReport& report, absl::string_v
                                         s.time_base().slot_rate_hz(), n, Us(base, n * base.ticks_per_slot()),
                                         static_cast<double>(s.time_base().slot_rate_hz()) / n, s.take_slots(),
                                         static_cast<double>(s.take_slots()) / s.time_base().slot_rate_hz()));
-  absl::StrAppend(&out, absl::StrFormat("  light steady from %s us (%s) until the next switch at %s us (%s), less the "
-                                        "guard of %s us\n",
-                                        Us(base, s.steady_start_ticks()), s.steady_start_node(),
-                                        Us(base, s.steady_end_ticks()), s.steady_end_node(), Us(base, s.guard_ticks())));
+  absl::StrAppend(
+      &out, absl::StrFormat("  light steady from %s us (%s) until the next switch at %s us (%s), less the "
+                            "guard of %s us\n",
+                            Us(base, s.steady_start_ticks()), s.steady_start_node(), Us(base, s.steady_end_ticks()),
+                            s.steady_end_node(), Us(base, s.guard_ticks())));
   absl::StrAppend(&out, absl::StrFormat("  exact time: 1 tick = 1/%d s (%d ticks per ns, %d per slot)\n\n",
                                         s.time_base().ticks_per_second(), s.time_base().ticks_per_ns(),
                                         s.time_base().ticks_per_slot()));
@@ -129,41 +137,44 @@ std::string FormatScheduleSummary(const v1::TimingReport& report, absl::string_v
                                         "FALL us", "SETTLE us", "STEADY FROM", "CHANNELS", "HOTTEST/LIMIT"));
   for (const auto& node : s.light_nodes()) {
     auto it = led.find(node.id());
-    std::string hottest = it == led.end() ? "-" : absl::StrFormat("%.3f/%.2f", it->second->used(), it->second->budget());
+    std::string hottest =
+        it == led.end() ? "-" : absl::StrFormat("%.3f/%.2f", it->second->used(), it->second->budget());
     const int channels = node.table().rows_size() > 0 ? node.table().rows(0).levels_size() : 0;
-    absl::StrAppend(&out, absl::StrFormat("%-18s %10s %8s %8s %9s %12s %8d %14s\n", node.id(),
-                                          Us(base, node.switch_ticks()), Us(base, node.rise_ticks()),
-                                          Us(base, node.fall_ticks()), Us(base, node.settle_ticks()),
-                                          Us(base, node.steady_start_ticks()), channels, hottest));
+    absl::StrAppend(
+        &out, absl::StrFormat("%-18s %10s %8s %8s %9s %12s %8d %14s\n", node.id(), Us(base, node.switch_ticks()),
+                              Us(base, node.rise_ticks()), Us(base, node.fall_ticks()), Us(base, node.settle_ticks()),
+                              Us(base, node.steady_start_ticks()), channels, hottest));
   }
   absl::StrAppend(&out, "\n");
-  absl::StrAppend(&out, absl::StrFormat("%-8s %-4s %-9s %5s %-19s %11s %11s %11s %17s %s\n", "CAMERA", "ROLE", "SOURCE",
-                                        "EVERY", "PHASE", "TRIGGER us", "EXPOSURE us", "READOUT us", "SLACK early/late",
-                                        "LOAD"));
+  absl::StrAppend(
+      &out, absl::StrFormat("%-8s %-4s %-9s %5s %-19s %11s %11s %11s %17s %s\n", "CAMERA", "ROLE", "SOURCE", "EVERY",
+                            "PHASE", "TRIGGER us", "EXPOSURE us", "READOUT us", "SLACK early/late", "LOAD"));
   for (const auto& c : s.cameras()) {
-    const std::string phase = absl::StrCat(
-        c.slot_phase(), " ", c.slot_phase() < static_cast<uint32_t>(s.patterns_size()) && c.divider() % n == 0
-                                 ? s.patterns(static_cast<int>(c.slot_phase())).name()
-                                 : "");
+    const std::string phase =
+        absl::StrCat(c.slot_phase(), " ",
+                     c.slot_phase() < static_cast<uint32_t>(s.patterns_size()) && c.divider() % n == 0
+                         ? s.patterns(static_cast<int>(c.slot_phase())).name()
+                         : "");
     std::string load;
     if (auto it = link.find(c.id()); it != link.end()) {
       load = absl::StrFormat("link %.1f/%.0f MB/s", it->second->used(), it->second->budget());
     } else if (auto r = ram.find(c.id()); r != ram.end()) {
       load = absl::StrFormat("RAM %.1f/%.0f GiB", r->second->used(), r->second->budget());
     }
-    absl::StrAppend(&out, absl::StrFormat("%-8s %-4s %-9s %5d %-19s %11s %11s %11s %17s %s\n", c.id(),
-                                          c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "hs" : "mv", SourceName(c.source()),
-                                          c.divider(), phase,
-                                          absl::StrCat(Us(base, c.trigger_ticks()), c.trigger_auto() ? "*" : ""),
-                                          Us(base, c.exposure_ticks()),
-                                          absl::StrCat(Us(base, c.readout_ticks()), c.readout_declared() ? "" : "~"),
-                                          absl::StrCat(Us(base, c.early_slack_ticks()), "/", Us(base, c.late_slack_ticks())),
-                                          load));
+    absl::StrAppend(
+        &out, absl::StrFormat(
+                  "%-8s %-4s %-9s %5d %-19s %11s %11s %11s %17s %s\n", c.id(),
+                  c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "hs" : "mv", SourceName(c.source()), c.divider(), phase,
+                  absl::StrCat(Us(base, c.trigger_ticks()), c.trigger_auto() ? "*" : ""), Us(base, c.exposure_ticks()),
+                  absl::StrCat(Us(base, c.readout_ticks()), c.readout_declared() ? "" : "~"),
+                  absl::StrCat(Us(base, c.early_slack_ticks()), "/", Us(base, c.late_slack_ticks())), load));
   }
-  absl::StrAppend(&out, "  * trigger follows the light (trigger.delay_us unset)   ~ readout assumed: rest of the period\n");
+  absl::StrAppend(&out,
+                  "  * trigger follows the light (trigger.delay_us unset)   ~ readout assumed: rest of the period\n");
   std::string disks;
   for (const auto& f : report.loads()) {
-    if (f.kind() == "disk") absl::StrAppend(&disks, absl::StrFormat("  %s %.1f/%.0f MB/s", f.device(), f.used(), f.budget()));
+    if (f.kind() == "disk")
+      absl::StrAppend(&disks, absl::StrFormat("  %s %.1f/%.0f MB/s", f.device(), f.used(), f.budget()));
   }
   if (!disks.empty()) absl::StrAppend(&out, "\nrecording hosts:", disks, "\n");
   if (report.flicker_size() > 0) {

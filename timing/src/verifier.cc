@@ -337,7 +337,10 @@ void CheckLink(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTiming&
 void CheckCameraRam(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTiming& c) {
   if (config.link() != v1::LINK_KIND_ON_CAMERA_RAM) return;
   const int64_t take = ctx.schedule.take_slots();
-  const int64_t frames = (take - NextFiringSlot(c, 0) + c.divider() - 1) / c.divider();
+  // Slot-locked cameras fire in the slots their divider and phase pick; a free-running one once per its own period.
+  const int64_t frames = c.source() == v1::TRIGGER_SOURCE_FREE_RUN
+                             ? (take * ctx.base.ticks_per_slot() + c.period_ticks() - 1) / c.period_ticks()
+                             : (take - NextFiringSlot(c, 0) + c.divider() - 1) / c.divider();
   const double bytes = static_cast<double>(frames) * static_cast<double>(c.frame_bytes());
   const double ram = config.ram_gib() * kGiB;
   ctx.out.Load("ram", c.id(), bytes / kGiB, config.ram_gib(), "GiB");

@@ -96,11 +96,11 @@ TEST(VerifierTest, ShippedRigOnOneGigEGetsOnlyTheLinkWarning) {
   EXPECT_EQ(links[0].severity(), v1::SEVERITY_WARNING);
   // 2592 x 2048 x 24 = 127.4 MB/s of pixels; with the shipped jumbo frames, per frame 593 packets of 8964 payload
   // bytes, 9038 bytes each on the wire, plus leader and trailer: 128.6 MB/s.
-  EXPECT_THAT(links[0].message(), AllOf(HasSubstr("127.4 MB/s of frames"), HasSubstr("2592x2048 bayer-rg8 at 24 fps"),
-                                        HasSubstr("128.6 MB/s on the link"), HasSubstr("packet size 9000"),
-                                        HasSubstr("a 1 GigE link carries 125.0"),
-                                        HasSubstr("34 MiB by the end of a 10 s take"),
-                                        HasSubstr("frame_buffer_mib not declared")));
+  EXPECT_THAT(links[0].message(),
+              AllOf(HasSubstr("127.4 MB/s of frames"), HasSubstr("2592x2048 bayer-rg8 at 24 fps"),
+                    HasSubstr("128.6 MB/s on the link"), HasSubstr("packet size 9000"),
+                    HasSubstr("a 1 GigE link carries 125.0"), HasSubstr("34 MiB by the end of a 10 s take"),
+                    HasSubstr("frame_buffer_mib not declared")));
   // 2048 rows * 125.0 / 128.6 = 1990 rows fit.
   EXPECT_THAT(links[0].fix(), AllOf(HasSubstr("2.5/5/10 GigE"), HasSubstr("<= 1990 rows")));
 }
@@ -252,6 +252,22 @@ TEST(VerifierTest, HighSpeedRamAgainstTheTakeLength) {
   EXPECT_THAT(v[0].message(), AllOf(HasSubstr("a 40 s take is 36480 frames x 9.44 MB"),
                                     HasSubstr("holds 256 GiB = 29127 frames = 31.94 s")));
   EXPECT_THAT(v[0].fix(), HasSubstr("take_length_s to <= 31.94 s"));
+}
+
+TEST(VerifierTest, AFreeRunningHighSpeedCameraFillsItsRamAtItsOwnRate) {
+  // 500 fps free run for a 40 s take: 20000 frames x 9.44 MB = 175.8 GiB, within 256 GiB (912 fps would not be).
+  v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    rig->mutable_timing()->set_take_length_s(40);
+    Camera(rig, "hs-1")->mutable_trigger()->set_source(v1::TRIGGER_SOURCE_FREE_RUN);
+    Camera(rig, "hs-1")->set_frame_rate_hz(500);
+  });
+  for (const auto& v : Of(report, kCheckCameraRam)) EXPECT_NE(v.device(), "hs-1") << Dump(report);
+  EXPECT_EQ(Of(report, kCheckCameraRam).size(), 2u) << Dump(report);  // hs-2 and hs-3 still do not fit
+  for (const auto& f : report.loads()) {
+    if (f.kind() == "ram" && f.device() == "hs-1") {
+      EXPECT_NEAR(f.used(), 20000 * 9437184.0 / (1 << 30), 0.01);
+    }
+  }
 }
 
 TEST(VerifierTest, RecordingHostDiskRate) {

@@ -261,9 +261,20 @@ absl::StatusOr<std::string> ScheduleToVcd(const v1::Schedule& schedule, const Wa
   std::vector<char> initial(signals.size(), '0');
   for (size_t i = 0; i < signals.size(); ++i) {
     std::vector<Interval> units;
-    for (const Interval& iv : signals[i].high) {
+    for (size_t k = 0; k < signals[i].high.size(); ++k) {
+      const Interval& iv = signals[i].high[k];
       units.push_back(
           {base.TicksToUnits(iv.first, options.timescale_fs), base.TicksToUnits(iv.second, options.timescale_fs)});
+      // A pulse, or the gap before it, that rounds away would silently change the waveform: refuse instead.
+      const bool pulse_lost = units.back().second <= units.back().first;
+      const bool gap_lost = k > 0 && units.back().first <= units[k - 1].second;
+      if (pulse_lost || gap_lost) {
+        const int64_t ticks = pulse_lost ? iv.second - iv.first : iv.first - signals[i].high[k - 1].second;
+        return absl::InvalidArgumentError(absl::StrFormat(
+            "timescale %s is too coarse for this window: %s has a %s of %.3f us that it cannot show; use a timescale "
+            "of at most half that",
+            *timescale, VcdName(signals[i].name), pulse_lost ? "pulse" : "gap", base.TicksToUs(ticks)));
+      }
     }
     for (const Interval& iv : Merge(std::move(units))) {
       if (iv.first <= u0) {

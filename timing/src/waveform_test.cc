@@ -162,6 +162,12 @@ TEST(VcdTest, Timescales) {
   EXPECT_FALSE(ParseTimescale("1 parsec").ok());
   EXPECT_FALSE(ScheduleToVcd(ShippedReport().schedule(), {0, 0}).ok());
   EXPECT_FALSE(ScheduleToVcd(ShippedReport().schedule(), {0, 1}, {.timescale_fs = 3}).ok());
+  // 1 ms cannot show a 10 us trigger pulse: refused, not drawn wrong.
+  auto coarse = ScheduleToVcd(ShippedReport().schedule(), {0, 6}, {.timescale_fs = 1'000'000'000'000});
+  ASSERT_FALSE(coarse.ok());
+  EXPECT_THAT(coarse.status().message(), HasSubstr("timescale 1 ms is too coarse"));
+  // 1 us still shows every pulse of the shipped rig.
+  EXPECT_TRUE(ScheduleToVcd(ShippedReport().schedule(), {0, 38}, {.timescale_fs = 1'000'000'000}).ok());
 }
 
 TEST(SvgTest, LabelsPatternsAndMarksViolationsInRed) {
@@ -173,13 +179,15 @@ TEST(SvgTest, LabelsPatternsAndMarksViolationsInRed) {
   EXPECT_THAT(*svg, HasSubstr("No violations."));
   EXPECT_THAT(*svg, ::testing::Not(HasSubstr("#e00000")));
 
-  v1::TimingReport bad = ShippedReport([](v1::RigConfig* rig) { rig->mutable_cameras(24)->mutable_trigger()->set_delay_us(40); });
+  v1::TimingReport bad =
+      ShippedReport([](v1::RigConfig* rig) { rig->mutable_cameras(24)->mutable_trigger()->set_delay_us(40); });
   ASSERT_EQ(bad.errors(), 1);
   svg = ReportToSvg(bad, {0, 38});
   ASSERT_TRUE(svg.ok());
   // hs-1 exposes early in every slot: 38 red marks, and the violation listed.
   size_t marks = 0;
-  for (size_t at = svg->find("fill=\"#e00000\""); at != std::string::npos; at = svg->find("fill=\"#e00000\"", at + 1)) ++marks;
+  for (size_t at = svg->find("fill=\"#e00000\""); at != std::string::npos; at = svg->find("fill=\"#e00000\"", at + 1))
+    ++marks;
   EXPECT_EQ(marks, 38u);
   EXPECT_THAT(*svg, HasSubstr("error [steady-light] hs-1 slot 0: exposure starts at 40.000 us"));
   // One slot: microsecond ticks and horizontal labels.

@@ -30,6 +30,8 @@ struct ClockEstimatorOptions {
   double outlier_delay_factor = 4.0;
   // Drift is fitted once the kept bursts span at least this long, ns.
   int64_t min_drift_span_ns = 2'000'000'000;
+  // Until then, older samples are trusted only within this much drift (quartz oscillators stay within +-100 ppm).
+  double max_drift_ppm = 200;
 };
 
 // Each kept sample bounds the truth at its time to within half its round trip; carried to now along the fitted drift

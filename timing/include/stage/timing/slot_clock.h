@@ -1,6 +1,6 @@
 // The slot-clock generator: calls its listeners at every slot edge of a take, edge k at t0 + k / slot_rate exactly
-// (each edge rounded to the nanosecond on its own, so nothing drifts). The simulator's trigger bus and a light node
-// driving the GPIO slot-clock line are built on it.
+// (each edge rounded to the nanosecond on its own, so nothing drifts). The simulator's trigger bus (issue #4) and a
+// light node driving the GPIO slot-clock line (issue #8) are to be built on it.
 //
 // Two modes:
 //  - virtual: on a Clock such as SimClock. Every edge is delivered, in order, when the clock reaches it;
@@ -101,7 +101,7 @@ class SlotClock {
   std::thread thread_;
   std::atomic<bool> stop_{false};
   std::atomic<bool> finished_{false};  // the virtual-mode thread has returned
-  absl::Status start_status_;  // the thread's setup result (real-time priority)
+  absl::Status start_status_;          // the thread's setup result (real-time priority)
   mutable std::mutex mutex_;
   SlotClockStats stats_;  // guarded by mutex_
 };

@@ -3,6 +3,7 @@
 // nothing accumulates rounding over a take (rounding the 912 Hz period to whole ns would drift 0.75 ms per hour).
 #pragma once
 
+#include <climits>
 #include <cstdint>
 
 #include "absl/status/statusor.h"
@@ -22,12 +23,15 @@ class TimeBase {
   int64_t ticks_per_slot() const { return ticks_per_slot_; }
   int64_t ticks_per_ns() const { return ticks_per_ns_; }
 
-  // Start of slot `slot` (which may be negative), ticks since slot 0. Exact.
+  // Start of slot `slot` (which may be negative), ticks since slot 0. Exact for |slot| <= max_slot() (at 912 Hz
+  // about 1.5e11 slots, five years); schedules, windows and takes are kept within that range.
   int64_t SlotStartTicks(int64_t slot) const { return slot * ticks_per_slot_; }
-  // The same rounded to the nearest nanosecond (halves up). Each value is rounded on its own from the exact time, so
-  // the error is at most 0.5 ns for every slot of any take: there is no drift.
-  int64_t SlotStartNs(int64_t slot) const { return TicksToNs(SlotStartTicks(slot)); }
-  // The slot that contains `t_ns` (ns since slot 0): floor division of the exact times.
+  int64_t max_slot() const { return INT64_MAX / ticks_per_slot_; }
+  // Slot `slot`'s start rounded to the nearest nanosecond (halves up), computed from the exact time for any slot
+  // whose time fits in int64 ns (292 years). Each value is rounded on its own, so the error is at most 0.5 ns for
+  // every slot of any take: there is no drift.
+  int64_t SlotStartNs(int64_t slot) const;
+  // The slot that contains `t_ns` (ns since slot 0): floor division of the exact times, for any int64 `t_ns`.
   int64_t SlotAtNs(int64_t t_ns) const;
 
   // Nearest nanosecond (halves up), for ticks of either sign.
