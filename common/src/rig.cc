@@ -156,6 +156,10 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c, co
   }
   check.Positive(p + ".intrinsics.focal_length_mm", c.intrinsics().focal_length_mm());
   check.Positive(p + ".intrinsics.pixel_size_um", c.intrinsics().pixel_size_um());
+  if (c.intrinsics().distortion_size() > 5) {
+    check.Add(p + ".intrinsics.distortion",
+              absl::StrCat("has ", c.intrinsics().distortion_size(), " coefficients; at most 5 (k1, k2, p1, p2, k3)"));
+  }
   const auto& pose = c.pose();
   if (!c.has_pose()) {
     check.Add(p + ".pose", "required field is missing (position_mm of the camera in the stage frame)");
@@ -312,6 +316,12 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!timing->has_flicker_error_modulation()) timing->set_flicker_error_modulation(0.25);
   if (!timing->has_trigger_realtime_priority()) timing->set_trigger_realtime_priority(0);
   if (rig->pattern_set().empty()) rig->set_pattern_set(std::string(kFastage38));
+  auto* sim = rig->mutable_sim();
+  if (!sim->has_render_scale()) sim->set_render_scale(0.125);
+  if (!sim->has_seed()) sim->set_seed(1);
+  if (!sim->has_dome_radius_mm()) sim->set_dome_radius_mm(1000);
+  if (!sim->has_cross_leakage()) sim->set_cross_leakage(0.01);
+  if (!sim->has_cross_leakage_growth()) sim->set_cross_leakage_growth(0.05);
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
   if (!storage->has_host_write_mb_per_s()) storage->set_host_write_mb_per_s(2000);
@@ -422,6 +432,12 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
     }
   }
   if (rig.storage().root().empty()) check.Add("storage.root", "required field is missing");
+  if (!(rig.sim().render_scale() > 0 && rig.sim().render_scale() <= 1)) {
+    check.Add("sim.render_scale", absl::StrFormat("%g is not in (0, 1]", rig.sim().render_scale()));
+  }
+  check.InRange("sim.dome_radius_mm", rig.sim().dome_radius_mm(), 100, 100000);
+  check.InRange("sim.cross_leakage", rig.sim().cross_leakage(), 0, 1);
+  check.InRange("sim.cross_leakage_growth", rig.sim().cross_leakage_growth(), 0, 1);
   check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());
 
   // Node ids share one namespace: the controller, stagectl and the logs address nodes by id alone.

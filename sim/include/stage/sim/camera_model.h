@@ -1,0 +1,51 @@
+// A calibrated camera of the simulated stage: pinhole with Brown-Conrady distortion (OpenCV's model and order), placed
+// as the rig says, at a render scale of its sensor. Camera frame as OpenCV's: x right, y down, z along the optical
+// axis. Stage frame: +x the performer's left, +y up, +z towards the front cameras, millimetres.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/v1/rig.pb.h"
+
+namespace stage::sim {
+
+class CameraModel {
+ public:
+  // From the rig's camera entry; `render_scale` in (0, 1] scales the sensor (width, height, focal length in pixels,
+  // principal point) for rendering. InvalidArgument names the camera and the field.
+  static absl::StatusOr<CameraModel> FromConfig(const v1::CameraConfig& config, double render_scale);
+
+  int width() const { return width_; }
+  int height() const { return height_; }
+  // Intrinsics at the render scale, pixels.
+  double fx() const { return fx_; }
+  double fy() const { return fy_; }
+  double cx() const { return cx_; }
+  double cy() const { return cy_; }
+  const std::array<double, 5>& distortion() const { return distortion_; }
+  // Centre of projection, stage frame, mm.
+  const Eigen::Vector3d& position() const { return position_; }
+  // Rows: the camera's x, y, z axes in the stage frame (world -> camera rotation).
+  const Eigen::Matrix3d& rotation() const { return rotation_; }
+  Eigen::Vector3d optical_axis() const { return rotation_.row(2).transpose(); }
+
+  // The pixel (x right, y down; pixel centres at integers) where stage point `p` appears; false if it is behind the
+  // camera.
+  bool Project(const Eigen::Vector3d& p, Eigen::Vector2d* pixel) const;
+
+  // Unit ray direction in the stage frame through the centre of every pixel, row-major (undistorted with OpenCV's
+  // iterative inverse of the distortion model).
+  std::vector<Eigen::Vector3f> PixelRays() const;
+
+ private:
+  int width_ = 0, height_ = 0;
+  double fx_ = 0, fy_ = 0, cx_ = 0, cy_ = 0;
+  std::array<double, 5> distortion_{};
+  Eigen::Vector3d position_ = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d rotation_ = Eigen::Matrix3d::Identity();
+};
+
+}  // namespace stage::sim

@@ -1,0 +1,56 @@
+// Light transport of the simulated stage, computed the way the physics allows: for one subject pose and one camera,
+// every pixel's response to every LED unit at full drive is computed once (diffuse and specular, with visibility);
+// any exposure is then a matrix product of those responses with the units' emitter levels averaged over the
+// exposure, so a pattern image costs two dot products per pixel and a mistimed exposure blends two patterns exactly.
+//
+// Polarization: emitters sit behind linear polarizers, cameras behind analyzers. Diffuse reflection depolarizes, so
+// half of it passes the analyzer whichever the emitter; specular reflection keeps the polarization, so it passes
+// fully from parallel emitters and only as `leakage` from cross ones.
+//   radiance = 1/2 albedo * sum_l (cross_l + parallel_l) D_l + sum_l (parallel_l + leakage cross_l) S_l
+// with D_l = V max(0, n.w) I / (pi d^2) and S_l = V rho_s D_ggx(h) G(w, v) I / (4 (n.v) d^2).
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+#include "stage/sim/camera_model.h"
+#include "stage/sim/dome.h"
+#include "stage/sim/subject.h"
+
+namespace stage::sim {
+
+using RowMatrixXf = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+struct PixelResponses {
+  int width = 0;
+  int height = 0;
+  // Row-major index of every pixel that sees the subject, and what it sees there.
+  std::vector<int32_t> pixels;
+  std::vector<Eigen::Vector3f> albedo;
+  std::vector<Hit> hits;
+  // hits x units: D and S above, per unit of emitter drive.
+  RowMatrixXf diffuse;
+  RowMatrixXf specular;
+};
+
+// Camera direction -> pixel responses, on `threads` threads (0: one per core).
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0);
+
+// Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
+struct EmitterLevels {
+  Eigen::VectorXf cross;
+  Eigen::VectorXf parallel;
+};
+
+// Linear RGB radiance of one exposure, width x height x 3 floats, row-major; pixels that miss the subject are 0.
+std::vector<float> RenderRadiance(const PixelResponses& responses, const EmitterLevels& levels, float leakage);
+
+// Leakage of crossed polarizers for a camera: leakage + growth * sin^2 of its optical axis' angle from +z.
+float CrossLeakage(const CameraModel& camera, double leakage, double growth);
+
+// The GGX normal distribution and Smith masking-shadowing used by the specular lobe (exposed for tests).
+float GgxDistribution(float n_dot_h, float alpha);
+float SmithG1(float n_dot_x, float alpha);
+
+}  // namespace stage::sim

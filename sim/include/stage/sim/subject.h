@@ -1,0 +1,68 @@
+// What the simulated cameras look at. A subject answers rays: where a ray first meets it, with the surface's normal
+// and material there, and whether a segment is blocked (self-shadowing). Kinds: analytic sphere and plane (for
+// checks against closed forms); the procedural head and the calibration board build on the same interface.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+
+namespace stage::sim {
+
+// Surface reflectance at a point: Lambertian diffuse plus a GGX microfacet specular lobe.
+struct Material {
+  // Diffuse albedo, linear RGB in [0, 1].
+  Eigen::Vector3f albedo = Eigen::Vector3f::Constant(0.5f);
+  // Specular intensity: the lobe's reflectance at normal incidence (Fresnel folded in), e.g. 0.03 for skin.
+  float specular = 0.03f;
+  // GGX roughness alpha (the lobe's width; alpha = 0.3 is typical of skin).
+  float roughness = 0.3f;
+};
+
+struct Hit {
+  bool hit = false;
+  // Distance along the (unit) ray, mm.
+  float t = 0;
+  Eigen::Vector3f point = Eigen::Vector3f::Zero();
+  // Geometric normal (of the surface itself) and shading normal (with detail), unit, facing the ray's origin.
+  Eigen::Vector3f geometric_normal = Eigen::Vector3f::UnitZ();
+  Eigen::Vector3f normal = Eigen::Vector3f::UnitZ();
+  Material material;
+};
+
+class Subject {
+ public:
+  virtual ~Subject() = default;
+  // The first intersection of the ray origin + t * direction (direction unit), t > 0.
+  virtual Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const = 0;
+  // True if the segment from `from` towards `to` is blocked by the subject before reaching `to`. `from` is a surface
+  // point: the caller offsets it along the normal.
+  virtual bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const = 0;
+};
+
+class SphereSubject final : public Subject {
+ public:
+  SphereSubject(Eigen::Vector3f center, float radius, Material material)
+      : center_(std::move(center)), radius_(radius), material_(material) {}
+  Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
+  bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+
+ private:
+  Eigen::Vector3f center_;
+  float radius_;
+  Material material_;
+};
+
+// A square of side `size` centred at `center`, facing `normal`, one-sided.
+class PlaneSubject final : public Subject {
+ public:
+  PlaneSubject(Eigen::Vector3f center, Eigen::Vector3f normal, float size, Material material);
+  Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
+  bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+
+ private:
+  Eigen::Vector3f center_, normal_, u_, v_;
+  float half_;
+  Material material_;
+};
+
+}  // namespace stage::sim

@@ -1,0 +1,94 @@
+// Simulated camera geometry.
+#include "stage/sim/camera_model.h"
+
+#include <Eigen/Geometry>
+#include <cmath>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace stage::sim {
+namespace {
+
+Eigen::Vector3d ToEigen(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
+
+}  // namespace
+
+absl::StatusOr<CameraModel> CameraModel::FromConfig(const v1::CameraConfig& config, double render_scale) {
+  auto bad = [&](absl::string_view what) {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": ", what));
+  };
+  if (!(render_scale > 0 && render_scale <= 1))
+    return bad(absl::StrCat("render scale ", render_scale, " is not in (0, 1]"));
+  if (config.width() == 0 || config.height() == 0) return bad("width and height are required");
+  const auto& in = config.intrinsics();
+  if (!(in.focal_length_mm() > 0) || !(in.pixel_size_um() > 0)) {
+    return bad("intrinsics.focal_length_mm and pixel_size_um must be > 0");
+  }
+  if (in.distortion_size() > 5) return bad("intrinsics.distortion has more than 5 coefficients");
+  CameraModel m;
+  m.width_ = std::max(1, static_cast<int>(std::lround(config.width() * render_scale)));
+  m.height_ = std::max(1, static_cast<int>(std::lround(config.height() * render_scale)));
+  // Scale about pixel corners: a pixel of the rendered image covers 1/render_scale sensor pixels.
+  const double sx = static_cast<double>(m.width_) / config.width();
+  const double sy = static_cast<double>(m.height_) / config.height();
+  const double f_px = in.focal_length_mm() / (in.pixel_size_um() * 1e-3);
+  m.fx_ = f_px * sx;
+  m.fy_ = f_px * sy;
+  const double cx_sensor = (config.width() - 1) / 2.0 + in.principal_offset_x_px();
+  const double cy_sensor = (config.height() - 1) / 2.0 + in.principal_offset_y_px();
+  m.cx_ = (cx_sensor + 0.5) * sx - 0.5;
+  m.cy_ = (cy_sensor + 0.5) * sy - 0.5;
+  for (int i = 0; i < in.distortion_size(); ++i) m.distortion_[i] = in.distortion(i);
+
+  const Eigen::Vector3d position = ToEigen(config.pose().position_mm());
+  const Eigen::Vector3d look_at = ToEigen(config.pose().look_at_mm());
+  Eigen::Vector3d up = config.pose().has_up() ? ToEigen(config.pose().up()) : Eigen::Vector3d(0, 1, 0);
+  const Eigen::Vector3d forward = (look_at - position).normalized();
+  if ((look_at - position).norm() < 1e-9) return bad("pose.look_at_mm is the camera position");
+  Eigen::Vector3d right = forward.cross(up);
+  if (right.norm() < 1e-9) return bad("pose.up is parallel to the optical axis");
+  right.normalize();
+  const Eigen::Vector3d down = forward.cross(right);  // OpenCV's y axis: image down
+  m.rotation_.row(0) = right.transpose();
+  m.rotation_.row(1) = down.transpose();
+  m.rotation_.row(2) = forward.transpose();
+  m.position_ = position;
+  return m;
+}
+
+bool CameraModel::Project(const Eigen::Vector3d& p, Eigen::Vector2d* pixel) const {
+  const Eigen::Vector3d c = rotation_ * (p - position_);
+  if (c.z() <= 0) return false;
+  const double x = c.x() / c.z(), y = c.y() / c.z();
+  const auto& d = distortion_;  // k1, k2, p1, p2, k3
+  const double r2 = x * x + y * y;
+  const double radial = 1 + d[0] * r2 + d[1] * r2 * r2 + d[4] * r2 * r2 * r2;
+  const double xd = x * radial + 2 * d[2] * x * y + d[3] * (r2 + 2 * x * x);
+  const double yd = y * radial + d[2] * (r2 + 2 * y * y) + 2 * d[3] * x * y;
+  *pixel = {fx_ * xd + cx_, fy_ * yd + cy_};
+  return true;
+}
+
+std::vector<Eigen::Vector3f> CameraModel::PixelRays() const {
+  std::vector<cv::Point2d> pixels;
+  pixels.reserve(static_cast<size_t>(width_) * height_);
+  for (int v = 0; v < height_; ++v) {
+    for (int u = 0; u < width_; ++u) pixels.emplace_back(u, v);
+  }
+  const cv::Matx33d k(fx_, 0, cx_, 0, fy_, cy_, 0, 0, 1);
+  const cv::Mat dist(1, 5, CV_64F, const_cast<double*>(distortion_.data()));
+  std::vector<cv::Point2d> normalized;
+  // Iterations beyond OpenCV's default 5: the stage's lenses are mild, but the tests check the round trip tightly.
+  cv::undistortPoints(pixels, normalized, k, dist, cv::noArray(), cv::noArray(),
+                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 50, 1e-12));
+  std::vector<Eigen::Vector3f> rays(normalized.size());
+  const Eigen::Matrix3d to_world = rotation_.transpose();
+  for (size_t i = 0; i < normalized.size(); ++i) {
+    rays[i] = (to_world * Eigen::Vector3d(normalized[i].x, normalized[i].y, 1.0)).normalized().cast<float>();
+  }
+  return rays;
+}
+
+}  // namespace stage::sim

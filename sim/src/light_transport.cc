@@ -1,0 +1,113 @@
+// Per-pixel LED responses and exposures.
+#include "stage/sim/light_transport.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <thread>
+
+namespace stage::sim {
+namespace {
+
+constexpr float kPi = 3.14159265358979323846f;
+// Shadow rays start this far off the surface, mm.
+constexpr float kShadowEpsilon = 1e-3f;
+
+template <typename F>
+void ParallelFor(size_t n, int threads, F&& body) {
+  if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  if (threads == 1 || n < 64) {
+    for (size_t i = 0; i < n; ++i) body(i);
+    return;
+  }
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) {
+    pool.emplace_back([&, t] {
+      for (size_t i = static_cast<size_t>(t); i < n; i += static_cast<size_t>(threads)) body(i);
+    });
+  }
+  for (auto& th : pool) th.join();
+}
+
+}  // namespace
+
+float GgxDistribution(float n_dot_h, float alpha) {
+  if (n_dot_h <= 0) return 0;
+  const float a2 = alpha * alpha;
+  const float d = n_dot_h * n_dot_h * (a2 - 1) + 1;
+  return a2 / (kPi * d * d);
+}
+
+float SmithG1(float n_dot_x, float alpha) {
+  if (n_dot_x <= 0) return 0;
+  const float a2 = alpha * alpha;
+  return 2 * n_dot_x / (n_dot_x + std::sqrt(a2 + (1 - a2) * n_dot_x * n_dot_x));
+}
+
+float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
+  const double c = std::clamp(camera.optical_axis().dot(Eigen::Vector3d(0, 0, -1)), -1.0, 1.0);
+  // The design axis is +z (cameras in front look along -z); sin^2 of the angle between them.
+  return static_cast<float>(leakage + growth * (1 - c * c));
+}
+
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads) {
+  PixelResponses r;
+  r.width = camera.width();
+  r.height = camera.height();
+  const std::vector<Eigen::Vector3f> rays = camera.PixelRays();
+  const Eigen::Vector3f origin = camera.position().cast<float>();
+  std::vector<Hit> all(rays.size());
+  ParallelFor(rays.size(), threads, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
+  for (size_t i = 0; i < all.size(); ++i) {
+    if (!all[i].hit) continue;
+    r.pixels.push_back(static_cast<int32_t>(i));
+    r.albedo.push_back(all[i].material.albedo);
+    r.hits.push_back(all[i]);
+  }
+  const size_t n = r.hits.size();
+  const size_t units = dome.units.size();
+  r.diffuse = RowMatrixXf::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(units));
+  r.specular = RowMatrixXf::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(units));
+  ParallelFor(n, threads, [&](size_t i) {
+    const Hit& h = r.hits[i];
+    const Eigen::Vector3f v = (origin - h.point).normalized();
+    const Eigen::Vector3f& nrm = h.normal;
+    const float n_dot_v = nrm.dot(v);
+    const Eigen::Vector3f start = h.point + kShadowEpsilon * h.geometric_normal;
+    for (size_t l = 0; l < units; ++l) {
+      const Eigen::Vector3f to_led = dome.units[l].position.cast<float>() - h.point;
+      const float d2 = to_led.squaredNorm();
+      const Eigen::Vector3f w = to_led / std::sqrt(d2);
+      const float n_dot_w = nrm.dot(w);
+      if (n_dot_w <= 0 || h.geometric_normal.dot(w) <= 0) continue;
+      if (subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
+      const float irradiance = static_cast<float>(dome.units[l].intensity) / d2;
+      r.diffuse(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(l)) = n_dot_w * irradiance / kPi;
+      if (n_dot_v > 0) {
+        const Eigen::Vector3f half = (w + v).normalized();
+        const float alpha = std::max(h.material.roughness, 1e-3f);
+        const float spec = h.material.specular * GgxDistribution(nrm.dot(half), alpha) * SmithG1(n_dot_w, alpha) *
+                           SmithG1(n_dot_v, alpha) / (4 * n_dot_v);
+        r.specular(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(l)) = spec * irradiance;
+      }
+    }
+  });
+  return r;
+}
+
+std::vector<float> RenderRadiance(const PixelResponses& responses, const EmitterLevels& levels, float leakage) {
+  std::vector<float> rgb(static_cast<size_t>(responses.width) * responses.height * 3, 0.0f);
+  if (responses.pixels.empty()) return rgb;
+  const Eigen::VectorXf diffuse_drive = levels.cross + levels.parallel;
+  const Eigen::VectorXf specular_drive = levels.parallel + leakage * levels.cross;
+  const Eigen::VectorXf d = responses.diffuse * diffuse_drive;
+  const Eigen::VectorXf s = responses.specular * specular_drive;
+  for (size_t i = 0; i < responses.pixels.size(); ++i) {
+    float* out = &rgb[static_cast<size_t>(responses.pixels[i]) * 3];
+    const Eigen::Index k = static_cast<Eigen::Index>(i);
+    for (int c = 0; c < 3; ++c) out[c] = 0.5f * responses.albedo[i][c] * d[k] + s[k];
+  }
+  return rgb;
+}
+
+}  // namespace stage::sim

@@ -1,0 +1,214 @@
+// Light transport against independent computations: a brute-force per-pixel, per-LED reference written separately
+// here; the continuous-dome irradiance of a Lambertian sphere under gradient patterns; the polarization model.
+#include "stage/sim/light_transport.h"
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "gtest/gtest.h"
+
+namespace stage::sim {
+namespace {
+
+v1::CameraConfig Camera(const Eigen::Vector3d& position, int width = 160, int height = 120) {
+  v1::CameraConfig c;
+  c.set_id("cam");
+  c.set_width(width);
+  c.set_height(height);
+  c.mutable_intrinsics()->set_focal_length_mm(35);
+  c.mutable_intrinsics()->set_pixel_size_um(80);
+  for (double k : {-0.08, 0.02, 0.001, -0.0005, 0.0}) c.mutable_intrinsics()->add_distortion(k);
+  auto* pose = c.mutable_pose();
+  pose->mutable_position_mm()->set_x(position.x());
+  pose->mutable_position_mm()->set_y(position.y());
+  pose->mutable_position_mm()->set_z(position.z());
+  pose->mutable_up()->set_y(1);
+  return c;
+}
+
+// ---- the reference: its own intersection, visibility and BRDF, in double precision ----------------------------
+
+struct RefSurface {
+  bool hit = false;
+  Eigen::Vector3d p, n;
+};
+
+RefSurface RefSphere(const Eigen::Vector3d& o, const Eigen::Vector3d& d, const Eigen::Vector3d& c, double r) {
+  // Solve |o + t d - c| = r for the nearest t > 0 by the quadratic formula in its textbook form.
+  const double A = d.dot(d), B = 2 * d.dot(o - c), C = (o - c).dot(o - c) - r * r;
+  const double disc = B * B - 4 * A * C;
+  RefSurface s;
+  if (disc < 0) return s;
+  const double t = (-B - std::sqrt(disc)) / (2 * A);
+  if (t <= 0) return s;
+  s.hit = true;
+  s.p = o + t * d;
+  s.n = (s.p - c) / r;
+  return s;
+}
+
+double RefGgx(double alpha, const Eigen::Vector3d& n, const Eigen::Vector3d& h) {
+  const double cos_t = n.dot(h);
+  if (cos_t <= 0) return 0;
+  const double tan2 = (1 - cos_t * cos_t) / (cos_t * cos_t);
+  const double a2 = alpha * alpha;
+  // Walter et al. 2007, eq. 33, written in terms of tan(theta_m).
+  return a2 / (M_PI * std::pow(cos_t, 4) * std::pow(a2 + tan2, 2));
+}
+
+double RefG1(double alpha, const Eigen::Vector3d& n, const Eigen::Vector3d& x) {
+  const double c = n.dot(x);
+  if (c <= 0) return 0;
+  const double tan2 = (1 - c * c) / (c * c);
+  // Walter et al. 2007, eq. 34.
+  return 2 / (1 + std::sqrt(1 + alpha * alpha * tan2));
+}
+
+// Radiance (RGB) of one pixel under one exposure, LED by LED.
+Eigen::Vector3d RefRadiance(const RefSurface& s, const Eigen::Vector3d& eye, const Material& m, const Dome& dome,
+                            const EmitterLevels& levels, double leakage) {
+  Eigen::Vector3d out = Eigen::Vector3d::Zero();
+  const Eigen::Vector3d v = (eye - s.p).normalized();
+  for (size_t l = 0; l < dome.units.size(); ++l) {
+    const Eigen::Vector3d to = dome.units[l].position - s.p;
+    const Eigen::Vector3d w = to.normalized();
+    if (s.n.dot(w) <= 0) continue;  // a convex sphere: the LED is visible exactly when it is above the horizon
+    const double e = dome.units[l].intensity / to.squaredNorm() * s.n.dot(w);
+    const double cross = levels.cross[static_cast<Eigen::Index>(l)];
+    const double parallel = levels.parallel[static_cast<Eigen::Index>(l)];
+    const Eigen::Vector3d albedo = m.albedo.cast<double>();
+    out += 0.5 * (cross + parallel) * albedo / M_PI * e;
+    if (s.n.dot(v) > 0) {
+      const Eigen::Vector3d h = (w + v).normalized();
+      const double alpha = m.roughness;
+      const double brdf = m.specular * RefGgx(alpha, s.n, h) * RefG1(alpha, s.n, w) * RefG1(alpha, s.n, v) /
+                          (4 * s.n.dot(w) * s.n.dot(v));
+      out += Eigen::Vector3d::Constant((parallel + leakage * cross) * brdf * e);
+    }
+  }
+  return out;
+}
+
+TEST(LightTransportTest, MatchesABruteForceReferenceOnRandomPoses) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1, 1);
+  double worst = 0;
+  for (int trial = 0; trial < 4; ++trial) {
+    std::vector<Eigen::Vector3d> dirs;
+    for (int i = 0; i < 60; ++i) dirs.push_back(Eigen::Vector3d(u(rng), u(rng), u(rng)).normalized());
+    Dome d = Dome::FromDirections(dirs, 900 + 200 * (u(rng) + 1));
+    for (auto& unit : d.units) unit.intensity = 1e6 * (1.2 + u(rng));
+    const Eigen::Vector3d center(30 * u(rng), 30 * u(rng), 30 * u(rng));
+    const double radius = 80 + 20 * u(rng);
+    Material m{Eigen::Vector3f(0.3f + 0.2f * float(u(rng)), 0.4f, 0.5f), 0.04f + 0.02f * float(u(rng)),
+               0.25f + 0.1f * float(u(rng))};
+    SphereSubject sphere(center.cast<float>(), static_cast<float>(radius), m);
+    const Eigen::Vector3d eye = Eigen::Vector3d(u(rng), 0.3 * u(rng), 1).normalized() * 700;
+    v1::CameraConfig config = Camera(eye);
+    config.mutable_pose()->mutable_look_at_mm()->set_x(center.x());
+    config.mutable_pose()->mutable_look_at_mm()->set_y(center.y());
+    config.mutable_pose()->mutable_look_at_mm()->set_z(center.z());
+    auto camera = CameraModel::FromConfig(config, 1.0);
+    ASSERT_TRUE(camera.ok()) << camera.status();
+    PixelResponses responses = ComputeResponses(*camera, sphere, d);
+    ASSERT_GT(responses.pixels.size(), 1000u);
+    EmitterLevels levels{Eigen::VectorXf(60), Eigen::VectorXf(60)};
+    for (int l = 0; l < 60; ++l) {
+      levels.cross[l] = static_cast<float>(0.5 + 0.5 * u(rng));
+      levels.parallel[l] = static_cast<float>(0.5 + 0.5 * u(rng));
+    }
+    const float leakage = 0.02f;
+    const std::vector<float> image = RenderRadiance(responses, levels, leakage);
+    const std::vector<Eigen::Vector3f> rays = camera->PixelRays();
+    int compared = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+      RefSurface s = RefSphere(eye, rays[i].cast<double>(), center, radius);
+      const Eigen::Vector3d got(image[3 * i], image[3 * i + 1], image[3 * i + 2]);
+      if (!s.hit) {
+        EXPECT_EQ(got.norm(), 0) << i;
+        continue;
+      }
+      const Eigen::Vector3d want = RefRadiance(s, eye, m, d, levels, leakage);
+      if (want.norm() < 1e-12) continue;
+      const double rel = (got - want).norm() / want.norm();
+      worst = std::max(worst, rel);
+      ++compared;
+    }
+    EXPECT_GT(compared, 1000);
+  }
+  std::printf("worst relative difference from the brute-force reference: %.2e\n", worst);
+  EXPECT_LT(worst, 1e-4);
+}
+
+// A Lambertian sphere under a first-order gradient approaches the continuous dome's closed form as the dome gets
+// denser: radiance = albedo/2 * (1/2 + n_x/3) for L(w) = (1 + w_x)/2 over the whole sphere (half passes the analyzer).
+TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {
+  const double far = 1e7;  // distant LEDs
+  Material m{Eigen::Vector3f::Constant(0.8f), 0.0f, 0.3f};
+  SphereSubject sphere(Eigen::Vector3f::Zero(), 100, m);
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 800}), 1.0);
+  ASSERT_TRUE(camera.ok());
+  std::vector<double> errors;
+  for (int n : {64, 512, 4096}) {
+    // Each unit stands for 4 pi / n steradians of the continuous dome.
+    Dome dome = Dome::FromDirections(FibonacciSphere(n), far, far * far * 4 * M_PI / n);
+    PixelResponses r = ComputeResponses(*camera, sphere, dome);
+    EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf(n)};
+    for (int l = 0; l < n; ++l) levels.parallel[l] = static_cast<float>((1 + dome.units[l].direction.x()) / 2);
+    std::vector<float> image = RenderRadiance(r, levels, 0);
+    double sum = 0;
+    for (size_t i = 0; i < r.pixels.size(); ++i) {
+      const double want = 0.8 / 2 * (0.5 + r.hits[i].normal.x() / 3.0);
+      sum += std::abs(image[static_cast<size_t>(r.pixels[i]) * 3] - want) / want;
+    }
+    errors.push_back(sum / static_cast<double>(r.pixels.size()));
+    std::printf("dome of %4d LEDs: mean relative error %.4f %%\n", n, errors.back() * 100);
+  }
+  EXPECT_LT(errors[1], errors[0]);
+  EXPECT_LT(errors[2], errors[1]);
+  EXPECT_LT(errors[2], 0.005);
+}
+
+TEST(LightTransportTest, CrossPolarizedSpecularIsDarkUpToTheLeakageAndParallelMinusCrossIsSpecular) {
+  Dome dome = Dome::FromDirections(FibonacciSphere(200), 1000, 1e6);
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 700}), 1.0);
+  ASSERT_TRUE(camera.ok());
+  const Eigen::VectorXf full = Eigen::VectorXf::Ones(200), none = Eigen::VectorXf::Zero(200);
+  // A specular-only material.
+  SphereSubject shiny(Eigen::Vector3f::Zero(), 100, Material{Eigen::Vector3f::Zero(), 0.05f, 0.2f});
+  PixelResponses r = ComputeResponses(*camera, shiny, dome);
+  const float leakage = 0.01f;
+  std::vector<float> cross = RenderRadiance(r, {full, none}, leakage);
+  std::vector<float> parallel = RenderRadiance(r, {none, full}, leakage);
+  int lit = 0;
+  for (size_t i = 0; i < cross.size(); ++i) {
+    if (parallel[i] <= 0) continue;
+    ++lit;
+    EXPECT_NEAR(cross[i], leakage * parallel[i], 1e-6f * parallel[i]) << i;
+  }
+  EXPECT_GT(lit, 1000);
+  // Diffuse plus specular: parallel - cross = (1 - leakage) x the specular image, and = it exactly without leakage.
+  SphereSubject skin(Eigen::Vector3f::Zero(), 100, Material{Eigen::Vector3f(0.6f, 0.4f, 0.3f), 0.04f, 0.3f});
+  r = ComputeResponses(*camera, skin, dome);
+  SphereSubject specular_only(Eigen::Vector3f::Zero(), 100, Material{Eigen::Vector3f::Zero(), 0.04f, 0.3f});
+  PixelResponses rs = ComputeResponses(*camera, specular_only, dome);
+  std::vector<float> spec = RenderRadiance(rs, {none, full}, 0);
+  for (float leak : {0.0f, 0.02f}) {
+    cross = RenderRadiance(r, {full, none}, leak);
+    parallel = RenderRadiance(r, {none, full}, leak);
+    for (size_t i = 0; i < spec.size(); ++i) {
+      EXPECT_NEAR(parallel[i] - cross[i], (1 - leak) * spec[i], 1e-5f * (1 + parallel[i])) << i;
+    }
+  }
+}
+
+TEST(LightTransportTest, LeakageGrowsWithTheCameraAngle) {
+  auto front = CameraModel::FromConfig(Camera({0, 0, 700}), 1.0);
+  auto side = CameraModel::FromConfig(Camera({700, 0, 0}), 1.0);
+  EXPECT_NEAR(CrossLeakage(*front, 0.01, 0.05), 0.01f, 1e-6f);
+  EXPECT_NEAR(CrossLeakage(*side, 0.01, 0.05), 0.06f, 1e-6f);
+}
+
+}  // namespace
+}  // namespace stage::sim
