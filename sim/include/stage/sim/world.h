@@ -1,0 +1,111 @@
+// The simulated world: the time base, the trigger bus (slot edges) and what the LEDs emitted. It is a broker of
+// state, not a renderer: light drivers tell it what their channels did, cameras ask it what light fell during their
+// exposures and render in their own processes.
+//
+// Two modes:
+//  - lockstep: time stands at slot k's edge until every registered device has said it is done with slot k (by
+//    waiting for a later edge, or finishing); then it moves to slot k+1. Deterministic whatever the machine's load,
+//    for tests.
+//  - real time: edges come with the host clock (a SlotClock); a device that waits for an edge that has already
+//    passed learns how many it missed, as hardware would.
+//
+// Emission is complete up to a light node's *watermark*: the node promises no change before it (its next switch).
+// An exposure query waits until every light node's watermark has passed the exposure's end, so a camera renders only
+// what the LEDs actually did; a light node that leaves (stopped, crashed) goes dark from its last watermark on and
+// no longer holds anyone up.
+#pragma once
+
+#include <condition_variable>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "stage/sim/dome.h"
+#include "stage/sim/emission.h"
+#include "stage/timing/slot_clock.h"
+#include "stage/timing/time_base.h"
+
+namespace stage::sim {
+
+struct WorldOptions {
+  uint32_t slot_rate_hz = 912;
+  bool lockstep = true;
+  // Real time: host clock (CLOCK_MONOTONIC) time of slot 0, ns. Lockstep time starts at 0 = slot 0.
+  int64_t t0_ns = 0;
+  // Rise and fall time of each light node's emitters (its slowest), ns, by node index.
+  std::vector<int64_t> rise_ns, fall_ns;
+};
+
+struct WorldEdge {
+  int64_t slot = 0;
+  // The edge's time on the world's clock, ns (lockstep: ns since slot 0).
+  int64_t time_ns = 0;
+  // Edges that passed since the device's previous wait without it (real time only).
+  int64_t missed = 0;
+};
+
+class World {
+ public:
+  World(const Dome& dome, WorldOptions options);
+  ~World();
+
+  // Starts the clock (real time) or opens slot 0 (lockstep).
+  void Start();
+  // Wakes every waiter; no edge is delivered after this.
+  void Stop();
+
+  // A device that takes part in lockstep. Light nodes give their node index (their emission is theirs), cameras -1.
+  int Register(const std::string& name, int light_node = -1);
+  // The device is gone: it holds nobody up any longer; a light node goes dark from its watermark on.
+  void Unregister(int device);
+
+  // Blocks until slot `slot`'s edge (which also says the device is done with every earlier slot). nullopt after
+  // Stop() or when `deadline_ns` (world clock, real time only; lockstep ignores it) passes.
+  std::optional<WorldEdge> WaitForEdge(int device, int64_t slot);
+  // The device is done with `slot` and will not wait for more (lockstep: lets time move on).
+  void Done(int device, int64_t slot);
+
+  // A light node's channels change to `levels` at `t_ns`; it promises no other change before `watermark_ns`.
+  void ReportLevels(int light_node, int64_t t_ns, const std::vector<double>& levels, int64_t watermark_ns);
+  void ReportWatermark(int light_node, int64_t watermark_ns);
+
+  // Every unit's emitters averaged over [t0, t1]; waits until every registered light node has reported past t1.
+  // nullopt after Stop().
+  std::optional<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns);
+
+  // The edge the world stands at (lockstep) or last passed (real time).
+  int64_t current_slot() const;
+  const timing::TimeBase& base() const { return base_; }
+  int64_t EdgeNs(int64_t slot) const { return options_.t0_ns + base_.SlotStartNs(slot); }
+
+ private:
+  struct Device {
+    std::string name;
+    int light_node = -1;
+    // Lockstep: the last slot the device is done with.
+    int64_t done_through = -1;
+    // Real time: the last edge delivered to it.
+    int64_t last_seen = -1;
+    bool active = true;
+  };
+  void MaybeAdvance();  // mutex_ held
+  void OnRealEdge(const timing::SlotEdge& edge);
+
+  const Dome& dome_;
+  WorldOptions options_;
+  timing::TimeBase base_;
+  EmissionState emission_;
+  std::unique_ptr<timing::SlotClock> clock_;
+  mutable std::mutex mutex_;
+  std::condition_variable changed_;
+  std::vector<Device> devices_;             // guarded by mutex_
+  std::map<int, int64_t> watermarks_;       // light node -> ns; guarded by mutex_
+  int64_t current_ = -1;                    // guarded by mutex_
+  bool started_ = false, stopped_ = false;  // guarded by mutex_
+};
+
+}  // namespace stage::sim

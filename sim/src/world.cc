@@ -1,0 +1,160 @@
+// The simulated world's time, trigger bus and emission.
+#include "stage/sim/world.h"
+
+#include <algorithm>
+#include <climits>
+
+namespace stage::sim {
+
+World::World(const Dome& dome, WorldOptions options)
+    : dome_(dome),
+      options_(std::move(options)),
+      base_(*timing::TimeBase::Create(std::max<uint32_t>(1, options_.slot_rate_hz))),
+      emission_(dome, options_.rise_ns, options_.fall_ns) {}
+
+World::~World() { Stop(); }
+
+void World::Start() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (started_) return;
+    started_ = true;
+    if (options_.lockstep) current_ = 0;
+  }
+  changed_.notify_all();
+  if (!options_.lockstep) {
+    auto clock = timing::SlotClock::Create({.slot_rate_hz = options_.slot_rate_hz, .t0_ns = options_.t0_ns});
+    if (clock.ok()) {
+      clock_ = std::move(*clock);
+      clock_->AddListener([this](const timing::SlotEdge& e) { OnRealEdge(e); });
+      (void)clock_->Start();
+    }
+  }
+}
+
+void World::Stop() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stopped_ = true;
+  }
+  changed_.notify_all();
+  if (clock_) clock_->Stop();
+}
+
+void World::OnRealEdge(const timing::SlotEdge& edge) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    current_ = edge.slot;
+  }
+  changed_.notify_all();
+}
+
+int World::Register(const std::string& name, int light_node) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Device d;
+  d.name = name;
+  d.light_node = light_node;
+  // A device that joins late is done with what has passed.
+  d.done_through = current_ - 1;
+  devices_.push_back(d);
+  if (light_node >= 0 && !watermarks_.count(light_node)) watermarks_[light_node] = INT64_MIN;
+  return static_cast<int>(devices_.size()) - 1;
+}
+
+void World::Unregister(int device) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (device < 0 || device >= static_cast<int>(devices_.size()) || !devices_[device].active) return;
+    Device& d = devices_[device];
+    d.active = false;
+    if (d.light_node >= 0) {
+      // It emits nothing from what it last promised on, and holds no exposure up.
+      int64_t& w = watermarks_[d.light_node];
+      emission_.Dark(d.light_node, w == INT64_MIN ? 0 : w);
+      w = INT64_MAX;
+    }
+    MaybeAdvance();
+  }
+  changed_.notify_all();
+}
+
+void World::MaybeAdvance() {
+  if (!options_.lockstep || !started_ || stopped_) return;
+  bool any = false;
+  while (true) {
+    bool all_done = true;
+    for (const Device& d : devices_) {
+      if (!d.active) continue;
+      any = true;
+      if (d.done_through < current_) all_done = false;
+    }
+    if (!any || !all_done) return;
+    ++current_;
+  }
+}
+
+std::optional<WorldEdge> World::WaitForEdge(int device, int64_t slot) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  Device& d = devices_[static_cast<size_t>(device)];
+  if (options_.lockstep) {
+    d.done_through = std::max(d.done_through, slot - 1);
+    MaybeAdvance();
+    changed_.notify_all();
+    changed_.wait(lock, [&] { return stopped_ || (started_ && current_ >= slot); });
+    if (stopped_) return std::nullopt;
+    return WorldEdge{slot, EdgeNs(slot), 0};
+  }
+  changed_.wait(lock, [&] { return stopped_ || (started_ && current_ >= slot); });
+  if (stopped_) return std::nullopt;
+  // Real time: the device gets the edge that is current; the ones it was too late for are counted.
+  const int64_t now = current_;
+  WorldEdge edge{now, EdgeNs(now), now - slot};
+  d.last_seen = now;
+  return edge;
+}
+
+void World::Done(int device, int64_t slot) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    Device& d = devices_[static_cast<size_t>(device)];
+    d.done_through = std::max(d.done_through, slot);
+    MaybeAdvance();
+  }
+  changed_.notify_all();
+}
+
+void World::ReportLevels(int light_node, int64_t t_ns, const std::vector<double>& levels, int64_t watermark_ns) {
+  emission_.SetLevels(light_node, t_ns, levels);
+  ReportWatermark(light_node, watermark_ns);
+}
+
+void World::ReportWatermark(int light_node, int64_t watermark_ns) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    int64_t& w = watermarks_[light_node];
+    if (w != INT64_MAX) w = std::max(w, watermark_ns);
+  }
+  changed_.notify_all();
+}
+
+std::optional<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
+  {
+    std::unique_lock<std::mutex> lock(mutex_);
+    changed_.wait(lock, [&] {
+      if (stopped_) return true;
+      for (const auto& [node, w] : watermarks_) {
+        if (w < t1_ns) return false;
+      }
+      return true;
+    });
+    if (stopped_) return std::nullopt;
+  }
+  return emission_.AverageLevels(t0_ns, t1_ns);
+}
+
+int64_t World::current_slot() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return current_;
+}
+
+}  // namespace stage::sim

@@ -1,0 +1,137 @@
+// The world in lockstep: time moves one slot at a time once every device is done with it, cameras see exactly the
+// pattern that was lit, a light node that leaves goes dark without stalling anyone; in real time, late devices learn
+// how many edges they missed.
+#include "stage/sim/world.h"
+
+#include <chrono>
+#include <random>
+#include <thread>
+
+#include "gtest/gtest.h"
+
+namespace stage::sim {
+namespace {
+
+constexpr int kUnits = 8;  // 4 per node, channels: parallel 2i, cross 2i+1 within the node
+
+Dome TwoNodeDome() {
+  Dome dome = Dome::FromDirections(FibonacciSphere(kUnits), 1000);
+  for (int l = 0; l < kUnits; ++l) {
+    dome.units[l].node = l / 4;
+    dome.units[l].parallel_channel = static_cast<uint32_t>(2 * (l % 4));
+    dome.units[l].cross_channel = static_cast<uint32_t>(2 * (l % 4) + 1);
+  }
+  return dome;
+}
+
+// Slot k lights unit (k mod 8)'s parallel emitter only.
+std::vector<double> Row(int node, int64_t slot) {
+  std::vector<double> levels(8, 0.0);
+  const int unit = static_cast<int>(slot % kUnits);
+  if (unit / 4 == node) levels[static_cast<size_t>(2 * (unit % 4))] = 1.0;
+  return levels;
+}
+
+TEST(WorldTest, LockstepCamerasSeeExactlyThePatternOfTheirSlot) {
+  Dome dome = TwoNodeDome();
+  const int64_t slots = 40;
+  auto run = [&](uint64_t seed) {
+    World world(dome, {.slot_rate_hz = 912, .lockstep = true, .rise_ns = {0, 0}, .fall_ns = {0, 0}});
+    int lights[2] = {world.Register("lights-0", 0), world.Register("lights-1", 1)};
+    int cams[2] = {world.Register("cam-every", -1), world.Register("cam-4th", -1)};
+    const int64_t switch_ns = 20'000;
+    std::vector<std::vector<float>> seen(2);
+    std::vector<std::thread> threads;
+    for (int n = 0; n < 2; ++n) {
+      threads.emplace_back([&, n] {
+        std::mt19937 rng(static_cast<uint32_t>(seed * 10 + n));
+        for (int64_t k = 0; k < slots; ++k) {
+          auto edge = world.WaitForEdge(lights[n], k);
+          ASSERT_TRUE(edge.has_value());
+          std::this_thread::sleep_for(std::chrono::microseconds(rng() % 300));  // uneven progress
+          world.ReportLevels(n, edge->time_ns + switch_ns, Row(n, k), world.EdgeNs(k + 1) + switch_ns);
+        }
+        world.Done(lights[n], slots - 1);
+      });
+    }
+    for (int c = 0; c < 2; ++c) {
+      threads.emplace_back([&, c] {
+        std::mt19937 rng(static_cast<uint32_t>(seed * 10 + 5 + c));
+        const int64_t divider = c == 0 ? 1 : 4;
+        for (int64_t k = 0; k < slots; k += divider) {
+          auto edge = world.WaitForEdge(cams[c], k);
+          ASSERT_TRUE(edge.has_value());
+          std::this_thread::sleep_for(std::chrono::microseconds(rng() % 300));
+          // Exposure 100..900 us after the edge: inside the slot's steady light.
+          auto levels = world.Exposure(edge->time_ns + 100'000, edge->time_ns + 900'000);
+          ASSERT_TRUE(levels.has_value());
+          for (int l = 0; l < kUnits; ++l) seen[c].push_back(levels->parallel[l] + 10 * levels->cross[l]);
+        }
+        world.Done(cams[c], slots - 1);
+      });
+    }
+    world.Start();
+    for (auto& t : threads) t.join();
+    EXPECT_EQ(world.current_slot(), slots);
+    return seen;
+  };
+  auto first = run(1);
+  ASSERT_EQ(first[0].size(), static_cast<size_t>(slots * kUnits));
+  ASSERT_EQ(first[1].size(), static_cast<size_t>(slots / 4 * kUnits));
+  for (int64_t k = 0; k < slots; ++k) {
+    for (int l = 0; l < kUnits; ++l) {
+      EXPECT_EQ(first[0][static_cast<size_t>(k * kUnits + l)], l == k % kUnits ? 1.0f : 0.0f) << k << " " << l;
+    }
+  }
+  // Deterministic whatever the threads' timing.
+  EXPECT_EQ(run(2), first);
+}
+
+TEST(WorldTest, ALightNodeThatLeavesGoesDarkAndHoldsNobodyUp) {
+  Dome dome = TwoNodeDome();
+  World world(dome, {.slot_rate_hz = 1000, .lockstep = true, .rise_ns = {0, 0}, .fall_ns = {0, 0}});
+  int light0 = world.Register("lights-0", 0);
+  int light1 = world.Register("lights-1", 1);
+  int cam = world.Register("cam", -1);
+  world.Start();
+  std::vector<double> all_on(8, 1.0);
+  for (int n = 0; n < 2; ++n) world.ReportLevels(n, 0, all_on, world.EdgeNs(1));
+  // Node 1 crashes: it never reports again.
+  world.Unregister(light1);
+  std::thread lights([&] {
+    for (int64_t k = 0; k < 5; ++k) {
+      auto edge = world.WaitForEdge(light0, k);
+      world.ReportLevels(0, edge->time_ns, all_on, world.EdgeNs(k + 1));
+    }
+    world.Done(light0, 4);
+  });
+  auto edge = world.WaitForEdge(cam, 3);
+  ASSERT_TRUE(edge.has_value());
+  auto levels = world.Exposure(edge->time_ns, edge->time_ns + 500'000);  // does not wait for the dead node
+  ASSERT_TRUE(levels.has_value());
+  for (int l = 0; l < 4; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 1.0f) << l;
+  for (int l = 4; l < 8; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 0.0f) << l;  // its units are dark
+  world.Done(cam, 4);
+  lights.join();
+}
+
+TEST(WorldTest, RealTimeDevicesThatFallBehindCountWhatTheyMissed) {
+  Dome dome = TwoNodeDome();
+  const int64_t t0 = timing::HostClockNs(false) + 2'000'000;
+  World world(dome, {.slot_rate_hz = 1000, .lockstep = false, .t0_ns = t0});
+  int cam = world.Register("cam", -1);
+  world.Start();
+  auto first = world.WaitForEdge(cam, 0);
+  ASSERT_TRUE(first.has_value());
+  std::this_thread::sleep_for(std::chrono::milliseconds(12));  // busy for 12 slots
+  auto later = world.WaitForEdge(cam, 1);
+  ASSERT_TRUE(later.has_value());
+  EXPECT_GE(later->slot, 10);
+  EXPECT_EQ(later->missed, later->slot - 1);
+  EXPECT_EQ(later->time_ns, t0 + world.base().SlotStartNs(later->slot));
+  world.Stop();
+  EXPECT_FALSE(world.WaitForEdge(cam, 1'000'000).has_value());
+}
+
+}  // namespace
+}  // namespace stage::sim
