@@ -1,0 +1,32 @@
+// The SimWorld gRPC service: the world shared by the simulated stage's processes. A device's Join stream stays open
+// while it lives; when the stream ends (the device left, or its process died) the world lets it go.
+#pragma once
+
+#include "stage/sim/world.h"
+#include "stage/v1/sim.grpc.pb.h"
+
+namespace stage::sim {
+
+class WorldService final : public v1::SimWorld::Service {
+ public:
+  // `world` is not owned and must outlive the service.
+  explicit WorldService(World* world, v1::WorldInfo info) : world_(world), info_(std::move(info)) {}
+  grpc::Status Join(grpc::ServerContext* context, const v1::JoinWorldRequest* request,
+                    grpc::ServerWriter<v1::JoinWorldEvent>* writer) override;
+  grpc::Status WaitForEdge(grpc::ServerContext*, const v1::WaitForEdgeRequest* request,
+                           v1::WorldEdgeEvent* response) override;
+  grpc::Status Done(grpc::ServerContext*, const v1::WorldDoneRequest* request, v1::WorldAck*) override;
+  grpc::Status ReportLevels(grpc::ServerContext*, const v1::ReportLevelsRequest* request, v1::WorldAck*) override;
+  grpc::Status Exposure(grpc::ServerContext*, const v1::ExposureRequest* request,
+                        v1::ExposureLevels* response) override;
+
+  // Ends every Join stream (for shutdown).
+  void Shutdown();
+
+ private:
+  World* world_;
+  v1::WorldInfo info_;
+  std::atomic<bool> shutting_down_{false};
+};
+
+}  // namespace stage::sim
