@@ -34,7 +34,7 @@ int main(int argc, char** argv) {
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
                                     config.id(), (*node)->Info().role(), config.width(), config.height(),
-                                    stage::camera::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),
+                                    stage::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),
                                     config.exposure_us(), backend, loaded->source_name);
 
   stage::camera::CameraService service(node->get());

@@ -9,43 +9,17 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/timing/trigger_scheduler.h"
 
 namespace stage::camera {
 
-std::string PixelFormatName(v1::PixelFormat format) {
-  switch (format) {
-    case v1::PIXEL_FORMAT_MONO8:
-      return "Mono8";
-    case v1::PIXEL_FORMAT_MONO12:
-      return "Mono12";
-    case v1::PIXEL_FORMAT_MONO16:
-      return "Mono16";
-    case v1::PIXEL_FORMAT_BAYER_RG8:
-      return "BayerRG8";
-    case v1::PIXEL_FORMAT_BAYER_GR8:
-      return "BayerGR8";
-    case v1::PIXEL_FORMAT_BAYER_GB8:
-      return "BayerGB8";
-    case v1::PIXEL_FORMAT_BAYER_BG8:
-      return "BayerBG8";
-    case v1::PIXEL_FORMAT_BAYER_RG12:
-      return "BayerRG12";
-    case v1::PIXEL_FORMAT_BAYER_RG16:
-      return "BayerRG16";
-    case v1::PIXEL_FORMAT_RGB8:
-      return "RGB8";
-    default:
-      return "";
-  }
-}
-
 absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config) {
   CameraSettings s;
   s.width = config.width();
   s.height = config.height();
-  s.pixel_format = PixelFormatName(config.pixel_format());
+  s.pixel_format = stage::PixelFormatName(config.pixel_format());
   if (s.pixel_format.empty()) {
     return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": pixel_format is not set"));
   }

@@ -16,9 +16,6 @@ namespace stage::camera {
 // Settings for the device from the rig's camera entry. InvalidArgument names the camera and the field.
 absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config);
 
-// "Mono8", "BayerRG8", ... for the rig's pixel format enum.
-std::string PixelFormatName(v1::PixelFormat format);
-
 // One stream of scheduled software triggers (CameraNode.StreamTriggers): converts controller times to this node's
 // clock with the controller's measurement and fires each through a TriggerScheduler at its time.
 class TriggerSession {

@@ -322,6 +322,17 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!sim->has_dome_radius_mm()) sim->set_dome_radius_mm(1000);
   if (!sim->has_cross_leakage()) sim->set_cross_leakage(0.01);
   if (!sim->has_cross_leakage_growth()) sim->set_cross_leakage_growth(0.05);
+  if (!sim->has_full_on_electrons()) sim->set_full_on_electrons(4000);
+  if (!sim->has_read_noise_e()) sim->set_read_noise_e(5);
+  if (!sim->has_full_well_e()) sim->set_full_well_e(10000);
+  auto* subject = sim->mutable_subject();
+  if (subject->kind().empty()) subject->set_kind("sphere");
+  if (!subject->has_size_mm()) subject->set_size_mm(subject->kind() == "plane" ? 300 : 100);
+  if (subject->albedo().empty()) {
+    for (double a : {0.6, 0.45, 0.35}) subject->add_albedo(a);
+  }
+  if (!subject->has_specular()) subject->set_specular(0.03);
+  if (!subject->has_roughness()) subject->set_roughness(0.3);
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
   if (!storage->has_host_write_mb_per_s()) storage->set_host_write_mb_per_s(2000);
@@ -438,6 +449,24 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.dome_radius_mm", rig.sim().dome_radius_mm(), 100, 100000);
   check.InRange("sim.cross_leakage", rig.sim().cross_leakage(), 0, 1);
   check.InRange("sim.cross_leakage_growth", rig.sim().cross_leakage_growth(), 0, 1);
+  check.InRange("sim.full_on_electrons", rig.sim().full_on_electrons(), 1, 1e7);
+  check.InRange("sim.read_noise_e", rig.sim().read_noise_e(), 0, 1000);
+  check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
+  {
+    const v1::SimSubject& subject = rig.sim().subject();
+    if (subject.kind() != "sphere" && subject.kind() != "plane") {
+      check.Add("sim.subject.kind", absl::StrCat("\"", subject.kind(), "\" is not a subject kind (sphere, plane)"));
+    }
+    check.InRange("sim.subject.size_mm", subject.size_mm(), 1, 2000);
+    if (subject.albedo_size() != 3) {
+      check.Add("sim.subject.albedo", absl::StrCat("needs 3 values (linear R, G, B), has ", subject.albedo_size()));
+    }
+    for (int i = 0; i < subject.albedo_size(); ++i) {
+      check.InRange(absl::StrCat("sim.subject.albedo[", i, "]"), subject.albedo(i), 0, 1);
+    }
+    check.InRange("sim.subject.specular", subject.specular(), 0, 1);
+    check.InRange("sim.subject.roughness", subject.roughness(), 0.001, 1);
+  }
   check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());
 
   // Node ids share one namespace: the controller, stagectl and the logs address nodes by id alone.
@@ -534,6 +563,33 @@ std::string RigHash(const RigConfig& rig) {
   for (auto& n : *copy.mutable_light_nodes()) n.clear_address();
   for (auto& w : *copy.mutable_processing_workers()) w.clear_address();
   return StableHash(copy);
+}
+
+std::string PixelFormatName(v1::PixelFormat format) {
+  switch (format) {
+    case v1::PIXEL_FORMAT_MONO8:
+      return "Mono8";
+    case v1::PIXEL_FORMAT_MONO12:
+      return "Mono12";
+    case v1::PIXEL_FORMAT_MONO16:
+      return "Mono16";
+    case v1::PIXEL_FORMAT_BAYER_RG8:
+      return "BayerRG8";
+    case v1::PIXEL_FORMAT_BAYER_GR8:
+      return "BayerGR8";
+    case v1::PIXEL_FORMAT_BAYER_GB8:
+      return "BayerGB8";
+    case v1::PIXEL_FORMAT_BAYER_BG8:
+      return "BayerBG8";
+    case v1::PIXEL_FORMAT_BAYER_RG12:
+      return "BayerRG12";
+    case v1::PIXEL_FORMAT_BAYER_RG16:
+      return "BayerRG16";
+    case v1::PIXEL_FORMAT_RGB8:
+      return "RGB8";
+    default:
+      return "";
+  }
 }
 
 std::string StableHash(const google::protobuf::Message& message) {

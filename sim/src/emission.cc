@@ -88,20 +88,40 @@ void EmissionState::Dark(int node, int64_t t_ns) {
   }
 }
 
+void EmissionState::SetUnitFault(size_t unit, UnitFault fault) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (unit >= dome_.units.size()) return;
+  if (fault.dead || fault.delay_ns != 0) {
+    unit_faults_[unit] = fault;
+  } else {
+    unit_faults_.erase(unit);
+  }
+}
+
+void EmissionState::Forget(int64_t t_ns) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (auto& [key, wave] : channels_) wave.Forget(t_ns);
+}
+
 EmitterLevels EmissionState::AverageLevels(int64_t t0_ns, int64_t t1_ns) const {
   const Eigen::Index n = static_cast<Eigen::Index>(dome_.units.size());
   EmitterLevels out{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
   if (t1_ns <= t0_ns) return out;
   const double span = static_cast<double>(t1_ns - t0_ns);
   std::lock_guard<std::mutex> lock(mutex_);
-  auto average = [&](int node, uint32_t channel) {
+  auto average = [&](int node, uint32_t channel, int64_t delay) {
     auto it = channels_.find({node, channel});
-    return it == channels_.end() ? 0.0f : static_cast<float>(it->second.Integral(t0_ns, t1_ns) / span);
+    return it == channels_.end() ? 0.0f : static_cast<float>(it->second.Integral(t0_ns - delay, t1_ns - delay) / span);
   };
   for (Eigen::Index l = 0; l < n; ++l) {
     const LedUnitModel& u = dome_.units[static_cast<size_t>(l)];
-    out.cross[l] = average(u.node, u.cross_channel);
-    out.parallel[l] = average(u.node, u.parallel_channel);
+    int64_t delay = 0;
+    if (auto f = unit_faults_.find(static_cast<size_t>(l)); f != unit_faults_.end()) {
+      if (f->second.dead) continue;
+      delay = f->second.delay_ns;
+    }
+    out.cross[l] = average(u.node, u.cross_channel, delay);
+    out.parallel[l] = average(u.node, u.parallel_channel, delay);
   }
   return out;
 }

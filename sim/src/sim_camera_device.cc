@@ -6,6 +6,10 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/string_view.h"
+#include "stage/common/logging.h"
+#include "stage/sim/scene.h"
+#include "stage/sim/world_client.h"
+#include "stage/timing/time_base.h"
 
 namespace stage::sim {
 
@@ -55,11 +59,50 @@ camera::CameraSettings SimCameraDevice::settings() const {
   return settings_;
 }
 
+absl::Status SimCameraDevice::AttachWorld(SimCameraWorld world) {
+  if (world.world == nullptr || world.renderer == nullptr) {
+    return absl::InvalidArgumentError(absl::StrCat("sim camera ", serial_, ": no world or renderer to attach to"));
+  }
+  if (world.divider == 0 || world.phase >= world.divider || world.exposure_ns <= 0 || world.buffer_frames < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("sim camera ", serial_, ": bad trigger plan (divider ",
+                                                   world.divider, ", phase ", world.phase, ", exposure ",
+                                                   world.exposure_ns, " ns, buffers ", world.buffer_frames, ")"));
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (running_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": attach while acquiring"));
+  world_ = std::move(world);
+  return absl::OkStatus();
+}
+
+SimCameraWorldStats SimCameraDevice::world_stats() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return stats_;
+}
+
 absl::Status SimCameraDevice::Start(camera::FrameSink* sink) {
   std::lock_guard<std::mutex> lock(mutex_);
   if (!configured_)
     return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": start before configure"));
   if (running_) return absl::FailedPreconditionError(absl::StrCat("sim camera ", serial_, ": already acquiring"));
+  if (world_) {
+    if (settings_.trigger != camera::TriggerMode::kHardware) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("sim camera ", serial_,
+                       ": in the simulated world a camera is triggered by the world's trigger bus; "
+                       "set its trigger source to hardware-line"));
+    }
+    auto device = world_->world->Join(serial_, -1);
+    if (!device.ok()) return device.status();
+    world_device_ = *device;
+    sink_ = sink;
+    running_ = true;
+    jobs_.clear();
+    stats_ = {};
+    next_frame_id_ = 0;
+    thread_ = std::thread([this, d = *device] { TriggerLoop(d); });
+    render_thread_ = std::thread([this] { RenderLoop(); });
+    return absl::OkStatus();
+  }
   sink_ = sink;
   running_ = true;
   pending_triggers_ = 0;
@@ -75,10 +118,117 @@ absl::Status SimCameraDevice::Stop() {
     running_ = false;
   }
   wake_.notify_all();
-  clock_->Interrupt();  // a free-running acquisition sleeps on the clock
+  jobs_changed_.notify_all();
+  if (world_) {
+    world_->world->Leave(world_device_);  // wakes the trigger thread
+  } else {
+    clock_->Interrupt();  // a free-running acquisition sleeps on the clock
+  }
   if (thread_.joinable()) thread_.join();
+  if (render_thread_.joinable()) render_thread_.join();
   sink_ = nullptr;
   return absl::OkStatus();
+}
+
+namespace {
+
+// The first slot >= `from` that fires under divider/phase, and how many fire in [from, to).
+int64_t FirstFiring(int64_t from, int64_t divider, int64_t phase) {
+  int64_t m = (phase - from) % divider;
+  if (m < 0) m += divider;
+  return from + m;
+}
+int64_t CountFiring(int64_t from, int64_t to, int64_t divider, int64_t phase) {
+  const int64_t first = FirstFiring(from, divider, phase);
+  return first >= to ? 0 : (to - 1 - first) / divider + 1;
+}
+
+}  // namespace
+
+void SimCameraDevice::TriggerLoop(int device) {
+  const SimCameraWorld& w = *world_;
+  WorldClient* world = w.world;
+  const bool lockstep = world->lockstep();
+  auto base = timing::TimeBase::Create(world->slot_rate_hz());
+  if (!base.ok()) {
+    Logger("sim")->error("sim camera {}: {}", serial_, base.status().message());
+    return;
+  }
+  const int64_t t0 = world->t0_ns();
+  const int64_t period = base->SlotStartNs(1);
+  // Lockstep: the slots this camera lets the world run ahead of its trigger, so that the light its exposure needs
+  // (up to the end of the exposure) is reported while it waits for its renderer.
+  const int64_t ahead = (w.trigger_delay_ns + w.exposure_ns) / std::max<int64_t>(1, period) + 1;
+  const int64_t d = w.divider, p = w.phase;
+  int64_t slot = FirstFiring(0, d, p);
+  while (true) {
+    auto edge = world->WaitForEdge(device, slot);
+    if (!edge) break;
+    const int64_t k = edge->slot;
+    const int64_t missed = CountFiring(slot, k, d, p);
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (!running_) break;
+    stats_.missed_triggers += static_cast<uint64_t>(missed);
+    if (FirstFiring(k, d, p) == k) {
+      if (!lockstep && static_cast<int>(jobs_.size()) >= w.buffer_frames) {
+        ++stats_.missed_triggers;  // busy: every buffer holds a frame not yet read out
+      } else {
+        const int64_t start = t0 + base->SlotStartNs(k) + w.trigger_delay_ns;
+        jobs_.push_back({k, start, start + w.exposure_ns, next_frame_id_++});
+        ++stats_.triggers;
+        jobs_changed_.notify_all();
+      }
+    }
+    if (lockstep) {
+      lock.unlock();
+      world->Done(device, k + ahead);
+      lock.lock();
+      jobs_changed_.wait(lock, [&] { return !running_ || static_cast<int>(jobs_.size()) < w.buffer_frames; });
+      if (!running_) break;
+    }
+    slot = FirstFiring(k + 1, d, p);
+  }
+}
+
+void SimCameraDevice::RenderLoop() {
+  const SimCameraWorld& w = *world_;
+  const std::string format = settings().pixel_format;
+  while (true) {
+    Job job;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      jobs_changed_.wait(lock, [&] { return !running_ || !jobs_.empty(); });
+      if (!running_) return;
+      job = jobs_.front();
+    }
+    auto levels = w.world->Exposure(job.t0_ns, job.t1_ns);
+    if (!levels.ok()) {
+      if (absl::IsCancelled(levels.status())) return;
+      Logger("sim")->warn("sim camera {}: frame {} (slot {}) lost: {}", serial_, job.frame_id, job.slot,
+                          levels.status().message());
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.render_errors;
+      jobs_.pop_front();
+      jobs_changed_.notify_all();
+      continue;
+    }
+    const RawImage raw = w.renderer->Render(*levels, (job.t1_ns - job.t0_ns) * 1e-9, job.frame_id);
+    auto frame = std::make_shared<camera::Frame>();
+    frame->frame_id = job.frame_id;
+    frame->device_timestamp_ns =
+        static_cast<int64_t>(static_cast<long double>(job.t0_ns) * (1.0L + w.clock_drift_ppm * 1e-6L)) +
+        w.clock_offset_ns;
+    frame->width = static_cast<uint32_t>(raw.width);
+    frame->height = static_cast<uint32_t>(raw.height);
+    frame->pixel_format = format;
+    frame->exposure_us = (job.t1_ns - job.t0_ns) / 1e3;
+    frame->data = PackRaw(raw, format);
+    sink_->OnFrame(std::move(frame));
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.frames;
+    jobs_.pop_front();
+    jobs_changed_.notify_all();
+  }
 }
 
 absl::Status SimCameraDevice::Trigger() {

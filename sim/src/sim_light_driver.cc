@@ -2,6 +2,9 @@
 #include "stage/sim/sim_light_driver.h"
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/logging.h"
+#include "stage/sim/world_client.h"
+#include "stage/timing/time_base.h"
 
 namespace stage::sim {
 
@@ -9,6 +12,8 @@ SimLightDriver::SimLightDriver(std::string node_id, uint32_t channel_count)
     : node_id_(std::move(node_id)), channel_count_(channel_count) {
   state_.channel_count = channel_count;
 }
+
+SimLightDriver::~SimLightDriver() { DetachWorld(); }
 
 light::DriverDescription SimLightDriver::Describe() const { return {"sim", "sim:" + node_id_, channel_count_}; }
 
@@ -84,6 +89,50 @@ light::ChannelLevels SimLightDriver::Outputs() const {
     return light::ChannelLevels(channel_count_, 0);
   }
   return table_.rows[static_cast<size_t>(state_.current_row)];
+}
+
+absl::Status SimLightDriver::AttachWorld(const SimLightWorld& world) {
+  if (world.world == nullptr) return absl::InvalidArgumentError("no world to attach to");
+  if (world_thread_.joinable()) {
+    return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": already in the world"));
+  }
+  auto device = world.world->Join(node_id_, world.node_index);
+  if (!device.ok()) return device.status();
+  world_ = world;
+  world_device_ = *device;
+  world_thread_ = std::thread([this, d = *device] { WorldLoop(d); });
+  return absl::OkStatus();
+}
+
+void SimLightDriver::DetachWorld() {
+  if (!world_thread_.joinable()) return;
+  detaching_.store(true);
+  world_.world->Leave(world_device_);
+  world_thread_.join();
+}
+
+void SimLightDriver::WorldLoop(int device) {
+  auto base = timing::TimeBase::Create(world_.world->slot_rate_hz());
+  if (!base.ok()) {
+    Logger("sim")->error("light node {}: {}", node_id_, base.status().message());
+    return;
+  }
+  const int64_t t0 = world_.world->t0_ns();
+  const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns;
+  std::vector<double> levels(channel_count_);
+  int64_t slot = 0;
+  while (!detaching_.load()) {
+    auto edge = world_.world->WaitForEdge(device, slot);
+    if (!edge) break;
+    // A board steps on every edge; a process that saw some late catches up, so the table stays in phase.
+    for (int64_t i = 0; i <= edge->missed; ++i) Step();
+    if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));
+    const light::ChannelLevels out = Outputs();
+    for (size_t c = 0; c < levels.size(); ++c) levels[c] = out[c] / 65535.0;
+    world_.world->ReportLevels(world_.node_index, edge->time_ns + delay, levels,
+                               t0 + base->SlotStartNs(edge->slot + 1) + delay);
+    slot = edge->slot + 1;
+  }
 }
 
 }  // namespace stage::sim

@@ -4,6 +4,8 @@
 #include <algorithm>
 #include <climits>
 
+#include "absl/strings/str_format.h"
+
 namespace stage::sim {
 
 World::World(const Dome& dome, WorldOptions options)
@@ -95,27 +97,30 @@ void World::MaybeAdvance() {
 
 std::optional<WorldEdge> World::WaitForEdge(int device, int64_t slot) {
   std::unique_lock<std::mutex> lock(mutex_);
-  Device& d = devices_[static_cast<size_t>(device)];
+  // By index: devices_ may grow while this thread waits.
+  const size_t i = static_cast<size_t>(device);
+  if (i >= devices_.size()) return std::nullopt;
+  auto gone = [&] { return stopped_ || !devices_[i].active; };
   if (options_.lockstep) {
-    d.done_through = std::max(d.done_through, slot - 1);
+    devices_[i].done_through = std::max(devices_[i].done_through, slot - 1);
     MaybeAdvance();
     changed_.notify_all();
-    changed_.wait(lock, [&] { return stopped_ || (started_ && current_ >= slot); });
-    if (stopped_) return std::nullopt;
+    changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
+    if (gone()) return std::nullopt;
     return WorldEdge{slot, EdgeNs(slot), 0};
   }
-  changed_.wait(lock, [&] { return stopped_ || (started_ && current_ >= slot); });
-  if (stopped_) return std::nullopt;
+  changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
+  if (gone()) return std::nullopt;
   // Real time: the device gets the edge that is current; the ones it was too late for are counted.
   const int64_t now = current_;
-  WorldEdge edge{now, EdgeNs(now), now - slot};
-  d.last_seen = now;
-  return edge;
+  devices_[i].last_seen = now;
+  return WorldEdge{now, EdgeNs(now), now - slot};
 }
 
 void World::Done(int device, int64_t slot) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
+    if (device < 0 || device >= static_cast<int>(devices_.size())) return;
     Device& d = devices_[static_cast<size_t>(device)];
     d.done_through = std::max(d.done_through, slot);
     MaybeAdvance();
@@ -129,15 +134,27 @@ void World::ReportLevels(int light_node, int64_t t_ns, const std::vector<double>
 }
 
 void World::ReportWatermark(int light_node, int64_t watermark_ns) {
+  int64_t forget = INT64_MIN;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     int64_t& w = watermarks_[light_node];
     if (w != INT64_MAX) w = std::max(w, watermark_ns);
+    // Forget in steps of a tenth of the history, behind the slowest node.
+    int64_t slowest = INT64_MAX;
+    for (const auto& [node, mark] : watermarks_) slowest = std::min(slowest, mark);
+    if (slowest != INT64_MAX && slowest != INT64_MIN && options_.history_ns > 0) {
+      const int64_t horizon = slowest - options_.history_ns;
+      if (horizon > forgotten_before_ + options_.history_ns / 10) {
+        forgotten_before_ = horizon;
+        forget = horizon;
+      }
+    }
   }
   changed_.notify_all();
+  if (forget != INT64_MIN) emission_.Forget(forget);
 }
 
-std::optional<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
+absl::StatusOr<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
   {
     std::unique_lock<std::mutex> lock(mutex_);
     changed_.wait(lock, [&] {
@@ -147,7 +164,12 @@ std::optional<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
       }
       return true;
     });
-    if (stopped_) return std::nullopt;
+    if (stopped_) return absl::CancelledError("the simulated world stopped");
+    if (t0_ns < forgotten_before_) {
+      return absl::OutOfRangeError(absl::StrFormat(
+          "exposure at %.3f ms is older than the %.1f s of light the world keeps: the camera fell behind", t0_ns / 1e6,
+          options_.history_ns / 1e9));
+    }
   }
   return emission_.AverageLevels(t0_ns, t1_ns);
 }

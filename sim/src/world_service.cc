@@ -4,6 +4,7 @@
 #include <grpcpp/grpcpp.h>
 
 #include <chrono>
+#include <mutex>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -58,8 +59,12 @@ grpc::Status WorldService::ReportLevels(grpc::ServerContext*, const v1::ReportLe
 grpc::Status WorldService::Exposure(grpc::ServerContext*, const v1::ExposureRequest* request,
                                     v1::ExposureLevels* response) {
   auto levels = world_->Exposure(request->t0_ns(), request->t1_ns());
-  if (!levels) {
-    response->set_stopped(true);
+  if (!levels.ok()) {
+    if (absl::IsCancelled(levels.status())) {
+      response->set_stopped(true);
+    } else {
+      response->set_error(std::string(levels.status().message()));
+    }
     return grpc::Status::OK;
   }
   response->mutable_cross()->Assign(levels->cross.data(), levels->cross.data() + levels->cross.size());
@@ -85,7 +90,7 @@ class Local final : public WorldClient {
   void ReportLevels(int node, int64_t t, const std::vector<double>& levels, int64_t watermark) override {
     world_->ReportLevels(node, t, levels, watermark);
   }
-  std::optional<EmitterLevels> Exposure(int64_t t0, int64_t t1) override { return world_->Exposure(t0, t1); }
+  absl::StatusOr<EmitterLevels> Exposure(int64_t t0, int64_t t1) override { return world_->Exposure(t0, t1); }
   void Leave(int device) override { world_->Unregister(device); }
 
  private:
@@ -97,6 +102,7 @@ class Remote final : public WorldClient {
   explicit Remote(std::shared_ptr<grpc::Channel> channel)
       : channel_(std::move(channel)), stub_(v1::SimWorld::NewStub(channel_)) {}
   ~Remote() override {
+    std::lock_guard<std::mutex> lock(mutex_);
     for (auto& j : joins_) {
       j->context.TryCancel();
       if (j->reader.joinable()) j->reader.join();
@@ -125,6 +131,7 @@ class Remote final : public WorldClient {
       (void)raw->stream->Finish();
     });
     raw->device = device;
+    std::lock_guard<std::mutex> lock(mutex_);
     joins_.push_back(std::move(join));
     return device;
   }
@@ -159,18 +166,24 @@ class Remote final : public WorldClient {
     v1::WorldAck ack;
     (void)stub_->ReportLevels(&context, request, &ack);
   }
-  std::optional<EmitterLevels> Exposure(int64_t t0, int64_t t1) override {
+  absl::StatusOr<EmitterLevels> Exposure(int64_t t0, int64_t t1) override {
     grpc::ClientContext context;
     v1::ExposureRequest request;
     request.set_t0_ns(t0);
     request.set_t1_ns(t1);
     v1::ExposureLevels response;
-    if (!stub_->Exposure(&context, request, &response).ok() || response.stopped()) return std::nullopt;
+    grpc::Status status = stub_->Exposure(&context, request, &response);
+    if (!status.ok()) {
+      return absl::CancelledError(absl::StrCat("the simulated world is gone: ", status.error_message()));
+    }
+    if (response.stopped()) return absl::CancelledError("the simulated world stopped");
+    if (!response.error().empty()) return absl::OutOfRangeError(response.error());
     EmitterLevels levels{Eigen::Map<const Eigen::VectorXf>(response.cross().data(), response.cross_size()),
                          Eigen::Map<const Eigen::VectorXf>(response.parallel().data(), response.parallel_size())};
     return levels;
   }
   void Leave(int device) override {
+    std::lock_guard<std::mutex> lock(mutex_);
     for (auto& j : joins_) {
       if (j->device == device) j->context.TryCancel();
     }
@@ -186,7 +199,8 @@ class Remote final : public WorldClient {
   std::shared_ptr<grpc::Channel> channel_;
   std::unique_ptr<v1::SimWorld::Stub> stub_;
   v1::WorldInfo info_;
-  std::vector<std::unique_ptr<JoinStream>> joins_;
+  std::mutex mutex_;
+  std::vector<std::unique_ptr<JoinStream>> joins_;  // guarded by mutex_
 };
 
 }  // namespace

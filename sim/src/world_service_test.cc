@@ -49,7 +49,7 @@ TEST(WorldServiceTest, LockstepThroughTheServiceAndADeviceThatDisconnectsIsLetGo
     ASSERT_TRUE(edge.has_value());
     EXPECT_EQ(edge->time_ns, world.EdgeNs(k));
     auto levels = (*camera)->Exposure(edge->time_ns + 100'000, edge->time_ns + 900'000);
-    ASSERT_TRUE(levels.has_value());
+    ASSERT_TRUE(levels.ok()) << levels.status();
     for (int u = 0; u < 4; ++u) EXPECT_FLOAT_EQ(levels->parallel[u], u == k % 4 ? 1.0f : 0.0f) << k;
   }
   light_thread.join();
@@ -59,7 +59,7 @@ TEST(WorldServiceTest, LockstepThroughTheServiceAndADeviceThatDisconnectsIsLetGo
   auto edge = (*camera)->WaitForEdge(*camera_device, slots + 5);
   ASSERT_TRUE(edge.has_value());
   auto levels = (*camera)->Exposure(edge->time_ns, edge->time_ns + 500'000);
-  ASSERT_TRUE(levels.has_value());
+  ASSERT_TRUE(levels.ok()) << levels.status();
   for (int u = 0; u < 4; ++u) EXPECT_FLOAT_EQ(levels->parallel[u], 0.0f);
   world.Stop();
   service.Shutdown();

@@ -64,7 +64,7 @@ TEST(WorldTest, LockstepCamerasSeeExactlyThePatternOfTheirSlot) {
           std::this_thread::sleep_for(std::chrono::microseconds(rng() % 300));
           // Exposure 100..900 us after the edge: inside the slot's steady light.
           auto levels = world.Exposure(edge->time_ns + 100'000, edge->time_ns + 900'000);
-          ASSERT_TRUE(levels.has_value());
+          ASSERT_TRUE(levels.ok()) << levels.status();
           for (int l = 0; l < kUnits; ++l) seen[c].push_back(levels->parallel[l] + 10 * levels->cross[l]);
         }
         world.Done(cams[c], slots - 1);
@@ -108,7 +108,7 @@ TEST(WorldTest, ALightNodeThatLeavesGoesDarkAndHoldsNobodyUp) {
   auto edge = world.WaitForEdge(cam, 3);
   ASSERT_TRUE(edge.has_value());
   auto levels = world.Exposure(edge->time_ns, edge->time_ns + 500'000);  // does not wait for the dead node
-  ASSERT_TRUE(levels.has_value());
+  ASSERT_TRUE(levels.ok()) << levels.status();
   for (int l = 0; l < 4; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 1.0f) << l;
   for (int l = 4; l < 8; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 0.0f) << l;  // its units are dark
   world.Done(cam, 4);

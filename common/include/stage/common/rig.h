@@ -73,6 +73,9 @@ std::string RigHash(const v1::RigConfig& rig);
 // FNV-1a 64 of any message's deterministic serialization, 16 hex digits (RigHash, the schedule's hash).
 std::string StableHash(const google::protobuf::Message& message);
 
+// The GenICam PFNC name of a pixel format ("Mono8", "BayerRG8", ...); "" when unspecified.
+std::string PixelFormatName(v1::PixelFormat format);
+
 // The entry for node `id`, or NotFound naming the id, the rig and the ids that exist.
 absl::StatusOr<const v1::CameraConfig*> FindCamera(const LoadedRig& loaded, absl::string_view id);
 absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded, absl::string_view id);

@@ -45,6 +45,12 @@ class ChannelWaveform {
   std::vector<StepAt> steps_;
 };
 
+// A broken LED unit (a fault knob): dark, or emitting `delay_ns` after its driver says (a slow or badly wired unit).
+struct UnitFault {
+  bool dead = false;
+  int64_t delay_ns = 0;
+};
+
 // Every channel of every light node, keyed by (node index, channel), and the dome that maps channels to emitters.
 class EmissionState {
  public:
@@ -56,6 +62,11 @@ class EmissionState {
   // Node `node` goes dark (blackout, crash) at `t_ns`.
   void Dark(int node, int64_t t_ns);
 
+  // Unit `unit` (dome index) fails as `fault` says from now on (a default UnitFault repairs it).
+  void SetUnitFault(size_t unit, UnitFault fault);
+  // Drops what exposures starting at or after `t_ns` do not need.
+  void Forget(int64_t t_ns);
+
   // Each unit's emitters' average output over [t0, t1] (the exposure), for RenderRadiance.
   EmitterLevels AverageLevels(int64_t t0_ns, int64_t t1_ns) const;
 
@@ -64,6 +75,7 @@ class EmissionState {
   std::vector<int64_t> rise_ns_, fall_ns_;
   mutable std::mutex mutex_;
   std::map<std::pair<int, uint32_t>, ChannelWaveform> channels_;  // guarded by mutex_
+  std::map<size_t, UnitFault> unit_faults_;                       // guarded by mutex_
 };
 
 }  // namespace stage::sim

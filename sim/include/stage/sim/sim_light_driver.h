@@ -1,17 +1,38 @@
 // A simulated LED controller behind the LightDriver interface: holds the pattern table, steps on slot edges given
 // by the simulator (Step()), and reports its channel outputs. Safety behaviour (blackout latch) as on hardware.
+//
+// Attached to the simulated world (AttachWorld) it steps on the world's slot clock by itself, as a board steps on
+// its slot-clock input, and tells the world what its channels emit and when: at each edge plus the node's switch
+// delay (plus any extra delay, a fault knob). Detached or destroyed, it leaves the world, which then sees it dark.
 #pragma once
 
+#include <atomic>
+#include <cstdint>
 #include <mutex>
 #include <string>
+#include <thread>
 
+#include "absl/status/status.h"
 #include "stage/light/light_driver.h"
 
 namespace stage::sim {
 
+class WorldClient;
+
+struct SimLightWorld {
+  // Not owned; must outlive the attachment.
+  WorldClient* world = nullptr;
+  // This node's index in the rig (its emission in the world).
+  int node_index = 0;
+  // Edge to switch, ns: the node's switch delay, and an extra delay (a late node).
+  int64_t switch_delay_ns = 0;
+  int64_t extra_delay_ns = 0;
+};
+
 class SimLightDriver final : public light::LightDriver {
  public:
   SimLightDriver(std::string node_id, uint32_t channel_count);
+  ~SimLightDriver() override;
 
   light::DriverDescription Describe() const override;
   absl::Status LoadPatternTable(const light::PatternTable& table) override;
@@ -26,13 +47,27 @@ class SimLightDriver final : public light::LightDriver {
   // The levels on the channels now (all zero when dark).
   light::ChannelLevels Outputs() const;
 
+  // Joins the world and steps on its edges from slot 0 on (see above). Once only.
+  absl::Status AttachWorld(const SimLightWorld& world);
+  // Leaves the world (the node goes dark there) and stops stepping. Idempotent.
+  void DetachWorld();
+  // Slot edges the node stepped on late (real-time world: the process fell behind; it catches up).
+  uint64_t late_edges() const { return late_edges_.load(); }
+
  private:
+  void WorldLoop(int device);
+
   std::string node_id_;
   uint32_t channel_count_;
   mutable std::mutex mutex_;
   light::PatternTable table_;  // guarded by mutex_
   bool table_loaded_ = false;  // guarded by mutex_
   light::DriverState state_;   // guarded by mutex_
+  SimLightWorld world_;
+  int world_device_ = -1;
+  std::atomic<bool> detaching_{false};
+  std::atomic<uint64_t> late_edges_{0};
+  std::thread world_thread_;
 };
 
 }  // namespace stage::sim

@@ -15,6 +15,7 @@
 // no longer holds anyone up.
 #pragma once
 
+#include <climits>
 #include <condition_variable>
 #include <cstdint>
 #include <map>
@@ -24,6 +25,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/emission.h"
 #include "stage/timing/slot_clock.h"
@@ -38,6 +40,9 @@ struct WorldOptions {
   int64_t t0_ns = 0;
   // Rise and fall time of each light node's emitters (its slowest), ns, by node index.
   std::vector<int64_t> rise_ns, fall_ns;
+  // How much emission the world keeps behind the slowest light node's watermark, ns: an exposure that ends earlier
+  // than that cannot be rendered (the camera fell too far behind) and is refused. Default 2 s.
+  int64_t history_ns = 2'000'000'000;
 };
 
 struct WorldEdge {
@@ -64,7 +69,7 @@ class World {
   void Unregister(int device);
 
   // Blocks until slot `slot`'s edge (which also says the device is done with every earlier slot). nullopt after
-  // Stop() or when `deadline_ns` (world clock, real time only; lockstep ignores it) passes.
+  // Stop() or once the device is unregistered.
   std::optional<WorldEdge> WaitForEdge(int device, int64_t slot);
   // The device is done with `slot` and will not wait for more (lockstep: lets time move on).
   void Done(int device, int64_t slot);
@@ -74,8 +79,11 @@ class World {
   void ReportWatermark(int light_node, int64_t watermark_ns);
 
   // Every unit's emitters averaged over [t0, t1]; waits until every registered light node has reported past t1.
-  // nullopt after Stop().
-  std::optional<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns);
+  // Cancelled after Stop(); OutOfRange when the window is older than the history the world keeps.
+  absl::StatusOr<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns);
+
+  // LED unit `unit` (dome index) fails as `fault` says from now on.
+  void SetUnitFault(size_t unit, UnitFault fault) { emission_.SetUnitFault(unit, fault); }
 
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;
@@ -105,6 +113,7 @@ class World {
   std::vector<Device> devices_;             // guarded by mutex_
   std::map<int, int64_t> watermarks_;       // light node -> ns; guarded by mutex_
   int64_t current_ = -1;                    // guarded by mutex_
+  int64_t forgotten_before_ = INT64_MIN;    // guarded by mutex_
   bool started_ = false, stopped_ = false;  // guarded by mutex_
 };
 

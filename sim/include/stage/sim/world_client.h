@@ -25,7 +25,8 @@ class WorldClient {
   virtual std::optional<WorldEdge> WaitForEdge(int device, int64_t slot) = 0;
   virtual void Done(int device, int64_t slot) = 0;
   virtual void ReportLevels(int light_node, int64_t t_ns, const std::vector<double>& levels, int64_t watermark_ns) = 0;
-  virtual std::optional<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns) = 0;
+  // As World's: Cancelled when the world stopped (or cannot be reached), OutOfRange when too old.
+  virtual absl::StatusOr<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns) = 0;
   // The device leaves (also when the client is destroyed).
   virtual void Leave(int device) = 0;
 };

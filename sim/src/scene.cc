@@ -1,0 +1,169 @@
+// The simulated stage derived from the rig, and per-camera rendering.
+#include "stage/sim/scene.h"
+
+#include <cmath>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
+#include "stage/timing/schedule.h"
+
+namespace stage::sim {
+namespace {
+
+uint64_t Fnv1a(const std::string& s) {
+  uint64_t h = 1469598103934665603ull;
+  for (unsigned char c : s) {
+    h ^= c;
+    h *= 1099511628211ull;
+  }
+  return h;
+}
+
+absl::StatusOr<std::unique_ptr<Subject>> MakeSubject(const v1::SimSubject& config) {
+  Material m;
+  if (config.albedo_size() == 3) {
+    m.albedo = Eigen::Vector3f(static_cast<float>(config.albedo(0)), static_cast<float>(config.albedo(1)),
+                               static_cast<float>(config.albedo(2)));
+  }
+  m.specular = static_cast<float>(config.specular());
+  m.roughness = static_cast<float>(config.roughness());
+  const float size = static_cast<float>(config.size_mm());
+  if (config.kind() == "sphere") return std::make_unique<SphereSubject>(Eigen::Vector3f::Zero(), size, m);
+  if (config.kind() == "plane") {
+    return std::make_unique<PlaneSubject>(Eigen::Vector3f::Zero(), Eigen::Vector3f::UnitZ(), size, m);
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat("sim.subject.kind: \"", config.kind(), "\" is not a subject kind (sphere, plane)"));
+}
+
+}  // namespace
+
+absl::Status SensorFormat(const std::string& f, int* bits, std::string* mosaic) {
+  if (f == "RGB8" || f.empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("pixel format \"", f, "\": the simulated sensor gives Mono or Bayer formats only"));
+  }
+  *bits = absl::EndsWith(f, "8") ? 8 : absl::EndsWith(f, "16") ? 16 : 12;
+  if (absl::StartsWith(f, "Mono")) {
+    *mosaic = "mono";
+  } else if (absl::StartsWith(f, "Bayer") && f.size() >= 7) {
+    *mosaic = f.substr(5, 2);
+  } else {
+    return absl::InvalidArgumentError(absl::StrCat("pixel format \"", f, "\" is not a Mono or Bayer format"));
+  }
+  return absl::OkStatus();
+}
+
+std::vector<uint8_t> PackRaw(const RawImage& raw, const std::string& pixel_format) {
+  const bool wide = !absl::EndsWith(pixel_format, "8");
+  std::vector<uint8_t> out(raw.data.size() * (wide ? 2 : 1));
+  if (!wide) {
+    for (size_t i = 0; i < raw.data.size(); ++i) out[i] = static_cast<uint8_t>(raw.data[i]);
+  } else {
+    for (size_t i = 0; i < raw.data.size(); ++i) {
+      out[2 * i] = static_cast<uint8_t>(raw.data[i] & 0xff);
+      out[2 * i + 1] = static_cast<uint8_t>(raw.data[i] >> 8);
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::FromLoadedRig(const LoadedRig& loaded) {
+  STAGE_ASSIGN_OR_RETURN(timing::PatternSet patterns, timing::LoadRigPatternSet(loaded.rig, loaded.base_dir));
+  return Create(loaded.rig, patterns);
+}
+
+absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::Create(const v1::RigConfig& rig,
+                                                                 const timing::PatternSet& patterns) {
+  std::shared_ptr<SimScene> scene(new SimScene());
+  scene->rig_ = rig;
+  STAGE_ASSIGN_OR_RETURN(scene->schedule_, timing::CompileSchedule(rig, patterns));
+  scene->base_ = timing::TimeBase::FromProto(scene->schedule_.time_base());
+  scene->dome_ = Dome::FromRig(rig, rig.sim().dome_radius_mm());
+  STAGE_ASSIGN_OR_RETURN(scene->subject_, MakeSubject(rig.sim().subject()));
+  for (int i = 0; i < rig.cameras_size(); ++i) {
+    const v1::CameraConfig& c = rig.cameras(i);
+    STAGE_ASSIGN_OR_RETURN(CameraModel model, CameraModel::FromConfig(c, rig.sim().render_scale()));
+    scene->leakages_.push_back(CrossLeakage(model, rig.sim().cross_leakage(), rig.sim().cross_leakage_growth()));
+    SensorParams sensor;
+    sensor.full_well_e = rig.sim().full_well_e();
+    sensor.read_noise_e = rig.sim().read_noise_e();
+    // Gain from the rig (dB of amplification over unity: fewer electrons per DN).
+    const std::string format = PixelFormatName(c.pixel_format());
+    if (auto s = SensorFormat(format, &sensor.bits, &sensor.mosaic); !s.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat("camera \"", c.id(), "\": ", s.message()));
+    }
+    // 16-bit formats carry 12-bit data, as most machine-vision sensors' do.
+    if (sensor.bits == 16) sensor.bits = 12;
+    sensor.electrons_per_dn = sensor.Gain() / std::pow(10.0, c.gain_db() / 20.0);
+    // Sensitivity: a white Lambertian patch at the head centre facing the camera, lit by every unit's cross emitter.
+    const Eigen::Vector3d n = model.position().normalized();
+    double radiance = 0;
+    for (const LedUnitModel& u : scene->dome_.units) {
+      const double d2 = u.position.squaredNorm();
+      radiance += 0.5 * std::max(0.0, n.dot(u.direction)) * u.intensity / (M_PI * d2);
+    }
+    const double exposure_s = c.exposure_us() * 1e-6;
+    if (!(radiance > 0) || !(exposure_s > 0)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("camera \"", c.id(), "\": no LED unit lights the side of the subject it sees"));
+    }
+    sensor.electrons_per_radiance_s = rig.sim().full_on_electrons() / (radiance * exposure_s);
+    scene->sensors_.push_back(sensor);
+    scene->cameras_.push_back(std::move(model));
+  }
+  return std::shared_ptr<const SimScene>(std::move(scene));
+}
+
+int SimScene::CameraIndex(const std::string& id) const {
+  for (int i = 0; i < rig_.cameras_size(); ++i) {
+    if (rig_.cameras(i).id() == id) return i;
+  }
+  return -1;
+}
+
+int SimScene::LightNodeIndex(const std::string& id) const {
+  for (int i = 0; i < rig_.light_nodes_size(); ++i) {
+    if (rig_.light_nodes(i).id() == id) return i;
+  }
+  return -1;
+}
+
+WorldOptions SimScene::MakeWorldOptions(bool lockstep, int64_t t0_ns) const {
+  WorldOptions o;
+  o.slot_rate_hz = base_.slot_rate_hz();
+  o.lockstep = lockstep;
+  o.t0_ns = t0_ns;
+  for (const v1::LightNodeTiming& n : schedule_.light_nodes()) {
+    o.rise_ns.push_back(base_.TicksToNs(n.rise_ticks()));
+    o.fall_ns.push_back(base_.TicksToNs(n.fall_ticks()));
+  }
+  return o;
+}
+
+int64_t SimScene::SwitchDelayNs(int light_node) const {
+  return base_.TicksToNs(schedule_.light_nodes(light_node).switch_ticks());
+}
+
+CameraRenderer::CameraRenderer(std::shared_ptr<const SimScene> scene, int camera_index, int threads)
+    : scene_(std::move(scene)),
+      index_(camera_index),
+      threads_(threads),
+      stream_(Fnv1a(scene_->rig().cameras(camera_index).id())) {}
+
+const PixelResponses& CameraRenderer::Responses() {
+  std::call_once(once_, [this] {
+    responses_ = ComputeResponses(scene_->camera(index_), scene_->subject(), scene_->dome(), threads_);
+  });
+  return responses_;
+}
+
+RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t frame) {
+  const PixelResponses& r = Responses();
+  const std::vector<float> rgb = RenderRadiance(r, levels, scene_->leakage(index_));
+  return ExposeSensor(rgb, r.width, r.height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(), stream_,
+                      frame);
+}
+
+}  // namespace stage::sim
