@@ -91,6 +91,7 @@ void World::MaybeAdvance() {
       if (d.done_through < current_) all_done = false;
     }
     if (!any || !all_done) return;
+    if (options_.end_slot >= 0 && current_ + 1 >= options_.end_slot) return;
     ++current_;
   }
 }
@@ -100,7 +101,9 @@ std::optional<WorldEdge> World::WaitForEdge(int device, int64_t slot) {
   // By index: devices_ may grow while this thread waits.
   const size_t i = static_cast<size_t>(device);
   if (i >= devices_.size()) return std::nullopt;
-  auto gone = [&] { return stopped_ || !devices_[i].active; };
+  auto gone = [&] {
+    return stopped_ || !devices_[i].active || (options_.end_slot >= 0 && std::max(slot, current_) >= options_.end_slot);
+  };
   if (options_.lockstep) {
     devices_[i].done_through = std::max(devices_[i].done_through, slot - 1);
     MaybeAdvance();

@@ -43,6 +43,8 @@ struct WorldOptions {
   // How much emission the world keeps behind the slowest light node's watermark, ns: an exposure that ends earlier
   // than that cannot be rendered (the camera fell too far behind) and is refused. Default 2 s.
   int64_t history_ns = 2'000'000'000;
+  // The world ends after this many slots (a take's length): no edge at or after it is delivered. -1: runs on.
+  int64_t end_slot = -1;
 };
 
 struct WorldEdge {

@@ -1,0 +1,29 @@
+// Wiring the rig's simulated devices into the world: a light node's table from the compiled schedule, a camera's
+// trigger plan and renderer. Used by the node programs (with --sim-world) and by in-process tests of the whole stage.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "stage/light/light_driver.h"
+#include "stage/sim/scene.h"
+#include "stage/sim/sim_camera_device.h"
+#include "stage/sim/sim_light_driver.h"
+#include "stage/sim/world_client.h"
+
+namespace stage::sim {
+
+// The table a light node steps through, as the schedule compiled it.
+light::PatternTable TableFromSchedule(const v1::LightNodeTiming& timing);
+
+// Loads light node `node_id`'s table from the scene's schedule into `driver`, arms it (the capture issue's arm step
+// will do this through the node's service) and attaches it to `world`; `extra_delay_ns` makes the node late.
+absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
+                           WorldClient* world, int64_t extra_delay_ns = 0);
+
+// The world attachment of camera `camera_id`: its trigger plan from the schedule and a renderer of the scene.
+absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene, const std::string& camera_id,
+                                           WorldClient* world);
+
+}  // namespace stage::sim

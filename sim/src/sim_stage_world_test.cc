@@ -1,0 +1,242 @@
+// The whole simulated stage in one process, in lockstep: the shipped 27-camera rig's light nodes step through their
+// tables on the world's slot clock, every camera is triggered by the world's bus and renders what the LEDs did.
+// Checked: frame counts per camera over 2 virtual frames (76 slots), each frame's counter and device timestamp, that
+// each frame shows the pattern of its slot (and no other), and that a light node that is killed leaves its units dark.
+#include <chrono>
+#include <condition_variable>
+#include <map>
+#include <mutex>
+#include <vector>
+
+#include "gtest/gtest.h"
+#include "stage/common/clock.h"
+#include "stage/common/rig.h"
+#include "stage/sim/world_devices.h"
+#include "stage/timing/schedule.h"
+
+namespace stage::sim {
+namespace {
+
+constexpr int64_t kSlots = 76;  // two virtual frames of fastage-38
+
+class Sink : public camera::FrameSink {
+ public:
+  void OnFrame(std::shared_ptr<const camera::Frame> frame) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    frames_.push_back(std::move(frame));
+    cv_.notify_all();
+  }
+  std::vector<std::shared_ptr<const camera::Frame>> WaitFor(size_t n) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    cv_.wait_for(lock, std::chrono::seconds(120), [&] { return frames_.size() >= n; });
+    return frames_;
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::vector<std::shared_ptr<const camera::Frame>> frames_;
+};
+
+std::shared_ptr<const SimScene> ShippedScene() {
+  auto loaded = LoadRig(kBuiltinRigName);
+  EXPECT_TRUE(loaded.ok()) << loaded.status();
+  // Small images keep the test quick; the physics does not depend on the scale.
+  auto small = ApplyRigOverrides(*loaded, {"sim.render_scale=0.03"});
+  EXPECT_TRUE(small.ok()) << small.status();
+  auto scene = SimScene::FromLoadedRig(*small);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  return *scene;
+}
+
+// The emitter levels of pattern `p` (steady light), optionally with light node `dark_node` off.
+EmitterLevels PatternLevels(const SimScene& scene, int64_t p, int dark_node = -1) {
+  const Dome& dome = scene.dome();
+  const auto n = static_cast<Eigen::Index>(dome.units.size());
+  EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
+  for (Eigen::Index l = 0; l < n; ++l) {
+    const LedUnitModel& u = dome.units[static_cast<size_t>(l)];
+    if (u.node == dark_node) continue;
+    const v1::PatternRow& row = scene.schedule().light_nodes(u.node).table().rows(static_cast<int>(p));
+    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
+    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
+  }
+  return levels;
+}
+
+// Mean digital number over each cell of a 4x4 grid, on the pixels that see the subject: a signature of the image
+// whose noise averages out.
+std::vector<double> Signature(const PixelResponses& r, const std::function<double(int32_t)>& value) {
+  std::vector<double> sum(16, 0), count(16, 0);
+  for (int32_t pixel : r.pixels) {
+    const int x = pixel % r.width, y = pixel / r.width;
+    const int cell = (y * 4 / r.height) * 4 + x * 4 / r.width;
+    sum[cell] += value(pixel);
+    count[cell] += 1;
+  }
+  for (int c = 0; c < 16; ++c) sum[c] = count[c] > 20 ? sum[c] / count[c] : 0;
+  return sum;
+}
+
+// What camera `index` should read out under `levels`, as a signature.
+std::vector<double> ExpectedSignature(const SimScene& scene, CameraRenderer& renderer, const EmitterLevels& levels) {
+  const int index = renderer.camera_index();
+  const PixelResponses& r = renderer.Responses();
+  const std::vector<float> rgb = RenderRadiance(r, levels, scene.leakage(index));
+  const SensorParams& s = scene.sensor(index);
+  const double exposure_s = scene.base().TicksToNs(scene.schedule().cameras(index).exposure_ticks()) * 1e-9;
+  const double scale = s.electrons_per_radiance_s * exposure_s / s.Gain();
+  return Signature(r, [&](int32_t pixel) {
+    const int color = MosaicColor(s.mosaic, pixel % r.width, pixel / r.width);
+    return s.black_level_dn + rgb[3 * static_cast<size_t>(pixel) + static_cast<size_t>(color)] * scale;
+  });
+}
+
+// The worst cell's difference relative to the expected value, or to 20 DN (a fifth of full-on white) where that is
+// darker: dim cells have few digital numbers to compare.
+double Distance(const std::vector<double>& a, const std::vector<double>& b) {
+  double worst = 0;
+  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, std::abs(a[i] - b[i]) / std::max(20.0, b[i]));
+  return worst;
+}
+
+struct Stage {
+  std::shared_ptr<const SimScene> scene;
+  std::unique_ptr<World> world;
+  std::unique_ptr<WorldClient> client;
+  std::vector<std::unique_ptr<SimLightDriver>> lights;
+  std::vector<std::unique_ptr<Sink>> sinks;
+  std::vector<std::unique_ptr<SimCameraDevice>> cameras;
+  std::vector<std::shared_ptr<CameraRenderer>> renderers;
+  SimClock clock;
+};
+
+void BuildStage(Stage* stage) {
+  stage->scene = ShippedScene();
+  const SimScene& scene = *stage->scene;
+  WorldOptions options = scene.MakeWorldOptions(/*lockstep=*/true, 0);
+  options.end_slot = kSlots;
+  stage->world = std::make_unique<World>(scene.dome(), options);
+  stage->client = LocalWorldClient(stage->world.get());
+  for (const v1::LightNodeConfig& n : scene.rig().light_nodes()) {
+    auto driver = std::make_unique<SimLightDriver>(n.id(), n.channel_count());
+    ASSERT_TRUE(JoinLightNode(driver.get(), scene, n.id(), stage->client.get()).ok());
+    stage->lights.push_back(std::move(driver));
+  }
+  for (const v1::CameraConfig& c : scene.rig().cameras()) {
+    auto device = std::make_unique<SimCameraDevice>(&stage->clock, c.id());
+    ASSERT_TRUE(device
+                    ->Configure({.width = c.width(),
+                                 .height = c.height(),
+                                 .pixel_format = PixelFormatName(c.pixel_format()),
+                                 .frame_rate_hz = c.frame_rate_hz(),
+                                 .exposure_us = c.exposure_us(),
+                                 .gain_db = c.gain_db(),
+                                 .trigger = camera::TriggerMode::kHardware})
+                    .ok());
+    auto world = CameraWorld(stage->scene, c.id(), stage->client.get());
+    ASSERT_TRUE(world.ok()) << world.status();
+    stage->renderers.push_back(world->renderer);
+    ASSERT_TRUE(device->AttachWorld(*world).ok());
+    stage->sinks.push_back(std::make_unique<Sink>());
+    ASSERT_TRUE(device->Start(stage->sinks.back().get()).ok());
+    stage->cameras.push_back(std::move(device));
+  }
+}
+
+TEST(SimStageWorldTest, TheFullRigInLockstepDeliversEveryFrameShowingThePatternOfItsSlot) {
+  Stage stage;
+  ASSERT_NO_FATAL_FAILURE(BuildStage(&stage));
+  const SimScene& scene = *stage.scene;
+  ASSERT_EQ(scene.rig().cameras_size(), 27);
+  stage.world->Start();
+
+  const int64_t cycle = timing::CycleLength(scene.schedule());
+  ASSERT_EQ(cycle, 38);
+  int checked_high_speed = 0;
+  for (int i = 0; i < scene.rig().cameras_size(); ++i) {
+    const v1::CameraTiming& t = scene.schedule().cameras(i);
+    const bool hs = scene.rig().cameras(i).role() == v1::CAMERA_ROLE_HIGH_SPEED;
+    const size_t expected = hs ? kSlots : kSlots / 38;
+    auto frames = stage.sinks[i]->WaitFor(expected);
+    ASSERT_EQ(frames.size(), expected) << t.id();
+    const auto stats = stage.cameras[i]->world_stats();
+    EXPECT_EQ(stats.missed_triggers, 0u) << t.id();
+    EXPECT_EQ(stats.render_errors, 0u) << t.id();
+    // Cache every pattern's expected signature for this camera.
+    std::vector<std::vector<double>> expected_by_pattern;
+    for (int64_t p = 0; p < cycle; ++p) {
+      expected_by_pattern.push_back(ExpectedSignature(scene, *stage.renderers[i], PatternLevels(scene, p)));
+    }
+    const PixelResponses& r = stage.renderers[i]->Responses();
+    ASSERT_GT(r.pixels.size(), 500u) << t.id() << " sees too little of the subject to check";
+    for (size_t f = 0; f < frames.size(); ++f) {
+      const camera::Frame& frame = *frames[f];
+      const int64_t slot = hs ? static_cast<int64_t>(f) : 19 + 38 * static_cast<int64_t>(f);
+      ASSERT_TRUE(timing::FiresInSlot(t, slot));
+      EXPECT_EQ(frame.frame_id, f) << t.id();
+      EXPECT_EQ(frame.device_timestamp_ns, scene.base().SlotStartNs(slot) + scene.base().TicksToNs(t.trigger_ticks()))
+          << t.id() << " frame " << f;
+      ASSERT_EQ(static_cast<int>(frame.width), r.width);
+      ASSERT_EQ(frame.data.size(), static_cast<size_t>(r.width) * r.height);
+      const std::vector<double> seen =
+          Signature(r, [&](int32_t pixel) { return static_cast<double>(frame.data[static_cast<size_t>(pixel)]); });
+      // Its own pattern within 2 % in every cell (noise and rounding average out over a cell's pixels) ...
+      const int64_t own = slot % cycle;
+      EXPECT_LT(Distance(seen, expected_by_pattern[own]), 0.02) << t.id() << " frame " << f << " slot " << slot;
+      // ... and every other pattern further off: a frame tagged one slot off would be caught.
+      for (int64_t p = 0; p < cycle; ++p) {
+        if (p == own) continue;
+        EXPECT_GT(Distance(seen, expected_by_pattern[p]), 0.04)
+            << t.id() << " frame " << f << " (" << scene.schedule().patterns(own).name() << ") looks like pattern "
+            << scene.schedule().patterns(p).name();
+      }
+    }
+    if (hs) ++checked_high_speed;
+  }
+  EXPECT_EQ(checked_high_speed, 3);
+  for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
+}
+
+TEST(SimStageWorldTest, AKilledLightNodeLeavesItsUnitsDarkInTheImages) {
+  Stage stage;
+  ASSERT_NO_FATAL_FAILURE(BuildStage(&stage));
+  const SimScene& scene = *stage.scene;
+  // Kill light node 0 once the world reaches slot 38: a watcher device holds the world there while it does.
+  const int watcher = stage.world->Register("watcher");
+  stage.world->Start();
+  auto edge = stage.world->WaitForEdge(watcher, 38);
+  ASSERT_TRUE(edge.has_value());
+  stage.lights[0]->DetachWorld();
+  stage.world->Done(watcher, kSlots);
+
+  const int hs = scene.CameraIndex("hs-2");
+  ASSERT_GE(hs, 0);
+  auto frames = stage.sinks[hs]->WaitFor(kSlots);
+  ASSERT_EQ(frames.size(), static_cast<size_t>(kSlots));
+  const PixelResponses& r = stage.renderers[hs]->Responses();
+  int dark_frames = 0;
+  for (int64_t f = 0; f < kSlots; ++f) {
+    if (f == 38 || f == 39) continue;  // the node left while these were being lit
+    const std::vector<double> seen =
+        Signature(r, [&](int32_t pixel) { return static_cast<double>(frames[f]->data[static_cast<size_t>(pixel)]); });
+    const int64_t p = f % 38;
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p));
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p, /*dark_node=*/0));
+    if (f < 38) {
+      EXPECT_LT(Distance(seen, lit), 0.02) << "frame " << f;
+    } else {
+      EXPECT_LT(Distance(seen, dark), 0.02) << "frame " << f;
+      // Where node 0's units mattered, the frame must differ from the lit image.
+      if (Distance(lit, dark) > 0.05) {
+        EXPECT_GT(Distance(seen, lit), 0.04) << "frame " << f;
+        ++dark_frames;
+      }
+    }
+  }
+  EXPECT_GT(dark_frames, 20) << "node 0 lights too little of what hs-2 sees for the check to mean anything";
+  for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
+}
+
+}  // namespace
+}  // namespace stage::sim
