@@ -6,6 +6,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
+#include "stage/sim/world_devices.h"
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -16,6 +17,10 @@ int main(int argc, char** argv) {
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
   app.add_option("--id", id, "Id of this camera in the rig file")->required();
   app.add_option("--backend", backend, "Use this backend instead of the rig's (sim, aravis)");
+  std::string world_address;
+  app.add_option("--sim-world", world_address,
+                 "host:port of stage-sim's simulated world: the sim backend is triggered by its slot clock and renders "
+                 "the stage");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "camera-node";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -30,8 +35,34 @@ int main(int argc, char** argv) {
   stage::RealClock clock(stage::RealClock::Kind::kRealtime);
   auto device = stage::camera::CreateCameraDevice(backend, config, &clock);
   if (!device.ok()) return stage::ReportFatal(kProgram, device.status());
+  // Declared before the node: the world outlives the device, which leaves it when stopped.
+  std::unique_ptr<stage::sim::WorldClient> world;
+  stage::sim::SimCameraDevice* sim_device = nullptr;
+  if (!world_address.empty() && config.trigger().source() != stage::v1::TRIGGER_SOURCE_HARDWARE_LINE) {
+    // The world's cameras hang on its trigger bus; software triggers have no time in a lockstep world.
+    stage::Logger(kProgram)->warn(
+        "camera {}: not in the simulated world (its trigger source is not hardware-line); it shows a test pattern",
+        config.id());
+  } else if (!world_address.empty()) {
+    sim_device = dynamic_cast<stage::sim::SimCameraDevice*>(device->get());
+    if (sim_device == nullptr) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
+    }
+    auto scene = stage::sim::SimScene::FromLoadedRig(*loaded);
+    if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
+    auto connected = stage::sim::ConnectWorld(world_address);
+    if (!connected.ok()) return stage::ReportFatal(kProgram, connected.status());
+    world = std::move(*connected);
+    auto plan = stage::sim::CameraWorld(*scene, config.id(), world.get());
+    if (!plan.ok()) return stage::ReportFatal(kProgram, plan.status());
+    if (auto s = sim_device->AttachWorld(*plan); !s.ok()) return stage::ReportFatal(kProgram, s);
+  }
   auto node = stage::camera::CameraNode::Create(config, std::move(*device), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
+  // In the world the camera waits for its trigger line from the start, as a camera armed for hardware triggers does.
+  if (sim_device != nullptr) {
+    if (auto s = sim_device->Start(node->get()); !s.ok()) return stage::ReportFatal(kProgram, s);
+  }
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
                                     config.id(), (*node)->Info().role(), config.width(), config.height(),
                                     stage::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),

@@ -6,6 +6,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
+#include "stage/sim/world_devices.h"
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -16,6 +17,11 @@ int main(int argc, char** argv) {
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
   app.add_option("--id", id, "Id of this light node in the rig file")->required();
   app.add_option("--backend", backend_name, "Use this backend instead of the rig's (sim, gpiod, modbus)");
+  std::string world_address;
+  app.add_option(
+      "--sim-world", world_address,
+      "host:port of stage-sim's simulated world: the sim backend steps on its slot clock and lights its LEDs "
+      "(the table is loaded from the rig's schedule and armed)");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "light-node";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -33,6 +39,23 @@ int main(int argc, char** argv) {
   }
   auto driver = stage::light::CreateLightDriver(backend, config);
   if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
+  // Declared before the node: the world outlives the driver, which leaves it when destroyed.
+  std::unique_ptr<stage::sim::WorldClient> world;
+  if (!world_address.empty()) {
+    auto* sim_driver = dynamic_cast<stage::sim::SimLightDriver*>(driver->get());
+    if (sim_driver == nullptr) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
+    }
+    auto scene = stage::sim::SimScene::FromLoadedRig(*loaded);
+    if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
+    auto connected = stage::sim::ConnectWorld(world_address);
+    if (!connected.ok()) return stage::ReportFatal(kProgram, connected.status());
+    world = std::move(*connected);
+    const int64_t extra_ns = config.has_sim() ? static_cast<int64_t>(config.sim().extra_delay_us() * 1000) : 0;
+    if (auto s = stage::sim::JoinLightNode(sim_driver, **scene, config.id(), world.get(), extra_ns); !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+  }
   auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
   std::string summary =

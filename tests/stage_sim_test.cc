@@ -8,6 +8,7 @@
 
 #include <chrono>
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <thread>
 
@@ -15,7 +16,9 @@
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
 #include "stage/timing/pattern_set.h"
+#include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
+#include "stage/v1/light_node.grpc.pb.h"
 #include "stage/v1/sim.pb.h"
 #include "test_support.h"
 
@@ -232,6 +235,58 @@ TEST_F(StageSimTest, TriggerRehearsalThroughTheController) {
     };
     EXPECT_EQ(count("fired") + count("late") + count("missed"), 300) << cam.dump();
     EXPECT_GT(count("fired"), 0) << cam.dump();
+  }
+}
+
+// The simulated world across processes: stage-sim hosts it, each light-node steps on its slot clock and each
+// camera-node is triggered by it and renders; over 76 slots every high-speed camera completes 76 frames and every
+// machine-vision camera 2, exactly, and every light node took 76 steps.
+TEST_F(StageSimTest, TheWorldAcrossProcessesTriggersEveryCameraAndStepsEveryLight) {
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--world", "lockstep", "--world-slots", "76"}));
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  std::map<std::string, uint64_t> expected;
+  for (const auto& c : loaded->rig.cameras()) expected[c.id()] = c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? 76 : 2;
+  int cameras = 0, lights = 0;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  for (const auto& p : endpoints_.processes()) {
+    auto channel = grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials());
+    if (p.kind() == v1::NODE_KIND_CAMERA) {
+      auto stub = v1::CameraNode::NewStub(channel);
+      v1::CameraStats stats;
+      while (true) {
+        grpc::ClientContext context;
+        ASSERT_TRUE(stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok()) << p.id();
+        if (stats.frames_completed() >= expected[p.id()] || std::chrono::steady_clock::now() > deadline) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      }
+      EXPECT_EQ(stats.frames_completed(), expected[p.id()]) << p.id();
+      ++cameras;
+    } else if (p.kind() == v1::NODE_KIND_LIGHT) {
+      auto stub = v1::LightNode::NewStub(channel);
+      v1::LightStats stats;
+      while (true) {
+        grpc::ClientContext context;
+        ASSERT_TRUE(stub->GetStats(&context, v1::GetLightStatsRequest(), &stats).ok()) << p.id();
+        if (stats.steps() >= 76 || std::chrono::steady_clock::now() > deadline) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      }
+      EXPECT_EQ(stats.steps(), 76u) << p.id();
+      EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_ARMED) << p.id();
+      ++lights;
+    }
+  }
+  EXPECT_EQ(cameras, 27);
+  EXPECT_EQ(lights, 6);
+  // Nothing more arrives after the world's end.
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  for (const auto& p : endpoints_.processes()) {
+    if (p.kind() != v1::NODE_KIND_CAMERA) continue;
+    auto stub = v1::CameraNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    v1::CameraStats stats;
+    ASSERT_TRUE(stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok());
+    EXPECT_EQ(stats.frames_completed(), expected[p.id()]) << p.id();
   }
 }
 

@@ -154,7 +154,6 @@ void SimCameraDevice::TriggerLoop(int device) {
     Logger("sim")->error("sim camera {}: {}", serial_, base.status().message());
     return;
   }
-  const int64_t t0 = world->t0_ns();
   const int64_t period = base->SlotStartNs(1);
   // Lockstep: the slots this camera lets the world run ahead of its trigger, so that the light its exposure needs
   // (up to the end of the exposure) is reported while it waits for its renderer.
@@ -173,7 +172,7 @@ void SimCameraDevice::TriggerLoop(int device) {
       if (!lockstep && static_cast<int>(jobs_.size()) >= w.buffer_frames) {
         ++stats_.missed_triggers;  // busy: every buffer holds a frame not yet read out
       } else {
-        const int64_t start = t0 + base->SlotStartNs(k) + w.trigger_delay_ns;
+        const int64_t start = edge->time_ns + w.trigger_delay_ns;
         jobs_.push_back({k, start, start + w.exposure_ns, next_frame_id_++});
         ++stats_.triggers;
         jobs_changed_.notify_all();

@@ -117,7 +117,6 @@ void SimLightDriver::WorldLoop(int device) {
     Logger("sim")->error("light node {}: {}", node_id_, base.status().message());
     return;
   }
-  const int64_t t0 = world_.world->t0_ns();
   const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns;
   std::vector<double> levels(channel_count_);
   int64_t slot = 0;
@@ -129,8 +128,9 @@ void SimLightDriver::WorldLoop(int device) {
     if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));
     const light::ChannelLevels out = Outputs();
     for (size_t c = 0; c < levels.size(); ++c) levels[c] = out[c] / 65535.0;
-    world_.world->ReportLevels(world_.node_index, edge->time_ns + delay, levels,
-                               t0 + base->SlotStartNs(edge->slot + 1) + delay);
+    world_.world->ReportLevels(
+        world_.node_index, edge->time_ns + delay, levels,
+        edge->time_ns + base->SlotStartNs(edge->slot + 1) - base->SlotStartNs(edge->slot) + delay);
     slot = edge->slot + 1;
   }
 }

@@ -263,16 +263,22 @@ absl::Status StageSupervisor::Start() {
   std::string config = options_.rig;
   if (config != kBuiltinRigName) config = fs::absolute(config).string();
   // Every device is simulated: the rig's hardware backends are overridden.
+  auto device_args = [&](const std::string& id) {
+    std::vector<std::string> args = {"--id", id, "--backend", "sim"};
+    if (!options_.world_address.empty()) {
+      args.push_back("--sim-world");
+      args.push_back(options_.world_address);
+    }
+    return args;
+  };
   for (const auto& c : rig_.rig.cameras()) {
-    if (auto s = SpawnChild("camera-node", c.id(), v1::NODE_KIND_CAMERA, config, "127.0.0.1:0",
-                            {"--id", c.id(), "--backend", "sim"});
+    if (auto s = SpawnChild("camera-node", c.id(), v1::NODE_KIND_CAMERA, config, "127.0.0.1:0", device_args(c.id()));
         !s.ok()) {
       return fail(s);
     }
   }
   for (const auto& n : rig_.rig.light_nodes()) {
-    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0",
-                            {"--id", n.id(), "--backend", "sim"});
+    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0", device_args(n.id()));
         !s.ok()) {
       return fail(s);
     }

@@ -5,6 +5,7 @@
 #include <climits>
 
 #include "absl/strings/str_format.h"
+#include "stage/common/clock.h"
 
 namespace stage::sim {
 
@@ -22,10 +23,15 @@ void World::Start() {
     if (started_) return;
     started_ = true;
     if (options_.lockstep) current_ = 0;
+    // Real time without a given t0: slot 0 a moment from now.
+    if (!options_.lockstep && options_.t0_ns == 0) {
+      options_.t0_ns = RealClock(RealClock::Kind::kMonotonic).NowNs() + 100'000'000;
+    }
   }
   changed_.notify_all();
   if (!options_.lockstep) {
-    auto clock = timing::SlotClock::Create({.slot_rate_hz = options_.slot_rate_hz, .t0_ns = options_.t0_ns});
+    auto clock = timing::SlotClock::Create(
+        {.slot_rate_hz = options_.slot_rate_hz, .t0_ns = options_.t0_ns, .slot_count = options_.end_slot});
     if (clock.ok()) {
       clock_ = std::move(*clock);
       clock_->AddListener([this](const timing::SlotEdge& e) { OnRealEdge(e); });

@@ -10,9 +10,13 @@
 #include "absl/strings/string_view.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
+#include "stage/common/rig.h"
+#include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/subprocess.h"
+#include "stage/sim/scene.h"
 #include "stage/sim/stage_supervisor.h"
+#include "stage/sim/world_service.h"
 
 namespace {
 
@@ -65,6 +69,19 @@ int main(int argc, char** argv) {
                  "Where the stage controller listens, host:port (port 0 picks a free port)")
       ->capture_default_str();
   app.add_option("--child-log-level", options.child_log_level, "--log-level passed to every child");
+  std::string world_mode = "lockstep";
+  int64_t world_slots = 0;
+  app.add_option("--world", world_mode,
+                 "The simulated world the nodes share (docs/simulator.md): lockstep (time moves a slot once every "
+                 "device is done with it; deterministic), realtime (slots come with the wall clock; devices that fall "
+                 "behind miss them), or none (test-pattern cameras)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"lockstep", "realtime", "none"}));
+  app.add_option("--world-slots", world_slots,
+                 "Run the world for this many slots once the stage is up (912 = one second of the shipped rig); "
+                 "0 leaves it waiting")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{0}, int64_t{1} << 40));
   app.footer("Example: stage-sim -- stagectl status");
   if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -80,9 +97,43 @@ int main(int argc, char** argv) {
   }
 
   auto log = stage::Logger("sim.stage");
+  // The world first: the nodes join it as they start.
+  std::shared_ptr<const stage::sim::SimScene> scene;
+  std::unique_ptr<stage::sim::World> world;
+  std::unique_ptr<stage::sim::WorldService> world_service;
+  std::unique_ptr<stage::RpcServer> world_server;
+  if (world_mode != "none") {
+    auto loaded = stage::LoadRig(options.rig);
+    if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+    auto created = stage::sim::SimScene::FromLoadedRig(*loaded);
+    if (!created.ok()) return stage::ReportFatal(kProgram, created.status());
+    scene = *created;
+    const bool lockstep = world_mode == "lockstep";
+    stage::sim::WorldOptions world_options = scene->MakeWorldOptions(lockstep, 0);
+    world_options.end_slot = world_slots > 0 ? world_slots : -1;
+    world = std::make_unique<stage::sim::World>(scene->dome(), world_options);
+    stage::v1::WorldInfo info;
+    info.set_slot_rate_hz(world_options.slot_rate_hz);
+    info.set_lockstep(lockstep);
+    info.set_t0_ns(0);
+    world_service = std::make_unique<stage::sim::WorldService>(world.get(), info);
+    auto server = stage::RpcServer::Start({}, {world_service.get()});
+    if (!server.ok()) return stage::ReportFatal(kProgram, server.status());
+    world_server = std::move(*server);
+    options.world_address = world_server->address();
+  }
+  auto stop_world = [&] {
+    if (!world) return;
+    world->Stop();
+    world_service->Shutdown();
+    world_server->Shutdown();
+  };
   stage::sim::StageSupervisor supervisor(options);
   auto started_at = std::chrono::steady_clock::now();
-  if (absl::Status s = supervisor.Start(); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (absl::Status s = supervisor.Start(); !s.ok()) {
+    stop_world();
+    return stage::ReportFatal(kProgram, s);
+  }
   const auto& rig = supervisor.rig().rig;
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started_at).count();
   std::cerr << absl::StrCat("stage-sim: stage \"", rig.stage().id(), "\" is up in ",
@@ -91,6 +142,13 @@ int main(int argc, char** argv) {
                             " processing worker(s), controller at ", supervisor.endpoints().controller(),
                             "; endpoints in ", supervisor.endpoints_path())
             << std::endl;
+
+  if (world && world_slots > 0) {
+    world->Start();
+    std::cerr << absl::StrCat("stage-sim: the ", world_mode, " world runs ", world_slots, " slots (world at ",
+                              options.world_address, ")")
+              << std::endl;
+  }
 
   std::unique_ptr<stage::Subprocess> user_command;
   if (!command.empty()) {
@@ -123,6 +181,8 @@ int main(int argc, char** argv) {
       }
     }
   }
+  // The world stops first, so that no node waits on it while it is taken down.
+  stop_world();
   int killed = supervisor.Stop();
   std::cerr << "stage-sim: stage down"
             << (killed > 0 ? absl::StrCat(" (", killed, " process(es) needed SIGKILL)") : std::string()) << std::endl;

@@ -31,6 +31,9 @@ struct StageSupervisorOptions {
   std::string child_log_level;
   // Where the controller listens; port 0 picks a free one.
   std::string controller_listen = "127.0.0.1:0";
+  // The simulated world's SimWorld service (host:port), passed to every camera and light node as --sim-world; empty:
+  // nodes run without a world (test-pattern cameras, lights that light nothing).
+  std::string world_address;
 
   absl::Status Validate() const;
 };

@@ -36,7 +36,8 @@ namespace stage::sim {
 struct WorldOptions {
   uint32_t slot_rate_hz = 912;
   bool lockstep = true;
-  // Real time: host clock (CLOCK_MONOTONIC) time of slot 0, ns. Lockstep time starts at 0 = slot 0.
+  // Real time: host clock (CLOCK_MONOTONIC) time of slot 0, ns; 0 picks 100 ms after Start(). Lockstep time starts at
+  // 0 = slot 0.
   int64_t t0_ns = 0;
   // Rise and fall time of each light node's emitters (its slowest), ns, by node index.
   std::vector<int64_t> rise_ns, fall_ns;
