@@ -326,7 +326,9 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!sim->has_read_noise_e()) sim->set_read_noise_e(5);
   if (!sim->has_full_well_e()) sim->set_full_well_e(10000);
   auto* subject = sim->mutable_subject();
-  if (subject->kind().empty()) subject->set_kind("sphere");
+  if (subject->kind().empty()) subject->set_kind("head");
+  if (subject->performance().empty()) subject->set_performance("default");
+  if (!subject->has_head_resolution()) subject->set_head_resolution(256);
   if (!subject->has_size_mm()) subject->set_size_mm(subject->kind() == "plane" ? 300 : 100);
   if (subject->albedo().empty()) {
     for (double a : {0.6, 0.45, 0.35}) subject->add_albedo(a);
@@ -454,9 +456,11 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
   {
     const v1::SimSubject& subject = rig.sim().subject();
-    if (subject.kind() != "sphere" && subject.kind() != "plane") {
-      check.Add("sim.subject.kind", absl::StrCat("\"", subject.kind(), "\" is not a subject kind (sphere, plane)"));
+    if (subject.kind() != "head" && subject.kind() != "sphere" && subject.kind() != "plane") {
+      check.Add("sim.subject.kind",
+                absl::StrCat("\"", subject.kind(), "\" is not a subject kind (head, sphere, plane)"));
     }
+    check.InRange("sim.subject.head_resolution", subject.head_resolution(), 16, 4096);
     check.InRange("sim.subject.size_mm", subject.size_mm(), 1, 2000);
     if (subject.albedo_size() != 3) {
       check.Add("sim.subject.albedo", absl::StrCat("needs 3 values (linear R, G, B), has ", subject.albedo_size()));

@@ -2,11 +2,13 @@
 #include "stage/sim/scene.h"
 
 #include <cmath>
+#include <filesystem>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
+#include "stage/timing/time_base.h"
 
 namespace stage::sim {
 namespace {
@@ -20,7 +22,7 @@ uint64_t Fnv1a(const std::string& s) {
   return h;
 }
 
-absl::StatusOr<std::unique_ptr<Subject>> MakeSubject(const v1::SimSubject& config) {
+Material AnalyticMaterial(const v1::SimSubject& config) {
   Material m;
   if (config.albedo_size() == 3) {
     m.albedo = Eigen::Vector3f(static_cast<float>(config.albedo(0)), static_cast<float>(config.albedo(1)),
@@ -28,13 +30,7 @@ absl::StatusOr<std::unique_ptr<Subject>> MakeSubject(const v1::SimSubject& confi
   }
   m.specular = static_cast<float>(config.specular());
   m.roughness = static_cast<float>(config.roughness());
-  const float size = static_cast<float>(config.size_mm());
-  if (config.kind() == "sphere") return std::make_unique<SphereSubject>(Eigen::Vector3f::Zero(), size, m);
-  if (config.kind() == "plane") {
-    return std::make_unique<PlaneSubject>(Eigen::Vector3f::Zero(), Eigen::Vector3f::UnitZ(), size, m);
-  }
-  return absl::InvalidArgumentError(
-      absl::StrCat("sim.subject.kind: \"", config.kind(), "\" is not a subject kind (sphere, plane)"));
+  return m;
 }
 
 }  // namespace
@@ -71,17 +67,66 @@ std::vector<uint8_t> PackRaw(const RawImage& raw, const std::string& pixel_forma
 
 absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::FromLoadedRig(const LoadedRig& loaded) {
   STAGE_ASSIGN_OR_RETURN(timing::PatternSet patterns, timing::LoadRigPatternSet(loaded.rig, loaded.base_dir));
-  return Create(loaded.rig, patterns);
+  return Create(loaded.rig, patterns, loaded.base_dir);
+}
+
+absl::Status SimScene::MakeSubject(const std::string& base_dir) {
+  const v1::SimSubject& config = rig_.sim().subject();
+  const float size = static_cast<float>(config.size_mm());
+  if (config.kind() == "sphere") {
+    still_ = std::make_shared<SphereSubject>(Eigen::Vector3f::Zero(), size, AnalyticMaterial(config));
+    return absl::OkStatus();
+  }
+  if (config.kind() == "plane") {
+    still_ = std::make_shared<PlaneSubject>(Eigen::Vector3f::Zero(), Eigen::Vector3f::UnitZ(), size,
+                                            AnalyticMaterial(config));
+    return absl::OkStatus();
+  }
+  if (config.kind() != "head") {
+    return absl::InvalidArgumentError(
+        absl::StrCat("sim.subject.kind: \"", config.kind(), "\" is not a subject kind (head, sphere, plane)"));
+  }
+  head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()));
+  if (config.performance() == "default") {
+    performance_ = Performance::Default();
+  } else if (config.performance() == "still") {
+    performance_.keys = {{0.0, HeadPose{}}};
+  } else {
+    std::filesystem::path path(config.performance());
+    if (path.is_relative() && !base_dir.empty()) path = std::filesystem::path(base_dir) / path;
+    STAGE_ASSIGN_OR_RETURN(performance_, Performance::FromYaml(path.string()));
+  }
+  if (!animated()) still_ = head_->Posed(performance_.At(0));
+  return absl::OkStatus();
+}
+
+HeadPose SimScene::PoseAt(int64_t frame) const {
+  if (head_ == nullptr) return {};
+  const double cycle_s = static_cast<double>(timing::CycleLength(schedule_)) / base_.slot_rate_hz();
+  return performance_.At((static_cast<double>(frame) + 0.5) * cycle_s);
+}
+
+std::shared_ptr<const Subject> SimScene::SubjectAt(int64_t frame) const {
+  if (!animated()) return still_;
+  std::lock_guard<std::mutex> lock(cache_mutex_);
+  for (const auto& [f, subject] : cache_) {
+    if (f == frame) return subject;
+  }
+  std::shared_ptr<const Subject> posed = head_->Posed(PoseAt(frame));
+  cache_.emplace_back(frame, posed);
+  if (cache_.size() > 4) cache_.erase(cache_.begin());
+  return posed;
 }
 
 absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::Create(const v1::RigConfig& rig,
-                                                                 const timing::PatternSet& patterns) {
+                                                                 const timing::PatternSet& patterns,
+                                                                 const std::string& base_dir) {
   std::shared_ptr<SimScene> scene(new SimScene());
   scene->rig_ = rig;
   STAGE_ASSIGN_OR_RETURN(scene->schedule_, timing::CompileSchedule(rig, patterns));
   scene->base_ = timing::TimeBase::FromProto(scene->schedule_.time_base());
   scene->dome_ = Dome::FromRig(rig, rig.sim().dome_radius_mm());
-  STAGE_ASSIGN_OR_RETURN(scene->subject_, MakeSubject(rig.sim().subject()));
+  STAGE_RETURN_IF_ERROR(scene->MakeSubject(base_dir));
   for (int i = 0; i < rig.cameras_size(); ++i) {
     const v1::CameraConfig& c = rig.cameras(i);
     STAGE_ASSIGN_OR_RETURN(CameraModel model, CameraModel::FromConfig(c, rig.sim().render_scale()));
@@ -152,18 +197,23 @@ CameraRenderer::CameraRenderer(std::shared_ptr<const SimScene> scene, int camera
       threads_(threads),
       stream_(Fnv1a(scene_->rig().cameras(camera_index).id())) {}
 
-const PixelResponses& CameraRenderer::Responses() {
-  std::call_once(once_, [this] {
-    responses_ = ComputeResponses(scene_->camera(index_), scene_->subject(), scene_->dome(), threads_);
-  });
+std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_frame) {
+  if (!scene_->animated()) pose_frame = 0;
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (responses_ == nullptr || responses_frame_ != pose_frame) {
+    auto subject = scene_->SubjectAt(pose_frame);
+    responses_ = std::make_shared<const PixelResponses>(
+        ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_));
+    responses_frame_ = pose_frame;
+  }
   return responses_;
 }
 
-RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t frame) {
-  const PixelResponses& r = Responses();
-  const std::vector<float> rgb = RenderRadiance(r, levels, scene_->leakage(index_));
-  return ExposeSensor(rgb, r.width, r.height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(), stream_,
-                      frame);
+RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame) {
+  const std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
+  const std::vector<float> rgb = RenderRadiance(*r, levels, scene_->leakage(index_));
+  return ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(), stream_,
+                      counter);
 }
 
 }  // namespace stage::sim

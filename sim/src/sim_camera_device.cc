@@ -211,7 +211,8 @@ void SimCameraDevice::RenderLoop() {
       jobs_changed_.notify_all();
       continue;
     }
-    const RawImage raw = w.renderer->Render(*levels, (job.t1_ns - job.t0_ns) * 1e-9, job.frame_id);
+    const RawImage raw = w.renderer->Render(*levels, (job.t1_ns - job.t0_ns) * 1e-9, job.frame_id,
+                                            job.slot / std::max<int64_t>(1, w.cycle_slots));
     auto frame = std::make_shared<camera::Frame>();
     frame->frame_id = job.frame_id;
     frame->device_timestamp_ns =

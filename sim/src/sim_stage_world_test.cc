@@ -79,9 +79,10 @@ std::vector<double> Signature(const PixelResponses& r, const std::function<doubl
 }
 
 // What camera `index` should read out under `levels`, as a signature.
-std::vector<double> ExpectedSignature(const SimScene& scene, CameraRenderer& renderer, const EmitterLevels& levels) {
+std::vector<double> ExpectedSignature(const SimScene& scene, CameraRenderer& renderer, const EmitterLevels& levels,
+                                      int64_t pose_frame) {
   const int index = renderer.camera_index();
-  const PixelResponses& r = renderer.Responses();
+  const PixelResponses& r = *renderer.Responses(pose_frame);
   const std::vector<float> rgb = RenderRadiance(r, levels, scene.leakage(index));
   const SensorParams& s = scene.sensor(index);
   const double exposure_s = scene.base().TicksToNs(scene.schedule().cameras(index).exposure_ticks()) * 1e-9;
@@ -163,16 +164,21 @@ TEST(SimStageWorldTest, TheFullRigInLockstepDeliversEveryFrameShowingThePatternO
     const auto stats = stage.cameras[i]->world_stats();
     EXPECT_EQ(stats.missed_triggers, 0u) << t.id();
     EXPECT_EQ(stats.render_errors, 0u) << t.id();
-    // Cache every pattern's expected signature for this camera.
-    std::vector<std::vector<double>> expected_by_pattern;
-    for (int64_t p = 0; p < cycle; ++p) {
-      expected_by_pattern.push_back(ExpectedSignature(scene, *stage.renderers[i], PatternLevels(scene, p)));
-    }
-    const PixelResponses& r = stage.renderers[i]->Responses();
-    ASSERT_GT(r.pixels.size(), 500u) << t.id() << " sees too little of the subject to check";
     for (size_t f = 0; f < frames.size(); ++f) {
       const camera::Frame& frame = *frames[f];
       const int64_t slot = hs ? static_cast<int64_t>(f) : 19 + 38 * static_cast<int64_t>(f);
+      // The head moves from one virtual frame to the next: expected images of every pattern in this one.
+      const int64_t pose = slot / cycle;
+      static thread_local std::map<int64_t, std::vector<std::vector<double>>> by_pose;
+      if (f == 0) by_pose.clear();
+      auto& expected_by_pattern = by_pose[pose];
+      if (expected_by_pattern.empty()) {
+        for (int64_t p = 0; p < cycle; ++p) {
+          expected_by_pattern.push_back(ExpectedSignature(scene, *stage.renderers[i], PatternLevels(scene, p), pose));
+        }
+      }
+      const PixelResponses& r = *stage.renderers[i]->Responses(pose);
+      ASSERT_GT(r.pixels.size(), 300u) << t.id() << " sees too little of the subject to check";
       ASSERT_TRUE(timing::FiresInSlot(t, slot));
       EXPECT_EQ(frame.frame_id, f) << t.id();
       EXPECT_EQ(frame.device_timestamp_ns, scene.base().SlotStartNs(slot) + scene.base().TicksToNs(t.trigger_ticks()))
@@ -214,15 +220,16 @@ TEST(SimStageWorldTest, AKilledLightNodeLeavesItsUnitsDarkInTheImages) {
   ASSERT_GE(hs, 0);
   auto frames = stage.sinks[hs]->WaitFor(kSlots);
   ASSERT_EQ(frames.size(), static_cast<size_t>(kSlots));
-  const PixelResponses& r = stage.renderers[hs]->Responses();
   int dark_frames = 0;
   for (int64_t f = 0; f < kSlots; ++f) {
     if (f == 38 || f == 39) continue;  // the node left while these were being lit
+    const int64_t pose = f / 38;
+    const PixelResponses& r = *stage.renderers[hs]->Responses(pose);
     const std::vector<double> seen =
         Signature(r, [&](int32_t pixel) { return static_cast<double>(frames[f]->data[static_cast<size_t>(pixel)]); });
     const int64_t p = f % 38;
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p));
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p, /*dark_node=*/0));
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p), pose);
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p, /*dark_node=*/0), pose);
     if (f < 38) {
       EXPECT_LT(Distance(seen, lit), 0.02) << "frame " << f;
     } else {

@@ -3,6 +3,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
+#include "stage/timing/schedule.h"
 
 namespace stage::sim {
 
@@ -49,6 +50,7 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   w.phase = t.slot_phase();
   w.trigger_delay_ns = base.TicksToNs(t.trigger_ticks());
   w.exposure_ns = base.TicksToNs(t.exposure_ticks());
+  w.cycle_slots = timing::CycleLength(scene->schedule());
   w.renderer = std::make_shared<CameraRenderer>(std::move(scene), index);
   return w;
 }

@@ -12,6 +12,7 @@
 #include "stage/common/rig.h"
 #include "stage/sim/camera_model.h"
 #include "stage/sim/dome.h"
+#include "stage/sim/head.h"
 #include "stage/sim/light_transport.h"
 #include "stage/sim/sensor_model.h"
 #include "stage/sim/subject.h"
@@ -24,9 +25,11 @@ namespace stage::sim {
 
 class SimScene {
  public:
-  // `rig` with defaults applied and validated; `patterns` resolved against it.
+  // `rig` with defaults applied and validated; `patterns` resolved against it; files the rig names (a performance) are
+  // relative to `base_dir`.
   static absl::StatusOr<std::shared_ptr<const SimScene>> Create(const v1::RigConfig& rig,
-                                                                const timing::PatternSet& patterns);
+                                                                const timing::PatternSet& patterns,
+                                                                const std::string& base_dir = "");
   // Loads the rig's pattern set (relative to the rig file) and creates the scene.
   static absl::StatusOr<std::shared_ptr<const SimScene>> FromLoadedRig(const LoadedRig& loaded);
 
@@ -34,7 +37,14 @@ class SimScene {
   const v1::Schedule& schedule() const { return schedule_; }
   const timing::TimeBase& base() const { return base_; }
   const Dome& dome() const { return dome_; }
-  const Subject& subject() const { return *subject_; }
+  // The subject during virtual frame `frame` (slot / patterns per cycle): a performance holds each pose for one
+  // cycle, sampled at its middle. Thread-safe; the last few poses are kept.
+  std::shared_ptr<const Subject> SubjectAt(int64_t frame) const;
+  // The head's pose in that frame (neutral for the analytic subjects); the head model, or null.
+  HeadPose PoseAt(int64_t frame) const;
+  const HeadModel* head() const { return head_.get(); }
+  // True when the subject moves (SubjectAt differs between frames).
+  bool animated() const { return head_ != nullptr && performance_.keys.size() > 1; }
 
   // Index in the rig, or -1.
   int CameraIndex(const std::string& id) const;
@@ -54,11 +64,16 @@ class SimScene {
 
  private:
   SimScene() = default;
+  absl::Status MakeSubject(const std::string& base_dir);
   v1::RigConfig rig_;
   v1::Schedule schedule_;
   timing::TimeBase base_;
   Dome dome_;
-  std::unique_ptr<Subject> subject_;
+  std::shared_ptr<const Subject> still_;  // the analytic subjects, or an unmoving head
+  std::shared_ptr<const HeadModel> head_;
+  Performance performance_;
+  mutable std::mutex cache_mutex_;
+  mutable std::vector<std::pair<int64_t, std::shared_ptr<const Subject>>> cache_;  // guarded by cache_mutex_
   std::vector<CameraModel> cameras_;
   std::vector<float> leakages_;
   std::vector<SensorParams> sensors_;
@@ -72,16 +87,19 @@ class CameraRenderer {
 
   const SimScene& scene() const { return *scene_; }
   int camera_index() const { return index_; }
-  const PixelResponses& Responses();
-  // The raw sensor frame of an exposure of `exposure_s` under `levels`; `frame` selects the noise.
-  RawImage Render(const EmitterLevels& levels, double exposure_s, uint64_t frame);
+  // The responses in virtual frame `pose_frame` (computed when the pose changes; the latest is kept).
+  std::shared_ptr<const PixelResponses> Responses(int64_t pose_frame = 0);
+  // The raw sensor frame of an exposure of `exposure_s` under `levels` in virtual frame `pose_frame`; `counter` (the
+  // camera's frame counter) selects the noise.
+  RawImage Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame = 0);
 
  private:
   std::shared_ptr<const SimScene> scene_;
   int index_;
   int threads_;
-  std::once_flag once_;
-  PixelResponses responses_;
+  std::mutex mutex_;
+  int64_t responses_frame_ = -1;                     // guarded by mutex_
+  std::shared_ptr<const PixelResponses> responses_;  // guarded by mutex_
   uint64_t stream_;
 };
 

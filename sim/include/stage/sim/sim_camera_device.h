@@ -36,6 +36,8 @@ struct SimCameraWorld {
   uint32_t phase = 0;
   int64_t trigger_delay_ns = 0;
   int64_t exposure_ns = 1'000'000;
+  // Slots per cycle of patterns: the subject's pose changes from one cycle (virtual frame) to the next.
+  int64_t cycle_slots = 38;
   // Real-time world: triggers that arrive while this many frames wait to be rendered are missed (the camera is busy),
   // as on a camera whose buffers are full. A lockstep world instead waits for the renderer.
   int buffer_frames = 8;

@@ -27,6 +27,9 @@ struct Hit {
   Eigen::Vector3f geometric_normal = Eigen::Vector3f::UnitZ();
   Eigen::Vector3f normal = Eigen::Vector3f::UnitZ();
   Material material;
+  // Texture coordinates of the point (meshes; 0 elsewhere) and which part it belongs to (0 skin, 1 eye).
+  Eigen::Vector2f uv = Eigen::Vector2f::Zero();
+  int part = 0;
 };
 
 class Subject {

@@ -1,0 +1,156 @@
+// stage-sim-render: renders what one simulated camera sees under every pattern of the rig's set, without bringing a
+// stage up, as a contact sheet PNG (and the raw frames as PGM), for people to look at the simulator.
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "stage/common/cli.h"
+#include "stage/common/logging.h"
+#include "stage/common/rig.h"
+#include "stage/sim/scene.h"
+#include "stage/timing/schedule.h"
+
+namespace {
+
+constexpr const char* kProgram = "stage-sim-render";
+
+// The steady emitter levels of pattern `p`.
+stage::sim::EmitterLevels PatternLevels(const stage::sim::SimScene& scene, int p) {
+  const auto& units = scene.dome().units;
+  const auto n = static_cast<Eigen::Index>(units.size());
+  stage::sim::EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
+  for (Eigen::Index l = 0; l < n; ++l) {
+    const auto& u = units[static_cast<size_t>(l)];
+    const auto& row = scene.schedule().light_nodes(u.node).table().rows(p);
+    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
+    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
+  }
+  return levels;
+}
+
+// A raw frame as a viewable 8-bit BGR image: demosaiced, scaled so full-on white is near 80 % and gamma-encoded.
+cv::Mat Viewable(const stage::sim::RawImage& raw, const stage::sim::SensorParams& sensor, double white_dn) {
+  cv::Mat linear(raw.height, raw.width, CV_32F);
+  for (int i = 0; i < raw.width * raw.height; ++i) {
+    linear.at<float>(i / raw.width, i % raw.width) =
+        static_cast<float>(std::max(0.0, (raw.data[static_cast<size_t>(i)] - sensor.black_level_dn) / white_dn));
+  }
+  cv::Mat bgr;
+  if (sensor.mosaic == "mono") {
+    cv::cvtColor(linear, bgr, cv::COLOR_GRAY2BGR);
+  } else {
+    cv::Mat raw16;
+    linear.convertTo(raw16, CV_16U, 65535.0 / 2);  // headroom for highlights up to 2x white
+    // GenICam's BayerRG (R at the first pixel) is OpenCV's BayerBG, and so on.
+    const int code = sensor.mosaic == "RG"   ? cv::COLOR_BayerBG2BGR
+                     : sensor.mosaic == "GR" ? cv::COLOR_BayerGB2BGR
+                     : sensor.mosaic == "GB" ? cv::COLOR_BayerGR2BGR
+                                             : cv::COLOR_BayerRG2BGR;
+    cv::Mat bgr16;
+    cv::cvtColor(raw16, bgr16, code);
+    bgr16.convertTo(bgr, CV_32F, 2.0 / 65535.0);
+  }
+  cv::Mat out(bgr.size(), CV_8UC3);
+  bgr.forEach<cv::Vec3f>([&](cv::Vec3f& v, const int* pos) {
+    cv::Vec3b& o = out.at<cv::Vec3b>(pos[0], pos[1]);
+    for (int c = 0; c < 3; ++c)
+      o[c] = cv::saturate_cast<uint8_t>(255 * std::pow(std::clamp(0.8f * v[c], 0.f, 1.f), 1 / 2.2f));
+  });
+  return out;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Renders one simulated camera under every pattern of the rig's pattern set (steady light, the sensor "
+      "model's noise) and writes a contact sheet PNG: what that camera would record in one cycle.",
+      kProgram};
+  stage::CommonFlags flags;
+  stage::AddCommonFlags(app, &flags, /*serves=*/false);
+  std::string camera_id = "hs-2";
+  std::string out = "contact-sheet.png";
+  int64_t frame = 0;
+  int columns = 8;
+  double tile_width = 0;
+  bool json = false;
+  std::vector<std::string> overrides;
+  app.add_option("--camera", camera_id, "Camera to render")->capture_default_str();
+  app.add_option("--frame", frame, "Virtual frame of the performance (the head's pose)")->capture_default_str();
+  app.add_option("--out", out, "Contact sheet PNG to write")->capture_default_str();
+  app.add_option("--columns", columns, "Tiles per row")->capture_default_str()->check(CLI::Range(1, 64));
+  app.add_option("--tile-width", tile_width, "Width of a tile in pixels (0: as rendered)")->check(CLI::Range(0, 8192));
+  app.add_option("--set", overrides, "Override a rig field, PATH=VALUE (e.g. sim.render_scale=0.25); repeatable");
+  app.add_flag("--json", json, "Print what was rendered as JSON");
+  if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
+  if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+
+  auto loaded = stage::LoadRig(flags.config);
+  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  auto rig = stage::ApplyRigOverrides(*loaded, overrides);
+  if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
+  auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
+  if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
+  const int index = (*scene)->CameraIndex(camera_id);
+  if (index < 0) {
+    return stage::ReportFatal(
+        kProgram, absl::NotFoundError(absl::StrCat("camera \"", camera_id, "\" is not in ", rig->source_name)));
+  }
+  stage::sim::CameraRenderer renderer(*scene, index);
+  const auto t0 = std::chrono::steady_clock::now();
+  auto responses = renderer.Responses(frame);
+  const double precompute_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const auto& schedule = (*scene)->schedule();
+  const int patterns = static_cast<int>(stage::timing::CycleLength(schedule));
+  const auto& sensor = (*scene)->sensor(index);
+  const double exposure_s = (*scene)->base().TicksToNs(schedule.cameras(index).exposure_ticks()) * 1e-9;
+  const double white_dn = (*scene)->rig().sim().full_on_electrons() / sensor.Gain();
+  std::vector<cv::Mat> tiles;
+  const auto t1 = std::chrono::steady_clock::now();
+  for (int p = 0; p < patterns; ++p) {
+    const auto raw = renderer.Render(PatternLevels(**scene, p), exposure_s, static_cast<uint64_t>(p), frame);
+    cv::Mat tile = Viewable(raw, sensor, white_dn);
+    if (tile_width > 0) {
+      cv::resize(tile, tile,
+                 cv::Size(static_cast<int>(tile_width), static_cast<int>(tile_width * tile.rows / tile.cols)), 0, 0,
+                 cv::INTER_AREA);
+    }
+    cv::putText(tile, schedule.patterns(p).name(), cv::Point(4, tile.rows - 6), cv::FONT_HERSHEY_SIMPLEX,
+                std::max(0.3, tile.cols / 400.0), cv::Scalar(255, 255, 255), 1, cv::LINE_AA);
+    tiles.push_back(tile);
+  }
+  const double render_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+  const int rows = (patterns + columns - 1) / columns;
+  cv::Mat sheet(rows * tiles[0].rows, columns * tiles[0].cols, CV_8UC3, cv::Scalar(40, 40, 40));
+  for (int p = 0; p < patterns; ++p) {
+    tiles[p].copyTo(
+        sheet(cv::Rect((p % columns) * tiles[0].cols, (p / columns) * tiles[0].rows, tiles[0].cols, tiles[0].rows)));
+  }
+  if (!cv::imwrite(out, sheet)) {
+    return stage::ReportFatal(kProgram, absl::UnavailableError(absl::StrCat(out, ": cannot write the PNG")));
+  }
+  if (json) {
+    nlohmann::json j = {{"camera", camera_id},
+                        {"frame", frame},
+                        {"width", responses->width},
+                        {"height", responses->height},
+                        {"subject_pixels", responses->pixels.size()},
+                        {"patterns", patterns},
+                        {"precompute_s", precompute_s},
+                        {"render_s_per_pattern", render_s / patterns},
+                        {"out", out}};
+    std::cout << j.dump(2) << std::endl;
+  } else {
+    std::cout << absl::StrCat(camera_id, ": ", responses->width, "x", responses->height, ", ", responses->pixels.size(),
+                              " pixels on the subject; responses in ", precompute_s, " s, ", patterns, " patterns in ",
+                              render_s, " s; wrote ", out)
+              << std::endl;
+  }
+  return 0;
+}

@@ -1,0 +1,421 @@
+// The procedural head, its expressions, performances and skin.
+#include "stage/sim/head.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+
+#include "absl/strings/str_cat.h"
+
+namespace stage::sim {
+namespace {
+
+constexpr float kPi = 3.14159265358979323846f;
+constexpr const char* kNames[kExpressionCount] = {"jaw_open",    "smile_left", "smile_right", "blink_left",
+                                                  "blink_right", "brow_raise", "frown",       "pucker"};
+enum { kJaw, kSmileL, kSmileR, kBlinkL, kBlinkR, kBrow, kFrown, kPucker };
+
+// Eye placement (head frame, angles): azimuth from +z towards +x, elevation.
+constexpr float kEyeTheta = 0.36f, kEyePhi = 0.10f, kEyeRadius = 12;
+// The neck pivot the head turns about, mm.
+const Eigen::Vector3f kPivot(0, -95, -15);
+
+float AngleDiff(float a, float b) { return std::remainder(a - b, 2 * kPi); }
+float G(float d, float s) { return std::exp(-0.5f * (d / s) * (d / s)); }
+// A bump centred at (th0, ph0) with angular widths (sth, sph).
+float Blob(float th, float ph, float th0, float ph0, float sth, float sph) {
+  return G(AngleDiff(th, th0), sth) * G(ph - ph0, sph);
+}
+float Both(float th, float ph, float th0, float ph0, float sth, float sph) {
+  return Blob(th, ph, th0, ph0, sth, sph) + Blob(th, ph, -th0, ph0, sth, sph);
+}
+float Smooth(float e0, float e1, float x) {
+  const float t = std::clamp((x - e0) / (e1 - e0), 0.0f, 1.0f);
+  return t * t * (3 - 2 * t);
+}
+Eigen::Vector3f Dir(float th, float ph) {
+  return {std::sin(th) * std::cos(ph), std::sin(ph), std::cos(th) * std::cos(ph)};
+}
+Eigen::Vector3f ETheta(float th) { return {std::cos(th), 0, -std::sin(th)}; }
+Eigen::Vector3f EPhi(float th, float ph) {
+  return {-std::sin(th) * std::sin(ph), std::cos(ph), -std::cos(th) * std::sin(ph)};
+}
+
+// Distance from the head centre to the skin in direction (th, ph), neutral, mm.
+float Radius(float th, float ph) {
+  const Eigen::Vector3f d = Dir(th, ph);
+  const float ax = 76, ay = 112, az = 98;
+  float r = 1 / std::sqrt((d.x() / ax) * (d.x() / ax) + (d.y() / ay) * (d.y() / ay) + (d.z() / az) * (d.z() / az));
+  // The jaw narrows below the cheekbones.
+  r *= 1 - 0.14f * Smooth(-0.15f, -0.8f, ph) * std::sin(th) * std::sin(th);
+  r += 26 * Blob(th, ph, 0, -0.08f, 0.10f, 0.20f) + 7 * Blob(th, ph, 0, -0.22f, 0.07f, 0.06f);  // nose, tip
+  r += 5 * Both(th, ph, 0.11f, -0.24f, 0.05f, 0.05f);                                           // nostril wings
+  r -= 13 * Both(th, ph, kEyeTheta, kEyePhi, 0.15f, 0.09f);                                     // eye sockets
+  r += 6 * Both(th, ph, kEyeTheta, 0.23f, 0.20f, 0.05f);                                        // brow ridges
+  r += 8 * Both(th, ph, 0.62f, -0.08f, 0.18f, 0.15f);                                           // cheekbones
+  r += 8 * Blob(th, ph, 0, -0.43f, 0.22f, 0.05f) + 8 * Blob(th, ph, 0, -0.54f, 0.20f, 0.05f);   // lips
+  r -= 4 * Blob(th, ph, 0, -0.485f, 0.18f, 0.012f);                                             // mouth line
+  r += 10 * Blob(th, ph, 0, -0.78f, 0.22f, 0.12f);                                              // chin
+  r += 20 * Both(th, ph, kPi / 2 + 0.05f, 0.02f, 0.10f, 0.20f);                                 // ears
+  r += 6 * Blob(th, ph, kPi, 0.2f, 0.6f, 0.5f);                                                 // back of the skull
+  return r;
+}
+
+// Displacement of the skin point in direction (th, ph) at weight 1 of expression `e`, mm.
+Eigen::Vector3f Delta(int e, float th, float ph, const Eigen::Vector3f& p) {
+  const Eigen::Vector3f d = Dir(th, ph), et = ETheta(th), ep = EPhi(th, ph);
+  const float side = th >= 0 ? 1.0f : -1.0f;  // +: the performer's left
+  switch (e) {
+    case kJaw: {
+      // The lower face turns down about the jaw hinge; the mouth line sinks into a dark opening.
+      const float s = Smooth(-0.45f, -0.53f, ph) * G(AngleDiff(th, 0), 1.1f);
+      const Eigen::Vector3f hinge(0, -20, -30);
+      const Eigen::AngleAxisf turn(14 * kPi / 180, Eigen::Vector3f::UnitX());
+      return s * (turn * (p - hinge) + hinge - p) - 14 * Blob(th, ph, 0, -0.485f, 0.16f, 0.02f) * d;
+    }
+    case kSmileL:
+    case kSmileR: {
+      const float sgn = e == kSmileL ? 1.0f : -1.0f;
+      const float corner = Blob(th, ph, sgn * 0.2f, -0.48f, 0.12f, 0.10f);
+      const float cheek = Blob(th, ph, sgn * 0.45f, -0.2f, 0.15f, 0.12f);
+      return corner * (5 * ep + 3 * d + 3 * sgn * et) + 3 * cheek * d;
+    }
+    case kBlinkL:
+    case kBlinkR: {
+      const float sgn = e == kBlinkL ? 1.0f : -1.0f;
+      return 5.5f * Blob(th, ph, sgn * kEyeTheta, kEyePhi, 0.13f, 0.085f) * d;
+    }
+    case kBrow:
+      return 6 * Both(th, ph, kEyeTheta, 0.25f, 0.25f, 0.10f) * ep + 2 * Blob(th, ph, 0, 0.45f, 0.5f, 0.12f) * ep;
+    case kFrown: {
+      const float b = Both(th, ph, 0.25f, 0.22f, 0.15f, 0.08f);
+      return b * (-4 * ep - 4 * side * et + 1.5f * d);
+    }
+    case kPucker: {
+      const float b = Blob(th, ph, 0, -0.485f, 0.2f, 0.09f);
+      return b * (9 * d - 5 * side * std::min(1.0f, std::abs(th) / 0.1f) * et);
+    }
+    default:
+      return Eigen::Vector3f::Zero();
+  }
+}
+
+uint64_t Mix(uint64_t x) {
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+float Rand(uint64_t seed, int64_t ix, int64_t iy, int k) {
+  const uint64_t h = Mix(seed ^ Mix(static_cast<uint64_t>(ix) * 73856093ull ^ static_cast<uint64_t>(iy) * 19349663ull ^
+                                    static_cast<uint64_t>(k) * 83492791ull));
+  return static_cast<float>(h >> 40) / static_cast<float>(1ull << 24);
+}
+
+// Smooth value noise in [0, 1] at (x, y) in cells.
+float ValueNoise(uint64_t seed, float x, float y) {
+  const float fx = std::floor(x), fy = std::floor(y);
+  const auto ix = static_cast<int64_t>(fx), iy = static_cast<int64_t>(fy);
+  const float tx = Smooth(0, 1, x - fx), ty = Smooth(0, 1, y - fy);
+  const float a = Rand(seed, ix, iy, 0), b = Rand(seed, ix + 1, iy, 0), c = Rand(seed, ix, iy + 1, 0),
+              d = Rand(seed, ix + 1, iy + 1, 0);
+  return (a * (1 - tx) + b * tx) * (1 - ty) + (c * (1 - tx) + d * tx) * ty;
+}
+
+// Texels across the skin maps at their nominal ("4K") resolution.
+constexpr float kTexels = 4096;
+// Pores: one candidate per 12x12-texel cell; diameters 2 to 10 texels.
+constexpr float kPoreCell = 12;
+
+// The pore field at uv: depth in [0, 1] (1 at a pore's centre).
+float Pores(uint64_t seed, const Eigen::Vector2f& uv) {
+  const float x = uv.x() * kTexels / kPoreCell, y = uv.y() * kTexels / kPoreCell;
+  const auto cx = static_cast<int64_t>(std::floor(x)), cy = static_cast<int64_t>(std::floor(y));
+  float depth = 0;
+  for (int64_t j = cy - 1; j <= cy + 1; ++j) {
+    for (int64_t i = cx - 1; i <= cx + 1; ++i) {
+      if (Rand(seed, i, j, 1) > 0.8f) continue;
+      const float px = static_cast<float>(i) + Rand(seed, i, j, 2), py = static_cast<float>(j) + Rand(seed, i, j, 3);
+      const float radius = (1 + 4 * Rand(seed, i, j, 4)) / kPoreCell;  // 1..5 texels, in cells
+      const float q = ((x - px) * (x - px) + (y - py) * (y - py)) / (radius * radius);
+      if (q < 1) depth = std::max(depth, (1 - q) * (1 - q));
+    }
+  }
+  return depth;
+}
+
+// Freckles: soft spots of 20 to 60 texels, in [0, 1].
+float Freckles(uint64_t seed, const Eigen::Vector2f& uv) {
+  constexpr float kCell = 64;
+  const float x = uv.x() * kTexels / kCell, y = uv.y() * kTexels / kCell;
+  const auto cx = static_cast<int64_t>(std::floor(x)), cy = static_cast<int64_t>(std::floor(y));
+  float spot = 0;
+  for (int64_t j = cy - 1; j <= cy + 1; ++j) {
+    for (int64_t i = cx - 1; i <= cx + 1; ++i) {
+      if (Rand(seed, i, j, 5) > 0.35f) continue;
+      const float px = static_cast<float>(i) + Rand(seed, i, j, 6), py = static_cast<float>(j) + Rand(seed, i, j, 7);
+      const float radius = (10 + 20 * Rand(seed, i, j, 8)) / kCell;
+      const float q = ((x - px) * (x - px) + (y - py) * (y - py)) / (radius * radius);
+      spot = std::max(spot, std::exp(-3 * q) * (0.5f + 0.5f * Rand(seed, i, j, 9)));
+    }
+  }
+  return spot;
+}
+
+}  // namespace
+
+const char* ExpressionName(int index) { return index >= 0 && index < kExpressionCount ? kNames[index] : ""; }
+
+int ExpressionIndex(const std::string& name) {
+  for (int i = 0; i < kExpressionCount; ++i) {
+    if (name == kNames[i]) return i;
+  }
+  return -1;
+}
+
+HeadPose Performance::At(double t_s) const {
+  if (keys.empty()) return {};
+  if (t_s <= keys.front().first) return keys.front().second;
+  if (t_s >= keys.back().first) return keys.back().second;
+  auto next = std::upper_bound(keys.begin(), keys.end(), t_s,
+                               [](double t, const std::pair<double, HeadPose>& k) { return t < k.first; });
+  const auto& [t1, b] = *next;
+  const auto& [t0, a] = *std::prev(next);
+  const float s = Smooth(0, 1, static_cast<float>((t_s - t0) / (t1 - t0)));
+  HeadPose out;
+  for (int i = 0; i < kExpressionCount; ++i)
+    out.expression[i] = a.expression[i] + s * (b.expression[i] - a.expression[i]);
+  out.rotation_deg = a.rotation_deg + s * (b.rotation_deg - a.rotation_deg);
+  out.translation_mm = a.translation_mm + s * (b.translation_mm - a.translation_mm);
+  return out;
+}
+
+Performance Performance::Default() {
+  Performance p;
+  auto key = [&](double t, std::initializer_list<std::pair<int, float>> expr, Eigen::Vector3f rot = {0, 0, 0}) {
+    HeadPose pose;
+    for (auto [i, w] : expr) pose.expression[i] = w;
+    pose.rotation_deg = rot;
+    p.keys.emplace_back(t, pose);
+  };
+  key(0.0, {});
+  key(0.4, {{kBrow, 1}});
+  key(0.8, {{kSmileL, 1}, {kSmileR, 1}});
+  key(1.2, {{kJaw, 1}});
+  key(1.5, {{kBlinkL, 1}, {kBlinkR, 1}});
+  key(1.8, {{kFrown, 1}});
+  key(2.2, {{kPucker, 1}});
+  key(2.5, {{kSmileL, 1}, {kBlinkR, 1}});
+  key(2.8, {{kSmileR, 1}, {kBlinkL, 1}});
+  key(3.2, {}, {20, 5, 0});
+  key(3.6, {}, {-20, -8, 6});
+  key(4.0, {});
+  return p;
+}
+
+absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(path);
+  } catch (const YAML::Exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", e.what()));
+  }
+  if (!root["keys"] || !root["keys"].IsSequence() || root["keys"].size() == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": needs a non-empty list `keys`"));
+  }
+  Performance p;
+  double last = -INFINITY;
+  for (size_t k = 0; k < root["keys"].size(); ++k) {
+    const YAML::Node key = root["keys"][k];
+    const std::string where = absl::StrCat(path, ": keys[", k, "]");
+    if (!key.IsMap() || !key["t"]) return absl::InvalidArgumentError(absl::StrCat(where, ": needs a time `t`"));
+    HeadPose pose;
+    double t = 0;
+    try {
+      t = key["t"].as<double>();
+      for (const auto& field : key) {
+        const std::string name = field.first.as<std::string>();
+        const double v = field.second.as<double>();
+        const int e = ExpressionIndex(name);
+        if (e >= 0) {
+          if (v < 0 || v > 1)
+            return absl::InvalidArgumentError(absl::StrCat(where, ".", name, ": ", v, " is not in [0, 1]"));
+          pose.expression[e] = static_cast<float>(v);
+        } else if (name == "yaw") {
+          pose.rotation_deg.x() = static_cast<float>(v);
+        } else if (name == "pitch") {
+          pose.rotation_deg.y() = static_cast<float>(v);
+        } else if (name == "roll") {
+          pose.rotation_deg.z() = static_cast<float>(v);
+        } else if (name == "x" || name == "y" || name == "z") {
+          pose.translation_mm[name[0] - 'x'] = static_cast<float>(v);
+        } else if (name != "t") {
+          std::string known;
+          for (const char* n : kNames) absl::StrAppend(&known, n, ", ");
+          return absl::InvalidArgumentError(
+              absl::StrCat(where, ": unknown field \"", name, "\" (t, ", known, "yaw, pitch, roll, x, y, z)"));
+        }
+      }
+    } catch (const YAML::Exception& e) {
+      return absl::InvalidArgumentError(absl::StrCat(where, ": ", e.what()));
+    }
+    if (t <= last) return absl::InvalidArgumentError(absl::StrCat(where, ": times must increase"));
+    last = t;
+    p.keys.emplace_back(t, pose);
+  }
+  return p;
+}
+
+std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution) {
+  std::shared_ptr<HeadModel> head(new HeadModel());
+  head->seed_ = seed;
+  TriangleMesh& m = head->neutral_;
+  const int cols = std::max(16, resolution), rows = std::max(8, resolution / 2);
+  // Skin: a (cols + 1) x (rows + 1) grid over azimuth and elevation; the seam column repeats the first with u = 1.
+  std::vector<float> th_of, ph_of;
+  for (int j = 0; j <= rows; ++j) {
+    const float v = static_cast<float>(j) / rows;
+    const float ph = v * kPi - kPi / 2;
+    for (int i = 0; i <= cols; ++i) {
+      const float u = static_cast<float>(i) / cols;
+      const float th = u * 2 * kPi - kPi;
+      m.positions.push_back(Dir(th, ph) * Radius(th, ph));
+      m.uvs.emplace_back(u, v);
+      th_of.push_back(th);
+      ph_of.push_back(ph);
+    }
+  }
+  auto at = [&](int i, int j) { return static_cast<int32_t>(j * (cols + 1) + i); };
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      // Outward-facing: u grows towards +x from the back (th = -pi) through the face, v upwards.
+      m.triangles.push_back({at(i, j), at(i, j + 1), at(i + 1, j)});
+      m.triangles.push_back({at(i + 1, j), at(i, j + 1), at(i + 1, j + 1)});
+    }
+  }
+  m.parts.assign(m.triangles.size(), 0);
+  const size_t skin_vertices = m.positions.size();
+  // Eyes: spheres in the sockets, 2 mm proud of the socket's floor; uv.x = angle from the gaze / pi.
+  for (float sgn : {1.0f, -1.0f}) {
+    const float th = sgn * kEyeTheta;
+    const Eigen::Vector3f center = Dir(th, kEyePhi) * (Radius(th, kEyePhi) + 2 - kEyeRadius);
+    const int er = 24, ec = 12;
+    const auto first = static_cast<int32_t>(m.positions.size());
+    for (int j = 0; j <= ec; ++j) {
+      const float a = kPi * j / ec;  // from the gaze direction (+z)
+      for (int i = 0; i <= er; ++i) {
+        const float b = 2 * kPi * i / er;
+        const Eigen::Vector3f n(std::sin(a) * std::cos(b), std::sin(a) * std::sin(b), std::cos(a));
+        m.positions.push_back(center + kEyeRadius * n);
+        m.uvs.emplace_back(a / kPi, static_cast<float>(i) / er);
+      }
+    }
+    for (int j = 0; j < ec; ++j) {
+      for (int i = 0; i < er; ++i) {
+        const int32_t a = first + j * (er + 1) + i, b = a + er + 1;
+        m.triangles.push_back({a, a + 1, b});
+        m.triangles.push_back({a + 1, b + 1, b});
+        m.parts.push_back(1);
+        m.parts.push_back(1);
+      }
+    }
+  }
+  for (int e = 0; e < kExpressionCount; ++e) {
+    auto& delta = head->deltas_[e];
+    delta.assign(m.positions.size(), Eigen::Vector3f::Zero());
+    for (size_t v = 0; v < skin_vertices; ++v) delta[v] = Delta(e, th_of[v], ph_of[v], m.positions[v]);
+  }
+  return head;
+}
+
+TriangleMesh HeadModel::PosedMesh(const HeadPose& pose) const {
+  TriangleMesh m = neutral_;
+  for (int e = 0; e < kExpressionCount; ++e) {
+    const float w = pose.expression[e];
+    if (w == 0) continue;
+    for (size_t v = 0; v < m.positions.size(); ++v) m.positions[v] += w * deltas_[e][v];
+  }
+  const float k = kPi / 180;
+  const Eigen::Matrix3f r = (Eigen::AngleAxisf(pose.rotation_deg.x() * k, Eigen::Vector3f::UnitY()) *
+                             Eigen::AngleAxisf(pose.rotation_deg.y() * k, Eigen::Vector3f::UnitX()) *
+                             Eigen::AngleAxisf(pose.rotation_deg.z() * k, Eigen::Vector3f::UnitZ()))
+                                .toRotationMatrix();
+  for (auto& p : m.positions) p = r * (p - kPivot) + kPivot + pose.translation_mm;
+  return m;
+}
+
+std::unique_ptr<MeshSubject> HeadModel::Posed(const HeadPose& pose) const {
+  const auto expr = pose.expression;
+  return std::make_unique<MeshSubject>(
+      PosedMesh(pose), [this, expr](const Eigen::Vector2f& uv, int part) { return Surface(uv, part, expr); });
+}
+
+float HeadModel::Height(const Eigen::Vector2f& uv, const std::array<float, kExpressionCount>& e) const {
+  const float th = uv.x() * 2 * kPi - kPi, ph = uv.y() * kPi - kPi / 2;
+  float h = -0.04f * Pores(seed_, uv);
+  // Expression wrinkles (mm deep at full weight).
+  if (e[kBrow] > 0) {
+    h -= 0.25f * e[kBrow] * Blob(th, ph, 0, 0.45f, 0.45f, 0.09f) *
+         (0.5f + 0.5f * std::cos(2 * kPi * (ph - 0.35f) / 0.035f));
+  }
+  if (e[kFrown] > 0) {
+    h -= 0.3f * e[kFrown] * Blob(th, ph, 0, 0.25f, 0.07f, 0.05f) * std::pow(std::cos(2 * kPi * th / 0.06f), 8.0f);
+  }
+  for (int s = 0; s < 2; ++s) {
+    const float w = e[s == 0 ? kSmileL : kSmileR];
+    if (w <= 0) continue;
+    const float th0 = (s == 0 ? 1 : -1) * 0.62f;
+    h -= 0.2f * w * Blob(th, ph, th0, 0.08f, 0.06f, 0.06f) *
+         std::pow(0.5f + 0.5f * std::cos(2 * kPi * (ph - 0.08f + 0.3f * AngleDiff(th, th0)) / 0.025f), 4.0f);
+  }
+  return h;
+}
+
+SurfaceSample HeadModel::Surface(const Eigen::Vector2f& uv, int part,
+                                 const std::array<float, kExpressionCount>& e) const {
+  SurfaceSample s;
+  if (part == 1) {
+    const float a = uv.x();  // angle from the gaze / pi
+    if (a < 0.06f) {
+      s.material.albedo = Eigen::Vector3f::Constant(0.02f);
+    } else if (a < 0.16f) {
+      s.material.albedo = Eigen::Vector3f(0.22f, 0.14f, 0.07f);
+    } else {
+      s.material.albedo = Eigen::Vector3f(0.78f, 0.76f, 0.72f);
+    }
+    s.material.specular = 0.05f;
+    s.material.roughness = 0.08f;
+    return s;
+  }
+  const float th = uv.x() * 2 * kPi - kPi, ph = uv.y() * kPi - kPi / 2;
+  const float lips =
+      std::clamp(1.3f * (Blob(th, ph, 0, -0.43f, 0.2f, 0.035f) + Blob(th, ph, 0, -0.54f, 0.18f, 0.035f)), 0.0f, 1.0f);
+  const float brows = std::clamp(1.5f * Both(th, ph, kEyeTheta, 0.245f, 0.15f, 0.025f), 0.0f, 1.0f);
+  const float tzone = std::clamp(Blob(th, ph, 0, 0.4f, 0.35f, 0.15f) + Blob(th, ph, 0, -0.1f, 0.1f, 0.2f), 0.0f, 1.0f);
+  const float face = Smooth(0.0f, 0.6f, std::cos(th));
+  const float pore = Pores(seed_, uv);
+  // Albedo: skin with low-frequency variation and redness, freckles on the face, pores a little darker.
+  Eigen::Vector3f albedo(0.60f, 0.40f, 0.31f);
+  albedo *= 0.92f + 0.16f * ValueNoise(seed_ + 11, uv.x() * 60, uv.y() * 40);
+  const float red = Both(th, ph, 0.5f, -0.15f, 0.2f, 0.15f) + 0.6f * Blob(th, ph, 0, -0.15f, 0.08f, 0.1f);
+  albedo.y() *= 1 - 0.12f * std::min(1.0f, red);
+  albedo *= 1 - 0.35f * face * Freckles(seed_ + 3, uv);
+  albedo *= 1 - 0.12f * pore;
+  albedo = (1 - lips) * albedo + lips * Eigen::Vector3f(0.52f, 0.22f, 0.22f);
+  albedo = (1 - brows) * albedo + brows * Eigen::Vector3f(0.10f, 0.07f, 0.05f);
+  // The open mouth is dark inside.
+  albedo *= 1 - 0.9f * e[kJaw] * Blob(th, ph, 0, -0.485f, 0.15f, 0.03f);
+  s.material.albedo = albedo;
+  s.material.specular = (0.028f + 0.012f * tzone + 0.007f * lips) * (1 - 0.4f * pore) * (1 - 0.6f * brows);
+  s.material.roughness = std::clamp(0.35f - 0.07f * tzone - 0.12f * lips + 0.3f * brows, 0.05f, 1.0f);
+  // Detail normals: central differences of the height field at a quarter texel.
+  const float step = 0.25f / kTexels;
+  s.height = Height(uv, e);
+  s.dh_du = (Height(uv + Eigen::Vector2f(step, 0), e) - Height(uv - Eigen::Vector2f(step, 0), e)) / (2 * step);
+  s.dh_dv = (Height(uv + Eigen::Vector2f(0, step), e) - Height(uv - Eigen::Vector2f(0, step), e)) / (2 * step);
+  return s;
+}
+
+}  // namespace stage::sim
