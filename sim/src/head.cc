@@ -281,7 +281,9 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
     for (int i = 0; i <= cols; ++i) {
       const float u = static_cast<float>(i) / cols;
       const float th = u * 2 * kPi - kPi;
-      m.positions.push_back(Dir(th, ph) * Radius(th, ph));
+      // The poles are one point each (exactly, or the fan around them has slivers).
+      m.positions.push_back(j == 0 || j == rows ? Eigen::Vector3f(0, j == 0 ? -Radius(0, ph) : Radius(0, ph), 0)
+                                                : Eigen::Vector3f(Dir(th, ph) * Radius(th, ph)));
       m.uvs.emplace_back(u, v);
       th_of.push_back(th);
       ph_of.push_back(ph);

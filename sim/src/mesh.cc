@@ -128,7 +128,8 @@ bool MeshSubject::Trace(const Eigen::Vector3f& o, const Eigen::Vector3f& d, floa
       const Eigen::Vector3f e1 = mesh_.positions[tr[1]] - a, e2 = mesh_.positions[tr[2]] - a;
       const Eigen::Vector3f p = d.cross(e2);
       const float det = e1.dot(p);
-      if (std::abs(det) < 1e-12f) continue;
+      // Parallel or degenerate (relative to the triangle's size: float rounding leaves such dets far from 0).
+      if (std::abs(det) <= 1e-6f * e1.norm() * e2.norm()) continue;
       const float inv_det = 1 / det;
       const Eigen::Vector3f s = o - a;
       const float u = s.dot(p) * inv_det;

@@ -1,0 +1,211 @@
+// Meshes: the hierarchy finds exactly what testing every triangle finds; OBJ files load (and bad ones are refused by
+// line); the head has its parts where a head has them, its expressions move the right regions, a blink covers the
+// eye, performances ease between keys, and its skin has pores of the stated size.
+#include "stage/sim/mesh.h"
+
+#include <Eigen/Geometry>
+#include <cmath>
+#include <fstream>
+#include <random>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/sim/head.h"
+
+namespace stage::sim {
+namespace {
+
+using ::testing::HasSubstr;
+
+// Brute force: every triangle, Moeller-Trumbore in double precision.
+double BruteForceT(const TriangleMesh& m, const Eigen::Vector3f& o, const Eigen::Vector3f& d) {
+  double best = INFINITY;
+  const Eigen::Vector3d od = o.cast<double>(), dd = d.cast<double>();
+  for (const auto& t : m.triangles) {
+    const Eigen::Vector3d a = m.positions[t[0]].cast<double>();
+    const Eigen::Vector3d e1 = m.positions[t[1]].cast<double>() - a, e2 = m.positions[t[2]].cast<double>() - a;
+    const Eigen::Vector3d p = dd.cross(e2);
+    const double det = e1.dot(p);
+    if (std::abs(det) < 1e-15) continue;
+    const Eigen::Vector3d s = od - a;
+    const double u = s.dot(p) / det;
+    const Eigen::Vector3d q = s.cross(e1);
+    const double v = dd.dot(q) / det;
+    const double t_hit = e2.dot(q) / det;
+    if (u >= 0 && v >= 0 && u + v <= 1 && t_hit > 1e-4) best = std::min(best, t_hit);
+  }
+  return best;
+}
+
+TEST(MeshTest, TheHierarchyFindsWhatEveryTriangleFinds) {
+  auto head = HeadModel::Procedural(7, 64);
+  MeshSubject subject(head->neutral(), nullptr);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<float> u(-1, 1);
+  int hits = 0;
+  for (int i = 0; i < 400; ++i) {
+    const Eigen::Vector3f origin = Eigen::Vector3f(u(rng), u(rng), u(rng)).normalized() * 600;
+    const Eigen::Vector3f target(60 * u(rng), 90 * u(rng), 60 * u(rng));
+    const Eigen::Vector3f d = (target - origin).normalized();
+    const Hit h = subject.Intersect(origin, d);
+    const double expected = BruteForceT(head->neutral(), origin, d);
+    ASSERT_EQ(h.hit, std::isfinite(expected)) << i;
+    if (h.hit) {
+      ++hits;
+      EXPECT_NEAR(h.t, expected, 1e-3) << i;
+      // Shadow ray: blocked exactly when something lies between.
+      EXPECT_TRUE(subject.Occluded(origin, origin + d * (h.t + 1)));
+      EXPECT_FALSE(subject.Occluded(origin, origin + d * (h.t - 1)));
+    }
+  }
+  EXPECT_GT(hits, 300);
+}
+
+TEST(MeshTest, ReadsObjFilesAndNamesTheLineOfAnError) {
+  const std::string path = ::testing::TempDir() + "/quad.obj";
+  {
+    std::ofstream f(path);
+    f << "# a unit quad\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3 4/4\n";
+  }
+  auto mesh = ReadObj(path);
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  EXPECT_EQ(mesh->triangles.size(), 2u);
+  EXPECT_EQ(mesh->positions.size(), 4u);
+  MeshSubject quad(*mesh, nullptr);
+  const Hit h = quad.Intersect({0.25f, 0.75f, 5}, {0, 0, -1});
+  ASSERT_TRUE(h.hit);
+  EXPECT_NEAR(h.uv.x(), 0.25f, 1e-5);
+  EXPECT_NEAR(h.uv.y(), 0.75f, 1e-5);
+
+  {
+    std::ofstream f(path);
+    f << "v 0 0 0\nv 1 0 0\nf 1 2 7\n";
+  }
+  auto bad = ReadObj(path);
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(bad.status().message(), HasSubstr("quad.obj:3"));
+  EXPECT_THAT(ReadObj(::testing::TempDir() + "/missing.obj").status().message(), HasSubstr("missing.obj"));
+}
+
+// Where the ray from far in front along -z first meets the head, at height y and lateral offset x.
+Hit FromFront(const Subject& s, float x, float y) { return s.Intersect({x, y, 1000}, {0, 0, -1}); }
+
+TEST(HeadTest, HasAHeadsProportionsAndParts) {
+  auto head = HeadModel::Procedural(1);
+  auto neutral = head->Posed({});
+  // Nose: the front-most skin, well ahead of the cheeks.
+  const float nose = FromFront(*neutral, 0, -10).point.z();
+  const float cheek = FromFront(*neutral, 45, -10).point.z();
+  EXPECT_GT(nose - cheek, 25) << "nose " << nose << " cheek " << cheek;
+  // Width between the ears 140..180 mm; height of the face region (the ray from above) plausible.
+  const Hit left = neutral->Intersect({1000, 0, 0}, {-1, 0, 0}), right = neutral->Intersect({-1000, 0, 0}, {1, 0, 0});
+  const float width = left.point.x() - right.point.x();
+  EXPECT_GT(width, 140);
+  EXPECT_LT(width, 200);
+  const Hit top = neutral->Intersect({0, 1000, 0}, {0, -1, 0});
+  EXPECT_GT(top.point.y(), 100);
+  EXPECT_LT(top.point.y(), 130);
+  // The eyes are seen from the front (part 1, glossy) at their sockets.
+  const float eye_x = std::sin(0.36f) * 90, eye_y = std::sin(0.10f) * 90;
+  const Hit eye = FromFront(*neutral, eye_x, eye_y);
+  ASSERT_TRUE(eye.hit);
+  EXPECT_EQ(eye.part, 1);
+  EXPECT_LT(eye.material.roughness, 0.1f);
+}
+
+TEST(HeadTest, ExpressionsMoveTheirRegionsAndABlinkCoversTheEye) {
+  auto head = HeadModel::Procedural(1);
+  auto neutral = head->Posed({});
+  const float eye_x = std::sin(0.36f) * 90, eye_y = std::sin(0.10f) * 90;
+  HeadPose blink;
+  blink.expression[ExpressionIndex("blink_left")] = 1;
+  auto blinking = head->Posed(blink);
+  EXPECT_EQ(FromFront(*blinking, eye_x, eye_y).part, 0) << "the left eyelid covers the left eye";
+  EXPECT_EQ(FromFront(*blinking, -eye_x, eye_y).part, 1) << "the right eye stays open";
+
+  HeadPose jaw;
+  jaw.expression[ExpressionIndex("jaw_open")] = 1;
+  auto open = head->Posed(jaw);
+  // The chin drops: the lowest point of the face moves down by several mm.
+  auto lowest = [](const MeshSubject& s) {
+    float low = 0;
+    for (const auto& p : s.mesh().positions) {
+      if (p.z() > 40) low = std::min(low, p.y());
+    }
+    return low;
+  };
+  EXPECT_LT(lowest(*open), lowest(*neutral) - 8);
+  // ... and the forehead does not move.
+  EXPECT_NEAR(FromFront(*open, 0, 70).point.z(), FromFront(*neutral, 0, 70).point.z(), 1e-3);
+
+  HeadPose brow;
+  brow.expression[ExpressionIndex("brow_raise")] = 1;
+  // Forehead wrinkles appear only with the expression: the detail normal varies more across the forehead.
+  auto variation = [&](const HeadPose& pose) {
+    auto s = head->Posed(pose);
+    double sum = 0;
+    for (int k = 0; k < 200; ++k) {
+      const Hit h = FromFront(*s, 0.05f * k - 5, 35 + 0.125f * k);  // up the forehead
+      sum += 1 - h.normal.dot(h.geometric_normal);                  // how far the detail tilts the normal
+    }
+    return sum;
+  };
+  EXPECT_GT(variation(brow), 1.5 * variation({}));
+}
+
+TEST(HeadTest, PerformancesEaseBetweenKeysAndLoadFromYaml) {
+  Performance p = Performance::Default();
+  ASSERT_GE(p.keys.size(), 8u);
+  // Every expression is used somewhere in the shipped script, and the head turns both ways.
+  for (int e = 0; e < kExpressionCount; ++e) {
+    float peak = 0;
+    for (const auto& [t, pose] : p.keys) peak = std::max(peak, pose.expression[e]);
+    EXPECT_EQ(peak, 1.0f) << ExpressionName(e);
+  }
+  const HeadPose mid = p.At(0.2);  // halfway from neutral to a brow raise
+  EXPECT_NEAR(mid.expression[ExpressionIndex("brow_raise")], 0.5f, 1e-5);
+
+  const std::string path = ::testing::TempDir() + "/perf.yaml";
+  {
+    std::ofstream f(path);
+    f << "keys:\n  - {t: 0}\n  - {t: 1, jaw_open: 1, yaw: 10}\n";
+  }
+  auto loaded = Performance::FromYaml(path);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_NEAR(loaded->At(1).rotation_deg.x(), 10, 1e-6);
+  {
+    std::ofstream f(path);
+    f << "keys:\n  - {t: 0}\n  - {t: 1, grin: 1}\n";
+  }
+  auto bad = Performance::FromYaml(path);
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(bad.status().message(), HasSubstr("keys[1]: unknown field \"grin\""));
+}
+
+TEST(HeadTest, PoresAreTwoToTenTexelsAcrossAt4K) {
+  auto head = HeadModel::Procedural(1);
+  // Scan a row of the skin map at 4096 texels and measure each pore's width (where the height dips).
+  std::vector<int> widths;
+  int run = 0;
+  for (int x = 0; x < 4096; ++x) {
+    const float h = head->Surface(Eigen::Vector2f((x + 0.5f) / 4096, 0.62f), 0, {}).height;
+    if (h < -1e-4f) {
+      ++run;
+    } else if (run > 0) {
+      widths.push_back(run);
+      run = 0;
+    }
+  }
+  ASSERT_GT(widths.size(), 50u);
+  // A chord near a pore's rim is shorter than its diameter; two pores that touch make one longer run.
+  int within = 0, longer = 0;
+  for (int w : widths) {
+    within += w >= 2 && w <= 10;
+    longer += w > 10;
+  }
+  EXPECT_GT(within, static_cast<int>(widths.size()) * 3 / 4);
+  EXPECT_LT(longer, static_cast<int>(widths.size()) / 20);
+}
+
+}  // namespace
+}  // namespace stage::sim
