@@ -1,0 +1,192 @@
+// The simulator's rendering cost, with baselines measured in the same run:
+//  1. per camera and scale (default hs-2 at full 4096x2304 and at 1/4): the per-pose precompute (every pixel's
+//     response to every LED unit, with shadow rays) and the per-pattern render (two matrix-vector products, then the
+//     sensor model), next to a bare loop computing the same dot products pixel by pixel;
+//  2. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
+//     second of take, frames rendered per second.
+// Run: build/bin/sim_render_bench [--scales 1,0.25] [--demo-scale 0.04] [--slots 912] [--camera hs-2]
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "CLI/CLI.hpp"
+#include "stage/common/clock.h"
+#include "stage/common/rig.h"
+#include "stage/sim/world_devices.h"
+#include "stage/timing/schedule.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+
+[[noreturn]] void Die(const absl::Status& s) {
+  std::fprintf(stderr, "sim_render_bench: %s\n", std::string(s.message()).c_str());
+  std::exit(1);
+}
+
+std::shared_ptr<const stage::sim::SimScene> Scene(double scale, const std::string& performance) {
+  auto loaded = stage::LoadRig(stage::kBuiltinRigName);
+  if (!loaded.ok()) Die(loaded.status());
+  auto rig = stage::ApplyRigOverrides(*loaded, {"sim.render_scale=" + std::to_string(scale),
+                                                "sim.subject.performance=" + performance});
+  if (!rig.ok()) Die(rig.status());
+  auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
+  if (!scene.ok()) Die(scene.status());
+  return *scene;
+}
+
+stage::sim::EmitterLevels PatternLevels(const stage::sim::SimScene& scene, int p) {
+  const auto& units = scene.dome().units;
+  const auto n = static_cast<Eigen::Index>(units.size());
+  stage::sim::EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
+  for (Eigen::Index l = 0; l < n; ++l) {
+    const auto& u = units[static_cast<size_t>(l)];
+    const auto& row = scene.schedule().light_nodes(u.node).table().rows(p);
+    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
+    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
+  }
+  return levels;
+}
+
+void OneCamera(const std::string& camera, double scale) {
+  auto scene = Scene(scale, "still");
+  const int index = scene->CameraIndex(camera);
+  if (index < 0) Die(absl::NotFoundError("no camera " + camera));
+  stage::sim::CameraRenderer renderer(scene, index);
+  auto t = Clock::now();
+  auto r = renderer.Responses(0);
+  const double precompute = Since(t);
+  const int patterns = static_cast<int>(stage::timing::CycleLength(scene->schedule()));
+  std::vector<stage::sim::EmitterLevels> levels;
+  for (int p = 0; p < patterns; ++p) levels.push_back(PatternLevels(*scene, p));
+  const float leak = scene->leakage(index);
+  // Radiance only (the matrix products), then with the sensor model.
+  t = Clock::now();
+  double checksum = 0;
+  for (int p = 0; p < patterns; ++p) checksum += stage::sim::RenderRadiance(*r, levels[p], leak)[0];
+  const double radiance = Since(t) / patterns;
+  t = Clock::now();
+  for (int p = 0; p < patterns; ++p) checksum += renderer.Render(levels[p], 900e-6, static_cast<uint64_t>(p)).data[0];
+  const double full = Since(t) / patterns;
+  // Baseline: the same two dot products per pixel in a bare loop.
+  t = Clock::now();
+  const auto rows = r->diffuse.rows(), cols = r->diffuse.cols();
+  for (int p = 0; p < patterns; ++p) {
+    const Eigen::VectorXf dd = levels[p].cross + levels[p].parallel;
+    const Eigen::VectorXf sd = levels[p].parallel + leak * levels[p].cross;
+    double sum = 0;
+    for (Eigen::Index i = 0; i < rows; ++i) {
+      const float* drow = r->diffuse.data() + i * cols;
+      const float* srow = r->specular.data() + i * cols;
+      float d = 0, s = 0;
+      for (Eigen::Index l = 0; l < cols; ++l) {
+        d += drow[l] * dd[l];
+        s += srow[l] * sd[l];
+      }
+      sum += d + s;
+    }
+    checksum += sum;
+  }
+  const double bare = Since(t) / patterns;
+  std::printf("%-5s scale %-5g %5dx%-5d %8zu subject pixels x %zu units: precompute %8.2f s (%.1f GB); per pattern: "
+              "radiance %8.2f ms, with sensor %8.2f ms; bare dot-product loop %8.2f ms   [checksum %.3g]\n",
+              camera.c_str(), scale, r->width, r->height, r->pixels.size(), scene->dome().units.size(), precompute,
+              2.0 * rows * cols * 4 / 1e9, radiance * 1e3, full * 1e3, bare * 1e3, checksum);
+}
+
+class CountingSink : public stage::camera::FrameSink {
+ public:
+  void OnFrame(std::shared_ptr<const stage::camera::Frame>) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++frames_;
+    cv_.notify_all();
+  }
+  void WaitFor(uint64_t n) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    cv_.wait(lock, [&] { return frames_ >= n; });
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  uint64_t frames_ = 0;
+};
+
+void WholeRig(double scale, int64_t slots) {
+  auto t = Clock::now();
+  auto scene = Scene(scale, "default");
+  const double setup = Since(t);
+  stage::sim::WorldOptions options = scene->MakeWorldOptions(true, 0);
+  options.end_slot = slots;
+  stage::sim::World world(scene->dome(), options);
+  auto client = stage::sim::LocalWorldClient(&world);
+  std::vector<std::unique_ptr<stage::sim::SimLightDriver>> lights;
+  for (const auto& n : scene->rig().light_nodes()) {
+    lights.push_back(std::make_unique<stage::sim::SimLightDriver>(n.id(), n.channel_count()));
+    if (auto s = stage::sim::JoinLightNode(lights.back().get(), *scene, n.id(), client.get()); !s.ok()) Die(s);
+  }
+  stage::SimClock clock;
+  std::vector<std::unique_ptr<CountingSink>> sinks;
+  std::vector<std::unique_ptr<stage::sim::SimCameraDevice>> cameras;
+  std::vector<uint64_t> expected;
+  uint64_t total = 0;
+  for (int i = 0; i < scene->rig().cameras_size(); ++i) {
+    const auto& c = scene->rig().cameras(i);
+    auto device = std::make_unique<stage::sim::SimCameraDevice>(&clock, c.id());
+    if (auto s = device->Configure({c.width(), c.height(), stage::PixelFormatName(c.pixel_format()),
+                                    c.frame_rate_hz(), c.exposure_us(), c.gain_db(),
+                                    stage::camera::TriggerMode::kHardware});
+        !s.ok()) {
+      Die(s);
+    }
+    auto plan = stage::sim::CameraWorld(scene, c.id(), client.get());
+    if (!plan.ok()) Die(plan.status());
+    if (auto s = device->AttachWorld(*plan); !s.ok()) Die(s);
+    sinks.push_back(std::make_unique<CountingSink>());
+    if (auto s = device->Start(sinks.back().get()); !s.ok()) Die(s);
+    const auto& timing = scene->schedule().cameras(i);
+    uint64_t n = 0;
+    for (int64_t k = 0; k < slots; ++k) n += stage::timing::FiresInSlot(timing, k);
+    expected.push_back(n);
+    total += n;
+    cameras.push_back(std::move(device));
+  }
+  t = Clock::now();
+  world.Start();
+  for (size_t i = 0; i < sinks.size(); ++i) sinks[i]->WaitFor(expected[i]);
+  const double wall = Since(t);
+  for (auto& c : cameras) (void)c->Stop();
+  const double take_s = static_cast<double>(slots) / scene->base().slot_rate_hz();
+  std::printf("whole rig at scale %g (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
+              "%llu frames in %.1f s wall (%.1f s per second of take, %.0f frames/s); scene set-up %.2f s\n",
+              scale, scene->camera(scene->CameraIndex("hs-2")).width(),
+              scene->camera(scene->CameraIndex("hs-2")).height(), scene->camera(0).width(), scene->camera(0).height(),
+              static_cast<long long>(slots), take_s, cameras.size(),
+              static_cast<int>((slots + 37) / 38), static_cast<unsigned long long>(total), wall, wall / take_s,
+              total / wall, setup);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"Simulator rendering cost: per-camera precompute and per-pattern render at several scales (next to a "
+               "bare dot-product loop), and the whole rig through the lockstep world at the demo scale.",
+               "sim_render_bench"};
+  std::vector<double> scales = {1.0, 0.25};
+  double demo_scale = 0.04;
+  int64_t slots = 912;
+  std::string camera = "hs-2";
+  app.add_option("--scales", scales, "Render scales for the one-camera figures")->delimiter(',')->capture_default_str();
+  app.add_option("--demo-scale", demo_scale, "Render scale of the whole-rig run (0 skips it)")->capture_default_str();
+  app.add_option("--slots", slots, "Slots of the whole-rig run")->capture_default_str();
+  app.add_option("--camera", camera, "Camera of the one-camera figures")->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+  std::printf("sim_render_bench on %u hardware threads\n", std::thread::hardware_concurrency());
+  for (double s : scales) OneCamera(camera, s);
+  if (demo_scale > 0) WholeRig(demo_scale, slots);
+  return 0;
+}
