@@ -31,8 +31,8 @@ double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::
 std::shared_ptr<const stage::sim::SimScene> Scene(double scale, const std::string& performance) {
   auto loaded = stage::LoadRig(stage::kBuiltinRigName);
   if (!loaded.ok()) Die(loaded.status());
-  auto rig = stage::ApplyRigOverrides(*loaded, {"sim.render_scale=" + std::to_string(scale),
-                                                "sim.subject.performance=" + performance});
+  auto rig = stage::ApplyRigOverrides(
+      *loaded, {"sim.render_scale=" + std::to_string(scale), "sim.subject.performance=" + performance});
   if (!rig.ok()) Die(rig.status());
   auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
   if (!scene.ok()) Die(scene.status());
@@ -92,10 +92,11 @@ void OneCamera(const std::string& camera, double scale) {
     checksum += sum;
   }
   const double bare = Since(t) / patterns;
-  std::printf("%-5s scale %-5g %5dx%-5d %8zu subject pixels x %zu units: precompute %8.2f s (%.1f GB); per pattern: "
-              "radiance %8.2f ms, with sensor %8.2f ms; bare dot-product loop %8.2f ms   [checksum %.3g]\n",
-              camera.c_str(), scale, r->width, r->height, r->pixels.size(), scene->dome().units.size(), precompute,
-              2.0 * rows * cols * 4 / 1e9, radiance * 1e3, full * 1e3, bare * 1e3, checksum);
+  std::printf(
+      "%-5s scale %-5g %5dx%-5d %8zu subject pixels x %zu units: precompute %8.2f s (%.1f GB); per pattern: "
+      "radiance %8.2f ms, with sensor %8.2f ms; bare dot-product loop %8.2f ms   [checksum %.3g]\n",
+      camera.c_str(), scale, r->width, r->height, r->pixels.size(), scene->dome().units.size(), precompute,
+      2.0 * rows * cols * 4 / 1e9, radiance * 1e3, full * 1e3, bare * 1e3, checksum);
 }
 
 class CountingSink : public stage::camera::FrameSink {
@@ -137,9 +138,8 @@ void WholeRig(double scale, int64_t slots) {
   for (int i = 0; i < scene->rig().cameras_size(); ++i) {
     const auto& c = scene->rig().cameras(i);
     auto device = std::make_unique<stage::sim::SimCameraDevice>(&clock, c.id());
-    if (auto s = device->Configure({c.width(), c.height(), stage::PixelFormatName(c.pixel_format()),
-                                    c.frame_rate_hz(), c.exposure_us(), c.gain_db(),
-                                    stage::camera::TriggerMode::kHardware});
+    if (auto s = device->Configure({c.width(), c.height(), stage::PixelFormatName(c.pixel_format()), c.frame_rate_hz(),
+                                    c.exposure_us(), c.gain_db(), stage::camera::TriggerMode::kHardware});
         !s.ok()) {
       Die(s);
     }
@@ -161,21 +161,22 @@ void WholeRig(double scale, int64_t slots) {
   const double wall = Since(t);
   for (auto& c : cameras) (void)c->Stop();
   const double take_s = static_cast<double>(slots) / scene->base().slot_rate_hz();
-  std::printf("whole rig at scale %g (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
-              "%llu frames in %.1f s wall (%.1f s per second of take, %.0f frames/s); scene set-up %.2f s\n",
-              scale, scene->camera(scene->CameraIndex("hs-2")).width(),
-              scene->camera(scene->CameraIndex("hs-2")).height(), scene->camera(0).width(), scene->camera(0).height(),
-              static_cast<long long>(slots), take_s, cameras.size(),
-              static_cast<int>((slots + 37) / 38), static_cast<unsigned long long>(total), wall, wall / take_s,
-              total / wall, setup);
+  std::printf(
+      "whole rig at scale %g (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
+      "%llu frames in %.1f s wall (%.1f s per second of take, %.0f frames/s); scene set-up %.2f s\n",
+      scale, scene->camera(scene->CameraIndex("hs-2")).width(), scene->camera(scene->CameraIndex("hs-2")).height(),
+      scene->camera(0).width(), scene->camera(0).height(), static_cast<long long>(slots), take_s, cameras.size(),
+      static_cast<int>((slots + 37) / 38), static_cast<unsigned long long>(total), wall, wall / take_s, total / wall,
+      setup);
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Simulator rendering cost: per-camera precompute and per-pattern render at several scales (next to a "
-               "bare dot-product loop), and the whole rig through the lockstep world at the demo scale.",
-               "sim_render_bench"};
+  CLI::App app{
+      "Simulator rendering cost: per-camera precompute and per-pattern render at several scales (next to a "
+      "bare dot-product loop), and the whole rig through the lockstep world at the demo scale.",
+      "sim_render_bench"};
   std::vector<double> scales = {1.0, 0.25};
   double demo_scale = 0.04;
   int64_t slots = 912;

@@ -13,6 +13,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/sim/ground_truth.h"
 #include "stage/sim/scene.h"
 #include "stage/timing/schedule.h"
 
@@ -88,6 +89,16 @@ int main(int argc, char** argv) {
   app.add_option("--tile-width", tile_width, "Width of a tile in pixels (0: as rendered)")->check(CLI::Range(0, 8192));
   app.add_option("--set", overrides, "Override a rig field, PATH=VALUE (e.g. sim.render_scale=0.25); repeatable");
   app.add_flag("--json", json, "Print what was rendered as JSON");
+  std::string truth_dir, frames = "0:1";
+  std::vector<std::string> truth_cameras;
+  int uv_size = 256;
+  app.add_option("--ground-truth", truth_dir,
+                 "Write the ground truth (docs/simulator.md) to this directory instead of a contact sheet");
+  app.add_option("--frames", frames, "Ground truth: virtual frames A:B (B excluded)")->capture_default_str();
+  app.add_option("--cameras", truth_cameras, "Ground truth: these cameras only (default: all)")->delimiter(',');
+  app.add_option("--uv-size", uv_size, "Ground truth: texels across the UV position map")
+      ->capture_default_str()
+      ->check(CLI::Range(16, 16384));
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -97,6 +108,34 @@ int main(int argc, char** argv) {
   if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
   auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
   if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
+  if (!truth_dir.empty()) {
+    stage::sim::GroundTruthOptions options;
+    const auto colon = frames.find(':');
+    try {
+      options.first_frame = std::stoll(frames.substr(0, colon));
+      options.last_frame = colon == std::string::npos ? options.first_frame + 1 : std::stoll(frames.substr(colon + 1));
+    } catch (const std::exception&) {
+      return stage::ReportFatal(
+          kProgram, absl::InvalidArgumentError(absl::StrCat("--frames \"", frames, "\" is not A:B (e.g. 0:24)")));
+    }
+    options.cameras = truth_cameras;
+    options.uv_size = uv_size;
+    options.progress = [](int done, int total) {
+      std::cerr << "\rground truth: " << done << "/" << total << " camera frames" << (done == total ? "\n" : "")
+                << std::flush;
+    };
+    if (auto s = stage::sim::WriteGroundTruth(**scene, truth_dir, options); !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    if (json) {
+      std::cout << nlohmann::json({{"ground_truth", truth_dir},
+                                   {"first_frame", options.first_frame},
+                                   {"last_frame", options.last_frame}})
+                       .dump(2)
+                << std::endl;
+    }
+    return 0;
+  }
   const int index = (*scene)->CameraIndex(camera_id);
   if (index < 0) {
     return stage::ReportFatal(

@@ -50,14 +50,20 @@ float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   return static_cast<float>(leakage + growth * (1 - c * c));
 }
 
-PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads) {
-  PixelResponses r;
-  r.width = camera.width();
-  r.height = camera.height();
+std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads) {
   const std::vector<Eigen::Vector3f> rays = camera.PixelRays();
   const Eigen::Vector3f origin = camera.position().cast<float>();
   std::vector<Hit> all(rays.size());
   ParallelFor(rays.size(), threads, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
+  return all;
+}
+
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads) {
+  PixelResponses r;
+  r.width = camera.width();
+  r.height = camera.height();
+  const Eigen::Vector3f origin = camera.position().cast<float>();
+  std::vector<Hit> all = TracePixels(camera, subject, threads);
   for (size_t i = 0; i < all.size(); ++i) {
     if (!all[i].hit) continue;
     r.pixels.push_back(static_cast<int32_t>(i));

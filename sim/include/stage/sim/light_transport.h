@@ -34,6 +34,9 @@ struct PixelResponses {
   RowMatrixXf specular;
 };
 
+// What every pixel's ray meets (row-major; hit == false where it misses the subject).
+std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0);
+
 // Camera direction -> pixel responses, on `threads` threads (0: one per core).
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0);
 

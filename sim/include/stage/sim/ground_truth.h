@@ -1,0 +1,40 @@
+// Ground truth of the simulated stage (docs/simulator.md): what processing results are judged against.
+//   DIR/frame-NNNNNN/pose.json          expression weights, head rotation and translation, time
+//   DIR/frame-NNNNNN/mesh.obj           the posed subject mesh (stage frame, mm), with texture coordinates
+//   DIR/frame-NNNNNN/uv_position.exr    stage-frame position (mm) per texel of the skin's UV map; alpha 1 where covered
+//   DIR/frame-NNNNNN/<camera>/depth.exr        distance along the camera's optical axis, mm (0: no subject)
+//   DIR/frame-NNNNNN/<camera>/normal_world.exr shading normal (with pore and wrinkle detail), stage frame
+//   DIR/frame-NNNNNN/<camera>/normal_camera.exr the same in the camera frame (x right, y down, z forward)
+//   DIR/frame-NNNNNN/<camera>/albedo.exr       diffuse albedo, linear RGB
+//   DIR/frame-NNNNNN/<camera>/specular.exr     specular intensity;   roughness.exr: GGX alpha
+//   DIR/frame-NNNNNN/<camera>/mask.png         255 where the pixel sees the subject
+// Images are at the rig's render scale, float32 OpenEXR (channels in R, G, B order of the values above).
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "stage/sim/scene.h"
+
+namespace stage::sim {
+
+struct GroundTruthOptions {
+  // Virtual frames [first, last).
+  int64_t first_frame = 0;
+  int64_t last_frame = 1;
+  // Camera ids; empty: every camera.
+  std::vector<std::string> cameras;
+  // Texels across the UV position map (256 and up).
+  int uv_size = 256;
+  // Called after each camera of each frame: (done, total).
+  std::function<void(int, int)> progress;
+};
+
+absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options);
+
+// Stage-frame position per texel of the skin (part 0) of `mesh`, size x size, RGBA (alpha 1 where covered).
+std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size);
+
+}  // namespace stage::sim

@@ -1,0 +1,173 @@
+// Ground truth files.
+#include "stage/sim/ground_truth.h"
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+
+namespace stage::sim {
+namespace {
+
+namespace fs = std::filesystem;
+
+absl::Status Write(const std::string& path, const cv::Mat& image) {
+  bool ok = false;
+  try {
+    ok = cv::imwrite(path, image);
+  } catch (const cv::Exception& e) {
+    return absl::UnavailableError(absl::StrCat(path, ": ", e.what()));
+  }
+  if (!ok) return absl::UnavailableError(absl::StrCat(path, ": cannot write the image"));
+  return absl::OkStatus();
+}
+
+// OpenCV writes channels as B, G, R: put the values' x, y, z (or R, G, B) in that order.
+cv::Vec3f Bgr(const Eigen::Vector3f& v) { return {v.z(), v.y(), v.x()}; }
+
+absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh) {
+  std::ofstream out(path);
+  if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
+  out << "# FaStage simulator ground truth: posed subject, stage frame, millimetres\n";
+  for (const auto& p : mesh.positions) out << absl::StrFormat("v %.4f %.4f %.4f\n", p.x(), p.y(), p.z());
+  for (const auto& t : mesh.uvs) out << absl::StrFormat("vt %.6f %.6f\n", t.x(), t.y());
+  for (const auto& f : mesh.triangles) {
+    out << absl::StrFormat("f %d/%d %d/%d %d/%d\n", f[0] + 1, f[0] + 1, f[1] + 1, f[1] + 1, f[2] + 1, f[2] + 1);
+  }
+  out.close();
+  if (!out) return absl::DataLossError(absl::StrCat(path, ": write failed"));
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size) {
+  std::vector<float> map(static_cast<size_t>(size) * size * 4, 0.0f);
+  for (size_t k = 0; k < mesh.triangles.size(); ++k) {
+    if (!mesh.parts.empty() && mesh.parts[k] != 0) continue;
+    const auto& t = mesh.triangles[k];
+    const Eigen::Vector2f a = mesh.uvs[t[0]] * size, b = mesh.uvs[t[1]] * size, c = mesh.uvs[t[2]] * size;
+    const float det = (b.x() - a.x()) * (c.y() - a.y()) - (c.x() - a.x()) * (b.y() - a.y());
+    if (std::abs(det) < 1e-12f) continue;
+    const int x0 = std::max(0, static_cast<int>(std::floor(std::min({a.x(), b.x(), c.x()}))));
+    const int x1 = std::min(size - 1, static_cast<int>(std::ceil(std::max({a.x(), b.x(), c.x()}))));
+    const int y0 = std::max(0, static_cast<int>(std::floor(std::min({a.y(), b.y(), c.y()}))));
+    const int y1 = std::min(size - 1, static_cast<int>(std::ceil(std::max({a.y(), b.y(), c.y()}))));
+    for (int y = y0; y <= y1; ++y) {
+      for (int x = x0; x <= x1; ++x) {
+        const float px = x + 0.5f, py = y + 0.5f;
+        const float w1 = ((px - a.x()) * (c.y() - a.y()) - (c.x() - a.x()) * (py - a.y())) / det;
+        const float w2 = ((b.x() - a.x()) * (py - a.y()) - (px - a.x()) * (b.y() - a.y())) / det;
+        const float w0 = 1 - w1 - w2;
+        if (w0 < -1e-6f || w1 < -1e-6f || w2 < -1e-6f) continue;
+        const Eigen::Vector3f p = w0 * mesh.positions[t[0]] + w1 * mesh.positions[t[1]] + w2 * mesh.positions[t[2]];
+        float* out = &map[(static_cast<size_t>(y) * size + x) * 4];
+        out[0] = p.x();
+        out[1] = p.y();
+        out[2] = p.z();
+        out[3] = 1;
+      }
+    }
+  }
+  return map;
+}
+
+absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options) {
+  // OpenCV reads OpenEXR only when asked to (a guard against untrusted files); these are our own.
+  setenv("OPENCV_IO_ENABLE_OPENEXR", "1", 0);
+  if (options.last_frame <= options.first_frame) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("ground truth: frames [", options.first_frame, ", ", options.last_frame, ") are empty"));
+  }
+  if (options.uv_size < 16 || options.uv_size > 16384) {
+    return absl::InvalidArgumentError(absl::StrCat("ground truth: uv size ", options.uv_size, " is not in 16..16384"));
+  }
+  std::vector<int> cameras;
+  if (options.cameras.empty()) {
+    for (int i = 0; i < scene.rig().cameras_size(); ++i) cameras.push_back(i);
+  } else {
+    for (const std::string& id : options.cameras) {
+      const int i = scene.CameraIndex(id);
+      if (i < 0) return absl::NotFoundError(absl::StrCat("ground truth: camera \"", id, "\" is not in the rig"));
+      cameras.push_back(i);
+    }
+  }
+  const int total = static_cast<int>((options.last_frame - options.first_frame) * cameras.size());
+  int done = 0;
+  for (int64_t frame = options.first_frame; frame < options.last_frame; ++frame) {
+    const std::string frame_dir = absl::StrFormat("%s/frame-%06d", dir, frame);
+    std::error_code ec;
+    fs::create_directories(frame_dir, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(frame_dir, ": ", ec.message()));
+    const HeadPose pose = scene.PoseAt(frame);
+    nlohmann::json j;
+    j["frame"] = frame;
+    j["time_s"] = (static_cast<double>(frame) + 0.5) * static_cast<double>(scene.schedule().patterns_size()) /
+                  scene.base().slot_rate_hz();
+    j["subject"] = scene.rig().sim().subject().kind();
+    for (int e = 0; e < kExpressionCount; ++e) j["expression"][ExpressionName(e)] = pose.expression[e];
+    j["rotation_deg"] = {
+        {"yaw", pose.rotation_deg.x()}, {"pitch", pose.rotation_deg.y()}, {"roll", pose.rotation_deg.z()}};
+    j["translation_mm"] = {pose.translation_mm.x(), pose.translation_mm.y(), pose.translation_mm.z()};
+    {
+      std::ofstream out(frame_dir + "/pose.json");
+      out << j.dump(2) << "\n";
+      if (!out) return absl::UnavailableError(absl::StrCat(frame_dir, "/pose.json: cannot write"));
+    }
+    if (scene.head() != nullptr) {
+      const TriangleMesh mesh = scene.head()->PosedMesh(pose);
+      if (auto s = WriteObj(frame_dir + "/mesh.obj", mesh); !s.ok()) return s;
+      const std::vector<float> uv = UvPositionMap(mesh, options.uv_size);
+      // Row 0 of the image is v = 0 (the chin's side): the map is indexed as texture coordinates are.
+      cv::Mat image(options.uv_size, options.uv_size, CV_32FC4, const_cast<float*>(uv.data()));
+      cv::Mat bgra;
+      cv::cvtColor(image, bgra, cv::COLOR_RGBA2BGRA);
+      if (auto s = Write(frame_dir + "/uv_position.exr", bgra); !s.ok()) return s;
+    }
+    auto subject = scene.SubjectAt(frame);
+    for (int index : cameras) {
+      const CameraModel& camera = scene.camera(index);
+      const std::vector<Hit> hits = TracePixels(camera, *subject);
+      const int w = camera.width(), h = camera.height();
+      cv::Mat depth(h, w, CV_32F, 0.0f), nw(h, w, CV_32FC3, cv::Scalar::all(0)), nc(h, w, CV_32FC3, cv::Scalar::all(0));
+      cv::Mat albedo(h, w, CV_32FC3, cv::Scalar::all(0)), spec(h, w, CV_32F, 0.0f), rough(h, w, CV_32F, 0.0f);
+      cv::Mat mask(h, w, CV_8U, cv::Scalar(0));
+      const Eigen::Matrix3f rot = camera.rotation().cast<float>();
+      const Eigen::Vector3f center = camera.position().cast<float>();
+      for (size_t i = 0; i < hits.size(); ++i) {
+        const Hit& hit = hits[i];
+        if (!hit.hit) continue;
+        const int y = static_cast<int>(i) / w, x = static_cast<int>(i) % w;
+        depth.at<float>(y, x) = (rot * (hit.point - center)).z();
+        nw.at<cv::Vec3f>(y, x) = Bgr(hit.normal);
+        nc.at<cv::Vec3f>(y, x) = Bgr(rot * hit.normal);
+        albedo.at<cv::Vec3f>(y, x) = Bgr(hit.material.albedo);
+        spec.at<float>(y, x) = hit.material.specular;
+        rough.at<float>(y, x) = hit.material.roughness;
+        mask.at<uint8_t>(y, x) = 255;
+      }
+      const std::string cam_dir = frame_dir + "/" + scene.rig().cameras(index).id();
+      fs::create_directories(cam_dir, ec);
+      if (ec) return absl::UnavailableError(absl::StrCat(cam_dir, ": ", ec.message()));
+      for (const auto& [name, image] : std::vector<std::pair<std::string, cv::Mat>>{{"depth.exr", depth},
+                                                                                    {"normal_world.exr", nw},
+                                                                                    {"normal_camera.exr", nc},
+                                                                                    {"albedo.exr", albedo},
+                                                                                    {"specular.exr", spec},
+                                                                                    {"roughness.exr", rough},
+                                                                                    {"mask.png", mask}}) {
+        if (auto s = Write(cam_dir + "/" + name, image); !s.ok()) return s;
+      }
+      if (options.progress) options.progress(++done, total);
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace stage::sim

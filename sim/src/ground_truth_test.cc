@@ -1,0 +1,102 @@
+// Ground truth files against what the subject is: a sphere's depth and normals against the closed form; the head's
+// UV position map covers the skin and lies on the posed mesh; the pose file carries the performance's weights.
+#include "stage/sim/ground_truth.h"
+
+#include <cstdlib>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "gtest/gtest.h"
+#include "stage/common/rig.h"
+
+namespace stage::sim {
+namespace {
+
+std::shared_ptr<const SimScene> Scene(std::vector<std::string> overrides) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  EXPECT_TRUE(loaded.ok());
+  overrides.push_back("sim.render_scale=0.05");
+  auto rig = ApplyRigOverrides(*loaded, overrides);
+  EXPECT_TRUE(rig.ok()) << rig.status();
+  auto scene = SimScene::FromLoadedRig(*rig);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  return *scene;
+}
+
+TEST(GroundTruthTest, ASpheresDepthAndNormalsAreTheClosedForm) {
+  auto scene = Scene({"sim.subject.kind=sphere", "sim.subject.size_mm=100"});
+  const std::string dir = ::testing::TempDir() + "/gt-sphere";
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir, {.cameras = {"hs-2"}}).ok());
+  setenv("OPENCV_IO_ENABLE_OPENEXR", "1", 0);
+  const cv::Mat depth = cv::imread(dir + "/frame-000000/hs-2/depth.exr", cv::IMREAD_UNCHANGED);
+  const cv::Mat normal = cv::imread(dir + "/frame-000000/hs-2/normal_world.exr", cv::IMREAD_UNCHANGED);
+  const cv::Mat mask = cv::imread(dir + "/frame-000000/hs-2/mask.png", cv::IMREAD_UNCHANGED);
+  ASSERT_FALSE(depth.empty());
+  ASSERT_FALSE(normal.empty());
+  const CameraModel& cam = scene->camera(scene->CameraIndex("hs-2"));
+  ASSERT_EQ(depth.cols, cam.width());
+  const std::vector<Eigen::Vector3f> rays = cam.PixelRays();
+  int covered = 0;
+  double worst_depth = 0, worst_normal = 0;
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x) {
+      if (mask.at<uint8_t>(y, x) == 0) continue;
+      ++covered;
+      // The point the ground truth says the pixel sees must lie on the sphere, and its normal point from the centre.
+      const Eigen::Vector3d d = rays[static_cast<size_t>(y) * depth.cols + x].cast<double>();
+      const double along = depth.at<float>(y, x) / d.dot(cam.optical_axis());
+      const Eigen::Vector3d p = cam.position() + along * d;
+      worst_depth = std::max(worst_depth, std::abs(p.norm() - 100));
+      const cv::Vec3f n = normal.at<cv::Vec3f>(y, x);  // stored B, G, R = z, y, x
+      worst_normal = std::max(worst_normal, (Eigen::Vector3d(n[2], n[1], n[0]) - p.normalized()).norm());
+    }
+  }
+  EXPECT_GT(covered, 500);
+  EXPECT_LT(worst_depth, 0.01);   // mm
+  EXPECT_LT(worst_normal, 1e-4);  // unit vectors
+}
+
+TEST(GroundTruthTest, TheHeadsUvMapLiesOnItsMeshAndThePoseIsRecorded) {
+  auto scene = Scene({});
+  ASSERT_NE(scene->head(), nullptr);
+  const std::string dir = ::testing::TempDir() + "/gt-head";
+  // Frame 6 of the default performance: 0.25 s in, on the way to a brow raise.
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir, {.first_frame = 6, .last_frame = 7, .cameras = {"hs-2"}}).ok());
+  std::ifstream pose_file(dir + "/frame-000006/pose.json");
+  const auto pose = nlohmann::json::parse(pose_file);
+  const HeadPose expected = scene->PoseAt(6);
+  EXPECT_GT(expected.expression[ExpressionIndex("brow_raise")], 0.3f);
+  EXPECT_FLOAT_EQ(pose["expression"]["brow_raise"].get<float>(), expected.expression[ExpressionIndex("brow_raise")]);
+
+  const TriangleMesh mesh = scene->head()->PosedMesh(expected);
+  const std::vector<float> uv = UvPositionMap(mesh, 256);
+  int covered = 0;
+  double worst = 0;
+  MeshSubject subject(mesh, nullptr);
+  for (int t = 0; t < 256 * 256; t += 37) {
+    if (uv[4 * t + 3] == 0) continue;
+    ++covered;
+    const Eigen::Vector3f p(uv[4 * t], uv[4 * t + 1], uv[4 * t + 2]);
+    // A ray from outside towards the point meets the surface there (or in front of it: a fold may hide it).
+    const Eigen::Vector3f from = p + 300 * (p - Eigen::Vector3f(0, 0, 0)).normalized();
+    const Hit h = subject.Intersect(from, (p - from).normalized());
+    ASSERT_TRUE(h.hit);
+    worst = std::max(worst, static_cast<double>(std::max(0.0f, h.t - (p - from).norm())));
+  }
+  EXPECT_GT(covered, 256 * 256 / 37 * 95 / 100);  // the skin's UV layout covers the whole square
+  EXPECT_LT(worst, 0.05);                         // mm behind the surface at most
+  EXPECT_TRUE(std::ifstream(dir + "/frame-000006/mesh.obj").good());
+  EXPECT_FALSE(cv::imread(dir + "/frame-000006/uv_position.exr", cv::IMREAD_UNCHANGED).empty());
+}
+
+TEST(GroundTruthTest, RefusesEmptyFramesAndUnknownCameras) {
+  auto scene = Scene({"sim.subject.kind=sphere"});
+  EXPECT_FALSE(WriteGroundTruth(*scene, ::testing::TempDir(), {.first_frame = 3, .last_frame = 3}).ok());
+  auto s = WriteGroundTruth(*scene, ::testing::TempDir(), {.cameras = {"hs-9"}});
+  EXPECT_NE(s.message().find("hs-9"), std::string::npos) << s;
+}
+
+}  // namespace
+}  // namespace stage::sim
