@@ -1,4 +1,6 @@
 // camera-node: serves one camera of the stage (the CameraNode gRPC service) with the backend the rig names.
+#include <signal.h>
+
 #include "backends.h"
 #include "camera_node.h"
 #include "camera_service.h"
@@ -55,6 +57,7 @@ int main(int argc, char** argv) {
     world = std::move(*connected);
     auto plan = stage::sim::CameraWorld(*scene, config.id(), world.get());
     if (!plan.ok()) return stage::ReportFatal(kProgram, plan.status());
+    plan->on_crash = [] { raise(SIGKILL); };  // a crash fault: the process dies as a crashed node would
     if (auto s = sim_device->AttachWorld(*plan); !s.ok()) return stage::ReportFatal(kProgram, s);
   }
   auto node = stage::camera::CameraNode::Create(config, std::move(*device), stage::RigHash(loaded->rig));

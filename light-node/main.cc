@@ -1,4 +1,6 @@
 // light-node: serves one LED controller group of the stage (the LightNode gRPC service).
+#include <signal.h>
+
 #include "backends.h"
 #include "light_node.h"
 #include "light_service.h"
@@ -52,7 +54,9 @@ int main(int argc, char** argv) {
     if (!connected.ok()) return stage::ReportFatal(kProgram, connected.status());
     world = std::move(*connected);
     const int64_t extra_ns = config.has_sim() ? static_cast<int64_t>(config.sim().extra_delay_us() * 1000) : 0;
-    if (auto s = stage::sim::JoinLightNode(sim_driver, **scene, config.id(), world.get(), extra_ns); !s.ok()) {
+    if (auto s =
+            stage::sim::JoinLightNode(sim_driver, **scene, config.id(), world.get(), extra_ns, [] { raise(SIGKILL); });
+        !s.ok()) {
       return stage::ReportFatal(kProgram, s);
     }
   }

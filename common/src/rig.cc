@@ -471,6 +471,36 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
     check.InRange("sim.subject.specular", subject.specular(), 0, 1);
     check.InRange("sim.subject.roughness", subject.roughness(), 0.001, 1);
   }
+  {
+    std::set<std::string> units, lights, cameras;
+    for (const auto& n : rig.light_nodes()) {
+      lights.insert(n.id());
+      for (const auto& u : n.units()) units.insert(u.id());
+    }
+    for (const auto& c : rig.cameras()) cameras.insert(c.id());
+    for (int i = 0; i < rig.sim().faults_size(); ++i) {
+      const v1::SimFault& f = rig.sim().faults(i);
+      const std::string p = absl::StrCat("sim.faults[", i, "]");
+      const bool unit = units.count(f.target()) > 0, light = lights.count(f.target()) > 0,
+                 camera = cameras.count(f.target()) > 0;
+      if (!unit && !light && !camera) {
+        check.Add(p + ".target", absl::StrCat("\"", f.target(), "\" is no LED unit, light node or camera of the rig"));
+        continue;
+      }
+      if (f.dead() && !unit) check.Add(p + ".dead", "only an LED unit can be dead");
+      if (f.has_delay_us() && camera) check.Add(p + ".delay_us", "applies to an LED unit or a light node");
+      if ((f.has_miss_triggers() || f.has_drop_frames() || f.has_clock_offset_us() || f.has_clock_drift_ppm()) &&
+          !camera) {
+        check.Add(p, "miss_triggers, drop_frames and the clock apply to a camera");
+      }
+      if (f.has_crash_at_s() && unit) check.Add(p + ".crash_at_s", "applies to a light node or a camera");
+      if (f.has_delay_us()) check.InRange(p + ".delay_us", f.delay_us(), 0, 1e6);
+      if (f.has_miss_triggers()) check.InRange(p + ".miss_triggers", f.miss_triggers(), 0, 1);
+      if (f.has_drop_frames()) check.InRange(p + ".drop_frames", f.drop_frames(), 0, 1);
+      if (f.has_clock_drift_ppm()) check.InRange(p + ".clock_drift_ppm", f.clock_drift_ppm(), -1e4, 1e4);
+      if (f.has_crash_at_s()) check.InRange(p + ".crash_at_s", f.crash_at_s(), 0, 1e6);
+    }
+  }
   check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());
 
   // Node ids share one namespace: the controller, stagectl and the logs address nodes by id alone.

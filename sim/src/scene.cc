@@ -187,6 +187,14 @@ WorldOptions SimScene::MakeWorldOptions(bool lockstep, int64_t t0_ns) const {
   return o;
 }
 
+v1::SimFault SimScene::Fault(const std::string& id) const {
+  v1::SimFault merged;
+  for (const v1::SimFault& f : rig_.sim().faults()) {
+    if (f.target() == id) merged.MergeFrom(f);
+  }
+  return merged;
+}
+
 int64_t SimScene::SwitchDelayNs(int light_node) const {
   return base_.TicksToNs(schedule_.light_nodes(light_node).switch_ticks());
 }

@@ -138,6 +138,17 @@ int64_t FirstFiring(int64_t from, int64_t divider, int64_t phase) {
   if (m < 0) m += divider;
   return from + m;
 }
+// A deterministic draw in [0, 1) for a fault decision: the seed, the camera, the slot and which fault.
+double FaultDraw(uint64_t seed, const std::string& camera, int64_t slot, uint64_t which) {
+  uint64_t h = 1469598103934665603ull ^ seed;
+  for (unsigned char c : camera) h = (h ^ c) * 1099511628211ull;
+  for (uint64_t v : {static_cast<uint64_t>(slot), which}) {
+    h ^= v + 0x9e3779b97f4a7c15ull + (h << 6) + (h >> 2);
+    h = (h ^ (h >> 31)) * 0xbf58476d1ce4e5b9ull;
+  }
+  return static_cast<double>(h >> 11) / static_cast<double>(1ull << 53);
+}
+
 int64_t CountFiring(int64_t from, int64_t to, int64_t divider, int64_t phase) {
   const int64_t first = FirstFiring(from, divider, phase);
   return first >= to ? 0 : (to - 1 - first) / divider + 1;
@@ -168,8 +179,17 @@ void SimCameraDevice::TriggerLoop(int device) {
     std::unique_lock<std::mutex> lock(mutex_);
     if (!running_) break;
     stats_.missed_triggers += static_cast<uint64_t>(missed);
+    if (w.crash_at_ns >= 0 && edge->time_ns >= w.crash_at_ns) {
+      Logger("sim")->warn("sim camera {}: crashes at slot {} (fault)", serial_, k);
+      lock.unlock();
+      if (w.on_crash) w.on_crash();
+      world->Leave(device);
+      break;
+    }
     if (FirstFiring(k, d, p) == k) {
-      if (!lockstep && static_cast<int>(jobs_.size()) >= w.buffer_frames) {
+      if (w.miss_triggers > 0 && FaultDraw(w.seed, serial_, k, 1) < w.miss_triggers) {
+        ++stats_.missed_triggers;  // a fault: the trigger never reached the sensor
+      } else if (!lockstep && static_cast<int>(jobs_.size()) >= w.buffer_frames) {
         ++stats_.missed_triggers;  // busy: every buffer holds a frame not yet read out
       } else {
         const int64_t start = edge->time_ns + w.trigger_delay_ns;
@@ -207,6 +227,13 @@ void SimCameraDevice::RenderLoop() {
                           levels.status().message());
       std::lock_guard<std::mutex> lock(mutex_);
       ++stats_.render_errors;
+      jobs_.pop_front();
+      jobs_changed_.notify_all();
+      continue;
+    }
+    if (w.drop_frames > 0 && FaultDraw(w.seed, serial_, job.slot, 2) < w.drop_frames) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.dropped_frames;
       jobs_.pop_front();
       jobs_changed_.notify_all();
       continue;

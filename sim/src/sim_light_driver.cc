@@ -123,6 +123,12 @@ void SimLightDriver::WorldLoop(int device) {
   while (!detaching_.load()) {
     auto edge = world_.world->WaitForEdge(device, slot);
     if (!edge) break;
+    if (world_.crash_at_ns >= 0 && edge->time_ns >= world_.crash_at_ns) {
+      Logger("sim")->warn("light node {}: crashes at slot {} (fault)", node_id_, edge->slot);
+      if (world_.on_crash) world_.on_crash();
+      world_.world->Leave(device);
+      break;
+    }
     // A board steps on every edge; a process that saw some late catches up, so the table stays in phase.
     for (int64_t i = 0; i <= edge->missed; ++i) Step();
     if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));

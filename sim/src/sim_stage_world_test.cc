@@ -6,8 +6,11 @@
 #include <condition_variable>
 #include <map>
 #include <mutex>
+#include <set>
+#include <thread>
 #include <vector>
 
+#include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/clock.h"
 #include "stage/common/rig.h"
@@ -38,12 +41,16 @@ class Sink : public camera::FrameSink {
   std::vector<std::shared_ptr<const camera::Frame>> frames_;
 };
 
-std::shared_ptr<const SimScene> ShippedScene() {
+std::shared_ptr<const SimScene> ShippedScene(const std::function<void(v1::RigConfig*)>& change = nullptr) {
   auto loaded = LoadRig(kBuiltinRigName);
   EXPECT_TRUE(loaded.ok()) << loaded.status();
   // Small images keep the test quick; the physics does not depend on the scale.
   auto small = ApplyRigOverrides(*loaded, {"sim.render_scale=0.03"});
   EXPECT_TRUE(small.ok()) << small.status();
+  if (change) {
+    change(&small->rig);
+    for (const RigError& e : ValidateRig(small->rig, small->base_dir)) ADD_FAILURE() << e.path << ": " << e.message;
+  }
   auto scene = SimScene::FromLoadedRig(*small);
   EXPECT_TRUE(scene.ok()) << scene.status();
   return *scene;
@@ -112,12 +119,13 @@ struct Stage {
   SimClock clock;
 };
 
-void BuildStage(Stage* stage) {
-  stage->scene = ShippedScene();
+void BuildStage(Stage* stage, const std::function<void(v1::RigConfig*)>& change = nullptr) {
+  stage->scene = ShippedScene(change);
   const SimScene& scene = *stage->scene;
   WorldOptions options = scene.MakeWorldOptions(/*lockstep=*/true, 0);
   options.end_slot = kSlots;
   stage->world = std::make_unique<World>(scene.dome(), options);
+  ApplyUnitFaults(scene, stage->world.get());
   stage->client = LocalWorldClient(stage->world.get());
   for (const v1::LightNodeConfig& n : scene.rig().light_nodes()) {
     auto driver = std::make_unique<SimLightDriver>(n.id(), n.channel_count());
@@ -243,6 +251,105 @@ TEST(SimStageWorldTest, AKilledLightNodeLeavesItsUnitsDarkInTheImages) {
   }
   EXPECT_GT(dark_frames, 20) << "node 0 lights too little of what hs-2 sees for the check to mean anything";
   for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
+}
+
+TEST(SimStageWorldTest, FaultsFromTheRigShowAsTheyWould) {
+  Stage stage;
+  ASSERT_NO_FATAL_FAILURE(BuildStage(&stage, [](v1::RigConfig* rig) {
+    // Every unit of the first light node dead: its light is gone from every image.
+    for (const auto& u : rig->light_nodes(0).units()) {
+      auto* f = rig->mutable_sim()->add_faults();
+      f->set_target(u.id());
+      f->set_dead(true);
+    }
+    auto* hs = rig->mutable_sim()->add_faults();
+    hs->set_target("hs-1");
+    hs->set_miss_triggers(0.2);
+    hs->set_drop_frames(0.1);
+    hs->set_clock_offset_us(500);
+    hs->set_clock_drift_ppm(100);
+    auto* mv = rig->mutable_sim()->add_faults();
+    mv->set_target("mv-01");
+    mv->set_crash_at_s(0.03);  // after its first frame (slot 19), before its second (slot 57)
+  }));
+  const SimScene& scene = *stage.scene;
+  stage.world->Start();
+
+  // hs-1 misses about a fifth of its triggers and loses about a tenth of what it exposed; every slot is accounted for.
+  const int hs1 = scene.CameraIndex("hs-1");
+  SimCameraWorldStats stats;
+  for (int i = 0; i < 600; ++i) {
+    stats = stage.cameras[hs1]->world_stats();
+    if (stats.triggers + stats.missed_triggers == kSlots && stats.frames + stats.dropped_frames == stats.triggers)
+      break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(stats.triggers + stats.missed_triggers, static_cast<uint64_t>(kSlots));
+  EXPECT_EQ(stats.frames + stats.dropped_frames, stats.triggers);
+  EXPECT_GT(stats.missed_triggers, 5u);
+  EXPECT_LT(stats.missed_triggers, 30u);
+  EXPECT_GT(stats.dropped_frames, 0u);
+  auto frames = stage.sinks[hs1]->WaitFor(stats.frames);
+  ASSERT_EQ(frames.size(), stats.frames);
+  // Counters have gaps where frames were dropped, never where triggers were missed; timestamps carry the clock fault.
+  const int64_t trigger_ns = scene.base().TicksToNs(scene.schedule().cameras(hs1).trigger_ticks());
+  std::set<int64_t> slots_seen;
+  for (const auto& f : frames) {
+    // Recover the slot from the timestamp: device = world * (1 + 100 ppm) + 500 us.
+    const long double world_ns = (f->device_timestamp_ns - 500'000) / (1 + 100e-6L);
+    const int64_t slot = scene.base().SlotAtNs(static_cast<int64_t>(std::llround(world_ns)));
+    EXPECT_EQ(
+        f->device_timestamp_ns,
+        static_cast<int64_t>(static_cast<long double>(scene.base().SlotStartNs(slot) + trigger_ns) * (1 + 100e-6L)) +
+            500'000);
+    slots_seen.insert(slot);
+  }
+  EXPECT_EQ(slots_seen.size(), frames.size());
+  for (size_t i = 1; i < frames.size(); ++i) EXPECT_GT(frames[i]->frame_id, frames[i - 1]->frame_id);
+  EXPECT_LT(frames.back()->frame_id, stats.triggers);
+
+  // mv-01 crashed after its first frame.
+  const int mv1 = scene.CameraIndex("mv-01");
+  const int mv2 = scene.CameraIndex("mv-02");
+  ASSERT_EQ(stage.sinks[mv2]->WaitFor(2).size(), 2u);
+  EXPECT_EQ(stage.sinks[mv1]->WaitFor(1).size(), 1u);
+
+  // hs-2's images show node 0's units dark from the first slot.
+  const int hs2 = scene.CameraIndex("hs-2");
+  auto seen_frames = stage.sinks[hs2]->WaitFor(kSlots);
+  ASSERT_EQ(seen_frames.size(), static_cast<size_t>(kSlots));
+  int differs = 0;
+  for (int64_t f = 0; f < kSlots; ++f) {
+    const int64_t pose = f / 38;
+    const PixelResponses& r = *stage.renderers[hs2]->Responses(pose);
+    const auto seen = Signature(
+        r, [&](int32_t pixel) { return static_cast<double>(seen_frames[f]->data[static_cast<size_t>(pixel)]); });
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], PatternLevels(scene, f % 38), pose);
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], PatternLevels(scene, f % 38, 0), pose);
+    EXPECT_LT(Distance(seen, dark), 0.02) << "frame " << f;
+    differs += Distance(lit, dark) > 0.05;
+  }
+  EXPECT_GT(differs, 20);
+  for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
+}
+
+TEST(SimStageWorldTest, FaultsNameWhatTheyHitAndOnlyWhatTheyCanHit) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  v1::RigConfig rig = loaded->rig;
+  auto* f = rig.mutable_sim()->add_faults();
+  f->set_target("led-999");
+  auto* g = rig.mutable_sim()->add_faults();
+  g->set_target("hs-1");
+  g->set_dead(true);
+  auto* h = rig.mutable_sim()->add_faults();
+  h->set_target("mv-01");
+  h->set_drop_frames(1.5);
+  std::vector<std::string> errors;
+  for (const RigError& e : ValidateRig(rig, loaded->base_dir)) errors.push_back(e.path + ": " + e.message);
+  EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[0].target: \"led-999\" is no LED unit")));
+  EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[1].dead: only an LED unit can be dead")));
+  EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[2].drop_frames: 1.5 is not in [0, 1]")));
 }
 
 }  // namespace

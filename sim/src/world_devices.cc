@@ -1,6 +1,8 @@
 // Simulated devices in the world.
 #include "stage/sim/world_devices.h"
 
+#include <cmath>
+
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
@@ -21,7 +23,7 @@ light::PatternTable TableFromSchedule(const v1::LightNodeTiming& timing) {
 }
 
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, int64_t extra_delay_ns) {
+                           WorldClient* world, int64_t extra_delay_ns, std::function<void()> on_crash) {
   const int index = scene.LightNodeIndex(node_id);
   if (index < 0 || index >= scene.schedule().light_nodes_size()) {
     return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
@@ -32,7 +34,10 @@ absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const 
   w.world = world;
   w.node_index = index;
   w.switch_delay_ns = scene.SwitchDelayNs(index);
-  w.extra_delay_ns = extra_delay_ns;
+  const v1::SimFault fault = scene.Fault(node_id);
+  w.extra_delay_ns = extra_delay_ns + static_cast<int64_t>(std::llround(fault.delay_us() * 1000));
+  if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
+  w.on_crash = std::move(on_crash);
   return driver->AttachWorld(w);
 }
 
@@ -51,8 +56,25 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   w.trigger_delay_ns = base.TicksToNs(t.trigger_ticks());
   w.exposure_ns = base.TicksToNs(t.exposure_ticks());
   w.cycle_slots = timing::CycleLength(scene->schedule());
+  const v1::SimFault fault = scene->Fault(camera_id);
+  w.miss_triggers = fault.miss_triggers();
+  w.drop_frames = fault.drop_frames();
+  w.clock_offset_ns = static_cast<int64_t>(std::llround(fault.clock_offset_us() * 1000));
+  w.clock_drift_ppm = fault.clock_drift_ppm();
+  if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
+  w.seed = scene->rig().sim().seed();
   w.renderer = std::make_shared<CameraRenderer>(std::move(scene), index);
   return w;
+}
+
+void ApplyUnitFaults(const SimScene& scene, World* world) {
+  const auto& units = scene.dome().units;
+  for (size_t u = 0; u < units.size(); ++u) {
+    const v1::SimFault fault = scene.Fault(units[u].id);
+    if (fault.dead() || fault.delay_us() != 0) {
+      world->SetUnitFault(u, {fault.dead(), static_cast<int64_t>(std::llround(fault.delay_us() * 1000))});
+    }
+  }
 }
 
 }  // namespace stage::sim

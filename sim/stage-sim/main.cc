@@ -16,6 +16,7 @@
 #include "stage/common/subprocess.h"
 #include "stage/sim/scene.h"
 #include "stage/sim/stage_supervisor.h"
+#include "stage/sim/world_devices.h"
 #include "stage/sim/world_service.h"
 
 namespace {
@@ -112,6 +113,7 @@ int main(int argc, char** argv) {
     stage::sim::WorldOptions world_options = scene->MakeWorldOptions(lockstep, 0);
     world_options.end_slot = world_slots > 0 ? world_slots : -1;
     world = std::make_unique<stage::sim::World>(scene->dome(), world_options);
+    stage::sim::ApplyUnitFaults(*scene, world.get());
     stage::v1::WorldInfo info;
     info.set_slot_rate_hz(world_options.slot_rate_hz);
     info.set_lockstep(lockstep);

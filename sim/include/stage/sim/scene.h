@@ -59,6 +59,9 @@ class SimScene {
   float leakage(int index) const { return leakages_[static_cast<size_t>(index)]; }
   const SensorParams& sensor(int index) const { return sensors_[static_cast<size_t>(index)]; }
 
+  // Every sim.faults entry for `id` merged (an empty SimFault when none).
+  v1::SimFault Fault(const std::string& id) const;
+
   // A light node's switch delay after the slot edge, ns (its schedule entry).
   int64_t SwitchDelayNs(int light_node) const;
 

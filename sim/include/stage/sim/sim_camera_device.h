@@ -13,6 +13,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -44,6 +45,14 @@ struct SimCameraWorld {
   // The camera's clock against the world's: device time = world time * (1 + drift_ppm 1e-6) + offset_ns.
   int64_t clock_offset_ns = 0;
   double clock_drift_ppm = 0;
+  // Faults: fractions of triggers missed and of exposed frames lost before delivery, chosen per slot from `seed`;
+  // a crash once the world passes `crash_at_ns` (world clock; < 0: never): `on_crash` runs (a node process kills
+  // itself), or without one the camera falls silent.
+  double miss_triggers = 0;
+  double drop_frames = 0;
+  uint64_t seed = 1;
+  int64_t crash_at_ns = -1;
+  std::function<void()> on_crash;
 };
 
 struct SimCameraWorldStats {
@@ -51,6 +60,7 @@ struct SimCameraWorldStats {
   uint64_t missed_triggers = 0;  // edges the camera did not expose on (fell behind, or busy)
   uint64_t frames = 0;           // frames delivered
   uint64_t render_errors = 0;    // exposures the world could not give light for
+  uint64_t dropped_frames = 0;   // exposed, then lost (a fault)
 };
 
 // Bytes per pixel of a supported PFNC pixel format (1 or 2), or nullopt if unsupported.

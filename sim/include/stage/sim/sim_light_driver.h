@@ -8,6 +8,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <functional>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -27,6 +28,10 @@ struct SimLightWorld {
   // Edge to switch, ns: the node's switch delay, and an extra delay (a late node).
   int64_t switch_delay_ns = 0;
   int64_t extra_delay_ns = 0;
+  // A crash (fault) once the world passes this time (world clock; < 0: never): `on_crash` runs (a node process kills
+  // itself), or without one the node leaves the world and goes dark.
+  int64_t crash_at_ns = -1;
+  std::function<void()> on_crash;
 };
 
 class SimLightDriver final : public light::LightDriver {

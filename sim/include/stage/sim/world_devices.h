@@ -18,12 +18,17 @@ namespace stage::sim {
 light::PatternTable TableFromSchedule(const v1::LightNodeTiming& timing);
 
 // Loads light node `node_id`'s table from the scene's schedule into `driver`, arms it (the capture issue's arm step
-// will do this through the node's service) and attaches it to `world`; `extra_delay_ns` makes the node late.
+// will do this through the node's service) and attaches it to `world`; `extra_delay_ns` makes the node late (added
+// to the rig's sim.faults delay for it). `on_crash` runs at a crash fault.
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, int64_t extra_delay_ns = 0);
+                           WorldClient* world, int64_t extra_delay_ns = 0, std::function<void()> on_crash = nullptr);
 
-// The world attachment of camera `camera_id`: its trigger plan from the schedule and a renderer of the scene.
+// The world attachment of camera `camera_id`: its trigger plan from the schedule, a renderer of the scene, and its
+// faults from sim.faults.
 absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene, const std::string& camera_id,
                                            WorldClient* world);
+
+// The rig's LED unit faults (dead, late) applied to `world`.
+void ApplyUnitFaults(const SimScene& scene, World* world);
 
 }  // namespace stage::sim
