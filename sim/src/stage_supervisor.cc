@@ -162,7 +162,7 @@ absl::Status StageSupervisor::WaitForAddresses(std::chrono::steady_clock::time_p
   }
 }
 
-absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
+absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path, bool with_addresses) {
   v1::RigConfig rig = rig_.rig;
   auto address_of = [&](const std::string& id) {
     for (const Child& c : children_) {
@@ -170,9 +170,11 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
     }
     return std::string();
   };
-  for (auto& c : *rig.mutable_cameras()) c.set_address(address_of(c.id()));
-  for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
-  for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
+  if (with_addresses) {
+    for (auto& c : *rig.mutable_cameras()) c.set_address(address_of(c.id()));
+    for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
+    for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
+  }
   // The effective rig lives in the run directory: paths the rig file gave relative to itself must stay where they
   // pointed (a pattern-set file, the take root).
   auto absolute = [&](const std::string& file) {
@@ -182,6 +184,10 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path) {
   };
   if (!IsBuiltinPatternSet(rig.pattern_set())) rig.set_pattern_set(absolute(rig.pattern_set()));
   rig.mutable_storage()->set_root(absolute(rig.storage().root()));
+  const std::string& performance = rig.sim().subject().performance();
+  if (performance != "default" && performance != "still" && !performance.empty()) {
+    rig.mutable_sim()->mutable_subject()->set_performance(absolute(performance));
+  }
   // The controller listens where stage-sim says (--listen), whatever the rig's controller.listen is.
   STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(rig));
   return WriteFileAtomically(path, json);
@@ -250,6 +256,9 @@ absl::Status StageSupervisor::WriteEndpoints() {
 absl::Status StageSupervisor::Start() {
   STAGE_RETURN_IF_ERROR(options_.Validate());
   STAGE_ASSIGN_OR_RETURN(rig_, LoadRig(options_.rig));
+  if (!options_.overrides.empty()) {
+    STAGE_ASSIGN_OR_RETURN(rig_, ApplyRigOverrides(rig_, options_.overrides));
+  }
   STAGE_RETURN_IF_ERROR(PrepareRunDir());
   Logger("sim.stage")
       ->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(), rig_.source_name,
@@ -262,6 +271,11 @@ absl::Status StageSupervisor::Start() {
   };
   std::string config = options_.rig;
   if (config != kBuiltinRigName) config = fs::absolute(config).string();
+  if (!options_.overrides.empty()) {
+    // The nodes read the rig with the overrides applied.
+    config = options_.run_dir + "/rig-set.json";
+    if (auto s = WriteEffectiveRig(config, /*with_addresses=*/false); !s.ok()) return fail(s);
+  }
   // Every device is simulated: the rig's hardware backends are overridden.
   auto device_args = [&](const std::string& id) {
     std::vector<std::string> args = {"--id", id, "--backend", "sim"};

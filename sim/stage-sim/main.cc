@@ -70,6 +70,8 @@ int main(int argc, char** argv) {
                  "Where the stage controller listens, host:port (port 0 picks a free port)")
       ->capture_default_str();
   app.add_option("--child-log-level", options.child_log_level, "--log-level passed to every child");
+  app.add_option("--set", options.overrides,
+                 "Override a rig field for every node, PATH=VALUE (e.g. sim.render_scale=0.03); repeatable");
   std::string world_mode = "lockstep";
   int64_t world_slots = 0;
   app.add_option("--world", world_mode,
@@ -106,6 +108,10 @@ int main(int argc, char** argv) {
   if (world_mode != "none") {
     auto loaded = stage::LoadRig(options.rig);
     if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+    if (!options.overrides.empty()) {
+      loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
+      if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+    }
     auto created = stage::sim::SimScene::FromLoadedRig(*loaded);
     if (!created.ok()) return stage::ReportFatal(kProgram, created.status());
     scene = *created;

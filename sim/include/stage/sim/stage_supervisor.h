@@ -29,6 +29,8 @@ struct StageSupervisorOptions {
   std::chrono::milliseconds grace{3000};
   // --log-level passed to every child.
   std::string child_log_level;
+  // Rig field overrides (PATH=VALUE, as stagectl --set takes them), for every node.
+  std::vector<std::string> overrides;
   // Where the controller listens; port 0 picks a free one.
   std::string controller_listen = "127.0.0.1:0";
   // The simulated world's SimWorld service (host:port), passed to every camera and light node as --sim-world; empty:
@@ -77,7 +79,7 @@ class StageSupervisor {
                           const std::string& config, const std::string& listen, std::vector<std::string> extra_args);
   absl::Status WaitForAddresses(std::chrono::steady_clock::time_point deadline);
   absl::Status WaitForStageUp(std::chrono::steady_clock::time_point deadline);
-  absl::Status WriteEffectiveRig(const std::string& path);
+  absl::Status WriteEffectiveRig(const std::string& path, bool with_addresses = true);
   absl::Status WriteEndpoints();
   std::string DescribeExit(const Child& child) const;
 
