@@ -39,19 +39,6 @@ std::shared_ptr<const stage::sim::SimScene> Scene(double scale, const std::strin
   return *scene;
 }
 
-stage::sim::EmitterLevels PatternLevels(const stage::sim::SimScene& scene, int p) {
-  const auto& units = scene.dome().units;
-  const auto n = static_cast<Eigen::Index>(units.size());
-  stage::sim::EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
-  for (Eigen::Index l = 0; l < n; ++l) {
-    const auto& u = units[static_cast<size_t>(l)];
-    const auto& row = scene.schedule().light_nodes(u.node).table().rows(p);
-    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
-    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
-  }
-  return levels;
-}
-
 void OneCamera(const std::string& camera, double scale) {
   auto scene = Scene(scale, "still");
   const int index = scene->CameraIndex(camera);
@@ -62,7 +49,7 @@ void OneCamera(const std::string& camera, double scale) {
   const double precompute = Since(t);
   const int patterns = static_cast<int>(stage::timing::CycleLength(scene->schedule()));
   std::vector<stage::sim::EmitterLevels> levels;
-  for (int p = 0; p < patterns; ++p) levels.push_back(PatternLevels(*scene, p));
+  for (int p = 0; p < patterns; ++p) levels.push_back(scene->PatternLevels(p));
   const float leak = scene->leakage(index);
   // Radiance only (the matrix products), then with the sensor model.
   t = Clock::now();

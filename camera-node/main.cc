@@ -50,12 +50,10 @@ int main(int argc, char** argv) {
     if (sim_device == nullptr) {
       return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
     }
-    auto scene = stage::sim::SimScene::FromLoadedRig(*loaded);
-    if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
-    auto connected = stage::sim::ConnectWorld(world_address);
-    if (!connected.ok()) return stage::ReportFatal(kProgram, connected.status());
-    world = std::move(*connected);
-    auto plan = stage::sim::CameraWorld(*scene, config.id(), world.get());
+    auto opened = stage::sim::OpenNodeWorld(*loaded, world_address);
+    if (!opened.ok()) return stage::ReportFatal(kProgram, opened.status());
+    world = std::move(opened->client);
+    auto plan = stage::sim::CameraWorld(opened->scene, config.id(), world.get());
     if (!plan.ok()) return stage::ReportFatal(kProgram, plan.status());
     plan->on_crash = [] { raise(SIGKILL); };  // a crash fault: the process dies as a crashed node would
     if (auto s = sim_device->AttachWorld(*plan); !s.ok()) return stage::ReportFatal(kProgram, s);

@@ -48,14 +48,11 @@ int main(int argc, char** argv) {
     if (sim_driver == nullptr) {
       return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
     }
-    auto scene = stage::sim::SimScene::FromLoadedRig(*loaded);
-    if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
-    auto connected = stage::sim::ConnectWorld(world_address);
-    if (!connected.ok()) return stage::ReportFatal(kProgram, connected.status());
-    world = std::move(*connected);
-    const int64_t extra_ns = config.has_sim() ? static_cast<int64_t>(config.sim().extra_delay_us() * 1000) : 0;
+    auto opened = stage::sim::OpenNodeWorld(*loaded, world_address);
+    if (!opened.ok()) return stage::ReportFatal(kProgram, opened.status());
+    world = std::move(opened->client);
     if (auto s =
-            stage::sim::JoinLightNode(sim_driver, **scene, config.id(), world.get(), extra_ns, [] { raise(SIGKILL); });
+            stage::sim::JoinLightNode(sim_driver, *opened->scene, config.id(), world.get(), [] { raise(SIGKILL); });
         !s.ok()) {
       return stage::ReportFatal(kProgram, s);
     }

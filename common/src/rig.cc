@@ -634,12 +634,16 @@ std::string StableHash(const google::protobuf::Message& message) {
     coded.SetSerializationDeterministic(true);
     message.SerializeToCodedStream(&coded);
   }
-  uint64_t h = 1469598103934665603ull;
+  return absl::StrFormat("%016x", Fnv1a64(bytes));
+}
+
+uint64_t Fnv1a64(absl::string_view bytes, uint64_t basis) {
+  uint64_t h = basis;
   for (unsigned char c : bytes) {
     h ^= c;
     h *= 1099511628211ull;
   }
-  return absl::StrFormat("%016x", h);
+  return h;
 }
 
 namespace {

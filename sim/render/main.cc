@@ -21,20 +21,6 @@ namespace {
 
 constexpr const char* kProgram = "stage-sim-render";
 
-// The steady emitter levels of pattern `p`.
-stage::sim::EmitterLevels PatternLevels(const stage::sim::SimScene& scene, int p) {
-  const auto& units = scene.dome().units;
-  const auto n = static_cast<Eigen::Index>(units.size());
-  stage::sim::EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
-  for (Eigen::Index l = 0; l < n; ++l) {
-    const auto& u = units[static_cast<size_t>(l)];
-    const auto& row = scene.schedule().light_nodes(u.node).table().rows(p);
-    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
-    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
-  }
-  return levels;
-}
-
 // A raw frame as a viewable 8-bit BGR image: demosaiced, scaled so full-on white is near 80 % and gamma-encoded.
 cv::Mat Viewable(const stage::sim::RawImage& raw, const stage::sim::SensorParams& sensor, double white_dn) {
   cv::Mat linear(raw.height, raw.width, CV_32F);
@@ -153,7 +139,7 @@ int main(int argc, char** argv) {
   std::vector<cv::Mat> tiles;
   const auto t1 = std::chrono::steady_clock::now();
   for (int p = 0; p < patterns; ++p) {
-    const auto raw = renderer.Render(PatternLevels(**scene, p), exposure_s, static_cast<uint64_t>(p), frame);
+    const auto raw = renderer.Render((*scene)->PatternLevels(p), exposure_s, static_cast<uint64_t>(p), frame);
     cv::Mat tile = Viewable(raw, sensor, white_dn);
     if (tile_width > 0) {
       cv::resize(tile, tile,

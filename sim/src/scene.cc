@@ -13,15 +13,6 @@
 namespace stage::sim {
 namespace {
 
-uint64_t Fnv1a(const std::string& s) {
-  uint64_t h = 1469598103934665603ull;
-  for (unsigned char c : s) {
-    h ^= c;
-    h *= 1099511628211ull;
-  }
-  return h;
-}
-
 Material AnalyticMaterial(const v1::SimSubject& config) {
   Material m;
   if (config.albedo_size() == 3) {
@@ -187,6 +178,19 @@ WorldOptions SimScene::MakeWorldOptions(bool lockstep, int64_t t0_ns) const {
   return o;
 }
 
+EmitterLevels SimScene::PatternLevels(int64_t pattern, int dark_node) const {
+  const auto n = static_cast<Eigen::Index>(dome_.units.size());
+  EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
+  for (Eigen::Index l = 0; l < n; ++l) {
+    const LedUnitModel& u = dome_.units[static_cast<size_t>(l)];
+    if (u.node == dark_node) continue;
+    const v1::PatternRow& row = schedule_.light_nodes(u.node).table().rows(static_cast<int>(pattern));
+    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
+    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
+  }
+  return levels;
+}
+
 v1::SimFault SimScene::Fault(const std::string& id) const {
   v1::SimFault merged;
   for (const v1::SimFault& f : rig_.sim().faults()) {
@@ -203,7 +207,7 @@ CameraRenderer::CameraRenderer(std::shared_ptr<const SimScene> scene, int camera
     : scene_(std::move(scene)),
       index_(camera_index),
       threads_(threads),
-      stream_(Fnv1a(scene_->rig().cameras(camera_index).id())) {}
+      stream_(Fnv1a64(scene_->rig().cameras(camera_index).id())) {}
 
 std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_frame) {
   if (!scene_->animated()) pose_frame = 0;

@@ -7,6 +7,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/string_view.h"
 #include "stage/common/logging.h"
+#include "stage/common/rig.h"
 #include "stage/sim/scene.h"
 #include "stage/sim/world_client.h"
 #include "stage/timing/time_base.h"
@@ -140,8 +141,7 @@ int64_t FirstFiring(int64_t from, int64_t divider, int64_t phase) {
 }
 // A deterministic draw in [0, 1) for a fault decision: the seed, the camera, the slot and which fault.
 double FaultDraw(uint64_t seed, const std::string& camera, int64_t slot, uint64_t which) {
-  uint64_t h = 1469598103934665603ull ^ seed;
-  for (unsigned char c : camera) h = (h ^ c) * 1099511628211ull;
+  uint64_t h = Fnv1a64(camera, 1469598103934665603ull ^ seed);
   for (uint64_t v : {static_cast<uint64_t>(slot), which}) {
     h ^= v + 0x9e3779b97f4a7c15ull + (h << 6) + (h >> 2);
     h = (h ^ (h >> 31)) * 0xbf58476d1ce4e5b9ull;

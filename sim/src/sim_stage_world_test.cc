@@ -56,21 +56,6 @@ std::shared_ptr<const SimScene> ShippedScene(const std::function<void(v1::RigCon
   return *scene;
 }
 
-// The emitter levels of pattern `p` (steady light), optionally with light node `dark_node` off.
-EmitterLevels PatternLevels(const SimScene& scene, int64_t p, int dark_node = -1) {
-  const Dome& dome = scene.dome();
-  const auto n = static_cast<Eigen::Index>(dome.units.size());
-  EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
-  for (Eigen::Index l = 0; l < n; ++l) {
-    const LedUnitModel& u = dome.units[static_cast<size_t>(l)];
-    if (u.node == dark_node) continue;
-    const v1::PatternRow& row = scene.schedule().light_nodes(u.node).table().rows(static_cast<int>(p));
-    levels.cross[l] = static_cast<float>(row.levels(static_cast<int>(u.cross_channel)) / 65535.0);
-    levels.parallel[l] = static_cast<float>(row.levels(static_cast<int>(u.parallel_channel)) / 65535.0);
-  }
-  return levels;
-}
-
 // Mean digital number over each cell of a 4x4 grid, on the pixels that see the subject: a signature of the image
 // whose noise averages out.
 std::vector<double> Signature(const PixelResponses& r, const std::function<double(int32_t)>& value) {
@@ -182,7 +167,7 @@ TEST(SimStageWorldTest, TheFullRigInLockstepDeliversEveryFrameShowingThePatternO
       auto& expected_by_pattern = by_pose[pose];
       if (expected_by_pattern.empty()) {
         for (int64_t p = 0; p < cycle; ++p) {
-          expected_by_pattern.push_back(ExpectedSignature(scene, *stage.renderers[i], PatternLevels(scene, p), pose));
+          expected_by_pattern.push_back(ExpectedSignature(scene, *stage.renderers[i], scene.PatternLevels(p), pose));
         }
       }
       const PixelResponses& r = *stage.renderers[i]->Responses(pose);
@@ -236,8 +221,8 @@ TEST(SimStageWorldTest, AKilledLightNodeLeavesItsUnitsDarkInTheImages) {
     const std::vector<double> seen =
         Signature(r, [&](int32_t pixel) { return static_cast<double>(frames[f]->data[static_cast<size_t>(pixel)]); });
     const int64_t p = f % 38;
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p), pose);
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], PatternLevels(scene, p, /*dark_node=*/0), pose);
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], scene.PatternLevels(p), pose);
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], scene.PatternLevels(p, /*dark_node=*/0), pose);
     if (f < 38) {
       EXPECT_LT(Distance(seen, lit), 0.02) << "frame " << f;
     } else {
@@ -324,8 +309,8 @@ TEST(SimStageWorldTest, FaultsFromTheRigShowAsTheyWould) {
     const PixelResponses& r = *stage.renderers[hs2]->Responses(pose);
     const auto seen = Signature(
         r, [&](int32_t pixel) { return static_cast<double>(seen_frames[f]->data[static_cast<size_t>(pixel)]); });
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], PatternLevels(scene, f % 38), pose);
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], PatternLevels(scene, f % 38, 0), pose);
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38), pose);
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38, 0), pose);
     EXPECT_LT(Distance(seen, dark), 0.02) << "frame " << f;
     differs += Distance(lit, dark) > 0.05;
   }

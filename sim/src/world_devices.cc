@@ -22,8 +22,15 @@ light::PatternTable TableFromSchedule(const v1::LightNodeTiming& timing) {
   return table;
 }
 
+absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::string& address) {
+  NodeWorld out;
+  STAGE_ASSIGN_OR_RETURN(out.scene, SimScene::FromLoadedRig(loaded));
+  STAGE_ASSIGN_OR_RETURN(out.client, ConnectWorld(address));
+  return out;
+}
+
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, int64_t extra_delay_ns, std::function<void()> on_crash) {
+                           WorldClient* world, std::function<void()> on_crash) {
   const int index = scene.LightNodeIndex(node_id);
   if (index < 0 || index >= scene.schedule().light_nodes_size()) {
     return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
@@ -35,7 +42,9 @@ absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const 
   w.node_index = index;
   w.switch_delay_ns = scene.SwitchDelayNs(index);
   const v1::SimFault fault = scene.Fault(node_id);
-  w.extra_delay_ns = extra_delay_ns + static_cast<int64_t>(std::llround(fault.delay_us() * 1000));
+  const v1::LightNodeConfig& config = scene.rig().light_nodes(index);
+  const double extra_us = (config.has_sim() ? config.sim().extra_delay_us() : 0) + fault.delay_us();
+  w.extra_delay_ns = static_cast<int64_t>(std::llround(extra_us * 1000));
   if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
   w.on_crash = std::move(on_crash);
   return driver->AttachWorld(w);

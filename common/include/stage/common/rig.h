@@ -54,9 +54,9 @@ std::vector<RigError> ValidateRig(const v1::RigConfig& rig, absl::string_view ba
 
 // Applies one what-if assignment "path=value" to `rig`, as `stagectl timing check --set` takes it. The path names
 // fields as in the rig file; list entries are selected by id, index, "*" or a glob of ids:
-// "timing.led_switch_delay_us=60", "cameras[hs-1].exposure_us=850", "cameras[mv-*].link=gige-1", "light_nodes[0].unit_limits.max_duty_cycle=0.4". The
-// value is parsed by the rig file's rules (enum spellings, ranges of integers). Errors start with "--set <assignment>:"
-// and name the field or id that does not exist.
+// "timing.led_switch_delay_us=60", "cameras[hs-1].exposure_us=850", "cameras[mv-*].link=gige-1",
+// "light_nodes[0].unit_limits.max_duty_cycle=0.4". The value is parsed by the rig file's rules (enum spellings, ranges
+// of integers). Errors start with "--set <assignment>:" and name the field or id that does not exist.
 absl::Status ApplyRigOverride(v1::RigConfig* rig, absl::string_view assignment);
 
 // `loaded` with every assignment applied, defaults filled and the result validated; the source name says which
@@ -69,6 +69,9 @@ absl::string_view BuiltinRigText();
 // A stable 64-bit FNV-1a hash of the rig's deterministic serialization, as 16 hex digits: same rig, same hash.
 // Node addresses are left out: they are deployment detail that stage-sim assigns at run time.
 std::string RigHash(const v1::RigConfig& rig);
+
+// FNV-1a 64 of `bytes`, starting from `basis` (the standard offset basis unless given).
+uint64_t Fnv1a64(absl::string_view bytes, uint64_t basis = 1469598103934665603ull);
 
 // FNV-1a 64 of any message's deterministic serialization, 16 hex digits (RigHash, the schedule's hash).
 std::string StableHash(const google::protobuf::Message& message);

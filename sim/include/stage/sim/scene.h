@@ -59,6 +59,10 @@ class SimScene {
   float leakage(int index) const { return leakages_[static_cast<size_t>(index)]; }
   const SensorParams& sensor(int index) const { return sensors_[static_cast<size_t>(index)]; }
 
+  // Every unit's steady emitter levels under pattern `pattern` of the schedule (its rows in the light nodes' tables),
+  // with light node `dark_node` (if any) dark: what an exposure inside a slot's steady light integrates.
+  EmitterLevels PatternLevels(int64_t pattern, int dark_node = -1) const;
+
   // Every sim.faults entry for `id` merged (an empty SimFault when none).
   v1::SimFault Fault(const std::string& id) const;
 

@@ -17,11 +17,18 @@ namespace stage::sim {
 // The table a light node steps through, as the schedule compiled it.
 light::PatternTable TableFromSchedule(const v1::LightNodeTiming& timing);
 
+// What a node program needs to put its sim device in stage-sim's world: the scene of its rig and a connection.
+struct NodeWorld {
+  std::shared_ptr<const SimScene> scene;
+  std::unique_ptr<WorldClient> client;
+};
+absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::string& address);
+
 // Loads light node `node_id`'s table from the scene's schedule into `driver`, arms it (the capture issue's arm step
-// will do this through the node's service) and attaches it to `world`; `extra_delay_ns` makes the node late (added
-// to the rig's sim.faults delay for it). `on_crash` runs at a crash fault.
+// will do this through the node's service) and attaches it to `world`. The node is late by its sim.extra_delay_us
+// plus its sim.faults delay. `on_crash` runs at a crash fault.
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, int64_t extra_delay_ns = 0, std::function<void()> on_crash = nullptr);
+                           WorldClient* world, std::function<void()> on_crash = nullptr);
 
 // The world attachment of camera `camera_id`: its trigger plan from the schedule, a renderer of the scene, and its
 // faults from sim.faults.
