@@ -129,39 +129,38 @@ constexpr float kTexels = 4096;
 // Pores: one candidate per 12x12-texel cell; diameters 2 to 10 texels.
 constexpr float kPoreCell = 12;
 
-// The pore field at uv: depth in [0, 1] (1 at a pore's centre).
-float Pores(uint64_t seed, const Eigen::Vector2f& uv) {
-  const float x = uv.x() * kTexels / kPoreCell, y = uv.y() * kTexels / kPoreCell;
+// Spots scattered one per cell of `cell` texels: a cell holds one with probability `p` (draw `salt`), at a random place
+// (draws salt + 1, salt + 2) with a radius of `r0 + r1 x draw(salt + 3)` texels. Returns the largest
+// `shape(q, i, j)` over the spots near uv, q being the squared distance over the squared radius.
+template <typename Shape>
+float Spots(uint64_t seed, const Eigen::Vector2f& uv, float cell, float p, int salt, float r0, float r1, Shape shape) {
+  const float x = uv.x() * kTexels / cell, y = uv.y() * kTexels / cell;
   const auto cx = static_cast<int64_t>(std::floor(x)), cy = static_cast<int64_t>(std::floor(y));
-  float depth = 0;
+  float out = 0;
   for (int64_t j = cy - 1; j <= cy + 1; ++j) {
     for (int64_t i = cx - 1; i <= cx + 1; ++i) {
-      if (Rand(seed, i, j, 1) > 0.8f) continue;
-      const float px = static_cast<float>(i) + Rand(seed, i, j, 2), py = static_cast<float>(j) + Rand(seed, i, j, 3);
-      const float radius = (1 + 4 * Rand(seed, i, j, 4)) / kPoreCell;  // 1..5 texels, in cells
+      if (Rand(seed, i, j, salt) > p) continue;
+      const float px = static_cast<float>(i) + Rand(seed, i, j, salt + 1);
+      const float py = static_cast<float>(j) + Rand(seed, i, j, salt + 2);
+      const float radius = (r0 + r1 * Rand(seed, i, j, salt + 3)) / cell;  // in cells
       const float q = ((x - px) * (x - px) + (y - py) * (y - py)) / (radius * radius);
-      if (q < 1) depth = std::max(depth, (1 - q) * (1 - q));
+      out = std::max(out, shape(q, i, j));
     }
   }
-  return depth;
+  return out;
+}
+
+// The pore field at uv: depth in [0, 1] (1 at a pore's centre); radii 1..5 texels.
+float Pores(uint64_t seed, const Eigen::Vector2f& uv) {
+  return Spots(seed, uv, kPoreCell, 0.8f, 1, 1, 4,
+               [](float q, int64_t, int64_t) { return q < 1 ? (1 - q) * (1 - q) : 0.0f; });
 }
 
 // Freckles: soft spots of 20 to 60 texels, in [0, 1].
 float Freckles(uint64_t seed, const Eigen::Vector2f& uv) {
-  constexpr float kCell = 64;
-  const float x = uv.x() * kTexels / kCell, y = uv.y() * kTexels / kCell;
-  const auto cx = static_cast<int64_t>(std::floor(x)), cy = static_cast<int64_t>(std::floor(y));
-  float spot = 0;
-  for (int64_t j = cy - 1; j <= cy + 1; ++j) {
-    for (int64_t i = cx - 1; i <= cx + 1; ++i) {
-      if (Rand(seed, i, j, 5) > 0.35f) continue;
-      const float px = static_cast<float>(i) + Rand(seed, i, j, 6), py = static_cast<float>(j) + Rand(seed, i, j, 7);
-      const float radius = (10 + 20 * Rand(seed, i, j, 8)) / kCell;
-      const float q = ((x - px) * (x - px) + (y - py) * (y - py)) / (radius * radius);
-      spot = std::max(spot, std::exp(-3 * q) * (0.5f + 0.5f * Rand(seed, i, j, 9)));
-    }
-  }
-  return spot;
+  return Spots(seed, uv, 64, 0.35f, 5, 10, 20, [seed](float q, int64_t i, int64_t j) {
+    return std::exp(-3 * q) * (0.5f + 0.5f * Rand(seed, i, j, 9));
+  });
 }
 
 }  // namespace
