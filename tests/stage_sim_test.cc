@@ -288,6 +288,48 @@ TEST_F(StageSimTest, TheWorldAcrossProcessesTriggersEveryCameraAndStepsEveryLigh
     ASSERT_TRUE(stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok());
     EXPECT_EQ(stats.frames_completed(), expected[p.id()]) << p.id();
   }
+
+  // Faults go into the running world through stagectl, checked as rig entries are.
+  const std::string endpoints = run_dir_.path() + "/endpoints.json";
+  const std::string unit = loaded->rig.light_nodes(0).units(0).id();
+  CommandResult ok =
+      RunCommand({"stagectl", "--endpoints", endpoints, "sim", "fault", unit, "--dead"}, std::chrono::seconds(20));
+  EXPECT_EQ(ok.exit.exit_code, 0) << ok.err;
+  EXPECT_THAT(ok.out, ::testing::HasSubstr("injected: target: \"" + unit + "\" dead: true"));
+  CommandResult misplaced = RunCommand(
+      {"stagectl", "--endpoints", endpoints, "sim", "fault", "hs-1", "--delay-us", "50"}, std::chrono::seconds(20));
+  EXPECT_EQ(misplaced.exit.exit_code, 2);  // bad input
+  EXPECT_THAT(misplaced.err, ::testing::HasSubstr("fault.delay_us: applies to an LED unit or a light node"));
+  CommandResult unknown =
+      RunCommand({"stagectl", "--endpoints", endpoints, "sim", "fault", "hs-99", "--drop-frames", "0.5"},
+                 std::chrono::seconds(20));
+  EXPECT_EQ(unknown.exit.exit_code, 2);
+  EXPECT_THAT(unknown.err, ::testing::HasSubstr("\"hs-99\" is no LED unit, light node or camera"));
+}
+
+// One run of the simulated stage end to end, as the demo does it: the world runs its slots, stage-sim waits until
+// every camera delivered what its triggers imply, reports it as JSON, writes the ground truth and takes the stage down.
+TEST_F(StageSimTest, UntilRenderedReportsEveryFrameAndWritesTheGroundTruth) {
+  TempDir truth;
+  CommandResult r = RunCommand({"stage-sim", "--run-dir", run_dir_.path(), "--world-slots", "76", "--until-rendered",
+                                "--json", "--set", "sim.render_scale=0.02", "--ground-truth", truth.path()},
+                               std::chrono::seconds(300));
+  ASSERT_FALSE(r.timed_out);
+  ASSERT_EQ(r.exit.exit_code, 0) << r.err;
+  EXPECT_THAT(r.err, ::testing::HasSubstr("rendered 276 of 276 frames (100%)"));  // 3 x 76 + 24 x 2
+  nlohmann::json j = nlohmann::json::parse(r.out);
+  EXPECT_EQ(j["slots"], 76);
+  ASSERT_EQ(j["cameras"].size(), 27u);
+  for (const auto& [id, cam] : j["cameras"].items()) {
+    EXPECT_EQ(cam["frames"], cam["expected"]) << id;
+    EXPECT_EQ(cam["expected"], id.rfind("hs-", 0) == 0 ? 76 : 2) << id;
+  }
+  for (const char* file : {"/frame-000000/pose.json", "/frame-000001/mesh.obj", "/frame-000001/hs-2/depth.exr",
+                           "/frame-000000/mv-24/mask.png"}) {
+    EXPECT_TRUE(std::filesystem::exists(truth.path() + file)) << file;
+  }
+  EXPECT_FALSE(std::filesystem::exists(truth.path() + "/frame-000002"));
+  EXPECT_THAT(r.err, ::testing::HasSubstr("stage-sim: stage down"));
 }
 
 }  // namespace

@@ -335,6 +335,23 @@ void ApplyRigDefaults(RigConfig* rig) {
   }
   if (!subject->has_specular()) subject->set_specular(0.03);
   if (!subject->has_roughness()) subject->set_roughness(0.3);
+  if (!subject->asset().neutral_obj().empty()) {
+    auto* asset = subject->mutable_asset();
+    if (!asset->has_specular_scale()) asset->set_specular_scale(0.1);
+    if (!asset->has_units_mm()) asset->set_units_mm(1);
+    if (asset->pivot_mm().empty()) {
+      for (double p : {0.0, -95.0, -15.0}) asset->add_pivot_mm(p);
+    }
+  }
+  if (subject->kind() == "charuco") {
+    auto* board = subject->mutable_board();
+    if (!board->has_squares_x()) board->set_squares_x(7);
+    if (!board->has_squares_y()) board->set_squares_y(5);
+    if (!board->has_square_mm()) board->set_square_mm(30);
+    if (!board->has_marker_mm()) board->set_marker_mm(22);
+    if (board->dictionary().empty()) board->set_dictionary("DICT_5X5_100");
+    if (!board->has_pixels_per_mm()) board->set_pixels_per_mm(8);
+  }
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
   if (!storage->has_host_write_mb_per_s()) storage->set_host_write_mb_per_s(2000);
@@ -456,9 +473,34 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
   {
     const v1::SimSubject& subject = rig.sim().subject();
-    if (subject.kind() != "head" && subject.kind() != "sphere" && subject.kind() != "plane") {
+    if (subject.kind() != "head" && subject.kind() != "sphere" && subject.kind() != "plane" &&
+        subject.kind() != "charuco") {
       check.Add("sim.subject.kind",
-                absl::StrCat("\"", subject.kind(), "\" is not a subject kind (head, sphere, plane)"));
+                absl::StrCat("\"", subject.kind(), "\" is not a subject kind (head, sphere, plane, charuco)"));
+    }
+    if (!subject.asset().neutral_obj().empty()) {
+      const v1::SimHeadAsset& asset = subject.asset();
+      if (subject.kind() != "head") check.Add("sim.subject.asset", "is a head: needs kind \"head\"");
+      if (asset.albedo().empty()) check.Add("sim.subject.asset.albedo", "is required with a neutral_obj");
+      check.InRange("sim.subject.asset.specular_scale", asset.specular_scale(), 0, 100);
+      check.InRange("sim.subject.asset.units_mm", asset.units_mm(), 1e-6, 1e6);
+      if (asset.pivot_mm_size() != 3) {
+        check.Add("sim.subject.asset.pivot_mm", absl::StrCat("needs 3 values (x, y, z), has ", asset.pivot_mm_size()));
+      }
+    } else if (subject.asset().ByteSizeLong() != 0) {
+      check.Add("sim.subject.asset.neutral_obj", "is required when an asset is given");
+    }
+    if (subject.kind() == "charuco") {
+      const v1::SimBoard& board = subject.board();
+      check.InRange("sim.subject.board.squares_x", board.squares_x(), 2, 100);
+      check.InRange("sim.subject.board.squares_y", board.squares_y(), 2, 100);
+      check.InRange("sim.subject.board.square_mm", board.square_mm(), 1, 1000);
+      check.InRange("sim.subject.board.marker_mm", board.marker_mm(), 0.5, 1000);
+      if (board.marker_mm() >= board.square_mm()) {
+        check.Add("sim.subject.board.marker_mm",
+                  absl::StrCat(board.marker_mm(), " must be smaller than square_mm (", board.square_mm(), ")"));
+      }
+      check.InRange("sim.subject.board.pixels_per_mm", board.pixels_per_mm(), 0.5, 100);
     }
     check.InRange("sim.subject.head_resolution", subject.head_resolution(), 16, 4096);
     check.InRange("sim.subject.size_mm", subject.size_mm(), 1, 2000);

@@ -31,20 +31,6 @@ absl::Status Write(const std::string& path, const cv::Mat& image) {
 // OpenCV writes channels as B, G, R: put the values' x, y, z (or R, G, B) in that order.
 cv::Vec3f Bgr(const Eigen::Vector3f& v) { return {v.z(), v.y(), v.x()}; }
 
-absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh) {
-  std::ofstream out(path);
-  if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
-  out << "# FaStage simulator ground truth: posed subject, stage frame, millimetres\n";
-  for (const auto& p : mesh.positions) out << absl::StrFormat("v %.4f %.4f %.4f\n", p.x(), p.y(), p.z());
-  for (const auto& t : mesh.uvs) out << absl::StrFormat("vt %.6f %.6f\n", t.x(), t.y());
-  for (const auto& f : mesh.triangles) {
-    out << absl::StrFormat("f %d/%d %d/%d %d/%d\n", f[0] + 1, f[0] + 1, f[1] + 1, f[1] + 1, f[2] + 1, f[2] + 1);
-  }
-  out.close();
-  if (!out) return absl::DataLossError(absl::StrCat(path, ": write failed"));
-  return absl::OkStatus();
-}
-
 }  // namespace
 
 std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size) {
@@ -111,18 +97,32 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     j["time_s"] = (static_cast<double>(frame) + 0.5) * static_cast<double>(scene.schedule().patterns_size()) /
                   scene.base().slot_rate_hz();
     j["subject"] = scene.rig().sim().subject().kind();
-    for (int e = 0; e < kExpressionCount; ++e) j["expression"][ExpressionName(e)] = pose.expression[e];
+    if (scene.head() != nullptr) {
+      for (int e = 0; e < kExpressionCount; ++e) j["expression"][ExpressionName(e)] = pose.expression[e];
+    }
     j["rotation_deg"] = {
         {"yaw", pose.rotation_deg.x()}, {"pitch", pose.rotation_deg.y()}, {"roll", pose.rotation_deg.z()}};
     j["translation_mm"] = {pose.translation_mm.x(), pose.translation_mm.y(), pose.translation_mm.z()};
+    if (const BoardModel* board = scene.board(); board != nullptr) {
+      // The ChArUco corners where the board is, by OpenCV's corner id.
+      nlohmann::json corners = nlohmann::json::array();
+      for (const Eigen::Vector3f& c : board->CornersAt(pose)) corners.push_back({c.x(), c.y(), c.z()});
+      const v1::SimBoard& config = scene.rig().sim().subject().board();
+      j["board"] = {{"squares_x", config.squares_x()},   {"squares_y", config.squares_y()},
+                    {"square_mm", config.square_mm()},   {"marker_mm", config.marker_mm()},
+                    {"dictionary", config.dictionary()}, {"corners_mm", corners}};
+    }
     {
       std::ofstream out(frame_dir + "/pose.json");
       out << j.dump(2) << "\n";
       if (!out) return absl::UnavailableError(absl::StrCat(frame_dir, "/pose.json: cannot write"));
     }
-    if (scene.head() != nullptr) {
-      const TriangleMesh mesh = scene.head()->PosedMesh(pose);
-      if (auto s = WriteObj(frame_dir + "/mesh.obj", mesh); !s.ok()) return s;
+    if (scene.model() != nullptr) {
+      const TriangleMesh mesh = scene.model()->PosedMesh(pose);
+      if (auto s = WriteObj(frame_dir + "/mesh.obj", mesh,
+                            "FaStage simulator ground truth: posed subject, stage frame, millimetres");
+          !s.ok())
+        return s;
       const std::vector<float> uv = UvPositionMap(mesh, options.uv_size);
       // Row 0 of the image is v = 0 (the chin's side): the map is indexed as texture coordinates are.
       cv::Mat image(options.uv_size, options.uv_size, CV_32FC4, const_cast<float*>(uv.data()));

@@ -6,8 +6,12 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
 
 namespace stage::sim {
 namespace {
@@ -163,7 +167,152 @@ float Freckles(uint64_t seed, const Eigen::Vector2f& uv) {
   });
 }
 
+// An image read for the skin maps: float texels, row 0 at the image's top (v = 1).
+struct Image {
+  int width = 0, height = 0, channels = 0;
+  std::vector<float> texels;
+  bool empty() const { return texels.empty(); }
+  // Bilinear at texture coordinate uv (clamped to the edge), into out[0..channels).
+  void Sample(const Eigen::Vector2f& uv, float* out) const {
+    const float x = std::clamp(uv.x() * static_cast<float>(width) - 0.5f, 0.0f, static_cast<float>(width - 1));
+    const float y = std::clamp((1 - uv.y()) * static_cast<float>(height) - 0.5f, 0.0f, static_cast<float>(height - 1));
+    const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+    const int x1 = std::min(x0 + 1, width - 1), y1 = std::min(y0 + 1, height - 1);
+    const float fx = x - static_cast<float>(x0), fy = y - static_cast<float>(y0);
+    auto at = [&](int xx, int yy, int c) {
+      return texels[(static_cast<size_t>(yy) * static_cast<size_t>(width) + static_cast<size_t>(xx)) * channels + c];
+    };
+    for (int c = 0; c < channels; ++c) {
+      out[c] = (at(x0, y0, c) * (1 - fx) + at(x1, y0, c) * fx) * (1 - fy) +
+               (at(x0, y1, c) * (1 - fx) + at(x1, y1, c) * fx) * fy;
+    }
+  }
+};
+
+enum class Encoding { kSrgb, kLinear, kSigned };
+
+// Reads `path` (what rig field `field` names) as `channels` (1: grey, 3: RGB) floats. Integer images map to [0, 1],
+// then through the sRGB curve (kSrgb) or to [-1, 1] (kSigned); OpenEXR values are taken as they are.
+absl::StatusOr<Image> ReadImage(const std::string& path, const std::string& field, int channels, Encoding encoding) {
+  setenv("OPENCV_IO_ENABLE_OPENEXR", "1", 0);
+  cv::Mat m = cv::imread(path, cv::IMREAD_UNCHANGED);
+  if (m.empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": cannot read the image \"", path, "\" (missing, or not PNG, JPEG, TIFF or OpenEXR)"));
+  }
+  double scale = 1;
+  bool integer = true;
+  switch (m.depth()) {
+    case CV_8U:
+      scale = 1.0 / 255;
+      break;
+    case CV_16U:
+      scale = 1.0 / 65535;
+      break;
+    case CV_32F:
+      integer = false;
+      break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat(field, ": \"", path, "\" is neither 8 nor 16-bit nor float"));
+  }
+  cv::Mat f;
+  m.convertTo(f, CV_32F, scale);
+  if (f.channels() == 4) cv::cvtColor(f, f, cv::COLOR_BGRA2BGR);
+  if (channels == 1 && f.channels() == 3) cv::cvtColor(f, f, cv::COLOR_BGR2GRAY);
+  if (channels == 3 && f.channels() == 1) cv::cvtColor(f, f, cv::COLOR_GRAY2BGR);
+  if (channels == 3) cv::cvtColor(f, f, cv::COLOR_BGR2RGB);
+  Image image;
+  image.width = f.cols;
+  image.height = f.rows;
+  image.channels = channels;
+  image.texels.assign(f.ptr<float>(0), f.ptr<float>(0) + static_cast<size_t>(f.total()) * channels);
+  if (integer && encoding == Encoding::kSrgb) {
+    for (float& v : image.texels) v = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
+  }
+  if (integer && encoding == Encoding::kSigned) {
+    for (float& v : image.texels) v = 2 * v - 1;
+  }
+  return image;
+}
+
 }  // namespace
+
+struct HeadModel::Maps {
+  Image albedo, specular, roughness, normal;
+  float specular_value = 0.03f, roughness_value = 0.3f, specular_scale = 0.1f;
+
+  SurfaceSample Sample(const Eigen::Vector2f& uv) const {
+    SurfaceSample s;
+    float v[3];
+    albedo.Sample(uv, v);
+    s.material.albedo = Eigen::Vector3f(v[0], v[1], v[2]).cwiseMax(0.0f).cwiseMin(1.0f);
+    s.material.specular = specular_value;
+    if (!specular.empty()) {
+      specular.Sample(uv, v);
+      s.material.specular = std::clamp(v[0] * specular_scale, 0.0f, 1.0f);
+    }
+    s.material.roughness = roughness_value;
+    if (!roughness.empty()) {
+      roughness.Sample(uv, v);
+      s.material.roughness = std::clamp(v[0], 0.01f, 1.0f);
+    }
+    if (!normal.empty()) {
+      normal.Sample(uv, v);
+      const Eigen::Vector3f n(v[0], v[1], v[2]);
+      if (n.z() > 1e-3f) s.tangent_normal = n.normalized();
+    }
+    return s;
+  }
+};
+
+absl::StatusOr<std::shared_ptr<const HeadModel>> HeadModel::FromAsset(const HeadAssetFiles& files) {
+  std::shared_ptr<HeadModel> head(new HeadModel());
+  STAGE_ASSIGN_OR_RETURN(head->neutral_, ReadObj(files.neutral_obj));
+  TriangleMesh& m = head->neutral_;
+  if (std::all_of(m.uvs.begin(), m.uvs.end(), [](const Eigen::Vector2f& t) { return t.isZero(); })) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(files.neutral_obj, ": has no texture coordinates (vt), which the skin maps need"));
+  }
+  for (auto& p : m.positions) p *= files.units_mm;
+  head->pivot_ = files.pivot_mm;
+  for (const auto& [name, path] : files.blendshapes) {
+    const int e = ExpressionIndex(name);
+    if (e < 0) {
+      std::string names;
+      for (int i = 0; i < kExpressionCount; ++i) absl::StrAppend(&names, i ? ", " : "", kNames[i]);
+      return absl::InvalidArgumentError(
+          absl::StrCat("sim.subject.asset.blendshapes: \"", name, "\" is not an expression (", names, ")"));
+    }
+    STAGE_ASSIGN_OR_RETURN(TriangleMesh shape, ReadObj(path));
+    if (shape.positions.size() != m.positions.size() || shape.triangles != m.triangles) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "sim.subject.asset.blendshapes.", name, ": ", path, " does not have the topology of ", files.neutral_obj,
+          " (", shape.positions.size(), " vertices and ", shape.triangles.size(), " triangles against ",
+          m.positions.size(), " and ", m.triangles.size(), ", or faces in another order)"));
+    }
+    auto& delta = head->deltas_[e];
+    delta.resize(m.positions.size());
+    for (size_t v = 0; v < delta.size(); ++v) delta[v] = shape.positions[v] * files.units_mm - m.positions[v];
+  }
+  auto maps = std::make_shared<Maps>();
+  maps->specular_value = files.specular_value;
+  maps->roughness_value = files.roughness_value;
+  maps->specular_scale = files.specular_scale;
+  STAGE_ASSIGN_OR_RETURN(maps->albedo, ReadImage(files.albedo, "sim.subject.asset.albedo", 3, Encoding::kSrgb));
+  if (!files.specular.empty()) {
+    STAGE_ASSIGN_OR_RETURN(maps->specular,
+                           ReadImage(files.specular, "sim.subject.asset.specular", 1, Encoding::kLinear));
+  }
+  if (!files.roughness.empty()) {
+    STAGE_ASSIGN_OR_RETURN(maps->roughness,
+                           ReadImage(files.roughness, "sim.subject.asset.roughness", 1, Encoding::kLinear));
+  }
+  if (!files.normal.empty()) {
+    STAGE_ASSIGN_OR_RETURN(maps->normal, ReadImage(files.normal, "sim.subject.asset.normal", 3, Encoding::kSigned));
+  }
+  head->maps_ = std::move(maps);
+  return std::shared_ptr<const HeadModel>(std::move(head));
+}
 
 const char* ExpressionName(int index) { return index >= 0 && index < kExpressionCount ? kNames[index] : ""; }
 
@@ -270,6 +419,7 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
 std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution) {
   std::shared_ptr<HeadModel> head(new HeadModel());
   head->seed_ = seed;
+  head->pivot_ = kPivot;
   TriangleMesh& m = head->neutral_;
   const int cols = std::max(16, resolution), rows = std::max(8, resolution / 2);
   // Skin: a (cols + 1) x (rows + 1) grid over azimuth and elevation; the seam column repeats the first with u = 1.
@@ -331,23 +481,27 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
   return head;
 }
 
-TriangleMesh HeadModel::PosedMesh(const HeadPose& pose) const {
+Eigen::Matrix3f PoseRotation(const HeadPose& pose) {
+  const float k = kPi / 180;
+  return (Eigen::AngleAxisf(pose.rotation_deg.x() * k, Eigen::Vector3f::UnitY()) *
+          Eigen::AngleAxisf(pose.rotation_deg.y() * k, Eigen::Vector3f::UnitX()) *
+          Eigen::AngleAxisf(pose.rotation_deg.z() * k, Eigen::Vector3f::UnitZ()))
+      .toRotationMatrix();
+}
+
+TriangleMesh RiggedModel::PosedMesh(const HeadPose& pose) const {
   TriangleMesh m = neutral_;
   for (int e = 0; e < kExpressionCount; ++e) {
     const float w = pose.expression[e];
-    if (w == 0) continue;
+    if (w == 0 || deltas_[e].empty()) continue;
     for (size_t v = 0; v < m.positions.size(); ++v) m.positions[v] += w * deltas_[e][v];
   }
-  const float k = kPi / 180;
-  const Eigen::Matrix3f r = (Eigen::AngleAxisf(pose.rotation_deg.x() * k, Eigen::Vector3f::UnitY()) *
-                             Eigen::AngleAxisf(pose.rotation_deg.y() * k, Eigen::Vector3f::UnitX()) *
-                             Eigen::AngleAxisf(pose.rotation_deg.z() * k, Eigen::Vector3f::UnitZ()))
-                                .toRotationMatrix();
-  for (auto& p : m.positions) p = r * (p - kPivot) + kPivot + pose.translation_mm;
+  const Eigen::Matrix3f r = PoseRotation(pose);
+  for (auto& p : m.positions) p = r * (p - pivot_) + pivot_ + pose.translation_mm;
   return m;
 }
 
-std::unique_ptr<MeshSubject> HeadModel::Posed(const HeadPose& pose) const {
+std::unique_ptr<MeshSubject> RiggedModel::Posed(const HeadPose& pose) const {
   const auto expr = pose.expression;
   return std::make_unique<MeshSubject>(
       PosedMesh(pose), [this, expr](const Eigen::Vector2f& uv, int part) { return Surface(uv, part, expr); });
@@ -376,6 +530,7 @@ float HeadModel::Height(const Eigen::Vector2f& uv, const std::array<float, kExpr
 
 SurfaceSample HeadModel::Surface(const Eigen::Vector2f& uv, int part,
                                  const std::array<float, kExpressionCount>& e) const {
+  if (maps_ != nullptr) return maps_->Sample(uv);
   SurfaceSample s;
   if (part == 1) {
     const float a = uv.x();  // angle from the gaze / pi

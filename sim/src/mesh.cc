@@ -10,6 +10,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 
 namespace stage::sim {
@@ -179,21 +180,30 @@ Hit MeshSubject::Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f&
     if (surface_) {
       const SurfaceSample s = surface_(hit.uv, hit.part);
       hit.material = s.material;
-      if (s.dh_du != 0 || s.dh_dv != 0) {
-        // Bump mapping: the tangents dP/du, dP/dv of the triangle, tilted by the height's slope.
+      const bool mapped = s.tangent_normal != Eigen::Vector3f::UnitZ();
+      if (s.dh_du != 0 || s.dh_dv != 0 || mapped) {
+        // The tangents dP/du, dP/dv of the triangle.
         const Eigen::Vector2f d1 = t1 - t0, d2 = t2 - t0;
         const float det = d1.x() * d2.y() - d2.x() * d1.y();
         if (std::abs(det) > 1e-12f) {
           const Eigen::Vector3f pu = (e1 * d2.y() - e2 * d1.y()) / det;
           const Eigen::Vector3f pv = (e2 * d1.x() - e1 * d2.x()) / det;
           // Project the tangents on the shading normal's plane so the detail rides on the smooth surface.
-          const Eigen::Vector3f tu = pu - n * n.dot(pu) + s.dh_du * n;
-          const Eigen::Vector3f tv = pv - n * n.dot(pv) + s.dh_dv * n;
-          Eigen::Vector3f bumped = tu.cross(tv);
-          if (bumped.dot(n) < 0) bumped = -bumped;
-          if (bumped.squaredNorm() > 0) {
-            bumped.normalize();
-            if (bumped.dot(g) > 0.05f) n = bumped;
+          Eigen::Vector3f tu = pu - n * n.dot(pu), tv = pv - n * n.dot(pv);
+          Eigen::Vector3f detailed;
+          if (mapped) {
+            // Normal map: the tangent frame (u, v orthogonalized, n), whatever side the ray came from.
+            tu.normalize();
+            tv = (tv - tu * tu.dot(tv)).normalized();
+            detailed = s.tangent_normal.x() * tu + s.tangent_normal.y() * tv + s.tangent_normal.z() * n;
+          } else {
+            // Bump mapping: the tangents tilted by the height's slope.
+            detailed = (tu + s.dh_du * n).cross(tv + s.dh_dv * n);
+            if (detailed.dot(n) < 0) detailed = -detailed;
+          }
+          if (detailed.squaredNorm() > 0) {
+            detailed.normalize();
+            if (detailed.dot(g) > 0.05f) n = detailed;
           }
         }
       }
@@ -266,6 +276,20 @@ absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
   }
   if (mesh.triangles.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no faces"));
   return mesh;
+}
+
+absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment) {
+  std::ofstream out(path);
+  if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
+  if (!comment.empty()) out << "# " << comment << "\n";
+  for (const auto& p : mesh.positions) out << absl::StrFormat("v %.4f %.4f %.4f\n", p.x(), p.y(), p.z());
+  for (const auto& t : mesh.uvs) out << absl::StrFormat("vt %.6f %.6f\n", t.x(), t.y());
+  for (const auto& f : mesh.triangles) {
+    out << absl::StrFormat("f %d/%d %d/%d %d/%d\n", f[0] + 1, f[0] + 1, f[1] + 1, f[1] + 1, f[2] + 1, f[2] + 1);
+  }
+  out.close();
+  if (!out) return absl::DataLossError(absl::StrCat(path, ": write failed"));
+  return absl::OkStatus();
 }
 
 }  // namespace stage::sim

@@ -1,6 +1,7 @@
 // The simulated stage derived from the rig, and per-camera rendering.
 #include "stage/sim/scene.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 
@@ -73,26 +74,66 @@ absl::Status SimScene::MakeSubject(const std::string& base_dir) {
                                             AnalyticMaterial(config));
     return absl::OkStatus();
   }
-  if (config.kind() != "head") {
+  auto resolve = [&](const std::string& file) {
+    std::filesystem::path path(file);
+    if (path.is_relative() && !base_dir.empty()) path = std::filesystem::path(base_dir) / path;
+    return path.string();
+  };
+  if (config.kind() == "charuco") {
+    STAGE_ASSIGN_OR_RETURN(board_, BoardModel::Create(config.board()));
+    model_ = board_;
+  } else if (config.kind() != "head") {
     return absl::InvalidArgumentError(
-        absl::StrCat("sim.subject.kind: \"", config.kind(), "\" is not a subject kind (head, sphere, plane)"));
+        absl::StrCat("sim.subject.kind: \"", config.kind(), "\" is not a subject kind (head, sphere, plane, charuco)"));
+  } else if (!config.asset().neutral_obj().empty()) {
+    const v1::SimHeadAsset& asset = config.asset();
+    HeadAssetFiles files;
+    files.neutral_obj = resolve(asset.neutral_obj());
+    for (const auto& [name, file] : asset.blendshapes()) files.blendshapes.emplace_back(name, resolve(file));
+    std::sort(files.blendshapes.begin(), files.blendshapes.end());
+    files.albedo = resolve(asset.albedo());
+    if (!asset.specular().empty()) files.specular = resolve(asset.specular());
+    if (!asset.roughness().empty()) files.roughness = resolve(asset.roughness());
+    if (!asset.normal().empty()) files.normal = resolve(asset.normal());
+    files.specular_value = static_cast<float>(config.specular());
+    files.roughness_value = static_cast<float>(config.roughness());
+    files.specular_scale = static_cast<float>(asset.specular_scale());
+    files.units_mm = static_cast<float>(asset.units_mm());
+    if (asset.pivot_mm_size() == 3) {
+      files.pivot_mm = Eigen::Vector3d(asset.pivot_mm(0), asset.pivot_mm(1), asset.pivot_mm(2)).cast<float>();
+    }
+    STAGE_ASSIGN_OR_RETURN(head_, HeadModel::FromAsset(files));
+    model_ = head_;
+  } else {
+    head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()));
+    model_ = head_;
   }
-  head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()));
   if (config.performance() == "default") {
-    performance_ = Performance::Default();
+    performance_ = board_ != nullptr ? BoardSequence() : Performance::Default();
   } else if (config.performance() == "still") {
     performance_.keys = {{0.0, HeadPose{}}};
   } else {
-    std::filesystem::path path(config.performance());
-    if (path.is_relative() && !base_dir.empty()) path = std::filesystem::path(base_dir) / path;
-    STAGE_ASSIGN_OR_RETURN(performance_, Performance::FromYaml(path.string()));
+    STAGE_ASSIGN_OR_RETURN(performance_, Performance::FromYaml(resolve(config.performance())));
   }
-  if (!animated()) still_ = head_->Posed(performance_.At(0));
+  if (!animated()) still_ = model_->Posed(performance_.At(0));
+  return absl::OkStatus();
+}
+
+absl::Status SimScene::CheckFault(const v1::SimFault& fault) const {
+  v1::RigConfig rig = rig_;
+  rig.mutable_sim()->clear_faults();
+  *rig.mutable_sim()->add_faults() = fault;
+  constexpr absl::string_view kPath = "sim.faults[0]";
+  for (const RigError& e : ValidateRig(rig, "")) {
+    if (absl::StartsWith(e.path, kPath)) {
+      return absl::InvalidArgumentError(absl::StrCat("fault", e.path.substr(kPath.size()), ": ", e.message));
+    }
+  }
   return absl::OkStatus();
 }
 
 HeadPose SimScene::PoseAt(int64_t frame) const {
-  if (head_ == nullptr) return {};
+  if (model_ == nullptr) return {};
   const double cycle_s = static_cast<double>(timing::CycleLength(schedule_)) / base_.slot_rate_hz();
   return performance_.At((static_cast<double>(frame) + 0.5) * cycle_s);
 }
@@ -103,7 +144,7 @@ std::shared_ptr<const Subject> SimScene::SubjectAt(int64_t frame) const {
   for (const auto& [f, subject] : cache_) {
     if (f == frame) return subject;
   }
-  std::shared_ptr<const Subject> posed = head_->Posed(PoseAt(frame));
+  std::shared_ptr<const Subject> posed = model_->Posed(PoseAt(frame));
   cache_.emplace_back(frame, posed);
   if (cache_.size() > 4) cache_.erase(cache_.begin());
   return posed;

@@ -156,8 +156,19 @@ int64_t CountFiring(int64_t from, int64_t to, int64_t divider, int64_t phase) {
 
 }  // namespace
 
+void SimCameraDevice::ApplyFault(const v1::SimFault& fault) {
+  SimCameraWorld& w = *world_;
+  if (fault.has_miss_triggers()) w.miss_triggers = fault.miss_triggers();
+  if (fault.has_drop_frames()) w.drop_frames = fault.drop_frames();
+  if (fault.has_clock_offset_us())
+    w.clock_offset_ns = static_cast<int64_t>(std::llround(fault.clock_offset_us() * 1e3));
+  if (fault.has_clock_drift_ppm()) w.clock_drift_ppm = fault.clock_drift_ppm();
+  if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
+  Logger("sim")->warn("sim camera {}: fault injected: {}", serial_, fault.ShortDebugString());
+}
+
 void SimCameraDevice::TriggerLoop(int device) {
-  const SimCameraWorld& w = *world_;
+  SimCameraWorld& w = *world_;
   WorldClient* world = w.world;
   const bool lockstep = world->lockstep();
   auto base = timing::TimeBase::Create(world->slot_rate_hz());
@@ -179,6 +190,7 @@ void SimCameraDevice::TriggerLoop(int device) {
     std::unique_lock<std::mutex> lock(mutex_);
     if (!running_) break;
     stats_.missed_triggers += static_cast<uint64_t>(missed);
+    for (const v1::SimFault& fault : edge->faults) ApplyFault(fault);
     if (w.crash_at_ns >= 0 && edge->time_ns >= w.crash_at_ns) {
       Logger("sim")->warn("sim camera {}: crashes at slot {} (fault)", serial_, k);
       lock.unlock();
@@ -193,7 +205,12 @@ void SimCameraDevice::TriggerLoop(int device) {
         ++stats_.missed_triggers;  // busy: every buffer holds a frame not yet read out
       } else {
         const int64_t start = edge->time_ns + w.trigger_delay_ns;
-        jobs_.push_back({k, start, start + w.exposure_ns, next_frame_id_++});
+        // The camera's clock, and whether the frame is lost on the way out, as the faults are now.
+        const int64_t device_start =
+            static_cast<int64_t>(static_cast<long double>(start) * (1.0L + w.clock_drift_ppm * 1e-6L)) +
+            w.clock_offset_ns;
+        const bool lost = w.drop_frames > 0 && FaultDraw(w.seed, serial_, k, 2) < w.drop_frames;
+        jobs_.push_back({k, start, start + w.exposure_ns, next_frame_id_++, device_start, lost});
         ++stats_.triggers;
         jobs_changed_.notify_all();
       }
@@ -231,7 +248,7 @@ void SimCameraDevice::RenderLoop() {
       jobs_changed_.notify_all();
       continue;
     }
-    if (w.drop_frames > 0 && FaultDraw(w.seed, serial_, job.slot, 2) < w.drop_frames) {
+    if (job.lost) {
       std::lock_guard<std::mutex> lock(mutex_);
       ++stats_.dropped_frames;
       jobs_.pop_front();
@@ -242,9 +259,7 @@ void SimCameraDevice::RenderLoop() {
                                             job.slot / std::max<int64_t>(1, w.cycle_slots));
     auto frame = std::make_shared<camera::Frame>();
     frame->frame_id = job.frame_id;
-    frame->device_timestamp_ns =
-        static_cast<int64_t>(static_cast<long double>(job.t0_ns) * (1.0L + w.clock_drift_ppm * 1e-6L)) +
-        w.clock_offset_ns;
+    frame->device_timestamp_ns = job.device_t0_ns;
     frame->width = static_cast<uint32_t>(raw.width);
     frame->height = static_cast<uint32_t>(raw.height);
     frame->pixel_format = format;

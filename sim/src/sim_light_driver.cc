@@ -1,6 +1,10 @@
 // Simulated LED controller.
 #include "stage/sim/sim_light_driver.h"
 
+#include <algorithm>
+#include <climits>
+#include <cmath>
+
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
 #include "stage/sim/world_client.h"
@@ -117,12 +121,18 @@ void SimLightDriver::WorldLoop(int device) {
     Logger("sim")->error("light node {}: {}", node_id_, base.status().message());
     return;
   }
-  const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns;
   std::vector<double> levels(channel_count_);
   int64_t slot = 0;
+  int64_t promised_ns = INT64_MIN;  // the last watermark reported: no change may come before it
   while (!detaching_.load()) {
     auto edge = world_.world->WaitForEdge(device, slot);
     if (!edge) break;
+    for (const v1::SimFault& fault : edge->faults) {
+      if (fault.has_delay_us()) world_.fault_delay_ns = static_cast<int64_t>(std::llround(fault.delay_us() * 1e3));
+      if (fault.has_crash_at_s()) world_.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
+      Logger("sim")->warn("light node {}: fault injected: {}", node_id_, fault.ShortDebugString());
+    }
+    const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns + world_.fault_delay_ns;
     if (world_.crash_at_ns >= 0 && edge->time_ns >= world_.crash_at_ns) {
       Logger("sim")->warn("light node {}: crashes at slot {} (fault)", node_id_, edge->slot);
       if (world_.on_crash) world_.on_crash();
@@ -134,9 +144,11 @@ void SimLightDriver::WorldLoop(int device) {
     if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));
     const light::ChannelLevels out = Outputs();
     for (size_t c = 0; c < levels.size(); ++c) levels[c] = out[c] / 65535.0;
-    world_.world->ReportLevels(
-        world_.node_index, edge->time_ns + delay, levels,
-        edge->time_ns + base->SlotStartNs(edge->slot + 1) - base->SlotStartNs(edge->slot) + delay);
+    // A delay that shrank at run time cannot take back light already promised: the switch waits for the promise.
+    const int64_t switch_ns = std::max(edge->time_ns + delay, promised_ns);
+    promised_ns =
+        std::max(switch_ns, edge->time_ns + base->SlotStartNs(edge->slot + 1) - base->SlotStartNs(edge->slot) + delay);
+    world_.world->ReportLevels(world_.node_index, switch_ns, levels, promised_ns);
     slot = edge->slot + 1;
   }
 }

@@ -318,6 +318,127 @@ TEST(SimStageWorldTest, FaultsFromTheRigShowAsTheyWould) {
   for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
 }
 
+TEST(SimStageWorldTest, FaultsInjectedAtRunTimeTakeEffectFromTheNextEdge) {
+  Stage stage;
+  ASSERT_NO_FATAL_FAILURE(BuildStage(&stage));
+  const SimScene& scene = *stage.scene;
+  World& world = *stage.world;
+  // A device of the test's own holds the world at slot 38 while the faults go in, as `stagectl sim fault` would
+  // while the stage runs.
+  constexpr int64_t kAt = 38, kLateAt = 66;
+  const int me = world.Register("test", -1);
+  std::vector<absl::Status> injected;
+  std::thread injector([&] {
+    ASSERT_TRUE(world.WaitForEdge(me, kAt).has_value());
+    for (const auto& u : scene.rig().light_nodes(0).units()) {
+      v1::SimFault dead;
+      dead.set_target(u.id());
+      dead.set_dead(true);
+      injected.push_back(world.InjectFault(dead));
+    }
+    v1::SimFault drop;
+    drop.set_target("hs-1");
+    drop.set_drop_frames(1);
+    injected.push_back(world.InjectFault(drop));
+    v1::SimFault clock;
+    clock.set_target("hs-3");
+    clock.set_clock_offset_us(1000);
+    injected.push_back(world.InjectFault(clock));
+    v1::SimFault nobody;
+    nobody.set_target("hs-99");
+    const absl::Status not_found = world.InjectFault(nobody);
+    world.Done(me, kAt);
+    // Later, a light node goes late (it would blend the patterns of the frames above).
+    ASSERT_TRUE(world.WaitForEdge(me, kLateAt).has_value());
+    v1::SimFault late;
+    late.set_target(scene.rig().light_nodes(1).id());
+    late.set_delay_us(300);
+    injected.push_back(world.InjectFault(late));
+    injected.push_back(not_found);
+    world.Unregister(me);
+  });
+  world.Start();
+  injector.join();
+  ASSERT_FALSE(injected.empty());
+  for (size_t i = 0; i + 1 < injected.size(); ++i) EXPECT_TRUE(injected[i].ok()) << injected[i];
+  EXPECT_TRUE(absl::IsNotFound(injected.back())) << injected.back();
+
+  // hs-1 loses every frame from the edge after the injection on (the one at slot 38 may go either way).
+  const int hs1 = scene.CameraIndex("hs-1");
+  SimCameraWorldStats stats;
+  for (int i = 0; i < 600; ++i) {
+    stats = stage.cameras[hs1]->world_stats();
+    if (stats.frames + stats.dropped_frames == kSlots) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_EQ(stats.frames + stats.dropped_frames, static_cast<uint64_t>(kSlots));
+  EXPECT_GE(stats.frames, static_cast<uint64_t>(kAt));
+  EXPECT_LE(stats.frames, static_cast<uint64_t>(kAt + 1));
+
+  // hs-3's clock jumps by 1 ms from there on.
+  const int hs3 = scene.CameraIndex("hs-3");
+  auto frames = stage.sinks[hs3]->WaitFor(kSlots);
+  ASSERT_EQ(frames.size(), static_cast<size_t>(kSlots));
+  const int64_t trigger_ns = scene.base().TicksToNs(scene.schedule().cameras(hs3).trigger_ticks());
+  for (int64_t k = 0; k < kSlots; ++k) {
+    const int64_t offset = frames[k]->device_timestamp_ns - (scene.base().SlotStartNs(k) + trigger_ns);
+    if (k < kAt) {
+      EXPECT_EQ(offset, 0) << "slot " << k;
+    } else if (k > kAt) {
+      EXPECT_EQ(offset, 1'000'000) << "slot " << k;
+    }
+  }
+
+  // hs-2 sees node 0's units lit early on and dark after the injection (frames still in the renderer's queue at the
+  // injection may go either way: the units' state is the world's, not a time line).
+  const int hs2 = scene.CameraIndex("hs-2");
+  auto seen_frames = stage.sinks[hs2]->WaitFor(kSlots);
+  ASSERT_EQ(seen_frames.size(), static_cast<size_t>(kSlots));
+  int checked = 0;
+  for (int64_t f = 0; f < kSlots; ++f) {
+    if ((f >= 20 && f <= kAt + 1) || f >= kLateAt) continue;
+    const int64_t pose = f / 38;
+    const PixelResponses& r = *stage.renderers[hs2]->Responses(pose);
+    const auto seen = Signature(
+        r, [&](int32_t pixel) { return static_cast<double>(seen_frames[f]->data[static_cast<size_t>(pixel)]); });
+    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38), pose);
+    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38, 0), pose);
+    if (Distance(lit, dark) < 0.05) continue;  // node 0 adds little to this pattern here
+    EXPECT_LT(Distance(seen, f < kAt ? lit : dark), 0.02) << "frame " << f;
+    ++checked;
+  }
+  EXPECT_GT(checked, 20);
+
+  // Node 1 switches 300 us late after its injection: just past its usual switch in slot 70, its units still show
+  // slot 69's pattern.
+  const int64_t edge = world.EdgeNs(70) + scene.SwitchDelayNs(1);
+  auto levels = world.Exposure(edge + 20'000, edge + 200'000);
+  ASSERT_TRUE(levels.ok()) << levels.status();
+  const EmitterLevels before = scene.PatternLevels(69 % 38), after = scene.PatternLevels(70 % 38);
+  int node1_units = 0, like_before = 0;
+  for (size_t u = 0; u < scene.dome().units.size(); ++u) {
+    if (scene.dome().units[u].node != 1) continue;
+    ++node1_units;
+    const auto e = static_cast<Eigen::Index>(u);
+    auto check = [&](const Eigen::VectorXf& seen, const Eigen::VectorXf& was, const Eigen::VectorXf& next) {
+      if (std::abs(seen[e] - was[e]) < 1e-6f && std::abs(was[e] - next[e]) > 1e-3f) ++like_before;
+    };
+    check(levels->cross, before.cross, after.cross);
+    check(levels->parallel, before.parallel, after.parallel);
+  }
+  EXPECT_GT(node1_units, 0);
+  EXPECT_GT(like_before, 0);
+  for (auto& c : stage.cameras) ASSERT_TRUE(c->Stop().ok());
+
+  // The scene vets a fault's fields as the rig file's are vetted.
+  v1::SimFault bad;
+  bad.set_target("hs-1");
+  bad.set_delay_us(5);
+  EXPECT_THAT(scene.CheckFault(bad).message(), ::testing::HasSubstr("fault.delay_us: applies to an LED unit"));
+  bad.set_target("led-999");
+  EXPECT_THAT(scene.CheckFault(bad).message(), ::testing::HasSubstr("fault.target: \"led-999\""));
+}
+
 TEST(SimStageWorldTest, FaultsNameWhatTheyHitAndOnlyWhatTheyCanHit) {
   auto loaded = LoadRig(kBuiltinRigName);
   ASSERT_TRUE(loaded.ok());

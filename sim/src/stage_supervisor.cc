@@ -241,6 +241,7 @@ absl::Status StageSupervisor::WriteEndpoints() {
   endpoints_.set_stage_sim_pid(getpid());
   endpoints_.set_rig_file(options_.run_dir + "/rig.json");
   endpoints_.set_log_dir(options_.run_dir + "/logs");
+  endpoints_.set_world(options_.world_address);
   for (const Child& c : children_) {
     auto* p = endpoints_.add_processes();
     p->set_id(c.id);

@@ -3,7 +3,10 @@
 
 #include <algorithm>
 #include <climits>
+#include <cmath>
+#include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/clock.h"
 
@@ -116,14 +119,34 @@ std::optional<WorldEdge> World::WaitForEdge(int device, int64_t slot) {
     changed_.notify_all();
     changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
     if (gone()) return std::nullopt;
-    return WorldEdge{slot, EdgeNs(slot), 0};
+    return WorldEdge{slot, EdgeNs(slot), 0, std::exchange(devices_[i].faults, {})};
   }
   changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
   if (gone()) return std::nullopt;
   // Real time: the device gets the edge that is current; the ones it was too late for are counted.
   const int64_t now = current_;
   devices_[i].last_seen = now;
-  return WorldEdge{now, EdgeNs(now), now - slot};
+  return WorldEdge{now, EdgeNs(now), now - slot, std::exchange(devices_[i].faults, {})};
+}
+
+absl::Status World::InjectFault(const v1::SimFault& fault) {
+  for (size_t u = 0; u < dome_.units.size(); ++u) {
+    if (dome_.units[u].id != fault.target()) continue;
+    SetUnitFault(u, {fault.dead(), static_cast<int64_t>(std::llround(fault.delay_us() * 1000))});
+    return absl::OkStatus();
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  bool found = false;
+  for (Device& d : devices_) {
+    if (d.name != fault.target() || !d.active) continue;
+    d.faults.push_back(fault);
+    found = true;
+  }
+  if (!found) {
+    return absl::NotFoundError(
+        absl::StrCat("fault target \"", fault.target(), "\" is no LED unit of the dome and no device in the world"));
+  }
+  return absl::OkStatus();
 }
 
 void World::Done(int device, int64_t slot) {

@@ -43,8 +43,8 @@ absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const 
   w.switch_delay_ns = scene.SwitchDelayNs(index);
   const v1::SimFault fault = scene.Fault(node_id);
   const v1::LightNodeConfig& config = scene.rig().light_nodes(index);
-  const double extra_us = (config.has_sim() ? config.sim().extra_delay_us() : 0) + fault.delay_us();
-  w.extra_delay_ns = static_cast<int64_t>(std::llround(extra_us * 1000));
+  w.extra_delay_ns = static_cast<int64_t>(std::llround((config.has_sim() ? config.sim().extra_delay_us() : 0) * 1e3));
+  w.fault_delay_ns = static_cast<int64_t>(std::llround(fault.delay_us() * 1e3));
   if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
   w.on_crash = std::move(on_crash);
   return driver->AttachWorld(w);

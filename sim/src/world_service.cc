@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/grpc_status.h"
 #include "stage/sim/world_client.h"
 
 namespace stage::sim {
@@ -42,7 +43,15 @@ grpc::Status WorldService::WaitForEdge(grpc::ServerContext*, const v1::WaitForEd
   response->set_slot(edge->slot);
   response->set_time_ns(edge->time_ns);
   response->set_missed(edge->missed);
+  for (auto& f : edge->faults) *response->add_faults() = std::move(f);
   return grpc::Status::OK;
+}
+
+grpc::Status WorldService::InjectFault(grpc::ServerContext*, const v1::SimFault* request, v1::WorldAck*) {
+  if (check_fault_) {
+    if (absl::Status s = check_fault_(*request); !s.ok()) return ToGrpcStatus(s);
+  }
+  return ToGrpcStatus(world_->InjectFault(*request));
 }
 
 grpc::Status WorldService::Done(grpc::ServerContext*, const v1::WorldDoneRequest* request, v1::WorldAck*) {
@@ -146,7 +155,7 @@ class Remote final : public WorldClient {
     request.set_slot(slot);
     v1::WorldEdgeEvent edge;
     if (!stub_->WaitForEdge(&context, request, &edge).ok() || edge.stopped()) return std::nullopt;
-    return WorldEdge{edge.slot(), edge.time_ns(), edge.missed()};
+    return WorldEdge{edge.slot(), edge.time_ns(), edge.missed(), {edge.faults().begin(), edge.faults().end()}};
   }
   void Done(int device, int64_t slot) override {
     grpc::ClientContext context;

@@ -1,12 +1,17 @@
 // stage-sim: brings a whole simulated FaStage up on this machine, keeps it up until SIGINT/SIGTERM (or until a
 // given command finishes), and takes it down with no process left behind.
+#include <grpcpp/grpcpp.h>
 #include <signal.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <filesystem>
 #include <iostream>
+#include <nlohmann/json.hpp>
+#include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/string_view.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
@@ -14,14 +19,107 @@
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/subprocess.h"
+#include "stage/sim/ground_truth.h"
 #include "stage/sim/scene.h"
 #include "stage/sim/stage_supervisor.h"
 #include "stage/sim/world_devices.h"
 #include "stage/sim/world_service.h"
+#include "stage/timing/schedule.h"
+#include "stage/v1/camera_node.grpc.pb.h"
 
 namespace {
 
 constexpr const char* kProgram = "stage-sim";
+
+// The frames camera `index` fires in slots [0, slots) by the schedule.
+int64_t ExpectedFrames(const stage::sim::SimScene& scene, int index, int64_t slots) {
+  const auto& t = scene.schedule().cameras(index);
+  const int64_t d = t.divider() == 0 ? 1 : t.divider(), p = t.slot_phase();
+  return slots > p ? (slots - p + d - 1) / d : 0;
+}
+
+// Waits until every camera node has delivered the frames its trigger plan implies for the world's `slots`, showing
+// progress; then prints (or writes as JSON) frames per camera and the wall time. Gives up when no frame arrives for
+// `patience`.
+absl::Status WaitUntilRendered(const stage::sim::SimScene& scene, const stage::v1::SimEndpoints& endpoints,
+                               int64_t slots, std::chrono::steady_clock::time_point since,
+                               std::chrono::seconds patience, bool json) {
+  struct Cam {
+    std::string id;
+    int64_t expected = 0, frames = 0;
+    std::unique_ptr<stage::v1::CameraNode::Stub> stub;
+  };
+  std::vector<Cam> cams;
+  int64_t total = 0;
+  for (const auto& p : endpoints.processes()) {
+    if (p.kind() != stage::v1::NODE_KIND_CAMERA) continue;
+    const int index = scene.CameraIndex(p.id());
+    if (index < 0) continue;
+    Cam c;
+    c.id = p.id();
+    c.expected = ExpectedFrames(scene, index, slots);
+    c.stub = stage::v1::CameraNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    total += c.expected;
+    cams.push_back(std::move(c));
+  }
+  int64_t done = -1;
+  auto last_progress = std::chrono::steady_clock::now();
+  auto last_line = last_progress - std::chrono::seconds(10);
+  while (true) {
+    int64_t now_done = 0;
+    for (Cam& c : cams) {
+      grpc::ClientContext context;
+      context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
+      stage::v1::CameraStats stats;
+      if (c.stub->GetStats(&context, stage::v1::GetStatsRequest(), &stats).ok()) {
+        c.frames = static_cast<int64_t>(stats.frames_completed());
+      }
+      now_done += std::min(c.frames, c.expected);
+    }
+    const auto now = std::chrono::steady_clock::now();
+    if (now_done != done) {
+      done = now_done;
+      last_progress = now;
+    }
+    const bool finished = done >= total;
+    if (finished || now - last_line >= std::chrono::seconds(2)) {
+      last_line = now;
+      std::cerr << absl::StrFormat("stage-sim: rendered %d of %d frames (%.0f%%), %.1f s\n", done, total,
+                                   total > 0 ? 100.0 * static_cast<double>(done) / static_cast<double>(total) : 100.0,
+                                   std::chrono::duration<double>(now - since).count());
+    }
+    if (finished) break;
+    if (now - last_progress > patience) {
+      std::string short_of;
+      for (const Cam& c : cams) {
+        if (c.frames < c.expected)
+          absl::StrAppend(&short_of, short_of.empty() ? "" : ", ", c.id, " ", c.frames, "/", c.expected);
+      }
+      return absl::DeadlineExceededError(absl::StrCat("no frame for ", patience.count(), " s; short: ", short_of));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  }
+  const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+  const double virtual_s = static_cast<double>(slots) / scene.base().slot_rate_hz();
+  if (json) {
+    nlohmann::json j;
+    j["slots"] = slots;
+    j["virtual_s"] = virtual_s;
+    j["wall_s"] = wall_s;
+    j["frames"] = total;
+    j["render_scale"] = scene.rig().sim().render_scale();
+    for (const Cam& c : cams) j["cameras"][c.id] = {{"frames", c.frames}, {"expected", c.expected}};
+    std::cout << j.dump(2) << std::endl;
+  } else {
+    std::cout << absl::StrFormat(
+                     "stage-sim: %d slots (%.3f s of the stage) rendered by %d cameras at render scale %g: %d frames "
+                     "in %.1f s (%.0f frames/s)",
+                     slots, virtual_s, cams.size(), scene.rig().sim().render_scale(), total, wall_s,
+                     static_cast<double>(total) / wall_s)
+              << std::endl;
+  }
+  return absl::OkStatus();
+}
 
 std::string SelfDir() {
   std::error_code ec;
@@ -85,9 +183,27 @@ int main(int argc, char** argv) {
                  "0 leaves it waiting")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{0}, int64_t{1} << 40));
-  app.footer("Example: stage-sim -- stagectl status");
+  bool until_rendered = false, json = false;
+  app.add_flag("--until-rendered", until_rendered,
+               "With --world-slots: wait until every camera has delivered the frames the world's slots trigger "
+               "(progress on stderr), print frames and wall time, and take the stage down");
+  app.add_flag("--json", json, "--until-rendered: print the summary as JSON");
+  std::string ground_truth_dir;
+  app.add_option("--ground-truth", ground_truth_dir,
+                 "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
+                 "(every camera) into this directory (docs/simulator.md#ground-truth)");
+  app.footer(
+      "Examples: stage-sim -- stagectl status\n"
+      "          stage-sim --world-slots 912 --until-rendered --set sim.render_scale=0.03  # one second");
   if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if ((until_rendered || !ground_truth_dir.empty()) && (world_slots <= 0 || world_mode == "none")) {
+    return stage::ReportFatal(
+        kProgram, absl::InvalidArgumentError("--until-rendered and --ground-truth need a world and --world-slots N"));
+  }
+  if (until_rendered && !command.empty()) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--until-rendered takes no command"));
+  }
   options.rig = flags.config;
   options.startup_timeout = std::chrono::milliseconds(startup_timeout_ms);
   options.grace = std::chrono::milliseconds(grace_ms);
@@ -124,7 +240,8 @@ int main(int argc, char** argv) {
     info.set_slot_rate_hz(world_options.slot_rate_hz);
     info.set_lockstep(lockstep);
     info.set_t0_ns(0);
-    world_service = std::make_unique<stage::sim::WorldService>(world.get(), info);
+    world_service = std::make_unique<stage::sim::WorldService>(
+        world.get(), info, [scene](const stage::v1::SimFault& f) { return scene->CheckFault(f); });
     auto server = stage::RpcServer::Start({}, {world_service.get()});
     if (!server.ok()) return stage::ReportFatal(kProgram, server.status());
     world_server = std::move(*server);
@@ -151,11 +268,36 @@ int main(int argc, char** argv) {
                             "; endpoints in ", supervisor.endpoints_path())
             << std::endl;
 
+  const auto world_started = std::chrono::steady_clock::now();
   if (world && world_slots > 0) {
     world->Start();
     std::cerr << absl::StrCat("stage-sim: the ", world_mode, " world runs ", world_slots, " slots (world at ",
                               options.world_address, ")")
               << std::endl;
+  }
+
+  int exit_code = 0;
+  if (until_rendered) {
+    const absl::Status s =
+        WaitUntilRendered(*scene, supervisor.endpoints(), world_slots, world_started, std::chrono::seconds(120), json);
+    if (!s.ok()) {
+      std::cerr << "stage-sim: " << s.message() << std::endl;
+      exit_code = 1;
+    }
+  }
+  if (!ground_truth_dir.empty() && exit_code == 0) {
+    stage::sim::GroundTruthOptions gt;
+    const int64_t cycle = stage::timing::CycleLength(scene->schedule());
+    gt.last_frame = (world_slots + cycle - 1) / cycle;
+    gt.progress = [](int done, int total) {
+      if (done == total || done % 27 == 0) std::cerr << "stage-sim: ground truth " << done << "/" << total << std::endl;
+    };
+    if (absl::Status s = stage::sim::WriteGroundTruth(*scene, ground_truth_dir, gt); !s.ok()) {
+      std::cerr << "stage-sim: ground truth: " << s.message() << std::endl;
+      exit_code = 1;
+    } else {
+      std::cerr << "stage-sim: ground truth of " << gt.last_frame << " frame(s) in " << ground_truth_dir << std::endl;
+    }
   }
 
   std::unique_ptr<stage::Subprocess> user_command;
@@ -173,8 +315,7 @@ int main(int argc, char** argv) {
     user_command = std::move(*spawned);
   }
 
-  int exit_code = 0;
-  while (true) {
+  while (!until_rendered) {
     std::optional<int> sig = stage::WaitForShutdownSignal(std::chrono::milliseconds(200));
     if (sig && (*sig == SIGINT || *sig == SIGTERM)) {
       log->info("{} received; taking the stage down", *sig == SIGINT ? "SIGINT" : "SIGTERM");

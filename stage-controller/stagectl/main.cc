@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <iostream>
+#include <optional>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -22,7 +23,7 @@
 #include "stage/common/version.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/v1/controller.grpc.pb.h"
-#include "stage/v1/sim.pb.h"
+#include "stage/v1/sim.grpc.pb.h"
 #include "status_format.h"
 
 namespace {
@@ -38,6 +39,26 @@ struct Connection {
   int timeout_ms = 3000;
 };
 
+// stage-sim's endpoint file: --endpoints, $FASTAGE_ENDPOINTS, or the default run directory's.
+absl::StatusOr<stage::v1::SimEndpoints> ReadEndpoints(const Connection& c, const std::string& wanted) {
+  std::string path = c.endpoints;
+  if (path.empty()) {
+    const char* env = std::getenv("FASTAGE_ENDPOINTS");
+    path = env != nullptr && *env != '\0' ? env : stage::DefaultSimRunDir() + "/endpoints.json";
+  }
+  auto text = stage::ReadFileToString(path);
+  if (!text.ok()) {
+    return absl::NotFoundError(absl::StrCat("no ", wanted, ": start stage-sim (no endpoint file at ", path, ")"));
+  }
+  stage::v1::SimEndpoints endpoints;
+  google::protobuf::util::JsonParseOptions options;
+  options.ignore_unknown_fields = true;
+  if (auto s = google::protobuf::util::JsonStringToMessage(*text, &endpoints, options); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message().as_string()));
+  }
+  return endpoints;
+}
+
 // Where the controller is: --controller, the rig's controller.listen (--config), $FASTAGE_CONTROLLER, the endpoint
 // file (--endpoints, $FASTAGE_ENDPOINTS, or stage-sim's default run directory), in that order.
 absl::StatusOr<std::string> ResolveController(const Connection& c) {
@@ -48,27 +69,11 @@ absl::StatusOr<std::string> ResolveController(const Connection& c) {
     return loaded->rig.controller().listen();
   }
   if (const char* env = std::getenv("FASTAGE_CONTROLLER"); env != nullptr && *env != '\0') return std::string(env);
-  std::string path = c.endpoints;
-  if (path.empty()) {
-    const char* env = std::getenv("FASTAGE_ENDPOINTS");
-    path = env != nullptr && *env != '\0' ? env : stage::DefaultSimRunDir() + "/endpoints.json";
-  }
-  auto text = stage::ReadFileToString(path);
-  if (!text.ok()) {
-    return absl::NotFoundError(absl::StrCat(
-        "no controller address: pass --controller HOST:PORT or --config RIG, or start stage-sim (no endpoint file at ",
-        path, ")"));
-  }
-  stage::v1::SimEndpoints endpoints;
-  google::protobuf::util::JsonParseOptions options;
-  options.ignore_unknown_fields = true;
-  if (auto s = google::protobuf::util::JsonStringToMessage(*text, &endpoints, options); !s.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message().as_string()));
-  }
-  if (endpoints.controller().empty()) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": has no controller address"));
-  }
-  return endpoints.controller();
+  auto endpoints =
+      ReadEndpoints(c, "controller address: pass --controller HOST:PORT or --config RIG, or start stage-sim");
+  if (!endpoints.ok()) return endpoints.status();
+  if (endpoints->controller().empty()) return absl::InvalidArgumentError("the endpoint file has no controller address");
+  return endpoints->controller();
 }
 
 absl::StatusOr<std::unique_ptr<stage::v1::StageController::Stub>> Connect(const Connection& c, std::string* address) {
@@ -283,6 +288,47 @@ int TimingRehearse(const Connection& c, int64_t slots, bool json) {
   return 0;
 }
 
+struct FaultFlags {
+  std::string world;
+  std::string target;
+  bool dead = false, alive = false;
+  std::optional<double> delay_us, miss_triggers, drop_frames, clock_offset_us, clock_drift_ppm, crash_at_s;
+};
+
+// Injects a fault into the running simulated stage's world (docs/simulator.md#faults).
+int SimFault(const Connection& c, const FaultFlags& f) {
+  std::string address = f.world;
+  if (address.empty()) {
+    auto endpoints = ReadEndpoints(c, "simulated world");
+    if (!endpoints.ok()) return stage::ReportFatal(kProgram, endpoints.status());
+    if (endpoints->world().empty()) {
+      return stage::ReportFatal(
+          kProgram, absl::FailedPreconditionError("the simulated stage runs without a world (stage-sim --world none)"));
+    }
+    address = endpoints->world();
+  }
+  stage::v1::SimFault fault;
+  fault.set_target(f.target);
+  fault.set_dead(f.dead);
+  if (f.delay_us) fault.set_delay_us(*f.delay_us);
+  if (f.miss_triggers) fault.set_miss_triggers(*f.miss_triggers);
+  if (f.drop_frames) fault.set_drop_frames(*f.drop_frames);
+  if (f.clock_offset_us) fault.set_clock_offset_us(*f.clock_offset_us);
+  if (f.clock_drift_ppm) fault.set_clock_drift_ppm(*f.clock_drift_ppm);
+  if (f.crash_at_s) fault.set_crash_at_s(*f.crash_at_s);
+  auto stub = stage::v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::WorldAck ack;
+  grpc::Status rpc = stub->InjectFault(&context, fault, &ack);
+  if (!rpc.ok()) {
+    return stage::ReportFatal(kProgram,
+                              stage::Annotate(stage::FromGrpcStatus(rpc), absl::StrCat("world at ", address)));
+  }
+  std::cout << "injected: " << fault.ShortDebugString() << "\n";
+  return 0;
+}
+
 void AddTimingFlags(CLI::App* cmd, TimingFlags* f) {
   cmd->add_option("--rig", f->rig,
                   "Work on this rig file (or builtin:fastage) here instead of asking the controller about the live "
@@ -353,6 +399,26 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 91200));
   rehearse->add_flag("--json", rehearse_json, "Print the nodes' reports as JSON");
 
+  FaultFlags ff;
+  CLI::App* sim = app.add_subcommand("sim", "The simulated stage (stage-sim): inject faults into its world");
+  sim->require_subcommand(1);
+  CLI::App* fault = sim->add_subcommand(
+      "fault",
+      "Inject a fault now: an LED unit goes dark (--dead) or late (--delay-us), a light node late (--delay-us), a "
+      "camera misses triggers or drops frames, its clock jumps or drifts, a node crashes (--crash-at-s). A unit's "
+      "fault replaces its state (--delay-us 0 without --dead revives it); a node's sets the fields given");
+  fault->add_option("target", ff.target, "LED unit, light node or camera id")->required();
+  fault->add_option("--world", ff.world, "SimWorld address host:port (default: from the endpoint file)");
+  fault->add_flag("--dead", ff.dead, "LED unit: dark");
+  fault->add_option("--delay-us", ff.delay_us, "LED unit or light node: light this late after the switch, us");
+  fault->add_option("--miss-triggers", ff.miss_triggers, "Camera: fraction of triggers missed")
+      ->check(CLI::Range(0.0, 1.0));
+  fault->add_option("--drop-frames", ff.drop_frames, "Camera: fraction of exposed frames lost")
+      ->check(CLI::Range(0.0, 1.0));
+  fault->add_option("--clock-offset-us", ff.clock_offset_us, "Camera: clock offset against the world, us");
+  fault->add_option("--clock-drift-ppm", ff.clock_drift_ppm, "Camera: clock drift, ppm");
+  fault->add_option("--crash-at-s", ff.crash_at_s, "Light node or camera: dies once the world passes this time, s");
+
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -361,5 +427,6 @@ int main(int argc, char** argv) {
   if (show->parsed()) return TimingShow(c, tf);
   if (exporter->parsed()) return TimingExport(c, tf);
   if (rehearse->parsed()) return TimingRehearse(c, rehearse_slots, rehearse_json);
+  if (fault->parsed()) return SimFault(c, ff);
   return 2;
 }

@@ -1,5 +1,6 @@
 // Ground truth of the simulated stage (docs/simulator.md): what processing results are judged against.
-//   DIR/frame-NNNNNN/pose.json          expression weights, head rotation and translation, time
+//   DIR/frame-NNNNNN/pose.json          expression weights (head), rotation and translation, time; for the
+//                                       calibration board its layout and ChArUco corners (stage frame, mm)
 //   DIR/frame-NNNNNN/mesh.obj           the posed subject mesh (stage frame, mm), with texture coordinates
 //   DIR/frame-NNNNNN/uv_position.exr    stage-frame position (mm) per texel of the skin's UV map; alpha 1 where covered
 //   DIR/frame-NNNNNN/<camera>/depth.exr        distance along the camera's optical axis, mm (0: no subject)

@@ -1,7 +1,8 @@
 // The procedural human head: a closed triangle mesh in millimetres (forehead, brows, eye sockets with eyeballs, nose,
 // cheeks, lips, chin, ears), an expression rig of linear blendshapes, a performance script of keyframed expressions
 // and head motion, and skin materials as UV maps (albedo with pores and freckles, specular intensity, roughness, and
-// a detail height field for pores and for the wrinkles an expression brings). Head frame: +y up, +z the way the face
+// a detail height field for pores and for the wrinkles an expression brings), or a user's head loaded from OBJ
+// blendshapes and texture images. Head frame: +y up, +z the way the face
 // looks, +x the performer's left; the origin is the head's centre, which a performance moves and turns.
 #pragma once
 
@@ -32,6 +33,9 @@ struct HeadPose {
   Eigen::Vector3f translation_mm = Eigen::Vector3f::Zero();
 };
 
+// The rotation of `pose` (yaw, then pitch, then roll).
+Eigen::Matrix3f PoseRotation(const HeadPose& pose);
+
 // Keyframes of expression and motion; between keys the pose eases (smoothstep) from one to the next.
 struct Performance {
   std::vector<std::pair<double, HeadPose>> keys;  // by time, seconds
@@ -44,27 +48,63 @@ struct Performance {
   static absl::StatusOr<Performance> FromYaml(const std::string& path);
 };
 
-class HeadModel {
+// A subject a performance poses: a mesh with per-expression blendshapes, turned about a pivot and moved, and its
+// surface (material and detail normals over the texture). The head and the calibration board are such models.
+class RiggedModel {
+ public:
+  virtual ~RiggedModel() = default;
+  // The mesh in `pose`: blendshapes weighted by the expression, turned about the pivot, then translated.
+  TriangleMesh PosedMesh(const HeadPose& pose) const;
+  // That mesh as a subject with this model's surface.
+  std::unique_ptr<MeshSubject> Posed(const HeadPose& pose) const;
+  // The surface of part `part` at `uv` under `expression`. Thread-safe.
+  virtual SurfaceSample Surface(const Eigen::Vector2f& uv, int part,
+                                const std::array<float, kExpressionCount>& expression) const = 0;
+
+  const TriangleMesh& neutral() const { return neutral_; }
+  // True if expression `index` moves the mesh.
+  bool HasBlendshape(int index) const { return !deltas_[static_cast<size_t>(index)].empty(); }
+  const Eigen::Vector3f& pivot() const { return pivot_; }
+
+ protected:
+  TriangleMesh neutral_;
+  // Per expression, per vertex displacement at weight 1 (empty: the expression does not move the mesh).
+  std::array<std::vector<Eigen::Vector3f>, kExpressionCount> deltas_;
+  Eigen::Vector3f pivot_ = Eigen::Vector3f::Zero();
+};
+
+// A user's head from files (rig: sim.subject.asset); paths already resolved.
+struct HeadAssetFiles {
+  std::string neutral_obj;
+  // Expression name -> OBJ.
+  std::vector<std::pair<std::string, std::string>> blendshapes;
+  std::string albedo, specular, roughness, normal;
+  // Where the images are missing: the subject's specular intensity and roughness.
+  float specular_value = 0.03f, roughness_value = 0.3f;
+  float specular_scale = 0.1f;
+  float units_mm = 1;
+  Eigen::Vector3f pivot_mm{0, -95, -15};
+};
+
+class HeadModel final : public RiggedModel {
  public:
   // The procedural head; `seed` varies the skin detail; `resolution` columns around the head (rows are half that).
   static std::shared_ptr<const HeadModel> Procedural(uint64_t seed, int resolution = 256);
+  // A user's head: errors name the file (and line, or the expression) at fault.
+  static absl::StatusOr<std::shared_ptr<const HeadModel>> FromAsset(const HeadAssetFiles& files);
 
-  // The mesh in `pose`, as a subject whose skin shows the expression's wrinkles.
-  std::unique_ptr<MeshSubject> Posed(const HeadPose& pose) const;
-  // The posed mesh only (for ground truth).
-  TriangleMesh PosedMesh(const HeadPose& pose) const;
-  // The skin (part 0) or eye (part 1) at `uv` under `expression`.
-  SurfaceSample Surface(const Eigen::Vector2f& uv, int part, const std::array<float, kExpressionCount>& expr) const;
+  // The skin (part 0) or eye (part 1) at `uv` under `expression`; a loaded head samples its images.
+  SurfaceSample Surface(const Eigen::Vector2f& uv, int part,
+                        const std::array<float, kExpressionCount>& expression) const override;
 
-  const TriangleMesh& neutral() const { return neutral_; }
+  // The images of a loaded head (RGB(A) floats, row 0 at v = 1), or none.
+  struct Maps;
 
  private:
   HeadModel() = default;
   float Height(const Eigen::Vector2f& uv, const std::array<float, kExpressionCount>& expr) const;
-  TriangleMesh neutral_;
-  // Per expression, per vertex displacement at weight 1.
-  std::array<std::vector<Eigen::Vector3f>, kExpressionCount> deltas_;
   uint64_t seed_ = 1;
+  std::shared_ptr<const Maps> maps_;  // a loaded head's images
 };
 
 }  // namespace stage::sim

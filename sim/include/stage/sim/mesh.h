@@ -26,10 +26,12 @@ struct TriangleMesh {
 
 // What the surface is like at texture coordinate `uv` of part `part`: its material, and its detail height (mm, along
 // the normal) with the derivatives in u and v, for bump mapping. Must be thread-safe.
+// A normal map may give the detail instead: the normal in the tangent frame (x along +u, y along +v, z out).
 struct SurfaceSample {
   Material material;
   float height = 0;
   float dh_du = 0, dh_dv = 0;
+  Eigen::Vector3f tangent_normal = Eigen::Vector3f::UnitZ();
 };
 using SurfaceFunction = std::function<SurfaceSample(const Eigen::Vector2f& uv, int part)>;
 
@@ -62,5 +64,7 @@ class MeshSubject final : public Subject {
 
 // Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed). Errors name the file and line.
 absl::StatusOr<TriangleMesh> ReadObj(const std::string& path);
+// Writes positions, texture coordinates and triangles as an OBJ (`comment` on its first line).
+absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment = "");
 
 }  // namespace stage::sim

@@ -10,6 +10,7 @@
 
 #include "absl/status/statusor.h"
 #include "stage/common/rig.h"
+#include "stage/sim/board.h"
 #include "stage/sim/camera_model.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/head.h"
@@ -40,11 +41,14 @@ class SimScene {
   // The subject during virtual frame `frame` (slot / patterns per cycle): a performance holds each pose for one
   // cycle, sampled at its middle. Thread-safe; the last few poses are kept.
   std::shared_ptr<const Subject> SubjectAt(int64_t frame) const;
-  // The head's pose in that frame (neutral for the analytic subjects); the head model, or null.
+  // The pose of the head or board in that frame (neutral for the analytic subjects).
   HeadPose PoseAt(int64_t frame) const;
+  // The posed model (head or board), or null for the analytic subjects; the head, or the board, or null.
+  const RiggedModel* model() const { return model_.get(); }
   const HeadModel* head() const { return head_.get(); }
+  const BoardModel* board() const { return board_.get(); }
   // True when the subject moves (SubjectAt differs between frames).
-  bool animated() const { return head_ != nullptr && performance_.keys.size() > 1; }
+  bool animated() const { return model_ != nullptr && performance_.keys.size() > 1; }
 
   // Index in the rig, or -1.
   int CameraIndex(const std::string& id) const;
@@ -65,6 +69,9 @@ class SimScene {
 
   // Every sim.faults entry for `id` merged (an empty SimFault when none).
   v1::SimFault Fault(const std::string& id) const;
+  // OK if `fault` could stand in sim.faults (its target is in the rig, its fields apply to it and are in range);
+  // else InvalidArgument naming the field ("fault.delay_us: ...").
+  absl::Status CheckFault(const v1::SimFault& fault) const;
 
   // A light node's switch delay after the slot edge, ns (its schedule entry).
   int64_t SwitchDelayNs(int light_node) const;
@@ -77,7 +84,9 @@ class SimScene {
   timing::TimeBase base_;
   Dome dome_;
   std::shared_ptr<const Subject> still_;  // the analytic subjects, or an unmoving head
+  std::shared_ptr<const RiggedModel> model_;
   std::shared_ptr<const HeadModel> head_;
+  std::shared_ptr<const BoardModel> board_;
   Performance performance_;
   mutable std::mutex cache_mutex_;
   mutable std::vector<std::pair<int64_t, std::shared_ptr<const Subject>>> cache_;  // guarded by cache_mutex_

@@ -21,6 +21,7 @@
 
 #include "stage/camera/camera_device.h"
 #include "stage/common/clock.h"
+#include "stage/v1/rig.pb.h"
 
 namespace stage::sim {
 
@@ -91,7 +92,11 @@ class SimCameraDevice final : public camera::CameraDevice {
     int64_t slot;
     int64_t t0_ns, t1_ns;  // world clock
     uint64_t frame_id;
+    int64_t device_t0_ns;  // the exposure start on the camera's clock
+    bool lost;             // a drop fault: exposed, never delivered
   };
+  // A fault injected at run time (the world hands it over with an edge); mutex_ held.
+  void ApplyFault(const v1::SimFault& fault);
   void Run();
   void TriggerLoop(int device);
   void RenderLoop();
@@ -109,7 +114,7 @@ class SimCameraDevice final : public camera::CameraDevice {
   camera::FrameSink* sink_ = nullptr;
   std::thread thread_;
 
-  std::optional<SimCameraWorld> world_;
+  std::optional<SimCameraWorld> world_;  // its fault fields change under mutex_ (trigger thread)
   int world_device_ = -1;
   std::thread render_thread_;
   std::condition_variable jobs_changed_;

@@ -25,9 +25,11 @@ struct SimLightWorld {
   WorldClient* world = nullptr;
   // This node's index in the rig (its emission in the world).
   int node_index = 0;
-  // Edge to switch, ns: the node's switch delay, and an extra delay (a late node).
+  // Edge to switch, ns: the node's switch delay, the rig's extra delay for it (light_nodes[].sim.extra_delay_us) and
+  // a fault's delay (sim.faults, or injected at run time, which replaces it).
   int64_t switch_delay_ns = 0;
   int64_t extra_delay_ns = 0;
+  int64_t fault_delay_ns = 0;
   // A crash (fault) once the world passes this time (world clock; < 0: never): `on_crash` runs (a node process kills
   // itself), or without one the node leaves the world and goes dark.
   int64_t crash_at_ns = -1;

@@ -30,6 +30,7 @@
 #include "stage/sim/emission.h"
 #include "stage/timing/slot_clock.h"
 #include "stage/timing/time_base.h"
+#include "stage/v1/rig.pb.h"
 
 namespace stage::sim {
 
@@ -54,6 +55,8 @@ struct WorldEdge {
   int64_t time_ns = 0;
   // Edges that passed since the device's previous wait without it (real time only).
   int64_t missed = 0;
+  // Faults injected at run time for this device since its previous edge (InjectFault), oldest first.
+  std::vector<v1::SimFault> faults;
 };
 
 class World {
@@ -87,6 +90,10 @@ class World {
 
   // LED unit `unit` (dome index) fails as `fault` says from now on.
   void SetUnitFault(size_t unit, UnitFault fault) { emission_.SetUnitFault(unit, fault); }
+  // A fault at run time (the fields of sim.faults; checked by the caller): an LED unit's state (dead, delay) changes
+  // now; a light node or camera (every device registered under that name) gets it with its next edge and applies
+  // the fields it sets. NotFound when the target is neither a unit of the dome nor a device in the world.
+  absl::Status InjectFault(const v1::SimFault& fault);
 
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;
@@ -102,6 +109,7 @@ class World {
     // Real time: the last edge delivered to it.
     int64_t last_seen = -1;
     bool active = true;
+    std::vector<v1::SimFault> faults;  // injected, not yet delivered
   };
   void MaybeAdvance();  // mutex_ held
   void OnRealEdge(const timing::SlotEdge& edge);

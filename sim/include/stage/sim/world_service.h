@@ -2,6 +2,9 @@
 // while it lives; when the stream ends (the device left, or its process died) the world lets it go.
 #pragma once
 
+#include <atomic>
+#include <functional>
+
 #include "stage/sim/world.h"
 #include "stage/v1/sim.grpc.pb.h"
 
@@ -9,8 +12,10 @@ namespace stage::sim {
 
 class WorldService final : public v1::SimWorld::Service {
  public:
-  // `world` is not owned and must outlive the service.
-  explicit WorldService(World* world, v1::WorldInfo info) : world_(world), info_(std::move(info)) {}
+  // `world` is not owned and must outlive the service. `check_fault`, if given, vets an injected fault first (that
+  // its fields apply to its target, in range), so that the message names the field.
+  WorldService(World* world, v1::WorldInfo info, std::function<absl::Status(const v1::SimFault&)> check_fault = nullptr)
+      : world_(world), info_(std::move(info)), check_fault_(std::move(check_fault)) {}
   grpc::Status Join(grpc::ServerContext* context, const v1::JoinWorldRequest* request,
                     grpc::ServerWriter<v1::JoinWorldEvent>* writer) override;
   grpc::Status WaitForEdge(grpc::ServerContext*, const v1::WaitForEdgeRequest* request,
@@ -19,6 +24,7 @@ class WorldService final : public v1::SimWorld::Service {
   grpc::Status ReportLevels(grpc::ServerContext*, const v1::ReportLevelsRequest* request, v1::WorldAck*) override;
   grpc::Status Exposure(grpc::ServerContext*, const v1::ExposureRequest* request,
                         v1::ExposureLevels* response) override;
+  grpc::Status InjectFault(grpc::ServerContext*, const v1::SimFault* request, v1::WorldAck*) override;
 
   // Ends every Join stream (for shutdown).
   void Shutdown();
@@ -26,6 +32,7 @@ class WorldService final : public v1::SimWorld::Service {
  private:
   World* world_;
   v1::WorldInfo info_;
+  std::function<absl::Status(const v1::SimFault&)> check_fault_;
   std::atomic<bool> shutting_down_{false};
 };
 
