@@ -138,6 +138,22 @@ void BuildStage(Stage* stage, const std::function<void(v1::RigConfig*)>& change 
   }
 }
 
+// What camera `index`'s frame of slot `slot` shows, and what it should show with light node 0 lit and dark, as
+// signatures.
+struct LitOrDark {
+  std::vector<double> seen, lit, dark;
+};
+LitOrDark NodeZeroSignatures(const Stage& stage, int index, const camera::Frame& frame, int64_t slot) {
+  const int64_t pose = slot / 38;
+  CameraRenderer& renderer = *stage.renderers[static_cast<size_t>(index)];
+  const PixelResponses& r = *renderer.Responses(pose);
+  LitOrDark out;
+  out.seen = Signature(r, [&](int32_t pixel) { return static_cast<double>(frame.data[static_cast<size_t>(pixel)]); });
+  out.lit = ExpectedSignature(*stage.scene, renderer, stage.scene->PatternLevels(slot % 38), pose);
+  out.dark = ExpectedSignature(*stage.scene, renderer, stage.scene->PatternLevels(slot % 38, /*dark_node=*/0), pose);
+  return out;
+}
+
 TEST(SimStageWorldTest, TheFullRigInLockstepDeliversEveryFrameShowingThePatternOfItsSlot) {
   Stage stage;
   ASSERT_NO_FATAL_FAILURE(BuildStage(&stage));
@@ -216,13 +232,7 @@ TEST(SimStageWorldTest, AKilledLightNodeLeavesItsUnitsDarkInTheImages) {
   int dark_frames = 0;
   for (int64_t f = 0; f < kSlots; ++f) {
     if (f == 38 || f == 39) continue;  // the node left while these were being lit
-    const int64_t pose = f / 38;
-    const PixelResponses& r = *stage.renderers[hs]->Responses(pose);
-    const std::vector<double> seen =
-        Signature(r, [&](int32_t pixel) { return static_cast<double>(frames[f]->data[static_cast<size_t>(pixel)]); });
-    const int64_t p = f % 38;
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs], scene.PatternLevels(p), pose);
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs], scene.PatternLevels(p, /*dark_node=*/0), pose);
+    const auto [seen, lit, dark] = NodeZeroSignatures(stage, hs, *frames[f], f);
     if (f < 38) {
       EXPECT_LT(Distance(seen, lit), 0.02) << "frame " << f;
     } else {
@@ -305,12 +315,7 @@ TEST(SimStageWorldTest, FaultsFromTheRigShowAsTheyWould) {
   ASSERT_EQ(seen_frames.size(), static_cast<size_t>(kSlots));
   int differs = 0;
   for (int64_t f = 0; f < kSlots; ++f) {
-    const int64_t pose = f / 38;
-    const PixelResponses& r = *stage.renderers[hs2]->Responses(pose);
-    const auto seen = Signature(
-        r, [&](int32_t pixel) { return static_cast<double>(seen_frames[f]->data[static_cast<size_t>(pixel)]); });
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38), pose);
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38, 0), pose);
+    const auto [seen, lit, dark] = NodeZeroSignatures(stage, hs2, *seen_frames[f], f);
     EXPECT_LT(Distance(seen, dark), 0.02) << "frame " << f;
     differs += Distance(lit, dark) > 0.05;
   }
@@ -397,12 +402,7 @@ TEST(SimStageWorldTest, FaultsInjectedAtRunTimeTakeEffectFromTheNextEdge) {
   int checked = 0;
   for (int64_t f = 0; f < kSlots; ++f) {
     if ((f >= 20 && f <= kAt + 1) || f >= kLateAt) continue;
-    const int64_t pose = f / 38;
-    const PixelResponses& r = *stage.renderers[hs2]->Responses(pose);
-    const auto seen = Signature(
-        r, [&](int32_t pixel) { return static_cast<double>(seen_frames[f]->data[static_cast<size_t>(pixel)]); });
-    const auto lit = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38), pose);
-    const auto dark = ExpectedSignature(scene, *stage.renderers[hs2], scene.PatternLevels(f % 38, 0), pose);
+    const auto [seen, lit, dark] = NodeZeroSignatures(stage, hs2, *seen_frames[f], f);
     if (Distance(lit, dark) < 0.05) continue;  // node 0 adds little to this pattern here
     EXPECT_LT(Distance(seen, f < kAt ? lit : dark), 0.02) << "frame " << f;
     ++checked;
