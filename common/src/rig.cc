@@ -325,6 +325,7 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!sim->has_full_on_electrons()) sim->set_full_on_electrons(4000);
   if (!sim->has_read_noise_e()) sim->set_read_noise_e(5);
   if (!sim->has_full_well_e()) sim->set_full_well_e(10000);
+  if (!sim->has_supersample()) sim->set_supersample(1);
   auto* subject = sim->mutable_subject();
   if (subject->kind().empty()) subject->set_kind("head");
   if (subject->performance().empty()) subject->set_performance("default");
@@ -471,6 +472,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.full_on_electrons", rig.sim().full_on_electrons(), 1, 1e7);
   check.InRange("sim.read_noise_e", rig.sim().read_noise_e(), 0, 1000);
   check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
+  check.InRange("sim.supersample", rig.sim().supersample(), 1, 8);
   {
     const v1::SimSubject& subject = rig.sim().subject();
     if (subject.kind() != "head" && subject.kind() != "sphere" && subject.kind() != "plane" &&

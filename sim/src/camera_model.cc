@@ -71,11 +71,11 @@ bool CameraModel::Project(const Eigen::Vector3d& p, Eigen::Vector2d* pixel) cons
   return true;
 }
 
-std::vector<Eigen::Vector3f> CameraModel::PixelRays() const {
+std::vector<Eigen::Vector3f> CameraModel::PixelRays(double dx, double dy) const {
   std::vector<cv::Point2d> pixels;
   pixels.reserve(static_cast<size_t>(width_) * height_);
   for (int v = 0; v < height_; ++v) {
-    for (int u = 0; u < width_; ++u) pixels.emplace_back(u, v);
+    for (int u = 0; u < width_; ++u) pixels.emplace_back(u + dx, v + dy);
   }
   const cv::Matx33d k(fx_, 0, cx_, 0, fy_, cy_, 0, 0, 1);
   const cv::Mat dist(1, 5, CV_64F, const_cast<double*>(distortion_.data()));

@@ -50,51 +50,71 @@ float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   return static_cast<float>(leakage + growth * (1 - c * c));
 }
 
-std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads) {
-  const std::vector<Eigen::Vector3f> rays = camera.PixelRays();
+std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads, double dx, double dy) {
+  const std::vector<Eigen::Vector3f> rays = camera.PixelRays(dx, dy);
   const Eigen::Vector3f origin = camera.position().cast<float>();
   std::vector<Hit> all(rays.size());
   ParallelFor(rays.size(), threads, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
   return all;
 }
 
-PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads) {
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
+                                int supersample) {
   PixelResponses r;
   r.width = camera.width();
   r.height = camera.height();
   const Eigen::Vector3f origin = camera.position().cast<float>();
-  std::vector<Hit> all = TracePixels(camera, subject, threads);
-  for (size_t i = 0; i < all.size(); ++i) {
-    if (!all[i].hit) continue;
-    r.pixels.push_back(static_cast<int32_t>(i));
-    r.albedo.push_back(all[i].material.albedo);
-    r.hits.push_back(all[i]);
+  const int n = std::max(1, supersample);
+  // Every ray that hits, grouped by pixel (rows in pixel order).
+  std::vector<std::vector<Hit>> by_pixel(static_cast<size_t>(r.width) * r.height);
+  for (int sy = 0; sy < n; ++sy) {
+    for (int sx = 0; sx < n; ++sx) {
+      const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
+      std::vector<Hit> all = TracePixels(camera, subject, threads, dx, dy);
+      for (size_t i = 0; i < all.size(); ++i) {
+        if (all[i].hit) by_pixel[i].push_back(all[i]);
+      }
+    }
   }
-  const size_t n = r.hits.size();
+  std::vector<const std::vector<Hit>*> rows;
+  for (size_t i = 0; i < by_pixel.size(); ++i) {
+    if (by_pixel[i].empty()) continue;
+    r.pixels.push_back(static_cast<int32_t>(i));
+    Eigen::Vector3f albedo = Eigen::Vector3f::Zero();
+    for (const Hit& h : by_pixel[i]) albedo += h.material.albedo;
+    r.albedo.push_back(albedo / static_cast<float>(by_pixel[i].size()));
+    r.hits.push_back(by_pixel[i].front());
+    rows.push_back(&by_pixel[i]);
+  }
+  const size_t count = rows.size();
   const size_t units = dome.units.size();
-  r.diffuse = RowMatrixXf::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(units));
-  r.specular = RowMatrixXf::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(units));
-  ParallelFor(n, threads, [&](size_t i) {
-    const Hit& h = r.hits[i];
-    const Eigen::Vector3f v = (origin - h.point).normalized();
-    const Eigen::Vector3f& nrm = h.normal;
-    const float n_dot_v = nrm.dot(v);
-    const Eigen::Vector3f start = h.point + kShadowEpsilon * h.geometric_normal;
-    for (size_t l = 0; l < units; ++l) {
-      const Eigen::Vector3f to_led = dome.units[l].position.cast<float>() - h.point;
-      const float d2 = to_led.squaredNorm();
-      const Eigen::Vector3f w = to_led / std::sqrt(d2);
-      const float n_dot_w = nrm.dot(w);
-      if (n_dot_w <= 0 || h.geometric_normal.dot(w) <= 0) continue;
-      if (subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
-      const float irradiance = static_cast<float>(dome.units[l].intensity) / d2;
-      r.diffuse(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(l)) = n_dot_w * irradiance / kPi;
-      if (n_dot_v > 0) {
-        const Eigen::Vector3f half = (w + v).normalized();
-        const float alpha = std::max(h.material.roughness, 1e-3f);
-        const float spec = h.material.specular * GgxDistribution(nrm.dot(half), alpha) * SmithG1(n_dot_w, alpha) *
-                           SmithG1(n_dot_v, alpha) / (4 * n_dot_v);
-        r.specular(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(l)) = spec * irradiance;
+  const float weight = 1.0f / static_cast<float>(n * n);
+  r.diffuse = RowMatrixXf::Zero(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
+  r.specular = RowMatrixXf::Zero(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
+  ParallelFor(count, threads, [&](size_t i) {
+    const auto row = static_cast<Eigen::Index>(i);
+    for (const Hit& h : *rows[i]) {
+      const Eigen::Vector3f v = (origin - h.point).normalized();
+      const Eigen::Vector3f& nrm = h.normal;
+      const float n_dot_v = nrm.dot(v);
+      const Eigen::Vector3f start = h.point + kShadowEpsilon * h.geometric_normal;
+      for (size_t l = 0; l < units; ++l) {
+        const Eigen::Vector3f to_led = dome.units[l].position.cast<float>() - h.point;
+        const float d2 = to_led.squaredNorm();
+        const Eigen::Vector3f w = to_led / std::sqrt(d2);
+        const float n_dot_w = nrm.dot(w);
+        if (n_dot_w <= 0 || h.geometric_normal.dot(w) <= 0) continue;
+        if (subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
+        const float irradiance = weight * static_cast<float>(dome.units[l].intensity) / d2;
+        const auto col = static_cast<Eigen::Index>(l);
+        r.diffuse(row, col) += n_dot_w * irradiance / kPi;
+        if (n_dot_v > 0) {
+          const Eigen::Vector3f half = (w + v).normalized();
+          const float alpha = std::max(h.material.roughness, 1e-3f);
+          const float spec = h.material.specular * GgxDistribution(nrm.dot(half), alpha) * SmithG1(n_dot_w, alpha) *
+                             SmithG1(n_dot_v, alpha) / (4 * n_dot_v);
+          r.specular(row, col) += spec * irradiance;
+        }
       }
     }
   });

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <random>
 
 #include "gtest/gtest.h"
@@ -143,6 +144,40 @@ TEST(LightTransportTest, MatchesABruteForceReferenceOnRandomPoses) {
 
 // A Lambertian sphere under a first-order gradient approaches the continuous dome's closed form as the dome gets
 // denser: radiance = albedo/2 * (1/2 + n_x/3) for L(w) = (1 + w_x)/2 over the whole sphere (half passes the analyzer).
+// Supersampled pixels integrate their area: an edge pixel is partly covered, the sphere's total light is what one ray
+// a pixel gives (to the edge's quantization), and the pixels inside agree with the single ray through their centre.
+TEST(LightTransportTest, SupersampledPixelsIntegrateTheirArea) {
+  const Dome d = Dome::FromDirections(FibonacciSphere(64), 1000, 1e6);
+  SphereSubject sphere(Eigen::Vector3f::Zero(), 30, Material{});  // about 38 pixels across
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 700}, 64, 48), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  const PixelResponses one = ComputeResponses(*camera, sphere, d, 0, 1);
+  const PixelResponses four = ComputeResponses(*camera, sphere, d, 0, 4);
+  EXPECT_GT(four.pixels.size(), one.pixels.size());  // the rim catches more pixels partly
+  std::map<int32_t, double> sum_one;
+  for (size_t i = 0; i < one.pixels.size(); ++i) sum_one[one.pixels[i]] = one.diffuse.row(i).sum();
+  double total_one = 0, total_four = 0;
+  int partial = 0, inside = 0;
+  for (const auto& [pixel, v] : sum_one) total_one += v;
+  for (size_t i = 0; i < four.pixels.size(); ++i) {
+    const double v = four.diffuse.row(static_cast<Eigen::Index>(i)).sum();
+    total_four += v;
+    const int32_t p = four.pixels[i];
+    // A pixel whose four neighbours are all on the sphere is inside: its light is smooth across it.
+    const bool interior = sum_one.count(p) && sum_one.count(p - 1) && sum_one.count(p + 1) && sum_one.count(p - 64) &&
+                          sum_one.count(p + 64);
+    if (interior) {
+      EXPECT_NEAR(v, sum_one[p], 0.02 * sum_one[p]) << p;
+      ++inside;
+    } else if (!sum_one.count(p)) {
+      ++partial;  // covered by some of its rays only
+    }
+  }
+  EXPECT_GT(inside, 100);
+  EXPECT_GT(partial, 10);
+  EXPECT_NEAR(total_four, total_one, 0.03 * total_one);
+}
+
 TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {
   const double far = 1e7;  // distant LEDs
   Material m{Eigen::Vector3f::Constant(0.8f), 0.0f, 0.3f};

@@ -256,7 +256,8 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
   if (responses_ == nullptr || responses_frame_ != pose_frame) {
     auto subject = scene_->SubjectAt(pose_frame);
     responses_ = std::make_shared<const PixelResponses>(
-        ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_));
+        ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_,
+                         static_cast<int>(scene_->rig().sim().supersample())));
     responses_frame_ = pose_frame;
   }
   return responses_;

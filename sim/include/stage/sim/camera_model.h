@@ -37,8 +37,8 @@ class CameraModel {
   bool Project(const Eigen::Vector3d& p, Eigen::Vector2d* pixel) const;
 
   // Unit ray direction in the stage frame through the centre of every pixel, row-major (undistorted with OpenCV's
-  // iterative inverse of the distortion model).
-  std::vector<Eigen::Vector3f> PixelRays() const;
+  // iterative inverse of the distortion model); through (x + dx, y + dy) of each pixel with an offset in pixels.
+  std::vector<Eigen::Vector3f> PixelRays(double dx = 0, double dy = 0) const;
 
  private:
   int width_ = 0, height_ = 0;

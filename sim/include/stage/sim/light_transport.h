@@ -22,10 +22,13 @@ namespace stage::sim {
 
 using RowMatrixXf = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 
+// Supersampled (n x n rays a pixel), a pixel's rows average its rays' (a ray that misses adds nothing, so an edge pixel
+// is partly covered) and its albedo averages the albedo its rays hit: the product of the averages stands for the
+// average of the products, which holds where the lighting is even across the pixel.
 struct PixelResponses {
   int width = 0;
   int height = 0;
-  // Row-major index of every pixel that sees the subject, and what it sees there.
+  // Row-major index of every pixel that sees the subject, and what it sees there (its first ray that hits).
   std::vector<int32_t> pixels;
   std::vector<Eigen::Vector3f> albedo;
   std::vector<Hit> hits;
@@ -34,11 +37,14 @@ struct PixelResponses {
   RowMatrixXf specular;
 };
 
-// What every pixel's ray meets (row-major; hit == false where it misses the subject).
-std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0);
+// What every pixel's ray meets (row-major; hit == false where it misses the subject); rays through (x + dx, y + dy).
+std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0, double dx = 0,
+                             double dy = 0);
 
-// Camera direction -> pixel responses, on `threads` threads (0: one per core).
-PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0);
+// Camera direction -> pixel responses, on `threads` threads (0: one per core), with `supersample` x `supersample`
+// rays a pixel (1: through its centre).
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0,
+                                int supersample = 1);
 
 // Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
 struct EmitterLevels {
