@@ -1,0 +1,116 @@
+// Recording throughput of a frame file (the HDF5 writer a camera node records with: SWMR, every frame flushed, space
+// reserved ahead) next to its baseline in the same run: plain sequential write() of the same bytes to a file in the
+// same directory. Both end with fsync, so both count the disk, not the page cache. Goal: >= 0.8x the baseline.
+// Run: build/bin/frame_file_bench [--dir DIR] [--frames N] [--width W --height H --bytes-per-pixel B]
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "CLI/CLI.hpp"
+#include "stage/storage/frame_file.h"
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double Seconds(Clock::time_point since) { return std::chrono::duration<double>(Clock::now() - since).count(); }
+
+// Plain write() of every frame, then fsync: what the disk gives a writer that does nothing else.
+double PlainWrite(const std::string& path, const std::vector<uint8_t>& frame, int frames) {
+  std::filesystem::remove(path);  // a new file each round, as the frame file is
+  const auto start = Clock::now();
+  const int fd = open(path.c_str(), O_CREAT | O_TRUNC | O_WRONLY, 0644);
+  if (fd < 0) {
+    std::perror(path.c_str());
+    std::exit(1);
+  }
+  for (int i = 0; i < frames; ++i) {
+    size_t done = 0;
+    while (done < frame.size()) {
+      const ssize_t n = write(fd, frame.data() + done, frame.size() - done);
+      if (n <= 0) {
+        std::perror("write");
+        std::exit(1);
+      }
+      done += static_cast<size_t>(n);
+    }
+  }
+  fsync(fd);
+  close(fd);
+  return Seconds(start);
+}
+
+double FrameFile(const std::string& path, const std::vector<uint8_t>& frame, int frames,
+                 const stage::storage::FrameFileInfo& info) {
+  std::filesystem::remove(path);
+  const auto start = Clock::now();
+  auto writer = stage::storage::FrameFileWriter::Create(path, info);
+  if (!writer.ok()) {
+    std::fprintf(stderr, "%s\n", std::string(writer.status().message()).c_str());
+    std::exit(1);
+  }
+  for (int i = 0; i < frames; ++i) {
+    stage::storage::FrameRecord r;
+    r.frame_id = static_cast<uint64_t>(i);
+    r.slot = i;
+    r.pattern = i % 38;
+    if (auto s = (*writer)->Append(r, frame); !s.ok()) {
+      std::fprintf(stderr, "%s\n", std::string(s.message()).c_str());
+      std::exit(1);
+    }
+  }
+  if (auto s = (*writer)->Close(); !s.ok()) std::fprintf(stderr, "%s\n", std::string(s.message()).c_str());
+  const int fd = open(path.c_str(), O_RDONLY);
+  fsync(fd);
+  close(fd);
+  return Seconds(start);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Frame file recording throughput against plain sequential writes of the same bytes (same run, same "
+      "directory; both end with fsync)"};
+  std::string dir = std::filesystem::temp_directory_path().string();
+  int frames = 100;
+  stage::storage::FrameFileInfo info;
+  info.camera_id = "mv-01";
+  info.width = 2592;
+  info.height = 2048;
+  info.bytes_per_pixel = 1;
+  info.pixel_format = "BayerRG8";
+  int rounds = 3;
+  app.add_option("--dir", dir, "Where to write (the disk to measure)")->capture_default_str();
+  app.add_option("--frames", frames, "Frames per run")->capture_default_str()->check(CLI::Range(1, 100000));
+  app.add_option("--width", info.width, "Frame width")->capture_default_str();
+  app.add_option("--height", info.height, "Frame height")->capture_default_str();
+  app.add_option("--bytes-per-pixel", info.bytes_per_pixel, "1 or 2")->capture_default_str();
+  app.add_option("--rounds", rounds, "Alternating rounds of each; the best of each is reported")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 20));
+  CLI11_PARSE(app, argc, argv);
+
+  std::vector<uint8_t> frame(static_cast<size_t>(info.width) * info.height * info.bytes_per_pixel);
+  for (size_t i = 0; i < frame.size(); ++i) frame[i] = static_cast<uint8_t>(i * 131 + (i >> 12));
+  const double mb = static_cast<double>(frame.size()) * frames / 1e6;
+  const std::string plain = dir + "/frame_file_bench.raw", h5 = dir + "/frame_file_bench.h5";
+  double best_plain = 1e30, best_h5 = 1e30;
+  for (int r = 0; r < rounds; ++r) {
+    best_plain = std::min(best_plain, PlainWrite(plain, frame, frames));
+    best_h5 = std::min(best_h5, FrameFile(h5, frame, frames, info));
+  }
+  std::filesystem::remove(plain);
+  std::filesystem::remove(h5);
+  std::printf("frame_file_bench: %d frames of %ux%u x %u B (%.0f MB) in %s, best of %d\n", frames, info.width,
+              info.height, info.bytes_per_pixel, mb, dir.c_str(), rounds);
+  std::printf("  baseline: plain write() + fsync   %8.1f MB/s\n", mb / best_plain);
+  std::printf("  frame file (HDF5, SWMR, flushed)  %8.1f MB/s   = %.2fx the baseline (goal >= 0.8x)\n", mb / best_h5,
+              best_plain / best_h5);
+  return 0;
+}
