@@ -1,0 +1,237 @@
+// One camera's take on disk: see recorder.h.
+#include "recorder.h"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+
+#include "absl/strings/str_cat.h"
+#include "stage/common/logging.h"
+
+namespace stage::camera {
+namespace {
+
+using storage::LossReason;
+
+// Mean pixel value over a sample of the frame: every 7th pixel (odd, so every Bayer colour is in the sample).
+double MeanBrightness(const Frame& f) {
+  const size_t pixels = static_cast<size_t>(f.width) * f.height;
+  if (pixels == 0) return 0;
+  const bool wide = f.data.size() >= pixels * 2;
+  double sum = 0;
+  size_t n = 0;
+  for (size_t i = 0; i < pixels; i += 7, ++n) {
+    sum += wide ? static_cast<double>(f.data[2 * i] | (f.data[2 * i + 1] << 8)) : f.data[i];
+  }
+  return sum / static_cast<double>(n);
+}
+
+}  // namespace
+
+TakeRecorder::TakeRecorder(TakePlan plan) : plan_(std::move(plan)) {}
+
+int64_t TakeRecorder::SlotStart(int64_t slot) const {
+  return plan_.slot_start_ns ? plan_.slot_start_ns(slot) : slot * plan_.slot_ns;
+}
+
+absl::StatusOr<std::unique_ptr<TakeRecorder>> TakeRecorder::Start(TakePlan plan) {
+  if (plan.slots <= 0) return absl::InvalidArgumentError("a take needs at least one slot");
+  if (plan.divider == 0 || plan.phase >= plan.divider) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("trigger phase ", plan.phase, " is not below the divider ", plan.divider));
+  }
+  if (plan.patterns_per_cycle == 0) return absl::InvalidArgumentError("no patterns per cycle");
+  std::unique_ptr<TakeRecorder> r(new TakeRecorder(std::move(plan)));
+  const TakePlan& p = r->plan_;
+  for (int64_t k = p.phase; k < p.slots; k += p.divider) {
+    r->index_of_[k] = r->expected_.size();
+    r->expected_.push_back(k);
+    r->rec_.slots.push_back({k, static_cast<int32_t>(k % p.patterns_per_cycle), LossReason::kTriggerMissed, {}, ""});
+  }
+  std::error_code ec;
+  std::filesystem::create_directories(std::filesystem::path(p.path).parent_path(), ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(p.path, ": cannot create its directory: ", ec.message()));
+  auto writer = storage::FrameFileWriter::Create(p.path, p.info);
+  if (!writer.ok()) return writer.status();
+  r->writer_ = std::move(*writer);
+  if (!p.burst) {
+    r->writing_ = true;
+    r->thread_ = std::thread([raw = r.get()] { raw->WriterLoop(); });
+  }
+  return r;
+}
+
+TakeRecorder::~TakeRecorder() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    finishing_ = true;
+    writing_ = true;
+  }
+  changed_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+int64_t TakeRecorder::frames_received() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return rec_.frames_received;
+}
+
+int64_t TakeRecorder::frames_written() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return rec_.frames_written;
+}
+
+void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
+  // The bus time of the exposure start, and the nearest trigger time to it.
+  const long double device = static_cast<long double>(frame->device_timestamp_ns - plan_.clock_offset_ns);
+  const auto bus = static_cast<int64_t>(std::llround(device / (1.0L + plan_.clock_drift_ppm * 1e-6L)));
+  const int64_t rel = bus - plan_.t0_ns - plan_.trigger_delay_ns;
+  const int64_t guess =
+      static_cast<int64_t>(std::llround(static_cast<double>(rel) / static_cast<double>(plan_.slot_ns)));
+  int64_t slot = guess;
+  int64_t error = INT64_MAX;
+  for (int64_t k = guess - 1; k <= guess + 1; ++k) {
+    const int64_t e = std::llabs(rel - SlotStart(k));
+    if (e < error) {
+      error = e;
+      slot = k;
+    }
+  }
+  const size_t bytes = frame->data.size();
+  std::unique_lock<std::mutex> lock(mutex_);
+  ++rec_.frames_received;
+  auto it = index_of_.find(slot);
+  if (it == index_of_.end() || matched_.count(slot) || finishing_) {
+    ++rec_.frames_unmatched;
+    return;
+  }
+  matched_[slot] = frame->frame_id;
+  rec_.max_timing_error_ns = std::max(rec_.max_timing_error_ns, error);
+  SlotOutcome& out = rec_.slots[it->second];
+  out.frame_id = frame->frame_id;
+  const uint64_t budget = plan_.burst ? plan_.burst_bytes : plan_.queue_bytes;
+  if (queued_bytes_ + bytes > budget) {
+    out.reason = LossReason::kWriteFailed;
+    out.detail = plan_.burst ? absl::StrCat("burst memory full (", budget >> 20, " MiB)")
+                             : "the recorder fell behind (the disk is slower than the camera)";
+    return;
+  }
+  out.reason = LossReason::kNone;  // tentatively: the writer may still fail
+  queued_bytes_ += bytes;
+  queue_.push_back({std::move(frame), slot, bus});
+  lock.unlock();
+  changed_.notify_all();
+}
+
+void TakeRecorder::WriterLoop() {
+  while (true) {
+    Tagged t;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      changed_.wait(lock, [&] { return (writing_ && !queue_.empty()) || finishing_; });
+      if (queue_.empty()) return;  // finishing, and all written
+      t = std::move(queue_.front());
+      queue_.pop_front();
+    }
+    Write(t);
+  }
+}
+
+void TakeRecorder::Write(const Tagged& t) {
+  const Frame& f = *t.frame;
+  storage::FrameRecord record;
+  record.frame_id = f.frame_id;
+  record.device_timestamp_ns = f.device_timestamp_ns;
+  record.controller_time_ns = t.bus_ns - plan_.t0_ns;
+  record.slot = t.slot;
+  record.pattern = static_cast<int32_t>(t.slot % plan_.patterns_per_cycle);
+  const absl::Status s = writer_->Append(record, f.data);
+  const double brightness = s.ok() ? MeanBrightness(f) - plan_.black_level : 0;
+  std::lock_guard<std::mutex> lock(mutex_);
+  queued_bytes_ -= std::min<uint64_t>(queued_bytes_, f.data.size());
+  SlotOutcome& out = rec_.slots[index_of_.at(t.slot)];
+  if (s.ok()) {
+    ++rec_.frames_written;
+    rec_.brightness[t.slot] = brightness;
+  } else {
+    out.reason = LossReason::kWriteFailed;
+    out.detail = rec_.error.empty() ? std::string(s.message()) : rec_.error;
+    if (rec_.error.empty()) {
+      rec_.error = std::string(s.message());
+      Logger("camera")->error("{}", rec_.error);
+    }
+  }
+}
+
+TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& progress) {
+  if (plan_.burst) {
+    // The take is over: offload what the camera held, in slot order.
+    std::deque<Tagged> held;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      finishing_ = true;
+      held.swap(queue_);
+    }
+    std::sort(held.begin(), held.end(), [](const Tagged& a, const Tagged& b) { return a.slot < b.slot; });
+    const auto total = static_cast<int64_t>(held.size());
+    int64_t done = 0;
+    for (const Tagged& t : held) {
+      Write(t);
+      if (progress) progress(++done, total);
+    }
+  } else {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      finishing_ = true;
+    }
+    changed_.notify_all();
+    if (thread_.joinable()) thread_.join();
+  }
+  if (absl::Status s = writer_->Close(); !s.ok() && rec_.error.empty()) rec_.error = std::string(s.message());
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(plan_.path, ec);
+  std::lock_guard<std::mutex> lock(mutex_);
+  rec_.bytes = ec ? 0 : size;
+
+  // Slots without a frame: the frame counter tells exposures the camera made and never delivered (camera dropped)
+  // from triggers it never exposed on (trigger missed). Between two delivered frames with ids a and b, b - a - 1
+  // exposures were lost; they are the first of the silent slots there (which ones exactly the counter cannot say).
+  std::vector<std::pair<int64_t, uint64_t>> delivered(matched_.begin(), matched_.end());  // slot, frame id
+  auto account = [&](size_t first, size_t last, int64_t exposed, const std::string& where) {
+    // Expected slots [first, last) (indexes) are silent; `exposed` of them were exposed (negative: unknown).
+    for (size_t i = first; i < last; ++i) {
+      SlotOutcome& out = rec_.slots[i];
+      if (matched_.count(out.slot)) continue;
+      if (exposed > 0) {
+        out.reason = LossReason::kCameraDropped;
+        out.detail = absl::StrCat("exposed (frame counter) but not delivered", where);
+        --exposed;
+      } else {
+        out.reason = LossReason::kTriggerMissed;
+        out.detail = exposed < 0 ? absl::StrCat("no frame", where) : absl::StrCat("never exposed", where);
+      }
+    }
+  };
+  if (delivered.empty()) {
+    account(0, rec_.slots.size(), -1, " (the camera delivered nothing)");
+    return rec_;
+  }
+  // The counter of the exposure before the next delivered frame's silent run (the take's first: first_frame_id - 1).
+  std::optional<int64_t> before;
+  if (plan_.first_frame_id) before = static_cast<int64_t>(*plan_.first_frame_id) - 1;
+  size_t from = 0;
+  for (const auto& [slot, id] : delivered) {
+    const size_t at = index_of_.at(slot);
+    const auto silent = static_cast<int64_t>(at - from);
+    if (silent > 0) {
+      const int64_t exposed = before ? std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent) : -1;
+      account(from, at, exposed, "");
+    }
+    before = static_cast<int64_t>(id);
+    from = at + 1;
+  }
+  account(from, rec_.slots.size(), -1, " after the last frame the camera delivered");
+  return rec_;
+}
+
+}  // namespace stage::camera
