@@ -181,12 +181,19 @@ void SimCameraDevice::TriggerLoop(int device) {
   // (up to the end of the exposure) is reported while it waits for its renderer.
   const int64_t ahead = (w.trigger_delay_ns + w.exposure_ns) / std::max<int64_t>(1, period) + 1;
   const int64_t d = w.divider, p = w.phase;
-  int64_t slot = FirstFiring(0, d, p);
+  // The trigger line is the bus divided from the first slot of each run (the sync generator restarts it at T0):
+  // slot k of run r fires when (k - r.first) mod divider == phase.
+  auto first_firing = [&](int64_t from, const WorldRun& r) {
+    const int64_t at = r.first + FirstFiring(std::max(from, r.first) - r.first, d, p);
+    return at < r.end ? at : r.end;  // none left in this run: wait for the next run's first edge
+  };
+  int64_t slot = p;
   while (true) {
     auto edge = world->WaitForEdge(device, slot);
     if (!edge) break;
     const int64_t k = edge->slot;
-    const int64_t missed = CountFiring(slot, k, d, p);
+    const WorldRun& run = edge->run;
+    const int64_t missed = CountFiring(std::max(slot, run.first) - run.first, k - run.first, d, p);
     std::unique_lock<std::mutex> lock(mutex_);
     if (!running_) break;
     stats_.missed_triggers += static_cast<uint64_t>(missed);
@@ -198,7 +205,7 @@ void SimCameraDevice::TriggerLoop(int device) {
       world->Leave(device);
       break;
     }
-    if (FirstFiring(k, d, p) == k) {
+    if (first_firing(k, run) == k) {
       if (w.miss_triggers > 0 && FaultDraw(w.seed, serial_, k, 1) < w.miss_triggers) {
         ++stats_.missed_triggers;  // a fault: the trigger never reached the sensor
       } else if (!lockstep && static_cast<int>(jobs_.size()) >= w.buffer_frames) {
@@ -222,7 +229,7 @@ void SimCameraDevice::TriggerLoop(int device) {
       jobs_changed_.wait(lock, [&] { return !running_ || static_cast<int>(jobs_.size()) < w.buffer_frames; });
       if (!running_) break;
     }
-    slot = FirstFiring(k + 1, d, p);
+    slot = first_firing(k + 1, run);
   }
 }
 

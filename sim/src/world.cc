@@ -25,7 +25,10 @@ void World::Start() {
     std::lock_guard<std::mutex> lock(mutex_);
     if (started_) return;
     started_ = true;
-    if (options_.lockstep) current_ = 0;
+    if (options_.open_run) {
+      runs_.push_back({0, options_.end_slot >= 0 ? options_.end_slot : INT64_MAX});
+      if (options_.lockstep) current_ = 0;
+    }
     // Real time without a given t0: slot 0 a moment from now.
     if (!options_.lockstep && options_.t0_ns == 0) {
       options_.t0_ns = RealClock(RealClock::Kind::kMonotonic).NowNs() + 100'000'000;
@@ -55,9 +58,52 @@ void World::Stop() {
 void World::OnRealEdge(const timing::SlotEdge& edge) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
+    if (NextEdge(edge.slot) != edge.slot) return;  // the bus is silent between runs
     current_ = edge.slot;
   }
   changed_.notify_all();
+}
+
+int64_t World::NextEdge(int64_t slot) const {
+  for (const WorldRun& r : runs_) {
+    if (slot < r.end) return std::max(slot, r.first);
+  }
+  return -1;
+}
+
+WorldRun World::RunOf(int64_t slot) const {
+  for (const WorldRun& r : runs_) {
+    if (slot >= r.first && slot < r.end) return r;
+  }
+  return {slot, slot + 1};
+}
+
+int64_t World::EdgesBetween(int64_t from, int64_t to) const {
+  int64_t n = 0;
+  for (const WorldRun& r : runs_) n += std::max<int64_t>(0, std::min(to, r.end) - std::max(from, r.first));
+  return n;
+}
+
+absl::StatusOr<WorldRun> World::Run(int64_t count, int64_t lead_slots, int64_t align) {
+  if (count <= 0) return absl::InvalidArgumentError(absl::StrCat("a run of ", count, " slots"));
+  WorldRun run;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
+    const int64_t after = runs_.empty() ? 0 : runs_.back().end;
+    if (after == INT64_MAX) return absl::FailedPreconditionError("the bus already runs without end");
+    run.first = after;
+    if (!options_.lockstep) {
+      const int64_t now = RealClock(RealClock::Kind::kMonotonic).NowNs();
+      run.first = std::max(after, base_.SlotAtNs(std::max<int64_t>(0, now - options_.t0_ns)) + 1 + lead_slots);
+    }
+    if (align > 1) run.first = (run.first + align - 1) / align * align;
+    run.end = run.first + count;
+    runs_.push_back(run);
+    MaybeAdvance();
+  }
+  changed_.notify_all();
+  return run;
 }
 
 int World::Register(const std::string& name, int light_node) {
@@ -100,8 +146,10 @@ void World::MaybeAdvance() {
       if (d.done_through < current_) all_done = false;
     }
     if (!any || !all_done) return;
-    if (options_.end_slot >= 0 && current_ + 1 >= options_.end_slot) return;
-    ++current_;
+    const int64_t next = NextEdge(current_ + 1);
+    if (next < 0) return;  // between runs: the bus is silent
+    if (options_.end_slot >= 0 && next >= options_.end_slot) return;
+    current_ = next;
   }
 }
 
@@ -117,16 +165,22 @@ std::optional<WorldEdge> World::WaitForEdge(int device, int64_t slot) {
     devices_[i].done_through = std::max(devices_[i].done_through, slot - 1);
     MaybeAdvance();
     changed_.notify_all();
-    changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
+    // The first edge at or after `slot` (runs may leave gaps in the slot numbers).
+    int64_t edge = -1;
+    changed_.wait(lock, [&] {
+      if (gone() || !started_) return gone();
+      edge = NextEdge(slot);
+      return edge >= 0 && current_ >= edge;
+    });
     if (gone()) return std::nullopt;
-    return WorldEdge{slot, EdgeNs(slot), 0, std::exchange(devices_[i].faults, {})};
+    return WorldEdge{edge, EdgeNs(edge), 0, std::exchange(devices_[i].faults, {}), RunOf(edge)};
   }
-  changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot); });
+  changed_.wait(lock, [&] { return gone() || (started_ && current_ >= slot && NextEdge(current_) == current_); });
   if (gone()) return std::nullopt;
   // Real time: the device gets the edge that is current; the ones it was too late for are counted.
   const int64_t now = current_;
   devices_[i].last_seen = now;
-  return WorldEdge{now, EdgeNs(now), now - slot, std::exchange(devices_[i].faults, {})};
+  return WorldEdge{now, EdgeNs(now), EdgesBetween(slot, now), std::exchange(devices_[i].faults, {}), RunOf(now)};
 }
 
 absl::Status World::InjectFault(const v1::SimFault& fault) {

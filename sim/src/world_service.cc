@@ -3,6 +3,7 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
 #include <chrono>
 #include <mutex>
 #include <thread>
@@ -44,6 +45,17 @@ grpc::Status WorldService::WaitForEdge(grpc::ServerContext*, const v1::WaitForEd
   response->set_time_ns(edge->time_ns);
   response->set_missed(edge->missed);
   for (auto& f : edge->faults) *response->add_faults() = std::move(f);
+  response->set_run_first(edge->run.first);
+  response->set_run_end(edge->run.end);
+  return grpc::Status::OK;
+}
+
+grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) {
+  auto run = world_->Run(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()));
+  if (!run.ok()) return ToGrpcStatus(run.status());
+  reply->set_first_slot(run->first);
+  reply->set_end_slot(run->end);
+  reply->set_first_edge_ns(world_->EdgeNs(run->first));
   return grpc::Status::OK;
 }
 
@@ -155,7 +167,11 @@ class Remote final : public WorldClient {
     request.set_slot(slot);
     v1::WorldEdgeEvent edge;
     if (!stub_->WaitForEdge(&context, request, &edge).ok() || edge.stopped()) return std::nullopt;
-    return WorldEdge{edge.slot(), edge.time_ns(), edge.missed(), {edge.faults().begin(), edge.faults().end()}};
+    return WorldEdge{edge.slot(),
+                     edge.time_ns(),
+                     edge.missed(),
+                     {edge.faults().begin(), edge.faults().end()},
+                     WorldRun{edge.run_first(), edge.run_end()}};
   }
   void Done(int device, int64_t slot) override {
     grpc::ClientContext context;

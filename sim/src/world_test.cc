@@ -133,5 +133,57 @@ TEST(WorldTest, RealTimeDevicesThatFallBehindCountWhatTheyMissed) {
   EXPECT_FALSE(world.WaitForEdge(cam, 1'000'000).has_value());
 }
 
+// The bus carries edges only in runs (a take each): in lockstep a device waiting across a gap gets the next run's
+// first edge, runs start where the last ended (aligned to a multiple when asked), and nothing moves between runs.
+TEST(WorldTest, LockstepRunsAreTheOnlyEdgesOnTheBus) {
+  Dome dome = TwoNodeDome();
+  World world(dome, {.slot_rate_hz = 1000, .lockstep = true, .open_run = false});
+  const int dev = world.Register("cam", -1);
+  world.Start();
+  EXPECT_EQ(world.current_slot(), -1);  // no run yet: no edge
+  auto run = world.Run(5);
+  ASSERT_TRUE(run.ok()) << run.status();
+  EXPECT_EQ(run->first, 0);
+  EXPECT_EQ(run->end, 5);
+  for (int64_t k = 0; k < 5; ++k) {
+    auto edge = world.WaitForEdge(dev, k);
+    ASSERT_TRUE(edge.has_value());
+    EXPECT_EQ(edge->slot, k);
+    EXPECT_EQ(edge->run.first, 0);
+    EXPECT_EQ(edge->run.end, 5);
+  }
+  world.Done(dev, 4);
+  EXPECT_EQ(world.current_slot(), 4);  // held at the run's last slot
+  auto second = world.Run(7, 0, 38);
+  ASSERT_TRUE(second.ok());
+  EXPECT_EQ(second->first, 38);  // aligned to the pattern cycle
+  auto edge = world.WaitForEdge(dev, 5);
+  ASSERT_TRUE(edge.has_value());
+  EXPECT_EQ(edge->slot, 38);  // the gap has no edges
+  EXPECT_EQ(edge->run.first, 38);
+  EXPECT_EQ(edge->time_ns, world.base().SlotStartNs(38));
+  EXPECT_FALSE(world.Run(0).ok());
+  world.Stop();
+}
+
+TEST(WorldTest, RealTimeRunsStartAheadAndCountOnlyTheirOwnEdgesAsMissed) {
+  Dome dome = TwoNodeDome();
+  World world(dome, {.slot_rate_hz = 1000, .lockstep = false, .open_run = false});
+  const int dev = world.Register("cam", -1);
+  world.Start();
+  auto run = world.Run(30, 20);
+  ASSERT_TRUE(run.ok()) << run.status();
+  auto first = world.WaitForEdge(dev, 0);
+  ASSERT_TRUE(first.has_value());
+  EXPECT_EQ(first->slot, run->first);  // nothing before the run
+  EXPECT_EQ(first->missed, 0);         // the slots before it were silent, not missed
+  EXPECT_EQ(first->run.end, run->end);
+  std::this_thread::sleep_for(std::chrono::milliseconds(8));
+  auto later = world.WaitForEdge(dev, first->slot + 1);
+  ASSERT_TRUE(later.has_value());
+  EXPECT_EQ(later->missed, later->slot - first->slot - 1);
+  world.Stop();
+}
+
 }  // namespace
 }  // namespace stage::sim

@@ -47,6 +47,15 @@ struct WorldOptions {
   int64_t history_ns = 2'000'000'000;
   // The world ends after this many slots (a take's length): no edge at or after it is delivered. -1: runs on.
   int64_t end_slot = -1;
+  // The bus carries edges only in runs, as a sync generator drives its lines only during a take. true: one run from
+  // slot 0 on, from Start() (until end_slot); false: none until Run() asks for one (the controller's takes).
+  bool open_run = true;
+};
+
+// A run of the bus: edges in slots [first, end).
+struct WorldRun {
+  int64_t first = 0;
+  int64_t end = INT64_MAX;
 };
 
 struct WorldEdge {
@@ -57,6 +66,8 @@ struct WorldEdge {
   int64_t missed = 0;
   // Faults injected at run time for this device since its previous edge (InjectFault), oldest first.
   std::vector<v1::SimFault> faults;
+  // The run the edge belongs to: divided lines (a camera's every-38th trigger) count from its first slot.
+  WorldRun run;
 };
 
 class World {
@@ -95,6 +106,11 @@ class World {
   // the fields it sets. NotFound when the target is neither a unit of the dome nor a device in the world.
   absl::Status InjectFault(const v1::SimFault& fault);
 
+  // A run of `count` slots (a take): lockstep, right after the last run (or at slot 0); real time, `lead_slots` after
+  // the slot passing now (and after the last run); its first slot a multiple of `align` (the pattern cycle, so that
+  // a take's cycles are the subject's poses). FailedPrecondition while the last run is still open-ended.
+  absl::StatusOr<WorldRun> Run(int64_t count, int64_t lead_slots = 0, int64_t align = 1);
+
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;
   const timing::TimeBase& base() const { return base_; }
@@ -113,6 +129,11 @@ class World {
   };
   void MaybeAdvance();  // mutex_ held
   void OnRealEdge(const timing::SlotEdge& edge);
+  // The first slot at or after `slot` that lies in a run, or -1 (mutex_ held); the run of an in-run slot.
+  int64_t NextEdge(int64_t slot) const;
+  WorldRun RunOf(int64_t slot) const;
+  // Edges (in-run slots) in [from, to).
+  int64_t EdgesBetween(int64_t from, int64_t to) const;
 
   const Dome& dome_;
   WorldOptions options_;
@@ -124,6 +145,7 @@ class World {
   std::vector<Device> devices_;             // guarded by mutex_
   std::map<int, int64_t> watermarks_;       // light node -> ns; guarded by mutex_
   int64_t current_ = -1;                    // guarded by mutex_
+  std::vector<WorldRun> runs_;              // in order, disjoint; guarded by mutex_
   int64_t forgotten_before_ = INT64_MIN;    // guarded by mutex_
   bool started_ = false, stopped_ = false;  // guarded by mutex_
 };

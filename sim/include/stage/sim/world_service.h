@@ -25,6 +25,7 @@ class WorldService final : public v1::SimWorld::Service {
   grpc::Status Exposure(grpc::ServerContext*, const v1::ExposureRequest* request,
                         v1::ExposureLevels* response) override;
   grpc::Status InjectFault(grpc::ServerContext*, const v1::SimFault* request, v1::WorldAck*) override;
+  grpc::Status Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) override;
 
   // Ends every Join stream (for shutdown).
   void Shutdown();
