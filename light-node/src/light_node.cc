@@ -51,4 +51,35 @@ v1::LightStats LightNode::Stats() const {
   return stats;
 }
 
+absl::Status LightNode::Arm(const std::string& take_id, const v1::PatternTable& table) {
+  PatternTable t;
+  t.pattern_set = table.pattern_set();
+  for (int r = 0; r < table.rows_size(); ++r) {
+    const v1::PatternRow& row = table.rows(r);
+    t.row_names.push_back(row.name());
+    ChannelLevels levels;
+    for (int c = 0; c < row.levels_size(); ++c) {
+      if (row.levels(c) > 65535) {
+        return absl::InvalidArgumentError(absl::StrCat("light node \"", config_.id(), "\": row ", r, " (", row.name(),
+                                                       ") channel ", c, ": level ", row.levels(c), " is above 65535"));
+      }
+      levels.push_back(static_cast<uint16_t>(row.levels(c)));
+    }
+    t.rows.push_back(std::move(levels));
+  }
+  if (driver_->State().mode == DriverMode::kArmed) {
+    if (absl::Status s = driver_->Disarm(); !s.ok()) return s;
+  }
+  if (absl::Status s = driver_->LoadPatternTable(t); !s.ok()) return s;
+  if (absl::Status s = driver_->Arm(); !s.ok()) return s;
+  Logger("light.node")->info("{}: armed for take {} ({} rows)", config_.id(), take_id, t.rows.size());
+  return absl::OkStatus();
+}
+
+absl::Status LightNode::Disarm(const std::string& take_id) {
+  if (driver_->State().mode != DriverMode::kArmed) return absl::OkStatus();
+  Logger("light.node")->info("{}: disarmed after take {}", config_.id(), take_id);
+  return driver_->Disarm();
+}
+
 }  // namespace stage::light

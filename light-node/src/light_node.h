@@ -21,6 +21,9 @@ class LightNode {
 
   v1::NodeInfo Info() const;
   v1::LightStats Stats() const;
+  // Loads `table` and arms (disarming first if armed); see LightNode.Arm in light_node.proto.
+  absl::Status Arm(const std::string& take_id, const v1::PatternTable& table);
+  absl::Status Disarm(const std::string& take_id);
 
  private:
   LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash);

@@ -1,6 +1,7 @@
 // Light node: info, stats from the driver, and dark on destruction.
 #include "light_node.h"
 
+#include "absl/strings/str_cat.h"
 #include "backends.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
@@ -24,6 +25,36 @@ TEST(LightNodeTest, InfoAndStats) {
   EXPECT_EQ((*node)->Info().kind(), v1::NODE_KIND_LIGHT);
   EXPECT_EQ((*node)->Info().backend(), "sim");
   EXPECT_EQ((*node)->Stats().mode(), v1::LIGHT_MODE_IDLE);
+}
+
+TEST(LightNodeTest, ArmLoadsTheTableStepsFromItsFirstRowAndDisarmGoesDark) {
+  v1::LightNodeConfig config = TestNode();
+  auto driver = std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count());
+  sim::SimLightDriver* sim = driver.get();
+  auto node = LightNode::Create(config, std::move(driver), "h");
+  ASSERT_TRUE(node.ok());
+  v1::PatternTable table;
+  for (int r = 0; r < 3; ++r) {
+    v1::PatternRow* row = table.add_rows();
+    row->set_name(absl::StrCat("p", r));
+    for (uint32_t c = 0; c < config.channel_count(); ++c) row->add_levels(static_cast<uint32_t>(1000 * r + c));
+  }
+  ASSERT_TRUE((*node)->Arm("t1", table).ok());
+  EXPECT_EQ((*node)->Stats().mode(), v1::LIGHT_MODE_ARMED);
+  sim->Step();
+  sim->Step();
+  EXPECT_EQ(sim->Outputs()[2], 1002);  // row 1 on the second edge
+  // Armed again for the next take: back to the first row, whatever it was on.
+  ASSERT_TRUE((*node)->Arm("t2", table).ok());
+  sim->Step();
+  EXPECT_EQ(sim->Outputs()[2], 2);
+  ASSERT_TRUE((*node)->Disarm("t2").ok());
+  EXPECT_EQ((*node)->Stats().mode(), v1::LIGHT_MODE_IDLE);
+  EXPECT_EQ(sim->Outputs()[2], 0);
+  table.mutable_rows(1)->set_levels(5, 70000);
+  const absl::Status bad = (*node)->Arm("t3", table);
+  EXPECT_TRUE(absl::IsInvalidArgument(bad));
+  EXPECT_NE(bad.message().find("row 1 (p1) channel 5: level 70000 is above 65535"), std::string::npos) << bad;
 }
 
 TEST(LightNodeTest, ChannelCountMismatchIsRefused) {

@@ -11,6 +11,8 @@ class LightService final : public v1::LightNode::Service {
   explicit LightService(LightNode* node) : node_(node) {}
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetLightStatsRequest*, v1::LightStats* response) override;
+  grpc::Status Arm(grpc::ServerContext*, const v1::ArmLightRequest* request, v1::LightStats* response) override;
+  grpc::Status Disarm(grpc::ServerContext*, const v1::DisarmLightRequest* request, v1::LightStats* response) override;
 
  private:
   LightNode* node_;
