@@ -11,6 +11,7 @@
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
+#include "stage/timing/time_base.h"
 #include "stage/timing/trigger_scheduler.h"
 
 namespace stage::camera {
@@ -63,13 +64,129 @@ v1::NodeInfo CameraNode::Info() const {
 v1::CameraStats CameraNode::Stats() const {
   v1::CameraStats stats;
   stats.set_frames_completed(frames_completed_.load());
-  stats.set_bytes_written(0);  // nothing is recorded before the capture issue
+  std::lock_guard<std::mutex> lock(take_mutex_);
+  if (recorder_) {
+    stats.set_take_id(take_id_);
+    stats.set_take_frames_received(recorder_->frames_received());
+    stats.set_take_frames_written(recorder_->frames_written());
+    stats.set_take_frames_expected(static_cast<int64_t>(recorder_->expected_slots().size()));
+  }
   return stats;
 }
 
 void CameraNode::OnFrame(std::shared_ptr<const Frame> frame) {
   frames_completed_.fetch_add(1);
   bytes_received_.fetch_add(frame->data.size());
+  last_frame_id_.store(static_cast<int64_t>(frame->frame_id));
+  std::shared_ptr<TakeRecorder> recorder;
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    recorder = recorder_;
+  }
+  if (recorder) recorder->OnFrame(std::move(frame));
+}
+
+absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest& request) {
+  std::lock_guard<std::mutex> lock(take_mutex_);
+  if (recorder_) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("camera \"", config_.id(), "\": take ", take_id_, " is armed; finish it first"));
+  }
+  if (request.take_id().empty()) return absl::InvalidArgumentError("arm: no take id");
+  if (request.slot_rate_hz() == 0) return absl::InvalidArgumentError("arm: no slot rate");
+  auto base = timing::TimeBase::Create(request.slot_rate_hz());
+  if (!base.ok()) return base.status();
+  TakePlan plan;
+  plan.path = absl::StrCat(request.take_dir(), "/cameras/", config_.id(), ".h5");
+  plan.info.camera_id = config_.id();
+  plan.info.take_id = request.take_id();
+  plan.info.pixel_format = PixelFormatName(config_.pixel_format());
+  plan.info.exposure_us = config_.exposure_us();
+  plan.info.gain_db = config_.gain_db();
+  plan.t0_ns = request.t0_bus_ns();
+  plan.slot_ns = base->SlotStartNs(1);
+  plan.slot_start_ns = [b = *base](int64_t k) { return b.SlotStartNs(k); };
+  plan.slots = request.slot_count();
+  plan.divider = std::max<uint32_t>(1, request.trigger_plan().divider());
+  plan.phase = request.trigger_plan().slot_phase();
+  plan.trigger_delay_ns = request.trigger_delay_ns();
+  plan.patterns_per_cycle = std::max<uint32_t>(1, request.patterns_per_cycle());
+  plan.burst = request.burst();
+  if (request.burst_bytes() > 0) plan.burst_bytes = request.burst_bytes();
+  plan.first_frame_id = static_cast<uint64_t>(last_frame_id_.load() + 1);
+  // The frame size is the device's (the sim renders at a scale of the rig's sensor): the file takes it from the first
+  // frame.
+  STAGE_ASSIGN_OR_RETURN(auto recorder, TakeRecorder::Start(std::move(plan)));
+  recorder_ = std::move(recorder);
+  take_id_ = request.take_id();
+  v1::ArmCameraResponse response;
+  response.set_expected_frames(static_cast<int64_t>(recorder_->expected_slots().size()));
+  response.set_path(absl::StrCat(request.take_dir(), "/cameras/", config_.id(), ".h5"));
+  Logger("camera.node")->info("{}: armed for take {}: {} frames", config_.id(), take_id_, response.expected_frames());
+  return response;
+}
+
+absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRequest& request) {
+  std::shared_ptr<TakeRecorder> recorder;
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    if (!recorder_ || take_id_ != request.take_id()) {
+      return absl::NotFoundError(
+          absl::StrCat("camera \"", config_.id(), "\": take \"", request.take_id(), "\" is not armed here"));
+    }
+    recorder = recorder_;
+  }
+  // Frames may still be on their way (rendering, in flight): wait while they keep coming, up to drain_ms of silence.
+  const auto drain = std::chrono::milliseconds(request.drain_ms() > 0 ? request.drain_ms() : 2000);
+  const auto expected = static_cast<int64_t>(recorder->expected_slots().size());
+  int64_t seen = -1;
+  auto quiet_since = std::chrono::steady_clock::now();
+  while (true) {
+    const int64_t now_seen = recorder->frames_received();
+    if (now_seen >= expected) break;
+    if (now_seen != seen) {
+      seen = now_seen;
+      quiet_since = std::chrono::steady_clock::now();
+    } else if (std::chrono::steady_clock::now() - quiet_since >= drain) {
+      break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    recorder_.reset();  // frames from now on are not the take's
+    take_id_.clear();
+  }
+  const TakeRecording rec = recorder->Finish([&](int64_t done, int64_t total) {
+    if (done == total || done % 200 == 0) {
+      Logger("camera.node")->info("{}: offloading take {}: {}/{} frames", config_.id(), request.take_id(), done, total);
+    }
+  });
+  v1::CameraTakeReport report;
+  report.set_camera_id(config_.id());
+  report.set_path(recorder->path());
+  for (const SlotOutcome& o : rec.slots) {
+    v1::SlotRecord* r = report.add_slots();
+    r->set_slot(o.slot);
+    r->set_pattern(o.pattern);
+    r->set_reason(static_cast<int32_t>(o.reason));
+    if (o.frame_id) r->set_frame_id(*o.frame_id);
+    r->set_detail(o.detail);
+  }
+  for (const auto& [slot, b] : rec.brightness) {
+    report.add_brightness_slots(slot);
+    report.add_brightness(b);
+  }
+  report.set_frames_received(rec.frames_received);
+  report.set_frames_written(rec.frames_written);
+  report.set_frames_unmatched(rec.frames_unmatched);
+  report.set_bytes(rec.bytes);
+  report.set_max_timing_error_ns(rec.max_timing_error_ns);
+  report.set_error(rec.error);
+  Logger("camera.node")
+      ->info("{}: take {} finished: {} of {} frames written{}", config_.id(), request.take_id(), rec.frames_written,
+             expected, rec.error.empty() ? "" : ", " + rec.error);
+  return report;
 }
 
 class TriggerSessionImpl final : public TriggerSession {

@@ -3,9 +3,11 @@
 
 #include <atomic>
 #include <memory>
+#include <mutex>
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "recorder.h"
 #include "stage/camera/camera_device.h"
 #include "stage/v1/camera_node.pb.h"
 #include "stage/v1/node.pb.h"
@@ -38,8 +40,12 @@ class CameraNode : public FrameSink {
   v1::NodeInfo Info() const;
   v1::CameraStats Stats() const;
 
-  // FrameSink: counts frames (recording arrives with the capture issue).
+  // FrameSink: counts frames and hands them to the armed take's recorder.
   void OnFrame(std::shared_ptr<const Frame> frame) override;
+
+  // A take (CameraNode.Arm / Finish in camera_node.proto).
+  absl::StatusOr<v1::ArmCameraResponse> Arm(const v1::ArmCameraRequest& request);
+  absl::StatusOr<v1::CameraTakeReport> Finish(const v1::FinishCameraRequest& request);
 
   // Starts a stream of scheduled software triggers. FailedPrecondition when the camera's trigger source is not
   // scheduled-software or a stream is already running. The device is started for the stream if it was not.
@@ -55,6 +61,11 @@ class CameraNode : public FrameSink {
   std::atomic<uint64_t> frames_completed_{0};
   std::atomic<uint64_t> bytes_received_{0};
   std::atomic<bool> streaming_{false};
+  // The counter of the last frame delivered (the next take's first exposure follows it); -1 before any.
+  std::atomic<int64_t> last_frame_id_{-1};
+  mutable std::mutex take_mutex_;
+  std::string take_id_;                     // guarded by take_mutex_
+  std::shared_ptr<TakeRecorder> recorder_;  // guarded by take_mutex_; frames go to it while set
   friend class TriggerSessionImpl;
 };
 

@@ -42,4 +42,20 @@ grpc::Status CameraService::StreamTriggers(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
+grpc::Status CameraService::Arm(grpc::ServerContext*, const v1::ArmCameraRequest* request,
+                                v1::ArmCameraResponse* response) {
+  auto armed = node_->Arm(*request);
+  if (!armed.ok()) return ToGrpcStatus(armed.status());
+  *response = std::move(*armed);
+  return grpc::Status::OK;
+}
+
+grpc::Status CameraService::Finish(grpc::ServerContext*, const v1::FinishCameraRequest* request,
+                                   v1::CameraTakeReport* response) {
+  auto report = node_->Finish(*request);
+  if (!report.ok()) return ToGrpcStatus(report.status());
+  *response = std::move(*report);
+  return grpc::Status::OK;
+}
+
 }  // namespace stage::camera

@@ -13,6 +13,9 @@ class CameraService final : public v1::CameraNode::Service {
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetStatsRequest*, v1::CameraStats* response) override;
   grpc::Status StreamTriggers(grpc::ServerContext* context, grpc::ServerReader<v1::TriggerStreamMessage>* reader,
                               v1::TriggerReport* response) override;
+  grpc::Status Arm(grpc::ServerContext*, const v1::ArmCameraRequest* request, v1::ArmCameraResponse* response) override;
+  grpc::Status Finish(grpc::ServerContext*, const v1::FinishCameraRequest* request,
+                      v1::CameraTakeReport* response) override;
 
  private:
   CameraNode* node_;

@@ -51,9 +51,13 @@ absl::StatusOr<std::unique_ptr<TakeRecorder>> TakeRecorder::Start(TakePlan plan)
   std::error_code ec;
   std::filesystem::create_directories(std::filesystem::path(p.path).parent_path(), ec);
   if (ec) return absl::UnavailableError(absl::StrCat(p.path, ": cannot create its directory: ", ec.message()));
-  auto writer = storage::FrameFileWriter::Create(p.path, p.info);
-  if (!writer.ok()) return writer.status();
-  r->writer_ = std::move(*writer);
+  if (p.info.width > 0) {
+    auto writer = storage::FrameFileWriter::Create(p.path, p.info);
+    if (!writer.ok()) return writer.status();
+    r->writer_ = std::move(*writer);
+  } else if (std::filesystem::exists(p.path, ec)) {
+    return absl::AlreadyExistsError(absl::StrCat(p.path, ": exists; a take's frames are never overwritten"));
+  }
   if (!p.burst) {
     r->writing_ = true;
     r->thread_ = std::thread([raw = r.get()] { raw->WriterLoop(); });
@@ -145,7 +149,22 @@ void TakeRecorder::Write(const Tagged& t) {
   record.controller_time_ns = t.bus_ns - plan_.t0_ns;
   record.slot = t.slot;
   record.pattern = static_cast<int32_t>(t.slot % plan_.patterns_per_cycle);
-  const absl::Status s = writer_->Append(record, f.data);
+  absl::Status s = absl::OkStatus();
+  if (writer_ == nullptr) {
+    // The file takes the frames' shape from the first one.
+    storage::FrameFileInfo info = plan_.info;
+    info.width = f.width;
+    info.height = f.height;
+    const size_t pixels = static_cast<size_t>(f.width) * f.height;
+    info.bytes_per_pixel = pixels > 0 ? static_cast<uint32_t>(f.data.size() / pixels) : 0;
+    auto writer = storage::FrameFileWriter::Create(plan_.path, info);
+    if (writer.ok()) {
+      writer_ = std::move(*writer);
+    } else {
+      s = writer.status();
+    }
+  }
+  if (s.ok()) s = writer_->Append(record, f.data);
   const double brightness = s.ok() ? MeanBrightness(f) - plan_.black_level : 0;
   std::lock_guard<std::mutex> lock(mutex_);
   queued_bytes_ -= std::min<uint64_t>(queued_bytes_, f.data.size());
@@ -187,7 +206,9 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     changed_.notify_all();
     if (thread_.joinable()) thread_.join();
   }
-  if (absl::Status s = writer_->Close(); !s.ok() && rec_.error.empty()) rec_.error = std::string(s.message());
+  if (writer_ != nullptr) {
+    if (absl::Status s = writer_->Close(); !s.ok() && rec_.error.empty()) rec_.error = std::string(s.message());
+  }
   std::error_code ec;
   const auto size = std::filesystem::file_size(plan_.path, ec);
   std::lock_guard<std::mutex> lock(mutex_);

@@ -27,6 +27,7 @@ namespace stage::camera {
 
 struct TakePlan {
   std::string path;  // the frame file to create
+  // Width, height and bytes per pixel 0: taken from the first frame (a simulated camera renders at a scale).
   storage::FrameFileInfo info;
   // The take's time base on the sync bus: slot k's edge is at t0_ns + k * slot_ns (bus time, ns).
   int64_t t0_ns = 0;
@@ -87,6 +88,7 @@ class TakeRecorder final : public FrameSink {
   // Tags the frame and queues it; on the camera's thread, never blocking on the disk.
   void OnFrame(std::shared_ptr<const Frame> frame) override;
 
+  const std::string& path() const { return plan_.path; }
   // The slots the camera fires in, in order (what the ledger expects of it).
   const std::vector<int64_t>& expected_slots() const { return expected_; }
   // Frames received and written so far (progress during the take).
