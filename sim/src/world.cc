@@ -84,26 +84,51 @@ int64_t World::EdgesBetween(int64_t from, int64_t to) const {
   return n;
 }
 
-absl::StatusOr<WorldRun> World::Run(int64_t count, int64_t lead_slots, int64_t align) {
+absl::StatusOr<WorldRun> World::PlanRun(int64_t count, int64_t lead_slots, int64_t align) const {
   if (count <= 0) return absl::InvalidArgumentError(absl::StrCat("a run of ", count, " slots"));
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
+  const int64_t after = runs_.empty() ? 0 : runs_.back().end;
+  if (after == INT64_MAX) return absl::FailedPreconditionError("the bus already runs without end");
   WorldRun run;
+  run.first = after;
+  if (!options_.lockstep) {
+    const int64_t now = RealClock(RealClock::Kind::kMonotonic).NowNs();
+    run.first = std::max(after, base_.SlotAtNs(std::max<int64_t>(0, now - options_.t0_ns)) + 1 + lead_slots);
+  }
+  if (align > 1) run.first = (run.first + align - 1) / align * align;
+  run.end = run.first + count;
+  return run;
+}
+
+absl::Status World::StartRun(const WorldRun& run) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
     const int64_t after = runs_.empty() ? 0 : runs_.back().end;
-    if (after == INT64_MAX) return absl::FailedPreconditionError("the bus already runs without end");
-    run.first = after;
+    if (run.first < after || run.end <= run.first) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("run [", run.first, ", ", run.end, ") does not follow the last run (ends at ", after, ")"));
+    }
     if (!options_.lockstep) {
       const int64_t now = RealClock(RealClock::Kind::kMonotonic).NowNs();
-      run.first = std::max(after, base_.SlotAtNs(std::max<int64_t>(0, now - options_.t0_ns)) + 1 + lead_slots);
+      if (EdgeNs(run.first) <= now) {
+        return absl::FailedPreconditionError(
+            absl::StrCat("run from slot ", run.first, " would start in the past; plan it with more lead"));
+      }
     }
-    if (align > 1) run.first = (run.first + align - 1) / align * align;
-    run.end = run.first + count;
     runs_.push_back(run);
     MaybeAdvance();
   }
   changed_.notify_all();
-  return run;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<WorldRun> World::Run(int64_t count, int64_t lead_slots, int64_t align) {
+  auto run = PlanRun(count, lead_slots, align);
+  if (!run.ok()) return run.status();
+  if (absl::Status s = StartRun(*run); !s.ok()) return s;
+  return *run;
 }
 
 int World::Register(const std::string& name, int light_node) {

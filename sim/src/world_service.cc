@@ -51,7 +51,16 @@ grpc::Status WorldService::WaitForEdge(grpc::ServerContext*, const v1::WaitForEd
 }
 
 grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) {
-  auto run = world_->Run(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()));
+  absl::StatusOr<WorldRun> run;
+  if (request->first_slot() > 0 && !request->plan_only()) {
+    run = WorldRun{request->first_slot(), request->first_slot() + request->slots()};
+    if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
+  } else {
+    run = world_->PlanRun(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()));
+    if (run.ok() && !request->plan_only()) {
+      if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
+    }
+  }
   if (!run.ok()) return ToGrpcStatus(run.status());
   reply->set_first_slot(run->first);
   reply->set_end_slot(run->end);

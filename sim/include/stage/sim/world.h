@@ -110,6 +110,10 @@ class World {
   // the slot passing now (and after the last run); its first slot a multiple of `align` (the pattern cycle, so that
   // a take's cycles are the subject's poses). FailedPrecondition while the last run is still open-ended.
   absl::StatusOr<WorldRun> Run(int64_t count, int64_t lead_slots = 0, int64_t align = 1);
+  // The run Run() would make now, without making it (the controller arms every node for it first), and that run made
+  // (FailedPrecondition if it no longer fits: it overlaps the last run, or real time has passed its first slot).
+  absl::StatusOr<WorldRun> PlanRun(int64_t count, int64_t lead_slots = 0, int64_t align = 1) const;
+  absl::Status StartRun(const WorldRun& run);
 
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;
