@@ -23,7 +23,10 @@ int main(int argc, char** argv) {
   app.add_option(
       "--sim-world", world_address,
       "host:port of stage-sim's simulated world: the sim backend steps on its slot clock and lights its LEDs "
-      "(the table is loaded from the rig's schedule and armed)");
+      "(armed by the controller for each take)");
+  bool self_arm = false;
+  app.add_flag("--sim-self-arm", self_arm,
+               "With --sim-world: load the table from the rig's schedule and arm at once (a world without takes)");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "light-node";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -51,8 +54,8 @@ int main(int argc, char** argv) {
     auto opened = stage::sim::OpenNodeWorld(*loaded, world_address);
     if (!opened.ok()) return stage::ReportFatal(kProgram, opened.status());
     world = std::move(opened->client);
-    if (auto s =
-            stage::sim::JoinLightNode(sim_driver, *opened->scene, config.id(), world.get(), [] { raise(SIGKILL); });
+    if (auto s = stage::sim::JoinLightNode(
+            sim_driver, *opened->scene, config.id(), world.get(), [] { raise(SIGKILL); }, self_arm);
         !s.ok()) {
       return stage::ReportFatal(kProgram, s);
     }

@@ -1,4 +1,5 @@
 // stage-controller: owns the rig, watches every node's health, serves the StageController gRPC service.
+#include <filesystem>
 #include <iostream>
 
 #include "controller_service.h"
@@ -17,6 +18,12 @@ int main(int argc, char** argv) {
   bool check_only = false;
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
   app.add_flag("--check-config", check_only, "Validate the rig file, print every error, and exit");
+  std::string take_root, world_address;
+  app.add_option("--take-root", take_root,
+                 "Where takes are recorded and catalogued (default: the rig's storage.root, relative to the working "
+                 "directory)");
+  app.add_option("--sim-world", world_address,
+                 "host:port of stage-sim's simulated world: the sync generator the controller runs takes on");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "stage-controller";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -51,6 +58,17 @@ int main(int argc, char** argv) {
                   rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
   monitor.Start();
   stage::controller::ControllerService service(*loaded, &monitor);
+  {
+    stage::controller::CaptureOptions capture;
+    std::error_code ec;
+    capture.take_root =
+        std::filesystem::absolute(take_root.empty() ? rig.storage().root() : take_root, ec).lexically_normal().string();
+    capture.world_address = world_address;
+    if (auto s = service.EnableCapture(capture); !s.ok()) {
+      monitor.Stop();
+      return stage::ReportFatal(kProgram, s);
+    }
+  }
   int code = stage::ServeUntilSignal(kProgram, flags, rig.controller().listen(), {&service}, summary);
   monitor.Stop();
   return code;

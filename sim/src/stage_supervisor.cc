@@ -283,6 +283,7 @@ absl::Status StageSupervisor::Start() {
     if (!options_.world_address.empty()) {
       args.push_back("--sim-world");
       args.push_back(options_.world_address);
+      if (options_.self_armed_world) args.push_back("--sim-self-arm");
     }
     return args;
   };
@@ -308,8 +309,18 @@ absl::Status StageSupervisor::Start() {
   if (auto s = WaitForAddresses(deadline); !s.ok()) return fail(s);
   std::string effective = options_.run_dir + "/rig.json";
   if (auto s = WriteEffectiveRig(effective); !s.ok()) return fail(s);
+  std::vector<std::string> controller_args;
+  if (!options_.world_address.empty() && !options_.self_armed_world) {
+    controller_args = {"--sim-world", options_.world_address};
+  }
+  {
+    std::error_code ec;
+    const std::string root = options_.take_root.empty() ? rig_.rig.storage().root() : options_.take_root;
+    controller_args.push_back("--take-root");
+    controller_args.push_back(fs::absolute(root, ec).lexically_normal().string());
+  }
   if (auto s = SpawnChild("stage-controller", "controller", v1::NODE_KIND_CONTROLLER, effective,
-                          options_.controller_listen, {});
+                          options_.controller_listen, controller_args);
       !s.ok()) {
     return fail(s);
   }

@@ -30,13 +30,15 @@ absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::stri
 }
 
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, std::function<void()> on_crash) {
+                           WorldClient* world, std::function<void()> on_crash, bool arm) {
   const int index = scene.LightNodeIndex(node_id);
   if (index < 0 || index >= scene.schedule().light_nodes_size()) {
     return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
   }
-  STAGE_RETURN_IF_ERROR(driver->LoadPatternTable(TableFromSchedule(scene.schedule().light_nodes(index))));
-  STAGE_RETURN_IF_ERROR(driver->Arm());
+  if (arm) {
+    STAGE_RETURN_IF_ERROR(driver->LoadPatternTable(TableFromSchedule(scene.schedule().light_nodes(index))));
+    STAGE_RETURN_IF_ERROR(driver->Arm());
+  }
   SimLightWorld w;
   w.world = world;
   w.node_index = index;

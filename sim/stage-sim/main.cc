@@ -188,6 +188,8 @@ int main(int argc, char** argv) {
                "With --world-slots: wait until every camera has delivered the frames the world's slots trigger "
                "(progress on stderr), print frames and wall time, and take the stage down");
   app.add_flag("--json", json, "--until-rendered: print the summary as JSON");
+  app.add_option("--take-root", options.take_root,
+                 "Where the controller records takes (default: the rig's storage.root, relative to here)");
   std::string ground_truth_dir;
   app.add_option("--ground-truth", ground_truth_dir,
                  "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
@@ -234,6 +236,9 @@ int main(int argc, char** argv) {
     const bool lockstep = world_mode == "lockstep";
     stage::sim::WorldOptions world_options = scene->MakeWorldOptions(lockstep, 0);
     world_options.end_slot = world_slots > 0 ? world_slots : -1;
+    // Without --world-slots the bus runs only for the controller's takes.
+    world_options.open_run = world_slots > 0;
+    options.self_armed_world = world_slots > 0;
     world = std::make_unique<stage::sim::World>(scene->dome(), world_options);
     stage::sim::ApplyUnitFaults(*scene, world.get());
     stage::v1::WorldInfo info;
@@ -269,10 +274,14 @@ int main(int argc, char** argv) {
             << std::endl;
 
   const auto world_started = std::chrono::steady_clock::now();
-  if (world && world_slots > 0) {
+  if (world) {
     world->Start();
-    std::cerr << absl::StrCat("stage-sim: the ", world_mode, " world runs ", world_slots, " slots (world at ",
-                              options.world_address, ")")
+    std::cerr << (world_slots > 0 ? absl::StrCat("stage-sim: the ", world_mode, " world runs ", world_slots,
+                                                 " slots (world at ", options.world_address, ")")
+                                  : absl::StrCat("stage-sim: the ", world_mode,
+                                                 " world runs takes (stagectl capture; "
+                                                 "world at ",
+                                                 options.world_address, ")"))
               << std::endl;
   }
 

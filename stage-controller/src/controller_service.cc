@@ -12,6 +12,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
+#include "stage/common/status.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/timing/verifier.h"
@@ -105,7 +106,7 @@ v1::StageStatus ControllerService::Status() const {
   }
   status.set_nodes_up(up);
   status.set_nodes_total(status.nodes_size());
-  status.set_session_state("idle");
+  status.set_session_state(capturer_ ? capturer_->state() : "idle");
   *status.mutable_controller() = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
   status.set_schedule_hash(timing_.schedule().hash());
   status.set_timing_errors(timing_.errors());
@@ -247,6 +248,40 @@ grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::Tim
   auto out = timing::ExportTiming(rig_, *request);
   if (!out.ok()) return ToGrpcStatus(out.status());
   *response = *std::move(out);
+  return grpc::Status::OK;
+}
+
+absl::Status ControllerService::EnableCapture(CaptureOptions options) {
+  STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options)));
+  return absl::OkStatus();
+}
+
+grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::CaptureRequest* request,
+                                        grpc::ServerWriter<v1::CaptureEvent>* writer) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  std::mutex write_mutex;
+  auto summary = capturer_->Capture(*request, [&](const v1::CaptureEvent& e) {
+    std::lock_guard<std::mutex> lock(write_mutex);
+    if (!context->IsCancelled()) writer->Write(e);  // the take goes on if the operator's console goes away
+  });
+  if (!summary.ok()) return ToGrpcStatus(summary.status());
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::ListTakes(grpc::ServerContext*, const v1::ListTakesRequest*, v1::TakeList* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  auto list = capturer_->ListTakes();
+  if (!list.ok()) return ToGrpcStatus(list.status());
+  *response = std::move(*list);
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::GetTake(grpc::ServerContext*, const v1::GetTakeRequest* request,
+                                        v1::TakeSummary* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  auto take = capturer_->GetTake(request->take_id());
+  if (!take.ok()) return ToGrpcStatus(take.status());
+  *response = std::move(*take);
   return grpc::Status::OK;
 }
 

@@ -4,6 +4,7 @@
 
 #include <string>
 
+#include "capture.h"
 #include "health_monitor.h"
 #include "stage/common/rig.h"
 #include "stage/v1/camera_node.pb.h"
@@ -18,6 +19,9 @@ class ControllerService final : public v1::StageController::Service {
   // `monitor` is not owned and must outlive the service. The rig's schedule is compiled and verified here, once;
   // its verdict is logged and shown in every status.
   ControllerService(LoadedRig rig, HealthMonitor* monitor);
+  // Takes: the take root and the sync generator (capture.h). Without it, Capture, ListTakes and GetTake are
+  // FAILED_PRECONDITION.
+  absl::Status EnableCapture(CaptureOptions options);
 
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetStageStatus(grpc::ServerContext*, const v1::GetStageStatusRequest*,
@@ -29,6 +33,10 @@ class ControllerService final : public v1::StageController::Service {
                             v1::TimingExport* response) override;
   grpc::Status RehearseTriggers(grpc::ServerContext* context, const v1::RehearseTriggersRequest* request,
                                 v1::TriggerRehearsal* response) override;
+  grpc::Status Capture(grpc::ServerContext* context, const v1::CaptureRequest* request,
+                       grpc::ServerWriter<v1::CaptureEvent>* writer) override;
+  grpc::Status ListTakes(grpc::ServerContext*, const v1::ListTakesRequest*, v1::TakeList* response) override;
+  grpc::Status GetTake(grpc::ServerContext*, const v1::GetTakeRequest* request, v1::TakeSummary* response) override;
 
   v1::StageStatus Status() const;
 
@@ -42,6 +50,7 @@ class ControllerService final : public v1::StageController::Service {
   std::string stage_name_;
   std::string rig_hash_;
   HealthMonitor* monitor_;
+  std::unique_ptr<Capturer> capturer_;
 };
 
 // What a node needs to convert controller times to its clock, from the controller's measurement of it.

@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <iostream>
+#include <map>
 #include <optional>
 
 #include "absl/strings/numbers.h"
@@ -288,6 +289,140 @@ int TimingRehearse(const Connection& c, int64_t slots, bool json) {
   return 0;
 }
 
+// Exit codes of `stagectl capture`: 0 COMPLETE; 4 DEGRADED (frames lost or the self-test failed); 1 FAILED.
+constexpr int kExitDegraded = 4;
+
+std::string Counts(const stage::v1::LedgerCounts& c) {
+  std::string out = absl::StrFormat("%d of %d stored", c.stored(), c.expected());
+  std::vector<std::string> lost;
+  for (const auto& [reason, n] : c.lost()) lost.push_back(absl::StrCat(n, " ", reason));
+  if (!lost.empty()) absl::StrAppend(&out, " (", absl::StrJoin(lost, ", "), ")");
+  return out;
+}
+
+void PrintSummary(const stage::v1::TakeSummary& t) {
+  std::cout << "take " << t.take_id() << (t.name().empty() ? "" : " (" + t.name() + ")") << ": " << t.outcome()
+            << "\n  " << t.frames() << " frames, " << t.slots() << " slots, "
+            << absl::StrFormat("%.1f MB", static_cast<double>(t.bytes()) / 1e6) << " in " << t.dir() << "\n"
+            << "  ledger: " << Counts(t.total()) << "\n";
+  std::map<std::string, stage::v1::LedgerCounts> by_role;
+  for (const auto& c : t.cameras()) {
+    auto& r = by_role[c.role()];
+    r.set_expected(r.expected() + c.counts().expected());
+    r.set_stored(r.stored() + c.counts().stored());
+    for (const auto& [reason, n] : c.counts().lost()) (*r.mutable_lost())[reason] += n;
+  }
+  for (const auto& [role, counts] : by_role) std::cout << "    " << role << ": " << Counts(counts) << "\n";
+  for (const auto& c : t.cameras()) {
+    if (c.counts().stored() < c.counts().expected() || !c.error().empty()) {
+      std::cout << "    " << c.camera_id() << ": " << Counts(c.counts()) << (c.error().empty() ? "" : "; " + c.error())
+                << "\n";
+    }
+  }
+  for (const auto& a : t.alignment()) std::cout << "  self-test " << a.camera_id() << ": " << a.message() << "\n";
+  if (!t.hint().empty()) std::cout << "  " << t.hint() << "\n";
+}
+
+int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;  // no deadline: a take lasts as long as it lasts
+  stage::v1::CaptureRequest request;
+  request.set_frames(frames);
+  request.set_seconds(seconds);
+  request.set_name(name);
+  auto reader = (*stub)->Capture(&context, request);
+  stage::v1::CaptureEvent event;
+  stage::v1::TakeSummary summary;
+  bool have_summary = false;
+  const bool tty = isatty(STDERR_FILENO) != 0;
+  auto last_line = std::chrono::steady_clock::now() - std::chrono::seconds(10);
+  while (reader->Read(&event)) {
+    if (event.has_state()) {
+      if (tty) std::cerr << "\n";
+      std::cerr << "session: " << event.state() << std::endl;
+    } else if (event.has_message()) {
+      if (tty) std::cerr << "\n";
+      std::cerr << event.message() << std::endl;
+    } else if (event.has_progress()) {
+      const auto& p = event.progress();
+      const auto now = std::chrono::steady_clock::now();
+      if (!tty && now - last_line < std::chrono::seconds(2)) continue;
+      last_line = now;
+      std::string groups;
+      for (const auto& [role, expected] : p.expected_by_role()) {
+        const auto got = p.received_by_role().count(role) ? p.received_by_role().at(role) : 0;
+        absl::StrAppend(&groups, "  ", role, " ", got, "/", expected);
+      }
+      const double frac = p.frames_expected() > 0 ? static_cast<double>(p.frames_received()) / p.frames_expected() : 0;
+      const int bar = static_cast<int>(frac * 30);
+      std::cerr << (tty ? "\r" : "") << "[" << std::string(static_cast<size_t>(bar), '#')
+                << std::string(static_cast<size_t>(30 - bar), '.') << "] "
+                << absl::StrFormat("%3.0f%% %d/%d frames, %.1f s", 100 * frac, p.frames_received(), p.frames_expected(),
+                                   p.elapsed_s())
+                << groups << (tty ? "" : "\n") << std::flush;
+    } else if (event.has_summary()) {
+      summary = event.summary();
+      have_summary = true;
+    }
+  }
+  if (tty) std::cerr << "\n";
+  grpc::Status rpc = reader->Finish();
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (!have_summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  if (json) {
+    std::cout << ToJson(summary) << "\n";
+  } else {
+    PrintSummary(summary);
+  }
+  if (summary.outcome() == "COMPLETE") return 0;
+  return summary.outcome() == "DEGRADED" ? kExitDegraded : 1;
+}
+
+int Takes(const Connection& c, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::TakeList list;
+  grpc::Status rpc = (*stub)->ListTakes(&context, stage::v1::ListTakesRequest(), &list);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (json) {
+    std::cout << ToJson(list) << "\n";
+    return 0;
+  }
+  std::cout << absl::StrFormat("%-24s %-10s %-9s %8s %14s %10s  %s\n", "TAKE", "STATE", "OUTCOME", "SECONDS", "FRAMES",
+                               "MB", "NAME");
+  for (const auto& t : list.takes()) {
+    std::cout << absl::StrFormat("%-24s %-10s %-9s %8.2f %14s %10.1f  %s\n", t.id(), t.state(), t.outcome(),
+                                 t.duration_s(), absl::StrCat(t.frames_stored(), "/", t.frames_expected()),
+                                 static_cast<double>(t.size_bytes()) / 1e6, t.name());
+  }
+  std::cout << list.takes_size() << " take(s) in " << list.take_root() << "\n";
+  return 0;
+}
+
+int TakeShow(const Connection& c, const std::string& id, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::GetTakeRequest request;
+  request.set_take_id(id);
+  stage::v1::TakeSummary take;
+  grpc::Status rpc = (*stub)->GetTake(&context, request, &take);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (json) {
+    std::cout << ToJson(take) << "\n";
+  } else {
+    PrintSummary(take);
+  }
+  return 0;
+}
+
 struct FaultFlags {
   std::string world;
   std::string target;
@@ -399,6 +534,33 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 91200));
   rehearse->add_flag("--json", rehearse_json, "Print the nodes' reports as JSON");
 
+  int64_t capture_frames = 0;
+  double capture_seconds = 0;
+  std::string capture_name;
+  bool capture_json = false;
+  CLI::App* capture = app.add_subcommand(
+      "capture",
+      "Capture a take: arm every node, run the slot clock for the frames asked, record, and print the ledger's "
+      "verdict. Exit codes: 0 COMPLETE, 4 DEGRADED (frames lost or the alignment self-test failed), 1 FAILED");
+  auto* frames_opt = capture->add_option("--frames", capture_frames, "Frames (cycles of the pattern set) to capture")
+                         ->check(CLI::Range(int64_t{1}, int64_t{1} << 30));
+  auto* seconds_opt =
+      capture->add_option("--seconds", capture_seconds, "Seconds of the stage to capture (rounded up to frames)")
+          ->check(CLI::PositiveNumber);
+  frames_opt->excludes(seconds_opt);
+  capture->add_option("--name", capture_name, "The take's name in the catalog");
+  capture->add_flag("--json", capture_json, "Print the take's summary as JSON (progress still goes to stderr)");
+  bool takes_json = false;
+  CLI::App* takes = app.add_subcommand("takes", "List the takes in the catalog: state, outcome, frames, size");
+  takes->add_flag("--json", takes_json, "Print JSON for scripts");
+  CLI::App* take = app.add_subcommand("take", "One take");
+  take->require_subcommand(1);
+  std::string take_id;
+  bool take_json = false;
+  CLI::App* take_show = take->add_subcommand("show", "A take's ledger summary, per role and camera, and its self-test");
+  take_show->add_option("id", take_id, "Take id (stagectl takes lists them)")->required();
+  take_show->add_flag("--json", take_json, "Print JSON for scripts");
+
   FaultFlags ff;
   CLI::App* sim = app.add_subcommand("sim", "The simulated stage (stage-sim): inject faults into its world");
   sim->require_subcommand(1);
@@ -428,5 +590,13 @@ int main(int argc, char** argv) {
   if (exporter->parsed()) return TimingExport(c, tf);
   if (rehearse->parsed()) return TimingRehearse(c, rehearse_slots, rehearse_json);
   if (fault->parsed()) return SimFault(c, ff);
+  if (capture->parsed()) {
+    if (capture_frames == 0 && capture_seconds == 0) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("capture: give --frames N or --seconds S"));
+    }
+    return Capture(c, capture_frames, capture_seconds, capture_name, capture_json);
+  }
+  if (takes->parsed()) return Takes(c, takes_json);
+  if (take_show->parsed()) return TakeShow(c, take_id, take_json);
   return 2;
 }

@@ -36,6 +36,11 @@ struct StageSupervisorOptions {
   // The simulated world's SimWorld service (host:port), passed to every camera and light node as --sim-world; empty:
   // nodes run without a world (test-pattern cameras, lights that light nothing).
   std::string world_address;
+  // The world runs from slot 0 without takes (stage-sim --world-slots): light nodes arm their tables themselves.
+  // Otherwise the controller arms them for each take it runs on the world.
+  bool self_armed_world = false;
+  // Where the controller records takes (--take-root); empty: the rig's storage.root against the working directory.
+  std::string take_root;
 
   absl::Status Validate() const;
 };

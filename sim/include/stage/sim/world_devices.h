@@ -24,11 +24,11 @@ struct NodeWorld {
 };
 absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::string& address);
 
-// Loads light node `node_id`'s table from the scene's schedule into `driver`, arms it (the capture issue's arm step
-// will do this through the node's service) and attaches it to `world`. The node is late by its sim.extra_delay_us
-// plus its sim.faults delay. `on_crash` runs at a crash fault.
+// Attaches light node `node_id`'s driver to `world`; with `arm`, first loads its table from the scene's schedule and
+// arms it (a world without takes; in takes the controller arms the node through its service). The node is late by its
+// sim.extra_delay_us plus its sim.faults delay. `on_crash` runs at a crash fault.
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, std::function<void()> on_crash = nullptr);
+                           WorldClient* world, std::function<void()> on_crash = nullptr, bool arm = true);
 
 // The world attachment of camera `camera_id`: its trigger plan from the schedule, a renderer of the scene, and its
 // faults from sim.faults.
