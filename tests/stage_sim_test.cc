@@ -332,5 +332,73 @@ TEST_F(StageSimTest, UntilRenderedReportsEveryFrameAndWritesTheGroundTruth) {
   EXPECT_THAT(r.err, ::testing::HasSubstr("stage-sim: stage down"));
 }
 
+// A 1-second take on the full simulated rig in lockstep, as an operator captures it: every expected frame stored
+// (912 per high-speed camera, 24 per machine-vision camera), the alignment self-test passing on every high-speed
+// camera, the catalog and the ledger in SQLite read by the sqlite3 shell, and each frame's pattern in the HDF5 file
+// read by h5dump, as the schedule says. A second take follows in the same stage; bad requests are refused.
+TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
+  TempDir root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  const std::string endpoints = run_dir_.path() + "/endpoints.json";
+  CommandResult r =
+      RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--seconds", "1", "--name", "one", "--json"},
+                 std::chrono::seconds(400));
+  ASSERT_FALSE(r.timed_out);
+  ASSERT_EQ(r.exit.exit_code, 0) << r.err << r.out;
+  EXPECT_THAT(r.err, ::testing::HasSubstr("session: capturing"));
+  nlohmann::json take = nlohmann::json::parse(r.out);
+  EXPECT_EQ(take["outcome"], "COMPLETE");
+  EXPECT_EQ(take["frames"], "24");  // protobuf's JSON writes 64-bit integers as strings
+  EXPECT_EQ(take["total"]["expected"], "3312");
+  EXPECT_EQ(take["total"]["stored"], "3312");
+  ASSERT_EQ(take["cameras"].size(), 27u);
+  for (const auto& cam : take["cameras"]) {
+    const bool hs = cam["role"] == "high-speed";
+    EXPECT_EQ(cam["counts"]["expected"], hs ? "912" : "24") << cam.dump();
+    EXPECT_EQ(cam["counts"]["stored"], cam["counts"]["expected"]) << cam.dump();
+  }
+  ASSERT_EQ(take["alignment"].size(), 3u);
+  for (const auto& a : take["alignment"]) EXPECT_EQ(a["ok"], true) << a.dump();
+  const std::string id = take["take_id"];
+  const std::string dir = root.path() + "/" + id;
+
+  // The frame files, read by HDF5's own h5dump: 912 frames, pattern k mod 38 in slot k.
+  CommandResult dump = RunCommand({"/usr/bin/h5dump", "-d", "/pattern", "-y", "-w", "0", dir + "/cameras/hs-2.h5"},
+                                  std::chrono::seconds(30));
+  ASSERT_EQ(dump.exit.exit_code, 0) << dump.err;
+  EXPECT_THAT(dump.out, ::testing::HasSubstr("SIMPLE { ( 912 ) / ( H5S_UNLIMITED ) }"));
+  std::string patterns;
+  for (int k = 0; k < 912; ++k) patterns += (k ? ", " : "") + std::to_string(k % 38);
+  EXPECT_THAT(dump.out, ::testing::HasSubstr(patterns));
+  CommandResult mv = RunCommand({"/usr/bin/h5dump", "-d", "/slot", "-y", "-w", "0", dir + "/cameras/mv-07.h5"},
+                                std::chrono::seconds(30));
+  EXPECT_THAT(mv.out, ::testing::HasSubstr("19, 57, 95, 133"));
+
+  // The catalog and the ledger, read by the sqlite3 shell.
+  CommandResult sql = RunCommand({"/usr/bin/sqlite3", root.path() + "/catalog.sqlite",
+                                  "SELECT outcome, frames_stored FROM takes WHERE id='" + id +
+                                      "'; SELECT count(*) FROM ledger WHERE take_id='" + id + "' AND reason=0;"},
+                                 std::chrono::seconds(30));
+  EXPECT_EQ(sql.out, "COMPLETE|3312\n3312\n") << sql.err;
+  EXPECT_TRUE(std::filesystem::exists(dir + "/take.json"));
+
+  // Another take in the same stage: the nodes are armed again, the bus runs again.
+  CommandResult again =
+      RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--frames", "2"}, std::chrono::seconds(200));
+  EXPECT_EQ(again.exit.exit_code, 0) << again.err << again.out;
+  EXPECT_THAT(again.out, ::testing::HasSubstr("-0002: COMPLETE"));
+  CommandResult list = RunCommand({"stagectl", "--endpoints", endpoints, "takes"}, std::chrono::seconds(30));
+  EXPECT_THAT(list.out, ::testing::HasSubstr("2 take(s) in " + root.path()));
+
+  // Bad requests change nothing and say why.
+  CommandResult unknown =
+      RunCommand({"stagectl", "--endpoints", endpoints, "take", "show", "nope"}, std::chrono::seconds(30));
+  EXPECT_EQ(unknown.exit.exit_code, 2);
+  EXPECT_THAT(unknown.err, ::testing::HasSubstr("no take \"nope\""));
+  CommandResult nothing = RunCommand({"stagectl", "--endpoints", endpoints, "capture"}, std::chrono::seconds(30));
+  EXPECT_EQ(nothing.exit.exit_code, 2);
+  EXPECT_THAT(nothing.err, ::testing::HasSubstr("give --frames N or --seconds S"));
+}
+
 }  // namespace
 }  // namespace stage::testing
