@@ -20,6 +20,7 @@
 #include "stage/common/version.h"
 #include "stage/timing/pattern_set.h"
 #include "stage/timing/time_base.h"
+#include "stage/timing/waveform.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
 #include "stage/v1/sim.grpc.pb.h"
@@ -187,6 +188,16 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
   summary.set_frames(frames);
   summary.set_slots(slots);
   STAGE_RETURN_IF_ERROR(WriteTakeJson(dir, rig_.rig, schedule_, summary, "configuring"));
+  {
+    // The schedule as compiled, and as waveforms a logic-analyser viewer opens (the take's first 10 s at most).
+    std::ofstream(dir + "/schedule.json") << ToJson(schedule_);
+    auto vcd = timing::ScheduleToVcd(schedule_, {0, std::min<int64_t>(slots, 10 * base.slot_rate_hz())});
+    if (vcd.ok()) {
+      std::ofstream(dir + "/schedule.vcd") << *vcd;
+    } else {
+      say(absl::StrCat("schedule.vcd not written: ", vcd.status().message()));
+    }
+  }
   say(absl::StrCat("take ", take_id, ": ", frames, " frames (", slots, " slots, ", row.duration_s, " s) into ", dir));
 
   // The run of the bus the take will be: planned first, so that every node is armed for it before it starts.
