@@ -283,7 +283,6 @@ absl::Status StageSupervisor::Start() {
     if (!options_.world_address.empty()) {
       args.push_back("--sim-world");
       args.push_back(options_.world_address);
-      if (options_.self_armed_world) args.push_back("--sim-self-arm");
     }
     return args;
   };
@@ -294,7 +293,9 @@ absl::Status StageSupervisor::Start() {
     }
   }
   for (const auto& n : rig_.rig.light_nodes()) {
-    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0", device_args(n.id()));
+    std::vector<std::string> args = device_args(n.id());
+    if (!options_.world_address.empty() && options_.self_armed_world) args.push_back("--sim-self-arm");
+    if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0", std::move(args));
         !s.ok()) {
       return fail(s);
     }

@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -491,16 +492,14 @@ absl::StatusOr<v1::TakeSummary> Capturer::GetTake(const std::string& id) const {
   const std::string path = (fs::path(options_.take_root) / row.dir / "take.json").string();
   auto text = ReadFileToString(path);
   if (!text.ok()) return text.status();
-  // take.json's "summary" member: parse the whole file with the summary as a field of a wrapper.
-  v1::TakeSummary summary;
-  const size_t at = text->find("\"summary\": ");
-  const size_t end = text->find(",\n\"rig\": ");
-  if (at == std::string::npos || end == std::string::npos) {
-    return absl::DataLossError(absl::StrCat(path, ": no summary"));
+  nlohmann::json take = nlohmann::json::parse(*text, nullptr, /*allow_exceptions=*/false);
+  if (take.is_discarded() || !take.contains("summary")) {
+    return absl::DataLossError(absl::StrCat(path, ": not a take file with a summary"));
   }
+  v1::TakeSummary summary;
   google::protobuf::util::JsonParseOptions o;
   o.ignore_unknown_fields = true;
-  auto s = google::protobuf::util::JsonStringToMessage(text->substr(at + 11, end - at - 11), &summary, o);
+  auto s = google::protobuf::util::JsonStringToMessage(take["summary"].dump(), &summary, o);
   if (!s.ok()) return absl::DataLossError(absl::StrCat(path, ": ", s.message().as_string()));
   return summary;
 }
