@@ -400,5 +400,44 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   EXPECT_THAT(nothing.err, ::testing::HasSubstr("give --frames N or --seconds S"));
 }
 
+// A camera that loses three given frames (sim.faults drop_slots): the take is DEGRADED (exit 4), and the ledger names
+// exactly those slots as "camera dropped", from the frame counter; the other cameras are complete.
+TEST_F(StageSimTest, ATakeWithDroppedFramesIsDegradedWithExactlyThoseSlotsInTheLedger) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.02"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  auto* fault = rig->rig.mutable_sim()->add_faults();
+  fault->set_target("hs-2");
+  for (int64_t slot : {100, 101, 400}) fault->add_drop_slots(slot);
+  std::string json;
+  google::protobuf::util::JsonPrintOptions print;
+  print.preserve_proto_field_names = true;
+  ASSERT_TRUE(google::protobuf::util::MessageToJsonString(rig->rig, &json, print).ok());
+  TempDir rig_dir, root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--config", rig_dir.Write("rig.json", json), "--take-root", root.path()}));
+  CommandResult r = RunCommand(
+      {"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "capture", "--frames", "12", "--json"},
+      std::chrono::seconds(300));
+  ASSERT_FALSE(r.timed_out);
+  EXPECT_EQ(r.exit.exit_code, 4) << r.err << r.out;  // DEGRADED
+  nlohmann::json take = nlohmann::json::parse(r.out);
+  EXPECT_EQ(take["outcome"], "DEGRADED");
+  EXPECT_EQ(take["total"]["expected"], std::to_string(3 * 456 + 24 * 12));
+  EXPECT_EQ(take["total"]["stored"], std::to_string(3 * 456 + 24 * 12 - 3));
+  EXPECT_THAT(take["hint"].get<std::string>(), ::testing::HasSubstr("hs-2 lost 3 (3 camera dropped)"));
+  const std::string id = take["take_id"];
+  CommandResult sql = RunCommand({"/usr/bin/sqlite3", root.path() + "/catalog.sqlite",
+                                  "SELECT camera_id, slot, reason FROM ledger WHERE take_id='" + id +
+                                      "' AND reason != 0 ORDER BY camera_id, slot"},
+                                 std::chrono::seconds(30));
+  EXPECT_EQ(sql.out, "hs-2|100|1\nhs-2|101|1\nhs-2|400|1\n") << sql.err;
+  CommandResult dump =
+      RunCommand({"/usr/bin/h5dump", "-d", "/slot", "-y", "-w", "0", root.path() + "/" + id + "/cameras/hs-2.h5"},
+                 std::chrono::seconds(30));
+  EXPECT_THAT(dump.out, ::testing::HasSubstr("SIMPLE { ( 453 ) / ( H5S_UNLIMITED ) }"));
+  EXPECT_THAT(dump.out, ::testing::HasSubstr("98, 99, 102, 103"));
+}
+
 }  // namespace
 }  // namespace stage::testing

@@ -538,6 +538,10 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
         check.Add(p, "miss_triggers, drop_frames and the clock apply to a camera");
       }
       if (f.has_crash_at_s() && unit) check.Add(p + ".crash_at_s", "applies to a light node or a camera");
+      if (f.drop_slots_size() > 0 && !camera) check.Add(p + ".drop_slots", "applies to a camera");
+      for (int k = 0; k < f.drop_slots_size(); ++k) {
+        if (f.drop_slots(k) < 0) check.Add(absl::StrCat(p, ".drop_slots[", k, "]"), "must be >= 0");
+      }
       if (f.has_delay_us()) check.InRange(p + ".delay_us", f.delay_us(), 0, 1e6);
       if (f.has_miss_triggers()) check.InRange(p + ".miss_triggers", f.miss_triggers(), 0, 1);
       if (f.has_drop_frames()) check.InRange(p + ".drop_frames", f.drop_frames(), 0, 1);

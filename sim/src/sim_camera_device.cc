@@ -160,6 +160,7 @@ void SimCameraDevice::ApplyFault(const v1::SimFault& fault) {
   SimCameraWorld& w = *world_;
   if (fault.has_miss_triggers()) w.miss_triggers = fault.miss_triggers();
   if (fault.has_drop_frames()) w.drop_frames = fault.drop_frames();
+  if (fault.drop_slots_size() > 0) w.drop_slots = {fault.drop_slots().begin(), fault.drop_slots().end()};
   if (fault.has_clock_offset_us())
     w.clock_offset_ns = static_cast<int64_t>(std::llround(fault.clock_offset_us() * 1e3));
   if (fault.has_clock_drift_ppm()) w.clock_drift_ppm = fault.clock_drift_ppm();
@@ -216,7 +217,8 @@ void SimCameraDevice::TriggerLoop(int device) {
         const int64_t device_start =
             static_cast<int64_t>(static_cast<long double>(start) * (1.0L + w.clock_drift_ppm * 1e-6L)) +
             w.clock_offset_ns;
-        const bool lost = w.drop_frames > 0 && FaultDraw(w.seed, serial_, k, 2) < w.drop_frames;
+        const bool lost =
+            (w.drop_frames > 0 && FaultDraw(w.seed, serial_, k, 2) < w.drop_frames) || w.drop_slots.count(k) > 0;
         jobs_.push_back({k, start, start + w.exposure_ns, next_frame_id_++, device_start, lost});
         ++stats_.triggers;
         jobs_changed_.notify_all();

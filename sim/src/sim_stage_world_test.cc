@@ -487,11 +487,15 @@ TEST(SimStageWorldTest, FaultsNameWhatTheyHitAndOnlyWhatTheyCanHit) {
   auto* h = rig.mutable_sim()->add_faults();
   h->set_target("mv-01");
   h->set_drop_frames(1.5);
+  auto* u = rig.mutable_sim()->add_faults();
+  u->set_target(rig.light_nodes(0).id());
+  u->add_drop_slots(3);
   std::vector<std::string> errors;
   for (const RigError& e : ValidateRig(rig, loaded->base_dir)) errors.push_back(e.path + ": " + e.message);
   EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[0].target: \"led-999\" is no LED unit")));
   EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[1].dead: only an LED unit can be dead")));
   EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[2].drop_frames: 1.5 is not in [0, 1]")));
+  EXPECT_THAT(errors, ::testing::Contains(::testing::HasSubstr("sim.faults[3].drop_slots: applies to a camera")));
 }
 
 }  // namespace

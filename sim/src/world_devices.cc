@@ -70,6 +70,7 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   const v1::SimFault fault = scene->Fault(camera_id);
   w.miss_triggers = fault.miss_triggers();
   w.drop_frames = fault.drop_frames();
+  w.drop_slots = {fault.drop_slots().begin(), fault.drop_slots().end()};
   w.clock_offset_ns = static_cast<int64_t>(std::llround(fault.clock_offset_us() * 1000));
   w.clock_drift_ppm = fault.clock_drift_ppm();
   if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));

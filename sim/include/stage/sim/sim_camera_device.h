@@ -17,6 +17,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <thread>
 
 #include "stage/camera/camera_device.h"
@@ -51,6 +52,8 @@ struct SimCameraWorld {
   // itself), or without one the camera falls silent.
   double miss_triggers = 0;
   double drop_frames = 0;
+  // Frames exposed in these (world) slots are lost before delivery.
+  std::set<int64_t> drop_slots;
   uint64_t seed = 1;
   int64_t crash_at_ns = -1;
   std::function<void()> on_crash;
