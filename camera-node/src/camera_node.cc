@@ -57,7 +57,7 @@ CameraNode::CameraNode(v1::CameraConfig config, std::unique_ptr<CameraDevice> de
 CameraNode::~CameraNode() { (void)device_->Stop(); }
 
 v1::NodeInfo CameraNode::Info() const {
-  std::string role = config_.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision";
+  const std::string role = CameraRoleName(config_.role());
   return MakeNodeInfo(config_.id(), v1::NODE_KIND_CAMERA, role, device_->Describe().backend, rig_hash_);
 }
 
@@ -121,7 +121,7 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   take_id_ = request.take_id();
   v1::ArmCameraResponse response;
   response.set_expected_frames(static_cast<int64_t>(recorder_->expected_slots().size()));
-  response.set_path(absl::StrCat(request.take_dir(), "/cameras/", config_.id(), ".h5"));
+  response.set_path(recorder_->path());
   Logger("camera.node")->info("{}: armed for take {}: {} frames", config_.id(), take_id_, response.expected_frames());
   return response;
 }

@@ -59,7 +59,6 @@ absl::StatusOr<std::unique_ptr<TakeRecorder>> TakeRecorder::Start(TakePlan plan)
     return absl::AlreadyExistsError(absl::StrCat(p.path, ": exists; a take's frames are never overwritten"));
   }
   if (!p.burst) {
-    r->writing_ = true;
     r->thread_ = std::thread([raw = r.get()] { raw->WriterLoop(); });
   }
   return r;
@@ -69,7 +68,6 @@ TakeRecorder::~TakeRecorder() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     finishing_ = true;
-    writing_ = true;
   }
   changed_.notify_all();
   if (thread_.joinable()) thread_.join();
@@ -132,7 +130,7 @@ void TakeRecorder::WriterLoop() {
     Tagged t;
     {
       std::unique_lock<std::mutex> lock(mutex_);
-      changed_.wait(lock, [&] { return (writing_ && !queue_.empty()) || finishing_; });
+      changed_.wait(lock, [&] { return !queue_.empty() || finishing_; });
       if (queue_.empty()) return;  // finishing, and all written
       t = std::move(queue_.front());
       queue_.pop_front();

@@ -120,7 +120,6 @@ class TakeRecorder final : public FrameSink {
   std::deque<Tagged> queue_;  // guarded by mutex_
   uint64_t queued_bytes_ = 0;
   bool finishing_ = false;
-  bool writing_ = false;  // burst: the writer may start
   std::thread thread_;
   TakeRecording rec_;                    // guarded by mutex_ (outcomes set by both threads)
   std::map<int64_t, uint64_t> matched_;  // slot -> frame id of every tagged frame; guarded by mutex_

@@ -647,6 +647,10 @@ std::string RigHash(const RigConfig& rig) {
   return StableHash(copy);
 }
 
+std::string CameraRoleName(v1::CameraRole role) {
+  return role == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision";
+}
+
 std::string PixelFormatName(v1::PixelFormat format) {
   switch (format) {
     case v1::PIXEL_FORMAT_MONO8:

@@ -33,9 +33,7 @@ constexpr const char* kProgram = "stage-sim";
 
 // The frames camera `index` fires in slots [0, slots) by the schedule.
 int64_t ExpectedFrames(const stage::sim::SimScene& scene, int index, int64_t slots) {
-  const auto& t = scene.schedule().cameras(index);
-  const int64_t d = t.divider() == 0 ? 1 : t.divider(), p = t.slot_phase();
-  return slots > p ? (slots - p + d - 1) / d : 0;
+  return stage::timing::FiringsInTake(scene.schedule().cameras(index), slots);
 }
 
 // Waits until every camera node has delivered the frames its trigger plan implies for the world's `slots`, showing

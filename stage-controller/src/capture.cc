@@ -7,19 +7,20 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "stage/common/clock.h"
 #include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/status.h"
 #include "stage/common/version.h"
 #include "stage/timing/pattern_set.h"
+#include "stage/timing/schedule.h"
 #include "stage/timing/time_base.h"
 #include "stage/timing/waveform.h"
 #include "stage/v1/camera_node.grpc.pb.h"
@@ -31,11 +32,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using Clock = std::chrono::steady_clock;
-
-int64_t UnixNowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 std::string ToJson(const google::protobuf::Message& m) {
   google::protobuf::util::JsonPrintOptions o;
@@ -49,10 +45,6 @@ std::string ToJson(const google::protobuf::Message& m) {
 
 void Deadline(grpc::ClientContext* c, int ms) {
   c->set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(ms));
-}
-
-std::string RoleName(v1::CameraRole role) {
-  return role == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision";
 }
 
 void Add(v1::LedgerCounts* c, storage::LossReason reason) {
@@ -69,17 +61,7 @@ absl::Status WriteTakeJson(const std::string& dir, const v1::RigConfig& rig, con
       absl::StrCat("{\n\"format\": \"fastage-take-1\",\n\"software\": \"FaStage ", kVersion, "\",\n\"state\": \"",
                    state, "\",\n\"schedule_hash\": \"", schedule.hash(), "\",\n\"rig_hash\": \"", schedule.rig_hash(),
                    "\",\n\"summary\": ", ToJson(summary), ",\n\"rig\": ", ToJson(rig), "\n}\n");
-  const std::string path = dir + "/take.json", tmp = path + ".tmp";
-  {
-    std::ofstream out(tmp);
-    out << text;
-    out.close();
-    if (!out) return absl::UnavailableError(absl::StrCat(tmp, ": cannot write"));
-  }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);  // atomic: a reader sees the old file or the new one
-  if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
-  return absl::OkStatus();
+  return WriteFileAtomically(dir + "/take.json", text);  // a reader sees the old file or the new one
 }
 
 }  // namespace
@@ -165,7 +147,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
   } idle{this, on_event};
 
   const int64_t slots = frames * cycle;
-  const int64_t now_unix = UnixNowNs();
+  const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
   STAGE_ASSIGN_OR_RETURN(std::string take_id, catalog_->NextTakeId(rig_.rig.stage().id(), now_unix));
   const std::string dir = (fs::path(options_.take_root) / take_id).string();
   std::error_code ec;
@@ -191,13 +173,11 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
   STAGE_RETURN_IF_ERROR(WriteTakeJson(dir, rig_.rig, schedule_, summary, "configuring"));
   {
     // The schedule as compiled, and as waveforms a logic-analyser viewer opens (the take's first 10 s at most).
-    std::ofstream(dir + "/schedule.json") << ToJson(schedule_);
+    if (absl::Status s = WriteFileAtomically(dir + "/schedule.json", ToJson(schedule_)); !s.ok())
+      say(std::string(s.message()));
     auto vcd = timing::ScheduleToVcd(schedule_, {0, std::min<int64_t>(slots, 10 * base.slot_rate_hz())});
-    if (vcd.ok()) {
-      std::ofstream(dir + "/schedule.vcd") << *vcd;
-    } else {
-      say(absl::StrCat("schedule.vcd not written: ", vcd.status().message()));
-    }
+    const absl::Status written = vcd.ok() ? WriteFileAtomically(dir + "/schedule.vcd", *vcd) : vcd.status();
+    if (!written.ok()) say(absl::StrCat("schedule.vcd not written: ", written.message()));
   }
   say(absl::StrCat("take ", take_id, ": ", frames, " frames (", slots, " slots, ", row.duration_s, " s) into ", dir));
 
@@ -246,7 +226,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
           v1::CameraNode::NewStub(
               grpc::CreateChannel(rig_.rig.cameras(i).address(), grpc::InsecureChannelCredentials()))};
     const uint32_t d = std::max<uint32_t>(1, c.timing->divider());
-    c.expected = slots > c.timing->slot_phase() ? (slots - c.timing->slot_phase() + d - 1) / d : 0;
+    c.expected = timing::FiringsInTake(*c.timing, slots);
     v1::ArmCameraRequest arm;
     arm.set_take_id(take_id);
     arm.set_take_dir(dir);
@@ -305,7 +285,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
       v1::CaptureProgress progress;
       int64_t total = 0;
       for (Cam& c : cams) {
-        const std::string role = RoleName(c.config->role());
+        const std::string role = CameraRoleName(c.config->role());
         (*progress.mutable_expected_by_role())[role] += c.expected;
         progress.set_frames_expected(progress.frames_expected() + c.expected);
         if (!c.armed) continue;
@@ -345,7 +325,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
   for (Cam& c : cams) {
     v1::CameraTakeSummary* cs = summary.add_cameras();
     cs->set_camera_id(c.config->id());
-    cs->set_role(RoleName(c.config->role()));
+    cs->set_role(CameraRoleName(c.config->role()));
     v1::CameraTakeReport report;
     bool reported = false;
     if (c.armed) {

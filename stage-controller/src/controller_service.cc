@@ -35,8 +35,7 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Sched
     quarter_slot_ns = schedule->time_base().ticks_per_slot() / schedule->time_base().ticks_per_ns() / 4;
   }
   for (const auto& c : rig.cameras()) {
-    NodeTarget t{c.id(), v1::NODE_KIND_CAMERA, c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? "high-speed" : "machine-vision",
-                 c.address()};
+    NodeTarget t{c.id(), v1::NODE_KIND_CAMERA, CameraRoleName(c.role()), c.address()};
     const v1::CameraTiming* timing = schedule != nullptr ? timing::FindCameraTiming(*schedule, c.id()) : nullptr;
     if (timing != nullptr && c.trigger().source() == v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) {
       const int64_t slack_ns = timing->late_slack_ticks() / schedule->time_base().ticks_per_ns();

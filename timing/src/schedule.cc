@@ -153,6 +153,12 @@ int64_t NextFiringSlot(const v1::CameraTiming& camera, int64_t from) {
   return from + delta;
 }
 
+int64_t FiringsInTake(const v1::CameraTiming& camera, int64_t slots) {
+  const int64_t d = camera.divider() == 0 ? 1 : camera.divider();
+  const int64_t first = NextFiringSlot(camera, 0);
+  return first < slots ? (slots - 1 - first) / d + 1 : 0;
+}
+
 v1::SlotEntry DescribeSlot(const v1::Schedule& schedule, int64_t slot) {
   const TimeBase base = TimeBase::FromProto(schedule.time_base());
   const int64_t n = CycleLength(schedule);

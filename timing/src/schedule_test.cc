@@ -90,6 +90,11 @@ TEST(ScheduleTest, MultiRateCamerasInDescribedSlots) {
   EXPECT_EQ(NextFiringSlot(*mv, 0), 19);
   EXPECT_EQ(NextFiringSlot(*mv, 19), 19);
   EXPECT_EQ(NextFiringSlot(*mv, 20), 57);
+  // A take of N slots expects of it the slots 19, 57, ... below N.
+  EXPECT_EQ(FiringsInTake(*mv, 19), 0);
+  EXPECT_EQ(FiringsInTake(*mv, 20), 1);
+  EXPECT_EQ(FiringsInTake(*mv, 912), 24);
+  EXPECT_EQ(FiringsInTake(*FindCameraTiming(c.schedule, "hs-1"), 76), 76);
 }
 
 TEST(ScheduleTest, UndeclaredReadoutIsTheRestOfThePeriod) {

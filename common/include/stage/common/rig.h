@@ -79,6 +79,9 @@ std::string StableHash(const google::protobuf::Message& message);
 // The GenICam PFNC name of a pixel format ("Mono8", "BayerRG8", ...); "" when unspecified.
 std::string PixelFormatName(v1::PixelFormat format);
 
+// "high-speed" or "machine-vision": a camera's role as status, stagectl and take summaries spell it.
+std::string CameraRoleName(v1::CameraRole role);
+
 // The entry for node `id`, or NotFound naming the id, the rig and the ids that exist.
 absl::StatusOr<const v1::CameraConfig*> FindCamera(const LoadedRig& loaded, absl::string_view id);
 absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded, absl::string_view id);

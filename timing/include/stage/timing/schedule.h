@@ -37,6 +37,9 @@ inline bool FiresInSlot(const v1::CameraTiming& camera, int64_t slot) {
 // The first slot >= `from` in which `camera` fires.
 int64_t NextFiringSlot(const v1::CameraTiming& camera, int64_t from);
 
+// How many of slots [0, slots) `camera` fires in: the frames a take of that length expects of it.
+int64_t FiringsInTake(const v1::CameraTiming& camera, int64_t slots);
+
 // Slot `slot` spelled out: pattern, frame, the cameras that fire.
 v1::SlotEntry DescribeSlot(const v1::Schedule& schedule, int64_t slot);
 
