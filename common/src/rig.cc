@@ -539,6 +539,8 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       }
       if (f.has_crash_at_s() && unit) check.Add(p + ".crash_at_s", "applies to a light node or a camera");
       if (f.drop_slots_size() > 0 && !camera) check.Add(p + ".drop_slots", "applies to a camera");
+      if (f.has_extra_steps() && !light) check.Add(p + ".extra_steps", "applies to a light node");
+      if (f.has_extra_steps()) check.InRange(p + ".extra_steps", f.extra_steps(), 0, 1000);
       for (int k = 0; k < f.drop_slots_size(); ++k) {
         if (f.drop_slots(k) < 0) check.Add(absl::StrCat(p, ".drop_slots[", k, "]"), "must be >= 0");
       }

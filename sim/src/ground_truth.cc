@@ -87,13 +87,14 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
   const int total = static_cast<int>((options.last_frame - options.first_frame) * cameras.size());
   int done = 0;
   for (int64_t frame = options.first_frame; frame < options.last_frame; ++frame) {
-    const std::string frame_dir = absl::StrFormat("%s/frame-%06d", dir, frame);
+    const std::string frame_dir = absl::StrFormat("%s/frame-%06d", dir, frame - options.name_offset);
     std::error_code ec;
     fs::create_directories(frame_dir, ec);
     if (ec) return absl::UnavailableError(absl::StrCat(frame_dir, ": ", ec.message()));
     const HeadPose pose = scene.PoseAt(frame);
     nlohmann::json j;
-    j["frame"] = frame;
+    j["frame"] = frame;  // the world's
+    j["dir_frame"] = frame - options.name_offset;
     j["time_s"] = (static_cast<double>(frame) + 0.5) * static_cast<double>(scene.schedule().patterns_size()) /
                   scene.base().slot_rate_hz();
     j["subject"] = scene.rig().sim().subject().kind();

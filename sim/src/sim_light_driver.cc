@@ -130,6 +130,8 @@ void SimLightDriver::WorldLoop(int device) {
     for (const v1::SimFault& fault : edge->faults) {
       if (fault.has_delay_us()) world_.fault_delay_ns = static_cast<int64_t>(std::llround(fault.delay_us() * 1e3));
       if (fault.has_crash_at_s()) world_.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
+      // Extra pulses on the board's step input: its table runs ahead of the bus from now on.
+      for (int i = 0; i < fault.extra_steps(); ++i) Step();
       Logger("sim")->warn("light node {}: fault injected: {}", node_id_, fault.ShortDebugString());
     }
     const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns + world_.fault_delay_ns;

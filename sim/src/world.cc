@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/clock.h"
+#include "stage/common/logging.h"
 
 namespace stage::sim {
 
@@ -84,7 +85,7 @@ int64_t World::EdgesBetween(int64_t from, int64_t to) const {
   return n;
 }
 
-absl::StatusOr<WorldRun> World::PlanRun(int64_t count, int64_t lead_slots, int64_t align) const {
+absl::StatusOr<WorldRun> World::PlanRun(int64_t count, int64_t lead_slots, int64_t align, int64_t min_first) const {
   if (count <= 0) return absl::InvalidArgumentError(absl::StrCat("a run of ", count, " slots"));
   std::lock_guard<std::mutex> lock(mutex_);
   if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
@@ -96,8 +97,28 @@ absl::StatusOr<WorldRun> World::PlanRun(int64_t count, int64_t lead_slots, int64
     const int64_t now = RealClock(RealClock::Kind::kMonotonic).NowNs();
     run.first = std::max(after, base_.SlotAtNs(std::max<int64_t>(0, now - options_.t0_ns)) + 1 + lead_slots);
   }
+  run.first = std::max(run.first, min_first);
   if (align > 1) run.first = (run.first + align - 1) / align * align;
   run.end = run.first + count;
+  return run;
+}
+
+absl::StatusOr<WorldRun> World::EndRun(int64_t align) {
+  align = std::max<int64_t>(1, align);
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (runs_.empty()) return absl::FailedPreconditionError("the bus has no run to end");
+  WorldRun& run = runs_.back();
+  if (run.end == INT64_MAX) return absl::FailedPreconditionError("the bus runs without end (stage-sim --world-slots)");
+  if (current_ >= run.end - 1) {
+    return absl::FailedPreconditionError(absl::StrCat("the run [", run.first, ", ", run.end, ") is over"));
+  }
+  // The next edge may already be on its way to a device in real time; the one after is the earliest safe end.
+  const int64_t after = std::max(run.first, current_ + 1);
+  const int64_t end = run.first + (after - run.first + align - 1) / align * align;
+  if (end < run.end) {
+    Logger("sim")->info("world: run [{}, {}) ends at slot {}", run.first, run.end, end);
+    run.end = end;
+  }
   return run;
 }
 
@@ -124,8 +145,8 @@ absl::Status World::StartRun(const WorldRun& run) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<WorldRun> World::Run(int64_t count, int64_t lead_slots, int64_t align) {
-  auto run = PlanRun(count, lead_slots, align);
+absl::StatusOr<WorldRun> World::Run(int64_t count, int64_t lead_slots, int64_t align, int64_t min_first) {
+  auto run = PlanRun(count, lead_slots, align, min_first);
   if (!run.ok()) return run.status();
   if (absl::Status s = StartRun(*run); !s.ok()) return s;
   return *run;

@@ -56,7 +56,8 @@ grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* 
     run = WorldRun{request->first_slot(), request->first_slot() + request->slots()};
     if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
   } else {
-    run = world_->PlanRun(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()));
+    run = world_->PlanRun(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()),
+                          request->min_first_slot());
     if (run.ok() && !request->plan_only()) {
       if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
     }
@@ -65,6 +66,25 @@ grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* 
   reply->set_first_slot(run->first);
   reply->set_end_slot(run->end);
   reply->set_first_edge_ns(world_->EdgeNs(run->first));
+  return grpc::Status::OK;
+}
+
+grpc::Status WorldService::EndRun(grpc::ServerContext*, const v1::EndRunRequest* request, v1::WorldRunReply* reply) {
+  auto run = world_->EndRun(request->align_slots());
+  if (!run.ok()) return ToGrpcStatus(run.status());
+  reply->set_first_slot(run->first);
+  reply->set_end_slot(run->end);
+  reply->set_first_edge_ns(world_->EdgeNs(run->first));
+  return grpc::Status::OK;
+}
+
+grpc::Status WorldService::WriteGroundTruth(grpc::ServerContext*, const v1::GroundTruthRequest* request,
+                                            v1::GroundTruthReply* reply) {
+  if (!ground_truth_) return grpc::Status(grpc::StatusCode::UNIMPLEMENTED, "this world writes no ground truth");
+  const auto start = std::chrono::steady_clock::now();
+  if (absl::Status s = ground_truth_(*request); !s.ok()) return ToGrpcStatus(s);
+  reply->set_frames(request->frames());
+  reply->set_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
   return grpc::Status::OK;
 }
 

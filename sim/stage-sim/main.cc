@@ -245,6 +245,15 @@ int main(int argc, char** argv) {
     info.set_t0_ns(0);
     world_service = std::make_unique<stage::sim::WorldService>(
         world.get(), info, [scene](const stage::v1::SimFault& f) { return scene->CheckFault(f); });
+    // A take's ground truth, into its directory, when the controller asks (docs/simulator.md#ground-truth).
+    world_service->set_ground_truth_writer([scene](const stage::v1::GroundTruthRequest& r) {
+      stage::sim::GroundTruthOptions gt;
+      gt.first_frame = r.first_frame();
+      gt.last_frame = r.first_frame() + r.frames();
+      gt.name_offset = r.first_frame();
+      gt.cameras.assign(r.cameras().begin(), r.cameras().end());
+      return stage::sim::WriteGroundTruth(*scene, r.dir(), gt);
+    });
     auto server = stage::RpcServer::Start({}, {world_service.get()});
     if (!server.ok()) return stage::ReportFatal(kProgram, server.status());
     world_server = std::move(*server);

@@ -27,6 +27,8 @@ struct GroundTruthOptions {
   int64_t last_frame = 1;
   // Camera ids; empty: every camera.
   std::vector<std::string> cameras;
+  // Directories are numbered frame - name_offset (a take's frames from 0: its first world frame).
+  int64_t name_offset = 0;
   // Texels across the UV position map (256 and up).
   int uv_size = 256;
   // Called after each camera of each frame: (done, total).

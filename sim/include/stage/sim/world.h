@@ -109,11 +109,17 @@ class World {
   // A run of `count` slots (a take): lockstep, right after the last run (or at slot 0); real time, `lead_slots` after
   // the slot passing now (and after the last run); its first slot a multiple of `align` (the pattern cycle, so that
   // a take's cycles are the subject's poses). FailedPrecondition while the last run is still open-ended.
-  absl::StatusOr<WorldRun> Run(int64_t count, int64_t lead_slots = 0, int64_t align = 1);
+  // `min_first`: the run starts no earlier than this slot (a take resumed after a pause).
+  absl::StatusOr<WorldRun> Run(int64_t count, int64_t lead_slots = 0, int64_t align = 1, int64_t min_first = 0);
   // The run Run() would make now, without making it (the controller arms every node for it first), and that run made
   // (FailedPrecondition if it no longer fits: it overlaps the last run, or real time has passed its first slot).
-  absl::StatusOr<WorldRun> PlanRun(int64_t count, int64_t lead_slots = 0, int64_t align = 1) const;
+  absl::StatusOr<WorldRun> PlanRun(int64_t count, int64_t lead_slots = 0, int64_t align = 1,
+                                   int64_t min_first = 0) const;
   absl::Status StartRun(const WorldRun& run);
+  // Ends the last run early (a take paused or aborted): at the first slot after the edge the world stands at (or
+  // last passed) that is a multiple of `align` after the run's first, if that is sooner than its end. Returns the run
+  // as it now is; FailedPrecondition when there is no run, it is open-ended, or it is over.
+  absl::StatusOr<WorldRun> EndRun(int64_t align = 1);
 
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;

@@ -26,6 +26,13 @@ class WorldService final : public v1::SimWorld::Service {
                         v1::ExposureLevels* response) override;
   grpc::Status InjectFault(grpc::ServerContext*, const v1::SimFault* request, v1::WorldAck*) override;
   grpc::Status Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) override;
+  grpc::Status EndRun(grpc::ServerContext*, const v1::EndRunRequest* request, v1::WorldRunReply* reply) override;
+  grpc::Status WriteGroundTruth(grpc::ServerContext*, const v1::GroundTruthRequest* request,
+                                v1::GroundTruthReply* reply) override;
+  // Who writes ground truth (the process that holds the scene); without it WriteGroundTruth is UNIMPLEMENTED.
+  void set_ground_truth_writer(std::function<absl::Status(const v1::GroundTruthRequest&)> writer) {
+    ground_truth_ = std::move(writer);
+  }
 
   // Ends every Join stream (for shutdown).
   void Shutdown();
@@ -34,6 +41,7 @@ class WorldService final : public v1::SimWorld::Service {
   World* world_;
   v1::WorldInfo info_;
   std::function<absl::Status(const v1::SimFault&)> check_fault_;
+  std::function<absl::Status(const v1::GroundTruthRequest&)> ground_truth_;
   std::atomic<bool> shutting_down_{false};
 };
 
