@@ -12,6 +12,9 @@
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
+  // A frame file that reaches the file size limit (RLIMIT_FSIZE) fails its write with EFBIG, which the recorder
+  // reports as lost frames, instead of the signal killing the node.
+  signal(SIGXFSZ, SIG_IGN);
   CLI::App app{"Serves one camera of the FaStage rig (CameraNode gRPC service and grpc.health.v1).", "camera-node"};
   stage::CommonFlags flags;
   std::string id;

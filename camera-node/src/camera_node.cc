@@ -7,6 +7,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "preview.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
@@ -65,11 +66,13 @@ v1::CameraStats CameraNode::Stats() const {
   v1::CameraStats stats;
   stats.set_frames_completed(frames_completed_.load());
   std::lock_guard<std::mutex> lock(take_mutex_);
-  if (recorder_) {
-    stats.set_take_id(take_id_);
-    stats.set_take_frames_received(recorder_->frames_received());
-    stats.set_take_frames_written(recorder_->frames_written());
-    stats.set_take_frames_expected(static_cast<int64_t>(recorder_->expected_slots().size()));
+  // The armed take, or the one finishing (a burst camera writing what it held).
+  const std::shared_ptr<TakeRecorder>& r = recorder_ ? recorder_ : finishing_;
+  if (r) {
+    stats.set_take_id(recorder_ ? take_id_ : finishing_id_);
+    stats.set_take_frames_received(r->frames_received());
+    stats.set_take_frames_written(r->frames_written());
+    stats.set_take_frames_expected(r->expected_frames());
   }
   return stats;
 }
@@ -114,16 +117,73 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   plan.burst = request.burst();
   if (request.burst_bytes() > 0) plan.burst_bytes = request.burst_bytes();
   plan.first_frame_id = static_cast<uint64_t>(last_frame_id_.load() + 1);
+  plan.started = !request.start_later();
+  plan.preview_pattern = request.preview_pattern();
   // The frame size is the device's (the sim renders at a scale of the rig's sensor): the file takes it from the first
   // frame.
   STAGE_ASSIGN_OR_RETURN(auto recorder, TakeRecorder::Start(std::move(plan)));
   recorder_ = std::move(recorder);
   take_id_ = request.take_id();
   v1::ArmCameraResponse response;
-  response.set_expected_frames(static_cast<int64_t>(recorder_->expected_slots().size()));
+  response.set_expected_frames(recorder_->expected_frames());
   response.set_path(recorder_->path());
   Logger("camera.node")->info("{}: armed for take {}: {} frames", config_.id(), take_id_, response.expected_frames());
   return response;
+}
+
+absl::StatusOr<v1::ArmCameraResponse> CameraNode::UpdateTake(const v1::UpdateTakeRequest& request) {
+  std::shared_ptr<TakeRecorder> recorder;
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    if (!recorder_ || take_id_ != request.take_id()) {
+      return absl::NotFoundError(
+          absl::StrCat("camera \"", config_.id(), "\": take \"", request.take_id(), "\" is not armed here"));
+    }
+    recorder = recorder_;
+  }
+  PlanUpdate update;
+  if (request.has_t0_bus_ns()) {
+    update.t0_ns = request.t0_bus_ns();
+    // The take's first exposure follows the last frame delivered before it starts.
+    update.first_frame_id = static_cast<uint64_t>(last_frame_id_.load() + 1);
+  }
+  update.slots = request.slot_count();
+  for (const v1::SlotRange& r : request.paused()) update.paused.emplace_back(r.first(), r.end());
+  if (absl::Status s = recorder->Update(update); !s.ok()) {
+    return Annotate(s, absl::StrCat("camera \"", config_.id(), "\": take ", request.take_id()));
+  }
+  v1::ArmCameraResponse response;
+  response.set_expected_frames(recorder->expected_frames());
+  response.set_path(recorder->path());
+  Logger("camera.node")
+      ->info("{}: take {} now expects {} frames", config_.id(), request.take_id(), response.expected_frames());
+  return response;
+}
+
+absl::StatusOr<v1::Preview> CameraNode::GetPreview(const v1::GetPreviewRequest& request) const {
+  std::shared_ptr<TakeRecorder> recorder;
+  std::string take_id;
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    recorder = recorder_;
+    take_id = take_id_;
+  }
+  std::optional<PreviewFrame> latest = recorder ? recorder->LatestPreview() : std::nullopt;
+  if (!latest) {
+    return absl::NotFoundError(absl::StrCat("camera \"", config_.id(), "\": no preview (no take is recording)"));
+  }
+  STAGE_ASSIGN_OR_RETURN(v1::Preview preview,
+                         MakePreview(*latest->frame, request.max_size() ? request.max_size() : 256));
+  v1::FrameMetadata* m = preview.mutable_frame();
+  m->set_camera_id(config_.id());
+  m->set_take_id(take_id);
+  m->set_frame_id(latest->frame->frame_id);
+  m->set_device_timestamp_ns(latest->frame->device_timestamp_ns);
+  m->set_controller_time_ns(latest->controller_time_ns);
+  m->set_slot(latest->slot);
+  m->set_status(v1::FRAME_STATUS_OK);
+  m->set_exposure_us(latest->frame->exposure_us);
+  return preview;
 }
 
 absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRequest& request) {
@@ -138,7 +198,7 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
   }
   // Frames may still be on their way (rendering, in flight): wait while they keep coming, up to drain_ms of silence.
   const auto drain = std::chrono::milliseconds(request.drain_ms() > 0 ? request.drain_ms() : 2000);
-  const auto expected = static_cast<int64_t>(recorder->expected_slots().size());
+  const auto expected = recorder->expected_frames();
   int64_t seen = -1;
   auto quiet_since = std::chrono::steady_clock::now();
   while (true) {
@@ -154,9 +214,19 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
   }
   {
     std::lock_guard<std::mutex> lock(take_mutex_);
+    finishing_ = recorder;
+    finishing_id_ = take_id_;
     recorder_.reset();  // frames from now on are not the take's
     take_id_.clear();
   }
+  struct Finished {
+    CameraNode* node;
+    ~Finished() {
+      std::lock_guard<std::mutex> lock(node->take_mutex_);
+      node->finishing_.reset();
+      node->finishing_id_.clear();
+    }
+  } finished{this};
   const TakeRecording rec = recorder->Finish([&](int64_t done, int64_t total) {
     if (done == total || done % 200 == 0) {
       Logger("camera.node")->info("{}: offloading take {}: {}/{} frames", config_.id(), request.take_id(), done, total);

@@ -46,6 +46,8 @@ class CameraNode : public FrameSink {
   // A take (CameraNode.Arm / Finish in camera_node.proto).
   absl::StatusOr<v1::ArmCameraResponse> Arm(const v1::ArmCameraRequest& request);
   absl::StatusOr<v1::CameraTakeReport> Finish(const v1::FinishCameraRequest& request);
+  absl::StatusOr<v1::ArmCameraResponse> UpdateTake(const v1::UpdateTakeRequest& request);
+  absl::StatusOr<v1::Preview> GetPreview(const v1::GetPreviewRequest& request) const;
 
   // Starts a stream of scheduled software triggers. FailedPrecondition when the camera's trigger source is not
   // scheduled-software or a stream is already running. The device is started for the stream if it was not.
@@ -66,6 +68,9 @@ class CameraNode : public FrameSink {
   mutable std::mutex take_mutex_;
   std::string take_id_;                     // guarded by take_mutex_
   std::shared_ptr<TakeRecorder> recorder_;  // guarded by take_mutex_; frames go to it while set
+  // The take being finished (its burst offload), for Stats; guarded by take_mutex_.
+  std::shared_ptr<TakeRecorder> finishing_;
+  std::string finishing_id_;
   friend class TriggerSessionImpl;
 };
 

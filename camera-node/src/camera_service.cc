@@ -58,4 +58,20 @@ grpc::Status CameraService::Finish(grpc::ServerContext*, const v1::FinishCameraR
   return grpc::Status::OK;
 }
 
+grpc::Status CameraService::UpdateTake(grpc::ServerContext*, const v1::UpdateTakeRequest* request,
+                                       v1::ArmCameraResponse* response) {
+  auto updated = node_->UpdateTake(*request);
+  if (!updated.ok()) return ToGrpcStatus(updated.status());
+  *response = std::move(*updated);
+  return grpc::Status::OK;
+}
+
+grpc::Status CameraService::GetPreview(grpc::ServerContext*, const v1::GetPreviewRequest* request,
+                                       v1::Preview* response) {
+  auto preview = node_->GetPreview(*request);
+  if (!preview.ok()) return ToGrpcStatus(preview.status());
+  *response = std::move(*preview);
+  return grpc::Status::OK;
+}
+
 }  // namespace stage::camera

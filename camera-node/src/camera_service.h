@@ -16,6 +16,9 @@ class CameraService final : public v1::CameraNode::Service {
   grpc::Status Arm(grpc::ServerContext*, const v1::ArmCameraRequest* request, v1::ArmCameraResponse* response) override;
   grpc::Status Finish(grpc::ServerContext*, const v1::FinishCameraRequest* request,
                       v1::CameraTakeReport* response) override;
+  grpc::Status UpdateTake(grpc::ServerContext*, const v1::UpdateTakeRequest* request,
+                          v1::ArmCameraResponse* response) override;
+  grpc::Status GetPreview(grpc::ServerContext*, const v1::GetPreviewRequest* request, v1::Preview* response) override;
 
  private:
   CameraNode* node_;

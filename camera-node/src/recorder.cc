@@ -43,11 +43,7 @@ absl::StatusOr<std::unique_ptr<TakeRecorder>> TakeRecorder::Start(TakePlan plan)
   if (plan.patterns_per_cycle == 0) return absl::InvalidArgumentError("no patterns per cycle");
   std::unique_ptr<TakeRecorder> r(new TakeRecorder(std::move(plan)));
   const TakePlan& p = r->plan_;
-  for (int64_t k = p.phase; k < p.slots; k += p.divider) {
-    r->index_of_[k] = r->expected_.size();
-    r->expected_.push_back(k);
-    r->rec_.slots.push_back({k, static_cast<int32_t>(k % p.patterns_per_cycle), LossReason::kTriggerMissed, {}, ""});
-  }
+  r->Rebuild();
   std::error_code ec;
   std::filesystem::create_directories(std::filesystem::path(p.path).parent_path(), ec);
   if (ec) return absl::UnavailableError(absl::StrCat(p.path, ": cannot create its directory: ", ec.message()));
@@ -62,6 +58,70 @@ absl::StatusOr<std::unique_ptr<TakeRecorder>> TakeRecorder::Start(TakePlan plan)
     r->thread_ = std::thread([raw = r.get()] { raw->WriterLoop(); });
   }
   return r;
+}
+
+bool TakeRecorder::IsPaused(int64_t slot) const {
+  for (const auto& [first, end] : paused_) {
+    if (slot >= first && slot < end) return true;
+  }
+  return false;
+}
+
+void TakeRecorder::Rebuild() {
+  std::vector<int64_t> expected;
+  std::map<int64_t, size_t> index_of;
+  std::vector<SlotOutcome> slots;
+  for (int64_t k = plan_.phase; k < plan_.slots; k += plan_.divider) {
+    if (IsPaused(k)) continue;
+    index_of[k] = expected.size();
+    expected.push_back(k);
+    auto old = index_of_.find(k);
+    slots.push_back(
+        old != index_of_.end()
+            ? rec_.slots[old->second]
+            : SlotOutcome{k, static_cast<int32_t>(k % plan_.patterns_per_cycle), LossReason::kTriggerMissed, {}, ""});
+  }
+  expected_ = std::move(expected);
+  index_of_ = std::move(index_of);
+  rec_.slots = std::move(slots);
+}
+
+absl::Status TakeRecorder::Update(const PlanUpdate& update) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (finishing_) return absl::FailedPreconditionError("the take is finishing");
+  const int64_t slots = update.slots > 0 ? update.slots : plan_.slots;
+  int64_t last_end = 0;
+  for (const auto& [first, end] : update.paused) {
+    if (first < last_end || end <= first || end > slots) {
+      return absl::InvalidArgumentError(absl::StrCat("pause [", first, ", ", end, ") is not a gap of a take of ", slots,
+                                                     " slots after the one before it"));
+    }
+    last_end = end;
+  }
+  if (update.t0_ns) {
+    plan_.t0_ns = *update.t0_ns;
+    plan_.started = true;
+  }
+  if (update.first_frame_id) plan_.first_frame_id = update.first_frame_id;
+  plan_.slots = slots;
+  paused_ = update.paused;
+  Rebuild();
+  return absl::OkStatus();
+}
+
+int64_t TakeRecorder::expected_frames() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return static_cast<int64_t>(expected_.size());
+}
+
+std::vector<int64_t> TakeRecorder::expected_slots() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return expected_;
+}
+
+std::optional<PreviewFrame> TakeRecorder::LatestPreview() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return preview_;
 }
 
 TakeRecorder::~TakeRecorder() {
@@ -84,6 +144,8 @@ int64_t TakeRecorder::frames_written() const {
 }
 
 void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  if (!plan_.started) return;  // not the take's yet
   // The bus time of the exposure start, and the nearest trigger time to it.
   const long double device = static_cast<long double>(frame->device_timestamp_ns - plan_.clock_offset_ns);
   const auto bus = static_cast<int64_t>(std::llround(device / (1.0L + plan_.clock_drift_ppm * 1e-6L)));
@@ -100,12 +162,15 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
     }
   }
   const size_t bytes = frame->data.size();
-  std::unique_lock<std::mutex> lock(mutex_);
   ++rec_.frames_received;
   auto it = index_of_.find(slot);
   if (it == index_of_.end() || matched_.count(slot) || finishing_) {
     ++rec_.frames_unmatched;
     return;
+  }
+  if (plan_.preview_pattern >= -1 &&
+      (plan_.preview_pattern == -1 || slot % plan_.patterns_per_cycle == plan_.preview_pattern)) {
+    preview_ = PreviewFrame{frame, slot, bus - plan_.t0_ns};
   }
   matched_[slot] = frame->frame_id;
   rec_.max_timing_error_ns = std::max(rec_.max_timing_error_ns, error);
@@ -166,7 +231,9 @@ void TakeRecorder::Write(const Tagged& t) {
   const double brightness = s.ok() ? MeanBrightness(f) - plan_.black_level : 0;
   std::lock_guard<std::mutex> lock(mutex_);
   queued_bytes_ -= std::min<uint64_t>(queued_bytes_, f.data.size());
-  SlotOutcome& out = rec_.slots[index_of_.at(t.slot)];
+  auto at = index_of_.find(t.slot);
+  if (at == index_of_.end()) return;  // an abort cut the take short before this slot: written, not expected
+  SlotOutcome& out = rec_.slots[at->second];
   if (s.ok()) {
     ++rec_.frames_written;
     rec_.brightness[t.slot] = brightness;
@@ -215,7 +282,10 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   // Slots without a frame: the frame counter tells exposures the camera made and never delivered (camera dropped)
   // from triggers it never exposed on (trigger missed). Between two delivered frames with ids a and b, b - a - 1
   // exposures were lost; they are the first of the silent slots there (which ones exactly the counter cannot say).
-  std::vector<std::pair<int64_t, uint64_t>> delivered(matched_.begin(), matched_.end());  // slot, frame id
+  std::vector<std::pair<int64_t, uint64_t>> delivered;  // slot, frame id, of expected slots
+  for (const auto& [slot, id] : matched_) {
+    if (index_of_.count(slot)) delivered.emplace_back(slot, id);
+  }
   auto account = [&](size_t first, size_t last, int64_t exposed, const std::string& where) {
     // Expected slots [first, last) (indexes) are silent; `exposed` of them were exposed (negative: unknown).
     for (size_t i = first; i < last; ++i) {
@@ -233,6 +303,7 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   };
   if (delivered.empty()) {
     account(0, rec_.slots.size(), -1, " (the camera delivered nothing)");
+    AddPausedSlots();
     return rec_;
   }
   // The counter of the exposure before the next delivered frame's silent run (the take's first: first_frame_id - 1).
@@ -250,7 +321,21 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     from = at + 1;
   }
   account(from, rec_.slots.size(), -1, " after the last frame the camera delivered");
+  AddPausedSlots();
   return rec_;
+}
+
+void TakeRecorder::AddPausedSlots() {
+  // Listed as such: nothing expected there, nothing lost.
+  for (const auto& [first, end] : paused_) {
+    for (int64_t k = first; k < end; ++k) {
+      if (k % plan_.divider != plan_.phase) continue;
+      rec_.slots.push_back(
+          {k, static_cast<int32_t>(k % plan_.patterns_per_cycle), LossReason::kPaused, {}, "the take was paused"});
+    }
+  }
+  std::sort(rec_.slots.begin(), rec_.slots.end(),
+            [](const SlotOutcome& a, const SlotOutcome& b) { return a.slot < b.slot; });
 }
 
 }  // namespace stage::camera

@@ -53,6 +53,27 @@ struct TakePlan {
   // The frame counter the take's first exposure will carry (the device restarts it at Start()); unknown: judged
   // from the first frame that arrives.
   std::optional<uint64_t> first_frame_id;
+  // false: T0 is not known yet (an armed take that waits for the operator); no frame belongs to the take until
+  // Update() gives it.
+  bool started = true;
+  // Frames of this pattern (index in the cycle) are kept for previews; -1: every frame; below -1: none.
+  int32_t preview_pattern = -2;
+};
+
+// A change to a take's plan while it is armed (see UpdateTakeRequest in camera_node.proto).
+struct PlanUpdate {
+  std::optional<int64_t> t0_ns;  // the take starts: slot 0's edge on the bus
+  std::optional<uint64_t> first_frame_id;
+  int64_t slots = 0;  // above 0: the take's new length
+  // Every gap of the take, [first, end) in slots, sorted and disjoint: no frame is expected there.
+  std::vector<std::pair<int64_t, int64_t>> paused;
+};
+
+// The latest frame of the preview pattern.
+struct PreviewFrame {
+  std::shared_ptr<const Frame> frame;
+  int64_t slot = 0;
+  int64_t controller_time_ns = 0;
 };
 
 struct SlotOutcome {
@@ -89,8 +110,14 @@ class TakeRecorder final : public FrameSink {
   void OnFrame(std::shared_ptr<const Frame> frame) override;
 
   const std::string& path() const { return plan_.path; }
-  // The slots the camera fires in, in order (what the ledger expects of it).
-  const std::vector<int64_t>& expected_slots() const { return expected_; }
+  // How many slots the camera fires in (what the ledger expects of it), pauses excluded.
+  int64_t expected_frames() const;
+  // The slots the camera fires in, in order.
+  std::vector<int64_t> expected_slots() const;
+  // Changes the plan (start, length, gaps); frames already tagged keep their slots. InvalidArgument for a bad plan.
+  absl::Status Update(const PlanUpdate& update);
+  // The latest frame of the preview pattern; nullopt before there is one.
+  std::optional<PreviewFrame> LatestPreview() const;
   // Frames received and written so far (progress during the take).
   int64_t frames_received() const;
   int64_t frames_written() const;
@@ -109,10 +136,16 @@ class TakeRecorder final : public FrameSink {
   void WriterLoop();
   void Write(const Tagged& t);  // writer thread only
   int64_t SlotStart(int64_t slot) const;
+  bool IsPaused(int64_t slot) const;  // mutex_ held
+  // Builds the expected slots from the plan and the pauses, keeping the outcomes of slots that stay (mutex_ held).
+  void Rebuild();
+  void AddPausedSlots();  // mutex_ held, at the end of Finish
 
   TakePlan plan_;
-  std::vector<int64_t> expected_;
-  std::map<int64_t, size_t> index_of_;  // expected slot -> its index
+  std::vector<int64_t> expected_;                    // guarded by mutex_
+  std::map<int64_t, size_t> index_of_;               // expected slot -> its index; guarded by mutex_
+  std::vector<std::pair<int64_t, int64_t>> paused_;  // guarded by mutex_
+  std::optional<PreviewFrame> preview_;              // guarded by mutex_
   std::unique_ptr<storage::FrameFileWriter> writer_;
 
   mutable std::mutex mutex_;

@@ -168,6 +168,52 @@ TEST(RecorderTest, BurstHoldsFramesUntilTheTakeEndsThenOffloadsWithProgress) {
   EXPECT_EQ(full, 10);
 }
 
+// Armed before the take starts: no frame belongs to it until T0 is given; a pause's gap is neither expected nor
+// lost and is listed as paused; the frame counter runs on across the gap; an abort cuts the take at its slot.
+TEST(RecorderTest, APlanChangedDuringTheTakeStartsItPausesItAndCutsItShort) {
+  TakePlan plan = Plan("update", 76);
+  plan.started = false;
+  plan.preview_pattern = 0;
+  const int64_t t0 = plan.t0_ns;
+  plan.t0_ns = 0;
+  auto rec = TakeRecorder::Start(plan);
+  ASSERT_TRUE(rec.ok()) << rec.status();
+  plan.t0_ns = t0;
+  (*rec)->OnFrame(FrameFor(plan, 0, 0));  // before the start: not the take's
+  EXPECT_EQ((*rec)->frames_received(), 0);
+  EXPECT_FALSE((*rec)->LatestPreview().has_value());
+  PlanUpdate start;
+  start.t0_ns = t0;
+  start.first_frame_id = 1;
+  ASSERT_TRUE((*rec)->Update(start).ok());
+  uint64_t id = 1;
+  for (int64_t k = 0; k < 38; ++k) (*rec)->OnFrame(FrameFor(plan, k, id++));
+  // Paused after one cycle, resumed two cycles later: 38 more slots, then an abort after 10 of them.
+  PlanUpdate resume;
+  resume.slots = 76 + 76;
+  resume.paused = {{38, 114}};
+  ASSERT_TRUE((*rec)->Update(resume).ok());
+  EXPECT_EQ((*rec)->expected_frames(), 76);
+  for (int64_t k = 114; k < 124; ++k) (*rec)->OnFrame(FrameFor(plan, k, id++));
+  PlanUpdate abort = resume;
+  abort.slots = 124;
+  ASSERT_TRUE((*rec)->Update(abort).ok());
+  EXPECT_EQ((*rec)->expected_frames(), 48);
+  ASSERT_TRUE((*rec)->LatestPreview().has_value());
+  EXPECT_EQ((*rec)->LatestPreview()->slot, 114);  // pattern 0's latest frame
+  PlanUpdate bad;
+  bad.paused = {{100, 90}};
+  EXPECT_EQ((*rec)->Update(bad).code(), absl::StatusCode::kInvalidArgument);
+
+  const TakeRecording r = (*rec)->Finish();
+  EXPECT_EQ(r.frames_written, 48);
+  ASSERT_EQ(r.slots.size(), 124u);
+  for (const SlotOutcome& s : r.slots) {
+    const bool gap = s.slot >= 38 && s.slot < 114;
+    EXPECT_EQ(s.reason, gap ? LossReason::kPaused : LossReason::kNone) << s.slot;
+  }
+}
+
 TEST(RecorderTest, BadPlansAreRefused) {
   TakePlan plan = Plan("bad", 0);
   EXPECT_FALSE(TakeRecorder::Start(plan).ok());

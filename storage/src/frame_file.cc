@@ -258,7 +258,7 @@ absl::Status FrameFileWriter::Reserve(size_t frame_bytes) {
       reserved_end_ = UINT64_MAX;
       return absl::OkStatus();
     }
-    if (errno != ENOSPC && errno != EDQUOT) break;
+    if (errno != ENOSPC && errno != EDQUOT && errno != EFBIG) break;  // EFBIG: the file size limit (RLIMIT_FSIZE)
   }
   const int error = errno;
   return absl::ResourceExhaustedError(absl::StrCat(path_, ": no space for another frame (", std::strerror(error), "); ",

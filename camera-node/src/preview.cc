@@ -1,0 +1,43 @@
+// Previews: see preview.h.
+#include "preview.h"
+
+#include <algorithm>
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace stage::camera {
+
+absl::StatusOr<v1::Preview> MakePreview(const Frame& frame, uint32_t max_size) {
+  const size_t pixels = static_cast<size_t>(frame.width) * frame.height;
+  if (pixels == 0 || frame.data.size() < pixels || max_size == 0) {
+    return absl::InvalidArgumentError(absl::StrCat("preview of a ", frame.width, "x", frame.height, " frame of ",
+                                                   frame.data.size(), " bytes at most ", max_size, " px"));
+  }
+  const bool wide = frame.data.size() >= 2 * pixels;
+  const int h = static_cast<int>(frame.height), w = static_cast<int>(frame.width);
+  cv::Mat src(h, w, wide ? CV_16UC1 : CV_8UC1, const_cast<uint8_t*>(frame.data.data()));
+  cv::Mat eight;
+  if (wide) {
+    double peak = 0;
+    cv::minMaxLoc(src, nullptr, &peak);
+    src.convertTo(eight, CV_8U, peak > 0 ? 255.0 / peak : 0);
+  } else {
+    eight = src;
+  }
+  const double scale = std::min(1.0, static_cast<double>(max_size) / std::max(w, h));
+  cv::Mat small;
+  cv::resize(eight, small, cv::Size(std::max(1, static_cast<int>(w * scale)), std::max(1, static_cast<int>(h * scale))),
+             0, 0, cv::INTER_AREA);
+  std::vector<uint8_t> png;
+  if (!cv::imencode(".png", small, png)) return absl::InternalError("preview: PNG encoding failed");
+  v1::Preview preview;
+  preview.set_width(static_cast<uint32_t>(small.cols));
+  preview.set_height(static_cast<uint32_t>(small.rows));
+  preview.set_png(png.data(), png.size());
+  return preview;
+}
+
+}  // namespace stage::camera
