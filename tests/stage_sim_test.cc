@@ -14,6 +14,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "simulated_stage.h"
 #include "stage/common/rig.h"
 #include "stage/timing/pattern_set.h"
 #include "stage/v1/camera_node.grpc.pb.h"
@@ -25,54 +26,12 @@
 namespace stage::testing {
 namespace {
 
-bool Alive(pid_t pid) { return kill(pid, 0) == 0; }
-
 int64_t UnixNowNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
       .count();
 }
 
-class StageSimTest : public ::testing::Test {
- protected:
-  void StartStage(std::vector<std::string> extra = {}) {
-    std::vector<std::string> argv = {BinDir() + "/stage-sim", "--run-dir", run_dir_.path(), "--grace-ms", "1500"};
-    for (auto& a : extra) argv.push_back(std::move(a));
-    auto sim = Subprocess::Spawn({.argv = argv, .stderr_path = run_dir_.path() + "/stage-sim.log"});
-    ASSERT_TRUE(sim.ok()) << sim.status();
-    sim_ = std::move(*sim);
-    // stage-sim writes the endpoint file once every node is up.
-    std::string path = run_dir_.path() + "/endpoints.json";
-    auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(90);
-    while (!std::filesystem::exists(path)) {
-      ASSERT_FALSE(sim_->Poll().has_value()) << "stage-sim exited: " << ReadFile(run_dir_.path() + "/stage-sim.log");
-      ASSERT_LT(std::chrono::steady_clock::now(), deadline) << ReadFile(run_dir_.path() + "/stage-sim.log");
-      std::this_thread::sleep_for(std::chrono::milliseconds(50));
-    }
-    google::protobuf::util::JsonParseOptions options;
-    ASSERT_TRUE(google::protobuf::util::JsonStringToMessage(ReadFile(path), &endpoints_, options).ok());
-    for (const auto& p : endpoints_.processes()) pids_.push_back(p.pid());
-  }
-
-  void TearDown() override {
-    if (sim_ && !sim_->exited()) sim_->Terminate(std::chrono::seconds(10));
-    // stage-sim's children die with it (PR_SET_PDEATHSIG); this is only a backstop for a failed test.
-    for (pid_t pid : pids_) {
-      if (Alive(pid)) kill(pid, SIGKILL);
-    }
-  }
-
-  nlohmann::json StatusJson() {
-    CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status", "--json"},
-                                 std::chrono::seconds(20));
-    EXPECT_FALSE(r.timed_out);
-    return nlohmann::json::parse(r.out);
-  }
-
-  TempDir run_dir_;
-  std::unique_ptr<Subprocess> sim_;
-  v1::SimEndpoints endpoints_;
-  std::vector<pid_t> pids_;
-};
+using StageSimTest = SimulatedStageTest;
 
 TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
   ASSERT_NO_FATAL_FAILURE(StartStage());
@@ -397,7 +356,7 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   EXPECT_THAT(unknown.err, ::testing::HasSubstr("no take \"nope\""));
   CommandResult nothing = RunCommand({"stagectl", "--endpoints", endpoints, "capture"}, std::chrono::seconds(30));
   EXPECT_EQ(nothing.exit.exit_code, 2);
-  EXPECT_THAT(nothing.err, ::testing::HasSubstr("give --frames N or --seconds S"));
+  EXPECT_THAT(nothing.err, ::testing::HasSubstr("give a number of frames or seconds above 0"));
 }
 
 // A camera that loses three given frames (sim.faults drop_slots): the take is DEGRADED (exit 4), and the ledger names

@@ -4,6 +4,7 @@
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -19,6 +20,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/status.h"
 #include "stage/common/version.h"
+#include "stage/storage/frame_file.h"
 #include "stage/timing/pattern_set.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/time_base.h"
@@ -64,7 +66,63 @@ absl::Status WriteTakeJson(const std::string& dir, const v1::RigConfig& rig, con
   return WriteFileAtomically(dir + "/take.json", text);  // a reader sees the old file or the new one
 }
 
+using Gaps = std::vector<std::pair<int64_t, int64_t>>;
+
+bool InGap(const Gaps& gaps, int64_t slot) {
+  for (const auto& [first, end] : gaps) {
+    if (slot >= first && slot < end) return true;
+  }
+  return false;
+}
+
+// The slots a camera fires in over a take of `slots` slots, with those in its gaps (pauses) apart.
+void CameraSlots(const v1::CameraTiming& timing, int64_t slots, const Gaps& gaps, std::vector<int64_t>* expected,
+                 std::vector<int64_t>* paused) {
+  const int64_t d = std::max<uint32_t>(1, timing.divider());
+  for (int64_t k = timing.slot_phase(); k < slots; k += d) (InGap(gaps, k) ? paused : expected)->push_back(k);
+}
+
+int64_t ExpectedFrames(const v1::CameraTiming& timing, int64_t slots, const Gaps& gaps) {
+  int64_t n = timing::FiringsInTake(timing, slots);
+  const int64_t d = std::max<uint32_t>(1, timing.divider()), p = timing.slot_phase();
+  auto before = [&](int64_t s) { return s > p ? (s - p - 1) / d + 1 : 0; };  // firings in [0, s)
+  for (const auto& [first, end] : gaps) n -= before(std::min(end, slots)) - before(std::min(first, slots));
+  return n;
+}
+
 }  // namespace
+
+struct Capturer::Take {
+  struct Cam {
+    const v1::CameraConfig* config;
+    const v1::CameraTiming* timing;
+    std::unique_ptr<v1::CameraNode::Stub> stub;
+    std::string path;  // its frame file
+    bool armed = false;
+    std::string error;
+    Clock::time_point next_preview;
+  };
+  std::string id, dir;
+  storage::TakeRow row;
+  v1::TakeSummary summary;
+  int64_t cycle = 38;
+  int64_t capture_slots = 0;  // asked for: frames x cycle
+  std::unique_ptr<v1::SimWorld::Stub> world;
+  std::vector<std::unique_ptr<v1::LightNode::Stub>> lights;
+  std::vector<Cam> cams;
+  std::vector<std::string> not_ready;
+  bool ran = false;
+  // Guarded by the Capturer's mutex_ once the take runs (Pause, Resume and Abort change them):
+  int64_t first_bus = 0;  // the take's slot 0 on the bus
+  int64_t slots = 0;      // its length so far, gaps included
+  int64_t run_first = 0;  // the current (or last) run, in slots of the take
+  int64_t run_end = 0;
+  int64_t done_slots = 0;  // slots captured in the runs before the current one
+  Gaps paused;
+  Clock::time_point paused_since;
+  bool aborted = false;
+  bool ground_truth = true;
+};
 
 absl::StatusOr<std::unique_ptr<Capturer>> Capturer::Create(LoadedRig rig, v1::Schedule schedule, int timing_errors,
                                                            CaptureOptions options) {
@@ -89,28 +147,50 @@ absl::StatusOr<std::unique_ptr<Capturer>> Capturer::Create(LoadedRig rig, v1::Sc
   return c;
 }
 
+Capturer::~Capturer() = default;
+
 std::string Capturer::state() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return state_;
 }
 
-void Capturer::SetState(const std::string& state, const std::function<void(const v1::CaptureEvent&)>& on_event) {
+uint64_t Capturer::generation() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return generation_;
+}
+
+uint64_t Capturer::WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const {
+  std::unique_lock<std::mutex> lock(mutex_);
+  changed_.wait_for(lock, timeout, [&] { return generation_ != seen; });
+  return generation_;
+}
+
+void Capturer::SetState(const std::string& state, const CaptureEventFn& on_event) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ == state) return;
     Logger("controller")->info("session: {} -> {}", state_, state);
     state_ = state;
+    ++generation_;
   }
+  changed_.notify_all();
   v1::CaptureEvent e;
   e.set_state(state);
   if (on_event) on_event(e);
 }
 
-absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& request,
-                                                  const std::function<void(const v1::CaptureEvent&)>& on_event) {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != "idle") return absl::FailedPreconditionError(absl::StrCat("a take is ", state_, "; wait for it"));
+absl::StatusOr<v1::Preview> Capturer::GetPreview(const std::string& camera_id) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  auto it = previews_.find(camera_id);
+  if (it != previews_.end()) return it->second;
+  for (const auto& c : rig_.rig.cameras()) {
+    if (c.id() == camera_id) return absl::NotFoundError(absl::StrCat("camera \"", camera_id, "\": no preview yet"));
   }
+  return absl::NotFoundError(absl::StrCat("\"", camera_id, "\" is no camera of the rig"));
+}
+
+absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::CaptureRequest& request,
+                                                                  const CaptureEventFn& on_event) {
   const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   const int64_t cycle = schedule_.patterns_size();
   int64_t frames = request.frames();
@@ -130,114 +210,96 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
         "no sync generator: the controller drives the simulated world's bus (stage-sim); a hardware slot clock comes "
         "with the light-node work");
   }
-  auto emit = [&](const v1::CaptureEvent& e) {
-    if (on_event) on_event(e);
-  };
   auto say = [&](const std::string& m) {
     Logger("controller")->info("{}", m);
     v1::CaptureEvent e;
     e.set_message(m);
-    emit(e);
+    if (on_event) on_event(e);
   };
   SetState("configuring", on_event);
-  struct Idle {
+  struct BackToIdle {  // unless armed
     Capturer* c;
-    const std::function<void(const v1::CaptureEvent&)>& f;
-    ~Idle() { c->SetState("idle", f); }
-  } idle{this, on_event};
+    const CaptureEventFn& f;
+    bool armed = false;
+    ~BackToIdle() {
+      if (!armed) c->SetState("idle", f);
+    }
+  } back{this, on_event};
 
-  const int64_t slots = frames * cycle;
+  auto take = std::make_unique<Take>();
+  take->cycle = cycle;
+  take->ground_truth = !request.skip_ground_truth();
+  take->capture_slots = frames * cycle;
+  take->slots = take->capture_slots;
+  take->run_end = take->slots;
   const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
-  STAGE_ASSIGN_OR_RETURN(std::string take_id, catalog_->NextTakeId(rig_.rig.stage().id(), now_unix));
-  const std::string dir = (fs::path(options_.take_root) / take_id).string();
+  STAGE_ASSIGN_OR_RETURN(take->id, catalog_->NextTakeId(rig_.rig.stage().id(), now_unix));
+  take->dir = (fs::path(options_.take_root) / take->id).string();
   std::error_code ec;
-  fs::create_directories(dir + "/cameras", ec);
-  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
-  storage::TakeRow row;
-  row.id = take_id;
+  fs::create_directories(take->dir + "/cameras", ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(take->dir, ": ", ec.message()));
+  storage::TakeRow& row = take->row;
+  row.id = take->id;
   row.name = request.name();
   row.state = "configuring";
   row.created_unix_ns = now_unix;
-  row.slots = slots;
-  row.duration_s = static_cast<double>(slots) / base.slot_rate_hz();
+  row.slots = take->slots;
+  row.duration_s = static_cast<double>(take->slots) / base.slot_rate_hz();
   row.rig_hash = schedule_.rig_hash();
   row.schedule_hash = schedule_.hash();
-  row.dir = take_id;
+  row.dir = take->id;
   STAGE_RETURN_IF_ERROR(catalog_->CreateTake(row));
-  v1::TakeSummary summary;
-  summary.set_take_id(take_id);
+  v1::TakeSummary& summary = take->summary;
+  summary.set_take_id(take->id);
   summary.set_name(request.name());
-  summary.set_dir(dir);
+  summary.set_dir(take->dir);
   summary.set_frames(frames);
-  summary.set_slots(slots);
-  STAGE_RETURN_IF_ERROR(WriteTakeJson(dir, rig_.rig, schedule_, summary, "configuring"));
+  summary.set_slots(take->slots);
+  STAGE_RETURN_IF_ERROR(WriteTakeJson(take->dir, rig_.rig, schedule_, summary, "configuring"));
   {
     // The schedule as compiled, and as waveforms a logic-analyser viewer opens (the take's first 10 s at most).
-    if (absl::Status s = WriteFileAtomically(dir + "/schedule.json", ToJson(schedule_)); !s.ok())
+    if (absl::Status s = WriteFileAtomically(take->dir + "/schedule.json", ToJson(schedule_)); !s.ok())
       say(std::string(s.message()));
-    auto vcd = timing::ScheduleToVcd(schedule_, {0, std::min<int64_t>(slots, 10 * base.slot_rate_hz())});
-    const absl::Status written = vcd.ok() ? WriteFileAtomically(dir + "/schedule.vcd", *vcd) : vcd.status();
+    auto vcd = timing::ScheduleToVcd(schedule_, {0, std::min<int64_t>(take->slots, 10 * base.slot_rate_hz())});
+    const absl::Status written = vcd.ok() ? WriteFileAtomically(take->dir + "/schedule.vcd", *vcd) : vcd.status();
     if (!written.ok()) say(absl::StrCat("schedule.vcd not written: ", written.message()));
   }
-  say(absl::StrCat("take ", take_id, ": ", frames, " frames (", slots, " slots, ", row.duration_s, " s) into ", dir));
+  say(absl::StrCat("take ", take->id, ": ", frames, " frames (", take->slots, " slots, ", row.duration_s, " s) into ",
+                   take->dir));
+  take->world = v1::SimWorld::NewStub(grpc::CreateChannel(options_.world_address, grpc::InsecureChannelCredentials()));
 
-  // The run of the bus the take will be: planned first, so that every node is armed for it before it starts.
-  auto world = v1::SimWorld::NewStub(grpc::CreateChannel(options_.world_address, grpc::InsecureChannelCredentials()));
-  v1::RunWorldRequest plan;
-  plan.set_slots(slots);
-  plan.set_lead_slots(base.slot_rate_hz() / 2);  // real time: half a second to arm every node
-  plan.set_align_slots(cycle);
-  plan.set_plan_only(true);
-  v1::WorldRunReply run;
-  {
-    grpc::ClientContext context;
-    Deadline(&context, 5000);
-    grpc::Status s = world->Run(&context, plan, &run);
-    if (!s.ok()) return Annotate(FromGrpcStatus(s), absl::StrCat("the simulated world at ", options_.world_address));
-  }
-  summary.set_t0_bus_ns(run.first_edge_ns());
-
-  // Arm: every light node its table, every camera node its plan; the message names who is not ready.
-  std::vector<std::string> not_ready;
-  std::vector<std::unique_ptr<v1::LightNode::Stub>> lights;
+  // Arm: every light node its table, every camera node its plan (T0 comes when the take starts); the message names
+  // who is not ready.
   for (int i = 0; i < rig_.rig.light_nodes_size() && i < schedule_.light_nodes_size(); ++i) {
     const auto& node = rig_.rig.light_nodes(i);
-    lights.push_back(v1::LightNode::NewStub(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials())));
+    take->lights.push_back(
+        v1::LightNode::NewStub(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials())));
     v1::ArmLightRequest arm;
-    arm.set_take_id(take_id);
+    arm.set_take_id(take->id);
     *arm.mutable_table() = schedule_.light_nodes(i).table();
     grpc::ClientContext context;
     Deadline(&context, options_.arm_timeout_ms);
     v1::LightStats stats;
-    grpc::Status s = lights.back()->Arm(&context, arm, &stats);
-    if (!s.ok()) not_ready.push_back(absl::StrCat(node.id(), " (", s.error_message(), ")"));
+    grpc::Status s = take->lights.back()->Arm(&context, arm, &stats);
+    if (!s.ok()) take->not_ready.push_back(absl::StrCat(node.id(), " (", s.error_message(), ")"));
   }
-  struct Cam {
-    const v1::CameraConfig* config;
-    const v1::CameraTiming* timing;
-    std::unique_ptr<v1::CameraNode::Stub> stub;
-    int64_t expected = 0;
-    bool armed = false;
-    std::string error;
-  };
-  std::vector<Cam> cams;
   for (int i = 0; i < rig_.rig.cameras_size() && i < schedule_.cameras_size(); ++i) {
-    Cam c{&rig_.rig.cameras(i), &schedule_.cameras(i),
-          v1::CameraNode::NewStub(
-              grpc::CreateChannel(rig_.rig.cameras(i).address(), grpc::InsecureChannelCredentials()))};
-    const uint32_t d = std::max<uint32_t>(1, c.timing->divider());
-    c.expected = timing::FiringsInTake(*c.timing, slots);
+    Take::Cam c{&rig_.rig.cameras(i), &schedule_.cameras(i),
+                v1::CameraNode::NewStub(
+                    grpc::CreateChannel(rig_.rig.cameras(i).address(), grpc::InsecureChannelCredentials()))};
+    c.path = absl::StrCat(take->dir, "/cameras/", c.config->id(), ".h5");
     v1::ArmCameraRequest arm;
-    arm.set_take_id(take_id);
-    arm.set_take_dir(dir);
-    arm.set_t0_bus_ns(run.first_edge_ns());
+    arm.set_take_id(take->id);
+    arm.set_take_dir(take->dir);
+    arm.set_start_later(true);
     arm.set_slot_rate_hz(base.slot_rate_hz());
-    arm.set_slot_count(slots);
+    arm.set_slot_count(take->slots);
     arm.set_patterns_per_cycle(static_cast<uint32_t>(cycle));
     arm.mutable_trigger_plan()->set_source(c.timing->source());
-    arm.mutable_trigger_plan()->set_divider(d);
+    arm.mutable_trigger_plan()->set_divider(std::max<uint32_t>(1, c.timing->divider()));
     arm.mutable_trigger_plan()->set_slot_phase(c.timing->slot_phase());
     arm.set_trigger_delay_ns(base.TicksToNs(c.timing->trigger_ticks()));
+    arm.set_preview_pattern(have_signature_ ? signature_.cross_full : 0);
     const bool hs = c.config->role() == v1::CAMERA_ROLE_HIGH_SPEED;
     arm.set_burst(hs);
     if (hs) arm.set_burst_bytes(static_cast<uint64_t>(c.config->ram_gib() * (1ull << 30)));
@@ -247,158 +309,610 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
     grpc::Status s = c.stub->Arm(&context, arm, &armed);
     if (s.ok()) {
       c.armed = true;
+      if (!armed.path().empty()) c.path = armed.path();
     } else {
       c.error = s.error_message();
-      not_ready.push_back(absl::StrCat(c.config->id(), " (", s.error_message(), ")"));
+      take->not_ready.push_back(absl::StrCat(c.config->id(), " (", s.error_message(), ")"));
     }
-    cams.push_back(std::move(c));
+    take->cams.push_back(std::move(c));
   }
-  const bool abort_on_failure = rig_.rig.controller().node_failure_policy() == v1::NODE_FAILURE_POLICY_ABORT;
-  bool ran = false;
-  if (!not_ready.empty()) {
-    say(absl::StrCat("not ready: ", absl::StrJoin(not_ready, ", ")));
+  if (!take->not_ready.empty()) say(absl::StrCat("not ready: ", absl::StrJoin(take->not_ready, ", ")));
+  back.armed = true;
+  SetState("armed", on_event);
+  return take;
+}
+
+void Capturer::UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event) {
+  v1::UpdateTakeRequest update;
+  update.set_take_id(take.id);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (with_t0) {
+      update.set_t0_bus_ns(take.summary.t0_bus_ns());
+    }
+    update.set_slot_count(take.slots);
+    for (const auto& [first, end] : take.paused) {
+      v1::SlotRange* r = update.add_paused();
+      r->set_first(first);
+      r->set_end(end);
+    }
   }
-  if (not_ready.empty() || !abort_on_failure) {
-    SetState("armed", on_event);
-    v1::RunWorldRequest start = plan;
-    start.set_plan_only(false);
-    start.set_first_slot(run.first_slot());
+  for (Take::Cam& c : take.cams) {
+    if (!c.armed) continue;
+    grpc::ClientContext context;
+    Deadline(&context, options_.arm_timeout_ms);
+    v1::ArmCameraResponse reply;
+    grpc::Status s = c.stub->UpdateTake(&context, update, &reply);
+    if (!s.ok()) {
+      // It keeps what it recorded; its report is checked against the take's plan at the end.
+      const std::string m = absl::StrCat(c.config->id(), " did not take the new plan: ", s.error_message());
+      Logger("controller")->warn("{}", m);
+      v1::CaptureEvent e;
+      e.set_message(m);
+      if (on_event) on_event(e);
+    }
+  }
+}
+
+bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
+  auto say = [&](const std::string& m) {
+    Logger("controller")->warn("{}", m);
+    v1::CaptureEvent e;
+    e.set_message(m);
+    if (on_event) on_event(e);
+  };
+  const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
+  // The run of the bus the take will be, planned first so that every camera knows its T0 before it starts.
+  v1::RunWorldRequest plan;
+  plan.set_slots(take.capture_slots);
+  plan.set_lead_slots(base.slot_rate_hz() / 2);  // real time: half a second to tell every node
+  plan.set_align_slots(take.cycle);
+  plan.set_plan_only(true);
+  v1::WorldRunReply run;
+  {
     grpc::ClientContext context;
     Deadline(&context, 5000);
-    v1::WorldRunReply started;
-    grpc::Status s = world->Run(&context, start, &started);
+    grpc::Status s = take.world->Run(&context, plan, &run);
     if (!s.ok()) {
-      say(absl::StrCat("the sync generator did not start: ", s.error_message()));
-    } else {
-      ran = true;
-      SetState("capturing", on_event);
+      say(absl::StrCat("the sync generator (the simulated world at ", options_.world_address,
+                       ") cannot plan the take: ", s.error_message()));
+      return false;
     }
   }
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    take.first_bus = run.first_slot();
+    take.summary.set_t0_bus_ns(run.first_edge_ns());
+  }
+  UpdateCameras(take, /*with_t0=*/true, on_event);
+  v1::RunWorldRequest start = plan;
+  start.set_plan_only(false);
+  start.set_first_slot(run.first_slot());
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply started;
+  grpc::Status s = take.world->Run(&context, start, &started);
+  if (!s.ok()) {
+    say(absl::StrCat("the sync generator did not start: ", s.error_message()));
+    return false;
+  }
+  const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
+  take.row.t0_unix_ns = now_unix;
+  take.summary.set_t0_unix_ns(now_unix);
+  take.ran = true;
+  SetState("capturing", on_event);
+  return true;
+}
 
-  // Watch: every camera's frames for the take, until all are in or nothing has come for a while (a node down, the
-  // bus ended); in real time not before the take's last slot has passed.
-  if (ran) {
-    const auto start = Clock::now();
-    int64_t last_total = -1;
-    auto last_change = Clock::now();
-    while (true) {
+void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
+  // Every camera's frames for the take, until all are in (and no pause holds the take), the take is aborted and what
+  // ran is in, or nothing has come for a while (a node down, the bus ended, frames lost).
+  const auto start = Clock::now();
+  int64_t last_total = -1;
+  auto last_change = Clock::now();
+  while (true) {
+    int64_t slots;
+    Gaps gaps;
+    std::string state;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      slots = take.slots;
+      gaps = take.paused;
+      state = state_;
+    }
+    v1::CaptureProgress progress;
+    progress.set_phase("capturing");
+    int64_t total = 0;
+    const auto now = Clock::now();
+    for (Take::Cam& c : take.cams) {
+      const std::string role = CameraRoleName(c.config->role());
+      const int64_t expected = ExpectedFrames(*c.timing, slots, gaps);
+      (*progress.mutable_expected_by_role())[role] += expected;
+      progress.set_frames_expected(progress.frames_expected() + expected);
+      if (!c.armed) continue;
+      grpc::ClientContext context;
+      Deadline(&context, 1000);
+      v1::CameraStats stats;
+      if (!c.stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok() || stats.take_id() != take.id) continue;
+      const int64_t got = std::min(stats.take_frames_received(), expected);
+      (*progress.mutable_received_by_role())[role] += got;
+      progress.set_frames_received(progress.frames_received() + got);
+      progress.set_frames_written(progress.frames_written() + stats.take_frames_written());
+      total += got;
+      if (state == "capturing" && now >= c.next_preview) {
+        // The console's view: the camera's latest full-on frame, small.
+        c.next_preview = now + std::chrono::milliseconds(options_.preview_interval_ms);
+        grpc::ClientContext pc;
+        Deadline(&pc, 1000);
+        v1::GetPreviewRequest pr;
+        pr.set_max_size(options_.preview_size);
+        v1::Preview preview;
+        if (c.stub->GetPreview(&pc, pr, &preview).ok()) {
+          std::lock_guard<std::mutex> lock(mutex_);
+          previews_[c.config->id()] = std::move(preview);
+        }
+      }
+    }
+    progress.set_elapsed_s(std::chrono::duration<double>(Clock::now() - start).count());
+    v1::CaptureEvent e;
+    *e.mutable_progress() = progress;
+    if (on_event) on_event(e);
+    if (total != last_total) {
+      last_total = total;
+      last_change = Clock::now();
+    }
+    {
+      // Decided under the lock, so that a pause either comes before this (and holds the take) or finds it finishing.
+      std::lock_guard<std::mutex> lock(mutex_);
+      const bool changed = take.slots != slots || take.paused != gaps || state_ != state;
+      if (!changed && state_ != "paused") {
+        if (total >= progress.frames_expected()) break;
+        const auto quiet =
+            std::chrono::milliseconds(options_.drain_ms) + std::chrono::seconds(state_ == "aborting" ? 0 : 5);
+        if (Clock::now() - last_change > quiet) {
+          Logger("controller")->warn("frames stopped coming before every camera had all of its frames");
+          break;
+        }
+      }
+    }
+    if (state == "paused") last_change = Clock::now();
+    std::this_thread::sleep_for(std::chrono::milliseconds(250));
+  }
+}
+
+absl::StatusOr<v1::SessionReply> Capturer::Pause() {
+  std::lock_guard<std::mutex> control(control_mutex_);
+  Take* take;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != "capturing" || running_ == nullptr) {
+      return absl::FailedPreconditionError(absl::StrCat("pause: the session is ", state_, ", not capturing"));
+    }
+    take = running_;
+  }
+  v1::EndRunRequest end;
+  end.set_align_slots(take->cycle);
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply run;
+  grpc::Status s = take->world->EndRun(&context, end, &run);
+  if (!s.ok()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("pause: take ", take->id, " cannot stop at a frame boundary: ", s.error_message()));
+  }
+  v1::SessionReply reply;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    const int64_t at = run.end_slot() - take->first_bus;
+    if (at >= take->run_end) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("pause: take ", take->id, " is in its last frame; it ends at slot ", take->run_end));
+    }
+    take->done_slots += at - take->run_first;
+    take->run_end = at;
+    take->slots = at;
+    take->paused_since = Clock::now();
+    reply.set_take_id(take->id);
+    reply.set_slot(at);
+    reply.set_message(absl::StrCat("take ", take->id, " pauses at slot ", at, " (frame ", at / take->cycle, ")"));
+  }
+  UpdateCameras(*take, /*with_t0=*/false, nullptr);
+  SetState("paused");
+  reply.set_state("paused");
+  Logger("controller")->info("{}", reply.message());
+  return reply;
+}
+
+absl::StatusOr<v1::SessionReply> Capturer::Resume() {
+  std::lock_guard<std::mutex> control(control_mutex_);
+  Take* take;
+  int64_t remaining, pause_at, min_gap;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != "paused" || running_ == nullptr) {
+      return absl::FailedPreconditionError(absl::StrCat("resume: the session is ", state_, ", not paused"));
+    }
+    take = running_;
+    remaining = take->capture_slots - take->done_slots;
+    pause_at = take->slots;
+    // The gap is as long as the pause was (at least one frame), so that the take's slots stay the stage's time.
+    const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
+    const double paused_s = std::chrono::duration<double>(Clock::now() - take->paused_since).count();
+    min_gap = std::max<int64_t>(take->cycle, static_cast<int64_t>(paused_s * base.slot_rate_hz()));
+  }
+  const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
+  v1::RunWorldRequest plan;
+  plan.set_slots(remaining);
+  plan.set_lead_slots(base.slot_rate_hz() / 2);
+  plan.set_align_slots(take->cycle);
+  plan.set_min_first_slot(take->first_bus + pause_at + min_gap);
+  plan.set_plan_only(true);
+  v1::WorldRunReply run;
+  {
+    grpc::ClientContext context;
+    Deadline(&context, 5000);
+    grpc::Status s = take->world->Run(&context, plan, &run);
+    if (!s.ok()) return Annotate(FromGrpcStatus(s), absl::StrCat("resume: take ", take->id, ": the sync generator"));
+  }
+  const int64_t from = run.first_slot() - take->first_bus;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    take->paused.emplace_back(pause_at, from);
+    take->slots = from + remaining;
+    take->run_first = from;
+    take->run_end = take->slots;
+  }
+  UpdateCameras(*take, /*with_t0=*/false, nullptr);
+  v1::RunWorldRequest start = plan;
+  start.set_plan_only(false);
+  start.set_first_slot(run.first_slot());
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply started;
+  if (grpc::Status s = take->world->Run(&context, start, &started); !s.ok()) {
+    // Still paused: the gap stays open until a resume that starts, or an abort.
+    std::lock_guard<std::mutex> lock(mutex_);
+    take->paused.pop_back();
+    take->slots = pause_at;
+    take->run_end = pause_at;
+    return Annotate(FromGrpcStatus(s), absl::StrCat("resume: take ", take->id, ": the sync generator"));
+  }
+  SetState("capturing");
+  v1::SessionReply reply;
+  reply.set_state("capturing");
+  reply.set_take_id(take->id);
+  reply.set_slot(from);
+  reply.set_message(absl::StrCat("take ", take->id, " resumes at slot ", from, " (frame ", from / take->cycle,
+                                 "); slots ", pause_at, "-", from - 1, " are its gap"));
+  Logger("controller")->info("{}", reply.message());
+  return reply;
+}
+
+absl::StatusOr<v1::SessionReply> Capturer::Abort() {
+  std::lock_guard<std::mutex> control(control_mutex_);
+  std::unique_ptr<Take> armed;
+  Take* take = nullptr;
+  std::string was;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    was = state_;
+    if (state_ == "armed" && armed_ != nullptr) {
+      armed = std::move(armed_);
+      armed->aborted = true;
+    } else if ((state_ == "capturing" || state_ == "paused") && running_ != nullptr) {
+      take = running_;
+    } else {
+      return absl::FailedPreconditionError(
+          absl::StrCat("abort: the session is ", state_, "; only an armed, capturing or paused take can be aborted"));
+    }
+  }
+  v1::SessionReply reply;
+  if (armed != nullptr) {
+    // Nothing ran: the take ends here, with no frames.
+    SetState("aborting");
+    const std::string id = armed->id;
+    auto summary = FinalizeTake(*armed, nullptr);
+    if (!summary.ok()) return summary.status();
+    reply.set_state(state());
+    reply.set_take_id(id);
+    reply.set_message(absl::StrCat("take ", id, " aborted before it started"));
+    return reply;
+  }
+  if (was == "capturing") {
+    v1::EndRunRequest end;
+    end.set_align_slots(1);
+    grpc::ClientContext context;
+    Deadline(&context, 5000);
+    v1::WorldRunReply run;
+    grpc::Status s = take->world->EndRun(&context, end, &run);
+    if (!s.ok()) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("abort: take ", take->id, " cannot be stopped: ", s.error_message()));
+    }
+    std::lock_guard<std::mutex> lock(mutex_);
+    const int64_t at = run.end_slot() - take->first_bus;
+    take->done_slots += std::min(at, take->run_end) - take->run_first;
+    take->run_end = std::min(at, take->run_end);
+    take->slots = take->run_end;
+  }
+  int64_t at;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    take->aborted = true;
+    at = take->slots;
+  }
+  UpdateCameras(*take, /*with_t0=*/false, nullptr);
+  SetState("aborting");
+  reply.set_state("aborting");
+  reply.set_take_id(take->id);
+  reply.set_slot(at);
+  reply.set_message(absl::StrCat("take ", take->id, " aborted at slot ", at, "; what it recorded is kept"));
+  Logger("controller")->info("{}", reply.message());
+  return reply;
+}
+
+absl::StatusOr<v1::TakeSummary> Capturer::Arm(const v1::CaptureRequest& request, const CaptureEventFn& on_event) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ != "idle" && state_ != "error") {
+      return absl::FailedPreconditionError(absl::StrCat("arm: the session is ", state_, "; wait for it"));
+    }
+  }
+  STAGE_ASSIGN_OR_RETURN(std::unique_ptr<Take> take, ArmTake(request, on_event));
+  v1::TakeSummary summary = take->summary;
+  std::lock_guard<std::mutex> lock(mutex_);
+  armed_ = std::move(take);
+  return summary;
+}
+
+absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& request, const CaptureEventFn& on_event) {
+  std::unique_ptr<Take> take;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_ == "armed" && armed_ != nullptr) {
+      const int64_t frames = armed_->capture_slots / armed_->cycle;
+      if (request.frames() > 0 && request.frames() != frames) {
+        return absl::InvalidArgumentError(absl::StrCat("capture: take ", armed_->id, " is armed for ", frames,
+                                                       " frames, not ", request.frames(),
+                                                       "; capture it as armed, or abort it"));
+      }
+      take = std::move(armed_);
+      running_ = take.get();
+    } else if (state_ != "idle" && state_ != "error") {
+      return absl::FailedPreconditionError(absl::StrCat("capture: the session is ", state_, "; wait for it"));
+    }
+  }
+  if (take == nullptr) {
+    STAGE_ASSIGN_OR_RETURN(take, ArmTake(request, on_event));
+    std::lock_guard<std::mutex> lock(mutex_);
+    running_ = take.get();
+  }
+  return RunArmedTake(std::move(take), on_event);
+}
+
+absl::StatusOr<v1::TakeSummary> Capturer::RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event) {
+  const bool abort_on_failure = rig_.rig.controller().node_failure_policy() == v1::NODE_FAILURE_POLICY_ABORT;
+  if (take->not_ready.empty() || !abort_on_failure) {
+    if (StartTake(*take, on_event)) WatchTake(*take, on_event);
+  }
+  auto summary = FinalizeTake(*take, on_event);
+  std::lock_guard<std::mutex> lock(mutex_);
+  running_ = nullptr;
+  return summary;
+}
+
+absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const CaptureEventFn& on_event) {
+  auto emit = [&](const v1::CaptureEvent& e) {
+    if (on_event) on_event(e);
+  };
+  auto say = [&](const std::string& m) {
+    Logger("controller")->info("{}", m);
+    v1::CaptureEvent e;
+    e.set_message(m);
+    emit(e);
+  };
+  if (state() != "aborting") SetState("finalizing", on_event);
+  int64_t slots;
+  Gaps gaps;
+  bool aborted;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    slots = take.ran ? take.slots : 0;
+    gaps = take.paused;
+    aborted = take.aborted;
+  }
+  v1::TakeSummary& summary = take.summary;
+  summary.set_slots(slots);
+  summary.set_aborted(aborted);
+  for (const auto& [first, end] : gaps) {
+    v1::SlotRange* r = summary.add_paused();
+    r->set_first(first);
+    r->set_end(end);
+  }
+
+  // Every camera accounts for its slots, all at once (a burst offload takes its time).
+  std::vector<v1::CameraTakeReport> reports(take.cams.size());
+  std::vector<char> reported(take.cams.size(), 0);  // not vector<bool>: set from several threads
+  {
+    std::vector<std::thread> finishing;
+    std::atomic<size_t> done{0};
+    for (size_t i = 0; i < take.cams.size(); ++i) {
+      if (!take.cams[i].armed) continue;
+      finishing.emplace_back([&, i] {
+        Take::Cam& c = take.cams[i];
+        v1::FinishCameraRequest finish;
+        finish.set_take_id(take.id);
+        finish.set_drain_ms(static_cast<uint32_t>(take.ran ? options_.drain_ms : 1));
+        grpc::ClientContext context;
+        Deadline(&context, options_.drain_ms + 600'000);
+        grpc::Status s = c.stub->Finish(&context, finish, &reports[i]);
+        if (s.ok()) {
+          reported[i] = true;
+        } else {
+          c.error = s.error_message();
+        }
+        done.fetch_add(1);
+      });
+    }
+    // Meanwhile: what the burst cameras have written of what they held (their offload after the take).
+    int64_t to_write = 0;
+    for (size_t i = 0; i < take.cams.size(); ++i) {
+      if (take.cams[i].armed && take.cams[i].config->role() == v1::CAMERA_ROLE_HIGH_SPEED)
+        to_write += ExpectedFrames(*take.cams[i].timing, slots, gaps);
+    }
+    while (done.load() < finishing.size()) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(500));
+      if (done.load() >= finishing.size() || to_write == 0) continue;
       v1::CaptureProgress progress;
-      int64_t total = 0;
-      for (Cam& c : cams) {
-        const std::string role = CameraRoleName(c.config->role());
-        (*progress.mutable_expected_by_role())[role] += c.expected;
-        progress.set_frames_expected(progress.frames_expected() + c.expected);
-        if (!c.armed) continue;
+      progress.set_phase("offloading");
+      progress.set_frames_expected(to_write);
+      for (Take::Cam& c : take.cams) {
+        if (!c.armed || c.config->role() != v1::CAMERA_ROLE_HIGH_SPEED) continue;
         grpc::ClientContext context;
         Deadline(&context, 1000);
         v1::CameraStats stats;
-        if (!c.stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok() || stats.take_id() != take_id) continue;
-        const int64_t got = std::min(stats.take_frames_received(), c.expected);
-        (*progress.mutable_received_by_role())[role] += got;
-        progress.set_frames_received(progress.frames_received() + got);
-        progress.set_frames_written(progress.frames_written() + stats.take_frames_written());
-        total += got;
+        if (c.stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok() && stats.take_id() == take.id) {
+          progress.set_frames_written(progress.frames_written() + stats.take_frames_written());
+        }
       }
-      progress.set_elapsed_s(std::chrono::duration<double>(Clock::now() - start).count());
       v1::CaptureEvent e;
       *e.mutable_progress() = progress;
       emit(e);
-      if (total >= progress.frames_expected()) break;
-      if (total != last_total) {
-        last_total = total;
-        last_change = Clock::now();
-      }
-      // Silence ends the watch: no camera got a frame for a while (a node down, the bus ended, frames lost).
-      if (Clock::now() - last_change > std::chrono::milliseconds(options_.drain_ms) + std::chrono::seconds(5)) {
-        say("frames stopped coming before every camera had all of its frames; finishing the take");
-        break;
-      }
-      std::this_thread::sleep_for(std::chrono::milliseconds(250));
     }
+    for (std::thread& t : finishing) t.join();
   }
-
-  // Finish: every camera accounts for its slots; lights go dark.
-  SetState("finalizing", on_event);
   std::vector<storage::LedgerEntry> ledger;
   v1::LedgerCounts* total = summary.mutable_total();
+  auto add = [&](v1::LedgerCounts* cs, storage::LedgerEntry e) {
+    for (v1::LedgerCounts* c : {cs, total}) {
+      if (e.reason == storage::LossReason::kPaused) {
+        c->set_paused(c->paused() + 1);
+      } else {
+        Add(c, e.reason);
+      }
+    }
+    ledger.push_back(std::move(e));
+  };
   uint64_t bytes = 0;
-  for (Cam& c : cams) {
+  for (size_t i = 0; i < take.cams.size(); ++i) {
+    Take::Cam& c = take.cams[i];
+    const v1::CameraTakeReport& report = reports[i];
     v1::CameraTakeSummary* cs = summary.add_cameras();
     cs->set_camera_id(c.config->id());
     cs->set_role(CameraRoleName(c.config->role()));
-    v1::CameraTakeReport report;
-    bool reported = false;
-    if (c.armed) {
-      v1::FinishCameraRequest finish;
-      finish.set_take_id(take_id);
-      finish.set_drain_ms(static_cast<uint32_t>(options_.drain_ms));
-      grpc::ClientContext context;
-      Deadline(&context, options_.drain_ms + 600'000);  // a burst offload takes its time
-      grpc::Status s = c.stub->Finish(&context, finish, &report);
-      if (s.ok()) {
-        reported = true;
-      } else {
-        c.error = s.error_message();
-      }
+    std::vector<int64_t> expected, in_gaps;
+    CameraSlots(*c.timing, slots, gaps, &expected, &in_gaps);
+    for (int64_t k : in_gaps) {
+      add(cs->mutable_counts(), {c.config->id(), k, static_cast<int32_t>(k % take.cycle), storage::LossReason::kPaused,
+                                 std::nullopt, "the take was paused"});
     }
-    const uint32_t d = std::max<uint32_t>(1, c.timing->divider());
-    if (reported) {
+    // What the camera says of each slot; a node that cannot report leaves what its file holds.
+    std::map<int64_t, storage::LedgerEntry> known;
+    if (reported[i]) {
       cs->set_path(report.path());
       cs->set_bytes(report.bytes());
       cs->set_error(report.error());
       bytes += report.bytes();
       for (const v1::SlotRecord& r : report.slots()) {
-        storage::LedgerEntry e{c.config->id(),
-                               r.slot(),
-                               r.pattern(),
-                               static_cast<storage::LossReason>(r.reason()),
-                               r.has_frame_id() ? std::optional<uint64_t>(r.frame_id()) : std::nullopt,
-                               r.detail()};
-        Add(cs->mutable_counts(), e.reason);
-        Add(total, e.reason);
-        ledger.push_back(std::move(e));
+        known[r.slot()] = {c.config->id(),
+                           r.slot(),
+                           r.pattern(),
+                           static_cast<storage::LossReason>(r.reason()),
+                           r.has_frame_id() ? std::optional<uint64_t>(r.frame_id()) : std::nullopt,
+                           r.detail()};
       }
-      if (c.config->role() == v1::CAMERA_ROLE_HIGH_SPEED && have_signature_) {
-        std::map<int64_t, double> brightness;
-        for (int i = 0; i < report.brightness_slots_size() && i < report.brightness_size(); ++i) {
-          brightness[report.brightness_slots(i)] = report.brightness(i);
-        }
-        const timing::AlignmentReport a = timing::CheckAlignment(signature_, static_cast<int>(cycle), brightness);
-        v1::AlignmentSummary* as = summary.add_alignment();
-        as->set_camera_id(c.config->id());
-        as->set_ok(a.ok);
-        as->set_shift(a.shift);
-        as->set_residual(a.residual);
-        for (int64_t b : a.bad_cycles) as->add_bad_cycles(b);
-        as->set_message(a.message);
-      }
-    } else {
-      // The node never armed or cannot report: every slot it was to fire in is lost to it.
+    } else if (take.ran) {
       cs->set_error(c.error.empty() ? "did not report" : c.error);
-      for (int64_t k = c.timing->slot_phase(); k < slots; k += d) {
-        storage::LedgerEntry e{
-            c.config->id(), k,          static_cast<int32_t>(k % cycle), storage::LossReason::kNodeDown,
-            std::nullopt,   cs->error()};
-        Add(cs->mutable_counts(), e.reason);
-        Add(total, e.reason);
-        ledger.push_back(std::move(e));
+      auto file = storage::FrameFileReader::Open(c.path);
+      auto records = file.ok() ? (*file)->Records() : absl::StatusOr<std::vector<storage::FrameRecord>>(file.status());
+      if (records.ok()) {
+        cs->set_path(c.path);
+        std::error_code ec;
+        cs->set_bytes(fs::file_size(c.path, ec));
+        bytes += cs->bytes();
+        for (const storage::FrameRecord& r : *records) {
+          if (r.status != storage::FrameStatus::kOk && r.status != storage::FrameStatus::kIncomplete) continue;
+          known[r.slot] = {
+              c.config->id(),
+              r.slot,
+              r.pattern,
+              r.status == storage::FrameStatus::kOk ? storage::LossReason::kNone : storage::LossReason::kIncomplete,
+              r.frame_id,
+              "in the frame file the node left"};
+        }
+        say(absl::StrCat(c.config->id(), " did not report (", cs->error(), "): ", known.size(),
+                         " frames recovered from ", c.path));
       }
     }
+    const size_t first_entry = ledger.size();
+    for (int64_t k : expected) {
+      auto it = known.find(k);
+      if (it != known.end() && it->second.reason != storage::LossReason::kPaused) {
+        add(cs->mutable_counts(), it->second);
+      } else {
+        add(cs->mutable_counts(),
+            {c.config->id(), k, static_cast<int32_t>(k % take.cycle), storage::LossReason::kNodeDown, std::nullopt,
+             reported[i] ? "not in the camera's report" : cs->error()});
+      }
+    }
+    std::vector<int64_t> lost_by_pattern(static_cast<size_t>(take.cycle), 0);
+    for (size_t j = first_entry; j < ledger.size(); ++j) {
+      if (!ledger[j].stored()) ++lost_by_pattern[static_cast<size_t>(ledger[j].pattern) % lost_by_pattern.size()];
+    }
+    for (int64_t n : lost_by_pattern) cs->add_lost_by_pattern(n);
+    if (reported[i] && c.config->role() == v1::CAMERA_ROLE_HIGH_SPEED && have_signature_ && take.ran) {
+      std::map<int64_t, double> brightness;
+      for (int j = 0; j < report.brightness_slots_size() && j < report.brightness_size(); ++j) {
+        brightness[report.brightness_slots(j)] = report.brightness(j);
+      }
+      const timing::AlignmentReport a = timing::CheckAlignment(signature_, static_cast<int>(take.cycle), brightness);
+      v1::AlignmentSummary* as = summary.add_alignment();
+      as->set_camera_id(c.config->id());
+      as->set_ok(a.ok);
+      as->set_shift(a.shift);
+      as->set_residual(a.residual);
+      for (int64_t b : a.bad_cycles) as->add_bad_cycles(b);
+      as->set_message(a.message);
+    }
   }
-  for (size_t i = 0; i < lights.size(); ++i) {
+  for (size_t i = 0; i < take.lights.size(); ++i) {
     v1::DisarmLightRequest disarm;
-    disarm.set_take_id(take_id);
+    disarm.set_take_id(take.id);
     grpc::ClientContext context;
     Deadline(&context, 2000);
     v1::LightStats stats;
-    if (!lights[i]->Disarm(&context, disarm, &stats).ok()) {
+    if (!take.lights[i]->Disarm(&context, disarm, &stats).ok()) {
       say(absl::StrCat("light node ", rig_.rig.light_nodes(static_cast<int>(i)).id(), " did not disarm"));
     }
   }
-  STAGE_RETURN_IF_ERROR(catalog_->RecordLedger(take_id, ledger));
+
+  if (take.ran && take.ground_truth && slots > 0) {
+    // The simulated world's truth of the take's frames: what processing is judged against.
+    v1::GroundTruthRequest gt;
+    gt.set_dir(take.dir + "/ground_truth");
+    gt.set_first_frame(take.first_bus / take.cycle);
+    gt.set_frames((slots + take.cycle - 1) / take.cycle);
+    say(absl::StrCat("writing the ground truth of ", gt.frames(), " frame(s) to ", gt.dir()));
+    grpc::ClientContext context;
+    Deadline(&context, 1'800'000);
+    v1::GroundTruthReply written;
+    grpc::Status s = take.world->WriteGroundTruth(&context, gt, &written);
+    if (s.ok()) {
+      summary.set_ground_truth_dir(gt.dir());
+    } else if (s.error_code() != grpc::StatusCode::UNIMPLEMENTED) {
+      say(absl::StrCat("no ground truth: ", s.error_message()));
+    }
+  }
 
   // The verdict, and what to do about it.
   std::vector<std::string> hints;
+  if (aborted) {
+    hints.push_back(take.ran ? absl::StrCat("aborted by the operator at slot ", slots, " (",
+                                            take.done_slots / take.cycle, " of ", take.capture_slots / take.cycle,
+                                            " frames ran); what was recorded is kept")
+                             : "aborted by the operator before it started");
+  }
+  if (!take.ran && !aborted) hints.push_back("the sync generator never ran");
   bool aligned = true;
   for (const auto& a : summary.alignment()) {
     if (!a.ok()) {
@@ -416,7 +930,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
     hints.push_back(absl::StrCat(cs.camera_id(), " lost ", lost, " (", absl::StrJoin(why, ", "), ")"));
   }
   std::string outcome = "COMPLETE";
-  if (!ran || total->stored() == 0) {
+  if (!take.ran || aborted || total->stored() == 0) {
     outcome = "FAILED";
   } else if (total->stored() < total->expected() || !aligned) {
     outcome = "DEGRADED";
@@ -431,19 +945,30 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
     }
     summary.set_hint(absl::StrCat(outcome == "COMPLETE" ? "" : "retake? ", absl::StrJoin(hints, "; ")));
   }
-  row.state = outcome == "COMPLETE" ? "complete" : outcome == "DEGRADED" ? "degraded" : "failed";
+  storage::TakeRow& row = take.row;
+  const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
+  row.state = aborted ? "aborted" : outcome == "COMPLETE" ? "complete" : outcome == "DEGRADED" ? "degraded" : "failed";
   row.outcome = outcome;
-  row.t0_unix_ns = now_unix;
+  row.slots = slots;
+  row.duration_s = static_cast<double>(slots) / base.slot_rate_hz();
   row.frames_expected = total->expected();
   row.frames_stored = total->stored();
   row.size_bytes = static_cast<int64_t>(bytes);
-  STAGE_RETURN_IF_ERROR(catalog_->UpdateTake(row));
-  STAGE_RETURN_IF_ERROR(WriteTakeJson(dir, rig_.rig, schedule_, summary, row.state));
+  absl::Status kept = catalog_->RecordLedger(take.id, ledger);
+  if (kept.ok()) kept = catalog_->UpdateTake(row);
+  if (kept.ok()) kept = WriteTakeJson(take.dir, rig_.rig, schedule_, summary, row.state);
+  if (!kept.ok()) {
+    // The take's records are incomplete: the operator must know before the next take.
+    say(absl::StrCat("take ", take.id, ": its records could not be kept: ", kept.message()));
+    SetState("error", on_event);
+    return kept;
+  }
   v1::CaptureEvent last;
   *last.mutable_summary() = summary;
   emit(last);
   Logger("controller")
-      ->info("take {}: {} ({} of {} frames stored)", take_id, outcome, total->stored(), total->expected());
+      ->info("take {}: {} ({} of {} frames stored)", take.id, outcome, total->stored(), total->expected());
+  SetState("idle", on_event);
   return summary;
 }
 

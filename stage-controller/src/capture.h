@@ -1,11 +1,18 @@
 // Capturing takes (docs/operators.md): the session state machine and one take end to end. Arm every light node with
 // its table and every camera node with its plan, run the sync generator (the simulated world's bus; a hardware slot
-// clock later) for the take's slots, watch progress, finish every camera, and keep the completeness ledger, the
-// alignment self-test and the outcome in the take catalog and in take.json.
+// clock later) for the take's slots, watch progress and previews, pause, resume or abort on request, finish every
+// camera, and keep the completeness ledger, the alignment self-test and the outcome in the take catalog and in
+// take.json.
+//
+// Session states: idle -> configuring -> armed -> capturing (<-> paused) -> finalizing -> idle; aborting on the way
+// from armed, capturing or paused to finalizing; error when a take's records could not be kept (the next take may
+// start from there). Every transition is logged and counted (generation(), for watchers).
 #pragma once
 
-#include <atomic>
+#include <chrono>
+#include <condition_variable>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -28,27 +35,59 @@ struct CaptureOptions {
   int arm_timeout_ms = 10'000;
   // A take's frames may keep arriving this long after the last one came before the cameras are finished, ms.
   int drain_ms = 3'000;
+  // How often the controller asks each camera for its latest preview during a take, ms.
+  int preview_interval_ms = 500;
+  // Longest side of a preview, px.
+  uint32_t preview_size = 256;
 };
+
+using CaptureEventFn = std::function<void(const v1::CaptureEvent&)>;
 
 class Capturer {
  public:
   // `schedule`: the rig's compiled schedule (verified without errors, or Capture refuses).
   static absl::StatusOr<std::unique_ptr<Capturer>> Create(LoadedRig rig, v1::Schedule schedule, int timing_errors,
                                                           CaptureOptions options);
+  ~Capturer();
 
-  // Runs one take; `on_event` gets states, progress and the summary (last). FailedPrecondition while another take
-  // runs, naming its state.
-  absl::StatusOr<v1::TakeSummary> Capture(const v1::CaptureRequest& request,
-                                          const std::function<void(const v1::CaptureEvent&)>& on_event);
+  // Arms a take and leaves it armed for Capture (or Abort). FailedPrecondition unless idle (or error).
+  absl::StatusOr<v1::TakeSummary> Arm(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
+  // Runs one take to its end, arming it first unless one is armed; `on_event` gets states, progress and the summary
+  // (last). FailedPrecondition while another take runs, naming its state.
+  absl::StatusOr<v1::TakeSummary> Capture(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
+  // Pause at the next frame boundary, resume after it, abort (see controller.proto). FailedPrecondition names the
+  // state when the request does not apply.
+  absl::StatusOr<v1::SessionReply> Pause();
+  absl::StatusOr<v1::SessionReply> Resume();
+  absl::StatusOr<v1::SessionReply> Abort();
 
-  // "idle", "configuring", "armed", "capturing", "finalizing".
+  // See the state list above.
   std::string state() const;
+  // Counts state changes; WaitForChange blocks until it differs from `seen` or `timeout` passes.
+  uint64_t generation() const;
+  uint64_t WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const;
+
   absl::StatusOr<v1::TakeList> ListTakes() const;
   absl::StatusOr<v1::TakeSummary> GetTake(const std::string& id) const;
+  // The latest preview a camera sent during a take. NotFound before there is one, or for an unknown camera.
+  absl::StatusOr<v1::Preview> GetPreview(const std::string& camera_id) const;
 
  private:
+  struct Take;
   Capturer() = default;
-  void SetState(const std::string& state, const std::function<void(const v1::CaptureEvent&)>& on_event);
+  void SetState(const std::string& state, const CaptureEventFn& on_event = nullptr);
+  // Creates the take and arms every node for it (state configuring, then armed).
+  absl::StatusOr<std::unique_ptr<Take>> ArmTake(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
+  // Starts the sync generator for the armed take; false when it could not start.
+  bool StartTake(Take& take, const CaptureEventFn& on_event);
+  // Watches progress (and previews) until every frame is in, the take is aborted, or frames stop coming.
+  void WatchTake(Take& take, const CaptureEventFn& on_event);
+  // Finishes every camera, disarms the lights, keeps the ledger and the outcome.
+  absl::StatusOr<v1::TakeSummary> FinalizeTake(Take& take, const CaptureEventFn& on_event);
+  // Sends every camera the take's current plan (its length and gaps; T0 once it starts).
+  void UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event);
+  absl::StatusOr<v1::TakeSummary> RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event);
+
   LoadedRig rig_;
   v1::Schedule schedule_;
   int timing_errors_ = 0;
@@ -56,8 +95,18 @@ class Capturer {
   timing::Signature signature_;
   bool have_signature_ = false;
   std::unique_ptr<storage::Catalog> catalog_;
+
+  // Pause, resume and abort one at a time (each talks to the world and the cameras).
+  std::mutex control_mutex_;
   mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
   std::string state_ = "idle";  // guarded by mutex_
+  uint64_t generation_ = 0;     // guarded by mutex_
+  // The armed take no Capture has claimed yet (stagectl arm); guarded by mutex_.
+  std::unique_ptr<Take> armed_;
+  // The take being captured (owned by its Capture call); guarded by mutex_.
+  Take* running_ = nullptr;
+  std::map<std::string, v1::Preview> previews_;  // by camera id; guarded by mutex_
 };
 
 }  // namespace stage::controller

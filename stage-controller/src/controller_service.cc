@@ -132,13 +132,18 @@ grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
   // Wake at least this often to notice a cancelled call or a shutting-down server.
   auto tick = std::min<std::chrono::milliseconds>(heartbeat, std::chrono::milliseconds(200));
   uint64_t seen = monitor_->generation();
+  // The session's state changes (capturing, paused, ...) are sent as they happen too.
+  uint64_t seen_session = capturer_ ? capturer_->generation() : 0;
   auto last_sent = std::chrono::steady_clock::now();
   if (!writer->Write(Status())) return grpc::Status::OK;
   while (!context->IsCancelled()) {
-    uint64_t now_gen = monitor_->WaitForChange(seen, tick);
+    uint64_t now_gen = monitor_->WaitForChange(seen, capturer_ ? std::chrono::milliseconds(20) : tick);
+    if (now_gen == seen && capturer_) capturer_->WaitForChange(seen_session, tick);
+    const uint64_t session = capturer_ ? capturer_->generation() : 0;
     auto now = std::chrono::steady_clock::now();
-    if (now_gen == seen && now - last_sent < heartbeat) continue;
+    if (now_gen == seen && session == seen_session && now - last_sent < heartbeat) continue;
     seen = now_gen;
+    seen_session = session;
     last_sent = now;
     if (!writer->Write(Status())) break;  // the client went away
   }
@@ -264,6 +269,53 @@ grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::
     if (!context->IsCancelled()) writer->Write(e);  // the take goes on if the operator's console goes away
   });
   if (!summary.ok()) return ToGrpcStatus(summary.status());
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,
+                                    grpc::ServerWriter<v1::CaptureEvent>* writer) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  std::mutex write_mutex;
+  auto summary = capturer_->Arm(*request, [&](const v1::CaptureEvent& e) {
+    std::lock_guard<std::mutex> lock(write_mutex);
+    if (!context->IsCancelled()) writer->Write(e);
+  });
+  if (!summary.ok()) return ToGrpcStatus(summary.status());
+  v1::CaptureEvent last;
+  *last.mutable_summary() = *summary;
+  writer->Write(last);
+  return grpc::Status::OK;
+}
+
+namespace {
+grpc::Status Reply(const absl::StatusOr<v1::SessionReply>& r, v1::SessionReply* response) {
+  if (!r.ok()) return ToGrpcStatus(r.status());
+  *response = *r;
+  return grpc::Status::OK;
+}
+}  // namespace
+
+grpc::Status ControllerService::Pause(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  return Reply(capturer_->Pause(), response);
+}
+
+grpc::Status ControllerService::Resume(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  return Reply(capturer_->Resume(), response);
+}
+
+grpc::Status ControllerService::Abort(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  return Reply(capturer_->Abort(), response);
+}
+
+grpc::Status ControllerService::GetPreview(grpc::ServerContext*, const v1::ControllerPreviewRequest* request,
+                                           v1::Preview* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  auto preview = capturer_->GetPreview(request->camera_id());
+  if (!preview.ok()) return ToGrpcStatus(preview.status());
+  *response = std::move(*preview);
   return grpc::Status::OK;
 }
 

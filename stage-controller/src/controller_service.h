@@ -37,6 +37,13 @@ class ControllerService final : public v1::StageController::Service {
                        grpc::ServerWriter<v1::CaptureEvent>* writer) override;
   grpc::Status ListTakes(grpc::ServerContext*, const v1::ListTakesRequest*, v1::TakeList* response) override;
   grpc::Status GetTake(grpc::ServerContext*, const v1::GetTakeRequest* request, v1::TakeSummary* response) override;
+  grpc::Status Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,
+                   grpc::ServerWriter<v1::CaptureEvent>* writer) override;
+  grpc::Status Pause(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) override;
+  grpc::Status Resume(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) override;
+  grpc::Status Abort(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) override;
+  grpc::Status GetPreview(grpc::ServerContext*, const v1::ControllerPreviewRequest* request,
+                          v1::Preview* response) override;
 
   v1::StageStatus Status() const;
 

@@ -96,6 +96,7 @@ std::string ToJson(const google::protobuf::Message& message) {
   google::protobuf::util::JsonPrintOptions options;
   options.add_whitespace = true;
   options.preserve_proto_field_names = true;
+  options.always_print_primitive_fields = true;  // scripts see "ok": false, not a missing key
   std::string out;
   (void)google::protobuf::util::MessageToJsonString(message, &out, options);
   return out;
@@ -320,10 +321,34 @@ void PrintSummary(const stage::v1::TakeSummary& t) {
     }
   }
   for (const auto& a : t.alignment()) std::cout << "  self-test " << a.camera_id() << ": " << a.message() << "\n";
+  if (t.total().paused() > 0) {
+    std::vector<std::string> gaps;
+    for (const auto& g : t.paused()) gaps.push_back(absl::StrCat(g.first(), "-", g.end() - 1));
+    std::cout << "  paused over slots " << absl::StrJoin(gaps, ", ") << " (" << t.total().paused()
+              << " camera slots, not lost)\n";
+  }
+  if (!t.ground_truth_dir().empty()) std::cout << "  ground truth (simulated stage): " << t.ground_truth_dir() << "\n";
   if (!t.hint().empty()) std::cout << "  " << t.hint() << "\n";
 }
 
-int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json) {
+// The ledger as a camera x pattern grid: '.' nothing lost, 1-9 frames lost, '+' more.
+void PrintGrid(const stage::v1::TakeSummary& t) {
+  size_t patterns = 0;
+  for (const auto& c : t.cameras()) patterns = std::max(patterns, static_cast<size_t>(c.lost_by_pattern_size()));
+  if (patterns == 0) return;
+  std::string ruler;
+  for (size_t p = 0; p < patterns; ++p) ruler += p % 10 == 0 ? static_cast<char>('0' + (p / 10) % 10) : ' ';
+  std::cout << "  lost frames by camera x pattern ('.' none):\n" << absl::StrFormat("    %-10s %s\n", "pattern", ruler);
+  for (const auto& c : t.cameras()) {
+    std::string row;
+    for (int64_t n : c.lost_by_pattern()) row += n == 0 ? '.' : n > 9 ? '+' : static_cast<char>('0' + n);
+    std::cout << absl::StrFormat("    %-10s %s\n", c.camera_id(), row);
+  }
+}
+
+// Capture (or Arm, `arm_only`): shows the session's events on stderr and the take's summary on stdout.
+int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json,
+            bool arm_only = false, bool skip_ground_truth = false) {
   std::string address;
   auto stub = Connect(c, &address);
   if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
@@ -332,7 +357,8 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
   request.set_frames(frames);
   request.set_seconds(seconds);
   request.set_name(name);
-  auto reader = (*stub)->Capture(&context, request);
+  request.set_skip_ground_truth(skip_ground_truth);
+  auto reader = arm_only ? (*stub)->Arm(&context, request) : (*stub)->Capture(&context, request);
   stage::v1::CaptureEvent event;
   stage::v1::TakeSummary summary;
   bool have_summary = false;
@@ -355,6 +381,13 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
         const auto got = p.received_by_role().count(role) ? p.received_by_role().at(role) : 0;
         absl::StrAppend(&groups, "  ", role, " ", got, "/", expected);
       }
+      if (p.phase() == "offloading") {
+        // Burst cameras write what they held after the take.
+        std::cerr << (tty ? "\r" : "")
+                  << absl::StrFormat("offloading: %d/%d frames written", p.frames_written(), p.frames_expected())
+                  << (tty ? "" : "\n") << std::flush;
+        continue;
+      }
       const double frac = p.frames_expected() > 0 ? static_cast<double>(p.frames_received()) / p.frames_expected() : 0;
       const int bar = static_cast<int>(frac * 30);
       std::cerr << (tty ? "\r" : "") << "[" << std::string(static_cast<size_t>(bar), '#')
@@ -371,6 +404,15 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
   grpc::Status rpc = reader->Finish();
   if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
   if (!have_summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  if (arm_only) {
+    if (json) {
+      std::cout << ToJson(summary) << "\n";
+    } else {
+      std::cout << "take " << summary.take_id() << " armed: " << summary.frames() << " frames into " << summary.dir()
+                << "\n  `stagectl capture` starts it, `stagectl abort` drops it\n";
+    }
+    return 0;
+  }
   if (json) {
     std::cout << ToJson(summary) << "\n";
   } else {
@@ -378,6 +420,52 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
   }
   if (summary.outcome() == "COMPLETE") return 0;
   return summary.outcome() == "DEGRADED" ? kExitDegraded : 1;
+}
+
+// Pause, resume or abort the session's take.
+int Session(const Connection& c, const std::string& what, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::SessionReply reply;
+  stage::v1::SessionRequest request;
+  grpc::Status rpc = what == "pause"    ? (*stub)->Pause(&context, request, &reply)
+                     : what == "resume" ? (*stub)->Resume(&context, request, &reply)
+                                        : (*stub)->Abort(&context, request, &reply);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (json) {
+    std::cout << ToJson(reply) << "\n";
+  } else {
+    std::cout << reply.message() << "\n";
+  }
+  return 0;
+}
+
+// A camera's latest preview, written as PNG.
+int Preview(const Connection& c, const std::string& camera, const std::string& out, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::ControllerPreviewRequest request;
+  request.set_camera_id(camera);
+  stage::v1::Preview preview;
+  grpc::Status rpc = (*stub)->GetPreview(&context, request, &preview);
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  const std::string path = out.empty() ? camera + "-preview.png" : out;
+  if (absl::Status s = stage::WriteFileAtomically(path, preview.png()); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (json) {
+    stage::v1::Preview meta = preview;
+    meta.clear_png();
+    std::cout << ToJson(meta) << "\n";
+  } else {
+    std::cout << camera << ": " << preview.width() << "x" << preview.height() << " preview of take "
+              << preview.frame().take_id() << " slot " << preview.frame().slot() << " -> " << path << "\n";
+  }
+  return 0;
 }
 
 int Takes(const Connection& c, bool json) {
@@ -419,6 +507,7 @@ int TakeShow(const Connection& c, const std::string& id, bool json) {
     std::cout << ToJson(take) << "\n";
   } else {
     PrintSummary(take);
+    PrintGrid(take);
   }
   return 0;
 }
@@ -428,6 +517,8 @@ struct FaultFlags {
   std::string target;
   bool dead = false, alive = false;
   std::optional<double> delay_us, miss_triggers, drop_frames, clock_offset_us, clock_drift_ppm, crash_at_s;
+  std::optional<int> extra_steps;
+  std::vector<int64_t> drop_slots;
 };
 
 // Injects a fault into the running simulated stage's world (docs/simulator.md#faults).
@@ -451,6 +542,8 @@ int SimFault(const Connection& c, const FaultFlags& f) {
   if (f.clock_offset_us) fault.set_clock_offset_us(*f.clock_offset_us);
   if (f.clock_drift_ppm) fault.set_clock_drift_ppm(*f.clock_drift_ppm);
   if (f.crash_at_s) fault.set_crash_at_s(*f.crash_at_s);
+  if (f.extra_steps) fault.set_extra_steps(*f.extra_steps);
+  for (int64_t k : f.drop_slots) fault.add_drop_slots(k);
   auto stub = stage::v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
   grpc::ClientContext context;
   SetDeadline(&context, c);
@@ -550,6 +643,36 @@ int main(int argc, char** argv) {
   frames_opt->excludes(seconds_opt);
   capture->add_option("--name", capture_name, "The take's name in the catalog");
   capture->add_flag("--json", capture_json, "Print the take's summary as JSON (progress still goes to stderr)");
+  bool no_ground_truth = false;
+  capture->add_flag("--no-ground-truth", no_ground_truth,
+                    "Simulated stage: do not write the world's ground truth of the take into its directory");
+  int64_t arm_frames = 0;
+  double arm_seconds = 0;
+  std::string arm_name;
+  bool arm_json = false;
+  CLI::App* arm = app.add_subcommand(
+      "arm", "Arm a take and leave it armed: every node gets its table or plan now; `stagectl capture` starts it");
+  auto* arm_frames_opt = arm->add_option("--frames", arm_frames, "Frames (cycles of the pattern set) to capture")
+                             ->check(CLI::Range(int64_t{1}, int64_t{1} << 30));
+  auto* arm_seconds_opt =
+      arm->add_option("--seconds", arm_seconds, "Seconds of the stage to capture (rounded up to frames)")
+          ->check(CLI::PositiveNumber);
+  arm_frames_opt->excludes(arm_seconds_opt);
+  arm->add_option("--name", arm_name, "The take's name in the catalog");
+  arm->add_flag("--json", arm_json, "Print the armed take as JSON");
+  bool session_json = false;
+  CLI::App* pause = app.add_subcommand("pause", "Pause the take at its next frame boundary (it stays one take)");
+  CLI::App* resume = app.add_subcommand("resume", "Resume the paused take (the pause is a gap in its ledger)");
+  CLI::App* abort_cmd =
+      app.add_subcommand("abort", "Abort the armed, capturing or paused take; what it recorded is kept");
+  for (CLI::App* cmd : {pause, resume, abort_cmd}) cmd->add_flag("--json", session_json, "Print JSON for scripts");
+  std::string preview_camera, preview_out;
+  bool preview_json = false;
+  CLI::App* preview =
+      app.add_subcommand("preview", "Save a camera's latest preview from the take (a small PNG) to a file");
+  preview->add_option("camera", preview_camera, "Camera id")->required();
+  preview->add_option("-o,--output", preview_out, "PNG file to write (default CAMERA-preview.png)");
+  preview->add_flag("--json", preview_json, "Print the preview's metadata as JSON");
   bool takes_json = false;
   CLI::App* takes = app.add_subcommand("takes", "List the takes in the catalog: state, outcome, frames, size");
   takes->add_flag("--json", takes_json, "Print JSON for scripts");
@@ -580,6 +703,9 @@ int main(int argc, char** argv) {
   fault->add_option("--clock-offset-us", ff.clock_offset_us, "Camera: clock offset against the world, us");
   fault->add_option("--clock-drift-ppm", ff.clock_drift_ppm, "Camera: clock drift, ppm");
   fault->add_option("--crash-at-s", ff.crash_at_s, "Light node or camera: dies once the world passes this time, s");
+  fault->add_option("--drop-slots", ff.drop_slots, "Camera: loses the frames of these world slots");
+  fault->add_option("--extra-steps", ff.extra_steps,
+                    "Light node: its board steps this many extra times at its next edge (its table runs ahead)");
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -591,11 +717,19 @@ int main(int argc, char** argv) {
   if (rehearse->parsed()) return TimingRehearse(c, rehearse_slots, rehearse_json);
   if (fault->parsed()) return SimFault(c, ff);
   if (capture->parsed()) {
-    if (capture_frames == 0 && capture_seconds == 0) {
-      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("capture: give --frames N or --seconds S"));
-    }
-    return Capture(c, capture_frames, capture_seconds, capture_name, capture_json);
+    // Without --frames or --seconds: the armed take as armed.
+    return Capture(c, capture_frames, capture_seconds, capture_name, capture_json, false, no_ground_truth);
   }
+  if (arm->parsed()) {
+    if (arm_frames == 0 && arm_seconds == 0) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("arm: give --frames N or --seconds S"));
+    }
+    return Capture(c, arm_frames, arm_seconds, arm_name, arm_json, /*arm_only=*/true);
+  }
+  if (pause->parsed()) return Session(c, "pause", session_json);
+  if (resume->parsed()) return Session(c, "resume", session_json);
+  if (abort_cmd->parsed()) return Session(c, "abort", session_json);
+  if (preview->parsed()) return Preview(c, preview_camera, preview_out, preview_json);
   if (takes->parsed()) return Takes(c, takes_json);
   if (take_show->parsed()) return TakeShow(c, take_id, take_json);
   return 2;

@@ -1,0 +1,67 @@
+// A fixture for suites that run the full simulated stage (stage-sim) as a user does: StartStage() brings it up and
+// reads its endpoint file; TearDown() takes it down and makes sure no process it started is left.
+#pragma once
+
+#include <google/protobuf/util/json_util.h>
+#include <signal.h>
+
+#include <chrono>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "gtest/gtest.h"
+#include "stage/common/subprocess.h"
+#include "stage/v1/sim.pb.h"
+#include "test_support.h"
+
+namespace stage::testing {
+
+inline bool Alive(pid_t pid) { return kill(pid, 0) == 0; }
+
+class SimulatedStageTest : public ::testing::Test {
+ protected:
+  void StartStage(std::vector<std::string> extra = {}) {
+    std::vector<std::string> argv = {BinDir() + "/stage-sim", "--run-dir", run_dir_.path(), "--grace-ms", "1500"};
+    for (auto& a : extra) argv.push_back(std::move(a));
+    auto sim = Subprocess::Spawn({.argv = argv, .stderr_path = run_dir_.path() + "/stage-sim.log"});
+    ASSERT_TRUE(sim.ok()) << sim.status();
+    sim_ = std::move(*sim);
+    // stage-sim writes the endpoint file once every node is up.
+    std::string path = run_dir_.path() + "/endpoints.json";
+    auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(90);
+    while (!std::filesystem::exists(path)) {
+      ASSERT_FALSE(sim_->Poll().has_value()) << "stage-sim exited: " << ReadFile(run_dir_.path() + "/stage-sim.log");
+      ASSERT_LT(std::chrono::steady_clock::now(), deadline) << ReadFile(run_dir_.path() + "/stage-sim.log");
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    google::protobuf::util::JsonParseOptions options;
+    ASSERT_TRUE(google::protobuf::util::JsonStringToMessage(ReadFile(path), &endpoints_, options).ok());
+    for (const auto& p : endpoints_.processes()) pids_.push_back(p.pid());
+  }
+
+  void TearDown() override {
+    if (sim_ && !sim_->exited()) sim_->Terminate(std::chrono::seconds(10));
+    // stage-sim's children die with it (PR_SET_PDEATHSIG); this is only a backstop for a failed test.
+    for (pid_t pid : pids_) {
+      if (Alive(pid)) kill(pid, SIGKILL);
+    }
+  }
+
+  nlohmann::json StatusJson() {
+    CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status", "--json"},
+                                 std::chrono::seconds(20));
+    EXPECT_FALSE(r.timed_out);
+    return nlohmann::json::parse(r.out);
+  }
+
+  TempDir run_dir_;
+  std::unique_ptr<Subprocess> sim_;
+  v1::SimEndpoints endpoints_;
+  std::vector<pid_t> pids_;
+};
+
+}  // namespace stage::testing
