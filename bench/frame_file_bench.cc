@@ -27,7 +27,12 @@ using Clock = std::chrono::steady_clock;
 double Seconds(Clock::time_point since) { return std::chrono::duration<double>(Clock::now() - since).count(); }
 
 // Plain write() of every frame, then fsync: what the disk gives a writer that does nothing else.
-double PlainWrite(const std::string& path, const std::vector<uint8_t>& frame, int frames) {
+// Every writer takes its frames from a pool of kPool buffers of the same bytes, as a camera's frames come from its
+// buffer pool (never hot in the cache).
+constexpr int kPool = 20;
+using Buffers = std::vector<std::vector<uint8_t>>;
+
+double PlainWrite(const std::string& path, const Buffers& buffers, int frames) {
   std::filesystem::remove(path);  // a new file each round, as the frame file is
   const auto start = Clock::now();
   const int fd = open(path.c_str(), O_CREAT | O_TRUNC | O_WRONLY, 0644);
@@ -36,6 +41,7 @@ double PlainWrite(const std::string& path, const std::vector<uint8_t>& frame, in
     std::exit(1);
   }
   for (int i = 0; i < frames; ++i) {
+    const std::vector<uint8_t>& frame = buffers[static_cast<size_t>(i) % buffers.size()];
     size_t done = 0;
     while (done < frame.size()) {
       const ssize_t n = write(fd, frame.data() + done, frame.size() - done);
@@ -51,7 +57,7 @@ double PlainWrite(const std::string& path, const std::vector<uint8_t>& frame, in
   return Seconds(start);
 }
 
-double FrameFile(const std::string& path, const std::vector<uint8_t>& frame, int frames,
+double FrameFile(const std::string& path, const Buffers& buffers, int frames,
                  const stage::storage::FrameFileInfo& info) {
   std::filesystem::remove(path);
   const auto start = Clock::now();
@@ -65,7 +71,7 @@ double FrameFile(const std::string& path, const std::vector<uint8_t>& frame, int
     r.frame_id = static_cast<uint64_t>(i);
     r.slot = i;
     r.pattern = i % 38;
-    if (auto s = (*writer)->Append(r, frame); !s.ok()) {
+    if (auto s = (*writer)->Append(r, buffers[static_cast<size_t>(i) % buffers.size()]); !s.ok()) {
       std::fprintf(stderr, "%s\n", std::string(s.message()).c_str());
       std::exit(1);
     }
@@ -78,32 +84,40 @@ double FrameFile(const std::string& path, const std::vector<uint8_t>& frame, int
 }
 
 // The camera node's recorder, live: frames come on this (the camera's) thread with timestamps on the take's slots;
-// the caller waits when more than 16 are queued (a camera's buffer pool), so this measures what it sustains.
-double Recorder(const std::string& path, const std::vector<uint8_t>& pixels, int frames,
+// the caller waits while kPool - 4 are queued (a buffer is reused only once the recorder let go of it), so this
+// measures what it sustains.
+double Recorder(const std::string& path, const Buffers& buffers, int frames,
                 const stage::storage::FrameFileInfo& info) {
   std::filesystem::remove(path);
-  const auto start = Clock::now();
+  constexpr int kQueued = kPool - 4;
   stage::camera::TakePlan plan;
   plan.path = path;
   plan.info = info;
   plan.slots = frames;
   plan.first_frame_id = 0;
+  // A camera's buffer pool: the driver fills its buffers, so filling them is not the recorder's work.
+  std::vector<std::shared_ptr<stage::camera::Frame>> pool(buffers.size());
+  for (size_t i = 0; i < pool.size(); ++i) {
+    pool[i] = std::make_shared<stage::camera::Frame>();
+    pool[i]->width = info.width;
+    pool[i]->height = info.height;
+    pool[i]->data = buffers[i];
+  }
+  const auto start = Clock::now();
   auto recorder = stage::camera::TakeRecorder::Start(plan);
   if (!recorder.ok()) {
     std::fprintf(stderr, "%s\n", std::string(recorder.status().message()).c_str());
     std::exit(1);
   }
   for (int i = 0; i < frames; ++i) {
-    while ((*recorder)->frames_received() - (*recorder)->frames_written() > 16) {
+    while ((*recorder)->frames_received() - (*recorder)->frames_written() >= kQueued) {
       std::this_thread::sleep_for(std::chrono::microseconds(200));
     }
-    auto f = std::make_shared<stage::camera::Frame>();
+    // The buffer is free again: at most kQueued frames are still held by the recorder.
+    auto& f = pool[static_cast<size_t>(i) % pool.size()];
     f->frame_id = static_cast<uint64_t>(i);
     f->device_timestamp_ns = i * plan.slot_ns;
-    f->width = info.width;
-    f->height = info.height;
-    f->data = pixels;  // a camera's buffer: the copy is the driver's, not the recorder's
-    (*recorder)->OnFrame(std::move(f));
+    (*recorder)->OnFrame(f);
   }
   const stage::camera::TakeRecording r = (*recorder)->Finish();
   if (r.frames_written != frames) {
@@ -145,13 +159,14 @@ int main(int argc, char** argv) {
   std::vector<uint8_t> frame(static_cast<size_t>(info.width) * info.height * info.bytes_per_pixel);
   for (size_t i = 0; i < frame.size(); ++i) frame[i] = static_cast<uint8_t>(i * 131 + (i >> 12));
   const double mb = static_cast<double>(frame.size()) * frames / 1e6;
+  const Buffers buffers(kPool, frame);
   const std::string plain = dir + "/frame_file_bench.raw", h5 = dir + "/frame_file_bench.h5",
                     node = dir + "/frame_file_bench_node.h5";
   double best_plain = 1e30, best_h5 = 1e30, best_node = 1e30;
   for (int r = 0; r < rounds; ++r) {
-    best_plain = std::min(best_plain, PlainWrite(plain, frame, frames));
-    best_h5 = std::min(best_h5, FrameFile(h5, frame, frames, info));
-    best_node = std::min(best_node, Recorder(node, frame, frames, info));
+    best_plain = std::min(best_plain, PlainWrite(plain, buffers, frames));
+    best_h5 = std::min(best_h5, FrameFile(h5, buffers, frames, info));
+    best_node = std::min(best_node, Recorder(node, buffers, frames, info));
   }
   std::filesystem::remove(plain);
   std::filesystem::remove(h5);

@@ -150,6 +150,25 @@ TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
   ASSERT_TRUE(WaitForSession("capturing", std::chrono::seconds(120))) << ReadFile(run_dir_.path() + "/capture.err");
   std::this_thread::sleep_for(std::chrono::seconds(2));
 
+  // A preview of a camera's latest full-on frame reached the controller: small, PNG.
+  // (The first full-on frame comes once the camera has rendered it.)
+  CommandResult preview;
+  for (int i = 0; i < 60; ++i) {
+    preview = Stagectl({"preview", "hs-2", "-o", run_dir_.path() + "/hs-2.png", "--json"});
+    if (preview.exit.exit_code == 0 || preview.err.find("no preview yet") == std::string::npos) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  }
+  ASSERT_EQ(preview.exit.exit_code, 0) << preview.err;
+  nlohmann::json meta = nlohmann::json::parse(preview.out);
+  EXPECT_GT(meta["width"].get<int>(), 0);
+  EXPECT_LE(meta["width"].get<int>(), 256);
+  EXPECT_LE(meta["height"].get<int>(), 256);
+  EXPECT_EQ(meta["frame"]["camera_id"], "hs-2");
+  EXPECT_EQ(ReadFile(run_dir_.path() + "/hs-2.png").substr(1, 3), "PNG");
+  CommandResult no_camera = Stagectl({"preview", "hs-9"});
+  EXPECT_EQ(no_camera.exit.exit_code, 2);
+  EXPECT_THAT(no_camera.err, HasSubstr("\"hs-9\" is no camera of the rig"));
+
   CommandResult busy = Stagectl({"capture", "--frames", "2"});
   EXPECT_EQ(busy.exit.exit_code, 2);
   EXPECT_THAT(busy.err, HasSubstr("the session is capturing; wait for it"));

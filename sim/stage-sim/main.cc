@@ -250,7 +250,7 @@ int main(int argc, char** argv) {
       stage::sim::GroundTruthOptions gt;
       gt.first_frame = r.first_frame();
       gt.last_frame = r.first_frame() + r.frames();
-      gt.name_offset = r.first_frame();
+      gt.name_offset = r.has_name_offset() ? r.name_offset() : r.first_frame();
       gt.cameras.assign(r.cameras().begin(), r.cameras().end());
       return stage::sim::WriteGroundTruth(*scene, r.dir(), gt);
     });

@@ -414,21 +414,26 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
     int64_t slots;
     Gaps gaps;
     std::string state;
+    bool aborted;
     {
       std::lock_guard<std::mutex> lock(mutex_);
       slots = take.slots;
       gaps = take.paused;
       state = state_;
+      aborted = take.aborted;
     }
     v1::CaptureProgress progress;
-    progress.set_phase("capturing");
-    int64_t total = 0;
+    progress.set_phase(state);  // capturing, paused, aborting
+    int64_t total = 0, expected_now = 0;
     const auto now = Clock::now();
     for (Take::Cam& c : take.cams) {
       const std::string role = CameraRoleName(c.config->role());
+      // What the take has so far (its end moves with a pause, a resume, an abort), and, shown, what it will have.
       const int64_t expected = ExpectedFrames(*c.timing, slots, gaps);
-      (*progress.mutable_expected_by_role())[role] += expected;
-      progress.set_frames_expected(progress.frames_expected() + expected);
+      expected_now += expected;
+      const int64_t shown = aborted ? expected : ExpectedFrames(*c.timing, take.capture_slots, {});
+      (*progress.mutable_expected_by_role())[role] += shown;
+      progress.set_frames_expected(progress.frames_expected() + shown);
       if (!c.armed) continue;
       grpc::ClientContext context;
       Deadline(&context, 1000);
@@ -466,7 +471,7 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
       std::lock_guard<std::mutex> lock(mutex_);
       const bool changed = take.slots != slots || take.paused != gaps || state_ != state;
       if (!changed && state_ != "paused") {
-        if (total >= progress.frames_expected()) break;
+        if (total >= expected_now) break;
         const auto quiet =
             std::chrono::milliseconds(options_.drain_ms) + std::chrono::seconds(state_ == "aborting" ? 0 : 5);
         if (Clock::now() - last_change > quiet) {
@@ -887,20 +892,36 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
   }
 
   if (take.ran && take.ground_truth && slots > 0) {
-    // The simulated world's truth of the take's frames: what processing is judged against.
-    v1::GroundTruthRequest gt;
-    gt.set_dir(take.dir + "/ground_truth");
-    gt.set_first_frame(take.first_bus / take.cycle);
-    gt.set_frames((slots + take.cycle - 1) / take.cycle);
-    say(absl::StrCat("writing the ground truth of ", gt.frames(), " frame(s) to ", gt.dir()));
-    grpc::ClientContext context;
-    Deadline(&context, 1'800'000);
-    v1::GroundTruthReply written;
-    grpc::Status s = take.world->WriteGroundTruth(&context, gt, &written);
-    if (s.ok()) {
-      summary.set_ground_truth_dir(gt.dir());
-    } else if (s.error_code() != grpc::StatusCode::UNIMPLEMENTED) {
-      say(absl::StrCat("no ground truth: ", s.error_message()));
+    // The simulated world's truth of the take's frames (not its pauses'): what processing is judged against.
+    const std::string dir = take.dir + "/ground_truth";
+    std::vector<std::pair<int64_t, int64_t>> runs;  // take frames [first, end) that ran
+    int64_t from = 0;
+    for (const auto& [first, end] : gaps) {
+      if (first > from) runs.emplace_back(from / take.cycle, (first + take.cycle - 1) / take.cycle);
+      from = end;
+    }
+    if (slots > from) runs.emplace_back(from / take.cycle, (slots + take.cycle - 1) / take.cycle);
+    int64_t frames = 0;
+    for (const auto& [first, end] : runs) frames += end - first;
+    say(absl::StrCat("writing the ground truth of ", frames, " frame(s) to ", dir));
+    for (const auto& [first, end] : runs) {
+      v1::GroundTruthRequest gt;
+      gt.set_dir(dir);
+      gt.set_name_offset(take.first_bus / take.cycle);
+      gt.set_first_frame(take.first_bus / take.cycle + first);
+      gt.set_frames(end - first);
+      grpc::ClientContext context;
+      Deadline(&context, 1'800'000);
+      v1::GroundTruthReply written;
+      grpc::Status s = take.world->WriteGroundTruth(&context, gt, &written);
+      if (s.ok()) {
+        summary.set_ground_truth_dir(dir);
+      } else {
+        if (s.error_code() != grpc::StatusCode::UNIMPLEMENTED)
+          say(absl::StrCat("no ground truth: ", s.error_message()));
+        summary.clear_ground_truth_dir();
+        break;
+      }
     }
   }
 

@@ -390,8 +390,8 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
       }
       const double frac = p.frames_expected() > 0 ? static_cast<double>(p.frames_received()) / p.frames_expected() : 0;
       const int bar = static_cast<int>(frac * 30);
-      std::cerr << (tty ? "\r" : "") << "[" << std::string(static_cast<size_t>(bar), '#')
-                << std::string(static_cast<size_t>(30 - bar), '.') << "] "
+      std::cerr << (tty ? "\r" : "") << (p.phase() == "paused" ? "paused " : "") << "["
+                << std::string(static_cast<size_t>(bar), '#') << std::string(static_cast<size_t>(30 - bar), '.') << "] "
                 << absl::StrFormat("%3.0f%% %d/%d frames, %.1f s", 100 * frac, p.frames_received(), p.frames_expected(),
                                    p.elapsed_s())
                 << groups << (tty ? "" : "\n") << std::flush;
