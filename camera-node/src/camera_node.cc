@@ -7,6 +7,13 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/message_differencer.h>
+
+#include <nlohmann/json.hpp>
+
 #include "preview.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -73,6 +80,7 @@ v1::CameraStats CameraNode::Stats() const {
     stats.set_take_frames_received(r->frames_received());
     stats.set_take_frames_written(r->frames_written());
     stats.set_take_frames_expected(r->expected_frames());
+    stats.set_take_frames_lost(r->frames_lost());
   }
   return stats;
 }
@@ -99,6 +107,20 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   if (request.slot_rate_hz() == 0) return absl::InvalidArgumentError("arm: no slot rate");
   auto base = timing::TimeBase::Create(request.slot_rate_hz());
   if (!base.ok()) return base.status();
+  if (request.has_camera()) {
+    // The controller's copy of the settings must be what this node's device runs.
+    // (Where the node listens is the deployment's, not a setting.)
+    google::protobuf::util::MessageDifferencer diff;
+    diff.IgnoreField(v1::CameraConfig::descriptor()->FindFieldByName("address"));
+    std::string report;
+    diff.ReportDifferencesToString(&report);
+    if (!diff.Compare(config_, request.camera())) {
+      std::vector<std::string> lines = absl::StrSplit(report, '\n', absl::SkipWhitespace());
+      return absl::FailedPreconditionError(
+          absl::StrCat("camera \"", config_.id(), "\": the controller's settings differ from the node's (",
+                       absl::StrJoin(lines, "; "), "); restart the node with the controller's rig"));
+    }
+  }
   TakePlan plan;
   plan.path = absl::StrCat(request.take_dir(), "/cameras/", config_.id(), ".h5");
   plan.info.camera_id = config_.id();
@@ -106,6 +128,22 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   plan.info.pixel_format = PixelFormatName(config_.pixel_format());
   plan.info.exposure_us = config_.exposure_us();
   plan.info.gain_db = config_.gain_db();
+  {
+    // What each frame's pattern index means, and the camera's calibration, in the file itself.
+    nlohmann::json patterns = nlohmann::json::array();
+    for (const v1::SchedulePattern& p : request.patterns()) {
+      patterns.push_back({{"index", p.index()},
+                          {"name", p.name()},
+                          {"polarization", p.polarization() == v1::POLARIZATION_PARALLEL ? "parallel" : "cross"}});
+    }
+    plan.info.patterns_json = patterns.dump();
+    v1::CameraConfig calibration;
+    *calibration.mutable_intrinsics() = config_.intrinsics();
+    *calibration.mutable_pose() = config_.pose();
+    google::protobuf::util::JsonPrintOptions o;
+    o.preserve_proto_field_names = true;
+    (void)google::protobuf::util::MessageToJsonString(calibration, &plan.info.calibration_json, o);
+  }
   plan.t0_ns = request.t0_bus_ns();
   plan.slot_ns = base->SlotStartNs(1);
   plan.slot_start_ns = [b = *base](int64_t k) { return b.SlotStartNs(k); };

@@ -48,6 +48,16 @@ TEST(CameraNodeTest, ArmRecordsTheTakesFramesAndFinishAccountsForEverySlot) {
   arm.set_trigger_delay_ns(15'000);
   arm.mutable_trigger_plan()->set_divider(38);
   arm.mutable_trigger_plan()->set_slot_phase(19);
+  v1::SchedulePattern* full = arm.add_patterns();
+  full->set_name("full-parallel");
+  full->set_polarization(v1::POLARIZATION_PARALLEL);
+  // The controller's copy of the settings must be the node's: a different exposure is refused, naming the field.
+  *arm.mutable_camera() = TestCamera();
+  arm.mutable_camera()->set_exposure_us(TestCamera().exposure_us() + 100);
+  auto refused = (*node)->Arm(arm);
+  EXPECT_TRUE(absl::IsFailedPrecondition(refused.status()));
+  EXPECT_THAT(refused.status().message(), ::testing::HasSubstr("exposure_us"));
+  *arm.mutable_camera() = TestCamera();
   auto armed = (*node)->Arm(arm);
   ASSERT_TRUE(armed.ok()) << armed.status();
   EXPECT_EQ(armed->expected_frames(), 2);
@@ -79,6 +89,11 @@ TEST(CameraNodeTest, ArmRecordsTheTakesFramesAndFinishAccountsForEverySlot) {
   EXPECT_EQ(report->slots(1).pattern(), 19);
   EXPECT_EQ(report->path(), dir + "/cameras/mv-01.h5");
   EXPECT_TRUE(std::filesystem::exists(report->path()));
+  // What the pattern indexes mean, and the calibration, are in the file.
+  auto file = storage::FrameFileReader::Open(report->path());
+  ASSERT_TRUE(file.ok()) << file.status();
+  EXPECT_THAT((*file)->info().patterns_json, ::testing::HasSubstr(R"("name":"full-parallel","polarization":"parallel")"));
+  EXPECT_THAT((*file)->info().calibration_json, ::testing::HasSubstr("intrinsics"));
   EXPECT_EQ((*node)->Stats().take_id(), "");
 }
 

@@ -116,6 +116,16 @@ absl::Status TakeRecorder::Update(const PlanUpdate& update) {
   return absl::OkStatus();
 }
 
+int64_t TakeRecorder::frames_lost() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  int64_t dropped = 0;
+  if (max_frame_id_ && plan_.first_frame_id && *max_frame_id_ >= *plan_.first_frame_id) {
+    const auto exposed = static_cast<int64_t>(*max_frame_id_ - *plan_.first_frame_id + 1);
+    dropped = std::max<int64_t>(0, exposed - static_cast<int64_t>(matched_.size()));
+  }
+  return dropped + write_failures_;
+}
+
 int64_t TakeRecorder::expected_frames() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return static_cast<int64_t>(expected_.size());
@@ -180,11 +190,13 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
     preview_ = PreviewFrame{frame, slot, bus - plan_.t0_ns};
   }
   matched_[slot] = frame->frame_id;
+  max_frame_id_ = std::max(max_frame_id_.value_or(0), frame->frame_id);
   rec_.max_timing_error_ns = std::max(rec_.max_timing_error_ns, error);
   SlotOutcome& out = rec_.slots[it->second];
   out.frame_id = frame->frame_id;
   const uint64_t budget = plan_.burst ? plan_.burst_bytes : plan_.queue_bytes;
   if (queued_bytes_ + bytes > budget) {
+    ++write_failures_;
     out.reason = LossReason::kWriteFailed;
     out.detail = plan_.burst ? absl::StrCat("burst memory full (", budget >> 20, " MiB)")
                              : "the recorder fell behind (the disk is slower than the camera)";
@@ -245,6 +257,7 @@ void TakeRecorder::Write(const Tagged& t) {
     ++rec_.frames_written;
     rec_.brightness[t.slot] = brightness;
   } else {
+    ++write_failures_;
     out.reason = LossReason::kWriteFailed;
     out.detail = rec_.error.empty() ? std::string(s.message()) : rec_.error;
     if (rec_.error.empty()) {

@@ -121,6 +121,9 @@ class TakeRecorder final : public FrameSink {
   // Frames received and written so far (progress during the take).
   int64_t frames_received() const;
   int64_t frames_written() const;
+  // Lost so far: exposures the frame counter says were made and not delivered (yet: frames may come out of order),
+  // and frames that could not be written.
+  int64_t frames_lost() const;
 
   // Ends the take once no more frames come (the camera stopped): writes what is held (burst: with `progress(done,
   // total)`), closes the file and accounts for every expected slot.
@@ -146,6 +149,8 @@ class TakeRecorder final : public FrameSink {
   std::map<int64_t, size_t> index_of_;               // expected slot -> its index; guarded by mutex_
   std::vector<std::pair<int64_t, int64_t>> paused_;  // guarded by mutex_
   std::optional<PreviewFrame> preview_;              // guarded by mutex_
+  std::optional<uint64_t> max_frame_id_;             // guarded by mutex_
+  int64_t write_failures_ = 0;                       // guarded by mutex_
   std::unique_ptr<storage::FrameFileWriter> writer_;
 
   mutable std::mutex mutex_;

@@ -300,6 +300,8 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     arm.mutable_trigger_plan()->set_slot_phase(c.timing->slot_phase());
     arm.set_trigger_delay_ns(base.TicksToNs(c.timing->trigger_ticks()));
     arm.set_preview_pattern(have_signature_ ? signature_.cross_full : 0);
+    *arm.mutable_camera() = *c.config;
+    *arm.mutable_patterns() = schedule_.patterns();
     const bool hs = c.config->role() == v1::CAMERA_ROLE_HIGH_SPEED;
     arm.set_burst(hs);
     if (hs) arm.set_burst_bytes(static_cast<uint64_t>(c.config->ram_gib() * (1ull << 30)));
@@ -443,6 +445,8 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
       (*progress.mutable_received_by_role())[role] += got;
       progress.set_frames_received(progress.frames_received() + got);
       progress.set_frames_written(progress.frames_written() + stats.take_frames_written());
+      progress.set_frames_lost(progress.frames_lost() + stats.take_frames_lost());
+      if (stats.take_frames_lost() > 0) (*progress.mutable_lost_by_role())[role] += stats.take_frames_lost();
       total += got;
       if (state == "capturing" && now >= c.next_preview) {
         // The console's view: the camera's latest full-on frame, small.
@@ -697,7 +701,13 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
 
 absl::StatusOr<v1::TakeSummary> Capturer::RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event) {
   const bool abort_on_failure = rig_.rig.controller().node_failure_policy() == v1::NODE_FAILURE_POLICY_ABORT;
-  if (take->not_ready.empty() || !abort_on_failure) {
+  bool any_camera = false;
+  for (const Take::Cam& c : take->cams) any_camera = any_camera || c.armed;
+  if (!any_camera) {
+    v1::CaptureEvent e;
+    e.set_message("no camera is ready: the take does not run");
+    if (on_event) on_event(e);
+  } else if (take->not_ready.empty() || !abort_on_failure) {
     if (StartTake(*take, on_event)) WatchTake(*take, on_event);
   }
   auto summary = FinalizeTake(*take, on_event);
@@ -933,7 +943,10 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
                                             " frames ran); what was recorded is kept")
                              : "aborted by the operator before it started");
   }
-  if (!take.ran && !aborted) hints.push_back("the sync generator never ran");
+  if (!take.ran && !aborted) {
+    hints.push_back(take.not_ready.empty() ? "the sync generator never ran"
+                                           : absl::StrCat("not ready: ", absl::StrJoin(take.not_ready, ", ")));
+  }
   bool aligned = true;
   for (const auto& a : summary.alignment()) {
     if (!a.ok()) {

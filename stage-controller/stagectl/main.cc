@@ -331,18 +331,29 @@ void PrintSummary(const stage::v1::TakeSummary& t) {
   if (!t.hint().empty()) std::cout << "  " << t.hint() << "\n";
 }
 
-// The ledger as a camera x pattern grid: '.' nothing lost, 1-9 frames lost, '+' more.
+// The ledger as a camera x pattern grid, cameras that lost frames only: '.' nothing lost, 1-9 frames lost, '+' more.
 void PrintGrid(const stage::v1::TakeSummary& t) {
   size_t patterns = 0;
-  for (const auto& c : t.cameras()) patterns = std::max(patterns, static_cast<size_t>(c.lost_by_pattern_size()));
-  if (patterns == 0) return;
+  std::vector<const stage::v1::CameraTakeSummary*> lossy;
+  for (const auto& c : t.cameras()) {
+    patterns = std::max(patterns, static_cast<size_t>(c.lost_by_pattern_size()));
+    bool lost = false;
+    for (int64_t n : c.lost_by_pattern()) lost = lost || n > 0;
+    if (lost) lossy.push_back(&c);
+  }
+  if (lossy.empty()) {
+    std::cout << "  no frame lost (" << t.cameras_size() << " cameras)\n";
+    return;
+  }
   std::string ruler;
   for (size_t p = 0; p < patterns; ++p) ruler += p % 10 == 0 ? static_cast<char>('0' + (p / 10) % 10) : ' ';
-  std::cout << "  lost frames by camera x pattern ('.' none):\n" << absl::StrFormat("    %-10s %s\n", "pattern", ruler);
-  for (const auto& c : t.cameras()) {
+  std::cout << "  frames lost by camera x pattern (" << lossy.size() << " of " << t.cameras_size()
+            << " cameras lost any):\n"
+            << absl::StrFormat("    %-10s %s\n", "pattern", ruler);
+  for (const auto* c : lossy) {
     std::string row;
-    for (int64_t n : c.lost_by_pattern()) row += n == 0 ? '.' : n > 9 ? '+' : static_cast<char>('0' + n);
-    std::cout << absl::StrFormat("    %-10s %s\n", c.camera_id(), row);
+    for (int64_t n : c->lost_by_pattern()) row += n == 0 ? '.' : n > 9 ? '+' : static_cast<char>('0' + n);
+    std::cout << absl::StrFormat("    %-10s %s\n", c->camera_id(), row);
   }
 }
 
@@ -380,6 +391,7 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
       for (const auto& [role, expected] : p.expected_by_role()) {
         const auto got = p.received_by_role().count(role) ? p.received_by_role().at(role) : 0;
         absl::StrAppend(&groups, "  ", role, " ", got, "/", expected);
+        if (p.lost_by_role().count(role)) absl::StrAppend(&groups, " (", p.lost_by_role().at(role), " lost)");
       }
       if (p.phase() == "offloading") {
         // Burst cameras write what they held after the take.

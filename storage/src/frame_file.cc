@@ -189,6 +189,7 @@ absl::StatusOr<std::unique_ptr<FrameFileWriter>> FrameFileWriter::Create(const s
             WriteStringAttribute(root, "take_id", info.take_id) &&
             WriteStringAttribute(root, "pixel_format", info.pixel_format) &&
             WriteStringAttribute(root, "calibration", info.calibration_json) &&
+            WriteStringAttribute(root, "patterns", info.patterns_json) &&
             WriteScalarAttribute(root, "width", H5T_STD_U32LE, H5T_NATIVE_UINT32, info.width) &&
             WriteScalarAttribute(root, "height", H5T_STD_U32LE, H5T_NATIVE_UINT32, info.height) &&
             WriteScalarAttribute(root, "bytes_per_pixel", H5T_STD_U32LE, H5T_NATIVE_UINT32, info.bytes_per_pixel) &&
@@ -354,6 +355,7 @@ absl::StatusOr<std::unique_ptr<FrameFileReader>> FrameFileReader::Open(const std
   ReadStringAttribute(root, "take_id", &info.take_id);
   ReadStringAttribute(root, "pixel_format", &info.pixel_format);
   ReadStringAttribute(root, "calibration", &info.calibration_json);
+  ReadStringAttribute(root, "patterns", &info.patterns_json);
   ReadScalarAttribute(root, "width", H5T_NATIVE_UINT32, &info.width);
   ReadScalarAttribute(root, "height", H5T_NATIVE_UINT32, &info.height);
   ReadScalarAttribute(root, "bytes_per_pixel", H5T_NATIVE_UINT32, &info.bytes_per_pixel);

@@ -47,6 +47,8 @@ struct FrameFileInfo {
   double gain_db = 0;
   // The camera's calibration as JSON (intrinsics, distortion, pose), or empty.
   std::string calibration_json;
+  // The pattern cycle as JSON, [{"index", "name", "polarization"}...]: what each frame's `pattern` index means.
+  std::string patterns_json;
 };
 
 class FrameFileWriter {
