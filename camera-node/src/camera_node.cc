@@ -1,19 +1,18 @@
 // Camera node logic.
 #include "camera_node.h"
 
+#include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/message_differencer.h>
+
 #include <algorithm>
 #include <chrono>
 #include <mutex>
+#include <nlohmann/json.hpp>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
-#include <google/protobuf/util/json_util.h>
-#include <google/protobuf/util/message_differencer.h>
-
-#include <nlohmann/json.hpp>
-
 #include "preview.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -169,16 +168,16 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   return response;
 }
 
-absl::StatusOr<v1::ArmCameraResponse> CameraNode::UpdateTake(const v1::UpdateTakeRequest& request) {
-  std::shared_ptr<TakeRecorder> recorder;
-  {
-    std::lock_guard<std::mutex> lock(take_mutex_);
-    if (!recorder_ || take_id_ != request.take_id()) {
-      return absl::NotFoundError(
-          absl::StrCat("camera \"", config_.id(), "\": take \"", request.take_id(), "\" is not armed here"));
-    }
-    recorder = recorder_;
+absl::StatusOr<std::shared_ptr<TakeRecorder>> CameraNode::ArmedRecorder(const std::string& take_id) const {
+  std::lock_guard<std::mutex> lock(take_mutex_);
+  if (!recorder_ || take_id_ != take_id) {
+    return absl::NotFoundError(absl::StrCat("camera \"", config_.id(), "\": take \"", take_id, "\" is not armed here"));
   }
+  return recorder_;
+}
+
+absl::StatusOr<v1::ArmCameraResponse> CameraNode::UpdateTake(const v1::UpdateTakeRequest& request) {
+  STAGE_ASSIGN_OR_RETURN(std::shared_ptr<TakeRecorder> recorder, ArmedRecorder(request.take_id()));
   PlanUpdate update;
   if (request.has_t0_bus_ns()) {
     update.t0_ns = request.t0_bus_ns();
@@ -225,15 +224,7 @@ absl::StatusOr<v1::Preview> CameraNode::GetPreview(const v1::GetPreviewRequest& 
 }
 
 absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRequest& request) {
-  std::shared_ptr<TakeRecorder> recorder;
-  {
-    std::lock_guard<std::mutex> lock(take_mutex_);
-    if (!recorder_ || take_id_ != request.take_id()) {
-      return absl::NotFoundError(
-          absl::StrCat("camera \"", config_.id(), "\": take \"", request.take_id(), "\" is not armed here"));
-    }
-    recorder = recorder_;
-  }
+  STAGE_ASSIGN_OR_RETURN(std::shared_ptr<TakeRecorder> recorder, ArmedRecorder(request.take_id()));
   // Frames may still be on their way (rendering, in flight): wait while they keep coming, up to drain_ms of silence.
   const auto drain = std::chrono::milliseconds(request.drain_ms() > 0 ? request.drain_ms() : 2000);
   const auto expected = recorder->expected_frames();

@@ -57,6 +57,8 @@ class CameraNode : public FrameSink {
 
  private:
   CameraNode(v1::CameraConfig config, std::unique_ptr<CameraDevice> device, std::string rig_hash);
+  // The recorder of take `take_id`; NotFound when that take is not armed here.
+  absl::StatusOr<std::shared_ptr<TakeRecorder>> ArmedRecorder(const std::string& take_id) const;
   v1::CameraConfig config_;
   std::unique_ptr<CameraDevice> device_;
   std::string rig_hash_;

@@ -92,7 +92,8 @@ TEST(CameraNodeTest, ArmRecordsTheTakesFramesAndFinishAccountsForEverySlot) {
   // What the pattern indexes mean, and the calibration, are in the file.
   auto file = storage::FrameFileReader::Open(report->path());
   ASSERT_TRUE(file.ok()) << file.status();
-  EXPECT_THAT((*file)->info().patterns_json, ::testing::HasSubstr(R"("name":"full-parallel","polarization":"parallel")"));
+  EXPECT_THAT((*file)->info().patterns_json,
+              ::testing::HasSubstr(R"("name":"full-parallel","polarization":"parallel")"));
   EXPECT_THAT((*file)->info().calibration_json, ::testing::HasSubstr("intrinsics"));
   EXPECT_EQ((*node)->Stats().take_id(), "");
 }

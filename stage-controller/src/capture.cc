@@ -489,6 +489,17 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
   }
 }
 
+absl::StatusOr<int64_t> Capturer::EndWorldRun(Take& take, int64_t align, const std::string& what) {
+  v1::EndRunRequest end;
+  end.set_align_slots(align);
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply run;
+  grpc::Status s = take.world->EndRun(&context, end, &run);
+  if (!s.ok()) return absl::FailedPreconditionError(absl::StrCat(what, ": ", s.error_message()));
+  return run.end_slot();
+}
+
 absl::StatusOr<v1::SessionReply> Capturer::Pause() {
   std::lock_guard<std::mutex> control(control_mutex_);
   Take* take;
@@ -499,20 +510,13 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
     }
     take = running_;
   }
-  v1::EndRunRequest end;
-  end.set_align_slots(take->cycle);
-  grpc::ClientContext context;
-  Deadline(&context, 5000);
-  v1::WorldRunReply run;
-  grpc::Status s = take->world->EndRun(&context, end, &run);
-  if (!s.ok()) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("pause: take ", take->id, " cannot stop at a frame boundary: ", s.error_message()));
-  }
+  STAGE_ASSIGN_OR_RETURN(
+      const int64_t run_end,
+      EndWorldRun(*take, take->cycle, absl::StrCat("pause: take ", take->id, " cannot stop at a frame boundary")));
   v1::SessionReply reply;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    const int64_t at = run.end_slot() - take->first_bus;
+    const int64_t at = run_end - take->first_bus;
     if (at >= take->run_end) {
       return absl::FailedPreconditionError(
           absl::StrCat("pause: take ", take->id, " is in its last frame; it ends at slot ", take->run_end));
@@ -628,18 +632,10 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
     return reply;
   }
   if (was == "capturing") {
-    v1::EndRunRequest end;
-    end.set_align_slots(1);
-    grpc::ClientContext context;
-    Deadline(&context, 5000);
-    v1::WorldRunReply run;
-    grpc::Status s = take->world->EndRun(&context, end, &run);
-    if (!s.ok()) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("abort: take ", take->id, " cannot be stopped: ", s.error_message()));
-    }
+    STAGE_ASSIGN_OR_RETURN(const int64_t run_end,
+                           EndWorldRun(*take, 1, absl::StrCat("abort: take ", take->id, " cannot be stopped")));
     std::lock_guard<std::mutex> lock(mutex_);
-    const int64_t at = run.end_slot() - take->first_bus;
+    const int64_t at = run_end - take->first_bus;
     take->done_slots += std::min(at, take->run_end) - take->run_first;
     take->run_end = std::min(at, take->run_end);
     take->slots = take->run_end;

@@ -86,6 +86,9 @@ class Capturer {
   absl::StatusOr<v1::TakeSummary> FinalizeTake(Take& take, const CaptureEventFn& on_event);
   // Sends every camera the take's current plan (its length and gaps; T0 once it starts).
   void UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event);
+  // Ends the take's run of the sync generator at the next multiple of `align` slots: the run's end slot on the bus.
+  // `what` heads the error.
+  absl::StatusOr<int64_t> EndWorldRun(Take& take, int64_t align, const std::string& what);
   absl::StatusOr<v1::TakeSummary> RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event);
 
   LoadedRig rig_;
