@@ -261,7 +261,14 @@ void World::Done(int device, int64_t slot) {
 }
 
 void World::ReportLevels(int light_node, int64_t t_ns, const std::vector<double>& levels, int64_t watermark_ns) {
-  emission_.SetLevels(light_node, t_ns, levels);
+  {
+    // A node that has left is dark from its last promise on: a report racing its departure (its thread was between
+    // an edge and this call) must not light it again, for ever.
+    std::lock_guard<std::mutex> lock(mutex_);
+    auto it = watermarks_.find(light_node);
+    if (it != watermarks_.end() && it->second == INT64_MAX) return;
+    emission_.SetLevels(light_node, t_ns, levels);
+  }
   ReportWatermark(light_node, watermark_ns);
 }
 

@@ -96,8 +96,9 @@ TEST(WorldTest, ALightNodeThatLeavesGoesDarkAndHoldsNobodyUp) {
   world.Start();
   std::vector<double> all_on(8, 1.0);
   for (int n = 0; n < 2; ++n) world.ReportLevels(n, 0, all_on, world.EdgeNs(1));
-  // Node 1 crashes: it never reports again.
+  // Node 1 crashes: it never reports again. (A report its thread was already making when it left lights nothing.)
   world.Unregister(light1);
+  world.ReportLevels(1, world.EdgeNs(1), all_on, world.EdgeNs(2));
   std::thread lights([&] {
     for (int64_t k = 0; k < 5; ++k) {
       auto edge = world.WaitForEdge(light0, k);
