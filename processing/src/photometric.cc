@@ -67,7 +67,8 @@ double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
 }
 
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
-                                                 const PhotometricCamera& camera, const PhotometricOptions& options) {
+                                                 const PhotometricCamera& camera, const PhotometricOptions& options,
+                                                 const Image* positions) {
   if (frames.size() != light.patterns.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", frames.size(), " images for ", light.patterns.size(), " patterns"));
@@ -103,6 +104,19 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
 
   ParallelRows(h, [&](int y0, int y1) {
     std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np);
+    // H_p(n) of every cross pattern into hp: from the table, or exactly at the pixel's surface point.
+    auto lookup = [&](int x, int y, const Eigen::Vector3f& n) {
+      if (positions == nullptr) {
+        table.Lookup(n, hp.data());
+        return;
+      }
+      const float* pos = positions->at(x, y);
+      const Eigen::Vector3d at(pos[0], pos[1], pos[2]);
+      for (int p = 0; p < np; ++p) {
+        const Eigen::Vector3d v = light.DiffuseVectorAt(t.cross[p], n.cast<double>(), at);
+        for (int k = 0; k < 3; ++k) hp[static_cast<size_t>(p) * 3 + k] = static_cast<float>(v[k]);
+      }
+    };
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
@@ -136,7 +150,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
         float chi2 = 0;
         bool solved = false;
         for (int it = 0; it < std::max(1, options.iterations); ++it) {
-          table.Lookup(n, hp.data());
+          lookup(x, y, n);
           Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
           Eigen::Vector3f b = Eigen::Vector3f::Zero();
           for (int p = 0; p < np; ++p) {
@@ -159,7 +173,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
           continue;
         }
         // Per-channel albedo with the normal fixed, and the fit's residual.
-        table.Lookup(n, hp.data());
+        lookup(x, y, n);
         float s2 = 0;
         Eigen::Vector3f rho_num = Eigen::Vector3f::Zero();
         for (int p = 0; p < np; ++p) {

@@ -34,6 +34,9 @@ struct LightModel {
   absl::StatusOr<int> Find(absl::string_view name) const;
   // H_p(n) (see above).
   Eigen::Vector3d DiffuseVector(int pattern, const Eigen::Vector3d& n) const;
+  // The same at a surface point `x` (stage frame, mm) with the units at their real distance: each unit's direction
+  // from x, and its light falling off with the square of its distance (relative to the dome's radius).
+  Eigen::Vector3d DiffuseVectorAt(int pattern, const Eigen::Vector3d& n, const Eigen::Vector3d& x) const;
 };
 
 // H_p(n) for a list of patterns, tabulated over the sphere of normals on an octahedral map (size x size cells),

@@ -74,9 +74,12 @@ struct PhotometricMaps {
 
 // `frames`: the cycle's images in pattern order (light.patterns), demosaiced RGB, DN above black. InvalidArgument
 // names a missing pattern or a size mismatch.
+// `positions` (optional): each pixel's surface point, stage frame, mm (3 channels; from geometry): the units' real
+// directions and distances are then used there (slow: every unit, every pattern, every pixel).
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
                                                  const PhotometricCamera& camera,
-                                                 const PhotometricOptions& options = {});
+                                                 const PhotometricOptions& options = {},
+                                                 const Image* positions = nullptr);
 
 // Angle between two unit vectors, degrees.
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
