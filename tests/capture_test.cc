@@ -17,7 +17,6 @@
 #include <thread>
 
 #include "absl/strings/str_join.h"
-#include "absl/strings/str_split.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
@@ -71,27 +70,12 @@ class CaptureTest : public SimulatedStageTest {
   // The /slot column of a frame file, read by h5dump (on a copy, repaired with h5clear as docs/storage.md says, when
   // the writer died with the file open).
   std::vector<int64_t> FileSlots(const std::string& path) {
-    CommandResult dump =
-        RunCommand({"/usr/bin/h5dump", "-d", "/slot", "-y", "-w", "0", path}, std::chrono::seconds(30));
-    if (dump.exit.exit_code != 0) {
-      const std::string copy = run_dir_.path() + "/repaired.h5";
-      std::filesystem::copy_file(path, copy, std::filesystem::copy_options::overwrite_existing);
-      EXPECT_EQ(RunCommand({"/usr/bin/h5clear", "-s", "--increment", copy}, std::chrono::seconds(30)).exit.exit_code,
-                0);
-      dump = RunCommand({"/usr/bin/h5dump", "-d", "/slot", "-y", "-w", "0", copy}, std::chrono::seconds(30));
-    }
-    EXPECT_EQ(dump.exit.exit_code, 0) << dump.err;
-    // DATA { 19, 57, ... } (-y: without indexes)
-    std::vector<int64_t> slots;
-    const size_t data = dump.out.find("DATA {");
-    if (data == std::string::npos) return slots;
-    const size_t open = data + 6, close = dump.out.find('}', data);
-    if (close == std::string::npos) return slots;
-    for (absl::string_view v : absl::StrSplit(dump.out.substr(open, close - open), ',')) {
-      int64_t k;
-      if (absl::SimpleAtoi(absl::StripAsciiWhitespace(v), &k)) slots.push_back(k);
-    }
-    return slots;
+    CommandResult check = RunCommand({"/usr/bin/h5dump", "-H", path}, std::chrono::seconds(30));
+    if (check.exit.exit_code == 0) return ReadH5Column(path, "/slot");
+    const std::string copy = run_dir_.path() + "/repaired.h5";
+    std::filesystem::copy_file(path, copy, std::filesystem::copy_options::overwrite_existing);
+    EXPECT_EQ(RunCommand({"/usr/bin/h5clear", "-s", "--increment", copy}, std::chrono::seconds(30)).exit.exit_code, 0);
+    return ReadH5Column(copy, "/slot");
   }
 
   std::string SlotsOf(const std::string& root, const std::string& take, const std::string& camera, int reason) {

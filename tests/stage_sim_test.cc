@@ -332,6 +332,19 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   CommandResult mv = RunCommand({"/usr/bin/h5dump", "-d", "/slot", "-y", "-w", "0", dir + "/cameras/mv-07.h5"},
                                 std::chrono::seconds(30));
   EXPECT_THAT(mv.out, ::testing::HasSubstr("19, 57, 95, 133"));
+  // Every camera's file, by h5dump: every frame's pattern is its slot's in the schedule (slot mod 38); a high-speed
+  // camera has every slot, a machine-vision camera one slot per cycle, always the same pattern.
+  for (const auto& cam : take["cameras"]) {
+    const std::string file = dir + "/cameras/" + cam["camera_id"].get<std::string>() + ".h5";
+    const std::vector<int64_t> slots = ReadH5Column(file, "/slot"), pattern = ReadH5Column(file, "/pattern");
+    const bool hs = cam["role"] == "high-speed";
+    ASSERT_EQ(slots.size(), hs ? 912u : 24u) << file;
+    ASSERT_EQ(pattern.size(), slots.size()) << file;
+    for (size_t i = 0; i < slots.size(); ++i) {
+      EXPECT_EQ(pattern[i], slots[i] % 38) << file << " frame " << i;
+      EXPECT_EQ(slots[i], hs ? static_cast<int64_t>(i) : slots[0] + 38 * static_cast<int64_t>(i)) << file;
+    }
+  }
 
   // The catalog and the ledger, read by the sqlite3 shell.
   CommandResult sql = RunCommand({"/usr/bin/sqlite3", root.path() + "/catalog.sqlite",

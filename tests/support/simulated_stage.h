@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
@@ -21,6 +22,25 @@
 namespace stage::testing {
 
 inline bool Alive(pid_t pid) { return kill(pid, 0) == 0; }
+
+// One integer column of a frame file (e.g. "/slot", "/pattern"), read by HDF5's own h5dump; empty (with a test
+// failure) when h5dump cannot read it.
+inline std::vector<int64_t> ReadH5Column(const std::string& path, const std::string& dataset) {
+  CommandResult dump = RunCommand({"/usr/bin/h5dump", "-d", dataset, "-y", "-w", "0", path}, std::chrono::seconds(30));
+  EXPECT_EQ(dump.exit.exit_code, 0) << path << ": " << dump.err;
+  std::vector<int64_t> values;
+  const size_t data = dump.out.find("DATA {");  // DATA { 19, 57, ... } (-y: without indexes)
+  if (data == std::string::npos) return values;
+  const size_t close = dump.out.find('}', data);
+  std::string list = dump.out.substr(data + 6, close == std::string::npos ? std::string::npos : close - data - 6);
+  for (char& c : list) {
+    if (c == ',') c = ' ';
+  }
+  std::istringstream in(list);
+  int64_t v;
+  while (in >> v) values.push_back(v);
+  return values;
+}
 
 class SimulatedStageTest : public ::testing::Test {
  protected:
