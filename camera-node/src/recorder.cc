@@ -75,20 +75,17 @@ bool TakeRecorder::IsPaused(int64_t slot) const {
 }
 
 void TakeRecorder::Rebuild() {
-  std::vector<int64_t> expected;
   std::map<int64_t, size_t> index_of;
   std::vector<SlotOutcome> slots;
   for (int64_t k = plan_.phase; k < plan_.slots; k += plan_.divider) {
     if (IsPaused(k)) continue;
-    index_of[k] = expected.size();
-    expected.push_back(k);
+    index_of[k] = slots.size();
     auto old = index_of_.find(k);
     slots.push_back(
         old != index_of_.end()
             ? rec_.slots[old->second]
             : SlotOutcome{k, static_cast<int32_t>(k % plan_.patterns_per_cycle), LossReason::kTriggerMissed, {}, ""});
   }
-  expected_ = std::move(expected);
   index_of_ = std::move(index_of);
   rec_.slots = std::move(slots);
 }
@@ -128,12 +125,14 @@ int64_t TakeRecorder::frames_lost() const {
 
 int64_t TakeRecorder::expected_frames() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  return static_cast<int64_t>(expected_.size());
+  return static_cast<int64_t>(index_of_.size());
 }
 
 std::vector<int64_t> TakeRecorder::expected_slots() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  return expected_;
+  std::vector<int64_t> slots;
+  for (const auto& [slot, index] : index_of_) slots.push_back(slot);
+  return slots;
 }
 
 std::optional<PreviewFrame> TakeRecorder::LatestPreview() const {

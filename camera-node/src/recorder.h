@@ -145,7 +145,6 @@ class TakeRecorder final : public FrameSink {
   void AddPausedSlots();  // mutex_ held, at the end of Finish
 
   TakePlan plan_;
-  std::vector<int64_t> expected_;                    // guarded by mutex_
   std::map<int64_t, size_t> index_of_;               // expected slot -> its index; guarded by mutex_
   std::vector<std::pair<int64_t, int64_t>> paused_;  // guarded by mutex_
   std::optional<PreviewFrame> preview_;              // guarded by mutex_
