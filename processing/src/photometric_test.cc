@@ -8,6 +8,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "shipped_light.h"
 #include "stage/common/rig.h"
 
 namespace stage::processing {
@@ -86,14 +87,6 @@ Errors Measure(const Sphere& s, const PhotometricMaps& m, double max_tilt_deg) {
   e.mean_deg /= std::max(1, e.pixels);
   e.albedo_rel /= std::max(1, e.pixels);
   return e;
-}
-
-LightModel ShippedLight() {
-  auto rig = LoadRig(kBuiltinRigName);
-  EXPECT_TRUE(rig.ok());
-  auto light = LightModel::FromRig(*rig);
-  EXPECT_TRUE(light.ok()) << light.status();
-  return *light;
 }
 
 TEST(PhotometricTest, ExactImagesGiveTheSpheresNormalsAndAlbedo) {

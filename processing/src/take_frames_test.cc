@@ -7,19 +7,12 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "shipped_light.h"
 #include "stage/common/rig.h"
 #include "stage/storage/frame_file.h"
 
 namespace stage::processing {
 namespace {
-
-LightModel ShippedLight() {
-  auto rig = LoadRig(kBuiltinRigName);
-  EXPECT_TRUE(rig.ok());
-  auto light = LightModel::FromRig(*rig);
-  EXPECT_TRUE(light.ok()) << light.status();
-  return *light;
-}
 
 // Two cycles of BayerRG8 frames, 8x6; in slot k every red site reads 10 + k % 38, green 100 + k % 38, blue
 // 200 - k % 38. `skip`: a slot left out.
