@@ -66,6 +66,41 @@ absl::Status WriteTakeJson(const std::string& dir, const v1::RigConfig& rig, con
   return WriteFileAtomically(dir + "/take.json", text);  // a reader sees the old file or the new one
 }
 
+// Tells the operator (the capture's event stream, when there is one) and the log.
+void Say(const CaptureEventFn& on_event, const std::string& message, bool warn = false) {
+  if (warn) {
+    Logger("controller")->warn("{}", message);
+  } else {
+    Logger("controller")->info("{}", message);
+  }
+  if (!on_event) return;
+  v1::CaptureEvent e;
+  e.set_message(message);
+  on_event(e);
+}
+
+// The sync generator (the simulated world's bus): plans a run, or starts exactly the one planned.
+absl::StatusOr<v1::WorldRunReply> RunWorld(v1::SimWorld::Stub& world, const v1::RunWorldRequest& request) {
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply run;
+  grpc::Status s = world.Run(&context, request, &run);
+  if (!s.ok()) return FromGrpcStatus(s);
+  return run;
+}
+
+// Ends the world's run at the next multiple of `align` slots: the run's end slot on the bus. `what` heads the error.
+absl::StatusOr<int64_t> EndWorldRun(v1::SimWorld::Stub& world, int64_t align, const std::string& what) {
+  v1::EndRunRequest end;
+  end.set_align_slots(align);
+  grpc::ClientContext context;
+  Deadline(&context, 5000);
+  v1::WorldRunReply run;
+  grpc::Status s = world.EndRun(&context, end, &run);
+  if (!s.ok()) return absl::FailedPreconditionError(absl::StrCat(what, ": ", s.error_message()));
+  return run.end_slot();
+}
+
 using Gaps = std::vector<std::pair<int64_t, int64_t>>;
 
 bool InGap(const Gaps& gaps, int64_t slot) {
@@ -154,26 +189,14 @@ std::string Capturer::state() const {
   return state_;
 }
 
-uint64_t Capturer::generation() const {
-  std::lock_guard<std::mutex> lock(mutex_);
-  return generation_;
-}
-
-uint64_t Capturer::WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const {
-  std::unique_lock<std::mutex> lock(mutex_);
-  changed_.wait_for(lock, timeout, [&] { return generation_ != seen; });
-  return generation_;
-}
-
 void Capturer::SetState(const std::string& state, const CaptureEventFn& on_event) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (state_ == state) return;
     Logger("controller")->info("session: {} -> {}", state_, state);
     state_ = state;
-    ++generation_;
   }
-  changed_.notify_all();
+  if (options_.on_state_change) options_.on_state_change();
   v1::CaptureEvent e;
   e.set_state(state);
   if (on_event) on_event(e);
@@ -210,12 +233,7 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
         "no sync generator: the controller drives the simulated world's bus (stage-sim); a hardware slot clock comes "
         "with the light-node work");
   }
-  auto say = [&](const std::string& m) {
-    Logger("controller")->info("{}", m);
-    v1::CaptureEvent e;
-    e.set_message(m);
-    if (on_event) on_event(e);
-  };
+  auto say = [&](const std::string& m) { Say(on_event, m); };
   SetState("configuring", on_event);
   struct BackToIdle {  // unless armed
     Capturer* c;
@@ -347,22 +365,12 @@ void Capturer::UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_
     grpc::Status s = c.stub->UpdateTake(&context, update, &reply);
     if (!s.ok()) {
       // It keeps what it recorded; its report is checked against the take's plan at the end.
-      const std::string m = absl::StrCat(c.config->id(), " did not take the new plan: ", s.error_message());
-      Logger("controller")->warn("{}", m);
-      v1::CaptureEvent e;
-      e.set_message(m);
-      if (on_event) on_event(e);
+      Say(on_event, absl::StrCat(c.config->id(), " did not take the new plan: ", s.error_message()), /*warn=*/true);
     }
   }
 }
 
 bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
-  auto say = [&](const std::string& m) {
-    Logger("controller")->warn("{}", m);
-    v1::CaptureEvent e;
-    e.set_message(m);
-    if (on_event) on_event(e);
-  };
   const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   // The run of the bus the take will be, planned first so that every camera knows its T0 before it starts.
   v1::RunWorldRequest plan;
@@ -370,32 +378,25 @@ bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
   plan.set_lead_slots(base.slot_rate_hz() / 2);  // real time: half a second to tell every node
   plan.set_align_slots(take.cycle);
   plan.set_plan_only(true);
-  v1::WorldRunReply run;
-  {
-    grpc::ClientContext context;
-    Deadline(&context, 5000);
-    grpc::Status s = take.world->Run(&context, plan, &run);
-    if (!s.ok()) {
-      say(absl::StrCat("the sync generator (the simulated world at ", options_.world_address,
-                       ") cannot plan the take: ", s.error_message()));
-      return false;
-    }
+  auto run = RunWorld(*take.world, plan);
+  if (!run.ok()) {
+    Say(on_event,
+        absl::StrCat("the sync generator (the simulated world at ", options_.world_address,
+                     ") cannot plan the take: ", run.status().message()),
+        /*warn=*/true);
+    return false;
   }
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    take.first_bus = run.first_slot();
-    take.summary.set_t0_bus_ns(run.first_edge_ns());
+    take.first_bus = run->first_slot();
+    take.summary.set_t0_bus_ns(run->first_edge_ns());
   }
   UpdateCameras(take, /*with_t0=*/true, on_event);
   v1::RunWorldRequest start = plan;
   start.set_plan_only(false);
-  start.set_first_slot(run.first_slot());
-  grpc::ClientContext context;
-  Deadline(&context, 5000);
-  v1::WorldRunReply started;
-  grpc::Status s = take.world->Run(&context, start, &started);
-  if (!s.ok()) {
-    say(absl::StrCat("the sync generator did not start: ", s.error_message()));
+  start.set_first_slot(run->first_slot());
+  if (auto started = RunWorld(*take.world, start); !started.ok()) {
+    Say(on_event, absl::StrCat("the sync generator did not start: ", started.status().message()), /*warn=*/true);
     return false;
   }
   const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
@@ -489,17 +490,6 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
   }
 }
 
-absl::StatusOr<int64_t> Capturer::EndWorldRun(Take& take, int64_t align, const std::string& what) {
-  v1::EndRunRequest end;
-  end.set_align_slots(align);
-  grpc::ClientContext context;
-  Deadline(&context, 5000);
-  v1::WorldRunReply run;
-  grpc::Status s = take.world->EndRun(&context, end, &run);
-  if (!s.ok()) return absl::FailedPreconditionError(absl::StrCat(what, ": ", s.error_message()));
-  return run.end_slot();
-}
-
 absl::StatusOr<v1::SessionReply> Capturer::Pause() {
   std::lock_guard<std::mutex> control(control_mutex_);
   Take* take;
@@ -510,9 +500,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
     }
     take = running_;
   }
-  STAGE_ASSIGN_OR_RETURN(
-      const int64_t run_end,
-      EndWorldRun(*take, take->cycle, absl::StrCat("pause: take ", take->id, " cannot stop at a frame boundary")));
+  STAGE_ASSIGN_OR_RETURN(const int64_t run_end,
+                         EndWorldRun(*take->world, take->cycle,
+                                     absl::StrCat("pause: take ", take->id, " cannot stop at a frame boundary")));
   v1::SessionReply reply;
   {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -538,6 +528,7 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
 
 absl::StatusOr<v1::SessionReply> Capturer::Resume() {
   std::lock_guard<std::mutex> control(control_mutex_);
+  const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   Take* take;
   int64_t remaining, pause_at, min_gap;
   {
@@ -549,25 +540,18 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
     remaining = take->capture_slots - take->done_slots;
     pause_at = take->slots;
     // The gap is as long as the pause was (at least one frame), so that the take's slots stay the stage's time.
-    const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
     const double paused_s = std::chrono::duration<double>(Clock::now() - take->paused_since).count();
     min_gap = std::max<int64_t>(take->cycle, static_cast<int64_t>(paused_s * base.slot_rate_hz()));
   }
-  const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   v1::RunWorldRequest plan;
   plan.set_slots(remaining);
   plan.set_lead_slots(base.slot_rate_hz() / 2);
   plan.set_align_slots(take->cycle);
   plan.set_min_first_slot(take->first_bus + pause_at + min_gap);
   plan.set_plan_only(true);
-  v1::WorldRunReply run;
-  {
-    grpc::ClientContext context;
-    Deadline(&context, 5000);
-    grpc::Status s = take->world->Run(&context, plan, &run);
-    if (!s.ok()) return Annotate(FromGrpcStatus(s), absl::StrCat("resume: take ", take->id, ": the sync generator"));
-  }
-  const int64_t from = run.first_slot() - take->first_bus;
+  auto run = RunWorld(*take->world, plan);
+  if (!run.ok()) return Annotate(run.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
+  const int64_t from = run->first_slot() - take->first_bus;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     take->paused.emplace_back(pause_at, from);
@@ -578,17 +562,14 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
   UpdateCameras(*take, /*with_t0=*/false, nullptr);
   v1::RunWorldRequest start = plan;
   start.set_plan_only(false);
-  start.set_first_slot(run.first_slot());
-  grpc::ClientContext context;
-  Deadline(&context, 5000);
-  v1::WorldRunReply started;
-  if (grpc::Status s = take->world->Run(&context, start, &started); !s.ok()) {
+  start.set_first_slot(run->first_slot());
+  if (auto started = RunWorld(*take->world, start); !started.ok()) {
     // Still paused: the gap stays open until a resume that starts, or an abort.
     std::lock_guard<std::mutex> lock(mutex_);
     take->paused.pop_back();
     take->slots = pause_at;
     take->run_end = pause_at;
-    return Annotate(FromGrpcStatus(s), absl::StrCat("resume: take ", take->id, ": the sync generator"));
+    return Annotate(started.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
   }
   SetState("capturing");
   v1::SessionReply reply;
@@ -633,7 +614,7 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
   }
   if (was == "capturing") {
     STAGE_ASSIGN_OR_RETURN(const int64_t run_end,
-                           EndWorldRun(*take, 1, absl::StrCat("abort: take ", take->id, " cannot be stopped")));
+                           EndWorldRun(*take->world, 1, absl::StrCat("abort: take ", take->id, " cannot be stopped")));
     std::lock_guard<std::mutex> lock(mutex_);
     const int64_t at = run_end - take->first_bus;
     take->done_slots += std::min(at, take->run_end) - take->run_first;
@@ -700,9 +681,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::RunArmedTake(std::unique_ptr<Take> tak
   bool any_camera = false;
   for (const Take::Cam& c : take->cams) any_camera = any_camera || c.armed;
   if (!any_camera) {
-    v1::CaptureEvent e;
-    e.set_message("no camera is ready: the take does not run");
-    if (on_event) on_event(e);
+    Say(on_event, "no camera is ready: the take does not run", /*warn=*/true);
   } else if (take->not_ready.empty() || !abort_on_failure) {
     if (StartTake(*take, on_event)) WatchTake(*take, on_event);
   }
@@ -716,12 +695,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
   auto emit = [&](const v1::CaptureEvent& e) {
     if (on_event) on_event(e);
   };
-  auto say = [&](const std::string& m) {
-    Logger("controller")->info("{}", m);
-    v1::CaptureEvent e;
-    e.set_message(m);
-    emit(e);
-  };
+  auto say = [&](const std::string& m) { Say(on_event, m); };
   if (state() != "aborting") SetState("finalizing", on_event);
   int64_t slots;
   Gaps gaps;

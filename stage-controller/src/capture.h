@@ -6,7 +6,7 @@
 //
 // Session states: idle -> configuring -> armed -> capturing (<-> paused) -> finalizing -> idle; aborting on the way
 // from armed, capturing or paused to finalizing; error when a take's records could not be kept (the next take may
-// start from there). Every transition is logged and counted (generation(), for watchers).
+// start from there). Every transition is logged and announced (CaptureOptions.on_state_change, for watchers).
 #pragma once
 
 #include <chrono>
@@ -39,6 +39,8 @@ struct CaptureOptions {
   int preview_interval_ms = 500;
   // Longest side of a preview, px.
   uint32_t preview_size = 256;
+  // Called after every change of the session's state (the stage's status watchers are woken).
+  std::function<void()> on_state_change;
 };
 
 using CaptureEventFn = std::function<void(const v1::CaptureEvent&)>;
@@ -63,9 +65,6 @@ class Capturer {
 
   // See the state list above.
   std::string state() const;
-  // Counts state changes; WaitForChange blocks until it differs from `seen` or `timeout` passes.
-  uint64_t generation() const;
-  uint64_t WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const;
 
   absl::StatusOr<v1::TakeList> ListTakes() const;
   absl::StatusOr<v1::TakeSummary> GetTake(const std::string& id) const;
@@ -86,9 +85,6 @@ class Capturer {
   absl::StatusOr<v1::TakeSummary> FinalizeTake(Take& take, const CaptureEventFn& on_event);
   // Sends every camera the take's current plan (its length and gaps; T0 once it starts).
   void UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event);
-  // Ends the take's run of the sync generator at the next multiple of `align` slots: the run's end slot on the bus.
-  // `what` heads the error.
-  absl::StatusOr<int64_t> EndWorldRun(Take& take, int64_t align, const std::string& what);
   absl::StatusOr<v1::TakeSummary> RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event);
 
   LoadedRig rig_;
@@ -102,9 +98,7 @@ class Capturer {
   // Pause, resume and abort one at a time (each talks to the world and the cameras).
   std::mutex control_mutex_;
   mutable std::mutex mutex_;
-  mutable std::condition_variable changed_;
   std::string state_ = "idle";  // guarded by mutex_
-  uint64_t generation_ = 0;     // guarded by mutex_
   // The armed take no Capture has claimed yet (stagectl arm); guarded by mutex_.
   std::unique_ptr<Take> armed_;
   // The take being captured (owned by its Capture call); guarded by mutex_.

@@ -4,7 +4,9 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <functional>
 #include <map>
+#include <mutex>
 #include <thread>
 
 #include "absl/strings/str_cat.h"
@@ -132,18 +134,13 @@ grpc::Status ControllerService::WatchStageStatus(grpc::ServerContext* context,
   // Wake at least this often to notice a cancelled call or a shutting-down server.
   auto tick = std::min<std::chrono::milliseconds>(heartbeat, std::chrono::milliseconds(200));
   uint64_t seen = monitor_->generation();
-  // The session's state changes (capturing, paused, ...) are sent as they happen too.
-  uint64_t seen_session = capturer_ ? capturer_->generation() : 0;
   auto last_sent = std::chrono::steady_clock::now();
   if (!writer->Write(Status())) return grpc::Status::OK;
   while (!context->IsCancelled()) {
-    uint64_t now_gen = monitor_->WaitForChange(seen, capturer_ ? std::chrono::milliseconds(20) : tick);
-    if (now_gen == seen && capturer_) capturer_->WaitForChange(seen_session, tick);
-    const uint64_t session = capturer_ ? capturer_->generation() : 0;
+    uint64_t now_gen = monitor_->WaitForChange(seen, tick);
     auto now = std::chrono::steady_clock::now();
-    if (now_gen == seen && session == seen_session && now - last_sent < heartbeat) continue;
+    if (now_gen == seen && now - last_sent < heartbeat) continue;
     seen = now_gen;
-    seen_session = session;
     last_sent = now;
     if (!writer->Write(Status())) break;  // the client went away
   }
@@ -255,7 +252,23 @@ grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::Tim
   return grpc::Status::OK;
 }
 
+namespace {
+// Streams a session's events to one client, from whichever thread sends them; the session goes on if the client (the
+// operator's console) goes away.
+struct EventStream {
+  grpc::ServerContext* context;
+  grpc::ServerWriter<v1::CaptureEvent>* writer;
+  std::mutex mutex;
+  void operator()(const v1::CaptureEvent& e) {
+    std::lock_guard<std::mutex> lock(mutex);
+    if (!context->IsCancelled()) writer->Write(e);
+  }
+};
+}  // namespace
+
 absl::Status ControllerService::EnableCapture(CaptureOptions options) {
+  // The session's state is part of the stage's status: its changes wake the status watchers too.
+  options.on_state_change = [monitor = monitor_] { monitor->NotifyChange(); };
   STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options)));
   return absl::OkStatus();
 }
@@ -263,11 +276,8 @@ absl::Status ControllerService::EnableCapture(CaptureOptions options) {
 grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::CaptureRequest* request,
                                         grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
-  std::mutex write_mutex;
-  auto summary = capturer_->Capture(*request, [&](const v1::CaptureEvent& e) {
-    std::lock_guard<std::mutex> lock(write_mutex);
-    if (!context->IsCancelled()) writer->Write(e);  // the take goes on if the operator's console goes away
-  });
+  EventStream stream{context, writer};
+  auto summary = capturer_->Capture(*request, std::ref(stream));
   if (!summary.ok()) return ToGrpcStatus(summary.status());
   return grpc::Status::OK;
 }
@@ -275,15 +285,12 @@ grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::
 grpc::Status ControllerService::Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,
                                     grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
-  std::mutex write_mutex;
-  auto summary = capturer_->Arm(*request, [&](const v1::CaptureEvent& e) {
-    std::lock_guard<std::mutex> lock(write_mutex);
-    if (!context->IsCancelled()) writer->Write(e);
-  });
+  EventStream stream{context, writer};
+  auto summary = capturer_->Arm(*request, std::ref(stream));
   if (!summary.ok()) return ToGrpcStatus(summary.status());
   v1::CaptureEvent last;
   *last.mutable_summary() = *summary;
-  writer->Write(last);
+  stream(last);
   return grpc::Status::OK;
 }
 

@@ -140,6 +140,14 @@ uint64_t HealthMonitor::generation() const {
   return generation_;
 }
 
+void HealthMonitor::NotifyChange() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++generation_;
+  }
+  changed_.notify_all();
+}
+
 uint64_t HealthMonitor::WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const {
   std::unique_lock<std::mutex> lock(mutex_);
   changed_.wait_for(lock, timeout, [&] { return generation_ != seen || stopping_; });

@@ -58,6 +58,8 @@ class HealthMonitor {
   uint64_t generation() const;
   // Waits until generation() != `seen`, Stop(), or `timeout`; returns generation().
   uint64_t WaitForChange(uint64_t seen, std::chrono::milliseconds timeout) const;
+  // Something else the stage's status shows changed (the capture session's state): counts it and wakes watchers.
+  void NotifyChange();
 
  private:
   struct Node;
