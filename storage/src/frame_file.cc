@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cerrno>
 #include <cstring>
 #include <filesystem>
@@ -294,12 +295,11 @@ absl::Status FrameFileWriter::Append(const FrameRecord& record, absl::Span<const
   {
     const hsize_t size[3] = {n + 1, info_.height, info_.width};
     if (H5Dset_extent(h_->frames.get(), size) < 0) return fail("cannot extend /frames");
-    Id space(H5Dget_space(h_->frames.get()), H5Sclose);
-    const hsize_t start[3] = {n, 0, 0}, count[3] = {1, info_.height, info_.width};
-    H5Sselect_hyperslab(space.get(), H5S_SELECT_SET, start, nullptr, count, nullptr);
-    Id memory(H5Screate_simple(3, count, nullptr), H5Sclose);
-    const hid_t type = info_.bytes_per_pixel == 1 ? H5T_STD_U8LE : H5T_STD_U16LE;
-    if (H5Dwrite(h_->frames.get(), type, memory.get(), space.get(), H5P_DEFAULT, pixels.data()) < 0) {
+    // A frame is exactly one chunk, stored unfiltered in the file's (little-endian) order: written as it is, with no
+    // selection or type conversion in between.
+    static_assert(std::endian::native == std::endian::little, "frames are stored little-endian as they come");
+    const hsize_t offset[3] = {n, 0, 0};
+    if (H5Dwrite_chunk(h_->frames.get(), H5P_DEFAULT, 0, offset, pixels.size(), pixels.data()) < 0) {
       return fail("cannot write the pixels");
     }
     if (H5Dflush(h_->frames.get()) < 0) return fail("cannot flush the pixels");
