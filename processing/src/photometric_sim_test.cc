@@ -63,7 +63,7 @@ void RenderAndSolve(const std::vector<std::string>& overrides, const std::string
     }
     frames.push_back(std::move(img));
   }
-  const sim::CameraModel& cam = (*scene)->camera(index);
+  const CameraModel& cam = (*scene)->camera(index);
   PhotometricCamera pc;
   pc.world_to_camera = cam.rotation();
   pc.position_mm = cam.position();

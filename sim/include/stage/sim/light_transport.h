@@ -14,7 +14,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "stage/sim/camera_model.h"
+#include "stage/common/camera_model.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/subject.h"
 

@@ -11,7 +11,7 @@
 #include "absl/status/statusor.h"
 #include "stage/common/rig.h"
 #include "stage/sim/board.h"
-#include "stage/sim/camera_model.h"
+#include "stage/common/camera_model.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/head.h"
 #include "stage/sim/light_transport.h"

@@ -1,6 +1,7 @@
-// A calibrated camera of the simulated stage: pinhole with Brown-Conrady distortion (OpenCV's model and order), placed
-// as the rig says, at a render scale of its sensor. Camera frame as OpenCV's: x right, y down, z along the optical
-// axis. Stage frame: +x the performer's left, +y up, +z towards the front cameras, millimetres.
+// A calibrated camera of the stage: pinhole with Brown-Conrady distortion (OpenCV's model and order), placed as the
+// rig says, at a scale of its sensor (the simulator's render scale; processing at the images' size). Camera frame as
+// OpenCV's: x right, y down, z along the optical axis. Stage frame: +x the performer's left, +y up, +z towards the
+// front cameras, millimetres.
 #pragma once
 
 #include <Eigen/Core>
@@ -10,12 +11,12 @@
 #include "absl/status/statusor.h"
 #include "stage/v1/rig.pb.h"
 
-namespace stage::sim {
+namespace stage {
 
 class CameraModel {
  public:
   // From the rig's camera entry; `render_scale` in (0, 1] scales the sensor (width, height, focal length in pixels,
-  // principal point) for rendering. InvalidArgument names the camera and the field.
+  // principal point). InvalidArgument names the camera and the field.
   static absl::StatusOr<CameraModel> FromConfig(const v1::CameraConfig& config, double render_scale);
 
   int width() const { return width_; }
@@ -48,4 +49,4 @@ class CameraModel {
   Eigen::Matrix3d rotation_ = Eigen::Matrix3d::Identity();
 };
 
-}  // namespace stage::sim
+}  // namespace stage

@@ -1,9 +1,9 @@
-// Simulated camera geometry: pose and orientation as the rig says, distortion round trip, render scale.
-#include "stage/sim/camera_model.h"
+// Camera geometry from the rig: pose and orientation as the rig says, distortion round trip, render scale.
+#include "stage/common/camera_model.h"
 
 #include "gtest/gtest.h"
 
-namespace stage::sim {
+namespace stage {
 namespace {
 
 v1::CameraConfig Config() {
@@ -69,4 +69,4 @@ TEST(CameraModelTest, BadConfigurationIsNamed) {
 }
 
 }  // namespace
-}  // namespace stage::sim
+}  // namespace stage

@@ -1,5 +1,5 @@
-// Simulated camera geometry.
-#include "stage/sim/camera_model.h"
+// Camera geometry from the rig.
+#include "stage/common/camera_model.h"
 
 #include <Eigen/Geometry>
 #include <cmath>
@@ -8,7 +8,7 @@
 
 #include "absl/strings/str_cat.h"
 
-namespace stage::sim {
+namespace stage {
 namespace {
 
 Eigen::Vector3d ToEigen(const v1::Vec3& v) { return {v.x(), v.y(), v.z()}; }
@@ -91,4 +91,4 @@ std::vector<Eigen::Vector3f> CameraModel::PixelRays(double dx, double dy) const 
   return rays;
 }
 
-}  // namespace stage::sim
+}  // namespace stage

@@ -1,0 +1,63 @@
+// Triangle meshes of the stage (the simulated subject, ground truth, reconstructed geometry): vertices, texture
+// coordinates and parts, Wavefront OBJ files, and a bounding volume hierarchy for rays and shadow rays.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace stage {
+
+struct TriangleMesh {
+  std::vector<Eigen::Vector3f> positions;
+  std::vector<Eigen::Vector2f> uvs;               // per vertex
+  std::vector<std::array<int32_t, 3>> triangles;  // counter-clockwise seen from outside
+  std::vector<uint8_t> parts;                     // per triangle (0 skin, 1 eye); empty: all 0
+
+  // Area-weighted vertex normals (unit).
+  std::vector<Eigen::Vector3f> VertexNormals() const;
+};
+
+// Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed). Errors name the file and line.
+absl::StatusOr<TriangleMesh> ReadObj(const std::string& path);
+// Writes positions, texture coordinates and triangles as an OBJ (`comment` on its first line).
+absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment = "");
+
+// Where a ray meets a mesh: the triangle, the distance along the (unit) direction, and the barycentrics of vertices
+// 1 and 2.
+struct MeshHit {
+  int32_t triangle = -1;
+  float t = 0;
+  float b1 = 0, b2 = 0;
+};
+
+// A bounding volume hierarchy over a mesh it owns (median splits, 4 triangles a leaf). Const methods are thread-safe.
+class MeshBvh {
+ public:
+  explicit MeshBvh(TriangleMesh mesh);
+  const TriangleMesh& mesh() const { return mesh_; }
+  // The nearest triangle along the ray (unit `direction`) within (1e-4, tmax); false if none.
+  bool Nearest(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, float tmax, MeshHit* hit) const;
+  // Whether anything lies on the segment from `from` to `to`.
+  bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const;
+
+ private:
+  struct Node {
+    Eigen::Vector3f lo = Eigen::Vector3f::Zero(), hi = Eigen::Vector3f::Zero();
+    int32_t first = 0;  // leaf: first index into order_; inner: right child (left is this + 1)
+    int32_t count = 0;  // leaf: triangles; inner: 0
+  };
+  int32_t Build(int32_t first, int32_t count, const std::vector<Eigen::Vector3f>& centroids);
+  bool Trace(const Eigen::Vector3f& o, const Eigen::Vector3f& d, float tmax, bool any, MeshHit* hit) const;
+
+  TriangleMesh mesh_;
+  std::vector<int32_t> order_;
+  std::vector<Node> nodes_;
+};
+
+}  // namespace stage
