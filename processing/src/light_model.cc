@@ -68,6 +68,29 @@ Eigen::Vector3d LightModel::DiffuseVectorAt(int pattern, const Eigen::Vector3d& 
   return h;
 }
 
+void LightModel::ViewFrom(const Eigen::Vector3d& x, const uint64_t* visible, UnitView* view) const {
+  const size_t n = directions.size();
+  view->direction.resize(n);
+  view->gain.resize(n);
+  const double r2 = radius_mm * radius_mm;
+  for (size_t l = 0; l < n; ++l) {
+    const Eigen::Vector3d to = directions[l] * radius_mm - x;
+    const double d2 = to.squaredNorm();
+    view->direction[l] = (to / std::sqrt(d2)).cast<float>();
+    const bool seen = visible == nullptr || ((visible[l / 64] >> (l % 64)) & 1u) != 0;
+    view->gain[l] = seen ? static_cast<float>(intensity[l] * r2 / d2) : 0.f;
+  }
+}
+
+UnitView LightModel::ViewFromOrigin() const {
+  UnitView view;
+  for (size_t l = 0; l < directions.size(); ++l) {
+    view.direction.push_back(directions[l].cast<float>());
+    view.gain.push_back(static_cast<float>(intensity[l]));
+  }
+  return view;
+}
+
 Eigen::Vector2f OctEncode(const Eigen::Vector3f& n) {
   const float s = std::abs(n.x()) + std::abs(n.y()) + std::abs(n.z());
   float x = n.x() / s, y = n.y() / s;

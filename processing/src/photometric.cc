@@ -3,7 +3,9 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <functional>
 #include <thread>
 
 #include "absl/strings/match.h"
@@ -11,6 +13,8 @@
 
 namespace stage::processing {
 namespace {
+
+constexpr float kPi = 3.14159265358979323846f;
 
 struct Twins {
   std::vector<int> cross, parallel;                          // the same gradient under either polarization, paired
@@ -46,29 +50,363 @@ absl::StatusOr<Twins> PairPatterns(const LightModel& light) {
   return t;
 }
 
-// Runs body(y0, y1) over row bands on the machine's cores.
+// Runs body(y0, y1) over bands of rows on `threads` threads (0: one per core).
 template <typename F>
-void ParallelRows(int height, F body) {
-  const int threads = std::max(1u, std::min(8u, std::thread::hardware_concurrency()));
+void ParallelRows(int height, int threads, F body) {
+  if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  // Small bands handed out in turn, so that a band of background does not leave a thread idle.
+  const int band = std::max(1, std::min(16, height / (4 * threads)));
+  std::atomic<int> next{0};
+  auto worker = [&] {
+    for (int y0; (y0 = next.fetch_add(band)) < height;) body(y0, std::min(height, y0 + band));
+  };
   std::vector<std::thread> pool;
-  const int band = (height + threads - 1) / threads;
-  for (int t = 0; t < threads; ++t) {
-    const int y0 = t * band, y1 = std::min(height, y0 + band);
-    if (y0 >= y1) break;
-    pool.emplace_back([=] { body(y0, y1); });
-  }
+  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
+  worker();
   for (auto& th : pool) th.join();
 }
 
+// Pattern weights unit-major (w[l * np + p]) for the paired patterns, and the coefficients that turn the specular
+// images into the lobe's first moments (sum_p c_p w_p(l) ~ 1, x_l, y_l, z_l over the units).
+struct PatternMatrix {
+  int np = 0, units = 0;
+  std::vector<float> cross, parallel;
+  Eigen::Matrix<float, 4, Eigen::Dynamic> moments;
+};
+
+PatternMatrix MakePatternMatrix(const LightModel& light, const Twins& t) {
+  PatternMatrix m;
+  m.np = static_cast<int>(t.cross.size());
+  m.units = light.units();
+  m.cross.resize(static_cast<size_t>(m.np) * m.units);
+  m.parallel.resize(m.cross.size());
+  Eigen::MatrixXd w(m.np, m.units);
+  for (int p = 0; p < m.np; ++p) {
+    for (int l = 0; l < m.units; ++l) {
+      const double c = light.patterns[static_cast<size_t>(t.cross[p])].weights[static_cast<size_t>(l)];
+      const double q = light.patterns[static_cast<size_t>(t.parallel[p])].weights[static_cast<size_t>(l)];
+      m.cross[static_cast<size_t>(l) * m.np + p] = static_cast<float>(c);
+      m.parallel[static_cast<size_t>(l) * m.np + p] = static_cast<float>(q);
+      w(p, l) = q;
+    }
+  }
+  Eigen::MatrixXd f(4, m.units);
+  for (int l = 0; l < m.units; ++l) f.col(l) << 1, light.directions[static_cast<size_t>(l)];
+  // c W = f in the least-squares sense: c = f W^T (W W^T)^-1.
+  const Eigen::MatrixXd gram = w * w.transpose() + 1e-9 * Eigen::MatrixXd::Identity(m.np, m.np);
+  m.moments = (gram.ldlt().solve(w * f.transpose())).transpose().cast<float>();
+  return m;
+}
+
+// H_p(n) of every paired cross pattern as a point sees the units: sum over the units lit on n's side.
+void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, float* hp) {
+  std::fill(hp, hp + 3 * pm.np, 0.f);
+  for (int l = 0; l < pm.units; ++l) {
+    const float g = view.gain[static_cast<size_t>(l)];
+    const Eigen::Vector3f& d = view.direction[static_cast<size_t>(l)];
+    if (g == 0 || n.dot(d) <= 0) continue;
+    const float* w = &pm.cross[static_cast<size_t>(l) * pm.np];
+    const float gx = g * d.x(), gy = g * d.y(), gz = g * d.z();
+    for (int p = 0; p < pm.np; ++p) {
+      hp[3 * p] += w[p] * gx;
+      hp[3 * p + 1] += w[p] * gy;
+      hp[3 * p + 2] += w[p] * gz;
+    }
+  }
+}
+
+// The specular images a lobe with normal n, roughness alpha and rho_s = 1 gives under the paired parallel patterns,
+// seen from v (per unit of spec_scale; see SolvePhotometric).
+void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n,
+                      const Eigen::Vector3f& v, float alpha, float* m) {
+  std::fill(m, m + pm.np, 0.f);
+  const float n_dot_v = n.dot(v);
+  if (n_dot_v <= 0) return;
+  const float g1v = GgxG1(n_dot_v, alpha) / (4 * n_dot_v);
+  for (int l = 0; l < pm.units; ++l) {
+    const float g = view.gain[static_cast<size_t>(l)];
+    const Eigen::Vector3f& w = view.direction[static_cast<size_t>(l)];
+    const float n_dot_w = n.dot(w);
+    if (g == 0 || n_dot_w <= 0) continue;
+    const Eigen::Vector3f h = (w + v).normalized();
+    const float s = g * GgxD(n.dot(h), alpha) * GgxG1(n_dot_w, alpha) * g1v;
+    const float* pw = &pm.parallel[static_cast<size_t>(l) * pm.np];
+    for (int p = 0; p < pm.np; ++p) m[p] += pw[p] * s;
+  }
+}
+
+struct SpecularFit {
+  Eigen::Vector3f n = Eigen::Vector3f::Zero();
+  float alpha = 0, rho = 0;
+  float var_n = 0;      // variance of the normal's direction, rad^2 (both tangent axes)
+  float var_log_alpha = 0;  // of log(alpha)
+  float var_rho = 0;    // of rho
+  float chi2 = 0;       // reduced
+  bool converged = false;  // a fit was made (rho may be 0: no lobe)
+  bool ok = false;         // and found a lobe
+};
+
+constexpr float kMinAlpha = 0.02f, kMaxAlpha = 1.5f;
+
+// Noise-weighted least squares of the specular images `s` (weights `wt`) over normal, roughness and intensity
+// (intensity in closed form for each normal and roughness), Levenberg-Marquardt from the best of the `starts`.
+SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const float* s, const float* wt,
+                        const Eigen::Vector3f& v, const std::vector<Eigen::Vector3f>& starts, float scale) {
+  const int np = pm.np;
+  std::vector<float> m(static_cast<size_t>(np));
+  // Cost and intensity of (n, alpha); residuals into r when given.
+  auto evaluate = [&](const Eigen::Vector3f& n, float alpha, float* rho, float* r) {
+    SpecularFromView(view, pm, n, v, alpha, m.data());
+    double smm = 0, ssm = 0;
+    for (int p = 0; p < np; ++p) {
+      m[static_cast<size_t>(p)] *= scale;
+      smm += wt[p] * m[static_cast<size_t>(p)] * m[static_cast<size_t>(p)];
+      ssm += wt[p] * s[p] * m[static_cast<size_t>(p)];
+    }
+    *rho = smm > 0 ? static_cast<float>(std::max(0.0, ssm / smm)) : 0.f;
+    double cost = 0;
+    for (int p = 0; p < np; ++p) {
+      const float e = std::sqrt(wt[p]) * (s[p] - *rho * m[static_cast<size_t>(p)]);
+      if (r != nullptr) r[p] = e;
+      cost += static_cast<double>(e) * e;
+    }
+    return smm > 0 ? cost : 1e300;
+  };
+  SpecularFit fit;
+  double best = 1e300;
+  Eigen::Vector3f n;
+  float alpha = 0.3f, rho = 0;
+  for (const Eigen::Vector3f& start : starts) {
+    if (start.dot(v) <= 0.02f) continue;
+    for (float a : {0.12f, 0.25f, 0.45f}) {
+      float r0;
+      const double c = evaluate(start, a, &r0, nullptr);
+      if (c < best) {
+        best = c;
+        n = start;
+        alpha = a;
+      }
+    }
+  }
+  if (best >= 1e300) return fit;
+  // Levenberg-Marquardt over (tangent offsets a, b of the normal; log alpha).
+  std::vector<float> r(static_cast<size_t>(np)), r1(static_cast<size_t>(np));
+  Eigen::MatrixXf jac(np, 3);
+  float lambda = 1e-2f;
+  double cost = evaluate(n, alpha, &rho, r.data());
+  Eigen::Matrix3f jtj = Eigen::Matrix3f::Identity();
+  for (int it = 0; it < 40; ++it) {
+    // Tangent frame at n.
+    const Eigen::Vector3f t1 = (std::abs(n.x()) < 0.9f ? Eigen::Vector3f::UnitX() : Eigen::Vector3f::UnitY())
+                                   .cross(n)
+                                   .normalized();
+    const Eigen::Vector3f t2 = n.cross(t1);
+    auto step = [&](const Eigen::Vector3f& d, Eigen::Vector3f* n_out, float* a_out) {
+      *n_out = (n + d[0] * t1 + d[1] * t2).normalized();
+      *a_out = std::clamp(alpha * std::exp(d[2]), kMinAlpha, kMaxAlpha);
+    };
+    const float h[3] = {2e-3f, 2e-3f, 1e-2f};
+    for (int k = 0; k < 3; ++k) {
+      Eigen::Vector3f d = Eigen::Vector3f::Zero();
+      d[k] = h[k];
+      Eigen::Vector3f nk;
+      float ak, rk;
+      step(d, &nk, &ak);
+      evaluate(nk, ak, &rk, r1.data());
+      for (int p = 0; p < np; ++p) jac(p, k) = (r1[static_cast<size_t>(p)] - r[static_cast<size_t>(p)]) / h[k];
+    }
+    const Eigen::Map<const Eigen::VectorXf> rv(r.data(), np);
+    jtj = jac.transpose() * jac;
+    const Eigen::Vector3f g = jac.transpose() * rv;
+    bool improved = false;
+    for (int tries = 0; tries < 6 && !improved; ++tries) {
+      Eigen::Matrix3f a = jtj;
+      for (int k = 0; k < 3; ++k) a(k, k) += lambda * (jtj(k, k) + 1e-6f);
+      const Eigen::Vector3f d = -a.ldlt().solve(g);
+      if (!d.allFinite()) break;
+      // Keep steps small enough for the tangent-plane parameterization.
+      const Eigen::Vector3f dd(std::clamp(d[0], -0.3f, 0.3f), std::clamp(d[1], -0.3f, 0.3f),
+                               std::clamp(d[2], -1.f, 1.f));
+      Eigen::Vector3f nn;
+      float na, nrho;
+      step(dd, &nn, &na);
+      const double c = evaluate(nn, na, &nrho, r1.data());
+      if (c < cost) {
+        improved = true;
+        const bool converged = dd.head<2>().norm() < 2e-4f && std::abs(dd[2]) < 1e-3f;
+        n = nn;
+        alpha = na;
+        rho = nrho;
+        cost = c;
+        r.swap(r1);
+        lambda = std::max(1e-6f, lambda / 4);
+        if (converged) it = 1000;
+      } else {
+        lambda *= 8;
+      }
+    }
+    if (!improved) break;
+  }
+  fit.n = n;
+  fit.alpha = alpha;
+  fit.rho = rho;
+  fit.chi2 = static_cast<float>(cost / std::max(1, np - 4));
+  // Covariance of (tangent offsets a, b; log alpha; rho) from the Jacobian of the residuals at the optimum, rho as a
+  // parameter of its own so that its trade-off with alpha shows.
+  {
+    const Eigen::Vector3f t1 = (std::abs(n.x()) < 0.9f ? Eigen::Vector3f::UnitX() : Eigen::Vector3f::UnitY())
+                                   .cross(n)
+                                   .normalized();
+    const Eigen::Vector3f t2 = n.cross(t1);
+    Eigen::MatrixXf j4(np, 4);
+    std::vector<float> m0(static_cast<size_t>(np));
+    SpecularFromView(view, pm, n, v, alpha, m0.data());
+    const float h[3] = {2e-3f, 2e-3f, 1e-2f};
+    for (int k = 0; k < 3; ++k) {
+      Eigen::Vector3f nk = n;
+      float ak = alpha;
+      if (k == 0) nk = (n + h[0] * t1).normalized();
+      if (k == 1) nk = (n + h[1] * t2).normalized();
+      if (k == 2) ak = alpha * std::exp(h[2]);
+      SpecularFromView(view, pm, nk, v, ak, m.data());
+      for (int p = 0; p < np; ++p) {
+        j4(p, k) = -std::sqrt(wt[p]) * rho * scale * (m[static_cast<size_t>(p)] - m0[static_cast<size_t>(p)]) / h[k];
+      }
+    }
+    for (int p = 0; p < np; ++p) j4(p, 3) = -std::sqrt(wt[p]) * scale * m0[static_cast<size_t>(p)];
+    const Eigen::Matrix4f info = j4.transpose() * j4 + 1e-12f * Eigen::Matrix4f::Identity();
+    const Eigen::Matrix4f cov = info.inverse();
+    fit.var_n = std::max(0.f, cov(0, 0) + cov(1, 1));
+    fit.var_log_alpha = std::max(0.f, cov(2, 2));
+    fit.var_rho = std::max(0.f, cov(3, 3));
+    if (!cov.allFinite()) fit.var_n = fit.var_log_alpha = fit.var_rho = 1e30f;
+  }
+  fit.converged = fit.n.allFinite() && std::isfinite(fit.chi2);
+  fit.ok = fit.converged && rho > 0;
+  return fit;
+}
+
+// A local Wiener (Lee) filter of a field of `dims`-vectors with per-pixel noise variance (summed over the
+// components): in a (2r+1)^2 window of pixels that `same(i, j)` admits, the inverse-variance weighted mean mu and the
+// spread s^2; the pixel keeps mu + k (x - mu) with k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
+void WienerFilter(int width, int height, int dims, int radius, const std::vector<float>& in,
+                  const std::vector<float>& noise, const std::vector<uint8_t>& valid, std::vector<float>* out,
+                  int threads, const std::function<bool(size_t, size_t)>& same) {
+  *out = in;
+  if (radius <= 0) return;
+  ParallelRows(height, threads, [&](int y0, int y1) {
+    for (int y = y0; y < y1; ++y) {
+      for (int x = 0; x < width; ++x) {
+        const size_t i = static_cast<size_t>(y) * width + x;
+        if (!valid[i]) continue;
+        double wsum = 0, nsum = 0;
+        double mu[3] = {0, 0, 0};
+        int count = 0;
+        for (int dy = -radius; dy <= radius; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= height) continue;
+          for (int dx = -radius; dx <= radius; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= width) continue;
+            const size_t j = static_cast<size_t>(yy) * width + xx;
+            if (!valid[j] || !same(i, j)) continue;
+            const double w = 1.0 / std::max(1e-12f, noise[j]);
+            for (int c = 0; c < dims; ++c) mu[c] += w * in[j * dims + c];
+            wsum += w;
+            nsum += noise[j];
+            ++count;
+          }
+        }
+        if (count < 3) continue;
+        for (int c = 0; c < dims; ++c) mu[c] /= wsum;
+        double spread = 0;
+        for (int dy = -radius; dy <= radius; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= height) continue;
+          for (int dx = -radius; dx <= radius; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= width) continue;
+            const size_t j = static_cast<size_t>(yy) * width + xx;
+            if (!valid[j] || !same(i, j)) continue;
+            for (int c = 0; c < dims; ++c) {
+              const double e = in[j * dims + c] - mu[c];
+              spread += e * e;
+            }
+          }
+        }
+        spread /= count;
+        const double signal = std::max(0.0, spread - nsum / count);
+        const double k = signal / (signal + std::max(1e-12f, noise[i]));
+        for (int c = 0; c < dims; ++c) (*out)[i * dims + c] = static_cast<float>(mu[c] + k * (in[i * dims + c] - mu[c]));
+      }
+    }
+  });
+}
+
 }  // namespace
+
+float GgxD(float n_dot_h, float alpha) {
+  if (n_dot_h <= 0) return 0;
+  const float a2 = alpha * alpha;
+  const float d = n_dot_h * n_dot_h * (a2 - 1) + 1;
+  return a2 / (kPi * d * d);
+}
+
+float GgxG1(float n_dot_x, float alpha) {
+  if (n_dot_x <= 0) return 0;
+  const float a2 = alpha * alpha;
+  return 2 * n_dot_x / (n_dot_x + std::sqrt(a2 + (1 - a2) * n_dot_x * n_dot_x));
+}
 
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::atan2(a.cross(b).norm(), a.dot(b)) * 180.0 / M_PI;
 }
 
+PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
+                            const LightModel& light, int threads) {
+  PixelGeometry g;
+  g.width = width;
+  g.height = height;
+  g.words = (light.units() + 63) / 64;
+  const size_t pixels = static_cast<size_t>(width) * height;
+  g.points.assign(3 * pixels, std::nanf(""));
+  g.visible.assign(pixels * static_cast<size_t>(g.words), 0);
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  std::vector<Eigen::Vector3f> units;
+  for (const Eigen::Vector3d& d : light.directions) units.push_back((d * light.radius_mm).cast<float>());
+  ParallelRows(height, threads, [&](int y0, int y1) {
+    for (int y = y0; y < y1; ++y) {
+      for (int x = 0; x < width; ++x) {
+        const size_t i = static_cast<size_t>(y) * width + x;
+        const Eigen::Vector3f dir =
+            camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
+        MeshHit hit;
+        if (!mesh.Nearest(origin, dir, INFINITY, &hit)) continue;
+        const auto& t = mesh.mesh().triangles[static_cast<size_t>(hit.triangle)];
+        const Eigen::Vector3f& p0 = mesh.mesh().positions[static_cast<size_t>(t[0])];
+        Eigen::Vector3f face = (mesh.mesh().positions[static_cast<size_t>(t[1])] - p0)
+                                   .cross(mesh.mesh().positions[static_cast<size_t>(t[2])] - p0)
+                                   .normalized();
+        if (face.dot(dir) > 0) face = -face;
+        const Eigen::Vector3f point = origin + hit.t * dir;
+        std::copy(point.data(), point.data() + 3, &g.points[3 * i]);
+        // As the light meets the surface: from just off it, towards every unit in front of its face.
+        const Eigen::Vector3f start = point + 1e-3f * face;
+        uint64_t* bits = &g.visible[i * static_cast<size_t>(g.words)];
+        for (size_t l = 0; l < units.size(); ++l) {
+          if (face.dot(units[l] - point) <= 0) continue;
+          if (mesh.Occluded(start, units[l])) continue;
+          bits[l / 64] |= uint64_t{1} << (l % 64);
+        }
+      }
+    }
+  });
+  return g;
+}
+
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
                                                  const PhotometricCamera& camera, const PhotometricOptions& options,
-                                                 const Image* positions) {
+                                                 const PixelGeometry* geometry) {
   if (frames.size() != light.patterns.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", frames.size(), " images for ", light.patterns.size(), " patterns"));
@@ -81,11 +419,21 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
                        "x", frames[i].height, "x", frames[i].channels, ", not ", w, "x", h, "x3"));
     }
   }
+  if (geometry != nullptr && (geometry->width != w || geometry->height != h)) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the geometry is ", geometry->width, "x",
+                                                   geometry->height, ", the images ", w, "x", h));
+  }
+  if (!camera.rays.empty() && camera.rays.size() != static_cast<size_t>(w) * h) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("photometric stereo: ", camera.rays.size(), " camera rays for ", w, "x", h, " pixels"));
+  }
   auto twins = PairPatterns(light);
   if (!twins.ok()) return twins.status();
   const Twins& t = *twins;
   const int np = static_cast<int>(t.cross.size());
+  const PatternMatrix pm = MakePatternMatrix(light, t);
   const DiffuseTable table(light, t.cross, options.table_size);
+  const UnitView origin_view = light.ViewFromOrigin();
 
   PhotometricMaps m;
   m.width = w;
@@ -93,116 +441,246 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   m.diffuse_normal_world = Image(w, h, 3);
   m.diffuse_normal_camera = Image(w, h, 3);
   m.albedo = Image(w, h, 3);
+  m.specular_normal_world = Image(w, h, 3);
+  m.specular_normal_camera = Image(w, h, 3);
+  m.specular_normal_raw = Image(w, h, 3);
+  m.specular = Image(w, h, 1);
+  m.roughness = Image(w, h, 1);
+  m.specular_sigma = Image(w, h, 1);
   m.confidence = Image(w, h, 1);
   m.fit_residual = Image(w, h, 1);
   m.flags.assign(static_cast<size_t>(w) * h, 0);
+  // Per-pixel noise of the specular fit, for the regularization.
+  std::vector<float> var_n(static_cast<size_t>(w) * h, 0), var_log_alpha(var_n.size(), 0);
 
   const double k_leak = camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak);
+  const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
   const double g = camera.gain_e_per_dn;
   const double read_dn2 = 3 * (camera.read_noise_e / g) * (camera.read_noise_e / g);  // three channels summed
   const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
+  const float ws = static_cast<float>(camera.white_scale);
+  // The specular images (summed over the three channels) per unit of the model in SpecularFromView: a white
+  // Lambertian surface gives white_scale * n . H, a lobe (2 pi white_scale) * sum w D G G / (4 n.v) (the 1/pi of the
+  // diffuse BRDF), in each channel.
+  const float spec_scale = 3 * 2 * kPi * ws;
+  const Eigen::Vector3f camera_position = camera.position_mm.cast<float>();
 
-  ParallelRows(h, [&](int y0, int y1) {
-    std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np);
-    // H_p(n) of every cross pattern into hp: from the table, or exactly at the pixel's surface point.
-    auto lookup = [&](int x, int y, const Eigen::Vector3f& n) {
-      if (positions == nullptr) {
-        table.Lookup(n, hp.data());
-        return;
-      }
-      const float* pos = positions->at(x, y);
-      const Eigen::Vector3d at(pos[0], pos[1], pos[2]);
-      for (int p = 0; p < np; ++p) {
-        const Eigen::Vector3d v = light.DiffuseVectorAt(t.cross[p], n.cast<double>(), at);
-        for (int k = 0; k < 3; ++k) hp[static_cast<size_t>(p) * 3 + k] = static_cast<float>(v[k]);
-      }
-    };
+  ParallelRows(h, options.threads, [&](int y0, int y1) {
+    std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np), s(np),
+        sw(np), model(np);
+    UnitView view, open_view;
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
         uint8_t flags = 0;
-        // Diffuse per pattern and channel: the cross image less the leaked specular (parallel - cross is specular).
+        // Diffuse per pattern and channel: the cross image less the leaked specular (parallel - cross is specular);
+        // and the specular images, summed over the channels, with their noise.
         for (int p = 0; p < np; ++p) {
           const float* cr = frames[static_cast<size_t>(t.cross[p])].at(x, y);
           const float* pa = frames[static_cast<size_t>(t.parallel[p])].at(x, y);
-          float sum = 0;
+          float sum = 0, spec = 0, level = 0;
           for (int ch = 0; ch < 3; ++ch) {
             if (cr[ch] >= camera.saturation_dn || pa[ch] >= camera.saturation_dn) flags |= kSaturated;
             const float v = cr[ch] - static_cast<float>(k_leak) * (pa[ch] - cr[ch]);
             c[static_cast<size_t>(p) * 3 + ch] = v;
             sum += v;
+            spec += pa[ch] - cr[ch];
+            level += std::max(0.f, pa[ch]) + std::max(0.f, cr[ch]);
           }
           d[p] = sum;
+          s[p] = spec * spec_gain;
+          sw[p] = 1.f / (spec_gain * spec_gain * static_cast<float>(level / g + 2 * read_dn2));
         }
         if (d[t.full] < options.min_signal_dn) {
           m.flags[i] = flags | kLowSignal;
           continue;
         }
+        // The units as this pixel's surface point sees them (with geometry), else from the stage origin.
+        const bool exact = geometry != nullptr && geometry->Covers(i);
+        Eigen::Vector3f point = Eigen::Vector3f::Zero();
+        if (exact) {
+          point = Eigen::Map<const Eigen::Vector3f>(&geometry->points[3 * i]);
+          light.ViewFrom(point.cast<double>(), geometry->Visible(i), &view);
+        }
+        const UnitView& units = exact ? view : origin_view;
+        auto lookup = [&](const Eigen::Vector3f& n) {
+          if (exact) {
+            DiffuseFromView(units, pm, n, hp.data());
+          } else {
+            table.Lookup(n, hp.data());
+          }
+        };
         // First guess: the gradients' differences (exact on a full sphere of light); else facing the camera.
-        Eigen::Vector3f n(0, 0, 1);
+        Eigen::Vector3f n0 = (camera_position - point).normalized();
         if (t.xp >= 0 && t.xm >= 0 && t.yp >= 0 && t.ym >= 0 && t.zp >= 0 && t.zm >= 0) {
           const Eigen::Vector3f guess(d[t.xp] - d[t.xm], d[t.yp] - d[t.ym], d[t.zp] - d[t.zm]);
-          if (guess.norm() > 1e-6f) n = guess.normalized();
-        } else {
-          n = (camera.position_mm.cast<float>()).normalized();
+          if (guess.norm() > 1e-6f) n0 = guess.normalized();
         }
-        Eigen::Vector3f u = n;
-        float chi2 = 0;
-        bool solved = false;
-        for (int it = 0; it < std::max(1, options.iterations); ++it) {
-          lookup(x, y, n);
-          Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
-          Eigen::Vector3f b = Eigen::Vector3f::Zero();
-          for (int p = 0; p < np; ++p) {
-            const Eigen::Map<const Eigen::Vector3f> hv(&hp[static_cast<size_t>(p) * 3]);
-            const Eigen::Vector3f hs = hv * static_cast<float>(camera.white_scale);
-            // The variance at the level the model predicts (the measured level on the first pass).
-            const float level = solved ? std::max(0.f, u.dot(hs)) : std::max(0.f, d[p]);
-            wt[p] = 1.f / (level / static_cast<float>(g) + static_cast<float>(read_dn2));
-            a += wt[p] * hs * hs.transpose();
-            b += wt[p] * d[p] * hs;
+        // Weighted least squares for u = albedo * n from `copies` images of the diffuse per pattern (summed in d,
+        // per channel in c), re-solved with the lit set of each new normal; then each channel's albedo with the
+        // normal fixed, and the fit's reduced chi-square.
+        struct Diffuse {
+          Eigen::Vector3f n, rho;
+          float chi2 = 0;
+          bool ok = false;
+        };
+        auto solve_diffuse = [&](const Eigen::Vector3f& start, float copies) {
+          Diffuse r;
+          Eigen::Vector3f n = start, u = start;
+          const float read = copies * static_cast<float>(read_dn2);
+          for (int it = 0; it < std::max(1, options.iterations); ++it) {
+            lookup(n);
+            Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
+            Eigen::Vector3f b = Eigen::Vector3f::Zero();
+            for (int p = 0; p < np; ++p) {
+              const Eigen::Vector3f hs = Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
+              // The variance at the level the model predicts (the measured level on the first pass).
+              const float level = r.ok ? std::max(0.f, u.dot(hs)) : std::max(0.f, d[p]);
+              wt[p] = 1.f / (level / static_cast<float>(g) + read);
+              a += wt[p] * hs * hs.transpose();
+              b += wt[p] * d[p] * hs;
+            }
+            const Eigen::Vector3f next = a.ldlt().solve(b);
+            if (!next.allFinite() || next.norm() < 1e-9f) break;
+            u = next;
+            n = u.normalized();
+            r.ok = true;
           }
-          const Eigen::Vector3f next = a.ldlt().solve(b);
-          if (!next.allFinite() || next.norm() < 1e-9f) break;
-          u = next;
-          n = u.normalized();
-          solved = true;
-        }
-        if (!solved) {
+          if (!r.ok) return r;
+          lookup(n);
+          float s2 = 0;
+          Eigen::Vector3f num = Eigen::Vector3f::Zero();
+          for (int p = 0; p < np; ++p) {
+            const Eigen::Vector3f hs = Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
+            const float sp = n.dot(hs);
+            const float level = std::max(0.f, u.dot(hs));
+            wt[p] = 1.f / (level / static_cast<float>(g) + read);
+            s2 += wt[p] * sp * sp;
+            for (int ch = 0; ch < 3; ++ch) num[ch] += wt[p] * c[static_cast<size_t>(p) * 3 + ch] * sp;
+            const float e = d[p] - level;
+            r.chi2 += wt[p] * e * e;
+          }
+          r.chi2 /= static_cast<float>(std::max(1, np - 3));
+          r.n = n;
+          r.rho = num / std::max(1e-12f, s2);
+          return r;
+        };
+        Diffuse diffuse = solve_diffuse(n0, 1);
+        if (!diffuse.ok) {
           m.flags[i] = flags | kLowSignal;
           continue;
         }
-        // Per-channel albedo with the normal fixed, and the fit's residual.
-        lookup(x, y, n);
-        float s2 = 0;
-        Eigen::Vector3f rho_num = Eigen::Vector3f::Zero();
-        for (int p = 0; p < np; ++p) {
-          const Eigen::Map<const Eigen::Vector3f> hv(&hp[static_cast<size_t>(p) * 3]);
-          const float s = static_cast<float>(camera.white_scale) * n.dot(hv);
-          const float level = std::max(0.f, u.dot(hv) * static_cast<float>(camera.white_scale));
-          wt[p] = 1.f / (level / static_cast<float>(g) + static_cast<float>(read_dn2));
-          s2 += wt[p] * s * s;
-          for (int ch = 0; ch < 3; ++ch) rho_num[ch] += wt[p] * c[static_cast<size_t>(p) * 3 + ch] * s;
-          const float r = d[p] - level;
-          chi2 += wt[p] * r * r;
+
+        // Specular: the lobe fitted to parallel - cross, from the diffuse normal and from the lobe's centroid.
+        const Eigen::Vector3f v = camera.rays.empty() ? Eigen::Vector3f((camera_position - point).normalized())
+                                                      : Eigen::Vector3f(-camera.rays[i]);
+        const float spec_snr = s[t.full] * std::sqrt(sw[t.full]);
+        // Fitted wherever it can be, faint or not: the diffuse below uses it.
+        std::vector<Eigen::Vector3f> starts = {diffuse.n};
+        const Eigen::Map<const Eigen::VectorXf> sv(s.data(), np);
+        const Eigen::Vector4f mom = pm.moments * sv;
+        if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
+          const Eigen::Vector3f r = mom.tail<3>().normalized();
+          if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
         }
-        chi2 /= std::max(1, np - 3);
-        const Eigen::Vector3f rho = rho_num / std::max(1e-12f, s2);
-        if (chi2 > 4) flags |= kBadFit;
+        const SpecularFit fit = FitSpecular(units, pm, s.data(), sw.data(), v, starts, spec_scale);
+        const bool measured = fit.ok && spec_snr >= options.min_specular_snr &&
+                              std::sqrt(fit.var_n) * 180 / kPi <= options.max_specular_sigma_deg &&
+                              std::sqrt(fit.var_rho) <= 0.5f * fit.rho && fit.var_log_alpha <= 0.25f &&
+                              fit.alpha > 2 * kMinAlpha;  // a lobe narrower than that only says "one unit"
+        if (!measured) {
+          flags |= kNoSpecular;
+        } else {
+          if (fit.chi2 > 4) flags |= kSpecularBadFit;
+          std::copy(fit.n.data(), fit.n.data() + 3, m.specular_normal_raw.at(x, y));
+          m.specular.at(x, y)[0] = fit.rho;
+          m.roughness.at(x, y)[0] = fit.alpha;
+          var_n[i] = fit.var_n;
+          m.specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
+          var_log_alpha[i] = fit.var_log_alpha;
+        }
+        // With the specular known, the parallel images hold as much diffuse as the cross ones: solve again from
+        // both, less the fitted lobe (twice the signal). The lobe fitted to 19 images stands for the specular in
+        // each with a fraction of the noise of parallel - cross itself, measured or not (a faint lobe is fitted as
+        // faint, one that reflects off the dome as none).
+        if (fit.converged && fit.chi2 <= 4) {
+          SpecularFromView(units, pm, fit.n, v, fit.alpha, model.data());
+          for (int p = 0; p < np; ++p) {
+            const float* cr = frames[static_cast<size_t>(t.cross[p])].at(x, y);
+            const float* pa = frames[static_cast<size_t>(t.parallel[p])].at(x, y);
+            const float lobe = fit.rho * model[static_cast<size_t>(p)] * spec_scale / 3;  // per channel
+            float sum = 0;
+            for (int ch = 0; ch < 3; ++ch) {
+              const float v2 = cr[ch] + pa[ch] - (1 + static_cast<float>(camera.cross_leak)) * lobe;
+              c[static_cast<size_t>(p) * 3 + ch] = v2;
+              sum += v2;
+            }
+            d[p] = sum;
+          }
+          const Diffuse both = solve_diffuse(diffuse.n, 2);
+          if (both.ok) diffuse = both;
+        }
+        const Eigen::Vector3f n = diffuse.n;
+        if (diffuse.chi2 > 4) flags |= kBadFit;
+        if (exact) {
+          // Shadow: the share of the full-on light nothing hides from the point.
+          light.ViewFrom(point.cast<double>(), nullptr, &open_view);
+          float all = 0, seen = 0;
+          for (size_t l = 0; l < open_view.gain.size(); ++l) {
+            const float cosine = std::max(0.f, n.dot(open_view.direction[l]));
+            all += open_view.gain[l] * cosine;
+            seen += units.gain[l] * cosine;
+          }
+          if (seen < 0.5f * all) flags |= kShadowed;
+        }
         const Eigen::Vector3f nc = to_camera * n;
         std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
         std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
-        std::copy(rho.data(), rho.data() + 3, m.albedo.at(x, y));
-        m.fit_residual.at(x, y)[0] = chi2;
+        std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
+        m.fit_residual.at(x, y)[0] = diffuse.chi2;
         // Confidence: signal (the full-on's SNR, 1 at 100), times the fit's agreement, zero when clipped.
         const float snr = d[t.full] / std::sqrt(d[t.full] / static_cast<float>(g) + static_cast<float>(read_dn2));
-        float conf = std::min(1.f, snr / 100.f) * std::exp(-std::max(0.f, chi2 - 2.f) / 4.f);
+        float conf = std::min(1.f, snr / 100.f) * std::exp(-std::max(0.f, diffuse.chi2 - 2.f) / 4.f);
         if (flags & kSaturated) conf = 0;
+        if (flags & kShadowed) conf *= 0.5f;
         m.confidence.at(x, y)[0] = conf;
         m.flags[i] = flags;
       }
     }
   });
+
+  // Regularize the specular normals: their departure from the diffuse normal, filtered adaptively among neighbours
+  // on the same side of an edge (diffuse normals within 30 degrees); and roughness the same way (its logarithm, whose
+  // noise does not grow with it).
+  const size_t n_pixels = static_cast<size_t>(w) * h;
+  std::vector<uint8_t> valid(n_pixels, 0);
+  std::vector<float> delta(3 * n_pixels, 0), log_alpha(n_pixels, 0);
+  for (size_t i = 0; i < n_pixels; ++i) {
+    if (m.flags[i] & (kLowSignal | kNoSpecular)) continue;
+    valid[i] = 1;
+    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - m.diffuse_normal_world.pixels[3 * i + k];
+    log_alpha[i] = std::log(m.roughness.pixels[i]);
+  }
+  const Image& nd = m.diffuse_normal_world;
+  auto same_side = [&](size_t a, size_t b) {
+    const float* p = &nd.pixels[3 * a];
+    const float* q = &nd.pixels[3 * b];
+    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2] > 0.866f;
+  };
+  std::vector<float> delta_f, log_alpha_f;
+  WienerFilter(w, h, 3, options.specular_filter_radius, delta, var_n, valid, &delta_f, options.threads, same_side);
+  WienerFilter(w, h, 1, options.specular_filter_radius, log_alpha, var_log_alpha, valid, &log_alpha_f,
+               options.threads, same_side);
+  for (size_t i = 0; i < n_pixels; ++i) {
+    if (!valid[i]) continue;
+    Eigen::Vector3f ns(nd.pixels[3 * i] + delta_f[3 * i], nd.pixels[3 * i + 1] + delta_f[3 * i + 1],
+                       nd.pixels[3 * i + 2] + delta_f[3 * i + 2]);
+    ns.normalize();
+    const Eigen::Vector3f nc = to_camera * ns;
+    std::copy(ns.data(), ns.data() + 3, &m.specular_normal_world.pixels[3 * i]);
+    std::copy(nc.data(), nc.data() + 3, &m.specular_normal_camera.pixels[3 * i]);
+    m.roughness.pixels[i] = std::exp(log_alpha_f[i]);
+  }
   return m;
 }
 

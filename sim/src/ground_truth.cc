@@ -1,6 +1,7 @@
 // Ground truth files.
 #include "stage/sim/ground_truth.h"
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -132,9 +133,20 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       if (auto s = Write(frame_dir + "/uv_position.exr", bgra); !s.ok()) return s;
     }
     auto subject = scene.SubjectAt(frame);
+    // A pixel integrates n x n rays (sim.supersample): its truth describes that area, as its value does (the mean
+    // normal normalized, the mean material); the depth is its centre's.
+    const int n = std::max(1, static_cast<int>(scene.rig().sim().supersample()));
     for (int index : cameras) {
       const CameraModel& camera = scene.camera(index);
       const std::vector<Hit> hits = TracePixels(camera, *subject);
+      std::vector<std::vector<Hit>> rays;
+      if (n > 1) {
+        for (int sy = 0; sy < n; ++sy) {
+          for (int sx = 0; sx < n; ++sx) {
+            rays.push_back(TracePixels(camera, *subject, 0, (sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5));
+          }
+        }
+      }
       const int w = camera.width(), h = camera.height();
       cv::Mat depth(h, w, CV_32F, 0.0f), nw(h, w, CV_32FC3, cv::Scalar::all(0)), nc(h, w, CV_32FC3, cv::Scalar::all(0));
       cv::Mat albedo(h, w, CV_32FC3, cv::Scalar::all(0)), spec(h, w, CV_32F, 0.0f), rough(h, w, CV_32F, 0.0f);
@@ -142,8 +154,30 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       const Eigen::Matrix3f rot = camera.rotation().cast<float>();
       const Eigen::Vector3f center = camera.position().cast<float>();
       for (size_t i = 0; i < hits.size(); ++i) {
-        const Hit& hit = hits[i];
-        if (!hit.hit) continue;
+        Hit hit = hits[i];
+        int covered = hit.hit ? 1 : 0, total_rays = 1;
+        if (n > 1) {
+          Eigen::Vector3f normal = Eigen::Vector3f::Zero(), a = Eigen::Vector3f::Zero();
+          float sp = 0, ro = 0;
+          covered = 0;
+          total_rays = n * n;
+          for (const std::vector<Hit>& r : rays) {
+            if (!r[i].hit) continue;
+            if (!hit.hit) hit = r[i];
+            normal += r[i].normal;
+            a += r[i].material.albedo;
+            sp += r[i].material.specular;
+            ro += r[i].material.roughness;
+            ++covered;
+          }
+          if (covered > 0) {
+            hit.normal = normal.norm() > 0 ? Eigen::Vector3f(normal.normalized()) : hit.normal;
+            hit.material.albedo = a / static_cast<float>(covered);
+            hit.material.specular = sp / static_cast<float>(covered);
+            hit.material.roughness = ro / static_cast<float>(covered);
+          }
+        }
+        if (covered == 0) continue;
         const int y = static_cast<int>(i) / w, x = static_cast<int>(i) % w;
         depth.at<float>(y, x) = (rot * (hit.point - center)).z();
         nw.at<cv::Vec3f>(y, x) = Bgr(hit.normal);
@@ -151,7 +185,7 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
         albedo.at<cv::Vec3f>(y, x) = Bgr(hit.material.albedo);
         spec.at<float>(y, x) = hit.material.specular;
         rough.at<float>(y, x) = hit.material.roughness;
-        mask.at<uint8_t>(y, x) = 255;
+        mask.at<uint8_t>(y, x) = covered == total_rays ? 255 : 128;
       }
       const std::string cam_dir = frame_dir + "/" + scene.rig().cameras(index).id();
       fs::create_directories(cam_dir, ec);

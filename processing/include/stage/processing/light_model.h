@@ -1,11 +1,15 @@
-// The stage's light as photometric stereo models it (docs/processing.md#model): every LED unit a point source in its
-// direction from the stage origin at the dome's radius, with its intensity calibration; every pattern of the cycle a
-// weight per unit exactly as the light nodes drive it (16-bit levels). Under pattern p a Lambertian surface point with
-// normal n and albedo a near the origin returns a * n . H_p(n), where H_p(n) = sum over the units lit on n's side of
-// weight_p * intensity * direction (the diffuse vector); `DiffuseTable` tabulates it over all normals.
+// The stage's light as photometric stereo models it (docs/processing.md#model): every LED unit a point source at its
+// place on the dome (its direction from the stage origin times the dome's radius) with its intensity calibration;
+// every pattern of the cycle a weight per unit exactly as the light nodes drive it (16-bit levels).
+//
+// A surface point sees each unit from its own direction, with the light falling off with the square of the distance,
+// and only where nothing hides it (`UnitView`). From a point near the stage origin with nothing hidden, a Lambertian
+// surface with normal n and albedo a returns a * n . H_p(n) under pattern p, where H_p(n) = sum over the units lit on
+// n's side of weight_p * intensity * direction (the diffuse vector); `DiffuseTable` tabulates it over all normals.
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -22,6 +26,13 @@ struct LightPattern {
   std::vector<double> weights;
 };
 
+// How one surface point sees the units: for every unit, its direction from the point (unit vector, stage frame) and
+// the light that arrives (intensity x (radius / distance)^2; 0 where the unit is hidden).
+struct UnitView {
+  std::vector<Eigen::Vector3f> direction;
+  std::vector<float> gain;
+};
+
 struct LightModel {
   std::vector<Eigen::Vector3d> directions;  // unit vectors, stage frame
   std::vector<double> intensity;            // relative (the units' intensity_scale)
@@ -30,13 +41,17 @@ struct LightModel {
 
   // The rig's units and pattern set (its `pattern_set`), at `sim.dome_radius_mm` (1000 by default).
   static absl::StatusOr<LightModel> FromRig(const LoadedRig& rig);
+  int units() const { return static_cast<int>(directions.size()); }
   // The index of the pattern called `name` in the cycle; NotFound names the pattern set's patterns.
   absl::StatusOr<int> Find(absl::string_view name) const;
-  // H_p(n) (see above).
+  // H_p(n) (see above), every unit from the stage origin.
   Eigen::Vector3d DiffuseVector(int pattern, const Eigen::Vector3d& n) const;
-  // The same at a surface point `x` (stage frame, mm) with the units at their real distance: each unit's direction
-  // from x, and its light falling off with the square of its distance (relative to the dome's radius).
+  // The same at a surface point `x` (stage frame, mm) with the units at their real distance.
   Eigen::Vector3d DiffuseVectorAt(int pattern, const Eigen::Vector3d& n, const Eigen::Vector3d& x) const;
+  // The units from point `x`; `visible` (null: all) has bit l % 64 of word l / 64 set for every unit l nothing hides.
+  void ViewFrom(const Eigen::Vector3d& x, const uint64_t* visible, UnitView* view) const;
+  // The units from the stage origin, nothing hidden.
+  UnitView ViewFromOrigin() const;
 };
 
 // H_p(n) for a list of patterns, tabulated over the sphere of normals on an octahedral map (size x size cells),

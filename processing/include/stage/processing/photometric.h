@@ -1,11 +1,20 @@
 // Photometric stereo under spherical gradient illumination (docs/processing.md): from the 38 pattern images of one
-// cycle of a high-speed camera, the diffuse normal and albedo of every pixel, with a confidence.
+// cycle of a high-speed camera, per pixel the diffuse normal and albedo, the specular normal, intensity and roughness,
+// and a confidence.
 //
 // Diffuse: cross-polarized images hold diffuse reflection only (and the analyzer's small leak of specular, removed
 // with the parallel twin). Under pattern p a Lambertian pixel reads white_scale * albedo * n . H_p(n) (light_model.h),
 // linear in u = albedo * n once the units lit on n's side are known: u is solved per pixel by least squares over all
-// 19 cross patterns, each weighted by the inverse of its noise variance (shot and read noise at the predicted
-// level), and re-solved with the lit set of the new normal.
+// cross patterns, each weighted by the inverse of its noise variance (shot and read noise at the predicted level),
+// and re-solved with the lit set of the new normal.
+//
+// Specular: parallel minus cross is specular only. Its 19 gradient images are the lobe's moments up to second order
+// (Ma et al. 2007; Ghosh et al. 2009): the first-order ones give its direction, the second-order ones its spread.
+// Per pixel the normal, roughness (GGX alpha) and intensity are fitted to them by noise-weighted least squares with
+// the stage's own units in the model (a dome of 168 point sources is far from a continuous sphere for a lobe a few
+// units wide), starting from the lobe's centroid. Specular normals are noisy by nature: their departure from the
+// diffuse normal is then filtered adaptively (a local Wiener filter that keeps what stands above each pixel's own
+// noise, so pore-scale detail stays where the signal carries it).
 #pragma once
 
 #include <Eigen/Core>
@@ -14,6 +23,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/mesh.h"
 #include "stage/processing/light_model.h"
 
 namespace stage::processing {
@@ -36,6 +46,9 @@ struct PhotometricCamera {
   // OpenCV convention: camera = world_to_camera * (world - position_mm); x right, y down, z forward.
   Eigen::Matrix3d world_to_camera = Eigen::Matrix3d::Identity();
   Eigen::Vector3d position_mm = Eigen::Vector3d(0, 0, 1000);
+  // The unit ray through every pixel's centre, stage frame, row-major (CameraModel::PixelRays). Empty: every pixel
+  // looks from position_mm at the stage origin.
+  std::vector<Eigen::Vector3f> rays;
   // DN above black that a white Lambertian surface (albedo 1) gives per unit of n . H_p(n).
   double white_scale = 1;
   // Electrons per DN, read noise (electrons), and the level (DN above black) at which a pixel is saturated.
@@ -46,40 +59,80 @@ struct PhotometricCamera {
   double cross_leak = 0;
 };
 
+// What is known of the surface every pixel sees (from a mesh: multi-view stereo, or the simulator's ground truth):
+// where it is, and which units it sees. With it the units' real directions and distances and their shadows enter the
+// model; without it every pixel sees every unit from the stage origin.
+struct PixelGeometry {
+  int width = 0, height = 0;
+  int words = 0;                  // 64-bit words of `visible` per pixel
+  std::vector<float> points;      // 3 per pixel, stage frame, mm; NaN where the pixel sees no surface
+  std::vector<uint64_t> visible;  // per pixel: bit l of the units nothing hides from the point (LightModel::ViewFrom)
+
+  bool Covers(size_t pixel) const { return points[3 * pixel] == points[3 * pixel]; }
+  const uint64_t* Visible(size_t pixel) const { return &visible[pixel * static_cast<size_t>(words)]; }
+};
+
+// Traces every pixel's ray (camera.rays) into `mesh`, and from where it lands a shadow ray to every unit (a unit
+// behind the face it lands on, or with the mesh in between, is hidden). `threads` 0: one per core.
+PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
+                            const LightModel& light, int threads = 0);
+
 struct PhotometricOptions {
-  // Re-solves with the lit set of the last normal.
+  // Re-solves of the diffuse normal with the lit set of the last normal.
   int iterations = 3;
-  // Octahedral table of H_p(n): cells per side.
+  // Octahedral table of H_p(n) (no geometry): cells per side.
   int table_size = 128;
   // Below this full-on level (DN above black, sum of channels) a pixel is not solved (background, deep shadow).
   double min_signal_dn = 4;
+  // Below this full-on specular level (parallel - cross, DN summed over channels, in units of its own noise) the
+  // specular lobe is not fitted.
+  double min_specular_snr = 3;
+  // A fitted lobe counts as measured when its normal's standard deviation is below this (degrees) and its intensity's
+  // below half the intensity; else the pixel is flagged kNoSpecular (the lobe points off the dome, or is too faint).
+  double max_specular_sigma_deg = 15;
+  // Radius (pixels) of the adaptive filter on the specular normals' departure from the diffuse ones, and on
+  // roughness; 0: raw fits.
+  int specular_filter_radius = 2;
+  // Worker threads; 0: one per core. Results do not depend on it.
+  int threads = 0;
 };
 
-// Confidence flags, per pixel.
+// Flags, per pixel.
 enum PhotometricFlag : uint8_t {
-  kSaturated = 1,  // some pattern image clipped
-  kLowSignal = 2,  // too dark to solve (below min_signal_dn), or shadowed from most of the dome
-  kBadFit = 4,     // the patterns disagree with a Lambertian surface (mislabeled or blended patterns, occlusion)
+  kSaturated = 1,         // some pattern image clipped
+  kLowSignal = 2,         // too dark to solve (below min_signal_dn)
+  kBadFit = 4,            // the patterns disagree with a Lambertian surface (mislabeled or blended patterns, occlusion)
+  kShadowed = 8,          // the geometry hides more than half of the full-on light from the point
+  kNoSpecular = 16,       // no lobe measured: too faint, or reflecting off the dome
+  kSpecularBadFit = 32,   // the specular images disagree with a GGX lobe
 };
 
 struct PhotometricMaps {
   int width = 0, height = 0;
-  Image diffuse_normal_world;   // 3 channels, unit vectors, stage frame; 0 where not solved
-  Image diffuse_normal_camera;  // the same in the camera frame
-  Image albedo;                 // 3 channels, linear RGB (the images' channel order)
-  Image confidence;             // 1 channel, 0..1
-  Image fit_residual;           // 1 channel: the weighted fit's reduced chi-square (about 1 for a good fit)
-  std::vector<uint8_t> flags;   // PhotometricFlag bits
+  Image diffuse_normal_world;     // 3 channels, unit vectors, stage frame; 0 where not solved
+  Image diffuse_normal_camera;    // the same in the camera frame
+  Image albedo;                   // 3 channels, linear RGB (the images' channel order)
+  Image specular_normal_world;    // 3 channels: the regularized specular normal, stage frame; 0 where not solved
+  Image specular_normal_camera;   // the same in the camera frame
+  Image specular_normal_raw;      // 3 channels, stage frame: each pixel's own fit, before regularization
+  Image specular;                 // 1 channel: specular intensity (GGX rho_s)
+  Image roughness;                // 1 channel: GGX alpha (regularized)
+  Image specular_sigma;           // 1 channel: the specular fit's standard deviation of the normal, degrees
+  Image confidence;               // 1 channel, 0..1
+  Image fit_residual;             // 1 channel: the diffuse fit's reduced chi-square (about 1 for a good fit)
+  std::vector<uint8_t> flags;     // PhotometricFlag bits
 };
 
 // `frames`: the cycle's images in pattern order (light.patterns), demosaiced RGB, DN above black. InvalidArgument
-// names a missing pattern or a size mismatch.
-// `positions` (optional): each pixel's surface point, stage frame, mm (3 channels; from geometry): the units' real
-// directions and distances are then used there (slow: every unit, every pattern, every pixel).
+// names a missing pattern or a size mismatch. `geometry` (optional) must have the images' size.
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
                                                  const PhotometricCamera& camera,
                                                  const PhotometricOptions& options = {},
-                                                 const Image* positions = nullptr);
+                                                 const PixelGeometry* geometry = nullptr);
+
+// The GGX normal distribution and Smith masking term of the specular model (the simulator's, docs/processing.md).
+float GgxD(float n_dot_h, float alpha);
+float GgxG1(float n_dot_x, float alpha);
 
 // Angle between two unit vectors, degrees.
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);

@@ -8,8 +8,10 @@
 //   DIR/frame-NNNNNN/<camera>/normal_camera.exr the same in the camera frame (x right, y down, z forward)
 //   DIR/frame-NNNNNN/<camera>/albedo.exr       diffuse albedo, linear RGB
 //   DIR/frame-NNNNNN/<camera>/specular.exr     specular intensity;   roughness.exr: GGX alpha
-//   DIR/frame-NNNNNN/<camera>/mask.png         255 where the pixel sees the subject
-// Images are at the rig's render scale, float32 OpenEXR (channels in R, G, B order of the values above).
+//   DIR/frame-NNNNNN/<camera>/mask.png         255 where the pixel sees the subject (with sim.supersample n > 1: all
+//                                              of its n x n rays meet it; 128 where only some do, at its edge)
+// Images are at the rig's render scale, float32 OpenEXR (channels in R, G, B order of the values above). A pixel of
+// n x n rays has the mean of their materials and their mean normal, normalized: the area its value integrates.
 #pragma once
 
 #include <functional>
