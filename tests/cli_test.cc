@@ -15,8 +15,8 @@ using ::testing::StartsWith;
 
 constexpr auto kTimeout = std::chrono::seconds(20);
 
-const std::vector<std::string> kPrograms = {"stage-controller",  "camera-node", "light-node",
-                                            "processing-worker", "stagectl",    "stage-sim"};
+const std::vector<std::string> kPrograms = {"stage-controller", "camera-node", "light-node", "processing-worker",
+                                            "stagectl",         "stage-sim",   "stage-process"};
 
 // One line of stderr, exit code `code`, not killed by a signal, not timed out.
 void ExpectOneLineError(const CommandResult& r, int code, const std::string& must_contain) {

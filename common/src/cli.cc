@@ -2,9 +2,13 @@
 #include "stage/common/cli.h"
 
 #include <signal.h>
+#include <unistd.h>
 
 #include <iostream>
 
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "absl/strings/str_replace.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_clock.h"
@@ -87,6 +91,54 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
   log->info("{} received; shutting down", sig && *sig == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->Shutdown();
   return 0;
+}
+
+absl::Status ParseFrameRange(absl::string_view flag, absl::string_view text, int64_t* first, int64_t* last) {
+  const size_t colon = text.find(':');
+  bool ok = absl::SimpleAtoi(text.substr(0, colon), first) && *first >= 0;
+  if (colon == absl::string_view::npos) {
+    *last = *first + 1;
+  } else if (colon + 1 == text.size()) {
+    *last = -1;
+  } else {
+    ok = ok && absl::SimpleAtoi(text.substr(colon + 1), last) && *last > *first;
+  }
+  if (!ok) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(flag, " \"", text, "\" is not a frame range: A:B (B excluded, B > A >= 0), A: or A"));
+  }
+  return absl::OkStatus();
+}
+
+ProgressLine::ProgressLine(std::string unit)
+    : unit_(std::move(unit)),
+      tty_(isatty(STDERR_FILENO) != 0),
+      start_(std::chrono::steady_clock::now()),
+      last_(start_ - std::chrono::hours(1)) {}
+
+void ProgressLine::Update(int64_t done, int64_t total, const std::string& detail) {
+  const auto now = std::chrono::steady_clock::now();
+  if (!tty_ && done < total && now - last_ < std::chrono::seconds(3)) return;
+  last_ = now;
+  const double frac = total > 0 ? static_cast<double>(done) / static_cast<double>(total) : 0;
+  const int bar = static_cast<int>(frac * 30);
+  const double elapsed = std::chrono::duration<double>(now - start_).count();
+  std::cerr << (tty_ ? "\r\033[K" : "") << "[" << std::string(static_cast<size_t>(bar), '#')
+            << std::string(static_cast<size_t>(30 - bar), '.') << "] "
+            << absl::StrFormat("%3.0f%% %d/%d %s, %.1f s", 100 * frac, done, total, unit_, elapsed)
+            << (detail.empty() ? "" : "  ") << detail << (tty_ ? "" : "\n") << std::flush;
+  open_ = tty_;
+}
+
+void ProgressLine::Message(const std::string& text) {
+  if (open_) std::cerr << "\n";
+  open_ = false;
+  std::cerr << text << std::endl;
+}
+
+void ProgressLine::Finish() {
+  if (open_) std::cerr << "\n" << std::flush;
+  open_ = false;
 }
 
 }  // namespace stage

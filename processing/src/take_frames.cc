@@ -3,41 +3,105 @@
 
 #include <map>
 #include <nlohmann/json.hpp>
-#include <opencv2/core.hpp>
-#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "stage/storage/frame_file.h"
 
 namespace stage::processing {
+namespace {
 
-absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light,
-                                      double black_level_dn) {
-  auto file = storage::FrameFileReader::Open(path);
-  if (!file.ok()) return file.status();
-  const storage::FrameFileInfo& info = (*file)->info();
-  CycleFrames out;
-  out.camera_id = info.camera_id;
-  out.pixel_format = info.pixel_format;
-  const std::string& f = info.pixel_format;
-  int code = -1;  // OpenCV's demosaicing code; -1: mono
-  if (absl::StartsWith(f, "BayerRG"))
-    code = cv::COLOR_BayerBG2BGR;  // GenICam BayerRG is OpenCV's BayerBG, etc.
-  else if (absl::StartsWith(f, "BayerGR"))
-    code = cv::COLOR_BayerGB2BGR;
-  else if (absl::StartsWith(f, "BayerGB"))
-    code = cv::COLOR_BayerGR2BGR;
-  else if (absl::StartsWith(f, "BayerBG"))
-    code = cv::COLOR_BayerRG2BGR;
-  else if (!absl::StartsWith(f, "Mono")) {
+struct Format {
+  bool mono = false;
+  int red_x = 0, red_y = 0;
+  int bits = 8;
+};
+
+absl::StatusOr<Format> ParseFormat(const std::string& path, const std::string& f, uint32_t bytes_per_pixel) {
+  Format out;
+  if (absl::StartsWith(f, "BayerRG")) {
+    out.red_x = 0, out.red_y = 0;
+  } else if (absl::StartsWith(f, "BayerGR")) {
+    out.red_x = 1, out.red_y = 0;
+  } else if (absl::StartsWith(f, "BayerGB")) {
+    out.red_x = 0, out.red_y = 1;
+  } else if (absl::StartsWith(f, "BayerBG")) {
+    out.red_x = 1, out.red_y = 1;
+  } else if (absl::StartsWith(f, "Mono")) {
+    out.mono = true;
+  } else {
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": pixel format \"", f, "\" is not one photometric stereo reads"));
   }
   out.bits = absl::EndsWith(f, "8") ? 8 : absl::EndsWith(f, "12") ? 12 : 16;
-  if ((info.bytes_per_pixel == 1) != (out.bits == 8)) {
-    return absl::DataLossError(absl::StrCat(path, ": ", info.bytes_per_pixel, " bytes per pixel do not hold ", f));
+  if ((bytes_per_pixel == 1) != (out.bits == 8)) {
+    return absl::DataLossError(absl::StrCat(path, ": ", bytes_per_pixel, " bytes per pixel do not hold ", f));
   }
+  return out;
+}
+
+// Mirrors an index into [0, n) without repeating the edge (-1 -> 1, n -> n - 2): the colour of a Bayer site keeps.
+inline int Mirror(int i, int n) { return i < 0 ? -i : i >= n ? 2 * n - 2 - i : i; }
+
+}  // namespace
+
+void DemosaicBilinear(const float* mosaic, int width, int height, int red_x, int red_y, Image* rgb) {
+  *rgb = Image(width, height, 3);
+  auto at = [&](int x, int y) { return mosaic[static_cast<size_t>(Mirror(y, height)) * width + Mirror(x, width)]; };
+  for (int y = 0; y < height; ++y) {
+    const bool red_row = ((y ^ red_y) & 1) == 0;
+    for (int x = 0; x < width; ++x) {
+      const bool red_col = ((x ^ red_x) & 1) == 0;
+      const float c = at(x, y);
+      const float cross = 0.25f * (at(x - 1, y) + at(x + 1, y) + at(x, y - 1) + at(x, y + 1));
+      const float diagonal = 0.25f * (at(x - 1, y - 1) + at(x + 1, y - 1) + at(x - 1, y + 1) + at(x + 1, y + 1));
+      const float across = 0.5f * (at(x - 1, y) + at(x + 1, y));
+      const float along = 0.5f * (at(x, y - 1) + at(x, y + 1));
+      float* o = rgb->at(x, y);
+      if (red_row && red_col) {  // red site
+        o[0] = c, o[1] = cross, o[2] = diagonal;
+      } else if (!red_row && !red_col) {  // blue site
+        o[0] = diagonal, o[1] = cross, o[2] = c;
+      } else if (red_row) {  // green between reds (left, right) and blues (up, down)
+        o[0] = across, o[1] = c, o[2] = along;
+      } else {  // green between blues (left, right) and reds (up, down)
+        o[0] = along, o[1] = c, o[2] = across;
+      }
+    }
+  }
+}
+
+absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path) {
+  auto file = storage::FrameFileReader::Open(path);
+  if (!file.ok()) return file.status();
+  const storage::FrameFileInfo& info = (*file)->info();
+  auto format = ParseFormat(path, info.pixel_format, info.bytes_per_pixel);
+  if (!format.ok()) return format.status();
+  FrameFileShape shape;
+  shape.width = static_cast<int>(info.width);
+  shape.height = static_cast<int>(info.height);
+  shape.bits = format->bits;
+  shape.camera_id = info.camera_id;
+  shape.pixel_format = info.pixel_format;
+  auto records = (*file)->Records();
+  if (!records.ok()) return records.status();
+  for (const storage::FrameRecord& r : *records) {
+    if (r.status == storage::FrameStatus::kOk) shape.last_slot = std::max(shape.last_slot, r.slot);
+  }
+  return shape;
+}
+
+absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light,
+                                      const RawCorrection& correction) {
+  auto file = storage::FrameFileReader::Open(path);
+  if (!file.ok()) return file.status();
+  const storage::FrameFileInfo& info = (*file)->info();
+  auto format = ParseFormat(path, info.pixel_format, info.bytes_per_pixel);
+  if (!format.ok()) return format.status();
+  CycleFrames out;
+  out.camera_id = info.camera_id;
+  out.pixel_format = info.pixel_format;
+  out.bits = format->bits;
   // What the file says each pattern index is must be the light model's pattern of that index.
   const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
   if (names.is_array() && !names.empty()) {
@@ -53,6 +117,14 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
       }
     }
   }
+  const int w = static_cast<int>(info.width), h = static_cast<int>(info.height);
+  if (correction.flat_field != nullptr &&
+      (correction.flat_field->width != w || correction.flat_field->height != h ||
+       correction.flat_field->channels != 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": the flat field is ", correction.flat_field->width, "x",
+                                                   correction.flat_field->height, "x",
+                                                   correction.flat_field->channels, ", the frames ", w, "x", h, "x1"));
+  }
   auto records = (*file)->Records();
   if (!records.ok()) return records.status();
   const auto cycle = static_cast<int64_t>(light.patterns.size());
@@ -63,7 +135,8 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
       index_of_slot[r.slot] = static_cast<int64_t>(i);
     }
   }
-  const int w = static_cast<int>(info.width), h = static_cast<int>(info.height);
+  std::vector<float> mosaic(static_cast<size_t>(w) * h);
+  const float black = static_cast<float>(correction.black_level_dn);
   for (int64_t p = 0; p < cycle; ++p) {
     const int64_t slot = frame * cycle + p;
     auto it = index_of_slot.find(slot);
@@ -74,24 +147,22 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
     }
     auto pixels = (*file)->Pixels(it->second);
     if (!pixels.ok()) return pixels.status();
-    cv::Mat raw(h, w, out.bits == 8 ? CV_8U : CV_16U, pixels->data());
-    cv::Mat bgr;
-    if (code < 0) {
-      cv::cvtColor(raw, bgr, cv::COLOR_GRAY2BGR);
-    } else {
-      cv::cvtColor(raw, bgr, code);
+    const uint8_t* raw = pixels->data();
+    for (size_t i = 0; i < mosaic.size(); ++i) {
+      float v = out.bits == 8 ? static_cast<float>(raw[i])
+                              : static_cast<float>(static_cast<uint16_t>(raw[2 * i] | (raw[2 * i + 1] << 8)));
+      v -= black;
+      if (correction.flat_field != nullptr) v /= correction.flat_field->pixels[i];
+      mosaic[i] = v;
     }
-    cv::Mat rgb;
-    bgr.convertTo(rgb, CV_32FC3, 1.0, -black_level_dn);
-    Image img(w, h, 3);
-    for (int y = 0; y < h; ++y) {
-      const cv::Vec3f* row = rgb.ptr<cv::Vec3f>(y);
-      for (int x = 0; x < w; ++x) {
-        float* o = img.at(x, y);
-        o[0] = row[x][2];
-        o[1] = row[x][1];
-        o[2] = row[x][0];
+    Image img;
+    if (format->mono) {
+      img = Image(w, h, 3);
+      for (size_t i = 0; i < mosaic.size(); ++i) {
+        img.pixels[3 * i] = img.pixels[3 * i + 1] = img.pixels[3 * i + 2] = mosaic[i];
       }
+    } else {
+      DemosaicBilinear(mosaic.data(), w, h, format->red_x, format->red_y, &img);
     }
     out.images.push_back(std::move(img));
     out.slots.push_back(slot);

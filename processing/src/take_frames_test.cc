@@ -57,7 +57,7 @@ std::string WriteTake(const LightModel& light, const std::string& name, int64_t 
 TEST(TakeFramesTest, ACycleIsReadInPatternOrderAndDemosaiced) {
   const LightModel light = ShippedLight();
   const std::string path = WriteTake(light, "ok");
-  auto cycle = LoadCycle(path, 1, light, /*black_level_dn=*/4);
+  auto cycle = LoadCycle(path, 1, light, {.black_level_dn = 4});
   ASSERT_TRUE(cycle.ok()) << cycle.status();
   ASSERT_EQ(cycle->images.size(), 38u);
   EXPECT_EQ(cycle->camera_id, "hs-2");

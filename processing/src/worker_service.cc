@@ -1,7 +1,13 @@
 // gRPC ProcessingWorker service.
 #include "worker_service.h"
 
+#include <algorithm>
+
+#include "absl/strings/str_cat.h"
+#include "stage/common/grpc_status.h"
+#include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/processing/photometric_stage.h"
 
 namespace stage::processing {
 
@@ -15,6 +21,57 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
   response->set_jobs_completed(jobs_completed_.load());
   response->set_jobs_failed(jobs_failed_.load());
   response->set_threads(threads_);
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (const v1::ProcessingJob* job : running_) *response->add_running() = *job;
+  return grpc::Status::OK;
+}
+
+grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
+                                    grpc::ServerWriter<v1::ProcessingProgress>* writer) {
+  if (job->stage() != "photometric") {
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("worker \"", id_, "\": no stage \"", job->stage(), "\" (stages: photometric)")));
+  }
+  if (job->take_dir().empty()) {
+    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
+  }
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    running_.push_back(job);
+  }
+  PhotometricJob p;
+  p.take_dir = job->take_dir();
+  p.first_frame = job->first_frame();
+  p.last_frame = job->last_frame() > 0 ? job->last_frame() : -1;
+  p.cameras.assign(job->cameras().begin(), job->cameras().end());
+  p.geometry = job->geometry();
+  p.options.threads = static_cast<int>(threads_);
+  Logger("worker")->info("worker {}: {} on {} frames [{}, {})", id_, job->stage(), job->take_dir(), p.first_frame,
+                         p.last_frame);
+  auto result = RunPhotometric(p, [&](const JobProgress& progress) {
+    v1::ProcessingProgress m;
+    m.set_frames_done(progress.done);
+    m.set_frames_total(progress.total);
+    m.set_message(progress.message);
+    if (!context->IsCancelled()) writer->Write(m);
+  });
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    running_.erase(std::find(running_.begin(), running_.end(), job));
+  }
+  if (!result.ok()) {
+    ++jobs_failed_;
+    Logger("worker")->warn("worker {}: {}", id_, result.status().message());
+    return ToGrpcStatus(result.status());
+  }
+  ++jobs_completed_;
+  v1::ProcessingProgress done;
+  done.set_frames_done(result->units);
+  done.set_frames_total(result->units);
+  done.set_output_dir(result->output_dir);
+  done.set_finished(true);
+  done.set_message(absl::StrCat(result->units, " camera frame(s) processed into ", result->output_dir));
+  writer->Write(done);
   return grpc::Status::OK;
 }
 

@@ -1,9 +1,11 @@
-// gRPC ProcessingWorker service. Processing stages arrive with the photometric-stereo and later issues; today the
-// worker reports who it is and that it runs nothing.
+// gRPC ProcessingWorker service: runs processing stages on a take the worker can read (the same library calls as
+// stage-process), streaming their progress.
 #pragma once
 
 #include <atomic>
+#include <mutex>
 #include <string>
+#include <vector>
 
 #include "stage/v1/processing_worker.grpc.pb.h"
 
@@ -16,6 +18,10 @@ class WorkerService final : public v1::ProcessingWorker::Service {
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetWorkerStatus(grpc::ServerContext*, const v1::GetWorkerStatusRequest*,
                                v1::WorkerStatus* response) override;
+  // Stages: "photometric". Errors: InvalidArgument for a bad job (unknown stage, no take directory), and the stage's
+  // own error (naming the frame, camera or file) otherwise.
+  grpc::Status Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
+                       grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
  private:
   std::string id_;
@@ -23,6 +29,8 @@ class WorkerService final : public v1::ProcessingWorker::Service {
   uint32_t threads_;
   std::atomic<uint64_t> jobs_completed_{0};
   std::atomic<uint64_t> jobs_failed_{0};
+  std::mutex mutex_;
+  std::vector<const v1::ProcessingJob*> running_;  // guarded by mutex_
 };
 
 }  // namespace stage::processing

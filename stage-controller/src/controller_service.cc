@@ -9,7 +9,10 @@
 #include <mutex>
 #include <thread>
 
+#include <grpcpp/grpcpp.h>
+
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -18,6 +21,7 @@
 #include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/timing/verifier.h"
+#include "stage/v1/processing_worker.grpc.pb.h"
 #include "trigger_streamer.h"
 
 namespace stage::controller {
@@ -340,6 +344,67 @@ grpc::Status ControllerService::GetTake(grpc::ServerContext*, const v1::GetTakeR
   auto take = capturer_->GetTake(request->take_id());
   if (!take.ok()) return ToGrpcStatus(take.status());
   *response = std::move(*take);
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const v1::ProcessTakeRequest* request,
+                                            grpc::ServerWriter<v1::ProcessingProgress>* writer) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  auto take = capturer_->GetTake(request->take_id());
+  if (!take.ok()) return ToGrpcStatus(take.status());
+  // The worker: the one asked for, or the first that is up.
+  const v1::NodeStatus* worker = nullptr;
+  const std::vector<v1::NodeStatus> nodes = monitor_->Snapshot();
+  std::vector<std::string> known;
+  for (const v1::NodeStatus& n : nodes) {
+    if (n.kind() != v1::NODE_KIND_PROCESSING_WORKER) continue;
+    known.push_back(n.id());
+    if (!request->worker_id().empty() ? n.id() == request->worker_id()
+                                      : n.state() == v1::NODE_STATE_UP && worker == nullptr) {
+      worker = &n;
+    }
+  }
+  if (worker == nullptr) {
+    if (!request->worker_id().empty()) {
+      return ToGrpcStatus(absl::NotFoundError(absl::StrCat("no processing worker \"", request->worker_id(),
+                                                           "\" (the rig has: ", absl::StrJoin(known, ", "), ")")));
+    }
+    return ToGrpcStatus(absl::UnavailableError(
+        known.empty() ? "the rig has no processing worker"
+                      : absl::StrCat("no processing worker is up (", absl::StrJoin(known, ", "), ")")));
+  }
+  v1::ProcessingJob job;
+  job.set_stage(request->stage().empty() ? "photometric" : request->stage());
+  job.set_take_dir(take->dir());
+  job.set_first_frame(request->first_frame());
+  job.set_last_frame(request->last_frame());
+  *job.mutable_cameras() = request->cameras();
+  job.set_geometry(request->geometry());
+  Logger("controller")->info("take {}: {} on worker {} ({})", request->take_id(), job.stage(), worker->id(),
+                             worker->address());
+  auto stub = v1::ProcessingWorker::NewStub(grpc::CreateChannel(worker->address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext client;
+  // The operator's cancel (Ctrl-C on stagectl) reaches the worker.
+  std::atomic<bool> done{false};
+  std::thread watch([&] {
+    while (!done.load()) {
+      if (context->IsCancelled()) {
+        client.TryCancel();
+        return;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+  });
+  auto reader = stub->Process(&client, job);
+  v1::ProcessingProgress progress;
+  while (reader->Read(&progress)) writer->Write(progress);
+  grpc::Status status = reader->Finish();
+  done = true;
+  watch.join();
+  if (!status.ok()) {
+    return grpc::Status(status.error_code(),
+                        absl::StrCat("worker \"", worker->id(), "\": ", status.error_message()));
+  }
   return grpc::Status::OK;
 }
 

@@ -44,6 +44,8 @@ class ControllerService final : public v1::StageController::Service {
   grpc::Status Abort(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) override;
   grpc::Status GetPreview(grpc::ServerContext*, const v1::ControllerPreviewRequest* request,
                           v1::Preview* response) override;
+  grpc::Status ProcessTake(grpc::ServerContext* context, const v1::ProcessTakeRequest* request,
+                           grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
   v1::StageStatus Status() const;
 

@@ -480,6 +480,56 @@ int Preview(const Connection& c, const std::string& camera, const std::string& o
   return 0;
 }
 
+struct ProcessFlags {
+  std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, worker;
+  bool json = false;
+};
+
+// A processing stage over a take on one of the stage's workers, with a progress bar; no deadline (it takes as long as
+// the work), Ctrl-C cancels it on the worker.
+int Process(const Connection& c, const ProcessFlags& f) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  stage::v1::ProcessTakeRequest request;
+  request.set_take_id(f.take_id);
+  request.set_stage(f.stage);
+  int64_t first = 0, last = -1;
+  if (auto s = stage::ParseFrameRange("--frames", f.frames, &first, &last); !s.ok()) {
+    return stage::ReportFatal(kProgram, s);
+  }
+  request.set_first_frame(first);
+  request.set_last_frame(last < 0 ? 0 : last);
+  for (absl::string_view id : absl::StrSplit(f.cameras, ',', absl::SkipEmpty())) request.add_cameras(std::string(id));
+  request.set_geometry(f.geometry);
+  request.set_worker_id(f.worker);
+  grpc::ClientContext context;
+  auto reader = (*stub)->ProcessTake(&context, request);
+  stage::v1::ProcessingProgress progress, last_message;
+  stage::ProgressLine bar("camera frames");
+  while (reader->Read(&progress)) {
+    if (progress.finished()) {
+      last_message = progress;
+    } else if (progress.frames_done() == 0) {
+      bar.Message(progress.message());
+    } else {
+      bar.Update(progress.frames_done(), progress.frames_total(), progress.message());
+    }
+  }
+  bar.Finish();
+  grpc::Status rpc = reader->Finish();
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (!last_message.finished()) {
+    return stage::ReportFatal(kProgram, absl::DataLossError("the worker ended without saying where the results are"));
+  }
+  if (f.json) {
+    std::cout << ToJson(last_message) << "\n";
+  } else {
+    std::cout << "take " << f.take_id << ": " << last_message.message() << "\n";
+  }
+  return 0;
+}
+
 int Takes(const Connection& c, bool json) {
   std::string address;
   auto stub = Connect(c, &address);
@@ -696,6 +746,22 @@ int main(int argc, char** argv) {
   take_show->add_option("id", take_id, "Take id (stagectl takes lists them)")->required();
   take_show->add_flag("--json", take_json, "Print JSON for scripts");
 
+  ProcessFlags pf;
+  CLI::App* process = app.add_subcommand(
+      "process",
+      "Run a processing stage over a take on one of the stage's processing workers (results in "
+      "TAKE/derived/STAGE/), with progress");
+  process->add_option("id", pf.take_id, "Take id (stagectl takes lists them)")->required();
+  process->add_option("--stage", pf.stage, "The stage: photometric")->capture_default_str();
+  process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
+      ->capture_default_str();
+  process->add_option("--cameras", pf.cameras, "Camera ids, comma-separated (default: every high-speed camera)");
+  process->add_option("--geometry", pf.geometry,
+                      "Surface geometry, a directory of frame-NNNNNN/mesh.obj relative to the take (e.g. "
+                      "ground_truth on the simulated stage); default: none");
+  process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
+  process->add_flag("--json", pf.json, "Print the result as JSON");
+
   FaultFlags ff;
   CLI::App* sim = app.add_subcommand("sim", "The simulated stage (stage-sim): inject faults into its world");
   sim->require_subcommand(1);
@@ -744,5 +810,6 @@ int main(int argc, char** argv) {
   if (preview->parsed()) return Preview(c, preview_camera, preview_out, preview_json);
   if (takes->parsed()) return Takes(c, takes_json);
   if (take_show->parsed()) return TakeShow(c, take_id, take_json);
+  if (process->parsed()) return Process(c, pf);
   return 2;
 }

@@ -3,6 +3,8 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
@@ -48,5 +50,26 @@ int ReportFatal(absl::string_view program, const absl::Status& status);
 // in main().
 int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
                      const std::vector<grpc::Service*>& services, const std::string& summary);
+
+// A range of virtual frames from the command line: "A:B" is [A, B), "A:" from A to the end (last = -1), "A" the one
+// frame A. InvalidArgument names the flag.
+absl::Status ParseFrameRange(absl::string_view flag, absl::string_view text, int64_t* first, int64_t* last);
+
+// A progress bar on stderr for long work: redrawn in place on a terminal, a line every few seconds otherwise (logs,
+// pipes); messages print on their own line.
+class ProgressLine {
+ public:
+  explicit ProgressLine(std::string unit);
+  void Update(int64_t done, int64_t total, const std::string& detail = "");
+  void Message(const std::string& text);
+  // Ends the bar's line.
+  void Finish();
+
+ private:
+  std::string unit_;
+  bool tty_;
+  bool open_ = false;
+  std::chrono::steady_clock::time_point start_, last_;
+};
 
 }  // namespace stage

@@ -1,6 +1,6 @@
 // A cycle of a camera's take as photometric stereo takes it in: the frames of one virtual frame (38 slots) read from
-// the camera's HDF5 frame file (docs/storage.md), matched to the light model's patterns by name, demosaiced to linear
-// RGB with the black level removed.
+// the camera's HDF5 frame file (docs/storage.md), matched to the light model's patterns by name, corrected (black
+// level, flat field) and demosaiced to linear RGB.
 #pragma once
 
 #include <cstdint>
@@ -21,10 +21,30 @@ struct CycleFrames {
   int bits = 8;  // of the data (8, 12 or 16)
 };
 
+// What is done to every raw frame before demosaicing.
+struct RawCorrection {
+  double black_level_dn = 0;
+  // Each pixel's response relative to the mean (1 channel, the frames' size); null: uniform. Frames are divided by it.
+  const Image* flat_field = nullptr;
+};
+
 // Frame `frame` (slots [frame * cycle, (frame + 1) * cycle) of the take) of `path`. Errors name the file and what is
 // wrong: a pattern of the cycle without a frame (lost, or not recorded), a pattern whose name in the file is not the
-// light model's, a pixel format this does not read.
+// light model's, a pixel format this does not read, a flat field of another size.
 absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light,
-                                      double black_level_dn = 0);
+                                      const RawCorrection& correction = {});
+
+// The frame file's size, data bits and camera, without reading frames.
+struct FrameFileShape {
+  int width = 0, height = 0, bits = 8;
+  std::string camera_id, pixel_format;
+  int64_t last_slot = -1;  // the highest slot stored
+};
+absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path);
+
+// Bilinear demosaicing of a float mosaic (width x height, row-major) into RGB: each pixel keeps its own colour and
+// takes the others as the mean of its nearest neighbours of that colour (mirrored at the borders). `red_x`, `red_y`
+// (0 or 1): where the red site sits in the 2 x 2 tile (GenICam BayerRG: 0, 0; GR: 1, 0; GB: 0, 1; BG: 1, 1).
+void DemosaicBilinear(const float* mosaic, int width, int height, int red_x, int red_y, Image* rgb);
 
 }  // namespace stage::processing

@@ -1,0 +1,26 @@
+// Photometric maps on disk (docs/processing.md#outputs): per frame and camera, float OpenEXR maps (normals in the
+// stage and camera frames, albedo, specular intensity, roughness, confidence), the flags as PNG, 8-bit PNG previews,
+// metrics.json, and a contact sheet of the previews for people to look at. The same files are read back for
+// evaluation.
+#pragma once
+
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "stage/processing/photometric.h"
+
+namespace stage::processing {
+
+// Writes `maps` into `dir` (created). `metrics_json`: the unit's metrics, written as metrics.json. `title`: the
+// contact sheet's caption.
+absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,
+                           const std::string& title);
+
+// Reads a float image (OpenEXR, 1 or 3 channels; values in x, y, z / R, G, B order) or an 8/16-bit PNG.
+absl::StatusOr<Image> ReadImageFile(const std::string& path);
+
+// Writes a float image (1 or 3 channels) as float32 OpenEXR.
+absl::Status WriteExr(const std::string& path, const Image& image);
+
+}  // namespace stage::processing

@@ -1,0 +1,54 @@
+// Photometric stereo as a stage of the pipeline (docs/processing.md): over a take's frames and cameras, each camera's
+// cycle read from its frame file, solved (photometric.h) and written to <take>/derived/photometric/ as OpenEXR maps,
+// PNG previews, a metrics JSON and a contact sheet. One code path for the three ways it runs: this library call, the
+// batch command (`stage-process photometric`) and the ProcessingWorker service (`stagectl process`).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/common/rig.h"
+#include "stage/processing/photometric.h"
+
+namespace stage::processing {
+
+struct PhotometricJob {
+  // The take directory (takes/<take-id>, with take.json and cameras/<camera>.h5).
+  std::string take_dir;
+  // Virtual frames [first_frame, last_frame); last_frame < 0: every whole cycle the take recorded.
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  // Camera ids; empty: every high-speed camera of the take's rig.
+  std::vector<std::string> cameras;
+  // Surface geometry: a directory with frame-NNNNNN/mesh.obj (stage frame, mm) per frame of the take, relative to
+  // the take directory or absolute (the simulator's ground_truth/ until multi-view stereo gives it). Empty: none.
+  std::string geometry;
+  // Where the results go; empty: <take_dir>/derived/photometric.
+  std::string output_dir;
+  PhotometricOptions options;
+};
+
+struct JobProgress {
+  int64_t done = 0, total = 0;  // units: one camera's frame
+  std::string message;
+};
+
+struct JobResult {
+  std::string output_dir;
+  int64_t units = 0;
+};
+
+// Runs the job; `progress` (may be empty) after each unit. Errors name the take, frame, camera or file.
+absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
+                                         const std::function<void(const JobProgress&)>& progress = {});
+
+// The rig a take was recorded with (its take.json), for reading the take.
+absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir);
+
+// The directory of frame `frame`, camera `camera` under a stage's output root (frame-NNNNNN/<camera>).
+std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera);
+
+}  // namespace stage::processing

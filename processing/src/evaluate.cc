@@ -1,0 +1,243 @@
+// Photometric results against ground truth: see evaluate.h.
+#include "stage/processing/evaluate.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+#include <regex>
+#include <set>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/photometric_stage.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+
+constexpr double kDeg = 180.0 / M_PI;
+
+// Every channel blurred by a Gaussian over the mask only (normalized convolution), so that the background does not
+// bleed into the subject's edge.
+Image MaskedBlur(const Image& in, const std::vector<uint8_t>& mask, double sigma) {
+  cv::Mat weight(in.height, in.width, CV_32F);
+  for (int i = 0; i < in.width * in.height; ++i) weight.at<float>(i) = mask[static_cast<size_t>(i)] ? 1.f : 0.f;
+  cv::Mat wb;
+  cv::GaussianBlur(weight, wb, {0, 0}, sigma, sigma, cv::BORDER_REFLECT);
+  Image out(in.width, in.height, in.channels);
+  for (int c = 0; c < in.channels; ++c) {
+    cv::Mat ch(in.height, in.width, CV_32F), blurred;
+    for (int i = 0; i < in.width * in.height; ++i) {
+      ch.at<float>(i) = mask[static_cast<size_t>(i)] ? in.pixels[static_cast<size_t>(i) * in.channels + c] : 0.f;
+    }
+    cv::GaussianBlur(ch, blurred, {0, 0}, sigma, sigma, cv::BORDER_REFLECT);
+    for (int i = 0; i < in.width * in.height; ++i) {
+      const float w = wb.at<float>(i);
+      out.pixels[static_cast<size_t>(i) * in.channels + c] = w > 1e-6f ? blurred.at<float>(i) / w : 0.f;
+    }
+  }
+  return out;
+}
+
+struct Samples {
+  std::vector<double> error, band, floor;
+  int64_t mask = 0;
+};
+
+double Mean(const std::vector<double>& v) {
+  double s = 0;
+  for (double x : v) s += x;
+  return v.empty() ? 0 : s / static_cast<double>(v.size());
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+  return v[v.size() / 2];
+}
+
+bool Zero(const float* v, int channels) {
+  for (int c = 0; c < channels; ++c) {
+    if (v[c] != 0) return false;
+  }
+  return true;
+}
+
+// Compares one map. kind: 0 normal (angle), 1 relative, 2 absolute.
+void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& mask, int kind, double sigma,
+             Samples* out) {
+  // Where both have a value.
+  std::vector<uint8_t> valid(mask.size(), 0);
+  for (size_t i = 0; i < mask.size(); ++i) {
+    if (!mask[i]) continue;
+    ++out->mask;
+    const float* e = &est.pixels[i * est.channels];
+    if (kind == 0 && Zero(e, 3)) continue;
+    if (kind != 0 && !std::isfinite(e[0])) continue;
+    valid[i] = 1;
+  }
+  const Image est_low = MaskedBlur(est, valid, sigma), truth_low = MaskedBlur(truth, valid, sigma);
+  const int ch = est.channels;
+  for (size_t i = 0; i < valid.size(); ++i) {
+    if (!valid[i]) continue;
+    const float* e = &est.pixels[i * ch];
+    const float* t = &truth.pixels[i * ch];
+    const float* el = &est_low.pixels[i * ch];
+    const float* tl = &truth_low.pixels[i * ch];
+    if (kind == 0) {
+      const Eigen::Vector3d a(e[0], e[1], e[2]), b(t[0], t[1], t[2]);
+      out->error.push_back(std::atan2(a.cross(b).norm(), a.dot(b)) * kDeg);
+      // High-pass parts of the unit vectors (radians for small angles).
+      Eigen::Vector3d he, ht;
+      for (int c = 0; c < 3; ++c) {
+        he[c] = e[c] - el[c];
+        ht[c] = t[c] - tl[c];
+      }
+      out->band.push_back((he - ht).norm() * kDeg);
+      out->floor.push_back(ht.norm() * kDeg);
+    } else {
+      double err = 0, band = 0, floor = 0;
+      for (int c = 0; c < ch; ++c) {
+        const double scale = kind == 1 ? std::max(1e-6f, std::abs(t[c])) : 1.0;
+        const double low = kind == 1 ? std::max(1e-6f, std::abs(tl[c])) : 1.0;
+        err += std::abs(e[c] - t[c]) / scale;
+        band += std::abs((e[c] - el[c]) - (t[c] - tl[c])) / low;
+        floor += std::abs(t[c] - tl[c]) / low;
+      }
+      const double unit = kind == 1 ? 100.0 : 1.0;
+      out->error.push_back(unit * err / ch);
+      out->band.push_back(unit * band / ch);
+      out->floor.push_back(unit * floor / ch);
+    }
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
+  const std::string results = options.results_dir.empty() ? options.take_dir + "/derived/photometric"
+                                                           : options.results_dir;
+  const std::string truth = options.truth_dir.empty() ? options.take_dir + "/ground_truth" : options.truth_dir;
+  if (!fs::is_directory(results)) {
+    return absl::NotFoundError(absl::StrCat(results, ": no photometric results (run stage-process photometric)"));
+  }
+  if (!fs::is_directory(truth)) {
+    return absl::NotFoundError(
+        absl::StrCat(truth, ": no ground truth (a take on the simulated stage has it unless captured without)"));
+  }
+  // Units: frame-NNNNNN/<camera> under the results, in order.
+  std::set<std::pair<int64_t, std::string>> units;
+  const std::regex frame_dir("frame-([0-9]{6})");
+  for (const auto& entry : fs::directory_iterator(results)) {
+    std::smatch m;
+    const std::string name = entry.path().filename().string();
+    if (!entry.is_directory() || !std::regex_match(name, m, frame_dir)) continue;
+    const int64_t frame = std::stoll(m[1]);
+    if (frame < options.first_frame || (options.last_frame >= 0 && frame >= options.last_frame)) continue;
+    for (const auto& cam : fs::directory_iterator(entry.path())) {
+      const std::string id = cam.path().filename().string();
+      if (!options.cameras.empty() && std::find(options.cameras.begin(), options.cameras.end(), id) ==
+                                          options.cameras.end()) {
+        continue;
+      }
+      if (cam.is_directory()) units.emplace(frame, id);
+    }
+  }
+  if (units.empty()) return absl::NotFoundError(absl::StrCat(results, ": no results for these frames and cameras"));
+  struct Map {
+    const char* name;
+    const char* file;
+    const char* truth;
+    int kind;
+  };
+  const Map maps[] = {{"diffuse normal", "diffuse_normal_world.exr", "normal_world.exr", 0},
+                      {"specular normal", "specular_normal_world.exr", "normal_world.exr", 0},
+                      {"albedo", "albedo.exr", "albedo.exr", 1},
+                      {"specular intensity", "specular.exr", "specular.exr", 1},
+                      {"roughness", "roughness.exr", "roughness.exr", 2}};
+  std::vector<Samples> samples(std::size(maps));
+  Evaluation out;
+  for (const auto& [frame, camera] : units) {
+    const std::string mine = UnitDir(results, frame, camera), theirs = UnitDir(truth, frame, camera);
+    auto mask_image = ReadImageFile(theirs + "/mask.png");
+    if (!mask_image.ok()) return mask_image.status();
+    std::vector<uint8_t> mask(mask_image->pixels.size());
+    for (size_t i = 0; i < mask.size(); ++i) mask[i] = mask_image->pixels[i] > 0.99f;  // every ray on the subject
+    // Specular values only where a lobe was measured: the specular normal map says where.
+    auto specular_normal = ReadImageFile(mine + "/specular_normal_world.exr");
+    if (!specular_normal.ok()) return specular_normal.status();
+    for (size_t m = 0; m < std::size(maps); ++m) {
+      auto est = ReadImageFile(mine + "/" + maps[m].file);
+      if (!est.ok()) return est.status();
+      auto gt = ReadImageFile(theirs + "/" + maps[m].truth);
+      if (!gt.ok()) return gt.status();
+      if (est->width != gt->width || est->height != gt->height || est->channels != gt->channels) {
+        return absl::FailedPreconditionError(absl::StrCat(mine, "/", maps[m].file, " is ", est->width, "x",
+                                                          est->height, "x", est->channels, ", the truth ",
+                                                          gt->width, "x", gt->height, "x", gt->channels));
+      }
+      if (maps[m].kind != 0 && (m >= 3)) {
+        for (size_t i = 0; i < mask.size(); ++i) {
+          if (Zero(&specular_normal->pixels[3 * i], 3)) est->pixels[i] = NAN;
+        }
+      }
+      Compare(*est, *gt, mask, maps[m].kind, options.band_sigma_px, &samples[m]);
+    }
+    ++out.units;
+  }
+  out.mask_pixels = samples[0].mask;
+  for (size_t m = 0; m < std::size(maps); ++m) {
+    MapError e;
+    e.map = maps[m].name;
+    e.metric = maps[m].kind == 0 ? "angle (deg)" : maps[m].kind == 1 ? "relative (%)" : "absolute";
+    e.pixels = static_cast<int64_t>(samples[m].error.size());
+    e.coverage = samples[m].mask > 0 ? static_cast<double>(e.pixels) / static_cast<double>(samples[m].mask) : 0;
+    e.mean = Mean(samples[m].error);
+    e.median = Median(samples[m].error);
+    e.band_mean = Mean(samples[m].band);
+    e.band_median = Median(samples[m].band);
+    e.band_floor = Mean(samples[m].floor);
+    out.maps.push_back(e);
+  }
+  return out;
+}
+
+std::string FormatEvaluation(const Evaluation& e) {
+  std::string s = absl::StrFormat(
+      "photometric results against ground truth: %d camera frame(s), %d mask pixel(s)\n"
+      "%-19s %-13s %9s %8s %8s %8s   %s\n",
+      e.units, e.mask_pixels, "map", "metric", "pixels", "covered", "mean", "median",
+      "pore band: mean (no-detail floor)");
+  for (const MapError& m : e.maps) {
+    absl::StrAppend(&s, absl::StrFormat("%-19s %-13s %9d %7.1f%% %8.3f %8.3f   %.3f (%.3f)\n", m.map, m.metric,
+                                        m.pixels, 100 * m.coverage, m.mean, m.median, m.band_mean, m.band_floor));
+  }
+  return s;
+}
+
+std::string EvaluationJson(const Evaluation& e) {
+  nlohmann::ordered_json j;
+  j["units"] = e.units;
+  j["mask_pixels"] = e.mask_pixels;
+  j["maps"] = nlohmann::ordered_json::array();
+  for (const MapError& m : e.maps) {
+    j["maps"].push_back({{"map", m.map},
+                         {"metric", m.metric},
+                         {"pixels", m.pixels},
+                         {"coverage", m.coverage},
+                         {"mean", m.mean},
+                         {"median", m.median},
+                         {"band_mean", m.band_mean},
+                         {"band_median", m.band_median},
+                         {"band_floor", m.band_floor}});
+  }
+  return j.dump(2);
+}
+
+}  // namespace stage::processing

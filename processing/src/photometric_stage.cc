@@ -1,0 +1,253 @@
+// Photometric stereo as a stage of the pipeline: see photometric_stage.h.
+#include "stage/processing/photometric_stage.h"
+
+#include <google/protobuf/util/json_util.h>
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/file_util.h"
+#include "stage/common/mesh.h"
+#include "stage/processing/calibration.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/take_frames.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct CameraJob {
+  std::string id, path;
+  FrameFileShape shape;
+  CameraSetup setup;
+  Image flat;
+  bool has_flat = false;
+};
+
+// The flat field at the recorded size: as recorded, or the sensor's averaged down.
+absl::StatusOr<Image> LoadFlatField(const std::string& path, int width, int height) {
+  auto image = ReadImageFile(path);
+  if (!image.ok()) return image.status();
+  if (image->channels != 1) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field has one channel, not ", image->channels));
+  }
+  if (image->width == width && image->height == height) return image;
+  cv::Mat in(image->height, image->width, CV_32F, image->pixels.data()), out;
+  cv::resize(in, out, {width, height}, 0, 0, cv::INTER_AREA);
+  Image scaled(width, height, 1);
+  std::copy(out.ptr<float>(0), out.ptr<float>(0) + scaled.pixels.size(), scaled.pixels.begin());
+  for (float v : scaled.pixels) {
+    if (!(v > 0.05f && v < 20.f)) return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field value ", v,
+                                                                                 " is not a relative response"));
+  }
+  return scaled;
+}
+
+// A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
+std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera,
+                        const std::string& geometry, const std::string& calibration) {
+  int64_t solved = 0, specular = 0;
+  int64_t counts[6] = {0, 0, 0, 0, 0, 0};
+  double confidence = 0;
+  std::vector<float> albedo[3], rough, spec;
+  for (size_t i = 0; i < m.flags.size(); ++i) {
+    for (int b = 0; b < 6; ++b) counts[b] += (m.flags[i] >> b) & 1;
+    const float* n = &m.diffuse_normal_world.pixels[3 * i];
+    if (n[0] == 0 && n[1] == 0 && n[2] == 0) continue;
+    ++solved;
+    confidence += m.confidence.pixels[i];
+    for (int c = 0; c < 3; ++c) albedo[c].push_back(m.albedo.pixels[3 * i + c]);
+    if (m.flags[i] & kNoSpecular) continue;
+    ++specular;
+    rough.push_back(m.roughness.pixels[i]);
+    spec.push_back(m.specular.pixels[i]);
+  }
+  auto median = [](std::vector<float> v) -> double {
+    if (v.empty()) return 0;
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  nlohmann::ordered_json j;
+  j["frame"] = frame;
+  j["camera"] = camera;
+  j["width"] = m.width;
+  j["height"] = m.height;
+  j["pixels_solved"] = solved;
+  j["specular_pixels"] = specular;
+  j["flags"] = {{"saturated", counts[0]}, {"low_signal", counts[1]},  {"bad_fit", counts[2]},
+                {"shadowed", counts[3]},  {"no_specular", counts[4]}, {"specular_bad_fit", counts[5]}};
+  j["mean_confidence"] = solved > 0 ? confidence / static_cast<double>(solved) : 0.0;
+  j["median_albedo"] = {median(albedo[0]), median(albedo[1]), median(albedo[2])};
+  j["median_specular"] = median(spec);
+  j["median_roughness"] = median(rough);
+  j["geometry"] = geometry.empty() ? "none" : geometry;
+  j["calibration"] = calibration;
+  return j.dump(2);
+}
+
+}  // namespace
+
+std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera) {
+  return absl::StrFormat("%s/frame-%06d/%s", root, frame, camera);
+}
+
+absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir) {
+  const std::string path = take_dir + "/take.json";
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot open (is ", take_dir, " a take directory?)"));
+  std::stringstream text;
+  text << in.rdbuf();
+  const nlohmann::json take = nlohmann::json::parse(text.str(), nullptr, /*allow_exceptions=*/false);
+  if (take.is_discarded() || !take.contains("rig")) {
+    return absl::DataLossError(absl::StrCat(path, ": not a take file (no \"rig\")"));
+  }
+  LoadedRig rig;
+  google::protobuf::util::JsonParseOptions options;
+  options.ignore_unknown_fields = false;
+  const auto s = google::protobuf::util::JsonStringToMessage(take["rig"].dump(), &rig.rig, options);
+  if (!s.ok()) return absl::DataLossError(absl::StrCat(path, ": its rig does not read: ", s.ToString()));
+  rig.source_name = path;
+  rig.base_dir = take_dir;
+  return rig;
+}
+
+absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
+                                         const std::function<void(const JobProgress&)>& progress) {
+  auto rig = LoadTakeRig(job.take_dir);
+  if (!rig.ok()) return rig.status();
+  auto light = LightModel::FromRig(*rig);
+  if (!light.ok()) return light.status();
+  const int64_t cycle = static_cast<int64_t>(light->patterns.size());
+
+  std::vector<std::string> ids = job.cameras;
+  if (ids.empty()) {
+    for (const v1::CameraConfig& c : rig->rig.cameras()) {
+      if (c.role() == v1::CAMERA_ROLE_HIGH_SPEED) ids.push_back(c.id());
+    }
+    if (ids.empty()) return absl::NotFoundError(absl::StrCat(job.take_dir, ": the take's rig has no high-speed camera"));
+  }
+  std::vector<CameraJob> cameras;
+  int64_t whole_frames = -1;
+  for (const std::string& id : ids) {
+    CameraJob c;
+    c.id = id;
+    c.path = job.take_dir + "/cameras/" + id + ".h5";
+    if (!fs::exists(c.path)) {
+      return absl::NotFoundError(absl::StrCat(c.path, ": no frame file for camera \"", id, "\" in the take"));
+    }
+    auto shape = ReadFrameFileShape(c.path);
+    if (!shape.ok()) return shape.status();
+    c.shape = *shape;
+    auto setup = ResolveCamera(*rig, *light, id, shape->width, shape->height, shape->bits);
+    if (!setup.ok()) return setup.status();
+    c.setup = std::move(*setup);
+    if (!c.setup.flat_field.empty()) {
+      auto flat = LoadFlatField(c.setup.flat_field, shape->width, shape->height);
+      if (!flat.ok()) return flat.status();
+      c.flat = std::move(*flat);
+      c.has_flat = true;
+    }
+    const int64_t frames = (shape->last_slot + 1) / cycle;
+    whole_frames = whole_frames < 0 ? frames : std::min(whole_frames, frames);
+    cameras.push_back(std::move(c));
+  }
+  const int64_t first = job.first_frame;
+  const int64_t last = job.last_frame < 0 ? whole_frames : job.last_frame;
+  if (first < 0 || last <= first) {
+    return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last,
+                                                   ") are empty (the take holds ", whole_frames, " whole frame(s))"));
+  }
+  std::string geometry_root;
+  if (!job.geometry.empty()) {
+    geometry_root = fs::path(job.geometry).is_absolute() ? job.geometry : job.take_dir + "/" + job.geometry;
+    if (!fs::is_directory(geometry_root)) {
+      return absl::NotFoundError(absl::StrCat(geometry_root, ": no such geometry directory"));
+    }
+  }
+  JobResult result;
+  result.output_dir = job.output_dir.empty() ? job.take_dir + "/derived/photometric" : job.output_dir;
+  const int64_t total = (last - first) * static_cast<int64_t>(cameras.size());
+  JobProgress p{0, total, absl::StrCat("photometric stereo: ", last - first, " frame(s) x ", cameras.size(),
+                                        " camera(s)")};
+  if (progress) progress(p);
+  for (int64_t frame = first; frame < last; ++frame) {
+    std::unique_ptr<MeshBvh> mesh;
+    std::string geometry_file;
+    if (!geometry_root.empty()) {
+      geometry_file = absl::StrFormat("frame-%06d/mesh.obj", frame);
+      auto obj = ReadObj(geometry_root + "/" + geometry_file);
+      if (!obj.ok()) return obj.status();
+      mesh = std::make_unique<MeshBvh>(std::move(*obj));
+      geometry_file = fs::path(job.geometry).lexically_normal().string() + "/" + geometry_file;
+    }
+    for (const CameraJob& c : cameras) {
+      RawCorrection correction;
+      correction.black_level_dn = c.setup.black_level_dn;
+      if (c.has_flat) correction.flat_field = &c.flat;
+      auto frames = LoadCycle(c.path, frame, *light, correction);
+      if (!frames.ok()) return frames.status();
+      PixelGeometry geometry;
+      if (mesh != nullptr) {
+        geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
+      }
+      auto maps = SolvePhotometric(*light, frames->images, c.setup.camera, job.options,
+                                   mesh != nullptr ? &geometry : nullptr);
+      if (!maps.ok()) {
+        return absl::Status(maps.status().code(),
+                            absl::StrCat("frame ", frame, ", camera \"", c.id, "\": ", maps.status().message()));
+      }
+      const std::string dir = UnitDir(result.output_dir, frame, c.id);
+      const std::string title = absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(),
+                                                frame, c.id, geometry_file.empty() ? "none" : geometry_file);
+      if (auto s = WriteMapFiles(dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, c.setup.source), title);
+          !s.ok()) {
+        return s;
+      }
+      ++result.units;
+      p.done = result.units;
+      int64_t solved = 0, specular = 0;
+      for (uint8_t f : maps->flags) {
+        solved += (f & kLowSignal) == 0;
+        specular += (f & (kLowSignal | kNoSpecular)) == 0;
+      }
+      p.message = absl::StrFormat("frame %d %s: %d pixels solved, a specular lobe on %d", frame, c.id, solved,
+                                  specular);
+      if (progress) progress(p);
+    }
+  }
+  // What ran, for whoever reads the results (no times or hosts: the same job writes the same bytes).
+  nlohmann::ordered_json run;
+  run["stage"] = "photometric";
+  run["take"] = fs::path(job.take_dir).filename().string();
+  run["frames"] = {first, last};
+  run["cameras"] = ids;
+  run["geometry"] = job.geometry.empty() ? "none" : job.geometry;
+  run["options"] = {{"iterations", job.options.iterations},
+                    {"table_size", job.options.table_size},
+                    {"min_signal_dn", job.options.min_signal_dn},
+                    {"min_specular_snr", job.options.min_specular_snr},
+                    {"max_specular_sigma_deg", job.options.max_specular_sigma_deg},
+                    {"specular_filter_radius", job.options.specular_filter_radius}};
+  for (const CameraJob& c : cameras) {
+    run["calibration"][c.id] = {{"source", c.setup.source},
+                                {"white_scale", c.setup.camera.white_scale},
+                                {"electrons_per_dn", c.setup.camera.gain_e_per_dn},
+                                {"read_noise_e", c.setup.camera.read_noise_e},
+                                {"black_level_dn", c.setup.black_level_dn},
+                                {"cross_leakage", c.setup.camera.cross_leak},
+                                {"flat_field", c.setup.flat_field.empty() ? "none" : c.setup.flat_field}};
+  }
+  if (auto s = WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"); !s.ok()) return s;
+  return result;
+}
+
+}  // namespace stage::processing
