@@ -1,0 +1,137 @@
+// Processing a take of the simulated stage, the three ways a user runs it: the library call, the batch command
+// (stage-process photometric) and the stage's ProcessingWorker through the controller (stagectl process). All three
+// write the same bytes for the same frame; the evaluation reads them against the take's ground truth; bad requests
+// are refused with the take, frame or path named.
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "simulated_stage.h"
+#include "stage/processing/photometric_stage.h"
+#include "test_support.h"
+
+namespace stage::testing {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+// Every file under `root`, by its path relative to it, with its bytes.
+std::map<std::string, std::string> Files(const std::string& root) {
+  std::map<std::string, std::string> out;
+  for (const auto& entry : fs::recursive_directory_iterator(root)) {
+    if (!entry.is_regular_file()) continue;
+    std::ifstream in(entry.path(), std::ios::binary);
+    std::stringstream bytes;
+    bytes << in.rdbuf();
+    out[fs::relative(entry.path(), root).string()] = bytes.str();
+  }
+  return out;
+}
+
+using ProcessingTest = SimulatedStageTest;
+
+TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
+  TempDir root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.05", "--take-root", root.path()}));
+  const std::string endpoints = run_dir_.path() + "/endpoints.json";
+  CommandResult capture = RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--frames", "1", "--json"},
+                                     std::chrono::seconds(300));
+  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err;
+  const nlohmann::json take = nlohmann::json::parse(capture.out);
+  const std::string id = take["take_id"], dir = take["dir"];
+  ASSERT_TRUE(fs::exists(dir + "/ground_truth/frame-000000/mesh.obj"));
+
+  // The worker, through the controller: results in the take's derived/photometric.
+  CommandResult worker = RunCommand(
+      {"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth", "--json"},
+      std::chrono::seconds(300));
+  ASSERT_EQ(worker.exit.exit_code, 0) << worker.err;
+  const nlohmann::json done = nlohmann::json::parse(worker.out);
+  EXPECT_EQ(done["output_dir"], dir + "/derived/photometric");
+  EXPECT_EQ(done["frames_done"], "3");  // one frame of three high-speed cameras
+  EXPECT_THAT(worker.err, HasSubstr("3/3 camera frames"));
+
+  // The batch command and the library, each into a directory of its own.
+  CommandResult batch = RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "ground_truth",
+                                    "--output", dir + "/derived/batch"},
+                                   std::chrono::seconds(300));
+  ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
+  EXPECT_THAT(batch.out, HasSubstr("3 camera frame(s) processed into " + dir + "/derived/batch"));
+  processing::PhotometricJob job;
+  job.take_dir = dir;
+  job.geometry = "ground_truth";
+  job.output_dir = dir + "/derived/library";
+  job.options.threads = 1;  // the results do not depend on it
+  std::vector<int64_t> seen;
+  auto library = processing::RunPhotometric(job, [&](const processing::JobProgress& p) { seen.push_back(p.done); });
+  ASSERT_TRUE(library.ok()) << library.status();
+  EXPECT_EQ(seen, (std::vector<int64_t>{0, 1, 2, 3}));
+
+  const auto a = Files(dir + "/derived/photometric"), b = Files(dir + "/derived/batch"),
+             c = Files(dir + "/derived/library");
+  ASSERT_EQ(a.size(), 1 + 3 * 17u);  // run.json; per camera 8 EXR maps, flags, 6 previews, contact sheet, metrics
+  for (const std::string camera : {"hs-1", "hs-2", "hs-3"}) {
+    for (const std::string file : {"diffuse_normal_world.exr", "diffuse_normal_camera.exr",
+                                   "specular_normal_world.exr", "albedo.exr", "roughness.exr", "metrics.json",
+                                   "contact_sheet.png"}) {
+      EXPECT_EQ(a.count("frame-000000/" + camera + "/" + file), 1u) << camera << "/" << file;
+    }
+  }
+  for (const auto& [name, bytes] : a) {
+    ASSERT_EQ(b.count(name), 1u) << name;
+    ASSERT_EQ(c.count(name), 1u) << name;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the worker and the batch command";
+    EXPECT_TRUE(bytes == c.at(name)) << name << " differs between the worker and the library";
+  }
+
+  // The evaluation against the take's ground truth.
+  CommandResult eval =
+      RunCommand({"stage-process", "evaluate", "photometric", "--take", dir, "--json"}, std::chrono::seconds(120));
+  ASSERT_EQ(eval.exit.exit_code, 0) << eval.err;
+  const nlohmann::json table = nlohmann::json::parse(eval.out);
+  EXPECT_EQ(table["units"], 3);
+  ASSERT_EQ(table["maps"].size(), 5u);
+  EXPECT_EQ(table["maps"][0]["map"], "diffuse normal");
+  EXPECT_GT(table["maps"][0]["pixels"].get<int64_t>(), 1000);
+  EXPECT_GT(table["maps"][0]["mean"].get<double>(), 0);
+  EXPECT_LT(table["maps"][0]["mean"].get<double>(), 10);
+  CommandResult text = RunCommand({"stage-process", "evaluate", "photometric", "--take", dir, "--cameras", "hs-2"},
+                                  std::chrono::seconds(120));
+  EXPECT_THAT(text.out, HasSubstr("1 camera frame(s)"));
+  EXPECT_THAT(text.out, HasSubstr("pore band"));
+
+  // Bad requests say what is wrong and write nothing.
+  CommandResult unknown = RunCommand({"stagectl", "--endpoints", endpoints, "process", "nope"}, std::chrono::seconds(30));
+  EXPECT_EQ(unknown.exit.exit_code, 2);
+  EXPECT_THAT(unknown.err, HasSubstr("no take \"nope\""));
+  CommandResult stage_name =
+      RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "mvs"}, std::chrono::seconds(30));
+  EXPECT_EQ(stage_name.exit.exit_code, 2);
+  EXPECT_THAT(stage_name.err, HasSubstr("no stage \"mvs\""));
+  CommandResult no_take = RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"},
+                                     std::chrono::seconds(30));
+  EXPECT_EQ(no_take.exit.exit_code, 2);
+  EXPECT_THAT(no_take.err, HasSubstr(root.path() + "/missing/take.json"));
+  CommandResult past = RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "4", "--output",
+                                   dir + "/derived/past"},
+                                  std::chrono::seconds(60));
+  EXPECT_EQ(past.exit.exit_code, 2);
+  EXPECT_THAT(past.err, HasSubstr("frame 4 has no image of pattern \"cross-full\""));
+  EXPECT_FALSE(fs::exists(dir + "/derived/past/run.json"));
+  CommandResult camera = RunCommand({"stage-process", "photometric", "--take", dir, "--cameras", "hs-9"},
+                                    std::chrono::seconds(60));
+  EXPECT_EQ(camera.exit.exit_code, 2);
+  EXPECT_THAT(camera.err, HasSubstr("no frame file for camera \"hs-9\""));
+  CommandResult range = RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "3:1"},
+                                   std::chrono::seconds(30));
+  EXPECT_EQ(range.exit.exit_code, 2);
+  EXPECT_THAT(range.err, HasSubstr("--frames \"3:1\" is not a frame range"));
+}
+
+}  // namespace
+}  // namespace stage::testing
