@@ -997,7 +997,15 @@ absl::StatusOr<v1::TakeList> Capturer::ListTakes() const {
 }
 
 absl::StatusOr<v1::TakeSummary> Capturer::GetTake(const std::string& id) const {
-  STAGE_ASSIGN_OR_RETURN(storage::TakeRow row, catalog_->GetTake(id));
+  storage::TakeRow row;
+  if (id == "latest") {
+    // The newest take in the catalog (ListTakes is oldest first).
+    STAGE_ASSIGN_OR_RETURN(std::vector<storage::TakeRow> rows, catalog_->ListTakes());
+    if (rows.empty()) return absl::NotFoundError(absl::StrCat("no take yet in ", options_.take_root));
+    row = rows.back();
+  } else {
+    STAGE_ASSIGN_OR_RETURN(row, catalog_->GetTake(id));
+  }
   const std::string path = (fs::path(options_.take_root) / row.dir / "take.json").string();
   auto text = ReadFileToString(path);
   if (!text.ok()) return text.status();

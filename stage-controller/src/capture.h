@@ -67,6 +67,7 @@ class Capturer {
   std::string state() const;
 
   absl::StatusOr<v1::TakeList> ListTakes() const;
+  // A take by id, or "latest": the newest in the catalog. NotFound names an unknown id.
   absl::StatusOr<v1::TakeSummary> GetTake(const std::string& id) const;
   // The latest preview a camera sent during a take. NotFound before there is one, or for an unknown camera.
   absl::StatusOr<v1::Preview> GetPreview(const std::string& camera_id) const;

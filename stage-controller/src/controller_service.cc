@@ -397,7 +397,10 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   });
   auto reader = stub->Process(&client, job);
   v1::ProcessingProgress progress;
-  while (reader->Read(&progress)) writer->Write(progress);
+  while (reader->Read(&progress)) {
+    if (progress.finished()) progress.set_message(absl::StrCat("take ", take->take_id(), ": ", progress.message()));
+    writer->Write(progress);
+  }
   grpc::Status status = reader->Finish();
   done = true;
   watch.join();

@@ -525,7 +525,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (f.json) {
     std::cout << ToJson(last_message) << "\n";
   } else {
-    std::cout << "take " << f.take_id << ": " << last_message.message() << "\n";
+    std::cout << last_message.message() << "\n";
   }
   return 0;
 }
@@ -743,7 +743,7 @@ int main(int argc, char** argv) {
   std::string take_id;
   bool take_json = false;
   CLI::App* take_show = take->add_subcommand("show", "A take's ledger summary, per role and camera, and its self-test");
-  take_show->add_option("id", take_id, "Take id (stagectl takes lists them)")->required();
+  take_show->add_option("id", take_id, "Take id (stagectl takes lists them), or latest")->required();
   take_show->add_flag("--json", take_json, "Print JSON for scripts");
 
   ProcessFlags pf;
@@ -751,7 +751,7 @@ int main(int argc, char** argv) {
       "process",
       "Run a processing stage over a take on one of the stage's processing workers (results in "
       "TAKE/derived/STAGE/), with progress");
-  process->add_option("id", pf.take_id, "Take id (stagectl takes lists them)")->required();
+  process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
   process->add_option("--stage", pf.stage, "The stage: photometric")->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
