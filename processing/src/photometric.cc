@@ -1,6 +1,8 @@
 // Photometric stereo under spherical gradient illumination: see photometric.h.
 #include "stage/processing/photometric.h"
 
+#include "photometric_internal.h"
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <atomic>
@@ -12,15 +14,7 @@
 #include "absl/strings/str_cat.h"
 
 namespace stage::processing {
-namespace {
-
-constexpr float kPi = 3.14159265358979323846f;
-
-struct Twins {
-  std::vector<int> cross, parallel;                          // the same gradient under either polarization, paired
-  int full = -1;                                             // index into cross/parallel of the full-on pattern
-  int xp = -1, xm = -1, yp = -1, ym = -1, zp = -1, zm = -1;  // first-order gradients (for the first guess)
-};
+namespace internal {
 
 absl::StatusOr<Twins> PairPatterns(const LightModel& light) {
   Twins t;
@@ -50,30 +44,8 @@ absl::StatusOr<Twins> PairPatterns(const LightModel& light) {
   return t;
 }
 
-// Runs body(y0, y1) over bands of rows on `threads` threads (0: one per core).
-template <typename F>
-void ParallelRows(int height, int threads, F body) {
-  if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  // Small bands handed out in turn, so that a band of background does not leave a thread idle.
-  const int band = std::max(1, std::min(16, height / (4 * threads)));
-  std::atomic<int> next{0};
-  auto worker = [&] {
-    for (int y0; (y0 = next.fetch_add(band)) < height;) body(y0, std::min(height, y0 + band));
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
-}
-
 // Pattern weights unit-major (w[l * np + p]) for the paired patterns, and the coefficients that turn the specular
 // images into the lobe's first moments (sum_p c_p w_p(l) ~ 1, x_l, y_l, z_l over the units).
-struct PatternMatrix {
-  int np = 0, units = 0;
-  std::vector<float> cross, parallel;
-  Eigen::Matrix<float, 4, Eigen::Dynamic> moments;
-};
-
 PatternMatrix MakePatternMatrix(const LightModel& light, const Twins& t) {
   PatternMatrix m;
   m.np = static_cast<int>(t.cross.size());
@@ -90,15 +62,18 @@ PatternMatrix MakePatternMatrix(const LightModel& light, const Twins& t) {
       w(p, l) = q;
     }
   }
-  Eigen::MatrixXd f(4, m.units);
-  for (int l = 0; l < m.units; ++l) f.col(l) << 1, light.directions[static_cast<size_t>(l)];
+  Eigen::MatrixXd f(kMoments, m.units);
+  for (int l = 0; l < m.units; ++l) {
+    const Eigen::Vector3d& d = light.directions[static_cast<size_t>(l)];
+    f.col(l) << 1, d.x(), d.y(), d.z(), d.x() * d.x(), d.y() * d.y(), d.z() * d.z(), d.x() * d.y(), d.y() * d.z(),
+        d.x() * d.z();
+  }
   // c W = f in the least-squares sense: c = f W^T (W W^T)^-1.
   const Eigen::MatrixXd gram = w * w.transpose() + 1e-9 * Eigen::MatrixXd::Identity(m.np, m.np);
   m.moments = (gram.ldlt().solve(w * f.transpose())).transpose().cast<float>();
   return m;
 }
 
-// H_p(n) of every paired cross pattern as a point sees the units: sum over the units lit on n's side.
 void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, float* hp) {
   std::fill(hp, hp + 3 * pm.np, 0.f);
   for (int l = 0; l < pm.units; ++l) {
@@ -115,8 +90,6 @@ void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen:
   }
 }
 
-// The specular images a lobe with normal n, roughness alpha and rho_s = 1 gives under the paired parallel patterns,
-// seen from v (per unit of spec_scale; see SolvePhotometric).
 void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n,
                       const Eigen::Vector3f& v, float alpha, float* m) {
   std::fill(m, m + pm.np, 0.f);
@@ -134,6 +107,114 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
     for (int p = 0; p < pm.np; ++p) m[p] += pw[p] * s;
   }
 }
+
+// A local Wiener (Lee) filter of a field of `dims`-vectors with per-pixel noise variance (summed over the
+// components): in a (2r+1)^2 window of pixels that `same(i, j)` admits, the inverse-variance weighted mean mu and the
+// spread s^2; the pixel keeps mu + k (x - mu) with k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
+void WienerFilter(int width, int height, int dims, int radius, const std::vector<float>& in,
+                  const std::vector<float>& noise, const std::vector<uint8_t>& valid, std::vector<float>* out,
+                  int threads, const std::function<bool(size_t, size_t)>& same) {
+  *out = in;
+  if (radius <= 0) return;
+  ParallelRows(height, threads, [&](int y0, int y1) {
+    for (int y = y0; y < y1; ++y) {
+      for (int x = 0; x < width; ++x) {
+        const size_t i = static_cast<size_t>(y) * width + x;
+        if (!valid[i]) continue;
+        double wsum = 0, nsum = 0;
+        double mu[3] = {0, 0, 0};
+        int count = 0;
+        for (int dy = -radius; dy <= radius; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= height) continue;
+          for (int dx = -radius; dx <= radius; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= width) continue;
+            const size_t j = static_cast<size_t>(yy) * width + xx;
+            if (!valid[j] || !same(i, j)) continue;
+            const double w = 1.0 / std::max(1e-12f, noise[j]);
+            for (int c = 0; c < dims; ++c) mu[c] += w * in[j * dims + c];
+            wsum += w;
+            nsum += noise[j];
+            ++count;
+          }
+        }
+        if (count < 3) continue;
+        for (int c = 0; c < dims; ++c) mu[c] /= wsum;
+        double spread = 0;
+        for (int dy = -radius; dy <= radius; ++dy) {
+          const int yy = y + dy;
+          if (yy < 0 || yy >= height) continue;
+          for (int dx = -radius; dx <= radius; ++dx) {
+            const int xx = x + dx;
+            if (xx < 0 || xx >= width) continue;
+            const size_t j = static_cast<size_t>(yy) * width + xx;
+            if (!valid[j] || !same(i, j)) continue;
+            for (int c = 0; c < dims; ++c) {
+              const double e = in[j * dims + c] - mu[c];
+              spread += e * e;
+            }
+          }
+        }
+        spread /= count;
+        const double signal = std::max(0.0, spread - nsum / count);
+        const double k = signal / (signal + std::max(1e-12f, noise[i]));
+        for (int c = 0; c < dims; ++c) (*out)[i * dims + c] = static_cast<float>(mu[c] + k * (in[i * dims + c] - mu[c]));
+      }
+    }
+  });
+}
+
+void RegularizeSpecular(const std::vector<float>& var_n, const std::vector<float>& var_log_alpha, int radius,
+                        int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
+  PhotometricMaps& m = *maps;
+  const int w = m.width, h = m.height;
+  // Regularize the specular normals: their departure from the diffuse normal, filtered adaptively among neighbours
+  // on the same side of an edge (diffuse normals within 30 degrees); and roughness the same way (its logarithm, whose
+  // noise does not grow with it).
+  const size_t n_pixels = static_cast<size_t>(w) * h;
+  std::vector<uint8_t> valid(n_pixels, 0);
+  std::vector<float> delta(3 * n_pixels, 0), log_alpha(n_pixels, 0);
+  for (size_t i = 0; i < n_pixels; ++i) {
+    if (m.flags[i] & (kLowSignal | kNoSpecular)) continue;
+    valid[i] = 1;
+    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - m.diffuse_normal_world.pixels[3 * i + k];
+    log_alpha[i] = std::log(m.roughness.pixels[i]);
+  }
+  const Image& nd = m.diffuse_normal_world;
+  auto same_side = [&](size_t a, size_t b) {
+    const float* p = &nd.pixels[3 * a];
+    const float* q = &nd.pixels[3 * b];
+    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2] > 0.866f;
+  };
+  std::vector<float> delta_f, log_alpha_f;
+  WienerFilter(w, h, 3, radius, delta, var_n, valid, &delta_f, threads, same_side);
+  WienerFilter(w, h, 1, radius, log_alpha, var_log_alpha, valid, &log_alpha_f,
+               threads, same_side);
+  for (size_t i = 0; i < n_pixels; ++i) {
+    if (!valid[i]) continue;
+    Eigen::Vector3f ns(nd.pixels[3 * i] + delta_f[3 * i], nd.pixels[3 * i + 1] + delta_f[3 * i + 1],
+                       nd.pixels[3 * i + 2] + delta_f[3 * i + 2]);
+    ns.normalize();
+    const Eigen::Vector3f nc = to_camera * ns;
+    std::copy(ns.data(), ns.data() + 3, &m.specular_normal_world.pixels[3 * i]);
+    std::copy(nc.data(), nc.data() + 3, &m.specular_normal_camera.pixels[3 * i]);
+    m.roughness.pixels[i] = std::exp(log_alpha_f[i]);
+  }
+}
+
+}  // namespace internal
+
+namespace {
+
+using internal::DiffuseFromView;
+using internal::kPi;
+using internal::MakePatternMatrix;
+using internal::PairPatterns;
+using internal::ParallelRows;
+using internal::PatternMatrix;
+using internal::SpecularFromView;
+using internal::Twins;
 
 struct SpecularFit {
   Eigen::Vector3f n = Eigen::Vector3f::Zero();
@@ -284,63 +365,6 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
   fit.converged = fit.n.allFinite() && std::isfinite(fit.chi2);
   fit.ok = fit.converged && rho > 0;
   return fit;
-}
-
-// A local Wiener (Lee) filter of a field of `dims`-vectors with per-pixel noise variance (summed over the
-// components): in a (2r+1)^2 window of pixels that `same(i, j)` admits, the inverse-variance weighted mean mu and the
-// spread s^2; the pixel keeps mu + k (x - mu) with k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
-void WienerFilter(int width, int height, int dims, int radius, const std::vector<float>& in,
-                  const std::vector<float>& noise, const std::vector<uint8_t>& valid, std::vector<float>* out,
-                  int threads, const std::function<bool(size_t, size_t)>& same) {
-  *out = in;
-  if (radius <= 0) return;
-  ParallelRows(height, threads, [&](int y0, int y1) {
-    for (int y = y0; y < y1; ++y) {
-      for (int x = 0; x < width; ++x) {
-        const size_t i = static_cast<size_t>(y) * width + x;
-        if (!valid[i]) continue;
-        double wsum = 0, nsum = 0;
-        double mu[3] = {0, 0, 0};
-        int count = 0;
-        for (int dy = -radius; dy <= radius; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= height) continue;
-          for (int dx = -radius; dx <= radius; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= width) continue;
-            const size_t j = static_cast<size_t>(yy) * width + xx;
-            if (!valid[j] || !same(i, j)) continue;
-            const double w = 1.0 / std::max(1e-12f, noise[j]);
-            for (int c = 0; c < dims; ++c) mu[c] += w * in[j * dims + c];
-            wsum += w;
-            nsum += noise[j];
-            ++count;
-          }
-        }
-        if (count < 3) continue;
-        for (int c = 0; c < dims; ++c) mu[c] /= wsum;
-        double spread = 0;
-        for (int dy = -radius; dy <= radius; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= height) continue;
-          for (int dx = -radius; dx <= radius; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= width) continue;
-            const size_t j = static_cast<size_t>(yy) * width + xx;
-            if (!valid[j] || !same(i, j)) continue;
-            for (int c = 0; c < dims; ++c) {
-              const double e = in[j * dims + c] - mu[c];
-              spread += e * e;
-            }
-          }
-        }
-        spread /= count;
-        const double signal = std::max(0.0, spread - nsum / count);
-        const double k = signal / (signal + std::max(1e-12f, noise[i]));
-        for (int c = 0; c < dims; ++c) (*out)[i * dims + c] = static_cast<float>(mu[c] + k * (in[i * dims + c] - mu[c]));
-      }
-    }
-  });
 }
 
 }  // namespace
@@ -578,7 +602,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
         // Fitted wherever it can be, faint or not: the diffuse below uses it.
         std::vector<Eigen::Vector3f> starts = {diffuse.n};
         const Eigen::Map<const Eigen::VectorXf> sv(s.data(), np);
-        const Eigen::Vector4f mom = pm.moments * sv;
+        const Eigen::Vector4f mom = pm.moments.topRows<4>() * sv;
         if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
           const Eigen::Vector3f r = mom.tail<3>().normalized();
           if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
@@ -649,38 +673,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
     }
   });
 
-  // Regularize the specular normals: their departure from the diffuse normal, filtered adaptively among neighbours
-  // on the same side of an edge (diffuse normals within 30 degrees); and roughness the same way (its logarithm, whose
-  // noise does not grow with it).
-  const size_t n_pixels = static_cast<size_t>(w) * h;
-  std::vector<uint8_t> valid(n_pixels, 0);
-  std::vector<float> delta(3 * n_pixels, 0), log_alpha(n_pixels, 0);
-  for (size_t i = 0; i < n_pixels; ++i) {
-    if (m.flags[i] & (kLowSignal | kNoSpecular)) continue;
-    valid[i] = 1;
-    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - m.diffuse_normal_world.pixels[3 * i + k];
-    log_alpha[i] = std::log(m.roughness.pixels[i]);
-  }
-  const Image& nd = m.diffuse_normal_world;
-  auto same_side = [&](size_t a, size_t b) {
-    const float* p = &nd.pixels[3 * a];
-    const float* q = &nd.pixels[3 * b];
-    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2] > 0.866f;
-  };
-  std::vector<float> delta_f, log_alpha_f;
-  WienerFilter(w, h, 3, options.specular_filter_radius, delta, var_n, valid, &delta_f, options.threads, same_side);
-  WienerFilter(w, h, 1, options.specular_filter_radius, log_alpha, var_log_alpha, valid, &log_alpha_f,
-               options.threads, same_side);
-  for (size_t i = 0; i < n_pixels; ++i) {
-    if (!valid[i]) continue;
-    Eigen::Vector3f ns(nd.pixels[3 * i] + delta_f[3 * i], nd.pixels[3 * i + 1] + delta_f[3 * i + 1],
-                       nd.pixels[3 * i + 2] + delta_f[3 * i + 2]);
-    ns.normalize();
-    const Eigen::Vector3f nc = to_camera * ns;
-    std::copy(ns.data(), ns.data() + 3, &m.specular_normal_world.pixels[3 * i]);
-    std::copy(nc.data(), nc.data() + 3, &m.specular_normal_camera.pixels[3 * i]);
-    m.roughness.pixels[i] = std::exp(log_alpha_f[i]);
-  }
+  internal::RegularizeSpecular(var_n, var_log_alpha, options.specular_filter_radius, options.threads, to_camera, &m);
   return m;
 }
 

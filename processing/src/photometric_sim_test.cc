@@ -92,7 +92,7 @@ void Render(const std::vector<std::string>& overrides, const LightModel** light_
       mosaic[i] = static_cast<float>(raw.data[i]) - static_cast<float>(sensor.black_level_dn);
     }
     Image img;
-    DemosaicBilinear(mosaic.data(), raw.width, raw.height, 0, 0, &img);  // RGGB
+    DemosaicBilinear(mosaic.data(), raw.width, raw.height, Mosaic{}, &img);  // RGGB
     out->frames.push_back(std::move(img));
   }
   const std::shared_ptr<const sim::Subject> subject = (*scene)->SubjectAt(0);

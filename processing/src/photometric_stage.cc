@@ -40,11 +40,13 @@ absl::StatusOr<Image> LoadFlatField(const std::string& path, int width, int heig
   if (image->channels != 1) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field has one channel, not ", image->channels));
   }
-  if (image->width == width && image->height == height) return image;
-  cv::Mat in(image->height, image->width, CV_32F, image->pixels.data()), out;
-  cv::resize(in, out, {width, height}, 0, 0, cv::INTER_AREA);
-  Image scaled(width, height, 1);
-  std::copy(out.ptr<float>(0), out.ptr<float>(0) + scaled.pixels.size(), scaled.pixels.begin());
+  Image scaled = std::move(*image);
+  if (scaled.width != width || scaled.height != height) {
+    cv::Mat in(scaled.height, scaled.width, CV_32F, scaled.pixels.data()), out;
+    cv::resize(in, out, {width, height}, 0, 0, cv::INTER_AREA);
+    scaled = Image(width, height, 1);
+    std::copy(out.ptr<float>(0), out.ptr<float>(0) + scaled.pixels.size(), scaled.pixels.begin());
+  }
   for (float v : scaled.pixels) {
     if (!(v > 0.05f && v < 20.f)) return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field value ", v,
                                                                                  " is not a relative response"));
@@ -193,13 +195,15 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       RawCorrection correction;
       correction.black_level_dn = c.setup.black_level_dn;
       if (c.has_flat) correction.flat_field = &c.flat;
-      auto frames = LoadCycle(c.path, frame, *light, correction);
+      auto raw = LoadCycle(c.path, frame, *light);
+      if (!raw.ok()) return raw.status();
+      auto frames = DemosaicCycle(*raw, correction);
       if (!frames.ok()) return frames.status();
       PixelGeometry geometry;
       if (mesh != nullptr) {
         geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
       }
-      auto maps = SolvePhotometric(*light, frames->images, c.setup.camera, job.options,
+      auto maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options,
                                    mesh != nullptr ? &geometry : nullptr);
       if (!maps.ok()) {
         return absl::Status(maps.status().code(),

@@ -12,23 +12,23 @@ namespace stage::processing {
 namespace {
 
 struct Format {
-  bool mono = false;
-  int red_x = 0, red_y = 0;
+  Mosaic mosaic;
   int bits = 8;
 };
 
 absl::StatusOr<Format> ParseFormat(const std::string& path, const std::string& f, uint32_t bytes_per_pixel) {
   Format out;
+  Mosaic& m = out.mosaic;
   if (absl::StartsWith(f, "BayerRG")) {
-    out.red_x = 0, out.red_y = 0;
+    m.red_x = 0, m.red_y = 0;
   } else if (absl::StartsWith(f, "BayerGR")) {
-    out.red_x = 1, out.red_y = 0;
+    m.red_x = 1, m.red_y = 0;
   } else if (absl::StartsWith(f, "BayerGB")) {
-    out.red_x = 0, out.red_y = 1;
+    m.red_x = 0, m.red_y = 1;
   } else if (absl::StartsWith(f, "BayerBG")) {
-    out.red_x = 1, out.red_y = 1;
+    m.red_x = 1, m.red_y = 1;
   } else if (absl::StartsWith(f, "Mono")) {
-    out.mono = true;
+    m.mono = true;
   } else {
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": pixel format \"", f, "\" is not one photometric stereo reads"));
@@ -45,7 +45,8 @@ inline int Mirror(int i, int n) { return i < 0 ? -i : i >= n ? 2 * n - 2 - i : i
 
 }  // namespace
 
-void DemosaicBilinear(const float* mosaic, int width, int height, int red_x, int red_y, Image* rgb) {
+void DemosaicBilinear(const float* mosaic, int width, int height, const Mosaic& layout, Image* rgb) {
+  const int red_x = layout.red_x, red_y = layout.red_y;
   *rgb = Image(width, height, 3);
   auto at = [&](int x, int y) { return mosaic[static_cast<size_t>(Mirror(y, height)) * width + Mirror(x, width)]; };
   for (int y = 0; y < height; ++y) {
@@ -91,8 +92,7 @@ absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path) {
   return shape;
 }
 
-absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light,
-                                      const RawCorrection& correction) {
+absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light) {
   auto file = storage::FrameFileReader::Open(path);
   if (!file.ok()) return file.status();
   const storage::FrameFileInfo& info = (*file)->info();
@@ -102,6 +102,9 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
   out.camera_id = info.camera_id;
   out.pixel_format = info.pixel_format;
   out.bits = format->bits;
+  out.mosaic = format->mosaic;
+  out.width = static_cast<int>(info.width);
+  out.height = static_cast<int>(info.height);
   // What the file says each pattern index is must be the light model's pattern of that index.
   const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
   if (names.is_array() && !names.empty()) {
@@ -117,14 +120,6 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
       }
     }
   }
-  const int w = static_cast<int>(info.width), h = static_cast<int>(info.height);
-  if (correction.flat_field != nullptr &&
-      (correction.flat_field->width != w || correction.flat_field->height != h ||
-       correction.flat_field->channels != 1)) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": the flat field is ", correction.flat_field->width, "x",
-                                                   correction.flat_field->height, "x",
-                                                   correction.flat_field->channels, ", the frames ", w, "x", h, "x1"));
-  }
   auto records = (*file)->Records();
   if (!records.ok()) return records.status();
   const auto cycle = static_cast<int64_t>(light.patterns.size());
@@ -135,8 +130,7 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
       index_of_slot[r.slot] = static_cast<int64_t>(i);
     }
   }
-  std::vector<float> mosaic(static_cast<size_t>(w) * h);
-  const float black = static_cast<float>(correction.black_level_dn);
+  const size_t n = static_cast<size_t>(out.width) * out.height;
   for (int64_t p = 0; p < cycle; ++p) {
     const int64_t slot = frame * cycle + p;
     auto it = index_of_slot.find(slot);
@@ -147,25 +141,46 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
     }
     auto pixels = (*file)->Pixels(it->second);
     if (!pixels.ok()) return pixels.status();
-    const uint8_t* raw = pixels->data();
+    const uint8_t* bytes = pixels->data();
+    std::vector<uint16_t> raw(n);
+    for (size_t i = 0; i < n; ++i) {
+      raw[i] = out.bits == 8 ? bytes[i] : static_cast<uint16_t>(bytes[2 * i] | (bytes[2 * i + 1] << 8));
+    }
+    out.raw.push_back(std::move(raw));
+    out.slots.push_back(slot);
+  }
+  return out;
+}
+
+absl::StatusOr<std::vector<Image>> DemosaicCycle(const CycleFrames& cycle, const RawCorrection& correction) {
+  const int w = cycle.width, h = cycle.height;
+  if (correction.flat_field != nullptr &&
+      (correction.flat_field->width != w || correction.flat_field->height != h ||
+       correction.flat_field->channels != 1)) {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", cycle.camera_id, "\": the flat field is ",
+                                                   correction.flat_field->width, "x", correction.flat_field->height,
+                                                   "x", correction.flat_field->channels, ", the frames ", w, "x", h,
+                                                   "x1"));
+  }
+  std::vector<float> mosaic(static_cast<size_t>(w) * h);
+  const float black = static_cast<float>(correction.black_level_dn);
+  std::vector<Image> out;
+  for (const std::vector<uint16_t>& raw : cycle.raw) {
     for (size_t i = 0; i < mosaic.size(); ++i) {
-      float v = out.bits == 8 ? static_cast<float>(raw[i])
-                              : static_cast<float>(static_cast<uint16_t>(raw[2 * i] | (raw[2 * i + 1] << 8)));
-      v -= black;
+      float v = static_cast<float>(raw[i]) - black;
       if (correction.flat_field != nullptr) v /= correction.flat_field->pixels[i];
       mosaic[i] = v;
     }
     Image img;
-    if (format->mono) {
+    if (cycle.mosaic.mono) {
       img = Image(w, h, 3);
       for (size_t i = 0; i < mosaic.size(); ++i) {
         img.pixels[3 * i] = img.pixels[3 * i + 1] = img.pixels[3 * i + 2] = mosaic[i];
       }
     } else {
-      DemosaicBilinear(mosaic.data(), w, h, format->red_x, format->red_y, &img);
+      DemosaicBilinear(mosaic.data(), w, h, cycle.mosaic, &img);
     }
-    out.images.push_back(std::move(img));
-    out.slots.push_back(slot);
+    out.push_back(std::move(img));
   }
   return out;
 }

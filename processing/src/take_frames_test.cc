@@ -57,14 +57,19 @@ std::string WriteTake(const LightModel& light, const std::string& name, int64_t 
 TEST(TakeFramesTest, ACycleIsReadInPatternOrderAndDemosaiced) {
   const LightModel light = ShippedLight();
   const std::string path = WriteTake(light, "ok");
-  auto cycle = LoadCycle(path, 1, light, {.black_level_dn = 4});
+  auto cycle = LoadCycle(path, 1, light);
   ASSERT_TRUE(cycle.ok()) << cycle.status();
-  ASSERT_EQ(cycle->images.size(), 38u);
+  ASSERT_EQ(cycle->raw.size(), 38u);
   EXPECT_EQ(cycle->camera_id, "hs-2");
   EXPECT_EQ(cycle->bits, 8);
+  EXPECT_EQ(cycle->mosaic.Color(0, 0), 0);
+  EXPECT_EQ(cycle->mosaic.Color(1, 0), 1);
+  EXPECT_EQ(cycle->mosaic.Color(1, 1), 2);
+  auto images = DemosaicCycle(*cycle, {.black_level_dn = 4});
+  ASSERT_TRUE(images.ok()) << images.status();
   for (int p = 0; p < 38; ++p) {
     EXPECT_EQ(cycle->slots[static_cast<size_t>(p)], 38 + p);
-    const float* v = cycle->images[static_cast<size_t>(p)].at(3, 3);  // inside: every site's neighbours exist
+    const float* v = (*images)[static_cast<size_t>(p)].at(3, 3);  // inside: every site's neighbours exist
     EXPECT_FLOAT_EQ(v[0], 10 + p - 4) << p;
     EXPECT_FLOAT_EQ(v[1], 100 + p - 4) << p;
     EXPECT_FLOAT_EQ(v[2], 200 - p - 4) << p;

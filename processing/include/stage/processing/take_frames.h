@@ -13,12 +13,28 @@
 
 namespace stage::processing {
 
+// The colour filter of a sensor: mono, or a Bayer mosaic with its red site at (red_x, red_y) in the 2 x 2 tile
+// (GenICam BayerRG: 0, 0; GR: 1, 0; GB: 0, 1; BG: 1, 1).
+struct Mosaic {
+  bool mono = false;
+  int red_x = 0, red_y = 0;
+  // Which colour (0 R, 1 G, 2 B) pixel (x, y) sees; for mono, 1.
+  int Color(int x, int y) const {
+    if (mono) return 1;
+    const bool red_row = ((y ^ red_y) & 1) == 0, red_col = ((x ^ red_x) & 1) == 0;
+    return red_row == red_col ? (red_row ? 0 : 2) : 1;
+  }
+};
+
+// One cycle of a camera, as recorded: a raw frame per pattern.
 struct CycleFrames {
-  std::vector<Image> images;   // in the light model's pattern order
-  std::vector<int64_t> slots;  // the slot each came from
+  int width = 0, height = 0;
+  int bits = 8;  // of the data (8, 12 or 16)
+  Mosaic mosaic;
+  std::vector<std::vector<uint16_t>> raw;  // in the light model's pattern order, width x height each
+  std::vector<int64_t> slots;              // the slot each came from
   std::string camera_id;
   std::string pixel_format;
-  int bits = 8;  // of the data (8, 12 or 16)
 };
 
 // What is done to every raw frame before demosaicing.
@@ -30,9 +46,12 @@ struct RawCorrection {
 
 // Frame `frame` (slots [frame * cycle, (frame + 1) * cycle) of the take) of `path`. Errors name the file and what is
 // wrong: a pattern of the cycle without a frame (lost, or not recorded), a pattern whose name in the file is not the
-// light model's, a pixel format this does not read, a flat field of another size.
-absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light,
-                                      const RawCorrection& correction = {});
+// light model's, a pixel format this does not read.
+absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, const LightModel& light);
+
+// The cycle corrected (black level, flat field) and demosaiced to linear RGB (DemosaicBilinear), one image per
+// pattern. InvalidArgument: a flat field of another size.
+absl::StatusOr<std::vector<Image>> DemosaicCycle(const CycleFrames& cycle, const RawCorrection& correction = {});
 
 // The frame file's size, data bits and camera, without reading frames.
 struct FrameFileShape {
@@ -43,8 +62,7 @@ struct FrameFileShape {
 absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path);
 
 // Bilinear demosaicing of a float mosaic (width x height, row-major) into RGB: each pixel keeps its own colour and
-// takes the others as the mean of its nearest neighbours of that colour (mirrored at the borders). `red_x`, `red_y`
-// (0 or 1): where the red site sits in the 2 x 2 tile (GenICam BayerRG: 0, 0; GR: 1, 0; GB: 0, 1; BG: 1, 1).
-void DemosaicBilinear(const float* mosaic, int width, int height, int red_x, int red_y, Image* rgb);
+// takes the others as the mean of its nearest neighbours of that colour (mirrored at the borders).
+void DemosaicBilinear(const float* mosaic, int width, int height, const Mosaic& layout, Image* rgb);
 
 }  // namespace stage::processing

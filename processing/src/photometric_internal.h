@@ -1,0 +1,71 @@
+// Internals shared by the two ways photometric stereo runs (photometric.cc: per pixel, exact, with or without
+// geometry; fast_photometric.cc: table-driven from the raw mosaic, without geometry). Not part of the library's API.
+#pragma once
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <atomic>
+#include <functional>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/processing/light_model.h"
+#include "stage/processing/photometric.h"
+
+namespace stage::processing::internal {
+
+constexpr float kPi = 3.14159265358979323846f;
+constexpr int kMoments = 10;
+
+// The cross patterns and their parallel twins (the same gradient under either polarization), paired.
+struct Twins {
+  std::vector<int> cross, parallel;                          // the same gradient under either polarization, paired
+  int full = -1;                                             // index into cross/parallel of the full-on pattern
+  int xp = -1, xm = -1, yp = -1, ym = -1, zp = -1, zm = -1;  // first-order gradients (for the first guess)
+};
+
+absl::StatusOr<Twins> PairPatterns(const LightModel& light);
+
+// Runs body(y0, y1) over bands of rows on `threads` threads (0: one per core).
+template <typename F>
+void ParallelRows(int height, int threads, F body) {
+  if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  // Small bands handed out in turn, so that a band of background does not leave a thread idle.
+  const int band = std::max(1, std::min(16, height / (4 * threads)));
+  std::atomic<int> next{0};
+  auto worker = [&] {
+    for (int y0; (y0 = next.fetch_add(band)) < height;) body(y0, std::min(height, y0 + band));
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
+  worker();
+  for (auto& th : pool) th.join();
+}
+
+// Pattern weights unit-major (w[l * np + p]) for the paired patterns, and the coefficients that turn the specular
+// images into the lobe's moments (sum_p c_p w_p(l) ~ f(l) over the units, by least squares).
+struct PatternMatrix {
+  int np = 0, units = 0;
+  std::vector<float> cross, parallel;
+  // Rows: the lobe's moments 1, x, y, z, xx, yy, zz, xy, yz, xz (sum over units of the function times the light).
+  Eigen::Matrix<float, kMoments, Eigen::Dynamic> moments;
+};
+
+PatternMatrix MakePatternMatrix(const LightModel& light, const Twins& t);
+
+// H_p(n) of every paired cross pattern as a point sees the units: sum over the units lit on n's side.
+void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, float* hp);
+
+// The specular images a lobe with normal n, roughness alpha and rho_s = 1 gives under the paired parallel patterns,
+// seen from v.
+void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, const Eigen::Vector3f& v,
+                      float alpha, float* m);
+
+// Regularizes the specular maps in place: the departure of the raw specular normal from the diffuse normal, and log
+// roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge; `var_n`,
+// `var_log_alpha`: each pixel's noise. Fills the regularized specular normals (stage and camera frames).
+void RegularizeSpecular(const std::vector<float>& var_n, const std::vector<float>& var_log_alpha, int radius,
+                        int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* m);
+
+}  // namespace stage::processing::internal
