@@ -108,99 +108,113 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
   }
 }
 
-// A local Wiener (Lee) filter of a field of `dims`-vectors with per-pixel noise variance (summed over the
-// components): in a (2r+1)^2 window of pixels that `same(i, j)` admits, the inverse-variance weighted mean mu and the
-// spread s^2; the pixel keeps mu + k (x - mu) with k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
-void WienerFilter(int width, int height, int dims, int radius, const std::vector<float>& in,
-                  const std::vector<float>& noise, const std::vector<uint8_t>& valid, std::vector<float>* out,
-                  int threads, const std::function<bool(size_t, size_t)>& same) {
-  *out = in;
-  if (radius <= 0) return;
-  ParallelRows(height, threads, [&](int y0, int y1) {
+float* Work(PhotometricMaps* m, WorkSlot slot) {
+  const size_t n = static_cast<size_t>(m->width) * m->height;
+  if (m->work.size() != n * kSlots) m->work.resize(n * kSlots);
+  return m->work.data() + n * static_cast<size_t>(slot);
+}
+
+void PrepareMaps(int width, int height, PhotometricMaps* m) {
+  m->width = width;
+  m->height = height;
+  for (auto [image, channels] : std::initializer_list<std::pair<Image*, int>>{
+           {&m->diffuse_normal_world, 3}, {&m->diffuse_normal_camera, 3}, {&m->albedo, 3},
+           {&m->specular_normal_world, 3}, {&m->specular_normal_camera, 3}, {&m->specular_normal_raw, 3},
+           {&m->specular, 1}, {&m->roughness, 1}, {&m->specular_sigma, 1}, {&m->confidence, 1},
+           {&m->fit_residual, 1}}) {
+    image->width = width;
+    image->height = height;
+    image->channels = channels;
+    image->pixels.resize(static_cast<size_t>(width) * height * channels);
+  }
+  m->flags.resize(static_cast<size_t>(width) * height);
+}
+
+// A local Wiener (Lee) filter of the departure of the specular normal from the diffuse one (3 components) and of log
+// roughness, each with its own per-pixel noise: in a (2r+1)^2 window of the pixels with a lobe on the same side of an
+// edge, the inverse-variance weighted mean mu and the spread s^2 about it; the pixel keeps mu + k (x - mu) with
+// k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
+void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
+  PhotometricMaps& m = *maps;
+  const int w = m.width, h = m.height;
+  const size_t n_pixels = static_cast<size_t>(w) * h;
+  const float* var_n = Work(&m, kVarNormal);
+  const float* var_la = Work(&m, kVarLogAlpha);
+  float* delta = Work(&m, kDelta);
+  float* log_alpha = Work(&m, kLogAlpha);
+  const float* nd = m.diffuse_normal_world.pixels.data();
+  auto has_lobe = [&](size_t i) { return (m.flags[i] & (kLowSignal | kNoSpecular)) == 0; };
+  for (size_t i = 0; i < n_pixels; ++i) {
+    if (!has_lobe(i)) continue;
+    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - nd[3 * i + k];
+    log_alpha[i] = std::log(m.roughness.pixels[i]);
+  }
+  ParallelRows(h, threads, [&](int y0, int y1) {
     for (int y = y0; y < y1; ++y) {
-      for (int x = 0; x < width; ++x) {
-        const size_t i = static_cast<size_t>(y) * width + x;
-        if (!valid[i]) continue;
-        double wsum = 0, nsum = 0;
-        double mu[3] = {0, 0, 0};
-        int count = 0;
-        for (int dy = -radius; dy <= radius; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= height) continue;
-          for (int dx = -radius; dx <= radius; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= width) continue;
-            const size_t j = static_cast<size_t>(yy) * width + xx;
-            if (!valid[j] || !same(i, j)) continue;
-            const double w = 1.0 / std::max(1e-12f, noise[j]);
-            for (int c = 0; c < dims; ++c) mu[c] += w * in[j * dims + c];
-            wsum += w;
-            nsum += noise[j];
-            ++count;
-          }
+      for (int x = 0; x < w; ++x) {
+        const size_t i = static_cast<size_t>(y) * w + x;
+        float* sw = &m.specular_normal_world.pixels[3 * i];
+        float* sc = &m.specular_normal_camera.pixels[3 * i];
+        if (!has_lobe(i)) {
+          std::fill(sw, sw + 3, 0.f);
+          std::fill(sc, sc + 3, 0.f);
+          continue;
         }
-        if (count < 3) continue;
-        for (int c = 0; c < dims; ++c) mu[c] /= wsum;
-        double spread = 0;
-        for (int dy = -radius; dy <= radius; ++dy) {
-          const int yy = y + dy;
-          if (yy < 0 || yy >= height) continue;
-          for (int dx = -radius; dx <= radius; ++dx) {
-            const int xx = x + dx;
-            if (xx < 0 || xx >= width) continue;
-            const size_t j = static_cast<size_t>(yy) * width + xx;
-            if (!valid[j] || !same(i, j)) continue;
-            for (int c = 0; c < dims; ++c) {
-              const double e = in[j * dims + c] - mu[c];
-              spread += e * e;
+        const float* n0 = &nd[3 * i];
+        // Sums over the window: weights, weighted values, values and squares, noise; normal (3) then log alpha.
+        float wn = 0, wl = 0, mn[3] = {0, 0, 0}, ml = 0, sn[3] = {0, 0, 0}, sl = 0, qn = 0, ql = 0, nn = 0, nl = 0;
+        int count = 0;
+        if (radius > 0) {
+          for (int yy = std::max(0, y - radius); yy <= std::min(h - 1, y + radius); ++yy) {
+            for (int xx = std::max(0, x - radius); xx <= std::min(w - 1, x + radius); ++xx) {
+              const size_t j = static_cast<size_t>(yy) * w + xx;
+              if (!has_lobe(j)) continue;
+              const float* n1 = &nd[3 * j];
+              if (n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2] <= 0.866f) continue;
+              const float a = 1 / std::max(1e-12f, var_n[j]), b = 1 / std::max(1e-12f, var_la[j]);
+              for (int c = 0; c < 3; ++c) {
+                const float v = delta[3 * j + c];
+                mn[c] += a * v;
+                sn[c] += v;
+                qn += v * v;
+              }
+              wn += a;
+              nn += var_n[j];
+              ml += b * log_alpha[j];
+              sl += log_alpha[j];
+              ql += log_alpha[j] * log_alpha[j];
+              wl += b;
+              nl += var_la[j];
+              ++count;
             }
           }
         }
-        spread /= count;
-        const double signal = std::max(0.0, spread - nsum / count);
-        const double k = signal / (signal + std::max(1e-12f, noise[i]));
-        for (int c = 0; c < dims; ++c) (*out)[i * dims + c] = static_cast<float>(mu[c] + k * (in[i * dims + c] - mu[c]));
+        float dn[3] = {delta[3 * i], delta[3 * i + 1], delta[3 * i + 2]};
+        float la = log_alpha[i];
+        if (count >= 3) {
+          const float inv = 1.f / static_cast<float>(count);
+          float spread = qn * inv;
+          for (int c = 0; c < 3; ++c) {
+            mn[c] /= wn;
+            spread += mn[c] * mn[c] - 2 * mn[c] * sn[c] * inv;
+          }
+          const float signal = std::max(0.f, spread - nn * inv);
+          const float k = signal / (signal + std::max(1e-12f, var_n[i]));
+          for (int c = 0; c < 3; ++c) dn[c] = mn[c] + k * (dn[c] - mn[c]);
+          ml /= wl;
+          const float spread_l = ql * inv + ml * ml - 2 * ml * sl * inv;
+          const float signal_l = std::max(0.f, spread_l - nl * inv);
+          const float kl = signal_l / (signal_l + std::max(1e-12f, var_la[i]));
+          la = ml + kl * (la - ml);
+        }
+        const Eigen::Vector3f ns = Eigen::Vector3f(n0[0] + dn[0], n0[1] + dn[1], n0[2] + dn[2]).normalized();
+        const Eigen::Vector3f nc = to_camera * ns;
+        std::copy(ns.data(), ns.data() + 3, sw);
+        std::copy(nc.data(), nc.data() + 3, sc);
+        m.roughness.pixels[i] = std::exp(la);
       }
     }
   });
-}
-
-void RegularizeSpecular(const std::vector<float>& var_n, const std::vector<float>& var_log_alpha, int radius,
-                        int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
-  PhotometricMaps& m = *maps;
-  const int w = m.width, h = m.height;
-  // Regularize the specular normals: their departure from the diffuse normal, filtered adaptively among neighbours
-  // on the same side of an edge (diffuse normals within 30 degrees); and roughness the same way (its logarithm, whose
-  // noise does not grow with it).
-  const size_t n_pixels = static_cast<size_t>(w) * h;
-  std::vector<uint8_t> valid(n_pixels, 0);
-  std::vector<float> delta(3 * n_pixels, 0), log_alpha(n_pixels, 0);
-  for (size_t i = 0; i < n_pixels; ++i) {
-    if (m.flags[i] & (kLowSignal | kNoSpecular)) continue;
-    valid[i] = 1;
-    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - m.diffuse_normal_world.pixels[3 * i + k];
-    log_alpha[i] = std::log(m.roughness.pixels[i]);
-  }
-  const Image& nd = m.diffuse_normal_world;
-  auto same_side = [&](size_t a, size_t b) {
-    const float* p = &nd.pixels[3 * a];
-    const float* q = &nd.pixels[3 * b];
-    return p[0] * q[0] + p[1] * q[1] + p[2] * q[2] > 0.866f;
-  };
-  std::vector<float> delta_f, log_alpha_f;
-  WienerFilter(w, h, 3, radius, delta, var_n, valid, &delta_f, threads, same_side);
-  WienerFilter(w, h, 1, radius, log_alpha, var_log_alpha, valid, &log_alpha_f,
-               threads, same_side);
-  for (size_t i = 0; i < n_pixels; ++i) {
-    if (!valid[i]) continue;
-    Eigen::Vector3f ns(nd.pixels[3 * i] + delta_f[3 * i], nd.pixels[3 * i + 1] + delta_f[3 * i + 1],
-                       nd.pixels[3 * i + 2] + delta_f[3 * i + 2]);
-    ns.normalize();
-    const Eigen::Vector3f nc = to_camera * ns;
-    std::copy(ns.data(), ns.data() + 3, &m.specular_normal_world.pixels[3 * i]);
-    std::copy(nc.data(), nc.data() + 3, &m.specular_normal_camera.pixels[3 * i]);
-    m.roughness.pixels[i] = std::exp(log_alpha_f[i]);
-  }
 }
 
 }  // namespace internal
@@ -460,22 +474,16 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   const UnitView origin_view = light.ViewFromOrigin();
 
   PhotometricMaps m;
-  m.width = w;
-  m.height = h;
-  m.diffuse_normal_world = Image(w, h, 3);
-  m.diffuse_normal_camera = Image(w, h, 3);
-  m.albedo = Image(w, h, 3);
-  m.specular_normal_world = Image(w, h, 3);
-  m.specular_normal_camera = Image(w, h, 3);
-  m.specular_normal_raw = Image(w, h, 3);
-  m.specular = Image(w, h, 1);
-  m.roughness = Image(w, h, 1);
-  m.specular_sigma = Image(w, h, 1);
-  m.confidence = Image(w, h, 1);
-  m.fit_residual = Image(w, h, 1);
-  m.flags.assign(static_cast<size_t>(w) * h, 0);
+  internal::PrepareMaps(w, h, &m);
+  // The maps are zero where nothing is solved.
+  for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.albedo, &m.specular_normal_raw,
+                       &m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
+    std::fill(image->pixels.begin(), image->pixels.end(), 0.f);
+  }
+  std::fill(m.flags.begin(), m.flags.end(), 0);
   // Per-pixel noise of the specular fit, for the regularization.
-  std::vector<float> var_n(static_cast<size_t>(w) * h, 0), var_log_alpha(var_n.size(), 0);
+  float* var_n = internal::Work(&m, internal::kVarNormal);
+  float* var_log_alpha = internal::Work(&m, internal::kVarLogAlpha);
 
   const double k_leak = camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak);
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
@@ -673,7 +681,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
     }
   });
 
-  internal::RegularizeSpecular(var_n, var_log_alpha, options.specular_filter_radius, options.threads, to_camera, &m);
+  internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return m;
 }
 

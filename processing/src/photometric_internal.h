@@ -62,10 +62,19 @@ void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen:
 void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, const Eigen::Vector3f& v,
                       float alpha, float* m);
 
+// The working memory the solvers share (PhotometricMaps::work), per pixel: the specular fit's noise of the normal's
+// direction (rad^2, both axes) and of log roughness, then the regularization's inputs. Sized and returned by Work().
+enum WorkSlot { kVarNormal = 0, kVarLogAlpha = 1, kDelta = 2 /* 3 floats */, kLogAlpha = 5, kOwnAlbedo = 6, kSlots = 7 };
+float* Work(PhotometricMaps* m, WorkSlot slot);
+
+// Sizes every map of `m` for width x height (keeping their memory when the size is the same; contents are not
+// cleared: the solver writes every pixel).
+void PrepareMaps(int width, int height, PhotometricMaps* m);
+
 // Regularizes the specular maps in place: the departure of the raw specular normal from the diffuse normal, and log
-// roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge; `var_n`,
-// `var_log_alpha`: each pixel's noise. Fills the regularized specular normals (stage and camera frames).
-void RegularizeSpecular(const std::vector<float>& var_n, const std::vector<float>& var_log_alpha, int radius,
-                        int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* m);
+// roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge (diffuse
+// normals within 30 degrees), each pixel's noise from the work slots. Writes the regularized specular normals (stage
+// and camera frames) and roughness of every pixel with a lobe, zeros elsewhere.
+void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* m);
 
 }  // namespace stage::processing::internal

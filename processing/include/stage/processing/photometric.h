@@ -121,6 +121,9 @@ struct PhotometricMaps {
   Image confidence;               // 1 channel, 0..1
   Image fit_residual;             // 1 channel: the diffuse fit's reduced chi-square (about 1 for a good fit)
   std::vector<uint8_t> flags;     // PhotometricFlag bits
+  // The solvers' working memory (per pixel: the specular fit's noise, and the regularization's inputs), kept so that
+  // the next solve of the same size reuses it.
+  std::vector<float> work;
 };
 
 // `frames`: the cycle's images in pattern order (light.patterns), demosaiced RGB, DN above black. InvalidArgument

@@ -1,0 +1,596 @@
+// Table-driven photometric stereo from the raw mosaic: see fast_photometric.h.
+#include "stage/processing/fast_photometric.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <mutex>
+
+#include "absl/strings/str_cat.h"
+#include "photometric_internal.h"
+
+namespace stage::processing {
+
+using internal::kPi;
+
+struct PhotometricTables::Data {
+  internal::Twins twins;
+  internal::PatternMatrix pm;
+  int np = 0;
+  // Diffuse, n x n octahedral cells of the normal: per cell H (np x 3), M (3 x np, row-major), and sum_p H_p (3).
+  int n = 0;
+  std::vector<float> h, m, hsum;
+  // Specular, s x s octahedral cells of the lobe's measured mean direction, j roughness samples; per (cell, sample):
+  // the step to the true mirror direction (3), the lobe's angular variance about its mean direction, its total
+  // (moment 0), and its image under every pattern (np), per unit of rho_s and spec_scale. A total of 0: the lobe falls
+  // off the dome there.
+  int s = 0, j = 0;
+  std::vector<float> log_alpha;
+  std::vector<float> spec;
+  int spec_stride = 0;
+  Eigen::Vector3f view = Eigen::Vector3f::UnitZ();  // the camera's central view (towards it from the stage origin)
+
+  int Cell(const Eigen::Vector3f& dir, int size) const {
+    const Eigen::Vector2f uv = OctEncode(dir);
+    const int u = std::clamp(static_cast<int>(uv.x() * static_cast<float>(size)), 0, size - 1);
+    const int v = std::clamp(static_cast<int>(uv.y() * static_cast<float>(size)), 0, size - 1);
+    return v * size + u;
+  }
+};
+
+PhotometricTables::~PhotometricTables() = default;
+
+namespace {
+
+constexpr int kDiffuseCells = 128;
+constexpr int kSpecularCells = 48;
+constexpr int kAlphas = 12;
+constexpr float kAlphaMin = 0.04f, kAlphaMax = 1.0f;
+
+// The lobe's moments (1, x, y, z, xx, yy, zz, xy, yz, xz) from its images; its mean direction and the angular
+// variance about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets).
+struct LobeMoments {
+  float mu0 = 0;
+  Eigen::Vector3f mean = Eigen::Vector3f::Zero();  // unit
+  float spread = 0;
+  bool ok = false;
+};
+
+LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
+  float mu[internal::kMoments];
+  for (int r = 0; r < internal::kMoments; ++r) {
+    float sum = 0;
+    for (int k = 0; k < pm.np; ++k) sum += pm.moments(r, k) * s[k];
+    mu[r] = sum;
+  }
+  LobeMoments out;
+  out.mu0 = mu[0];
+  const Eigen::Vector3f m1(mu[1], mu[2], mu[3]);
+  if (!(mu[0] > 0) || m1.norm() < 1e-6f * mu[0]) return out;
+  out.mean = m1.normalized();
+  const Eigen::Vector3f r = out.mean;
+  // r^T M2 r with M2 = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]] / mu0.
+  const float q = r.x() * r.x() * mu[4] + r.y() * r.y() * mu[5] + r.z() * r.z() * mu[6] +
+                  2 * (r.x() * r.y() * mu[7] + r.y() * r.z() * mu[8] + r.x() * r.z() * mu[9]);
+  out.spread = 1 - q / mu[0];
+  out.ok = true;
+  return out;
+}
+
+// The hot loops over a row, compiled for AVX-512 and AVX2 as well as the baseline x86-64 (the best the CPU has is
+// picked when the program starts).
+#define STAGE_ROW_LOOP __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+
+// A raw row less the black level, divided by the flat field (null: none).
+STAGE_ROW_LOOP void CorrectRow(const uint16_t* __restrict raw, const float* __restrict flat, float black, int w,
+                               float* __restrict out) {
+  if (flat != nullptr) {
+    for (int x = 0; x < w; ++x) out[x] = (static_cast<float>(raw[x]) - black) / flat[x];
+  } else {
+    for (int x = 0; x < w; ++x) out[x] = static_cast<float>(raw[x]) - black;
+  }
+}
+
+// The channel sum of a bilinear demosaic along a row: own value times `self`, plus kc times the 4 edge neighbours and
+// kd times the 4 diagonal ones (per pixel: its Bayer site's weights); the row's ends mirrored.
+STAGE_ROW_LOOP void ChannelSumRow(const float* __restrict up, const float* __restrict mid,
+                                  const float* __restrict down, const float* __restrict kc,
+                                  const float* __restrict kd, float self, int w, float* __restrict out) {
+  auto at = [&](int x, int l, int r) {
+    return self * mid[x] + kc[x] * (mid[l] + mid[r] + up[x] + down[x]) + kd[x] * (up[l] + up[r] + down[l] + down[r]);
+  };
+  out[0] = at(0, 1, 1);
+  for (int x = 1; x + 1 < w; ++x) {
+    out[x] = self * mid[x] + kc[x] * (mid[x - 1] + mid[x + 1] + up[x] + down[x]) +
+             kd[x] * (up[x - 1] + up[x + 1] + down[x - 1] + down[x + 1]);
+  }
+  out[w - 1] = at(w - 1, w - 2, w - 2);
+}
+
+// Per pattern pair along a row, from the channel sums of its cross (dc) and parallel (dp) images: the diffuse in the
+// cross image (the leaked specular taken away), the specular (parallel - cross, for the leak), the specular's inverse
+// variance (shot and read noise of both images), and the diffuse's inverse variance.
+STAGE_ROW_LOOP void PairRow(const float* __restrict dc, const float* __restrict dp, float k_leak, float spec_gain,
+                            float inv_g, float read, int w, float* __restrict d, float* __restrict s,
+                            float* __restrict sw, float* __restrict dw) {
+  const float gain2 = spec_gain * spec_gain;
+  for (int x = 0; x < w; ++x) {
+    const float diffuse = dc[x] - k_leak * (dp[x] - dc[x]);
+    d[x] = diffuse;
+    s[x] = (dp[x] - dc[x]) * spec_gain;
+    sw[x] = 1.f / (gain2 * (std::max(0.f, dp[x] + dc[x]) * inv_g + 2 * read));
+    dw[x] = 1.f / (std::max(0.f, diffuse) * inv_g + read);
+  }
+}
+
+// Marks the pixels of a row where a raw value reaches saturation.
+STAGE_ROW_LOOP void SaturationRow(const float* __restrict own, float saturation, int w,
+                                  uint8_t* __restrict saturated) {
+  for (int x = 0; x < w; ++x) saturated[x] |= own[x] >= saturation ? 1 : 0;
+}
+
+}  // namespace
+
+absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Build(const LightModel& light,
+                                                                                  const PhotometricCamera& camera,
+                                                                                  const PhotometricOptions& options) {
+  auto twins = internal::PairPatterns(light);
+  if (!twins.ok()) return twins.status();
+  std::shared_ptr<PhotometricTables> tables(new PhotometricTables());
+  tables->data_ = std::make_unique<Data>();
+  Data& d = *tables->data_;
+  d.twins = *twins;
+  d.pm = internal::MakePatternMatrix(light, d.twins);
+  d.np = d.pm.np;
+  const int np = d.np;
+  const UnitView origin = light.ViewFromOrigin();
+  d.view = camera.position_mm.normalized().cast<float>();
+
+  // Diffuse. Weights as the noise model has them for a surface of albedo sum 1: shot noise (the level) and read noise.
+  d.n = kDiffuseCells;
+  const size_t cells = static_cast<size_t>(d.n) * d.n;
+  d.h.resize(cells * 3 * np);
+  d.m.resize(cells * 3 * np);
+  d.hsum.resize(cells * 3);
+  const double read_dn2 = 3 * (camera.read_noise_e / camera.gain_e_per_dn) * (camera.read_noise_e / camera.gain_e_per_dn);
+  const double floor = read_dn2 * camera.gain_e_per_dn / std::max(1e-9, camera.white_scale);
+  internal::ParallelRows(d.n, options.threads, [&](int v0, int v1) {
+    std::vector<float> hp(3 * static_cast<size_t>(np));
+    for (int v = v0; v < v1; ++v) {
+      for (int u = 0; u < d.n; ++u) {
+        const size_t c = static_cast<size_t>(v) * d.n + u;
+        const Eigen::Vector3f n = OctDecode({(u + 0.5f) / d.n, (v + 0.5f) / d.n});
+        internal::DiffuseFromView(origin, d.pm, n, hp.data());
+        Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
+        Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+        std::vector<double> w(static_cast<size_t>(np));
+        for (int p = 0; p < np; ++p) {
+          const Eigen::Vector3d hv(hp[3 * p], hp[3 * p + 1], hp[3 * p + 2]);
+          w[static_cast<size_t>(p)] = 1.0 / (std::max(0.0, n.cast<double>().dot(hv)) + floor);
+          a += w[static_cast<size_t>(p)] * hv * hv.transpose();
+          sum += hv;
+        }
+        const Eigen::Matrix3d inv = (a + 1e-12 * Eigen::Matrix3d::Identity()).inverse();
+        for (int p = 0; p < np; ++p) {
+          const Eigen::Vector3d hv(hp[3 * p], hp[3 * p + 1], hp[3 * p + 2]);
+          const Eigen::Vector3d col = inv * hv * w[static_cast<size_t>(p)];
+          for (int k = 0; k < 3; ++k) {
+            d.h[(c * np + p) * 3 + k] = hp[3 * p + k];
+            d.m[(c * 3 + k) * np + p] = static_cast<float>(col[k]);
+          }
+        }
+        for (int k = 0; k < 3; ++k) d.hsum[c * 3 + k] = static_cast<float>(sum[k]);
+      }
+    }
+  });
+
+  // Specular: for every measured mean direction and roughness, the mirror direction whose lobe has that mean (found by
+  // fixed-point steps through the exact model), and what that lobe looks like.
+  d.s = kSpecularCells;
+  d.j = kAlphas;
+  for (int k = 0; k < d.j; ++k) {
+    d.log_alpha.push_back(std::log(kAlphaMin) + (std::log(kAlphaMax) - std::log(kAlphaMin)) * k / (d.j - 1));
+  }
+  d.spec_stride = 5 + np;
+  d.spec.assign(static_cast<size_t>(d.s) * d.s * d.j * d.spec_stride, 0.f);
+  const Eigen::Vector3f v = d.view;
+  // The largest total each roughness reaches anywhere: a lobe whose total is far below it falls mostly off the dome.
+  std::vector<float> best(static_cast<size_t>(d.j), 0.f);
+  std::mutex best_mutex;
+  internal::ParallelRows(d.s, options.threads, [&](int v0, int v1) {
+    std::vector<float> m(static_cast<size_t>(np));
+    std::vector<float> local(static_cast<size_t>(d.j), 0.f);
+    for (int row = v0; row < v1; ++row) {
+      for (int col = 0; col < d.s; ++col) {
+        const size_t c = static_cast<size_t>(row) * d.s + col;
+        const Eigen::Vector3f target = OctDecode({(col + 0.5f) / d.s, (row + 0.5f) / d.s});
+        for (int k = 0; k < d.j; ++k) {
+          const float alpha = std::exp(d.log_alpha[static_cast<size_t>(k)]);
+          Eigen::Vector3f r = target;
+          LobeMoments mom;
+          for (int it = 0; it < 8; ++it) {
+            const Eigen::Vector3f n = (r + v).normalized();
+            if (n.dot(v) <= 0.02f) break;
+            internal::SpecularFromView(origin, d.pm, n, v, alpha, m.data());
+            mom = Moments(d.pm, m.data());
+            if (!mom.ok) break;
+            r = (r + (target - mom.mean)).normalized();
+          }
+          if (!mom.ok) continue;
+          // The last step's lobe (at r): where it lands must be the target, else the direction is out of reach.
+          const Eigen::Vector3f n = (r + v).normalized();
+          internal::SpecularFromView(origin, d.pm, n, v, alpha, m.data());
+          mom = Moments(d.pm, m.data());
+          if (!mom.ok || std::acos(std::clamp(mom.mean.dot(target), -1.f, 1.f)) > 0.02f) continue;
+          float* e = &d.spec[(c * d.j + k) * d.spec_stride];
+          const Eigen::Vector3f dr = r - target;
+          e[0] = dr.x(), e[1] = dr.y(), e[2] = dr.z();
+          e[3] = mom.spread;
+          e[4] = mom.mu0;
+          std::copy(m.begin(), m.end(), e + 5);
+          local[static_cast<size_t>(k)] = std::max(local[static_cast<size_t>(k)], mom.mu0);
+        }
+      }
+    }
+    std::lock_guard<std::mutex> lock(best_mutex);
+    for (int k = 0; k < d.j; ++k) best[static_cast<size_t>(k)] = std::max(best[static_cast<size_t>(k)], local[static_cast<size_t>(k)]);
+  });
+  for (size_t c = 0; c < static_cast<size_t>(d.s) * d.s; ++c) {
+    for (int k = 0; k < d.j; ++k) {
+      float* e = &d.spec[(c * d.j + k) * d.spec_stride];
+      if (e[4] < 0.25f * best[static_cast<size_t>(k)]) std::fill(e, e + d.spec_stride, 0.f);
+    }
+  }
+  return std::shared_ptr<const PhotometricTables>(std::move(tables));
+}
+
+absl::StatusOr<PhotometricMaps> SolvePhotometricFast(const LightModel& light, const PhotometricTables& tables,
+                                                     const CycleFrames& cycle, const RawCorrection& correction,
+                                                     const PhotometricCamera& camera,
+                                                     const PhotometricOptions& options) {
+  PhotometricMaps maps;
+  if (auto s = SolvePhotometricFast(light, tables, cycle, correction, camera, options, &maps); !s.ok()) return s;
+  return maps;
+}
+
+absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTables& tables, const CycleFrames& cycle,
+                                  const RawCorrection& correction, const PhotometricCamera& camera,
+                                  const PhotometricOptions& options, PhotometricMaps* out) {
+  const PhotometricTables::Data& t = tables.data();
+  const int np = t.np;
+  const int w = cycle.width, h = cycle.height;
+  if (cycle.raw.size() != light.patterns.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("photometric stereo: ", cycle.raw.size(), " images for ", light.patterns.size(), " patterns"));
+  }
+  for (size_t i = 0; i < cycle.raw.size(); ++i) {
+    if (cycle.raw[i].size() != static_cast<size_t>(w) * h) {
+      return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the image of pattern \"",
+                                                     light.patterns[i].name, "\" is not ", w, "x", h));
+    }
+  }
+  if (correction.flat_field != nullptr && (correction.flat_field->width != w || correction.flat_field->height != h)) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the flat field is not ", w, "x", h));
+  }
+  if (!camera.rays.empty() && camera.rays.size() != static_cast<size_t>(w) * h) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("photometric stereo: ", camera.rays.size(), " camera rays for ", w, "x", h, " pixels"));
+  }
+  const internal::Twins& tw = t.twins;
+
+  PhotometricMaps& m = *out;
+  internal::PrepareMaps(w, h, &m);  // every pixel is written below
+  float* var_n = internal::Work(&m, internal::kVarNormal);
+  float* var_log_alpha = internal::Work(&m, internal::kVarLogAlpha);
+  float* own_albedo = internal::Work(&m, internal::kOwnAlbedo);  // each pixel's albedo in the colour it measures
+
+  const float k_leak = static_cast<float>(camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak));
+  const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
+  const float leak = static_cast<float>(camera.cross_leak);
+  const float g = static_cast<float>(camera.gain_e_per_dn);
+  const float read_dn2 = static_cast<float>(3 * (camera.read_noise_e / camera.gain_e_per_dn) *
+                                            (camera.read_noise_e / camera.gain_e_per_dn));
+  const float ws = static_cast<float>(camera.white_scale);
+  const float spec_scale = 3 * 2 * kPi * ws;
+  const float black = static_cast<float>(correction.black_level_dn);
+  const float saturation = static_cast<float>(camera.saturation_dn);
+  const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
+  const Eigen::Vector3f toward = camera.position_mm.normalized().cast<float>();
+  const float max_sigma = static_cast<float>(options.max_specular_sigma_deg * M_PI / 180);
+  const int patterns = static_cast<int>(light.patterns.size());
+  // The channel sum of a bilinear demosaic at a pixel is its own value plus, on a red or blue site, a quarter of its
+  // 8 neighbours, on a green site half of its 4 edge neighbours (a mono sensor: three times its value).
+  const bool mono = cycle.mosaic.mono;
+
+  internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
+    // Corrected rows of every pattern, a ring of three (y - 1, y, y + 1: each row corrected once), and the channel
+    // sums of row y.
+    std::vector<float> rows(static_cast<size_t>(patterns) * 3 * w);
+    std::vector<float> sums(static_cast<size_t>(patterns) * w);
+    std::vector<float> kc(static_cast<size_t>(w)), kd(static_cast<size_t>(w));
+    auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p
+      return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * w];
+    };
+    auto correct = [&](int y) {
+      const int yy = y < 0 ? -y : y >= h ? 2 * h - 2 - y : y;
+      const float* flat =
+          correction.flat_field != nullptr ? &correction.flat_field->pixels[static_cast<size_t>(yy) * w] : nullptr;
+      for (int p = 0; p < patterns; ++p) {
+        CorrectRow(&cycle.raw[static_cast<size_t>(p)][static_cast<size_t>(yy) * w], flat, black, w, row(p, y));
+      }
+    };
+    std::vector<float> dc(np), dp(np), d(np), s(np), sw(np), dw(np), oc(np), op(np), lobe(np), d2(np), entry;
+    std::vector<float> rd(static_cast<size_t>(np) * w), rs(rd.size()), rsw(rd.size()), rdw(rd.size());
+    std::vector<uint8_t> saturated(static_cast<size_t>(w));
+    correct(y0 - 1);
+    correct(y0);
+    for (int y = y0; y < y1; ++y) {
+      correct(y + 1);
+      for (int x = 0; x < w; ++x) {
+        const bool green = cycle.mosaic.Color(x, y) == 1;
+        kc[static_cast<size_t>(x)] = mono ? 0 : green ? 0.5f : 0.25f;
+        kd[static_cast<size_t>(x)] = mono || green ? 0 : 0.25f;
+      }
+      for (int p = 0; p < patterns; ++p) {
+        ChannelSumRow(row(p, y - 1), row(p, y), row(p, y + 1), kc.data(), kd.data(), mono ? 3.f : 1.f, w,
+                      &sums[static_cast<size_t>(p) * w]);
+      }
+      std::fill(saturated.begin(), saturated.end(), 0);
+      for (int p = 0; p < patterns; ++p) SaturationRow(row(p, y), saturation, w, saturated.data());
+      for (int k = 0; k < np; ++k) {
+        const size_t o = static_cast<size_t>(k) * w;
+        PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * w],
+                &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * w], k_leak, spec_gain, 1 / g,
+                read_dn2, w, &rd[o], &rs[o], &rsw[o], &rdw[o]);
+      }
+      for (int x = 0; x < w; ++x) {
+        const size_t i = static_cast<size_t>(y) * w + x;
+        uint8_t flags = saturated[static_cast<size_t>(x)] ? kSaturated : 0;
+        // Zero where nothing is solved (the maps' memory is reused from solve to solve).
+        for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
+          std::fill_n(&image->pixels[3 * i], 3, 0.f);
+        }
+        m.specular.pixels[i] = m.roughness.pixels[i] = m.specular_sigma.pixels[i] = 0;
+        m.confidence.pixels[i] = m.fit_residual.pixels[i] = 0;
+        own_albedo[i] = 0;
+        if (rd[static_cast<size_t>(tw.full) * w + x] < options.min_signal_dn) {
+          m.flags[i] = flags | kLowSignal;
+          continue;
+        }
+        for (int k = 0; k < np; ++k) {
+          const size_t o = static_cast<size_t>(k) * w + x;
+          const int pc = tw.cross[static_cast<size_t>(k)], pp = tw.parallel[static_cast<size_t>(k)];
+          dc[k] = sums[static_cast<size_t>(pc) * w + x];
+          dp[k] = sums[static_cast<size_t>(pp) * w + x];
+          oc[k] = row(pc, y)[x];
+          op[k] = row(pp, y)[x];
+          d[k] = rd[o];
+          s[k] = rs[o];
+          sw[k] = rsw[o];
+          dw[k] = rdw[o];
+        }
+        // Diffuse from the cross images: a first guess from the gradients, then u = M(n) d twice.
+        Eigen::Vector3f n = toward;
+        if (tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0) {
+          const Eigen::Vector3f guess(d[tw.xp] - d[tw.xm], d[tw.yp] - d[tw.ym], d[tw.zp] - d[tw.zm]);
+          if (guess.norm() > 1e-6f) n = guess.normalized();
+        }
+        auto solve = [&](const std::vector<float>& data, const Eigen::Vector3f& at) {
+          const float* mm = &t.m[static_cast<size_t>(t.Cell(at, t.n)) * 3 * np];
+          Eigen::Vector3f u = Eigen::Vector3f::Zero();
+          for (int k = 0; k < np; ++k) {
+            u.x() += mm[k] * data[k];
+            u.y() += mm[np + k] * data[k];
+            u.z() += mm[2 * np + k] * data[k];
+          }
+          return Eigen::Vector3f(u / ws);
+        };
+        bool solved = true;
+        Eigen::Vector3f u = n;
+        for (int it = 0; it < 2 && solved; ++it) {
+          u = solve(d, n);
+          solved = u.allFinite() && u.norm() > 1e-9f;
+          if (solved) n = u.normalized();
+        }
+        if (!solved) {
+          m.flags[i] = flags | kLowSignal;
+          continue;
+        }
+
+        // Specular: the lobe's moments, then through the table to its mirror direction, roughness and total.
+        const Eigen::Vector3f v = camera.rays.empty() ? toward : Eigen::Vector3f(-camera.rays[i]);
+        const LobeMoments mom = Moments(t.pm, s.data());
+        bool lobe_known = false, measured = false;
+        std::fill(lobe.begin(), lobe.end(), 0.f);
+        float spec_chi2 = 0;
+        if (mom.ok) {
+          const int cell = t.Cell(mom.mean, t.s);
+          const float* e0 = &t.spec[static_cast<size_t>(cell) * t.j * t.spec_stride];
+          // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last
+          // it has: noise can take the spread a little past them).
+          int k0 = -1, first = -1, last = -1;
+          float f = 0;
+          bool in_range = false;  // the spread within what the cell's roughness samples span
+          for (int k = 0; k < t.j; ++k) {
+            if (e0[k * t.spec_stride + 4] > 0) {
+              if (first < 0) first = k;
+              last = k;
+            } else if (first >= 0) {
+              break;
+            }
+          }
+          if (first >= 0 && last > first) {
+            for (int k = first; k < last; ++k) {
+              const float lo = e0[k * t.spec_stride + 3], hi = e0[(k + 1) * t.spec_stride + 3];
+              if (mom.spread <= hi || k + 1 == last) {
+                k0 = k;
+                const float raw_f = (mom.spread - lo) / std::max(1e-9f, hi - lo);
+                in_range = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
+                f = std::clamp(raw_f, 0.f, 1.f);
+                break;
+              }
+            }
+          }
+          if (k0 >= 0) {
+            const float* a = e0 + k0 * t.spec_stride;
+            const float* b = a + t.spec_stride;
+            // The entry at this roughness, interpolated between the four cells around the mean direction (the
+            // nearest alone where a neighbour has no lobe there).
+            entry.assign(static_cast<size_t>(t.spec_stride), 0.f);
+            const Eigen::Vector2f uv = OctEncode(mom.mean);
+            const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
+            const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
+            const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
+            const float wu = fu - cu0, wv = fv - cv0;
+            bool corners = true;
+            for (int c = 0; c < 4 && corners; ++c) {
+              const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
+              const float* ca = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * t.spec_stride];
+              const float* cb = ca + t.spec_stride;
+              if (!(ca[4] > 0 && cb[4] > 0)) {
+                corners = false;
+                break;
+              }
+              const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
+              for (int q = 0; q < t.spec_stride; ++q) entry[static_cast<size_t>(q)] += wc * ((1 - f) * ca[q] + f * cb[q]);
+            }
+            if (!corners) {
+              for (int q = 0; q < t.spec_stride; ++q) entry[static_cast<size_t>(q)] = (1 - f) * a[q] + f * b[q];
+            }
+            const Eigen::Vector3f dr(entry[0], entry[1], entry[2]);
+            const float log_alpha = (1 - f) * t.log_alpha[static_cast<size_t>(k0)] + f * t.log_alpha[static_cast<size_t>(k0) + 1];
+            // Intensity: the lobe's shape fitted to the images (noise-weighted least squares).
+            float smm = 0, ssm = 0;
+            for (int k = 0; k < np; ++k) {
+              const float mk = spec_scale * entry[static_cast<size_t>(5 + k)];
+              smm += sw[k] * mk * mk;
+              ssm += sw[k] * s[k] * mk;
+            }
+            const float rho = smm > 0 ? std::max(0.f, ssm / smm) : 0.f;
+            const Eigen::Vector3f r = (mom.mean + dr).normalized();
+            const Eigen::Vector3f ns = (r + v).normalized();
+            for (int k = 0; k < np; ++k) {
+              lobe[k] = rho * spec_scale * entry[static_cast<size_t>(5 + k)];
+              const float e = s[k] - lobe[k];
+              spec_chi2 += sw[k] * e * e;
+            }
+            spec_chi2 /= static_cast<float>(std::max(1, np - 4));
+            lobe_known = true;
+            // The noise of the moments: of the mean direction (two axes), the total and the spread.
+            float v1 = 0, vs = 0;
+            for (int k = 0; k < np; ++k) {
+              const float vk = 1 / sw[k];
+              const float q1 = t.pm.moments(1, k) * t.pm.moments(1, k) + t.pm.moments(2, k) * t.pm.moments(2, k) +
+                               t.pm.moments(3, k) * t.pm.moments(3, k);
+              const Eigen::Vector3f& q = mom.mean;
+              const float q2 = q.x() * q.x() * t.pm.moments(4, k) + q.y() * q.y() * t.pm.moments(5, k) +
+                               q.z() * q.z() * t.pm.moments(6, k) +
+                               2 * (q.x() * q.y() * t.pm.moments(7, k) + q.y() * q.z() * t.pm.moments(8, k) +
+                                    q.x() * q.z() * t.pm.moments(9, k));
+              v1 += q1 * vk;
+              vs += q2 * q2 * vk;
+            }
+            const float var_dir = 2.f / 3 * v1 / (mom.mu0 * mom.mu0);
+            const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
+            const float var_rho = smm > 0 ? 1 / smm : 1e30f;
+            const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
+                                std::max(1e-9f, b[3] - a[3]);
+            const float vla = slope * slope * vs / (mom.mu0 * mom.mu0);
+            const float spec_snr = s[tw.full] * std::sqrt(sw[tw.full]);
+            // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for
+            // the specular in the diffuse below, but is not a measurement.
+            measured = in_range && spec_snr >= options.min_specular_snr && std::sqrt(vn) <= max_sigma &&
+                       std::sqrt(var_rho) <= 0.5f * rho && vla <= 0.25f && rho > 0;
+            if (measured) {
+              if (spec_chi2 > 4) flags |= kSpecularBadFit;
+              std::copy(ns.data(), ns.data() + 3, m.specular_normal_raw.at(x, y));
+              m.specular.at(x, y)[0] = rho;
+              m.roughness.at(x, y)[0] = std::exp(log_alpha);
+              m.specular_sigma.at(x, y)[0] = std::sqrt(vn) * 180 / kPi;
+              var_n[i] = vn;
+              var_log_alpha[i] = vla;
+            }
+          }
+        }
+        if (!measured) flags |= kNoSpecular;
+        // With the lobe known, both polarizations hold the diffuse.
+        const bool both = lobe_known && spec_chi2 <= 4;
+        if (both) {
+          for (int k = 0; k < np; ++k) d2[k] = 0.5f * (dc[k] + dp[k] - (1 + leak) * lobe[k]);
+          const Eigen::Vector3f u2 = solve(d2, n);
+          if (u2.allFinite() && u2.norm() > 1e-9f) {
+            u = u2;
+            n = u.normalized();
+          }
+        } else {
+          d2 = d;
+        }
+        // Residual of the diffuse fit, and the albedo of the colour this pixel measures: its images summed over the
+        // patterns against the light summed the same way.
+        const size_t cell = static_cast<size_t>(t.Cell(n, t.n));
+        const float* hh = &t.h[cell * 3 * np];
+        float chi2 = 0;
+        const float copies = both ? 2.f : 1.f;
+        for (int k = 0; k < np; ++k) {
+          const float pred = ws * (u.x() * hh[3 * k] + u.y() * hh[3 * k + 1] + u.z() * hh[3 * k + 2]);
+          const float e = d2[k] - pred;
+          chi2 += e * e * copies * dw[k];  // the variance at the measured level
+        }
+        chi2 /= static_cast<float>(std::max(1, np - 3));
+        if (chi2 > 4) flags |= kBadFit;
+        float own = 0;
+        for (int k = 0; k < np; ++k) {
+          own += both ? 0.5f * (oc[k] + op[k] - (1 + leak) * lobe[k] / 3) : oc[k] - k_leak * (op[k] - oc[k]);
+        }
+        const Eigen::Vector3f hs(t.hsum[cell * 3], t.hsum[cell * 3 + 1], t.hsum[cell * 3 + 2]);
+        const float shade = ws * n.dot(hs);
+        own_albedo[i] = shade > 0 ? own / shade : 0.f;
+
+        const Eigen::Vector3f nc = to_camera * n;
+        std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
+        std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
+        m.fit_residual.at(x, y)[0] = chi2;
+        const float snr = d[tw.full] / std::sqrt(d[tw.full] / g + read_dn2);
+        float conf = std::min(1.f, snr / 100.f) * std::exp(-std::max(0.f, chi2 - 2.f) / 4.f);
+        if (flags & kSaturated) conf = 0;
+        m.confidence.at(x, y)[0] = conf;
+        m.flags[i] = flags;
+      }
+    }
+  });
+
+  // RGB albedo: each pixel's own colour as solved, the others from its solved neighbours of that colour.
+  internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
+    for (int y = y0; y < y1; ++y) {
+      for (int x = 0; x < w; ++x) {
+        const size_t i = static_cast<size_t>(y) * w + x;
+        float* a = m.albedo.at(x, y);
+        if (m.flags[i] & kLowSignal) {
+          a[0] = a[1] = a[2] = 0;
+          continue;
+        }
+        float sum[3] = {0, 0, 0};
+        int count[3] = {0, 0, 0};
+        for (int dy = -1; dy <= 1; ++dy) {
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx, yy = y + dy;
+            if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
+            const size_t j = static_cast<size_t>(yy) * w + xx;
+            if (m.flags[j] & kLowSignal) continue;
+            const int c = cycle.mosaic.Color(xx, yy);
+            sum[c] += own_albedo[j];
+            ++count[c];
+          }
+        }
+        const int mine = cycle.mosaic.Color(x, y);
+        for (int c = 0; c < 3; ++c) {
+          a[c] = mono ? own_albedo[i] : c == mine ? own_albedo[i] : count[c] > 0 ? sum[c] / count[c] : own_albedo[i];
+        }
+      }
+    }
+  });
+  internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
+  return absl::OkStatus();
+}
+
+}  // namespace stage::processing
