@@ -89,6 +89,25 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
     EXPECT_TRUE(bytes == c.at(name)) << name << " differs between the worker and the library";
   }
 
+  // Without geometry the table-driven solver runs: the same bytes from the command (two threads) and the library (one).
+  CommandResult fast = RunCommand({"stage-process", "photometric", "--take", dir, "--output", dir + "/derived/fast-batch",
+                                   "--threads", "2"},
+                                  std::chrono::seconds(300));
+  ASSERT_EQ(fast.exit.exit_code, 0) << fast.err;
+  processing::PhotometricJob fast_job;
+  fast_job.take_dir = dir;
+  fast_job.output_dir = dir + "/derived/fast-library";
+  fast_job.options.threads = 1;
+  ASSERT_TRUE(processing::RunPhotometric(fast_job).ok());
+  const auto fa = Files(dir + "/derived/fast-batch"), fb = Files(dir + "/derived/fast-library");
+  ASSERT_EQ(fa.size(), a.size());
+  for (const auto& [name, bytes] : fa) {
+    ASSERT_EQ(fb.count(name), 1u) << name;
+    EXPECT_TRUE(bytes == fb.at(name)) << name << " differs between the command and the library (fast solver)";
+  }
+  EXPECT_THAT(fa.at("run.json"), HasSubstr("\"solver\": \"fast (tables, raw mosaic)\""));
+  EXPECT_THAT(a.at("run.json"), HasSubstr("\"solver\": \"per pixel\""));
+
   // The evaluation against the take's ground truth.
   CommandResult eval =
       RunCommand({"stage-process", "evaluate", "photometric", "--take", dir, "--json"}, std::chrono::seconds(120));

@@ -17,6 +17,7 @@
 #include "stage/common/file_util.h"
 #include "stage/common/mesh.h"
 #include "stage/processing/calibration.h"
+#include "stage/processing/fast_photometric.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/take_frames.h"
 
@@ -31,6 +32,7 @@ struct CameraJob {
   CameraSetup setup;
   Image flat;
   bool has_flat = false;
+  mutable std::shared_ptr<const PhotometricTables> tables;  // the fast solver's, built at its first frame
 };
 
 // The flat field at the recorded size: as recorded, or the sensor's averaged down.
@@ -197,14 +199,24 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       if (c.has_flat) correction.flat_field = &c.flat;
       auto raw = LoadCycle(c.path, frame, *light);
       if (!raw.ok()) return raw.status();
-      auto frames = DemosaicCycle(*raw, correction);
-      if (!frames.ok()) return frames.status();
-      PixelGeometry geometry;
-      if (mesh != nullptr) {
-        geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
+      absl::StatusOr<PhotometricMaps> maps;
+      if (mesh == nullptr && !job.exact) {
+        // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
+        if (c.tables == nullptr) {
+          auto tables = PhotometricTables::Build(*light, c.setup.camera, job.options);
+          if (!tables.ok()) return tables.status();
+          c.tables = *tables;
+        }
+        maps = SolvePhotometricFast(*light, *c.tables, *raw, correction, c.setup.camera, job.options);
+      } else {
+        auto frames = DemosaicCycle(*raw, correction);
+        if (!frames.ok()) return frames.status();
+        PixelGeometry geometry;
+        if (mesh != nullptr) {
+          geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
+        }
+        maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
       }
-      auto maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options,
-                                   mesh != nullptr ? &geometry : nullptr);
       if (!maps.ok()) {
         return absl::Status(maps.status().code(),
                             absl::StrCat("frame ", frame, ", camera \"", c.id, "\": ", maps.status().message()));
@@ -235,6 +247,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   run["frames"] = {first, last};
   run["cameras"] = ids;
   run["geometry"] = job.geometry.empty() ? "none" : job.geometry;
+  run["solver"] = job.geometry.empty() && !job.exact ? "fast (tables, raw mosaic)" : "per pixel";
   run["options"] = {{"iterations", job.options.iterations},
                     {"table_size", job.options.table_size},
                     {"min_signal_dn", job.options.min_signal_dn},

@@ -53,6 +53,9 @@ int main(int argc, char** argv) {
                           "Radius (pixels) of the adaptive filter on specular normals and roughness; 0: raw fits")
       ->capture_default_str()
       ->check(CLI::Range(0, 16));
+  photometric->add_flag("--exact", job.exact,
+                        "Without --geometry too, fit the specular lobe per pixel instead of the table-driven solver "
+                        "(slower, less noisy specular maps)");
   photometric->add_flag("--json", json, "Print the result as JSON on stdout");
 
   stage::processing::EvaluateOptions eval;

@@ -28,6 +28,9 @@ struct PhotometricJob {
   std::string geometry;
   // Where the results go; empty: <take_dir>/derived/photometric.
   std::string output_dir;
+  // Without geometry the table-driven solver runs (fast_photometric.h); true: the per-pixel one (photometric.h)
+  // regardless. With geometry the per-pixel one always runs.
+  bool exact = false;
   PhotometricOptions options;
 };
 
