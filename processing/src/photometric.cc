@@ -12,6 +12,7 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "stage/common/ggx.h"
 
 namespace stage::processing {
 namespace internal {
@@ -95,14 +96,14 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
   std::fill(m, m + pm.np, 0.f);
   const float n_dot_v = n.dot(v);
   if (n_dot_v <= 0) return;
-  const float g1v = GgxG1(n_dot_v, alpha) / (4 * n_dot_v);
+  const float g1v = SmithG1(n_dot_v, alpha) / (4 * n_dot_v);
   for (int l = 0; l < pm.units; ++l) {
     const float g = view.gain[static_cast<size_t>(l)];
     const Eigen::Vector3f& w = view.direction[static_cast<size_t>(l)];
     const float n_dot_w = n.dot(w);
     if (g == 0 || n_dot_w <= 0) continue;
     const Eigen::Vector3f h = (w + v).normalized();
-    const float s = g * GgxD(n.dot(h), alpha) * GgxG1(n_dot_w, alpha) * g1v;
+    const float s = g * GgxDistribution(n.dot(h), alpha) * SmithG1(n_dot_w, alpha) * g1v;
     const float* pw = &pm.parallel[static_cast<size_t>(l) * pm.np];
     for (int p = 0; p < pm.np; ++p) m[p] += pw[p] * s;
   }
@@ -382,19 +383,6 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
 }
 
 }  // namespace
-
-float GgxD(float n_dot_h, float alpha) {
-  if (n_dot_h <= 0) return 0;
-  const float a2 = alpha * alpha;
-  const float d = n_dot_h * n_dot_h * (a2 - 1) + 1;
-  return a2 / (kPi * d * d);
-}
-
-float GgxG1(float n_dot_x, float alpha) {
-  if (n_dot_x <= 0) return 0;
-  const float a2 = alpha * alpha;
-  return 2 * n_dot_x / (n_dot_x + std::sqrt(a2 + (1 - a2) * n_dot_x * n_dot_x));
-}
 
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::atan2(a.cross(b).norm(), a.dot(b)) * 180.0 / M_PI;

@@ -6,6 +6,7 @@
 #include <random>
 #include <vector>
 
+#include "stage/common/ggx.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/photometric.h"
 #include "stage/processing/take_frames.h"
@@ -36,8 +37,8 @@ inline double SpecularShade(const LightModel& light, int p, const Eigen::Vector3
     if (nw <= 0) continue;
     const Eigen::Vector3d h = (w + v).normalized();
     sum += light.patterns[static_cast<size_t>(p)].weights[l] * light.intensity[l] *
-           GgxD(static_cast<float>(n.dot(h)), kRoughness) * GgxG1(static_cast<float>(nw), kRoughness) *
-           GgxG1(static_cast<float>(nv), kRoughness) / (4 * nv);
+           GgxDistribution(static_cast<float>(n.dot(h)), kRoughness) * SmithG1(static_cast<float>(nw), kRoughness) *
+           SmithG1(static_cast<float>(nv), kRoughness) / (4 * nv);
   }
   return 2 * M_PI * rho * sum;
 }

@@ -31,19 +31,6 @@ void ParallelFor(size_t n, int threads, F&& body) {
 
 }  // namespace
 
-float GgxDistribution(float n_dot_h, float alpha) {
-  if (n_dot_h <= 0) return 0;
-  const float a2 = alpha * alpha;
-  const float d = n_dot_h * n_dot_h * (a2 - 1) + 1;
-  return a2 / (kPi * d * d);
-}
-
-float SmithG1(float n_dot_x, float alpha) {
-  if (n_dot_x <= 0) return 0;
-  const float a2 = alpha * alpha;
-  return 2 * n_dot_x / (n_dot_x + std::sqrt(a2 + (1 - a2) * n_dot_x * n_dot_x));
-}
-
 float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   const double c = std::clamp(camera.optical_axis().dot(Eigen::Vector3d(0, 0, -1)), -1.0, 1.0);
   // The design axis is +z (cameras in front look along -z); sin^2 of the angle between them.

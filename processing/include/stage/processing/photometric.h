@@ -133,10 +133,6 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
                                                  const PhotometricOptions& options = {},
                                                  const PixelGeometry* geometry = nullptr);
 
-// The GGX normal distribution and Smith masking term of the specular model (the simulator's, docs/processing.md).
-float GgxD(float n_dot_h, float alpha);
-float GgxG1(float n_dot_x, float alpha);
-
 // Angle between two unit vectors, degrees.
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
 

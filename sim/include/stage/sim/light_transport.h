@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "stage/common/camera_model.h"
+#include "stage/common/ggx.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/subject.h"
 
@@ -58,8 +59,5 @@ std::vector<float> RenderRadiance(const PixelResponses& responses, const Emitter
 // Leakage of crossed polarizers for a camera: leakage + growth * sin^2 of its optical axis' angle from +z.
 float CrossLeakage(const CameraModel& camera, double leakage, double growth);
 
-// The GGX normal distribution and Smith masking-shadowing used by the specular lobe (exposed for tests).
-float GgxDistribution(float n_dot_h, float alpha);
-float SmithG1(float n_dot_x, float alpha);
 
 }  // namespace stage::sim
