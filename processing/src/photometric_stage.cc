@@ -32,7 +32,7 @@ struct CameraJob {
   CameraSetup setup;
   Image flat;
   bool has_flat = false;
-  mutable std::shared_ptr<const PhotometricTables> tables;  // the fast solver's, built at its first frame
+  std::shared_ptr<const PhotometricTables> tables;  // the fast solver's, built at its first frame
 };
 
 // The flat field at the recorded size: as recorded, or the sensor's averaged down.
@@ -193,7 +193,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       mesh = std::make_unique<MeshBvh>(std::move(*obj));
       geometry_file = fs::path(job.geometry).lexically_normal().string() + "/" + geometry_file;
     }
-    for (const CameraJob& c : cameras) {
+    for (CameraJob& c : cameras) {
       RawCorrection correction;
       correction.black_level_dn = c.setup.black_level_dn;
       if (c.has_flat) correction.flat_field = &c.flat;
