@@ -82,11 +82,11 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
                             "-bit maximum"));
   }
   // White level: the full-on light a white surface facing the camera at the stage origin receives, in units of
-  // n . H (light_model.h).
+  // n . H (light_model.h), with the full-on pattern's own weights.
+  auto full_on = light.Find("cross-full");
+  if (!full_on.ok()) return bad(absl::StrCat("the pattern set has no full-on: ", full_on.status().message()));
   const Eigen::Vector3d toward = model->position().normalized();
-  double full = 0;
-  for (size_t l = 0; l < light.directions.size(); ++l)
-    full += light.intensity[l] * std::max(0.0, toward.dot(light.directions[l]));
+  const double full = light.DiffuseVector(*full_on, toward).dot(toward);
   if (!(full > 0)) return bad("no LED unit lights the side of the subject it sees");
   pc.white_scale = *white / full;
   pc.gain_e_per_dn = *gain;

@@ -79,7 +79,7 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
     ++out->mask;
     const float* e = &est.pixels[i * est.channels];
     if (kind == 0 && Zero(e, 3)) continue;
-    if (kind != 0 && !std::isfinite(e[0])) continue;
+    if (kind != 0 && !std::isfinite(e[0])) continue;  // not solved there
     valid[i] = 1;
   }
   const Image est_low = MaskedBlur(est, valid, sigma), truth_low = MaskedBlur(truth, valid, sigma);
@@ -169,9 +169,12 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     if (!mask_image.ok()) return mask_image.status();
     std::vector<uint8_t> mask(mask_image->pixels.size());
     for (size_t i = 0; i < mask.size(); ++i) mask[i] = mask_image->pixels[i] > 0.99f;  // every ray on the subject
-    // Specular values only where a lobe was measured: the specular normal map says where.
+    // Albedo only where the diffuse was solved, specular values only where a lobe was measured: the normal maps say
+    // where (zero: not solved).
     auto specular_normal = ReadImageFile(mine + "/specular_normal_world.exr");
     if (!specular_normal.ok()) return specular_normal.status();
+    auto diffuse_normal = ReadImageFile(mine + "/diffuse_normal_world.exr");
+    if (!diffuse_normal.ok()) return diffuse_normal.status();
     for (size_t m = 0; m < std::size(maps); ++m) {
       auto est = ReadImageFile(mine + "/" + maps[m].file);
       if (!est.ok()) return est.status();
@@ -182,9 +185,11 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
                                                           est->height, "x", est->channels, ", the truth ",
                                                           gt->width, "x", gt->height, "x", gt->channels));
       }
-      if (maps[m].kind != 0 && (m >= 3)) {
+      if (maps[m].kind != 0) {
+        const Image& solved = m >= 3 ? *specular_normal : *diffuse_normal;
         for (size_t i = 0; i < mask.size(); ++i) {
-          if (Zero(&specular_normal->pixels[3 * i], 3)) est->pixels[i] = NAN;
+          if (!Zero(&solved.pixels[3 * i], 3)) continue;
+          for (int c = 0; c < est->channels; ++c) est->pixels[i * est->channels + c] = NAN;
         }
       }
       Compare(*est, *gt, mask, maps[m].kind, options.band_sigma_px, &samples[m]);

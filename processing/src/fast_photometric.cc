@@ -17,6 +17,7 @@ struct PhotometricTables::Data {
   internal::Twins twins;
   internal::PatternMatrix pm;
   int np = 0;
+  int patterns = 0;  // of the light model the tables were built for
   // Diffuse, n x n octahedral cells of the normal: per cell H (np x 3), M (3 x np, row-major), and sum_p H_p (3).
   int n = 0;
   std::vector<float> h, m, hsum;
@@ -52,6 +53,7 @@ constexpr float kAlphaMin = 0.04f, kAlphaMax = 1.0f;
 struct LobeMoments {
   float mu0 = 0;
   Eigen::Vector3f mean = Eigen::Vector3f::Zero();  // unit
+  float length = 0;                                // of the first moment, before normalizing: mu0 times R < 1
   float spread = 0;
   bool ok = false;
 };
@@ -68,6 +70,7 @@ LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
   const Eigen::Vector3f m1(mu[1], mu[2], mu[3]);
   if (!(mu[0] > 0) || m1.norm() < 1e-6f * mu[0]) return out;
   out.mean = m1.normalized();
+  out.length = m1.norm();
   const Eigen::Vector3f r = out.mean;
   // r^T M2 r with M2 = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]] / mu0.
   const float q = r.x() * r.x() * mu[4] + r.y() * r.y() * mu[5] + r.z() * r.z() * mu[6] +
@@ -123,10 +126,9 @@ STAGE_ROW_LOOP void PairRow(const float* __restrict dc, const float* __restrict 
   }
 }
 
-// Marks the pixels of a row where a raw value reaches saturation.
-STAGE_ROW_LOOP void SaturationRow(const float* __restrict own, float saturation, int w,
-                                  uint8_t* __restrict saturated) {
-  for (int x = 0; x < w; ++x) saturated[x] |= own[x] >= saturation ? 1 : 0;
+// Marks the pixels of a row whose raw value is clipped (the sensor's top level), before any correction.
+STAGE_ROW_LOOP void SaturationRow(const uint16_t* __restrict raw, uint16_t top, int w, uint8_t* __restrict saturated) {
+  for (int x = 0; x < w; ++x) saturated[x] |= raw[x] >= top ? 1 : 0;
 }
 
 }  // namespace
@@ -142,6 +144,7 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
   d.twins = *twins;
   d.pm = internal::MakePatternMatrix(light, d.twins);
   d.np = d.pm.np;
+  d.patterns = static_cast<int>(light.patterns.size());
   const int np = d.np;
   const UnitView origin = light.ViewFromOrigin();
   d.view = camera.position_mm.normalized().cast<float>();
@@ -152,7 +155,7 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
   d.h.resize(cells * 3 * np);
   d.m.resize(cells * 3 * np);
   d.hsum.resize(cells * 3);
-  const double read_dn2 = 3 * (camera.read_noise_e / camera.gain_e_per_dn) * (camera.read_noise_e / camera.gain_e_per_dn);
+  const double read_dn2 = internal::ReadVarianceDn2(camera);
   const double floor = read_dn2 * camera.gain_e_per_dn / std::max(1e-9, camera.white_scale);
   internal::ParallelRows(d.n, options.threads, [&](int v0, int v1) {
     std::vector<float> hp(3 * static_cast<size_t>(np));
@@ -259,6 +262,13 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   const PhotometricTables::Data& t = tables.data();
   const int np = t.np;
   const int w = cycle.width, h = cycle.height;
+  if (t.patterns != static_cast<int>(light.patterns.size())) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the tables are for ", t.patterns,
+                                                   " patterns, the light model has ", light.patterns.size()));
+  }
+  if (w < 2 || h < 2) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: ", w, "x", h, " is too small (2x2 at least)"));
+  }
   if (cycle.raw.size() != light.patterns.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", cycle.raw.size(), " images for ", light.patterns.size(), " patterns"));
@@ -269,7 +279,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                                                      light.patterns[i].name, "\" is not ", w, "x", h));
     }
   }
-  if (correction.flat_field != nullptr && (correction.flat_field->width != w || correction.flat_field->height != h)) {
+  if (correction.flat_field != nullptr && (correction.flat_field->width != w || correction.flat_field->height != h ||
+                                           correction.flat_field->channels != 1)) {
     return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the flat field is not ", w, "x", h));
   }
   if (!camera.rays.empty() && camera.rays.size() != static_cast<size_t>(w) * h) {
@@ -288,15 +299,15 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
   const float leak = static_cast<float>(camera.cross_leak);
   const float g = static_cast<float>(camera.gain_e_per_dn);
-  const float read_dn2 = static_cast<float>(3 * (camera.read_noise_e / camera.gain_e_per_dn) *
-                                            (camera.read_noise_e / camera.gain_e_per_dn));
+  const float read_dn2 = internal::ReadVarianceDn2(camera);
   const float ws = static_cast<float>(camera.white_scale);
   const float spec_scale = 3 * 2 * kPi * ws;
   const float black = static_cast<float>(correction.black_level_dn);
-  const float saturation = static_cast<float>(camera.saturation_dn);
+  // Clipped: the raw level of saturation (the camera's saturation_dn above its black level).
+  const auto top = static_cast<uint16_t>(std::clamp(std::lround(camera.saturation_dn + correction.black_level_dn), 1L,
+                                                    65535L));
   const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
   const Eigen::Vector3f toward = camera.position_mm.normalized().cast<float>();
-  const float max_sigma = static_cast<float>(options.max_specular_sigma_deg * M_PI / 180);
   const int patterns = static_cast<int>(light.patterns.size());
   // The channel sum of a bilinear demosaic at a pixel is its own value plus, on a red or blue site, a quarter of its
   // 8 neighbours, on a green site half of its 4 edge neighbours (a mono sensor: three times its value).
@@ -336,7 +347,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                       &sums[static_cast<size_t>(p) * w]);
       }
       std::fill(saturated.begin(), saturated.end(), 0);
-      for (int p = 0; p < patterns; ++p) SaturationRow(row(p, y), saturation, w, saturated.data());
+      for (int p = 0; p < patterns; ++p) {
+        SaturationRow(&cycle.raw[static_cast<size_t>(p)][static_cast<size_t>(y) * w], top, w, saturated.data());
+      }
       for (int k = 0; k < np; ++k) {
         const size_t o = static_cast<size_t>(k) * w;
         PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * w],
@@ -490,7 +503,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
               v1 += q1 * vk;
               vs += q2 * q2 * vk;
             }
-            const float var_dir = 2.f / 3 * v1 / (mom.mu0 * mom.mu0);
+            // The direction of m1 moves by its tangential noise over its own length.
+            const float var_dir = 2.f / 3 * v1 / (mom.length * mom.length);
             const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
             const float var_rho = smm > 0 ? 1 / smm : 1e30f;
             const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
@@ -499,8 +513,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
             const float spec_snr = s[tw.full] * std::sqrt(sw[tw.full]);
             // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for
             // the specular in the diffuse below, but is not a measurement.
-            measured = in_range && spec_snr >= options.min_specular_snr && std::sqrt(vn) <= max_sigma &&
-                       std::sqrt(var_rho) <= 0.5f * rho && vla <= 0.25f && rho > 0;
+            measured = in_range && internal::LobeMeasured(options, spec_snr, vn, rho, var_rho, vla,
+                                                          std::exp(log_alpha));
             if (measured) {
               if (spec_chi2 > 4) flags |= kSpecularBadFit;
               std::copy(ns.data(), ns.data() + 3, m.specular_normal_raw.at(x, y));
@@ -550,10 +564,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
         std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
         m.fit_residual.at(x, y)[0] = chi2;
-        const float snr = d[tw.full] / std::sqrt(d[tw.full] / g + read_dn2);
-        float conf = std::min(1.f, snr / 100.f) * std::exp(-std::max(0.f, chi2 - 2.f) / 4.f);
-        if (flags & kSaturated) conf = 0;
-        m.confidence.at(x, y)[0] = conf;
+        m.confidence.at(x, y)[0] = internal::Confidence(d[tw.full], g, read_dn2, chi2, flags);
         m.flags[i] = flags;
       }
     }
@@ -584,7 +595,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         }
         const int mine = cycle.mosaic.Color(x, y);
         for (int c = 0; c < 3; ++c) {
-          a[c] = mono ? own_albedo[i] : c == mine ? own_albedo[i] : count[c] > 0 ? sum[c] / count[c] : own_albedo[i];
+          // A colour with no solved neighbour (the subject's edge) is not known: 0.
+          a[c] = mono || c == mine ? own_albedo[i] : count[c] > 0 ? sum[c] / count[c] : 0.f;
         }
       }
     }

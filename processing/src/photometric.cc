@@ -29,6 +29,17 @@ absl::StatusOr<Twins> PairPatterns(const LightModel& light) {
       return absl::InvalidArgumentError(
           absl::StrCat("pattern \"", p.name, "\" has no parallel twin \"parallel-", suffix, "\""));
     }
+    // Parallel - cross holds the specular only when both drive their emitters alike.
+    const std::vector<double>& a = p.weights;
+    const std::vector<double>& b = light.patterns[static_cast<size_t>(*twin)].weights;
+    for (size_t l = 0; l < a.size() && l < b.size(); ++l) {
+      if (std::abs(a[l] - b[l]) > 1e-6) {
+        return absl::InvalidArgumentError(absl::StrCat("patterns \"", p.name, "\" and \"", light.patterns[*twin].name,
+                                                       "\" drive unit ", l, " differently (", a[l], ", ", b[l],
+                                                       "): photometric stereo pairs each gradient in both "
+                                                       "polarizations"));
+      }
+    }
     const int k = static_cast<int>(t.cross.size());
     t.cross.push_back(static_cast<int>(i));
     t.parallel.push_back(*twin);
@@ -242,7 +253,7 @@ struct SpecularFit {
   bool ok = false;         // and found a lobe
 };
 
-constexpr float kMinAlpha = 0.02f, kMaxAlpha = 1.5f;
+constexpr float kMinAlpha = internal::kMinLobeAlpha, kMaxAlpha = 1.5f;
 
 // Noise-weighted least squares of the specular images `s` (weights `wt`) over normal, roughness and intensity
 // (intensity in closed form for each normal and roughness), Levenberg-Marquardt from the best of the `starts`.
@@ -433,7 +444,7 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
                                                  const PhotometricCamera& camera, const PhotometricOptions& options,
                                                  const PixelGeometry* geometry) {
-  if (frames.size() != light.patterns.size()) {
+  if (frames.size() != light.patterns.size() || frames.empty()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", frames.size(), " images for ", light.patterns.size(), " patterns"));
   }
@@ -476,7 +487,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   const double k_leak = camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak);
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
   const double g = camera.gain_e_per_dn;
-  const double read_dn2 = 3 * (camera.read_noise_e / g) * (camera.read_noise_e / g);  // three channels summed
+  const double read_dn2 = internal::ReadVarianceDn2(camera);  // three channels summed
   const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
   const float ws = static_cast<float>(camera.white_scale);
   // The specular images (summed over the three channels) per unit of the model in SpecularFromView: a white
@@ -604,10 +615,8 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
           if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
         }
         const SpecularFit fit = FitSpecular(units, pm, s.data(), sw.data(), v, starts, spec_scale);
-        const bool measured = fit.ok && spec_snr >= options.min_specular_snr &&
-                              std::sqrt(fit.var_n) * 180 / kPi <= options.max_specular_sigma_deg &&
-                              std::sqrt(fit.var_rho) <= 0.5f * fit.rho && fit.var_log_alpha <= 0.25f &&
-                              fit.alpha > 2 * kMinAlpha;  // a lobe narrower than that only says "one unit"
+        const bool measured = fit.ok && internal::LobeMeasured(options, spec_snr, fit.var_n, fit.rho, fit.var_rho,
+                                                               fit.var_log_alpha, fit.alpha);
         if (!measured) {
           flags |= kNoSpecular;
         } else {
@@ -619,6 +628,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
           m.specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
           var_log_alpha[i] = fit.var_log_alpha;
         }
+        const float full_on = d[t.full];  // the cross full-on, for the confidence
         // With the specular known, the parallel images hold as much diffuse as the cross ones: solve again from
         // both, less the fitted lobe (twice the signal). The lobe fitted to 19 images stands for the specular in
         // each with a fraction of the noise of parallel - cross itself, measured or not (a faint lobe is fitted as
@@ -658,12 +668,8 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
         std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
         std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
         m.fit_residual.at(x, y)[0] = diffuse.chi2;
-        // Confidence: signal (the full-on's SNR, 1 at 100), times the fit's agreement, zero when clipped.
-        const float snr = d[t.full] / std::sqrt(d[t.full] / static_cast<float>(g) + static_cast<float>(read_dn2));
-        float conf = std::min(1.f, snr / 100.f) * std::exp(-std::max(0.f, diffuse.chi2 - 2.f) / 4.f);
-        if (flags & kSaturated) conf = 0;
-        if (flags & kShadowed) conf *= 0.5f;
-        m.confidence.at(x, y)[0] = conf;
+        m.confidence.at(x, y)[0] =
+            internal::Confidence(full_on, static_cast<float>(g), static_cast<float>(read_dn2), diffuse.chi2, flags);
         m.flags[i] = flags;
       }
     }

@@ -4,6 +4,8 @@
 
 #include <Eigen/Core>
 #include <algorithm>
+#include <cmath>
+#include <cstdint>
 #include <atomic>
 #include <functional>
 #include <thread>
@@ -67,6 +69,33 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
 enum WorkSlot { kVarNormal = 0, kVarLogAlpha = 1, kDelta = 2 /* 3 floats */, kLogAlpha = 5, kOwnAlbedo = 6, kSlots = 7 };
 float* Work(PhotometricMaps* m, WorkSlot slot);
 
+// The variance (DN^2) that reading adds to a pixel's three channels summed: read noise and quantization (1/12 DN^2 a
+// channel, so that a camera calibrated with no read noise still weights a dark pixel finitely).
+inline float ReadVarianceDn2(const PhotometricCamera& camera) {
+  const double read = camera.read_noise_e / camera.gain_e_per_dn;
+  return static_cast<float>(3 * (read * read + 1.0 / 12));
+}
+
+// Whether a fitted lobe counts as measured (PhotometricOptions): bright enough, its normal, intensity and log
+// roughness known well enough, and wider than 2 * kMinLobeAlpha (a narrower one only says "one unit").
+constexpr float kMinLobeAlpha = 0.02f;
+inline bool LobeMeasured(const PhotometricOptions& options, float spec_snr, float var_n, float rho, float var_rho,
+                         float var_log_alpha, float alpha) {
+  return rho > 0 && spec_snr >= options.min_specular_snr &&
+         std::sqrt(var_n) * 180 / kPi <= options.max_specular_sigma_deg && std::sqrt(var_rho) <= 0.5f * rho &&
+         var_log_alpha <= 0.25f && alpha > 2 * kMinLobeAlpha;
+}
+
+// A pixel's confidence: its full-on's SNR (cross only, channels summed; 1 at 100) times the diffuse fit's agreement
+// (reduced chi-square), 0 when clipped, halved in shadow.
+inline float Confidence(float full_on, float gain_e_per_dn, float read_dn2, float chi2, uint8_t flags) {
+  const float snr = full_on / std::sqrt(std::max(0.f, full_on) / gain_e_per_dn + read_dn2);
+  float conf = std::min(1.f, std::max(0.f, snr) / 100.f) * std::exp(-std::max(0.f, chi2 - 2.f) / 4.f);
+  if (flags & kSaturated) conf = 0;
+  if (flags & kShadowed) conf *= 0.5f;
+  return conf;
+}
+
 // Sizes every map of `m` for width x height (keeping their memory when the size is the same; contents are not
 // cleared: the solver writes every pixel).
 void PrepareMaps(int width, int height, PhotometricMaps* m);
@@ -74,7 +103,8 @@ void PrepareMaps(int width, int height, PhotometricMaps* m);
 // Regularizes the specular maps in place: the departure of the raw specular normal from the diffuse normal, and log
 // roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge (diffuse
 // normals within 30 degrees), each pixel's noise from the work slots. Writes the regularized specular normals (stage
-// and camera frames) and roughness of every pixel with a lobe, zeros elsewhere.
+// and camera frames) and roughness of every pixel with a lobe; zero specular normals elsewhere (the roughness of
+// those is the caller's: zero).
 void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* m);
 
 }  // namespace stage::processing::internal

@@ -33,6 +33,7 @@ struct CameraJob {
   Image flat;
   bool has_flat = false;
   std::shared_ptr<const PhotometricTables> tables;  // the fast solver's, built at its first frame
+  PhotometricMaps maps;                             // its maps, their memory reused frame to frame
 };
 
 // The flat field at the recorded size: as recorded, or the sensor's averaged down.
@@ -56,22 +57,29 @@ absl::StatusOr<Image> LoadFlatField(const std::string& path, int width, int heig
   return scaled;
 }
 
+// Pixels solved, and with a lobe.
+std::pair<int64_t, int64_t> Solved(const PhotometricMaps& m) {
+  int64_t solved = 0, specular = 0;
+  for (uint8_t f : m.flags) {
+    solved += (f & kLowSignal) == 0;
+    specular += (f & (kLowSignal | kNoSpecular)) == 0;
+  }
+  return {solved, specular};
+}
+
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
 std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera,
                         const std::string& geometry, const std::string& calibration) {
-  int64_t solved = 0, specular = 0;
+  const auto [solved, specular] = Solved(m);
   int64_t counts[6] = {0, 0, 0, 0, 0, 0};
   double confidence = 0;
   std::vector<float> albedo[3], rough, spec;
   for (size_t i = 0; i < m.flags.size(); ++i) {
     for (int b = 0; b < 6; ++b) counts[b] += (m.flags[i] >> b) & 1;
-    const float* n = &m.diffuse_normal_world.pixels[3 * i];
-    if (n[0] == 0 && n[1] == 0 && n[2] == 0) continue;
-    ++solved;
+    if (m.flags[i] & kLowSignal) continue;
     confidence += m.confidence.pixels[i];
     for (int c = 0; c < 3; ++c) albedo[c].push_back(m.albedo.pixels[3 * i + c]);
     if (m.flags[i] & kNoSpecular) continue;
-    ++specular;
     rough.push_back(m.roughness.pixels[i]);
     spec.push_back(m.specular.pixels[i]);
   }
@@ -125,7 +133,8 @@ absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir) {
 }
 
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
-                                         const std::function<void(const JobProgress&)>& progress) {
+                                         const std::function<void(const JobProgress&)>& progress,
+                                         const std::function<bool()>& cancelled) {
   auto rig = LoadTakeRig(job.take_dir);
   if (!rig.ok()) return rig.status();
   auto light = LightModel::FromRig(*rig);
@@ -166,9 +175,10 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   }
   const int64_t first = job.first_frame;
   const int64_t last = job.last_frame < 0 ? whole_frames : job.last_frame;
-  if (first < 0 || last <= first) {
-    return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last,
-                                                   ") are empty (the take holds ", whole_frames, " whole frame(s))"));
+  if (first < 0 || last <= first || last > whole_frames) {
+    return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last, ") are ",
+                                                   last <= first ? "empty" : "not all in the take", " (it holds ",
+                                                   whole_frames, " whole frame(s))"));
   }
   std::string geometry_root;
   if (!job.geometry.empty()) {
@@ -194,12 +204,16 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       geometry_file = fs::path(job.geometry).lexically_normal().string() + "/" + geometry_file;
     }
     for (CameraJob& c : cameras) {
+      if (cancelled && cancelled()) {
+        return absl::CancelledError(absl::StrCat("photometric stereo on ", job.take_dir, " cancelled after ",
+                                                 result.units, " of ", total, " camera frame(s)"));
+      }
       RawCorrection correction;
       correction.black_level_dn = c.setup.black_level_dn;
       if (c.has_flat) correction.flat_field = &c.flat;
       auto raw = LoadCycle(c.path, frame, *light);
       if (!raw.ok()) return raw.status();
-      absl::StatusOr<PhotometricMaps> maps;
+      absl::Status status;
       if (mesh == nullptr && !job.exact) {
         // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
         if (c.tables == nullptr) {
@@ -207,7 +221,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
           if (!tables.ok()) return tables.status();
           c.tables = *tables;
         }
-        maps = SolvePhotometricFast(*light, *c.tables, *raw, correction, c.setup.camera, job.options);
+        status = SolvePhotometricFast(*light, *c.tables, *raw, correction, c.setup.camera, job.options, &c.maps);
       } else {
         auto frames = DemosaicCycle(*raw, correction);
         if (!frames.ok()) return frames.status();
@@ -215,12 +229,16 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         if (mesh != nullptr) {
           geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
         }
-        maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
+        auto maps =
+            SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
+        if (maps.ok()) c.maps = std::move(*maps);
+        status = maps.status();
       }
-      if (!maps.ok()) {
-        return absl::Status(maps.status().code(),
-                            absl::StrCat("frame ", frame, ", camera \"", c.id, "\": ", maps.status().message()));
+      if (!status.ok()) {
+        return absl::Status(status.code(),
+                            absl::StrCat("frame ", frame, ", camera \"", c.id, "\": ", status.message()));
       }
+      const PhotometricMaps* maps = &c.maps;
       const std::string dir = UnitDir(result.output_dir, frame, c.id);
       const std::string title = absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(),
                                                 frame, c.id, geometry_file.empty() ? "none" : geometry_file);
@@ -230,11 +248,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       }
       ++result.units;
       p.done = result.units;
-      int64_t solved = 0, specular = 0;
-      for (uint8_t f : maps->flags) {
-        solved += (f & kLowSignal) == 0;
-        specular += (f & (kLowSignal | kNoSpecular)) == 0;
-      }
+      const auto [solved, specular] = Solved(*maps);
       p.message = absl::StrFormat("frame %d %s: %d pixels solved, a specular lobe on %d", frame, c.id, solved,
                                   specular);
       if (progress) progress(p);

@@ -4,7 +4,9 @@
 #include <map>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "stage/storage/frame_file.h"
 
@@ -33,7 +35,14 @@ absl::StatusOr<Format> ParseFormat(const std::string& path, const std::string& f
     return absl::InvalidArgumentError(
         absl::StrCat(path, ": pixel format \"", f, "\" is not one photometric stereo reads"));
   }
-  out.bits = absl::EndsWith(f, "8") ? 8 : absl::EndsWith(f, "12") ? 12 : 16;
+  // The data bits are the name's last digits (Mono8, BayerRG12, ...); packed formats (...12p, ...Packed) are not
+  // stored by the frame files.
+  size_t digits = f.size();
+  while (digits > 0 && absl::ascii_isdigit(static_cast<unsigned char>(f[digits - 1]))) --digits;
+  if (digits == f.size() || !absl::SimpleAtoi(f.substr(digits), &out.bits) || out.bits < 8 || out.bits > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": pixel format \"", f, "\" is not one photometric stereo reads (8 to 16 bits, unpacked)"));
+  }
   if ((bytes_per_pixel == 1) != (out.bits == 8)) {
     return absl::DataLossError(absl::StrCat(path, ": ", bytes_per_pixel, " bytes per pixel do not hold ", f));
   }
@@ -105,15 +114,23 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
   out.mosaic = format->mosaic;
   out.width = static_cast<int>(info.width);
   out.height = static_cast<int>(info.height);
+  if (out.width < 2 || out.height < 2) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": frames of ", out.width, "x", out.height,
+                                                   " are too small to demosaic (2x2 at least)"));
+  }
   // What the file says each pattern index is must be the light model's pattern of that index.
   const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
-  if (names.is_array() && !names.empty()) {
+  if (!names.is_array() || names.empty()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, ": the file does not say which pattern each slot showed (no \"patterns\" attribute)"));
+  }
+  {
     if (names.size() != light.patterns.size()) {
       return absl::FailedPreconditionError(
           absl::StrCat(path, ": its cycle has ", names.size(), " patterns, the light model ", light.patterns.size()));
     }
     for (size_t i = 0; i < names.size(); ++i) {
-      const std::string name = names[i].value("name", "");
+      const std::string name = names[i].is_object() ? names[i].value("name", "") : "";
       if (name != light.patterns[i].name) {
         return absl::FailedPreconditionError(absl::StrCat(path, ": pattern ", i, " is \"", name, "\" in the file, \"",
                                                           light.patterns[i].name, "\" in the light model"));

@@ -48,13 +48,17 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   p.options.threads = static_cast<int>(threads_);
   Logger("worker")->info("worker {}: {} on {} frames [{}, {})", id_, job->stage(), job->take_dir(), p.first_frame,
                          p.last_frame);
-  auto result = RunPhotometric(p, [&](const JobProgress& progress) {
-    v1::ProcessingProgress m;
-    m.set_frames_done(progress.done);
-    m.set_frames_total(progress.total);
-    m.set_message(progress.message);
-    if (!context->IsCancelled()) writer->Write(m);
-  });
+  // The caller's cancel (the controller relays stagectl's Ctrl-C) stops the job between camera frames.
+  auto result = RunPhotometric(
+      p,
+      [&](const JobProgress& progress) {
+        v1::ProcessingProgress m;
+        m.set_frames_done(progress.done);
+        m.set_frames_total(progress.total);
+        m.set_message(progress.message);
+        if (!context->IsCancelled()) writer->Write(m);
+      },
+      [&] { return context->IsCancelled(); });
   {
     std::lock_guard<std::mutex> lock(mutex_);
     running_.erase(std::find(running_.begin(), running_.end(), job));

@@ -44,9 +44,11 @@ struct JobResult {
   int64_t units = 0;
 };
 
-// Runs the job; `progress` (may be empty) after each unit. Errors name the take, frame, camera or file.
+// Runs the job; `progress` (may be empty) after each unit; `cancelled` (may be empty) is asked before each unit, and
+// true ends the job with CANCELLED (the units done so far stay written). Errors name the take, frame, camera or file.
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
-                                         const std::function<void(const JobProgress&)>& progress = {});
+                                         const std::function<void(const JobProgress&)>& progress = {},
+                                         const std::function<bool()>& cancelled = {});
 
 // The rig a take was recorded with (its take.json), for reading the take.
 absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir);
