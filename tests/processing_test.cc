@@ -108,6 +108,17 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_THAT(fa.at("run.json"), HasSubstr("\"solver\": \"fast (tables, raw mosaic)\""));
   EXPECT_THAT(a.at("run.json"), HasSubstr("\"solver\": \"per pixel\""));
 
+  // A cancelled job stops before its next camera frame and says so; nothing more is written.
+  processing::PhotometricJob cancelled_job = fast_job;
+  cancelled_job.output_dir = dir + "/derived/cancelled";
+  int asked = 0;
+  auto cancelled = processing::RunPhotometric(cancelled_job, {}, [&] { return ++asked > 1; });
+  EXPECT_EQ(cancelled.status().code(), absl::StatusCode::kCancelled) << cancelled.status();
+  EXPECT_THAT(std::string(cancelled.status().message()), HasSubstr("cancelled after 1 of 3 camera frame(s)"));
+  EXPECT_TRUE(fs::exists(dir + "/derived/cancelled/frame-000000/hs-1/metrics.json"));
+  EXPECT_FALSE(fs::exists(dir + "/derived/cancelled/frame-000000/hs-2"));
+  EXPECT_FALSE(fs::exists(dir + "/derived/cancelled/run.json"));
+
   // The evaluation against the take's ground truth.
   CommandResult eval =
       RunCommand({"stage-process", "evaluate", "photometric", "--take", dir, "--json"}, std::chrono::seconds(120));
