@@ -1,6 +1,7 @@
 // stage-process: runs processing stages on a take from the command line (the batch form; the same library call the
 // ProcessingWorker service makes), and evaluates their results against the simulator's ground truth.
 #include <iostream>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
@@ -97,7 +98,7 @@ int main(int argc, char** argv) {
     bar.Finish();
     if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
     if (json) {
-      std::cout << "{\"output_dir\": \"" << result->output_dir << "\", \"units\": " << result->units << "}\n";
+      std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"units", result->units}}.dump() << "\n";
     } else {
       std::cout << result->units << " camera frame(s) processed into " << result->output_dir << "\n";
     }
