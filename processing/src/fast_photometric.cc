@@ -316,11 +316,14 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     // Corrected rows of every pattern, a ring of three (y - 1, y, y + 1: each row corrected once), and the channel
     // sums of row y.
-    std::vector<float> rows(static_cast<size_t>(patterns) * 3 * w);
-    std::vector<float> sums(static_cast<size_t>(patterns) * w);
+    // Row buffers are `stride` floats apart, a cache line more than the row: rows a power of two apart (4096 floats)
+    // would all fall in one set of the L1 cache, and the per-pixel reads across 8 x 19 of them would evict each other.
+    const size_t stride = (static_cast<size_t>(w) + 15) / 16 * 16 + 16;
+    std::vector<float> rows(static_cast<size_t>(patterns) * 3 * stride);
+    std::vector<float> sums(static_cast<size_t>(patterns) * stride);
     std::vector<float> kc(static_cast<size_t>(w)), kd(static_cast<size_t>(w));
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p
-      return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * w];
+      return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
     };
     auto correct = [&](int y) {
       const int yy = y < 0 ? -y : y >= h ? 2 * h - 2 - y : y;
@@ -331,7 +334,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
       }
     };
     std::vector<float> dc(np), dp(np), d(np), s(np), sw(np), dw(np), oc(np), op(np), lobe(np), d2(np), entry;
-    std::vector<float> rd(static_cast<size_t>(np) * w), rs(rd.size()), rsw(rd.size()), rdw(rd.size());
+    std::vector<float> rd(static_cast<size_t>(np) * stride), rs(rd.size()), rsw(rd.size()), rdw(rd.size());
     std::vector<uint8_t> saturated(static_cast<size_t>(w));
     correct(y0 - 1);
     correct(y0);
@@ -344,37 +347,39 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
       }
       for (int p = 0; p < patterns; ++p) {
         ChannelSumRow(row(p, y - 1), row(p, y), row(p, y + 1), kc.data(), kd.data(), mono ? 3.f : 1.f, w,
-                      &sums[static_cast<size_t>(p) * w]);
+                      &sums[static_cast<size_t>(p) * stride]);
       }
       std::fill(saturated.begin(), saturated.end(), 0);
       for (int p = 0; p < patterns; ++p) {
         SaturationRow(&cycle.raw[static_cast<size_t>(p)][static_cast<size_t>(y) * w], top, w, saturated.data());
       }
       for (int k = 0; k < np; ++k) {
-        const size_t o = static_cast<size_t>(k) * w;
-        PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * w],
-                &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * w], k_leak, spec_gain, 1 / g,
+        const size_t o = static_cast<size_t>(k) * stride;
+        PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * stride],
+                &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride], k_leak, spec_gain, 1 / g,
                 read_dn2, w, &rd[o], &rs[o], &rsw[o], &rdw[o]);
       }
+      // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time.
+      const size_t row0 = static_cast<size_t>(y) * w;
+      for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
+        std::fill_n(&image->pixels[3 * row0], 3 * static_cast<size_t>(w), 0.f);
+      }
+      for (Image* image : {&m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
+        std::fill_n(&image->pixels[row0], static_cast<size_t>(w), 0.f);
+      }
+      std::fill_n(&own_albedo[row0], static_cast<size_t>(w), 0.f);
       for (int x = 0; x < w; ++x) {
-        const size_t i = static_cast<size_t>(y) * w + x;
+        const size_t i = row0 + x;
         uint8_t flags = saturated[static_cast<size_t>(x)] ? kSaturated : 0;
-        // Zero where nothing is solved (the maps' memory is reused from solve to solve).
-        for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
-          std::fill_n(&image->pixels[3 * i], 3, 0.f);
-        }
-        m.specular.pixels[i] = m.roughness.pixels[i] = m.specular_sigma.pixels[i] = 0;
-        m.confidence.pixels[i] = m.fit_residual.pixels[i] = 0;
-        own_albedo[i] = 0;
-        if (rd[static_cast<size_t>(tw.full) * w + x] < options.min_signal_dn) {
+        if (rd[static_cast<size_t>(tw.full) * stride + x] < options.min_signal_dn) {
           m.flags[i] = flags | kLowSignal;
           continue;
         }
         for (int k = 0; k < np; ++k) {
-          const size_t o = static_cast<size_t>(k) * w + x;
+          const size_t o = static_cast<size_t>(k) * stride + x;
           const int pc = tw.cross[static_cast<size_t>(k)], pp = tw.parallel[static_cast<size_t>(k)];
-          dc[k] = sums[static_cast<size_t>(pc) * w + x];
-          dp[k] = sums[static_cast<size_t>(pp) * w + x];
+          dc[k] = sums[static_cast<size_t>(pc) * stride + x];
+          dp[k] = sums[static_cast<size_t>(pp) * stride + x];
           oc[k] = row(pc, y)[x];
           op[k] = row(pp, y)[x];
           d[k] = rd[o];
