@@ -56,18 +56,6 @@ Eigen::Vector3d LightModel::DiffuseVector(int pattern, const Eigen::Vector3d& n)
   return h;
 }
 
-Eigen::Vector3d LightModel::DiffuseVectorAt(int pattern, const Eigen::Vector3d& n, const Eigen::Vector3d& x) const {
-  Eigen::Vector3d h = Eigen::Vector3d::Zero();
-  const std::vector<double>& w = patterns[static_cast<size_t>(pattern)].weights;
-  for (size_t l = 0; l < directions.size(); ++l) {
-    const Eigen::Vector3d to = directions[l] * radius_mm - x;
-    const double d2 = to.squaredNorm();
-    const Eigen::Vector3d dir = to / std::sqrt(d2);
-    if (n.dot(dir) > 0) h += w[l] * intensity[l] * (radius_mm * radius_mm / d2) * dir;
-  }
-  return h;
-}
-
 void LightModel::ViewFrom(const Eigen::Vector3d& x, const uint64_t* visible, UnitView* view) const {
   const size_t n = directions.size();
   view->direction.resize(n);

@@ -7,7 +7,6 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
-#include <functional>
 #include <thread>
 
 #include "absl/strings/match.h"
@@ -255,6 +254,15 @@ struct SpecularFit {
 
 constexpr float kMinAlpha = internal::kMinLobeAlpha, kMaxAlpha = 1.5f;
 
+// A frame of the plane tangent to unit n: the normal is moved as n + a t1 + b t2, normalized.
+void TangentFrame(const Eigen::Vector3f& n, Eigen::Vector3f* t1, Eigen::Vector3f* t2) {
+  *t1 = (std::abs(n.x()) < 0.9f ? Eigen::Vector3f::UnitX() : Eigen::Vector3f::UnitY()).cross(n).normalized();
+  *t2 = n.cross(*t1);
+}
+
+// The finite-difference steps of the lobe's parameters: tangent offsets of the normal, log alpha.
+constexpr float kStep[3] = {2e-3f, 2e-3f, 1e-2f};
+
 // Noise-weighted least squares of the specular images `s` (weights `wt`) over normal, roughness and intensity
 // (intensity in closed form for each normal and roughness), Levenberg-Marquardt from the best of the `starts`.
 SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const float* s, const float* wt,
@@ -302,25 +310,23 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
   float lambda = 1e-2f;
   double cost = evaluate(n, alpha, &rho, r.data());
   Eigen::Matrix3f jtj = Eigen::Matrix3f::Identity();
+  Eigen::Vector3f t1, t2;
+  // (n, alpha) moved by d in (t1, t2, log alpha); the fit keeps alpha in its range, the covariance does not.
+  auto step = [&](const Eigen::Vector3f& d, bool clamp, Eigen::Vector3f* n_out, float* a_out) {
+    *n_out = (n + d[0] * t1 + d[1] * t2).normalized();
+    *a_out = alpha * std::exp(d[2]);
+    if (clamp) *a_out = std::clamp(*a_out, kMinAlpha, kMaxAlpha);
+  };
   for (int it = 0; it < 40; ++it) {
-    // Tangent frame at n.
-    const Eigen::Vector3f t1 = (std::abs(n.x()) < 0.9f ? Eigen::Vector3f::UnitX() : Eigen::Vector3f::UnitY())
-                                   .cross(n)
-                                   .normalized();
-    const Eigen::Vector3f t2 = n.cross(t1);
-    auto step = [&](const Eigen::Vector3f& d, Eigen::Vector3f* n_out, float* a_out) {
-      *n_out = (n + d[0] * t1 + d[1] * t2).normalized();
-      *a_out = std::clamp(alpha * std::exp(d[2]), kMinAlpha, kMaxAlpha);
-    };
-    const float h[3] = {2e-3f, 2e-3f, 1e-2f};
+    TangentFrame(n, &t1, &t2);
     for (int k = 0; k < 3; ++k) {
       Eigen::Vector3f d = Eigen::Vector3f::Zero();
-      d[k] = h[k];
+      d[k] = kStep[k];
       Eigen::Vector3f nk;
       float ak, rk;
-      step(d, &nk, &ak);
+      step(d, /*clamp=*/true, &nk, &ak);
       evaluate(nk, ak, &rk, r1.data());
-      for (int p = 0; p < np; ++p) jac(p, k) = (r1[static_cast<size_t>(p)] - r[static_cast<size_t>(p)]) / h[k];
+      for (int p = 0; p < np; ++p) jac(p, k) = (r1[static_cast<size_t>(p)] - r[static_cast<size_t>(p)]) / kStep[k];
     }
     const Eigen::Map<const Eigen::VectorXf> rv(r.data(), np);
     jtj = jac.transpose() * jac;
@@ -336,7 +342,7 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
                                std::clamp(d[2], -1.f, 1.f));
       Eigen::Vector3f nn;
       float na, nrho;
-      step(dd, &nn, &na);
+      step(dd, /*clamp=*/true, &nn, &na);
       const double c = evaluate(nn, na, &nrho, r1.data());
       if (c < cost) {
         improved = true;
@@ -361,23 +367,20 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
   // Covariance of (tangent offsets a, b; log alpha; rho) from the Jacobian of the residuals at the optimum, rho as a
   // parameter of its own so that its trade-off with alpha shows.
   {
-    const Eigen::Vector3f t1 = (std::abs(n.x()) < 0.9f ? Eigen::Vector3f::UnitX() : Eigen::Vector3f::UnitY())
-                                   .cross(n)
-                                   .normalized();
-    const Eigen::Vector3f t2 = n.cross(t1);
+    TangentFrame(n, &t1, &t2);
     Eigen::MatrixXf j4(np, 4);
     std::vector<float> m0(static_cast<size_t>(np));
     SpecularFromView(view, pm, n, v, alpha, m0.data());
-    const float h[3] = {2e-3f, 2e-3f, 1e-2f};
     for (int k = 0; k < 3; ++k) {
-      Eigen::Vector3f nk = n;
-      float ak = alpha;
-      if (k == 0) nk = (n + h[0] * t1).normalized();
-      if (k == 1) nk = (n + h[1] * t2).normalized();
-      if (k == 2) ak = alpha * std::exp(h[2]);
+      Eigen::Vector3f d = Eigen::Vector3f::Zero();
+      d[k] = kStep[k];
+      Eigen::Vector3f nk;
+      float ak;
+      step(d, /*clamp=*/false, &nk, &ak);
       SpecularFromView(view, pm, nk, v, ak, m.data());
       for (int p = 0; p < np; ++p) {
-        j4(p, k) = -std::sqrt(wt[p]) * rho * scale * (m[static_cast<size_t>(p)] - m0[static_cast<size_t>(p)]) / h[k];
+        j4(p, k) =
+            -std::sqrt(wt[p]) * rho * scale * (m[static_cast<size_t>(p)] - m0[static_cast<size_t>(p)]) / kStep[k];
       }
     }
     for (int p = 0; p < np; ++p) j4(p, 3) = -std::sqrt(wt[p]) * scale * m0[static_cast<size_t>(p)];

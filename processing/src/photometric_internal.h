@@ -7,7 +7,6 @@
 #include <cmath>
 #include <cstdint>
 #include <atomic>
-#include <functional>
 #include <thread>
 #include <vector>
 

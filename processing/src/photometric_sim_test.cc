@@ -43,6 +43,7 @@ struct Result {
 };
 
 struct Rendered {
+  LightModel light;
   std::vector<Image> frames;
   PhotometricCamera camera;
   std::vector<sim::Hit> hits;
@@ -51,7 +52,7 @@ struct Rendered {
 };
 
 // Renders the 38 patterns of virtual frame 0 for hs-2 with `overrides`.
-void Render(const std::vector<std::string>& overrides, const LightModel** light_out, Rendered* out) {
+void Render(const std::vector<std::string>& overrides, Rendered* out) {
   auto builtin = LoadRig(kBuiltinRigName);
   ASSERT_TRUE(builtin.ok());
   std::vector<std::string> all = {"sim.render_scale=0.125", "sim.subject.performance=still"};
@@ -70,11 +71,10 @@ void Render(const std::vector<std::string>& overrides, const LightModel** light_
   const sim::SensorParams& sensor = (*scene)->sensor(index);
   ASSERT_EQ(sensor.bits, 12);
   const double exposure_s = (*scene)->base().TicksToNs((*scene)->schedule().cameras(index).exposure_ticks()) * 1e-9;
-  static LightModel light;
   auto made = LightModel::FromRig(*loaded);
   ASSERT_TRUE(made.ok()) << made.status();
-  light = *made;
-  *light_out = &light;
+  out->light = *made;
+  const LightModel& light = out->light;
   const CameraModel& cam = (*scene)->camera(index);
   // The camera as the pipeline sees it: from the rig, its calibration derived from the simulator's sensor model.
   auto setup = ResolveCamera(*loaded, light, "hs-2", cam.width(), cam.height(), 12);
@@ -189,20 +189,27 @@ void Print(const std::string& label, const Result& r) {
       r.specular.pixels, 100 * r.rho.mean, 100 * r.rho.median, r.roughness.mean, r.roughness.median);
 }
 
+// Solves the rendered cycle with the units seen from the dome's centre (far) and with the geometry known (near), and
+// prints both against the truth.
+void SolveFarAndNear(const Rendered& r, const std::string& subject, Result* far_result, Result* near_result) {
+  auto far = SolvePhotometric(r.light, r.frames, r.camera);
+  ASSERT_TRUE(far.ok()) << far.status();
+  auto near = SolvePhotometric(r.light, r.frames, r.camera, {}, &r.truth_geometry);
+  ASSERT_TRUE(near.ok()) << near.status();
+  *far_result = Evaluate(r, *far);
+  *near_result = Evaluate(r, *near);
+  Print(subject + ", units from the dome's centre", *far_result);
+  Print(subject + ", geometry known", *near_result);
+}
+
 // The simulator's sphere (100 mm, no self-shadowing) with noise made negligible: the solver's model is the renderer's.
 TEST(PhotometricSimTest, OnTheRenderedSphereTheModelIsTheRenderers) {
-  const LightModel* light = nullptr;
   Rendered r;
   ASSERT_NO_FATAL_FAILURE(Render(
       {"sim.subject.kind=sphere", "sim.full_on_electrons=1000000", "sim.full_well_e=2500000", "sim.read_noise_e=0.1"},
-      &light, &r));
-  auto far = SolvePhotometric(*light, r.frames, r.camera);
-  ASSERT_TRUE(far.ok()) << far.status();
-  auto near = SolvePhotometric(*light, r.frames, r.camera, {}, &r.truth_geometry);
-  ASSERT_TRUE(near.ok()) << near.status();
-  const Result rf = Evaluate(r, *far), rn = Evaluate(r, *near);
-  Print("sphere, units from the dome's centre", rf);
-  Print("sphere, geometry known", rn);
+      &r));
+  Result rf, rn;
+  ASSERT_NO_FATAL_FAILURE(SolveFarAndNear(r, "sphere", &rf, &rn));
   EXPECT_GT(rn.diffuse.pixels, 20000u);
   EXPECT_LT(rn.diffuse.mean, 0.3);
   EXPECT_LT(rn.albedo.mean, 0.01);
@@ -217,16 +224,10 @@ TEST(PhotometricSimTest, OnTheRenderedSphereTheModelIsTheRenderers) {
 // noise of a skin pixel at 4000 e- for white. Without the geometry (units from the dome's centre) the normals are
 // 5 deg off: the units' real distance and the head's own shadows matter.
 TEST(PhotometricSimTest, TheProceduralHeadAgainstGroundTruth) {
-  const LightModel* light = nullptr;
   Rendered r;
-  ASSERT_NO_FATAL_FAILURE(Render({"sim.supersample=3"}, &light, &r));
-  auto far = SolvePhotometric(*light, r.frames, r.camera);
-  ASSERT_TRUE(far.ok()) << far.status();
-  auto near = SolvePhotometric(*light, r.frames, r.camera, {}, &r.truth_geometry);
-  ASSERT_TRUE(near.ok()) << near.status();
-  const Result rf = Evaluate(r, *far), rn = Evaluate(r, *near);
-  Print("head, units from the dome's centre", rf);
-  Print("head, geometry known", rn);
+  ASSERT_NO_FATAL_FAILURE(Render({"sim.supersample=3"}, &r));
+  Result rf, rn;
+  ASSERT_NO_FATAL_FAILURE(SolveFarAndNear(r, "head", &rf, &rn));
   EXPECT_GT(rn.diffuse.pixels, 40000u);
   EXPECT_LT(rn.diffuse.mean, 1.5);
   EXPECT_LT(rn.albedo.mean, 0.02);

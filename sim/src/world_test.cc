@@ -176,8 +176,10 @@ TEST(WorldTest, RealTimeRunsStartAheadAndCountOnlyTheirOwnEdgesAsMissed) {
   ASSERT_TRUE(run.ok()) << run.status();
   auto first = world.WaitForEdge(dev, 0);
   ASSERT_TRUE(first.has_value());
-  EXPECT_EQ(first->slot, run->first);  // nothing before the run
-  EXPECT_EQ(first->missed, 0);         // the slots before it were silent, not missed
+  // A loaded machine may wake this thread a few slots into the run (CI once saw 2 ms late at 1 kHz): the edges of
+  // the run it was too late for are missed, the silent slots before the run are not.
+  EXPECT_GE(first->slot, run->first);  // nothing before the run
+  EXPECT_EQ(first->missed, first->slot - run->first);
   EXPECT_EQ(first->run.end, run->end);
   std::this_thread::sleep_for(std::chrono::milliseconds(8));
   auto later = world.WaitForEdge(dev, first->slot + 1);

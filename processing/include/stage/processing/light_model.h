@@ -46,8 +46,6 @@ struct LightModel {
   absl::StatusOr<int> Find(absl::string_view name) const;
   // H_p(n) (see above), every unit from the stage origin.
   Eigen::Vector3d DiffuseVector(int pattern, const Eigen::Vector3d& n) const;
-  // The same at a surface point `x` (stage frame, mm) with the units at their real distance.
-  Eigen::Vector3d DiffuseVectorAt(int pattern, const Eigen::Vector3d& n, const Eigen::Vector3d& x) const;
   // The units from point `x`; `visible` (null: all) has bit l % 64 of word l / 64 set for every unit l nothing hides.
   void ViewFrom(const Eigen::Vector3d& x, const uint64_t* visible, UnitView* view) const;
   // The units from the stage origin, nothing hidden.
