@@ -86,7 +86,7 @@ v1::CameraStats CameraNode::Stats() const {
 
 void CameraNode::OnFrame(std::shared_ptr<const Frame> frame) {
   frames_completed_.fetch_add(1);
-  bytes_received_.fetch_add(frame->data.size());
+  bytes_received_.fetch_add(frame->pixels().size());
   last_frame_id_.store(static_cast<int64_t>(frame->frame_id));
   std::shared_ptr<TakeRecorder> recorder;
   {

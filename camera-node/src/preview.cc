@@ -12,13 +12,13 @@ namespace stage::camera {
 
 absl::StatusOr<v1::Preview> MakePreview(const Frame& frame, uint32_t max_size) {
   const size_t pixels = static_cast<size_t>(frame.width) * frame.height;
-  if (pixels == 0 || frame.data.size() < pixels || max_size == 0) {
+  if (pixels == 0 || frame.pixels().size() < pixels || max_size == 0) {
     return absl::InvalidArgumentError(absl::StrCat("preview of a ", frame.width, "x", frame.height, " frame of ",
-                                                   frame.data.size(), " bytes at most ", max_size, " px"));
+                                                   frame.pixels().size(), " bytes at most ", max_size, " px"));
   }
-  const bool wide = frame.data.size() >= 2 * pixels;
+  const bool wide = frame.pixels().size() >= 2 * pixels;
   const int h = static_cast<int>(frame.height), w = static_cast<int>(frame.width);
-  cv::Mat src(h, w, wide ? CV_16UC1 : CV_8UC1, const_cast<uint8_t*>(frame.data.data()));
+  cv::Mat src(h, w, wide ? CV_16UC1 : CV_8UC1, const_cast<uint8_t*>(frame.pixels().data()));
   cv::Mat eight;
   if (wide) {
     double peak = 0;

@@ -19,7 +19,8 @@ double MeanBrightness(const Frame& f) {
   // on any fixed subset, and reading every row of a 5 MP frame would cost the writer thread a third of its time.
   const size_t pixels = static_cast<size_t>(f.width) * f.height;
   if (pixels == 0) return 0;
-  const bool wide = f.data.size() >= pixels * 2;
+  const std::span<const uint8_t> data = f.pixels();
+  const bool wide = data.size() >= pixels * 2;
   const size_t step = std::max<size_t>(1, static_cast<size_t>(std::sqrt(static_cast<double>(pixels) / 65536.0)));
   double sum = 0;
   size_t n = 0;
@@ -27,7 +28,7 @@ double MeanBrightness(const Frame& f) {
     const size_t row = y * f.width;
     for (size_t x = step / 2; x < f.width; x += step, ++n) {
       const size_t i = row + x;
-      sum += wide ? static_cast<double>(f.data[2 * i] | (f.data[2 * i + 1] << 8)) : f.data[i];
+      sum += wide ? static_cast<double>(data[2 * i] | (data[2 * i + 1] << 8)) : data[i];
     }
   }
   return n > 0 ? sum / static_cast<double>(n) : 0;
@@ -177,7 +178,7 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
       slot = k;
     }
   }
-  const size_t bytes = frame->data.size();
+  const size_t bytes = frame->pixels().size();
   ++rec_.frames_received;
   auto it = index_of_.find(slot);
   if (it == index_of_.end() || matched_.count(slot) || finishing_) {
@@ -201,7 +202,9 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
                              : "the recorder fell behind (the disk is slower than the camera)";
     return;
   }
-  out.reason = LossReason::kNone;  // tentatively: the writer may still fail
+  // Tentatively: the writer may still fail. A frame with data missing is kept in the file, marked, and lost.
+  out.reason = frame->incomplete.empty() ? LossReason::kNone : LossReason::kIncomplete;
+  out.detail = frame->incomplete;
   queued_bytes_ += bytes;
   queue_.push_back({std::move(frame), slot, bus});
   lock.unlock();
@@ -230,6 +233,7 @@ void TakeRecorder::Write(const Tagged& t) {
   record.controller_time_ns = t.bus_ns - plan_.t0_ns;
   record.slot = t.slot;
   record.pattern = static_cast<int32_t>(t.slot % plan_.patterns_per_cycle);
+  record.status = f.incomplete.empty() ? storage::FrameStatus::kOk : storage::FrameStatus::kIncomplete;
   absl::Status s = absl::OkStatus();
   if (writer_ == nullptr) {
     // The file takes the frames' shape from the first one.
@@ -237,7 +241,7 @@ void TakeRecorder::Write(const Tagged& t) {
     info.width = f.width;
     info.height = f.height;
     const size_t pixels = static_cast<size_t>(f.width) * f.height;
-    info.bytes_per_pixel = pixels > 0 ? static_cast<uint32_t>(f.data.size() / pixels) : 0;
+    info.bytes_per_pixel = pixels > 0 ? static_cast<uint32_t>(f.pixels().size() / pixels) : 0;
     auto writer = storage::FrameFileWriter::Create(plan_.path, info);
     if (writer.ok()) {
       writer_ = std::move(*writer);
@@ -245,16 +249,16 @@ void TakeRecorder::Write(const Tagged& t) {
       s = writer.status();
     }
   }
-  if (s.ok()) s = writer_->Append(record, f.data);
+  if (s.ok()) s = writer_->Append(record, f.pixels());
   const double brightness = s.ok() ? MeanBrightness(f) - plan_.black_level : 0;
   std::lock_guard<std::mutex> lock(mutex_);
-  queued_bytes_ -= std::min<uint64_t>(queued_bytes_, f.data.size());
+  queued_bytes_ -= std::min<uint64_t>(queued_bytes_, f.pixels().size());
   auto at = index_of_.find(t.slot);
   if (at == index_of_.end()) return;  // an abort cut the take short before this slot: written, not expected
   SlotOutcome& out = rec_.slots[at->second];
   if (s.ok()) {
     ++rec_.frames_written;
-    rec_.brightness[t.slot] = brightness;
+    if (f.incomplete.empty()) rec_.brightness[t.slot] = brightness;  // part of an incomplete frame is zero
   } else {
     ++write_failures_;
     out.reason = LossReason::kWriteFailed;

@@ -51,8 +51,7 @@ void Deadline(grpc::ClientContext* c, int ms) {
 
 void Add(v1::LedgerCounts* c, storage::LossReason reason) {
   c->set_expected(c->expected() + 1);
-  const bool stored = reason == storage::LossReason::kNone || reason == storage::LossReason::kIncomplete;
-  if (stored) c->set_stored(c->stored() + 1);
+  if (reason == storage::LossReason::kNone) c->set_stored(c->stored() + 1);
   if (reason != storage::LossReason::kNone) (*c->mutable_lost())[storage::LossReasonName(reason)] += 1;
 }
 
@@ -928,9 +927,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
     const int64_t lost = cs.counts().expected() - cs.counts().stored();
     if (lost <= 0) continue;
     std::vector<std::string> why;
-    for (const auto& [reason, n] : cs.counts().lost()) {
-      if (reason != "incomplete") why.push_back(absl::StrCat(n, " ", reason));
-    }
+    for (const auto& [reason, n] : cs.counts().lost()) why.push_back(absl::StrCat(n, " ", reason));
     hints.push_back(absl::StrCat(cs.camera_id(), " lost ", lost, " (", absl::StrJoin(why, ", "), ")"));
   }
   std::string outcome = "COMPLETE";

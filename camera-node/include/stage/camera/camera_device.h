@@ -1,9 +1,10 @@
-// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice (planned).
+// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice (camera-node/src/aravis/).
 // No backend library appears in this header.
 #pragma once
 
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -32,8 +33,9 @@ struct CameraSettings {
   TriggerMode trigger = TriggerMode::kHardware;
 };
 
-// One delivered image. Frames are shared read-only between recorder and preview (no copies); the pooled buffer of
-// the capture issue will replace `data` without changing this shape.
+// One delivered image. Frames are shared read-only between recorder and preview (no copies). The pixels are either
+// the frame's own (`data`: the simulator) or lent from the device's buffer pool (`lent`, kept out of the pool by
+// `lent_owner` until the last reference to the frame goes: zero copy from the network stack's buffer to the file).
 struct Frame {
   // The camera's frame counter, from 0 at Start().
   uint64_t frame_id = 0;
@@ -43,8 +45,16 @@ struct Frame {
   uint32_t height = 0;
   std::string pixel_format;
   double exposure_us = 0;
-  // Row-major pixels, bytes_per_pixel * width * height bytes.
+  // Some of the frame's data never arrived (packets lost on the link): what arrived is kept, the rest is zero, and
+  // `incomplete` says why ("missing packets: 3 of 1402"). Empty for a whole frame.
+  std::string incomplete;
+  // Row-major pixels, bytes_per_pixel * width * height bytes: the frame's own.
   std::vector<uint8_t> data;
+  // Or the device's buffer, lent (see above).
+  std::span<const uint8_t> lent;
+  std::shared_ptr<const void> lent_owner;
+
+  std::span<const uint8_t> pixels() const { return lent.data() != nullptr ? lent : std::span<const uint8_t>(data); }
 };
 
 // Receives frames. Called on the device's acquisition thread; must return quickly (hand off, never block on I/O).

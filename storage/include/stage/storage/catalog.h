@@ -45,7 +45,7 @@ enum class LossReason {
   kNodeDown,       // the camera node was down
   kLate,           // delivered too late to be matched to its slot
   kWriteFailed,    // delivered, and the recorder could not write it (disk full, I/O)
-  kIncomplete,     // stored, but its data is incomplete (packet loss): counted as stored
+  kIncomplete,     // delivered with data missing (packets lost on the link): kept in the file, marked, and lost
   kPaused,         // the take was paused over this slot (a recorded gap)
 };
 const char* LossReasonName(LossReason reason);  // "stored", "camera dropped", "trigger missed", ...
@@ -57,14 +57,14 @@ struct LedgerEntry {
   LossReason reason = LossReason::kNone;
   std::optional<uint64_t> frame_id;  // the camera's frame counter, when it delivered one
   std::string detail;                // e.g. the write error
-  bool stored() const { return reason == LossReason::kNone || reason == LossReason::kIncomplete; }
+  bool stored() const { return reason == LossReason::kNone; }
 };
 
 // Counts of a take's ledger, per camera and per pattern.
 struct LedgerCounts {
   int64_t expected = 0;
   int64_t stored = 0;
-  std::map<LossReason, int64_t> lost;  // by reason (kIncomplete counts among stored and here)
+  std::map<LossReason, int64_t> lost;  // by reason
 };
 struct LedgerSummary {
   LedgerCounts total;
