@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <map>
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <thread>
@@ -34,6 +35,21 @@ absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config
   s.frame_rate_hz = config.frame_rate_hz();
   s.exposure_us = config.exposure_us();
   s.gain_db = config.gain_db();
+  s.offset_x = config.offset_x();
+  s.offset_y = config.offset_y();
+  s.binning = std::max<uint32_t>(1, config.binning());
+  if (config.has_black_level()) s.black_level = config.black_level();
+  s.packet_size = config.packet_size() > 0 ? config.packet_size() : 1500;
+  s.packet_delay_ns = config.gige().packet_delay_ns();
+  s.ptp = config.gige().ptp();
+  s.packet_resend = !config.gige().has_packet_resend() || config.gige().packet_resend();
+  s.buffers = config.gige().buffers() > 0 ? config.gige().buffers() : 16;
+  s.reconnect_max_s = config.gige().reconnect_max_s() > 0 ? config.gige().reconnect_max_s() : 5;
+  if (!config.gige().trigger_line().empty()) s.trigger_line = config.gige().trigger_line();
+  s.packet_socket = !config.gige().has_packet_socket() || config.gige().packet_socket();
+  // In name order (the rig's map has none of its own): a rig file gives the same sequence every time.
+  std::map<std::string, std::string> features(config.features().begin(), config.features().end());
+  s.features.assign(features.begin(), features.end());
   switch (config.trigger().source()) {
     case v1::TRIGGER_SOURCE_HARDWARE_LINE:
       s.trigger = TriggerMode::kHardware;
@@ -71,6 +87,15 @@ v1::NodeInfo CameraNode::Info() const {
 v1::CameraStats CameraNode::Stats() const {
   v1::CameraStats stats;
   stats.set_frames_completed(frames_completed_.load());
+  const DeviceStats d = device_->Stats();
+  stats.set_frames_failed(d.frames_failed);
+  stats.set_packets_missing(d.packets_missing);
+  stats.set_packets_resent(d.packets_resent);
+  stats.set_buffer_underruns(d.buffer_underruns);
+  stats.set_link_losses(d.link_losses);
+  stats.set_reconnects(d.reconnects);
+  stats.set_link_up(d.link_up);
+  stats.set_link_detail(d.link_detail);
   std::lock_guard<std::mutex> lock(take_mutex_);
   // The armed take, or the one finishing (a burst camera writing what it held).
   const std::shared_ptr<TakeRecorder>& r = recorder_ ? recorder_ : finishing_;

@@ -137,6 +137,12 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c, co
   check.InRange(p + ".max_frame_rate_hz", c.max_frame_rate_hz(), 0, 1e6);
   check.InRange(p + ".packet_size", c.packet_size(), 576, 16384);
   check.InRange(p + ".frame_buffer_mib", c.frame_buffer_mib(), 0, 1e7);
+  check.InRange(p + ".offset_x", c.offset_x(), 0, 65535);
+  check.InRange(p + ".offset_y", c.offset_y(), 0, 65535);
+  check.InRange(p + ".binning", c.binning(), 1, 16);
+  check.InRange(p + ".gige.buffers", c.gige().buffers(), 2, 4096);
+  check.InRange(p + ".gige.packet_delay_ns", c.gige().packet_delay_ns(), 0, 1e9);
+  check.InRange(p + ".gige.reconnect_max_s", c.gige().reconnect_max_s(), 0.01, 3600);
   if (c.trigger().has_delay_us()) check.InRange(p + ".trigger.delay_us", c.trigger().delay_us(), 0, 1e7);
   const auto& t = c.trigger();
   if (t.divider() < 1) check.Add(p + ".trigger.divider", "0 is not >= 1");
@@ -376,6 +382,17 @@ void ApplyRigDefaults(RigConfig* rig) {
     if (!c.has_overlap_exposure_readout()) c.set_overlap_exposure_readout(true);
     if (!c.has_packet_size()) c.set_packet_size(1500);
     if (!c.has_frame_buffer_mib()) c.set_frame_buffer_mib(0);
+    if (!c.has_offset_x()) c.set_offset_x(0);
+    if (!c.has_offset_y()) c.set_offset_y(0);
+    if (!c.has_binning()) c.set_binning(1);
+    auto* g = c.mutable_gige();
+    if (!g->has_buffers()) g->set_buffers(16);
+    if (!g->has_packet_delay_ns()) g->set_packet_delay_ns(0);
+    if (!g->has_ptp()) g->set_ptp(false);
+    if (!g->has_packet_resend()) g->set_packet_resend(true);
+    if (!g->has_reconnect_max_s()) g->set_reconnect_max_s(5);
+    if (g->trigger_line().empty()) g->set_trigger_line("Line0");
+    if (!g->has_packet_socket()) g->set_packet_socket(true);
     if (c.has_pose() && !c.pose().has_up()) c.mutable_pose()->mutable_up()->set_y(1);
     if (c.recording_host().empty()) c.set_recording_host(c.id());
   }

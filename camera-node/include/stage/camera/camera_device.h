@@ -4,8 +4,10 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -31,6 +33,37 @@ struct CameraSettings {
   double exposure_us = 1000;
   double gain_db = 0;
   TriggerMode trigger = TriggerMode::kHardware;
+  // The sensor region's offset and the binning (both axes).
+  uint32_t offset_x = 0;
+  uint32_t offset_y = 0;
+  uint32_t binning = 1;
+  // Black level; not set: the camera's own.
+  std::optional<double> black_level;
+  // GigE Vision transport: packet size (bytes, IP packet), inter-packet delay (ns), PTP, packet resend, buffers in
+  // the stream's pool, longest pause between reconnection attempts.
+  uint32_t packet_size = 1500;
+  uint32_t packet_delay_ns = 0;
+  bool ptp = false;
+  bool packet_resend = true;
+  uint32_t buffers = 16;
+  double reconnect_max_s = 5;
+  std::string trigger_line = "Line0";
+  bool packet_socket = true;
+  // Backend features set after the standard ones, in this order (GenICam name, value as a string).
+  std::vector<std::pair<std::string, std::string>> features;
+};
+
+// Transport statistics of a device since it was opened (zero where the backend has none).
+struct DeviceStats {
+  uint64_t frames_completed = 0;
+  uint64_t frames_failed = 0;  // delivered incomplete (missing packets, timeout, size mismatch)
+  uint64_t buffer_underruns = 0;
+  uint64_t packets_missing = 0;
+  uint64_t packets_resent = 0;
+  uint64_t link_losses = 0;  // times control of the camera was lost
+  uint64_t reconnects = 0;   // times it was regained and its settings restored
+  bool link_up = true;
+  std::string link_detail;  // why the link is down, or the last outage ("lost 12:00:01.2, back after 2.3 s")
 };
 
 // One delivered image. Frames are shared read-only between recorder and preview (no copies). The pixels are either
@@ -89,6 +122,9 @@ class CameraDevice {
 
   // One software trigger (TriggerMode::kSoftware). FailedPrecondition when not started or in another mode.
   virtual absl::Status Trigger() = 0;
+
+  // Transport statistics (GetStats, `stagectl status --cameras`).
+  virtual DeviceStats Stats() const { return {}; }
 };
 
 }  // namespace stage::camera
