@@ -1,6 +1,9 @@
 // camera-node: serves one camera of the stage (the CameraNode gRPC service) with the backend the rig names.
 #include <signal.h>
 
+#include <iostream>
+#include <nlohmann/json.hpp>
+
 #include "backends.h"
 #include "camera_node.h"
 #include "camera_service.h"
@@ -9,6 +12,48 @@
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
 #include "stage/sim/world_devices.h"
+#if STAGE_WITH_ARAVIS
+#include "aravis_camera_device.h"
+#endif
+
+namespace {
+
+// camera-node --list: what discovery finds, as a table or JSON.
+int ListCameras(bool json) {
+#if STAGE_WITH_ARAVIS
+  const std::vector<stage::camera::AravisCameraInfo> cameras = stage::camera::ListAravisCameras();
+  if (json) {
+    nlohmann::json out = nlohmann::json::array();
+    for (const auto& c : cameras) {
+      out.push_back({{"id", c.id},
+                     {"vendor", c.vendor},
+                     {"model", c.model},
+                     {"serial", c.serial},
+                     {"address", c.address},
+                     {"protocol", c.protocol}});
+    }
+    std::cout << out.dump(2) << "\n";
+    return 0;
+  }
+  if (cameras.empty()) {
+    std::cout << "no cameras found (GigE Vision discovery on every interface, USB3 Vision)\n";
+    return 0;
+  }
+  std::cout << fmt::format("{:<32} {:<12} {:<16} {:<16} {:<16} {}\n", "ID", "VENDOR", "MODEL", "SERIAL", "ADDRESS",
+                           "PROTOCOL");
+  for (const auto& c : cameras) {
+    std::cout << fmt::format("{:<32} {:<12} {:<16} {:<16} {:<16} {}\n", c.id, c.vendor, c.model, c.serial, c.address,
+                             c.protocol);
+  }
+  return 0;
+#else
+  (void)json;
+  return stage::ReportFatal("camera-node",
+                            absl::FailedPreconditionError("this build has no aravis backend (STAGE_WITH_ARAVIS=OFF)"));
+#endif
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -20,7 +65,10 @@ int main(int argc, char** argv) {
   std::string id;
   std::string backend;
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
-  app.add_option("--id", id, "Id of this camera in the rig file")->required();
+  app.add_option("--id", id, "Id of this camera in the rig file (required to serve)");
+  bool list = false, json = false;
+  app.add_flag("--list", list, "List the GigE Vision and USB3 Vision cameras Aravis finds, then exit");
+  app.add_flag("--json", json, "With --list: one JSON array");
   app.add_option("--backend", backend, "Use this backend instead of the rig's (sim, aravis)");
   std::string world_address;
   app.add_option("--sim-world", world_address,
@@ -29,6 +77,8 @@ int main(int argc, char** argv) {
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "camera-node";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (list) return ListCameras(json);
+  if (id.empty()) return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--id is required"));
 
   auto loaded = stage::LoadRig(flags.config);
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());

@@ -13,9 +13,12 @@
 #include <thread>
 
 #include "aravis_camera_device.h"
+#include <nlohmann/json.hpp>
+
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/subprocess.h"
+#include "test_support.h"
 
 namespace stage::camera {
 namespace {
@@ -174,6 +177,22 @@ TEST_F(AravisTest, OpensByAddressOrSerialConfiguresInOrderAndReadsBack) {
   bad = s;
   bad.ptp = true;
   EXPECT_THAT((*device)->Configure(bad).message(), HasSubstr("neither PtpEnable nor GevIEEE1588"));
+}
+
+TEST_F(AravisTest, CameraNodeListsTheCamerasDiscoveryFinds) {
+  auto fake = StartFake(7);
+  ASSERT_NE(fake, nullptr);
+  const auto r = stage::testing::RunCommand({"camera-node", "--list", "--json"}, 20s);
+  ASSERT_TRUE(r.exit.ok()) << r.exit.Describe() << ": " << r.err;
+  const auto listed = nlohmann::json::parse(r.out);
+  bool found = false;
+  for (const auto& c : listed) {
+    found |= c.at("serial") == "FAKE-7" && c.at("address") == "127.0.0.7" && c.at("protocol") == "GigEVision";
+  }
+  EXPECT_TRUE(found) << r.out;
+  const auto table = stage::testing::RunCommand({"camera-node", "--list"}, 20s);
+  EXPECT_THAT(table.out, HasSubstr("FAKE-7"));
+  EXPECT_THAT(table.out, HasSubstr("127.0.0.7"));
 }
 
 TEST_F(AravisTest, AbsentCameraIsNamedWithWhatWasFound) {
