@@ -474,9 +474,14 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
   ArvStream* s = d.stream;
   BlockIdUnwrapper unwrap;
   std::optional<uint64_t> first_block;
-  while (delivering.load()) {
-    ArvBuffer* buffer = arv_stream_timeout_pop_buffer(s, 100'000);  // us
-    if (buffer == nullptr) continue;
+  while (true) {
+    // Once stopped, what the stream has already closed is still delivered: nothing it counted is left behind.
+    const bool running_now = delivering.load();
+    ArvBuffer* buffer = running_now ? arv_stream_timeout_pop_buffer(s, 100'000) : arv_stream_try_pop_buffer(s);
+    if (buffer == nullptr) {
+      if (running_now) continue;
+      break;
+    }
     const ArvBufferStatus status = arv_buffer_get_status(buffer);
     if (arv_buffer_get_frame_id(buffer) == 0) {
       // The leader was lost: no frame id, no timestamp, nothing to tag the frame by. The stream counts it as a

@@ -45,7 +45,7 @@ absl::StatusOr<CameraSettings> SettingsFromConfig(const v1::CameraConfig& config
   s.packet_resend = !config.gige().has_packet_resend() || config.gige().packet_resend();
   s.buffers = config.gige().buffers() > 0 ? config.gige().buffers() : 16;
   s.reconnect_max_s = config.gige().reconnect_max_s() > 0 ? config.gige().reconnect_max_s() : 5;
-  if (!config.gige().trigger_line().empty()) s.trigger_line = config.gige().trigger_line();
+  if (!config.trigger().line().empty()) s.trigger_line = config.trigger().line();
   s.packet_socket = !config.gige().has_packet_socket() || config.gige().packet_socket();
   // In name order (the rig's map has none of its own): a rig file gives the same sequence every time.
   std::map<std::string, std::string> features(config.features().begin(), config.features().end());

@@ -391,7 +391,6 @@ void ApplyRigDefaults(RigConfig* rig) {
     if (!g->has_ptp()) g->set_ptp(false);
     if (!g->has_packet_resend()) g->set_packet_resend(true);
     if (!g->has_reconnect_max_s()) g->set_reconnect_max_s(5);
-    if (g->trigger_line().empty()) g->set_trigger_line("Line0");
     if (!g->has_packet_socket()) g->set_packet_socket(true);
     if (c.has_pose() && !c.pose().has_up()) c.mutable_pose()->mutable_up()->set_y(1);
     if (c.recording_host().empty()) c.set_recording_host(c.id());
