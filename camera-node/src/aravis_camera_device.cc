@@ -31,7 +31,10 @@ std::string Take(GError* error) {
 
 std::string Str(const char* s) { return s != nullptr ? s : ""; }
 
-// Two read-back values agree: equal as text, or as numbers within `rel` (a float feature rounds to its increment).
+// Numbers equal within `rel` of the first (at least `rel` absolute): a float feature rounds to its increment.
+bool Near(double a, double b, double rel) { return std::abs(a - b) <= rel * std::max(1.0, std::abs(a)); }
+
+// Two read-back values agree: equal as text, or as numbers (see Near).
 bool Agrees(const std::string& asked, const std::string& got, double rel = 1e-3) {
   if (asked == got) return true;
   double a = 0, g = 0;
@@ -44,7 +47,19 @@ bool Agrees(const std::string& asked, const std::string& got, double rel = 1e-3)
     };
     return truth(asked) >= 0 && truth(asked) == truth(got);
   }
-  return std::abs(a - g) <= rel * std::max(1.0, std::abs(a));
+  return Near(a, g, rel);
+}
+
+// Adds a stream's counters since it was created to `d`.
+void AddStreamCounters(ArvStream* stream, DeviceStats* d) {
+  guint64 completed = 0, failures = 0, underruns = 0, resent = 0, missing = 0;
+  arv_stream_get_statistics(stream, &completed, &failures, &underruns);
+  if (ARV_IS_GV_STREAM(stream)) arv_gv_stream_get_statistics(ARV_GV_STREAM(stream), &resent, &missing);
+  d->frames_completed += completed;
+  d->frames_failed += failures;
+  d->buffer_underruns += underruns;
+  d->packets_resent += resent;
+  d->packets_missing += missing;
 }
 
 const char* BufferStatusName(ArvBufferStatus status) {
@@ -176,7 +191,8 @@ absl::Status AravisCameraDevice::Impl::Connect() {
   // A serial number, user id or address is matched against what discovery found; Aravis opens the rest itself
   // (its own device ids, and an IP address it can reach without discovery).
   std::string open = device;
-  for (const AravisCameraInfo& c : ListAravisCameras()) {
+  const std::vector<AravisCameraInfo> cameras = ListAravisCameras();
+  for (const AravisCameraInfo& c : cameras) {
     if (c.serial == device || c.address == device || c.id == device) {
       open = c.id;
       break;
@@ -186,7 +202,7 @@ absl::Status AravisCameraDevice::Impl::Connect() {
   ArvCamera* c = arv_camera_new(open.c_str(), &error);
   if (c == nullptr) {
     std::vector<std::string> found;
-    for (const AravisCameraInfo& i : ListAravisCameras()) found.push_back(absl::StrCat(i.id, " at ", i.address));
+    for (const AravisCameraInfo& i : cameras) found.push_back(absl::StrCat(i.id, " at ", i.address));
     return absl::UnavailableError(absl::StrCat(Who(), ": cannot open it: ", Take(error), " (cameras found: ",
                                             found.empty() ? "none" : absl::StrJoin(found, ", "), ")"));
   }
@@ -323,7 +339,7 @@ absl::Status AravisCameraDevice::Impl::Apply(const CameraSettings& s,
     return failed(absl::StrFormat("exposure %g us (the camera allows %g..%g us)", s.exposure_us, lo, hi));
   }
   const double exposure = arv_camera_get_exposure_time(camera, nullptr);
-  if (!Agrees(absl::StrCat(s.exposure_us), absl::StrCat(exposure), 0.01)) {
+  if (!Near(s.exposure_us, exposure, 0.01)) {
     return absl::InvalidArgumentError(
         absl::StrFormat("%s: exposure %g us reads back as %g us", Who(), s.exposure_us, exposure));
   }
@@ -414,6 +430,8 @@ absl::Status AravisCameraDevice::Impl::Apply(const CameraSettings& s,
 
 absl::Status AravisCameraDevice::Impl::StartStream() {
   GError* error = nullptr;
+  const guint payload = arv_camera_get_payload(camera, &error);
+  if (error) return absl::UnavailableError(absl::StrCat(Who(), ": cannot read its payload size: ", Take(error)));
   if (arv_camera_is_gv_device(camera)) {
     arv_camera_gv_set_stream_options(
         camera, settings.packet_socket ? ARV_GV_STREAM_OPTION_NONE : ARV_GV_STREAM_OPTION_PACKET_SOCKET_DISABLED);
@@ -423,15 +441,9 @@ absl::Status AravisCameraDevice::Impl::StartStream() {
   if (ARV_IS_GV_STREAM(s)) {
     // A receive buffer of four frames (the kernel caps it at net.core.rmem_max): its default drops most of a frame
     // sent in one burst. Resend only where the camera can (Aravis turns it off for a camera that says it cannot).
-    const guint frame_bytes = arv_camera_get_payload(camera, nullptr);
     g_object_set(s, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_FIXED, "socket-buffer-size",
-                 static_cast<gint>(std::clamp<guint64>(4ull * frame_bytes, 4u << 20, 64u << 20)), nullptr);
+                 static_cast<gint>(std::clamp<guint64>(4ull * payload, 4u << 20, 64u << 20)), nullptr);
     if (!settings.packet_resend) g_object_set(s, "packet-resend", ARV_GV_STREAM_PACKET_RESEND_NEVER, nullptr);
-  }
-  const guint payload = arv_camera_get_payload(camera, &error);
-  if (error) {
-    g_object_unref(s);
-    return absl::UnavailableError(absl::StrCat(Who(), ": cannot read its payload size: ", Take(error)));
   }
   for (uint32_t i = 0; i < settings.buffers; ++i) arv_stream_push_buffer(s, arv_buffer_new_allocate(payload));
   stream = s;
@@ -457,14 +469,7 @@ void AravisCameraDevice::Impl::StopStream() {
   delivering = false;
   // The delivery thread takes no lock: joining it with the mutex held is safe.
   if (delivery.joinable()) delivery.join();
-  guint64 completed = 0, failures = 0, underruns = 0, resent = 0, missing = 0;
-  arv_stream_get_statistics(stream, &completed, &failures, &underruns);
-  if (ARV_IS_GV_STREAM(stream)) arv_gv_stream_get_statistics(ARV_GV_STREAM(stream), &resent, &missing);
-  base.frames_completed += completed;
-  base.frames_failed += failures;
-  base.buffer_underruns += underruns;
-  base.packets_resent += resent;
-  base.packets_missing += missing;
+  AddStreamCounters(stream, &base);
   // Frames still held by the recorder keep the stream (and its buffers) alive until they are released.
   g_object_unref(stream);
   stream = nullptr;
@@ -649,18 +654,7 @@ absl::Status AravisCameraDevice::Trigger() {
 DeviceStats AravisCameraDevice::Stats() const {
   std::lock_guard<std::mutex> lock(impl_->mutex);
   DeviceStats d = impl_->base;
-  if (impl_->stream != nullptr) {
-    guint64 completed = 0, failures = 0, underruns = 0, resent = 0, missing = 0;
-    arv_stream_get_statistics(impl_->stream, &completed, &failures, &underruns);
-    if (ARV_IS_GV_STREAM(impl_->stream)) {
-      arv_gv_stream_get_statistics(ARV_GV_STREAM(impl_->stream), &resent, &missing);
-    }
-    d.frames_completed += completed;
-    d.frames_failed += failures;
-    d.buffer_underruns += underruns;
-    d.packets_resent += resent;
-    d.packets_missing += missing;
-  }
+  if (impl_->stream != nullptr) AddStreamCounters(impl_->stream, &d);
   d.link_losses = impl_->link_losses;
   d.reconnects = impl_->reconnects;
   d.link_up = impl_->link_up;

@@ -1,4 +1,4 @@
-// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice (camera-node/src/aravis/).
+// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice (camera-node/src/aravis_camera_device.h).
 // No backend library appears in this header.
 #pragma once
 
