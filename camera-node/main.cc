@@ -113,9 +113,11 @@ int main(int argc, char** argv) {
   }
   auto node = stage::camera::CameraNode::Create(config, std::move(*device), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
-  // In the world the camera waits for its trigger line from the start, as a camera armed for hardware triggers does.
-  if (sim_device != nullptr) {
-    if (auto s = sim_device->Start(node->get()); !s.ok()) return stage::ReportFatal(kProgram, s);
+  // A camera on the trigger line acquires from the start, waiting for the line's edges (in the world: the world's
+  // trigger bus); frames outside a take are counted and not recorded. Scheduled software triggers start it per stream.
+  if (sim_device != nullptr ||
+      (backend != "sim" && config.trigger().source() == stage::v1::TRIGGER_SOURCE_HARDWARE_LINE)) {
+    if (auto s = (*node)->device().Start(node->get()); !s.ok()) return stage::ReportFatal(kProgram, s);
   }
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
                                     config.id(), (*node)->Info().role(), config.width(), config.height(),

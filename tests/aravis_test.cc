@@ -2,7 +2,6 @@
 // (arv-fake-gv-camera-0.8), each on its own loopback address. The suite runs in a network namespace it creates
 // itself (its own loopback, where it may add 127.0.0.N): nothing reaches the host's network. Every fake camera is
 // a child process, ended by its pid.
-#include <sched.h>
 #include <signal.h>
 
 #include <atomic>
@@ -17,6 +16,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "net_namespace.h"
 #include "stage/common/subprocess.h"
 #include "test_support.h"
 
@@ -327,18 +327,8 @@ TEST_F(AravisTest, ACameraKilledAndRestartedIsReconnectedWithItsSettingsAndStrea
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
-  // A network namespace of this process's own, with its loopback up and 127.0.0.2-9 on it (each fake camera needs
-  // an address of its own). Before any thread starts: unshare applies to the calling thread's process.
-  if (unshare(CLONE_NEWNET) != 0) {
-    stage::camera::g_why_not = std::string("unshare(CLONE_NEWNET): ") + std::strerror(errno) + " (needs root)";
-  } else {
-    std::string script = "ip link set lo up";
-    for (int n = 2; n <= 9; ++n) script += " && ip addr add 127.0.0." + std::to_string(n) + "/8 dev lo";
-    if (std::system(script.c_str()) == 0) {
-      stage::camera::g_isolated = true;
-    } else {
-      stage::camera::g_why_not = "could not set up the namespace's loopback with ip(8)";
-    }
-  }
+  // Each fake camera needs an address of its own: 127.0.0.2-9 in a network namespace of this process's own.
+  stage::camera::g_why_not = stage::testing::IsolateNetwork(2, 9);
+  stage::camera::g_isolated = stage::camera::g_why_not.empty();
   return RUN_ALL_TESTS();
 }

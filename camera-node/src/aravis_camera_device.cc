@@ -11,11 +11,14 @@
 #include <cstdlib>
 #include <mutex>
 #include <thread>
+#include <utility>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
 #include "stage/common/logging.h"
 
 namespace stage::camera {
@@ -139,6 +142,7 @@ struct AravisCameraDevice::Impl {
   bool lost = false;      // control-lost seen, not handled yet
   bool closing = false;   // the device is being destroyed
   std::chrono::steady_clock::time_point lost_at;
+  std::string outage_note;  // for the next stream's first frame (Frame::after_outage)
 
   std::string Who() const { return absl::StrCat("camera \"", camera_id, "\" (", device, ")"); }
 
@@ -156,6 +160,7 @@ struct AravisCameraDevice::Impl {
     std::string format;
     double exposure_us;
     size_t payload;  // bytes of a whole frame (what each buffer holds)
+    std::string after_outage;  // for the first frame
   };
   void Deliver(Delivery d);
   void Supervise();
@@ -164,6 +169,14 @@ struct AravisCameraDevice::Impl {
 };
 
 namespace {
+
+// A buffer back into the stream's pool, its frame id and timestamp cleared: Aravis sets them from a frame's leader
+// only, so a buffer whose next frame loses its leader would otherwise carry the previous frame's.
+void Recycle(ArvStream* stream, ArvBuffer* buffer) {
+  arv_buffer_set_frame_id(buffer, 0);
+  arv_buffer_set_timestamp(buffer, 0);
+  arv_stream_push_buffer(stream, buffer);
+}
 
 void OnControlLost(ArvDevice*, gpointer data) {
   auto* impl = static_cast<AravisCameraDevice::Impl*>(data);
@@ -453,7 +466,9 @@ absl::Status AravisCameraDevice::Impl::StartStream() {
   g_object_ref(s);  // the delivery thread's
   delivery = std::thread([this, d = Delivery{s, sink, next_id, static_cast<uint32_t>(width),
                                              static_cast<uint32_t>(height), settings.pixel_format,
-                                             settings.exposure_us, payload}] { Deliver(d); });
+                                             settings.exposure_us, payload, std::exchange(outage_note, {})}] {
+    Deliver(d);
+  });
   arv_camera_start_acquisition(camera, &error);
   if (error) {
     const std::string why = Take(error);
@@ -489,9 +504,10 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
     }
     const ArvBufferStatus status = arv_buffer_get_status(buffer);
     if (arv_buffer_get_frame_id(buffer) == 0) {
-      // The leader was lost: no frame id, no timestamp, nothing to tag the frame by. The stream counts it as a
+      // The leader was lost: no frame id, no timestamp, nothing to tag the frame by (Aravis sets both from the
+      // leader only, which is why every buffer goes back to the pool with them cleared). The stream counts it as a
       // failure and the frame counter's gap marks its slot as exposed and not delivered.
-      arv_stream_push_buffer(s, buffer);
+      Recycle(s, buffer);
       continue;
     }
     auto frame = std::make_shared<Frame>();
@@ -517,10 +533,11 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
       frame->incomplete = BufferStatusName(status);
     }
     frame->exposure_us = d.exposure_us;
+    frame->after_outage = std::exchange(d.after_outage, std::string());
     frame->lent = std::span<const uint8_t>(static_cast<const uint8_t*>(data), size);
     g_object_ref(s);
     frame->lent_owner = std::shared_ptr<const void>(buffer, [s](const void* b) {
-      arv_stream_push_buffer(s, static_cast<ArvBuffer*>(const_cast<void*>(b)));
+      Recycle(s, static_cast<ArvBuffer*>(const_cast<void*>(b)));
       g_object_unref(s);
     });
     if (d.sink != nullptr) d.sink->OnFrame(std::move(frame));
@@ -539,6 +556,7 @@ void AravisCameraDevice::Impl::Supervise() {
     link_up = false;
     ++link_losses;
     lost_at = std::chrono::steady_clock::now();
+    const absl::Time lost_wall = absl::Now();
     link_detail = "control of the camera lost; reconnecting";
     log->error("{}: control lost; reconnecting", Who());
     StopStream();
@@ -549,6 +567,10 @@ void AravisCameraDevice::Impl::Supervise() {
       if (closing) return;
       absl::Status s = Connect();
       std::vector<std::pair<std::string, std::string>> back;
+      outage_note = absl::StrFormat(
+          "link down %s for %.2f s (control of the camera lost; reconnected, settings restored)",
+          absl::FormatTime("%H:%M:%E3S", lost_wall, absl::LocalTimeZone()),
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - lost_at).count());
       if (s.ok() && configured) s = Apply(settings, &back);
       if (s.ok() && running) s = StartStream();
       if (s.ok()) {
@@ -559,6 +581,7 @@ void AravisCameraDevice::Impl::Supervise() {
         link_detail = absl::StrFormat("reconnected after %.2f s, settings restored", out_s);
         log->warn("{}: {}", Who(), link_detail);
         readback = std::move(back);
+        if (!running) outage_note.clear();  // no take's frames in between to tell
         break;
       }
       StopStream();

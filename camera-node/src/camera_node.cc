@@ -186,6 +186,9 @@ absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest
   STAGE_ASSIGN_OR_RETURN(auto recorder, TakeRecorder::Start(std::move(plan)));
   recorder_ = std::move(recorder);
   take_id_ = request.take_id();
+  const DeviceStats d = device_->Stats();
+  link_losses_at_arm_ = d.link_losses;
+  link_down_at_arm_ = !d.link_up;
   v1::ArmCameraResponse response;
   response.set_expected_frames(recorder_->expected_frames());
   response.set_path(recorder_->path());
@@ -281,6 +284,12 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
       node->finishing_id_.clear();
     }
   } finished{this};
+  {
+    // An outage no frame came after reaches the end of the take (the link is down, or came back after the take).
+    const DeviceStats d = device_->Stats();
+    const int64_t outages = static_cast<int64_t>(d.link_losses - link_losses_at_arm_) + (link_down_at_arm_ ? 1 : 0);
+    recorder->ReportLinkOutages(std::max<int64_t>(0, outages), d.link_detail);
+  }
   const TakeRecording rec = recorder->Finish([&](int64_t done, int64_t total) {
     if (done == total || done % 200 == 0) {
       Logger("camera.node")->info("{}: offloading take {}: {}/{} frames", config_.id(), request.take_id(), done, total);

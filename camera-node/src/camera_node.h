@@ -70,6 +70,9 @@ class CameraNode : public FrameSink {
   mutable std::mutex take_mutex_;
   std::string take_id_;                     // guarded by take_mutex_
   std::shared_ptr<TakeRecorder> recorder_;  // guarded by take_mutex_; frames go to it while set
+  // The device's link as the take was armed (outages during the take are told to its recorder); take_mutex_.
+  uint64_t link_losses_at_arm_ = 0;
+  bool link_down_at_arm_ = false;
   // The take being finished (its burst offload), for Stats; guarded by take_mutex_.
   std::shared_ptr<TakeRecorder> finishing_;
   std::string finishing_id_;

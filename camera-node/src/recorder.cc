@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
@@ -180,6 +181,10 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
   }
   const size_t bytes = frame->pixels().size();
   ++rec_.frames_received;
+  if (!frame->after_outage.empty()) {
+    pending_outage_ = frame->after_outage;
+    ++outage_notes_;
+  }
   auto it = index_of_.find(slot);
   if (it == index_of_.end() || matched_.count(slot) || finishing_) {
     ++rec_.frames_unmatched;
@@ -190,6 +195,7 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
     preview_ = PreviewFrame{frame, slot, bus - plan_.t0_ns};
   }
   matched_[slot] = frame->frame_id;
+  if (!pending_outage_.empty()) outage_before_[slot] = std::exchange(pending_outage_, std::string());
   max_frame_id_ = std::max(max_frame_id_.value_or(0), frame->frame_id);
   rec_.max_timing_error_ns = std::max(rec_.max_timing_error_ns, error);
   SlotOutcome& out = rec_.slots[it->second];
@@ -270,6 +276,12 @@ void TakeRecorder::Write(const Tagged& t) {
   }
 }
 
+void TakeRecorder::ReportLinkOutages(int64_t outages, std::string detail) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  outages_reported_ = outages;
+  outage_detail_ = std::move(detail);
+}
+
 TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& progress) {
   if (plan_.burst) {
     // The take is over: offload what the camera held, in slot order.
@@ -309,12 +321,17 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   for (const auto& [slot, id] : matched_) {
     if (index_of_.count(slot)) delivered.emplace_back(slot, id);
   }
-  auto account = [&](size_t first, size_t last, int64_t exposed, const std::string& where) {
-    // Expected slots [first, last) (indexes) are silent; `exposed` of them were exposed (negative: unknown).
+  auto account = [&](size_t first, size_t last, int64_t exposed, const std::string& where,
+                     const std::string& outage = std::string()) {
+    // Expected slots [first, last) (indexes) are silent; `exposed` of them were exposed (negative: unknown). In an
+    // outage of the camera's link (its note) they are all the outage's: the frame counter goes on across it.
     for (size_t i = first; i < last; ++i) {
       SlotOutcome& out = rec_.slots[i];
       if (matched_.count(out.slot)) continue;
-      if (exposed > 0) {
+      if (!outage.empty()) {
+        out.reason = LossReason::kLinkDown;
+        out.detail = outage;
+      } else if (exposed > 0) {
         out.reason = LossReason::kCameraDropped;
         out.detail = absl::StrCat("exposed (frame counter) but not delivered", where);
         --exposed;
@@ -324,8 +341,10 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
       }
     }
   };
+  // The link was down after the last frame: as the take ended, or until a frame that came after the take.
+  const std::string tail_outage = outages_reported_ > outage_notes_ ? outage_detail_ : pending_outage_;
   if (delivered.empty()) {
-    account(0, rec_.slots.size(), -1, " (the camera delivered nothing)");
+    account(0, rec_.slots.size(), -1, " (the camera delivered nothing)", tail_outage);
     AddPausedSlots();
     return rec_;
   }
@@ -338,12 +357,13 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     const auto silent = static_cast<int64_t>(at - from);
     if (silent > 0) {
       const int64_t exposed = before ? std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent) : -1;
-      account(from, at, exposed, "");
+      auto outage = outage_before_.find(slot);
+      account(from, at, exposed, "", outage != outage_before_.end() ? outage->second : std::string());
     }
     before = static_cast<int64_t>(id);
     from = at + 1;
   }
-  account(from, rec_.slots.size(), -1, " after the last frame the camera delivered");
+  account(from, rec_.slots.size(), -1, " after the last frame the camera delivered", tail_outage);
   AddPausedSlots();
   return rec_;
 }

@@ -129,6 +129,11 @@ class TakeRecorder final : public FrameSink {
   // total)`), closes the file and accounts for every expected slot.
   TakeRecording Finish(const std::function<void(int64_t, int64_t)>& progress = nullptr);
 
+  // The camera's link went down `outages` times during the take (`detail`: the device's word on it). Those not followed
+  // by a frame (Frame::after_outage) reach the end of the take: Finish gives the slots after the last frame as "link
+  // down". Before Finish.
+  void ReportLinkOutages(int64_t outages, std::string detail);
+
  private:
   struct Tagged {
     std::shared_ptr<const Frame> frame;
@@ -160,6 +165,13 @@ class TakeRecorder final : public FrameSink {
   std::thread thread_;
   TakeRecording rec_;                    // guarded by mutex_ (outcomes set by both threads)
   std::map<int64_t, uint64_t> matched_;  // slot -> frame id of every tagged frame; guarded by mutex_
+  // Outages of the camera's link (Frame::after_outage): the note of one not yet tied to a slot, and the slot of the
+  // first frame after each (the silent slots before it are the outage's). Guarded by mutex_.
+  std::string pending_outage_;
+  std::map<int64_t, std::string> outage_before_;
+  int64_t outages_reported_ = 0;
+  int64_t outage_notes_ = 0;  // frames with after_outage seen
+  std::string outage_detail_;
 };
 
 }  // namespace stage::camera

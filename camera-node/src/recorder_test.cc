@@ -170,6 +170,40 @@ TEST(RecorderTest, EverySilentSlotGetsItsReasonFromTheFrameCounter) {
   EXPECT_EQ(r.frames_written, 16);
 }
 
+// The camera's link went down and came back (the device says so on the first frame after): the silent slots before
+// that frame are the outage's, whatever the counter says; a link still down as the take ends takes the tail.
+TEST(RecorderTest, TheSlotsOfALinkOutageAreLostAsLinkDown) {
+  TakePlan plan = Plan("outage", 20);
+  auto rec = TakeRecorder::Start(plan);
+  ASSERT_TRUE(rec.ok()) << rec.status();
+  uint64_t id = 0;
+  for (int64_t k = 0; k < 16; ++k) {
+    if (k >= 5 && k <= 8) continue;  // off the link
+    auto f = FrameFor(plan, k, id++);
+    if (k == 9) f->after_outage = "link down 12:00:01.000 for 0.40 s";
+    (*rec)->OnFrame(std::move(f));
+  }
+  (*rec)->ReportLinkOutages(2, "control of the camera lost; reconnecting");  // one came back, one did not
+  const TakeRecording r = (*rec)->Finish();
+  std::map<int64_t, std::string> lost;
+  for (const SlotOutcome& s : r.slots) {
+    if (s.reason != LossReason::kNone) {
+      EXPECT_EQ(s.reason, LossReason::kLinkDown) << s.slot;
+      lost[s.slot] = s.detail;
+    }
+  }
+  EXPECT_THAT(lost, ::testing::ElementsAre(
+                        ::testing::Pair(5, "link down 12:00:01.000 for 0.40 s"),
+                        ::testing::Pair(6, "link down 12:00:01.000 for 0.40 s"),
+                        ::testing::Pair(7, "link down 12:00:01.000 for 0.40 s"),
+                        ::testing::Pair(8, "link down 12:00:01.000 for 0.40 s"),
+                        ::testing::Pair(16, "control of the camera lost; reconnecting"),
+                        ::testing::Pair(17, "control of the camera lost; reconnecting"),
+                        ::testing::Pair(18, "control of the camera lost; reconnecting"),
+                        ::testing::Pair(19, "control of the camera lost; reconnecting")));
+  EXPECT_EQ(r.frames_written, 12);
+}
+
 TEST(RecorderTest, AMachineVisionCameraFiresInItsSlotsOnly) {
   TakePlan plan = Plan("mv", 912, 38, 19);
   auto rec = TakeRecorder::Start(plan);

@@ -1,10 +1,12 @@
 // Rig loading: parse, defaults, validation.
 #include "stage/common/rig.h"
 
+#include <arpa/inet.h>
 #include <google/protobuf/io/coded_stream.h>
 #include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -538,6 +540,22 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       for (const auto& u : n.units()) units.insert(u.id());
     }
     for (const auto& c : rig.cameras()) cameras.insert(c.id());
+    if (rig.sim().gige_fakes()) {
+      // Each fake listens at its camera's address: GigE Vision's control port is fixed, so one camera per address.
+      std::map<std::string, std::string> by_address;
+      for (const auto& c : rig.cameras()) {
+        if (c.backend() != "aravis") continue;
+        in_addr a{};
+        if (inet_pton(AF_INET, c.device().c_str(), &a) != 1) {
+          check.Add(absl::StrCat("cameras[", c.id(), "].device"),
+                    absl::StrCat("\"", c.device(), "\" is not an IPv4 address; with sim.gige_fakes the fake camera "
+                                 "listens at its camera's device address (e.g. 127.0.0.11)"));
+        } else if (auto [it, fresh] = by_address.emplace(c.device(), c.id()); !fresh) {
+          check.Add(absl::StrCat("cameras[", c.id(), "].device"),
+                    absl::StrCat(c.device(), " is camera ", it->second, "'s too: one fake camera per address"));
+        }
+      }
+    }
     for (int i = 0; i < rig.sim().faults_size(); ++i) {
       const v1::SimFault& f = rig.sim().faults(i);
       const std::string p = absl::StrCat("sim.faults[", i, "]");
@@ -565,6 +583,20 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       if (f.has_drop_frames()) check.InRange(p + ".drop_frames", f.drop_frames(), 0, 1);
       if (f.has_clock_drift_ppm()) check.InRange(p + ".clock_drift_ppm", f.clock_drift_ppm(), -1e4, 1e4);
       if (f.has_crash_at_s()) check.InRange(p + ".crash_at_s", f.crash_at_s(), 0, 1e6);
+      if (f.has_packet_loss() || f.has_link_down_at_s() || f.has_link_down_s()) {
+        const auto* c = camera ? &*std::find_if(rig.cameras().begin(), rig.cameras().end(),
+                                                 [&](const v1::CameraConfig& cc) { return cc.id() == f.target(); })
+                               : nullptr;
+        if (c == nullptr || !rig.sim().gige_fakes() || c->backend() != "aravis") {
+          check.Add(p, "packet_loss and link_down apply to a fake GigE Vision camera (sim.gige_fakes, backend aravis)");
+        }
+      }
+      if (f.has_packet_loss()) check.InRange(p + ".packet_loss", f.packet_loss(), 0, 1);
+      if (f.has_link_down_at_s()) check.InRange(p + ".link_down_at_s", f.link_down_at_s(), 0, 1e6);
+      if (f.has_link_down_s()) check.InRange(p + ".link_down_s", f.link_down_s(), 0, 3600);
+      if (f.has_link_down_at_s() != f.has_link_down_s()) {
+        check.Add(p, "link_down_at_s and link_down_s come together");
+      }
     }
   }
   check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());

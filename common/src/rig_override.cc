@@ -61,8 +61,8 @@ std::string FieldNames(const Descriptor* d) {
   return absl::StrJoin(names, ", ");
 }
 
-// The elements of repeated message field `field` of `m` that `selector` picks: "*" all, a number by index, a glob
-// ("mv-*") or an id.
+// The elements of repeated message field `field` of `m` that `selector` picks: "*" all, a number by index (one past
+// the last appends a new entry: sim.faults[0].target=mv-02 on a rig without faults), a glob ("mv-*") or an id.
 absl::StatusOr<std::vector<Message*>> Select(Message* m, const FieldDescriptor* field, const std::string& selector) {
   const Reflection* r = m->GetReflection();
   const int n = r->FieldSize(*m, field);
@@ -73,7 +73,11 @@ absl::StatusOr<std::vector<Message*>> Select(Message* m, const FieldDescriptor* 
   }
   int index;
   if (absl::SimpleAtoi(selector, &index)) {
-    if (index < 0 || index >= n) {
+    if (index == n) {
+      out.push_back(r->AddMessage(m, field));
+      return out;
+    }
+    if (index < 0 || index > n) {
       return absl::InvalidArgumentError(
           absl::StrCat(field->name(), "[", selector, "]: index out of range (", n, " entries)"));
     }

@@ -35,6 +35,27 @@ TEST(RigOverrideTest, ScalarsEnumsAndSelectors) {
   EXPECT_THAT(rig->source_name, HasSubstr("with timing.led_switch_delay_us=60"));
 }
 
+// An index one past the end adds an entry (a fault on a rig without faults); the fields of a fake GigE Vision camera
+// are checked against the rig's cameras.
+TEST(RigOverrideTest, AnIndexPastTheEndAddsAnEntry) {
+  auto rig = ApplyRigOverrides(
+      Shipped(), {"sim.gige_fakes=true", "cameras[mv-*].backend=sim", "cameras[mv-02].backend=aravis", "cameras[mv-02].device=127.0.0.12",
+                  "sim.faults[0].target=mv-02", "sim.faults[0].packet_loss=0.001", "sim.faults[1].target=hs-1",
+                  "sim.faults[1].miss_triggers=0.5"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  ASSERT_EQ(rig->rig.sim().faults_size(), 2);
+  EXPECT_EQ(rig->rig.sim().faults(0).packet_loss(), 0.001);
+  EXPECT_EQ(rig->rig.sim().faults(1).target(), "hs-1");
+  auto bad = ApplyRigOverrides(Shipped(), {"sim.faults[0].target=mv-02", "sim.faults[0].packet_loss=0.001"});
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(bad.status().message(), HasSubstr("apply to a fake GigE Vision camera"));
+  auto shared = ApplyRigOverrides(Shipped(), {"sim.gige_fakes=true", "cameras[mv-*].backend=sim",
+                                              "cameras[mv-0[12]].backend=aravis",
+                                              "cameras[mv-0[12]].device=127.0.0.12"});
+  ASSERT_FALSE(shared.ok());
+  EXPECT_THAT(shared.status().message(), HasSubstr("one fake camera per address"));
+}
+
 TEST(RigOverrideTest, GlobsSelectByIdPattern) {
   auto rig = ApplyRigOverrides(Shipped(), {"cameras[mv-*].link=gige-2-5"});
   ASSERT_TRUE(rig.ok()) << rig.status();

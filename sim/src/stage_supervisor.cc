@@ -280,6 +280,10 @@ absl::Status StageSupervisor::Start() {
   // Every device is simulated: the rig's hardware backends are overridden.
   auto device_args = [&](const std::string& id) {
     std::vector<std::string> args = {"--id", id, "--backend", "sim"};
+    for (const auto& c : rig_.rig.cameras()) {
+      // A fake GigE Vision camera of stage-sim's stands in for it: the node runs its real backend.
+      if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == "aravis") return std::vector<std::string>{"--id", id};
+    }
     if (!options_.world_address.empty()) {
       args.push_back("--sim-world");
       args.push_back(options_.world_address);

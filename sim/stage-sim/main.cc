@@ -26,6 +26,9 @@
 #include "stage/sim/world_service.h"
 #include "stage/timing/schedule.h"
 #include "stage/v1/camera_node.grpc.pb.h"
+#if STAGE_WITH_ARAVIS
+#include "stage/sim/gige_fake_camera.h"
+#endif
 
 namespace {
 
@@ -259,7 +262,40 @@ int main(int argc, char** argv) {
     world_server = std::move(*server);
     options.world_address = world_server->address();
   }
+  // Fake GigE Vision cameras (sim.gige_fakes), up before the nodes that open them; down before the world.
+#if STAGE_WITH_ARAVIS
+  std::vector<std::unique_ptr<stage::sim::WorldClient>> fake_clients;
+  std::vector<std::unique_ptr<stage::sim::GigEFakeCamera>> fakes;
+#endif
+  if (scene != nullptr && scene->rig().sim().gige_fakes()) {
+#if STAGE_WITH_ARAVIS
+    for (const auto& c : scene->rig().cameras()) {
+      if (c.backend() != "aravis") continue;
+      auto fake_options = stage::sim::GigEFakeOptionsFromRig(*scene, c.id());
+      if (!fake_options.ok()) return stage::ReportFatal(kProgram, fake_options.status());
+      fake_clients.push_back(stage::sim::LocalWorldClient(world.get()));
+      auto fake = stage::sim::GigEFakeCamera::Create(scene, fake_clients.back().get(), *fake_options);
+      if (!fake.ok()) return stage::ReportFatal(kProgram, fake.status());
+      fakes.push_back(std::move(*fake));
+    }
+    log->info("{} fake GigE Vision camera(s) up", fakes.size());
+#else
+    return stage::ReportFatal(kProgram, absl::FailedPreconditionError(
+                                            "sim.gige_fakes: this build has no Aravis (STAGE_WITH_ARAVIS=OFF)"));
+#endif
+  } else if (scene == nullptr) {
+    auto loaded = stage::LoadRig(options.rig);
+    if (loaded.ok() && !options.overrides.empty()) loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
+    if (loaded.ok() && loaded->rig.sim().gige_fakes()) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(
+                                              "sim.gige_fakes: the fake cameras render the world; --world none has "
+                                              "none"));
+    }
+  }
   auto stop_world = [&] {
+#if STAGE_WITH_ARAVIS
+    fakes.clear();  // they leave the world
+#endif
     if (!world) return;
     world->Stop();
     world_service->Shutdown();

@@ -5,9 +5,13 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cerrno>
 #include <cstdlib>
+#include <cstring>
 #include <iostream>
+#include <filesystem>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <optional>
 
 #include "absl/strings/numbers.h"
@@ -23,6 +27,7 @@
 #include "stage/common/status.h"
 #include "stage/common/version.h"
 #include "stage/timing/timing_tool.h"
+#include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/sim.grpc.pb.h"
 #include "status_format.h"
@@ -102,7 +107,80 @@ std::string ToJson(const google::protobuf::Message& message) {
   return out;
 }
 
-int Status(const Connection& c, bool json) {
+// stagectl status --cameras: every camera node's stream and link statistics (CameraNode.GetStats), asked of the
+// nodes at the addresses the controller knows.
+int CameraStatus(const Connection& c, const stage::v1::StageStatus& status, bool json) {
+  nlohmann::json out = nlohmann::json::array();
+  bool all_up = true;
+  for (const auto& n : status.nodes()) {
+    if (n.kind() != stage::v1::NODE_KIND_CAMERA) continue;
+    nlohmann::json j = {{"id", n.id()}, {"backend", n.backend()}, {"address", n.address()}};
+    stage::v1::CameraStats stats;
+    grpc::Status rpc = grpc::Status(grpc::StatusCode::UNAVAILABLE, "no address");
+    if (!n.address().empty()) {
+      auto stub = stage::v1::CameraNode::NewStub(grpc::CreateChannel(n.address(), grpc::InsecureChannelCredentials()));
+      grpc::ClientContext context;
+      SetDeadline(&context, c);
+      rpc = stub->GetStats(&context, stage::v1::GetStatsRequest(), &stats);
+    }
+    if (!rpc.ok()) {
+      all_up = false;
+      j["error"] = rpc.error_message();
+    } else {
+      all_up = all_up && stats.link_up();
+      j["frames_completed"] = stats.frames_completed();
+      j["frames_failed"] = stats.frames_failed();
+      j["packets_missing"] = stats.packets_missing();
+      j["packets_resent"] = stats.packets_resent();
+      j["buffer_underruns"] = stats.buffer_underruns();
+      j["link_up"] = stats.link_up();
+      j["link_losses"] = stats.link_losses();
+      j["reconnects"] = stats.reconnects();
+      j["link_detail"] = stats.link_detail();
+      j["take_id"] = stats.take_id();
+      j["take_frames_written"] = stats.take_frames_written();
+      j["take_frames_expected"] = stats.take_frames_expected();
+    }
+    out.push_back(std::move(j));
+  }
+  if (json) {
+    std::cout << nlohmann::json{{"cameras", out}}.dump(2) << "\n";
+  } else {
+    std::cout << absl::StrFormat("%-8s %-7s %-5s %9s %7s %9s %7s %9s %6s %10s  %s\n", "CAMERA", "BACKEND", "LINK",
+                                 "FRAMES", "FAILED", "MISSING", "RESENT", "UNDERRUNS", "LOSSES", "RECONNECTS",
+                                 "DETAIL");
+    for (const auto& j : out) {
+      if (j.contains("error")) {
+        std::cout << absl::StrFormat("%-8s %-7s %-5s %s\n", j["id"].get<std::string>(),
+                                     j["backend"].get<std::string>(), "?", j["error"].get<std::string>());
+        continue;
+      }
+      std::cout << absl::StrFormat(
+          "%-8s %-7s %-5s %9d %7d %9d %7d %9d %6d %10d  %s\n", j["id"].get<std::string>(),
+          j["backend"].get<std::string>(), j["link_up"].get<bool>() ? "up" : "DOWN",
+          j["frames_completed"].get<uint64_t>(), j["frames_failed"].get<uint64_t>(),
+          j["packets_missing"].get<uint64_t>(), j["packets_resent"].get<uint64_t>(),
+          j["buffer_underruns"].get<uint64_t>(), j["link_losses"].get<uint64_t>(), j["reconnects"].get<uint64_t>(),
+          j["link_detail"].get<std::string>());
+    }
+  }
+  return all_up ? 0 : kExitNotReady;
+}
+
+// stagectl cameras: the GigE Vision and USB3 Vision cameras this machine's network shows (camera-node --list).
+int Cameras(bool json) {
+  std::error_code ec;
+  const auto self = std::filesystem::read_symlink("/proc/self/exe", ec);
+  const std::string program = (ec ? std::filesystem::path(".") : self.parent_path()) / "camera-node";
+  std::vector<const char*> argv = {program.c_str(), "--list"};
+  if (json) argv.push_back("--json");
+  argv.push_back(nullptr);
+  std::cout.flush();
+  execv(program.c_str(), const_cast<char* const*>(argv.data()));
+  return stage::ReportFatal(kProgram, absl::NotFoundError(absl::StrCat(program, ": cannot run it: ", strerror(errno))));
+}
+
+int Status(const Connection& c, bool json, bool cameras) {
   std::string address;
   auto stub = Connect(c, &address);
   if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
@@ -111,6 +189,7 @@ int Status(const Connection& c, bool json) {
   stage::v1::StageStatus status;
   grpc::Status rpc = (*stub)->GetStageStatus(&context, stage::v1::GetStageStatusRequest(), &status);
   if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (cameras) return CameraStatus(c, status, json);
   if (json) {
     std::cout << stage::stagectl::StatusToJson(status) << "\n";
   } else {
@@ -653,6 +732,13 @@ int main(int argc, char** argv) {
   bool json = false;
   CLI::App* status = app.add_subcommand("status", "Show every node of the stage: state, address, version, RTT");
   status->add_flag("--json", json, "Print JSON for scripts instead of the table");
+  bool status_cameras = false;
+  status->add_flag("--cameras", status_cameras,
+                   "Each camera's stream and link statistics instead (frames, failures, missing and resent packets, "
+                   "underruns, link losses and reconnects; docs/cameras.md#statistics)");
+  CLI::App* cameras = app.add_subcommand(
+      "cameras", "List the GigE Vision and USB3 Vision cameras this machine sees (Aravis discovery: camera-node --list)");
+  cameras->add_flag("--json", json, "Print JSON for scripts instead of the table");
 
   TimingFlags tf;
   CLI::App* timing = app.add_subcommand(
@@ -788,7 +874,8 @@ int main(int argc, char** argv) {
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
-  if (status->parsed()) return Status(c, json);
+  if (status->parsed()) return Status(c, json, status_cameras);
+  if (cameras->parsed()) return Cameras(json);
   if (check->parsed()) return TimingCheck(c, tf);
   if (show->parsed()) return TimingShow(c, tf);
   if (exporter->parsed()) return TimingExport(c, tf);

@@ -137,6 +137,8 @@ const char* LossReasonName(LossReason reason) {
       return "incomplete";
     case LossReason::kPaused:
       return "paused";
+    case LossReason::kLinkDown:
+      return "link down";
   }
   return "unknown";
 }

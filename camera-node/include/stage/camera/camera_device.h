@@ -81,6 +81,9 @@ struct Frame {
   // Some of the frame's data never arrived (packets lost on the link): what arrived is kept, the rest is zero, and
   // `incomplete` says why ("missing packets: 3 of 1402"). Empty for a whole frame.
   std::string incomplete;
+  // The first frame after the camera's link came back (control lost, reconnected, settings restored) says so
+  // ("link down 12:00:01.234 for 2.31 s: ..."): the slots since the frame before are the outage's. Empty otherwise.
+  std::string after_outage;
   // Row-major pixels, bytes_per_pixel * width * height bytes: the frame's own.
   std::vector<uint8_t> data;
   // Or the device's buffer, lent (see above).

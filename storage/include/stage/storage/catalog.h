@@ -47,6 +47,7 @@ enum class LossReason {
   kWriteFailed,    // delivered, and the recorder could not write it (disk full, I/O)
   kIncomplete,     // delivered with data missing (packets lost on the link): kept in the file, marked, and lost
   kPaused,         // the take was paused over this slot (a recorded gap)
+  kLinkDown,       // the camera was off its link (control lost, being reconnected)
 };
 const char* LossReasonName(LossReason reason);  // "stored", "camera dropped", "trigger missed", ...
 
