@@ -65,17 +65,18 @@ struct Result {
   uint64_t frames = 0;
 };
 
-// arv-camera-test prints a line a second: "  NN frames/s - X.Y MiB/s"; the first (start-up) is left out.
+// arv-camera-test prints a line a second: "  NN frame/s - X MiB/s - E errors" (whole frames); the first (start-up)
+// is left out. -a: it sizes its socket buffer to the payload, as the node does (without, every frame loses packets).
 Result ArvCameraTest(const std::string& name, const std::string& hz, int w, int h, int seconds,
                      const std::string& out_path) {
   const double cpu = RunMeasured({"arv-camera-test-0.8", "-n", name, "-f", hz, "-w", std::to_string(w), "-h",
-                                  std::to_string(h), "-i", "9000", "--no-packet-socket", "-r",
+                                  std::to_string(h), "-i", "9000", "--no-packet-socket", "-r", "-a",
                                   "--duration=" + std::to_string(seconds)},
                                  out_path);
   std::ifstream in(out_path);
   std::string line;
   std::vector<double> per_second;
-  const std::regex re(R"(^\s*(\d+) frames/s)");
+  const std::regex re(R"(^\s*(\d+) frames?/s)");
   while (std::getline(in, line)) {
     std::smatch m;
     if (std::regex_search(line, m, re)) per_second.push_back(std::stod(m[1]));
@@ -131,10 +132,10 @@ Result Node(const std::string& address, double hz, int w, int h, int seconds) {
   }
   // As arv-camera-test: the first second is start-up; frames/s over the rest.
   std::this_thread::sleep_for(std::chrono::seconds(1));
-  const uint64_t at_1s = sink.frames_.load();
+  const uint64_t at_1s = sink.complete_.load();
   const auto t1 = std::chrono::steady_clock::now();
   std::this_thread::sleep_for(std::chrono::seconds(seconds - 1));
-  const uint64_t at_end = sink.frames_.load();
+  const uint64_t at_end = sink.complete_.load();
   const double span = std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
   (void)(*device)->Stop();
   device->reset();
@@ -183,7 +184,7 @@ int main(int argc, char** argv) {
   const std::string name = "Aravis-Fake-" + serial;  // arv-camera-test finds it by its Aravis id
   std::cout << absl::StrFormat(
       "aravis_bench: fake GigE Vision camera at %s (%s), %dx%d Mono8 at %g Hz asked, 9000-byte packets, no resend, no "
-      "packet socket; %d s per run, %d round(s)\n",
+      "packet socket, socket buffer sized to frames; whole frames counted; %d s per run, %d round(s)\n",
       address, where, width, height, hz, seconds, rounds);
   std::vector<Result> tool, node;
   char tmpl[] = "/tmp/aravis-bench-XXXXXX";
