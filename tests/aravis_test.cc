@@ -265,7 +265,8 @@ TEST_F(AravisTest, LostPacketsGiveIncompleteFramesThatAreCountedNotDropped) {
   for (const Seen& f : frames) {
     if (!f.incomplete.empty()) {
       ++incomplete;
-      EXPECT_EQ(f.incomplete, "missing packets");
+      // Packets missing when the trailer came, or (the trailer lost) still missing when the frame timed out.
+      EXPECT_THAT(f.incomplete, ::testing::AnyOf("missing packets", "timeout: not all packets arrived in time"));
     }
   }
   const DeviceStats stats = (*device)->Stats();

@@ -49,9 +49,9 @@ TEST(RigOverrideTest, AnIndexPastTheEndAddsAnEntry) {
   auto bad = ApplyRigOverrides(Shipped(), {"sim.faults[0].target=mv-02", "sim.faults[0].packet_loss=0.001"});
   ASSERT_FALSE(bad.ok());
   EXPECT_THAT(bad.status().message(), HasSubstr("apply to a fake GigE Vision camera"));
-  auto shared = ApplyRigOverrides(Shipped(), {"sim.gige_fakes=true", "cameras[mv-*].backend=sim",
-                                              "cameras[mv-0[12]].backend=aravis",
-                                              "cameras[mv-0[12]].device=127.0.0.12"});
+  auto shared = ApplyRigOverrides(
+      Shipped(), {"sim.gige_fakes=true", "cameras[mv-*].backend=sim", "cameras[mv-01].backend=aravis",
+                  "cameras[mv-02].backend=aravis", "cameras[mv-01].device=127.0.0.12", "cameras[mv-02].device=127.0.0.12"});
   ASSERT_FALSE(shared.ok());
   EXPECT_THAT(shared.status().message(), HasSubstr("one fake camera per address"));
 }

@@ -247,7 +247,14 @@ int main(int argc, char** argv) {
     info.set_lockstep(lockstep);
     info.set_t0_ns(0);
     world_service = std::make_unique<stage::sim::WorldService>(
-        world.get(), info, [scene](const stage::v1::SimFault& f) { return scene->CheckFault(f); });
+        world.get(), info, [scene](const stage::v1::SimFault& f) {
+          if (f.has_packet_loss() || f.has_link_down_at_s() || f.has_link_down_s()) {
+            // The fake GigE cameras take these from the rig when they start; nothing would apply them now.
+            return absl::InvalidArgumentError(
+                "packet_loss and link_down are set in the rig (sim.faults), not injected into a running stage");
+          }
+          return scene->CheckFault(f);
+        });
     // A take's ground truth, into its directory, when the controller asks (docs/simulator.md#ground-truth).
     world_service->set_ground_truth_writer([scene](const stage::v1::GroundTruthRequest& r) {
       stage::sim::GroundTruthOptions gt;
