@@ -260,6 +260,9 @@ absl::Status StageSupervisor::Start() {
   if (!options_.overrides.empty()) {
     STAGE_ASSIGN_OR_RETURN(rig_, ApplyRigOverrides(rig_, options_.overrides));
   }
+  if (rig_.rig.sim().gige_fakes() && options_.world_address.empty()) {
+    return absl::InvalidArgumentError("sim.gige_fakes: the fake cameras render the world; --world none has none");
+  }
   STAGE_RETURN_IF_ERROR(PrepareRunDir());
   Logger("sim.stage")
       ->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(), rig_.source_name,

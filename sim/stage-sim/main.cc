@@ -290,14 +290,6 @@ int main(int argc, char** argv) {
     return stage::ReportFatal(kProgram, absl::FailedPreconditionError(
                                             "sim.gige_fakes: this build has no Aravis (STAGE_WITH_ARAVIS=OFF)"));
 #endif
-  } else if (scene == nullptr) {
-    auto loaded = stage::LoadRig(options.rig);
-    if (loaded.ok() && !options.overrides.empty()) loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
-    if (loaded.ok() && loaded->rig.sim().gige_fakes()) {
-      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(
-                                              "sim.gige_fakes: the fake cameras render the world; --world none has "
-                                              "none"));
-    }
   }
   auto stop_world = [&] {
 #if STAGE_WITH_ARAVIS
