@@ -60,7 +60,11 @@ int main(int argc, char** argv) {
       return stage::ReportFatal(kProgram, s);
     }
   }
-  auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig));
+  stage::light::LightNodeOptions node_options;
+  node_options.slot_rate_hz = loaded->rig.timing().slot_rate_hz();
+  node_options.take_length_s = loaded->rig.timing().take_length_s();
+  auto node =
+      stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig), node_options);
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
   std::string summary =
       fmt::format("light node {}: {} LED units on {} channels, backend {}, rig {}", config.id(), config.units_size(),

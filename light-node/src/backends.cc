@@ -3,6 +3,9 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/sim/sim_light_driver.h"
+#ifdef STAGE_WITH_MODBUS
+#include "modbus_light_driver.h"
+#endif
 
 namespace stage::light {
 
@@ -31,8 +34,19 @@ absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend 
   switch (backend) {
     case v1::LIGHT_BACKEND_SIM:
       return std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count());
+    case v1::LIGHT_BACKEND_MODBUS: {
+#ifdef STAGE_WITH_MODBUS
+      auto options = ModbusDriverOptionsFromRig(config);
+      if (!options.ok()) return options.status();
+      auto driver = ModbusLightDriver::Open(*std::move(options));
+      if (!driver.ok()) return driver.status();
+      return std::unique_ptr<LightDriver>(std::move(*driver));
+#else
+      return absl::UnimplementedError(absl::StrCat("light node \"", config.id(),
+                                                   "\": this build has no modbus backend (STAGE_WITH_MODBUS=OFF)"));
+#endif
+    }
     case v1::LIGHT_BACKEND_GPIOD:
-    case v1::LIGHT_BACKEND_MODBUS:
       return absl::UnimplementedError(
           absl::StrCat("light node \"", config.id(), "\": the ", LightBackendName(backend),
                        " backend is not implemented yet; run this node with --backend sim"));

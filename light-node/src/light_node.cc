@@ -1,27 +1,45 @@
 // Light node logic.
 #include "light_node.h"
 
+#include <algorithm>
+#include <cmath>
+
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/timing/led_load.h"
 
 namespace stage::light {
 
 absl::StatusOr<std::unique_ptr<LightNode>> LightNode::Create(const v1::LightNodeConfig& config,
                                                              std::unique_ptr<LightDriver> driver,
-                                                             std::string rig_hash) {
+                                                             std::string rig_hash, LightNodeOptions options) {
   if (driver->Describe().channel_count != config.channel_count()) {
     return absl::FailedPreconditionError(absl::StrCat("light node \"", config.id(), "\": driver has ",
                                                       driver->Describe().channel_count,
                                                       " channels, rig says channel_count ", config.channel_count()));
   }
-  return std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash)));
+  if (!(options.slot_rate_hz > 0) || !(options.take_length_s > 0) || options.heartbeat_timeout_ms < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(),
+                                                   "\": slot rate, take length and heartbeat timeout must be > 0"));
+  }
+  return std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash), options));
 }
 
-LightNode::LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash)
-    : config_(std::move(config)), driver_(std::move(driver)), rig_hash_(std::move(rig_hash)) {}
+LightNode::LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
+                     LightNodeOptions options)
+    : config_(std::move(config)), driver_(std::move(driver)), rig_hash_(std::move(rig_hash)), options_(options) {
+  watchdog_ = std::thread([this] { Watchdog(); });
+}
 
 LightNode::~LightNode() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stopping_ = true;
+  }
+  wake_.notify_all();
+  watchdog_.join();
   if (absl::Status s = driver_->Blackout(); !s.ok()) {
     Logger("light.node")->error("{}: blackout on shutdown failed: {}", config_.id(), s.message());
   }
@@ -48,15 +66,55 @@ v1::LightStats LightNode::Stats() const {
   stats.set_steps(state.steps);
   stats.set_current_row(state.current_row < 0 ? 0 : static_cast<uint32_t>(state.current_row));
   for (const std::string& f : state.faults) stats.add_faults(f);
+  for (const std::string& f : state.take_faults) stats.add_take_faults(f);
+  if (state.temperature_c) stats.set_temperature_c(*state.temperature_c);
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state.mode == DriverMode::kBlackout) {
+    stats.set_blackout_reason(blackout_reason_.empty() ? "blackout by the board itself (see faults)" : blackout_reason_);
+  }
   return stats;
 }
 
-absl::Status LightNode::Arm(const std::string& take_id, const v1::PatternTable& table) {
+absl::Status LightNode::CheckLoad(const PatternTable& table, int64_t take_slots) const {
+  const double slot_s = 1.0 / options_.slot_rate_hz;
+  std::vector<double> drive(table.rows.size());
+  for (const v1::LedUnit& u : config_.units()) {
+    const v1::LedLimits& limits = u.has_limits() ? u.limits() : config_.unit_limits();
+    for (const auto& [ch, emitter] : {std::pair{u.parallel_channel(), "parallel"}, {u.cross_channel(), "cross"}}) {
+      if (ch >= config_.channel_count()) continue;
+      for (size_t r = 0; r < table.rows.size(); ++r) drive[r] = table.rows[r][ch] / 65535.0;
+      const timing::LedLoad load = timing::ComputeLedLoad(drive, slot_s, limits.thermal_time_constant_s(), take_slots);
+      const double limit = limits.max_duty_cycle();
+      if (load.duty > limit + 1e-12) {
+        return absl::FailedPreconditionError(absl::StrFormat(
+            "light node \"%s\": channel %d (%s %s) would average %.3f of full drive over the %d-row table, above "
+            "its max_duty_cycle %g; not armed",
+            config_.id(), ch, u.id(), emitter, load.duty, table.rows.size(), limit));
+      }
+      if (load.peak > limit + 1e-12) {
+        return absl::FailedPreconditionError(absl::StrFormat(
+            "light node \"%s\": channel %d (%s %s) would reach a thermal load of %.3f of full drive during the "
+            "%.2f s take (thermal_time_constant_s %g), above its max_duty_cycle %g; not armed",
+            config_.id(), ch, u.id(), emitter, load.peak, take_slots * slot_s, limits.thermal_time_constant_s(),
+            limit));
+      }
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
+  const v1::PatternTable& table = request.table();
   PatternTable t;
   t.pattern_set = table.pattern_set();
   for (int r = 0; r < table.rows_size(); ++r) {
     const v1::PatternRow& row = table.rows(r);
     t.row_names.push_back(row.name());
+    if (static_cast<uint32_t>(row.levels_size()) != config_.channel_count()) {
+      return absl::InvalidArgumentError(absl::StrCat("light node \"", config_.id(), "\": row ", r, " (", row.name(),
+                                                     ") has ", row.levels_size(), " levels, the node has ",
+                                                     config_.channel_count(), " channels"));
+    }
     ChannelLevels levels;
     for (int c = 0; c < row.levels_size(); ++c) {
       if (row.levels(c) > 65535) {
@@ -67,19 +125,104 @@ absl::Status LightNode::Arm(const std::string& take_id, const v1::PatternTable& 
     }
     t.rows.push_back(std::move(levels));
   }
+  if (t.rows.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", config_.id(), "\": the pattern table has no rows"));
+  }
+  const int64_t take_slots = request.take_slots() > 0
+                                 ? request.take_slots()
+                                 : static_cast<int64_t>(std::ceil(options_.take_length_s * options_.slot_rate_hz));
+  if (absl::Status s = CheckLoad(t, take_slots); !s.ok()) {
+    Logger("light.node")->error("{}", s.message());
+    return s;
+  }
+  if (driver_->State().mode == DriverMode::kBlackout) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return absl::FailedPreconditionError(absl::StrCat("light node \"", config_.id(), "\": in blackout (",
+                                                      blackout_reason_.empty() ? "by the hardware" : blackout_reason_,
+                                                      "); reset it first (stagectl estop --reset)"));
+  }
   if (driver_->State().mode == DriverMode::kArmed) {
     if (absl::Status s = driver_->Disarm(); !s.ok()) return s;
   }
   if (absl::Status s = driver_->LoadPatternTable(t); !s.ok()) return s;
   if (absl::Status s = driver_->Arm(); !s.ok()) return s;
-  Logger("light.node")->info("{}: armed for take {} ({} rows)", config_.id(), take_id, t.rows.size());
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    watching_ = true;
+    take_id_ = request.take_id();
+    last_heartbeat_ = std::chrono::steady_clock::now();
+    heartbeat_timeout_ = std::chrono::milliseconds(
+        request.heartbeat_timeout_ms() > 0 ? request.heartbeat_timeout_ms() : options_.heartbeat_timeout_ms);
+  }
+  wake_.notify_all();
+  Logger("light.node")->info("{}: armed for take {} ({} rows)", config_.id(), request.take_id(), t.rows.size());
   return absl::OkStatus();
 }
 
 absl::Status LightNode::Disarm(const std::string& take_id) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    watching_ = false;
+  }
   if (driver_->State().mode != DriverMode::kArmed) return absl::OkStatus();
   Logger("light.node")->info("{}: disarmed after take {}", config_.id(), take_id);
   return driver_->Disarm();
+}
+
+absl::Status LightNode::Blackout(const std::string& reason) {
+  absl::Status s = driver_->Blackout();
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    watching_ = false;
+    blackout_reason_ = reason;
+  }
+  if (s.ok()) {
+    Logger("light.node")->warn("{}: blackout ({})", config_.id(), reason);
+  } else {
+    Logger("light.node")->error("{}: blackout ({}) NOT confirmed: {}", config_.id(), reason, s.message());
+  }
+  return s;
+}
+
+absl::Status LightNode::ResetBlackout() {
+  if (absl::Status s = driver_->ResetBlackout(); !s.ok()) return s;
+  std::lock_guard<std::mutex> lock(mutex_);
+  blackout_reason_.clear();
+  Logger("light.node")->info("{}: blackout reset", config_.id());
+  return absl::OkStatus();
+}
+
+void LightNode::Heartbeat(const std::string& take_id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  last_heartbeat_ = std::chrono::steady_clock::now();
+}
+
+uint64_t LightNode::watchdog_trips() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return watchdog_trips_;
+}
+
+void LightNode::Watchdog() {
+  std::unique_lock<std::mutex> lock(mutex_);
+  while (!stopping_) {
+    if (!watching_) {
+      wake_.wait(lock, [this] { return stopping_ || watching_; });
+      continue;
+    }
+    const auto deadline = last_heartbeat_ + heartbeat_timeout_;
+    if (std::chrono::steady_clock::now() < deadline) {
+      wake_.wait_until(lock, deadline);
+      continue;
+    }
+    const std::string reason =
+        absl::StrFormat("controller heartbeat lost: none for %d ms while armed for take %s", heartbeat_timeout_.count(),
+                        take_id_);
+    watching_ = false;
+    ++watchdog_trips_;
+    lock.unlock();
+    Blackout(reason).IgnoreError();  // logged there
+    lock.lock();
+  }
 }
 
 }  // namespace stage::light

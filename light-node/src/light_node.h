@@ -1,8 +1,14 @@
-// The light node's logic: owns the driver, answers for the service. Dark on every path out.
+// The light node's logic: owns the driver, answers for the service, and keeps the lights safe. Before arming it checks
+// every channel's duty cycle and thermal budget against its emitter's limits; armed, it goes dark when the
+// controller's heartbeat stops; a blackout (the emergency stop) latches until reset; and it is dark on every path out.
 #pragma once
 
+#include <chrono>
+#include <condition_variable>
 #include <memory>
+#include <mutex>
 #include <string>
+#include <thread>
 
 #include "absl/status/statusor.h"
 #include "stage/light/light_driver.h"
@@ -12,24 +18,57 @@
 
 namespace stage::light {
 
+struct LightNodeOptions {
+  // The rig's slot clock, Hz, and the take length the thermal budget assumes when a take does not say, s.
+  double slot_rate_hz = 912;
+  double take_length_s = 10;
+  // Armed without a heartbeat for this long, the node blacks out, ms (ArmLightRequest.heartbeat_timeout_ms overrides).
+  int heartbeat_timeout_ms = 1000;
+};
+
 class LightNode {
  public:
   static absl::StatusOr<std::unique_ptr<LightNode>> Create(const v1::LightNodeConfig& config,
-                                                           std::unique_ptr<LightDriver> driver, std::string rig_hash);
+                                                           std::unique_ptr<LightDriver> driver, std::string rig_hash,
+                                                           LightNodeOptions options = {});
   // Blacks out the driver: lights fail dark.
   ~LightNode();
 
   v1::NodeInfo Info() const;
   v1::LightStats Stats() const;
-  // Loads `table` and arms (disarming first if armed); see LightNode.Arm in light_node.proto.
-  absl::Status Arm(const std::string& take_id, const v1::PatternTable& table);
+  // Checks the table against the channels' limits, loads it and arms (disarming first if armed); see LightNode.Arm in
+  // light_node.proto. FailedPrecondition names the channel, its unit and the limit a table would exceed.
+  absl::Status Arm(const v1::ArmLightRequest& request);
   absl::Status Disarm(const std::string& take_id);
+  // Every channel dark, latched; `reason` is kept for the status.
+  absl::Status Blackout(const std::string& reason);
+  absl::Status ResetBlackout();
+  // The controller is alive (feeds the watchdog while armed).
+  void Heartbeat(const std::string& take_id);
+  // Heartbeat losses that blacked the node out, since start.
+  uint64_t watchdog_trips() const;
 
  private:
-  LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash);
+  LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
+            LightNodeOptions options);
+  absl::Status CheckLoad(const PatternTable& table, int64_t take_slots) const;
+  void Watchdog();
+
   v1::LightNodeConfig config_;
   std::unique_ptr<LightDriver> driver_;
   std::string rig_hash_;
+  LightNodeOptions options_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable wake_;
+  bool stopping_ = false;             // guarded by mutex_
+  bool watching_ = false;             // armed by the controller: the watchdog runs; guarded by mutex_
+  std::string take_id_;               // guarded by mutex_
+  std::chrono::steady_clock::time_point last_heartbeat_;  // guarded by mutex_
+  std::chrono::milliseconds heartbeat_timeout_{1000};     // guarded by mutex_
+  std::string blackout_reason_;       // guarded by mutex_
+  uint64_t watchdog_trips_ = 0;       // guarded by mutex_
+  std::thread watchdog_;
 };
 
 }  // namespace stage::light

@@ -16,7 +16,7 @@ grpc::Status LightService::GetStats(grpc::ServerContext*, const v1::GetLightStat
 }
 
 grpc::Status LightService::Arm(grpc::ServerContext*, const v1::ArmLightRequest* request, v1::LightStats* response) {
-  if (absl::Status s = node_->Arm(request->take_id(), request->table()); !s.ok()) return ToGrpcStatus(s);
+  if (absl::Status s = node_->Arm(*request); !s.ok()) return ToGrpcStatus(s);
   *response = node_->Stats();
   return grpc::Status::OK;
 }
@@ -24,6 +24,28 @@ grpc::Status LightService::Arm(grpc::ServerContext*, const v1::ArmLightRequest* 
 grpc::Status LightService::Disarm(grpc::ServerContext*, const v1::DisarmLightRequest* request,
                                   v1::LightStats* response) {
   if (absl::Status s = node_->Disarm(request->take_id()); !s.ok()) return ToGrpcStatus(s);
+  *response = node_->Stats();
+  return grpc::Status::OK;
+}
+
+grpc::Status LightService::Blackout(grpc::ServerContext*, const v1::BlackoutRequest* request,
+                                    v1::LightStats* response) {
+  absl::Status s = node_->Blackout(request->reason().empty() ? "blackout requested" : request->reason());
+  if (!s.ok()) return ToGrpcStatus(s);
+  *response = node_->Stats();
+  return grpc::Status::OK;
+}
+
+grpc::Status LightService::ResetBlackout(grpc::ServerContext*, const v1::ResetBlackoutRequest*,
+                                         v1::LightStats* response) {
+  if (absl::Status s = node_->ResetBlackout(); !s.ok()) return ToGrpcStatus(s);
+  *response = node_->Stats();
+  return grpc::Status::OK;
+}
+
+grpc::Status LightService::Heartbeat(grpc::ServerContext*, const v1::HeartbeatRequest* request,
+                                     v1::LightStats* response) {
+  node_->Heartbeat(request->take_id());
   *response = node_->Stats();
   return grpc::Status::OK;
 }

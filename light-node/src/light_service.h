@@ -13,6 +13,9 @@ class LightService final : public v1::LightNode::Service {
   grpc::Status GetStats(grpc::ServerContext*, const v1::GetLightStatsRequest*, v1::LightStats* response) override;
   grpc::Status Arm(grpc::ServerContext*, const v1::ArmLightRequest* request, v1::LightStats* response) override;
   grpc::Status Disarm(grpc::ServerContext*, const v1::DisarmLightRequest* request, v1::LightStats* response) override;
+  grpc::Status Blackout(grpc::ServerContext*, const v1::BlackoutRequest* request, v1::LightStats* response) override;
+  grpc::Status ResetBlackout(grpc::ServerContext*, const v1::ResetBlackoutRequest*, v1::LightStats* response) override;
+  grpc::Status Heartbeat(grpc::ServerContext*, const v1::HeartbeatRequest* request, v1::LightStats* response) override;
 
  private:
   LightNode* node_;

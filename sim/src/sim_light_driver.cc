@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/clock.h"
 #include "stage/common/logging.h"
 #include "stage/sim/world_client.h"
 #include "stage/timing/time_base.h"
@@ -63,9 +64,20 @@ absl::Status SimLightDriver::Disarm() {
 }
 
 absl::Status SimLightDriver::Blackout() {
-  std::lock_guard<std::mutex> lock(mutex_);
-  state_.mode = light::DriverMode::kBlackout;
-  state_.current_row = -1;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    state_.mode = light::DriverMode::kBlackout;
+    state_.current_row = -1;
+  }
+  // In a real-time world the channels go dark now, as a board's do, not at the next edge: the world hears it before
+  // this returns (a lockstep world has no "now" between edges: dark from the next one).
+  std::lock_guard<std::mutex> lock(report_mutex_);
+  if (world_thread_.joinable() && !detaching_.load() && !world_.world->lockstep()) {
+    const int64_t t = std::max(RealClock(RealClock::Kind::kMonotonic).NowNs(), last_switch_ns_);
+    world_.world->ReportLevels(world_.node_index, t, std::vector<double>(channel_count_, 0.0),
+                               std::max(t, promised_ns_));
+    last_switch_ns_ = t;
+  }
   return absl::OkStatus();
 }
 
@@ -123,7 +135,6 @@ void SimLightDriver::WorldLoop(int device) {
   }
   std::vector<double> levels(channel_count_);
   int64_t slot = 0;
-  int64_t promised_ns = INT64_MIN;  // the last watermark reported: no change may come before it
   while (!detaching_.load()) {
     auto edge = world_.world->WaitForEdge(device, slot);
     if (!edge) break;
@@ -144,13 +155,15 @@ void SimLightDriver::WorldLoop(int device) {
     // A board steps on every edge; a process that saw some late catches up, so the table stays in phase.
     for (int64_t i = 0; i <= edge->missed; ++i) Step();
     if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));
+    std::lock_guard<std::mutex> report(report_mutex_);  // a blackout reports between two edges, never inside one
     const light::ChannelLevels out = Outputs();
     for (size_t c = 0; c < levels.size(); ++c) levels[c] = out[c] / 65535.0;
     // A delay that shrank at run time cannot take back light already promised: the switch waits for the promise.
-    const int64_t switch_ns = std::max(edge->time_ns + delay, promised_ns);
-    promised_ns =
+    const int64_t switch_ns = std::max({edge->time_ns + delay, promised_ns_, last_switch_ns_});
+    promised_ns_ =
         std::max(switch_ns, edge->time_ns + base->SlotStartNs(edge->slot + 1) - base->SlotStartNs(edge->slot) + delay);
-    world_.world->ReportLevels(world_.node_index, switch_ns, levels, promised_ns);
+    world_.world->ReportLevels(world_.node_index, switch_ns, levels, promised_ns_);
+    last_switch_ns_ = switch_ns;
     slot = edge->slot + 1;
   }
 }

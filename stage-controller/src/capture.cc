@@ -45,6 +45,10 @@ std::string ToJson(const google::protobuf::Message& m) {
   return out;
 }
 
+// Armed light nodes go dark after this long without the controller's heartbeat, which comes every kLightHeartbeatMs.
+constexpr uint32_t kLightHeartbeatTimeoutMs = 1000;
+constexpr int kLightHeartbeatMs = 200;
+
 void Deadline(grpc::ClientContext* c, int ms) {
   c->set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(ms));
 }
@@ -156,6 +160,23 @@ struct Capturer::Take {
   Clock::time_point paused_since;
   bool aborted = false;
   bool ground_truth = true;
+  // The lights' heartbeat (ArmLightRequest.heartbeat_timeout_ms) from arming to disarming, and what the nodes report
+  // of the take on the way: their take_faults, by light node index.
+  std::thread heartbeat;
+  std::mutex heartbeat_mutex;
+  std::condition_variable heartbeat_wake;
+  bool heartbeat_stop = false;                           // guarded by heartbeat_mutex
+  std::map<int, std::vector<std::string>> light_faults;  // guarded by heartbeat_mutex
+
+  void StopHeartbeat() {
+    {
+      std::lock_guard<std::mutex> lock(heartbeat_mutex);
+      heartbeat_stop = true;
+    }
+    heartbeat_wake.notify_all();
+    if (heartbeat.joinable()) heartbeat.join();
+  }
+  ~Take() { StopHeartbeat(); }
 };
 
 absl::StatusOr<std::unique_ptr<Capturer>> Capturer::Create(LoadedRig rig, v1::Schedule schedule, int timing_errors,
@@ -227,6 +248,10 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     return absl::FailedPreconditionError(
         absl::StrCat("the rig's schedule has ", timing_errors_, " error(s): `stagectl timing check` shows them"));
   }
+  if (std::string why; options_.estop != nullptr && options_.estop->latched(&why)) {
+    return absl::FailedPreconditionError(absl::StrCat("the emergency stop is latched (", why,
+                                                      "): nothing arms until `stagectl estop --reset`"));
+  }
   if (options_.world_address.empty()) {
     return absl::FailedPreconditionError(
         "no sync generator: the controller drives the simulated world's bus (stage-sim); a hardware slot clock comes "
@@ -294,12 +319,36 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     v1::ArmLightRequest arm;
     arm.set_take_id(take->id);
     *arm.mutable_table() = schedule_.light_nodes(i).table();
+    arm.set_take_slots(take->slots);
+    arm.set_heartbeat_timeout_ms(kLightHeartbeatTimeoutMs);
     grpc::ClientContext context;
     Deadline(&context, options_.arm_timeout_ms);
     v1::LightStats stats;
     grpc::Status s = take->lights.back()->Arm(&context, arm, &stats);
     if (!s.ok()) take->not_ready.push_back(absl::StrCat(node.id(), " (", s.error_message(), ")"));
   }
+  // The heartbeat: armed light nodes go dark when it stops (the controller died or lost them). Its replies carry
+  // what the nodes saw of the take so far.
+  take->heartbeat = std::thread([t = take.get()] {
+    std::unique_lock<std::mutex> lock(t->heartbeat_mutex);
+    while (!t->heartbeat_wake.wait_for(lock, std::chrono::milliseconds(kLightHeartbeatMs),
+                                       [t] { return t->heartbeat_stop; })) {
+      lock.unlock();
+      std::map<int, std::vector<std::string>> faults;
+      for (size_t i = 0; i < t->lights.size(); ++i) {
+        v1::HeartbeatRequest beat;
+        beat.set_take_id(t->id);
+        grpc::ClientContext context;
+        Deadline(&context, kLightHeartbeatMs);
+        v1::LightStats stats;
+        if (t->lights[i]->Heartbeat(&context, beat, &stats).ok() && stats.take_faults_size() > 0) {
+          faults[static_cast<int>(i)].assign(stats.take_faults().begin(), stats.take_faults().end());
+        }
+      }
+      lock.lock();
+      for (auto& [i, f] : faults) t->light_faults[i] = std::move(f);
+    }
+  });
   for (int i = 0; i < rig_.rig.cameras_size() && i < schedule_.cameras_size(); ++i) {
     Take::Cam c{&rig_.rig.cameras(i), &schedule_.cameras(i),
                 v1::CameraNode::NewStub(
@@ -859,14 +908,26 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
       as->set_message(a.message);
     }
   }
+  take.StopHeartbeat();
+  std::vector<std::string> light_hints;
   for (size_t i = 0; i < take.lights.size(); ++i) {
+    const std::string& node_id = rig_.rig.light_nodes(static_cast<int>(i)).id();
     v1::DisarmLightRequest disarm;
     disarm.set_take_id(take.id);
     grpc::ClientContext context;
     Deadline(&context, 2000);
     v1::LightStats stats;
-    if (!take.lights[i]->Disarm(&context, disarm, &stats).ok()) {
-      say(absl::StrCat("light node ", rig_.rig.light_nodes(static_cast<int>(i)).id(), " did not disarm"));
+    grpc::Status s = take.lights[i]->Disarm(&context, disarm, &stats);
+    std::vector<std::string> faults = std::move(take.light_faults[static_cast<int>(i)]);
+    if (!s.ok()) {
+      say(absl::StrCat("light node ", node_id, " did not disarm: ", s.error_message()));
+      faults.push_back(absl::StrCat("did not disarm: ", s.error_message()));
+    } else if (stats.take_faults_size() > 0) {
+      faults.assign(stats.take_faults().begin(), stats.take_faults().end());
+    }
+    for (const std::string& f : faults) {
+      say(absl::StrCat("light node ", node_id, ": ", f));
+      light_hints.push_back(absl::StrCat(node_id, ": ", f));
     }
   }
 
@@ -930,10 +991,13 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
     for (const auto& [reason, n] : cs.counts().lost()) why.push_back(absl::StrCat(n, " ", reason));
     hints.push_back(absl::StrCat(cs.camera_id(), " lost ", lost, " (", absl::StrJoin(why, ", "), ")"));
   }
+  // A light node that faulted during the take (a board that stopped answering, over temperature): its frames may be
+  // lit wrong even where they are all stored.
+  hints.insert(hints.end(), light_hints.begin(), light_hints.end());
   std::string outcome = "COMPLETE";
   if (!take.ran || aborted || total->stored() == 0) {
     outcome = "FAILED";
-  } else if (total->stored() < total->expected() || !aligned) {
+  } else if (total->stored() < total->expected() || !aligned || !light_hints.empty()) {
     outcome = "DEGRADED";
   }
   summary.set_outcome(outcome);

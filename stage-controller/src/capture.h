@@ -21,6 +21,7 @@
 #include "stage/common/rig.h"
 #include "stage/storage/catalog.h"
 #include "stage/timing/alignment.h"
+#include "emergency_stop.h"
 #include "stage/v1/controller.pb.h"
 #include "stage/v1/timing.pb.h"
 
@@ -41,6 +42,8 @@ struct CaptureOptions {
   uint32_t preview_size = 256;
   // Called after every change of the session's state (the stage's status watchers are woken).
   std::function<void()> on_state_change;
+  // While it is latched no take arms. Not owned; may be null.
+  const EmergencyStop* estop = nullptr;
 };
 
 using CaptureEventFn = std::function<void(const v1::CaptureEvent&)>;

@@ -75,7 +75,8 @@ ControllerService::ControllerService(LoadedRig rig, HealthMonitor* monitor)
       stage_id_(rig_.rig.stage().id()),
       stage_name_(rig_.rig.stage().name()),
       rig_hash_(RigHash(rig_.rig)),
-      monitor_(monitor) {
+      monitor_(monitor),
+      estop_(std::make_unique<controller::EmergencyStop>(rig_.rig)) {
   auto log = Logger("controller.timing");
   auto report = timing::CheckTiming(rig_, {});
   if (!report.ok()) {
@@ -116,6 +117,9 @@ v1::StageStatus ControllerService::Status() const {
   status.set_schedule_hash(timing_.schedule().hash());
   status.set_timing_errors(timing_.errors());
   status.set_timing_warnings(timing_.warnings());
+  std::string why;
+  status.set_estop_latched(estop_->latched(&why));
+  status.set_estop_reason(why);
   return status;
 }
 
@@ -273,6 +277,7 @@ struct EventStream {
 absl::Status ControllerService::EnableCapture(CaptureOptions options) {
   // The session's state is part of the stage's status: its changes wake the status watchers too.
   options.on_state_change = [monitor = monitor_] { monitor->NotifyChange(); };
+  options.estop = estop_.get();
   STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options)));
   return absl::OkStatus();
 }
@@ -319,6 +324,40 @@ grpc::Status ControllerService::Resume(grpc::ServerContext*, const v1::SessionRe
 grpc::Status ControllerService::Abort(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
   return Reply(capturer_->Abort(), response);
+}
+
+grpc::Status ControllerService::EmergencyStop(grpc::ServerContext*, const v1::EmergencyStopRequest* request,
+                                              v1::EmergencyStopReply* response) {
+  *response = estop_->Stop(request->reason());
+  monitor_->NotifyChange();
+  // The lights are dark and the operator hears so now; the take in progress, if any, is aborted after the answer
+  // (aborting finishes every camera, which takes a while). Its records are kept.
+  std::lock_guard<std::mutex> lock(estop_abort_mutex_);
+  if (estop_abort_.joinable()) estop_abort_.join();
+  estop_abort_ = std::thread([this] {
+    if (!capturer_) return;
+    const std::string state = capturer_->state();
+    if (state == "armed" || state == "capturing" || state == "paused") {
+      if (auto aborted = capturer_->Abort(); !aborted.ok()) {
+        Logger("controller")->warn("emergency stop: the take could not be aborted: {}", aborted.status().message());
+      }
+    }
+  });
+  return grpc::Status::OK;
+}
+
+ControllerService::~ControllerService() {
+  std::lock_guard<std::mutex> lock(estop_abort_mutex_);
+  if (estop_abort_.joinable()) estop_abort_.join();
+}
+
+grpc::Status ControllerService::ResetEmergencyStop(grpc::ServerContext*, const v1::ResetEmergencyStopRequest*,
+                                                   v1::EmergencyStopReply* response) {
+  auto reply = estop_->Reset();
+  monitor_->NotifyChange();
+  if (!reply.ok()) return ToGrpcStatus(reply.status());
+  *response = *std::move(reply);
+  return grpc::Status::OK;
 }
 
 grpc::Status ControllerService::GetPreview(grpc::ServerContext*, const v1::ControllerPreviewRequest* request,

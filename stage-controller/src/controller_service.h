@@ -2,7 +2,9 @@
 // the live rig.
 #pragma once
 
+#include <mutex>
 #include <string>
+#include <thread>
 
 #include "capture.h"
 #include "health_monitor.h"
@@ -19,6 +21,7 @@ class ControllerService final : public v1::StageController::Service {
   // `monitor` is not owned and must outlive the service. The rig's schedule is compiled and verified here, once;
   // its verdict is logged and shown in every status.
   ControllerService(LoadedRig rig, HealthMonitor* monitor);
+  ~ControllerService() override;
   // Takes: the take root and the sync generator (capture.h). Without it, Capture, ListTakes and GetTake are
   // FAILED_PRECONDITION.
   absl::Status EnableCapture(CaptureOptions options);
@@ -44,6 +47,10 @@ class ControllerService final : public v1::StageController::Service {
   grpc::Status Abort(grpc::ServerContext*, const v1::SessionRequest*, v1::SessionReply* response) override;
   grpc::Status GetPreview(grpc::ServerContext*, const v1::ControllerPreviewRequest* request,
                           v1::Preview* response) override;
+  grpc::Status EmergencyStop(grpc::ServerContext*, const v1::EmergencyStopRequest* request,
+                             v1::EmergencyStopReply* response) override;
+  grpc::Status ResetEmergencyStop(grpc::ServerContext*, const v1::ResetEmergencyStopRequest*,
+                                  v1::EmergencyStopReply* response) override;
   grpc::Status ProcessTake(grpc::ServerContext* context, const v1::ProcessTakeRequest* request,
                            grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
@@ -59,6 +66,9 @@ class ControllerService final : public v1::StageController::Service {
   std::string stage_name_;
   std::string rig_hash_;
   HealthMonitor* monitor_;
+  std::unique_ptr<controller::EmergencyStop> estop_;
+  std::mutex estop_abort_mutex_;
+  std::thread estop_abort_;  // aborts the take after an emergency stop has answered
   std::unique_ptr<Capturer> capturer_;
 };
 

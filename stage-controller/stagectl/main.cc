@@ -16,6 +16,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "fmt/format.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
@@ -534,6 +535,44 @@ int Session(const Connection& c, const std::string& what, bool json) {
   return 0;
 }
 
+// The emergency stop, or its reset. Exit 3 when a light node did not confirm.
+int EStop(const Connection& c, const std::string& reason, bool reset, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  SetDeadline(&context, c);
+  stage::v1::EmergencyStopReply reply;
+  grpc::Status rpc;
+  if (reset) {
+    rpc = (*stub)->ResetEmergencyStop(&context, stage::v1::ResetEmergencyStopRequest(), &reply);
+  } else {
+    stage::v1::EmergencyStopRequest request;
+    request.set_reason(reason.empty() ? "stagectl estop" : reason);
+    rpc = (*stub)->EmergencyStop(&context, request, &reply);
+  }
+  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+  if (json) {
+    std::cout << ToJson(reply) << "\n";
+  } else {
+    int ok = 0;
+    for (const auto& n : reply.nodes()) {
+      ok += n.dark() ? 1 : 0;
+      std::cout << fmt::format("  {:<20} {:<14} {:8.2f} ms  {}\n", n.node_id(),
+                               n.dark() ? (reset ? "reset" : "dark") : (reset ? "STILL LATCHED" : "NOT CONFIRMED"),
+                               n.ms(), n.error());
+    }
+    if (reset) {
+      std::cout << "emergency stop reset: " << ok << " of " << reply.nodes_size() << " light nodes out of blackout\n";
+    } else {
+      std::cout << fmt::format("emergency stop latched: {} of {} light nodes confirmed dark in {:.2f} ms{}\n", ok,
+                               reply.nodes_size(), reply.elapsed_ms(),
+                               reply.all_dark() ? "" : "; CHECK THE OTHERS BY HAND (their lights may be on)");
+    }
+  }
+  return reply.all_dark() ? 0 : 3;
+}
+
 // A camera's latest preview, written as PNG.
 int Preview(const Connection& c, const std::string& camera, const std::string& out, bool json) {
   std::string address;
@@ -814,6 +853,15 @@ int main(int argc, char** argv) {
   CLI::App* abort_cmd =
       app.add_subcommand("abort", "Abort the armed, capturing or paused take; what it recorded is kept");
   for (CLI::App* cmd : {pause, resume, abort_cmd}) cmd->add_flag("--json", session_json, "Print JSON for scripts");
+  std::string estop_reason;
+  bool estop_reset = false, estop_json = false;
+  CLI::App* estop = app.add_subcommand(
+      "estop",
+      "Emergency stop: every light node blacks out now (all at once), a take in progress is aborted, and nothing arms "
+      "until `stagectl estop --reset`. Exit 3 if a node did not confirm dark");
+  estop->add_option("--reason", estop_reason, "Why, for the log and the stage's status");
+  estop->add_flag("--reset", estop_reset, "Release the latch: every light node leaves blackout (idle, dark)");
+  estop->add_flag("--json", estop_json, "Print JSON for scripts");
   std::string preview_camera, preview_out;
   bool preview_json = false;
   CLI::App* preview =
@@ -894,6 +942,7 @@ int main(int argc, char** argv) {
   if (pause->parsed()) return Session(c, "pause", session_json);
   if (resume->parsed()) return Session(c, "resume", session_json);
   if (abort_cmd->parsed()) return Session(c, "abort", session_json);
+  if (estop->parsed()) return EStop(c, estop_reason, estop_reset, estop_json);
   if (preview->parsed()) return Preview(c, preview_camera, preview_out, preview_json);
   if (takes->parsed()) return Takes(c, takes_json);
   if (take_show->parsed()) return TakeShow(c, take_id, take_json);

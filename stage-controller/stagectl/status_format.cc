@@ -86,6 +86,11 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
                         status.timing_errors(), status.timing_warnings(),
                         status.timing_errors() + status.timing_warnings() > 0 ? " (stagectl timing check)" : ""));
   }
+  if (status.estop_latched()) {
+    out.insert(out.size() - 1, absl::StrFormat("EMERGENCY STOP LATCHED (%s): lights dark; `stagectl estop --reset` "
+                                               "releases it\n",
+                                               status.estop_reason()));
+  }
   out += absl::StrFormat("%-18s %-10s %-22s %-12s %-8s %-8s %9s %10s %-22s %-16s  %s\n", "NODE", "KIND", "ADDRESS",
                          "STATE", "BACKEND", "VERSION", "RTT", "LAST SEEN", "CLOCK OFFSET", "PTP", "REASON");
   int flagged = 0;
@@ -134,6 +139,7 @@ std::string StatusToJson(const v1::StageStatus& status) {
   j["stage"] = {{"id", status.stage_id()}, {"name", status.stage_name()}};
   j["time_unix_ns"] = status.time_unix_ns();
   j["session_state"] = status.session_state();
+  j["estop"] = {{"latched", status.estop_latched()}, {"reason", status.estop_reason()}};
   j["controller"] = {{"version", status.controller().version()},
                      {"pid", status.controller().pid()},
                      {"hostname", status.controller().hostname()},

@@ -13,6 +13,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "stage/common/status.h"
+#include "stage/timing/led_load.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/time_base.h"
 
@@ -417,43 +418,14 @@ void CheckLeds(Ctx& ctx) {
       const ChannelInfo& info = channels[ch];
       if (info.limits == nullptr) continue;  // no emitter on this channel
       std::vector<double> u(rows);
-      double sum = 0;
       for (int r = 0; r < rows; ++r) {
         const auto& levels = timing.table().rows(r).levels();
         u[r] = ch < static_cast<uint32_t>(levels.size()) ? levels[static_cast<int>(ch)] / 65535.0 : 0.0;
-        sum += u[r];
       }
-      const double duty = sum / rows;
+      const LedLoad load = ComputeLedLoad(u, slot_s, info.limits->thermal_time_constant_s(), take);
+      const double duty = load.duty;
+      const double peak = load.peak;
       const double limit = info.limits->max_duty_cycle();
-      // First-order thermal model: load L relaxes towards the drive u with time constant tau; over a slot of
-      // constant drive, L' = u + (L - u) a with a = exp(-slot / tau). It is monotonic within a slot, so its peak
-      // is at a slot edge. From cold, each cycle maps its start L to a^N L + b; the start values grow towards the
-      // fixed point b / (1 - a^N), and a later cycle's trajectory lies above an earlier one's, so the peak over the
-      // take is in its last full cycle (or the partial one after it).
-      const double a = std::exp(-slot_s / info.limits->thermal_time_constant_s());
-      auto run = [&](double start, int64_t slots, double* peak) {
-        double l = start;
-        for (int64_t k = 0; k < slots; ++k) {
-          const double v = u[static_cast<size_t>(k % rows)];
-          l = v + (l - v) * a;
-          *peak = std::max(*peak, l);
-        }
-        return l;
-      };
-      double ignored = 0;
-      const double b = run(0.0, rows, &ignored);
-      const double aN = std::pow(a, rows);
-      const int64_t cycles = take / rows;
-      const int64_t rest = take % rows;
-      double peak = 0;
-      if (cycles == 0) {
-        run(0.0, rest, &peak);
-      } else {
-        const double fixed = aN < 1 ? b / (1 - aN) : 0.0;
-        const double start_last = fixed * (1 - std::pow(aN, static_cast<double>(cycles - 1)));
-        const double end_last = run(start_last, rows, &peak);
-        run(end_last, rest, &peak);
-      }
       if (peak / limit > hottest / hottest_limit) {
         hottest = peak;
         hottest_limit = limit;

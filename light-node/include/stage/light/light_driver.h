@@ -1,8 +1,9 @@
 // An LED controller as the light node sees it. Implementations: SimLightDriver (sim/), ModbusLightDriver and
-// GpiodLightDriver (planned). No backend library appears in this header.
+// GpiodLightDriver (light-node/src/). No backend library appears in this header.
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -34,6 +35,11 @@ struct DriverState {
   uint64_t steps = 0;
   // Faults in words ("over-temperature on channel 7"); empty when healthy.
   std::vector<std::string> faults;
+  // Faults seen since the last Arm(), with when they started, kept after they clear (a take's record); empty when the
+  // take ran clean.
+  std::vector<std::string> take_faults;
+  // Board temperature, degC, where the hardware reports one.
+  std::optional<double> temperature_c;
 };
 
 struct DriverDescription {

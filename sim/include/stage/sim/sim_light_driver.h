@@ -7,6 +7,7 @@
 #pragma once
 
 #include <atomic>
+#include <climits>
 #include <cstdint>
 #include <functional>
 #include <mutex>
@@ -74,6 +75,11 @@ class SimLightDriver final : public light::LightDriver {
   int world_device_ = -1;
   std::atomic<bool> detaching_{false};
   std::atomic<uint64_t> late_edges_{0};
+  // What the world has been told, guarded by report_mutex_: the last switch reported and the watermark promised (no
+  // change may come before it, except a blackout, which is a fault of the stage).
+  std::mutex report_mutex_;
+  int64_t last_switch_ns_ = INT64_MIN;
+  int64_t promised_ns_ = INT64_MIN;
   std::thread world_thread_;
 };
 
