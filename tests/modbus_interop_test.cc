@@ -198,7 +198,8 @@ c = ModbusTcpClient("127.0.0.1", port=int(sys.argv[1]))
 assert c.connect()
 rows = [[(r * 100 + ch) for ch in range(64)] for r in range(2)]
 flat = rows[0] + rows[1]
-r = c.readwrite_registers(read_address=0x1000, read_count=64, write_address=0x1000, write_registers=flat[:64], slave=1)
+# pymodbus 3.0's readwrite_registers takes unit=, not slave= (which it ignores, sending unit 0)
+r = c.readwrite_registers(read_address=0x1000, read_count=64, write_address=0x1000, write_registers=flat[:64], unit=1)
 assert not r.isError() and r.registers == flat[:64], r
 assert not c.write_registers(0x1040, flat[64:], slave=1).isError()
 crc = 0xFFFF

@@ -170,12 +170,13 @@ absl::Status LightNode::Disarm(const std::string& take_id) {
 }
 
 absl::Status LightNode::Blackout(const std::string& reason) {
-  absl::Status s = driver_->Blackout();
   {
+    // The reason first: a status read while the driver goes dark already says why.
     std::lock_guard<std::mutex> lock(mutex_);
     watching_ = false;
     blackout_reason_ = reason;
   }
+  absl::Status s = driver_->Blackout();
   if (s.ok()) {
     Logger("light.node")->warn("{}: blackout ({})", config_.id(), reason);
   } else {
