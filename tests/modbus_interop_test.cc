@@ -2,8 +2,6 @@
 // Debian's python3-pymodbus (tests/support/pymodbus_led_board.py, the register map of docs/led-board-modbus.md), and
 // the simulator's fake board (the fake-led-board program) answering mbpoll, over TCP and over RTU on a socat
 // pseudo-terminal pair, and a pymodbus client.
-#include <sys/stat.h>
-
 #include <chrono>
 #include <fstream>
 #include <regex>
@@ -161,20 +159,12 @@ TEST(ModbusInteropTest, MbpollReadsAndWritesTheFakeBoardOverTcp) {
 
 TEST(ModbusInteropTest, MbpollReadsTheFakeBoardOverRtu) {
   testing::TempDir dir;
-  auto socat = Subprocess::Spawn({.argv = {"socat", absl::StrCat("pty,raw,echo=0,link=", dir.path(), "/board"),
-                                           absl::StrCat("pty,raw,echo=0,link=", dir.path(), "/host")},
-                                  .stderr_path = dir.path() + "/socat.log"});
-  ASSERT_TRUE(socat.ok()) << socat.status();
-  struct stat st {};
-  for (int i = 0; i < 200 && (stat((dir.path() + "/board").c_str(), &st) != 0 ||
-                              stat((dir.path() + "/host").c_str(), &st) != 0);
-       ++i) {
-    std::this_thread::sleep_for(10ms);
-  }
-  FakeBoardProcess board = StartFakeBoard(dir, {"--rtu", dir.path() + "/board", "--unit", "5", "--parity", "E"});
-  ASSERT_EQ(board.endpoint, "rtu:" + dir.path() + "/board");
+  testing::PseudoTerminalPair pty(dir);
+  ASSERT_TRUE(pty.ok()) << pty.error();
+  FakeBoardProcess board = StartFakeBoard(dir, {"--rtu", pty.board(), "--unit", "5", "--parity", "E"});
+  ASSERT_EQ(board.endpoint, "rtu:" + pty.board());
   auto id = RunCommand({"/usr/bin/mbpoll", "-m", "rtu", "-b", "115200", "-P", "even", "-a", "5", "-0", "-r", "272",
-                        "-c", "8", "-t", "4:hex", "-1", dir.path() + "/host"},
+                        "-c", "8", "-t", "4:hex", "-1", pty.host()},
                        10s);
   ASSERT_TRUE(id.exit.ok()) << id.out << id.err;
   auto v = MbpollValues(id.out);
@@ -183,7 +173,6 @@ TEST(ModbusInteropTest, MbpollReadsTheFakeBoardOverRtu) {
   EXPECT_EQ(v[277], "0x013B");  // 31.5 degC
   EXPECT_EQ(v[279], "0x02BC");  // limit 70.0 degC
   board.process->Terminate(2s);
-  (*socat)->Terminate(1s);
 }
 
 TEST(ModbusInteropTest, APymodbusClientUsesTheFakeBoard) {

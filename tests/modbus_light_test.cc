@@ -2,8 +2,6 @@
 // docs/led-board-modbus.md): over loopback TCP and over RTU on a pseudo-terminal pair made by socat. Upload, read
 // back, arm, step through a take, blackout; a corrupted entry refuses to arm; a board that stops answering is a
 // fault of the take; nothing but the status poll goes on the bus while armed; the board's own watchdog.
-#include <sys/stat.h>
-
 #include <chrono>
 #include <thread>
 
@@ -61,6 +59,15 @@ std::unique_ptr<sim::FakeLedBoard> TcpBoard(uint32_t channels) {
   return board.ok() ? std::move(*board) : nullptr;
 }
 
+// A driver on `board` (64 channels) with the test table loaded and armed.
+void OpenArmed(sim::FakeLedBoard& board, std::unique_ptr<ModbusLightDriver>* driver) {
+  auto opened = ModbusLightDriver::Open(TcpOptions(board, 64));
+  ASSERT_TRUE(opened.ok()) << opened.status();
+  ASSERT_TRUE((*opened)->LoadPatternTable(Table(64)).ok());
+  ASSERT_TRUE((*opened)->Arm().ok());
+  *driver = std::move(*opened);
+}
+
 // Upload, verify, arm, step, blackout: the whole take as a light node drives it.
 void RunTake(sim::FakeLedBoard& board, ModbusLightDriver& driver, uint32_t channels) {
   const PatternTable table = Table(channels);
@@ -108,27 +115,19 @@ TEST(ModbusLightTest, UploadVerifyArmStepAndBlackoutOverTcp) {
 
 TEST(ModbusLightTest, UploadVerifyArmStepAndBlackoutOverRtuOnAPseudoTerminal) {
   testing::TempDir dir;
-  auto socat = Subprocess::Spawn({.argv = {"socat", absl::StrCat("pty,raw,echo=0,link=", dir.path(), "/board"),
-                                           absl::StrCat("pty,raw,echo=0,link=", dir.path(), "/host")},
-                                  .stderr_path = dir.path() + "/socat.log"});
-  ASSERT_TRUE(socat.ok()) << socat.status();
-  struct stat st {};
-  for (int i = 0; i < 200 && (stat((dir.path() + "/board").c_str(), &st) != 0 ||
-                              stat((dir.path() + "/host").c_str(), &st) != 0);
-       ++i) {
-    std::this_thread::sleep_for(10ms);
-  }
+  testing::PseudoTerminalPair pty(dir);
+  ASSERT_TRUE(pty.ok()) << pty.error();
   sim::FakeLedBoardOptions bo;
   bo.board_id = "board-rtu";
   bo.channel_count = 16;
   bo.unit_id = 7;
-  bo.rtu_device = dir.path() + "/board";
+  bo.rtu_device = pty.board();
   auto board = sim::FakeLedBoard::Start(bo);
   ASSERT_TRUE(board.ok()) << board.status();
   ModbusDriverOptions o;
   o.node_id = "lights-rtu";
   o.channel_count = 16;
-  o.settings.mutable_rtu()->set_device(dir.path() + "/host");
+  o.settings.mutable_rtu()->set_device(pty.host());
   o.settings.mutable_rtu()->set_baud(115200);
   o.settings.mutable_rtu()->set_parity("N");
   o.settings.mutable_rtu()->set_data_bits(8);
@@ -141,11 +140,8 @@ TEST(ModbusLightTest, UploadVerifyArmStepAndBlackoutOverRtuOnAPseudoTerminal) {
   o.board_watchdog_ms = 0;
   auto driver = ModbusLightDriver::Open(o);
   ASSERT_TRUE(driver.ok()) << driver.status();
-  EXPECT_THAT((*driver)->Describe().device, HasSubstr("rtu:" + dir.path() + "/host@115200 unit 7"));
+  EXPECT_THAT((*driver)->Describe().device, HasSubstr("rtu:" + pty.host() + "@115200 unit 7"));
   RunTake(**board, **driver, 16);
-  driver->reset();
-  board->reset();
-  (*socat)->Terminate(1s);
 }
 
 TEST(ModbusLightTest, ACorruptedEntryRefusesToArmNamingBoardAndEntry) {
@@ -173,10 +169,8 @@ TEST(ModbusLightTest, ACorruptedEntryRefusesToArmNamingBoardAndEntry) {
 TEST(ModbusLightTest, OnlyTheStatusPollGoesOnTheBusWhileArmed) {
   auto board = TcpBoard(64);
   ASSERT_NE(board, nullptr);
-  auto driver = ModbusLightDriver::Open(TcpOptions(*board, 64));
-  ASSERT_TRUE(driver.ok());
-  ASSERT_TRUE((*driver)->LoadPatternTable(Table(64)).ok());
-  ASSERT_TRUE((*driver)->Arm().ok());
+  std::unique_ptr<ModbusLightDriver> driver;
+  ASSERT_NO_FATAL_FAILURE(OpenArmed(*board, &driver));
   board->ClearRequests();
   // A take of 1.2 s on a 912 Hz slot clock, with the node asked to do other things meanwhile.
   std::atomic<bool> stop{false};
@@ -190,8 +184,8 @@ TEST(ModbusLightTest, OnlyTheStatusPollGoesOnTheBusWhileArmed) {
   });
   const auto start = std::chrono::steady_clock::now();
   std::this_thread::sleep_for(300ms);
-  const absl::Status reload = (*driver)->LoadPatternTable(Table(64));
-  const absl::Status read = (*driver)->ReadStatusNow();
+  const absl::Status reload = driver->LoadPatternTable(Table(64));
+  const absl::Status read = driver->ReadStatusNow();
   std::this_thread::sleep_for(900ms);
   const auto requests = board->Requests();
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -200,7 +194,7 @@ TEST(ModbusLightTest, OnlyTheStatusPollGoesOnTheBusWhileArmed) {
   EXPECT_EQ(reload.code(), absl::StatusCode::kFailedPrecondition) << reload;  // not idle
   EXPECT_EQ(read.code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(std::string(read.message()), HasSubstr("only the status poll, disarm and blackout go on the bus"));
-  EXPECT_EQ((*driver)->refused_while_armed(), 1u);
+  EXPECT_EQ(driver->refused_while_armed(), 1u);
   // The poll every 100 ms, nothing else: reads of the status block only.
   ASSERT_FALSE(requests.empty());
   for (const sim::BoardRequest& r : requests) {
@@ -210,22 +204,20 @@ TEST(ModbusLightTest, OnlyTheStatusPollGoesOnTheBusWhileArmed) {
   }
   EXPECT_LE(requests.size(), static_cast<size_t>(seconds / 0.1) + 1);
   EXPECT_GE(requests.size(), static_cast<size_t>(seconds / 0.1) - 3);
-  ASSERT_TRUE((*driver)->Disarm().ok());
+  ASSERT_TRUE(driver->Disarm().ok());
 }
 
 TEST(ModbusLightTest, ABoardThatStopsAnsweringIsAFaultOfTheTake) {
   auto board = TcpBoard(64);
   ASSERT_NE(board, nullptr);
-  auto driver = ModbusLightDriver::Open(TcpOptions(*board, 64));
-  ASSERT_TRUE(driver.ok());
-  ASSERT_TRUE((*driver)->LoadPatternTable(Table(64)).ok());
-  ASSERT_TRUE((*driver)->Arm().ok());
+  std::unique_ptr<ModbusLightDriver> driver;
+  ASSERT_NO_FATAL_FAILURE(OpenArmed(*board, &driver));
   board->SetNoAnswer(true);
   // A poll's three tries time out after 3 x 100 ms.
   DriverState s;
   for (int i = 0; i < 40; ++i) {
     std::this_thread::sleep_for(50ms);
-    s = (*driver)->State();
+    s = driver->State();
     if (!s.take_faults.empty()) break;
   }
   ASSERT_EQ(s.take_faults.size(), 1u);
@@ -234,12 +226,12 @@ TEST(ModbusLightTest, ABoardThatStopsAnsweringIsAFaultOfTheTake) {
   EXPECT_THAT(s.faults.back(), HasSubstr(absl::StrCat("light node \"lights-test\" (board tcp://127.0.0.1:",
                                                       board->port(), " unit 1): status poll (register 0x0110): ")));
   EXPECT_THAT(s.faults.back(), HasSubstr("3 tries; the board is not answering"));
-  const absl::Status disarm = (*driver)->Disarm();
+  const absl::Status disarm = driver->Disarm();
   EXPECT_EQ(disarm.code(), absl::StatusCode::kUnavailable);
   // It answers again: the current fault clears, the take's record keeps it until the next arm.
   board->SetNoAnswer(false);
   std::this_thread::sleep_for(800ms);
-  s = (*driver)->State();
+  s = driver->State();
   EXPECT_TRUE(s.faults.empty()) << s.faults.front();
   EXPECT_EQ(s.take_faults.size(), 1u);
 }
@@ -247,35 +239,31 @@ TEST(ModbusLightTest, ABoardThatStopsAnsweringIsAFaultOfTheTake) {
 TEST(ModbusLightTest, OverTemperatureBlacksOutAndHoldsTheBlackout) {
   auto board = TcpBoard(64);
   ASSERT_NE(board, nullptr);
-  auto driver = ModbusLightDriver::Open(TcpOptions(*board, 64));
-  ASSERT_TRUE(driver.ok());
-  ASSERT_TRUE((*driver)->LoadPatternTable(Table(64)).ok());
-  ASSERT_TRUE((*driver)->Arm().ok());
+  std::unique_ptr<ModbusLightDriver> driver;
+  ASSERT_NO_FATAL_FAILURE(OpenArmed(*board, &driver));
   board->leds().Step();
   board->SetOverTemperature(true);
   EXPECT_EQ(board->leds().Outputs(), ChannelLevels(64, 0));
   std::this_thread::sleep_for(300ms);
-  DriverState s = (*driver)->State();
+  DriverState s = driver->State();
   EXPECT_EQ(s.mode, DriverMode::kBlackout);
   ASSERT_EQ(s.faults.size(), 1u);
   EXPECT_EQ(s.faults[0], "board: over temperature (74.5 degC, limit 70.0 degC)");
   ASSERT_EQ(s.take_faults.size(), 1u);
-  const absl::Status reset = (*driver)->ResetBlackout();
+  const absl::Status reset = driver->ResetBlackout();
   EXPECT_EQ(reset.code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(std::string(reset.message()), HasSubstr("leaving blackout (register 0x0100): the board answered"));
   board->SetOverTemperature(false);
-  EXPECT_TRUE((*driver)->ResetBlackout().ok());
-  EXPECT_EQ((*driver)->State().mode, DriverMode::kIdle);
+  EXPECT_TRUE(driver->ResetBlackout().ok());
+  EXPECT_EQ(driver->State().mode, DriverMode::kIdle);
 }
 
 TEST(ModbusLightTest, TheBoardGoesDarkWhenItsHostGoesQuietWhileArmed) {
   auto board = TcpBoard(64);
   ASSERT_NE(board, nullptr);
   {
-    auto driver = ModbusLightDriver::Open(TcpOptions(*board, 64));  // watchdog 400 ms, poll 100 ms
-    ASSERT_TRUE(driver.ok());
-    ASSERT_TRUE((*driver)->LoadPatternTable(Table(64)).ok());
-    ASSERT_TRUE((*driver)->Arm().ok());
+    std::unique_ptr<ModbusLightDriver> driver;  // watchdog 400 ms, poll 100 ms
+    ASSERT_NO_FATAL_FAILURE(OpenArmed(*board, &driver));
     board->leds().Step();
     std::this_thread::sleep_for(600ms);  // polled: still armed and lit
     EXPECT_EQ(board->leds().State().mode, DriverMode::kArmed);

@@ -194,7 +194,7 @@ void ModbusLightDriver::ApplyStatus(const uint16_t* r) {
   const DriverMode mode = (status & b::kStatusBlackout) ? DriverMode::kBlackout
                           : (status & b::kStatusArmed)  ? DriverMode::kArmed
                                                         : DriverMode::kIdle;
-  if (mode != DriverMode::kArmed && take_window_.load() && mode == DriverMode::kBlackout) {
+  if (mode == DriverMode::kBlackout && take_window_.load()) {
     // The board blacked out by itself (temperature, watchdog): nothing steps any more.
     take_window_.store(false);
   }

@@ -160,9 +160,9 @@ struct Capturer::Take {
   Clock::time_point paused_since;
   bool aborted = false;
   bool ground_truth = true;
-  // The lights' heartbeat (ArmLightRequest.heartbeat_timeout_ms) from arming to disarming, and what the nodes report
-  // of the take on the way: their take_faults, by light node index.
-  std::thread heartbeat;
+  // The lights' heartbeat (ArmLightRequest.heartbeat_timeout_ms) from arming to disarming, a thread per light node,
+  // and what the nodes report of the take on the way: their take_faults, by light node index.
+  std::vector<std::thread> heartbeats;
   std::mutex heartbeat_mutex;
   std::condition_variable heartbeat_wake;
   bool heartbeat_stop = false;                           // guarded by heartbeat_mutex
@@ -174,7 +174,8 @@ struct Capturer::Take {
       heartbeat_stop = true;
     }
     heartbeat_wake.notify_all();
-    if (heartbeat.joinable()) heartbeat.join();
+    for (std::thread& t : heartbeats) t.join();
+    heartbeats.clear();
   }
   ~Take() { StopHeartbeat(); }
 };
@@ -327,28 +328,25 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     grpc::Status s = take->lights.back()->Arm(&context, arm, &stats);
     if (!s.ok()) take->not_ready.push_back(absl::StrCat(node.id(), " (", s.error_message(), ")"));
   }
-  // The heartbeat: armed light nodes go dark when it stops (the controller died or lost them). Its replies carry
-  // what the nodes saw of the take so far.
-  take->heartbeat = std::thread([t = take.get()] {
-    std::unique_lock<std::mutex> lock(t->heartbeat_mutex);
-    while (!t->heartbeat_wake.wait_for(lock, std::chrono::milliseconds(kLightHeartbeatMs),
-                                       [t] { return t->heartbeat_stop; })) {
-      lock.unlock();
-      std::map<int, std::vector<std::string>> faults;
-      for (size_t i = 0; i < t->lights.size(); ++i) {
+  // The heartbeat: armed light nodes go dark when it stops (the controller died or lost them). One thread per node,
+  // so that a node that hangs delays no other's. Its replies carry what the node saw of the take so far.
+  for (size_t i = 0; i < take->lights.size(); ++i) {
+    take->heartbeats.emplace_back([t = take.get(), i] {
+      std::unique_lock<std::mutex> lock(t->heartbeat_mutex);
+      while (!t->heartbeat_wake.wait_for(lock, std::chrono::milliseconds(kLightHeartbeatMs),
+                                         [t] { return t->heartbeat_stop; })) {
+        lock.unlock();
         v1::HeartbeatRequest beat;
         beat.set_take_id(t->id);
         grpc::ClientContext context;
         Deadline(&context, kLightHeartbeatMs);
         v1::LightStats stats;
-        if (t->lights[i]->Heartbeat(&context, beat, &stats).ok() && stats.take_faults_size() > 0) {
-          faults[static_cast<int>(i)].assign(stats.take_faults().begin(), stats.take_faults().end());
-        }
+        const bool heard = t->lights[i]->Heartbeat(&context, beat, &stats).ok() && stats.take_faults_size() > 0;
+        lock.lock();
+        if (heard) t->light_faults[static_cast<int>(i)].assign(stats.take_faults().begin(), stats.take_faults().end());
       }
-      lock.lock();
-      for (auto& [i, f] : faults) t->light_faults[i] = std::move(f);
-    }
-  });
+    });
+  }
   for (int i = 0; i < rig_.rig.cameras_size() && i < schedule_.cameras_size(); ++i) {
     Take::Cam c{&rig_.rig.cameras(i), &schedule_.cameras(i),
                 v1::CameraNode::NewStub(

@@ -1,9 +1,12 @@
 // Helpers for cross-process suites.
 #include "test_support.h"
 
+#include <sys/stat.h>
+
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <thread>
 
 #include "stage/common/file_util.h"
 
@@ -54,6 +57,29 @@ CommandResult RunCommand(std::vector<std::string> argv, std::chrono::millisecond
   result.out = ReadFile(dir.path() + "/out");
   result.err = ReadFile(dir.path() + "/err");
   return result;
+}
+
+PseudoTerminalPair::PseudoTerminalPair(const TempDir& dir) : dir_(dir.path()) {
+  auto socat = Subprocess::Spawn({.argv = {"socat", "pty,raw,echo=0,link=" + board(), "pty,raw,echo=0,link=" + host()},
+                                  .stderr_path = dir_ + "/socat.log"});
+  if (!socat.ok()) {
+    error_ = std::string(socat.status().message());
+    return;
+  }
+  socat_ = std::move(*socat);
+  struct stat st {};
+  for (int i = 0; i < 200; ++i) {
+    if (stat(board().c_str(), &st) == 0 && stat(host().c_str(), &st) == 0) {
+      ok_ = true;
+      return;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  error_ = "socat made no pseudo-terminal pair in 2 s: " + ReadFile(dir_ + "/socat.log");
+}
+
+PseudoTerminalPair::~PseudoTerminalPair() {
+  if (socat_) socat_->Terminate(std::chrono::seconds(1));
 }
 
 }  // namespace stage::testing

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <chrono>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -37,5 +38,23 @@ class TempDir {
 };
 
 std::string ReadFile(const std::string& path);
+
+// A pseudo-terminal pair made by socat (a serial line for RTU tests): `board()` and `host()` are its two ends, links in
+// `dir`. Check ok() (socat started and both ends appeared); socat is ended on destruction.
+class PseudoTerminalPair {
+ public:
+  explicit PseudoTerminalPair(const TempDir& dir);
+  ~PseudoTerminalPair();
+  bool ok() const { return ok_; }
+  const std::string& error() const { return error_; }
+  std::string board() const { return dir_ + "/board"; }
+  std::string host() const { return dir_ + "/host"; }
+
+ private:
+  std::string dir_;
+  std::unique_ptr<Subprocess> socat_;
+  bool ok_ = false;
+  std::string error_;
+};
 
 }  // namespace stage::testing
