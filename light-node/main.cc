@@ -42,7 +42,7 @@ int main(int argc, char** argv) {
     if (!parsed.ok()) return stage::ReportFatal(kProgram, parsed.status());
     backend = *parsed;
   }
-  auto driver = stage::light::CreateLightDriver(backend, config);
+  auto driver = stage::light::CreateLightDriver(backend, config, loaded->rig.timing().slot_rate_hz());
   if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
   // Declared before the node: the world outlives the driver, which leaves it when destroyed.
   std::unique_ptr<stage::sim::WorldClient> world;

@@ -199,9 +199,22 @@ void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig&
         check.Add(p + ".gpiod", "required for backend gpiod (chip and channel_lines)");
       } else {
         if (n.gpiod().chip().empty()) check.Add(p + ".gpiod.chip", "required field is missing");
-        if (static_cast<uint32_t>(n.gpiod().channel_lines_size()) != n.channel_count()) {
-          check.Add(p + ".gpiod.channel_lines", absl::StrCat("has ", n.gpiod().channel_lines_size(),
-                                                             " lines; channel_count is ", n.channel_count()));
+        const uint32_t per = n.gpiod().has_lines_per_channel() ? n.gpiod().lines_per_channel() : 1;
+        check.InRange(p + ".gpiod.lines_per_channel", per, 1, 16);
+        if (static_cast<uint32_t>(n.gpiod().channel_lines_size()) != n.channel_count() * per) {
+          check.Add(p + ".gpiod.channel_lines",
+                    absl::StrCat("has ", n.gpiod().channel_lines_size(), " lines; channel_count x lines_per_channel is ",
+                                 n.channel_count() * per));
+        }
+        std::set<uint32_t> lines(n.gpiod().channel_lines().begin(), n.gpiod().channel_lines().end());
+        if (lines.size() != static_cast<size_t>(n.gpiod().channel_lines_size())) {
+          check.Add(p + ".gpiod.channel_lines", "lists a line twice");
+        }
+        if (!n.gpiod().has_slot_clock_line()) {
+          check.Add(p + ".gpiod.slot_clock_line", "required for backend gpiod (the node steps on it, or drives it)");
+        } else if (lines.count(n.gpiod().slot_clock_line()) > 0) {
+          check.Add(p + ".gpiod.slot_clock_line",
+                    absl::StrCat("line ", n.gpiod().slot_clock_line(), " is also a channel line"));
         }
       }
       break;

@@ -297,6 +297,18 @@ TEST(RigErrorTest, BackendSettingsMissing) {
               HasSubstr("light_nodes[1].modbus: required for backend modbus"));
 }
 
+TEST(RigErrorTest, GpiodLinesMustFitTheChannels) {
+  const std::string lines = "channel_lines: [0, 1, 2, 3], slot_clock_line: 4";
+  EXPECT_THAT(LoadError(Replace(lines, "channel_lines: [0, 1, 2, 3], lines_per_channel: 2, slot_clock_line: 9")),
+              HasSubstr("light_nodes[0].gpiod.channel_lines: has 4 lines; channel_count x lines_per_channel is 8"));
+  EXPECT_THAT(LoadError(Replace(lines, "channel_lines: [0, 1, 2, 2], slot_clock_line: 4")),
+              HasSubstr("light_nodes[0].gpiod.channel_lines: lists a line twice"));
+  EXPECT_THAT(LoadError(Replace(lines, "channel_lines: [0, 1, 2, 3], slot_clock_line: 3")),
+              HasSubstr("light_nodes[0].gpiod.slot_clock_line: line 3 is also a channel line"));
+  EXPECT_THAT(LoadError(Replace(lines, "channel_lines: [0, 1, 2, 3]")),
+              HasSubstr("light_nodes[0].gpiod.slot_clock_line: required for backend gpiod"));
+}
+
 TEST(RigErrorTest, ChannelOutOfRange) {
   EXPECT_THAT(LoadError(Replace("parallel_channel: 2, cross_channel: 3", "parallel_channel: 2, cross_channel: 4")),
               AllOf(StartsWith("rig.yaml:30:64:"),

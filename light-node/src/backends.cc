@@ -2,6 +2,7 @@
 #include "backends.h"
 
 #include "absl/strings/str_cat.h"
+#include "gpiod_light_driver.h"
 #include "stage/sim/sim_light_driver.h"
 #ifdef STAGE_WITH_MODBUS
 #include "modbus_light_driver.h"
@@ -30,7 +31,8 @@ std::string LightBackendName(v1::LightBackend backend) {
 }
 
 absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend backend,
-                                                               const v1::LightNodeConfig& config) {
+                                                               const v1::LightNodeConfig& config,
+                                                               double slot_rate_hz) {
   switch (backend) {
     case v1::LIGHT_BACKEND_SIM:
       return std::make_unique<sim::SimLightDriver>(config.id(), config.channel_count());
@@ -46,10 +48,13 @@ absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend 
                                                    "\": this build has no modbus backend (STAGE_WITH_MODBUS=OFF)"));
 #endif
     }
-    case v1::LIGHT_BACKEND_GPIOD:
-      return absl::UnimplementedError(
-          absl::StrCat("light node \"", config.id(), "\": the ", LightBackendName(backend),
-                       " backend is not implemented yet; run this node with --backend sim"));
+    case v1::LIGHT_BACKEND_GPIOD: {
+      auto options = GpiodDriverOptionsFromRig(config, slot_rate_hz);
+      if (!options.ok()) return options.status();
+      auto driver = GpiodLightDriver::Open(*std::move(options));
+      if (!driver.ok()) return driver.status();
+      return std::unique_ptr<LightDriver>(std::move(*driver));
+    }
     default:
       return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(), "\": backend is not set"));
   }

@@ -14,8 +14,10 @@ namespace stage::light {
 absl::StatusOr<v1::LightBackend> ParseLightBackend(const std::string& name);
 std::string LightBackendName(v1::LightBackend backend);
 
-// A driver for `config` with `backend`. Errors name the node and the backends this build has.
+// A driver for `config` with `backend`, at the rig's slot rate (a gpiod node generating the slot clock runs it at
+// this rate). Errors name the node and the backends this build has.
 absl::StatusOr<std::unique_ptr<LightDriver>> CreateLightDriver(v1::LightBackend backend,
-                                                               const v1::LightNodeConfig& config);
+                                                               const v1::LightNodeConfig& config,
+                                                               double slot_rate_hz);
 
 }  // namespace stage::light

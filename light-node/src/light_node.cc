@@ -68,6 +68,14 @@ v1::LightStats LightNode::Stats() const {
   for (const std::string& f : state.faults) stats.add_faults(f);
   for (const std::string& f : state.take_faults) stats.add_take_faults(f);
   if (state.temperature_c) stats.set_temperature_c(*state.temperature_c);
+  if (state.edges) {
+    stats.set_slot_edges(state.edges->count);
+    v1::MeasuredSlotClock* clock = stats.mutable_slot_clock();
+    clock->set_edges(state.edges->count);
+    clock->set_period_mean_us(state.edges->period_mean_ns / 1e3);
+    clock->set_period_max_deviation_us(state.edges->period_max_deviation_ns / 1e3);
+    clock->set_max_step_latency_us(static_cast<double>(state.edges->max_step_latency_ns) / 1e3);
+  }
   std::lock_guard<std::mutex> lock(mutex_);
   if (state.mode == DriverMode::kBlackout) {
     stats.set_blackout_reason(blackout_reason_.empty() ? "blackout by the board itself (see faults)" : blackout_reason_);

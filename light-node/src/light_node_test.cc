@@ -158,13 +158,30 @@ TEST(LightNodeTest, BackendsByName) {
   EXPECT_EQ(*ParseLightBackend("modbus"), v1::LIGHT_BACKEND_MODBUS);
   EXPECT_FALSE(ParseLightBackend("dmx").ok());
   v1::LightNodeConfig config = TestNode();
-  EXPECT_TRUE(CreateLightDriver(v1::LIGHT_BACKEND_SIM, config).ok());
+  EXPECT_TRUE(CreateLightDriver(v1::LIGHT_BACKEND_SIM, config, 912).ok());
   // The shipped rig's boards are not on this machine's network: the error names the board, with no fallback.
-  auto modbus = CreateLightDriver(v1::LIGHT_BACKEND_MODBUS, config);
+  auto modbus = CreateLightDriver(v1::LIGHT_BACKEND_MODBUS, config, 912);
   ASSERT_FALSE(modbus.ok());
   EXPECT_THAT(std::string(modbus.status().message()),
               ::testing::AnyOf(::testing::HasSubstr("led-board-1.stage.lan"),
                                ::testing::HasSubstr("this build has no modbus backend")));
+  // A gpiod node on a chip this machine does not have: the error names the node and the chip.
+  config.set_backend(v1::LIGHT_BACKEND_GPIOD);
+  auto* g = config.mutable_gpiod();
+  g->set_chip("gpiochip-fastage-absent");
+  for (uint32_t c = 0; c < config.channel_count(); ++c) g->add_channel_lines(c);
+  g->set_slot_clock_line(config.channel_count());
+  auto gpiod = CreateLightDriver(v1::LIGHT_BACKEND_GPIOD, config, 912);
+  ASSERT_FALSE(gpiod.ok());
+  EXPECT_THAT(std::string(gpiod.status().message()), ::testing::HasSubstr(config.id()));
+  EXPECT_THAT(std::string(gpiod.status().message()),
+              ::testing::AnyOf(::testing::HasSubstr("gpiochip-fastage-absent"),
+                               ::testing::HasSubstr("this build has no gpiod backend")));
+  // Without its slot clock line the options are refused by name.
+  g->clear_slot_clock_line();
+  auto no_clock = CreateLightDriver(v1::LIGHT_BACKEND_GPIOD, config, 912);
+  ASSERT_FALSE(no_clock.ok());
+  EXPECT_THAT(std::string(no_clock.status().message()), ::testing::HasSubstr("gpiod.slot_clock_line"));
 }
 
 }  // namespace

@@ -27,6 +27,17 @@ enum class DriverMode {
   kBlackout,  // dark and latched until ResetBlackout()
 };
 
+// The slot clock as a driver that sees its edges measures it (gpiod: kernel timestamps of the input line, or the
+// times it drove its own clock line), since Arm().
+struct EdgeTiming {
+  uint64_t count = 0;
+  // Mean period since Arm() and the largest deviation of one period from the nominal slot period (jitter), ns.
+  double period_mean_ns = 0;
+  double period_max_deviation_ns = 0;
+  // Longest time from an edge to the outputs being set for it, ns.
+  int64_t max_step_latency_ns = 0;
+};
+
 struct DriverState {
   DriverMode mode = DriverMode::kIdle;
   uint32_t channel_count = 0;
@@ -40,6 +51,8 @@ struct DriverState {
   std::vector<std::string> take_faults;
   // Board temperature, degC, where the hardware reports one.
   std::optional<double> temperature_c;
+  // Where the driver sees the slot-clock edges itself; unset where a board steps on them out of its sight.
+  std::optional<EdgeTiming> edges;
 };
 
 struct DriverDescription {

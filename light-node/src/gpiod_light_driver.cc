@@ -1,0 +1,364 @@
+// LED channels on GPIO lines, stepping on the slot clock.
+#include "gpiod_light_driver.h"
+
+#include <time.h>
+
+#include <algorithm>
+#include <cmath>
+#include <set>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "stage/common/logging.h"
+
+namespace stage::light {
+namespace {
+
+int64_t MonotonicNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+void SleepUntil(int64_t time_ns) {
+  timespec ts{};
+  ts.tv_sec = time_ns / 1'000'000'000;
+  ts.tv_nsec = time_ns % 1'000'000'000;
+  while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
+  }
+}
+
+}  // namespace
+
+absl::Status GpiodDriverOptions::Validate() const {
+  const std::string who = absl::StrCat("light node \"", node_id, "\": ");
+  if (channel_count < 1 || channel_count > 4096) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "channel_count ", channel_count, " is not in 1..4096"));
+  }
+  if (lines_per_channel < 1 || lines_per_channel > 16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(who, "gpiod.lines_per_channel ", lines_per_channel, " is not in 1..16"));
+  }
+  if (lines.outputs.size() != static_cast<size_t>(channel_count) * lines_per_channel) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "gpiod.channel_lines has ", lines.outputs.size(),
+                                                   " lines; channel_count x lines_per_channel is ",
+                                                   channel_count * lines_per_channel));
+  }
+  std::set<uint32_t> seen;
+  for (size_t i = 0; i < lines.outputs.size(); ++i) {
+    if (!seen.insert(lines.outputs[i]).second) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(who, "gpiod.channel_lines[", i, "]: line ", lines.outputs[i], " is listed twice"));
+    }
+  }
+  if (!lines.slot_clock_line) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(who, "gpiod.slot_clock_line is required (the node steps on it, or drives it)"));
+  }
+  if (seen.count(*lines.slot_clock_line) > 0) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "gpiod.slot_clock_line ", *lines.slot_clock_line,
+                                                   " is also a channel line"));
+  }
+  if (!(slot_rate_hz > 0 && slot_rate_hz <= 100'000)) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "slot_rate_hz ", slot_rate_hz, " is not in (0, 100000]"));
+  }
+  if (!(clock_duty > 0 && clock_duty < 1)) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "clock_duty ", clock_duty, " is not in (0, 1)"));
+  }
+  if (edge_log_capacity < 2) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "edge_log_capacity ", edge_log_capacity, " is below 2"));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<GpiodDriverOptions> GpiodDriverOptionsFromRig(const v1::LightNodeConfig& config, double slot_rate_hz) {
+  if (!config.has_gpiod()) {
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(), "\": no gpiod settings"));
+  }
+  const v1::GpiodLightSettings& g = config.gpiod();
+  GpiodDriverOptions o;
+  o.node_id = config.id();
+  o.channel_count = config.channel_count();
+  o.lines_per_channel = g.has_lines_per_channel() ? g.lines_per_channel() : 1;
+  o.lines.chip = g.chip();
+  o.lines.outputs.assign(g.channel_lines().begin(), g.channel_lines().end());
+  if (g.has_slot_clock_line()) o.lines.slot_clock_line = g.slot_clock_line();
+  o.lines.drives_slot_clock = g.drives_slot_clock();
+  o.lines.consumer = absl::StrCat("fastage-", config.id());
+  o.slot_rate_hz = slot_rate_hz;
+  if (absl::Status s = o.Validate(); !s.ok()) return s;
+  return o;
+}
+
+std::vector<uint8_t> RowLineValues(const ChannelLevels& levels, uint32_t lines_per_channel) {
+  const uint32_t k = lines_per_channel;
+  const uint32_t max_code = (1u << k) - 1;
+  std::vector<uint8_t> values(levels.size() * k);
+  for (size_t c = 0; c < levels.size(); ++c) {
+    const uint32_t code = static_cast<uint32_t>(std::lround(levels[c] * static_cast<double>(max_code) / 65535.0));
+    for (uint32_t j = 0; j < k; ++j) values[c * k + j] = static_cast<uint8_t>((code >> (k - 1 - j)) & 1u);
+  }
+  return values;
+}
+
+GpiodLightDriver::GpiodLightDriver(GpiodDriverOptions options, std::unique_ptr<GpioLines> lines)
+    : options_(std::move(options)), lines_(std::move(lines)) {
+  state_.channel_count = options_.channel_count;
+}
+
+absl::StatusOr<std::unique_ptr<GpiodLightDriver>> GpiodLightDriver::Open(GpiodDriverOptions options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  auto lines = OpenGpiodLines(options.lines);
+  if (!lines.ok()) {
+    return absl::Status(lines.status().code(),
+                        absl::StrCat("light node \"", options.node_id, "\": ", lines.status().message()));
+  }
+  return Create(std::move(options), *std::move(lines));
+}
+
+absl::StatusOr<std::unique_ptr<GpiodLightDriver>> GpiodLightDriver::Create(GpiodDriverOptions options,
+                                                                           std::unique_ptr<GpioLines> lines) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (lines == nullptr) return absl::InvalidArgumentError("no GPIO lines");
+  std::unique_ptr<GpiodLightDriver> d(new GpiodLightDriver(std::move(options), std::move(lines)));
+  if (absl::Status s = d->AllLow(); !s.ok()) return s;
+  if (absl::Status s = d->Start(); !s.ok()) return s;
+  Logger("light.gpiod")
+      ->info("{}: {} ({} channels x {} lines){}", d->Who(), d->lines_->Describe(), d->options_.channel_count,
+             d->options_.lines_per_channel,
+             d->options_.lines.drives_slot_clock ? absl::StrFormat("; generating the slot clock at %g Hz",
+                                                                   d->options_.slot_rate_hz)
+                                                 : std::string());
+  return d;
+}
+
+GpiodLightDriver::~GpiodLightDriver() {
+  stopping_.store(true);
+  if (edge_thread_.joinable()) edge_thread_.join();
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (absl::Status s = AllLow(); !s.ok()) Logger("light.gpiod")->error("{}: {}", Who(), s.message());
+  if (options_.lines.drives_slot_clock) (void)lines_->SetClock(false);
+}
+
+std::string GpiodLightDriver::Who() const {
+  return absl::StrCat("light node \"", options_.node_id, "\" (", options_.lines.chip, ")");
+}
+
+absl::Status GpiodLightDriver::AllLow() {
+  absl::Status s = lines_->SetOutputs(std::vector<uint8_t>(options_.lines.outputs.size(), 0));
+  if (!s.ok()) return absl::UnavailableError(absl::StrCat(Who(), ": setting the outputs low failed: ", s.message()));
+  return s;
+}
+
+absl::Status GpiodLightDriver::Start() {
+  if (!options_.run_edge_thread) return absl::OkStatus();
+  if (options_.lines.drives_slot_clock) {
+    edge_thread_ = std::thread([this] { GeneratorLoop(); });
+  } else {
+    edge_thread_ = std::thread([this] { InputLoop(); });
+  }
+  return absl::OkStatus();
+}
+
+void GpiodLightDriver::InputLoop() {
+  while (!stopping_.load()) {
+    auto edges = lines_->WaitEdges(std::chrono::milliseconds(50));
+    if (!edges.ok()) {
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        NoteFault(absl::StrCat("slot clock input: ", edges.status().message()));
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      continue;
+    }
+    for (int64_t t : *edges) OnEdge(t);
+  }
+}
+
+void GpiodLightDriver::GeneratorLoop() {
+  // Edges at t0 + k * period, computed from k (no drift accumulates); the line goes high at the edge and low after
+  // clock_duty of the slot.
+  const double period_ns = 1e9 / options_.slot_rate_hz;
+  const int64_t high_ns = std::llround(period_ns * options_.clock_duty);
+  const int64_t t0 = MonotonicNs() + 1'000'000;
+  int64_t k = 0;
+  while (!stopping_.load()) {
+    int64_t edge = t0 + std::llround(k * period_ns);
+    SleepUntil(edge);
+    const int64_t late = MonotonicNs() - edge;
+    if (late > static_cast<int64_t>(period_ns)) {
+      // This process fell behind by whole slots: those edges were never produced. Resume at the current slot.
+      const int64_t skipped = static_cast<int64_t>(late / period_ns);
+      generator_missed_.fetch_add(static_cast<uint64_t>(skipped));
+      k += skipped;
+      edge = t0 + std::llround(k * period_ns);
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (state_.mode == DriverMode::kArmed) {
+        NoteFault(absl::StrCat("slot clock generator fell behind: ", skipped, " slot(s) not produced"));
+      }
+    }
+    absl::Status s = lines_->SetClock(true);
+    const int64_t rose = MonotonicNs();
+    if (s.ok()) {
+      OnEdge(rose);
+    } else {
+      std::lock_guard<std::mutex> lock(mutex_);
+      NoteFault(absl::StrCat("slot clock output: ", s.message()));
+    }
+    SleepUntil(edge + high_ns);
+    (void)lines_->SetClock(false);
+    ++k;
+  }
+}
+
+void GpiodLightDriver::NoteFault(const std::string& fault) {
+  if (std::find(state_.faults.begin(), state_.faults.end(), fault) == state_.faults.end()) {
+    state_.faults.push_back(fault);
+    Logger("light.gpiod")->warn("{}: {}", Who(), fault);
+  }
+  for (const std::string& f : state_.take_faults) {
+    if (f.size() >= fault.size() && f.compare(f.size() - fault.size(), fault.size(), fault) == 0) return;
+  }
+  state_.take_faults.push_back(
+      absl::StrCat(absl::FormatTime("%H:%M:%E3S", absl::Now(), absl::LocalTimeZone()), " ", fault));
+}
+
+void GpiodLightDriver::OnEdge(int64_t time_ns) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kArmed) return;
+  edges_.push_back(time_ns);
+  if (edges_.size() > options_.edge_log_capacity) edges_.pop_front();
+  if (timing_.count == 0) {
+    first_edge_ns_ = time_ns;
+  } else {
+    const double period = static_cast<double>(time_ns - last_edge_ns_);
+    timing_.period_max_deviation_ns =
+        std::max(timing_.period_max_deviation_ns, std::abs(period - 1e9 / options_.slot_rate_hz));
+    timing_.period_mean_ns = static_cast<double>(time_ns - first_edge_ns_) / static_cast<double>(timing_.count);
+  }
+  last_edge_ns_ = time_ns;
+  ++timing_.count;
+  const int row = static_cast<int>(state_.steps % row_lines_.size());
+  if (absl::Status s = lines_->SetOutputs(row_lines_[static_cast<size_t>(row)]); !s.ok()) {
+    NoteFault(absl::StrCat("setting row ", row, " failed: ", s.message()));
+    return;
+  }
+  timing_.max_step_latency_ns = std::max(timing_.max_step_latency_ns, MonotonicNs() - time_ns);
+  state_.current_row = row;
+  ++state_.steps;
+}
+
+DriverDescription GpiodLightDriver::Describe() const {
+  DriverDescription d;
+  d.backend = "gpiod";
+  d.device = lines_->Describe();
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (table_loaded_ && quantization_error_ > 0) {
+    absl::StrAppend(&d.device, absl::StrFormat("; table rounded to %u bit(s) per channel, worst error %.1f %%",
+                                               options_.lines_per_channel, 100 * quantization_error_));
+  }
+  d.channel_count = options_.channel_count;
+  return d;
+}
+
+absl::Status GpiodLightDriver::LoadPatternTable(const PatternTable& table) {
+  if (table.rows.empty()) return absl::InvalidArgumentError(absl::StrCat(Who(), ": the pattern table has no rows"));
+  const uint32_t max_code = (1u << options_.lines_per_channel) - 1;
+  std::vector<std::vector<uint8_t>> rows;
+  double worst = 0;
+  size_t worst_row = 0, worst_channel = 0;
+  for (size_t r = 0; r < table.rows.size(); ++r) {
+    const ChannelLevels& levels = table.rows[r];
+    if (levels.size() != options_.channel_count) {
+      return absl::InvalidArgumentError(absl::StrCat(Who(), ": row ", r,
+                                                     r < table.row_names.size() ? " (" + table.row_names[r] + ")" : "",
+                                                     " has ", levels.size(), " levels; the node has ",
+                                                     options_.channel_count, " channels"));
+    }
+    for (size_t c = 0; c < levels.size(); ++c) {
+      const double exact = levels[c] / 65535.0;
+      const double error = std::abs(std::round(exact * max_code) / max_code - exact);
+      if (error > worst) {
+        worst = error;
+        worst_row = r;
+        worst_channel = c;
+      }
+    }
+    rows.push_back(RowLineValues(levels, options_.lines_per_channel));
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kIdle) {
+    return absl::FailedPreconditionError(absl::StrCat(Who(), ": a table loads only when idle"));
+  }
+  row_lines_ = std::move(rows);
+  table_loaded_ = true;
+  quantization_error_ = worst;
+  if (worst > 0.5 / 255) {
+    Logger("light.gpiod")
+        ->warn("{}: the {}-row table rounds to {} line(s) per channel; worst error {:.1f} % of full scale at row {} "
+               "({}) channel {}",
+               Who(), table.rows.size(), options_.lines_per_channel, 100 * worst, worst_row,
+               worst_row < table.row_names.size() ? table.row_names[worst_row] : "", worst_channel);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status GpiodLightDriver::Arm() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kIdle) return absl::FailedPreconditionError(absl::StrCat(Who(), ": arm only when idle"));
+  if (!table_loaded_) return absl::FailedPreconditionError(absl::StrCat(Who(), ": no pattern table loaded"));
+  state_.mode = DriverMode::kArmed;
+  state_.steps = 0;
+  state_.current_row = -1;
+  state_.take_faults.clear();
+  state_.faults.clear();
+  edges_.clear();
+  timing_ = EdgeTiming{};
+  return absl::OkStatus();
+}
+
+absl::Status GpiodLightDriver::Disarm() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode == DriverMode::kArmed) state_.mode = DriverMode::kIdle;  // a blackout stays latched
+  state_.current_row = -1;
+  return AllLow();
+}
+
+absl::Status GpiodLightDriver::Blackout() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  state_.mode = DriverMode::kBlackout;
+  state_.current_row = -1;
+  return AllLow();
+}
+
+absl::Status GpiodLightDriver::ResetBlackout() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kBlackout) return absl::OkStatus();
+  if (absl::Status s = AllLow(); !s.ok()) return s;
+  state_.mode = DriverMode::kIdle;
+  return absl::OkStatus();
+}
+
+DriverState GpiodLightDriver::State() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  DriverState state = state_;
+  state.edges = timing_;
+  return state;
+}
+
+double GpiodLightDriver::quantization_error() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return quantization_error_;
+}
+
+MeasuredEdges GpiodLightDriver::Edges() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  MeasuredEdges m;
+  m.times_ns.assign(edges_.begin(), edges_.end());
+  m.timing = timing_;
+  return m;
+}
+
+}  // namespace stage::light

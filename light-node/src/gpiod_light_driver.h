@@ -1,0 +1,115 @@
+// LED channels on GPIO lines (libgpiod, through the GpioLines interface): the table lives in the node's memory, and
+// each rising edge of the slot clock sets every channel's lines to the next row at once.
+//
+// A channel has `lines_per_channel` output lines, binary weighted, most significant first (one line: on/off; four:
+// 16 levels through a resistor ladder or current-sink bank). A 16-bit table level is rounded to the nearest code;
+// the worst rounding error of a table is logged when it is loaded and reported in Describe().
+//
+// The slot clock is either an input line, whose edges come with the kernel's timestamps (CLOCK_MONOTONIC), or,
+// on the node that is the sync generator, an output line this driver drives itself at the rig's slot rate
+// (rising edge at each slot start, high for `clock_duty` of the slot) from the moment it opens. Either way every edge
+// seen while armed is recorded (MeasuredEdges): the take's measured edges, for the timing comparison.
+#pragma once
+
+#include <atomic>
+#include <deque>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "gpio_lines.h"
+#include "stage/light/light_driver.h"
+#include "stage/v1/rig.pb.h"
+
+namespace stage::light {
+
+struct GpiodDriverOptions {
+  std::string node_id;
+  uint32_t channel_count = 0;
+  // Output lines per channel, binary weighted (MSB first). 1..16. Default 1 (on/off).
+  uint32_t lines_per_channel = 1;
+  // The chip and lines: outputs are channel_count * lines_per_channel lines, channel c's at [c*k, c*k+k).
+  GpiodLinesOptions lines;
+  // Slot clock rate when this node generates it, Hz. Default 912.
+  double slot_rate_hz = 912;
+  // Generator: the clock's high time as a fraction of the slot. Default 0.5.
+  double clock_duty = 0.5;
+  // Edges kept per take for MeasuredEdges() (the oldest are dropped beyond it). Default 65536 (72 s at 912 Hz).
+  size_t edge_log_capacity = 65536;
+  // Run the thread that waits for (or generates) slot-clock edges. Tests of the stepping logic turn it off and
+  // call OnEdge() themselves. Default true.
+  bool run_edge_thread = true;
+
+  absl::Status Validate() const;
+};
+
+// Options for a gpiod light node of the rig (chip, lines, clock role), at the rig's slot rate.
+absl::StatusOr<GpiodDriverOptions> GpiodDriverOptionsFromRig(const v1::LightNodeConfig& config, double slot_rate_hz);
+
+// The slot-clock edges of a take (since Arm()), as measured: kernel timestamps of the input line's rising edges, or
+// the times this node drove its own clock line high. CLOCK_MONOTONIC ns.
+struct MeasuredEdges {
+  std::vector<int64_t> times_ns;  // the last edge_log_capacity edges, oldest first
+  EdgeTiming timing;              // over every edge since Arm(), including any dropped from times_ns
+};
+
+// The line values of one row: per channel its code's bits, MSB first. Codes round `levels` to 2^k - 1 steps.
+std::vector<uint8_t> RowLineValues(const ChannelLevels& levels, uint32_t lines_per_channel);
+
+class GpiodLightDriver final : public LightDriver {
+ public:
+  // Opens the chip and requests the lines (libgpiod). Errors name the node, the chip and the line.
+  static absl::StatusOr<std::unique_ptr<GpiodLightDriver>> Open(GpiodDriverOptions options);
+  // With given lines (fakes in tests). The options' lines are only described, not opened.
+  static absl::StatusOr<std::unique_ptr<GpiodLightDriver>> Create(GpiodDriverOptions options,
+                                                                  std::unique_ptr<GpioLines> lines);
+  // Stops the edge thread and sets every output low.
+  ~GpiodLightDriver() override;
+
+  DriverDescription Describe() const override;
+  absl::Status LoadPatternTable(const PatternTable& table) override;
+  absl::Status Arm() override;
+  absl::Status Disarm() override;
+  absl::Status Blackout() override;
+  absl::Status ResetBlackout() override;
+  DriverState State() const override;
+
+  // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines.
+  void OnEdge(int64_t time_ns);
+  MeasuredEdges Edges() const;
+  // Slots the generator could not produce on time (this process fell behind); 0 when not generating.
+  uint64_t generator_missed_slots() const { return generator_missed_.load(); }
+  // The worst rounding error of the loaded table, as a fraction of full scale (0 when none is loaded).
+  double quantization_error() const;
+
+ private:
+  GpiodLightDriver(GpiodDriverOptions options, std::unique_ptr<GpioLines> lines);
+  absl::Status Start();
+  void InputLoop();
+  void GeneratorLoop();
+  // With mutex_ held: a fault now and in the take's record.
+  void NoteFault(const std::string& fault);
+  absl::Status AllLow();
+  std::string Who() const;
+
+  GpiodDriverOptions options_;
+  std::unique_ptr<GpioLines> lines_;
+  mutable std::mutex mutex_;
+  std::vector<std::vector<uint8_t>> row_lines_;  // guarded by mutex_: the table as line values
+  double quantization_error_ = 0;                // guarded by mutex_
+  bool table_loaded_ = false;                    // guarded by mutex_
+  DriverState state_;                            // guarded by mutex_
+  std::deque<int64_t> edges_;                    // guarded by mutex_: the last edge_log_capacity edges
+  EdgeTiming timing_;                            // guarded by mutex_: since Arm()
+  int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
+  std::atomic<bool> stopping_{false};
+  std::atomic<uint64_t> generator_missed_{0};
+  std::thread edge_thread_;
+};
+
+}  // namespace stage::light

@@ -1,0 +1,314 @@
+// The gpiod backend's stepping logic on fake GPIO lines (no hardware): rows to line values, stepping on slot-clock
+// edges, the edge record, the generator, blackout and faults. tests/gpiod_light_test.cc runs it on real lines.
+#include "gpiod_light_driver.h"
+
+#include <time.h>
+
+#include <condition_variable>
+#include <deque>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "light_node.h"
+#include "stage/common/rig.h"
+
+namespace stage::light {
+namespace {
+
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+
+int64_t NowNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+// Lines that remember what was written and hand out edges a test queues.
+struct FakeLinesState {
+  std::mutex mutex;
+  std::condition_variable edge_ready;
+  std::vector<std::vector<uint8_t>> writes;  // every SetOutputs, in order
+  std::deque<int64_t> pending_edges;
+  std::vector<std::pair<bool, int64_t>> clock;  // SetClock(level) with when
+  bool fail_outputs = false;
+};
+
+class FakeLines final : public GpioLines {
+ public:
+  explicit FakeLines(std::shared_ptr<FakeLinesState> s) : s_(std::move(s)) {}
+  std::string Describe() const override { return "fake chip"; }
+  absl::Status SetOutputs(const std::vector<uint8_t>& values) override {
+    std::lock_guard<std::mutex> lock(s_->mutex);
+    if (s_->fail_outputs) return absl::UnavailableError("line 3: Input/output error");
+    s_->writes.push_back(values);
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<int64_t>> WaitEdges(std::chrono::nanoseconds timeout) override {
+    std::unique_lock<std::mutex> lock(s_->mutex);
+    s_->edge_ready.wait_for(lock, timeout, [&] { return !s_->pending_edges.empty(); });
+    std::vector<int64_t> edges(s_->pending_edges.begin(), s_->pending_edges.end());
+    s_->pending_edges.clear();
+    return edges;
+  }
+  absl::Status SetClock(bool high) override {
+    std::lock_guard<std::mutex> lock(s_->mutex);
+    s_->clock.emplace_back(high, NowNs());
+    return absl::OkStatus();
+  }
+
+ private:
+  std::shared_ptr<FakeLinesState> s_;
+};
+
+GpiodDriverOptions Options(uint32_t channels, uint32_t per_channel, bool thread, bool drives = false) {
+  GpiodDriverOptions o;
+  o.node_id = "lights-gpio-test";
+  o.channel_count = channels;
+  o.lines_per_channel = per_channel;
+  o.lines.chip = "fake";
+  for (uint32_t i = 0; i < channels * per_channel; ++i) o.lines.outputs.push_back(i);
+  o.lines.slot_clock_line = channels * per_channel;
+  o.lines.drives_slot_clock = drives;
+  o.run_edge_thread = thread;
+  return o;
+}
+
+struct Rig {
+  std::shared_ptr<FakeLinesState> lines = std::make_shared<FakeLinesState>();
+  std::unique_ptr<GpiodLightDriver> driver;
+};
+
+Rig Make(const GpiodDriverOptions& options) {
+  Rig r;
+  auto d = GpiodLightDriver::Create(options, std::make_unique<FakeLines>(r.lines));
+  EXPECT_TRUE(d.ok()) << d.status();
+  if (d.ok()) r.driver = *std::move(d);
+  return r;
+}
+
+std::vector<uint8_t> LastWrite(Rig& r) {
+  std::lock_guard<std::mutex> lock(r.lines->mutex);
+  return r.lines->writes.empty() ? std::vector<uint8_t>{} : r.lines->writes.back();
+}
+
+PatternTable ThreeRows() {
+  PatternTable t;
+  t.pattern_set = "test";
+  t.row_names = {"a", "b", "c"};
+  t.rows = {{65535, 0}, {0, 21845}, {43690, 65535}};  // 2-bit codes: (3,0) (0,1) (2,3)
+  return t;
+}
+
+TEST(GpiodLightDriverTest, RowsBecomeBinaryWeightedLineValues) {
+  EXPECT_THAT(RowLineValues({0, 32767, 32768, 65535}, 1), ElementsAre(0, 0, 1, 1));
+  // 4 lines: 0x8000 rounds to code 8 (1000), 0x1111 to 1 (0001), full scale to 15 (1111).
+  EXPECT_THAT(RowLineValues({0x8000, 0x1111, 65535}, 4), ElementsAre(1, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1));
+}
+
+TEST(GpiodLightDriverTest, StepsThroughTheTableOnEdgesAndRecordsThem) {
+  Rig r = Make(Options(2, 2, /*thread=*/false));
+  ASSERT_NE(r.driver, nullptr);
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0)) << "outputs start low";
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  r.driver->OnEdge(1000);  // not armed: no step, not recorded
+  EXPECT_EQ(r.driver->State().steps, 0u);
+  ASSERT_TRUE(r.driver->Arm().ok());
+  const int64_t period = static_cast<int64_t>(1e9 / 912);
+  const std::vector<std::vector<uint8_t>> expect = {{1, 1, 0, 0}, {0, 0, 0, 1}, {1, 0, 1, 1}};
+  for (int i = 0; i < 7; ++i) {
+    // One period 5 us late (edge 4): the record's jitter.
+    r.driver->OnEdge(2'000'000 + i * period + (i == 4 ? 5000 : 0));
+    EXPECT_EQ(LastWrite(r), expect[static_cast<size_t>(i % 3)]) << "edge " << i;
+    EXPECT_EQ(r.driver->State().current_row, i % 3);
+  }
+  DriverState state = r.driver->State();
+  EXPECT_EQ(state.mode, DriverMode::kArmed);
+  EXPECT_EQ(state.steps, 7u);
+  ASSERT_TRUE(state.edges.has_value());
+  EXPECT_EQ(state.edges->count, 7u);
+  EXPECT_NEAR(state.edges->period_mean_ns, period, 1.0);
+  EXPECT_NEAR(state.edges->period_max_deviation_ns, 5000, 1.0);
+  MeasuredEdges m = r.driver->Edges();
+  ASSERT_EQ(m.times_ns.size(), 7u);
+  EXPECT_EQ(m.times_ns.front(), 2'000'000);
+  EXPECT_EQ(m.times_ns[4], 2'000'000 + 4 * period + 5000);
+  ASSERT_TRUE(r.driver->Disarm().ok());
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0));
+  r.driver->OnEdge(9'000'000);
+  EXPECT_EQ(r.driver->State().steps, 7u) << "idle: edges do not step";
+  // Arming again starts from the first row and a fresh record.
+  ASSERT_TRUE(r.driver->Arm().ok());
+  r.driver->OnEdge(10'000'000);
+  EXPECT_EQ(LastWrite(r), expect[0]);
+  EXPECT_EQ(r.driver->Edges().times_ns.size(), 1u);
+}
+
+TEST(GpiodLightDriverTest, TheEdgeRecordKeepsTheLastEdgesAndCountsAll) {
+  GpiodDriverOptions o = Options(1, 1, false);
+  o.edge_log_capacity = 4;
+  Rig r = Make(o);
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"x"}, {{65535}}}).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  for (int i = 0; i < 10; ++i) r.driver->OnEdge(i * 1000);
+  MeasuredEdges m = r.driver->Edges();
+  EXPECT_THAT(m.times_ns, ElementsAre(6000, 7000, 8000, 9000));
+  EXPECT_EQ(m.timing.count, 10u);
+  EXPECT_NEAR(m.timing.period_mean_ns, 1000, 1e-9);
+}
+
+TEST(GpiodLightDriverTest, BlackoutIsDarkAndLatched) {
+  Rig r = Make(Options(2, 2, false));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  r.driver->OnEdge(1);
+  EXPECT_THAT(LastWrite(r), ElementsAre(1, 1, 0, 0));
+  ASSERT_TRUE(r.driver->Blackout().ok());
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0));
+  r.driver->OnEdge(2);
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0)) << "no edge lights a node in blackout";
+  EXPECT_EQ(r.driver->State().mode, DriverMode::kBlackout);
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->Arm()));
+  EXPECT_TRUE(r.driver->Disarm().ok());
+  EXPECT_EQ(r.driver->State().mode, DriverMode::kBlackout) << "disarm does not clear the latch";
+  ASSERT_TRUE(r.driver->ResetBlackout().ok());
+  EXPECT_EQ(r.driver->State().mode, DriverMode::kIdle);
+  EXPECT_TRUE(r.driver->Arm().ok());
+}
+
+TEST(GpiodLightDriverTest, BadTablesAndBadOptionsAreRefusedByName) {
+  Rig r = Make(Options(2, 1, false));
+  PatternTable t = ThreeRows();
+  t.rows[1].push_back(7);
+  absl::Status s = r.driver->LoadPatternTable(t);
+  EXPECT_TRUE(absl::IsInvalidArgument(s));
+  EXPECT_THAT(std::string(s.message()), HasSubstr("row 1 (b) has 3 levels; the node has 2 channels"));
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->Arm())) << "no table loaded";
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->LoadPatternTable(ThreeRows()))) << "armed";
+
+  GpiodDriverOptions o = Options(2, 1, false);
+  o.lines.outputs = {0, 1, 1};
+  EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("channel_lines has 3 lines"));
+  o.lines.outputs = {0, 0};
+  EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("line 0 is listed twice"));
+  o.lines.outputs = {0, 1};
+  o.lines.slot_clock_line = 1;
+  EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("slot_clock_line 1 is also a channel line"));
+  o.lines.slot_clock_line.reset();
+  EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("gpiod.slot_clock_line is required"));
+}
+
+TEST(GpiodLightDriverTest, RoundingOfTheTableIsReported) {
+  Rig r = Make(Options(2, 1, false));
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"half"}, {{16384, 65535}}}).ok());
+  EXPECT_NEAR(r.driver->quantization_error(), 16384 / 65535.0, 1e-9);
+  EXPECT_THAT(r.driver->Describe().device, HasSubstr("worst error 25.0 %"));
+  Rig exact = Make(Options(2, 1, false));
+  ASSERT_TRUE(exact.driver->LoadPatternTable({"t", {"on-off"}, {{0, 65535}}}).ok());
+  EXPECT_EQ(exact.driver->quantization_error(), 0);
+}
+
+TEST(GpiodLightDriverTest, InputThreadStepsOnEveryQueuedEdge) {
+  Rig r = Make(Options(2, 2, /*thread=*/true));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  {
+    // Five edges at once: a reader that fell behind gets them all and steps on each (the table stays in phase).
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    for (int i = 0; i < 5; ++i) r.lines->pending_edges.push_back(100'000 + i * 1'096'491);
+    r.lines->edge_ready.notify_all();
+  }
+  for (int i = 0; i < 500 && r.driver->State().steps < 5; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  EXPECT_EQ(r.driver->State().steps, 5u);
+  EXPECT_EQ(r.driver->State().current_row, 1);
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 1));
+  EXPECT_EQ(r.driver->Edges().times_ns.back(), 100'000 + 4 * 1'096'491);
+}
+
+TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt) {
+  GpiodDriverOptions o = Options(1, 1, /*thread=*/true, /*drives=*/true);
+  o.slot_rate_hz = 912;
+  Rig r = Make(o);
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  for (int i = 0; i < 2000 && r.driver->State().steps < 200; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  ASSERT_TRUE(r.driver->Disarm().ok());
+  MeasuredEdges m = r.driver->Edges();
+  ASSERT_GE(m.timing.count, 200u);
+  EXPECT_EQ(r.driver->State().steps, m.timing.count) << "one step per edge";
+  // The clock alternates high and low, starting high; it ran before the arm too (a generator runs from open).
+  {
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    ASSERT_GE(r.lines->clock.size(), 2 * m.timing.count - 1);
+    EXPECT_TRUE(r.lines->clock.front().first);
+    for (size_t i = 1; i < r.lines->clock.size(); ++i) {
+      ASSERT_NE(r.lines->clock[i].first, r.lines->clock[i - 1].first) << "clock write " << i;
+    }
+  }
+  // Edges come at t0 + k / rate (absolute, no drift): from the first recorded edge to the last is a whole number of
+  // periods, counting slots the generator had to skip, give or take the scheduling delay of two wake-ups.
+  const double period = 1e9 / 912;
+  const double span = static_cast<double>(m.times_ns.back() - m.times_ns.front());
+  const double slots = static_cast<double>(m.timing.count - 1 + r.driver->generator_missed_slots());
+  EXPECT_NEAR(span, slots * period, 20e6) << "over " << m.timing.count << " edges";
+  EXPECT_GT(span, 0.9 * (m.timing.count - 1) * period);
+}
+
+TEST(GpiodLightDriverTest, AFailedOutputWriteIsAFaultAndABlackoutThatCannotConfirmSaysSo) {
+  Rig r = Make(Options(2, 1, false));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  r.lines->fail_outputs = true;
+  r.driver->OnEdge(1);
+  DriverState state = r.driver->State();
+  ASSERT_EQ(state.faults.size(), 1u);
+  EXPECT_THAT(state.faults[0], HasSubstr("setting row 0 failed: line 3: Input/output error"));
+  ASSERT_EQ(state.take_faults.size(), 1u);
+  absl::Status s = r.driver->Blackout();
+  EXPECT_TRUE(absl::IsUnavailable(s));
+  EXPECT_THAT(std::string(s.message()), HasSubstr("lights-gpio-test"));
+  r.lines->fail_outputs = false;
+  EXPECT_TRUE(r.driver->ResetBlackout().ok());
+}
+
+TEST(GpiodLightDriverTest, ALightNodeOnGpioReportsTheMeasuredSlotClock) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  const v1::LightNodeConfig* config = nullptr;
+  for (const auto& n : rig->rig.light_nodes()) {
+    if (n.backend() == v1::LIGHT_BACKEND_GPIOD) config = &n;
+  }
+  ASSERT_NE(config, nullptr) << "the shipped rig has gpiod nodes";
+  auto options = GpiodDriverOptionsFromRig(*config, 912);
+  ASSERT_TRUE(options.ok()) << options.status();
+  options->run_edge_thread = false;
+  auto state = std::make_shared<FakeLinesState>();
+  auto driver = GpiodLightDriver::Create(*options, std::make_unique<FakeLines>(state));
+  ASSERT_TRUE(driver.ok()) << driver.status();
+  GpiodLightDriver* raw = driver->get();
+  auto node = LightNode::Create(*config, *std::move(driver), "h");
+  ASSERT_TRUE(node.ok()) << node.status();
+  v1::ArmLightRequest request;
+  request.set_take_id("t");
+  for (int r = 0; r < 38; ++r) {
+    v1::PatternRow* row = request.mutable_table()->add_rows();
+    row->set_name("p" + std::to_string(r));
+    for (uint32_t c = 0; c < config->channel_count(); ++c) row->add_levels(r % 4 == 0 && c == 0 ? 65535 : 0);
+  }
+  request.set_heartbeat_timeout_ms(60'000);
+  ASSERT_TRUE((*node)->Arm(request).ok());
+  for (int i = 0; i < 3; ++i) raw->OnEdge(1'000'000 + i * 1'096'491);
+  v1::LightStats stats = (*node)->Stats();
+  EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_ARMED);
+  EXPECT_EQ(stats.slot_edges(), 3u);
+  EXPECT_EQ(stats.slot_clock().edges(), 3u);
+  EXPECT_NEAR(stats.slot_clock().period_mean_us(), 1096.491, 1e-3);
+  EXPECT_EQ((*node)->Info().backend(), "gpiod");
+}
+
+}  // namespace
+}  // namespace stage::light

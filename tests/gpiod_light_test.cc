@@ -1,0 +1,174 @@
+// The gpiod light backend on real GPIO character devices (label hw). Two ways, each skipping with its reason where
+// this machine lacks it:
+//  - the kernel's gpio-sim (configfs /sys/kernel/config/gpio-sim, root): the test makes a simulated chip, drives the
+//    slot clock input through the line's pull, reads the channel outputs back through sysfs, and checks the kernel's
+//    edge timestamps;
+//  - a real chip named by FASTAGE_GPIO_CHIP, with FASTAGE_GPIO_LINES ("4,5,6:7": channel outputs, then the slot clock
+//    line, all free to drive): the node generates the slot clock there and steps on it.
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+#include "gmock/gmock.h"
+#include "gpiod_light_driver.h"
+#include "gtest/gtest.h"
+
+namespace stage::light {
+namespace {
+
+namespace fs = std::filesystem;
+
+constexpr char kGpioSim[] = "/sys/kernel/config/gpio-sim";
+
+int64_t NowNs() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
+}
+
+bool WriteFile(const fs::path& path, const std::string& text) {
+  std::ofstream out(path);
+  out << text;
+  out.flush();
+  return static_cast<bool>(out);
+}
+
+std::string ReadFile(const fs::path& path) {
+  std::ifstream in(path);
+  std::string s;
+  std::getline(in, s);
+  return s;
+}
+
+// A gpio-sim chip with one bank of `lines` lines, made through configfs and removed again.
+class GpioSimChip {
+ public:
+  static std::string WhyNot() {
+    if (!fs::is_directory(kGpioSim)) {
+      return absl::StrCat("no gpio-sim: ", kGpioSim,
+                          " is absent (needs configfs mounted and the gpio-sim module: modprobe gpio-sim)");
+    }
+    if (access(kGpioSim, W_OK) != 0) return absl::StrCat("gpio-sim is present but ", kGpioSim, " is not writable (root)");
+    return "";
+  }
+
+  explicit GpioSimChip(int lines) : dir_(fs::path(kGpioSim) / absl::StrCat("fastage-", getpid())) {
+    std::error_code ec;
+    fs::create_directory(dir_, ec);
+    fs::create_directory(dir_ / "bank0", ec);
+    ok_ = !ec && WriteFile(dir_ / "bank0" / "num_lines", std::to_string(lines)) && WriteFile(dir_ / "live", "1");
+    if (ok_) {
+      chip_ = ReadFile(dir_ / "bank0" / "chip_name");
+      device_ = ReadFile(dir_ / "dev_name");
+    }
+  }
+  ~GpioSimChip() {
+    WriteFile(dir_ / "live", "0");
+    std::error_code ec;
+    fs::remove(dir_ / "bank0", ec);
+    fs::remove(dir_, ec);
+  }
+  bool ok() const { return ok_ && !chip_.empty(); }
+  const std::string& chip() const { return chip_; }
+  fs::path Line(int offset) const {
+    return fs::path("/sys/devices/platform") / device_ / chip_ / absl::StrCat("sim_gpio", offset);
+  }
+  // What the consumer drives on an output line.
+  int Value(int offset) const { return std::atoi(ReadFile(Line(offset) / "value").c_str()); }
+  // The simulated outside world pulls an input line: this makes its edges.
+  bool Pull(int offset, bool up) const { return WriteFile(Line(offset) / "pull", up ? "pull-up" : "pull-down"); }
+
+ private:
+  fs::path dir_;
+  bool ok_ = false;
+  std::string chip_, device_;
+};
+
+TEST(GpiodLightTest, StepsOnKernelTimestampedEdgesOfGpioSim) {
+  if (std::string why = GpioSimChip::WhyNot(); !why.empty()) GTEST_SKIP() << why;
+  GpioSimChip sim(8);
+  ASSERT_TRUE(sim.ok()) << "could not make a gpio-sim chip";
+  GpiodDriverOptions o;
+  o.node_id = "lights-gpio-sim";
+  o.channel_count = 3;
+  o.lines.chip = sim.chip();
+  o.lines.outputs = {0, 1, 2};
+  o.lines.slot_clock_line = 7;
+  auto driver = GpiodLightDriver::Open(o);
+  ASSERT_TRUE(driver.ok()) << driver.status();
+  ASSERT_TRUE(sim.Pull(7, false));
+  const PatternTable table{"t", {"a", "b", "c"}, {{65535, 0, 0}, {0, 65535, 0}, {65535, 65535, 65535}}};
+  ASSERT_TRUE((*driver)->LoadPatternTable(table).ok());
+  ASSERT_TRUE((*driver)->Arm().ok());
+  const int64_t start = NowNs();
+  for (int edge = 0; edge < 6; ++edge) {
+    ASSERT_TRUE(sim.Pull(7, true));
+    for (int i = 0; i < 500 && (*driver)->State().steps < static_cast<uint64_t>(edge + 1); ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    }
+    ASSERT_EQ((*driver)->State().steps, static_cast<uint64_t>(edge + 1)) << "edge " << edge;
+    const ChannelLevels& row = table.rows[static_cast<size_t>(edge % 3)];
+    for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), row[static_cast<size_t>(c)] ? 1 : 0) << "edge " << edge;
+    ASSERT_TRUE(sim.Pull(7, false));  // falling edges do not step
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  MeasuredEdges m = (*driver)->Edges();
+  ASSERT_EQ(m.times_ns.size(), 6u);
+  for (size_t i = 0; i < m.times_ns.size(); ++i) {
+    EXPECT_GE(m.times_ns[i], start) << "kernel timestamps are CLOCK_MONOTONIC";
+    if (i > 0) {
+      EXPECT_GT(m.times_ns[i], m.times_ns[i - 1]);
+    }
+  }
+  ASSERT_TRUE((*driver)->Blackout().ok());
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
+}
+
+TEST(GpiodLightTest, GeneratesTheSlotClockOnARealChip) {
+  const char* chip = std::getenv("FASTAGE_GPIO_CHIP");
+  const char* lines = std::getenv("FASTAGE_GPIO_LINES");
+  if (chip == nullptr || lines == nullptr) {
+    GTEST_SKIP() << "no real GPIO chip named: set FASTAGE_GPIO_CHIP and FASTAGE_GPIO_LINES (\"4,5,6:7\": free "
+                    "output lines, then the slot clock line) to run on one";
+  }
+  std::vector<std::string> parts = absl::StrSplit(lines, ':');
+  ASSERT_EQ(parts.size(), 2u) << "FASTAGE_GPIO_LINES is \"outputs:clock\"";
+  GpiodDriverOptions o;
+  o.node_id = "lights-gpio-hw";
+  o.lines.chip = chip;
+  for (absl::string_view s : absl::StrSplit(parts[0], ',')) {
+    uint32_t line = 0;
+    ASSERT_TRUE(absl::SimpleAtoi(s, &line)) << s;
+    o.lines.outputs.push_back(line);
+  }
+  uint32_t clock = 0;
+  ASSERT_TRUE(absl::SimpleAtoi(parts[1], &clock));
+  o.lines.slot_clock_line = clock;
+  o.lines.drives_slot_clock = true;
+  o.channel_count = static_cast<uint32_t>(o.lines.outputs.size());
+  auto driver = GpiodLightDriver::Open(o);
+  ASSERT_TRUE(driver.ok()) << driver.status();
+  ASSERT_TRUE((*driver)->LoadPatternTable({"t", {"on", "off"}, {ChannelLevels(o.channel_count, 65535),
+                                                                 ChannelLevels(o.channel_count, 0)}})
+                  .ok());
+  ASSERT_TRUE((*driver)->Arm().ok());
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  ASSERT_TRUE((*driver)->Disarm().ok());
+  EdgeTiming t = (*driver)->Edges().timing;
+  EXPECT_GT(t.count, 100u);
+  EXPECT_EQ((*driver)->State().steps, t.count);
+  std::printf("%s: %llu edges, period %.3f us (nominal %.3f), worst deviation %.1f us, edge to outputs %.1f us\n",
+              chip, static_cast<unsigned long long>(t.count), t.period_mean_ns / 1e3, 1e6 / 912,
+              t.period_max_deviation_ns / 1e3, t.max_step_latency_ns / 1e3);
+}
+
+}  // namespace
+}  // namespace stage::light
