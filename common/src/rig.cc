@@ -610,6 +610,19 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       if (f.has_link_down_at_s() != f.has_link_down_s()) {
         check.Add(p, "link_down_at_s and link_down_s come together");
       }
+      if (f.has_board_silent_at_s() || f.has_board_silent_s()) {
+        const auto* n = light ? &*std::find_if(rig.light_nodes().begin(), rig.light_nodes().end(),
+                                                [&](const v1::LightNodeConfig& nn) { return nn.id() == f.target(); })
+                              : nullptr;
+        if (n == nullptr || !rig.sim().modbus_fakes() || n->backend() != v1::LIGHT_BACKEND_MODBUS) {
+          check.Add(p, "board_silent applies to a fake LED board (sim.modbus_fakes, a light node with backend modbus)");
+        }
+        if (f.has_board_silent_at_s() != f.has_board_silent_s()) {
+          check.Add(p, "board_silent_at_s and board_silent_s come together");
+        }
+      }
+      if (f.has_board_silent_at_s()) check.InRange(p + ".board_silent_at_s", f.board_silent_at_s(), 0, 1e6);
+      if (f.has_board_silent_s()) check.InRange(p + ".board_silent_s", f.board_silent_s(), 0, 3600);
     }
   }
   check.Positive("storage.host_write_mb_per_s", rig.storage().host_write_mb_per_s());

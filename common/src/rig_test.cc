@@ -309,6 +309,22 @@ TEST(RigErrorTest, GpiodLinesMustFitTheChannels) {
               HasSubstr("light_nodes[0].gpiod.slot_clock_line: required for backend gpiod"));
 }
 
+TEST(RigErrorTest, BoardSilenceNeedsAFakeModbusBoard) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  const std::vector<std::string> fault = {"sim.faults[0].target=lights-modbus-2", "sim.faults[0].board_silent_at_s=1",
+                                          "sim.faults[0].board_silent_s=2"};
+  auto without_fakes = ApplyRigOverrides(*rig, fault);
+  ASSERT_FALSE(without_fakes.ok());
+  EXPECT_THAT(std::string(without_fakes.status().message()),
+              HasSubstr("sim.faults[0]: board_silent applies to a fake LED board (sim.modbus_fakes"));
+  std::vector<std::string> with_fakes = fault;
+  with_fakes.push_back("sim.modbus_fakes=true");
+  EXPECT_TRUE(ApplyRigOverrides(*rig, with_fakes).ok());
+  with_fakes[0] = "sim.faults[0].target=lights-gpio-1";
+  EXPECT_FALSE(ApplyRigOverrides(*rig, with_fakes).ok()) << "a gpiod node has no board";
+}
+
 TEST(RigErrorTest, ChannelOutOfRange) {
   EXPECT_THAT(LoadError(Replace("parallel_channel: 2, cross_channel: 3", "parallel_channel: 2, cross_channel: 4")),
               AllOf(StartsWith("rig.yaml:30:64:"),

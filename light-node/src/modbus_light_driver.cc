@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/strip.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "stage/common/logging.h"
@@ -238,7 +239,12 @@ absl::Status ModbusLightDriver::PollStatus(Purpose purpose) {
     for (const std::string& f : state_.faults) NoteBoardFault(f);
   }
   if (!link_fault_.empty() && (take_window_.load() || state_.mode == DriverMode::kArmed)) {
-    NoteBoardFault("board not answering");
+    // "board not answering: status poll (register 0x0110): Connection timed out, 3 tries" (the node is named by
+    // whoever reads it).
+    absl::string_view cause = link_fault_;
+    absl::ConsumePrefix(&cause, Who() + ": ");
+    absl::ConsumeSuffix(&cause, "; the board is not answering");
+    NoteBoardFault(absl::StrCat("board not answering: ", cause));
   }
   return s;
 }

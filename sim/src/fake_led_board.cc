@@ -20,6 +20,8 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
 #include "stage/light/led_board_map.h"
+#include "stage/sim/scene.h"
+#include "stage/sim/world_devices.h"
 
 namespace stage::sim {
 
@@ -145,6 +147,7 @@ class FakeLedBoard::Impl {
   // Fault knobs and the request log, guarded by mutex_ (as is the register store).
   mutable std::mutex mutex_;
   bool no_answer_ = false;
+  int64_t answer_again_ns_ = 0;  // steady clock; 0: silent until told otherwise
   int corrupt_row_ = -1, corrupt_channel_ = -1;
   bool over_temperature_ = false;
   std::vector<BoardRequest> requests_;
@@ -322,6 +325,11 @@ class FakeLedBoard::Impl {
         exception = MODBUS_EXCEPTION_ILLEGAL_FUNCTION;
     }
     last_request_ns_ = logged.at_ns;
+    if (no_answer_ && answer_again_ns_ > 0 && logged.at_ns >= answer_again_ns_) {
+      no_answer_ = false;
+      answer_again_ns_ = 0;
+      Logger("sim")->info("fake LED board {}: answers again", options_.board_id);
+    }
     if (no_answer_) {
       requests_.push_back(logged);
       return;
@@ -435,7 +443,10 @@ absl::StatusOr<std::unique_ptr<FakeLedBoard>> FakeLedBoard::Start(FakeLedBoardOp
 }
 
 FakeLedBoard::FakeLedBoard(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-FakeLedBoard::~FakeLedBoard() = default;
+FakeLedBoard::~FakeLedBoard() {
+  // Out of the world first: its edge callback (JoinStage) uses the board, which goes down next.
+  impl_->leds_.DetachWorld();
+}
 
 std::string FakeLedBoard::endpoint() const { return impl_->endpoint(); }
 int FakeLedBoard::port() const { return impl_->port_; }
@@ -445,6 +456,50 @@ SimLightDriver& FakeLedBoard::leds() { return impl_->leds_; }
 void FakeLedBoard::SetNoAnswer(bool on) {
   std::lock_guard<std::mutex> lock(impl_->mutex_);
   impl_->no_answer_ = on;
+  impl_->answer_again_ns_ = 0;
+}
+
+void FakeLedBoard::SetNoAnswerFor(std::chrono::milliseconds wall) {
+  std::lock_guard<std::mutex> lock(impl_->mutex_);
+  impl_->no_answer_ = true;
+  impl_->answer_again_ns_ = SteadyNs() + std::chrono::duration_cast<std::chrono::nanoseconds>(wall).count();
+}
+
+absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const SimScene& scene, const std::string& node_id) {
+  const int index = scene.LightNodeIndex(node_id);
+  if (index < 0) return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
+  const v1::LightNodeConfig& n = scene.rig().light_nodes(index);
+  if (n.backend() != v1::LIGHT_BACKEND_MODBUS) {
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id, "\": a fake LED board needs backend modbus"));
+  }
+  FakeLedBoardOptions o;
+  o.board_id = node_id;
+  o.channel_count = n.channel_count();
+  o.unit_id = static_cast<int>(n.modbus().has_unit_id() ? n.modbus().unit_id() : 1);
+  o.serial = static_cast<uint32_t>(index + 1);
+  o.tcp_host = "127.0.0.1";
+  o.tcp_port = 0;
+  if (absl::Status s = o.Validate(); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id, "\": ", s.message()));
+  }
+  return o;
+}
+
+absl::Status FakeLedBoard::JoinStage(const SimScene& scene, const std::string& node_id, WorldClient* world,
+                                     bool arm) {
+  const v1::SimFault fault = scene.Fault(node_id);
+  std::function<void(int64_t)> on_edge;
+  if (fault.has_board_silent_at_s()) {
+    const auto at_ns = static_cast<int64_t>(std::llround(fault.board_silent_at_s() * 1e9));
+    const auto wall = std::chrono::milliseconds(std::llround(fault.board_silent_s() * 1e3));
+    auto started = std::make_shared<std::atomic<bool>>(false);
+    on_edge = [this, at_ns, wall, started, node_id](int64_t since_slot0_ns) {
+      if (since_slot0_ns < at_ns || started->exchange(true)) return;
+      Logger("sim")->warn("fake LED board {}: stops answering for {} ms (fault)", node_id, wall.count());
+      SetNoAnswerFor(wall);
+    };
+  }
+  return JoinLightNode(&leds(), scene, node_id, world, nullptr, arm, std::move(on_edge));
 }
 
 void FakeLedBoard::SetCorruptEntry(int row, int channel) {

@@ -146,7 +146,9 @@ void SimLightDriver::WorldLoop(int device) {
       Logger("sim")->warn("light node {}: fault injected: {}", node_id_, fault.ShortDebugString());
     }
     const int64_t delay = world_.switch_delay_ns + world_.extra_delay_ns + world_.fault_delay_ns;
-    if (world_.crash_at_ns >= 0 && edge->time_ns >= world_.crash_at_ns) {
+    const int64_t since_slot0_ns = edge->time_ns - world_.world->t0_ns();
+    if (world_.on_edge) world_.on_edge(since_slot0_ns);
+    if (world_.crash_at_ns >= 0 && since_slot0_ns >= world_.crash_at_ns) {
       Logger("sim")->warn("light node {}: crashes at slot {} (fault)", node_id_, edge->slot);
       if (world_.on_crash) world_.on_crash();
       world_.world->Leave(device);

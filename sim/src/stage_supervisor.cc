@@ -6,6 +6,7 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <thread>
 
@@ -263,6 +264,9 @@ absl::Status StageSupervisor::Start() {
   if (rig_.rig.sim().gige_fakes() && options_.world_address.empty()) {
     return absl::InvalidArgumentError("sim.gige_fakes: the fake cameras render the world; --world none has none");
   }
+  if (rig_.rig.sim().modbus_fakes() && options_.world_address.empty()) {
+    return absl::InvalidArgumentError("sim.modbus_fakes: the fake LED boards light the world; --world none has none");
+  }
   STAGE_RETURN_IF_ERROR(PrepareRunDir());
   Logger("sim.stage")
       ->info("bringing up stage {} from {} (run directory {})", rig_.rig.stage().id(), rig_.source_name,
@@ -287,6 +291,12 @@ absl::Status StageSupervisor::Start() {
       // A fake GigE Vision camera of stage-sim's stands in for it: the node runs its real backend.
       if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == "aravis") return std::vector<std::string>{"--id", id};
     }
+    for (const auto& n : rig_.rig.light_nodes()) {
+      // A fake LED board of stage-sim's stands in for it (modbus.tcp points there): the node runs its real backend.
+      if (n.id() == id && rig_.rig.sim().modbus_fakes() && n.backend() == v1::LIGHT_BACKEND_MODBUS) {
+        return std::vector<std::string>{"--id", id};
+      }
+    }
     if (!options_.world_address.empty()) {
       args.push_back("--sim-world");
       args.push_back(options_.world_address);
@@ -301,7 +311,8 @@ absl::Status StageSupervisor::Start() {
   }
   for (const auto& n : rig_.rig.light_nodes()) {
     std::vector<std::string> args = device_args(n.id());
-    if (!options_.world_address.empty() && options_.self_armed_world) args.push_back("--sim-self-arm");
+    const bool in_world = std::find(args.begin(), args.end(), "--sim-world") != args.end();
+    if (in_world && options_.self_armed_world) args.push_back("--sim-self-arm");
     if (auto s = SpawnChild("light-node", n.id(), v1::NODE_KIND_LIGHT, config, "127.0.0.1:0", std::move(args));
         !s.ok()) {
       return fail(s);

@@ -30,7 +30,8 @@ absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::stri
 }
 
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, std::function<void()> on_crash, bool arm) {
+                           WorldClient* world, std::function<void()> on_crash, bool arm,
+                           std::function<void(int64_t)> on_edge) {
   const int index = scene.LightNodeIndex(node_id);
   if (index < 0 || index >= scene.schedule().light_nodes_size()) {
     return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
@@ -49,6 +50,7 @@ absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const 
   w.fault_delay_ns = static_cast<int64_t>(std::llround(fault.delay_us() * 1e3));
   if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
   w.on_crash = std::move(on_crash);
+  w.on_edge = std::move(on_edge);
   return driver->AttachWorld(w);
 }
 

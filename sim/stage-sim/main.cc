@@ -29,6 +29,9 @@
 #if STAGE_WITH_ARAVIS
 #include "stage/sim/gige_fake_camera.h"
 #endif
+#if STAGE_WITH_MODBUS
+#include "stage/sim/fake_led_board.h"
+#endif
 
 namespace {
 
@@ -291,9 +294,42 @@ int main(int argc, char** argv) {
                                             "sim.gige_fakes: this build has no Aravis (STAGE_WITH_ARAVIS=OFF)"));
 #endif
   }
+  // Fake LED boards (sim.modbus_fakes) on loopback, one per modbus light node, up before the nodes that connect to
+  // them: the nodes read the rig with modbus.tcp set to their board; down before the world.
+#if STAGE_WITH_MODBUS
+  std::vector<std::unique_ptr<stage::sim::WorldClient>> board_clients;
+  std::vector<std::unique_ptr<stage::sim::FakeLedBoard>> boards;
+#endif
+  if (scene != nullptr && scene->rig().sim().modbus_fakes()) {
+#if STAGE_WITH_MODBUS
+    for (const auto& n : scene->rig().light_nodes()) {
+      if (n.backend() != stage::v1::LIGHT_BACKEND_MODBUS) continue;
+      auto board_options = stage::sim::FakeLedBoardOptionsForNode(*scene, n.id());
+      if (!board_options.ok()) return stage::ReportFatal(kProgram, board_options.status());
+      auto board = stage::sim::FakeLedBoard::Start(*board_options);
+      if (!board.ok()) return stage::ReportFatal(kProgram, board.status());
+      board_clients.push_back(stage::sim::LocalWorldClient(world.get()));
+      if (absl::Status s = (*board)->JoinStage(*scene, n.id(), board_clients.back().get(), options.self_armed_world);
+          !s.ok()) {
+        return stage::ReportFatal(kProgram, s);
+      }
+      const std::string path = absl::StrCat("light_nodes[", n.id(), "].modbus.tcp.");
+      options.overrides.push_back(path + "host=127.0.0.1");
+      options.overrides.push_back(absl::StrCat(path, "port=", (*board)->port()));
+      boards.push_back(*std::move(board));
+    }
+    log->info("{} fake LED board(s) up", boards.size());
+#else
+    return stage::ReportFatal(kProgram, absl::FailedPreconditionError(
+                                            "sim.modbus_fakes: this build has no libmodbus (STAGE_WITH_MODBUS=OFF)"));
+#endif
+  }
   auto stop_world = [&] {
 #if STAGE_WITH_ARAVIS
     fakes.clear();  // they leave the world
+#endif
+#if STAGE_WITH_MODBUS
+    boards.clear();
 #endif
     if (!world) return;
     world->Stop();

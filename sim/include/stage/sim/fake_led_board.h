@@ -8,6 +8,7 @@
 // logged (function, address, count) for tests that check what went over the bus. No libmodbus header appears here.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -17,6 +18,9 @@
 #include "stage/sim/sim_light_driver.h"
 
 namespace stage::sim {
+
+class SimScene;
+class WorldClient;
 
 struct FakeLedBoardOptions {
   // Name in logs and errors (the light node it stands for).
@@ -53,6 +57,10 @@ struct BoardRequest {
   int64_t at_ns = 0;  // steady clock
 };
 
+// The board of light node `node_id` in the simulated stage: the node's channel count and unit id, TCP on 127.0.0.1 at a
+// free port. InvalidArgument names the node when it is not a modbus node of 1..64 channels.
+absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const SimScene& scene, const std::string& node_id);
+
 class FakeLedBoard {
  public:
   // Listens (TCP) or opens the serial device (RTU) and serves from a thread of its own until destroyed.
@@ -68,8 +76,16 @@ class FakeLedBoard {
   // The board's LEDs: step them (a slot-clock edge), read their outputs, or attach them to the world.
   SimLightDriver& leds();
 
+  // In the simulated stage (sim.modbus_fakes): the board's LEDs join `world` as light node `node_id` (not armed: the
+  // node arms the board over Modbus) and the rig's board faults for the node (sim.faults board_silent_at_s) apply on
+  // the world's clock.
+  // With `arm` (a world without takes), the LEDs are armed with the node's table from the schedule at once.
+  absl::Status JoinStage(const SimScene& scene, const std::string& node_id, WorldClient* world, bool arm = false);
+
   // Fault knobs (thread-safe, take effect at the next request).
   void SetNoAnswer(bool on);
+  // Silent now; answers again at the first request after `wall` has passed.
+  void SetNoAnswerFor(std::chrono::milliseconds wall);
   // The cell of (row, channel) keeps its value with bit 8 flipped; row < 0 clears the fault.
   void SetCorruptEntry(int row, int channel);
   // Over temperature now: temperature above the limit, blackout latched with the over-temperature fault.

@@ -35,6 +35,8 @@ struct SimLightWorld {
   // itself), or without one the node leaves the world and goes dark.
   int64_t crash_at_ns = -1;
   std::function<void()> on_crash;
+  // Called at every edge with its time since slot 0, ns (a fake board's timed faults).
+  std::function<void(int64_t since_slot0_ns)> on_edge;
 };
 
 class SimLightDriver final : public light::LightDriver {

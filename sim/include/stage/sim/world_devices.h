@@ -26,9 +26,11 @@ absl::StatusOr<NodeWorld> OpenNodeWorld(const LoadedRig& loaded, const std::stri
 
 // Attaches light node `node_id`'s driver to `world`; with `arm`, first loads its table from the scene's schedule and
 // arms it (a world without takes; in takes the controller arms the node through its service). The node is late by its
-// sim.extra_delay_us plus its sim.faults delay. `on_crash` runs at a crash fault.
+// sim.extra_delay_us plus its sim.faults delay. `on_crash` runs at a crash fault; `on_edge` at every edge, with its
+// time since slot 0.
 absl::Status JoinLightNode(SimLightDriver* driver, const SimScene& scene, const std::string& node_id,
-                           WorldClient* world, std::function<void()> on_crash = nullptr, bool arm = true);
+                           WorldClient* world, std::function<void()> on_crash = nullptr, bool arm = true,
+                           std::function<void(int64_t)> on_edge = nullptr);
 
 // The world attachment of camera `camera_id`: its trigger plan from the schedule, a renderer of the scene, and its
 // faults from sim.faults.
