@@ -64,6 +64,10 @@ absl::Status GpiodDriverOptions::Validate() const {
   if (!(slot_rate_hz > 0 && slot_rate_hz <= 100'000)) {
     return absl::InvalidArgumentError(absl::StrCat(who, "slot_rate_hz ", slot_rate_hz, " is not in (0, 100000]"));
   }
+  if (lines.drives_slot_clock && slot_rate_hz != std::round(slot_rate_hz)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(who, "generating the slot clock needs a whole slot_rate_hz (", slot_rate_hz, ")"));
+  }
   if (!(clock_duty > 0 && clock_duty < 1)) {
     return absl::InvalidArgumentError(absl::StrCat(who, "clock_duty ", clock_duty, " is not in (0, 1)"));
   }
@@ -136,6 +140,7 @@ absl::StatusOr<std::unique_ptr<GpiodLightDriver>> GpiodLightDriver::Create(Gpiod
 
 GpiodLightDriver::~GpiodLightDriver() {
   stopping_.store(true);
+  if (clock_ != nullptr) clock_->Stop();
   if (edge_thread_.joinable()) edge_thread_.join();
   std::lock_guard<std::mutex> lock(mutex_);
   if (absl::Status s = AllLow(); !s.ok()) Logger("light.gpiod")->error("{}: {}", Who(), s.message());
@@ -155,7 +160,14 @@ absl::Status GpiodLightDriver::AllLow() {
 absl::Status GpiodLightDriver::Start() {
   if (!options_.run_edge_thread) return absl::OkStatus();
   if (options_.lines.drives_slot_clock) {
-    edge_thread_ = std::thread([this] { GeneratorLoop(); });
+    timing::SlotClockOptions clock;
+    clock.slot_rate_hz = static_cast<uint32_t>(std::llround(options_.slot_rate_hz));
+    clock.t0_ns = MonotonicNs() + 1'000'000;
+    auto created = timing::SlotClock::Create(clock);
+    if (!created.ok()) return created.status();
+    clock_ = *std::move(created);
+    clock_->AddListener([this](const timing::SlotEdge& edge) { OnGeneratedEdge(edge); });
+    return clock_->Start();
   } else {
     edge_thread_ = std::thread([this] { InputLoop(); });
   }
@@ -177,40 +189,26 @@ void GpiodLightDriver::InputLoop() {
   }
 }
 
-void GpiodLightDriver::GeneratorLoop() {
-  // Edges at t0 + k * period, computed from k (no drift accumulates); the line goes high at the edge and low after
-  // clock_duty of the slot.
-  const double period_ns = 1e9 / options_.slot_rate_hz;
-  const int64_t high_ns = std::llround(period_ns * options_.clock_duty);
-  const int64_t t0 = MonotonicNs() + 1'000'000;
-  int64_t k = 0;
-  while (!stopping_.load()) {
-    int64_t edge = t0 + std::llround(k * period_ns);
-    SleepUntil(edge);
-    const int64_t late = MonotonicNs() - edge;
-    if (late > static_cast<int64_t>(period_ns)) {
-      // This process fell behind by whole slots: those edges were never produced. Resume at the current slot.
-      const int64_t skipped = static_cast<int64_t>(late / period_ns);
-      generator_missed_.fetch_add(static_cast<uint64_t>(skipped));
-      k += skipped;
-      edge = t0 + std::llround(k * period_ns);
-      std::lock_guard<std::mutex> lock(mutex_);
-      if (state_.mode == DriverMode::kArmed) {
-        NoteFault(absl::StrCat("slot clock generator fell behind: ", skipped, " slot(s) not produced"));
-      }
+void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
+  if (edge.missed_before > 0) {
+    // This process fell behind by whole slots: those edges were never produced.
+    generator_missed_.fetch_add(static_cast<uint64_t>(edge.missed_before));
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_.mode == DriverMode::kArmed) {
+      NoteFault(absl::StrCat("slot clock generator fell behind: ", edge.missed_before, " slot(s) not produced"));
     }
-    absl::Status s = lines_->SetClock(true);
-    const int64_t rose = MonotonicNs();
-    if (s.ok()) {
-      OnEdge(rose);
-    } else {
-      std::lock_guard<std::mutex> lock(mutex_);
-      NoteFault(absl::StrCat("slot clock output: ", s.message()));
-    }
-    SleepUntil(edge + high_ns);
-    (void)lines_->SetClock(false);
-    ++k;
   }
+  absl::Status s = lines_->SetClock(true);
+  const int64_t rose = MonotonicNs();
+  if (s.ok()) {
+    OnEdge(rose);
+  } else {
+    std::lock_guard<std::mutex> lock(mutex_);
+    NoteFault(absl::StrCat("slot clock output: ", s.message()));
+  }
+  // Low again after clock_duty of the slot (the listener returns well before the next edge).
+  SleepUntil(edge.scheduled_ns + std::llround(1e9 / options_.slot_rate_hz * options_.clock_duty));
+  (void)lines_->SetClock(false);
 }
 
 void GpiodLightDriver::NoteFault(const std::string& fault) {

@@ -7,7 +7,8 @@
 //
 // The slot clock is either an input line, whose edges come with the kernel's timestamps (CLOCK_MONOTONIC), or,
 // on the node that is the sync generator, an output line this driver drives itself at the rig's slot rate
-// (rising edge at each slot start, high for `clock_duty` of the slot) from the moment it opens. Either way every edge
+// (rising edge at each slot start, high for `clock_duty` of the slot) from the moment it opens, timed by
+// timing::SlotClock (absolute sleeps on CLOCK_MONOTONIC, 1 ns timer slack; a slot reached late is missed, not late). Either way every edge
 // seen while armed is recorded (MeasuredEdges): the take's measured edges, for the timing comparison.
 #pragma once
 
@@ -24,6 +25,7 @@
 #include "absl/status/statusor.h"
 #include "gpio_lines.h"
 #include "stage/light/light_driver.h"
+#include "stage/timing/slot_clock.h"
 #include "stage/v1/rig.pb.h"
 
 namespace stage::light {
@@ -35,7 +37,8 @@ struct GpiodDriverOptions {
   uint32_t lines_per_channel = 1;
   // The chip and lines: outputs are channel_count * lines_per_channel lines, channel c's at [c*k, c*k+k).
   GpiodLinesOptions lines;
-  // Slot clock rate when this node generates it, Hz. Default 912.
+  // The rig's slot rate, Hz (the nominal period edges are measured against; the generator's rate, a whole number).
+  // Default 912.
   double slot_rate_hz = 912;
   // Generator: the clock's high time as a fraction of the slot. Default 0.5.
   double clock_duty = 0.5;
@@ -91,7 +94,7 @@ class GpiodLightDriver final : public LightDriver {
   GpiodLightDriver(GpiodDriverOptions options, std::unique_ptr<GpioLines> lines);
   absl::Status Start();
   void InputLoop();
-  void GeneratorLoop();
+  void OnGeneratedEdge(const timing::SlotEdge& edge);
   // With mutex_ held: a fault now and in the take's record.
   void NoteFault(const std::string& fault);
   absl::Status AllLow();
@@ -109,7 +112,8 @@ class GpiodLightDriver final : public LightDriver {
   int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
   std::atomic<bool> stopping_{false};
   std::atomic<uint64_t> generator_missed_{0};
-  std::thread edge_thread_;
+  std::thread edge_thread_;                   // input: waits for edges
+  std::unique_ptr<timing::SlotClock> clock_;  // generator
 };
 
 }  // namespace stage::light

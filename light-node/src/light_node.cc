@@ -163,7 +163,9 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
         request.heartbeat_timeout_ms() > 0 ? request.heartbeat_timeout_ms() : options_.heartbeat_timeout_ms);
   }
   wake_.notify_all();
-  Logger("light.node")->info("{}: armed for take {} ({} rows)", config_.id(), request.take_id(), t.rows.size());
+  Logger("light.node")
+      ->info("{}: armed for take {} ({} rows) on {}", config_.id(), request.take_id(), t.rows.size(),
+             driver_->Describe().device);
   return absl::OkStatus();
 }
 

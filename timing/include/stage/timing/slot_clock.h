@@ -1,6 +1,6 @@
 // The slot-clock generator: calls its listeners at every slot edge of a take, edge k at t0 + k / slot_rate exactly
-// (each edge rounded to the nanosecond on its own, so nothing drifts). The simulator's trigger bus (issue #4) and a
-// light node driving the GPIO slot-clock line (issue #8) are to be built on it.
+// (each edge rounded to the nanosecond on its own, so nothing drifts). A gpiod light node that is the sync generator
+// drives the slot-clock line on it (light-node/src/gpiod_light_driver.cc).
 //
 // Two modes:
 //  - virtual: on a Clock such as SimClock. Every edge is delivered, in order, when the clock reaches it;
