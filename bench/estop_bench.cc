@@ -142,6 +142,7 @@ int main(int argc, char** argv) {
   for (const auto& n : nodes) {
     if (n.board != nullptr && first_board == nullptr) first_board = n.board.get();
   }
+  if (first_board == nullptr) Die("the rig has no Modbus light node");
   modbus_t* ctx = modbus_new_tcp("127.0.0.1", first_board->port());
   if (ctx == nullptr || modbus_connect(ctx) != 0) Die("modbus baseline: cannot connect");
 
@@ -151,15 +152,12 @@ int main(int argc, char** argv) {
   if (auto r = estop.Reset(); !r.ok()) Die(std::string(r.status().message()));
   fan_out();
 
-  std::vector<double> stop_ms, slowest_node_ms, fan_out_ms, write_ms;
+  std::vector<double> stop_ms, fan_out_ms, write_ms;
   for (int r = 0; r < rounds; ++r) {
     arm_all();
     stage::v1::EmergencyStopReply reply = estop.Stop("bench");
     if (!reply.all_dark()) Die("a node did not confirm dark: " + reply.ShortDebugString());
     stop_ms.push_back(reply.elapsed_ms());
-    double slowest = 0;
-    for (const auto& node : reply.nodes()) slowest = std::max(slowest, node.ms());
-    slowest_node_ms.push_back(slowest);
     if (auto reset = estop.Reset(); !reset.ok()) Die(std::string(reset.status().message()));
     fan_out_ms.push_back(fan_out());
     const auto start = Clock::now();

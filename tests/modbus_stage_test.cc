@@ -82,8 +82,9 @@ TEST_F(ModbusStageTest, ATakeLitByFakeLedBoardsIsCompleteAndAligned) {
 TEST_F(ModbusStageTest, ABoardThatStopsAnsweringIsReportedAndTheTakeIsDegraded) {
   TempDir root;
   // lights-modbus-2's board goes silent 0.05 s into the world (the first take) for 1 s of wall time. The lockstep
-  // world runs the 1 s take slower than real time here (about 25 s), and no slower than real time anywhere, so the
-  // light node's 250 ms status poll finds the board silent while armed.
+  // world runs at the speed it renders 27 cameras: the 1 s take lasts about 25 s of wall time on the 2-core
+  // development machine, so the light node's 250 ms status poll finds the board silent while armed. (A machine that
+  // rendered the take in under a second would see the disarm fail instead.)
   ASSERT_NO_FATAL_FAILURE(StartModbusStage(root.path(), {"sim.faults[0].target=lights-modbus-2",
                                                          "sim.faults[0].board_silent_at_s=0.05",
                                                          "sim.faults[0].board_silent_s=1"}));

@@ -621,6 +621,14 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
           check.Add(p, "board_silent_at_s and board_silent_s come together");
         }
       }
+      if (f.has_crash_at_s() && light && rig.sim().modbus_fakes()) {
+        const auto& n = *std::find_if(rig.light_nodes().begin(), rig.light_nodes().end(),
+                                      [&](const v1::LightNodeConfig& nn) { return nn.id() == f.target(); });
+        if (n.backend() == v1::LIGHT_BACKEND_MODBUS) {
+          check.Add(p + ".crash_at_s", "a light node on a fake LED board (sim.modbus_fakes) does not crash with the "
+                                       "world; use board_silent_at_s, or stop its process");
+        }
+      }
       if (f.has_board_silent_at_s()) check.InRange(p + ".board_silent_at_s", f.board_silent_at_s(), 0, 1e6);
       if (f.has_board_silent_s()) check.InRange(p + ".board_silent_s", f.board_silent_s(), 0, 3600);
     }
@@ -670,6 +678,15 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       check.Add("timing.sync_generator", absl::StrCat("light node \"", generator->id(),
                                                       "\" cannot generate the slot clock: it needs backend gpiod with "
                                                       "gpiod.drives_slot_clock: true"));
+    }
+  }
+  // One line, one driver: only the sync generator drives the slot clock.
+  for (int i = 0; i < rig.light_nodes_size(); ++i) {
+    const LightNodeConfig& n = rig.light_nodes(i);
+    if (n.has_gpiod() && n.gpiod().drives_slot_clock() && n.id() != timing.sync_generator()) {
+      check.Add(absl::StrCat("light_nodes[", i, "].gpiod.drives_slot_clock"),
+                absl::StrCat("light node \"", n.id(), "\" drives the slot clock but is not timing.sync_generator (\"",
+                             timing.sync_generator(), "\")"));
     }
   }
   return check.Take();

@@ -12,15 +12,10 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "stage/common/logging.h"
+#include "take_faults.h"
 
 namespace stage::light {
 namespace {
-
-int64_t MonotonicNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
-}
 
 void SleepUntil(int64_t time_ns) {
   timespec ts{};
@@ -68,8 +63,8 @@ absl::Status GpiodDriverOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat(who, "generating the slot clock needs a whole slot_rate_hz (", slot_rate_hz, ")"));
   }
-  if (!(clock_duty > 0 && clock_duty < 1)) {
-    return absl::InvalidArgumentError(absl::StrCat(who, "clock_duty ", clock_duty, " is not in (0, 1)"));
+  if (!(clock_duty > 0 && clock_duty <= 0.5)) {
+    return absl::InvalidArgumentError(absl::StrCat(who, "clock_duty ", clock_duty, " is not in (0, 0.5]"));
   }
   if (edge_log_capacity < 2) {
     return absl::InvalidArgumentError(absl::StrCat(who, "edge_log_capacity ", edge_log_capacity, " is below 2"));
@@ -128,23 +123,24 @@ absl::StatusOr<std::unique_ptr<GpiodLightDriver>> GpiodLightDriver::Create(Gpiod
   if (lines == nullptr) return absl::InvalidArgumentError("no GPIO lines");
   std::unique_ptr<GpiodLightDriver> d(new GpiodLightDriver(std::move(options), std::move(lines)));
   if (absl::Status s = d->AllLow(); !s.ok()) return s;
-  if (absl::Status s = d->Start(); !s.ok()) return s;
+  if (d->options_.run_edge_thread && !d->options_.lines.drives_slot_clock) {
+    d->edge_thread_ = std::thread([raw = d.get()] { raw->InputLoop(); });
+  }
   Logger("light.gpiod")
       ->info("{}: {} ({} channels x {} lines){}", d->Who(), d->lines_->Describe(), d->options_.channel_count,
              d->options_.lines_per_channel,
-             d->options_.lines.drives_slot_clock ? absl::StrFormat("; generating the slot clock at %g Hz",
-                                                                   d->options_.slot_rate_hz)
-                                                 : std::string());
+             d->options_.lines.drives_slot_clock
+                 ? absl::StrFormat("; generates the slot clock at %g Hz while armed", d->options_.slot_rate_hz)
+                 : std::string());
   return d;
 }
 
 GpiodLightDriver::~GpiodLightDriver() {
   stopping_.store(true);
-  if (clock_ != nullptr) clock_->Stop();
+  StopGenerator();
   if (edge_thread_.joinable()) edge_thread_.join();
   std::lock_guard<std::mutex> lock(mutex_);
   if (absl::Status s = AllLow(); !s.ok()) Logger("light.gpiod")->error("{}: {}", Who(), s.message());
-  if (options_.lines.drives_slot_clock) (void)lines_->SetClock(false);
 }
 
 std::string GpiodLightDriver::Who() const {
@@ -157,21 +153,26 @@ absl::Status GpiodLightDriver::AllLow() {
   return s;
 }
 
-absl::Status GpiodLightDriver::Start() {
-  if (!options_.run_edge_thread) return absl::OkStatus();
-  if (options_.lines.drives_slot_clock) {
-    timing::SlotClockOptions clock;
-    clock.slot_rate_hz = static_cast<uint32_t>(std::llround(options_.slot_rate_hz));
-    clock.t0_ns = MonotonicNs() + 1'000'000;
-    auto created = timing::SlotClock::Create(clock);
-    if (!created.ok()) return created.status();
-    clock_ = *std::move(created);
-    clock_->AddListener([this](const timing::SlotEdge& edge) { OnGeneratedEdge(edge); });
-    return clock_->Start();
-  } else {
-    edge_thread_ = std::thread([this] { InputLoop(); });
+absl::Status GpiodLightDriver::StartGenerator() {
+  // With mutex_ held (Arm). The run's first edge one slot from now: every listener is ready by then.
+  timing::SlotClockOptions clock;
+  clock.slot_rate_hz = static_cast<uint32_t>(std::llround(options_.slot_rate_hz));
+  clock.t0_ns = timing::HostClockNs(false) + std::llround(1e9 / options_.slot_rate_hz);
+  auto created = timing::SlotClock::Create(clock);
+  if (!created.ok()) return created.status();
+  generator_ = *std::move(created);
+  generator_->AddListener([this](const timing::SlotEdge& edge) { OnGeneratedEdge(edge); });
+  return generator_->Start();
+}
+
+void GpiodLightDriver::StopGenerator() {
+  // Without mutex_ held: the generator's listener takes it, and Stop() waits for the listener.
+  std::unique_ptr<timing::SlotClock> generator;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    generator = std::move(generator_);
   }
-  return absl::OkStatus();
+  if (generator != nullptr) generator->Stop();
 }
 
 void GpiodLightDriver::InputLoop() {
@@ -190,23 +191,18 @@ void GpiodLightDriver::InputLoop() {
 }
 
 void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
-  if (edge.missed_before > 0) {
-    // This process fell behind by whole slots: those edges were never produced.
-    generator_missed_.fetch_add(static_cast<uint64_t>(edge.missed_before));
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (state_.mode == DriverMode::kArmed) {
-      NoteFault(absl::StrCat("slot clock generator fell behind: ", edge.missed_before, " slot(s) not produced"));
-    }
-  }
+  // Slots the generator reached a whole slot late or more were not produced (SlotClock goes on with the current
+  // slot); OnEdge sees the gap and steps over them.
+  if (edge.missed_before > 0) generator_missed_.fetch_add(static_cast<uint64_t>(edge.missed_before));
   absl::Status s = lines_->SetClock(true);
-  const int64_t rose = MonotonicNs();
+  const int64_t rose = timing::HostClockNs(false);
   if (s.ok()) {
     OnEdge(rose);
   } else {
     std::lock_guard<std::mutex> lock(mutex_);
     NoteFault(absl::StrCat("slot clock output: ", s.message()));
   }
-  // Low again after clock_duty of the slot (the listener returns well before the next edge).
+  // Low again after clock_duty (at most half) of the slot: the listener returns before the next edge is due.
   SleepUntil(edge.scheduled_ns + std::llround(1e9 / options_.slot_rate_hz * options_.clock_duty));
   (void)lines_->SetClock(false);
 }
@@ -216,36 +212,45 @@ void GpiodLightDriver::NoteFault(const std::string& fault) {
     state_.faults.push_back(fault);
     Logger("light.gpiod")->warn("{}: {}", Who(), fault);
   }
-  for (const std::string& f : state_.take_faults) {
-    if (f.size() >= fault.size() && f.compare(f.size() - fault.size(), fault.size(), fault) == 0) return;
-  }
-  state_.take_faults.push_back(
-      absl::StrCat(absl::FormatTime("%H:%M:%E3S", absl::Now(), absl::LocalTimeZone()), " ", fault));
+  RecordTakeFault(&state_.take_faults, fault);
 }
 
 void GpiodLightDriver::OnEdge(int64_t time_ns) {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (state_.mode != DriverMode::kArmed) return;
-  edges_.push_back(time_ns);
-  if (edges_.size() > options_.edge_log_capacity) edges_.pop_front();
+  // Only edges of the take: one the kernel stamped before the arm (queued while idle) is not the take's first.
+  if (state_.mode != DriverMode::kArmed || time_ns < armed_at_ns_) return;
+  const double nominal = 1e9 / options_.slot_rate_hz;
+  uint64_t lost = 0;
   if (timing_.count == 0) {
     first_edge_ns_ = time_ns;
   } else {
     const double period = static_cast<double>(time_ns - last_edge_ns_);
-    timing_.period_max_deviation_ns =
-        std::max(timing_.period_max_deviation_ns, std::abs(period - 1e9 / options_.slot_rate_hz));
-    timing_.period_mean_ns = static_cast<double>(time_ns - first_edge_ns_) / static_cast<double>(timing_.count);
+    if (period > 1.5 * nominal) {
+      // Edges that never reached this node (the kernel's event queue of 16 overflowed, the generator fell behind,
+      // or the line glitched): the table steps over their slots, so it stays in phase with the clock.
+      lost = static_cast<uint64_t>(std::llround(period / nominal)) - 1;
+      timing_.lost_edges += lost;
+      NoteFault("slot clock: edges lost (LightStats.slot_clock.lost_edges counts them)");
+    } else {
+      timing_.period_max_deviation_ns = std::max(timing_.period_max_deviation_ns, std::abs(period - nominal));
+    }
+    timing_.period_mean_ns =
+        static_cast<double>(time_ns - first_edge_ns_) / static_cast<double>(timing_.count + timing_.lost_edges);
   }
   last_edge_ns_ = time_ns;
   ++timing_.count;
+  edges_.push_back(time_ns);
+  if (edges_.size() > options_.edge_log_capacity) edges_.pop_front();
+  // The row is the slot's: the edges seen and lost since the arm, whether or not a write failed on the way.
+  state_.steps += lost;
   const int row = static_cast<int>(state_.steps % row_lines_.size());
+  ++state_.steps;
+  state_.current_row = row;
   if (absl::Status s = lines_->SetOutputs(row_lines_[static_cast<size_t>(row)]); !s.ok()) {
-    NoteFault(absl::StrCat("setting row ", row, " failed: ", s.message()));
+    NoteFault(absl::StrCat("setting a row failed: ", s.message()));
     return;
   }
-  timing_.max_step_latency_ns = std::max(timing_.max_step_latency_ns, MonotonicNs() - time_ns);
-  state_.current_row = row;
-  ++state_.steps;
+  timing_.max_step_latency_ns = std::max(timing_.max_step_latency_ns, timing::HostClockNs(false) - time_ns);
 }
 
 DriverDescription GpiodLightDriver::Describe() const {
@@ -293,7 +298,7 @@ absl::Status GpiodLightDriver::LoadPatternTable(const PatternTable& table) {
   row_lines_ = std::move(rows);
   table_loaded_ = true;
   quantization_error_ = worst;
-  if (worst > 0.5 / 255) {
+  if (worst > kQuantizationWarning) {
     Logger("light.gpiod")
         ->warn("{}: the {}-row table rounds to {} line(s) per channel; worst error {:.1f} % of full scale at row {} "
                "({}) channel {}",
@@ -314,10 +319,18 @@ absl::Status GpiodLightDriver::Arm() {
   state_.faults.clear();
   edges_.clear();
   timing_ = EdgeTiming{};
+  armed_at_ns_ = timing::HostClockNs(false);
+  if (options_.lines.drives_slot_clock && options_.run_edge_thread) {
+    if (absl::Status s = StartGenerator(); !s.ok()) {
+      state_.mode = DriverMode::kIdle;
+      return absl::Status(s.code(), absl::StrCat(Who(), ": the slot clock generator did not start: ", s.message()));
+    }
+  }
   return absl::OkStatus();
 }
 
 absl::Status GpiodLightDriver::Disarm() {
+  StopGenerator();
   std::lock_guard<std::mutex> lock(mutex_);
   if (state_.mode == DriverMode::kArmed) state_.mode = DriverMode::kIdle;  // a blackout stays latched
   state_.current_row = -1;
@@ -325,10 +338,15 @@ absl::Status GpiodLightDriver::Disarm() {
 }
 
 absl::Status GpiodLightDriver::Blackout() {
-  std::lock_guard<std::mutex> lock(mutex_);
-  state_.mode = DriverMode::kBlackout;
-  state_.current_row = -1;
-  return AllLow();
+  absl::Status s;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    state_.mode = DriverMode::kBlackout;
+    state_.current_row = -1;
+    s = AllLow();
+  }
+  StopGenerator();  // after the outputs are low: dark first
+  return s;
 }
 
 absl::Status GpiodLightDriver::ResetBlackout() {

@@ -6,10 +6,15 @@
 // the worst rounding error of a table is logged when it is loaded and reported in Describe().
 //
 // The slot clock is either an input line, whose edges come with the kernel's timestamps (CLOCK_MONOTONIC), or,
-// on the node that is the sync generator, an output line this driver drives itself at the rig's slot rate
-// (rising edge at each slot start, high for `clock_duty` of the slot) from the moment it opens, timed by
-// timing::SlotClock (absolute sleeps on CLOCK_MONOTONIC, 1 ns timer slack; a slot reached late is missed, not late). Either way every edge
-// seen while armed is recorded (MeasuredEdges): the take's measured edges, for the timing comparison.
+// on the node that is the sync generator, an output line this driver drives itself at the rig's slot rate while
+// armed (a run of the bus, as the simulated world runs one per take): rising edge at each slot start, high for
+// `clock_duty` of the slot, timed by timing::SlotClock (absolute sleeps on CLOCK_MONOTONIC, 1 ns timer slack; a slot
+// reached late is missed, not late). Either way every edge of the take is recorded (MeasuredEdges): the take's
+// measured edges, for the timing comparison. A gap of more than 1.5 periods between two edges is edges lost (the
+// kernel's v1 event queue holds 16): they are counted, reported, and the table steps over their slots.
+//
+// libgpiod v1 sets at most 64 lines per request: a node with more outputs sets a row in several writes, 64 lines
+// each, microseconds apart.
 #pragma once
 
 #include <atomic>
@@ -40,7 +45,7 @@ struct GpiodDriverOptions {
   // The rig's slot rate, Hz (the nominal period edges are measured against; the generator's rate, a whole number).
   // Default 912.
   double slot_rate_hz = 912;
-  // Generator: the clock's high time as a fraction of the slot. Default 0.5.
+  // Generator: the clock's high time as a fraction of the slot, (0, 0.5]. Default 0.5.
   double clock_duty = 0.5;
   // Edges kept per take for MeasuredEdges() (the oldest are dropped beyond it). Default 65536 (72 s at 912 Hz).
   size_t edge_log_capacity = 65536;
@@ -60,6 +65,9 @@ struct MeasuredEdges {
   std::vector<int64_t> times_ns;  // the last edge_log_capacity edges, oldest first
   EdgeTiming timing;              // over every edge since Arm(), including any dropped from times_ns
 };
+
+// Worst rounding of a table, as a fraction of full scale, above which loading it logs a warning (half an 8-bit step).
+inline constexpr double kQuantizationWarning = 0.5 / 255;
 
 // The line values of one row: per channel its code's bits, MSB first. Codes round `levels` to 2^k - 1 steps.
 std::vector<uint8_t> RowLineValues(const ChannelLevels& levels, uint32_t lines_per_channel);
@@ -85,14 +93,15 @@ class GpiodLightDriver final : public LightDriver {
   // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines.
   void OnEdge(int64_t time_ns);
   MeasuredEdges Edges() const;
-  // Slots the generator could not produce on time (this process fell behind); 0 when not generating.
+  // Slots the generator could not produce on time (this process fell behind) since open; 0 when not generating.
   uint64_t generator_missed_slots() const { return generator_missed_.load(); }
   // The worst rounding error of the loaded table, as a fraction of full scale (0 when none is loaded).
   double quantization_error() const;
 
  private:
   GpiodLightDriver(GpiodDriverOptions options, std::unique_ptr<GpioLines> lines);
-  absl::Status Start();
+  absl::Status StartGenerator();
+  void StopGenerator();
   void InputLoop();
   void OnGeneratedEdge(const timing::SlotEdge& edge);
   // With mutex_ held: a fault now and in the take's record.
@@ -110,10 +119,11 @@ class GpiodLightDriver final : public LightDriver {
   std::deque<int64_t> edges_;                    // guarded by mutex_: the last edge_log_capacity edges
   EdgeTiming timing_;                            // guarded by mutex_: since Arm()
   int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
+  int64_t armed_at_ns_ = 0;                       // guarded by mutex_
   std::atomic<bool> stopping_{false};
   std::atomic<uint64_t> generator_missed_{0};
   std::thread edge_thread_;                   // input: waits for edges
-  std::unique_ptr<timing::SlotClock> clock_;  // generator
+  std::unique_ptr<timing::SlotClock> generator_;  // guarded by mutex_: the slot clock while armed
 };
 
 }  // namespace stage::light

@@ -11,6 +11,7 @@
 #include "gtest/gtest.h"
 #include "light_node.h"
 #include "stage/common/rig.h"
+#include "stage/timing/slot_clock.h"
 
 namespace stage::light {
 namespace {
@@ -18,11 +19,11 @@ namespace {
 using ::testing::ElementsAre;
 using ::testing::HasSubstr;
 
-int64_t NowNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
-}
+int64_t NowNs() { return timing::HostClockNs(false); }
+
+// Edges of a take come after its arm: times from 1 ms after now.
+int64_t After() { return NowNs() + 1'000'000; }
+constexpr int64_t kPeriod = 1'096'491;
 
 // Lines that remember what was written and hand out edges a test queues.
 struct FakeLinesState {
@@ -111,14 +112,18 @@ TEST(GpiodLightDriverTest, StepsThroughTheTableOnEdgesAndRecordsThem) {
   ASSERT_NE(r.driver, nullptr);
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0)) << "outputs start low";
   ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
-  r.driver->OnEdge(1000);  // not armed: no step, not recorded
+  r.driver->OnEdge(NowNs());  // not armed: no step, not recorded
   EXPECT_EQ(r.driver->State().steps, 0u);
+  const int64_t before = NowNs();
   ASSERT_TRUE(r.driver->Arm().ok());
+  r.driver->OnEdge(before);  // stamped before the arm (queued while idle): not the take's
+  EXPECT_EQ(r.driver->State().steps, 0u);
   const int64_t period = static_cast<int64_t>(1e9 / 912);
+  const int64_t t0 = After();
   const std::vector<std::vector<uint8_t>> expect = {{1, 1, 0, 0}, {0, 0, 0, 1}, {1, 0, 1, 1}};
   for (int i = 0; i < 7; ++i) {
     // One period 5 us late (edge 4): the record's jitter.
-    r.driver->OnEdge(2'000'000 + i * period + (i == 4 ? 5000 : 0));
+    r.driver->OnEdge(t0 + i * period + (i == 4 ? 5000 : 0));
     EXPECT_EQ(LastWrite(r), expect[static_cast<size_t>(i % 3)]) << "edge " << i;
     EXPECT_EQ(r.driver->State().current_row, i % 3);
   }
@@ -131,15 +136,15 @@ TEST(GpiodLightDriverTest, StepsThroughTheTableOnEdgesAndRecordsThem) {
   EXPECT_NEAR(state.edges->period_max_deviation_ns, 5000, 1.0);
   MeasuredEdges m = r.driver->Edges();
   ASSERT_EQ(m.times_ns.size(), 7u);
-  EXPECT_EQ(m.times_ns.front(), 2'000'000);
-  EXPECT_EQ(m.times_ns[4], 2'000'000 + 4 * period + 5000);
+  EXPECT_EQ(m.times_ns.front(), t0);
+  EXPECT_EQ(m.times_ns[4], t0 + 4 * period + 5000);
   ASSERT_TRUE(r.driver->Disarm().ok());
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0));
-  r.driver->OnEdge(9'000'000);
+  r.driver->OnEdge(After());
   EXPECT_EQ(r.driver->State().steps, 7u) << "idle: edges do not step";
   // Arming again starts from the first row and a fresh record.
   ASSERT_TRUE(r.driver->Arm().ok());
-  r.driver->OnEdge(10'000'000);
+  r.driver->OnEdge(After());
   EXPECT_EQ(LastWrite(r), expect[0]);
   EXPECT_EQ(r.driver->Edges().times_ns.size(), 1u);
 }
@@ -150,9 +155,10 @@ TEST(GpiodLightDriverTest, TheEdgeRecordKeepsTheLastEdgesAndCountsAll) {
   Rig r = Make(o);
   ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"x"}, {{65535}}}).ok());
   ASSERT_TRUE(r.driver->Arm().ok());
-  for (int i = 0; i < 10; ++i) r.driver->OnEdge(i * 1000);
+  const int64_t t0 = After();
+  for (int i = 0; i < 10; ++i) r.driver->OnEdge(t0 + i * 1000);
   MeasuredEdges m = r.driver->Edges();
-  EXPECT_THAT(m.times_ns, ElementsAre(6000, 7000, 8000, 9000));
+  EXPECT_THAT(m.times_ns, ElementsAre(t0 + 6000, t0 + 7000, t0 + 8000, t0 + 9000));
   EXPECT_EQ(m.timing.count, 10u);
   EXPECT_NEAR(m.timing.period_mean_ns, 1000, 1e-9);
 }
@@ -161,11 +167,11 @@ TEST(GpiodLightDriverTest, BlackoutIsDarkAndLatched) {
   Rig r = Make(Options(2, 2, false));
   ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
   ASSERT_TRUE(r.driver->Arm().ok());
-  r.driver->OnEdge(1);
+  r.driver->OnEdge(After());
   EXPECT_THAT(LastWrite(r), ElementsAre(1, 1, 0, 0));
   ASSERT_TRUE(r.driver->Blackout().ok());
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0));
-  r.driver->OnEdge(2);
+  r.driver->OnEdge(After());
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0)) << "no edge lights a node in blackout";
   EXPECT_EQ(r.driver->State().mode, DriverMode::kBlackout);
   EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->Arm()));
@@ -217,14 +223,15 @@ TEST(GpiodLightDriverTest, InputThreadStepsOnEveryQueuedEdge) {
   {
     // Five edges at once: a reader that fell behind gets them all and steps on each (the table stays in phase).
     std::lock_guard<std::mutex> lock(r.lines->mutex);
-    for (int i = 0; i < 5; ++i) r.lines->pending_edges.push_back(100'000 + i * 1'096'491);
+    const int64_t t0 = After();
+    for (int i = 0; i < 5; ++i) r.lines->pending_edges.push_back(t0 + i * kPeriod);
     r.lines->edge_ready.notify_all();
   }
   for (int i = 0; i < 500 && r.driver->State().steps < 5; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(2));
   EXPECT_EQ(r.driver->State().steps, 5u);
   EXPECT_EQ(r.driver->State().current_row, 1);
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 1));
-  EXPECT_EQ(r.driver->Edges().times_ns.back(), 100'000 + 4 * 1'096'491);
+  EXPECT_EQ(r.driver->Edges().times_ns.size(), 5u);
 }
 
 TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt) {
@@ -233,18 +240,20 @@ TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt)
   Rig r = Make(o);
   ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
   ASSERT_TRUE(r.driver->Arm().ok());
-  for (int i = 0; i < 2000 && r.driver->State().steps < 200; ++i) {
+  for (int i = 0; i < 2000 && r.driver->Edges().timing.count < 200; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
   ASSERT_TRUE(r.driver->Disarm().ok());
   MeasuredEdges m = r.driver->Edges();
   ASSERT_GE(m.timing.count, 200u);
-  EXPECT_EQ(r.driver->State().steps, m.timing.count) << "one step per edge";
+  EXPECT_EQ(r.driver->State().steps, m.timing.count + m.timing.lost_edges) << "one step per slot";
+  EXPECT_EQ(m.timing.lost_edges, r.driver->generator_missed_slots()) << "the slots it did not produce, stepped over";
   // The clock alternates high and low, starting high; it ran before the arm too (a generator runs from open).
   {
     std::lock_guard<std::mutex> lock(r.lines->mutex);
     ASSERT_GE(r.lines->clock.size(), 2 * m.timing.count - 1);
     EXPECT_TRUE(r.lines->clock.front().first);
+    EXPECT_FALSE(r.lines->clock.back().first) << "the clock stops low at disarm";
     for (size_t i = 1; i < r.lines->clock.size(); ++i) {
       ASSERT_NE(r.lines->clock[i].first, r.lines->clock[i - 1].first) << "clock write " << i;
     }
@@ -253,7 +262,7 @@ TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt)
   // periods, counting slots the generator had to skip, give or take the scheduling delay of two wake-ups.
   const double period = 1e9 / 912;
   const double span = static_cast<double>(m.times_ns.back() - m.times_ns.front());
-  const double slots = static_cast<double>(m.timing.count - 1 + r.driver->generator_missed_slots());
+  const double slots = static_cast<double>(m.timing.count - 1 + m.timing.lost_edges);
   EXPECT_NEAR(span, slots * period, 20e6) << "over " << m.timing.count << " edges";
   EXPECT_GT(span, 0.9 * (m.timing.count - 1) * period);
 }
@@ -262,17 +271,57 @@ TEST(GpiodLightDriverTest, AFailedOutputWriteIsAFaultAndABlackoutThatCannotConfi
   Rig r = Make(Options(2, 1, false));
   ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
   ASSERT_TRUE(r.driver->Arm().ok());
-  r.lines->fail_outputs = true;
-  r.driver->OnEdge(1);
+  const int64_t t0 = After();
+  {
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    r.lines->fail_outputs = true;
+  }
+  r.driver->OnEdge(t0);
   DriverState state = r.driver->State();
   ASSERT_EQ(state.faults.size(), 1u);
-  EXPECT_THAT(state.faults[0], HasSubstr("setting row 0 failed: line 3: Input/output error"));
+  EXPECT_THAT(state.faults[0], HasSubstr("setting a row failed: line 3: Input/output error"));
   ASSERT_EQ(state.take_faults.size(), 1u);
+  // The next edge's row is the next slot's: a failed write does not put the table a slot behind.
+  {
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    r.lines->fail_outputs = false;
+  }
+  r.driver->OnEdge(t0 + kPeriod);
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0)) << "row 1 (b) rounds to off, off";
+  EXPECT_EQ(r.driver->State().current_row, 1);
+  {
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    r.lines->fail_outputs = true;
+  }
   absl::Status s = r.driver->Blackout();
   EXPECT_TRUE(absl::IsUnavailable(s));
   EXPECT_THAT(std::string(s.message()), HasSubstr("lights-gpio-test"));
-  r.lines->fail_outputs = false;
+  {
+    std::lock_guard<std::mutex> lock(r.lines->mutex);
+    r.lines->fail_outputs = false;
+  }
   EXPECT_TRUE(r.driver->ResetBlackout().ok());
+}
+
+TEST(GpiodLightDriverTest, LostEdgesAreCountedAndSteppedOver) {
+  Rig r = Make(Options(2, 2, false));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  const int64_t t0 = After();
+  r.driver->OnEdge(t0);
+  r.driver->OnEdge(t0 + kPeriod);
+  r.driver->OnEdge(t0 + 4 * kPeriod);  // the edges of slots 2 and 3 never came
+  DriverState state = r.driver->State();
+  EXPECT_EQ(state.steps, 5u);
+  EXPECT_EQ(state.current_row, 4 % 3) << "the row of slot 4";
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 1));
+  ASSERT_TRUE(state.edges.has_value());
+  EXPECT_EQ(state.edges->count, 3u);
+  EXPECT_EQ(state.edges->lost_edges, 2u);
+  EXPECT_NEAR(state.edges->period_mean_ns, kPeriod, 1.0);
+  EXPECT_NEAR(state.edges->period_max_deviation_ns, std::abs(kPeriod - 1e9 / 912), 1.0) << "gaps are not jitter";
+  ASSERT_EQ(state.take_faults.size(), 1u);
+  EXPECT_THAT(state.take_faults[0], HasSubstr("slot clock: edges lost"));
 }
 
 TEST(GpiodLightDriverTest, ALightNodeOnGpioReportsTheMeasuredSlotClock) {
@@ -301,7 +350,8 @@ TEST(GpiodLightDriverTest, ALightNodeOnGpioReportsTheMeasuredSlotClock) {
   }
   request.set_heartbeat_timeout_ms(60'000);
   ASSERT_TRUE((*node)->Arm(request).ok());
-  for (int i = 0; i < 3; ++i) raw->OnEdge(1'000'000 + i * 1'096'491);
+  const int64_t t0 = After();
+  for (int i = 0; i < 3; ++i) raw->OnEdge(t0 + i * kPeriod);
   v1::LightStats stats = (*node)->Stats();
   EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_ARMED);
   EXPECT_EQ(stats.slot_edges(), 3u);

@@ -75,6 +75,7 @@ v1::LightStats LightNode::Stats() const {
     clock->set_period_mean_us(state.edges->period_mean_ns / 1e3);
     clock->set_period_max_deviation_us(state.edges->period_max_deviation_ns / 1e3);
     clock->set_max_step_latency_us(static_cast<double>(state.edges->max_step_latency_ns) / 1e3);
+    clock->set_lost_edges(state.edges->lost_edges);
   }
   std::lock_guard<std::mutex> lock(mutex_);
   if (state.mode == DriverMode::kBlackout) {

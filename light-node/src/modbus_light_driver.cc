@@ -16,6 +16,7 @@
 #include "absl/time/time.h"
 #include "stage/common/logging.h"
 #include "stage/light/led_board_map.h"
+#include "take_faults.h"
 
 namespace stage::light {
 
@@ -217,11 +218,7 @@ void ModbusLightDriver::ApplyStatus(const uint16_t* r) {
 
 void ModbusLightDriver::NoteBoardFault(const std::string& fault) {
   // With state_mutex_ held. Once per fault per take, stamped with when it was first seen.
-  for (const std::string& f : state_.take_faults) {
-    if (f.size() >= fault.size() && f.compare(f.size() - fault.size(), fault.size(), fault) == 0) return;
-  }
-  state_.take_faults.push_back(
-      absl::StrCat(absl::FormatTime("%H:%M:%E3S", absl::Now(), absl::LocalTimeZone()), " ", fault));
+  RecordTakeFault(&state_.take_faults, fault);
 }
 
 absl::Status ModbusLightDriver::PollStatus(Purpose purpose) {
@@ -241,10 +238,14 @@ absl::Status ModbusLightDriver::PollStatus(Purpose purpose) {
   if (!link_fault_.empty() && (take_window_.load() || state_.mode == DriverMode::kArmed)) {
     // "board not answering: status poll (register 0x0110): Connection timed out, 3 tries" (the node is named by
     // whoever reads it).
+    // One outage is one take fault, with the cause first seen (a later poll may fail another way).
+    const bool recorded = std::any_of(state_.take_faults.begin(), state_.take_faults.end(), [](const std::string& f) {
+      return f.find("board not answering") != std::string::npos;
+    });
     absl::string_view cause = link_fault_;
     absl::ConsumePrefix(&cause, Who() + ": ");
     absl::ConsumeSuffix(&cause, "; the board is not answering");
-    NoteBoardFault(absl::StrCat("board not answering: ", cause));
+    if (!recorded) NoteBoardFault(absl::StrCat("board not answering: ", cause));
   }
   return s;
 }

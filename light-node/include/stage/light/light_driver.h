@@ -31,6 +31,8 @@ enum class DriverMode {
 // times it drove its own clock line), since Arm().
 struct EdgeTiming {
   uint64_t count = 0;
+  // Edges that never reached the driver (a gap of more than 1.5 periods); the table stepped over their slots.
+  uint64_t lost_edges = 0;
   // Mean period since Arm() and the largest deviation of one period from the nominal slot period (jitter), ns.
   double period_mean_ns = 0;
   double period_max_deviation_ns = 0;
