@@ -1,6 +1,8 @@
 // light-node: serves one LED controller group of the stage (the LightNode gRPC service).
 #include <signal.h>
 
+#include <chrono>
+
 #include "backends.h"
 #include "light_node.h"
 #include "light_service.h"
@@ -24,6 +26,13 @@ int main(int argc, char** argv) {
       "--sim-world", world_address,
       "host:port of stage-sim's simulated world: the sim backend steps on its slot clock and lights its LEDs "
       "(armed by the controller for each take)");
+  double device_wait_s = 0;
+  app.add_option("--device-wait-s", device_wait_s,
+                 "When the node's device (its Modbus board, its GPIO chip) cannot be reached at start-up, try again "
+                 "every second for this long, saying so each time, before giving up (a board powered after its node); "
+                 "0 gives up at once")
+      ->capture_default_str()
+      ->check(CLI::Range(0.0, 86400.0));
   bool self_arm = false;
   app.add_flag("--sim-self-arm", self_arm,
                "With --sim-world: load the table from the rig's schedule and arm at once (a world without takes)");
@@ -43,6 +52,20 @@ int main(int argc, char** argv) {
     backend = *parsed;
   }
   auto driver = stage::light::CreateLightDriver(backend, config, loaded->rig.timing().slot_rate_hz());
+  // A device not there yet (Unavailable: a board that does not answer; NotFound: no such chip) is tried again for
+  // --device-wait-s; any other error (bad settings, a board of another kind) is final at once.
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::duration<double>(device_wait_s);
+  while (!driver.ok() && (absl::IsUnavailable(driver.status()) || absl::IsNotFound(driver.status())) &&
+         std::chrono::steady_clock::now() < give_up) {
+    const double left = std::chrono::duration<double>(give_up - std::chrono::steady_clock::now()).count();
+    stage::Logger("light.node")
+        ->warn("{}; trying again every second for another {:.0f} s", driver.status().message(), left);
+    if (auto sig = stage::WaitForShutdownSignal(std::chrono::milliseconds(1000))) {
+      stage::Logger("light.node")->info("stopped (signal {}) while waiting for the device", *sig);
+      return 0;
+    }
+    driver = stage::light::CreateLightDriver(backend, config, loaded->rig.timing().slot_rate_hz());
+  }
   if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
   // Declared before the node: the world outlives the driver, which leaves it when destroyed.
   std::unique_ptr<stage::sim::WorldClient> world;

@@ -2,6 +2,11 @@
 // Debian's python3-pymodbus (tests/support/pymodbus_led_board.py, the register map of docs/led-board-modbus.md), and
 // the simulator's fake board (the fake-led-board program) answering mbpoll, over TCP and over RTU on a socat
 // pseudo-terminal pair, and a pymodbus client.
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <chrono>
 #include <fstream>
 #include <regex>
@@ -213,6 +218,60 @@ print("exception", bad.exception_code if bad.isError() else "none")
   EXPECT_EQ(m[1], m[2]);
   EXPECT_THAT(r.out, HasSubstr("exception 3"));
   board.process->Terminate(2s);
+}
+
+// A board powered after its light node. The light-node program, with the shipped rig's lights-modbus-1 on a loopback
+// port where nothing answers yet: without --device-wait-s it exits at once naming the board; with it, it says it is
+// trying again, and serves once a fake board comes up on that port.
+TEST(ModbusInteropTest, ALightNodeWaitsForItsBoardWhenToldTo) {
+  testing::TempDir dir;
+  int port = 0;
+  {
+    // A free port: bound, read, closed (nothing else on loopback takes it in the next moments).
+    const int fd = socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ASSERT_EQ(bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof(a)), 0);
+    socklen_t len = sizeof(a);
+    ASSERT_EQ(getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len), 0);
+    port = ntohs(a.sin_port);
+    close(fd);
+  }
+  std::string rig = testing::ReadFile(std::string(FASTAGE_SOURCE_DIR) + "/common/rigs/fastage.yaml");
+  const std::string board = "host: led-board-1.stage.lan, port: 502";
+  ASSERT_NE(rig.find(board), std::string::npos);
+  rig.replace(rig.find(board), board.size(), absl::StrCat("host: 127.0.0.1, port: ", port));
+  const std::string rig_path = dir.path() + "/rig.yaml";
+  std::ofstream(rig_path) << rig;
+  const std::vector<std::string> node = {testing::BinDir() + "/light-node", "--config", rig_path, "--id",
+                                         "lights-modbus-1", "--port-file", dir.path() + "/node.port"};
+
+  testing::CommandResult at_once = RunCommand(node, 30s);
+  EXPECT_EQ(at_once.exit.exit_code, 1);
+  EXPECT_THAT(at_once.err, HasSubstr(absl::StrCat("board tcp://127.0.0.1:", port)));
+
+  std::vector<std::string> waiting = node;
+  waiting.insert(waiting.end(), {"--device-wait-s", "60"});
+  auto p = Subprocess::Spawn({.argv = waiting, .stderr_path = dir.path() + "/node.err"});
+  ASSERT_TRUE(p.ok()) << p.status();
+  for (int i = 0; i < 200 && testing::ReadFile(dir.path() + "/node.err").find("trying again") == std::string::npos;
+       ++i) {
+    std::this_thread::sleep_for(50ms);
+  }
+  EXPECT_THAT(testing::ReadFile(dir.path() + "/node.err"), HasSubstr("trying again every second"));
+  EXPECT_FALSE((*p)->Poll()) << "still waiting, not exited";
+  FakeBoardProcess fake = StartFakeBoard(dir, {"--tcp", absl::StrCat("127.0.0.1:", port)});
+  ASSERT_FALSE(fake.endpoint.empty());
+  bool serving = false;
+  for (int i = 0; i < 200 && !serving; ++i) {
+    serving = testing::ReadFile(dir.path() + "/node.err").find("serving on") != std::string::npos;
+    if (!serving) std::this_thread::sleep_for(50ms);
+  }
+  EXPECT_TRUE(serving) << testing::ReadFile(dir.path() + "/node.err");
+  EXPECT_FALSE((*p)->Poll());
+  (*p)->Terminate(5s);
+  fake.process->Terminate(2s);
 }
 
 }  // namespace
