@@ -14,28 +14,23 @@
 #include <thread>
 
 #include "CLI/CLI.hpp"
+#include "bench_util.h"
 #include "emergency_stop.h"
 #include "light_node.h"
 #include "light_service.h"
 #include "modbus_light_driver.h"
-#include "stage/common/rig.h"
 #include "stage/common/rpc_server.h"
 #include "stage/light/led_board_map.h"
 #include "stage/sim/fake_led_board.h"
 #include "stage/sim/sim_light_driver.h"
-#include "stage/timing/pattern_set.h"
-#include "stage/timing/schedule.h"
 #include "stage/v1/light_node.grpc.pb.h"
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
-double Ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
-
-[[noreturn]] void Die(const std::string& what) {
-  std::fprintf(stderr, "estop_bench: %s\n", what.c_str());
-  std::exit(1);
-}
+using stage::bench::Clock;
+using stage::bench::Median;
+using stage::bench::Ms;
+[[noreturn]] void Die(const std::string& what) { stage::bench::Die("estop_bench", what); }
 
 struct Node {
   std::unique_ptr<stage::sim::FakeLedBoard> board;
@@ -45,10 +40,6 @@ struct Node {
   stage::v1::ArmLightRequest arm;
 };
 
-double Median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  return v[v.size() / 2];
-}
 double Max(const std::vector<double>& v) { return *std::max_element(v.begin(), v.end()); }
 
 }  // namespace
@@ -63,14 +54,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 100000));
   CLI11_PARSE(app, argc, argv);
 
-  auto rig = stage::LoadRig(stage::kBuiltinRigName);
-  if (!rig.ok()) Die(std::string(rig.status().message()));
-  auto patterns = stage::timing::LoadRigPatternSet(rig->rig, rig->base_dir);
-  if (!patterns.ok()) Die(std::string(patterns.status().message()));
-  auto schedule = stage::timing::CompileSchedule(rig->rig, *patterns);
-  if (!schedule.ok()) Die(std::string(schedule.status().message()));
-
-  stage::v1::RigConfig live = rig->rig;
+  const stage::bench::ShippedRig shipped = stage::bench::LoadShippedRig("estop_bench");
+  stage::v1::RigConfig live = shipped.rig.rig;
   std::vector<Node> nodes(static_cast<size_t>(live.light_nodes_size()));
   int modbus_nodes = 0;
   for (int i = 0; i < live.light_nodes_size(); ++i) {
@@ -78,15 +63,9 @@ int main(int argc, char** argv) {
     Node& n = nodes[static_cast<size_t>(i)];
     std::unique_ptr<stage::light::LightDriver> driver;
     if (config.backend() == stage::v1::LIGHT_BACKEND_MODBUS) {
-      stage::sim::FakeLedBoardOptions o;
-      o.board_id = config.id();
-      o.channel_count = config.channel_count();
-      o.tcp_host = "127.0.0.1";
-      auto board = stage::sim::FakeLedBoard::Start(o);
+      auto board = stage::sim::FakeLedBoard::StartFor(&config);
       if (!board.ok()) Die(std::string(board.status().message()));
       n.board = std::move(*board);
-      config.mutable_modbus()->mutable_tcp()->set_host("127.0.0.1");
-      config.mutable_modbus()->mutable_tcp()->set_port(static_cast<uint32_t>(n.board->port()));
       auto options = stage::light::ModbusDriverOptionsFromRig(config);
       if (!options.ok()) Die(std::string(options.status().message()));
       auto d = stage::light::ModbusLightDriver::Open(*options);
@@ -108,7 +87,7 @@ int main(int argc, char** argv) {
     n.server = std::move(*server);
     config.set_address(n.server->address());
     n.arm.set_take_id("bench");
-    *n.arm.mutable_table() = schedule->light_nodes(i).table();
+    *n.arm.mutable_table() = shipped.schedule.light_nodes(i).table();
     n.arm.set_heartbeat_timeout_ms(600'000);
   }
 

@@ -7,7 +7,6 @@
 // Run: build/bin/light_upload_bench [--rounds 5]
 #include <modbus/modbus.h>
 
-#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <string>
@@ -15,22 +14,18 @@
 #include <vector>
 
 #include "CLI/CLI.hpp"
+#include "bench_util.h"
 #include "modbus_light_driver.h"
-#include "stage/common/rig.h"
 #include "stage/light/led_board_map.h"
 #include "stage/sim/fake_led_board.h"
-#include "stage/timing/pattern_set.h"
-#include "stage/timing/schedule.h"
+#include "stage/sim/world_devices.h"
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
-double Ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
-
-[[noreturn]] void Die(const std::string& what) {
-  std::fprintf(stderr, "light_upload_bench: %s\n", what.c_str());
-  std::exit(1);
-}
+using stage::bench::Clock;
+using stage::bench::Median;
+using stage::bench::Ms;
+[[noreturn]] void Die(const std::string& what) { stage::bench::Die("light_upload_bench", what); }
 
 struct Node {
   stage::v1::LightNodeConfig config;
@@ -73,32 +68,18 @@ int main(int argc, char** argv) {
   app.add_option("--rounds", rounds, "rounds; the median is reported")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
-  auto rig = stage::LoadRig(stage::kBuiltinRigName);
-  if (!rig.ok()) Die(std::string(rig.status().message()));
-  auto patterns = stage::timing::LoadRigPatternSet(rig->rig, rig->base_dir);
-  if (!patterns.ok()) Die(std::string(patterns.status().message()));
-  auto schedule = stage::timing::CompileSchedule(rig->rig, *patterns);
-  if (!schedule.ok()) Die(std::string(schedule.status().message()));
+  const stage::bench::ShippedRig shipped = stage::bench::LoadShippedRig("light_upload_bench");
 
   std::vector<Node> nodes;
-  for (int i = 0; i < rig->rig.light_nodes_size(); ++i) {
-    const auto& config = rig->rig.light_nodes(i);
+  for (int i = 0; i < shipped.rig.rig.light_nodes_size(); ++i) {
+    const auto& config = shipped.rig.rig.light_nodes(i);
     if (config.backend() != stage::v1::LIGHT_BACKEND_MODBUS) continue;
     Node n;
     n.config = config;
-    for (const auto& row : schedule->light_nodes(i).table().rows()) {
-      n.table.row_names.push_back(row.name());
-      n.table.rows.emplace_back(row.levels().begin(), row.levels().end());
-    }
-    stage::sim::FakeLedBoardOptions o;
-    o.board_id = config.id();
-    o.channel_count = config.channel_count();
-    o.tcp_host = "127.0.0.1";
-    auto board = stage::sim::FakeLedBoard::Start(o);
+    n.table = stage::sim::TableFromSchedule(shipped.schedule.light_nodes(i));
+    auto board = stage::sim::FakeLedBoard::StartFor(&n.config);
     if (!board.ok()) Die(std::string(board.status().message()));
     n.board = std::move(*board);
-    n.config.mutable_modbus()->mutable_tcp()->set_host("127.0.0.1");
-    n.config.mutable_modbus()->mutable_tcp()->set_port(static_cast<uint32_t>(n.board->port()));
     nodes.push_back(std::move(n));
   }
   std::vector<std::unique_ptr<stage::light::ModbusLightDriver>> drivers;
@@ -145,11 +126,7 @@ int main(int argc, char** argv) {
     write_loop.push_back(w);
     verify_loop.push_back(v);
   }
-  auto median = [](std::vector<double> v) {
-    std::sort(v.begin(), v.end());
-    return v[v.size() / 2];
-  };
-  const double s = median(serial), p = median(parallel), w = median(write_loop), v = median(verify_loop);
+  const double s = Median(serial), p = Median(parallel), w = Median(write_loop), v = Median(verify_loop);
   std::printf("%-58s %10s %14s\n", "", "median ms", "transactions");
   std::printf("%-58s %10.2f %14llu\n", "driver: upload + verify, node after node", s,
               static_cast<unsigned long long>(transactions));

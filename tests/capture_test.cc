@@ -32,34 +32,7 @@ using ::testing::HasSubstr;
 
 class CaptureTest : public SimulatedStageTest {
  protected:
-  std::string Endpoints() const { return run_dir_.path() + "/endpoints.json"; }
-
-  // stagectl with the stage's endpoint file.
-  CommandResult Stagectl(std::vector<std::string> args, std::chrono::seconds timeout = std::chrono::seconds(60)) {
-    args.insert(args.begin(), {"stagectl", "--endpoints", Endpoints()});
-    return RunCommand(args, timeout);
-  }
-
-  // stagectl in the background; its stdout and stderr go to <run dir>/<name>.out and .err.
-  std::unique_ptr<Subprocess> SpawnStagectl(std::vector<std::string> args, const std::string& name) {
-    args.insert(args.begin(), {BinDir() + "/stagectl", "--endpoints", Endpoints()});
-    auto p = Subprocess::Spawn({.argv = args,
-                                .stdout_path = run_dir_.path() + "/" + name + ".out",
-                                .stderr_path = run_dir_.path() + "/" + name + ".err"});
-    EXPECT_TRUE(p.ok()) << p.status();
-    return p.ok() ? std::move(*p) : nullptr;
-  }
-
-  std::string SessionState() { return StatusJson()["session_state"]; }
-
-  bool WaitForSession(const std::string& want, std::chrono::seconds timeout) {
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    while (std::chrono::steady_clock::now() < deadline) {
-      if (SessionState() == want) return true;
-      std::this_thread::sleep_for(std::chrono::milliseconds(200));
-    }
-    return false;
-  }
+  CaptureTest() { stagectl_timeout_ = std::chrono::seconds(60); }
 
   std::string Sql(const std::string& root, const std::string& query) {
     CommandResult r = RunCommand({"/usr/bin/sqlite3", root + "/catalog.sqlite", query}, std::chrono::seconds(30));

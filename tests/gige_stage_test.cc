@@ -59,11 +59,6 @@ class GigEStageTest : public SimulatedStageTest {
     StartStage(args);
   }
 
-  CommandResult Stagectl(std::vector<std::string> args, std::chrono::seconds timeout = std::chrono::seconds(300)) {
-    args.insert(args.begin(), {"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json"});
-    return RunCommand(args, timeout);
-  }
-
   std::string Sql(const std::string& root, const std::string& query) {
     CommandResult r = RunCommand({"/usr/bin/sqlite3", root + "/catalog.sqlite", query}, std::chrono::seconds(30));
     EXPECT_EQ(r.exit.exit_code, 0) << r.err;

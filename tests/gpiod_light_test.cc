@@ -6,7 +6,6 @@
 //  - a real chip named by FASTAGE_GPIO_CHIP, with FASTAGE_GPIO_LINES ("4,5,6:7": channel outputs, then the slot clock
 //    line, all free to drive): the node generates the slot clock there and steps on it.
 #include <sys/stat.h>
-#include <time.h>
 #include <unistd.h>
 
 #include <cstdlib>
@@ -20,6 +19,7 @@
 #include "gmock/gmock.h"
 #include "gpiod_light_driver.h"
 #include "gtest/gtest.h"
+#include "stage/timing/slot_clock.h"
 
 namespace stage::light {
 namespace {
@@ -28,11 +28,7 @@ namespace fs = std::filesystem;
 
 constexpr char kGpioSim[] = "/sys/kernel/config/gpio-sim";
 
-int64_t NowNs() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
-}
+int64_t NowNs() { return timing::HostClockNs(/*realtime_clock=*/false); }
 
 bool WriteFile(const fs::path& path, const std::string& text) {
   std::ofstream out(path);

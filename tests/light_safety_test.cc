@@ -26,29 +26,10 @@ int64_t MonotonicNs() { return RealClock(RealClock::Kind::kMonotonic).NowNs(); }
 
 class LightSafetyTest : public SimulatedStageTest {
  protected:
-  std::string Endpoints() const { return run_dir_.path() + "/endpoints.json"; }
-
-  CommandResult Stagectl(std::vector<std::string> args, std::chrono::seconds timeout = 60s) {
-    args.insert(args.begin(), {"stagectl", "--endpoints", Endpoints()});
-    return RunCommand(args, timeout);
-  }
+  LightSafetyTest() { stagectl_timeout_ = 60s; }
 
   std::unique_ptr<Subprocess> SpawnCapture(int frames) {
-    auto p = Subprocess::Spawn({.argv = {BinDir() + "/stagectl", "--endpoints", Endpoints(), "capture", "--frames",
-                                         std::to_string(frames), "--json"},
-                                .stdout_path = run_dir_.path() + "/capture.out",
-                                .stderr_path = run_dir_.path() + "/capture.err"});
-    EXPECT_TRUE(p.ok()) << p.status();
-    return p.ok() ? std::move(*p) : nullptr;
-  }
-
-  bool WaitForSession(const std::string& want, std::chrono::seconds timeout) {
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    while (std::chrono::steady_clock::now() < deadline) {
-      if (StatusJson()["session_state"] == want) return true;
-      std::this_thread::sleep_for(200ms);
-    }
-    return false;
+    return SpawnStagectl({"capture", "--frames", std::to_string(frames), "--json"}, "capture");
   }
 
   // Total light every LED emitted over [t0, t1] (monotonic ns: the real-time world's clock), both emitters.

@@ -36,11 +36,6 @@ class ModbusStageTest : public SimulatedStageTest {
     StartStage(args);
   }
 
-  CommandResult Stagectl(std::vector<std::string> args, std::chrono::seconds timeout = 300s) {
-    args.insert(args.begin(), {"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json"});
-    return RunCommand(args, timeout);
-  }
-
   // Light node id -> the backend its process reports.
   std::map<std::string, std::string> LightBackends() {
     std::map<std::string, std::string> backends;

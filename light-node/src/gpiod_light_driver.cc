@@ -1,31 +1,16 @@
 // LED channels on GPIO lines, stepping on the slot clock.
 #include "gpiod_light_driver.h"
 
-#include <time.h>
-
 #include <algorithm>
 #include <cmath>
 #include <set>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "absl/time/clock.h"
-#include "absl/time/time.h"
 #include "stage/common/logging.h"
 #include "take_faults.h"
 
 namespace stage::light {
-namespace {
-
-void SleepUntil(int64_t time_ns) {
-  timespec ts{};
-  ts.tv_sec = time_ns / 1'000'000'000;
-  ts.tv_nsec = time_ns % 1'000'000'000;
-  while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
-  }
-}
-
-}  // namespace
 
 absl::Status GpiodDriverOptions::Validate() const {
   const std::string who = absl::StrCat("light node \"", node_id, "\": ");
@@ -181,7 +166,7 @@ void GpiodLightDriver::InputLoop() {
     if (!edges.ok()) {
       {
         std::lock_guard<std::mutex> lock(mutex_);
-        NoteFault(absl::StrCat("slot clock input: ", edges.status().message()));
+        NoteFault("slot clock input", absl::StrCat(": ", edges.status().message()));
       }
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
       continue;
@@ -200,19 +185,23 @@ void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
     OnEdge(rose);
   } else {
     std::lock_guard<std::mutex> lock(mutex_);
-    NoteFault(absl::StrCat("slot clock output: ", s.message()));
+    NoteFault("slot clock output", absl::StrCat(": ", s.message()));
   }
   // Low again after clock_duty (at most half) of the slot: the listener returns before the next edge is due.
-  SleepUntil(edge.scheduled_ns + std::llround(1e9 / options_.slot_rate_hz * options_.clock_duty));
+  timing::SleepUntilHostNs(edge.scheduled_ns + std::llround(1e9 / options_.slot_rate_hz * options_.clock_duty),
+                           /*realtime_clock=*/false);
   (void)lines_->SetClock(false);
 }
 
-void GpiodLightDriver::NoteFault(const std::string& fault) {
-  if (std::find(state_.faults.begin(), state_.faults.end(), fault) == state_.faults.end()) {
-    state_.faults.push_back(fault);
-    Logger("light.gpiod")->warn("{}: {}", Who(), fault);
+void GpiodLightDriver::NoteFault(const std::string& kind, const std::string& detail) {
+  // Once per kind, as the take's record keeps it: an error text that changes from edge to edge is one fault.
+  const bool known = std::any_of(state_.faults.begin(), state_.faults.end(),
+                                 [&](const std::string& f) { return f.compare(0, kind.size(), kind) == 0; });
+  if (!known) {
+    state_.faults.push_back(kind + detail);
+    Logger("light.gpiod")->warn("{}: {}{}", Who(), kind, detail);
   }
-  RecordTakeFault(&state_.take_faults, fault);
+  RecordTakeFault(&state_.take_faults, kind, detail);
 }
 
 void GpiodLightDriver::OnEdge(int64_t time_ns) {
@@ -247,7 +236,7 @@ void GpiodLightDriver::OnEdge(int64_t time_ns) {
   ++state_.steps;
   state_.current_row = row;
   if (absl::Status s = lines_->SetOutputs(row_lines_[static_cast<size_t>(row)]); !s.ok()) {
-    NoteFault(absl::StrCat("setting a row failed: ", s.message()));
+    NoteFault("setting a row failed", absl::StrCat(": ", s.message()));
     return;
   }
   timing_.max_step_latency_ns = std::max(timing_.max_step_latency_ns, timing::HostClockNs(false) - time_ns);

@@ -104,8 +104,8 @@ class GpiodLightDriver final : public LightDriver {
   void StopGenerator();
   void InputLoop();
   void OnGeneratedEdge(const timing::SlotEdge& edge);
-  // With mutex_ held: a fault now and in the take's record.
-  void NoteFault(const std::string& fault);
+  // With mutex_ held: a fault now and in the take's record, once per kind (`detail` is what varies: an error text).
+  void NoteFault(const std::string& kind, const std::string& detail = "");
   absl::Status AllLow();
   std::string Who() const;
 

@@ -2,8 +2,6 @@
 // edges, the edge record, the generator, blackout and faults. tests/gpiod_light_test.cc runs it on real lines.
 #include "gpiod_light_driver.h"
 
-#include <time.h>
-
 #include <condition_variable>
 #include <deque>
 

@@ -205,20 +205,22 @@ void ModbusLightDriver::ApplyStatus(const uint16_t* r) {
   state_.current_row = step == b::kDark ? -1 : step;
   state_.steps = (uint64_t{r[b::kStepCountHi - b::kStatus]} << 16) | r[b::kStepCountLo - b::kStatus];
   state_.temperature_c = static_cast<int16_t>(r[b::kTemperature - b::kStatus]) / 10.0;
-  state_.faults.clear();
+  board_faults_.clear();
   for (uint16_t bit = 1; bit != 0; bit = static_cast<uint16_t>(bit << 1)) {
-    if (faults & bit) state_.faults.push_back(absl::StrCat("board: ", b::FaultName(bit)));
+    if (!(faults & bit)) continue;
+    board_faults_.emplace_back(absl::StrCat("board: ", b::FaultName(bit)),
+                               bit == b::kFaultOverTemperature
+                                   ? absl::StrFormat(" (%.1f degC, limit %.1f degC)", *state_.temperature_c,
+                                                     static_cast<int16_t>(r[b::kTemperatureLimit - b::kStatus]) / 10.0)
+                                   : std::string());
   }
-  if (faults & b::kFaultOverTemperature) {
-    state_.faults.back() = absl::StrFormat("board: over temperature (%.1f degC, limit %.1f degC)",
-                                           *state_.temperature_c,
-                                           static_cast<int16_t>(r[b::kTemperatureLimit - b::kStatus]) / 10.0);
-  }
+  state_.faults.clear();
+  for (const auto& [kind, detail] : board_faults_) state_.faults.push_back(kind + detail);
 }
 
-void ModbusLightDriver::NoteBoardFault(const std::string& fault) {
-  // With state_mutex_ held. Once per fault per take, stamped with when it was first seen.
-  RecordTakeFault(&state_.take_faults, fault);
+void ModbusLightDriver::NoteBoardFault(const std::string& kind, const std::string& detail) {
+  // With state_mutex_ held. Once per kind per take, stamped with when it was first seen.
+  RecordTakeFault(&state_.take_faults, kind, detail);
 }
 
 absl::Status ModbusLightDriver::PollStatus(Purpose purpose) {
@@ -233,19 +235,15 @@ absl::Status ModbusLightDriver::PollStatus(Purpose purpose) {
     link_fault_ = std::string(s.message());
   }
   if (take_window_.load() || state_.mode == DriverMode::kBlackout) {
-    for (const std::string& f : state_.faults) NoteBoardFault(f);
+    for (const auto& [kind, detail] : board_faults_) NoteBoardFault(kind, detail);
   }
   if (!link_fault_.empty() && (take_window_.load() || state_.mode == DriverMode::kArmed)) {
     // "board not answering: status poll (register 0x0110): Connection timed out, 3 tries" (the node is named by
-    // whoever reads it).
-    // One outage is one take fault, with the cause first seen (a later poll may fail another way).
-    const bool recorded = std::any_of(state_.take_faults.begin(), state_.take_faults.end(), [](const std::string& f) {
-      return f.find("board not answering") != std::string::npos;
-    });
+    // whoever reads it); one outage is one take fault, with the cause first seen.
     absl::string_view cause = link_fault_;
     absl::ConsumePrefix(&cause, Who() + ": ");
     absl::ConsumeSuffix(&cause, "; the board is not answering");
-    if (!recorded) NoteBoardFault(absl::StrCat("board not answering: ", cause));
+    NoteBoardFault("board not answering", absl::StrCat(": ", cause));
   }
   return s;
 }

@@ -16,6 +16,7 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -78,7 +79,7 @@ class ModbusLightDriver final : public LightDriver {
   // Status block -> cached state. Called with state_mutex_ held.
   void ApplyStatus(const uint16_t* regs);
   absl::Status PollStatus(Purpose purpose);
-  void NoteBoardFault(const std::string& fault);
+  void NoteBoardFault(const std::string& kind, const std::string& detail = "");
   void PollLoop();
   std::string Who() const;
 
@@ -94,6 +95,8 @@ class ModbusLightDriver final : public LightDriver {
   mutable std::mutex state_mutex_;
   DriverState state_;                  // guarded by state_mutex_
   std::string link_fault_;             // guarded by state_mutex_: the board is not answering, in words
+  // Guarded by state_mutex_: the board's fault bits as the status last read them, each as (kind, what varies).
+  std::vector<std::pair<std::string, std::string>> board_faults_;
   uint32_t max_rows_ = 0;
   std::string model_;
   uint16_t firmware_ = 0;

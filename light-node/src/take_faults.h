@@ -10,13 +10,17 @@
 
 namespace stage::light {
 
-// Adds `fault` to `take_faults`, stamped with when it was first seen ("10:41:07.512 board not answering: ..."), once
-// per take: a fault already recorded (by its text after the stamp) is not added again.
-inline void RecordTakeFault(std::vector<std::string>* take_faults, const std::string& fault) {
+// Adds "<stamp> <kind><detail>" to `take_faults`, stamped with when it was first seen ("10:41:07.512 board not
+// answering: status poll ..."), once per take and kind: a kind already recorded is not added again, whatever its
+// detail now (a temperature, an error text), so one fault that lasts is one entry, with what was seen first.
+inline void RecordTakeFault(std::vector<std::string>* take_faults, const std::string& kind,
+                            const std::string& detail = "") {
   for (const std::string& f : *take_faults) {
-    if (f.size() >= fault.size() && f.compare(f.size() - fault.size(), fault.size(), fault) == 0) return;
+    const size_t text = f.find(' ') + 1;  // after the stamp
+    if (f.compare(text, kind.size(), kind) == 0) return;
   }
-  take_faults->push_back(absl::StrCat(absl::FormatTime("%H:%M:%E3S", absl::Now(), absl::LocalTimeZone()), " ", fault));
+  take_faults->push_back(
+      absl::StrCat(absl::FormatTime("%H:%M:%E3S", absl::Now(), absl::LocalTimeZone()), " ", kind, detail));
 }
 
 }  // namespace stage::light

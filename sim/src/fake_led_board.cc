@@ -22,6 +22,7 @@
 #include "stage/light/led_board_map.h"
 #include "stage/sim/scene.h"
 #include "stage/sim/world_devices.h"
+#include "stage/v1/rig.pb.h"
 
 namespace stage::sim {
 
@@ -465,24 +466,31 @@ void FakeLedBoard::SetNoAnswerFor(std::chrono::milliseconds wall) {
   impl_->answer_again_ns_ = SteadyNs() + std::chrono::duration_cast<std::chrono::nanoseconds>(wall).count();
 }
 
-absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const SimScene& scene, const std::string& node_id) {
-  const int index = scene.LightNodeIndex(node_id);
-  if (index < 0) return absl::NotFoundError(absl::StrCat("light node \"", node_id, "\" is not in the rig"));
-  const v1::LightNodeConfig& n = scene.rig().light_nodes(index);
+absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const v1::LightNodeConfig& n, uint32_t serial) {
   if (n.backend() != v1::LIGHT_BACKEND_MODBUS) {
-    return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id, "\": a fake LED board needs backend modbus"));
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", n.id(), "\": a fake LED board needs backend modbus"));
   }
   FakeLedBoardOptions o;
-  o.board_id = node_id;
+  o.board_id = n.id();
   o.channel_count = n.channel_count();
   o.unit_id = static_cast<int>(n.modbus().has_unit_id() ? n.modbus().unit_id() : 1);
-  o.serial = static_cast<uint32_t>(index + 1);
+  o.serial = serial;
   o.tcp_host = "127.0.0.1";
   o.tcp_port = 0;
   if (absl::Status s = o.Validate(); !s.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat("light node \"", node_id, "\": ", s.message()));
+    return absl::InvalidArgumentError(absl::StrCat("light node \"", n.id(), "\": ", s.message()));
   }
   return o;
+}
+
+absl::StatusOr<std::unique_ptr<FakeLedBoard>> FakeLedBoard::StartFor(v1::LightNodeConfig* node) {
+  auto options = FakeLedBoardOptionsForNode(*node);
+  if (!options.ok()) return options.status();
+  auto board = Start(*std::move(options));
+  if (!board.ok()) return board.status();
+  node->mutable_modbus()->mutable_tcp()->set_host("127.0.0.1");
+  node->mutable_modbus()->mutable_tcp()->set_port(static_cast<uint32_t>((*board)->port()));
+  return board;
 }
 
 absl::Status FakeLedBoard::JoinStage(const SimScene& scene, const std::string& node_id, WorldClient* world,

@@ -302,9 +302,10 @@ int main(int argc, char** argv) {
 #endif
   if (scene != nullptr && scene->rig().sim().modbus_fakes()) {
 #if STAGE_WITH_MODBUS
-    for (const auto& n : scene->rig().light_nodes()) {
+    for (int i = 0; i < scene->rig().light_nodes_size(); ++i) {
+      const stage::v1::LightNodeConfig& n = scene->rig().light_nodes(i);
       if (n.backend() != stage::v1::LIGHT_BACKEND_MODBUS) continue;
-      auto board_options = stage::sim::FakeLedBoardOptionsForNode(*scene, n.id());
+      auto board_options = stage::sim::FakeLedBoardOptionsForNode(n, static_cast<uint32_t>(i + 1));
       if (!board_options.ok()) return stage::ReportFatal(kProgram, board_options.status());
       auto board = stage::sim::FakeLedBoard::Start(*board_options);
       if (!board.ok()) return stage::ReportFatal(kProgram, board.status());

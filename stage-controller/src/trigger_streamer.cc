@@ -3,35 +3,18 @@
 
 #include <grpcpp/grpcpp.h>
 #include <sys/prctl.h>
-#include <time.h>
 
 #include <algorithm>
-#include <cerrno>
 #include <chrono>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
+#include "stage/timing/slot_clock.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 
 namespace stage::controller {
-namespace {
-
-int64_t RealtimeNs() {
-  timespec ts;
-  clock_gettime(CLOCK_REALTIME, &ts);
-  return static_cast<int64_t>(ts.tv_sec) * 1'000'000'000 + ts.tv_nsec;
-}
-
-void SleepUntilRealtime(int64_t ns) {
-  if (ns <= 0) return;
-  timespec ts{ns / 1'000'000'000, ns % 1'000'000'000};
-  while (clock_nanosleep(CLOCK_REALTIME, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
-  }
-}
-
-}  // namespace
 
 TriggerStreamer::TriggerStreamer(TriggerStreamOptions options, std::vector<TriggerTarget> targets)
     : options_(std::move(options)),
@@ -101,9 +84,9 @@ void TriggerStreamer::Send(size_t index) {
   int64_t k = timing::NextFiringSlot(camera, options_.first_slot);
   bool ok = true;
   v1::ClockMapping clock = target.clock;
-  int64_t next_clock_update = RealtimeNs() + options_.clock_update_interval_ns;
+  int64_t next_clock_update = timing::HostClockNs(/*realtime_clock=*/true) + options_.clock_update_interval_ns;
   while (ok && k < end && !cancelled_.load()) {
-    const int64_t now = RealtimeNs();
+    const int64_t now = timing::HostClockNs(/*realtime_clock=*/true);
     if (options_.clock_source && now >= next_clock_update) {
       next_clock_update = now + options_.clock_update_interval_ns;
       std::optional<v1::ClockMapping> latest = options_.clock_source(target.id);
@@ -129,7 +112,7 @@ void TriggerStreamer::Send(size_t index) {
     // Sleep until the next trigger must leave, but at least a quarter lead: what falls due meanwhile goes in one
     // message, and every trigger still leaves at least three quarters of the lead ahead of its time.
     const int64_t next_send = options_.t0_unix_ns + time_ns(k) - options_.lead_ns;
-    SleepUntilRealtime(std::max(next_send, now + wake_period));
+    timing::SleepUntilHostNs(std::max(next_send, now + wake_period), /*realtime_clock=*/true);
   }
   writer->WritesDone();
   grpc::Status status = writer->Finish();

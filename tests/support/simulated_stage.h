@@ -72,12 +72,45 @@ class SimulatedStageTest : public ::testing::Test {
   }
 
   nlohmann::json StatusJson() {
-    CommandResult r = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "status", "--json"},
-                                 std::chrono::seconds(20));
+    CommandResult r = RunCommand({"stagectl", "--endpoints", Endpoints(), "status", "--json"}, std::chrono::seconds(20));
     EXPECT_FALSE(r.timed_out);
     return nlohmann::json::parse(r.out);
   }
 
+  // The running stage's endpoint file, which stagectl is pointed at.
+  std::string Endpoints() const { return run_dir_.path() + "/endpoints.json"; }
+
+  // stagectl on the running stage, waited for: within `timeout`, or the suite's stagectl_timeout_.
+  CommandResult Stagectl(std::vector<std::string> args) { return Stagectl(std::move(args), stagectl_timeout_); }
+  CommandResult Stagectl(std::vector<std::string> args, std::chrono::seconds timeout) {
+    args.insert(args.begin(), {"stagectl", "--endpoints", Endpoints()});
+    return RunCommand(args, timeout);
+  }
+
+  // stagectl in the background; its stdout and stderr go to <run dir>/<name>.out and .err.
+  std::unique_ptr<Subprocess> SpawnStagectl(std::vector<std::string> args, const std::string& name) {
+    args.insert(args.begin(), {BinDir() + "/stagectl", "--endpoints", Endpoints()});
+    auto p = Subprocess::Spawn({.argv = args,
+                                .stdout_path = run_dir_.path() + "/" + name + ".out",
+                                .stderr_path = run_dir_.path() + "/" + name + ".err"});
+    EXPECT_TRUE(p.ok()) << p.status();
+    return p.ok() ? std::move(*p) : nullptr;
+  }
+
+  std::string SessionState() { return StatusJson()["session_state"]; }
+
+  // Polls the session state (every 200 ms) until it is `want`; false when `timeout` passed first.
+  bool WaitForSession(const std::string& want, std::chrono::seconds timeout) {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    while (std::chrono::steady_clock::now() < deadline) {
+      if (SessionState() == want) return true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    }
+    return false;
+  }
+
+  // How long Stagectl(args) waits for stagectl. Suites whose commands are all quick lower it.
+  std::chrono::seconds stagectl_timeout_{300};
   TempDir run_dir_;
   std::unique_ptr<Subprocess> sim_;
   v1::SimEndpoints endpoints_;

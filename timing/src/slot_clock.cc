@@ -37,6 +37,13 @@ int64_t HostClockNs(bool realtime_clock) {
   return static_cast<int64_t>(ts.tv_sec) * kNsPerSecond + ts.tv_nsec;
 }
 
+void SleepUntilHostNs(int64_t ns, bool realtime_clock) {
+  if (ns <= 0) return;
+  const timespec ts = ToTimespec(ns);
+  while (clock_nanosleep(realtime_clock ? CLOCK_REALTIME : CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
+  }
+}
+
 absl::Status SlotClockOptions::Validate() const {
   if (slot_rate_hz < 1 || slot_rate_hz > 1'000'000) {
     return absl::InvalidArgumentError(absl::StrCat("slot_rate_hz ", slot_rate_hz, " is not in [1, 1000000]"));
@@ -141,7 +148,6 @@ void SlotClock::RunVirtual() {
 }
 
 void SlotClock::RunRealTime() {
-  const clockid_t id = options_.realtime_clock ? CLOCK_REALTIME : CLOCK_MONOTONIC;
   const int64_t end = options_.slot_count < 0 ? INT64_MAX : options_.first_slot + options_.slot_count;
   const int64_t period = kNsPerSecond / options_.slot_rate_hz;  // for the "a slot late" test only
   int64_t k = options_.first_slot;
@@ -152,9 +158,7 @@ void SlotClock::RunRealTime() {
     // Sleep in bounded steps so that Stop() is seen; the last step ends at `wake` exactly.
     for (int64_t now = HostClockNs(options_.realtime_clock); now < wake && !stop_.load();
          now = HostClockNs(options_.realtime_clock)) {
-      const timespec ts = ToTimespec(std::min(wake, now + kMaxSleepNs));
-      while (clock_nanosleep(id, TIMER_ABSTIME, &ts, nullptr) == EINTR) {
-      }
+      SleepUntilHostNs(std::min(wake, now + kMaxSleepNs), options_.realtime_clock);
     }
     if (stop_.load()) break;  // edges skipped so far are still counted below
     int64_t now = HostClockNs(options_.realtime_clock);

@@ -21,6 +21,13 @@ namespace stage::sim {
 
 class SimScene;
 class WorldClient;
+}  // namespace stage::sim
+
+namespace stage::v1 {
+class LightNodeConfig;
+}  // namespace stage::v1
+
+namespace stage::sim {
 
 struct FakeLedBoardOptions {
   // Name in logs and errors (the light node it stands for).
@@ -57,14 +64,16 @@ struct BoardRequest {
   int64_t at_ns = 0;  // steady clock
 };
 
-// The board of light node `node_id` in the simulated stage: the node's channel count and unit id, TCP on 127.0.0.1 at a
-// free port. InvalidArgument names the node when it is not a modbus node of 1..64 channels.
-absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const SimScene& scene, const std::string& node_id);
+// The board of a modbus light node: the node's channel count and unit id, TCP on 127.0.0.1 at a free port, serial
+// number `serial`. InvalidArgument names the node when it is not a modbus node of 1..64 channels.
+absl::StatusOr<FakeLedBoardOptions> FakeLedBoardOptionsForNode(const v1::LightNodeConfig& node, uint32_t serial = 1);
 
 class FakeLedBoard {
  public:
   // Listens (TCP) or opens the serial device (RTU) and serves from a thread of its own until destroyed.
   static absl::StatusOr<std::unique_ptr<FakeLedBoard>> Start(FakeLedBoardOptions options);
+  // A board for modbus light node `node` (FakeLedBoardOptionsForNode), with the node's modbus.tcp pointed at it.
+  static absl::StatusOr<std::unique_ptr<FakeLedBoard>> StartFor(v1::LightNodeConfig* node);
   ~FakeLedBoard();
 
   // "tcp://127.0.0.1:40211" or "rtu:/dev/pts/4".

@@ -108,5 +108,8 @@ class SlotClock {
 
 // Nanoseconds on CLOCK_MONOTONIC or CLOCK_REALTIME.
 int64_t HostClockNs(bool realtime_clock);
+// Sleeps until `ns` on that clock (absolute clock_nanosleep, resumed after a signal); returns at once for a time past
+// or <= 0.
+void SleepUntilHostNs(int64_t ns, bool realtime_clock);
 
 }  // namespace stage::timing
