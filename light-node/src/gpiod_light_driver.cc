@@ -177,12 +177,11 @@ void GpiodLightDriver::InputLoop() {
 
 void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
   // Slots the generator reached a whole slot late or more were not produced (SlotClock goes on with the current
-  // slot); OnEdge sees the gap and steps over them.
-  if (edge.missed_before > 0) generator_missed_.fetch_add(static_cast<uint64_t>(edge.missed_before));
+  // slot): OnEdge counts them as lost and steps over them.
   absl::Status s = lines_->SetClock(true);
   const int64_t rose = timing::HostClockNs(false);
   if (s.ok()) {
-    OnEdge(rose);
+    OnEdge(rose, static_cast<uint64_t>(edge.missed_before));
   } else {
     std::lock_guard<std::mutex> lock(mutex_);
     NoteFault("slot clock output", absl::StrCat(": ", s.message()));
@@ -204,7 +203,7 @@ void GpiodLightDriver::NoteFault(const std::string& kind, const std::string& det
   RecordTakeFault(&state_.take_faults, kind, detail);
 }
 
-void GpiodLightDriver::OnEdge(int64_t time_ns) {
+void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_before) {
   std::lock_guard<std::mutex> lock(mutex_);
   // Only edges of the take: one the kernel stamped before the arm (queued while idle) is not the take's first.
   if (state_.mode != DriverMode::kArmed || time_ns < armed_at_ns_) return;
@@ -214,10 +213,13 @@ void GpiodLightDriver::OnEdge(int64_t time_ns) {
     first_edge_ns_ = time_ns;
   } else {
     const double period = static_cast<double>(time_ns - last_edge_ns_);
-    if (period > 1.5 * nominal) {
-      // Edges that never reached this node (the kernel's event queue of 16 overflowed, the generator fell behind,
-      // or the line glitched): the table steps over their slots, so it stays in phase with the clock.
-      lost = static_cast<uint64_t>(std::llround(period / nominal)) - 1;
+    // Edges that never reached this node (the kernel's event queue of 16 overflowed, the line glitched), judged from
+    // a gap of more than 1.5 periods; the generator says how many slots it did not produce (one it produced late is
+    // not lost). The table steps over their slots, so it stays in phase with the clock.
+    lost = lost_before ? *lost_before
+                       : period > 1.5 * nominal ? static_cast<uint64_t>(std::llround(period / nominal)) - 1
+                                                : 0;
+    if (lost > 0) {
       timing_.lost_edges += lost;
       NoteFault("slot clock: edges lost (LightStats.slot_clock.lost_edges counts them)");
     } else {

@@ -10,8 +10,9 @@
 // armed (a run of the bus, as the simulated world runs one per take): rising edge at each slot start, high for
 // `clock_duty` of the slot, timed by timing::SlotClock (absolute sleeps on CLOCK_MONOTONIC, 1 ns timer slack; a slot
 // reached late is missed, not late). Either way every edge of the take is recorded (MeasuredEdges): the take's
-// measured edges, for the timing comparison. A gap of more than 1.5 periods between two edges is edges lost (the
-// kernel's v1 event queue holds 16): they are counted, reported, and the table steps over their slots.
+// measured edges, for the timing comparison. On an input, a gap of more than 1.5 periods between two edges is edges
+// lost (the kernel's v1 event queue holds 16); on the generator, the slots it skipped are: they are counted,
+// reported, and the table steps over their slots.
 //
 // libgpiod v1 sets at most 64 lines per request: a node with more outputs sets a row in several writes, 64 lines
 // each, microseconds apart.
@@ -90,11 +91,11 @@ class GpiodLightDriver final : public LightDriver {
   absl::Status ResetBlackout() override;
   DriverState State() const override;
 
-  // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines.
-  void OnEdge(int64_t time_ns);
+  // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines. `lost_before`:
+  // edges lost just before this one where the caller knows (the generator's skipped slots); unset, a gap of more
+  // than 1.5 periods since the last edge says so.
+  void OnEdge(int64_t time_ns, std::optional<uint64_t> lost_before = std::nullopt);
   MeasuredEdges Edges() const;
-  // Slots the generator could not produce on time (this process fell behind) since open; 0 when not generating.
-  uint64_t generator_missed_slots() const { return generator_missed_.load(); }
   // The worst rounding error of the loaded table, as a fraction of full scale (0 when none is loaded).
   double quantization_error() const;
 
@@ -121,7 +122,6 @@ class GpiodLightDriver final : public LightDriver {
   int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
   int64_t armed_at_ns_ = 0;                       // guarded by mutex_
   std::atomic<bool> stopping_{false};
-  std::atomic<uint64_t> generator_missed_{0};
   std::thread edge_thread_;                   // input: waits for edges
   std::unique_ptr<timing::SlotClock> generator_;  // guarded by mutex_: the slot clock while armed
 };
