@@ -59,8 +59,18 @@ void World::Stop() {
 void World::OnRealEdge(const timing::SlotEdge& edge) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (NextEdge(edge.slot) != edge.slot) return;  // the bus is silent between runs
-    current_ = edge.slot;
+    if (NextEdge(edge.slot) != edge.slot) {
+      // The bus is silent between runs: from the end of the last run that is over, through this edge.
+      int64_t ended = -1;
+      for (const WorldRun& r : runs_) {
+        if (r.end <= edge.slot) ended = r.end;
+      }
+      if (ended < 0) return;  // no run yet: nothing any node promised to build on
+      quiet_from_ns_ = EdgeNs(ended);
+      quiet_through_ns_ = EdgeNs(edge.slot);
+    } else {
+      current_ = edge.slot;
+    }
   }
   changed_.notify_all();
 }
@@ -298,8 +308,9 @@ absl::StatusOr<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
     std::unique_lock<std::mutex> lock(mutex_);
     changed_.wait(lock, [&] {
       if (stopped_) return true;
+      const bool quiet = t1_ns <= quiet_through_ns_;  // between runs (real time), see quiet_through_ns_
       for (const auto& [node, w] : watermarks_) {
-        if (w < t1_ns) return false;
+        if (w < t1_ns && !(quiet && w >= quiet_from_ns_)) return false;
       }
       return true;
     });

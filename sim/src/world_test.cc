@@ -4,6 +4,7 @@
 #include "stage/sim/world.h"
 
 #include <chrono>
+#include <future>
 #include <random>
 #include <thread>
 
@@ -185,6 +186,37 @@ TEST(WorldTest, RealTimeRunsStartAheadAndCountOnlyTheirOwnEdgesAsMissed) {
   auto later = world.WaitForEdge(dev, first->slot + 1);
   ASSERT_TRUE(later.has_value());
   EXPECT_EQ(later->missed, later->slot - first->slot - 1);
+  world.Stop();
+}
+
+// Real time, between runs: once the bus has been silent past a window, the window's light is known from what the
+// nodes reported by the run's end, though no node promised that far (nothing changes before the next run). A node
+// that has not answered the run's last edge still holds the window up.
+TEST(WorldTest, RealTimeLightIsKnownBetweenRunsOnceEveryNodeAnsweredTheRun) {
+  Dome dome = TwoNodeDome();
+  World world(dome, {.slot_rate_hz = 1000, .lockstep = false, .rise_ns = {0, 0}, .fall_ns = {0, 0}, .open_run = false});
+  world.Register("lights-0", 0);
+  world.Register("lights-1", 1);
+  world.Start();
+  auto run = world.Run(5, 50);
+  ASSERT_TRUE(run.ok()) << run.status();
+  const std::vector<double> on(8, 1.0), off(8, 0.0);
+  // Node 0 answers the run to its last edge (promising through the end slot's edge); node 1 one edge short.
+  world.ReportLevels(0, world.EdgeNs(run->first), on, world.EdgeNs(run->end));
+  world.ReportLevels(1, world.EdgeNs(run->first), off, world.EdgeNs(run->end - 1));
+  // A window 3 ms after the run, past every promise: node 1 did not answer the last edge, so it is not known.
+  const int64_t t0 = world.EdgeNs(run->end + 3), t1 = t0 + 500'000;
+  auto pending = std::async(std::launch::async, [&] { return world.Exposure(t0, t1); });
+  EXPECT_EQ(pending.wait_for(std::chrono::milliseconds(300)), std::future_status::timeout);
+  // Node 1 answers its last edge (late): the quiet bus vouches for the window now.
+  world.ReportLevels(1, world.EdgeNs(run->end - 1), off, world.EdgeNs(run->end));
+  const bool ready = pending.wait_for(std::chrono::seconds(5)) == std::future_status::ready;
+  if (!ready) world.Stop();  // the Exposure is cancelled: the test fails instead of hanging
+  ASSERT_TRUE(ready) << "the window between runs was not vouched for";
+  auto levels = pending.get();
+  ASSERT_TRUE(levels.ok()) << levels.status();
+  for (int l = 0; l < 4; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 1.0f) << l;  // node 0 holds its last levels
+  for (int l = 4; l < 8; ++l) EXPECT_FLOAT_EQ(levels->parallel[l], 0.0f) << l;
   world.Stop();
 }
 

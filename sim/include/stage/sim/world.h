@@ -95,7 +95,8 @@ class World {
   void ReportLevels(int light_node, int64_t t_ns, const std::vector<double>& levels, int64_t watermark_ns);
   void ReportWatermark(int light_node, int64_t watermark_ns);
 
-  // Every unit's emitters averaged over [t0, t1]; waits until every registered light node has reported past t1.
+  // Every unit's emitters averaged over [t0, t1]; waits until every registered light node has reported past t1, or
+  // (real time) until the bus has been silent through t1 since a run every node has answered to its end.
   // Cancelled after Stop(); OutOfRange when the window is older than the history the world keeps.
   absl::StatusOr<EmitterLevels> Exposure(int64_t t0_ns, int64_t t1_ns);
 
@@ -155,6 +156,12 @@ class World {
   std::vector<Device> devices_;             // guarded by mutex_
   std::map<int, int64_t> watermarks_;       // light node -> ns; guarded by mutex_
   int64_t current_ = -1;                    // guarded by mutex_
+  // Real time, between runs: the bus has been silent from the last run's end (quiet_from_ns_, the edge time of its
+  // end slot) through quiet_through_ns_ (the last silent edge). A light node that has answered the run's last edge
+  // (its watermark reaches quiet_from_ns_) changes no level until the next run, which starts ahead of now: its light
+  // is known through quiet_through_ns_. INT64_MIN until a silent slot after a run passes.
+  int64_t quiet_from_ns_ = INT64_MIN;       // guarded by mutex_
+  int64_t quiet_through_ns_ = INT64_MIN;    // guarded by mutex_
   std::vector<WorldRun> runs_;              // in order, disjoint; guarded by mutex_
   int64_t forgotten_before_ = INT64_MIN;    // guarded by mutex_
   bool started_ = false, stopped_ = false;  // guarded by mutex_
