@@ -3,8 +3,11 @@
 // directions against the model they were built from.
 #include "stage/processing/fast_photometric.h"
 
+#include <cstring>
+
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "photometric_internal.h"
 #include "shipped_light.h"
 #include "test_sphere.h"
 
@@ -56,6 +59,43 @@ TEST(FastPhotometricTest, NoisyMosaicMeetsTheGoalsOnTheSphere) {
   // direction meets the dome, against 63 %), but the diffuse uses every lobe found.
   EXPECT_GT(b.fast.mirrored_with_lobe, b.fast.mirrored * 2 / 5);
   EXPECT_LT(b.fast.albedo_rel, 0.007);
+}
+
+// The per-row work runs in column tiles (for the cache); a tile's edge must not show in any map. The sphere, 96 columns,
+// solved in one tile and in tiles of 40 (the last 16 wide), byte for byte.
+TEST(FastPhotometricTest, ColumnTilesDoNotChangeAnyMap) {
+  const LightModel light = ShippedLight();
+  const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
+  const CycleFrames mosaic = ToMosaic(s);
+  auto tables = PhotometricTables::Build(light, s.camera);
+  ASSERT_TRUE(tables.ok()) << tables.status();
+  const int saved = internal::FastTileColumns();
+  auto whole = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastTileColumns() = 40;
+  auto tiled = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastTileColumns() = saved;
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  ASSERT_TRUE(tiled.ok()) << tiled.status();
+  const std::pair<const char*, Image PhotometricMaps::*> maps[] = {
+      {"diffuse_normal_world", &PhotometricMaps::diffuse_normal_world},
+      {"albedo", &PhotometricMaps::albedo},
+      {"specular_normal_world", &PhotometricMaps::specular_normal_world},
+      {"specular", &PhotometricMaps::specular},
+      {"roughness", &PhotometricMaps::roughness},
+      {"confidence", &PhotometricMaps::confidence},
+      {"fit_residual", &PhotometricMaps::fit_residual}};
+  for (const auto& [name, map] : maps) {
+    const std::vector<float>& a = ((*whole).*map).pixels;
+    const std::vector<float>& b = ((*tiled).*map).pixels;
+    ASSERT_EQ(a.size(), b.size()) << name;
+    size_t differ = 0;
+    for (size_t i = 0; i < a.size(); ++i) differ += std::memcmp(&a[i], &b[i], sizeof(float)) != 0;
+    EXPECT_EQ(differ, 0u) << name;
+  }
+  EXPECT_EQ(whole->flags, tiled->flags);
+  size_t solved = 0;
+  for (uint8_t f : whole->flags) solved += (f & kLowSignal) == 0;
+  EXPECT_GT(solved, 5000u);  // the sphere is there to be solved
 }
 
 }  // namespace

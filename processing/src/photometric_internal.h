@@ -44,6 +44,10 @@ void ParallelRows(int height, int threads, F body) {
   for (auto& th : pool) th.join();
 }
 
+// Columns per tile of the fast solver's per-row work (SolvePhotometricFast): 512 by default. Results do not depend on
+// it; tests set it small to check that.
+int& FastTileColumns();
+
 // Pattern weights unit-major (w[l * np + p]) for the paired patterns, and the coefficients that turn the specular
 // images into the lobe's moments (sum_p c_p w_p(l) ~ f(l) over the units, by least squares).
 struct PatternMatrix {
