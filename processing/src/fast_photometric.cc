@@ -4,6 +4,7 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <mutex>
 
 #include "absl/strings/str_cat.h"
@@ -63,13 +64,8 @@ struct LobeMoments {
   bool ok = false;
 };
 
-LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
-  float mu[internal::kMoments];
-  for (int r = 0; r < internal::kMoments; ++r) {
-    float sum = 0;
-    for (int k = 0; k < pm.np; ++k) sum += pm.moments(r, k) * s[k];
-    mu[r] = sum;
-  }
+// The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz).
+LobeMoments FromMoments(const float* mu) {
   LobeMoments out;
   out.mu0 = mu[0];
   const Eigen::Vector3f m1(mu[1], mu[2], mu[3]);
@@ -83,6 +79,16 @@ LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
   out.spread = 1 - q / mu[0];
   out.ok = true;
   return out;
+}
+
+LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
+  float mu[internal::kMoments];
+  for (int r = 0; r < internal::kMoments; ++r) {
+    float sum = 0;
+    for (int k = 0; k < pm.np; ++k) sum += pm.moments(r, k) * s[k];
+    mu[r] = sum;
+  }
+  return FromMoments(mu);
 }
 
 // The hot loops over a row, compiled for AVX-512 and AVX2 as well as the baseline x86-64 (the best the CPU has is
@@ -112,18 +118,54 @@ STAGE_ROW_LOOP void ChannelSumRow(const float* __restrict up, const float* __res
 }
 
 // Per pattern pair along a row, from the channel sums of its cross (dc) and parallel (dp) images: the diffuse in the
-// cross image (the leaked specular taken away), the specular (parallel - cross, for the leak), the specular's inverse
-// variance (shot and read noise of both images), and the diffuse's inverse variance.
+// cross image (the leaked specular taken away), the specular (parallel - cross, for the leak), the specular's variance
+// (shot and read noise of both images) and its inverse, the diffuse's inverse variance, and the mean of both images.
 STAGE_ROW_LOOP void PairRow(const float* __restrict dc, const float* __restrict dp, float k_leak, float spec_gain,
                             float inv_g, float read, int w, float* __restrict d, float* __restrict s,
-                            float* __restrict sw, float* __restrict dw) {
+                            float* __restrict sv, float* __restrict sw, float* __restrict dw, float* __restrict ds) {
   const float gain2 = spec_gain * spec_gain;
   for (int x = 0; x < w; ++x) {
     const float diffuse = dc[x] - k_leak * (dp[x] - dc[x]);
     d[x] = diffuse;
     s[x] = (dp[x] - dc[x]) * spec_gain;
-    sw[x] = 1.f / (gain2 * (std::max(0.f, dp[x] + dc[x]) * inv_g + 2 * read));
+    sv[x] = gain2 * (std::max(0.f, dp[x] + dc[x]) * inv_g + 2 * read);
+    sw[x] = 1.f / sv[x];
     dw[x] = 1.f / (std::max(0.f, diffuse) * inv_g + read);
+    ds[x] = 0.5f * (dc[x] + dp[x]);
+  }
+}
+
+// The lobe's moments along a row (kMoments rows `stride` apart) from the specular rows s (np rows), and the first
+// moment's variance v1 from the specular variance rows sv: 16 columns at a time, their sums kept in registers over
+// the pattern pairs. Columns are computed up to w rounded up to 16 (the rows have room).
+STAGE_ROW_LOOP void MomentRows(const float* __restrict s, const float* __restrict sv, size_t stride, int np,
+                               const float* __restrict coef, const float* __restrict q1, int w, float* __restrict mu,
+                               float* __restrict v1) {
+  // GCC's vector extension: 16 floats, lowered to what each clone's target has (one AVX-512, two AVX2 registers).
+  typedef float V16 __attribute__((vector_size(64)));
+  for (int x0 = 0; x0 < w; x0 += 16) {
+    V16 acc[internal::kMoments] = {};
+    V16 var = {};
+    for (int k = 0; k < np; ++k) {
+      V16 src, vsrc;
+      std::memcpy(&src, s + static_cast<size_t>(k) * stride + x0, sizeof src);
+      std::memcpy(&vsrc, sv + static_cast<size_t>(k) * stride + x0, sizeof vsrc);
+      for (int r = 0; r < internal::kMoments; ++r) acc[r] += coef[k * internal::kMoments + r] * src;
+      var += q1[k] * vsrc;
+    }
+    for (int r = 0; r < internal::kMoments; ++r)
+      std::memcpy(mu + static_cast<size_t>(r) * stride + x0, &acc[r], sizeof(V16));
+    std::memcpy(v1 + x0, &var, sizeof var);
+  }
+}
+
+// A pixel's own value summed over the pattern pairs: the cross image less its leaked specular (own_cross), and the
+// mean of both images (own_both; the lobe is taken away per pixel).
+STAGE_ROW_LOOP void OwnRow(const float* __restrict oc, const float* __restrict op, float k_leak, int w,
+                           float* __restrict own_cross, float* __restrict own_both) {
+  for (int x = 0; x < w; ++x) {
+    own_cross[x] += oc[x] - k_leak * (op[x] - oc[x]);
+    own_both[x] += 0.5f * (oc[x] + op[x]);
   }
 }
 
@@ -132,21 +174,24 @@ STAGE_ROW_LOOP void SaturationRow(const uint16_t* __restrict raw, uint16_t top, 
   for (int x = 0; x < w; ++x) saturated[x] |= raw[x] >= top ? 1 : 0;
 }
 
-
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
 // per-pair rows, and the per-pixel scratch.
 struct TileBuffers {
-  std::vector<float> rows, sums, kc, kd, rd, rs, rsw, rdw;
+  std::vector<float> rows, sums, kc, kd, rd, rs, rsv, rsw, rdw, rds;
+  // Per column of the tile: the lobe's moments (kMoments rows), the noise of the first moment, and the own sums.
+  std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
-  std::vector<float> dc, dp, d, s, sw, dw, oc, op, lobe, d2, entry;
+  std::vector<float> d, s, sw, dw, ds, lobe, d2, entry;
 
   void Resize(int patterns, int np, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
     sums.resize(static_cast<size_t>(patterns) * stride);
     for (auto* v : {&kc, &kd}) v->resize(stride);
-    for (auto* v : {&rd, &rs, &rsw, &rdw}) v->resize(static_cast<size_t>(np) * stride);
+    for (auto* v : {&rd, &rs, &rsv, &rsw, &rdw, &rds}) v->resize(static_cast<size_t>(np) * stride);
+    mu.resize(internal::kMoments * stride);
+    for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
     saturated.resize(stride);
-    for (auto* v : {&dc, &dp, &d, &s, &sw, &dw, &oc, &op, &lobe, &d2}) v->resize(static_cast<size_t>(np));
+    for (auto* v : {&d, &s, &sw, &dw, &ds, &lobe, &d2}) v->resize(static_cast<size_t>(np));
   }
 };
 
@@ -342,6 +387,18 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   // power of two apart would fall in one set of the L1 cache, and the per-pixel reads across them would evict each
   // other).
   const size_t stride = (static_cast<size_t>(tile) + 2 + 15) / 16 * 16 + 16;
+  // Per pattern pair: the coefficients of the lobe's moments (pair-major, kMoments each), the first moment's squared
+  // (summed over x, y, z), and the second moments' (xx, yy, zz, xy, yz, xz; 6 each).
+  std::vector<float> coef(static_cast<size_t>(np) * internal::kMoments), q1(static_cast<size_t>(np)),
+      m2(static_cast<size_t>(np) * 6);
+  for (int k = 0; k < np; ++k) {
+    for (int r = 0; r < internal::kMoments; ++r) {
+      coef[static_cast<size_t>(k) * internal::kMoments + r] = t.pm.moments(r, k);
+    }
+    q1[static_cast<size_t>(k)] = t.pm.moments(1, k) * t.pm.moments(1, k) + t.pm.moments(2, k) * t.pm.moments(2, k) +
+                                 t.pm.moments(3, k) * t.pm.moments(3, k);
+    for (int j = 0; j < 6; ++j) m2[static_cast<size_t>(k) * 6 + j] = t.pm.moments(4 + j, k);
+  }
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
     static thread_local TileBuffers buffers;
@@ -354,17 +411,20 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     float* const kd = buffers.kd.data();
     float* const rd = buffers.rd.data();
     float* const rs = buffers.rs.data();
+    float* const rsv = buffers.rsv.data();
     float* const rsw = buffers.rsw.data();
     float* const rdw = buffers.rdw.data();
+    float* const rds = buffers.rds.data();
+    float* const mu = buffers.mu.data();
+    float* const v1 = buffers.v1.data();
+    float* const own_cross = buffers.own_cross.data();
+    float* const own_both = buffers.own_both.data();
+    std::vector<float>& ds = buffers.ds;
     uint8_t* const saturated = buffers.saturated.data();
-    std::vector<float>& dc = buffers.dc;
-    std::vector<float>& dp = buffers.dp;
     std::vector<float>& d = buffers.d;
     std::vector<float>& s = buffers.s;
     std::vector<float>& sw = buffers.sw;
     std::vector<float>& dw = buffers.dw;
-    std::vector<float>& oc = buffers.oc;
-    std::vector<float>& op = buffers.op;
     std::vector<float>& lobe = buffers.lobe;
     std::vector<float>& d2 = buffers.d2;
     std::vector<float>& entry = buffers.entry;
@@ -408,7 +468,16 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           const size_t o = static_cast<size_t>(k) * stride;
           PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * stride],
                   &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride], k_leak, spec_gain, 1 / g,
-                  read_dn2, tw_cols, &rd[o], &rs[o], &rsw[o], &rdw[o]);
+                  read_dn2, tw_cols, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
+        }
+        // The row's linear sums over the pattern pairs: the lobe's moments, the first moment's noise, the second
+        // moments' noise coefficients, and the own sums.
+        MomentRows(rs, rsv, stride, np, coef.data(), q1.data(), tw_cols, mu, v1);
+        std::fill_n(own_cross, tw_cols, 0.f);
+        std::fill_n(own_both, tw_cols, 0.f);
+        for (int k = 0; k < np; ++k) {
+          OwnRow(row(tw.cross[static_cast<size_t>(k)], y) + 1, row(tw.parallel[static_cast<size_t>(k)], y) + 1, k_leak,
+                 tw_cols, own_cross, own_both);
         }
         // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time.
         const size_t row0 = static_cast<size_t>(y) * w + x0;
@@ -429,11 +498,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           }
           for (int k = 0; k < np; ++k) {
             const size_t o = static_cast<size_t>(k) * stride + xt;
-            const int pc = tw.cross[static_cast<size_t>(k)], pp = tw.parallel[static_cast<size_t>(k)];
-            dc[k] = sums[static_cast<size_t>(pc) * stride + xt];
-            dp[k] = sums[static_cast<size_t>(pp) * stride + xt];
-            oc[k] = row(pc, y)[xt + 1];
-            op[k] = row(pp, y)[xt + 1];
+            ds[k] = rds[o];
             d[k] = rd[o];
             s[k] = rs[o];
             sw[k] = rsw[o];
@@ -469,7 +534,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
 
           // Specular: the lobe's moments, then through the table to its mirror direction, roughness and total.
           const Eigen::Vector3f v = camera.rays.empty() ? toward : Eigen::Vector3f(-camera.rays[i]);
-          const LobeMoments mom = Moments(t.pm, s.data());
+          float mu_x[internal::kMoments];
+          for (int r = 0; r < internal::kMoments; ++r) mu_x[r] = mu[static_cast<size_t>(r) * stride + xt];
+          const LobeMoments mom = FromMoments(mu_x);
           bool lobe_known = false, measured = false;
           std::fill(lobe.begin(), lobe.end(), 0.f);
           float spec_chi2 = 0;
@@ -549,21 +616,21 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
               spec_chi2 /= static_cast<float>(std::max(1, np - 4));
               lobe_known = true;
               // The noise of the moments: of the mean direction (two axes), the total and the spread.
-              float v1 = 0, vs = 0;
+              // The noise of the first moment (its three components) and of the second along the mean direction:
+              // sums over the patterns of their coefficients squared times the specular variance (with the mean
+              // direction q, the second moment's coefficient is sum_j c_j(q) m_j: its square, sum_jl c_j c_l m_j m_l).
+              const Eigen::Vector3f& q = mom.mean;
+              const float c[6] = {q.x() * q.x(),     q.y() * q.y(),     q.z() * q.z(),
+                                  2 * q.x() * q.y(), 2 * q.y() * q.z(), 2 * q.x() * q.z()};
+              float vs = 0;
               for (int k = 0; k < np; ++k) {
-                const float vk = 1 / sw[k];
-                const float q1 = t.pm.moments(1, k) * t.pm.moments(1, k) + t.pm.moments(2, k) * t.pm.moments(2, k) +
-                                 t.pm.moments(3, k) * t.pm.moments(3, k);
-                const Eigen::Vector3f& q = mom.mean;
-                const float q2 = q.x() * q.x() * t.pm.moments(4, k) + q.y() * q.y() * t.pm.moments(5, k) +
-                                 q.z() * q.z() * t.pm.moments(6, k) +
-                                 2 * (q.x() * q.y() * t.pm.moments(7, k) + q.y() * q.z() * t.pm.moments(8, k) +
-                                      q.x() * q.z() * t.pm.moments(9, k));
-                v1 += q1 * vk;
-                vs += q2 * q2 * vk;
+                float q2k = 0;
+                for (int j = 0; j < 6; ++j) q2k += c[j] * m2[static_cast<size_t>(k) * 6 + j];
+                vs += q2k * q2k / sw[k];
               }
+              const float v1_x = v1[xt];
               // The direction of m1 moves by its tangential noise over its own length.
-              const float var_dir = 2.f / 3 * v1 / (mom.length * mom.length);
+              const float var_dir = 2.f / 3 * v1_x / (mom.length * mom.length);
               const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
               const float var_rho = smm > 0 ? 1 / smm : 1e30f;
               const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
@@ -589,7 +656,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           // With the lobe known, both polarizations hold the diffuse.
           const bool both = lobe_known && spec_chi2 <= 4;
           if (both) {
-            for (int k = 0; k < np; ++k) d2[k] = 0.5f * (dc[k] + dp[k] - (1 + leak) * lobe[k]);
+            for (int k = 0; k < np; ++k) d2[k] = ds[k] - 0.5f * (1 + leak) * lobe[k];
             const Eigen::Vector3f u2 = solve(d2, n);
             if (u2.allFinite() && u2.norm() > 1e-9f) {
               u = u2;
@@ -611,9 +678,12 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           }
           chi2 /= static_cast<float>(std::max(1, np - 3));
           if (chi2 > 4) flags |= kBadFit;
-          float own = 0;
-          for (int k = 0; k < np; ++k) {
-            own += both ? 0.5f * (oc[k] + op[k] - (1 + leak) * lobe[k] / 3) : oc[k] - k_leak * (op[k] - oc[k]);
+          // (The row's own sums less, with both polarizations, half the lobe in the pixel's one channel.)
+          float own = own_cross[xt];
+          if (both) {
+            float lobe_sum = 0;
+            for (int k = 0; k < np; ++k) lobe_sum += lobe[k];
+            own = own_both[xt] - 0.5f * (1 + leak) * lobe_sum / 3;
           }
           const Eigen::Vector3f hs(t.hsum[cell * 3], t.hsum[cell * 3 + 1], t.hsum[cell * 3 + 2]);
           const float shade = ws * n.dot(hs);
