@@ -181,7 +181,7 @@ struct TileBuffers {
   // Per column of the tile: the lobe's moments (kMoments rows), the noise of the first moment, and the own sums.
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
-  std::vector<float> d, s, sw, dw, ds, lobe, d2, entry;
+  std::vector<float> d, s, sw, dw, lobe, d2, entry;
 
   void Resize(int patterns, int np, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
@@ -191,7 +191,7 @@ struct TileBuffers {
     mu.resize(internal::kMoments * stride);
     for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
     saturated.resize(stride);
-    for (auto* v : {&d, &s, &sw, &dw, &ds, &lobe, &d2}) v->resize(static_cast<size_t>(np));
+    for (auto* v : {&d, &s, &sw, &dw, &lobe, &d2}) v->resize(static_cast<size_t>(np));
   }
 };
 
@@ -387,17 +387,15 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   // power of two apart would fall in one set of the L1 cache, and the per-pixel reads across them would evict each
   // other).
   const size_t stride = (static_cast<size_t>(tile) + 2 + 15) / 16 * 16 + 16;
-  // Per pattern pair: the coefficients of the lobe's moments (pair-major, kMoments each), the first moment's squared
-  // (summed over x, y, z), and the second moments' (xx, yy, zz, xy, yz, xz; 6 each).
-  std::vector<float> coef(static_cast<size_t>(np) * internal::kMoments), q1(static_cast<size_t>(np)),
-      m2(static_cast<size_t>(np) * 6);
+  // Per pattern pair: the coefficients of the lobe's moments (pair-major, kMoments each), and the first moment's
+  // squared (summed over x, y, z).
+  std::vector<float> coef(static_cast<size_t>(np) * internal::kMoments), q1(static_cast<size_t>(np));
   for (int k = 0; k < np; ++k) {
     for (int r = 0; r < internal::kMoments; ++r) {
       coef[static_cast<size_t>(k) * internal::kMoments + r] = t.pm.moments(r, k);
     }
     q1[static_cast<size_t>(k)] = t.pm.moments(1, k) * t.pm.moments(1, k) + t.pm.moments(2, k) * t.pm.moments(2, k) +
                                  t.pm.moments(3, k) * t.pm.moments(3, k);
-    for (int j = 0; j < 6; ++j) m2[static_cast<size_t>(k) * 6 + j] = t.pm.moments(4 + j, k);
   }
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
@@ -419,7 +417,6 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     float* const v1 = buffers.v1.data();
     float* const own_cross = buffers.own_cross.data();
     float* const own_both = buffers.own_both.data();
-    std::vector<float>& ds = buffers.ds;
     uint8_t* const saturated = buffers.saturated.data();
     std::vector<float>& d = buffers.d;
     std::vector<float>& s = buffers.s;
@@ -470,8 +467,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                   &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride], k_leak, spec_gain, 1 / g,
                   read_dn2, tw_cols, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
         }
-        // The row's linear sums over the pattern pairs: the lobe's moments, the first moment's noise, the second
-        // moments' noise coefficients, and the own sums.
+        // The row's linear sums over the pattern pairs: the lobe's moments, the first moment's noise, and the own
+        // sums.
         MomentRows(rs, rsv, stride, np, coef.data(), q1.data(), tw_cols, mu, v1);
         std::fill_n(own_cross, tw_cols, 0.f);
         std::fill_n(own_both, tw_cols, 0.f);
@@ -498,7 +495,6 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           }
           for (int k = 0; k < np; ++k) {
             const size_t o = static_cast<size_t>(k) * stride + xt;
-            ds[k] = rds[o];
             d[k] = rd[o];
             s[k] = rs[o];
             sw[k] = rsw[o];
@@ -615,7 +611,6 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
               }
               spec_chi2 /= static_cast<float>(std::max(1, np - 4));
               lobe_known = true;
-              // The noise of the moments: of the mean direction (two axes), the total and the spread.
               // The noise of the first moment (its three components) and of the second along the mean direction:
               // sums over the patterns of their coefficients squared times the specular variance (with the mean
               // direction q, the second moment's coefficient is sum_j c_j(q) m_j: its square, sum_jl c_j c_l m_j m_l).
@@ -625,7 +620,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
               float vs = 0;
               for (int k = 0; k < np; ++k) {
                 float q2k = 0;
-                for (int j = 0; j < 6; ++j) q2k += c[j] * m2[static_cast<size_t>(k) * 6 + j];
+                for (int j = 0; j < 6; ++j) q2k += c[j] * coef[static_cast<size_t>(k) * internal::kMoments + 4 + j];
                 vs += q2k * q2k / sw[k];
               }
               const float v1_x = v1[xt];
@@ -656,7 +651,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           // With the lobe known, both polarizations hold the diffuse.
           const bool both = lobe_known && spec_chi2 <= 4;
           if (both) {
-            for (int k = 0; k < np; ++k) d2[k] = ds[k] - 0.5f * (1 + leak) * lobe[k];
+            for (int k = 0; k < np; ++k)
+              d2[k] = rds[static_cast<size_t>(k) * stride + xt] - 0.5f * (1 + leak) * lobe[k];
             const Eigen::Vector3f u2 = solve(d2, n);
             if (u2.allFinite() && u2.norm() > 1e-9f) {
               u = u2;

@@ -11,13 +11,13 @@
 #include <cstdlib>
 
 #include "gtest/gtest.h"
+#include "photometric_internal.h"
 #include "stage/common/rig.h"
 #include "stage/processing/calibration.h"
 #include "stage/processing/photometric.h"
 #include "stage/processing/take_frames.h"
 #include "stage/sim/light_transport.h"
 #include "stage/sim/scene.h"
-#include "photometric_internal.h"
 
 namespace stage::processing {
 namespace {
@@ -174,7 +174,11 @@ Result Evaluate(const Rendered& r, const PhotometricMaps& maps) {
       for (int c = 0; c < 3; ++c) {
         const double e = std::abs(a[c] / hit.material.albedo[c] - 1);
         rel += e / 3;
-        (c == BayerChannel(x, y) ? measured : interpolated) += c == BayerChannel(x, y) ? e : e / 2;
+        if (c == BayerChannel(x, y)) {
+          measured += e;
+        } else {
+          interpolated += e / 2;
+        }
       }
       albedo.push_back(rel);
       const float* s = maps.specular_normal_world.at(x, y);
@@ -187,8 +191,8 @@ Result Evaluate(const Rendered& r, const PhotometricMaps& maps) {
     }
   }
   const double n = static_cast<double>(std::max<size_t>(1, albedo.size()));
-  return {Summarize(diffuse), Summarize(specular), Summarize(raw), Summarize(albedo), Summarize(rho),
-          Summarize(rough), measured / n, interpolated / n};
+  return {Summarize(diffuse), Summarize(specular), Summarize(raw), Summarize(albedo),
+          Summarize(rho),     Summarize(rough),    measured / n,   interpolated / n};
 }
 
 void Print(const std::string& label, const Result& r) {
@@ -198,9 +202,9 @@ void Print(const std::string& label, const Result& r) {
       "  specular intensity mean %.1f %% median %.1f %%; roughness mean abs %.3f median %.3f\n"
       "  albedo in the channel each pixel measures %.2f %%, in the two it interpolates %.2f %%\n",
       label.c_str(), r.diffuse.pixels, r.diffuse.mean, r.diffuse.median, r.diffuse.p90, 100 * r.albedo.mean,
-      r.specular.mean, r.specular.median, r.specular.p90, r.specular_raw.mean, r.specular_raw.median,
-      r.specular.pixels, 100 * r.rho.mean, 100 * r.rho.median, r.roughness.mean, r.roughness.median,
-      100 * r.albedo_measured, 100 * r.albedo_interpolated);
+      r.specular.mean, r.specular.median, r.specular.p90, r.specular_raw.mean, r.specular_raw.median, r.specular.pixels,
+      100 * r.rho.mean, 100 * r.rho.median, r.roughness.mean, r.roughness.median, 100 * r.albedo_measured,
+      100 * r.albedo_interpolated);
 }
 
 // Solves the rendered cycle with the units seen from the dome's centre (far) and with the geometry known (near), and
@@ -253,7 +257,7 @@ double AlbedoPhotonBound(const Rendered& r, const PhotometricMaps& maps) {
         electrons += 2 * r.frames[static_cast<size_t>(p)].at(x, y)[BayerChannel(x, y)] * r.camera.gain_e_per_dn;
       }
       if (electrons <= 0) continue;
-      sum += std::sqrt(2 / 3.14159265358979) / std::sqrt(electrons);
+      sum += std::sqrt(2 / internal::kPi) / std::sqrt(electrons);
       ++n;
     }
   }
