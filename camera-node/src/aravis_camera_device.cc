@@ -506,8 +506,10 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
     if (arv_buffer_get_frame_id(buffer) == 0) {
       // The leader was lost: no frame id, no timestamp, nothing to tag the frame by (Aravis sets both from the
       // leader only, which is why every buffer goes back to the pool with them cleared). The stream counts it as a
-      // failure and the frame counter's gap marks its slot as exposed and not delivered.
+      // failure and the frame counter's gap marks its slot as exposed and not delivered; the sink is told, for a gap
+      // the counter cannot show (after the take's last delivered frame).
       Recycle(s, buffer);
+      if (d.sink != nullptr) d.sink->OnFrameLost();
       continue;
     }
     auto frame = std::make_shared<Frame>();

@@ -121,6 +121,15 @@ void CameraNode::OnFrame(std::shared_ptr<const Frame> frame) {
   if (recorder) recorder->OnFrame(std::move(frame));
 }
 
+void CameraNode::OnFrameLost() {
+  std::shared_ptr<TakeRecorder> recorder;
+  {
+    std::lock_guard<std::mutex> lock(take_mutex_);
+    recorder = recorder_;
+  }
+  if (recorder) recorder->OnFrameLost();
+}
+
 absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest& request) {
   std::lock_guard<std::mutex> lock(take_mutex_);
   if (recorder_) {

@@ -42,6 +42,7 @@ class CameraNode : public FrameSink {
 
   // FrameSink: counts frames and hands them to the armed take's recorder.
   void OnFrame(std::shared_ptr<const Frame> frame) override;
+  void OnFrameLost() override;
 
   // A take (CameraNode.Arm / Finish in camera_node.proto).
   absl::StatusOr<v1::ArmCameraResponse> Arm(const v1::ArmCameraRequest& request);

@@ -217,6 +217,12 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
   changed_.notify_all();
 }
 
+void TakeRecorder::OnFrameLost() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!plan_.started || finishing_) return;  // not the take's
+  ++frames_without_id_;
+}
+
 void TakeRecorder::WriterLoop() {
   while (true) {
     Tagged t;
@@ -321,10 +327,12 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   for (const auto& [slot, id] : matched_) {
     if (index_of_.count(slot)) delivered.emplace_back(slot, id);
   }
-  auto account = [&](size_t first, size_t last, int64_t exposed, const std::string& where,
-                     const std::string& outage = std::string()) {
-    // Expected slots [first, last) (indexes) are silent; `exposed` of them were exposed (negative: unknown). In an
-    // outage of the camera's link (its note) they are all the outage's: the frame counter goes on across it.
+  int64_t dropped_by_counter = 0;
+  auto account = [&](size_t first, size_t last, int64_t exposed, bool rest_never_exposed, const std::string& how,
+                     const std::string& where, const std::string& outage = std::string()) {
+    // Expected slots [first, last) (indexes) are silent; the first `exposed` of them were exposed (`how` says how that
+    // is known) and the rest never were if `rest_never_exposed`, else nothing is known of them. In an outage of the
+    // camera's link (its note) they are all the outage's: the frame counter goes on across it.
     for (size_t i = first; i < last; ++i) {
       SlotOutcome& out = rec_.slots[i];
       if (matched_.count(out.slot)) continue;
@@ -333,18 +341,24 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
         out.detail = outage;
       } else if (exposed > 0) {
         out.reason = LossReason::kCameraDropped;
-        out.detail = absl::StrCat("exposed (frame counter) but not delivered", where);
+        out.detail = absl::StrCat("exposed (", how, ") but not delivered", where);
         --exposed;
+        ++dropped_by_counter;
       } else {
         out.reason = LossReason::kTriggerMissed;
-        out.detail = exposed < 0 ? absl::StrCat("no frame", where) : absl::StrCat("never exposed", where);
+        out.detail = rest_never_exposed ? absl::StrCat("never exposed", where) : absl::StrCat("no frame", where);
       }
     }
   };
+  // After the last delivered frame the counter says nothing; the frames that came without their leader (no id) say
+  // how many were exposed there, as far as there are more of them than the counter's gaps before. (A gap the camera
+  // sent nothing of at all counts in the gaps and not in those frames: the tail's figure is a lower bound.)
+  auto tail_exposed = [&] { return std::max<int64_t>(0, frames_without_id_ - dropped_by_counter); };
+  constexpr char kLeaderless[] = "a frame came without its leader";
   // The link was down after the last frame: as the take ended, or until a frame that came after the take.
   const std::string tail_outage = outages_reported_ > outage_notes_ ? outage_detail_ : pending_outage_;
   if (delivered.empty()) {
-    account(0, rec_.slots.size(), -1, " (the camera delivered nothing)", tail_outage);
+    account(0, rec_.slots.size(), tail_exposed(), false, kLeaderless, " (the camera delivered nothing)", tail_outage);
     AddPausedSlots();
     return rec_;
   }
@@ -356,14 +370,20 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     const size_t at = index_of_.at(slot);
     const auto silent = static_cast<int64_t>(at - from);
     if (silent > 0) {
-      const int64_t exposed = before ? std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent) : -1;
       auto outage = outage_before_.find(slot);
-      account(from, at, exposed, "", outage != outage_before_.end() ? outage->second : std::string());
+      const std::string& note = outage != outage_before_.end() ? outage->second : std::string();
+      if (before) {
+        const int64_t exposed = std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent);
+        account(from, at, exposed, true, "frame counter", "", note);
+      } else {
+        account(from, at, 0, false, "frame counter", "", note);
+      }
     }
     before = static_cast<int64_t>(id);
     from = at + 1;
   }
-  account(from, rec_.slots.size(), -1, " after the last frame the camera delivered", tail_outage);
+  account(from, rec_.slots.size(), tail_exposed(), false, kLeaderless, " after the last frame the camera delivered",
+          tail_outage);
   AddPausedSlots();
   return rec_;
 }

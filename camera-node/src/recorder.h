@@ -108,6 +108,9 @@ class TakeRecorder final : public FrameSink {
 
   // Tags the frame and queues it; on the camera's thread, never blocking on the disk.
   void OnFrame(std::shared_ptr<const Frame> frame) override;
+  // Counts frames exposed in the take and not deliverable (leader lost): the slots after the last delivered frame
+  // are theirs as far as there are more of them than the counter's gaps before it.
+  void OnFrameLost() override;
 
   const std::string& path() const { return plan_.path; }
   // How many slots the camera fires in (what the ledger expects of it), pauses excluded.
@@ -171,6 +174,7 @@ class TakeRecorder final : public FrameSink {
   std::map<int64_t, std::string> outage_before_;
   int64_t outages_reported_ = 0;
   int64_t outage_notes_ = 0;  // frames with after_outage seen
+  int64_t frames_without_id_ = 0;  // OnFrameLost calls during the take
   std::string outage_detail_;
 };
 

@@ -170,6 +170,37 @@ TEST(RecorderTest, EverySilentSlotGetsItsReasonFromTheFrameCounter) {
   EXPECT_EQ(r.frames_written, 16);
 }
 
+// A frame whose leader was lost (GigE Vision) has no id and cannot be delivered, but the device says one came: after
+// the last delivered frame, where the counter says nothing, such frames beyond the counter's gaps mark the first
+// silent slots as exposed; what is left after them is unknown.
+TEST(RecorderTest, FramesWithoutTheirLeaderAccountForTheTakesTail) {
+  TakePlan plan = Plan("leaderless", 20);
+  auto rec = TakeRecorder::Start(plan);
+  ASSERT_TRUE(rec.ok()) << rec.status();
+  uint64_t id = 0;
+  for (int64_t k = 0; k < 17; ++k) {
+    if (k == 3) {  // inside the take: the counter's gap shows it
+      ++id;
+      (*rec)->OnFrameLost();
+      continue;
+    }
+    (*rec)->OnFrame(FrameFor(plan, k, id++));
+  }
+  (*rec)->OnFrameLost();  // slot 17: exposed, its leader lost; 18 and 19 sent nothing
+  const TakeRecording r = (*rec)->Finish();
+  std::map<int64_t, LossReason> lost;
+  for (const SlotOutcome& s : r.slots) {
+    if (s.reason != LossReason::kNone) lost[s.slot] = s.reason;
+  }
+  EXPECT_THAT(lost, ::testing::ElementsAre(::testing::Pair(3, LossReason::kCameraDropped),
+                                           ::testing::Pair(17, LossReason::kCameraDropped),
+                                           ::testing::Pair(18, LossReason::kTriggerMissed),
+                                           ::testing::Pair(19, LossReason::kTriggerMissed)));
+  EXPECT_THAT(r.slots[3].detail, ::testing::HasSubstr("frame counter"));
+  EXPECT_THAT(r.slots[17].detail, ::testing::HasSubstr("without its leader"));
+  EXPECT_THAT(r.slots[18].detail, ::testing::StartsWith("no frame after the last frame"));
+}
+
 // The camera's link went down and came back (the device says so on the first frame after): the silent slots before
 // that frame are the outage's, whatever the counter says; a link still down as the take ends takes the tail.
 TEST(RecorderTest, TheSlotsOfALinkOutageAreLostAsLinkDown) {

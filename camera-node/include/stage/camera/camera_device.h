@@ -98,6 +98,10 @@ class FrameSink {
  public:
   virtual ~FrameSink() = default;
   virtual void OnFrame(std::shared_ptr<const Frame> frame) = 0;
+  // A frame came that cannot be delivered or tagged: its leader was lost on the link (GigE Vision), so it has no frame
+  // id and no timestamp. It was exposed; which slot it was, the frame counter's gaps tell, except after the last
+  // delivered frame, where only these calls do.
+  virtual void OnFrameLost() {}
 };
 
 struct CameraDescription {
