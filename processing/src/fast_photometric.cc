@@ -7,12 +7,69 @@
 #include <cstring>
 #include <mutex>
 
+#include <sys/mman.h>
+
+// GCC 12 warns of the AVX-512 intrinsics' own undefined source operands (_mm512_undefined_*) where they are inlined.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#include <immintrin.h>
+#pragma GCC diagnostic pop
+
 #include "absl/strings/str_cat.h"
 #include "photometric_internal.h"
 
 namespace stage::processing {
 
 using internal::kPi;
+
+namespace {
+
+// A table's floats in memory that the kernel may back with 2 MiB pages (transparent huge pages, where the system
+// enables them on request): the per-pixel lookups land all over the tables, and with 4 KiB pages nearly every one of
+// them missed the TLB.
+class HugeArray {
+ public:
+  HugeArray() = default;
+  HugeArray(const HugeArray&) = delete;
+  HugeArray& operator=(const HugeArray&) = delete;
+  ~HugeArray() { Release(); }
+
+  void assign(size_t n, float value) {
+    Release();
+    n_ = n;
+    if (n == 0) return;
+    constexpr size_t kHuge = size_t{2} << 20;
+    const size_t bytes = (n * sizeof(float) + kHuge - 1) / kHuge * kHuge;
+    mapped_bytes_ = bytes + kHuge;  // room to start on a 2 MiB boundary
+    mapped_ = mmap(nullptr, mapped_bytes_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    if (mapped_ == MAP_FAILED) throw std::bad_alloc();
+    const auto start = (reinterpret_cast<uintptr_t>(mapped_) + kHuge - 1) / kHuge * kHuge;
+    p_ = reinterpret_cast<float*>(start);
+    madvise(p_, bytes, MADV_HUGEPAGE);  // a request: without it, ordinary pages
+    std::fill_n(p_, n, value);
+  }
+  void resize(size_t n) { assign(n, 0.f); }
+  size_t size() const { return n_; }
+  float* data() { return p_; }
+  const float* data() const { return p_; }
+  float& operator[](size_t i) { return p_[i]; }
+  const float& operator[](size_t i) const { return p_[i]; }
+
+ private:
+  void Release() {
+    if (mapped_ != nullptr) munmap(mapped_, mapped_bytes_);
+    mapped_ = nullptr;
+    p_ = nullptr;
+    n_ = 0;
+  }
+  void* mapped_ = nullptr;
+  size_t mapped_bytes_ = 0;
+  float* p_ = nullptr;
+  size_t n_ = 0;
+};
+
+}  // namespace
 
 struct PhotometricTables::Data {
   internal::Twins twins;
@@ -21,14 +78,14 @@ struct PhotometricTables::Data {
   int patterns = 0;  // of the light model the tables were built for
   // Diffuse, n x n octahedral cells of the normal: per cell H (np x 3), M (3 x np, row-major), and sum_p H_p (3).
   int n = 0;
-  std::vector<float> h, m, hsum;
+  HugeArray h, m, hsum;
   // Specular, s x s octahedral cells of the lobe's measured mean direction, j roughness samples; per (cell, sample):
   // the step to the true mirror direction (3), the lobe's angular variance about its mean direction, its total
   // (moment 0), and its image under every pattern (np), per unit of rho_s and spec_scale. A total of 0: the lobe falls
   // off the dome there.
   int s = 0, j = 0;
   std::vector<float> log_alpha;
-  std::vector<float> spec;
+  HugeArray spec;
   int spec_stride = 0;
   Eigen::Vector3f view = Eigen::Vector3f::UnitZ();  // the camera's central view (towards it from the stage origin)
 
@@ -41,6 +98,11 @@ struct PhotometricTables::Data {
 };
 
 PhotometricTables::~PhotometricTables() = default;
+
+bool& internal::FastVectorKernels() {
+  static bool use = true;
+  return use;
+}
 
 int& internal::FastTileColumns() {
   static int columns = 512;
@@ -174,6 +236,298 @@ STAGE_ROW_LOOP void SaturationRow(const uint16_t* __restrict raw, uint16_t top, 
   for (int x = 0; x < w; ++x) saturated[x] |= raw[x] >= top ? 1 : 0;
 }
 
+// The per-pixel steps take a row's pixels kLanes at a time: the diffuse solves run across them in vector lanes (below),
+// the lobe's lookup one pixel after another.
+constexpr int kLanes = 16;
+
+// What the diffuse steps read, for a row of a tile: the per-pair rows (np rows `stride` apart, from the tile's column
+// 0) and the constants.
+struct DiffuseRow {
+  const PhotometricTables::Data* t = nullptr;
+  const float* rd = nullptr;   // the diffuse in the cross image
+  const float* rds = nullptr;  // the mean of both polarizations
+  const float* rdw = nullptr;  // the diffuse's inverse variance
+  const float* own_cross = nullptr;
+  const float* own_both = nullptr;
+  size_t stride = 0;
+  float ws = 1;         // the white scale
+  float half_leak = 0;  // 0.5 (1 + leak): the lobe's share of the mean of both polarizations
+  float min_signal = 0;
+  int full = 0;
+  bool guess = false;  // the six first-order gradients are there for a first guess
+  int xp = 0, xm = 0, yp = 0, ym = 0, zp = 0, zm = 0;
+  Eigen::Vector3f toward = Eigen::Vector3f::UnitZ();
+};
+
+// Up to kLanes pixels of a row through the per-pixel steps (lane l: column xb + l of the tile).
+struct Batch {
+  float n[3][kLanes], u[3][kLanes];  // the diffuse normal and the solved vector (albedo times normal)
+  bool solved[kLanes];               // the first solves gave a normal (else: too little signal)
+  bool both[kLanes];                 // the lobe is known and fits: both polarizations hold the diffuse
+  float lobe_sum[kLanes];            // the lobe's images summed over the pairs
+  float chi2[kLanes];                // the diffuse fit's residual per degree of freedom
+  float own_albedo[kLanes];          // the albedo of the colour the pixel measures
+};
+
+// u = M(cell of `at`) data / white scale, data[k * step] the pair k's value.
+Eigen::Vector3f SolveAt(const DiffuseRow& a, const float* data, size_t step, const Eigen::Vector3f& at) {
+  const PhotometricTables::Data& t = *a.t;
+  const float* mm = &t.m[static_cast<size_t>(t.Cell(at, t.n)) * 3 * t.np];
+  Eigen::Vector3f u = Eigen::Vector3f::Zero();
+  for (int k = 0; k < t.np; ++k) {
+    const float dk = data[static_cast<size_t>(k) * step];
+    u.x() += mm[k] * dk;
+    u.y() += mm[t.np + k] * dk;
+    u.z() += mm[2 * t.np + k] * dk;
+  }
+  return Eigen::Vector3f(u / a.ws);
+}
+
+// The diffuse's first solves, one pixel at a time: where there is signal, a first guess from the gradients, then
+// u = M(n) d twice.
+void DiffuseFirst(const DiffuseRow& a, int xb, int lanes, Batch* b) {
+  for (int l = 0; l < lanes; ++l) {
+    const float* d = a.rd + xb + l;
+    b->solved[l] = false;
+    if (d[static_cast<size_t>(a.full) * a.stride] < a.min_signal) continue;
+    auto at = [&](int k) { return d[static_cast<size_t>(k) * a.stride]; };
+    Eigen::Vector3f n = a.toward;
+    if (a.guess) {
+      const Eigen::Vector3f guess(at(a.xp) - at(a.xm), at(a.yp) - at(a.ym), at(a.zp) - at(a.zm));
+      if (guess.norm() > 1e-6f) n = guess.normalized();
+    }
+    bool solved = true;
+    Eigen::Vector3f u = n;
+    for (int it = 0; it < 2 && solved; ++it) {
+      u = SolveAt(a, d, a.stride, n);
+      solved = u.allFinite() && u.norm() > 1e-9f;
+      if (solved) n = u.normalized();
+    }
+    b->solved[l] = solved;
+    for (int c = 0; c < 3; ++c) {
+      b->n[c][l] = n[c];
+      b->u[c][l] = u[c];
+    }
+  }
+}
+
+// The diffuse's last steps, one pixel at a time, for the solved pixels: with the lobe known (lobe: its image per pair,
+// lobe[k * kLanes + l]), solved again from the mean of both polarizations less the lobe's share; the fit's residual;
+// the albedo of the pixel's own colour (its images summed over the pairs, less the lobe's share, against the light
+// summed the same way). d2: scratch of np * kLanes.
+void DiffuseLast(const DiffuseRow& a, int xb, int lanes, const float* lobe, float* d2, Batch* b) {
+  const PhotometricTables::Data& t = *a.t;
+  const int np = t.np;
+  for (int l = 0; l < lanes; ++l) {
+    if (!b->solved[l]) continue;
+    const int xt = xb + l;
+    Eigen::Vector3f n(b->n[0][l], b->n[1][l], b->n[2][l]), u(b->u[0][l], b->u[1][l], b->u[2][l]);
+    const bool both = b->both[l];
+    for (int k = 0; k < np; ++k) {
+      const size_t o = static_cast<size_t>(k) * a.stride + xt;
+      d2[k] = both ? a.rds[o] - a.half_leak * lobe[k * kLanes + l] : a.rd[o];
+    }
+    if (both) {
+      const Eigen::Vector3f u2 = SolveAt(a, d2, 1, n);
+      if (u2.allFinite() && u2.norm() > 1e-9f) {
+        u = u2;
+        n = u.normalized();
+      }
+    }
+    const size_t cell = static_cast<size_t>(t.Cell(n, t.n));
+    const float* hh = &t.h[cell * 3 * np];
+    float chi2 = 0;
+    const float copies = both ? 2.f : 1.f;
+    for (int k = 0; k < np; ++k) {
+      const float pred = a.ws * (u.x() * hh[3 * k] + u.y() * hh[3 * k + 1] + u.z() * hh[3 * k + 2]);
+      const float e = d2[k] - pred;
+      chi2 += e * e * copies * a.rdw[static_cast<size_t>(k) * a.stride + xt];  // the variance at the measured level
+    }
+    b->chi2[l] = chi2 / static_cast<float>(std::max(1, np - 3));
+    const float own = both ? a.own_both[xt] - a.half_leak * b->lobe_sum[l] / 3 : a.own_cross[xt];
+    const Eigen::Vector3f hs(t.hsum[cell * 3], t.hsum[cell * 3 + 1], t.hsum[cell * 3 + 2]);
+    const float shade = a.ws * n.dot(hs);
+    b->own_albedo[l] = shade > 0 ? own / shade : 0.f;
+    for (int c = 0; c < 3; ++c) {
+      b->n[c][l] = n[c];
+      b->u[c][l] = u[c];
+    }
+  }
+}
+
+// The same two steps across the lanes of an AVX-512 register, on CPUs that have it. The same operations in the same
+// order as above (a multiply and an add never fused: see processing/CMakeLists.txt), so the same bits; the tables'
+// entries are gathered per lane.
+#define STAGE_AVX512 __attribute__((target("avx512f,avx512dq")))
+
+struct V3 {
+  __m512 x, y, z;
+};
+
+// The octahedral cell of each lane's direction, as PhotometricTables::Data::Cell and OctEncode compute it.
+STAGE_AVX512 inline __m512i Cells16(const V3& d, int size) {
+  const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f), half = _mm512_set1_ps(0.5f);
+  const __m512 s = _mm512_add_ps(_mm512_add_ps(_mm512_abs_ps(d.x), _mm512_abs_ps(d.y)), _mm512_abs_ps(d.z));
+  __m512 x = _mm512_div_ps(d.x, s), y = _mm512_div_ps(d.y, s);
+  const __mmask16 below = _mm512_cmp_ps_mask(d.z, zero, _CMP_LT_OQ);
+  const __m512 sx = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(x, zero, _CMP_GE_OQ), _mm512_set1_ps(-1.f), one);
+  const __m512 sy = _mm512_mask_blend_ps(_mm512_cmp_ps_mask(y, zero, _CMP_GE_OQ), _mm512_set1_ps(-1.f), one);
+  const __m512 ox = _mm512_mul_ps(_mm512_sub_ps(one, _mm512_abs_ps(y)), sx);
+  const __m512 oy = _mm512_mul_ps(_mm512_sub_ps(one, _mm512_abs_ps(x)), sy);
+  x = _mm512_mask_blend_ps(below, x, ox);
+  y = _mm512_mask_blend_ps(below, y, oy);
+  const __m512 fs = _mm512_set1_ps(static_cast<float>(size));
+  const __m512 u = _mm512_mul_ps(_mm512_add_ps(_mm512_mul_ps(x, half), half), fs);
+  const __m512 v = _mm512_mul_ps(_mm512_add_ps(_mm512_mul_ps(y, half), half), fs);
+  const __m512i lo = _mm512_setzero_si512(), hi = _mm512_set1_epi32(size - 1);
+  const __m512i iu = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(u), lo), hi);
+  const __m512i iv = _mm512_min_epi32(_mm512_max_epi32(_mm512_cvttps_epi32(v), lo), hi);
+  return _mm512_add_epi32(_mm512_mullo_epi32(iv, _mm512_set1_epi32(size)), iu);
+}
+
+// x a + (y b + z c): Eigen's order for a 3-vector's dot product (and squared norm).
+STAGE_AVX512 inline __m512 Dot16(const V3& u, __m512 a, __m512 b, __m512 c) {
+  return _mm512_add_ps(_mm512_mul_ps(u.x, a), _mm512_add_ps(_mm512_mul_ps(u.y, b), _mm512_mul_ps(u.z, c)));
+}
+
+STAGE_AVX512 inline __m512 Norm16(const V3& u) { return _mm512_sqrt_ps(Dot16(u, u.x, u.y, u.z)); }
+
+// Lanes whose three components are finite and whose length exceeds `least`; the length in `norm`.
+STAGE_AVX512 inline __mmask16 Usable16(const V3& u, float least, __m512* norm) {
+  *norm = Norm16(u);
+  const __mmask16 bad = _mm512_fpclass_ps_mask(u.x, 0x99) | _mm512_fpclass_ps_mask(u.y, 0x99) |
+                        _mm512_fpclass_ps_mask(u.z, 0x99);  // NaN or infinite
+  return static_cast<__mmask16>(~bad) & _mm512_cmp_ps_mask(*norm, _mm512_set1_ps(least), _CMP_GT_OQ);
+}
+
+STAGE_AVX512 inline V3 Divide16(const V3& u, __m512 by) {
+  return {_mm512_div_ps(u.x, by), _mm512_div_ps(u.y, by), _mm512_div_ps(u.z, by)};
+}
+
+STAGE_AVX512 inline V3 Blend16(__mmask16 take, const V3& keep, const V3& other) {
+  return {_mm512_mask_blend_ps(take, keep.x, other.x), _mm512_mask_blend_ps(take, keep.y, other.y),
+          _mm512_mask_blend_ps(take, keep.z, other.z)};
+}
+
+// SolveAt across the lanes: data + k * step holds pair k's values of the 16 lanes.
+STAGE_AVX512 inline V3 Solve16(const DiffuseRow& a, const float* data, size_t step, const V3& at) {
+  const PhotometricTables::Data& t = *a.t;
+  const int np = t.np;
+  const __m512i base = _mm512_mullo_epi32(Cells16(at, t.n), _mm512_set1_epi32(3 * np));
+  V3 u{_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+  const float* m = t.m.data();
+  for (int k = 0; k < np; ++k) {
+    const __m512 dk = _mm512_loadu_ps(data + static_cast<size_t>(k) * step);
+    const __m512i i = _mm512_add_epi32(base, _mm512_set1_epi32(k));
+    u.x = _mm512_add_ps(u.x, _mm512_mul_ps(_mm512_i32gather_ps(i, m, 4), dk));
+    u.y = _mm512_add_ps(u.y, _mm512_mul_ps(_mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(np)), m, 4), dk));
+    u.z = _mm512_add_ps(u.z,
+                        _mm512_mul_ps(_mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(2 * np)), m, 4), dk));
+  }
+  return Divide16(u, _mm512_set1_ps(a.ws));
+}
+
+// The 16 lanes of pair k's row.
+STAGE_AVX512 inline __m512 Row16(const float* rows, size_t stride, int k) {
+  return _mm512_loadu_ps(rows + static_cast<size_t>(k) * stride);
+}
+
+STAGE_AVX512 void DiffuseFirst16(const DiffuseRow& a, int xb, int lanes, Batch* b) {
+  const __mmask16 live = static_cast<__mmask16>((1u << lanes) - 1);
+  const float* d = a.rd + xb;
+  const __mmask16 signal = static_cast<__mmask16>(
+      live & ~_mm512_cmp_ps_mask(Row16(d, a.stride, a.full), _mm512_set1_ps(a.min_signal), _CMP_LT_OQ));
+  if (signal == 0) {  // background
+    std::fill_n(b->solved, kLanes, false);
+    return;
+  }
+  V3 n{_mm512_set1_ps(a.toward.x()), _mm512_set1_ps(a.toward.y()), _mm512_set1_ps(a.toward.z())};
+  if (a.guess) {
+    const V3 guess{_mm512_sub_ps(Row16(d, a.stride, a.xp), Row16(d, a.stride, a.xm)),
+                   _mm512_sub_ps(Row16(d, a.stride, a.yp), Row16(d, a.stride, a.ym)),
+                   _mm512_sub_ps(Row16(d, a.stride, a.zp), Row16(d, a.stride, a.zm))};
+    const __m512 norm = Norm16(guess);
+    n = Blend16(_mm512_cmp_ps_mask(norm, _mm512_set1_ps(1e-6f), _CMP_GT_OQ), n, Divide16(guess, norm));
+  }
+  __mmask16 solved = signal;
+  V3 u = n;
+  for (int it = 0; it < 2; ++it) {
+    u = Solve16(a, d, a.stride, n);
+    __m512 norm;
+    const __mmask16 ok = Usable16(u, 1e-9f, &norm);
+    solved &= ok;
+    n = Blend16(ok, n, Divide16(u, norm));
+  }
+  for (int c = 0; c < 3; ++c) {
+    _mm512_storeu_ps(b->n[c], c == 0 ? n.x : c == 1 ? n.y : n.z);
+    _mm512_storeu_ps(b->u[c], c == 0 ? u.x : c == 1 ? u.y : u.z);
+  }
+  for (int l = 0; l < kLanes; ++l) b->solved[l] = (solved >> l) & 1;
+}
+
+STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const float* lobe, float* d2, Batch* b) {
+  const PhotometricTables::Data& t = *a.t;
+  const int np = t.np;
+  __mmask16 solved = 0, both = 0;
+  for (int l = 0; l < lanes; ++l) {
+    solved |= static_cast<__mmask16>(b->solved[l] ? 1u << l : 0u);
+    both |= static_cast<__mmask16>(b->solved[l] && b->both[l] ? 1u << l : 0u);
+  }
+  if (solved == 0) return;
+  V3 n{_mm512_loadu_ps(b->n[0]), _mm512_loadu_ps(b->n[1]), _mm512_loadu_ps(b->n[2])};
+  V3 u{_mm512_loadu_ps(b->u[0]), _mm512_loadu_ps(b->u[1]), _mm512_loadu_ps(b->u[2])};
+  const __m512 half_leak = _mm512_set1_ps(a.half_leak);
+  for (int k = 0; k < np; ++k) {
+    const size_t o = static_cast<size_t>(k) * a.stride + xb;
+    const __m512 mixed =
+        _mm512_sub_ps(_mm512_loadu_ps(a.rds + o), _mm512_mul_ps(half_leak, _mm512_loadu_ps(lobe + k * kLanes)));
+    _mm512_storeu_ps(d2 + k * kLanes, _mm512_mask_blend_ps(both, _mm512_loadu_ps(a.rd + o), mixed));
+  }
+  if (both != 0) {
+    const V3 u2 = Solve16(a, d2, kLanes, n);
+    __m512 norm;
+    const __mmask16 ok = both & Usable16(u2, 1e-9f, &norm);
+    u = Blend16(ok, u, u2);
+    n = Blend16(ok, n, Divide16(u2, norm));
+  }
+  const __m512i cells = Cells16(n, t.n);
+  const __m512i base = _mm512_mullo_epi32(cells, _mm512_set1_epi32(3 * np));
+  const __m512 ws = _mm512_set1_ps(a.ws);
+  const __m512 copies = _mm512_mask_blend_ps(both, _mm512_set1_ps(1.f), _mm512_set1_ps(2.f));
+  __m512 chi2 = _mm512_setzero_ps();
+  const float* h = t.h.data();
+  for (int k = 0; k < np; ++k) {
+    const __m512i i = _mm512_add_epi32(base, _mm512_set1_epi32(3 * k));
+    const __m512 h0 = _mm512_i32gather_ps(i, h, 4);
+    const __m512 h1 = _mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(1)), h, 4);
+    const __m512 h2 = _mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(2)), h, 4);
+    const __m512 pred = _mm512_mul_ps(
+        ws, _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(u.x, h0), _mm512_mul_ps(u.y, h1)), _mm512_mul_ps(u.z, h2)));
+    const __m512 e = _mm512_sub_ps(_mm512_loadu_ps(d2 + k * kLanes), pred);
+    const __m512 dw = _mm512_loadu_ps(a.rdw + static_cast<size_t>(k) * a.stride + xb);
+    chi2 = _mm512_add_ps(chi2, _mm512_mul_ps(_mm512_mul_ps(_mm512_mul_ps(e, e), copies), dw));
+  }
+  chi2 = _mm512_div_ps(chi2, _mm512_set1_ps(static_cast<float>(std::max(1, np - 3))));
+  const __m512 own = _mm512_mask_blend_ps(
+      both, _mm512_loadu_ps(a.own_cross + xb),
+      _mm512_sub_ps(_mm512_loadu_ps(a.own_both + xb),
+                    _mm512_div_ps(_mm512_mul_ps(half_leak, _mm512_loadu_ps(b->lobe_sum)), _mm512_set1_ps(3.f))));
+  const __m512i hbase = _mm512_mullo_epi32(cells, _mm512_set1_epi32(3));
+  const float* hsum = t.hsum.data();
+  const __m512 hx = _mm512_i32gather_ps(hbase, hsum, 4);
+  const __m512 hy = _mm512_i32gather_ps(_mm512_add_epi32(hbase, _mm512_set1_epi32(1)), hsum, 4);
+  const __m512 hz = _mm512_i32gather_ps(_mm512_add_epi32(hbase, _mm512_set1_epi32(2)), hsum, 4);
+  const __m512 shade = _mm512_mul_ps(ws, Dot16(n, hx, hy, hz));
+  const __m512 albedo = _mm512_maskz_div_ps(_mm512_cmp_ps_mask(shade, _mm512_setzero_ps(), _CMP_GT_OQ), own, shade);
+  // Only the solved lanes change.
+  for (int c = 0; c < 3; ++c) {
+    _mm512_mask_storeu_ps(b->n[c], solved, c == 0 ? n.x : c == 1 ? n.y : n.z);
+    _mm512_mask_storeu_ps(b->u[c], solved, c == 0 ? u.x : c == 1 ? u.y : u.z);
+  }
+  _mm512_mask_storeu_ps(b->chi2, solved, chi2);
+  _mm512_mask_storeu_ps(b->own_albedo, solved, albedo);
+}
+
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
 // per-pair rows, and the per-pixel scratch.
 struct TileBuffers {
@@ -181,7 +535,9 @@ struct TileBuffers {
   // Per column of the tile: the lobe's moments (kMoments rows), the noise of the first moment, and the own sums.
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
-  std::vector<float> d, s, sw, dw, lobe, d2, entry;
+  std::vector<float> s, sw, lobe, entry;
+  Batch batch;
+  std::vector<float> lobe_lanes, d2_lanes;
 
   void Resize(int patterns, int np, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
@@ -191,9 +547,16 @@ struct TileBuffers {
     mu.resize(internal::kMoments * stride);
     for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
     saturated.resize(stride);
-    for (auto* v : {&d, &s, &sw, &dw, &lobe, &d2}) v->resize(static_cast<size_t>(np));
+    for (auto* v : {&s, &sw, &lobe}) v->resize(static_cast<size_t>(np));
+    for (auto* v : {&lobe_lanes, &d2_lanes}) v->resize(static_cast<size_t>(np) * kLanes);
   }
 };
+
+// Whether the CPU has what the vector kernels use.
+bool Avx512() {
+  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
+  return has;
+}
 
 }  // namespace
 
@@ -418,13 +781,30 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     float* const own_cross = buffers.own_cross.data();
     float* const own_both = buffers.own_both.data();
     uint8_t* const saturated = buffers.saturated.data();
-    std::vector<float>& d = buffers.d;
     std::vector<float>& s = buffers.s;
     std::vector<float>& sw = buffers.sw;
-    std::vector<float>& dw = buffers.dw;
     std::vector<float>& lobe = buffers.lobe;
-    std::vector<float>& d2 = buffers.d2;
     std::vector<float>& entry = buffers.entry;
+    // The per-pixel steps' batch, the lobes of its pixels and the diffuse data solved again (pair-major, kLanes a pair).
+    Batch& batch = buffers.batch;
+    float* const lobe_lanes = buffers.lobe_lanes.data();
+    float* const d2_lanes = buffers.d2_lanes.data();
+    DiffuseRow da;
+    da.t = &t;
+    da.rd = rd;
+    da.rds = rds;
+    da.rdw = rdw;
+    da.own_cross = own_cross;
+    da.own_both = own_both;
+    da.stride = stride;
+    da.ws = ws;
+    da.half_leak = 0.5f * (1 + leak);
+    da.min_signal = options.min_signal_dn;
+    da.full = tw.full;
+    da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
+    da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
+    da.toward = toward;
+    const bool avx512 = internal::FastVectorKernels() && Avx512();
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p; column x0 - 1 first
       return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
     };
@@ -485,212 +865,187 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           std::fill_n(&image->pixels[row0], static_cast<size_t>(tw_cols), 0.f);
         }
         std::fill_n(&own_albedo[row0], static_cast<size_t>(tw_cols), 0.f);
-        for (int xt = 0; xt < tw_cols; ++xt) {
-          const int x = x0 + xt;
-          const size_t i = row0 + xt;
-          uint8_t flags = saturated[xt] ? kSaturated : 0;
-          if (rd[static_cast<size_t>(tw.full) * stride + xt] < options.min_signal_dn) {
-            m.flags[i] = flags | kLowSignal;
-            continue;
-          }
-          for (int k = 0; k < np; ++k) {
-            const size_t o = static_cast<size_t>(k) * stride + xt;
-            d[k] = rd[o];
-            s[k] = rs[o];
-            sw[k] = rsw[o];
-            dw[k] = rdw[o];
-          }
-          // Diffuse from the cross images: a first guess from the gradients, then u = M(n) d twice.
-          Eigen::Vector3f n = toward;
-          if (tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0) {
-            const Eigen::Vector3f guess(d[tw.xp] - d[tw.xm], d[tw.yp] - d[tw.ym], d[tw.zp] - d[tw.zm]);
-            if (guess.norm() > 1e-6f) n = guess.normalized();
-          }
-          auto solve = [&](const std::vector<float>& data, const Eigen::Vector3f& at) {
-            const float* mm = &t.m[static_cast<size_t>(t.Cell(at, t.n)) * 3 * np];
-            Eigen::Vector3f u = Eigen::Vector3f::Zero();
-            for (int k = 0; k < np; ++k) {
-              u.x() += mm[k] * data[k];
-              u.y() += mm[np + k] * data[k];
-              u.z() += mm[2 * np + k] * data[k];
-            }
-            return Eigen::Vector3f(u / ws);
-          };
-          bool solved = true;
-          Eigen::Vector3f u = n;
-          for (int it = 0; it < 2 && solved; ++it) {
-            u = solve(d, n);
-            solved = u.allFinite() && u.norm() > 1e-9f;
-            if (solved) n = u.normalized();
-          }
-          if (!solved) {
-            m.flags[i] = flags | kLowSignal;
-            continue;
-          }
-
-          // Specular: the lobe's moments, then through the table to its mirror direction, roughness and total.
-          const Eigen::Vector3f v = camera.rays.empty() ? toward : Eigen::Vector3f(-camera.rays[i]);
-          float mu_x[internal::kMoments];
-          for (int r = 0; r < internal::kMoments; ++r) mu_x[r] = mu[static_cast<size_t>(r) * stride + xt];
-          const LobeMoments mom = FromMoments(mu_x);
-          bool lobe_known = false, measured = false;
-          std::fill(lobe.begin(), lobe.end(), 0.f);
-          float spec_chi2 = 0;
-          if (mom.ok) {
-            const int cell = t.Cell(mom.mean, t.s);
-            const float* e0 = &t.spec[static_cast<size_t>(cell) * t.j * t.spec_stride];
-            // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last
-            // it has: noise can take the spread a little past them).
-            int k0 = -1, first = -1, last = -1;
-            float f = 0;
-            bool in_range = false;  // the spread within what the cell's roughness samples span
-            for (int k = 0; k < t.j; ++k) {
-              if (e0[k * t.spec_stride + 4] > 0) {
-                if (first < 0) first = k;
-                last = k;
-              } else if (first >= 0) {
-                break;
-              }
-            }
-            if (first >= 0 && last > first) {
-              for (int k = first; k < last; ++k) {
-                const float lo = e0[k * t.spec_stride + 3], hi = e0[(k + 1) * t.spec_stride + 3];
-                if (mom.spread <= hi || k + 1 == last) {
-                  k0 = k;
-                  const float raw_f = (mom.spread - lo) / std::max(1e-9f, hi - lo);
-                  in_range = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
-                  f = std::clamp(raw_f, 0.f, 1.f);
-                  break;
-                }
-              }
-            }
-            if (k0 >= 0) {
-              const float* a = e0 + k0 * t.spec_stride;
-              const float* b = a + t.spec_stride;
-              // The entry at this roughness, interpolated between the four cells around the mean direction (the
-              // nearest alone where a neighbour has no lobe there).
-              entry.assign(static_cast<size_t>(t.spec_stride), 0.f);
-              const Eigen::Vector2f uv = OctEncode(mom.mean);
-              const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
-              const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
-              const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
-              const float wu = fu - cu0, wv = fv - cv0;
-              bool corners = true;
-              for (int c = 0; c < 4 && corners; ++c) {
-                const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
-                const float* ca = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * t.spec_stride];
-                const float* cb = ca + t.spec_stride;
-                if (!(ca[4] > 0 && cb[4] > 0)) {
-                  corners = false;
-                  break;
-                }
-                const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
-                for (int q = 0; q < t.spec_stride; ++q)
-                  entry[static_cast<size_t>(q)] += wc * ((1 - f) * ca[q] + f * cb[q]);
-              }
-              if (!corners) {
-                for (int q = 0; q < t.spec_stride; ++q) entry[static_cast<size_t>(q)] = (1 - f) * a[q] + f * b[q];
-              }
-              const Eigen::Vector3f dr(entry[0], entry[1], entry[2]);
-              const float log_alpha =
-                  (1 - f) * t.log_alpha[static_cast<size_t>(k0)] + f * t.log_alpha[static_cast<size_t>(k0) + 1];
-              // Intensity: the lobe's shape fitted to the images (noise-weighted least squares).
-              float smm = 0, ssm = 0;
-              for (int k = 0; k < np; ++k) {
-                const float mk = spec_scale * entry[static_cast<size_t>(5 + k)];
-                smm += sw[k] * mk * mk;
-                ssm += sw[k] * s[k] * mk;
-              }
-              const float rho = smm > 0 ? std::max(0.f, ssm / smm) : 0.f;
-              const Eigen::Vector3f r = (mom.mean + dr).normalized();
-              const Eigen::Vector3f ns = (r + v).normalized();
-              for (int k = 0; k < np; ++k) {
-                lobe[k] = rho * spec_scale * entry[static_cast<size_t>(5 + k)];
-                const float e = s[k] - lobe[k];
-                spec_chi2 += sw[k] * e * e;
-              }
-              spec_chi2 /= static_cast<float>(std::max(1, np - 4));
-              lobe_known = true;
-              // The noise of the first moment (its three components) and of the second along the mean direction:
-              // sums over the patterns of their coefficients squared times the specular variance (with the mean
-              // direction q, the second moment's coefficient is sum_j c_j(q) m_j: its square, sum_jl c_j c_l m_j m_l).
-              const Eigen::Vector3f& q = mom.mean;
-              const float c[6] = {q.x() * q.x(),     q.y() * q.y(),     q.z() * q.z(),
-                                  2 * q.x() * q.y(), 2 * q.y() * q.z(), 2 * q.x() * q.z()};
-              float vs = 0;
-              for (int k = 0; k < np; ++k) {
-                float q2k = 0;
-                for (int j = 0; j < 6; ++j) q2k += c[j] * coef[static_cast<size_t>(k) * internal::kMoments + 4 + j];
-                vs += q2k * q2k / sw[k];
-              }
-              const float v1_x = v1[xt];
-              // The direction of m1 moves by its tangential noise over its own length.
-              const float var_dir = 2.f / 3 * v1_x / (mom.length * mom.length);
-              const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
-              const float var_rho = smm > 0 ? 1 / smm : 1e30f;
-              const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
-                                  std::max(1e-9f, b[3] - a[3]);
-              const float vla = slope * slope * vs / (mom.mu0 * mom.mu0);
-              const float spec_snr = s[tw.full] * std::sqrt(sw[tw.full]);
-              // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands
-              // for the specular in the diffuse below, but is not a measurement.
-              measured =
-                  in_range && internal::LobeMeasured(options, spec_snr, vn, rho, var_rho, vla, std::exp(log_alpha));
-              if (measured) {
-                if (spec_chi2 > 4) flags |= kSpecularBadFit;
-                std::copy(ns.data(), ns.data() + 3, m.specular_normal_raw.at(x, y));
-                m.specular.at(x, y)[0] = rho;
-                m.roughness.at(x, y)[0] = std::exp(log_alpha);
-                m.specular_sigma.at(x, y)[0] = std::sqrt(vn) * 180 / kPi;
-                var_n[i] = vn;
-                var_log_alpha[i] = vla;
-              }
-            }
-          }
-          if (!measured) flags |= kNoSpecular;
-          // With the lobe known, both polarizations hold the diffuse.
-          const bool both = lobe_known && spec_chi2 <= 4;
-          if (both) {
-            for (int k = 0; k < np; ++k)
-              d2[k] = rds[static_cast<size_t>(k) * stride + xt] - 0.5f * (1 + leak) * lobe[k];
-            const Eigen::Vector3f u2 = solve(d2, n);
-            if (u2.allFinite() && u2.norm() > 1e-9f) {
-              u = u2;
-              n = u.normalized();
-            }
+        for (int xb = 0; xb < tw_cols; xb += kLanes) {
+          const int lanes = std::min(kLanes, tw_cols - xb);
+          // Diffuse: a first guess from the gradients, then u = M(n) d twice, across the batch.
+          if (avx512) {
+            DiffuseFirst16(da, xb, lanes, &batch);
           } else {
-            d2 = d;
+            DiffuseFirst(da, xb, lanes, &batch);
           }
-          // Residual of the diffuse fit, and the albedo of the colour this pixel measures: its images summed over the
-          // patterns against the light summed the same way.
-          const size_t cell = static_cast<size_t>(t.Cell(n, t.n));
-          const float* hh = &t.h[cell * 3 * np];
-          float chi2 = 0;
-          const float copies = both ? 2.f : 1.f;
-          for (int k = 0; k < np; ++k) {
-            const float pred = ws * (u.x() * hh[3 * k] + u.y() * hh[3 * k + 1] + u.z() * hh[3 * k + 2]);
-            const float e = d2[k] - pred;
-            chi2 += e * e * copies * dw[k];  // the variance at the measured level
+          uint8_t lane_flags[kLanes];
+          for (int l = 0; l < lanes; ++l) {
+            const int xt = xb + l;
+            const int x = x0 + xt;
+            const size_t i = row0 + xt;
+            uint8_t flags = saturated[xt] ? kSaturated : 0;
+            batch.both[l] = false;
+            batch.lobe_sum[l] = 0;
+            if (!batch.solved[l]) {
+              m.flags[i] = flags | kLowSignal;
+              continue;
+            }
+            for (int k = 0; k < np; ++k) {
+              const size_t o = static_cast<size_t>(k) * stride + xt;
+              s[k] = rs[o];
+              sw[k] = rsw[o];
+            }
+            // Specular: the lobe's moments, then through the table to its mirror direction, roughness and total.
+            const Eigen::Vector3f v = camera.rays.empty() ? toward : Eigen::Vector3f(-camera.rays[i]);
+            float mu_x[internal::kMoments];
+            for (int r = 0; r < internal::kMoments; ++r) mu_x[r] = mu[static_cast<size_t>(r) * stride + xt];
+            const LobeMoments mom = FromMoments(mu_x);
+            bool lobe_known = false, measured = false;
+            std::fill(lobe.begin(), lobe.end(), 0.f);
+            float spec_chi2 = 0;
+            if (mom.ok) {
+              const int cell = t.Cell(mom.mean, t.s);
+              const float* e0 = &t.spec[static_cast<size_t>(cell) * t.j * t.spec_stride];
+              // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last
+              // it has: noise can take the spread a little past them).
+              int k0 = -1, first = -1, last = -1;
+              float f = 0;
+              bool in_range = false;  // the spread within what the cell's roughness samples span
+              for (int k = 0; k < t.j; ++k) {
+                if (e0[k * t.spec_stride + 4] > 0) {
+                  if (first < 0) first = k;
+                  last = k;
+                } else if (first >= 0) {
+                  break;
+                }
+              }
+              if (first >= 0 && last > first) {
+                for (int k = first; k < last; ++k) {
+                  const float lo = e0[k * t.spec_stride + 3], hi = e0[(k + 1) * t.spec_stride + 3];
+                  if (mom.spread <= hi || k + 1 == last) {
+                    k0 = k;
+                    const float raw_f = (mom.spread - lo) / std::max(1e-9f, hi - lo);
+                    in_range = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
+                    f = std::clamp(raw_f, 0.f, 1.f);
+                    break;
+                  }
+                }
+              }
+              if (k0 >= 0) {
+                const float* a = e0 + k0 * t.spec_stride;
+                const float* b = a + t.spec_stride;
+                // The entry at this roughness, interpolated between the four cells around the mean direction (the
+                // nearest alone where a neighbour has no lobe there).
+                entry.assign(static_cast<size_t>(t.spec_stride), 0.f);
+                const Eigen::Vector2f uv = OctEncode(mom.mean);
+                const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
+                const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
+                const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
+                const float wu = fu - cu0, wv = fv - cv0;
+                bool corners = true;
+                for (int c = 0; c < 4 && corners; ++c) {
+                  const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
+                  const float* ca = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * t.spec_stride];
+                  const float* cb = ca + t.spec_stride;
+                  if (!(ca[4] > 0 && cb[4] > 0)) {
+                    corners = false;
+                    break;
+                  }
+                  const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
+                  for (int q = 0; q < t.spec_stride; ++q)
+                    entry[static_cast<size_t>(q)] += wc * ((1 - f) * ca[q] + f * cb[q]);
+                }
+                if (!corners) {
+                  for (int q = 0; q < t.spec_stride; ++q) entry[static_cast<size_t>(q)] = (1 - f) * a[q] + f * b[q];
+                }
+                const Eigen::Vector3f dr(entry[0], entry[1], entry[2]);
+                const float log_alpha =
+                    (1 - f) * t.log_alpha[static_cast<size_t>(k0)] + f * t.log_alpha[static_cast<size_t>(k0) + 1];
+                // Intensity: the lobe's shape fitted to the images (noise-weighted least squares).
+                float smm = 0, ssm = 0;
+                for (int k = 0; k < np; ++k) {
+                  const float mk = spec_scale * entry[static_cast<size_t>(5 + k)];
+                  smm += sw[k] * mk * mk;
+                  ssm += sw[k] * s[k] * mk;
+                }
+                const float rho = smm > 0 ? std::max(0.f, ssm / smm) : 0.f;
+                const Eigen::Vector3f r = (mom.mean + dr).normalized();
+                const Eigen::Vector3f ns = (r + v).normalized();
+                for (int k = 0; k < np; ++k) {
+                  lobe[k] = rho * spec_scale * entry[static_cast<size_t>(5 + k)];
+                  const float e = s[k] - lobe[k];
+                  spec_chi2 += sw[k] * e * e;
+                }
+                spec_chi2 /= static_cast<float>(std::max(1, np - 4));
+                lobe_known = true;
+                // The noise of the first moment (its three components) and of the second along the mean direction:
+                // sums over the patterns of their coefficients squared times the specular variance (with the mean
+                // direction q, the second moment's coefficient is sum_j c_j(q) m_j: its square, sum_jl c_j c_l m_j m_l).
+                const Eigen::Vector3f& q = mom.mean;
+                const float c[6] = {q.x() * q.x(),     q.y() * q.y(),     q.z() * q.z(),
+                                    2 * q.x() * q.y(), 2 * q.y() * q.z(), 2 * q.x() * q.z()};
+                float vs = 0;
+                for (int k = 0; k < np; ++k) {
+                  float q2k = 0;
+                  for (int j = 0; j < 6; ++j) q2k += c[j] * coef[static_cast<size_t>(k) * internal::kMoments + 4 + j];
+                  vs += q2k * q2k / sw[k];
+                }
+                const float v1_x = v1[xt];
+                // The direction of m1 moves by its tangential noise over its own length.
+                const float var_dir = 2.f / 3 * v1_x / (mom.length * mom.length);
+                const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
+                const float var_rho = smm > 0 ? 1 / smm : 1e30f;
+                const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
+                                    std::max(1e-9f, b[3] - a[3]);
+                const float vla = slope * slope * vs / (mom.mu0 * mom.mu0);
+                const float spec_snr = s[tw.full] * std::sqrt(sw[tw.full]);
+                // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands
+                // for the specular in the diffuse below, but is not a measurement.
+                measured =
+                    in_range && internal::LobeMeasured(options, spec_snr, vn, rho, var_rho, vla, std::exp(log_alpha));
+                if (measured) {
+                  if (spec_chi2 > 4) flags |= kSpecularBadFit;
+                  std::copy(ns.data(), ns.data() + 3, m.specular_normal_raw.at(x, y));
+                  m.specular.at(x, y)[0] = rho;
+                  m.roughness.at(x, y)[0] = std::exp(log_alpha);
+                  m.specular_sigma.at(x, y)[0] = std::sqrt(vn) * 180 / kPi;
+                  var_n[i] = vn;
+                  var_log_alpha[i] = vla;
+                }
+              }
+            }
+            if (!measured) flags |= kNoSpecular;
+            // With the lobe known, both polarizations hold the diffuse.
+            if (lobe_known && spec_chi2 <= 4) {
+              batch.both[l] = true;
+              float lobe_sum = 0;
+              for (int k = 0; k < np; ++k) {
+                lobe_sum += lobe[k];
+                lobe_lanes[static_cast<size_t>(k) * kLanes + l] = lobe[k];
+              }
+              batch.lobe_sum[l] = lobe_sum;
+            }
+            lane_flags[l] = flags;
           }
-          chi2 /= static_cast<float>(std::max(1, np - 3));
-          if (chi2 > 4) flags |= kBadFit;
-          // (The row's own sums less, with both polarizations, half the lobe in the pixel's one channel.)
-          float own = own_cross[xt];
-          if (both) {
-            float lobe_sum = 0;
-            for (int k = 0; k < np; ++k) lobe_sum += lobe[k];
-            own = own_both[xt] - 0.5f * (1 + leak) * lobe_sum / 3;
+          // Diffuse again from both polarizations where the lobe is known; the fit's residual and the own albedo.
+          if (avx512) {
+            DiffuseLast16(da, xb, lanes, lobe_lanes, d2_lanes, &batch);
+          } else {
+            DiffuseLast(da, xb, lanes, lobe_lanes, d2_lanes, &batch);
           }
-          const Eigen::Vector3f hs(t.hsum[cell * 3], t.hsum[cell * 3 + 1], t.hsum[cell * 3 + 2]);
-          const float shade = ws * n.dot(hs);
-          own_albedo[i] = shade > 0 ? own / shade : 0.f;
-
-          const Eigen::Vector3f nc = to_camera * n;
-          std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
-          std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
-          m.fit_residual.at(x, y)[0] = chi2;
-          m.confidence.at(x, y)[0] = internal::Confidence(d[tw.full], g, read_dn2, chi2, flags);
-          m.flags[i] = flags;
+          for (int l = 0; l < lanes; ++l) {
+            if (!batch.solved[l]) continue;
+            const int xt = xb + l;
+            const int x = x0 + xt;
+            const size_t i = row0 + xt;
+            uint8_t flags = lane_flags[l];
+            const float chi2 = batch.chi2[l];
+            if (chi2 > 4) flags |= kBadFit;
+            own_albedo[i] = batch.own_albedo[l];
+            const Eigen::Vector3f n(batch.n[0][l], batch.n[1][l], batch.n[2][l]);
+            const Eigen::Vector3f nc = to_camera * n;
+            std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
+            std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
+            m.fit_residual.at(x, y)[0] = chi2;
+            m.confidence.at(x, y)[0] =
+                internal::Confidence(rd[static_cast<size_t>(tw.full) * stride + xt], g, read_dn2, chi2, flags);
+            m.flags[i] = flags;
+          }
         }
       }
     }

@@ -63,19 +63,8 @@ TEST(FastPhotometricTest, NoisyMosaicMeetsTheGoalsOnTheSphere) {
 
 // The per-row work runs in column tiles (for the cache); a tile's edge must not show in any map. The sphere, 96 columns,
 // solved in one tile and in tiles of 40 (the last 16 wide), byte for byte.
-TEST(FastPhotometricTest, ColumnTilesDoNotChangeAnyMap) {
-  const LightModel light = ShippedLight();
-  const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
-  const CycleFrames mosaic = ToMosaic(s);
-  auto tables = PhotometricTables::Build(light, s.camera);
-  ASSERT_TRUE(tables.ok()) << tables.status();
-  const int saved = internal::FastTileColumns();
-  auto whole = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
-  internal::FastTileColumns() = 40;
-  auto tiled = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
-  internal::FastTileColumns() = saved;
-  ASSERT_TRUE(whole.ok()) << whole.status();
-  ASSERT_TRUE(tiled.ok()) << tiled.status();
+// Every map and flag of two solves, byte for byte.
+void ExpectSameBytes(const PhotometricMaps& whole, const PhotometricMaps& tiled) {
   const std::pair<const char*, Image PhotometricMaps::*> maps[] = {
       {"diffuse_normal_world", &PhotometricMaps::diffuse_normal_world},
       {"albedo", &PhotometricMaps::albedo},
@@ -85,17 +74,53 @@ TEST(FastPhotometricTest, ColumnTilesDoNotChangeAnyMap) {
       {"confidence", &PhotometricMaps::confidence},
       {"fit_residual", &PhotometricMaps::fit_residual}};
   for (const auto& [name, map] : maps) {
-    const std::vector<float>& a = ((*whole).*map).pixels;
-    const std::vector<float>& b = ((*tiled).*map).pixels;
+    const std::vector<float>& a = (whole.*map).pixels;
+    const std::vector<float>& b = (tiled.*map).pixels;
     ASSERT_EQ(a.size(), b.size()) << name;
     size_t differ = 0;
     for (size_t i = 0; i < a.size(); ++i) differ += std::memcmp(&a[i], &b[i], sizeof(float)) != 0;
     EXPECT_EQ(differ, 0u) << name;
   }
-  EXPECT_EQ(whole->flags, tiled->flags);
+  EXPECT_EQ(whole.flags, tiled.flags);
   size_t solved = 0;
-  for (uint8_t f : whole->flags) solved += (f & kLowSignal) == 0;
+  for (uint8_t f : whole.flags) solved += (f & kLowSignal) == 0;
   EXPECT_GT(solved, 5000u);  // the sphere is there to be solved
+}
+
+TEST(FastPhotometricTest, ColumnTilesDoNotChangeAnyMap) {
+  const LightModel light = ShippedLight();
+  const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
+  const CycleFrames mosaic = ToMosaic(s);
+  auto tables = PhotometricTables::Build(light, s.camera);
+  ASSERT_TRUE(tables.ok()) << tables.status();
+  const int saved = internal::FastTileColumns();
+  auto whole = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastTileColumns() = 40;  // and batches of pixels cut short at each tile's end
+  auto tiled = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastTileColumns() = saved;
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  ASSERT_TRUE(tiled.ok()) << tiled.status();
+  ExpectSameBytes(*whole, *tiled);
+}
+
+// The per-pixel diffuse steps across AVX-512 lanes give the bits the scalar code gives (the same operations in the
+// same order). Where the CPU has no AVX-512 both solves run the scalar code and the test checks nothing new.
+TEST(FastPhotometricTest, VectorKernelsGiveTheScalarCodesBits) {
+  const LightModel light = ShippedLight();
+  const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
+  const CycleFrames mosaic = ToMosaic(s);
+  auto tables = PhotometricTables::Build(light, s.camera);
+  ASSERT_TRUE(tables.ok()) << tables.status();
+  auto vector = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastVectorKernels() = false;
+  auto scalar = SolvePhotometricFast(light, **tables, mosaic, {}, s.camera);
+  internal::FastVectorKernels() = true;
+  ASSERT_TRUE(vector.ok()) << vector.status();
+  ASSERT_TRUE(scalar.ok()) << scalar.status();
+  ExpectSameBytes(*vector, *scalar);
+  if (!__builtin_cpu_supports("avx512f") || !__builtin_cpu_supports("avx512dq")) {
+    std::printf("this CPU has no AVX-512: the scalar code ran both times\n");
+  }
 }
 
 }  // namespace
