@@ -87,6 +87,11 @@ struct PhotometricTables::Data {
   std::vector<float> log_alpha;
   HugeArray spec;
   int spec_stride = 0;
+  // Per cell: the run of roughness samples the lookup uses (the first with a lobe, and the last of the run of samples
+  // with one after it; -1: none), and the samples' spreads (spec's entry 3) side by side, so that finding the roughness
+  // reads one cache line, not one per sample.
+  std::vector<int8_t> first, last;
+  std::vector<float> spread;
   Eigen::Vector3f view = Eigen::Vector3f::UnitZ();  // the camera's central view (towards it from the stage origin)
 
   int Cell(const Eigen::Vector3f& dir, int size) const {
@@ -672,6 +677,22 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
       if (e[4] < 0.25f * best[static_cast<size_t>(k)]) std::fill(e, e + d.spec_stride, 0.f);
     }
   }
+  d.first.assign(static_cast<size_t>(d.s) * d.s, -1);
+  d.last.assign(static_cast<size_t>(d.s) * d.s, -1);
+  d.spread.assign(static_cast<size_t>(d.s) * d.s * d.j, 0.f);
+  static_assert(kAlphas <= 127, "roughness samples are counted in int8_t");
+  for (size_t c = 0; c < static_cast<size_t>(d.s) * d.s; ++c) {
+    for (int k = 0; k < d.j; ++k) {
+      const float* e = &d.spec[(c * d.j + k) * d.spec_stride];
+      d.spread[c * d.j + k] = e[3];
+      if (e[4] > 0) {
+        if (d.first[c] < 0) d.first[c] = static_cast<int8_t>(k);
+        d.last[c] = static_cast<int8_t>(k);
+      } else if (d.first[c] >= 0) {
+        break;
+      }
+    }
+  }
   return std::shared_ptr<const PhotometricTables>(std::move(tables));
 }
 
@@ -903,20 +924,14 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
               const float* e0 = &t.spec[static_cast<size_t>(cell) * t.j * t.spec_stride];
               // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last
               // it has: noise can take the spread a little past them).
-              int k0 = -1, first = -1, last = -1;
+              int k0 = -1;
+              const int first = t.first[static_cast<size_t>(cell)], last = t.last[static_cast<size_t>(cell)];
+              const float* spread = &t.spread[static_cast<size_t>(cell) * t.j];
               float f = 0;
               bool in_range = false;  // the spread within what the cell's roughness samples span
-              for (int k = 0; k < t.j; ++k) {
-                if (e0[k * t.spec_stride + 4] > 0) {
-                  if (first < 0) first = k;
-                  last = k;
-                } else if (first >= 0) {
-                  break;
-                }
-              }
               if (first >= 0 && last > first) {
                 for (int k = first; k < last; ++k) {
-                  const float lo = e0[k * t.spec_stride + 3], hi = e0[(k + 1) * t.spec_stride + 3];
+                  const float lo = spread[k], hi = spread[k + 1];
                   if (mom.spread <= hi || k + 1 == last) {
                     k0 = k;
                     const float raw_f = (mom.spread - lo) / std::max(1e-9f, hi - lo);
