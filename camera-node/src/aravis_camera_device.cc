@@ -494,6 +494,9 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
   ArvStream* s = d.stream;
   BlockIdUnwrapper unwrap;
   std::optional<uint64_t> first_block;
+  // Frames that came without their leader before the first with one: exposed, so counted (the ids count from the first
+  // frame the stream brings, and the first one with an id is not that one).
+  uint64_t leaderless_first = 0;
   while (true) {
     // Once stopped, what the stream has already closed is still delivered: nothing it counted is left behind.
     const bool running_now = delivering.load();
@@ -509,13 +512,14 @@ void AravisCameraDevice::Impl::Deliver(Delivery d) {
       // failure and the frame counter's gap marks its slot as exposed and not delivered; the sink is told, for a gap
       // the counter cannot show (after the take's last delivered frame).
       Recycle(s, buffer);
+      if (!first_block) ++leaderless_first;
       if (d.sink != nullptr) d.sink->OnFrameLost();
       continue;
     }
     auto frame = std::make_shared<Frame>();
     const uint64_t block = unwrap.Next(arv_buffer_get_frame_id(buffer));
     if (!first_block) first_block = block;
-    frame->frame_id = d.first_id + (block - *first_block);
+    frame->frame_id = d.first_id + leaderless_first + (block - *first_block);
     next_id = frame->frame_id + 1;  // only this thread writes it while the stream runs
     frame->device_timestamp_ns = static_cast<int64_t>(arv_buffer_get_timestamp(buffer));
     size_t size = 0;

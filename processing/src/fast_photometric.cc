@@ -257,7 +257,7 @@ struct DiffuseRow {
   size_t stride = 0;
   float ws = 1;         // the white scale
   float half_leak = 0;  // 0.5 (1 + leak): the lobe's share of the mean of both polarizations
-  float min_signal = 0;
+  float min_signal = 0;  // the least signal to solve (the full-on pair's diffuse), DN
   int full = 0;
   bool guess = false;  // the six first-order gradients are there for a first guess
   int xp = 0, xm = 0, yp = 0, ym = 0, zp = 0, zm = 0;
@@ -820,7 +820,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     da.stride = stride;
     da.ws = ws;
     da.half_leak = 0.5f * (1 + leak);
-    da.min_signal = options.min_signal_dn;
+    // The least float not below min_signal_dn: a float value is below one exactly when it is below the other.
+    da.min_signal = static_cast<float>(options.min_signal_dn);
+    if (da.min_signal < options.min_signal_dn) da.min_signal = std::nextafter(da.min_signal, HUGE_VALF);
     da.full = tw.full;
     da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
     da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
