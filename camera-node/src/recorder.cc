@@ -327,7 +327,7 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   for (const auto& [slot, id] : matched_) {
     if (index_of_.count(slot)) delivered.emplace_back(slot, id);
   }
-  int64_t dropped_by_counter = 0;
+  int64_t marked_exposed = 0;  // slots marked exposed and not delivered so far
   auto account = [&](size_t first, size_t last, int64_t exposed, bool rest_never_exposed, const std::string& how,
                      const std::string& where, const std::string& outage = std::string()) {
     // Expected slots [first, last) (indexes) are silent; the first `exposed` of them were exposed (`how` says how that
@@ -343,7 +343,7 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
         out.reason = LossReason::kCameraDropped;
         out.detail = absl::StrCat("exposed (", how, ") but not delivered", where);
         --exposed;
-        ++dropped_by_counter;
+        ++marked_exposed;
       } else {
         out.reason = LossReason::kTriggerMissed;
         out.detail = rest_never_exposed ? absl::StrCat("never exposed", where) : absl::StrCat("no frame", where);
@@ -353,7 +353,7 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   // After the last delivered frame the counter says nothing; the frames that came without their leader (no id) say
   // how many were exposed there, as far as there are more of them than the counter's gaps before. (A gap the camera
   // sent nothing of at all counts in the gaps and not in those frames: the tail's figure is a lower bound.)
-  auto tail_exposed = [&] { return std::max<int64_t>(0, frames_without_id_ - dropped_by_counter); };
+  auto tail_exposed = [&] { return std::max<int64_t>(0, frames_without_id_ - marked_exposed); };
   constexpr char kLeaderless[] = "a frame came without its leader";
   // The link was down after the last frame: as the take ended, or until a frame that came after the take.
   const std::string tail_outage = outages_reported_ > outage_notes_ ? outage_detail_ : pending_outage_;
@@ -371,13 +371,10 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     const auto silent = static_cast<int64_t>(at - from);
     if (silent > 0) {
       auto outage = outage_before_.find(slot);
-      const std::string& note = outage != outage_before_.end() ? outage->second : std::string();
-      if (before) {
-        const int64_t exposed = std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent);
-        account(from, at, exposed, true, "frame counter", "", note);
-      } else {
-        account(from, at, 0, false, "frame counter", "", note);
-      }
+      // Without a counter before (the take's first frame id unknown), nothing is known of the run.
+      const int64_t exposed = before ? std::clamp<int64_t>(static_cast<int64_t>(id) - *before - 1, 0, silent) : 0;
+      account(from, at, exposed, before.has_value(), "frame counter", "",
+              outage != outage_before_.end() ? outage->second : std::string());
     }
     before = static_cast<int64_t>(id);
     from = at + 1;

@@ -109,6 +109,11 @@ bool& internal::FastVectorKernels() {
   return use;
 }
 
+bool internal::FastVectorKernelsAvailable() {
+  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
+  return has;
+}
+
 int& internal::FastTileColumns() {
   static int columns = 512;
   return columns;
@@ -266,7 +271,8 @@ struct DiffuseRow {
 
 // Up to kLanes pixels of a row through the per-pixel steps (lane l: column xb + l of the tile).
 struct Batch {
-  float n[3][kLanes], u[3][kLanes];  // the diffuse normal and the solved vector (albedo times normal)
+  float n[3][kLanes];  // the diffuse normal: from the first solves, then the last
+  float u[3][kLanes];  // the first solves' vector (albedo times normal), for the last steps
   bool solved[kLanes];               // the first solves gave a normal (else: too little signal)
   bool both[kLanes];                 // the lobe is known and fits: both polarizations hold the diffuse
   float lobe_sum[kLanes];            // the lobe's images summed over the pairs
@@ -353,10 +359,7 @@ void DiffuseLast(const DiffuseRow& a, int xb, int lanes, const float* lobe, floa
     const Eigen::Vector3f hs(t.hsum[cell * 3], t.hsum[cell * 3 + 1], t.hsum[cell * 3 + 2]);
     const float shade = a.ws * n.dot(hs);
     b->own_albedo[l] = shade > 0 ? own / shade : 0.f;
-    for (int c = 0; c < 3; ++c) {
-      b->n[c][l] = n[c];
-      b->u[c][l] = u[c];
-    }
+    for (int c = 0; c < 3; ++c) b->n[c][l] = n[c];
   }
 }
 
@@ -525,10 +528,7 @@ STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const fl
   const __m512 shade = _mm512_mul_ps(ws, Dot16(n, hx, hy, hz));
   const __m512 albedo = _mm512_maskz_div_ps(_mm512_cmp_ps_mask(shade, _mm512_setzero_ps(), _CMP_GT_OQ), own, shade);
   // Only the solved lanes change.
-  for (int c = 0; c < 3; ++c) {
-    _mm512_mask_storeu_ps(b->n[c], solved, c == 0 ? n.x : c == 1 ? n.y : n.z);
-    _mm512_mask_storeu_ps(b->u[c], solved, c == 0 ? u.x : c == 1 ? u.y : u.z);
-  }
+  for (int c = 0; c < 3; ++c) _mm512_mask_storeu_ps(b->n[c], solved, c == 0 ? n.x : c == 1 ? n.y : n.z);
   _mm512_mask_storeu_ps(b->chi2, solved, chi2);
   _mm512_mask_storeu_ps(b->own_albedo, solved, albedo);
 }
@@ -556,12 +556,6 @@ struct TileBuffers {
     for (auto* v : {&lobe_lanes, &d2_lanes}) v->resize(static_cast<size_t>(np) * kLanes);
   }
 };
-
-// Whether the CPU has what the vector kernels use.
-bool Avx512() {
-  static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
-  return has;
-}
 
 }  // namespace
 
@@ -827,7 +821,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
     da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
     da.toward = toward;
-    const bool avx512 = internal::FastVectorKernels() && Avx512();
+    const bool avx512 = internal::FastVectorKernels() && internal::FastVectorKernelsAvailable();
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p; column x0 - 1 first
       return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
     };

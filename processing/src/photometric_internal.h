@@ -51,6 +51,8 @@ int& FastTileColumns();
 // Whether the fast solver's per-pixel diffuse steps run across AVX-512 lanes where the CPU has it (true by default).
 // The results are the same bits either way; tests turn it off to check that.
 bool& FastVectorKernels();
+// Whether this CPU has what the vector kernels use (AVX-512 F and DQ).
+bool FastVectorKernelsAvailable();
 
 // Pattern weights unit-major (w[l * np + p]) for the paired patterns, and the coefficients that turn the specular
 // images into the lobe's moments (sum_p c_p w_p(l) ~ f(l) over the units, by least squares).
