@@ -278,6 +278,12 @@ struct Batch {
   float lobe_sum[kLanes];            // the lobe's images summed over the pairs
   float chi2[kLanes];                // the diffuse fit's residual per degree of freedom
   float own_albedo[kLanes];          // the albedo of the colour the pixel measures
+  // The specular, where the lobe is measured: its normal (before regularization), intensity, roughness, the normal's
+  // noise in degrees, and the variances of the normal and of log roughness; a bad fit of the lobe to the images.
+  bool measured[kLanes];
+  bool spec_bad_fit[kLanes];
+  float ns[3][kLanes];
+  float rho[kLanes], alpha[kLanes], sigma_deg[kLanes], var_n[kLanes], var_log_alpha[kLanes];
 };
 
 // u = M(cell of `at`) data / white scale, data[k * step] the pair k's value.
@@ -533,6 +539,233 @@ STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const fl
   _mm512_mask_storeu_ps(b->own_albedo, solved, albedo);
 }
 
+// What the lobe's lookup reads for a row of a tile: the per-pair rows (np rows `stride` apart, from the tile's column
+// 0), the moments' rows, and the constants.
+struct LobeRow {
+  const PhotometricTables::Data* t = nullptr;
+  const PhotometricOptions* options = nullptr;
+  const float* rs = nullptr;   // the specular
+  const float* rsw = nullptr;  // its inverse variance
+  const float* mu = nullptr;   // the lobe's moments (kMoments rows)
+  const float* v1 = nullptr;   // the first moment's variance
+  size_t stride = 0;
+  const float* coef = nullptr;            // per pair, the moments' coefficients (kMoments each)
+  const Eigen::Vector3f* rays = nullptr;  // the image's rays from the camera (null: every view is `toward`)
+  Eigen::Vector3f toward = Eigen::Vector3f::UnitZ();
+  float spec_scale = 1;
+  int full = 0;
+};
+
+// Scratch of the lookup: the table's entry of each lane, entry-major (entry q of lane l at q * kLanes + l).
+struct LobeScratch {
+  std::vector<float> entry;  // spec_stride * kLanes
+  std::vector<float> one;    // spec_stride: one lane's entry
+};
+
+// a / |a| where |a| > 0 (else a), |a| as Eigen has it (x x + (y y + z z)).
+inline void Normalize(float& x, float& y, float& z) {
+  const float n2 = x * x + (y * y + z * z);
+  if (n2 > 0) {
+    const float n = std::sqrt(n2);
+    x /= n;
+    y /= n;
+    z /= n;
+  }
+}
+
+// The specular of the solved lanes of a batch (row0: the image's index of the tile row's column 0): the lobe's mean
+// direction and spread from its moments; per lane, its entry in the table (interpolated between the two roughness
+// samples whose spreads bracket it and the four cells around the mean direction); then across the lanes, the lobe's
+// intensity fitted to the images, its image per pair (lobe[k * kLanes + l], for the diffuse), the fit's residual, the
+// mirror direction and the normal, and the noise of each. Each step runs over the lanes in loops the compiler makes
+// vector code of, per lane the operations of the one-pixel-at-a-time code it replaces, so any target gives the same
+// bits.
+__attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int xb, int lanes, size_t row0,
+                                                           LobeScratch* scratch, float* lobe, Batch* b) {
+  const PhotometricTables::Data& t = *a.t;
+  const int np = t.np, ss = t.spec_stride;
+  constexpr int kL = kLanes;
+  // The moments: the mean direction, the first moment's length and the spread.
+  float mu[internal::kMoments][kL];
+  for (int r = 0; r < internal::kMoments; ++r) std::memcpy(mu[r], a.mu + r * a.stride + xb, sizeof mu[r]);
+  float mean[3][kL], length[kL], spread[kL];
+  bool ok[kL];
+  for (int l = 0; l < kL; ++l) {
+    const float x = mu[1][l], y = mu[2][l], z = mu[3][l];
+    const float n = std::sqrt(x * x + (y * y + z * z));
+    ok[l] = l < lanes && b->solved[l] && mu[0][l] > 0 && !(n < 1e-6f * mu[0][l]);
+    length[l] = n;
+    mean[0][l] = x / n;
+    mean[1][l] = y / n;
+    mean[2][l] = z / n;
+    const float rx = mean[0][l], ry = mean[1][l], rz = mean[2][l];
+    const float q = rx * rx * mu[4][l] + ry * ry * mu[5][l] + rz * rz * mu[6][l] +
+                    2 * (rx * ry * mu[7][l] + ry * rz * mu[8][l] + rx * rz * mu[9][l]);
+    spread[l] = 1 - q / mu[0][l];
+  }
+  // Per lane: the roughness samples and the cells, the entry, log roughness and its slope against the spread.
+  float* const entry = scratch->entry.data();
+  float* const one = scratch->one.data();
+  bool known[kL], in_range[kL];
+  float log_alpha[kL], slope[kL];
+  for (int l = 0; l < kL; ++l) {
+    known[l] = in_range[l] = false;
+    log_alpha[l] = slope[l] = 0;
+    if (!ok[l]) continue;  // its entry is left as it was: nothing reads it
+    const Eigen::Vector3f mean_l(mean[0][l], mean[1][l], mean[2][l]);
+    const int cell = t.Cell(mean_l, t.s);
+    // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last it has:
+    // noise can take the spread a little past them).
+    int k0 = -1;
+    const int first = t.first[static_cast<size_t>(cell)], last = t.last[static_cast<size_t>(cell)];
+    const float* sp = &t.spread[static_cast<size_t>(cell) * t.j];
+    float f = 0;
+    if (first >= 0 && last > first) {
+      for (int k = first; k < last; ++k) {
+        const float lo = sp[k], hi = sp[k + 1];
+        if (spread[l] <= hi || k + 1 == last) {
+          k0 = k;
+          const float raw_f = (spread[l] - lo) / std::max(1e-9f, hi - lo);
+          in_range[l] = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
+          f = std::clamp(raw_f, 0.f, 1.f);
+          break;
+        }
+      }
+    }
+    if (k0 < 0) continue;
+    known[l] = true;
+    // The entry at this roughness, interpolated between the four cells around the mean direction (the nearest alone
+    // where a neighbour has no lobe there).
+    const Eigen::Vector2f uv = OctEncode(mean_l);
+    const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
+    const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
+    const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
+    const float wu = fu - cu0, wv = fv - cv0;
+    const float* corner[4];
+    bool corners = true;
+    for (int c = 0; c < 4 && corners; ++c) {
+      const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
+      corner[c] = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * ss];
+      corners = corner[c][4] > 0 && corner[c][ss + 4] > 0;
+    }
+    const float* e0 = &t.spec[(static_cast<size_t>(cell) * t.j + k0) * ss];
+    if (corners) {
+      for (int q = 0; q < ss; ++q) one[q] = 0;
+      for (int c = 0; c < 4; ++c) {
+        const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
+        const float* ca = corner[c];
+        const float* cb = ca + ss;
+        for (int q = 0; q < ss; ++q) one[q] += wc * ((1 - f) * ca[q] + f * cb[q]);
+      }
+    } else {
+      for (int q = 0; q < ss; ++q) one[q] = (1 - f) * e0[q] + f * e0[ss + q];
+    }
+    for (int q = 0; q < ss; ++q) entry[q * kL + l] = one[q];
+    const float* la = &t.log_alpha[static_cast<size_t>(k0)];
+    log_alpha[l] = (1 - f) * la[0] + f * la[1];
+    slope[l] = (la[1] - la[0]) / std::max(1e-9f, e0[ss + 3] - e0[3]);
+  }
+  // Across the lanes: the intensity, the lobe's shape fitted to the images (noise-weighted least squares).
+  const float scale = a.spec_scale;
+  float smm[kL] = {}, ssm[kL] = {};
+  for (int k = 0; k < np; ++k) {
+    const float* s = a.rs + k * a.stride + xb;
+    const float* sw = a.rsw + k * a.stride + xb;
+    const float* e = entry + (5 + k) * kL;
+    for (int l = 0; l < kL; ++l) {
+      const float mk = scale * e[l];
+      smm[l] += sw[l] * mk * mk;
+      ssm[l] += sw[l] * s[l] * mk;
+    }
+  }
+  float rho[kL], chi2[kL] = {}, lobe_sum[kL] = {};
+  for (int l = 0; l < kL; ++l) rho[l] = smm[l] > 0 ? std::max(0.f, ssm[l] / smm[l]) : 0.f;
+  // Its image per pair and the residual; the noise of the second moment along the mean direction: the sum over the
+  // pairs of its coefficient squared times the specular variance (with the mean direction q, the coefficient is
+  // sum_j c_j(q) m_j).
+  float c[6][kL], vs[kL] = {};
+  for (int l = 0; l < kL; ++l) {
+    const float qx = mean[0][l], qy = mean[1][l], qz = mean[2][l];
+    c[0][l] = qx * qx;
+    c[1][l] = qy * qy;
+    c[2][l] = qz * qz;
+    c[3][l] = 2 * qx * qy;
+    c[4][l] = 2 * qy * qz;
+    c[5][l] = 2 * qx * qz;
+  }
+  for (int k = 0; k < np; ++k) {
+    const float* s = a.rs + k * a.stride + xb;
+    const float* sw = a.rsw + k * a.stride + xb;
+    const float* e = entry + (5 + k) * kL;
+    const float* ck = a.coef + k * internal::kMoments + 4;
+    float* lk = lobe + k * kL;
+    for (int l = 0; l < kL; ++l) {
+      lk[l] = rho[l] * scale * e[l];
+      const float d = s[l] - lk[l];
+      chi2[l] += sw[l] * d * d;
+      lobe_sum[l] += lk[l];
+      float q2k = 0;
+      for (int j = 0; j < 6; ++j) q2k += c[j][l] * ck[j];
+      vs[l] += q2k * q2k / sw[l];
+    }
+  }
+  // The mirror direction, the normal (halfway to the view) and the noise of each.
+  if (a.rays != nullptr) {  // the rays of a batch further on: they come from memory, one stream of many
+    const char* ahead = reinterpret_cast<const char*>(a.rays + row0 + xb + 4 * kL);
+    for (int byte = 0; byte < kL * 12; byte += 64) __builtin_prefetch(ahead + byte);
+  }
+  float v[3][kL];
+  for (int l = 0; l < kL; ++l) {
+    const Eigen::Vector3f view = a.rays != nullptr && l < lanes ? Eigen::Vector3f(-a.rays[row0 + xb + l]) : a.toward;
+    for (int i = 0; i < 3; ++i) v[i][l] = view[i];
+  }
+  const float dof = static_cast<float>(std::max(1, np - 4));
+  const float* sfull = a.rs + a.full * a.stride + xb;
+  const float* swfull = a.rsw + a.full * a.stride + xb;
+  for (int l = 0; l < kL; ++l) {
+    chi2[l] /= dof;
+    float rx = mean[0][l] + entry[0 * kL + l], ry = mean[1][l] + entry[1 * kL + l], rz = mean[2][l] + entry[2 * kL + l];
+    Normalize(rx, ry, rz);
+    float nx = rx + v[0][l], ny = ry + v[1][l], nz = rz + v[2][l];
+    Normalize(nx, ny, nz);
+    b->ns[0][l] = nx;
+    b->ns[1][l] = ny;
+    b->ns[2][l] = nz;
+    // The direction of m1 moves by its tangential noise over its own length; the normal halves the mirror
+    // direction's angle.
+    const float var_dir = 2.f / 3 * a.v1[xb + l] / (length[l] * length[l]);
+    b->var_n[l] = var_dir / 4;
+    b->var_log_alpha[l] = slope[l] * slope[l] * vs[l] / (mu[0][l] * mu[0][l]);
+    b->rho[l] = rho[l];
+  }
+  for (int l = 0; l < kL; ++l) {
+    b->measured[l] = false;
+    b->spec_bad_fit[l] = chi2[l] > 4;
+    // With the lobe known and fitting, both polarizations hold the diffuse.
+    b->both[l] = known[l] && chi2[l] <= 4;
+    b->lobe_sum[l] = b->both[l] ? lobe_sum[l] : 0.f;
+    if (!known[l]) continue;
+    const float alpha = std::exp(log_alpha[l]);
+    const float var_rho = smm[l] > 0 ? 1 / smm[l] : 1e30f;
+    const float spec_snr = sfull[l] * std::sqrt(swfull[l]);
+    // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for the
+    // specular in the diffuse, but is not a measurement.
+    b->measured[l] = in_range[l] && internal::LobeMeasured(*a.options, spec_snr, b->var_n[l], rho[l], var_rho,
+                                                           b->var_log_alpha[l], alpha);
+    b->alpha[l] = alpha;
+    b->sigma_deg[l] = std::sqrt(b->var_n[l]) * 180 / kPi;
+  }
+}
+
+void LookUpLobes(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe, Batch* b) {
+  LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
+}
+
+STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe,
+                                Batch* b) {
+  LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
+}
+
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
 // per-pair rows, and the per-pixel scratch.
 struct TileBuffers {
@@ -540,11 +773,11 @@ struct TileBuffers {
   // Per column of the tile: the lobe's moments (kMoments rows), the noise of the first moment, and the own sums.
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
-  std::vector<float> s, sw, lobe, entry;
+  LobeScratch lobe_scratch;
   Batch batch;
   std::vector<float> lobe_lanes, d2_lanes;
 
-  void Resize(int patterns, int np, size_t stride) {
+  void Resize(int patterns, int np, int spec_stride, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
     sums.resize(static_cast<size_t>(patterns) * stride);
     for (auto* v : {&kc, &kd}) v->resize(stride);
@@ -552,8 +785,9 @@ struct TileBuffers {
     mu.resize(internal::kMoments * stride);
     for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
     saturated.resize(stride);
-    for (auto* v : {&s, &sw, &lobe}) v->resize(static_cast<size_t>(np));
     for (auto* v : {&lobe_lanes, &d2_lanes}) v->resize(static_cast<size_t>(np) * kLanes);
+    lobe_scratch.entry.resize(static_cast<size_t>(spec_stride) * kLanes);
+    lobe_scratch.one.resize(static_cast<size_t>(spec_stride));
   }
 };
 
@@ -778,7 +1012,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
     static thread_local TileBuffers buffers;
-    buffers.Resize(patterns, np, stride);
+    buffers.Resize(patterns, np, t.spec_stride, stride);
     // Corrected rows of every pattern (with a column of halo either side), a ring of three (y - 1, y, y + 1: each row
     // corrected once), and the channel sums of row y.
     float* const rows = buffers.rows.data();
@@ -796,10 +1030,6 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     float* const own_cross = buffers.own_cross.data();
     float* const own_both = buffers.own_both.data();
     uint8_t* const saturated = buffers.saturated.data();
-    std::vector<float>& s = buffers.s;
-    std::vector<float>& sw = buffers.sw;
-    std::vector<float>& lobe = buffers.lobe;
-    std::vector<float>& entry = buffers.entry;
     // The per-pixel steps' batch, the lobes of its pixels and the diffuse data solved again (pair-major, kLanes a pair).
     Batch& batch = buffers.batch;
     float* const lobe_lanes = buffers.lobe_lanes.data();
@@ -821,6 +1051,19 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
     da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
     da.toward = toward;
+    LobeRow la;
+    la.t = &t;
+    la.options = &options;
+    la.rs = rs;
+    la.rsw = rsw;
+    la.mu = mu;
+    la.v1 = v1;
+    la.stride = stride;
+    la.coef = coef.data();
+    la.rays = camera.rays.empty() ? nullptr : camera.rays.data();
+    la.toward = toward;
+    la.spec_scale = spec_scale;
+    la.full = tw.full;
     const bool avx512 = internal::FastVectorKernels() && internal::FastVectorKernelsAvailable();
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p; column x0 - 1 first
       return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
@@ -837,6 +1080,10 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           const uint16_t* raw = &cycle.raw[static_cast<size_t>(p)][r0];
           float* slot = row(p, y);
           CorrectRow(raw + x0, flat != nullptr ? flat + x0 : nullptr, black, tw_cols, slot + 1);
+          if (yy + 1 < h) {
+            const char* next = reinterpret_cast<const char*>(raw + w + x0);
+            for (int b = 0; b < tw_cols * 2; b += 64) __builtin_prefetch(next + b);
+          }
           CorrectRow(raw + xl, flat != nullptr ? flat + xl : nullptr, black, 1, slot);
           CorrectRow(raw + xr, flat != nullptr ? flat + xr : nullptr, black, 1, slot + 1 + tw_cols);
         }
@@ -890,146 +1137,33 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           } else {
             DiffuseFirst(da, xb, lanes, &batch);
           }
+          // Specular: the lobe's moments, then through the table to its mirror direction, roughness and intensity.
+          if (avx512) {
+            LookUpLobes16(la, xb, lanes, row0, &buffers.lobe_scratch, lobe_lanes, &batch);
+          } else {
+            LookUpLobes(la, xb, lanes, row0, &buffers.lobe_scratch, lobe_lanes, &batch);
+          }
           uint8_t lane_flags[kLanes];
           for (int l = 0; l < lanes; ++l) {
             const int xt = xb + l;
             const int x = x0 + xt;
             const size_t i = row0 + xt;
             uint8_t flags = saturated[xt] ? kSaturated : 0;
-            batch.both[l] = false;
-            batch.lobe_sum[l] = 0;
             if (!batch.solved[l]) {
               m.flags[i] = flags | kLowSignal;
               continue;
             }
-            for (int k = 0; k < np; ++k) {
-              const size_t o = static_cast<size_t>(k) * stride + xt;
-              s[k] = rs[o];
-              sw[k] = rsw[o];
-            }
-            // Specular: the lobe's moments, then through the table to its mirror direction, roughness and total.
-            const Eigen::Vector3f v = camera.rays.empty() ? toward : Eigen::Vector3f(-camera.rays[i]);
-            float mu_x[internal::kMoments];
-            for (int r = 0; r < internal::kMoments; ++r) mu_x[r] = mu[static_cast<size_t>(r) * stride + xt];
-            const LobeMoments mom = FromMoments(mu_x);
-            bool lobe_known = false, measured = false;
-            std::fill(lobe.begin(), lobe.end(), 0.f);
-            float spec_chi2 = 0;
-            if (mom.ok) {
-              const int cell = t.Cell(mom.mean, t.s);
-              const float* e0 = &t.spec[static_cast<size_t>(cell) * t.j * t.spec_stride];
-              // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last
-              // it has: noise can take the spread a little past them).
-              int k0 = -1;
-              const int first = t.first[static_cast<size_t>(cell)], last = t.last[static_cast<size_t>(cell)];
-              const float* spread = &t.spread[static_cast<size_t>(cell) * t.j];
-              float f = 0;
-              bool in_range = false;  // the spread within what the cell's roughness samples span
-              if (first >= 0 && last > first) {
-                for (int k = first; k < last; ++k) {
-                  const float lo = spread[k], hi = spread[k + 1];
-                  if (mom.spread <= hi || k + 1 == last) {
-                    k0 = k;
-                    const float raw_f = (mom.spread - lo) / std::max(1e-9f, hi - lo);
-                    in_range = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
-                    f = std::clamp(raw_f, 0.f, 1.f);
-                    break;
-                  }
-                }
-              }
-              if (k0 >= 0) {
-                const float* a = e0 + k0 * t.spec_stride;
-                const float* b = a + t.spec_stride;
-                // The entry at this roughness, interpolated between the four cells around the mean direction (the
-                // nearest alone where a neighbour has no lobe there).
-                entry.assign(static_cast<size_t>(t.spec_stride), 0.f);
-                const Eigen::Vector2f uv = OctEncode(mom.mean);
-                const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
-                const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
-                const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
-                const float wu = fu - cu0, wv = fv - cv0;
-                bool corners = true;
-                for (int c = 0; c < 4 && corners; ++c) {
-                  const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
-                  const float* ca = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * t.spec_stride];
-                  const float* cb = ca + t.spec_stride;
-                  if (!(ca[4] > 0 && cb[4] > 0)) {
-                    corners = false;
-                    break;
-                  }
-                  const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
-                  for (int q = 0; q < t.spec_stride; ++q)
-                    entry[static_cast<size_t>(q)] += wc * ((1 - f) * ca[q] + f * cb[q]);
-                }
-                if (!corners) {
-                  for (int q = 0; q < t.spec_stride; ++q) entry[static_cast<size_t>(q)] = (1 - f) * a[q] + f * b[q];
-                }
-                const Eigen::Vector3f dr(entry[0], entry[1], entry[2]);
-                const float log_alpha =
-                    (1 - f) * t.log_alpha[static_cast<size_t>(k0)] + f * t.log_alpha[static_cast<size_t>(k0) + 1];
-                // Intensity: the lobe's shape fitted to the images (noise-weighted least squares).
-                float smm = 0, ssm = 0;
-                for (int k = 0; k < np; ++k) {
-                  const float mk = spec_scale * entry[static_cast<size_t>(5 + k)];
-                  smm += sw[k] * mk * mk;
-                  ssm += sw[k] * s[k] * mk;
-                }
-                const float rho = smm > 0 ? std::max(0.f, ssm / smm) : 0.f;
-                const Eigen::Vector3f r = (mom.mean + dr).normalized();
-                const Eigen::Vector3f ns = (r + v).normalized();
-                for (int k = 0; k < np; ++k) {
-                  lobe[k] = rho * spec_scale * entry[static_cast<size_t>(5 + k)];
-                  const float e = s[k] - lobe[k];
-                  spec_chi2 += sw[k] * e * e;
-                }
-                spec_chi2 /= static_cast<float>(std::max(1, np - 4));
-                lobe_known = true;
-                // The noise of the first moment (its three components) and of the second along the mean direction:
-                // sums over the patterns of their coefficients squared times the specular variance (with the mean
-                // direction q, the second moment's coefficient is sum_j c_j(q) m_j: its square, sum_jl c_j c_l m_j m_l).
-                const Eigen::Vector3f& q = mom.mean;
-                const float c[6] = {q.x() * q.x(),     q.y() * q.y(),     q.z() * q.z(),
-                                    2 * q.x() * q.y(), 2 * q.y() * q.z(), 2 * q.x() * q.z()};
-                float vs = 0;
-                for (int k = 0; k < np; ++k) {
-                  float q2k = 0;
-                  for (int j = 0; j < 6; ++j) q2k += c[j] * coef[static_cast<size_t>(k) * internal::kMoments + 4 + j];
-                  vs += q2k * q2k / sw[k];
-                }
-                const float v1_x = v1[xt];
-                // The direction of m1 moves by its tangential noise over its own length.
-                const float var_dir = 2.f / 3 * v1_x / (mom.length * mom.length);
-                const float vn = var_dir / 4;  // the normal halves the mirror direction's angle
-                const float var_rho = smm > 0 ? 1 / smm : 1e30f;
-                const float slope = (t.log_alpha[static_cast<size_t>(k0) + 1] - t.log_alpha[static_cast<size_t>(k0)]) /
-                                    std::max(1e-9f, b[3] - a[3]);
-                const float vla = slope * slope * vs / (mom.mu0 * mom.mu0);
-                const float spec_snr = s[tw.full] * std::sqrt(sw[tw.full]);
-                // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands
-                // for the specular in the diffuse below, but is not a measurement.
-                measured =
-                    in_range && internal::LobeMeasured(options, spec_snr, vn, rho, var_rho, vla, std::exp(log_alpha));
-                if (measured) {
-                  if (spec_chi2 > 4) flags |= kSpecularBadFit;
-                  std::copy(ns.data(), ns.data() + 3, m.specular_normal_raw.at(x, y));
-                  m.specular.at(x, y)[0] = rho;
-                  m.roughness.at(x, y)[0] = std::exp(log_alpha);
-                  m.specular_sigma.at(x, y)[0] = std::sqrt(vn) * 180 / kPi;
-                  var_n[i] = vn;
-                  var_log_alpha[i] = vla;
-                }
-              }
-            }
-            if (!measured) flags |= kNoSpecular;
-            // With the lobe known, both polarizations hold the diffuse.
-            if (lobe_known && spec_chi2 <= 4) {
-              batch.both[l] = true;
-              float lobe_sum = 0;
-              for (int k = 0; k < np; ++k) {
-                lobe_sum += lobe[k];
-                lobe_lanes[static_cast<size_t>(k) * kLanes + l] = lobe[k];
-              }
-              batch.lobe_sum[l] = lobe_sum;
+            if (batch.measured[l]) {
+              if (batch.spec_bad_fit[l]) flags |= kSpecularBadFit;
+              float* ns = m.specular_normal_raw.at(x, y);
+              for (int c = 0; c < 3; ++c) ns[c] = batch.ns[c][l];
+              m.specular.at(x, y)[0] = batch.rho[l];
+              m.roughness.at(x, y)[0] = batch.alpha[l];
+              m.specular_sigma.at(x, y)[0] = batch.sigma_deg[l];
+              var_n[i] = batch.var_n[l];
+              var_log_alpha[i] = batch.var_log_alpha[l];
+            } else {
+              flags |= kNoSpecular;
             }
             lane_flags[l] = flags;
           }
