@@ -603,6 +603,13 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
                     2 * (rx * ry * mu[7][l] + ry * rz * mu[8][l] + rx * rz * mu[9][l]);
     spread[l] = 1 - q / mu[0][l];
   }
+  if (std::none_of(ok, ok + kL, [](bool o) { return o; })) {  // no lobe in the batch (the background)
+    for (int l = 0; l < kL; ++l) {
+      b->measured[l] = b->both[l] = false;
+      b->lobe_sum[l] = 0;
+    }
+    return;
+  }
   // Per lane: the roughness samples and the cells, the entry, log roughness and its slope against the spread.
   float* const entry = scratch->entry.data();
   float* const one = scratch->one.data();
@@ -1044,9 +1051,10 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     da.stride = stride;
     da.ws = ws;
     da.half_leak = 0.5f * (1 + leak);
-    // The least float not below min_signal_dn: a float value is below one exactly when it is below the other.
-    da.min_signal = static_cast<float>(options.min_signal_dn);
-    if (da.min_signal < options.min_signal_dn) da.min_signal = std::nextafter(da.min_signal, HUGE_VALF);
+    // The least float not below the least signal: a float value is below one exactly when it is below the other.
+    const double min_signal = internal::MinSignalDn(options, camera);
+    da.min_signal = static_cast<float>(min_signal);
+    if (da.min_signal < min_signal) da.min_signal = std::nextafter(da.min_signal, HUGE_VALF);
     da.full = tw.full;
     da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
     da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;

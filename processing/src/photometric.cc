@@ -491,6 +491,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
   const double g = camera.gain_e_per_dn;
   const double read_dn2 = internal::ReadVarianceDn2(camera);  // three channels summed
+  const double min_signal = internal::MinSignalDn(options, camera);  // below it: not solved
   const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
   const float ws = static_cast<float>(camera.white_scale);
   // The specular images (summed over the three channels) per unit of the model in SpecularFromView: a white
@@ -525,7 +526,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
           s[p] = spec * spec_gain;
           sw[p] = 1.f / (spec_gain * spec_gain * static_cast<float>(level / g + 2 * read_dn2));
         }
-        if (d[t.full] < options.min_signal_dn) {
+        if (d[t.full] < min_signal) {
           m.flags[i] = flags | kLowSignal;
           continue;
         }

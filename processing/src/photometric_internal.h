@@ -85,6 +85,12 @@ inline float ReadVarianceDn2(const PhotometricCamera& camera) {
   return static_cast<float>(3 * (read * read + 1.0 / 12));
 }
 
+// The least full-on level (DN, channels summed) a pixel is solved at: min_signal_dn, and min_signal_sigma standard
+// deviations of the sum's read noise.
+inline double MinSignalDn(const PhotometricOptions& options, const PhotometricCamera& camera) {
+  return std::max(options.min_signal_dn, options.min_signal_sigma * std::sqrt(double{ReadVarianceDn2(camera)}));
+}
+
 // Whether a fitted lobe counts as measured (PhotometricOptions): bright enough, its normal, intensity and log
 // roughness known well enough, and wider than 2 * kMinLobeAlpha (a narrower one only says "one unit").
 constexpr float kMinLobeAlpha = 0.02f;

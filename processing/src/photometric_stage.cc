@@ -265,6 +265,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   run["options"] = {{"iterations", job.options.iterations},
                     {"table_size", job.options.table_size},
                     {"min_signal_dn", job.options.min_signal_dn},
+                    {"min_signal_sigma", job.options.min_signal_sigma},
                     {"min_specular_snr", job.options.min_specular_snr},
                     {"max_specular_sigma_deg", job.options.max_specular_sigma_deg},
                     {"specular_filter_radius", job.options.specular_filter_radius}};

@@ -84,6 +84,9 @@ struct PhotometricOptions {
   int table_size = 128;
   // Below this full-on level (DN above black, sum of channels) a pixel is not solved (background, deep shadow).
   double min_signal_dn = 4;
+  // Nor below this many standard deviations of the read noise of that sum (a dark pixel's noise): noise alone must not
+  // pass for the subject (at 5, about one dark pixel in three million does).
+  double min_signal_sigma = 5;
   // Below this full-on specular level (parallel - cross, DN summed over channels, in units of its own noise) the
   // specular lobe is not fitted.
   double min_specular_snr = 3;
@@ -100,7 +103,7 @@ struct PhotometricOptions {
 // Flags, per pixel.
 enum PhotometricFlag : uint8_t {
   kSaturated = 1,         // some pattern image clipped
-  kLowSignal = 2,         // too dark to solve (below min_signal_dn)
+  kLowSignal = 2,         // too dark to solve (below min_signal_dn or min_signal_sigma)
   kBadFit = 4,            // the patterns disagree with a Lambertian surface (mislabeled or blended patterns, occlusion)
   kShadowed = 8,          // the geometry hides more than half of the full-on light from the point
   kNoSpecular = 16,       // no lobe measured: too faint, or reflecting off the dome
