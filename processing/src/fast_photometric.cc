@@ -781,6 +781,10 @@ struct TileBuffers {
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
   LobeScratch lobe_scratch;
+  // The full-on pair's corrected rows (a ring of three each) and channel sums, and per row of the band whether it has a
+  // pixel to solve.
+  std::vector<float> probe, probe_sums;
+  std::vector<uint8_t> signal_rows;
   Batch batch;
   std::vector<float> lobe_lanes, d2_lanes;
 
@@ -793,6 +797,8 @@ struct TileBuffers {
     for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
     saturated.resize(stride);
     for (auto* v : {&lobe_lanes, &d2_lanes}) v->resize(static_cast<size_t>(np) * kLanes);
+    probe.resize(2 * 3 * stride);
+    probe_sums.resize(2 * stride);
     lobe_scratch.entry.resize(static_cast<size_t>(spec_stride) * kLanes);
     lobe_scratch.one.resize(static_cast<size_t>(spec_stride));
   }
@@ -1020,6 +1026,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
     static thread_local TileBuffers buffers;
     buffers.Resize(patterns, np, t.spec_stride, stride);
+    buffers.signal_rows.resize(static_cast<size_t>(y1 - y0));
     // Corrected rows of every pattern (with a column of halo either side), a ring of three (y - 1, y, y + 1: each row
     // corrected once), and the channel sums of row y.
     float* const rows = buffers.rows.data();
@@ -1078,40 +1085,76 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     };
     for (int x0 = 0; x0 < w; x0 += tile) {
       const int x1 = std::min(w, x0 + tile), tw_cols = x1 - x0;
-      // Row y's columns x0 - 1 .. x1 (the image's edges mirrored), corrected, of every pattern.
-      auto correct = [&](int y) {
+      // Row y's columns x0 - 1 .. x1 (the image's edges mirrored) of pattern p, corrected, into `slot`.
+      auto correct_into = [&](int p, int y, float* slot) {
         const int yy = y < 0 ? -y : y >= h ? 2 * h - 2 - y : y;
         const size_t r0 = static_cast<size_t>(yy) * w;
         const float* flat = correction.flat_field != nullptr ? &correction.flat_field->pixels[r0] : nullptr;
         const int xl = x0 > 0 ? x0 - 1 : 1, xr = x1 < w ? x1 : w - 2;  // the halo's source columns
-        for (int p = 0; p < patterns; ++p) {
-          const uint16_t* raw = &cycle.raw[static_cast<size_t>(p)][r0];
-          float* slot = row(p, y);
-          CorrectRow(raw + x0, flat != nullptr ? flat + x0 : nullptr, black, tw_cols, slot + 1);
-          if (yy + 1 < h) {
-            const char* next = reinterpret_cast<const char*>(raw + w + x0);
-            for (int b = 0; b < tw_cols * 2; b += 64) __builtin_prefetch(next + b);
-          }
-          CorrectRow(raw + xl, flat != nullptr ? flat + xl : nullptr, black, 1, slot);
-          CorrectRow(raw + xr, flat != nullptr ? flat + xr : nullptr, black, 1, slot + 1 + tw_cols);
+        const uint16_t* raw = &cycle.raw[static_cast<size_t>(p)][r0];
+        CorrectRow(raw + x0, flat != nullptr ? flat + x0 : nullptr, black, tw_cols, slot + 1);
+        if (yy + 1 < h) {
+          const char* next = reinterpret_cast<const char*>(raw + w + x0);
+          for (int b = 0; b < tw_cols * 2; b += 64) __builtin_prefetch(next + b);
         }
+        CorrectRow(raw + xl, flat != nullptr ? flat + xl : nullptr, black, 1, slot);
+        CorrectRow(raw + xr, flat != nullptr ? flat + xr : nullptr, black, 1, slot + 1 + tw_cols);
       };
-      correct(y0 - 1);
-      correct(y0);
-      for (int y = y0; y < y1; ++y) {
-        correct(y + 1);
+      auto weights = [&](int y) {  // the demosaic's weights along row y
         for (int x = x0; x < x1; ++x) {
           const bool green = cycle.mosaic.Color(x, y) == 1;
           kc[x - x0] = mono ? 0 : green ? 0.5f : 0.25f;
           kd[x - x0] = mono || green ? 0 : 0.25f;
         }
-        for (int p = 0; p < patterns; ++p) {
-          ChannelSumRow(row(p, y - 1) + 1, row(p, y) + 1, row(p, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols,
-                        &sums[static_cast<size_t>(p) * stride]);
+      };
+      // Which rows of the tile have a pixel to solve: the full-on pair's diffuse, computed with the functions and
+      // values the row loops below use (so the same bits), against the least signal. The rows without one (the
+      // background) skip the per-row work.
+      {
+        const int pair[2] = {tw.cross[static_cast<size_t>(tw.full)], tw.parallel[static_cast<size_t>(tw.full)]};
+        auto probe = [&](int i, int y) { return &buffers.probe[(static_cast<size_t>(i) * 3 + (y + 3) % 3) * stride]; };
+        for (int y = y0 - 1; y <= y0; ++y) {
+          for (int i = 0; i < 2; ++i) correct_into(pair[i], y, probe(i, y));
         }
+        for (int y = y0; y < y1; ++y) {
+          for (int i = 0; i < 2; ++i) correct_into(pair[i], y + 1, probe(i, y + 1));
+          weights(y);
+          float* dc = &buffers.probe_sums[0];
+          float* dp = &buffers.probe_sums[stride];
+          ChannelSumRow(probe(0, y - 1) + 1, probe(0, y) + 1, probe(0, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols, dc);
+          ChannelSumRow(probe(1, y - 1) + 1, probe(1, y) + 1, probe(1, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols, dp);
+          bool any = false;
+          for (int x = 0; x < tw_cols; ++x) any |= !(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal);  // as PairRow
+          buffers.signal_rows[static_cast<size_t>(y - y0)] = any;
+        }
+      }
+      int corrected_through = y0 - 2;  // the ring holds the corrected rows up to this one (the last three)
+      for (int y = y0; y < y1; ++y) {
         std::fill_n(saturated, tw_cols, 0);
         for (int p = 0; p < patterns; ++p) {
           SaturationRow(&cycle.raw[static_cast<size_t>(p)][static_cast<size_t>(y) * w + x0], top, tw_cols, saturated);
+        }
+        // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time.
+        const size_t row0 = static_cast<size_t>(y) * w + x0;
+        for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
+          std::fill_n(&image->pixels[3 * row0], 3 * static_cast<size_t>(tw_cols), 0.f);
+        }
+        for (Image* image : {&m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
+          std::fill_n(&image->pixels[row0], static_cast<size_t>(tw_cols), 0.f);
+        }
+        std::fill_n(&own_albedo[row0], static_cast<size_t>(tw_cols), 0.f);
+        if (!buffers.signal_rows[static_cast<size_t>(y - y0)]) {
+          for (int xt = 0; xt < tw_cols; ++xt) m.flags[row0 + xt] = (saturated[xt] ? kSaturated : 0) | kLowSignal;
+          continue;
+        }
+        for (int r = std::max(corrected_through + 1, y - 1); r <= y + 1; ++r) {
+          for (int p = 0; p < patterns; ++p) correct_into(p, r, row(p, r));
+        }
+        corrected_through = y + 1;
+        weights(y);
+        for (int p = 0; p < patterns; ++p) {
+          ChannelSumRow(row(p, y - 1) + 1, row(p, y) + 1, row(p, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols,
+                        &sums[static_cast<size_t>(p) * stride]);
         }
         for (int k = 0; k < np; ++k) {
           const size_t o = static_cast<size_t>(k) * stride;
@@ -1128,15 +1171,6 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           OwnRow(row(tw.cross[static_cast<size_t>(k)], y) + 1, row(tw.parallel[static_cast<size_t>(k)], y) + 1, k_leak,
                  tw_cols, own_cross, own_both);
         }
-        // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time.
-        const size_t row0 = static_cast<size_t>(y) * w + x0;
-        for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
-          std::fill_n(&image->pixels[3 * row0], 3 * static_cast<size_t>(tw_cols), 0.f);
-        }
-        for (Image* image : {&m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
-          std::fill_n(&image->pixels[row0], static_cast<size_t>(tw_cols), 0.f);
-        }
-        std::fill_n(&own_albedo[row0], static_cast<size_t>(tw_cols), 0.f);
         for (int xb = 0; xb < tw_cols; xb += kLanes) {
           const int lanes = std::min(kLanes, tw_cols - xb);
           // Diffuse: a first guess from the gradients, then u = M(n) d twice, across the batch.
