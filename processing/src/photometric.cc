@@ -148,18 +148,19 @@ void PrepareMaps(int width, int height, PhotometricMaps* m) {
 void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
   PhotometricMaps& m = *maps;
   const int w = m.width, h = m.height;
-  const size_t n_pixels = static_cast<size_t>(w) * h;
   const float* var_n = Work(&m, kVarNormal);
   const float* var_la = Work(&m, kVarLogAlpha);
   float* delta = Work(&m, kDelta);
   float* log_alpha = Work(&m, kLogAlpha);
   const float* nd = m.diffuse_normal_world.pixels.data();
   auto has_lobe = [&](size_t i) { return (m.flags[i] & (kLowSignal | kNoSpecular)) == 0; };
-  for (size_t i = 0; i < n_pixels; ++i) {
-    if (!has_lobe(i)) continue;
-    for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - nd[3 * i + k];
-    log_alpha[i] = std::log(m.roughness.pixels[i]);
-  }
+  ParallelRows(h, threads, [&](int y0, int y1) {
+    for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
+      if (!has_lobe(i)) continue;
+      for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - nd[3 * i + k];
+      log_alpha[i] = std::log(m.roughness.pixels[i]);
+    }
+  });
   ParallelRows(h, threads, [&](int y0, int y1) {
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
