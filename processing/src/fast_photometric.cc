@@ -551,6 +551,7 @@ struct LobeRow {
   size_t stride = 0;
   const float* coef = nullptr;            // per pair, the moments' coefficients (kMoments each)
   const Eigen::Vector3f* rays = nullptr;  // the image's rays from the camera (null: every view is `toward`)
+  size_t ray_count = 0;
   Eigen::Vector3f toward = Eigen::Vector3f::UnitZ();
   float spec_scale = 1;
   int full = 0;
@@ -717,9 +718,10 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     }
   }
   // The mirror direction, the normal (halfway to the view) and the noise of each.
-  if (a.rays != nullptr) {  // the rays of a batch further on: they come from memory, one stream of many
-    const char* ahead = reinterpret_cast<const char*>(a.rays + row0 + xb + 4 * kL);
-    for (int byte = 0; byte < kL * 12; byte += 64) __builtin_prefetch(ahead + byte);
+  if (const size_t ahead = row0 + xb + 4 * kL; a.rays != nullptr && ahead + kL <= a.ray_count) {
+    // The rays of a batch further on: they come from memory, one stream of many.
+    const char* bytes = reinterpret_cast<const char*>(a.rays + ahead);
+    for (size_t byte = 0; byte < kL * sizeof(Eigen::Vector3f); byte += 64) __builtin_prefetch(bytes + byte);
   }
   float v[3][kL];
   for (int l = 0; l < kL; ++l) {
@@ -1066,19 +1068,19 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
     da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
     da.toward = toward;
-    LobeRow la;
-    la.t = &t;
-    la.options = &options;
-    la.rs = rs;
-    la.rsw = rsw;
-    la.mu = mu;
-    la.v1 = v1;
-    la.stride = stride;
-    la.coef = coef.data();
-    la.rays = camera.rays.empty() ? nullptr : camera.rays.data();
-    la.toward = toward;
-    la.spec_scale = spec_scale;
-    la.full = tw.full;
+    const LobeRow la{.t = &t,
+                     .options = &options,
+                     .rs = rs,
+                     .rsw = rsw,
+                     .mu = mu,
+                     .v1 = v1,
+                     .stride = stride,
+                     .coef = coef.data(),
+                     .rays = camera.rays.empty() ? nullptr : camera.rays.data(),
+                     .ray_count = camera.rays.size(),
+                     .toward = toward,
+                     .spec_scale = spec_scale,
+                     .full = tw.full};
     const bool avx512 = internal::FastVectorKernels() && internal::FastVectorKernelsAvailable();
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p; column x0 - 1 first
       return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
