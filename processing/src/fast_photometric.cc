@@ -793,7 +793,7 @@ struct TileBuffers {
   void Resize(int patterns, int np, int spec_stride, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
     sums.resize(static_cast<size_t>(patterns) * stride);
-    for (auto* v : {&kc, &kd}) v->resize(stride);
+    for (auto* v : {&kc, &kd}) v->resize(2 * stride);  // even rows, then odd ones
     for (auto* v : {&rd, &rs, &rsv, &rsw, &rdw, &rds}) v->resize(static_cast<size_t>(np) * stride);
     mu.resize(internal::kMoments * stride);
     for (auto* v : {&v1, &own_cross, &own_both}) v->resize(stride);
@@ -1024,6 +1024,10 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     q1[static_cast<size_t>(k)] = t.pm.moments(1, k) * t.pm.moments(1, k) + t.pm.moments(2, k) * t.pm.moments(2, k) +
                                  t.pm.moments(3, k) * t.pm.moments(3, k);
   }
+  // The least float not below the least signal: a float value is below one exactly when it is below the other.
+  const double least_signal = internal::MinSignalDn(options, camera);
+  float min_signal = static_cast<float>(least_signal);
+  if (min_signal < least_signal) min_signal = std::nextafter(min_signal, HUGE_VALF);
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
     static thread_local TileBuffers buffers;
@@ -1050,24 +1054,25 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     Batch& batch = buffers.batch;
     float* const lobe_lanes = buffers.lobe_lanes.data();
     float* const d2_lanes = buffers.d2_lanes.data();
-    DiffuseRow da;
-    da.t = &t;
-    da.rd = rd;
-    da.rds = rds;
-    da.rdw = rdw;
-    da.own_cross = own_cross;
-    da.own_both = own_both;
-    da.stride = stride;
-    da.ws = ws;
-    da.half_leak = 0.5f * (1 + leak);
-    // The least float not below the least signal: a float value is below one exactly when it is below the other.
-    const double min_signal = internal::MinSignalDn(options, camera);
-    da.min_signal = static_cast<float>(min_signal);
-    if (da.min_signal < min_signal) da.min_signal = std::nextafter(da.min_signal, HUGE_VALF);
-    da.full = tw.full;
-    da.guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0;
-    da.xp = tw.xp, da.xm = tw.xm, da.yp = tw.yp, da.ym = tw.ym, da.zp = tw.zp, da.zm = tw.zm;
-    da.toward = toward;
+    const DiffuseRow da{.t = &t,
+                        .rd = rd,
+                        .rds = rds,
+                        .rdw = rdw,
+                        .own_cross = own_cross,
+                        .own_both = own_both,
+                        .stride = stride,
+                        .ws = ws,
+                        .half_leak = 0.5f * (1 + leak),
+                        .min_signal = min_signal,
+                        .full = tw.full,
+                        .guess = tw.xp >= 0 && tw.xm >= 0 && tw.yp >= 0 && tw.ym >= 0 && tw.zp >= 0 && tw.zm >= 0,
+                        .xp = tw.xp,
+                        .xm = tw.xm,
+                        .yp = tw.yp,
+                        .ym = tw.ym,
+                        .zp = tw.zp,
+                        .zm = tw.zm,
+                        .toward = toward};
     const LobeRow la{.t = &t,
                      .options = &options,
                      .rs = rs,
@@ -1102,13 +1107,16 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         CorrectRow(raw + xl, flat != nullptr ? flat + xl : nullptr, black, 1, slot);
         CorrectRow(raw + xr, flat != nullptr ? flat + xr : nullptr, black, 1, slot + 1 + tw_cols);
       };
-      auto weights = [&](int y) {  // the demosaic's weights along row y
+      // The demosaic's weights along the tile's even rows and its odd ones (the mosaic repeats every two rows).
+      for (int parity = 0; parity < 2; ++parity) {
         for (int x = x0; x < x1; ++x) {
-          const bool green = cycle.mosaic.Color(x, y) == 1;
-          kc[x - x0] = mono ? 0 : green ? 0.5f : 0.25f;
-          kd[x - x0] = mono || green ? 0 : 0.25f;
+          const bool green = cycle.mosaic.Color(x, parity) == 1;
+          kc[parity * stride + static_cast<size_t>(x - x0)] = mono ? 0 : green ? 0.5f : 0.25f;
+          kd[parity * stride + static_cast<size_t>(x - x0)] = mono || green ? 0 : 0.25f;
         }
-      };
+      }
+      auto kc_of = [&](int y) { return kc + static_cast<size_t>(y & 1) * stride; };
+      auto kd_of = [&](int y) { return kd + static_cast<size_t>(y & 1) * stride; };
       // Which rows of the tile have a pixel to solve: the full-on pair's diffuse, computed with the functions and
       // values the row loops below use (so the same bits), against the least signal. The rows without one (the
       // background) skip the per-row work.
@@ -1120,11 +1128,12 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         }
         for (int y = y0; y < y1; ++y) {
           for (int i = 0; i < 2; ++i) correct_into(pair[i], y + 1, probe(i, y + 1));
-          weights(y);
           float* dc = &buffers.probe_sums[0];
           float* dp = &buffers.probe_sums[stride];
-          ChannelSumRow(probe(0, y - 1) + 1, probe(0, y) + 1, probe(0, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols, dc);
-          ChannelSumRow(probe(1, y - 1) + 1, probe(1, y) + 1, probe(1, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols, dp);
+          ChannelSumRow(probe(0, y - 1) + 1, probe(0, y) + 1, probe(0, y + 1) + 1, kc_of(y), kd_of(y), mono ? 3.f : 1.f,
+                        tw_cols, dc);
+          ChannelSumRow(probe(1, y - 1) + 1, probe(1, y) + 1, probe(1, y + 1) + 1, kc_of(y), kd_of(y), mono ? 3.f : 1.f,
+                        tw_cols, dp);
           bool any = false;
           for (int x = 0; x < tw_cols; ++x) any |= !(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal);  // as PairRow
           buffers.signal_rows[static_cast<size_t>(y - y0)] = any;
@@ -1153,10 +1162,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           for (int p = 0; p < patterns; ++p) correct_into(p, r, row(p, r));
         }
         corrected_through = y + 1;
-        weights(y);
         for (int p = 0; p < patterns; ++p) {
-          ChannelSumRow(row(p, y - 1) + 1, row(p, y) + 1, row(p, y + 1) + 1, kc, kd, mono ? 3.f : 1.f, tw_cols,
-                        &sums[static_cast<size_t>(p) * stride]);
+          ChannelSumRow(row(p, y - 1) + 1, row(p, y) + 1, row(p, y + 1) + 1, kc_of(y), kd_of(y), mono ? 3.f : 1.f,
+                        tw_cols, &sums[static_cast<size_t>(p) * stride]);
         }
         for (int k = 0; k < np; ++k) {
           const size_t o = static_cast<size_t>(k) * stride;

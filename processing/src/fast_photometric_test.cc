@@ -101,8 +101,6 @@ TEST(FastPhotometricTest, ReadNoiseAloneIsNotSolved) {
   EXPECT_GT(exact_noise, 0);
 }
 
-// The per-row work runs in column tiles (for the cache); a tile's edge must not show in any map. The sphere, 96 columns,
-// solved in one tile and in tiles of 40 (the last 16 wide), byte for byte.
 // Every map and flag of two solves, byte for byte.
 void ExpectSameBytes(const PhotometricMaps& whole, const PhotometricMaps& tiled) {
   const std::pair<const char*, Image PhotometricMaps::*> maps[] = {
@@ -127,6 +125,8 @@ void ExpectSameBytes(const PhotometricMaps& whole, const PhotometricMaps& tiled)
   EXPECT_GT(solved, 5000u);  // the sphere is there to be solved
 }
 
+// The per-row work runs in column tiles (for the cache); a tile's edge must not show in any map. The sphere, 96 columns,
+// solved in one tile and in tiles of 40 (the last 16 wide), byte for byte.
 TEST(FastPhotometricTest, ColumnTilesDoNotChangeAnyMap) {
   const LightModel light = ShippedLight();
   const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
