@@ -611,52 +611,93 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     }
     return;
   }
-  // Per lane: the roughness samples and the cells, the entry, log roughness and its slope against the spread.
-  float* const entry = scratch->entry.data();
-  float* const one = scratch->one.data();
+  // The mean direction's octahedral coordinates (as OctEncode has them), across the lanes.
+  float ou[kL], ov[kL];
+  for (int l = 0; l < kL; ++l) {
+    const float dx = mean[0][l], dy = mean[1][l], dz = mean[2][l];
+    const float s = std::abs(dx) + std::abs(dy) + std::abs(dz);
+    float x = dx / s, y = dy / s;
+    const float ox = (1 - std::abs(y)) * (x >= 0 ? 1.f : -1.f), oy = (1 - std::abs(x)) * (y >= 0 ? 1.f : -1.f);
+    if (dz < 0) {
+      x = ox;
+      y = oy;
+    }
+    ou[l] = x * 0.5f + 0.5f;
+    ov[l] = y * 0.5f + 0.5f;
+  }
+  // Per lane, in three passes so that the lanes' table reads overlap (one lane's chain of reads, cell to roughness to
+  // entry, waited on memory at each link): the cells, whose spreads are fetched; the roughness samples and the four
+  // cells around the mean direction, whose entries are fetched; then the entry, log roughness and its slope against
+  // the spread.
+  const float fsize = static_cast<float>(t.s);
+  int cell[kL];
+  for (int l = 0; l < kL; ++l) {
+    if (!ok[l]) continue;
+    const int u = std::clamp(static_cast<int>(ou[l] * fsize), 0, t.s - 1);
+    const int v = std::clamp(static_cast<int>(ov[l] * fsize), 0, t.s - 1);
+    cell[l] = v * t.s + u;
+    __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j]);
+    __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j + t.j - 1]);
+  }
   bool known[kL], in_range[kL];
-  float log_alpha[kL], slope[kL];
+  int k0[kL];
+  float fr[kL];
   for (int l = 0; l < kL; ++l) {
     known[l] = in_range[l] = false;
-    log_alpha[l] = slope[l] = 0;
-    if (!ok[l]) continue;  // its entry is left as it was: nothing reads it
-    const Eigen::Vector3f mean_l(mean[0][l], mean[1][l], mean[2][l]);
-    const int cell = t.Cell(mean_l, t.s);
+    k0[l] = -1;
+    fr[l] = 0;
+    if (!ok[l]) continue;
     // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last it has:
     // noise can take the spread a little past them).
-    int k0 = -1;
-    const int first = t.first[static_cast<size_t>(cell)], last = t.last[static_cast<size_t>(cell)];
-    const float* sp = &t.spread[static_cast<size_t>(cell) * t.j];
-    float f = 0;
+    const size_t c = static_cast<size_t>(cell[l]);
+    const int first = t.first[c], last = t.last[c];
+    const float* sp = &t.spread[c * t.j];
     if (first >= 0 && last > first) {
       for (int k = first; k < last; ++k) {
         const float lo = sp[k], hi = sp[k + 1];
         if (spread[l] <= hi || k + 1 == last) {
-          k0 = k;
+          k0[l] = k;
           const float raw_f = (spread[l] - lo) / std::max(1e-9f, hi - lo);
           in_range[l] = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
-          f = std::clamp(raw_f, 0.f, 1.f);
+          fr[l] = std::clamp(raw_f, 0.f, 1.f);
           break;
         }
       }
     }
-    if (k0 < 0) continue;
+    if (k0[l] < 0) continue;
     known[l] = true;
+    // The two samples of the cell and of the four around the mean direction, side by side in the table.
+    const float fu = std::clamp(ou[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
+    const float fv = std::clamp(ov[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
+    const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
+    for (int q = 0; q < 5; ++q) {
+      const size_t at = q < 4 ? static_cast<size_t>((cv0 + (q >> 1)) * t.s + cu0 + (q & 1)) : c;
+      const char* bytes = reinterpret_cast<const char*>(&t.spec[(at * t.j + k0[l]) * ss]);
+      for (size_t byte = 0; byte < 2 * ss * sizeof(float); byte += 64) __builtin_prefetch(bytes + byte);
+      __builtin_prefetch(bytes + 2 * ss * sizeof(float) - 1);
+    }
+  }
+  float* const entry = scratch->entry.data();
+  float* const one = scratch->one.data();
+  float log_alpha[kL], slope[kL];
+  for (int l = 0; l < kL; ++l) {
+    log_alpha[l] = slope[l] = 0;
+    if (!known[l]) continue;  // its entry is left as it was: nothing reads it
+    const float f = fr[l];
     // The entry at this roughness, interpolated between the four cells around the mean direction (the nearest alone
     // where a neighbour has no lobe there).
-    const Eigen::Vector2f uv = OctEncode(mean_l);
-    const float fu = std::clamp(uv.x() * t.s - 0.5f, 0.f, t.s - 1.001f);
-    const float fv = std::clamp(uv.y() * t.s - 0.5f, 0.f, t.s - 1.001f);
+    const float fu = std::clamp(ou[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
+    const float fv = std::clamp(ov[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
     const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
     const float wu = fu - cu0, wv = fv - cv0;
     const float* corner[4];
     bool corners = true;
     for (int c = 0; c < 4 && corners; ++c) {
       const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
-      corner[c] = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0) * ss];
+      corner[c] = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0[l]) * ss];
       corners = corner[c][4] > 0 && corner[c][ss + 4] > 0;
     }
-    const float* e0 = &t.spec[(static_cast<size_t>(cell) * t.j + k0) * ss];
+    const float* e0 = &t.spec[(static_cast<size_t>(cell[l]) * t.j + k0[l]) * ss];
     if (corners) {
       for (int q = 0; q < ss; ++q) one[q] = 0;
       for (int c = 0; c < 4; ++c) {
@@ -669,7 +710,7 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
       for (int q = 0; q < ss; ++q) one[q] = (1 - f) * e0[q] + f * e0[ss + q];
     }
     for (int q = 0; q < ss; ++q) entry[q * kL + l] = one[q];
-    const float* la = &t.log_alpha[static_cast<size_t>(k0)];
+    const float* la = &t.log_alpha[static_cast<size_t>(k0[l])];
     log_alpha[l] = (1 - f) * la[0] + f * la[1];
     slope[l] = (la[1] - la[0]) / std::max(1e-9f, e0[ss + 3] - e0[3]);
   }
