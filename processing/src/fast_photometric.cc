@@ -1186,16 +1186,25 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         for (int p = 0; p < patterns; ++p) {
           SaturationRow(&cycle.raw[static_cast<size_t>(p)][static_cast<size_t>(y) * w + x0], top, tw_cols, saturated);
         }
-        // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time.
+        // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time; a row with
+        // nothing to solve straight to memory.
         const size_t row0 = static_cast<size_t>(y) * w + x0;
+        const bool signal = buffers.signal_rows[static_cast<size_t>(y - y0)];
+        auto zero = [&](float* p, size_t n) {
+          if (signal) {
+            std::fill_n(p, n, 0.f);
+          } else {
+            internal::StreamZeros(p, n);
+          }
+        };
         for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.specular_normal_raw}) {
-          std::fill_n(&image->pixels[3 * row0], 3 * static_cast<size_t>(tw_cols), 0.f);
+          zero(&image->pixels[3 * row0], 3 * static_cast<size_t>(tw_cols));
         }
         for (Image* image : {&m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
-          std::fill_n(&image->pixels[row0], static_cast<size_t>(tw_cols), 0.f);
+          zero(&image->pixels[row0], static_cast<size_t>(tw_cols));
         }
-        std::fill_n(&own_albedo[row0], static_cast<size_t>(tw_cols), 0.f);
-        if (!buffers.signal_rows[static_cast<size_t>(y - y0)]) {
+        zero(&own_albedo[row0], static_cast<size_t>(tw_cols));
+        if (!signal) {
           for (int xt = 0; xt < tw_cols; ++xt) m.flags[row0 + xt] = (saturated[xt] ? kSaturated : 0) | kLowSignal;
           continue;
         }
@@ -1287,6 +1296,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         }
       }
     }
+    _mm_sfence();  // the streamed zeros, before other threads read the maps
   });
 
   // RGB albedo: each pixel's own colour as solved, the others from its solved neighbours of that colour.
@@ -1294,6 +1304,15 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
+        if (x % internal::kStreamRun == 0) {  // a run with nothing solved: zeros straight to memory
+          const int n = std::min(internal::kStreamRun, w - x);
+          const uint8_t* flags = &m.flags[i];
+          if (std::all_of(flags, flags + n, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
+            internal::StreamZeros(m.albedo.at(x, y), 3 * static_cast<size_t>(n));
+            x += n - 1;
+            continue;
+          }
+        }
         float* a = m.albedo.at(x, y);
         if (m.flags[i] & kLowSignal) {
           a[0] = a[1] = a[2] = 0;
@@ -1319,6 +1338,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         }
       }
     }
+    _mm_sfence();
   });
   internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return absl::OkStatus();

@@ -165,6 +165,17 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
+        if (x % kStreamRun == 0) {  // a run without a lobe: zeros straight to memory
+          const int n = std::min(kStreamRun, w - x);
+          bool any = false;
+          for (int k = 0; k < n; ++k) any |= has_lobe(i + k);
+          if (!any) {
+            StreamZeros(&m.specular_normal_world.pixels[3 * i], 3 * static_cast<size_t>(n));
+            StreamZeros(&m.specular_normal_camera.pixels[3 * i], 3 * static_cast<size_t>(n));
+            x += n - 1;
+            continue;
+          }
+        }
         float* sw = &m.specular_normal_world.pixels[3 * i];
         float* sc = &m.specular_normal_camera.pixels[3 * i];
         if (!has_lobe(i)) {
@@ -226,6 +237,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
         m.roughness.pixels[i] = std::exp(la);
       }
     }
+    _mm_sfence();
   });
 }
 

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <atomic>
+#include <immintrin.h>
 #include <thread>
 #include <vector>
 
@@ -109,6 +110,26 @@ inline float Confidence(float full_on, float gain_e_per_dn, float read_dn2, floa
   if (flags & kSaturated) conf = 0;
   if (flags & kShadowed) conf *= 0.5f;
   return conf;
+}
+
+// The pixels a row's background is zeroed in at a time (a multiple of 16: 3 floats a pixel then fill whole lines).
+constexpr int kStreamRun = 256;
+
+// Zeros n floats from p with non-temporal stores (the middle, 16-byte aligned; plain stores at the ends): for memory
+// nothing reads again soon (the background's maps), so that the lines are not first read from memory and do not
+// push the working set out of the caches. The stores are weakly ordered: the thread calls _mm_sfence() before others
+// read them.
+inline void StreamZeros(float* p, size_t n) {
+  while (n > 0 && (reinterpret_cast<uintptr_t>(p) & 15) != 0) {
+    *p++ = 0;
+    --n;
+  }
+  const __m128 zero = _mm_setzero_ps();
+  for (; n >= 4; n -= 4, p += 4) _mm_stream_ps(p, zero);
+  while (n > 0) {
+    *p++ = 0;
+    --n;
+  }
 }
 
 // Sizes every map of `m` for width x height (keeping their memory when the size is the same; contents are not
