@@ -1299,44 +1299,92 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     _mm_sfence();  // the streamed zeros, before other threads read the maps
   });
 
-  // RGB albedo: each pixel's own colour as solved, the others from its solved neighbours of that colour.
+  // RGB albedo: each pixel's own colour as solved, the others the mean of its solved neighbours of that colour. Per
+  // row, three rows of each colour's solved values and their counts (0 elsewhere, a column of 0 either side), summed
+  // over the 3 x 3 in the order of the rows and columns; adding a 0 leaves a sum's bits as they were.
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
-    for (int y = y0; y < y1; ++y) {
-      for (int x = 0; x < w; ++x) {
-        const size_t i = static_cast<size_t>(y) * w + x;
-        if (x % internal::kStreamRun == 0) {  // a run with nothing solved: zeros straight to memory
-          const int n = std::min(internal::kStreamRun, w - x);
-          const uint8_t* flags = &m.flags[i];
-          if (std::all_of(flags, flags + n, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
-            internal::StreamZeros(m.albedo.at(x, y), 3 * static_cast<size_t>(n));
-            x += n - 1;
-            continue;
+    const size_t padded = static_cast<size_t>(w) + 2;
+    // Per ring slot (3) and colour (3): the values, then the counts.
+    std::vector<float> ring(2 * 9 * padded, 0.f), sums(3 * static_cast<size_t>(w)), counts(3 * static_cast<size_t>(w));
+    std::vector<float> row_albedo(3 * static_cast<size_t>(w));
+    std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
+    for (int x = 0; x < w; ++x) {
+      for (int parity = 0; parity < 2; ++parity) colors[parity * static_cast<size_t>(w) + x] = cycle.mosaic.Color(x, parity);
+    }
+    bool zero[3] = {true, true, true};  // whether a ring slot's rows are all 0 (as allocated)
+    auto values = [&](int yy, int c) { return &ring[(static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
+    auto solved = [&](int yy, int c) { return &ring[(9 + static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
+    auto fill = [&](int yy) {
+      const uint8_t* flags = yy < 0 || yy >= h ? nullptr : &m.flags[static_cast<size_t>(yy) * w];
+      bool& was_zero = zero[(yy + 3) % 3];
+      if (flags == nullptr || std::all_of(flags, flags + w, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
+        if (!was_zero) {
+          for (int c = 0; c < 3; ++c) {
+            std::fill_n(values(yy, c), padded, 0.f);
+            std::fill_n(solved(yy, c), padded, 0.f);
           }
         }
-        float* a = m.albedo.at(x, y);
-        if (m.flags[i] & kLowSignal) {
+        was_zero = true;
+        return;
+      }
+      was_zero = false;
+      const float* own = &own_albedo[static_cast<size_t>(yy) * w];
+      const uint8_t* color = &colors[static_cast<size_t>(yy & 1) * w];
+      for (int c = 0; c < 3; ++c) {
+        float* v = values(yy, c) + 1;
+        float* n = solved(yy, c) + 1;
+        for (int x = 0; x < w; ++x) {
+          const bool mine = (flags[x] & kLowSignal) == 0 && color[x] == c;
+          v[x] = mine ? own[x] : 0.f;
+          n[x] = mine ? 1.f : 0.f;
+        }
+      }
+    };
+    fill(y0 - 1);
+    fill(y0);
+    for (int y = y0; y < y1; ++y) {
+      fill(y + 1);
+      const size_t r0 = static_cast<size_t>(y) * w;
+      const uint8_t* flags = &m.flags[r0];
+      if (std::all_of(flags, flags + w, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
+        internal::StreamZeros(m.albedo.at(0, y), 3 * static_cast<size_t>(w));  // nothing solved in the row
+        continue;
+      }
+      for (int c = 0; c < 3; ++c) {
+        for (int k = 0; k < 2; ++k) {
+          const float* up = k == 0 ? values(y - 1, c) : solved(y - 1, c);
+          const float* mid = k == 0 ? values(y, c) : solved(y, c);
+          const float* down = k == 0 ? values(y + 1, c) : solved(y + 1, c);
+          float* to = (k == 0 ? sums.data() : counts.data()) + static_cast<size_t>(c) * w;
+          for (int x = 0; x < w; ++x) {
+            float sum = 0.f;
+            sum += up[x];
+            sum += up[x + 1];
+            sum += up[x + 2];
+            sum += mid[x];
+            sum += mid[x + 1];
+            sum += mid[x + 2];
+            sum += down[x];
+            sum += down[x + 1];
+            sum += down[x + 2];
+            to[x] = sum;
+          }
+        }
+      }
+      for (int x = 0; x < w; ++x) {
+        float* a = &row_albedo[3 * static_cast<size_t>(x)];
+        if (flags[x] & kLowSignal) {
           a[0] = a[1] = a[2] = 0;
           continue;
         }
-        float sum[3] = {0, 0, 0};
-        int count[3] = {0, 0, 0};
-        for (int dy = -1; dy <= 1; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) {
-            const int xx = x + dx, yy = y + dy;
-            if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
-            const size_t j = static_cast<size_t>(yy) * w + xx;
-            if (m.flags[j] & kLowSignal) continue;
-            const int c = cycle.mosaic.Color(xx, yy);
-            sum[c] += own_albedo[j];
-            ++count[c];
-          }
-        }
-        const int mine = cycle.mosaic.Color(x, y);
+        const int mine = colors[static_cast<size_t>(y & 1) * w + x];
         for (int c = 0; c < 3; ++c) {
           // A colour with no solved neighbour (the subject's edge) is not known: 0.
-          a[c] = mono || c == mine ? own_albedo[i] : count[c] > 0 ? sum[c] / count[c] : 0.f;
+          const float n = counts[static_cast<size_t>(c) * w + x];
+          a[c] = mono || c == mine ? own_albedo[r0 + x] : n > 0 ? sums[static_cast<size_t>(c) * w + x] / n : 0.f;
         }
       }
+      internal::StreamCopy(m.albedo.at(0, y), row_albedo.data(), row_albedo.size());
     }
     _mm_sfence();
   });

@@ -132,6 +132,19 @@ inline void StreamZeros(float* p, size_t n) {
   }
 }
 
+// Copies n floats from src to dst with non-temporal stores, as StreamZeros.
+inline void StreamCopy(float* dst, const float* src, size_t n) {
+  while (n > 0 && (reinterpret_cast<uintptr_t>(dst) & 15) != 0) {
+    *dst++ = *src++;
+    --n;
+  }
+  for (; n >= 4; n -= 4, dst += 4, src += 4) _mm_stream_ps(dst, _mm_loadu_ps(src));
+  while (n > 0) {
+    *dst++ = *src++;
+    --n;
+  }
+}
+
 // Sizes every map of `m` for width x height (keeping their memory when the size is the same; contents are not
 // cleared: the solver writes every pixel).
 void PrepareMaps(int width, int height, PhotometricMaps* m);
