@@ -1309,7 +1309,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     std::vector<float> row_albedo(3 * static_cast<size_t>(w));
     std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
     for (int x = 0; x < w; ++x) {
-      for (int parity = 0; parity < 2; ++parity) colors[parity * static_cast<size_t>(w) + x] = cycle.mosaic.Color(x, parity);
+      for (int parity = 0; parity < 2; ++parity) {
+        colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(cycle.mosaic.Color(x, parity));
+      }
     }
     bool zero[3] = {true, true, true};  // whether a ring slot's rows are all 0 (as allocated)
     auto values = [&](int yy, int c) { return &ring[(static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };

@@ -9,6 +9,8 @@
 #include <cmath>
 #include <thread>
 
+#include <immintrin.h>
+
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "stage/common/ggx.h"
@@ -141,104 +143,309 @@ void PrepareMaps(int width, int height, PhotometricMaps* m) {
   m->flags.resize(static_cast<size_t>(width) * height);
 }
 
+namespace {
+
+constexpr int kWindowLanes = 16;
+
+// A row of what the specular regularization reads, planar and padded by the window's radius either side (with no
+// lobe there): whether a pixel has a lobe, its diffuse normal, the departure of its raw specular normal from it, log
+// roughness, the inverse variances of both (as the filter weights them) and the variances.
+struct WindowRow {
+  enum Plane { kLobe, kNx, kNy, kNz, kDx, kDy, kDz, kLogAlpha, kInvVarN, kInvVarLa, kVarN, kVarLa, kPlanes };
+  std::vector<float> planes;
+  size_t stride = 0;
+  bool any = false;            // a lobe in the row
+  std::vector<uint8_t> lanes;  // per run of kWindowLanes pixels: a lobe in it
+  const float* operator[](Plane p) const { return &planes[p * stride]; }
+  float* operator[](Plane p) { return &planes[p * stride]; }
+};
+
+// The window sums of the 16 pixels of `mid` from column xb (padded index xb + r) that have center[l] set, over
+// `rows` (the window's rows in the image, top to bottom): a neighbour left out adds 0, which leaves a sum's bits as
+// they were, so that each pixel's sums are those of a loop over its own window.
+struct WindowSums {
+  float wn[kWindowLanes], wl[kWindowLanes], mn[3][kWindowLanes], ml[kWindowLanes], sn[3][kWindowLanes],
+      sl[kWindowLanes], qn[kWindowLanes], ql[kWindowLanes], nn[kWindowLanes], nl[kWindowLanes], count[kWindowLanes];
+};
+
+__attribute__((always_inline)) inline void WindowSums16Impl(const WindowRow* const* rows, int n_rows,
+                                                            const WindowRow& mid, int xb, int r, const bool* center,
+                                                            WindowSums* out) {
+  constexpr int kL = kWindowLanes;
+  using P = WindowRow::Plane;
+  float n0[3][kL], on[kL];
+  for (int l = 0; l < kL; ++l) {
+    const size_t o = static_cast<size_t>(xb + r + l);
+    n0[0][l] = mid[P::kNx][o];
+    n0[1][l] = mid[P::kNy][o];
+    n0[2][l] = mid[P::kNz][o];
+    on[l] = center[l] ? 1.f : 0.f;
+  }
+  float wn[kL] = {}, wl[kL] = {}, mn[3][kL] = {}, ml[kL] = {}, sn[3][kL] = {}, sl[kL] = {}, qn[kL] = {}, ql[kL] = {},
+        nn[kL] = {}, nl[kL] = {}, count[kL] = {};
+  for (int k = 0; k < n_rows; ++k) {
+    const WindowRow& row = *rows[k];
+    for (int dx = -r; dx <= r; ++dx) {
+      const size_t o = static_cast<size_t>(xb + r + dx);
+      const float* lobe = row[P::kLobe] + o;
+      const float* nx = row[P::kNx] + o;
+      const float* ny = row[P::kNy] + o;
+      const float* nz = row[P::kNz] + o;
+      const float* d[3] = {row[P::kDx] + o, row[P::kDy] + o, row[P::kDz] + o};
+      const float* la = row[P::kLogAlpha] + o;
+      const float* ia = row[P::kInvVarN] + o;
+      const float* ib = row[P::kInvVarLa] + o;
+      const float* vn = row[P::kVarN] + o;
+      const float* vl = row[P::kVarLa] + o;
+      for (int l = 0; l < kL; ++l) {
+        const bool take =
+            on[l] * lobe[l] > 0 && !(n0[0][l] * nx[l] + n0[1][l] * ny[l] + n0[2][l] * nz[l] <= 0.866f);
+        for (int c = 0; c < 3; ++c) {
+          const float v = d[c][l];
+          mn[c][l] += take ? ia[l] * v : 0.f;
+          sn[c][l] += take ? v : 0.f;
+          qn[l] += take ? v * v : 0.f;
+        }
+        wn[l] += take ? ia[l] : 0.f;
+        nn[l] += take ? vn[l] : 0.f;
+        ml[l] += take ? ib[l] * la[l] : 0.f;
+        sl[l] += take ? la[l] : 0.f;
+        ql[l] += take ? la[l] * la[l] : 0.f;
+        wl[l] += take ? ib[l] : 0.f;
+        nl[l] += take ? vl[l] : 0.f;
+        count[l] += take ? 1.f : 0.f;
+      }
+    }
+  }
+  std::copy_n(wn, kL, out->wn);
+  std::copy_n(wl, kL, out->wl);
+  std::copy_n(ml, kL, out->ml);
+  std::copy_n(sl, kL, out->sl);
+  std::copy_n(qn, kL, out->qn);
+  std::copy_n(ql, kL, out->ql);
+  std::copy_n(nn, kL, out->nn);
+  std::copy_n(nl, kL, out->nl);
+  std::copy_n(count, kL, out->count);
+  for (int c = 0; c < 3; ++c) {
+    std::copy_n(mn[c], kL, out->mn[c]);
+    std::copy_n(sn[c], kL, out->sn[c]);
+  }
+}
+
+// The same in AVX-512 lanes: the same operations in the same order per lane (the file is compiled without
+// contraction of multiply and add), so the same bits.
+__attribute__((target("avx512f,avx512dq"))) void WindowSums16Avx512(const WindowRow* const* rows, int n_rows,
+                                                                    const WindowRow& mid, int xb, int r,
+                                                                    const bool* center, WindowSums* out) {
+  using P = WindowRow::Plane;
+  const size_t c0 = static_cast<size_t>(xb + r);
+  const __m512 n0x = _mm512_loadu_ps(mid[P::kNx] + c0), n0y = _mm512_loadu_ps(mid[P::kNy] + c0),
+               n0z = _mm512_loadu_ps(mid[P::kNz] + c0);
+  __mmask16 on = 0;
+  for (int l = 0; l < kWindowLanes; ++l) on |= center[l] ? static_cast<__mmask16>(1u << l) : 0;
+  const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f), edge = _mm512_set1_ps(0.866f);
+  __m512 wn = zero, wl = zero, mn[3] = {zero, zero, zero}, ml = zero, sn[3] = {zero, zero, zero}, sl = zero,
+         qn = zero, ql = zero, nn = zero, nl = zero, count = zero;
+  for (int k = 0; k < n_rows; ++k) {
+    const WindowRow& row = *rows[k];
+    for (int dx = -r; dx <= r; ++dx) {
+      const size_t o = static_cast<size_t>(xb + r + dx);
+      const __m512 dot = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(n0x, _mm512_loadu_ps(row[P::kNx] + o)),
+                                                     _mm512_mul_ps(n0y, _mm512_loadu_ps(row[P::kNy] + o))),
+                                       _mm512_mul_ps(n0z, _mm512_loadu_ps(row[P::kNz] + o)));
+      const __mmask16 take = _mm512_mask_cmp_ps_mask(on, _mm512_loadu_ps(row[P::kLobe] + o), zero, _CMP_GT_OQ) &
+                             _mm512_cmp_ps_mask(dot, edge, _CMP_NLE_UQ);
+      if (take == 0) continue;  // adds nothing
+      const __m512 ia = _mm512_loadu_ps(row[P::kInvVarN] + o), ib = _mm512_loadu_ps(row[P::kInvVarLa] + o);
+      const P planes[3] = {P::kDx, P::kDy, P::kDz};
+      for (int c = 0; c < 3; ++c) {
+        const __m512 v = _mm512_loadu_ps(row[planes[c]] + o);
+        mn[c] = _mm512_mask_add_ps(mn[c], take, mn[c], _mm512_mul_ps(ia, v));
+        sn[c] = _mm512_mask_add_ps(sn[c], take, sn[c], v);
+        qn = _mm512_mask_add_ps(qn, take, qn, _mm512_mul_ps(v, v));
+      }
+      const __m512 la = _mm512_loadu_ps(row[P::kLogAlpha] + o);
+      wn = _mm512_mask_add_ps(wn, take, wn, ia);
+      nn = _mm512_mask_add_ps(nn, take, nn, _mm512_loadu_ps(row[P::kVarN] + o));
+      ml = _mm512_mask_add_ps(ml, take, ml, _mm512_mul_ps(ib, la));
+      sl = _mm512_mask_add_ps(sl, take, sl, la);
+      ql = _mm512_mask_add_ps(ql, take, ql, _mm512_mul_ps(la, la));
+      wl = _mm512_mask_add_ps(wl, take, wl, ib);
+      nl = _mm512_mask_add_ps(nl, take, nl, _mm512_loadu_ps(row[P::kVarLa] + o));
+      count = _mm512_mask_add_ps(count, take, count, one);
+    }
+  }
+  _mm512_storeu_ps(out->wn, wn);
+  _mm512_storeu_ps(out->wl, wl);
+  _mm512_storeu_ps(out->ml, ml);
+  _mm512_storeu_ps(out->sl, sl);
+  _mm512_storeu_ps(out->qn, qn);
+  _mm512_storeu_ps(out->ql, ql);
+  _mm512_storeu_ps(out->nn, nn);
+  _mm512_storeu_ps(out->nl, nl);
+  _mm512_storeu_ps(out->count, count);
+  for (int c = 0; c < 3; ++c) {
+    _mm512_storeu_ps(out->mn[c], mn[c]);
+    _mm512_storeu_ps(out->sn[c], sn[c]);
+  }
+}
+
+void WindowSums16(const WindowRow* const* rows, int n_rows, const WindowRow& mid, int xb, int r, const bool* center,
+                  WindowSums* out) {
+  if (FastVectorKernels() && FastVectorKernelsAvailable()) {
+    WindowSums16Avx512(rows, n_rows, mid, xb, r, center, out);
+  } else {
+    WindowSums16Impl(rows, n_rows, mid, xb, r, center, out);
+  }
+}
+
+}  // namespace
+
 // A local Wiener (Lee) filter of the departure of the specular normal from the diffuse one (3 components) and of log
 // roughness, each with its own per-pixel noise: in a (2r+1)^2 window of the pixels with a lobe on the same side of an
 // edge, the inverse-variance weighted mean mu and the spread s^2 about it; the pixel keeps mu + k (x - mu) with
-// k = signal / (signal + noise), signal = max(0, s^2 - mean noise).
+// k = signal / (signal + noise), signal = max(0, s^2 - mean noise). Each thread keeps the window's rows in a ring,
+// planar (WindowRow), and sums 16 pixels' windows at a time.
 void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
   PhotometricMaps& m = *maps;
   const int w = m.width, h = m.height;
+  const int r = std::max(0, radius);
   const float* var_n = Work(&m, kVarNormal);
   const float* var_la = Work(&m, kVarLogAlpha);
-  float* delta = Work(&m, kDelta);
-  float* log_alpha = Work(&m, kLogAlpha);
   const float* nd = m.diffuse_normal_world.pixels.data();
+  const float* raw = m.specular_normal_raw.pixels.data();
   auto has_lobe = [&](size_t i) { return (m.flags[i] & (kLowSignal | kNoSpecular)) == 0; };
+  // The roughness map is both read (the raw fits) and written (regularized): the rows within the radius of a band's
+  // ends, which the bands beside it read, are written when every band is done.
+  std::vector<std::vector<float>> deferred(static_cast<size_t>(h));
   ParallelRows(h, threads, [&](int y0, int y1) {
-    for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
-      if (!has_lobe(i)) continue;
-      for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - nd[3 * i + k];
-      log_alpha[i] = std::log(m.roughness.pixels[i]);
+    using P = WindowRow::Plane;
+    const size_t stride = static_cast<size_t>(w) + 2 * r + kWindowLanes;  // room for a last batch past the edge
+    std::vector<WindowRow> ring(static_cast<size_t>(2 * r + 1));
+    for (WindowRow& row : ring) {
+      row.stride = stride;
+      row.planes.assign(P::kPlanes * stride, 0.f);
+      row.lanes.assign(static_cast<size_t>(w + kWindowLanes - 1) / kWindowLanes, 0);
     }
-  });
-  ParallelRows(h, threads, [&](int y0, int y1) {
+    auto slot = [&](int yy) -> WindowRow& { return ring[static_cast<size_t>(yy % (2 * r + 1))]; };
+    // Row yy of the image into its slot of the ring: where a lobe is, and the rest only in the runs of kWindowLanes
+    // pixels that have one (where there is none, nothing else is read).
+    auto fill = [&](int yy) {
+      WindowRow& row = slot(yy);
+      const size_t r0 = static_cast<size_t>(yy) * w;
+      float* lobe = row[P::kLobe] + r;
+      row.any = false;
+      for (int xb = 0; xb < w; xb += kWindowLanes) {
+        const int n = std::min(kWindowLanes, w - xb);
+        bool any = false;
+        for (int x = xb; x < xb + n; ++x) {
+          lobe[x] = has_lobe(r0 + x) ? 1.f : 0.f;
+          any |= lobe[x] > 0;
+        }
+        row.lanes[static_cast<size_t>(xb / kWindowLanes)] = any;
+        row.any |= any;
+        if (!any) continue;
+        for (int c = 0; c < 3; ++c) {
+          float* nc = row[static_cast<P>(P::kNx + c)] + r;
+          float* dc = row[static_cast<P>(P::kDx + c)] + r;
+          for (int x = xb; x < xb + n; ++x) {
+            const size_t i = 3 * (r0 + x) + c;
+            nc[x] = nd[i];
+            dc[x] = raw[i] - nd[i];
+          }
+        }
+        float* ia = row[P::kInvVarN] + r;
+        float* ib = row[P::kInvVarLa] + r;
+        float* vn = row[P::kVarN] + r;
+        float* vl = row[P::kVarLa] + r;
+        float* la = row[P::kLogAlpha] + r;
+        for (int x = xb; x < xb + n; ++x) {
+          vn[x] = var_n[r0 + x];
+          vl[x] = var_la[r0 + x];
+          ia[x] = 1 / std::max(1e-12f, vn[x]);
+          ib[x] = 1 / std::max(1e-12f, vl[x]);
+          la[x] = lobe[x] > 0 ? std::log(m.roughness.pixels[r0 + x]) : 0.f;
+        }
+      }
+    };
+    for (int yy = std::max(0, y0 - r); yy < std::min(h, y0 + r); ++yy) fill(yy);
+    std::vector<const WindowRow*> rows(ring.size());
     for (int y = y0; y < y1; ++y) {
-      for (int x = 0; x < w; ++x) {
-        const size_t i = static_cast<size_t>(y) * w + x;
-        if (x % kStreamRun == 0) {  // a run without a lobe: zeros straight to memory
-          const int n = std::min(kStreamRun, w - x);
+      if (y + r < h) fill(y + r);
+      int n_rows = 0;
+      for (int yy = std::max(0, y - r); yy <= std::min(h - 1, y + r); ++yy) rows[n_rows++] = &slot(yy);
+      const WindowRow& mid = slot(y);
+      const size_t row0 = static_cast<size_t>(y) * w;
+      float* roughness = &m.roughness.pixels[row0];
+      if (y < y0 + r || y >= y1 - r) {
+        deferred[static_cast<size_t>(y)].assign(roughness, roughness + w);
+        roughness = deferred[static_cast<size_t>(y)].data();
+      }
+      for (int xb = 0; xb < w; xb += kWindowLanes) {
+        if (xb % kStreamRun == 0) {  // a run without a lobe: zeros straight to memory
+          const int n = std::min(kStreamRun, w - xb);
           bool any = false;
-          for (int k = 0; k < n; ++k) any |= has_lobe(i + k);
+          for (int k = 0; k < n && mid.any; k += kWindowLanes) {
+            any |= mid.lanes[static_cast<size_t>((xb + k) / kWindowLanes)] != 0;
+          }
           if (!any) {
-            StreamZeros(&m.specular_normal_world.pixels[3 * i], 3 * static_cast<size_t>(n));
-            StreamZeros(&m.specular_normal_camera.pixels[3 * i], 3 * static_cast<size_t>(n));
-            x += n - 1;
+            StreamZeros(&m.specular_normal_world.pixels[3 * (row0 + xb)], 3 * static_cast<size_t>(n));
+            StreamZeros(&m.specular_normal_camera.pixels[3 * (row0 + xb)], 3 * static_cast<size_t>(n));
+            xb += n - kWindowLanes;
             continue;
           }
         }
-        float* sw = &m.specular_normal_world.pixels[3 * i];
-        float* sc = &m.specular_normal_camera.pixels[3 * i];
-        if (!has_lobe(i)) {
-          std::fill(sw, sw + 3, 0.f);
-          std::fill(sc, sc + 3, 0.f);
-          continue;
-        }
-        const float* n0 = &nd[3 * i];
-        // Sums over the window: weights, weighted values, values and squares, noise; normal (3) then log alpha.
-        float wn = 0, wl = 0, mn[3] = {0, 0, 0}, ml = 0, sn[3] = {0, 0, 0}, sl = 0, qn = 0, ql = 0, nn = 0, nl = 0;
-        int count = 0;
-        if (radius > 0) {
-          for (int yy = std::max(0, y - radius); yy <= std::min(h - 1, y + radius); ++yy) {
-            for (int xx = std::max(0, x - radius); xx <= std::min(w - 1, x + radius); ++xx) {
-              const size_t j = static_cast<size_t>(yy) * w + xx;
-              if (!has_lobe(j)) continue;
-              const float* n1 = &nd[3 * j];
-              if (n0[0] * n1[0] + n0[1] * n1[1] + n0[2] * n1[2] <= 0.866f) continue;
-              const float a = 1 / std::max(1e-12f, var_n[j]), b = 1 / std::max(1e-12f, var_la[j]);
-              for (int c = 0; c < 3; ++c) {
-                const float v = delta[3 * j + c];
-                mn[c] += a * v;
-                sn[c] += v;
-                qn += v * v;
-              }
-              wn += a;
-              nn += var_n[j];
-              ml += b * log_alpha[j];
-              sl += log_alpha[j];
-              ql += log_alpha[j] * log_alpha[j];
-              wl += b;
-              nl += var_la[j];
-              ++count;
+        const int lanes = std::min(kWindowLanes, w - xb);
+        bool center[kWindowLanes];
+        const bool any = mid.lanes[static_cast<size_t>(xb / kWindowLanes)];
+        for (int l = 0; l < kWindowLanes; ++l) center[l] = any && l < lanes && mid[P::kLobe][r + xb + l] > 0;
+        WindowSums sums;
+        if (any) WindowSums16(rows.data(), n_rows, mid, xb, r, center, &sums);
+        for (int l = 0; l < lanes; ++l) {
+          const size_t i = row0 + xb + l;
+          float* sw = &m.specular_normal_world.pixels[3 * i];
+          float* sc = &m.specular_normal_camera.pixels[3 * i];
+          if (!center[l]) {
+            std::fill(sw, sw + 3, 0.f);
+            std::fill(sc, sc + 3, 0.f);
+            continue;
+          }
+          const size_t o = static_cast<size_t>(r + xb + l);
+          const float* n0 = &nd[3 * i];
+          float dn[3] = {mid[P::kDx][o], mid[P::kDy][o], mid[P::kDz][o]};
+          float la = mid[P::kLogAlpha][o];
+          const float count = radius > 0 ? sums.count[l] : 0.f;
+          if (count >= 3) {
+            const float inv = 1.f / count;
+            float spread = sums.qn[l] * inv;
+            float mn[3];
+            for (int c = 0; c < 3; ++c) {
+              mn[c] = sums.mn[c][l] / sums.wn[l];
+              spread += mn[c] * mn[c] - 2 * mn[c] * sums.sn[c][l] * inv;
             }
+            const float signal = std::max(0.f, spread - sums.nn[l] * inv);
+            const float k = signal / (signal + std::max(1e-12f, var_n[i]));
+            for (int c = 0; c < 3; ++c) dn[c] = mn[c] + k * (dn[c] - mn[c]);
+            const float ml = sums.ml[l] / sums.wl[l];
+            const float spread_l = sums.ql[l] * inv + ml * ml - 2 * ml * sums.sl[l] * inv;
+            const float signal_l = std::max(0.f, spread_l - sums.nl[l] * inv);
+            const float kl = signal_l / (signal_l + std::max(1e-12f, var_la[i]));
+            la = ml + kl * (la - ml);
           }
+          const Eigen::Vector3f ns = Eigen::Vector3f(n0[0] + dn[0], n0[1] + dn[1], n0[2] + dn[2]).normalized();
+          const Eigen::Vector3f nc = to_camera * ns;
+          std::copy(ns.data(), ns.data() + 3, sw);
+          std::copy(nc.data(), nc.data() + 3, sc);
+          roughness[xb + l] = std::exp(la);
         }
-        float dn[3] = {delta[3 * i], delta[3 * i + 1], delta[3 * i + 2]};
-        float la = log_alpha[i];
-        if (count >= 3) {
-          const float inv = 1.f / static_cast<float>(count);
-          float spread = qn * inv;
-          for (int c = 0; c < 3; ++c) {
-            mn[c] /= wn;
-            spread += mn[c] * mn[c] - 2 * mn[c] * sn[c] * inv;
-          }
-          const float signal = std::max(0.f, spread - nn * inv);
-          const float k = signal / (signal + std::max(1e-12f, var_n[i]));
-          for (int c = 0; c < 3; ++c) dn[c] = mn[c] + k * (dn[c] - mn[c]);
-          ml /= wl;
-          const float spread_l = ql * inv + ml * ml - 2 * ml * sl * inv;
-          const float signal_l = std::max(0.f, spread_l - nl * inv);
-          const float kl = signal_l / (signal_l + std::max(1e-12f, var_la[i]));
-          la = ml + kl * (la - ml);
-        }
-        const Eigen::Vector3f ns = Eigen::Vector3f(n0[0] + dn[0], n0[1] + dn[1], n0[2] + dn[2]).normalized();
-        const Eigen::Vector3f nc = to_camera * ns;
-        std::copy(ns.data(), ns.data() + 3, sw);
-        std::copy(nc.data(), nc.data() + 3, sc);
-        m.roughness.pixels[i] = std::exp(la);
       }
     }
     _mm_sfence();
   });
+  for (int y = 0; y < h; ++y) {
+    const std::vector<float>& row = deferred[static_cast<size_t>(y)];
+    if (!row.empty()) std::copy(row.begin(), row.end(), &m.roughness.pixels[static_cast<size_t>(y) * w]);
+  }
 }
 
 }  // namespace internal

@@ -75,8 +75,9 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
                       float alpha, float* m);
 
 // The working memory the solvers share (PhotometricMaps::work), per pixel: the specular fit's noise of the normal's
-// direction (rad^2, both axes) and of log roughness, then the regularization's inputs. Sized and returned by Work().
-enum WorkSlot { kVarNormal = 0, kVarLogAlpha = 1, kDelta = 2 /* 3 floats */, kLogAlpha = 5, kOwnAlbedo = 6, kSlots = 7 };
+// direction (rad^2, both axes) and of log roughness (the regularization's weights), and the fast solver's albedo in
+// each pixel's own colour. Sized and returned by Work().
+enum WorkSlot { kVarNormal = 0, kVarLogAlpha = 1, kOwnAlbedo = 2, kSlots = 3 };
 float* Work(PhotometricMaps* m, WorkSlot slot);
 
 // The variance (DN^2) that reading adds to a pixel's three channels summed: read noise and quantization (1/12 DN^2 a
