@@ -670,8 +670,8 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     const float fu = std::clamp(ou[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
     const float fv = std::clamp(ov[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
     const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
-    for (int q = 0; q < 5; ++q) {
-      const size_t at = q < 4 ? static_cast<size_t>((cv0 + (q >> 1)) * t.s + cu0 + (q & 1)) : c;
+    for (int q = 0; q < 4; ++q) {  // (the cell itself is one of them)
+      const size_t at = static_cast<size_t>((cv0 + (q >> 1)) * t.s + cu0 + (q & 1));
       const char* bytes = reinterpret_cast<const char*>(&t.spec[(at * t.j + k0[l]) * ss]);
       for (size_t byte = 0; byte < 2 * ss * sizeof(float); byte += 64) __builtin_prefetch(bytes + byte);
       __builtin_prefetch(bytes + 2 * ss * sizeof(float) - 1);
