@@ -423,14 +423,38 @@ STAGE_AVX512 inline V3 Blend16(__mmask16 take, const V3& keep, const V3& other) 
           _mm512_mask_blend_ps(take, keep.z, other.z)};
 }
 
-// SolveAt across the lanes: data + k * step holds pair k's values of the 16 lanes.
+// Per lane, the floats at table[i] and table[i + 1] (i in floats), gathered as pairs (8 + 8 of 64 bits): half the
+// loads of two gathers of 16.
+STAGE_AVX512 inline void GatherPair16(const float* table, __m512i i, __m512* first, __m512* second) {
+  const __m512 lo = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_castsi512_si256(i), table, 4));
+  const __m512 hi = _mm512_castpd_ps(_mm512_i32gather_pd(_mm512_extracti64x4_epi64(i, 1), table, 4));
+  const __m512i even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+  *first = _mm512_permutex2var_ps(lo, even, hi);
+  *second = _mm512_permutex2var_ps(lo, _mm512_add_epi32(even, _mm512_set1_epi32(1)), hi);
+}
+
+// SolveAt across the lanes: data + k * step holds pair k's values of the 16 lanes. Two pairs at a time (their entries
+// side by side in each row of M), summed in SolveAt's order.
 STAGE_AVX512 inline V3 Solve16(const DiffuseRow& a, const float* data, size_t step, const V3& at) {
   const PhotometricTables::Data& t = *a.t;
   const int np = t.np;
   const __m512i base = _mm512_mullo_epi32(Cells16(at, t.n), _mm512_set1_epi32(3 * np));
   V3 u{_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
   const float* m = t.m.data();
-  for (int k = 0; k < np; ++k) {
+  int k = 0;
+  for (; k + 1 < np; k += 2) {
+    const __m512 d0 = _mm512_loadu_ps(data + static_cast<size_t>(k) * step);
+    const __m512 d1 = _mm512_loadu_ps(data + static_cast<size_t>(k + 1) * step);
+    const __m512i i = _mm512_add_epi32(base, _mm512_set1_epi32(k));
+    __m512 x0, x1, y0, y1, z0, z1;
+    GatherPair16(m, i, &x0, &x1);
+    GatherPair16(m, _mm512_add_epi32(i, _mm512_set1_epi32(np)), &y0, &y1);
+    GatherPair16(m, _mm512_add_epi32(i, _mm512_set1_epi32(2 * np)), &z0, &z1);
+    u.x = _mm512_add_ps(_mm512_add_ps(u.x, _mm512_mul_ps(x0, d0)), _mm512_mul_ps(x1, d1));
+    u.y = _mm512_add_ps(_mm512_add_ps(u.y, _mm512_mul_ps(y0, d0)), _mm512_mul_ps(y1, d1));
+    u.z = _mm512_add_ps(_mm512_add_ps(u.z, _mm512_mul_ps(z0, d0)), _mm512_mul_ps(z1, d1));
+  }
+  for (; k < np; ++k) {
     const __m512 dk = _mm512_loadu_ps(data + static_cast<size_t>(k) * step);
     const __m512i i = _mm512_add_epi32(base, _mm512_set1_epi32(k));
     u.x = _mm512_add_ps(u.x, _mm512_mul_ps(_mm512_i32gather_ps(i, m, 4), dk));
@@ -512,8 +536,8 @@ STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const fl
   const float* h = t.h.data();
   for (int k = 0; k < np; ++k) {
     const __m512i i = _mm512_add_epi32(base, _mm512_set1_epi32(3 * k));
-    const __m512 h0 = _mm512_i32gather_ps(i, h, 4);
-    const __m512 h1 = _mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(1)), h, 4);
+    __m512 h0, h1;
+    GatherPair16(h, i, &h0, &h1);
     const __m512 h2 = _mm512_i32gather_ps(_mm512_add_epi32(i, _mm512_set1_epi32(2)), h, 4);
     const __m512 pred = _mm512_mul_ps(
         ws, _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(u.x, h0), _mm512_mul_ps(u.y, h1)), _mm512_mul_ps(u.z, h2)));
