@@ -1372,17 +1372,24 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
       fill(y + 1);
       const size_t r0 = static_cast<size_t>(y) * w;
       const uint8_t* flags = &m.flags[r0];
-      if (std::all_of(flags, flags + w, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
+      auto is_solved = [](uint8_t f) { return (f & kLowSignal) == 0; };
+      const uint8_t* first = std::find_if(flags, flags + w, is_solved);
+      if (first == flags + w) {
         internal::StreamZeros(m.albedo.at(0, y), 3 * static_cast<size_t>(w));  // nothing solved in the row
         continue;
       }
+      // The sums are read only between the row's first and last solved pixels.
+      const int lo = static_cast<int>(first - flags);
+      const int hi = w - static_cast<int>(std::find_if(std::make_reverse_iterator(flags + w),
+                                                        std::make_reverse_iterator(first), is_solved) -
+                                           std::make_reverse_iterator(flags + w));
       for (int c = 0; c < 3; ++c) {
         for (int k = 0; k < 2; ++k) {
           const float* up = k == 0 ? values(y - 1, c) : solved(y - 1, c);
           const float* mid = k == 0 ? values(y, c) : solved(y, c);
           const float* down = k == 0 ? values(y + 1, c) : solved(y + 1, c);
           float* to = (k == 0 ? sums.data() : counts.data()) + static_cast<size_t>(c) * w;
-          for (int x = 0; x < w; ++x) {
+          for (int x = lo; x < hi; ++x) {
             float sum = 0.f;
             sum += up[x];
             sum += up[x + 1];
