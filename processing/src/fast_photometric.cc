@@ -848,10 +848,10 @@ struct TileBuffers {
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
   LobeScratch lobe_scratch;
-  // The full-on pair's corrected rows (a ring of three each) and channel sums, and per row of the band whether it has a
-  // pixel to solve.
+  // The full-on pair's corrected rows (a ring of three each) and channel sums, and per row of the band the columns of
+  // the tile from its first pixel to solve to its last, widened to whole batches (none: an empty span).
   std::vector<float> probe, probe_sums;
-  std::vector<uint8_t> signal_rows;
+  std::vector<std::pair<int, int>> spans;
   Batch batch;
   std::vector<float> lobe_lanes, d2_lanes;
 
@@ -1097,7 +1097,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     // Per thread, reused from band to band and solve to solve (fresh buffers each band cost page faults).
     static thread_local TileBuffers buffers;
     buffers.Resize(patterns, np, t.spec_stride, stride);
-    buffers.signal_rows.resize(static_cast<size_t>(y1 - y0));
+    buffers.spans.resize(static_cast<size_t>(y1 - y0));
     // Corrected rows of every pattern (with a column of halo either side), a ring of three (y - 1, y, y + 1: each row
     // corrected once), and the channel sums of row y.
     float* const rows = buffers.rows.data();
@@ -1182,9 +1182,10 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
       }
       auto kc_of = [&](int y) { return kc + static_cast<size_t>(y & 1) * stride; };
       auto kd_of = [&](int y) { return kd + static_cast<size_t>(y & 1) * stride; };
-      // Which rows of the tile have a pixel to solve: the full-on pair's diffuse, computed with the functions and
-      // values the row loops below use (so the same bits), against the least signal. The rows without one (the
-      // background) skip the per-row work.
+      // Where the rows of the tile have a pixel to solve: the full-on pair's diffuse, computed with the functions and
+      // values the row loops below use (so the same bits), against the least signal. The row loops and the per-pixel
+      // steps run only from a row's first such pixel to its last (in whole batches); the rows without one (the
+      // background) skip them.
       {
         const int pair[2] = {tw.cross[static_cast<size_t>(tw.full)], tw.parallel[static_cast<size_t>(tw.full)]};
         auto probe = [&](int i, int y) { return &buffers.probe[(static_cast<size_t>(i) * 3 + (y + 3) % 3) * stride]; };
@@ -1199,9 +1200,16 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                         tw_cols, dc);
           ChannelSumRow(probe(1, y - 1) + 1, probe(1, y) + 1, probe(1, y + 1) + 1, kc_of(y), kd_of(y), mono ? 3.f : 1.f,
                         tw_cols, dp);
-          bool any = false;
-          for (int x = 0; x < tw_cols; ++x) any |= !(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal);  // as PairRow
-          buffers.signal_rows[static_cast<size_t>(y - y0)] = any;
+          int lo = tw_cols, hi = 0;
+          for (int x = 0; x < tw_cols; ++x) {
+            if (!(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal)) {  // as PairRow and DiffuseFirst
+              lo = std::min(lo, x);
+              hi = x + 1;
+            }
+          }
+          buffers.spans[static_cast<size_t>(y - y0)] =
+              hi > lo ? std::pair(lo / kLanes * kLanes, std::min(tw_cols, (hi + kLanes - 1) / kLanes * kLanes))
+                      : std::pair(0, 0);
         }
       }
       int corrected_through = y0 - 2;  // the ring holds the corrected rows up to this one (the last three)
@@ -1213,7 +1221,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         // Zero where nothing is solved (the maps' memory is reused from solve to solve), a row at a time; a row with
         // nothing to solve straight to memory.
         const size_t row0 = static_cast<size_t>(y) * w + x0;
-        const bool signal = buffers.signal_rows[static_cast<size_t>(y - y0)];
+        const auto [lo, hi] = buffers.spans[static_cast<size_t>(y - y0)];
+        const bool signal = hi > lo;
         auto zero = [&](float* p, size_t n) {
           if (signal) {
             std::fill_n(p, n, 0.f);
@@ -1228,34 +1237,36 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           zero(&image->pixels[row0], static_cast<size_t>(tw_cols));
         }
         zero(&own_albedo[row0], static_cast<size_t>(tw_cols));
-        if (!signal) {
-          for (int xt = 0; xt < tw_cols; ++xt) m.flags[row0 + xt] = (saturated[xt] ? kSaturated : 0) | kLowSignal;
-          continue;
+        for (int xt = 0; xt < tw_cols; ++xt) {
+          if (xt == lo) xt = hi;  // the span's pixels are flagged below
+          if (xt < tw_cols) m.flags[row0 + xt] = (saturated[xt] ? kSaturated : 0) | kLowSignal;
         }
+        if (!signal) continue;
+        const int span = hi - lo;
         for (int r = std::max(corrected_through + 1, y - 1); r <= y + 1; ++r) {
           for (int p = 0; p < patterns; ++p) correct_into(p, r, row(p, r));
         }
         corrected_through = y + 1;
         for (int p = 0; p < patterns; ++p) {
-          ChannelSumRow(row(p, y - 1) + 1, row(p, y) + 1, row(p, y + 1) + 1, kc_of(y), kd_of(y), mono ? 3.f : 1.f,
-                        tw_cols, &sums[static_cast<size_t>(p) * stride]);
+          ChannelSumRow(row(p, y - 1) + 1 + lo, row(p, y) + 1 + lo, row(p, y + 1) + 1 + lo, kc_of(y) + lo,
+                        kd_of(y) + lo, mono ? 3.f : 1.f, span, &sums[static_cast<size_t>(p) * stride + lo]);
         }
         for (int k = 0; k < np; ++k) {
-          const size_t o = static_cast<size_t>(k) * stride;
-          PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * stride],
-                  &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride], k_leak, spec_gain, 1 / g,
-                  read_dn2, tw_cols, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
+          const size_t o = static_cast<size_t>(k) * stride + lo;
+          PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * stride + lo],
+                  &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride + lo], k_leak, spec_gain,
+                  1 / g, read_dn2, span, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
         }
         // The row's linear sums over the pattern pairs: the lobe's moments, the first moment's noise, and the own
         // sums.
-        MomentRows(rs, rsv, stride, np, coef.data(), q1.data(), tw_cols, mu, v1);
-        std::fill_n(own_cross, tw_cols, 0.f);
-        std::fill_n(own_both, tw_cols, 0.f);
+        MomentRows(rs + lo, rsv + lo, stride, np, coef.data(), q1.data(), span, mu + lo, v1 + lo);
+        std::fill_n(own_cross + lo, span, 0.f);
+        std::fill_n(own_both + lo, span, 0.f);
         for (int k = 0; k < np; ++k) {
-          OwnRow(row(tw.cross[static_cast<size_t>(k)], y) + 1, row(tw.parallel[static_cast<size_t>(k)], y) + 1, k_leak,
-                 tw_cols, own_cross, own_both);
+          OwnRow(row(tw.cross[static_cast<size_t>(k)], y) + 1 + lo, row(tw.parallel[static_cast<size_t>(k)], y) + 1 + lo,
+                 k_leak, span, own_cross + lo, own_both + lo);
         }
-        for (int xb = 0; xb < tw_cols; xb += kLanes) {
+        for (int xb = lo; xb < hi; xb += kLanes) {
           const int lanes = std::min(kLanes, tw_cols - xb);
           // Diffuse: a first guess from the gradients, then u = M(n) d twice, across the batch.
           if (avx512) {
