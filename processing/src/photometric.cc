@@ -305,11 +305,12 @@ void WindowSums16(const WindowRow* const* rows, int n_rows, const WindowRow& mid
 // roughness, each with its own per-pixel noise: in a (2r+1)^2 window of the pixels with a lobe on the same side of an
 // edge, the inverse-variance weighted mean mu and the spread s^2 about it; the pixel keeps mu + k (x - mu) with
 // k = signal / (signal + noise), signal = max(0, s^2 - mean noise). Each thread keeps the window's rows in a ring,
-// planar (WindowRow), and sums 16 pixels' windows at a time.
+// planar (WindowRow), from band to band, and sums 16 pixels' windows at a time.
 void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camera, PhotometricMaps* maps) {
   PhotometricMaps& m = *maps;
   const int w = m.width, h = m.height;
-  const int r = std::max(0, radius);
+  // A window wider than the image holds the whole image, as one of the image's size does.
+  const int r = std::clamp(radius, 0, std::max(w, h));
   const float* var_n = Work(&m, kVarNormal);
   const float* var_la = Work(&m, kVarLogAlpha);
   const float* nd = m.diffuse_normal_world.pixels.data();
@@ -321,11 +322,15 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
   ParallelRows(h, threads, [&](int y0, int y1) {
     using P = WindowRow::Plane;
     const size_t stride = static_cast<size_t>(w) + 2 * r + kWindowLanes;  // room for a last batch past the edge
-    std::vector<WindowRow> ring(static_cast<size_t>(2 * r + 1));
-    for (WindowRow& row : ring) {
-      row.stride = stride;
-      row.planes.assign(P::kPlanes * stride, 0.f);
-      row.lanes.assign(static_cast<size_t>(w + kWindowLanes - 1) / kWindowLanes, 0);
+    // Kept from band to band: only the lobe plane's padding must stay 0 (fill() writes the rest of what is read).
+    static thread_local std::vector<WindowRow> ring;
+    if (ring.size() != static_cast<size_t>(2 * r + 1) || ring[0].stride != stride) {
+      ring.assign(static_cast<size_t>(2 * r + 1), WindowRow{});
+      for (WindowRow& row : ring) {
+        row.stride = stride;
+        row.planes.assign(P::kPlanes * stride, 0.f);
+        row.lanes.assign(static_cast<size_t>(w + kWindowLanes - 1) / kWindowLanes, 0);
+      }
     }
     auto slot = [&](int yy) -> WindowRow& { return ring[static_cast<size_t>(yy % (2 * r + 1))]; };
     // Row yy of the image into its slot of the ring: where a lobe is, and the rest only in the runs of kWindowLanes
@@ -376,7 +381,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
       for (int yy = std::max(0, y - r); yy <= std::min(h - 1, y + r); ++yy) rows[n_rows++] = &slot(yy);
       const WindowRow& mid = slot(y);
       const size_t row0 = static_cast<size_t>(y) * w;
-      float* roughness = &m.roughness.pixels[row0];
+      float* roughness = m.roughness.pixels.data() + row0;
       if (y < y0 + r || y >= y1 - r) {
         deferred[static_cast<size_t>(y)].assign(roughness, roughness + w);
         roughness = deferred[static_cast<size_t>(y)].data();
@@ -400,7 +405,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
         const bool any = mid.lanes[static_cast<size_t>(xb / kWindowLanes)];
         for (int l = 0; l < kWindowLanes; ++l) center[l] = any && l < lanes && mid[P::kLobe][r + xb + l] > 0;
         WindowSums sums;
-        if (any) WindowSums16(rows.data(), n_rows, mid, xb, r, center, &sums);
+        if (any && r > 0) WindowSums16(rows.data(), n_rows, mid, xb, r, center, &sums);
         for (int l = 0; l < lanes; ++l) {
           const size_t i = row0 + xb + l;
           float* sw = &m.specular_normal_world.pixels[3 * i];
@@ -414,7 +419,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
           const float* n0 = &nd[3 * i];
           float dn[3] = {mid[P::kDx][o], mid[P::kDy][o], mid[P::kDz][o]};
           float la = mid[P::kLogAlpha][o];
-          const float count = radius > 0 ? sums.count[l] : 0.f;
+          const float count = r > 0 ? sums.count[l] : 0.f;
           if (count >= 3) {
             const float inv = 1.f / count;
             float spread = sums.qn[l] * inv;

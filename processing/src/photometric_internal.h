@@ -49,8 +49,9 @@ void ParallelRows(int height, int threads, F body) {
 // it; tests set it small to check that.
 int& FastTileColumns();
 
-// Whether the fast solver's per-pixel diffuse steps run across AVX-512 lanes where the CPU has it (true by default).
-// The results are the same bits either way; tests turn it off to check that.
+// Whether the fast solver's per-pixel steps, and the specular regularization's window sums (both solvers), run across
+// AVX-512 lanes where the CPU has it (true by default). The results are the same bits either way; tests turn it off to
+// check that.
 bool& FastVectorKernels();
 // Whether this CPU has what the vector kernels use (AVX-512 F and DQ).
 bool FastVectorKernelsAvailable();
