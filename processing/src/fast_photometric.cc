@@ -126,30 +126,33 @@ constexpr int kSpecularCells = 48;
 constexpr int kAlphas = 12;
 constexpr float kAlphaMin = 0.04f, kAlphaMax = 1.0f;
 
-// The lobe's moments (1, x, y, z, xx, yy, zz, xy, yz, xz) from its images; its mean direction and the angular
-// variance about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets).
+// The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz): its mean direction and the angular variance
+// about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets). Computed
+// without a branch (the fields are computed where !ok too, and mean nothing there), so that the lookup runs it across
+// its lanes; the table is built with it as well.
 struct LobeMoments {
   float mu0 = 0;
-  Eigen::Vector3f mean = Eigen::Vector3f::Zero();  // unit
-  float length = 0;                                // of the first moment, before normalizing: mu0 times R < 1
+  float mean[3] = {0, 0, 0};  // unit
+  float length = 0;           // of the first moment, before normalizing: mu0 times R < 1
   float spread = 0;
-  bool ok = false;
+  bool ok = false;            // a lobe: mu0 > 0 and a first moment
 };
 
-// The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz).
-LobeMoments FromMoments(const float* mu) {
+inline LobeMoments FromMoments(const float (&mu)[internal::kMoments]) {
   LobeMoments out;
+  const float x = mu[1], y = mu[2], z = mu[3];
+  const float n = std::sqrt(x * x + (y * y + z * z));  // as Eigen's norm()
   out.mu0 = mu[0];
-  const Eigen::Vector3f m1(mu[1], mu[2], mu[3]);
-  if (!(mu[0] > 0) || m1.norm() < 1e-6f * mu[0]) return out;
-  out.mean = m1.normalized();
-  out.length = m1.norm();
-  const Eigen::Vector3f r = out.mean;
+  out.ok = mu[0] > 0 && !(n < 1e-6f * mu[0]);
+  out.length = n;
+  const float rx = x / n, ry = y / n, rz = z / n;
+  out.mean[0] = rx;
+  out.mean[1] = ry;
+  out.mean[2] = rz;
   // r^T M2 r with M2 = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]] / mu0.
-  const float q = r.x() * r.x() * mu[4] + r.y() * r.y() * mu[5] + r.z() * r.z() * mu[6] +
-                  2 * (r.x() * r.y() * mu[7] + r.y() * r.z() * mu[8] + r.x() * r.z() * mu[9]);
+  const float q =
+      rx * rx * mu[4] + ry * ry * mu[5] + rz * rz * mu[6] + 2 * (rx * ry * mu[7] + ry * rz * mu[8] + rx * rz * mu[9]);
   out.spread = 1 - q / mu[0];
-  out.ok = true;
   return out;
 }
 
@@ -616,17 +619,13 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   float mean[3][kL], length[kL], spread[kL];
   bool ok[kL];
   for (int l = 0; l < kL; ++l) {
-    const float x = mu[1][l], y = mu[2][l], z = mu[3][l];
-    const float n = std::sqrt(x * x + (y * y + z * z));
-    ok[l] = l < lanes && b->solved[l] && mu[0][l] > 0 && !(n < 1e-6f * mu[0][l]);
-    length[l] = n;
-    mean[0][l] = x / n;
-    mean[1][l] = y / n;
-    mean[2][l] = z / n;
-    const float rx = mean[0][l], ry = mean[1][l], rz = mean[2][l];
-    const float q = rx * rx * mu[4][l] + ry * ry * mu[5][l] + rz * rz * mu[6][l] +
-                    2 * (rx * ry * mu[7][l] + ry * rz * mu[8][l] + rx * rz * mu[9][l]);
-    spread[l] = 1 - q / mu[0][l];
+    float m[internal::kMoments];
+    for (int r = 0; r < internal::kMoments; ++r) m[r] = mu[r][l];
+    const LobeMoments lobe_l = FromMoments(m);
+    ok[l] = l < lanes && b->solved[l] && lobe_l.ok;
+    length[l] = lobe_l.length;
+    for (int i = 0; i < 3; ++i) mean[i][l] = lobe_l.mean[i];
+    spread[l] = lobe_l.spread;
   }
   if (std::none_of(ok, ok + kL, [](bool o) { return o; })) {  // no lobe in the batch (the background)
     for (int l = 0; l < kL; ++l) {
@@ -947,14 +946,15 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
             internal::SpecularFromView(origin, d.pm, n, v, alpha, m.data());
             mom = Moments(d.pm, m.data());
             if (!mom.ok) break;
-            r = (r + (target - mom.mean)).normalized();
+            r = (r + (target - Eigen::Vector3f(mom.mean[0], mom.mean[1], mom.mean[2]))).normalized();
           }
           if (!mom.ok) continue;
           // The last step's lobe (at r): where it lands must be the target, else the direction is out of reach.
           const Eigen::Vector3f n = (r + v).normalized();
           internal::SpecularFromView(origin, d.pm, n, v, alpha, m.data());
           mom = Moments(d.pm, m.data());
-          if (!mom.ok || std::acos(std::clamp(mom.mean.dot(target), -1.f, 1.f)) > 0.02f) continue;
+          const Eigen::Vector3f mean(mom.mean[0], mom.mean[1], mom.mean[2]);
+          if (!mom.ok || std::acos(std::clamp(mean.dot(target), -1.f, 1.f)) > 0.02f) continue;
           float* e = &d.spec[(c * d.j + k) * d.spec_stride];
           const Eigen::Vector3f dr = r - target;
           e[0] = dr.x(), e[1] = dr.y(), e[2] = dr.z();
@@ -1253,8 +1253,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         std::fill_n(own_cross + lo, span, 0.f);
         std::fill_n(own_both + lo, span, 0.f);
         for (int k = 0; k < np; ++k) {
-          OwnRow(row(tw.cross[static_cast<size_t>(k)], y) + 1 + lo, row(tw.parallel[static_cast<size_t>(k)], y) + 1 + lo,
-                 k_leak, span, own_cross + lo, own_both + lo);
+          const int pc = tw.cross[static_cast<size_t>(k)], pp = tw.parallel[static_cast<size_t>(k)];
+          OwnRow(row(pc, y) + 1 + lo, row(pp, y) + 1 + lo, k_leak, span, own_cross + lo, own_both + lo);
         }
         for (int xb = lo; xb < hi; xb += kLanes) {
           const int lanes = std::min(kLanes, tw_cols - xb);
