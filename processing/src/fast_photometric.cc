@@ -829,6 +829,23 @@ STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0
   LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
 }
 
+// One thread's buffers for the RGB albedo pass (SolvePhotometricFast): a ring of three rows of each colour's solved
+// values and their counts, with a column of 0 either side, and whether each slot's rows are all 0; a row's sums and
+// albedo.
+struct AlbedoBuffers {
+  std::vector<float> ring, sums, counts, row_albedo;
+  bool zero[3] = {true, true, true};
+  void Resize(int w) {
+    const size_t padded = static_cast<size_t>(w) + 2;
+    if (ring.size() == 2 * 9 * padded) return;
+    ring.assign(2 * 9 * padded, 0.f);
+    std::fill_n(zero, 3, true);
+    sums.resize(3 * static_cast<size_t>(w));
+    counts.resize(3 * static_cast<size_t>(w));
+    row_albedo.resize(3 * static_cast<size_t>(w));
+  }
+};
+
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
 // per-pair rows, and the per-pixel scratch.
 struct TileBuffers {
@@ -1327,18 +1344,22 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   // RGB albedo: each pixel's own colour as solved, the others the mean of its solved neighbours of that colour. Per
   // row, three rows of each colour's solved values and their counts (0 elsewhere, a column of 0 either side), summed
   // over the 3 x 3 in the order of the rows and columns; adding a 0 leaves a sum's bits as they were.
+  std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
+  for (int x = 0; x < w; ++x) {
+    for (int parity = 0; parity < 2; ++parity) {
+      colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(cycle.mosaic.Color(x, parity));
+    }
+  }
   internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
     const size_t padded = static_cast<size_t>(w) + 2;
-    // Per ring slot (3) and colour (3): the values, then the counts.
-    std::vector<float> ring(2 * 9 * padded, 0.f), sums(3 * static_cast<size_t>(w)), counts(3 * static_cast<size_t>(w));
-    std::vector<float> row_albedo(3 * static_cast<size_t>(w));
-    std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
-    for (int x = 0; x < w; ++x) {
-      for (int parity = 0; parity < 2; ++parity) {
-        colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(cycle.mosaic.Color(x, parity));
-      }
-    }
-    bool zero[3] = {true, true, true};  // whether a ring slot's rows are all 0 (as allocated)
+    // Per thread, kept from band to band: per ring slot (3) and colour (3) the values, then the counts; the sums.
+    static thread_local AlbedoBuffers buffers;
+    buffers.Resize(w);
+    std::vector<float>& ring = buffers.ring;
+    std::vector<float>& sums = buffers.sums;
+    std::vector<float>& counts = buffers.counts;
+    std::vector<float>& row_albedo = buffers.row_albedo;
+    bool* const zero = buffers.zero;
     auto values = [&](int yy, int c) { return &ring[(static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
     auto solved = [&](int yy, int c) { return &ring[(9 + static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
     auto fill = [&](int yy) {
