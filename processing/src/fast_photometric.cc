@@ -1122,7 +1122,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     float* const own_cross = buffers.own_cross.data();
     float* const own_both = buffers.own_both.data();
     uint8_t* const saturated = buffers.saturated.data();
-    // The per-pixel steps' batch, the lobes of its pixels and the diffuse data solved again (pair-major, kLanes a pair).
+    // The per-pixel steps' batch, the lobes of its pixels and the diffuse data solved again (pair-major, kLanes a
+    // pair).
     Batch& batch = buffers.batch;
     float* const lobe_lanes = buffers.lobe_lanes.data();
     float* const d2_lanes = buffers.d2_lanes.data();
