@@ -166,10 +166,6 @@ LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
   return FromMoments(mu);
 }
 
-// The hot loops over a row, compiled for AVX-512 and AVX2 as well as the baseline x86-64 (the best the CPU has is
-// picked when the program starts).
-#define STAGE_ROW_LOOP __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-
 // A raw row less the black level, divided by the flat field (null: none).
 STAGE_ROW_LOOP void CorrectRow(const uint16_t* __restrict raw, const float* __restrict flat, float black, int w,
                                float* __restrict out) {
@@ -829,23 +825,6 @@ STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0
   LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
 }
 
-// One thread's buffers for the RGB albedo pass (SolvePhotometricFast): a ring of three rows of each colour's solved
-// values and their counts, with a column of 0 either side, and whether each slot's rows are all 0; a row's sums and
-// albedo.
-struct AlbedoBuffers {
-  std::vector<float> ring, sums, counts, row_albedo;
-  bool zero[3] = {true, true, true};
-  void Resize(int w) {
-    const size_t padded = static_cast<size_t>(w) + 2;
-    if (ring.size() == 2 * 9 * padded) return;
-    ring.assign(2 * 9 * padded, 0.f);
-    std::fill_n(zero, 3, true);
-    sums.resize(3 * static_cast<size_t>(w));
-    counts.resize(3 * static_cast<size_t>(w));
-    row_albedo.resize(3 * static_cast<size_t>(w));
-  }
-};
-
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
 // per-pair rows, and the per-pixel scratch.
 struct TileBuffers {
@@ -1342,108 +1321,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     _mm_sfence();  // the streamed zeros, before other threads read the maps
   });
 
-  // RGB albedo: each pixel's own colour as solved, the others the mean of its solved neighbours of that colour. Per
-  // row, three rows of each colour's solved values and their counts (0 elsewhere, a column of 0 either side), summed
-  // over the 3 x 3 in the order of the rows and columns; adding a 0 leaves a sum's bits as they were.
-  std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
-  for (int x = 0; x < w; ++x) {
-    for (int parity = 0; parity < 2; ++parity) {
-      colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(cycle.mosaic.Color(x, parity));
-    }
-  }
-  internal::ParallelRows(h, options.threads, [&](int y0, int y1) {
-    const size_t padded = static_cast<size_t>(w) + 2;
-    // Per thread, kept from band to band: per ring slot (3) and colour (3) the values, then the counts; the sums.
-    static thread_local AlbedoBuffers buffers;
-    buffers.Resize(w);
-    std::vector<float>& ring = buffers.ring;
-    std::vector<float>& sums = buffers.sums;
-    std::vector<float>& counts = buffers.counts;
-    std::vector<float>& row_albedo = buffers.row_albedo;
-    bool* const zero = buffers.zero;
-    auto values = [&](int yy, int c) { return &ring[(static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
-    auto solved = [&](int yy, int c) { return &ring[(9 + static_cast<size_t>((yy + 3) % 3) * 3 + c) * padded]; };
-    auto fill = [&](int yy) {
-      const uint8_t* flags = yy < 0 || yy >= h ? nullptr : &m.flags[static_cast<size_t>(yy) * w];
-      bool& was_zero = zero[(yy + 3) % 3];
-      if (flags == nullptr || std::all_of(flags, flags + w, [](uint8_t f) { return (f & kLowSignal) != 0; })) {
-        if (!was_zero) {
-          for (int c = 0; c < 3; ++c) {
-            std::fill_n(values(yy, c), padded, 0.f);
-            std::fill_n(solved(yy, c), padded, 0.f);
-          }
-        }
-        was_zero = true;
-        return;
-      }
-      was_zero = false;
-      const float* own = &own_albedo[static_cast<size_t>(yy) * w];
-      const uint8_t* color = &colors[static_cast<size_t>(yy & 1) * w];
-      for (int c = 0; c < 3; ++c) {
-        float* v = values(yy, c) + 1;
-        float* n = solved(yy, c) + 1;
-        for (int x = 0; x < w; ++x) {
-          const bool mine = (flags[x] & kLowSignal) == 0 && color[x] == c;
-          v[x] = mine ? own[x] : 0.f;
-          n[x] = mine ? 1.f : 0.f;
-        }
-      }
-    };
-    fill(y0 - 1);
-    fill(y0);
-    for (int y = y0; y < y1; ++y) {
-      fill(y + 1);
-      const size_t r0 = static_cast<size_t>(y) * w;
-      const uint8_t* flags = &m.flags[r0];
-      auto is_solved = [](uint8_t f) { return (f & kLowSignal) == 0; };
-      const uint8_t* first = std::find_if(flags, flags + w, is_solved);
-      if (first == flags + w) {
-        internal::StreamZeros(m.albedo.at(0, y), 3 * static_cast<size_t>(w));  // nothing solved in the row
-        continue;
-      }
-      // The sums are read only between the row's first and last solved pixels.
-      const int lo = static_cast<int>(first - flags);
-      const int hi = w - static_cast<int>(std::find_if(std::make_reverse_iterator(flags + w),
-                                                        std::make_reverse_iterator(first), is_solved) -
-                                           std::make_reverse_iterator(flags + w));
-      for (int c = 0; c < 3; ++c) {
-        for (int k = 0; k < 2; ++k) {
-          const float* up = k == 0 ? values(y - 1, c) : solved(y - 1, c);
-          const float* mid = k == 0 ? values(y, c) : solved(y, c);
-          const float* down = k == 0 ? values(y + 1, c) : solved(y + 1, c);
-          float* to = (k == 0 ? sums.data() : counts.data()) + static_cast<size_t>(c) * w;
-          for (int x = lo; x < hi; ++x) {
-            float sum = 0.f;
-            sum += up[x];
-            sum += up[x + 1];
-            sum += up[x + 2];
-            sum += mid[x];
-            sum += mid[x + 1];
-            sum += mid[x + 2];
-            sum += down[x];
-            sum += down[x + 1];
-            sum += down[x + 2];
-            to[x] = sum;
-          }
-        }
-      }
-      for (int x = 0; x < w; ++x) {
-        float* a = &row_albedo[3 * static_cast<size_t>(x)];
-        if (flags[x] & kLowSignal) {
-          a[0] = a[1] = a[2] = 0;
-          continue;
-        }
-        const int mine = colors[static_cast<size_t>(y & 1) * w + x];
-        for (int c = 0; c < 3; ++c) {
-          // A colour with no solved neighbour (the subject's edge) is not known: 0.
-          const float n = counts[static_cast<size_t>(c) * w + x];
-          a[c] = mono || c == mine ? own_albedo[r0 + x] : n > 0 ? sums[static_cast<size_t>(c) * w + x] / n : 0.f;
-        }
-      }
-      internal::StreamCopy(m.albedo.at(0, y), row_albedo.data(), row_albedo.size());
-    }
-    _mm_sfence();
-  });
+  // RGB albedo: each pixel's own colour as solved, the others from its neighbours' hue.
+  internal::DemosaicAlbedo(cycle.mosaic, own_albedo, options.threads, &m);
   internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return absl::OkStatus();
 }

@@ -711,6 +711,8 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   // Per-pixel noise of the specular fit, for the regularization.
   float* var_n = internal::Work(&m, internal::kVarNormal);
   float* var_log_alpha = internal::Work(&m, internal::kVarLogAlpha);
+  // With a Bayer mosaic: each pixel's albedo in the colour it measures, for DemosaicAlbedo.
+  float* own_albedo = camera.mosaic.has_value() ? internal::Work(&m, internal::kOwnAlbedo) : nullptr;
 
   const double k_leak = camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak);
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
@@ -895,7 +897,11 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
         const Eigen::Vector3f nc = to_camera * n;
         std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
         std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
-        std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
+        if (own_albedo != nullptr) {
+          own_albedo[i] = diffuse.rho[camera.mosaic->Color(x, y)];
+        } else {
+          std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
+        }
         m.fit_residual.at(x, y)[0] = diffuse.chi2;
         m.confidence.at(x, y)[0] =
             internal::Confidence(full_on, static_cast<float>(g), static_cast<float>(read_dn2), diffuse.chi2, flags);
@@ -904,6 +910,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
     }
   });
 
+  if (own_albedo != nullptr) internal::DemosaicAlbedo(*camera.mosaic, own_albedo, options.threads, &m);
   internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return m;
 }

@@ -15,6 +15,10 @@
 #include "stage/processing/light_model.h"
 #include "stage/processing/photometric.h"
 
+// A hot loop over a row, compiled for AVX-512 and AVX2 as well as the baseline x86-64 (the best the CPU has is picked
+// when the program starts).
+#define STAGE_ROW_LOOP __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+
 namespace stage::processing::internal {
 
 constexpr float kPi = 3.14159265358979323846f;
@@ -76,8 +80,8 @@ void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen
                       float alpha, float* m);
 
 // The working memory the solvers share (PhotometricMaps::work), per pixel: the specular fit's noise of the normal's
-// direction (rad^2, both axes) and of log roughness (the regularization's weights), and the fast solver's albedo in
-// each pixel's own colour. Sized and returned by Work().
+// direction (rad^2, both axes) and of log roughness (the regularization's weights), and each pixel's albedo in the
+// colour it measures (DemosaicAlbedo's input). Sized and returned by Work().
 enum WorkSlot { kVarNormal = 0, kVarLogAlpha = 1, kOwnAlbedo = 2, kSlots = 3 };
 float* Work(PhotometricMaps* m, WorkSlot slot);
 
@@ -150,6 +154,15 @@ inline void StreamCopy(float* dst, const float* src, size_t n) {
 // Sizes every map of `m` for width x height (keeping their memory when the size is the same; contents are not
 // cleared: the solver writes every pixel).
 void PrepareMaps(int width, int height, PhotometricMaps* m);
+
+// Writes the RGB albedo map (m->albedo) from each solved pixel's albedo in the colour it measures (own, one float a
+// pixel; m->flags says which are solved): that colour as it is, and each of the other two as the pixel's albedo times
+// the local hue, exp of the mean over a 5 x 5 window of each site's log(colour / measured colour), its missing colours
+// the geometric mean of its neighbours of that colour. Of the window centred on the pixel and the four 2 pixels off
+// it (left, right, above, below), the one whose hue varies least, so that a window straddling a change of hue (lips,
+// brows) is passed over. Where no window has 3 usable sites: the mean of the solved neighbours of each colour (0 for
+// none). 0 where nothing is solved. A mono mosaic: the pixel's albedo in all three.
+void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, PhotometricMaps* m);
 
 // Regularizes the specular maps in place: the departure of the raw specular normal from the diffuse normal, and log
 // roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge (diffuse

@@ -229,6 +229,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         if (mesh != nullptr) {
           geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
         }
+        c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto maps =
             SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
         if (maps.ok()) c.maps = std::move(*maps);

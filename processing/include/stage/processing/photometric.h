@@ -19,6 +19,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,19 @@ struct Image {
   const float* at(int x, int y) const { return &pixels[(static_cast<size_t>(y) * width + x) * channels]; }
 };
 
+// The colour filter of a sensor: mono, or a Bayer mosaic with its red site at (red_x, red_y) in the 2 x 2 tile
+// (GenICam BayerRG: 0, 0; GR: 1, 0; GB: 0, 1; BG: 1, 1).
+struct Mosaic {
+  bool mono = false;
+  int red_x = 0, red_y = 0;
+  // Which colour (0 R, 1 G, 2 B) pixel (x, y) sees; for mono, 1.
+  int Color(int x, int y) const {
+    if (mono) return 1;
+    const bool red_row = ((y ^ red_y) & 1) == 0, red_col = ((x ^ red_x) & 1) == 0;
+    return red_row == red_col ? (red_row ? 0 : 2) : 1;
+  }
+};
+
 // What the solver needs to know of the camera, at the images' size.
 struct PhotometricCamera {
   // OpenCV convention: camera = world_to_camera * (world - position_mm); x right, y down, z forward.
@@ -57,6 +71,11 @@ struct PhotometricCamera {
   double saturation_dn = 1e30;
   // The fraction of specular light the cross analyzer lets through.
   double cross_leak = 0;
+  // The colour filter SolvePhotometric's images were demosaiced from (DemosaicCycle). With a Bayer mosaic each
+  // pixel's albedo is solved in the colour it measures, and the two it does not measure come from its neighbours' hue,
+  // as the fast solver has them from the raw mosaic (docs/processing.md). None: every pixel's three channels are
+  // measured (RGB images), each solved.
+  std::optional<Mosaic> mosaic;
 };
 
 // What is known of the surface every pixel sees (from a mesh: multi-view stereo, or the simulator's ground truth):

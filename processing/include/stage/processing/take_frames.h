@@ -13,19 +13,6 @@
 
 namespace stage::processing {
 
-// The colour filter of a sensor: mono, or a Bayer mosaic with its red site at (red_x, red_y) in the 2 x 2 tile
-// (GenICam BayerRG: 0, 0; GR: 1, 0; GB: 0, 1; BG: 1, 1).
-struct Mosaic {
-  bool mono = false;
-  int red_x = 0, red_y = 0;
-  // Which colour (0 R, 1 G, 2 B) pixel (x, y) sees; for mono, 1.
-  int Color(int x, int y) const {
-    if (mono) return 1;
-    const bool red_row = ((y ^ red_y) & 1) == 0, red_col = ((x ^ red_x) & 1) == 0;
-    return red_row == red_col ? (red_row ? 0 : 2) : 1;
-  }
-};
-
 // One cycle of a camera, as recorded: a raw frame per pattern.
 struct CycleFrames {
   int width = 0, height = 0;

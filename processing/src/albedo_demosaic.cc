@@ -1,0 +1,303 @@
+// The RGB albedo from a Bayer mosaic's one colour a pixel (internal::DemosaicAlbedo): see photometric_internal.h and
+// docs/processing.md ("Albedo from a Bayer mosaic").
+#include <algorithm>
+#include <cmath>
+#include <iterator>
+#include <utility>
+#include <limits>
+
+#include "photometric_internal.h"
+
+namespace stage::processing::internal {
+namespace {
+
+constexpr int kChunk = 64;             // rows a thread takes at a time (each with kHalo rows above and below)
+constexpr int kWin = 2;                // the hue's window: 5 x 5 pixels
+constexpr int kShift = 2;              // the off-centre windows' offset
+constexpr int kPad = kWin + kShift;    // rows and columns of the hue planes beyond the output's
+constexpr int kHalo = kPad + 1;        // rows of log albedo beyond the output's (a site's 8 neighbours)
+constexpr float kMinSites = 3;         // the fewest hue samples a window is taken with
+// The share of a missing colour taken from the pixel's own albedo and the hue, the rest from its neighbours of that
+// colour: 0.7 measured best on the simulated head (1.06 % against 1.05-1.14 % for 0.5-0.8) and keeps the uniform
+// sphere at 0.67 % (0.59 % with the neighbours alone, 0.75 % with the hue alone); docs/processing.md.
+constexpr float kHueWeight = 0.7f;
+
+// One thread's planes for a chunk of rows, kept from chunk to chunk. Columns are offset by kPad (zero there).
+struct DemosaicBuffers {
+  size_t stride = 0;
+  // Own albedo, its log, and 1 where it is usable (0, 0 and 0 elsewhere); kChunk + 2 kHalo rows each.
+  std::vector<float> values, logs, usable;
+  std::vector<float> hue;           // per site: 1, log(R/G), log(B/G), their squares summed; kChunk + 2 kPad rows each
+  std::vector<float> column;        // the hue planes summed over kWin rows either side: kChunk + 2 kShift rows each
+  std::vector<float> box;           // and over kWin columns either side
+  std::vector<float> pick;          // per column of a row: the chosen window's mean hue (2) and whether there was one
+  std::vector<float> row;           // a row of the output (3 floats a pixel)
+  void Resize(int w) {
+    stride = static_cast<size_t>(w) + 2 * kPad;
+    values.assign((kChunk + 2 * kHalo) * stride, 0.f);
+    logs.assign(values.size(), 0.f);
+    usable.assign(values.size(), 0.f);
+    hue.assign(4 * (kChunk + 2 * kPad) * stride, 0.f);
+    column.assign(4 * (kChunk + 2 * kShift) * stride, 0.f);
+    box.assign(column.size(), 0.f);
+    pick.resize(3 * static_cast<size_t>(w));
+    row.resize(3 * static_cast<size_t>(w));
+  }
+};
+
+bool Usable(float own) { return own > 0 && own < std::numeric_limits<float>::infinity(); }
+
+// Per column x in [x0, x1) of a row, of the five windows centred at offsets[k] + x in the window sums (`box`: the
+// count, the sums of log(R/G) and log(B/G) and of their squares, `plane` floats apart), the one with kMinSites samples
+// whose hue varies least: its mean hue (r, b) and whether there was one (found: 1 or 0).
+STAGE_ROW_LOOP void PickWindows(const float* __restrict box, size_t plane, const size_t (&offsets)[5], int x0, int x1,
+                                float* __restrict r, float* __restrict b, float* __restrict found) {
+  const float* n[5];
+  for (int k = 0; k < 5; ++k) n[k] = box + offsets[k];
+  for (int x = x0; x < x1; ++x) {
+    float least = std::numeric_limits<float>::infinity(), best_r = 0, best_b = 0, any = 0;
+    for (int k = 0; k < 5; ++k) {
+      const float count = n[k][x];
+      const float mr = n[k][plane + x] / count, mb = n[k][2 * plane + x] / count;
+      const float var = n[k][3 * plane + x] / count - (mr * mr + mb * mb);
+      const bool take = count >= kMinSites && var < least;
+      least = take ? var : least;
+      best_r = take ? mr : best_r;
+      best_b = take ? mb : best_b;
+      any = count >= kMinSites ? 1.f : any;
+    }
+    r[x] = best_r;
+    b[x] = best_b;
+    found[x] = any;
+  }
+}
+
+}  // namespace
+
+void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, PhotometricMaps* m) {
+  const int w = m->width, h = m->height;
+  const uint8_t* flags = m->flags.data();
+  auto solved_at = [&](size_t i) { return (flags[i] & kLowSignal) == 0; };
+  if (mosaic.mono) {
+    ParallelRows(h, threads, [&](int y0, int y1) {
+      for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
+        float* a = m->albedo.at(static_cast<int>(i % w), static_cast<int>(i / w));
+        a[0] = a[1] = a[2] = solved_at(i) ? own[i] : 0.f;
+      }
+    });
+    return;
+  }
+  std::vector<uint8_t> colors(2 * static_cast<size_t>(w));  // each column's colour on even rows and on odd ones
+  for (int x = 0; x < w; ++x) {
+    for (int parity = 0; parity < 2; ++parity) {
+      colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(mosaic.Color(x, parity));
+    }
+  }
+  // A row's solved pixels lie in [lo, hi) (lo == hi: none).
+  auto row_span = [&](int y) {
+    if (y < 0 || y >= h) return std::pair<int, int>(0, 0);
+    const uint8_t* f = &flags[static_cast<size_t>(y) * w];
+    auto is_solved = [](uint8_t v) { return (v & kLowSignal) == 0; };
+    const uint8_t* first = std::find_if(f, f + w, is_solved);
+    if (first == f + w) return std::pair<int, int>(0, 0);
+    const uint8_t* last = std::find_if(std::make_reverse_iterator(f + w), std::make_reverse_iterator(first), is_solved)
+                              .base();
+    return std::pair<int, int>(static_cast<int>(first - f), static_cast<int>(last - f));
+  };
+  const int chunks = (h + kChunk - 1) / kChunk;
+  ParallelRows(chunks, threads, [&](int c0, int c1) {
+    static thread_local DemosaicBuffers buf;
+    if (buf.stride != static_cast<size_t>(w) + 2 * kPad) buf.Resize(w);
+    const size_t stride = buf.stride;
+    for (int chunk = c0; chunk < c1; ++chunk) {
+      const int y0 = chunk * kChunk, y1 = std::min(h, y0 + kChunk);
+      // Which rows have a solved pixel, from y0 - kHalo (index 0) to y1 + kHalo, and the columns [xlo, xhi) that hold
+      // every solved pixel of those rows. Each step below works only where the next reads (the planes hold the last
+      // chunk's values elsewhere; their padding columns stay 0): the albedo and its log over [xlo - kPad - 1,
+      // xhi + kPad + 1), the hue and its sums down the columns over [xlo - kPad, xhi + kPad), the window sums over
+      // [xlo - kShift, xhi + kShift), the output over [xlo, xhi); all within the image's columns.
+      bool any[kChunk + 2 * kHalo];
+      int xlo = w, xhi = 0;
+      for (int y = y0 - kHalo; y < y1 + kHalo; ++y) {
+        const auto [lo, hi] = row_span(y);
+        any[y - y0 + kHalo] = lo < hi;
+        if (lo < hi) {
+          xlo = std::min(xlo, lo);
+          xhi = std::max(xhi, hi);
+        }
+      }
+      if (!std::any_of(any + kHalo, any + kHalo + (y1 - y0), [](bool b) { return b; })) {
+        for (int y = y0; y < y1; ++y) StreamZeros(m->albedo.at(0, y), 3 * static_cast<size_t>(w));
+        continue;
+      }
+      const int l0 = std::max(0, xlo - kPad - 1), l1 = std::min(w, xhi + kPad + 1);
+      const int q0 = std::max(0, xlo - kPad), q1 = std::min(w, xhi + kPad);
+      // The albedo and its log where it is usable (solved, positive and finite).
+      for (int y = y0 - kHalo; y < y1 + kHalo; ++y) {
+        const size_t li = static_cast<size_t>(y - y0 + kHalo) * stride + kPad;
+        float* va = &buf.values[li];
+        float* lg = &buf.logs[li];
+        float* us = &buf.usable[li];
+        if (!any[y - y0 + kHalo]) {
+          std::fill(va + l0, va + l1, 0.f);
+          std::fill(lg + l0, lg + l1, 0.f);
+          std::fill(us + l0, us + l1, 0.f);
+          continue;
+        }
+        const size_t r0 = static_cast<size_t>(y) * w;
+        for (int x = l0; x < l1; ++x) {
+          const bool ok = solved_at(r0 + x) && Usable(own[r0 + x]);
+          va[x] = ok ? own[r0 + x] : 0.f;
+          lg[x] = ok ? std::log(own[r0 + x]) : 0.f;
+          us[x] = ok ? 1.f : 0.f;
+        }
+      }
+      // Per usable site, its hue: log(R/G) and log(B/G), its own colour's log albedo and the others' means over its
+      // usable neighbours of that colour (the 2 beside it, the 2 above and below, the 4 diagonal), none missing.
+      const size_t plane_q = static_cast<size_t>(kChunk + 2 * kPad) * stride;
+      for (int y = y0 - kPad; y < y1 + kPad; ++y) {
+        float* q[4];
+        for (int k = 0; k < 4; ++k) q[k] = &buf.hue[k * plane_q + static_cast<size_t>(y - y0 + kPad) * stride + kPad];
+        const size_t li = static_cast<size_t>(y - y0 + kHalo) * stride + kPad;
+        const float* lm = &buf.logs[li];
+        const float* lu = lm - stride;
+        const float* ld = lm + stride;
+        const float* um = &buf.usable[li];
+        const float* uu = um - stride;
+        const float* ud = um + stride;
+        if (!any[y - y0 + kHalo]) {
+          for (int k = 0; k < 4; ++k) std::fill(q[k] + q0, q[k] + q1, 0.f);
+          continue;
+        }
+        const uint8_t* color = &colors[static_cast<size_t>(y & 1) * w];
+        for (int x = q0; x < q1; ++x) {
+          float rgb[3] = {0, 0, 0};
+          bool ok = um[x] != 0;
+          if (ok) {
+            const float sh = lm[x - 1] + lm[x + 1], nh = um[x - 1] + um[x + 1];
+            const float sv = lu[x] + ld[x], nv = uu[x] + ud[x];
+            const float sd = lu[x - 1] + lu[x + 1] + ld[x - 1] + ld[x + 1];
+            const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
+            const int c = color[x];
+            rgb[c] = lm[x];
+            if (c == 1) {  // green: red and blue beside it, and above and below (which is which, by the row)
+              ok = nh > 0 && nv > 0;
+              if (ok) {
+                const int ch = color[x + 1 < w ? x + 1 : x - 1];  // a neighbour beside it is usable: w > 1
+                rgb[ch] = sh / nh;
+                rgb[2 - ch] = sv / nv;
+              }
+            } else {  // red or blue: green at the 4 sides, the other at the 4 corners
+              ok = nh + nv > 0 && nd > 0;
+              if (ok) {
+                rgb[1] = (sh + sv) / (nh + nv);
+                rgb[2 - c] = sd / nd;
+              }
+            }
+          }
+          const float r = ok ? rgb[0] - rgb[1] : 0.f, b = ok ? rgb[2] - rgb[1] : 0.f;
+          q[0][x] = ok ? 1.f : 0.f;
+          q[1][x] = r;
+          q[2][x] = b;
+          q[3][x] = r * r + b * b;
+        }
+      }
+      // The hue planes summed over every 5 x 5 window: down the columns, then along the rows.
+      const size_t plane_v = static_cast<size_t>(kChunk + 2 * kShift) * stride;
+      for (int k = 0; k < 4; ++k) {
+        for (int y = y0 - kShift; y < y1 + kShift; ++y) {
+          const float* in = &buf.hue[k * plane_q + static_cast<size_t>(y - y0 + kPad) * stride];
+          float* col = &buf.column[k * plane_v + static_cast<size_t>(y - y0 + kShift) * stride];
+          float* out = &buf.box[k * plane_v + static_cast<size_t>(y - y0 + kShift) * stride];
+          for (size_t x = kPad + q0; x < kPad + static_cast<size_t>(q1); ++x) {
+            float s = in[x - 2 * stride];
+            s += in[x - stride];
+            s += in[x];
+            s += in[x + stride];
+            s += in[x + 2 * stride];
+            col[x] = s;
+          }
+          const size_t b0 = kPad + std::max(-kShift, xlo - kShift), b1 = kPad + std::min(w + kShift, xhi + kShift);
+          for (size_t x = b0; x < b1; ++x) {
+            float s = col[x - 2];
+            s += col[x - 1];
+            s += col[x];
+            s += col[x + 1];
+            s += col[x + 2];
+            out[x] = s;
+          }
+        }
+      }
+      // Per solved pixel, of the five windows (centred, and kShift to the left, right, above and below) the one whose
+      // hue varies least. Each colour the pixel does not measure: kHueWeight of its own albedo times that window's
+      // mean hue (the pixel's texture, with its noise), the rest the mean of its usable neighbours of that colour (their
+      // noise averaged, the texture blurred); the neighbours alone where no window has kMinSites hue samples, 0 for a
+      // colour with none.
+      for (int y = y0; y < y1; ++y) {
+        if (!any[y - y0 + kHalo]) {
+          StreamZeros(m->albedo.at(0, y), 3 * static_cast<size_t>(w));
+          continue;
+        }
+        const size_t r0 = static_cast<size_t>(y) * w;
+        const uint8_t* color = &colors[static_cast<size_t>(y & 1) * w];
+        const size_t centre = static_cast<size_t>(y - y0 + kShift) * stride + kPad;
+        const size_t offsets[5] = {centre, centre - kShift, centre + kShift, centre - kShift * stride,
+                                   centre + kShift * stride};
+        const size_t li = static_cast<size_t>(y - y0 + kHalo) * stride + kPad;
+        const float* vm = &buf.values[li];
+        const float* vu = vm - stride;
+        const float* vd = vm + stride;
+        const float* um = &buf.usable[li];
+        const float* uu = um - stride;
+        const float* ud = um + stride;
+        // The windows, across the row (no branches, so that it runs in vector lanes): the least varying hue's means.
+        float* best_r = buf.pick.data();
+        float* best_b = best_r + w;
+        float* found = best_b + w;
+        PickWindows(buf.box.data(), plane_v, offsets, xlo, xhi, best_r, best_b, found);
+        std::fill(buf.row.begin(), buf.row.begin() + 3 * static_cast<size_t>(xlo), 0.f);
+        std::fill(buf.row.begin() + 3 * static_cast<size_t>(xhi), buf.row.end(), 0.f);
+        for (int x = xlo; x < xhi; ++x) {
+          float* a = &buf.row[3 * static_cast<size_t>(x)];
+          const size_t i = r0 + x;
+          if (!solved_at(i)) {
+            a[0] = a[1] = a[2] = 0;
+            continue;
+          }
+          const int c = color[x];
+          const float mine = own[i];
+          // The neighbours' means (-1: none).
+          float near[3] = {-1, -1, -1};
+          const float sh = vm[x - 1] + vm[x + 1], nh = um[x - 1] + um[x + 1];
+          const float sv = vu[x] + vd[x], nv = uu[x] + ud[x];
+          if (c == 1) {
+            const int ch = color[x + 1 < w ? x + 1 : x - 1];  // the colour beside it (w == 1: nh is 0, unused)
+            if (nh > 0) near[ch] = sh / nh;
+            if (nv > 0) near[2 - ch] = sv / nv;
+          } else {
+            const float sd = vu[x - 1] + vu[x + 1] + vd[x - 1] + vd[x + 1];
+            const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
+            if (nh + nv > 0) near[1] = (sh + sv) / (nh + nv);
+            if (nd > 0) near[2 - c] = sd / nd;
+          }
+          const bool hued = found[x] != 0 && Usable(mine);
+          const float hue[3] = {best_r[x], 0.f, best_b[x]};  // log of each colour over green
+          for (int k = 0; k < 3; ++k) {
+            if (k == c) {
+              a[k] = mine;
+            } else if (!hued) {
+              a[k] = std::max(0.f, near[k]);
+            } else {
+              const float textured = mine * std::exp(hue[k] - hue[c]);
+              a[k] = near[k] < 0 ? textured : kHueWeight * textured + (1 - kHueWeight) * near[k];
+            }
+          }
+        }
+        StreamCopy(m->albedo.at(0, y), buf.row.data(), buf.row.size());
+      }
+    }
+    _mm_sfence();
+  });
+}
+
+}  // namespace stage::processing::internal
