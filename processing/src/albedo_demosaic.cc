@@ -47,6 +47,29 @@ struct DemosaicBuffers {
 
 bool Usable(float own) { return own > 0 && own < std::numeric_limits<float>::infinity(); }
 
+// The means of a plane (v; u: 1 where usable, else 0) over site x's usable neighbours of each colour it does not
+// measure (c: its colour; beside: when it is green, the colour beside it): the 2 beside it and the 2 above and below
+// for green, the 4 at its sides and the 4 at its corners for red and blue. NaN for a colour with none, and for c.
+inline void NeighbourMeans(const float* v, const float* u, size_t stride, int x, int c, int beside, float (&mean)[3]) {
+  const float* vu = v - stride;
+  const float* vd = v + stride;
+  const float* uu = u - stride;
+  const float* ud = u + stride;
+  const float sh = v[x - 1] + v[x + 1], nh = u[x - 1] + u[x + 1];
+  const float sv = vu[x] + vd[x], nv = uu[x] + ud[x];
+  const float none = std::numeric_limits<float>::quiet_NaN();
+  mean[0] = mean[1] = mean[2] = none;
+  if (c == 1) {
+    mean[beside] = nh > 0 ? sh / nh : none;
+    mean[2 - beside] = nv > 0 ? sv / nv : none;
+  } else {
+    const float sd = vu[x - 1] + vu[x + 1] + vd[x - 1] + vd[x + 1];
+    const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
+    mean[1] = nh + nv > 0 ? (sh + sv) / (nh + nv) : none;
+    mean[2 - c] = nd > 0 ? sd / nd : none;
+  }
+}
+
 // Per column x in [x0, x1) of a row, of the five windows centred at offsets[k] + x in the window sums (`box`: the
 // count, the sums of log(R/G) and log(B/G) and of their squares, `plane` floats apart), the one with kMinSites samples
 // whose hue varies least: its mean hue (r, b) and whether there was one (found: 1 or 0).
@@ -160,11 +183,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
         for (int k = 0; k < 4; ++k) q[k] = &buf.hue[k * plane_q + static_cast<size_t>(y - y0 + kPad) * stride + kPad];
         const size_t li = static_cast<size_t>(y - y0 + kHalo) * stride + kPad;
         const float* lm = &buf.logs[li];
-        const float* lu = lm - stride;
-        const float* ld = lm + stride;
         const float* um = &buf.usable[li];
-        const float* uu = um - stride;
-        const float* ud = um + stride;
         if (!any[y - y0 + kHalo]) {
           for (int k = 0; k < 4; ++k) std::fill(q[k] + q0, q[k] + q1, 0.f);
           continue;
@@ -174,26 +193,10 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           float rgb[3] = {0, 0, 0};
           bool ok = um[x] != 0;
           if (ok) {
-            const float sh = lm[x - 1] + lm[x + 1], nh = um[x - 1] + um[x + 1];
-            const float sv = lu[x] + ld[x], nv = uu[x] + ud[x];
-            const float sd = lu[x - 1] + lu[x + 1] + ld[x - 1] + ld[x + 1];
-            const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
             const int c = color[x];
+            NeighbourMeans(lm, um, stride, x, c, w > 1 ? color[x + 1 < w ? x + 1 : x - 1] : 0, rgb);
             rgb[c] = lm[x];
-            if (c == 1) {  // green: red and blue beside it, and above and below (which is which, by the row)
-              ok = nh > 0 && nv > 0;
-              if (ok) {
-                const int ch = color[x + 1 < w ? x + 1 : x - 1];  // a neighbour beside it is usable: w > 1
-                rgb[ch] = sh / nh;
-                rgb[2 - ch] = sv / nv;
-              }
-            } else {  // red or blue: green at the 4 sides, the other at the 4 corners
-              ok = nh + nv > 0 && nd > 0;
-              if (ok) {
-                rgb[1] = (sh + sv) / (nh + nv);
-                rgb[2 - c] = sd / nd;
-              }
-            }
+            ok = rgb[0] == rgb[0] && rgb[1] == rgb[1] && rgb[2] == rgb[2];  // none missing
           }
           const float r = ok ? rgb[0] - rgb[1] : 0.f, b = ok ? rgb[2] - rgb[1] : 0.f;
           q[0][x] = ok ? 1.f : 0.f;
@@ -245,11 +248,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
                                    centre + kShift * stride};
         const size_t li = static_cast<size_t>(y - y0 + kHalo) * stride + kPad;
         const float* vm = &buf.values[li];
-        const float* vu = vm - stride;
-        const float* vd = vm + stride;
         const float* um = &buf.usable[li];
-        const float* uu = um - stride;
-        const float* ud = um + stride;
         // The windows, across the row (no branches, so that it runs in vector lanes): the least varying hue's means.
         float* best_r = buf.pick.data();
         float* best_b = best_r + w;
@@ -266,30 +265,18 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           }
           const int c = color[x];
           const float mine = own[i];
-          // The neighbours' means (-1: none).
-          float near[3] = {-1, -1, -1};
-          const float sh = vm[x - 1] + vm[x + 1], nh = um[x - 1] + um[x + 1];
-          const float sv = vu[x] + vd[x], nv = uu[x] + ud[x];
-          if (c == 1) {
-            const int ch = color[x + 1 < w ? x + 1 : x - 1];  // the colour beside it (w == 1: nh is 0, unused)
-            if (nh > 0) near[ch] = sh / nh;
-            if (nv > 0) near[2 - ch] = sv / nv;
-          } else {
-            const float sd = vu[x - 1] + vu[x + 1] + vd[x - 1] + vd[x + 1];
-            const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
-            if (nh + nv > 0) near[1] = (sh + sv) / (nh + nv);
-            if (nd > 0) near[2 - c] = sd / nd;
-          }
+          float near[3];  // the neighbours' means (NaN: none)
+          NeighbourMeans(vm, um, stride, x, c, w > 1 ? color[x + 1 < w ? x + 1 : x - 1] : 0, near);
           const bool hued = found[x] != 0 && Usable(mine);
           const float hue[3] = {best_r[x], 0.f, best_b[x]};  // log of each colour over green
           for (int k = 0; k < 3; ++k) {
             if (k == c) {
               a[k] = mine;
             } else if (!hued) {
-              a[k] = std::max(0.f, near[k]);
+              a[k] = near[k] == near[k] ? near[k] : 0.f;
             } else {
               const float textured = mine * std::exp(hue[k] - hue[c]);
-              a[k] = near[k] < 0 ? textured : kHueWeight * textured + (1 - kHueWeight) * near[k];
+              a[k] = near[k] != near[k] ? textured : kHueWeight * textured + (1 - kHueWeight) * near[k];
             }
           }
         }
