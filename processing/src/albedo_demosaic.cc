@@ -3,20 +3,20 @@
 #include <algorithm>
 #include <cmath>
 #include <iterator>
-#include <utility>
 #include <limits>
+#include <utility>
 
 #include "photometric_internal.h"
 
 namespace stage::processing::internal {
 namespace {
 
-constexpr int kChunk = 64;             // rows a thread takes at a time (each with kHalo rows above and below)
-constexpr int kWin = 2;                // the hue's window: 5 x 5 pixels
-constexpr int kShift = 2;              // the off-centre windows' offset
-constexpr int kPad = kWin + kShift;    // rows and columns of the hue planes beyond the output's
-constexpr int kHalo = kPad + 1;        // rows of log albedo beyond the output's (a site's 8 neighbours)
-constexpr float kMinSites = 3;         // the fewest hue samples a window is taken with
+constexpr int kChunk = 64;           // rows a thread takes at a time (each with kHalo rows above and below)
+constexpr int kWin = 2;              // the hue's window: 5 x 5 pixels
+constexpr int kShift = 2;            // the off-centre windows' offset
+constexpr int kPad = kWin + kShift;  // rows and columns of the hue planes beyond the output's
+constexpr int kHalo = kPad + 1;      // rows of log albedo beyond the output's (a site's 8 neighbours)
+constexpr float kMinSites = 3;       // the fewest hue samples a window is taken with
 // The share of a missing colour taken from the pixel's own albedo and the hue, the rest from its neighbours of that
 // colour: 0.7 measured best on the simulated head (1.06 % against 1.05-1.14 % for 0.5-0.8) and keeps the uniform
 // sphere at 0.67 % (0.59 % with the neighbours alone, 0.75 % with the hue alone); docs/processing.md.
@@ -27,11 +27,11 @@ struct DemosaicBuffers {
   size_t stride = 0;
   // Own albedo, its log, and 1 where it is usable (0, 0 and 0 elsewhere); kChunk + 2 kHalo rows each.
   std::vector<float> values, logs, usable;
-  std::vector<float> hue;           // per site: 1, log(R/G), log(B/G), their squares summed; kChunk + 2 kPad rows each
-  std::vector<float> column;        // the hue planes summed over kWin rows either side: kChunk + 2 kShift rows each
-  std::vector<float> box;           // and over kWin columns either side
-  std::vector<float> pick;          // per column of a row: the chosen window's mean hue (2) and whether there was one
-  std::vector<float> row;           // a row of the output (3 floats a pixel)
+  std::vector<float> hue;     // per site: 1, log(R/G), log(B/G), their squares summed; kChunk + 2 kPad rows each
+  std::vector<float> column;  // the hue planes summed over kWin rows either side: kChunk + 2 kShift rows each
+  std::vector<float> box;     // and over kWin columns either side
+  std::vector<float> pick;    // per column of a row: the chosen window's mean hue (2) and whether there was one
+  std::vector<float> row;     // a row of the output (3 floats a pixel)
   void Resize(int w) {
     stride = static_cast<size_t>(w) + 2 * kPad;
     values.assign((kChunk + 2 * kHalo) * stride, 0.f);
@@ -104,7 +104,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
   if (mosaic.mono) {
     ParallelRows(h, threads, [&](int y0, int y1) {
       for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
-        float* a = m->albedo.at(static_cast<int>(i % w), static_cast<int>(i / w));
+        float* a = &m->albedo.pixels[3 * i];
         a[0] = a[1] = a[2] = solved_at(i) ? own[i] : 0.f;
       }
     });
@@ -116,6 +116,8 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
       colors[parity * static_cast<size_t>(w) + x] = static_cast<uint8_t>(mosaic.Color(x, parity));
     }
   }
+  // The colour beside a green site: the red or blue of its row.
+  auto beside_green = [&](int y) { return mosaic.Color(0, y) == 1 ? mosaic.Color(1, y) : mosaic.Color(0, y); };
   // A row's solved pixels lie in [lo, hi) (lo == hi: none).
   auto row_span = [&](int y) {
     if (y < 0 || y >= h) return std::pair<int, int>(0, 0);
@@ -123,8 +125,8 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
     auto is_solved = [](uint8_t v) { return (v & kLowSignal) == 0; };
     const uint8_t* first = std::find_if(f, f + w, is_solved);
     if (first == f + w) return std::pair<int, int>(0, 0);
-    const uint8_t* last = std::find_if(std::make_reverse_iterator(f + w), std::make_reverse_iterator(first), is_solved)
-                              .base();
+    const uint8_t* last =
+        std::find_if(std::make_reverse_iterator(f + w), std::make_reverse_iterator(first), is_solved).base();
     return std::pair<int, int>(static_cast<int>(first - f), static_cast<int>(last - f));
   };
   const int chunks = (h + kChunk - 1) / kChunk;
@@ -189,12 +191,13 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           continue;
         }
         const uint8_t* color = &colors[static_cast<size_t>(y & 1) * w];
+        const int beside = beside_green(y);
         for (int x = q0; x < q1; ++x) {
           float rgb[3] = {0, 0, 0};
           bool ok = um[x] != 0;
           if (ok) {
             const int c = color[x];
-            NeighbourMeans(lm, um, stride, x, c, w > 1 ? color[x + 1 < w ? x + 1 : x - 1] : 0, rgb);
+            NeighbourMeans(lm, um, stride, x, c, beside, rgb);
             rgb[c] = lm[x];
             ok = rgb[0] == rgb[0] && rgb[1] == rgb[1] && rgb[2] == rgb[2];  // none missing
           }
@@ -233,9 +236,9 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
       }
       // Per solved pixel, of the five windows (centred, and kShift to the left, right, above and below) the one whose
       // hue varies least. Each colour the pixel does not measure: kHueWeight of its own albedo times that window's
-      // mean hue (the pixel's texture, with its noise), the rest the mean of its usable neighbours of that colour (their
-      // noise averaged, the texture blurred); the neighbours alone where no window has kMinSites hue samples, 0 for a
-      // colour with none.
+      // mean hue (the pixel's texture, with its noise), the rest the mean of its usable neighbours of that colour
+      // (their noise averaged, the texture blurred); the neighbours alone where no window has kMinSites hue samples, 0
+      // for a colour with none.
       for (int y = y0; y < y1; ++y) {
         if (!any[y - y0 + kHalo]) {
           StreamZeros(m->albedo.at(0, y), 3 * static_cast<size_t>(w));
@@ -243,6 +246,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
         }
         const size_t r0 = static_cast<size_t>(y) * w;
         const uint8_t* color = &colors[static_cast<size_t>(y & 1) * w];
+        const int beside = beside_green(y);
         const size_t centre = static_cast<size_t>(y - y0 + kShift) * stride + kPad;
         const size_t offsets[5] = {centre, centre - kShift, centre + kShift, centre - kShift * stride,
                                    centre + kShift * stride};
@@ -266,7 +270,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           const int c = color[x];
           const float mine = own[i];
           float near[3];  // the neighbours' means (NaN: none)
-          NeighbourMeans(vm, um, stride, x, c, w > 1 ? color[x + 1 < w ? x + 1 : x - 1] : 0, near);
+          NeighbourMeans(vm, um, stride, x, c, beside, near);
           const bool hued = found[x] != 0 && Usable(mine);
           const float hue[3] = {best_r[x], 0.f, best_b[x]};  // log of each colour over green
           for (int k = 0; k < 3; ++k) {

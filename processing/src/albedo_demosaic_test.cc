@@ -39,17 +39,18 @@ Field MakeField(int w, int h, int edge) {
   return f;
 }
 
-// Mean relative error of the colours the pixels do not measure, over columns [x0, x1) (rows 2 from the edges).
-double InterpolatedError(const Field& f, int x0, int x1) {
+// Mean relative error of the colours the pixels do not measure, over columns [x0, x1) (rows 2 from the edges), as
+// estimate(x, y, c) has them.
+template <typename F>
+double InterpolatedError(const Field& f, int x0, int x1, F estimate) {
   const Mosaic mosaic;
   double sum = 0;
   int n = 0;
   for (int y = 2; y < f.h - 2; ++y) {
     for (int x = x0; x < x1; ++x) {
-      const float* a = f.maps.albedo.at(x, y);
       for (int c = 0; c < 3; ++c) {
         if (c == mosaic.Color(x, y)) continue;
-        sum += std::abs(a[c] / f.truth[static_cast<size_t>(y) * f.w + x][c] - 1);
+        sum += std::abs(estimate(x, y, c) / f.truth[static_cast<size_t>(y) * f.w + x][c] - 1);
         ++n;
       }
     }
@@ -57,31 +58,27 @@ double InterpolatedError(const Field& f, int x0, int x1) {
   return sum / std::max(1, n);
 }
 
+// The demosaiced map's.
+double InterpolatedError(const Field& f, int x0, int x1) {
+  return InterpolatedError(f, x0, x1, [&](int x, int y, int c) { return f.maps.albedo.at(x, y)[c]; });
+}
+
 // The neighbours' mean alone (bilinear demosaicing of the albedo), for comparison: every missing colour the mean of
 // the pixel's 8 neighbours of that colour.
 double BilinearError(const Field& f, int x0, int x1) {
   const Mosaic mosaic;
-  double sum = 0;
-  int n = 0;
-  for (int y = 2; y < f.h - 2; ++y) {
-    for (int x = x0; x < x1; ++x) {
-      for (int c = 0; c < 3; ++c) {
-        if (c == mosaic.Color(x, y)) continue;
-        double s = 0;
-        int k = 0;
-        for (int dy = -1; dy <= 1; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) {
-            if (mosaic.Color(x + dx, y + dy) != c) continue;
-            s += f.own[static_cast<size_t>(y + dy) * f.w + x + dx];
-            ++k;
-          }
-        }
-        sum += std::abs(s / k / f.truth[static_cast<size_t>(y) * f.w + x][c] - 1);
-        ++n;
+  return InterpolatedError(f, x0, x1, [&](int x, int y, int c) {
+    double s = 0;
+    int k = 0;
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        if (mosaic.Color(x + dx, y + dy) != c) continue;
+        s += f.own[static_cast<size_t>(y + dy) * f.w + x + dx];
+        ++k;
       }
     }
-  }
-  return sum / std::max(1, n);
+    return s / k;
+  });
 }
 
 TEST(DemosaicAlbedoTest, KeepsTheTextureAndPassesOverAChangeOfHue) {
@@ -137,6 +134,11 @@ TEST(DemosaicAlbedoTest, UnsolvedPixelsAreZeroAndThreadsDoNotChangeTheBits) {
   EXPECT_EQ(zero, unsolved);
   // Every solved pixel but the one without a usable albedo has all three colours.
   EXPECT_EQ(solved_nonzero, f.w * f.h - unsolved - 1);
+  // One column (red and green sites, no blue): a green site's red from the red sites above and below it.
+  Field column = MakeField(1, 9, 1);
+  internal::DemosaicAlbedo(Mosaic{}, column.own.data(), 1, &column.maps);
+  EXPECT_FLOAT_EQ(column.maps.albedo.at(0, 3)[0], 0.5f * (column.own[2] + column.own[4]));
+  EXPECT_EQ(column.maps.albedo.at(0, 3)[2], 0.f);
   // A mono sensor: the pixel's albedo in all three.
   internal::DemosaicAlbedo(Mosaic{.mono = true}, f.own.data(), 2, &f.maps);
   EXPECT_EQ(f.maps.albedo.at(3, 3)[0], f.own[static_cast<size_t>(3) * f.w + 3]);
