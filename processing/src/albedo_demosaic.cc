@@ -30,7 +30,7 @@ struct DemosaicBuffers {
   std::vector<float> hue;     // per site: 1, log(R/G), log(B/G), their squares summed; kChunk + 2 kPad rows each
   std::vector<float> column;  // the hue planes summed over kWin rows either side: kChunk + 2 kShift rows each
   std::vector<float> box;     // and over kWin columns either side
-  std::vector<float> pick;    // per column of a row: the chosen window's mean hue (2) and whether there was one
+  std::vector<float> pick;    // per column of a row: the chosen window's mean hue (R/G, B/G) and whether there was one
   std::vector<float> row;     // a row of the output (3 floats a pixel)
   void Resize(int w) {
     stride = static_cast<size_t>(w) + 2 * kPad;
@@ -70,9 +70,24 @@ inline void NeighbourMeans(const float* v, const float* u, size_t stride, int x,
   }
 }
 
+// A row's albedo over columns [x0, x1) where it is usable (solved, positive and finite; else 0), its log (else 0), and
+// 1 where it is usable (else 0).
+STAGE_ROW_LOOP void LogRow(const float* __restrict own, const uint8_t* __restrict flags, int x0, int x1,
+                           float* __restrict values, float* __restrict logs, float* __restrict usable) {
+  for (int x = x0; x < x1; ++x) {
+    const float v = own[x];
+    const float lg = PortableLog(v);  // computed for every column, so that the loop runs in vector lanes
+    const bool ok = ((flags[x] & kLowSignal) == 0) & (v > 0) & (v < std::numeric_limits<float>::infinity());
+    values[x] = ok ? v : 0.f;
+    logs[x] = ok ? lg : 0.f;
+    usable[x] = ok ? 1.f : 0.f;
+  }
+}
+
 // Per column x in [x0, x1) of a row, of the five windows centred at offsets[k] + x in the window sums (`box`: the
 // count, the sums of log(R/G) and log(B/G) and of their squares, `plane` floats apart), the one with kMinSites samples
-// whose hue varies least: its mean hue (r, b) and whether there was one (found: 1 or 0).
+// whose hue varies least: its mean hue as ratios (r: R/G, b: B/G, the exponentials of the mean logs) and whether there
+// was one (found: 1 or 0).
 STAGE_ROW_LOOP void PickWindows(const float* __restrict box, size_t plane, const size_t (&offsets)[5], int x0, int x1,
                                 float* __restrict r, float* __restrict b, float* __restrict found) {
   const float* n[5];
@@ -89,8 +104,8 @@ STAGE_ROW_LOOP void PickWindows(const float* __restrict box, size_t plane, const
       best_b = take ? mb : best_b;
       any = count >= kMinSites ? 1.f : any;
     }
-    r[x] = best_r;
-    b[x] = best_b;
+    r[x] = PortableExp(best_r);
+    b[x] = PortableExp(best_b);
     found[x] = any;
   }
 }
@@ -170,12 +185,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           continue;
         }
         const size_t r0 = static_cast<size_t>(y) * w;
-        for (int x = l0; x < l1; ++x) {
-          const bool ok = solved_at(r0 + x) && Usable(own[r0 + x]);
-          va[x] = ok ? own[r0 + x] : 0.f;
-          lg[x] = ok ? std::log(own[r0 + x]) : 0.f;
-          us[x] = ok ? 1.f : 0.f;
-        }
+        LogRow(own + r0, flags + r0, l0, l1, va, lg, us);
       }
       // Per usable site, its hue: log(R/G) and log(B/G), its own colour's log albedo and the others' means over its
       // usable neighbours of that colour (the 2 beside it, the 2 above and below, the 4 diagonal), none missing.
@@ -254,10 +264,10 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
         const float* vm = &buf.values[li];
         const float* um = &buf.usable[li];
         // The windows, across the row (no branches, so that it runs in vector lanes): the least varying hue's means.
-        float* best_r = buf.pick.data();
-        float* best_b = best_r + w;
-        float* found = best_b + w;
-        PickWindows(buf.box.data(), plane_v, offsets, xlo, xhi, best_r, best_b, found);
+        float* ratio_r = buf.pick.data();
+        float* ratio_b = ratio_r + w;
+        float* found = ratio_b + w;
+        PickWindows(buf.box.data(), plane_v, offsets, xlo, xhi, ratio_r, ratio_b, found);
         std::fill(buf.row.begin(), buf.row.begin() + 3 * static_cast<size_t>(xlo), 0.f);
         std::fill(buf.row.begin() + 3 * static_cast<size_t>(xhi), buf.row.end(), 0.f);
         for (int x = xlo; x < xhi; ++x) {
@@ -272,14 +282,14 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
           float near[3];  // the neighbours' means (NaN: none)
           NeighbourMeans(vm, um, stride, x, c, beside, near);
           const bool hued = found[x] != 0 && Usable(mine);
-          const float hue[3] = {best_r[x], 0.f, best_b[x]};  // log of each colour over green
+          const float hue[3] = {ratio_r[x], 1.f, ratio_b[x]};  // each colour over green
           for (int k = 0; k < 3; ++k) {
             if (k == c) {
               a[k] = mine;
             } else if (!hued) {
               a[k] = near[k] == near[k] ? near[k] : 0.f;
             } else {
-              const float textured = mine * std::exp(hue[k] - hue[c]);
+              const float textured = mine * (hue[k] / hue[c]);
               a[k] = near[k] != near[k] ? textured : kHueWeight * textured + (1 - kHueWeight) * near[k];
             }
           }

@@ -804,7 +804,7 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     b->both[l] = known[l] && chi2[l] <= 4;
     b->lobe_sum[l] = b->both[l] ? lobe_sum[l] : 0.f;
     if (!known[l]) continue;
-    const float alpha = std::exp(log_alpha[l]);
+    const float alpha = internal::PortableExp(log_alpha[l]);
     const float var_rho = smm[l] > 0 ? 1 / smm[l] : 1e30f;
     const float spec_snr = sfull[l] * std::sqrt(swfull[l]);
     // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for the
