@@ -31,7 +31,8 @@ struct DemosaicBuffers {
   std::vector<float> column;  // the hue planes summed over kWin rows either side: kChunk + 2 kShift rows each
   std::vector<float> box;     // and over kWin columns either side
   std::vector<float> pick;    // per column of a row: the chosen window's mean hue (R/G, B/G) and whether there was one
-  std::vector<float> row;     // a row of the output (3 floats a pixel)
+  std::vector<float> planar;  // a row of the output, each colour's plane (w floats)
+  std::vector<float> row;     // and interleaved (3 floats a pixel)
   void Resize(int w) {
     stride = static_cast<size_t>(w) + 2 * kPad;
     values.assign((kChunk + 2 * kHalo) * stride, 0.f);
@@ -41,32 +42,94 @@ struct DemosaicBuffers {
     column.assign(4 * (kChunk + 2 * kShift) * stride, 0.f);
     box.assign(column.size(), 0.f);
     pick.resize(3 * static_cast<size_t>(w));
+    planar.resize(3 * static_cast<size_t>(w));
     row.resize(3 * static_cast<size_t>(w));
   }
 };
 
-bool Usable(float own) { return own > 0 && own < std::numeric_limits<float>::infinity(); }
-
 // The means of a plane (v; u: 1 where usable, else 0) over site x's usable neighbours of each colour it does not
 // measure (c: its colour; beside: when it is green, the colour beside it): the 2 beside it and the 2 above and below
 // for green, the 4 at its sides and the 4 at its corners for red and blue. NaN for a colour with none, and for c.
-inline void NeighbourMeans(const float* v, const float* u, size_t stride, int x, int c, int beside, float (&mean)[3]) {
+// Every mean is computed and the site's colour selects among them, so that a row's loop runs in vector lanes (the
+// colour tested by its bits: tests of c == 0, 1 and 2 become a three-way choice GCC does not turn into lane selects).
+struct Rgb {
+  float r, g, b;
+};
+inline Rgb NeighbourMeans(const float* v, const float* u, size_t stride, int x, int c, int beside) {
   const float* vu = v - stride;
   const float* vd = v + stride;
   const float* uu = u - stride;
   const float* ud = u + stride;
   const float sh = v[x - 1] + v[x + 1], nh = u[x - 1] + u[x + 1];
   const float sv = vu[x] + vd[x], nv = uu[x] + ud[x];
+  const float sd = vu[x - 1] + vu[x + 1] + vd[x - 1] + vd[x + 1];
+  const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
   const float none = std::numeric_limits<float>::quiet_NaN();
-  mean[0] = mean[1] = mean[2] = none;
-  if (c == 1) {
-    mean[beside] = nh > 0 ? sh / nh : none;
-    mean[2 - beside] = nv > 0 ? sv / nv : none;
-  } else {
-    const float sd = vu[x - 1] + vu[x + 1] + vd[x - 1] + vd[x + 1];
-    const float nd = uu[x - 1] + uu[x + 1] + ud[x - 1] + ud[x + 1];
-    mean[1] = nh + nv > 0 ? (sh + sv) / (nh + nv) : none;
-    mean[2 - c] = nd > 0 ? sd / nd : none;
+  const float beside_mean = nh > 0 ? sh / nh : none;                    // green: the colour beside it
+  const float across_mean = nv > 0 ? sv / nv : none;                    // green: the other, above and below
+  const float edges_mean = nh + nv > 0 ? (sh + sv) / (nh + nv) : none;  // red or blue: green
+  const float corners_mean = nd > 0 ? sd / nd : none;                   // red or blue: the other of the two
+  const float green_r = beside == 0 ? beside_mean : across_mean, green_b = beside == 0 ? across_mean : beside_mean;
+  const bool green = (c & 1) != 0, blue = (c & 2) != 0;
+  return {.r = green  ? green_r
+               : blue ? corners_mean
+                      : none,
+          .g = green ? none : edges_mean,
+          .b = green  ? green_b
+               : blue ? none
+                      : corners_mean};
+}
+
+// A row's hue planes over columns [x0, x1) (lm: log albedo, um: 1 where usable; color: each column's colour; beside:
+// the colour beside a green site): at each usable site with all three colours, 1, log(R/G), log(B/G) and their
+// squares summed, its own colour's log albedo and the others' means over its usable neighbours of that colour; 0
+// elsewhere.
+STAGE_ROW_LOOP void HueRow(const float* __restrict lm, const float* __restrict um, size_t stride,
+                           const uint8_t* __restrict color, int beside, int x0, int x1, float* __restrict q0,
+                           float* __restrict q1, float* __restrict q2, float* __restrict q3) {
+  for (int x = x0; x < x1; ++x) {
+    const int c = color[x];
+    const Rgb near = NeighbourMeans(lm, um, stride, x, c, beside);
+    const float own = lm[x];
+    const bool green = (c & 1) != 0, blue = (c & 2) != 0, red = !(green | blue);
+    const float lr = red ? own : near.r, lg = green ? own : near.g, lb = blue ? own : near.b;
+    const bool ok = (um[x] != 0) & (lr == lr) & (lg == lg) & (lb == lb);  // usable, none missing
+    const float r = ok ? lr - lg : 0.f, b = ok ? lb - lg : 0.f;
+    q0[x] = ok ? 1.f : 0.f;
+    q1[x] = r;
+    q2[x] = b;
+    q3[x] = r * r + b * b;
+  }
+}
+
+// A row's RGB albedo over columns [x0, x1), planar (out_r, out_g, out_b): at each solved pixel (flags), its own colour
+// as solved (own), each other colour kHueWeight of its own albedo times the hue (ratio_r: R/G, ratio_b: B/G, where
+// found) and the rest the mean of its usable neighbours of that colour (vm, um); the neighbours alone where no hue was
+// found, 0 for a colour with none; 0 where not solved.
+STAGE_ROW_LOOP void AlbedoRow(const float* __restrict own, const uint8_t* __restrict flags, const float* __restrict vm,
+                              const float* __restrict um, size_t stride, const uint8_t* __restrict color, int beside,
+                              const float* __restrict ratio_r, const float* __restrict ratio_b,
+                              const float* __restrict found, int x0, int x1, float* __restrict out_r,
+                              float* __restrict out_g, float* __restrict out_b) {
+  for (int x = x0; x < x1; ++x) {
+    const int c = color[x];
+    const float mine = own[x];
+    const Rgb near = NeighbourMeans(vm, um, stride, x, c, beside);
+    const bool solved = (flags[x] & kLowSignal) == 0;
+    const bool hued = (found[x] != 0) & (mine > 0) & (mine < std::numeric_limits<float>::infinity());
+    const float hr = ratio_r[x], hb = ratio_b[x];  // each colour over green
+    const bool green = (c & 1) != 0, blue = (c & 2) != 0, red = !(green | blue);
+    const float hc = green ? 1.f : blue ? hb : hr;
+    auto missing = [&](float hk, float nk) {
+      const float textured = mine * (hk / hc);
+      const float blended = nk != nk ? textured : kHueWeight * textured + (1 - kHueWeight) * nk;
+      const float alone = nk == nk ? nk : 0.f;
+      return hued ? blended : alone;
+    };
+    const float ar = missing(hr, near.r), ag = missing(1.f, near.g), ab = missing(hb, near.b);
+    out_r[x] = solved ? (red ? mine : ar) : 0.f;
+    out_g[x] = solved ? (green ? mine : ag) : 0.f;
+    out_b[x] = solved ? (blue ? mine : ab) : 0.f;
   }
 }
 
@@ -202,21 +265,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
         }
         const uint8_t* color = &colors[static_cast<size_t>(y & 1) * w];
         const int beside = beside_green(y);
-        for (int x = q0; x < q1; ++x) {
-          float rgb[3] = {0, 0, 0};
-          bool ok = um[x] != 0;
-          if (ok) {
-            const int c = color[x];
-            NeighbourMeans(lm, um, stride, x, c, beside, rgb);
-            rgb[c] = lm[x];
-            ok = rgb[0] == rgb[0] && rgb[1] == rgb[1] && rgb[2] == rgb[2];  // none missing
-          }
-          const float r = ok ? rgb[0] - rgb[1] : 0.f, b = ok ? rgb[2] - rgb[1] : 0.f;
-          q[0][x] = ok ? 1.f : 0.f;
-          q[1][x] = r;
-          q[2][x] = b;
-          q[3][x] = r * r + b * b;
-        }
+        HueRow(lm, um, stride, color, beside, q0, q1, q[0], q[1], q[2], q[3]);
       }
       // The hue planes summed over every 5 x 5 window: down the columns, then along the rows.
       const size_t plane_v = static_cast<size_t>(kChunk + 2 * kShift) * stride;
@@ -268,31 +317,13 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
         float* ratio_b = ratio_r + w;
         float* found = ratio_b + w;
         PickWindows(buf.box.data(), plane_v, offsets, xlo, xhi, ratio_r, ratio_b, found);
+        float* const planar = buf.planar.data();
+        AlbedoRow(own + r0, flags + r0, vm, um, stride, color, beside, ratio_r, ratio_b, found, xlo, xhi, planar,
+                  planar + w, planar + 2 * static_cast<size_t>(w));
         std::fill(buf.row.begin(), buf.row.begin() + 3 * static_cast<size_t>(xlo), 0.f);
         std::fill(buf.row.begin() + 3 * static_cast<size_t>(xhi), buf.row.end(), 0.f);
         for (int x = xlo; x < xhi; ++x) {
-          float* a = &buf.row[3 * static_cast<size_t>(x)];
-          const size_t i = r0 + x;
-          if (!solved_at(i)) {
-            a[0] = a[1] = a[2] = 0;
-            continue;
-          }
-          const int c = color[x];
-          const float mine = own[i];
-          float near[3];  // the neighbours' means (NaN: none)
-          NeighbourMeans(vm, um, stride, x, c, beside, near);
-          const bool hued = found[x] != 0 && Usable(mine);
-          const float hue[3] = {ratio_r[x], 1.f, ratio_b[x]};  // each colour over green
-          for (int k = 0; k < 3; ++k) {
-            if (k == c) {
-              a[k] = mine;
-            } else if (!hued) {
-              a[k] = near[k] == near[k] ? near[k] : 0.f;
-            } else {
-              const float textured = mine * (hue[k] / hue[c]);
-              a[k] = near[k] != near[k] ? textured : kHueWeight * textured + (1 - kHueWeight) * near[k];
-            }
-          }
+          for (int k = 0; k < 3; ++k) buf.row[3 * static_cast<size_t>(x) + k] = planar[k * static_cast<size_t>(w) + x];
         }
         StreamCopy(m->albedo.at(0, y), buf.row.data(), buf.row.size());
       }
