@@ -138,12 +138,14 @@ struct LobeMoments {
   bool ok = false;            // a lobe: mu0 > 0 and a first moment
 };
 
-inline LobeMoments FromMoments(const float (&mu)[internal::kMoments]) {
+// mu(r): the r-th moment (an array, or one lane of the lanes' moments: see LookUpLobesImpl).
+template <typename Moment>
+inline LobeMoments FromMoments(Moment mu) {
   LobeMoments out;
-  const float x = mu[1], y = mu[2], z = mu[3];
+  const float x = mu(1), y = mu(2), z = mu(3);
   const float n = std::sqrt(x * x + (y * y + z * z));  // as Eigen's norm()
-  out.mu0 = mu[0];
-  out.ok = mu[0] > 0 && !(n < 1e-6f * mu[0]);
+  out.mu0 = mu(0);
+  out.ok = (mu(0) > 0) & !(n < 1e-6f * mu(0));  // & rather than &&: no branch in the lanes' loop
   out.length = n;
   const float rx = x / n, ry = y / n, rz = z / n;
   out.mean[0] = rx;
@@ -151,8 +153,8 @@ inline LobeMoments FromMoments(const float (&mu)[internal::kMoments]) {
   out.mean[2] = rz;
   // r^T M2 r with M2 = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]] / mu0.
   const float q =
-      rx * rx * mu[4] + ry * ry * mu[5] + rz * rz * mu[6] + 2 * (rx * ry * mu[7] + ry * rz * mu[8] + rx * rz * mu[9]);
-  out.spread = 1 - q / mu[0];
+      rx * rx * mu(4) + ry * ry * mu(5) + rz * rz * mu(6) + 2 * (rx * ry * mu(7) + ry * rz * mu(8) + rx * rz * mu(9));
+  out.spread = 1 - q / mu(0);
   return out;
 }
 
@@ -163,7 +165,7 @@ LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
     for (int k = 0; k < pm.np; ++k) sum += pm.moments(r, k) * s[k];
     mu[r] = sum;
   }
-  return FromMoments(mu);
+  return FromMoments([&](int r) { return mu[r]; });
 }
 
 // A raw row less the black level, divided by the flat field (null: none).
@@ -586,15 +588,14 @@ struct LobeScratch {
   std::vector<float> one;    // spec_stride: one lane's entry
 };
 
-// a / |a| where |a| > 0 (else a), |a| as Eigen has it (x x + (y y + z z)).
+// a / |a| where |a| > 0 (else a), |a| as Eigen has it (x x + (y y + z z)). Without a branch, for the lanes' loops.
 inline void Normalize(float& x, float& y, float& z) {
   const float n2 = x * x + (y * y + z * z);
-  if (n2 > 0) {
-    const float n = std::sqrt(n2);
-    x /= n;
-    y /= n;
-    z /= n;
-  }
+  const float n = std::sqrt(n2);
+  const bool positive = n2 > 0;
+  x = positive ? x / n : x;
+  y = positive ? y / n : y;
+  z = positive ? z / n : z;
 }
 
 // The specular of the solved lanes of a batch (row0: the image's index of the tile row's column 0): the lobe's mean
@@ -610,15 +611,13 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   const int np = t.np, ss = t.spec_stride;
   constexpr int kL = kLanes;
   // The moments: the mean direction, the first moment's length and the spread.
-  float mu[internal::kMoments][kL];
-  for (int r = 0; r < internal::kMoments; ++r) std::memcpy(mu[r], a.mu + r * a.stride + xb, sizeof mu[r]);
+  const float* mu[internal::kMoments];  // the rows of the moments, from the batch's first column
+  for (int r = 0; r < internal::kMoments; ++r) mu[r] = a.mu + r * a.stride + xb;
   float mean[3][kL], length[kL], spread[kL];
   bool ok[kL];
   for (int l = 0; l < kL; ++l) {
-    float m[internal::kMoments];
-    for (int r = 0; r < internal::kMoments; ++r) m[r] = mu[r][l];
-    const LobeMoments lobe_l = FromMoments(m);
-    ok[l] = l < lanes && b->solved[l] && lobe_l.ok;
+    const LobeMoments lobe_l = FromMoments([&](int r) { return mu[r][l]; });
+    ok[l] = (l < lanes) & b->solved[l] & lobe_l.ok;
     length[l] = lobe_l.length;
     for (int i = 0; i < 3; ++i) mean[i][l] = lobe_l.mean[i];
     spread[l] = lobe_l.spread;
