@@ -125,6 +125,9 @@ constexpr int kDiffuseCells = 128;
 constexpr int kSpecularCells = 48;
 constexpr int kAlphas = 12;
 constexpr float kAlphaMin = 0.04f, kAlphaMax = 1.0f;
+// A lobe's mean direction must land within 0.02 rad of the cell it is tabled for: the cosine of that (a constant, not a
+// library call whose last bit may depend on the CPU).
+constexpr float kCosReach = 0.99980000666657776f;
 
 // The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz): its mean direction and the angular variance
 // about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets). Computed
@@ -916,7 +919,8 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
   d.s = kSpecularCells;
   d.j = kAlphas;
   for (int k = 0; k < d.j; ++k) {
-    d.log_alpha.push_back(std::log(kAlphaMin) + (std::log(kAlphaMax) - std::log(kAlphaMin)) * k / (d.j - 1));
+    d.log_alpha.push_back(internal::PortableLog(kAlphaMin) +
+                          (internal::PortableLog(kAlphaMax) - internal::PortableLog(kAlphaMin)) * k / (d.j - 1));
   }
   d.spec_stride = 5 + np;
   d.spec.assign(static_cast<size_t>(d.s) * d.s * d.j * d.spec_stride, 0.f);
@@ -932,7 +936,7 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
         const size_t c = static_cast<size_t>(row) * d.s + col;
         const Eigen::Vector3f target = OctDecode({(col + 0.5f) / d.s, (row + 0.5f) / d.s});
         for (int k = 0; k < d.j; ++k) {
-          const float alpha = std::exp(d.log_alpha[static_cast<size_t>(k)]);
+          const float alpha = internal::PortableExp(d.log_alpha[static_cast<size_t>(k)]);
           Eigen::Vector3f r = target;
           LobeMoments mom;
           for (int it = 0; it < 8; ++it) {
@@ -949,7 +953,7 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
           internal::SpecularFromView(origin, d.pm, n, v, alpha, m.data());
           mom = Moments(d.pm, m.data());
           const Eigen::Vector3f mean(mom.mean[0], mom.mean[1], mom.mean[2]);
-          if (!mom.ok || std::acos(std::clamp(mean.dot(target), -1.f, 1.f)) > 0.02f) continue;
+          if (!mom.ok || !(mean.dot(target) >= kCosReach)) continue;
           float* e = &d.spec[(c * d.j + k) * d.spec_stride];
           const Eigen::Vector3f dr = r - target;
           e[0] = dr.x(), e[1] = dr.y(), e[2] = dr.z();

@@ -369,7 +369,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
           vl[x] = var_la[r0 + x];
           ia[x] = 1 / std::max(1e-12f, vn[x]);
           ib[x] = 1 / std::max(1e-12f, vl[x]);
-          la[x] = lobe[x] > 0 ? std::log(m.roughness.pixels[r0 + x]) : 0.f;
+          la[x] = lobe[x] > 0 ? PortableLog(m.roughness.pixels[r0 + x]) : 0.f;
         }
       }
     };
@@ -441,7 +441,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
           const Eigen::Vector3f nc = to_camera * ns;
           std::copy(ns.data(), ns.data() + 3, sw);
           std::copy(nc.data(), nc.data() + 3, sc);
-          roughness[xb + l] = std::exp(la);
+          roughness[xb + l] = PortableExp(la);
         }
       }
     }
@@ -539,7 +539,7 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
   // (n, alpha) moved by d in (t1, t2, log alpha); the fit keeps alpha in its range, the covariance does not.
   auto step = [&](const Eigen::Vector3f& d, bool clamp, Eigen::Vector3f* n_out, float* a_out) {
     *n_out = (n + d[0] * t1 + d[1] * t2).normalized();
-    *a_out = alpha * std::exp(d[2]);
+    *a_out = alpha * internal::PortableExp(d[2]);
     if (clamp) *a_out = std::clamp(*a_out, kMinAlpha, kMaxAlpha);
   };
   for (int it = 0; it < 40; ++it) {

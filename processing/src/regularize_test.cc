@@ -26,7 +26,7 @@ void Reference(int radius, const Eigen::Matrix3f& to_camera, PhotometricMaps* ma
   for (size_t i = 0; i < n; ++i) {
     if (!has_lobe(i)) continue;
     for (int k = 0; k < 3; ++k) delta[3 * i + k] = m.specular_normal_raw.pixels[3 * i + k] - nd[3 * i + k];
-    log_alpha[i] = std::log(m.roughness.pixels[i]);
+    log_alpha[i] = internal::PortableLog(m.roughness.pixels[i]);
   }
   std::vector<float> roughness = m.roughness.pixels;
   for (int y = 0; y < h; ++y) {
@@ -89,7 +89,7 @@ void Reference(int radius, const Eigen::Matrix3f& to_camera, PhotometricMaps* ma
       const Eigen::Vector3f nc = to_camera * ns;
       std::copy(ns.data(), ns.data() + 3, sw);
       std::copy(nc.data(), nc.data() + 3, sc);
-      roughness[i] = std::exp(la);
+      roughness[i] = internal::PortableExp(la);
     }
   }
   m.roughness.pixels = roughness;
