@@ -1,6 +1,7 @@
 // internal::PortableLog and PortableExp: accuracy against the C library in double, and the same bits in vector lanes
 // as one value at a time.
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <limits>
 #include <vector>
