@@ -62,9 +62,11 @@ inline float PortableLog(float x) {
 // exp(x), x clamped to [-87, 88] (the floats' normal range).
 inline float PortableExp(float x) {
   x = std::min(std::max(x, -87.f), 88.f);
-  // n = round(x / ln 2) (adding and taking away 1.5 2^23 rounds to the nearest integer), r = x - n ln 2 in two parts.
+  // n = round(x / ln 2) (adding 1.5 2^23 rounds to the nearest integer, which the sum's low bits then hold: no
+  // float-to-int conversion, undefined for NaN), r = x - n ln 2 in two parts.
   constexpr float kRound = 12582912.f;
-  const float n = (x * 1.44269504088896341f + kRound) - kRound;
+  const float t = x * 1.44269504088896341f + kRound;
+  const float n = t - kRound;
   const float r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
   const float z = r * r;
   float p = 1.9875691500e-4f;
@@ -74,7 +76,8 @@ inline float PortableExp(float x) {
   p = p * r + 1.6666665459e-1f;
   p = p * r + 5.0000001201e-1f;
   p = p * z + r + 1;
-  return p * std::bit_cast<float>(static_cast<uint32_t>(static_cast<int32_t>(n) + 127) << 23);
+  const uint32_t ni = std::bit_cast<uint32_t>(t) - std::bit_cast<uint32_t>(kRound);  // n, modulo 2^32
+  return p * std::bit_cast<float>((ni + 127u) << 23);
 }
 
 // The cross patterns and their parallel twins (the same gradient under either polarization), paired.
