@@ -47,6 +47,10 @@ struct DemosaicBuffers {
   }
 };
 
+// Whether a pixel's own albedo can be used (for the hue, the neighbours' means and the texture): positive and finite.
+// & rather than &&, so that the row loops that test it run in vector lanes.
+inline bool Usable(float v) { return (v > 0) & (v < std::numeric_limits<float>::infinity()); }
+
 // The means of a plane (v; u: 1 where usable, else 0) over site x's usable neighbours of each colour it does not
 // measure (c: its colour; beside: when it is green, the colour beside it): the 2 beside it and the 2 above and below
 // for green, the 4 at its sides and the 4 at its corners for red and blue. NaN for a colour with none, and for c.
@@ -116,7 +120,7 @@ STAGE_ROW_LOOP void AlbedoRow(const float* __restrict own, const uint8_t* __rest
     const float mine = own[x];
     const Rgb near = NeighbourMeans(vm, um, stride, x, c, beside);
     const bool solved = (flags[x] & kLowSignal) == 0;
-    const bool hued = (found[x] != 0) & (mine > 0) & (mine < std::numeric_limits<float>::infinity());
+    const bool hued = (found[x] != 0) & Usable(mine);
     const float hr = ratio_r[x], hb = ratio_b[x];  // each colour over green
     const bool green = (c & 1) != 0, blue = (c & 2) != 0, red = !(green | blue);
     const float hc = green ? 1.f : blue ? hb : hr;
@@ -140,7 +144,7 @@ STAGE_ROW_LOOP void LogRow(const float* __restrict own, const uint8_t* __restric
   for (int x = x0; x < x1; ++x) {
     const float v = own[x];
     const float lg = PortableLog(v);  // computed for every column, so that the loop runs in vector lanes
-    const bool ok = ((flags[x] & kLowSignal) == 0) & (v > 0) & (v < std::numeric_limits<float>::infinity());
+    const bool ok = ((flags[x] & kLowSignal) == 0) & Usable(v);
     values[x] = ok ? v : 0.f;
     logs[x] = ok ? lg : 0.f;
     usable[x] = ok ? 1.f : 0.f;
