@@ -131,8 +131,8 @@ constexpr float kCosReach = 0.99980000666657776f;
 
 // The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz): its mean direction and the angular variance
 // about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets). Computed
-// without a branch (the fields are computed where !ok too, and mean nothing there), so that the lookup runs it across
-// its lanes; the table is built with it as well.
+// without a branch (the fields are computed where !ok too, and mean nothing there), for the lookup's loop over its
+// lanes (which GCC 12 still leaves scalar); the table is built with it as well.
 struct LobeMoments {
   float mu0 = 0;
   float mean[3] = {0, 0, 0};  // unit
