@@ -274,18 +274,19 @@ struct DiffuseRow {
 };
 
 // Up to kLanes pixels of a row through the per-pixel steps (lane l: column xb + l of the tile).
+// The flags are bytes (0 or 1), not bool: GCC 12 does not vectorize loops that load bool.
 struct Batch {
   float n[3][kLanes];  // the diffuse normal: from the first solves, then the last
   float u[3][kLanes];  // the first solves' vector (albedo times normal), for the last steps
-  bool solved[kLanes];               // the first solves gave a normal (else: too little signal)
-  bool both[kLanes];                 // the lobe is known and fits: both polarizations hold the diffuse
+  uint8_t solved[kLanes];            // the first solves gave a normal (else: too little signal)
+  uint8_t both[kLanes];              // the lobe is known and fits: both polarizations hold the diffuse
   float lobe_sum[kLanes];            // the lobe's images summed over the pairs
   float chi2[kLanes];                // the diffuse fit's residual per degree of freedom
   float own_albedo[kLanes];          // the albedo of the colour the pixel measures
   // The specular, where the lobe is measured: its normal (before regularization), intensity, roughness, the normal's
   // noise in degrees, and the variances of the normal and of log roughness; a bad fit of the lobe to the images.
-  bool measured[kLanes];
-  bool spec_bad_fit[kLanes];
+  uint8_t measured[kLanes];
+  uint8_t spec_bad_fit[kLanes];
   float ns[3][kLanes];
   float rho[kLanes], alpha[kLanes], sigma_deg[kLanes], var_n[kLanes], var_log_alpha[kLanes];
 };
@@ -571,7 +572,7 @@ STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const fl
 // 0), the moments' rows, and the constants.
 struct LobeRow {
   const PhotometricTables::Data* t = nullptr;
-  const PhotometricOptions* options = nullptr;
+  internal::LobeLimits limits;
   const float* rs = nullptr;   // the specular
   const float* rsw = nullptr;  // its inverse variance
   const float* mu = nullptr;   // the lobe's moments (kMoments rows)
@@ -614,18 +615,19 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   const int np = t.np, ss = t.spec_stride;
   constexpr int kL = kLanes;
   // The moments: the mean direction, the first moment's length and the spread.
-  const float* mu[internal::kMoments];  // the rows of the moments, from the batch's first column
-  for (int r = 0; r < internal::kMoments; ++r) mu[r] = a.mu + r * a.stride + xb;
+  const float* const mu = a.mu + xb;  // the moments' rows (a.stride apart), from the batch's first column
+  const size_t mstride = a.stride;
   float mean[3][kL], length[kL], spread[kL];
-  bool ok[kL];
+  uint8_t ok[kL];
   for (int l = 0; l < kL; ++l) {
-    const LobeMoments lobe_l = FromMoments([&](int r) { return mu[r][l]; });
+    const LobeMoments lobe_l =
+        FromMoments([mu, mstride, l](int r) { return mu[static_cast<size_t>(r) * mstride + l]; });
     ok[l] = (l < lanes) & b->solved[l] & lobe_l.ok;
     length[l] = lobe_l.length;
     for (int i = 0; i < 3; ++i) mean[i][l] = lobe_l.mean[i];
     spread[l] = lobe_l.spread;
   }
-  if (std::none_of(ok, ok + kL, [](bool o) { return o; })) {  // no lobe in the batch (the background)
+  if (std::none_of(ok, ok + kL, [](uint8_t o) { return o != 0; })) {  // no lobe in the batch (the background)
     for (int l = 0; l < kL; ++l) {
       b->measured[l] = b->both[l] = false;
       b->lobe_sum[l] = 0;
@@ -652,15 +654,17 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   // was slower: 446 against 437 ms.)
   const float fsize = static_cast<float>(t.s);
   int cell[kL];
-  for (int l = 0; l < kL; ++l) {
-    if (!ok[l]) continue;
+  for (int l = 0; l < kL; ++l) {  // every lane (in vector lanes), then the fetches of the lanes with a lobe
     const int u = std::clamp(static_cast<int>(ou[l] * fsize), 0, t.s - 1);
     const int v = std::clamp(static_cast<int>(ov[l] * fsize), 0, t.s - 1);
     cell[l] = v * t.s + u;
+  }
+  for (int l = 0; l < kL; ++l) {
+    if (!ok[l]) continue;
     __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j]);
     __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j + t.j - 1]);
   }
-  bool known[kL], in_range[kL];
+  uint8_t known[kL], in_range[kL];
   int k0[kL];
   float fr[kL];
   for (int l = 0; l < kL; ++l) {
@@ -777,8 +781,13 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   }
   float v[3][kL];
   for (int l = 0; l < kL; ++l) {
-    const Eigen::Vector3f view = a.rays != nullptr && l < lanes ? Eigen::Vector3f(-a.rays[row0 + xb + l]) : a.toward;
-    for (int i = 0; i < 3; ++i) v[i][l] = view[i];
+    for (int i = 0; i < 3; ++i) v[i][l] = a.toward[i];
+  }
+  if (a.rays != nullptr) {
+    const float* ray = a.rays[row0 + xb].data();  // the lanes' rays, 3 floats each
+    for (int l = 0; l < lanes; ++l) {
+      for (int i = 0; i < 3; ++i) v[i][l] = -ray[3 * l + i];
+    }
   }
   const float dof = static_cast<float>(std::max(1, np - 4));
   const float* sfull = a.rs + a.full * a.stride + xb;
@@ -796,26 +805,32 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     // direction's angle.
     const float var_dir = 2.f / 3 * a.v1[xb + l] / (length[l] * length[l]);
     b->var_n[l] = var_dir / 4;
-    b->var_log_alpha[l] = slope[l] * slope[l] * vs[l] / (mu[0][l] * mu[0][l]);
+    b->var_log_alpha[l] = slope[l] * slope[l] * vs[l] / (mu[l] * mu[l]);
     b->rho[l] = rho[l];
   }
+  // Every lane computed (in vector lanes); the lanes without a known lobe are not measured, and their fields mean
+  // nothing.
   for (int l = 0; l < kL; ++l) {
-    b->measured[l] = false;
     b->spec_bad_fit[l] = chi2[l] > 4;
     // With the lobe known and fitting, both polarizations hold the diffuse.
-    b->both[l] = known[l] && chi2[l] <= 4;
+    b->both[l] = known[l] & (chi2[l] <= 4);
     b->lobe_sum[l] = b->both[l] ? lobe_sum[l] : 0.f;
-    if (!known[l]) continue;
-    const float alpha = internal::PortableExp(log_alpha[l]);
+  }
+  // The roughness, the tests in 32-bit lanes, then with the byte flags: three loops, because GCC 12 vectorizes none
+  // of them written as one.
+  int32_t pass[kL];
+  for (int l = 0; l < kL; ++l) b->alpha[l] = internal::PortableExp(log_alpha[l]);
+  for (int l = 0; l < kL; ++l) {
+    const float alpha = b->alpha[l];
     const float var_rho = smm[l] > 0 ? 1 / smm[l] : 1e30f;
     const float spec_snr = sfull[l] * std::sqrt(swfull[l]);
-    // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for the
-    // specular in the diffuse, but is not a measurement.
-    b->measured[l] = in_range[l] && internal::LobeMeasured(*a.options, spec_snr, b->var_n[l], rho[l], var_rho,
-                                                           b->var_log_alpha[l], alpha);
-    b->alpha[l] = alpha;
+    pass[l] =
+        internal::LobeMeasured(a.limits, spec_snr, b->var_n[l], rho[l], var_rho, b->var_log_alpha[l], alpha) ? 1 : 0;
     b->sigma_deg[l] = std::sqrt(b->var_n[l]) * 180 / kPi;
   }
+  // A spread past the table's roughness range is noise (or a lobe outside 0.04..1): the lobe still stands for the
+  // specular in the diffuse, but is not a measurement.
+  for (int l = 0; l < kL; ++l) b->measured[l] = known[l] & in_range[l] & static_cast<uint8_t>(pass[l]);
 }
 
 void LookUpLobes(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe, Batch* b) {
@@ -1129,7 +1144,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                         .zm = tw.zm,
                         .toward = toward};
     const LobeRow la{.t = &t,
-                     .options = &options,
+                     .limits = internal::LobeLimits(options),
                      .rs = rs,
                      .rsw = rsw,
                      .mu = mu,

@@ -718,6 +718,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
   const double g = camera.gain_e_per_dn;
   const double read_dn2 = internal::ReadVarianceDn2(camera);  // three channels summed
+  const internal::LobeLimits lobe_limits(options);
   const double min_signal = internal::MinSignalDn(options, camera);  // below it: not solved
   const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
   const float ws = static_cast<float>(camera.white_scale);
@@ -846,7 +847,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
           if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
         }
         const SpecularFit fit = FitSpecular(units, pm, s.data(), sw.data(), v, starts, spec_scale);
-        const bool measured = fit.ok && internal::LobeMeasured(options, spec_snr, fit.var_n, fit.rho, fit.var_rho,
+        const bool measured = fit.ok && internal::LobeMeasured(lobe_limits, spec_snr, fit.var_n, fit.rho, fit.var_rho,
                                                                fit.var_log_alpha, fit.alpha);
         if (!measured) {
           flags |= kNoSpecular;

@@ -157,11 +157,28 @@ inline double MinSignalDn(const PhotometricOptions& options, const PhotometricCa
 // Whether a fitted lobe counts as measured (PhotometricOptions): bright enough, its normal, intensity and log
 // roughness known well enough, and wider than 2 * kMinLobeAlpha (a narrower one only says "one unit").
 constexpr float kMinLobeAlpha = 0.02f;
-inline bool LobeMeasured(const PhotometricOptions& options, float spec_snr, float var_n, float rho, float var_rho,
+// The options' two thresholds (doubles) as floats that a float passes exactly when it passes the double, so that the
+// tests run in float (and in the fast solver's vector lanes): the least float not below the least SNR, the greatest
+// float not above the largest sigma.
+struct LobeLimits {
+  explicit LobeLimits(const PhotometricOptions& options)
+      : min_snr(FloatAtLeast(options.min_specular_snr)), max_sigma_deg(FloatAtMost(options.max_specular_sigma_deg)) {}
+  static float FloatAtLeast(double v) {
+    const float f = static_cast<float>(v);
+    return f < v ? std::nextafter(f, HUGE_VALF) : f;
+  }
+  static float FloatAtMost(double v) {
+    const float f = static_cast<float>(v);
+    return f > v ? std::nextafter(f, -HUGE_VALF) : f;
+  }
+  float min_snr;
+  float max_sigma_deg;
+};
+inline bool LobeMeasured(const LobeLimits& limits, float spec_snr, float var_n, float rho, float var_rho,
                          float var_log_alpha, float alpha) {
-  return rho > 0 && spec_snr >= options.min_specular_snr &&
-         std::sqrt(var_n) * 180 / kPi <= options.max_specular_sigma_deg && std::sqrt(var_rho) <= 0.5f * rho &&
-         var_log_alpha <= 0.25f && alpha > 2 * kMinLobeAlpha;
+  // & rather than &&: every test computed, no branch (the fast solver's lookup runs it in vector lanes).
+  return (rho > 0) & (spec_snr >= limits.min_snr) & (std::sqrt(var_n) * 180 / kPi <= limits.max_sigma_deg) &
+         (std::sqrt(var_rho) <= 0.5f * rho) & (var_log_alpha <= 0.25f) & (alpha > 2 * kMinLobeAlpha);
 }
 
 // A pixel's confidence: its full-on's SNR (cross only, channels summed; 1 at 100) times the diffuse fit's agreement
