@@ -90,7 +90,7 @@ struct PhotometricTables::Data {
   // Per cell: the run of roughness samples the lookup uses (the first with a lobe, and the last of the run of samples
   // with one after it; -1: none), and the samples' spreads (spec's entry 3) side by side, so that finding the roughness
   // reads one cache line, not one per sample.
-  std::vector<int8_t> first, last;
+  std::vector<int32_t> first, last;
   std::vector<float> spread;
   Eigen::Vector3f view = Eigen::Vector3f::UnitZ();  // the camera's central view (towards it from the stage origin)
 
@@ -171,6 +171,17 @@ LobeMoments Moments(const internal::PatternMatrix& pm, const float* s) {
   return FromMoments([&](int r) { return mu[r]; });
 }
 
+// GCC's vector extension: 16 floats, lowered to what each function's target has (one AVX-512 register, two AVX2, four
+// SSE).
+typedef float V16 __attribute__((vector_size(64)));
+
+// Loads 16 floats (a macro, not a function: a function returning a vector of 64 bytes has a different ABI with and
+// without AVX-512).
+#define STAGE_LOAD16(v, p) std::memcpy(&(v), (p), sizeof(V16))
+
+// Floats after the specular table's last entry, so that the lookup may read 16 at a time past it.
+constexpr size_t kSpecPad = 32;
+
 // A raw row less the black level, divided by the flat field (null: none).
 STAGE_ROW_LOOP void CorrectRow(const uint16_t* __restrict raw, const float* __restrict flat, float black, int w,
                                float* __restrict out) {
@@ -217,8 +228,6 @@ STAGE_ROW_LOOP void PairRow(const float* __restrict dc, const float* __restrict 
 STAGE_ROW_LOOP void MomentRows(const float* __restrict s, const float* __restrict sv, size_t stride, int np,
                                const float* __restrict coef, const float* __restrict q1, int w, float* __restrict mu,
                                float* __restrict v1) {
-  // GCC's vector extension: 16 floats, lowered to what each clone's target has (one AVX-512, two AVX2 registers).
-  typedef float V16 __attribute__((vector_size(64)));
   for (int x0 = 0; x0 < w; x0 += 16) {
     V16 acc[internal::kMoments] = {};
     V16 var = {};
@@ -609,6 +618,31 @@ inline void Normalize(float& x, float& y, float& z) {
 // mirror direction and the normal, and the noise of each. Each step runs over the lanes in loops the compiler makes
 // vector code of, per lane the operations of the one-pixel-at-a-time code it replaces, so any target gives the same
 // bits.
+// The roughness search of LookUpLobesImpl (below) in AVX-512 lanes (GCC 12 does not vectorize its gathers): the same
+// tests, so the same samples.
+STAGE_AVX512 inline void SearchRoughness16(const float* spreads, int nj, const int* row, const int* first,
+                                           const int* last, const uint8_t* ok, const float* spread, int* k0) {
+  const __m512i vrow = _mm512_loadu_si512(row), vfirst = _mm512_loadu_si512(first), vlast = _mm512_loadu_si512(last);
+  const __m512 vspread = _mm512_loadu_ps(spread);
+  const __m512i vok = _mm512_cvtepu8_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(ok)));
+  const __mmask16 live = _mm512_test_epi32_mask(vok, vok);
+  __m512i vk0 = _mm512_set1_epi32(-1);
+  __mmask16 open = live;  // lanes still searching
+  for (int k = 0; k + 1 < nj; ++k) {
+    const __m512i vk = _mm512_set1_epi32(k), vnext = _mm512_set1_epi32(k + 1);
+    const __m512 hi = _mm512_i32gather_ps(_mm512_add_epi32(vrow, vnext), spreads, 4);
+    const __mmask16 in_run =
+        _mm512_cmp_epi32_mask(vk, vfirst, _MM_CMPINT_NLT) & _mm512_cmp_epi32_mask(vk, vlast, _MM_CMPINT_LT);
+    const __mmask16 stop =
+        _mm512_cmp_ps_mask(vspread, hi, _CMP_LE_OQ) | _mm512_cmp_epi32_mask(vnext, vlast, _MM_CMPINT_EQ);
+    const __mmask16 take = open & in_run & stop;
+    vk0 = _mm512_mask_mov_epi32(vk0, take, vk);
+    open &= static_cast<__mmask16>(~take);
+  }
+  _mm512_storeu_si512(k0, vk0);
+}
+
+template <bool kAvx512>
 __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int xb, int lanes, size_t row0,
                                                            LobeScratch* scratch, float* lobe, Batch* b) {
   const PhotometricTables::Data& t = *a.t;
@@ -664,33 +698,41 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j]);
     __builtin_prefetch(&t.spread[static_cast<size_t>(cell[l]) * t.j + t.j - 1]);
   }
-  uint8_t known[kL], in_range[kL];
-  int k0[kL];
-  float fr[kL];
+  // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last it has:
+  // noise can take the spread a little past them): the first sample k from the cell's first on whose successor's
+  // spread is not below the lobe's, or the last but one. Found for every lane at once, sample by sample (each
+  // successor's spread gathered), rather than lane by lane, which waited on a branch per sample.
+  int first[kL], last[kL], k0[kL];
   for (int l = 0; l < kL; ++l) {
-    known[l] = in_range[l] = false;
+    first[l] = t.first[static_cast<size_t>(cell[l])];
+    last[l] = t.last[static_cast<size_t>(cell[l])];
     k0[l] = -1;
-    fr[l] = 0;
-    if (!ok[l]) continue;
-    // The roughness whose spread matches, between the samples the cell has (clamped to the first and the last it has:
-    // noise can take the spread a little past them).
-    const size_t c = static_cast<size_t>(cell[l]);
-    const int first = t.first[c], last = t.last[c];
-    const float* sp = &t.spread[c * t.j];
-    if (first >= 0 && last > first) {
-      for (int k = first; k < last; ++k) {
-        const float lo = sp[k], hi = sp[k + 1];
-        if (spread[l] <= hi || k + 1 == last) {
-          k0[l] = k;
-          const float raw_f = (spread[l] - lo) / std::max(1e-9f, hi - lo);
-          in_range[l] = (k > first || raw_f >= 0) && (k + 1 < last || raw_f <= 1);
-          fr[l] = std::clamp(raw_f, 0.f, 1.f);
-          break;
-        }
+  }
+  const float* const spreads = t.spread.data();
+  const int nj = t.j;
+  int row[kL];  // of the lane's cell in spreads
+  for (int l = 0; l < kL; ++l) row[l] = cell[l] * nj;
+  if constexpr (kAvx512) {
+    SearchRoughness16(spreads, nj, row, first, last, ok, spread, k0);
+  } else {
+    for (int k = 0; k + 1 < nj; ++k) {
+      for (int l = 0; l < kL; ++l) {
+        const float hi = spreads[row[l] + k + 1];
+        const bool take =
+            (k0[l] < 0) & (ok[l] != 0) & (k >= first[l]) & (k < last[l]) & ((spread[l] <= hi) | (k + 1 == last[l]));
+        k0[l] = take ? k : k0[l];
       }
     }
-    if (k0[l] < 0) continue;
-    known[l] = true;
+  }
+  uint8_t known[kL], in_range[kL];
+  float fr[kL];
+  for (int l = 0; l < kL; ++l) {
+    const int k = std::max(k0[l], 0);  // a sample to read (unknown lanes: their figures mean nothing)
+    const float lo = spreads[row[l] + k], hi = spreads[row[l] + k + 1];
+    const float raw_f = (spread[l] - lo) / std::max(1e-9f, hi - lo);
+    known[l] = k0[l] >= 0;
+    in_range[l] = known[l] & ((k > first[l]) | (raw_f >= 0)) & ((k + 1 < last[l]) | (raw_f <= 1));
+    fr[l] = std::clamp(raw_f, 0.f, 1.f);
   }
   float* const entry = scratch->entry.data();
   float* const one = scratch->one.data();
@@ -713,16 +755,27 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
       corners = corner[c][4] > 0 && corner[c][ss + 4] > 0;
     }
     const float* e0 = &t.spec[(static_cast<size_t>(cell[l]) * t.j + k0[l]) * ss];
-    if (corners) {
-      for (int q = 0; q < ss; ++q) one[q] = 0;
-      for (int c = 0; c < 4; ++c) {
-        const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
-        const float* ca = corner[c];
-        const float* cb = ca + ss;
-        for (int q = 0; q < ss; ++q) one[q] += wc * ((1 - f) * ca[q] + f * cb[q]);
+    // 16 of the entry's floats at a time, summed in registers (the table is padded for the last 16 read past its
+    // end; the floats past ss are not used).
+    const float g = 1 - f;
+    for (int q0 = 0; q0 < ss; q0 += 16) {
+      V16 sum;
+      if (corners) {
+        sum = V16{};
+        for (int c = 0; c < 4; ++c) {
+          const float wc = ((c & 1) ? wu : 1 - wu) * ((c >> 1) ? wv : 1 - wv);
+          V16 ca, cb;
+          STAGE_LOAD16(ca, corner[c] + q0);
+          STAGE_LOAD16(cb, corner[c] + ss + q0);
+          sum += wc * (g * ca + f * cb);
+        }
+      } else {
+        V16 ca, cb;
+        STAGE_LOAD16(ca, e0 + q0);
+        STAGE_LOAD16(cb, e0 + ss + q0);
+        sum = g * ca + f * cb;
       }
-    } else {
-      for (int q = 0; q < ss; ++q) one[q] = (1 - f) * e0[q] + f * e0[ss + q];
+      std::memcpy(one + q0, &sum, sizeof sum);
     }
     for (int q = 0; q < ss; ++q) entry[q * kL + l] = one[q];
     const float* la = &t.log_alpha[static_cast<size_t>(k0[l])];
@@ -834,12 +887,12 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
 }
 
 void LookUpLobes(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe, Batch* b) {
-  LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
+  LookUpLobesImpl<false>(a, xb, lanes, row0, scratch, lobe, b);
 }
 
 STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe,
                                 Batch* b) {
-  LookUpLobesImpl(a, xb, lanes, row0, scratch, lobe, b);
+  LookUpLobesImpl<true>(a, xb, lanes, row0, scratch, lobe, b);
 }
 
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
@@ -869,7 +922,7 @@ struct TileBuffers {
     probe.resize(2 * 3 * stride);
     probe_sums.resize(2 * stride);
     lobe_scratch.entry.resize(static_cast<size_t>(spec_stride) * kLanes);
-    lobe_scratch.one.resize(static_cast<size_t>(spec_stride));
+    lobe_scratch.one.resize((static_cast<size_t>(spec_stride) + 15) / 16 * 16);
   }
 };
 
@@ -938,7 +991,7 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
                           (internal::PortableLog(kAlphaMax) - internal::PortableLog(kAlphaMin)) * k / (d.j - 1));
   }
   d.spec_stride = 5 + np;
-  d.spec.assign(static_cast<size_t>(d.s) * d.s * d.j * d.spec_stride, 0.f);
+  d.spec.assign(static_cast<size_t>(d.s) * d.s * d.j * d.spec_stride + kSpecPad, 0.f);
   const Eigen::Vector3f v = d.view;
   // The largest total each roughness reaches anywhere: a lobe whose total is far below it falls mostly off the dome.
   std::vector<float> best(static_cast<size_t>(d.j), 0.f);
@@ -992,14 +1045,13 @@ absl::StatusOr<std::shared_ptr<const PhotometricTables>> PhotometricTables::Buil
   d.first.assign(static_cast<size_t>(d.s) * d.s, -1);
   d.last.assign(static_cast<size_t>(d.s) * d.s, -1);
   d.spread.assign(static_cast<size_t>(d.s) * d.s * d.j, 0.f);
-  static_assert(kAlphas <= 127, "roughness samples are counted in int8_t");
   for (size_t c = 0; c < static_cast<size_t>(d.s) * d.s; ++c) {
     for (int k = 0; k < d.j; ++k) {
       const float* e = &d.spec[(c * d.j + k) * d.spec_stride];
       d.spread[c * d.j + k] = e[3];
       if (e[4] > 0) {
-        if (d.first[c] < 0) d.first[c] = static_cast<int8_t>(k);
-        d.last[c] = static_cast<int8_t>(k);
+        if (d.first[c] < 0) d.first[c] = k;
+        d.last[c] = k;
       } else if (d.first[c] >= 0) {
         break;
       }
