@@ -737,21 +737,37 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   float* const entry = scratch->entry.data();
   float* const one = scratch->one.data();
   float log_alpha[kL], slope[kL];
+  // The entry at this roughness, interpolated between the four cells around the mean direction (the nearest alone
+  // where a neighbour has no lobe there): the cells and weights of every lane (in vector lanes), the fetches of the
+  // known lanes' entries (so that the lanes' reads overlap), then lane by lane.
+  float wus[kL], wvs[kL];
+  int corner0[kL];  // index in spec of the first corner's entry at the lane's roughness
+  for (int l = 0; l < kL; ++l) {
+    const float fu = std::clamp(ou[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
+    const float fv = std::clamp(ov[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
+    const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
+    wus[l] = fu - cu0;
+    wvs[l] = fv - cv0;
+    corner0[l] = ((cv0 * t.s + cu0) * nj + std::max(k0[l], 0)) * ss;
+  }
+  const int corner_step[4] = {0, nj * ss, t.s * nj * ss, (t.s + 1) * nj * ss};
+  for (int l = 0; l < kL; ++l) {
+    if (!known[l]) continue;
+    for (int c = 0; c < 4; ++c) {
+      const float* p = &t.spec[static_cast<size_t>(corner0[l] + corner_step[c])];
+      __builtin_prefetch(p);
+      __builtin_prefetch(p + ss + 4);
+    }
+  }
   for (int l = 0; l < kL; ++l) {
     log_alpha[l] = slope[l] = 0;
     if (!known[l]) continue;  // its entry is left as it was: nothing reads it
     const float f = fr[l];
-    // The entry at this roughness, interpolated between the four cells around the mean direction (the nearest alone
-    // where a neighbour has no lobe there).
-    const float fu = std::clamp(ou[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
-    const float fv = std::clamp(ov[l] * fsize - 0.5f, 0.f, t.s - 1.001f);
-    const int cu0 = static_cast<int>(fu), cv0 = static_cast<int>(fv);
-    const float wu = fu - cu0, wv = fv - cv0;
+    const float wu = wus[l], wv = wvs[l];
     const float* corner[4];
     bool corners = true;
     for (int c = 0; c < 4 && corners; ++c) {
-      const int cu = cu0 + (c & 1), cv = cv0 + (c >> 1);
-      corner[c] = &t.spec[(static_cast<size_t>(cv * t.s + cu) * t.j + k0[l]) * ss];
+      corner[c] = &t.spec[static_cast<size_t>(corner0[l] + corner_step[c])];
       corners = corner[c][4] > 0 && corner[c][ss + 4] > 0;
     }
     const float* e0 = &t.spec[(static_cast<size_t>(cell[l]) * t.j + k0[l]) * ss];
