@@ -1,5 +1,5 @@
 // internal::PortableLog and PortableExp: accuracy against the C library in double, and the same bits in vector lanes
-// as one value at a time.
+// as one value at a time. internal::LobeLimits: float thresholds that decide as the options' doubles do.
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -113,6 +113,33 @@ TEST(PortableMathTest, VectorLanesGiveTheBitsOfOneValueAtATime) {
   if (__builtin_cpu_supports("x86-64-v4")) check("x86-64-v4", RowV4);
   if (__builtin_cpu_supports("x86-64-v3")) check("x86-64-v3", RowV3);
   if (checked == 0) GTEST_SKIP() << "neither AVX2 nor AVX-512 on this CPU";
+}
+
+// A float passes LobeLimits' float thresholds exactly when it passes the options' doubles (which the lobe's tests in
+// float lanes stand in for): thresholds a float holds and ones it does not (0.1, 1/3: a plain cast rounds them up or
+// down), beyond float's range and in its subnormals; the floats around each, and the infinities.
+TEST(LobeLimitsTest, AFloatPassesTheFloatThresholdExactlyWhenItPassesTheDouble) {
+  const float finf = std::numeric_limits<float>::infinity();
+  int checked = 0;
+  for (double d : {3.0, 15.0, 0.1, 1.0 / 3, 2.0 / 3, -2.5, 0.0, 1e-40, 1e39, -1e39, 7.000000000000001}) {
+    PhotometricOptions options;
+    options.min_specular_snr = d;
+    options.max_specular_sigma_deg = d;
+    const internal::LobeLimits limits(options);
+    std::vector<float> xs = {-finf, finf};
+    for (float x = std::nextafter(static_cast<float>(d), -finf), up = x, down = x; xs.size() < 82;) {
+      xs.push_back(up);
+      xs.push_back(down);
+      up = std::nextafter(up, finf);
+      down = std::nextafter(down, -finf);
+    }
+    for (float x : xs) {
+      EXPECT_EQ(x >= d, x >= limits.min_snr) << "x " << x << ", least SNR " << d;
+      EXPECT_EQ(x <= d, x <= limits.max_sigma_deg) << "x " << x << ", largest sigma " << d;
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 800);
 }
 
 }  // namespace
