@@ -679,8 +679,10 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
       x = ox;
       y = oy;
     }
-    ou[l] = x * 0.5f + 0.5f;
-    ov[l] = y * 0.5f + 0.5f;
+    // Kept within [0, 1] and a lane without a lobe (NaN: no mean direction) at 0, so that every lane's cell below is a
+    // defined conversion to int; for a unit direction the clamp changes no cell and no weight.
+    ou[l] = std::min(1.f, std::max(0.f, x * 0.5f + 0.5f));
+    ov[l] = std::min(1.f, std::max(0.f, y * 0.5f + 0.5f));
   }
   // Per lane, in three passes so that the lanes' table reads overlap (one lane's chain of reads, cell to roughness to
   // entry, waited on memory at each link): the cells, whose spreads are fetched; the roughness samples; then the
