@@ -132,7 +132,7 @@ constexpr float kCosReach = 0.99980000666657776f;
 // The lobe from its moments mu (1, x, y, z, xx, yy, zz, xy, yz, xz): its mean direction and the angular variance
 // about it (1 - r^T M2 r with M2 the normalized second moments: the lobe's spread, which roughness sets). Computed
 // without a branch (the fields are computed where !ok too, and mean nothing there), for the lookup's loop over its
-// lanes (which GCC 12 still leaves scalar); the table is built with it as well.
+// lanes (which GCC 12 makes vector code of); the table is built with it as well.
 struct LobeMoments {
   float mu0 = 0;
   float mean[3] = {0, 0, 0};  // unit
@@ -204,21 +204,40 @@ STAGE_ROW_LOOP void ChannelSumRow(const float* __restrict up, const float* __res
   }
 }
 
-// Per pattern pair along a row, from the channel sums of its cross (dc) and parallel (dp) images: the diffuse in the
-// cross image (the leaked specular taken away), the specular (parallel - cross, for the leak), the specular's variance
-// (shot and read noise of both images) and its inverse, the diffuse's inverse variance, and the mean of both images.
-STAGE_ROW_LOOP void PairRow(const float* __restrict dc, const float* __restrict dp, float k_leak, float spec_gain,
-                            float inv_g, float read, int w, float* __restrict d, float* __restrict s,
-                            float* __restrict sv, float* __restrict sw, float* __restrict dw, float* __restrict ds) {
+// A pattern pair's three rows (above, at and below the row) of the cross image and of the parallel one.
+struct PairRows {
+  const float* cross[3];
+  const float* parallel[3];
+};
+
+// Per pattern pair along a row, from the channel sums (ChannelSumRow's, in registers) of its cross (dc) and parallel
+// (dp) images: the diffuse in the cross image (the leaked specular taken away), the specular (parallel - cross, for
+// the leak), the specular's variance (shot and read noise of both images) and its inverse, the diffuse's inverse
+// variance, and the mean of both images. (The channel sums of every pattern written out and read back per pair cost
+// 10 ms more on the benchmark.)
+STAGE_ROW_LOOP void ChannelSumPairRow(const PairRows& rows, const float* __restrict kc, const float* __restrict kd,
+                                      float self, float k_leak, float spec_gain, float inv_g, float read, int w,
+                                      float* __restrict d, float* __restrict s, float* __restrict sv,
+                                      float* __restrict sw, float* __restrict dw, float* __restrict ds) {
+  const float* __restrict cu = rows.cross[0];
+  const float* __restrict cm = rows.cross[1];
+  const float* __restrict cd = rows.cross[2];
+  const float* __restrict pu = rows.parallel[0];
+  const float* __restrict pm = rows.parallel[1];
+  const float* __restrict pd = rows.parallel[2];
   const float gain2 = spec_gain * spec_gain;
   for (int x = 0; x < w; ++x) {
-    const float diffuse = dc[x] - k_leak * (dp[x] - dc[x]);
+    const float dc = self * cm[x] + kc[x] * (cm[x - 1] + cm[x + 1] + cu[x] + cd[x]) +
+                     kd[x] * (cu[x - 1] + cu[x + 1] + cd[x - 1] + cd[x + 1]);
+    const float dp = self * pm[x] + kc[x] * (pm[x - 1] + pm[x + 1] + pu[x] + pd[x]) +
+                     kd[x] * (pu[x - 1] + pu[x + 1] + pd[x - 1] + pd[x + 1]);
+    const float diffuse = dc - k_leak * (dp - dc);
     d[x] = diffuse;
-    s[x] = (dp[x] - dc[x]) * spec_gain;
-    sv[x] = gain2 * (std::max(0.f, dp[x] + dc[x]) * inv_g + 2 * read);
+    s[x] = (dp - dc) * spec_gain;
+    sv[x] = gain2 * (std::max(0.f, dp + dc) * inv_g + 2 * read);
     sw[x] = 1.f / sv[x];
     dw[x] = 1.f / (std::max(0.f, diffuse) * inv_g + read);
-    ds[x] = 0.5f * (dc[x] + dp[x]);
+    ds[x] = 0.5f * (dc + dp);
   }
 }
 
@@ -260,7 +279,7 @@ STAGE_ROW_LOOP void SaturationRow(const uint16_t* __restrict raw, uint16_t top, 
 }
 
 // The per-pixel steps take a row's pixels kLanes at a time: the diffuse solves run across them in vector lanes (below),
-// the lobe's lookup one pixel after another.
+// and so does the lobe's lookup, but for the interpolation of each pixel's table entry.
 constexpr int kLanes = 16;
 
 // What the diffuse steps read, for a row of a tile: the per-pair rows (np rows `stride` apart, from the tile's column
@@ -598,7 +617,7 @@ struct LobeRow {
 // Scratch of the lookup: the table's entry of each lane, entry-major (entry q of lane l at q * kLanes + l).
 struct LobeScratch {
   std::vector<float> entry;  // spec_stride * kLanes
-  std::vector<float> one;    // spec_stride: one lane's entry
+  std::vector<float> one;    // spec_stride rounded up to 16: one lane's entry
 };
 
 // a / |a| where |a| > 0 (else a), |a| as Eigen has it (x x + (y y + z z)). Without a branch, for the lanes' loops.
@@ -611,13 +630,6 @@ inline void Normalize(float& x, float& y, float& z) {
   z = positive ? z / n : z;
 }
 
-// The specular of the solved lanes of a batch (row0: the image's index of the tile row's column 0): the lobe's mean
-// direction and spread from its moments; per lane, its entry in the table (interpolated between the two roughness
-// samples whose spreads bracket it and the four cells around the mean direction); then across the lanes, the lobe's
-// intensity fitted to the images, its image per pair (lobe[k * kLanes + l], for the diffuse), the fit's residual, the
-// mirror direction and the normal, and the noise of each. Each step runs over the lanes in loops the compiler makes
-// vector code of, per lane the operations of the one-pixel-at-a-time code it replaces, so any target gives the same
-// bits.
 // The roughness search of LookUpLobesImpl (below) in AVX-512 lanes (GCC 12 does not vectorize its gathers): the same
 // tests, so the same samples.
 STAGE_AVX512 inline void SearchRoughness16(const float* spreads, int nj, const int* row, const int* first,
@@ -642,6 +654,13 @@ STAGE_AVX512 inline void SearchRoughness16(const float* spreads, int nj, const i
   _mm512_storeu_si512(k0, vk0);
 }
 
+// The specular of the solved lanes of a batch (row0: the image's index of the tile row's column 0): the lobe's mean
+// direction and spread from its moments; per lane, its entry in the table (interpolated between the two roughness
+// samples whose spreads bracket it and the four cells around the mean direction); then across the lanes, the lobe's
+// intensity fitted to the images, its image per pair (lobe[k * kLanes + l], for the diffuse), the fit's residual, the
+// mirror direction and the normal, and the noise of each. Each step runs over the lanes in loops the compiler makes
+// vector code of, per lane the operations of the one-pixel-at-a-time code it replaces, so any target gives the same
+// bits.
 template <bool kAvx512>
 __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int xb, int lanes, size_t row0,
                                                            LobeScratch* scratch, float* lobe, Batch* b) {
@@ -684,10 +703,10 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     ou[l] = std::min(1.f, std::max(0.f, x * 0.5f + 0.5f));
     ov[l] = std::min(1.f, std::max(0.f, y * 0.5f + 0.5f));
   }
-  // Per lane, in three passes so that the lanes' table reads overlap (one lane's chain of reads, cell to roughness to
-  // entry, waited on memory at each link): the cells, whose spreads are fetched; the roughness samples; then the
-  // entry, log roughness and its slope against the spread. (Fetching the entries of the four cells ahead as well
-  // was slower: 446 against 437 ms.)
+  // In passes over the lanes, so that the lanes' table reads overlap (one lane's chain of reads, cell to roughness to
+  // entry, waited on memory at each link): the cells, whose spreads are fetched; the roughness samples; the corner
+  // cells, whose entries at that roughness are fetched; then the entry, log roughness and its slope against the
+  // spread. (Fetching the four cells' entries before the roughness was known was slower: 446 against 437 ms.)
   const float fsize = static_cast<float>(t.s);
   int cell[kL];
   for (int l = 0; l < kL; ++l) {  // every lane (in vector lanes), then the fetches of the lanes with a lobe
@@ -855,6 +874,7 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
     for (int i = 0; i < 3; ++i) v[i][l] = a.toward[i];
   }
   if (a.rays != nullptr) {
+    static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float), "the rays are read as an array of floats");
     const float* ray = a.rays[row0 + xb].data();  // the lanes' rays, 3 floats each
     for (int l = 0; l < lanes; ++l) {
       for (int i = 0; i < 3; ++i) v[i][l] = -ray[3 * l + i];
@@ -913,10 +933,10 @@ STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0
   LookUpLobesImpl<true>(a, xb, lanes, row0, scratch, lobe, b);
 }
 
-// One thread's buffers for a tile: corrected rows (a ring of three per pattern), channel sums per pattern, the
-// per-pair rows, and the per-pixel scratch.
+// One thread's buffers for a tile: corrected rows (a ring of three per pattern), the per-pair rows, and the per-pixel
+// scratch.
 struct TileBuffers {
-  std::vector<float> rows, sums, kc, kd, rd, rs, rsv, rsw, rdw, rds;
+  std::vector<float> rows, kc, kd, rd, rs, rsv, rsw, rdw, rds;
   // Per column of the tile: the lobe's moments (kMoments rows), the noise of the first moment, and the own sums.
   std::vector<float> mu, v1, own_cross, own_both;
   std::vector<uint8_t> saturated;
@@ -930,7 +950,6 @@ struct TileBuffers {
 
   void Resize(int patterns, int np, int spec_stride, size_t stride) {
     rows.resize(static_cast<size_t>(patterns) * 3 * stride);
-    sums.resize(static_cast<size_t>(patterns) * stride);
     for (auto* v : {&kc, &kd}) v->resize(2 * stride);  // even rows, then odd ones
     for (auto* v : {&rd, &rs, &rsv, &rsw, &rdw, &rds}) v->resize(static_cast<size_t>(np) * stride);
     mu.resize(internal::kMoments * stride);
@@ -1144,8 +1163,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   // 8 neighbours, on a green site half of its 4 edge neighbours (a mono sensor: three times its value).
   const bool mono = cycle.mosaic.mono;
 
-  // Each band of rows is solved in column tiles, so that a tile's working set (the corrected rows of every pattern,
-  // their channel sums and the per-pair rows: about 0.9 KB a column) stays in the core's L2 cache between the row loops
+  // Each band of rows is solved in column tiles, so that a tile's working set (the corrected rows of every pattern
+  // and the per-pair rows: about 0.7 KB a column) stays in the core's L2 cache between the row loops
   // that write it and the per-pixel loop that reads it; whole rows (3.6 MB at 4096 columns) went out to memory in
   // between.
   const int tile = std::min(w, internal::FastTileColumns());
@@ -1173,9 +1192,8 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
     buffers.Resize(patterns, np, t.spec_stride, stride);
     buffers.spans.resize(static_cast<size_t>(y1 - y0));
     // Corrected rows of every pattern (with a column of halo either side), a ring of three (y - 1, y, y + 1: each row
-    // corrected once), and the channel sums of row y.
+    // corrected once).
     float* const rows = buffers.rows.data();
-    float* const sums = buffers.sums.data();
     float* const kc = buffers.kc.data();
     float* const kd = buffers.kd.data();
     float* const rd = buffers.rd.data();
@@ -1277,7 +1295,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                         tw_cols, dp);
           int lo = tw_cols, hi = 0;
           for (int x = 0; x < tw_cols; ++x) {
-            if (!(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal)) {  // as PairRow and DiffuseFirst
+            if (!(dc[x] - k_leak * (dp[x] - dc[x]) < da.min_signal)) {  // as ChannelSumPairRow and DiffuseFirst
               lo = std::min(lo, x);
               hi = x + 1;
             }
@@ -1322,15 +1340,13 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
           for (int p = 0; p < patterns; ++p) correct_into(p, r, row(p, r));
         }
         corrected_through = y + 1;
-        for (int p = 0; p < patterns; ++p) {
-          ChannelSumRow(row(p, y - 1) + 1 + lo, row(p, y) + 1 + lo, row(p, y + 1) + 1 + lo, kc_of(y) + lo,
-                        kd_of(y) + lo, mono ? 3.f : 1.f, span, &sums[static_cast<size_t>(p) * stride + lo]);
-        }
         for (int k = 0; k < np; ++k) {
           const size_t o = static_cast<size_t>(k) * stride + lo;
-          PairRow(&sums[static_cast<size_t>(tw.cross[static_cast<size_t>(k)]) * stride + lo],
-                  &sums[static_cast<size_t>(tw.parallel[static_cast<size_t>(k)]) * stride + lo], k_leak, spec_gain,
-                  1 / g, read_dn2, span, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
+          const int pc = tw.cross[static_cast<size_t>(k)], pp = tw.parallel[static_cast<size_t>(k)];
+          const PairRows rows3{.cross = {row(pc, y - 1) + 1 + lo, row(pc, y) + 1 + lo, row(pc, y + 1) + 1 + lo},
+                               .parallel = {row(pp, y - 1) + 1 + lo, row(pp, y) + 1 + lo, row(pp, y + 1) + 1 + lo}};
+          ChannelSumPairRow(rows3, kc_of(y) + lo, kd_of(y) + lo, mono ? 3.f : 1.f, k_leak, spec_gain, 1 / g, read_dn2,
+                            span, &rd[o], &rs[o], &rsv[o], &rsw[o], &rdw[o], &rds[o]);
         }
         // The row's linear sums over the pattern pairs: the lobe's moments, the first moment's noise, and the own
         // sums.

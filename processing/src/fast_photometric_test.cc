@@ -182,7 +182,8 @@ TEST(FastPhotometricTest, ThreadsAndReusedMapsDoNotChangeAnyMap) {
 }
 
 // The per-pixel diffuse steps and the lobe's roughness search across AVX-512 lanes give the bits the scalar code gives
-// (the same operations in the same order). Where the CPU has no AVX-512 both solves run the scalar code and the test checks nothing new.
+// (the same operations in the same order). Where the CPU has no AVX-512 both solves run the scalar code and the test
+// checks nothing new.
 TEST(FastPhotometricTest, VectorKernelsGiveTheScalarCodesBits) {
   const LightModel light = ShippedLight();
   const Sphere s = MakeSphere(light, 96, /*noisy=*/true, /*specular=*/0.03);
