@@ -1164,7 +1164,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   const bool mono = cycle.mosaic.mono;
 
   // Each band of rows is solved in column tiles, so that a tile's working set (the corrected rows of every pattern
-  // and the per-pair rows: about 0.7 KB a column) stays in the core's L2 cache between the row loops
+  // and the per-pair rows: about 1 KB a column) stays in the core's L2 cache between the row loops
   // that write it and the per-pixel loop that reads it; whole rows (3.6 MB at 4096 columns) went out to memory in
   // between.
   const int tile = std::min(w, internal::FastTileColumns());
