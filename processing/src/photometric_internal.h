@@ -157,20 +157,22 @@ inline double MinSignalDn(const PhotometricOptions& options, const PhotometricCa
 // Whether a fitted lobe counts as measured (PhotometricOptions): bright enough, its normal, intensity and log
 // roughness known well enough, and wider than 2 * kMinLobeAlpha (a narrower one only says "one unit").
 constexpr float kMinLobeAlpha = 0.02f;
+// The least float not below v, and the greatest not above it: a float x passes x >= v (x <= v) exactly when it
+// passes the comparison with that float, so that a double threshold can be tested in float.
+inline float FloatAtLeast(double v) {
+  const float f = static_cast<float>(v);
+  return f < v ? std::nextafter(f, HUGE_VALF) : f;
+}
+inline float FloatAtMost(double v) {
+  const float f = static_cast<float>(v);
+  return f > v ? std::nextafter(f, -HUGE_VALF) : f;
+}
+
 // The options' two thresholds (doubles) as floats that a float passes exactly when it passes the double, so that the
-// tests run in float (and in the fast solver's vector lanes): the least float not below the least SNR, the greatest
-// float not above the largest sigma.
+// tests run in float (and in the fast solver's vector lanes).
 struct LobeLimits {
   explicit LobeLimits(const PhotometricOptions& options)
       : min_snr(FloatAtLeast(options.min_specular_snr)), max_sigma_deg(FloatAtMost(options.max_specular_sigma_deg)) {}
-  static float FloatAtLeast(double v) {
-    const float f = static_cast<float>(v);
-    return f < v ? std::nextafter(f, HUGE_VALF) : f;
-  }
-  static float FloatAtMost(double v) {
-    const float f = static_cast<float>(v);
-    return f > v ? std::nextafter(f, -HUGE_VALF) : f;
-  }
   float min_snr;
   float max_sigma_deg;
 };
