@@ -120,7 +120,7 @@ int main(int argc, char** argv) {
     if (auto s = (*node)->device().Start(node->get()); !s.ok()) return stage::ReportFatal(kProgram, s);
   }
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
-                                    config.id(), (*node)->Info().role(), config.width(), config.height(),
+                                    config.id(), stage::CameraRoleName(config.role()), config.width(), config.height(),
                                     stage::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),
                                     config.exposure_us(), backend, loaded->source_name);
 

@@ -17,7 +17,10 @@ int main(int argc, char** argv) {
   stage::CommonFlags flags;
   bool check_only = false;
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
-  app.add_flag("--check-config", check_only, "Validate the rig file, print every error, and exit");
+  app.add_flag("--check-config", check_only,
+               "Validate the rig file as the controller runs it (every node with its address), print every error of "
+               "the file and of the timing verifier, and exit (0 ok, 2 the rig is not valid, 3 the schedule has "
+               "errors). A rig for the simulator: `stage-sim --check-config`");
   std::string take_root, world_address;
   app.add_option("--take-root", take_root,
                  "Where takes are recorded and catalogued (default: the rig's storage.root, relative to the working "
@@ -33,11 +36,24 @@ int main(int argc, char** argv) {
   std::vector<std::string> errors;
   auto loaded = stage::LoadRig(flags.config, options, &errors);
   if (check_only) {
-    for (const std::string& e : errors) std::cerr << e << "\n";
+    bool addresses = false;
+    for (const std::string& e : errors) {
+      std::cerr << e << "\n";
+      addresses = addresses || e.find(".address:") != std::string::npos;
+    }
+    if (addresses) {
+      std::cerr << "(nodes without an address: a rig that stage-sim runs gets them from stage-sim; check it as "
+                   "stage-sim runs it with `stage-sim --check-config --config "
+                << flags.config << "`)\n";
+    }
     if (!loaded.ok()) return 2;
-    std::cout << loaded->source_name << ": ok (" << loaded->rig.cameras_size() << " cameras, "
-              << loaded->rig.light_nodes_size() << " light nodes, " << loaded->rig.processing_workers_size()
-              << " processing workers)\n";
+    auto report = stage::timing::CheckTiming(*loaded, stage::v1::TimingQuery());
+    if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
+    std::cout << stage::timing::FormatViolations(*report, loaded->source_name);
+    if (report->errors() > 0) return 3;
+    std::cout << loaded->source_name << ": ok (" << stage::Plural(loaded->rig.cameras_size(), "camera") << ", "
+              << stage::Plural(loaded->rig.light_nodes_size(), "light node") << ", "
+              << stage::Plural(loaded->rig.processing_workers_size(), "processing worker") << ")\n";
     return 0;
   }
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());

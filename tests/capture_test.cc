@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
 #include "stage/common/rig.h"
+#include "stage/common/take_names.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "test_support.h"
@@ -95,7 +96,8 @@ TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
     v1::StageStatus status;
     while (reader->Read(&status)) {
       std::lock_guard<std::mutex> lock(states_mutex);
-      if (states.empty() || states.back() != status.session_state()) states.push_back(status.session_state());
+      const std::string state = SessionStateName(status.session_state());
+      if (states.empty() || states.back() != state) states.push_back(state);
     }
     (void)reader->Finish();
   });
@@ -157,7 +159,7 @@ TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
   ASSERT_TRUE(exit.has_value());
   EXPECT_EQ(exit->exit_code, 0) << ReadFile(run_dir_.path() + "/capture.err");
   nlohmann::json take = nlohmann::json::parse(ReadFile(run_dir_.path() + "/capture.out"));
-  EXPECT_EQ(take["outcome"], "COMPLETE");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE");
   EXPECT_EQ(take["total"]["expected"], Digits(3 * 456 + 24 * 12));
   EXPECT_EQ(take["total"]["stored"], Digits(3 * 456 + 24 * 12));
   // The gap: every high-speed slot of it, and each machine-vision camera's one slot per frame of it.
@@ -226,7 +228,7 @@ TEST_F(CaptureTest, AnArmedTakeStartsOnCaptureAndAnAbortKeepsWhatItRecorded) {
   EXPECT_EQ(exit->exit_code, 1);  // FAILED: aborted
   nlohmann::json take = nlohmann::json::parse(ReadFile(run_dir_.path() + "/capture.out"));
   EXPECT_EQ(take["take_id"], id);
-  EXPECT_EQ(take["outcome"], "FAILED");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_FAILED");
   EXPECT_EQ(take["aborted"], true);
   EXPECT_THAT(take["hint"].get<std::string>(), HasSubstr("aborted by the operator at slot " + Digits(a)));
   EXPECT_EQ(Sql(root.path(), "SELECT state FROM takes WHERE id='" + id + "'"), "aborted\n");

@@ -15,7 +15,7 @@ using ::testing::StartsWith;
 
 constexpr auto kTimeout = std::chrono::seconds(20);
 
-const std::vector<std::string> kPrograms = {"stage-controller", "camera-node", "light-node", "processing-worker",
+const std::vector<std::string> kPrograms = {"stage-controller", "camera-node", "light-node",   "processing-worker",
                                             "stagectl",         "stage-sim",   "stage-process"};
 
 // One line of stderr, exit code `code`, not killed by a signal, not timed out.
@@ -146,6 +146,60 @@ TEST(CliTest, StageSimBadCommandAndBinDir) {
                      "no-such-command-fastage: not found in PATH");
   ExpectOneLineError(RunCommand({"stage-sim", "--run-dir", dir.path(), "--bin-dir", dir.path()}, kTimeout), 2,
                      "camera-node is missing or not executable");
+}
+
+}  // namespace
+}  // namespace stage::testing
+
+namespace stage::testing {
+namespace {
+
+// A rig that stage-sim runs has no node addresses: the controller's check says so and points to stage-sim's check,
+// which passes it (every error of the rig file, the subject and the timing verifier, at once).
+TEST(CliTest, ASimulatorRigIsCheckedAsStageSimRunsIt) {
+  CommandResult controller = RunCommand({"stage-controller", "--check-config"}, kTimeout);
+  EXPECT_EQ(controller.exit.exit_code, 2) << controller.err;
+  EXPECT_THAT(controller.err, HasSubstr("cameras[0].address: required by stage-controller"));
+  EXPECT_THAT(controller.err, HasSubstr("`stage-sim --check-config --config builtin:fastage`"));
+  CommandResult sim = RunCommand({"stage-sim", "--check-config"}, std::chrono::seconds(120));
+  EXPECT_EQ(sim.exit.exit_code, 0) << sim.err;
+  EXPECT_THAT(sim.out, HasSubstr("ok as stage-sim runs it (27 cameras, 6 light nodes, 1 processing worker)"));
+  // With what-ifs, as `stage-sim --set` takes them: a schedule error is exit 3, with the report.
+  CommandResult broken =
+      RunCommand({"stage-sim", "--check-config", "--set", "cameras[hs-1].exposure_us=1090"}, std::chrono::seconds(120));
+  EXPECT_EQ(broken.exit.exit_code, 3) << broken.err;
+  EXPECT_THAT(broken.out, HasSubstr("steady-light"));
+}
+
+// A rig file with several errors: `stagectl timing check --rig` and `stage-sim --check-config` print every one.
+TEST(CliTest, TimingCheckOfARigFilePrintsEveryError) {
+  TempDir dir;
+  std::string text(ReadFile(std::string(FASTAGE_SOURCE_DIR) + "/common/rigs/fastage.yaml"));
+  ASSERT_FALSE(text.empty());
+  for (const char* from : {"exposure_us: 900", "slot_rate_hz: 912"}) {
+    const size_t at = text.find(from);
+    ASSERT_NE(at, std::string::npos) << from;
+    text.replace(at, std::string(from).size(), std::string(from).substr(0, std::string(from).find(':')) + ": -1");
+  }
+  const std::string rig = dir.Write("broken.yaml", text);
+  CommandResult check = RunCommand({"stagectl", "timing", "check", "--rig", rig}, kTimeout);
+  EXPECT_EQ(check.exit.exit_code, 2) << check.err;
+  EXPECT_THAT(check.err, HasSubstr("timing.slot_rate_hz"));
+  EXPECT_THAT(check.err, HasSubstr("exposure_us"));
+  EXPECT_THAT(check.err, ::testing::Not(HasSubstr("more error")));
+  CommandResult sim = RunCommand({"stage-sim", "--check-config", "--config", rig}, kTimeout);
+  EXPECT_EQ(sim.exit.exit_code, 2) << sim.err;
+  EXPECT_THAT(sim.err, HasSubstr("timing.slot_rate_hz"));
+  EXPECT_THAT(sim.err, HasSubstr("exposure_us"));
+}
+
+TEST(CliTest, TheMessageWithoutAStageSaysItsAdviceOnce) {
+  TempDir dir;
+  CommandResult r = RunCommand({"stagectl", "--endpoints", dir.path() + "/none.json", "status"}, kTimeout);
+  ExpectOneLineError(r, 2,
+                     "no controller address: pass --controller HOST:PORT or --config RIG, or start stage-sim "
+                     "(no stage-sim endpoint file at ");
+  EXPECT_EQ(r.err.find("start stage-sim"), r.err.rfind("start stage-sim")) << r.err;
 }
 
 }  // namespace

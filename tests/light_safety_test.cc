@@ -110,8 +110,8 @@ TEST_F(LightSafetyTest, TheEmergencyStopDarkensEveryLightBeforeItAnswersAndLatch
   ASSERT_TRUE(exit.has_value());
   EXPECT_NE(exit->exit_code, 0);
   nlohmann::json status = StatusJson();
-  EXPECT_EQ(status["estop"]["latched"], true);
-  EXPECT_EQ(status["estop"]["reason"], "emergency stop: test");
+  EXPECT_EQ(status["estop_latched"], true);
+  EXPECT_EQ(status["estop_reason"], "emergency stop: test");
   CommandResult refused = Stagectl({"capture", "--frames", "2"});
   EXPECT_EQ(refused.exit.exit_code, 2) << refused.err;
   EXPECT_THAT(refused.err, HasSubstr("the emergency stop is latched (emergency stop: test)"));
@@ -122,7 +122,7 @@ TEST_F(LightSafetyTest, TheEmergencyStopDarkensEveryLightBeforeItAnswersAndLatch
   CommandResult reset = Stagectl({"estop", "--reset"});
   EXPECT_EQ(reset.exit.exit_code, 0) << reset.err;
   EXPECT_THAT(reset.out, HasSubstr("6 of 6 light nodes out of blackout"));
-  EXPECT_EQ(StatusJson()["estop"]["latched"], false);
+  EXPECT_EQ(StatusJson()["estop_latched"], false);
   for (const v1::LightStats& stats : LightStats()) EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_IDLE);
   // A take arms and runs again (a real-time world on a busy machine may lose frames: COMPLETE or DEGRADED).
   CommandResult take = Stagectl({"capture", "--frames", "2"}, 120s);

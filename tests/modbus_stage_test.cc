@@ -27,8 +27,8 @@ using namespace std::chrono_literals;
 class ModbusStageTest : public SimulatedStageTest {
  protected:
   void StartModbusStage(const std::string& take_root, std::vector<std::string> extra = {}) {
-    std::vector<std::string> args = {"--take-root", take_root, "--set", "sim.render_scale=0.02", "--set",
-                                     "sim.modbus_fakes=true"};
+    std::vector<std::string> args = {"--take-root",           take_root, "--set",
+                                     "sim.render_scale=0.02", "--set",   "sim.modbus_fakes=true"};
     for (std::string& e : extra) {
       args.push_back("--set");
       args.push_back(std::move(e));
@@ -61,15 +61,15 @@ TEST_F(ModbusStageTest, ATakeLitByFakeLedBoardsIsCompleteAndAligned) {
   TempDir root;
   ASSERT_NO_FATAL_FAILURE(StartModbusStage(root.path()));
   EXPECT_EQ(LightBackends(), (std::map<std::string, std::string>{{"lights-modbus-1", "modbus"},
-                                                                  {"lights-modbus-2", "modbus"},
-                                                                  {"lights-modbus-3", "modbus"},
-                                                                  {"lights-modbus-4", "modbus"},
-                                                                  {"lights-gpio-1", "sim"},
-                                                                  {"lights-gpio-2", "sim"}}));
+                                                                 {"lights-modbus-2", "modbus"},
+                                                                 {"lights-modbus-3", "modbus"},
+                                                                 {"lights-modbus-4", "modbus"},
+                                                                 {"lights-gpio-1", "sim"},
+                                                                 {"lights-gpio-2", "sim"}}));
   CommandResult capture = Stagectl({"capture", "--frames", "8", "--json", "--no-ground-truth"});
   ASSERT_EQ(capture.exit.exit_code, 0) << capture.out << capture.err;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
-  EXPECT_EQ(take["outcome"], "COMPLETE");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE");
   EXPECT_EQ(take["hint"], "");
   ExpectAligned(take);
 }
@@ -80,13 +80,13 @@ TEST_F(ModbusStageTest, ABoardThatStopsAnsweringIsReportedAndTheTakeIsDegraded) 
   // world runs at the speed it renders 27 cameras: the 1 s take lasts about 25 s of wall time on the 2-core
   // development machine, so the light node's 250 ms status poll finds the board silent while armed. (A machine that
   // rendered the take in under a second would see the disarm fail instead.)
-  ASSERT_NO_FATAL_FAILURE(StartModbusStage(root.path(), {"sim.faults[0].target=lights-modbus-2",
-                                                         "sim.faults[0].board_silent_at_s=0.05",
-                                                         "sim.faults[0].board_silent_s=1"}));
+  ASSERT_NO_FATAL_FAILURE(
+      StartModbusStage(root.path(), {"sim.faults[0].target=lights-modbus-2", "sim.faults[0].board_silent_at_s=0.05",
+                                     "sim.faults[0].board_silent_s=1"}));
   CommandResult capture = Stagectl({"capture", "--frames", "24", "--json", "--no-ground-truth"});
   EXPECT_EQ(capture.exit.exit_code, 4) << capture.out << capture.err;  // DEGRADED
   const nlohmann::json take = nlohmann::json::parse(capture.out);
-  EXPECT_EQ(take["outcome"], "DEGRADED");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_DEGRADED");
   const std::string hint = take["hint"];
   EXPECT_THAT(hint, HasSubstr("lights-modbus-2"));
   EXPECT_THAT(hint, HasSubstr("board not answering: status poll (register 0x0110)"));

@@ -113,7 +113,7 @@ TEST_F(PtpNamespaces, NodeReportsPtp4lStateBesideTheClockMeasurement) {
   ASSERT_TRUE(std::filesystem::exists(port_file)) << ReadFile(dir_.path() + "/worker.log");
 
   controller::HealthMonitor monitor(
-      {{"worker-1", v1::NODE_KIND_PROCESSING_WORKER, "", ReadFile(port_file)}},
+      {{"worker-1", v1::NODE_KIND_PROCESSING_WORKER, v1::CAMERA_ROLE_UNSPECIFIED, ReadFile(port_file)}},
       {std::chrono::milliseconds(100), std::chrono::milliseconds(500), std::chrono::milliseconds(200), 4});
   monitor.Start();
   v1::ClockStatus clock;

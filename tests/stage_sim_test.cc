@@ -7,11 +7,14 @@
 #include <sys/stat.h>
 
 #include <chrono>
+#include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <thread>
 
+#include "absl/strings/str_format.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
@@ -41,18 +44,18 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
   nlohmann::json status = StatusJson();
   int cameras = 0, lights = 0, workers = 0;
   for (const auto& node : status["nodes"]) {
-    EXPECT_EQ(node["state"], "up") << node.dump();
-    if (node["kind"] == "camera") ++cameras;
-    if (node["kind"] == "light") ++lights;
-    if (node["kind"] == "processing-worker") ++workers;
+    EXPECT_EQ(node["state"], "NODE_STATE_UP") << node.dump();
+    if (node["kind"] == "NODE_KIND_CAMERA") ++cameras;
+    if (node["kind"] == "NODE_KIND_LIGHT") ++lights;
+    if (node["kind"] == "NODE_KIND_PROCESSING_WORKER") ++workers;
   }
   EXPECT_EQ(cameras, 27);
   EXPECT_EQ(lights, 6);
   EXPECT_EQ(workers, 1);
-  EXPECT_EQ(status["summary"]["nodes_up"], status["summary"]["nodes_total"]);
+  EXPECT_EQ(status["nodes_up"], status["nodes_total"]);
   // The controller compiled and verified the live rig's schedule.
-  EXPECT_EQ(status["timing"]["errors"], 0);
-  EXPECT_EQ(status["timing"]["schedule_hash"].get<std::string>().size(), 16u);
+  EXPECT_EQ(status["timing_errors"], 0);
+  EXPECT_EQ(status["schedule_hash"].get<std::string>().size(), 16u);
 
   // The live rig's timing, what-if included, through the controller.
   CommandResult check = RunCommand({"stagectl", "--endpoints", run_dir_.path() + "/endpoints.json", "timing", "check",
@@ -306,13 +309,13 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   ASSERT_EQ(r.exit.exit_code, 0) << r.err << r.out;
   EXPECT_THAT(r.err, ::testing::HasSubstr("session: capturing"));
   nlohmann::json take = nlohmann::json::parse(r.out);
-  EXPECT_EQ(take["outcome"], "COMPLETE");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE");
   EXPECT_EQ(take["frames"], "24");  // protobuf's JSON writes 64-bit integers as strings
   EXPECT_EQ(take["total"]["expected"], "3312");
   EXPECT_EQ(take["total"]["stored"], "3312");
   ASSERT_EQ(take["cameras"].size(), 27u);
   for (const auto& cam : take["cameras"]) {
-    const bool hs = cam["role"] == "high-speed";
+    const bool hs = cam["role"] == "CAMERA_ROLE_HIGH_SPEED";
     EXPECT_EQ(cam["counts"]["expected"], hs ? "912" : "24") << cam.dump();
     EXPECT_EQ(cam["counts"]["stored"], cam["counts"]["expected"]) << cam.dump();
   }
@@ -337,7 +340,7 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   for (const auto& cam : take["cameras"]) {
     const std::string file = dir + "/cameras/" + cam["camera_id"].get<std::string>() + ".h5";
     const std::vector<int64_t> slots = ReadH5Column(file, "/slot"), pattern = ReadH5Column(file, "/pattern");
-    const bool hs = cam["role"] == "high-speed";
+    const bool hs = cam["role"] == "CAMERA_ROLE_HIGH_SPEED";
     ASSERT_EQ(slots.size(), hs ? 912u : 24u) << file;
     ASSERT_EQ(pattern.size(), slots.size()) << file;
     for (size_t i = 0; i < slots.size(); ++i) {
@@ -394,7 +397,7 @@ TEST_F(StageSimTest, ATakeWithDroppedFramesIsDegradedWithExactlyThoseSlotsInTheL
   ASSERT_FALSE(r.timed_out);
   EXPECT_EQ(r.exit.exit_code, 4) << r.err << r.out;  // DEGRADED
   nlohmann::json take = nlohmann::json::parse(r.out);
-  EXPECT_EQ(take["outcome"], "DEGRADED");
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_DEGRADED");
   EXPECT_EQ(take["total"]["expected"], std::to_string(3 * 456 + 24 * 12));
   EXPECT_EQ(take["total"]["stored"], std::to_string(3 * 456 + 24 * 12 - 3));
   EXPECT_THAT(take["hint"].get<std::string>(), ::testing::HasSubstr("hs-2 lost 3 (3 camera dropped)"));
@@ -409,6 +412,56 @@ TEST_F(StageSimTest, ATakeWithDroppedFramesIsDegradedWithExactlyThoseSlotsInTheL
                  std::chrono::seconds(30));
   EXPECT_THAT(dump.out, ::testing::HasSubstr("SIMPLE { ( 453 ) / ( H5S_UNLIMITED ) }"));
   EXPECT_THAT(dump.out, ::testing::HasSubstr("98, 99, 102, 103"));
+}
+
+}  // namespace
+}  // namespace stage::testing
+
+namespace stage::testing {
+namespace {
+
+// A small closed head-sized mesh with texture coordinates (a UV sphere, mm) and a 2 x 2 albedo image (binary PPM), as
+// a user's head asset: files relative to the rig file that names them.
+void WriteTinyHead(const std::string& dir) {
+  std::filesystem::create_directories(dir);
+  std::string obj;
+  constexpr int kRings = 12, kSegments = 24;
+  constexpr double kRadius = 90;
+  for (int r = 0; r <= kRings; ++r) {
+    for (int s = 0; s <= kSegments; ++s) {
+      const double theta = M_PI * r / kRings, phi = 2 * M_PI * s / kSegments;
+      obj += absl::StrFormat("v %.4f %.4f %.4f\nvt %.5f %.5f\n", kRadius * std::sin(theta) * std::sin(phi),
+                             kRadius * std::cos(theta), kRadius * std::sin(theta) * std::cos(phi),
+                             static_cast<double>(s) / kSegments, 1.0 - static_cast<double>(r) / kRings);
+    }
+  }
+  auto at = [](int r, int s) { return r * (kSegments + 1) + s + 1; };
+  for (int r = 0; r < kRings; ++r) {
+    for (int s = 0; s < kSegments; ++s) {
+      const int a = at(r, s), b = at(r + 1, s), c = at(r + 1, s + 1), d = at(r, s + 1);
+      obj += absl::StrFormat("f %d/%d %d/%d %d/%d\nf %d/%d %d/%d %d/%d\n", a, a, b, b, c, c, a, a, c, c, d, d);
+    }
+  }
+  std::ofstream(dir + "/neutral.obj") << obj;
+  std::ofstream(dir + "/albedo.ppm", std::ios::binary)
+      << "P6\n2 2\n255\n"
+      << std::string("\xc8\x78\x5a\xc8\x78\x5a\xc8\x78\x5a\xc8\x78\x5a", 12);
+}
+
+// A user's head named by paths relative to the rig file, the rig run with --set (the nodes then read the run
+// directory's rig-set.json): every node finds the files where the rig file pointed, and a take records.
+TEST_F(StageSimTest, AHeadAssetRelativeToTheRigFileIsFoundUnderSet) {
+  TempDir rigs;
+  WriteTinyHead(rigs.path() + "/heads/tiny");
+  std::string text = ReadFile(std::string(FASTAGE_SOURCE_DIR) + "/common/rigs/fastage.yaml");
+  ASSERT_FALSE(text.empty());
+  text += "\nsim:\n  subject:\n    asset: {neutral_obj: heads/tiny/neutral.obj, albedo: heads/tiny/albedo.ppm}\n";
+  const std::string rig = rigs.Write("my-rig.yaml", text);
+  TempDir root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--config", rig, "--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  CommandResult take = Stagectl({"capture", "--frames", "1", "--json"});
+  ASSERT_EQ(take.exit.exit_code, 0) << take.err;
+  EXPECT_EQ(nlohmann::json::parse(take.out)["outcome"], "TAKE_OUTCOME_COMPLETE");
 }
 
 }  // namespace

@@ -80,8 +80,7 @@ CameraNode::CameraNode(v1::CameraConfig config, std::unique_ptr<CameraDevice> de
 CameraNode::~CameraNode() { (void)device_->Stop(); }
 
 v1::NodeInfo CameraNode::Info() const {
-  const std::string role = CameraRoleName(config_.role());
-  return MakeNodeInfo(config_.id(), v1::NODE_KIND_CAMERA, role, device_->Describe().backend, rig_hash_);
+  return MakeNodeInfo(config_.id(), v1::NODE_KIND_CAMERA, config_.role(), device_->Describe().backend, rig_hash_);
 }
 
 v1::CameraStats CameraNode::Stats() const {
@@ -96,6 +95,10 @@ v1::CameraStats CameraNode::Stats() const {
   stats.set_reconnects(d.reconnects);
   stats.set_link_up(d.link_up);
   stats.set_link_detail(d.link_detail);
+  const DeviceBacklog backlog = device_->Backlog();
+  stats.set_frames_owed(backlog.frames_owed);
+  stats.set_device_work(backlog.work_done);
+  stats.set_device_activity(backlog.activity);
   std::lock_guard<std::mutex> lock(take_mutex_);
   // The armed take, or the one finishing (a burst camera writing what it held).
   const std::shared_ptr<TakeRecorder>& r = recorder_ ? recorder_ : finishing_;
@@ -132,6 +135,13 @@ void CameraNode::OnFrameLost() {
 
 absl::StatusOr<v1::ArmCameraResponse> CameraNode::Arm(const v1::ArmCameraRequest& request) {
   std::lock_guard<std::mutex> lock(take_mutex_);
+  if (recorder_ && take_id_ == request.take_id() && !request.take_id().empty()) {
+    // Asked again for the take it is armed for (the controller did not hear the first answer): the same answer.
+    v1::ArmCameraResponse response;
+    response.set_expected_frames(recorder_->expected_frames());
+    response.set_path(recorder_->path());
+    return response;
+  }
   if (recorder_) {
     return absl::FailedPreconditionError(
         absl::StrCat("camera \"", config_.id(), "\": take ", take_id_, " is armed; finish it first"));
@@ -298,6 +308,9 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
     const DeviceStats d = device_->Stats();
     const int64_t outages = static_cast<int64_t>(d.link_losses - link_losses_at_arm_) + (link_down_at_arm_ ? 1 : 0);
     recorder->ReportLinkOutages(std::max<int64_t>(0, outages), d.link_detail);
+    // Frames the camera was triggered for and is still producing: exposed, not delivered when the take ended.
+    const DeviceBacklog backlog = device_->Backlog();
+    recorder->ReportUndelivered(backlog.frames_owed, backlog.activity);
   }
   const TakeRecording rec = recorder->Finish([&](int64_t done, int64_t total) {
     if (done == total || done % 200 == 0) {
@@ -311,7 +324,7 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
     v1::SlotRecord* r = report.add_slots();
     r->set_slot(o.slot);
     r->set_pattern(o.pattern);
-    r->set_reason(static_cast<int32_t>(o.reason));
+    r->set_reason(storage::ToProto(o.reason));
     if (o.frame_id) r->set_frame_id(*o.frame_id);
     r->set_detail(o.detail);
   }

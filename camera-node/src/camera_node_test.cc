@@ -61,7 +61,15 @@ TEST(CameraNodeTest, ArmRecordsTheTakesFramesAndFinishAccountsForEverySlot) {
   auto armed = (*node)->Arm(arm);
   ASSERT_TRUE(armed.ok()) << armed.status();
   EXPECT_EQ(armed->expected_frames(), 2);
-  EXPECT_TRUE(absl::IsFailedPrecondition((*node)->Arm(arm).status()));
+  // Asked again for the same take (a controller that did not hear the answer), it answers the same; another take is
+  // refused while this one is armed.
+  auto again = (*node)->Arm(arm);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->expected_frames(), 2);
+  EXPECT_EQ(again->path(), armed->path());
+  v1::ArmCameraRequest other = arm;
+  other.set_take_id("fastage-20261123-0002");
+  EXPECT_TRUE(absl::IsFailedPrecondition((*node)->Arm(other).status()));
   const auto base = timing::TimeBase::Create(912);
   for (int64_t slot : {19, 20, 57}) {
     auto frame = std::make_shared<Frame>();
@@ -105,7 +113,7 @@ TEST(CameraNodeTest, InfoAndStats) {
   v1::NodeInfo info = (*node)->Info();
   EXPECT_EQ(info.id(), "mv-01");
   EXPECT_EQ(info.kind(), v1::NODE_KIND_CAMERA);
-  EXPECT_EQ(info.role(), "machine-vision");
+  EXPECT_EQ(info.camera_role(), v1::CAMERA_ROLE_MACHINE_VISION);
   EXPECT_EQ(info.backend(), "sim");
   EXPECT_EQ(info.rig_hash(), "abc");
   EXPECT_GT(info.pid(), 0);

@@ -288,6 +288,12 @@ void TakeRecorder::ReportLinkOutages(int64_t outages, std::string detail) {
   outage_detail_ = std::move(detail);
 }
 
+void TakeRecorder::ReportUndelivered(int64_t frames, std::string activity) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  undelivered_ = std::max<int64_t>(0, frames);
+  undelivered_activity_ = std::move(activity);
+}
+
 TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& progress) {
   if (plan_.burst) {
     // The take is over: offload what the camera held, in slot order.
@@ -329,10 +335,11 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   }
   int64_t marked_exposed = 0;  // slots marked exposed and not delivered so far
   auto account = [&](size_t first, size_t last, int64_t exposed, bool rest_never_exposed, const std::string& how,
-                     const std::string& where, const std::string& outage = std::string()) {
+                     const std::string& where, const std::string& outage = std::string(), int64_t owed = 0) {
     // Expected slots [first, last) (indexes) are silent; the first `exposed` of them were exposed (`how` says how that
-    // is known) and the rest never were if `rest_never_exposed`, else nothing is known of them. In an outage of the
-    // camera's link (its note) they are all the outage's: the frame counter goes on across it.
+    // is known), the `owed` after those the camera was still producing, and the rest never were exposed if
+    // `rest_never_exposed`, else nothing is known of them. In an outage of the camera's link (its note) they are all
+    // the outage's: the frame counter goes on across it.
     for (size_t i = first; i < last; ++i) {
       SlotOutcome& out = rec_.slots[i];
       if (matched_.count(out.slot)) continue;
@@ -344,6 +351,11 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
         out.detail = absl::StrCat("exposed (", how, ") but not delivered", where);
         --exposed;
         ++marked_exposed;
+      } else if (owed > 0) {
+        out.reason = LossReason::kNotDelivered;
+        out.detail = absl::StrCat("triggered; the camera was still producing it when the take ended",
+                                  undelivered_activity_.empty() ? "" : absl::StrCat(" (", undelivered_activity_, ")"));
+        --owed;
       } else {
         out.reason = LossReason::kTriggerMissed;
         out.detail = rest_never_exposed ? absl::StrCat("never exposed", where) : absl::StrCat("no frame", where);
@@ -358,7 +370,8 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
   // The link was down after the last frame: as the take ended, or until a frame that came after the take.
   const std::string tail_outage = outages_reported_ > outage_notes_ ? outage_detail_ : pending_outage_;
   if (delivered.empty()) {
-    account(0, rec_.slots.size(), tail_exposed(), false, kLeaderless, " (the camera delivered nothing)", tail_outage);
+    account(0, rec_.slots.size(), tail_exposed(), false, kLeaderless, " (the camera delivered nothing)", tail_outage,
+            undelivered_);
     AddPausedSlots();
     return rec_;
   }
@@ -380,7 +393,7 @@ TakeRecording TakeRecorder::Finish(const std::function<void(int64_t, int64_t)>& 
     from = at + 1;
   }
   account(from, rec_.slots.size(), tail_exposed(), false, kLeaderless, " after the last frame the camera delivered",
-          tail_outage);
+          tail_outage, undelivered_);
   AddPausedSlots();
   return rec_;
 }

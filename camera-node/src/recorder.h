@@ -136,6 +136,10 @@ class TakeRecorder final : public FrameSink {
   // by a frame (Frame::after_outage) reach the end of the take: Finish gives the slots after the last frame as "link
   // down". Before Finish.
   void ReportLinkOutages(int64_t outages, std::string detail);
+  // The camera still owes `frames` it was triggered for (reading them out, rendering) as the take ends (`activity`:
+  // what it was doing). They are the slots right after its last delivered frame: Finish gives them as "not delivered",
+  // never as triggers missed. Before Finish.
+  void ReportUndelivered(int64_t frames, std::string activity);
 
  private:
   struct Tagged {
@@ -173,9 +177,11 @@ class TakeRecorder final : public FrameSink {
   std::string pending_outage_;
   std::map<int64_t, std::string> outage_before_;
   int64_t outages_reported_ = 0;
-  int64_t outage_notes_ = 0;  // frames with after_outage seen
+  int64_t outage_notes_ = 0;       // frames with after_outage seen
   int64_t frames_without_id_ = 0;  // OnFrameLost calls during the take
   std::string outage_detail_;
+  int64_t undelivered_ = 0;  // ReportUndelivered
+  std::string undelivered_activity_;
 };
 
 }  // namespace stage::camera

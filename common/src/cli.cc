@@ -93,6 +93,8 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
   return 0;
 }
 
+std::string Plural(int64_t n, absl::string_view noun) { return absl::StrCat(n, " ", noun, n == 1 ? "" : "s"); }
+
 absl::Status ParseFrameRange(absl::string_view flag, absl::string_view text, int64_t* first, int64_t* last) {
   const size_t colon = text.find(':');
   bool ok = absl::SimpleAtoi(text.substr(0, colon), first) && *first >= 0;

@@ -147,8 +147,7 @@ bool MeshBvh::Trace(const Eigen::Vector3f& o, const Eigen::Vector3f& d, float tm
   return found;
 }
 
-bool MeshBvh::Nearest(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, float tmax,
-                      MeshHit* hit) const {
+bool MeshBvh::Nearest(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, float tmax, MeshHit* hit) const {
   return Trace(origin, direction, tmax, false, hit);
 }
 
@@ -168,6 +167,7 @@ absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
   std::map<std::pair<int, int>, int32_t> vertex_of;  // (v, vt) -> mesh vertex
   std::string line;
   int line_no = 0;
+  int32_t material = -1;  // the current usemtl's index
   auto bad = [&](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat(path, ":", line_no, ": ", what));
   };
@@ -184,6 +184,12 @@ absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
       Eigen::Vector2f t;
       if (!num(1, &t.x()) || !num(2, &t.y())) return bad("a texture coordinate needs two numbers");
       vt.push_back(t);
+    } else if (f[0] == "usemtl" && f.size() > 1) {
+      auto found = std::find(mesh.material_names.begin(), mesh.material_names.end(), f[1]);
+      material = static_cast<int32_t>(found - mesh.material_names.begin());
+      if (found == mesh.material_names.end()) mesh.material_names.push_back(f[1]);
+    } else if (f[0] == "mtllib" && f.size() > 1) {
+      mesh.material_libraries.push_back(f[1]);
     } else if (f[0] == "f") {
       if (f.size() < 4) return bad("a face needs at least three vertices");
       std::vector<int32_t> corners;
@@ -208,11 +214,14 @@ absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
         }
         corners.push_back(it->second);
       }
-      for (size_t i = 1; i + 1 < corners.size(); ++i)
+      for (size_t i = 1; i + 1 < corners.size(); ++i) {
         mesh.triangles.push_back({corners[0], corners[i], corners[i + 1]});
+        mesh.materials.push_back(material);
+      }
     }
   }
   if (mesh.triangles.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no faces"));
+  if (mesh.material_names.empty()) mesh.materials.clear();
   return mesh;
 }
 

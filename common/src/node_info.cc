@@ -21,12 +21,12 @@ std::string HostName() {
 
 }  // namespace
 
-v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::string& role, const std::string& backend,
+v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, v1::CameraRole role, const std::string& backend,
                           const std::string& rig_hash) {
   v1::NodeInfo info;
   info.set_id(id);
   info.set_kind(kind);
-  info.set_role(role);
+  info.set_camera_role(role);
   info.set_version(std::string(kVersion));
   info.set_backend(backend);
   info.set_uptime_ns(

@@ -203,8 +203,8 @@ void CheckLightNode(Checker& check, const std::string& p, const LightNodeConfig&
         check.InRange(p + ".gpiod.lines_per_channel", per, 1, 16);
         if (static_cast<uint32_t>(n.gpiod().channel_lines_size()) != n.channel_count() * per) {
           check.Add(p + ".gpiod.channel_lines",
-                    absl::StrCat("has ", n.gpiod().channel_lines_size(), " lines; channel_count x lines_per_channel is ",
-                                 n.channel_count() * per));
+                    absl::StrCat("has ", n.gpiod().channel_lines_size(),
+                                 " lines; channel_count x lines_per_channel is ", n.channel_count() * per));
         }
         std::set<uint32_t> lines(n.gpiod().channel_lines().begin(), n.gpiod().channel_lines().end());
         if (lines.size() != static_cast<size_t>(n.gpiod().channel_lines_size())) {
@@ -322,6 +322,7 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!controller->has_health_timeout_ms()) controller->set_health_timeout_ms(500);
   if (!controller->has_clock_sync_interval_ms()) controller->set_clock_sync_interval_ms(1000);
   if (!controller->has_clock_sync_burst()) controller->set_clock_sync_burst(8);
+  if (!controller->has_take_stall_s()) controller->set_take_stall_s(120);
   if (controller->node_failure_policy() == v1::NODE_FAILURE_POLICY_UNSPECIFIED) {
     controller->set_node_failure_policy(v1::NODE_FAILURE_POLICY_CONTINUE_DEGRADED);
   }
@@ -383,13 +384,19 @@ void ApplyRigDefaults(RigConfig* rig) {
     const bool hs = IsRoleHighSpeed(c);
     if (c.backend().empty()) c.set_backend("sim");
     if (c.pixel_format() == v1::PIXEL_FORMAT_UNSPECIFIED) c.set_pixel_format(v1::PIXEL_FORMAT_BAYER_RG8);
-    if (!c.has_frame_rate_hz()) c.set_frame_rate_hz(hs ? 912 : 24);
     if (!c.has_gain_db()) c.set_gain_db(0);
     if (!c.has_readout_us()) c.set_readout_us(0);
     auto* t = c.mutable_trigger();
     if (t->source() == v1::TRIGGER_SOURCE_UNSPECIFIED) t->set_source(v1::TRIGGER_SOURCE_HARDWARE_LINE);
     if (!t->has_divider() && (hs || fastage38)) t->set_divider(hs ? 1 : kFastage38Length);
     if (!t->has_slot_phase() && (hs || fastage38)) t->set_slot_phase(hs ? 0 : kFastage38ParallelFullOn);
+    if (!c.has_frame_rate_hz()) {
+      // The rate the schedule triggers it at: the slot clock divided. Free-running, a machine-vision camera's 24 fps.
+      const bool triggered = t->source() != v1::TRIGGER_SOURCE_FREE_RUN && t->has_divider() && t->divider() >= 1;
+      c.set_frame_rate_hz(triggered ? timing->slot_rate_hz() / static_cast<double>(t->divider())
+                          : hs      ? timing->slot_rate_hz()
+                                    : 24);
+    }
     if (c.analyzer() == v1::ANALYZER_UNSPECIFIED) c.set_analyzer(v1::ANALYZER_LINEAR);
     if (c.link() == v1::LINK_KIND_UNSPECIFIED) c.set_link(hs ? v1::LINK_KIND_ON_CAMERA_RAM : v1::LINK_KIND_GIGE_10);
     if (!c.has_ram_gib()) c.set_ram_gib(0);
@@ -453,6 +460,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("controller.health_timeout_ms", controller.health_timeout_ms(), 10, 60000);
   check.InRange("controller.clock_sync_interval_ms", controller.clock_sync_interval_ms(), 50, 600000);
   check.InRange("controller.clock_sync_burst", controller.clock_sync_burst(), 1, 64);
+  check.InRange("controller.take_stall_s", controller.take_stall_s(), 0, 86400);
 
   const auto& timing = rig.timing();
   check.InRange("timing.slot_rate_hz", timing.slot_rate_hz(), 1, 100000);
@@ -561,7 +569,8 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
         in_addr a{};
         if (inet_pton(AF_INET, c.device().c_str(), &a) != 1) {
           check.Add(absl::StrCat("cameras[", c.id(), "].device"),
-                    absl::StrCat("\"", c.device(), "\" is not an IPv4 address; with sim.gige_fakes the fake camera "
+                    absl::StrCat("\"", c.device(),
+                                 "\" is not an IPv4 address; with sim.gige_fakes the fake camera "
                                  "listens at its camera's device address (e.g. 127.0.0.11)"));
         } else if (auto [it, fresh] = by_address.emplace(c.device(), c.id()); !fresh) {
           check.Add(absl::StrCat("cameras[", c.id(), "].device"),
@@ -598,7 +607,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       if (f.has_crash_at_s()) check.InRange(p + ".crash_at_s", f.crash_at_s(), 0, 1e6);
       if (f.has_packet_loss() || f.has_link_down_at_s() || f.has_link_down_s()) {
         const auto* c = camera ? &*std::find_if(rig.cameras().begin(), rig.cameras().end(),
-                                                 [&](const v1::CameraConfig& cc) { return cc.id() == f.target(); })
+                                                [&](const v1::CameraConfig& cc) { return cc.id() == f.target(); })
                                : nullptr;
         if (c == nullptr || !rig.sim().gige_fakes() || c->backend() != "aravis") {
           check.Add(p, "packet_loss and link_down apply to a fake GigE Vision camera (sim.gige_fakes, backend aravis)");
@@ -612,7 +621,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       }
       if (f.has_board_silent_at_s() || f.has_board_silent_s()) {
         const auto* n = light ? &*std::find_if(rig.light_nodes().begin(), rig.light_nodes().end(),
-                                                [&](const v1::LightNodeConfig& nn) { return nn.id() == f.target(); })
+                                               [&](const v1::LightNodeConfig& nn) { return nn.id() == f.target(); })
                               : nullptr;
         if (n == nullptr || !rig.sim().modbus_fakes() || n->backend() != v1::LIGHT_BACKEND_MODBUS) {
           check.Add(p, "board_silent applies to a fake LED board (sim.modbus_fakes, a light node with backend modbus)");
@@ -625,8 +634,9 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
         const auto& n = *std::find_if(rig.light_nodes().begin(), rig.light_nodes().end(),
                                       [&](const v1::LightNodeConfig& nn) { return nn.id() == f.target(); });
         if (n.backend() == v1::LIGHT_BACKEND_MODBUS) {
-          check.Add(p + ".crash_at_s", "a light node on a fake LED board (sim.modbus_fakes) does not crash with the "
-                                       "world; use board_silent_at_s, or stop its process");
+          check.Add(p + ".crash_at_s",
+                    "a light node on a fake LED board (sim.modbus_fakes) does not crash with the "
+                    "world; use board_silent_at_s, or stop its process");
         }
       }
       if (f.has_board_silent_at_s()) check.InRange(p + ".board_silent_at_s", f.board_silent_at_s(), 0, 1e6);
@@ -703,6 +713,7 @@ absl::StatusOr<LoadedRig> LoadRigFromText(absl::string_view text, absl::string_v
     if (all_errors != nullptr) all_errors->push_back(std::string(parsed.message()));
     return parsed;
   }
+  loaded.as_written = loaded.rig;
   ApplyRigDefaults(&loaded.rig);
   std::vector<RigError> errors = ValidateRig(loaded.rig, base_dir, options);
   if (errors.empty()) return loaded;
@@ -817,6 +828,14 @@ absl::StatusOr<const v1::LightNodeConfig*> FindLightNode(const LoadedRig& loaded
 
 absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const LoadedRig& loaded, absl::string_view id) {
   return FindNode(loaded.rig.processing_workers(), loaded, id, "processing worker");
+}
+
+std::string DefaultCacheDir() {
+  if (const char* dir = std::getenv("FASTAGE_CACHE_DIR"); dir != nullptr && *dir != '\0') return dir;
+  if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && *xdg != '\0') {
+    return absl::StrCat(xdg, "/fastage/cache");
+  }
+  return absl::StrCat("/tmp/fastage-", getuid(), "/cache");
 }
 
 std::string DefaultSimRunDir() {

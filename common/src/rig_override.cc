@@ -184,10 +184,15 @@ absl::Status ApplyRigOverride(v1::RigConfig* rig, absl::string_view assignment) 
 absl::StatusOr<LoadedRig> ApplyRigOverrides(const LoadedRig& loaded, const std::vector<std::string>& assignments) {
   if (assignments.empty()) return loaded;
   LoadedRig out = loaded;
+  // On the rig as written: the defaults are filled after the overrides, so those that follow a field follow its new
+  // value.
+  v1::RigConfig written = loaded.as_written.value_or(loaded.rig);
   for (const std::string& a : assignments) {
-    absl::Status s = ApplyRigOverride(&out.rig, a);
+    absl::Status s = ApplyRigOverride(&written, a);
     if (!s.ok()) return s;
   }
+  out.as_written = written;
+  out.rig = std::move(written);
   ApplyRigDefaults(&out.rig);
   std::vector<RigError> errors = ValidateRig(out.rig, out.base_dir);
   if (!errors.empty()) {

@@ -13,16 +13,16 @@
 namespace stage::light {
 
 absl::StatusOr<std::unique_ptr<LightNode>> LightNode::Create(const v1::LightNodeConfig& config,
-                                                             std::unique_ptr<LightDriver> driver,
-                                                             std::string rig_hash, LightNodeOptions options) {
+                                                             std::unique_ptr<LightDriver> driver, std::string rig_hash,
+                                                             LightNodeOptions options) {
   if (driver->Describe().channel_count != config.channel_count()) {
     return absl::FailedPreconditionError(absl::StrCat("light node \"", config.id(), "\": driver has ",
                                                       driver->Describe().channel_count,
                                                       " channels, rig says channel_count ", config.channel_count()));
   }
   if (!(options.slot_rate_hz > 0) || !(options.take_length_s > 0) || options.heartbeat_timeout_ms < 1) {
-    return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(),
-                                                   "\": slot rate, take length and heartbeat timeout must be > 0"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("light node \"", config.id(), "\": slot rate, take length and heartbeat timeout must be > 0"));
   }
   return std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash), options));
 }
@@ -46,7 +46,8 @@ LightNode::~LightNode() {
 }
 
 v1::NodeInfo LightNode::Info() const {
-  return MakeNodeInfo(config_.id(), v1::NODE_KIND_LIGHT, "", driver_->Describe().backend, rig_hash_);
+  return MakeNodeInfo(config_.id(), v1::NODE_KIND_LIGHT, v1::CAMERA_ROLE_UNSPECIFIED, driver_->Describe().backend,
+                      rig_hash_);
 }
 
 v1::LightStats LightNode::Stats() const {
@@ -79,7 +80,8 @@ v1::LightStats LightNode::Stats() const {
   }
   std::lock_guard<std::mutex> lock(mutex_);
   if (state.mode == DriverMode::kBlackout) {
-    stats.set_blackout_reason(blackout_reason_.empty() ? "blackout by the board itself (see faults)" : blackout_reason_);
+    stats.set_blackout_reason(blackout_reason_.empty() ? "blackout by the board itself (see faults)"
+                                                       : blackout_reason_);
   }
   return stats;
 }
@@ -159,9 +161,9 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
     std::lock_guard<std::mutex> lock(mutex_);
     watching_ = true;
     take_id_ = request.take_id();
-    last_heartbeat_ = std::chrono::steady_clock::now();
-    heartbeat_timeout_ = std::chrono::milliseconds(
-        request.heartbeat_timeout_ms() > 0 ? request.heartbeat_timeout_ms() : options_.heartbeat_timeout_ms);
+    heartbeat_ = HeartbeatWatch(std::chrono::milliseconds(
+        request.heartbeat_timeout_ms() > 0 ? request.heartbeat_timeout_ms() : options_.heartbeat_timeout_ms));
+    heartbeat_.Beat(std::chrono::steady_clock::now());
   }
   wake_.notify_all();
   Logger("light.node")
@@ -206,7 +208,7 @@ absl::Status LightNode::ResetBlackout() {
 
 void LightNode::Heartbeat(const std::string& take_id) {
   std::lock_guard<std::mutex> lock(mutex_);
-  last_heartbeat_ = std::chrono::steady_clock::now();
+  heartbeat_.Beat(std::chrono::steady_clock::now());
 }
 
 uint64_t LightNode::watchdog_trips() const {
@@ -221,14 +223,13 @@ void LightNode::Watchdog() {
       wake_.wait(lock, [this] { return stopping_ || watching_; });
       continue;
     }
-    const auto deadline = last_heartbeat_ + heartbeat_timeout_;
-    if (std::chrono::steady_clock::now() < deadline) {
-      wake_.wait_until(lock, deadline);
+    const auto now = std::chrono::steady_clock::now();
+    if (!heartbeat_.Expired(now)) {
+      wake_.wait_until(lock, heartbeat_.NextLook(now));
       continue;
     }
-    const std::string reason =
-        absl::StrFormat("controller heartbeat lost: none for %d ms while armed for take %s", heartbeat_timeout_.count(),
-                        take_id_);
+    const std::string reason = absl::StrFormat("controller heartbeat lost: none for %d ms while armed for take %s",
+                                               heartbeat_.timeout().count(), take_id_);
     watching_ = false;
     ++watchdog_trips_;
     lock.unlock();

@@ -11,6 +11,7 @@
 #include <thread>
 
 #include "absl/status/statusor.h"
+#include "heartbeat_watch.h"
 #include "stage/light/light_driver.h"
 #include "stage/v1/light_node.pb.h"
 #include "stage/v1/node.pb.h"
@@ -61,13 +62,12 @@ class LightNode {
 
   mutable std::mutex mutex_;
   std::condition_variable wake_;
-  bool stopping_ = false;             // guarded by mutex_
-  bool watching_ = false;             // armed by the controller: the watchdog runs; guarded by mutex_
-  std::string take_id_;               // guarded by mutex_
-  std::chrono::steady_clock::time_point last_heartbeat_;  // guarded by mutex_
-  std::chrono::milliseconds heartbeat_timeout_{1000};     // guarded by mutex_
-  std::string blackout_reason_;       // guarded by mutex_
-  uint64_t watchdog_trips_ = 0;       // guarded by mutex_
+  bool stopping_ = false;        // guarded by mutex_
+  bool watching_ = false;        // armed by the controller: the watchdog runs; guarded by mutex_
+  std::string take_id_;          // guarded by mutex_
+  HeartbeatWatch heartbeat_;     // guarded by mutex_
+  std::string blackout_reason_;  // guarded by mutex_
+  uint64_t watchdog_trips_ = 0;  // guarded by mutex_
   std::thread watchdog_;
 };
 

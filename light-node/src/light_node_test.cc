@@ -1,11 +1,11 @@
 // Light node: info, stats from the driver, and dark on destruction.
 #include "light_node.h"
 
-#include "absl/strings/str_cat.h"
-#include "backends.h"
 #include <chrono>
 #include <thread>
 
+#include "absl/strings/str_cat.h"
+#include "backends.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
@@ -182,6 +182,65 @@ TEST(LightNodeTest, BackendsByName) {
   auto no_clock = CreateLightDriver(v1::LIGHT_BACKEND_GPIOD, config, 912);
   ASSERT_FALSE(no_clock.ok());
   EXPECT_THAT(std::string(no_clock.status().message()), ::testing::HasSubstr("gpiod.slot_clock_line"));
+}
+
+}  // namespace
+}  // namespace stage::light
+
+namespace stage::light {
+namespace {
+
+using std::chrono::milliseconds;
+
+TEST(HeartbeatWatchTest, ExpiresAfterTheTimeoutOfTheNodesRunningTime) {
+  HeartbeatWatch w(milliseconds(1000));
+  EXPECT_EQ(w.tick(), milliseconds(100));
+  const auto t0 = HeartbeatWatch::Clock::time_point() + std::chrono::hours(1);
+  w.Beat(t0);
+  // Looking every tick, as a running node does: the controller is gone after the timeout.
+  auto t = t0;
+  for (int i = 1; i < 10; ++i) {
+    t = t0 + i * w.tick();
+    EXPECT_FALSE(w.Expired(t)) << i;
+  }
+  EXPECT_TRUE(w.Expired(t0 + milliseconds(1000)));
+  // A heartbeat puts it off by a full timeout.
+  w.Beat(t0 + milliseconds(1000));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(1050)));
+  EXPECT_EQ(w.NextLook(t0 + milliseconds(1050)), t0 + milliseconds(1150));
+  EXPECT_EQ(w.NextLook(t0 + milliseconds(1950)), t0 + milliseconds(2000));
+}
+
+TEST(HeartbeatWatchTest, TimeTheNodeDidNotRunCountsAgainstNobody) {
+  // The node's process is stopped for 10 s (SIGSTOP, a starved machine): when it runs again the controller has a
+  // full timeout for its heartbeats (they may be waiting to be read) before the lights go dark.
+  HeartbeatWatch w(milliseconds(1000));
+  const auto t0 = HeartbeatWatch::Clock::time_point() + std::chrono::hours(1);
+  w.Beat(t0);
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(100)));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(10100)));  // back after 10 s away
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(10200)));
+  // Without heartbeats it still goes dark: a timeout of running time after the last one.
+  auto t = t0 + milliseconds(10200);
+  bool expired = false;
+  while (!expired && t < t0 + milliseconds(12000)) {
+    t += w.tick();
+    expired = w.Expired(t);
+  }
+  EXPECT_TRUE(expired);
+  // 100 ms ran before the stop, the gap counts as one tick, 800 ms after it.
+  EXPECT_EQ(t, t0 + milliseconds(10900));
+}
+
+TEST(HeartbeatWatchTest, ALateLookWithinAFewTicksIsNotAnAbsence) {
+  // A loaded machine wakes the watchdog late; that is not the node being away, and it does not postpone the verdict.
+  HeartbeatWatch w(milliseconds(1000));
+  const auto t0 = HeartbeatWatch::Clock::time_point() + std::chrono::hours(1);
+  w.Beat(t0);
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(250)));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(500)));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(750)));
+  EXPECT_TRUE(w.Expired(t0 + milliseconds(1000)));
 }
 
 }  // namespace

@@ -51,6 +51,9 @@ struct DemosaicBuffers {
 // & rather than &&, so that the row loops that test it run in vector lanes.
 inline bool Usable(float v) { return (v > 0) & (v < std::numeric_limits<float>::infinity()); }
 
+// A pixel whose albedo the map leaves out: not solved (too dark), or solved to an albedo no surface has.
+constexpr uint8_t kNotSolved = kLowSignal | kImplausible;
+
 // The means of a plane (v; u: 1 where usable, else 0) over site x's usable neighbours of each colour it does not
 // measure (c: its colour; beside: when it is green, the colour beside it): the 2 beside it and the 2 above and below
 // for green, the 4 at its sides and the 4 at its corners for red and blue. NaN for a colour with none, and for c.
@@ -119,7 +122,7 @@ STAGE_ROW_LOOP void AlbedoRow(const float* __restrict own, const uint8_t* __rest
     const int c = color[x];
     const float mine = own[x];
     const Rgb near = NeighbourMeans(vm, um, stride, x, c, beside);
-    const bool solved = (flags[x] & kLowSignal) == 0;
+    const bool solved = (flags[x] & kNotSolved) == 0;
     const bool hued = (found[x] != 0) & Usable(mine);
     const float hr = ratio_r[x], hb = ratio_b[x];  // each colour over green
     const bool green = (c & 1) != 0, blue = (c & 2) != 0, red = !(green | blue);
@@ -144,7 +147,7 @@ STAGE_ROW_LOOP void LogRow(const float* __restrict own, const uint8_t* __restric
   for (int x = x0; x < x1; ++x) {
     const float v = own[x];
     const float lg = PortableLog(v);  // computed for every column, so that the loop runs in vector lanes
-    const bool ok = ((flags[x] & kLowSignal) == 0) & Usable(v);
+    const bool ok = ((flags[x] & kNotSolved) == 0) & Usable(v);
     values[x] = ok ? v : 0.f;
     logs[x] = ok ? lg : 0.f;
     usable[x] = ok ? 1.f : 0.f;
@@ -179,10 +182,30 @@ STAGE_ROW_LOOP void PickWindows(const float* __restrict box, size_t plane, const
 
 }  // namespace
 
-void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, PhotometricMaps* m) {
+void FlagImplausibleRgbAlbedo(float max_albedo, PhotometricMaps* m) {
+  for (size_t i = 0; i < m->flags.size(); ++i) {
+    if (m->flags[i] & kLowSignal) continue;
+    float* a = &m->albedo.pixels[3 * i];
+    if (a[0] <= max_albedo && a[1] <= max_albedo && a[2] <= max_albedo) continue;  // NaN fails too
+    m->flags[i] |= kImplausible;
+    a[0] = a[1] = a[2] = 0.f;
+    if (!m->confidence.pixels.empty()) m->confidence.pixels[i] = 0.f;
+  }
+}
+
+void DemosaicAlbedo(const Mosaic& mosaic, const float* own, float max_albedo, int threads, PhotometricMaps* m) {
   const int w = m->width, h = m->height;
+  // An albedo no surface has is left out before anything borrows from it.
+  ParallelRows(h, threads, [&](int y0, int y1) {
+    for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
+      if ((m->flags[i] & kLowSignal) == 0 && !(own[i] <= max_albedo)) {
+        m->flags[i] |= kImplausible;
+        if (!m->confidence.pixels.empty()) m->confidence.pixels[i] = 0.f;
+      }
+    }
+  });
   const uint8_t* flags = m->flags.data();
-  auto solved_at = [&](size_t i) { return (flags[i] & kLowSignal) == 0; };
+  auto solved_at = [&](size_t i) { return (flags[i] & kNotSolved) == 0; };
   if (mosaic.mono) {
     ParallelRows(h, threads, [&](int y0, int y1) {
       for (size_t i = static_cast<size_t>(y0) * w; i < static_cast<size_t>(y1) * w; ++i) {
@@ -204,7 +227,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, Photome
   auto row_span = [&](int y) {
     if (y < 0 || y >= h) return std::pair<int, int>(0, 0);
     const uint8_t* f = &flags[static_cast<size_t>(y) * w];
-    auto is_solved = [](uint8_t v) { return (v & kLowSignal) == 0; };
+    auto is_solved = [](uint8_t v) { return (v & kNotSolved) == 0; };
     const uint8_t* first = std::find_if(f, f + w, is_solved);
     if (first == f + w) return std::pair<int, int>(0, 0);
     const uint8_t* last =

@@ -83,7 +83,7 @@ double BilinearError(const Field& f, int x0, int x1) {
 
 TEST(DemosaicAlbedoTest, KeepsTheTextureAndPassesOverAChangeOfHue) {
   Field f = MakeField(64, 40, 32);
-  internal::DemosaicAlbedo(Mosaic{}, f.own.data(), 2, &f.maps);
+  internal::DemosaicAlbedo(Mosaic{}, f.own.data(), 1.5f, 2, &f.maps);
   // The measured colour is the pixel's own.
   for (int y = 0; y < f.h; ++y) {
     for (int x = 0; x < f.w; ++x) {
@@ -112,8 +112,8 @@ TEST(DemosaicAlbedoTest, UnsolvedPixelsAreZeroAndThreadsDoNotChangeTheBits) {
   }
   f.own[static_cast<size_t>(50) * f.w + 10] = 0;
   Field one = f;
-  internal::DemosaicAlbedo(Mosaic{}, f.own.data(), 3, &f.maps);
-  internal::DemosaicAlbedo(Mosaic{}, one.own.data(), 1, &one.maps);
+  internal::DemosaicAlbedo(Mosaic{}, f.own.data(), 1.5f, 3, &f.maps);
+  internal::DemosaicAlbedo(Mosaic{}, one.own.data(), 1.5f, 1, &one.maps);
   ASSERT_EQ(f.maps.albedo.pixels.size(), one.maps.albedo.pixels.size());
   EXPECT_EQ(std::memcmp(f.maps.albedo.pixels.data(), one.maps.albedo.pixels.data(),
                         f.maps.albedo.pixels.size() * sizeof(float)),
@@ -136,13 +136,63 @@ TEST(DemosaicAlbedoTest, UnsolvedPixelsAreZeroAndThreadsDoNotChangeTheBits) {
   EXPECT_EQ(solved_nonzero, f.w * f.h - unsolved - 1);
   // One column (red and green sites, no blue): a green site's red from the red sites above and below it.
   Field column = MakeField(1, 9, 1);
-  internal::DemosaicAlbedo(Mosaic{}, column.own.data(), 1, &column.maps);
+  internal::DemosaicAlbedo(Mosaic{}, column.own.data(), 1.5f, 1, &column.maps);
   EXPECT_FLOAT_EQ(column.maps.albedo.at(0, 3)[0], 0.5f * (column.own[2] + column.own[4]));
   EXPECT_EQ(column.maps.albedo.at(0, 3)[2], 0.f);
   // A mono sensor: the pixel's albedo in all three.
-  internal::DemosaicAlbedo(Mosaic{.mono = true}, f.own.data(), 2, &f.maps);
+  internal::DemosaicAlbedo(Mosaic{.mono = true}, f.own.data(), 1.5f, 2, &f.maps);
   EXPECT_EQ(f.maps.albedo.at(3, 3)[0], f.own[static_cast<size_t>(3) * f.w + 3]);
   EXPECT_EQ(f.maps.albedo.at(3, 3)[2], f.own[static_cast<size_t>(3) * f.w + 3]);
+}
+
+}  // namespace
+}  // namespace stage::processing
+
+namespace stage::processing {
+namespace {
+
+// A pixel that solves to an albedo no surface has (a deep cavity: ~800 in a nostril) is flagged implausible and left
+// out, and lends no colour to its neighbours: the colours they do not measure stay their own hue's.
+TEST(AlbedoDemosaicTest, AnImplausibleAlbedoIsLeftOutAndLendsNoHue) {
+  Field f = MakeField(24, 24, 100);  // one hue everywhere
+  f.maps.confidence = Image(24, 24, 1);
+  std::fill(f.maps.confidence.pixels.begin(), f.maps.confidence.pixels.end(), 0.9f);
+  const size_t cavity = 12 * 24 + 12;
+  f.own[cavity] = 800;
+  internal::DemosaicAlbedo(Mosaic{}, f.own.data(), 1.5f, 2, &f.maps);
+  EXPECT_EQ(f.maps.flags[cavity] & kImplausible, kImplausible);
+  EXPECT_EQ(f.maps.confidence.pixels[cavity], 0.f);
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(f.maps.albedo.at(12, 12)[c], 0.f);
+  // Its neighbours: every colour within the texture's range of the truth (the cavity's value would make it hundreds).
+  for (int y = 10; y <= 14; ++y) {
+    for (int x = 10; x <= 14; ++x) {
+      if (x == 12 && y == 12) continue;
+      EXPECT_EQ(f.maps.flags[static_cast<size_t>(y) * 24 + x] & kImplausible, 0) << x << "," << y;
+      for (int c = 0; c < 3; ++c) {
+        const float truth = f.truth[static_cast<size_t>(y) * 24 + x][c];
+        EXPECT_NEAR(f.maps.albedo.at(x, y)[c] / truth, 1.0, 0.35) << x << "," << y << " channel " << c;
+      }
+    }
+  }
+}
+
+TEST(AlbedoDemosaicTest, AnImplausibleRgbAlbedoIsLeftOut) {
+  PhotometricMaps m;
+  m.width = 3;
+  m.height = 1;
+  m.albedo = Image(3, 1, 3);
+  m.confidence = Image(3, 1, 1);
+  m.flags = {0, 0, kLowSignal};
+  const float values[9] = {0.5f, 0.4f, 0.3f, 0.5f, 124.f, 0.3f, 0, 0, 0};
+  std::copy(values, values + 9, m.albedo.pixels.begin());
+  std::fill(m.confidence.pixels.begin(), m.confidence.pixels.end(), 0.8f);
+  internal::FlagImplausibleRgbAlbedo(1.5f, &m);
+  EXPECT_EQ(m.flags[0], 0);
+  EXPECT_EQ(m.flags[1], kImplausible);
+  EXPECT_EQ(m.flags[2], kLowSignal);
+  EXPECT_EQ(m.albedo.at(1, 0)[1], 0.f);
+  EXPECT_EQ(m.confidence.pixels[1], 0.f);
+  EXPECT_EQ(m.albedo.at(0, 0)[0], 0.5f);
 }
 
 }  // namespace

@@ -4,8 +4,12 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 
 namespace stage::processing {
 namespace {
@@ -41,12 +45,26 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
     return absl::InvalidArgumentError(absl::StrCat("camera \"", camera_id, "\": ", what));
   };
   if (config->width() == 0 || width <= 0 || height <= 0) return bad("no image size");
-  const double scale = static_cast<double>(width) / config->width();
-  auto model = CameraModel::FromConfig(*config, std::min(1.0, scale));
-  if (!model.ok()) return model.status();
-  if (model->width() != width || model->height() != height) {
-    return bad(absl::StrCat("its frames are ", width, "x", height, ", not a scale of its sensor's ", config->width(),
-                            "x", config->height()));
+  // The frames' scale of the sensor is what the take recorded: a simulated camera renders at the take's render scale
+  // (its size rounded in each axis), a real camera (or a fake GigE Vision camera, which scales its frames up to the
+  // sensor) delivers the whole sensor. Never inferred from one axis: a size that rounds unevenly would not fit.
+  const double render_scale = rig.rig.sim().has_render_scale() ? rig.rig.sim().render_scale() : 1.0;
+  std::optional<CameraModel> model;
+  std::vector<std::string> tried;
+  for (double scale : {render_scale, 1.0}) {
+    auto m = CameraModel::FromConfig(*config, scale);
+    if (!m.ok()) return m.status();
+    if (m->width() == width && m->height() == height) {
+      model = *std::move(m);
+      break;
+    }
+    tried.push_back(
+        absl::StrCat(m->width(), "x", m->height(),
+                     scale == 1.0 ? " (the whole sensor)" : absl::StrCat(" at the take's render scale ", scale)));
+  }
+  if (!model) {
+    return bad(absl::StrCat("its frames are ", width, "x", height, ", but its sensor of ", config->width(), "x",
+                            config->height(), " gives ", absl::StrJoin(tried, " or ")));
   }
   CameraSetup setup;
   setup.model = *model;
@@ -62,7 +80,8 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
   auto field = [&](bool has, double value, double derived, const char* name) -> absl::StatusOr<double> {
     if (has) return value;
     if (simulated) return derived;
-    return bad(absl::StrCat("photometric.", name, " is required for photometric processing (a real camera's "
+    return bad(absl::StrCat("photometric.", name,
+                            " is required for photometric processing (a real camera's "
                             "calibration; docs/processing.md#calibration)"));
   };
   auto white = field(cal.has_white_dn(), cal.white_dn(), sim.white_dn, "white_dn");
@@ -78,8 +97,8 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
   const double leak = cal.has_cross_leakage() ? cal.cross_leakage() : (simulated ? sim.leak : 0.0);
   if (!(leak >= 0 && leak < 1)) return bad(absl::StrCat("photometric.cross_leakage ", leak, " is not in [0, 1)"));
   if (!(setup.black_level_dn >= 0 && setup.black_level_dn < std::ldexp(1.0, bits) - 1)) {
-    return bad(absl::StrCat("photometric.black_level_dn ", setup.black_level_dn, " is not below the ", bits,
-                            "-bit maximum"));
+    return bad(
+        absl::StrCat("photometric.black_level_dn ", setup.black_level_dn, " is not below the ", bits, "-bit maximum"));
   }
   // White level: the full-on light a white surface facing the camera at the stage origin receives, in units of
   // n . H (light_model.h), with the full-on pattern's own weights.

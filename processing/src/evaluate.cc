@@ -47,6 +47,7 @@ Image MaskedBlur(const Image& in, const std::vector<uint8_t>& mask, double sigma
 
 struct Samples {
   std::vector<double> error, band, floor;
+  std::vector<double> confident;  // error of the pixels the solver is confident in
   int64_t mask = 0;
 };
 
@@ -69,9 +70,10 @@ bool Zero(const float* v, int channels) {
   return true;
 }
 
-// Compares one map. kind: 0 normal (angle), 1 relative, 2 absolute.
-void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& mask, int kind, double sigma,
-             Samples* out) {
+// Compares one map. kind: 0 normal (angle), 1 relative, 2 absolute. `doubtful`: per pixel, 1 where the solver
+// flagged it (its error is left out of the confident figures).
+void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& mask,
+             const std::vector<uint8_t>& doubtful, int kind, double sigma, Samples* out) {
   // Where both have a value.
   std::vector<uint8_t> valid(mask.size(), 0);
   for (size_t i = 0; i < mask.size(); ++i) {
@@ -101,6 +103,7 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
       }
       out->band.push_back((he - ht).norm() * kDeg);
       out->floor.push_back(ht.norm() * kDeg);
+      if (!doubtful[i]) out->confident.push_back(out->error.back());
     } else {
       double err = 0, band = 0, floor = 0;
       for (int c = 0; c < ch; ++c) {
@@ -114,6 +117,7 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
       out->error.push_back(unit * err / ch);
       out->band.push_back(unit * band / ch);
       out->floor.push_back(unit * floor / ch);
+      if (!doubtful[i]) out->confident.push_back(out->error.back());
     }
   }
 }
@@ -121,8 +125,8 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
 }  // namespace
 
 absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
-  const std::string results = options.results_dir.empty() ? options.take_dir + "/derived/photometric"
-                                                           : options.results_dir;
+  const std::string results =
+      options.results_dir.empty() ? options.take_dir + "/derived/photometric" : options.results_dir;
   const std::string truth = options.truth_dir.empty() ? options.take_dir + "/ground_truth" : options.truth_dir;
   if (!fs::is_directory(results)) {
     return absl::NotFoundError(absl::StrCat(results, ": no photometric results (run stage-process photometric)"));
@@ -142,8 +146,8 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     if (frame < options.first_frame || (options.last_frame >= 0 && frame >= options.last_frame)) continue;
     for (const auto& cam : fs::directory_iterator(entry.path())) {
       const std::string id = cam.path().filename().string();
-      if (!options.cameras.empty() && std::find(options.cameras.begin(), options.cameras.end(), id) ==
-                                          options.cameras.end()) {
+      if (!options.cameras.empty() &&
+          std::find(options.cameras.begin(), options.cameras.end(), id) == options.cameras.end()) {
         continue;
       }
       if (cam.is_directory()) units.emplace(frame, id);
@@ -175,24 +179,38 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     if (!specular_normal.ok()) return specular_normal.status();
     auto diffuse_normal = ReadImageFile(mine + "/diffuse_normal_world.exr");
     if (!diffuse_normal.ok()) return diffuse_normal.status();
+    // The solver's flags (flags.png, PhotometricFlag bits): where it says its result is doubtful.
+    auto flag_image = ReadImageFile(mine + "/flags.png");
+    if (!flag_image.ok()) return flag_image.status();
+    std::vector<uint8_t> doubtful_diffuse(mask.size()), doubtful_specular(mask.size());
+    for (size_t i = 0; i < mask.size(); ++i) {
+      const auto f = static_cast<uint8_t>(std::lround(flag_image->pixels[i] * 255));
+      doubtful_diffuse[i] = (f & (kSaturated | kBadFit | kShadowed | kImplausible)) != 0;
+      doubtful_specular[i] = doubtful_diffuse[i] || (f & kSpecularBadFit) != 0;
+    }
     for (size_t m = 0; m < std::size(maps); ++m) {
       auto est = ReadImageFile(mine + "/" + maps[m].file);
       if (!est.ok()) return est.status();
       auto gt = ReadImageFile(theirs + "/" + maps[m].truth);
       if (!gt.ok()) return gt.status();
       if (est->width != gt->width || est->height != gt->height || est->channels != gt->channels) {
-        return absl::FailedPreconditionError(absl::StrCat(mine, "/", maps[m].file, " is ", est->width, "x",
-                                                          est->height, "x", est->channels, ", the truth ",
-                                                          gt->width, "x", gt->height, "x", gt->channels));
+        return absl::FailedPreconditionError(absl::StrCat(mine, "/", maps[m].file, " is ", est->width, "x", est->height,
+                                                          "x", est->channels, ", the truth ", gt->width, "x",
+                                                          gt->height, "x", gt->channels));
       }
       if (maps[m].kind != 0) {
+        // Not solved: where the normal map says so, and an albedo left out (0: an implausible value).
         const Image& solved = m >= 3 ? *specular_normal : *diffuse_normal;
+        const bool albedo = std::string(maps[m].file) == "albedo.exr";
         for (size_t i = 0; i < mask.size(); ++i) {
-          if (!Zero(&solved.pixels[3 * i], 3)) continue;
+          if (!Zero(&solved.pixels[3 * i], 3) && !(albedo && Zero(&est->pixels[i * est->channels], est->channels))) {
+            continue;
+          }
           for (int c = 0; c < est->channels; ++c) est->pixels[i * est->channels + c] = NAN;
         }
       }
-      Compare(*est, *gt, mask, maps[m].kind, options.band_sigma_px, &samples[m]);
+      Compare(*est, *gt, mask, m == 1 || m >= 3 ? doubtful_specular : doubtful_diffuse, maps[m].kind,
+              options.band_sigma_px, &samples[m]);
     }
     ++out.units;
   }
@@ -208,6 +226,10 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     e.band_mean = Mean(samples[m].band);
     e.band_median = Median(samples[m].band);
     e.band_floor = Mean(samples[m].floor);
+    e.confident_pixels = static_cast<int64_t>(samples[m].confident.size());
+    e.left_out = e.pixels - e.confident_pixels;
+    e.confident_mean = Mean(samples[m].confident);
+    e.confident_median = Median(samples[m].confident);
     out.maps.push_back(e);
   }
   return out;
@@ -216,13 +238,18 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
 std::string FormatEvaluation(const Evaluation& e) {
   std::string s = absl::StrFormat(
       "photometric results against ground truth: %d camera frame(s), %d mask pixel(s)\n"
-      "%-19s %-13s %9s %8s %8s %8s   %s\n",
+      "%-19s %-13s %9s %8s %8s %8s   %-33s  %s\n",
       e.units, e.mask_pixels, "map", "metric", "pixels", "covered", "mean", "median",
-      "pore band: mean (no-detail floor)");
+      "pore band: mean (no-detail floor)", "confident: mean, median (left out)");
   for (const MapError& m : e.maps) {
-    absl::StrAppend(&s, absl::StrFormat("%-19s %-13s %9d %7.1f%% %8.3f %8.3f   %.3f (%.3f)\n", m.map, m.metric,
-                                        m.pixels, 100 * m.coverage, m.mean, m.median, m.band_mean, m.band_floor));
+    absl::StrAppend(&s, absl::StrFormat("%-19s %-13s %9d %7.1f%% %8.3f %8.3f   %-33s  %.3f, %.3f (%d)\n", m.map,
+                                        m.metric, m.pixels, 100 * m.coverage, m.mean, m.median,
+                                        absl::StrFormat("%.3f (%.3f)", m.band_mean, m.band_floor), m.confident_mean,
+                                        m.confident_median, m.left_out));
   }
+  absl::StrAppend(&s,
+                  "confident: pixels not flagged saturated, bad fit, shadowed or implausible (flags.png); left out: "
+                  "how many of the compared pixels that excludes\n");
   return s;
 }
 
@@ -240,7 +267,11 @@ std::string EvaluationJson(const Evaluation& e) {
                          {"median", m.median},
                          {"band_mean", m.band_mean},
                          {"band_median", m.band_median},
-                         {"band_floor", m.band_floor}});
+                         {"band_floor", m.band_floor},
+                         {"confident_pixels", m.confident_pixels},
+                         {"left_out", m.left_out},
+                         {"confident_mean", m.confident_mean},
+                         {"confident_median", m.confident_median}});
   }
   return j.dump(2);
 }

@@ -1,13 +1,13 @@
 // Table-driven photometric stereo from the raw mosaic: see fast_photometric.h.
 #include "stage/processing/fast_photometric.h"
 
+#include <sys/mman.h>
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <mutex>
-
-#include <sys/mman.h>
 
 // GCC 12 warns of the AVX-512 intrinsics' own undefined source operands (_mm512_undefined_*) where they are inlined.
 #pragma GCC diagnostic push
@@ -138,7 +138,7 @@ struct LobeMoments {
   float mean[3] = {0, 0, 0};  // unit
   float length = 0;           // of the first moment, before normalizing: mu0 times R < 1
   float spread = 0;
-  bool ok = false;            // a lobe: mu0 > 0 and a first moment
+  bool ok = false;  // a lobe: mu0 > 0 and a first moment
 };
 
 // mu(r): the r-th moment (an array, or one lane of the lanes' moments: see LookUpLobesImpl).
@@ -295,8 +295,8 @@ struct DiffuseRow {
   const float* own_cross = nullptr;
   const float* own_both = nullptr;
   size_t stride = 0;
-  float ws = 1;         // the white scale
-  float half_leak = 0;  // 0.5 (1 + leak): the lobe's share of the mean of both polarizations
+  float ws = 1;          // the white scale
+  float half_leak = 0;   // 0.5 (1 + leak): the lobe's share of the mean of both polarizations
   float min_signal = 0;  // the least signal to solve (the full-on pair's diffuse), DN
   int full = 0;
   bool guess = false;  // the six first-order gradients are there for a first guess
@@ -307,13 +307,13 @@ struct DiffuseRow {
 // Up to kLanes pixels of a row through the per-pixel steps (lane l: column xb + l of the tile).
 // The flags are bytes (0 or 1), not bool: GCC 12 does not vectorize loops that load bool.
 struct Batch {
-  float n[3][kLanes];  // the diffuse normal: from the first solves, then the last
-  float u[3][kLanes];  // the first solves' vector (albedo times normal), for the last steps
-  uint8_t solved[kLanes];            // the first solves gave a normal (else: too little signal)
-  uint8_t both[kLanes];              // the lobe is known and fits: both polarizations hold the diffuse
-  float lobe_sum[kLanes];            // the lobe's images summed over the pairs
-  float chi2[kLanes];                // the diffuse fit's residual per degree of freedom
-  float own_albedo[kLanes];          // the albedo of the colour the pixel measures
+  float n[3][kLanes];        // the diffuse normal: from the first solves, then the last
+  float u[3][kLanes];        // the first solves' vector (albedo times normal), for the last steps
+  uint8_t solved[kLanes];    // the first solves gave a normal (else: too little signal)
+  uint8_t both[kLanes];      // the lobe is known and fits: both polarizations hold the diffuse
+  float lobe_sum[kLanes];    // the lobe's images summed over the pairs
+  float chi2[kLanes];        // the diffuse fit's residual per degree of freedom
+  float own_albedo[kLanes];  // the albedo of the colour the pixel measures
   // The specular, where the lobe is measured: its normal (before regularization), intensity, roughness, the normal's
   // noise in degrees, and the variances of the normal and of log roughness; a bad fit of the lobe to the images.
   uint8_t measured[kLanes];
@@ -1427,7 +1427,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
   });
 
   // RGB albedo: each pixel's own colour as solved, the others from its neighbours' hue.
-  internal::DemosaicAlbedo(cycle.mosaic, own_albedo, options.threads, &m);
+  internal::DemosaicAlbedo(cycle.mosaic, own_albedo, static_cast<float>(options.max_albedo), options.threads, &m);
   internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return absl::OkStatus();
 }

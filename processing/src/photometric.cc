@@ -1,7 +1,7 @@
 // Photometric stereo under spherical gradient illumination: see photometric.h.
 #include "stage/processing/photometric.h"
 
-#include "photometric_internal.h"
+#include <immintrin.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -9,10 +9,9 @@
 #include <cmath>
 #include <thread>
 
-#include <immintrin.h>
-
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "photometric_internal.h"
 #include "stage/common/ggx.h"
 
 namespace stage::processing {
@@ -103,8 +102,8 @@ void DiffuseFromView(const UnitView& view, const PatternMatrix& pm, const Eigen:
   }
 }
 
-void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n,
-                      const Eigen::Vector3f& v, float alpha, float* m) {
+void SpecularFromView(const UnitView& view, const PatternMatrix& pm, const Eigen::Vector3f& n, const Eigen::Vector3f& v,
+                      float alpha, float* m) {
   std::fill(m, m + pm.np, 0.f);
   const float n_dot_v = n.dot(v);
   if (n_dot_v <= 0) return;
@@ -130,11 +129,17 @@ float* Work(PhotometricMaps* m, WorkSlot slot) {
 void PrepareMaps(int width, int height, PhotometricMaps* m) {
   m->width = width;
   m->height = height;
-  for (auto [image, channels] : std::initializer_list<std::pair<Image*, int>>{
-           {&m->diffuse_normal_world, 3}, {&m->diffuse_normal_camera, 3}, {&m->albedo, 3},
-           {&m->specular_normal_world, 3}, {&m->specular_normal_camera, 3}, {&m->specular_normal_raw, 3},
-           {&m->specular, 1}, {&m->roughness, 1}, {&m->specular_sigma, 1}, {&m->confidence, 1},
-           {&m->fit_residual, 1}}) {
+  for (auto [image, channels] : std::initializer_list<std::pair<Image*, int>>{{&m->diffuse_normal_world, 3},
+                                                                              {&m->diffuse_normal_camera, 3},
+                                                                              {&m->albedo, 3},
+                                                                              {&m->specular_normal_world, 3},
+                                                                              {&m->specular_normal_camera, 3},
+                                                                              {&m->specular_normal_raw, 3},
+                                                                              {&m->specular, 1},
+                                                                              {&m->roughness, 1},
+                                                                              {&m->specular_sigma, 1},
+                                                                              {&m->confidence, 1},
+                                                                              {&m->fit_residual, 1}}) {
     image->width = width;
     image->height = height;
     image->channels = channels;
@@ -198,8 +203,7 @@ __attribute__((always_inline)) inline void WindowSums16Impl(const WindowRow* con
       const float* vn = row[P::kVarN] + o;
       const float* vl = row[P::kVarLa] + o;
       for (int l = 0; l < kL; ++l) {
-        const bool take =
-            on[l] * lobe[l] > 0 && !(n0[0][l] * nx[l] + n0[1][l] * ny[l] + n0[2][l] * nz[l] <= 0.866f);
+        const bool take = on[l] * lobe[l] > 0 && !(n0[0][l] * nx[l] + n0[1][l] * ny[l] + n0[2][l] * nz[l] <= 0.866f);
         for (int c = 0; c < 3; ++c) {
           const float v = d[c][l];
           mn[c][l] += take ? ia[l] * v : 0.f;
@@ -244,8 +248,8 @@ __attribute__((target("avx512f,avx512dq"))) void WindowSums16Avx512(const Window
   __mmask16 on = 0;
   for (int l = 0; l < kWindowLanes; ++l) on |= center[l] ? static_cast<__mmask16>(1u << l) : 0;
   const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f), edge = _mm512_set1_ps(0.866f);
-  __m512 wn = zero, wl = zero, mn[3] = {zero, zero, zero}, ml = zero, sn[3] = {zero, zero, zero}, sl = zero,
-         qn = zero, ql = zero, nn = zero, nl = zero, count = zero;
+  __m512 wn = zero, wl = zero, mn[3] = {zero, zero, zero}, ml = zero, sn[3] = {zero, zero, zero}, sl = zero, qn = zero,
+         ql = zero, nn = zero, nl = zero, count = zero;
   for (int k = 0; k < n_rows; ++k) {
     const WindowRow& row = *rows[k];
     for (int dx = -r; dx <= r; ++dx) {
@@ -469,12 +473,12 @@ using internal::Twins;
 struct SpecularFit {
   Eigen::Vector3f n = Eigen::Vector3f::Zero();
   float alpha = 0, rho = 0;
-  float var_n = 0;      // variance of the normal's direction, rad^2 (both tangent axes)
+  float var_n = 0;          // variance of the normal's direction, rad^2 (both tangent axes)
   float var_log_alpha = 0;  // of log(alpha)
-  float var_rho = 0;    // of rho
-  float chi2 = 0;       // reduced
-  bool converged = false;  // a fit was made (rho may be 0: no lobe)
-  bool ok = false;         // and found a lobe
+  float var_rho = 0;        // of rho
+  float chi2 = 0;           // reduced
+  bool converged = false;   // a fit was made (rho may be 0: no lobe)
+  bool ok = false;          // and found a lobe
 };
 
 constexpr float kMinAlpha = internal::kMinLobeAlpha, kMaxAlpha = 1.5f;
@@ -643,8 +647,7 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < width; ++x) {
         const size_t i = static_cast<size_t>(y) * width + x;
-        const Eigen::Vector3f dir =
-            camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
+        const Eigen::Vector3f dir = camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
         MeshHit hit;
         if (!mesh.Nearest(origin, dir, INFINITY, &hit)) continue;
         const auto& t = mesh.mesh().triangles[static_cast<size_t>(hit.triangle)];
@@ -729,8 +732,8 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
   const Eigen::Vector3f camera_position = camera.position_mm.cast<float>();
 
   ParallelRows(h, options.threads, [&](int y0, int y1) {
-    std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np), s(np),
-        sw(np), model(np);
+    std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np), s(np), sw(np),
+        model(np);
     UnitView view, open_view;
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
@@ -796,7 +799,8 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
             Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
             Eigen::Vector3f b = Eigen::Vector3f::Zero();
             for (int p = 0; p < np; ++p) {
-              const Eigen::Vector3f hs = Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
+              const Eigen::Vector3f hs =
+                  Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
               // The variance at the level the model predicts (the measured level on the first pass).
               const float level = r.ok ? std::max(0.f, u.dot(hs)) : std::max(0.f, d[p]);
               wt[p] = 1.f / (level / static_cast<float>(g) + read);
@@ -911,7 +915,11 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
     }
   });
 
-  if (own_albedo != nullptr) internal::DemosaicAlbedo(*camera.mosaic, own_albedo, options.threads, &m);
+  if (own_albedo != nullptr) {
+    internal::DemosaicAlbedo(*camera.mosaic, own_albedo, static_cast<float>(options.max_albedo), options.threads, &m);
+  } else {
+    internal::FlagImplausibleRgbAlbedo(static_cast<float>(options.max_albedo), &m);
+  }
   internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
   return m;
 }

@@ -236,8 +236,14 @@ void PrepareMaps(int width, int height, PhotometricMaps* m);
 // the geometric mean of its neighbours of that colour. Of the window centred on the pixel and the four 2 pixels off
 // it (left, right, above, below), the one whose hue varies least, so that a window straddling a change of hue (lips,
 // brows) is passed over. Where no window has 3 usable sites: the mean of the solved neighbours of each colour (0 for
-// none). 0 where nothing is solved. A mono mosaic: the pixel's albedo in all three.
-void DemosaicAlbedo(const Mosaic& mosaic, const float* own, int threads, PhotometricMaps* m);
+// none). 0 where nothing is solved. A mono mosaic: the pixel's albedo in all three. A solved pixel whose own albedo is
+// above `max_albedo` (or not finite) is flagged kImplausible first (confidence 0): it is then not solved for the map,
+// and lends its neighbours nothing.
+void DemosaicAlbedo(const Mosaic& mosaic, const float* own, float max_albedo, int threads, PhotometricMaps* m);
+
+// The per-pixel solver's RGB images (no mosaic): a solved pixel with a channel above `max_albedo` (or not finite) is
+// flagged kImplausible, its albedo zeroed and its confidence 0.
+void FlagImplausibleRgbAlbedo(float max_albedo, PhotometricMaps* m);
 
 // Regularizes the specular maps in place: the departure of the raw specular normal from the diffuse normal, and log
 // roughness, filtered by a local Wiener filter over `radius` among neighbours on the same side of an edge (diffuse

@@ -12,7 +12,7 @@
 namespace stage::processing {
 
 grpc::Status WorkerService::GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) {
-  *response = MakeNodeInfo(id_, v1::NODE_KIND_PROCESSING_WORKER, "", "local", rig_hash_);
+  *response = MakeNodeInfo(id_, v1::NODE_KIND_PROCESSING_WORKER, v1::CAMERA_ROLE_UNSPECIFIED, "local", rig_hash_);
   return grpc::Status::OK;
 }
 

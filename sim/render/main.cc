@@ -61,14 +61,15 @@ int main(int argc, char** argv) {
       kProgram};
   stage::CommonFlags flags;
   stage::AddCommonFlags(app, &flags, /*serves=*/false);
-  std::string camera_id = "hs-2";
+  std::string camera_id;
   std::string out = "contact-sheet.png";
   int64_t frame = 0;
   int columns = 8;
   double tile_width = 0;
   bool json = false;
   std::vector<std::string> overrides;
-  app.add_option("--camera", camera_id, "Camera to render")->capture_default_str();
+  app.add_option("--camera", camera_id,
+                 "Camera to render (default: the rig's first high-speed camera, else its first)");
   app.add_option("--frame", frame, "Virtual frame of the performance (the head's pose)")->capture_default_str();
   app.add_option("--out", out, "Contact sheet PNG to write")->capture_default_str();
   app.add_option("--columns", columns, "Tiles per row")->capture_default_str()->check(CLI::Range(1, 64));
@@ -121,6 +122,17 @@ int main(int argc, char** argv) {
                 << std::endl;
     }
     return 0;
+  }
+  if (camera_id.empty()) {
+    // The rig's first high-speed camera: the one that sees every pattern.
+    for (const auto& c : rig->rig.cameras()) {
+      if (camera_id.empty() && c.role() == stage::v1::CAMERA_ROLE_HIGH_SPEED) camera_id = c.id();
+    }
+    if (camera_id.empty() && rig->rig.cameras_size() > 0) camera_id = rig->rig.cameras(0).id();
+    if (camera_id.empty()) {
+      return stage::ReportFatal(kProgram,
+                                absl::InvalidArgumentError(absl::StrCat(rig->source_name, " has no camera to render")));
+    }
   }
   const int index = (*scene)->CameraIndex(camera_id);
   if (index < 0) {

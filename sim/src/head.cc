@@ -1,16 +1,34 @@
 // The procedural head, its expressions, performances and skin.
 #include "stage/sim/head.h"
 
+#include <fcntl.h>
+#include <sys/file.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
 #include <yaml-cpp/yaml.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <set>
+#include <tuple>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "stage/common/logging.h"
+#include "stage/common/rig.h"
 #include "stage/common/status.h"
 
 namespace stage::sim {
@@ -167,11 +185,26 @@ float Freckles(uint64_t seed, const Eigen::Vector2f& uv) {
   });
 }
 
-// An image read for the skin maps: float texels, row 0 at the image's top (v = 1).
+// An image read for the skin maps: float texels, row 0 at the image's top (v = 1). The texels are the image's own or a
+// view of a shared cache file (HeadMapsCache); `owner` keeps them alive.
 struct Image {
   int width = 0, height = 0, channels = 0;
-  std::vector<float> texels;
-  bool empty() const { return texels.empty(); }
+  const float* texels = nullptr;
+  std::shared_ptr<const void> owner;
+  bool empty() const { return texels == nullptr; }
+  size_t size() const {
+    return static_cast<size_t>(width) * static_cast<size_t>(height) * static_cast<size_t>(channels);
+  }
+  static Image Own(int width, int height, int channels, std::vector<float> texels) {
+    auto data = std::make_shared<std::vector<float>>(std::move(texels));
+    Image image;
+    image.width = width;
+    image.height = height;
+    image.channels = channels;
+    image.texels = data->data();
+    image.owner = std::move(data);
+    return image;
+  }
   // Bilinear at texture coordinate uv (clamped to the edge), into out[0..channels).
   void Sample(const Eigen::Vector2f& uv, float* out) const {
     const float x = std::clamp(uv.x() * static_cast<float>(width) - 0.5f, 0.0f, static_cast<float>(width - 1));
@@ -221,18 +254,333 @@ absl::StatusOr<Image> ReadImage(const std::string& path, const std::string& fiel
   if (channels == 1 && f.channels() == 3) cv::cvtColor(f, f, cv::COLOR_BGR2GRAY);
   if (channels == 3 && f.channels() == 1) cv::cvtColor(f, f, cv::COLOR_GRAY2BGR);
   if (channels == 3) cv::cvtColor(f, f, cv::COLOR_BGR2RGB);
-  Image image;
-  image.width = f.cols;
-  image.height = f.rows;
-  image.channels = channels;
-  image.texels.assign(f.ptr<float>(0), f.ptr<float>(0) + static_cast<size_t>(f.total()) * channels);
+  std::vector<float> texels(f.ptr<float>(0), f.ptr<float>(0) + static_cast<size_t>(f.total()) * channels);
   if (integer && encoding == Encoding::kSrgb) {
-    for (float& v : image.texels) v = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
+    for (float& v : texels) v = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
   }
   if (integer && encoding == Encoding::kSigned) {
-    for (float& v : image.texels) v = 2 * v - 1;
+    for (float& v : texels) v = 2 * v - 1;
   }
-  return image;
+  return Image::Own(f.cols, f.rows, channels, std::move(texels));
+}
+
+// ---- the decoded maps, shared by the processes of a stage ---------------------------------------------------------
+//
+// Every camera process of a simulated stage samples the same head images. Decoded to floats they are large (a 4K
+// albedo alone is 200 MB), and 27 copies would not fit a small machine. The first process to load an asset writes the
+// decoded images to a cache file; every process (the first too) maps that file read-only, so the page cache holds one
+// copy for all. The file is named by a hash of the images' paths, sizes, modification times and how they are read, so
+// a changed image makes a new file. Concurrent loaders take turns on a lock file: one decodes, the others wait and map.
+//
+// Layout: "FSTGHM01", uint32 count (4: albedo, specular, roughness, normal), then per image int32 width, height,
+// channels, pad, uint64 offset (0: no image); the texels (float32, native order) at 64-byte aligned offsets.
+
+constexpr char kCacheMagic[8] = {'F', 'S', 'T', 'G', 'H', 'M', '0', '1'};
+constexpr int kCachedMaps = 4;
+
+struct CacheEntry {
+  int32_t width, height, channels, pad;
+  uint64_t offset;
+};
+
+// The cache file of `images` (path, encoding, channels), or an error naming why there is none.
+absl::StatusOr<std::string> CachePath(const std::vector<std::tuple<std::string, Encoding, int>>& images) {
+  std::string key = "head-maps-1";
+  for (const auto& [path, encoding, channels] : images) {
+    struct stat st {};
+    if (!path.empty() && stat(path.c_str(), &st) != 0) return absl::NotFoundError(path);
+    absl::StrAppend(&key, "|", path.empty() ? "" : std::filesystem::absolute(path).string(), "|",
+                    path.empty() ? 0 : st.st_size, "|", path.empty() ? 0 : st.st_mtim.tv_sec, ".",
+                    path.empty() ? 0 : st.st_mtim.tv_nsec, "|", static_cast<int>(encoding), "|", channels);
+  }
+  const std::string dir = DefaultCacheDir();
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat("cannot create the cache directory ", dir, ": ", ec.message()));
+  return absl::StrFormat("%s/head-maps-%016x.bin", dir, Fnv1a64(key));
+}
+
+// Maps cache file `path` (read-only, shared) as `count` images; an error if it is not a whole cache file.
+absl::StatusOr<std::vector<Image>> MapCache(const std::string& path) {
+  const int fd = open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return absl::NotFoundError(path);
+  struct stat st {};
+  const bool sized = fstat(fd, &st) == 0;
+  const auto bytes = sized ? static_cast<size_t>(st.st_size) : 0;
+  void* base = bytes > 0 ? mmap(nullptr, bytes, PROT_READ, MAP_SHARED, fd, 0) : MAP_FAILED;
+  close(fd);
+  if (base == MAP_FAILED) return absl::UnavailableError(absl::StrCat(path, ": cannot map it"));
+  std::shared_ptr<const void> mapping(base, [bytes](const void* p) { munmap(const_cast<void*>(p), bytes); });
+  const auto* at = static_cast<const char*>(base);
+  const size_t header = sizeof(kCacheMagic) + sizeof(uint32_t) + kCachedMaps * sizeof(CacheEntry);
+  uint32_t count = 0;
+  if (bytes < header || std::memcmp(at, kCacheMagic, sizeof(kCacheMagic)) != 0) {
+    return absl::DataLossError(absl::StrCat(path, ": not a head maps cache"));
+  }
+  std::memcpy(&count, at + sizeof(kCacheMagic), sizeof(count));
+  if (count != kCachedMaps) return absl::DataLossError(absl::StrCat(path, ": not a head maps cache"));
+  std::vector<Image> images(kCachedMaps);
+  for (int i = 0; i < kCachedMaps; ++i) {
+    CacheEntry e;
+    std::memcpy(&e, at + sizeof(kCacheMagic) + sizeof(uint32_t) + i * sizeof(CacheEntry), sizeof(e));
+    if (e.offset == 0) continue;
+    const size_t floats =
+        static_cast<size_t>(e.width) * static_cast<size_t>(e.height) * static_cast<size_t>(e.channels);
+    if (e.width <= 0 || e.height <= 0 || e.channels <= 0 || e.offset % 64 != 0 || e.offset + floats * 4 > bytes) {
+      return absl::DataLossError(absl::StrCat(path, ": image ", i, " runs past the end of the file"));
+    }
+    images[i].width = e.width;
+    images[i].height = e.height;
+    images[i].channels = e.channels;
+    images[i].texels = reinterpret_cast<const float*>(at + e.offset);
+    images[i].owner = mapping;
+  }
+  return images;
+}
+
+// Writes `images` as a cache file at `path`: beside it first, then renamed, so a reader sees a whole file or none.
+absl::Status WriteCache(const std::string& path, const std::vector<Image>& images) {
+  const std::string tmp = absl::StrCat(path, ".", getpid(), ".tmp");
+  std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
+  std::vector<CacheEntry> entries(kCachedMaps);
+  uint64_t offset = 64 * ((sizeof(kCacheMagic) + sizeof(uint32_t) + kCachedMaps * sizeof(CacheEntry) + 63) / 64);
+  for (int i = 0; i < kCachedMaps; ++i) {
+    const Image& image = images[i];
+    entries[i] = {image.width, image.height, image.channels, 0, image.empty() ? 0 : offset};
+    if (!image.empty()) offset += 64 * ((image.size() * 4 + 63) / 64);
+  }
+  const uint32_t count = kCachedMaps;
+  out.write(kCacheMagic, sizeof(kCacheMagic));
+  out.write(reinterpret_cast<const char*>(&count), sizeof(count));
+  out.write(reinterpret_cast<const char*>(entries.data()),
+            static_cast<std::streamsize>(entries.size() * sizeof(CacheEntry)));
+  for (int i = 0; i < kCachedMaps; ++i) {
+    if (images[i].empty()) continue;
+    const auto at = static_cast<std::streamoff>(entries[i].offset);
+    out.seekp(at);
+    out.write(reinterpret_cast<const char*>(images[i].texels), static_cast<std::streamsize>(images[i].size() * 4));
+  }
+  out.close();
+  if (!out) {
+    std::filesystem::remove(tmp);
+    return absl::UnavailableError(absl::StrCat(path, ": cannot write the head maps cache"));
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
+  return absl::OkStatus();
+}
+
+// The four maps of `files` (albedo, specular, roughness, normal; an empty path: no image), from the shared cache when
+// another process has decoded them, else decoded here and put there. Where no cache can be used (no writable cache
+// directory), decoded here, with a warning. `origin` says which: the cache file, or "decoded".
+absl::StatusOr<std::vector<Image>> LoadMaps(const HeadAssetFiles& files, std::string* origin) {
+  const std::vector<std::tuple<std::string, Encoding, int>> images = {{files.albedo, Encoding::kSrgb, 3},
+                                                                      {files.specular, Encoding::kLinear, 1},
+                                                                      {files.roughness, Encoding::kLinear, 1},
+                                                                      {files.normal, Encoding::kSigned, 3}};
+  constexpr const char* kFields[kCachedMaps] = {"sim.subject.asset.albedo", "sim.subject.asset.specular",
+                                                "sim.subject.asset.roughness", "sim.subject.asset.normal"};
+  auto decode = [&]() -> absl::StatusOr<std::vector<Image>> {
+    std::vector<Image> out(kCachedMaps);
+    for (int i = 0; i < kCachedMaps; ++i) {
+      const auto& [path, encoding, channels] = images[i];
+      if (path.empty()) continue;
+      STAGE_ASSIGN_OR_RETURN(out[i], ReadImage(path, kFields[i], channels, encoding));
+    }
+    return out;
+  };
+  auto path = CachePath(images);
+  if (!path.ok()) {
+    if (absl::IsNotFound(path.status())) return decode();  // ReadImage names the missing file and its field
+    Logger("sim")->warn("head maps decoded in this process only: {}", path.status().message());
+    *origin = "decoded";
+    return decode();
+  }
+  if (auto mapped = MapCache(*path); mapped.ok()) {
+    *origin = *path;
+    return mapped;
+  }
+  // One process decodes; the others wait for it and map what it wrote.
+  const int lock = open((*path + ".lock").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (lock >= 0) flock(lock, LOCK_EX);
+  absl::StatusOr<std::vector<Image>> result = MapCache(*path);
+  if (!result.ok()) {
+    STAGE_ASSIGN_OR_RETURN(std::vector<Image> decoded, decode());
+    if (absl::Status s = WriteCache(*path, decoded); !s.ok()) {
+      Logger("sim")->warn("head maps decoded in this process only: {}", s.message());
+      result = std::move(decoded);
+      *origin = "decoded";
+    } else {
+      result = MapCache(*path);  // this process shares the pages too
+      *origin = *path;
+    }
+  } else {
+    *origin = *path;
+  }
+  if (lock >= 0) close(lock);  // releases the lock
+  return result;
+}
+
+// ---- what the simulator can render of a user's mesh ---------------------------------------------------------------
+
+// Texture coordinates must lie in the one tile [0, 1]^2 the maps cover: a scan laid out in UV tiles (one a material,
+// UDIM 1001, 1002, ...) would otherwise be clamped to the tile's edge without a word.
+absl::Status CheckUvTile(const std::string& obj, const TriangleMesh& m) {
+  constexpr float kSlack = 1e-4f;
+  Eigen::Vector2f lo = Eigen::Vector2f::Constant(INFINITY), hi = Eigen::Vector2f::Constant(-INFINITY);
+  std::set<int> tiles;
+  for (const auto& t : m.triangles) {
+    Eigen::Vector2f centre = Eigen::Vector2f::Zero();
+    for (int k = 0; k < 3; ++k) {
+      lo = lo.cwiseMin(m.uvs[t[k]]);
+      hi = hi.cwiseMax(m.uvs[t[k]]);
+      centre += m.uvs[t[k]] / 3;
+    }
+    tiles.insert(1001 + static_cast<int>(std::floor(centre.x())) + 10 * static_cast<int>(std::floor(centre.y())));
+  }
+  if (lo.minCoeff() >= -kSlack && hi.maxCoeff() <= 1 + kSlack) return absl::OkStatus();
+  std::vector<std::string> names;
+  for (int tile : tiles) names.push_back(absl::StrCat(tile));
+  if (names.size() > 8) names.resize(8), names.push_back("...");
+  return absl::InvalidArgumentError(absl::StrFormat(
+      "%s: texture coordinates reach outside [0, 1] (u %.3g..%.3g, v %.3g..%.3g): the mesh is laid out in UV tiles "
+      "(UDIM %s), and the simulator reads one image per map covering [0, 1]. Pack the UVs into that one tile and bake "
+      "each map into one image (Blender: UV > Pack Islands, then bake the tiles' textures onto it), or leave out of "
+      "the OBJ the materials that are not skin",
+      obj, lo.x(), hi.x(), lo.y(), hi.y(), absl::StrJoin(names, ", ")));
+}
+
+// The materials of `m`'s libraries (relative to the OBJ) that are transparent (d < 1, Tr > 0 without d, or an alpha
+// map), with why.
+std::map<std::string, std::string> TransparentMaterials(const std::string& obj, const TriangleMesh& m,
+                                                        std::vector<std::string>* notes) {
+  std::map<std::string, std::string> out;
+  for (const std::string& library : m.material_libraries) {
+    const std::filesystem::path path = std::filesystem::path(obj).parent_path() / library;
+    std::ifstream in(path);
+    if (!in) {
+      notes->push_back(absl::StrCat(obj, ": its material library ", path.string(),
+                                    " cannot be read: every material is taken as opaque"));
+      continue;
+    }
+    std::string line, current;
+    std::map<std::string, std::pair<std::string, std::string>> seen;  // name -> (d or Tr reason, map_d reason)
+    while (std::getline(in, line)) {
+      std::vector<std::string> f = absl::StrSplit(line, absl::ByAnyChar(" \t\r"), absl::SkipEmpty());
+      if (f.empty()) continue;
+      float value = 1;
+      if (f[0] == "newmtl" && f.size() > 1) {
+        current = f[1];
+      } else if (f[0] == "d" && f.size() > 1 && absl::SimpleAtof(f[1], &value) && value < 0.999f) {
+        seen[current].first = absl::StrFormat("d %g", value);
+      } else if (f[0] == "Tr" && f.size() > 1 && absl::SimpleAtof(f[1], &value) && value > 0.001f &&
+                 seen[current].first.empty()) {
+        seen[current].first = absl::StrFormat("Tr %g", value);
+      } else if (f[0] == "map_d" && f.size() > 1) {
+        seen[current].second = absl::StrCat("map_d ", f.back());
+      }
+    }
+    for (const auto& [name, why] : seen) {
+      if (!why.first.empty() || !why.second.empty()) {
+        out[name] = absl::StrJoin(std::vector<std::string>{why.first, why.second},
+                                  why.first.empty() || why.second.empty() ? "" : ", ");
+      }
+    }
+  }
+  return out;
+}
+
+// Leaves the triangles of transparent materials out of `m` (the simulator renders opaque surfaces: an eye shell or an
+// eyelash card would hide what is under it), and says which.
+void LeaveOutTransparent(const std::string& obj, TriangleMesh* m, std::vector<std::string>* notes) {
+  if (m->materials.empty()) return;
+  const std::map<std::string, std::string> transparent = TransparentMaterials(obj, *m, notes);
+  if (transparent.empty()) return;
+  std::vector<std::string> named;
+  std::vector<int64_t> dropped(m->material_names.size(), 0);
+  size_t kept = 0;
+  for (size_t t = 0; t < m->triangles.size(); ++t) {
+    const int32_t mat = m->materials[t];
+    if (mat >= 0 && transparent.count(m->material_names[static_cast<size_t>(mat)])) {
+      ++dropped[static_cast<size_t>(mat)];
+      continue;
+    }
+    m->triangles[kept] = m->triangles[t];
+    m->materials[kept] = mat;
+    if (!m->parts.empty()) m->parts[kept] = m->parts[t];
+    ++kept;
+  }
+  int64_t total = 0;
+  for (size_t i = 0; i < dropped.size(); ++i) {
+    if (dropped[i] == 0) continue;
+    total += dropped[i];
+    named.push_back(absl::StrCat(m->material_names[i], " (", transparent.at(m->material_names[i]), ", ", dropped[i],
+                                 " triangles)"));
+  }
+  m->triangles.resize(kept);
+  m->materials.resize(kept);
+  if (!m->parts.empty()) m->parts.resize(kept);
+  if (total > 0) {
+    notes->push_back(absl::StrCat(obj, ": left out ", total,
+                                  " triangles of transparent materials, as the simulator renders opaque surfaces "
+                                  "only: ",
+                                  absl::StrJoin(named, "; ")));
+  }
+}
+
+// Says where `m` is open: its holes (loops of edges that only one triangle has, vertices welded by position), largest
+// first, with where they are. A camera that looks into one sees through the head.
+void DescribeHoles(const std::string& obj, const TriangleMesh& m, std::vector<std::string>* notes) {
+  std::map<std::array<float, 3>, int32_t> weld;
+  std::vector<int32_t> id(m.positions.size());
+  for (size_t v = 0; v < m.positions.size(); ++v) {
+    const Eigen::Vector3f& p = m.positions[v];
+    id[v] = weld.try_emplace({p.x(), p.y(), p.z()}, static_cast<int32_t>(weld.size())).first->second;
+  }
+  std::map<std::pair<int32_t, int32_t>, int> edges;
+  for (const auto& t : m.triangles) {
+    for (int k = 0; k < 3; ++k) {
+      const int32_t a = id[t[k]], b = id[t[(k + 1) % 3]];
+      if (a != b) ++edges[{std::min(a, b), std::max(a, b)}];
+    }
+  }
+  // Union-find over the boundary edges' vertices: each component is a hole.
+  std::map<int32_t, int32_t> parent;
+  std::function<int32_t(int32_t)> find = [&](int32_t x) {
+    auto it = parent.find(x);
+    if (it == parent.end()) return parent[x] = x;
+    return it->second == x ? x : it->second = find(it->second);
+  };
+  std::vector<std::pair<int32_t, int32_t>> boundary;
+  for (const auto& [e, n] : edges) {
+    if (n != 1) continue;
+    boundary.push_back(e);
+    parent[find(e.first)] = find(e.second);
+  }
+  if (boundary.empty()) return;
+  std::vector<Eigen::Vector3f> welded(weld.size());
+  for (size_t v = 0; v < m.positions.size(); ++v) welded[static_cast<size_t>(id[v])] = m.positions[v];
+  std::map<int32_t, std::pair<int, Eigen::Vector3f>> holes;  // root -> (edges, sum of their first ends)
+  for (const auto& [a, b] : boundary) {
+    auto& h = holes.try_emplace(find(a), 0, Eigen::Vector3f::Zero()).first->second;
+    ++h.first;
+    h.second += welded[static_cast<size_t>(a)];
+  }
+  std::vector<std::pair<int, Eigen::Vector3f>> sorted;
+  for (const auto& [root, h] : holes) sorted.emplace_back(h.first, h.second / static_cast<float>(h.first));
+  std::sort(sorted.begin(), sorted.end(), [](const auto& x, const auto& y) { return x.first > y.first; });
+  std::vector<std::string> where;
+  for (size_t i = 0; i < sorted.size() && i < 5; ++i) {
+    const Eigen::Vector3f& c = sorted[i].second;
+    where.push_back(absl::StrFormat("%d edges around (%.0f, %.0f, %.0f) mm", sorted[i].first, c.x(), c.y(), c.z()));
+  }
+  if (sorted.size() > 5) where.push_back(absl::StrCat("and ", sorted.size() - 5, " more"));
+  notes->push_back(absl::StrCat(
+      obj, ": the mesh is open: ", sorted.size(), sorted.size() == 1 ? " hole (" : " holes (",
+      absl::StrJoin(where, "; "),
+      "); a camera looking into one sees through the head, black. A head for the stage is closed: eyes, mouth "
+      "interior, ears and the back of the head (head frame: +y up, +z the way the face looks)"));
 }
 
 }  // namespace
@@ -274,6 +622,7 @@ absl::StatusOr<std::shared_ptr<const HeadModel>> HeadModel::FromAsset(const Head
         absl::StrCat(files.neutral_obj, ": has no texture coordinates (vt), which the skin maps need"));
   }
   for (auto& p : m.positions) p *= files.units_mm;
+  STAGE_RETURN_IF_ERROR(CheckUvTile(files.neutral_obj, m));
   head->pivot_ = files.pivot_mm;
   for (const auto& [name, path] : files.blendshapes) {
     const int e = ExpressionIndex(name);
@@ -294,22 +643,19 @@ absl::StatusOr<std::shared_ptr<const HeadModel>> HeadModel::FromAsset(const Head
     delta.resize(m.positions.size());
     for (size_t v = 0; v < delta.size(); ++v) delta[v] = shape.positions[v] * files.units_mm - m.positions[v];
   }
+  // What of the mesh the simulator renders, said now rather than seen later as black or opaque patches.
+  LeaveOutTransparent(files.neutral_obj, &m, &head->notes_);
+  DescribeHoles(files.neutral_obj, m, &head->notes_);
   auto maps = std::make_shared<Maps>();
   maps->specular_value = files.specular_value;
   maps->roughness_value = files.roughness_value;
   maps->specular_scale = files.specular_scale;
-  STAGE_ASSIGN_OR_RETURN(maps->albedo, ReadImage(files.albedo, "sim.subject.asset.albedo", 3, Encoding::kSrgb));
-  if (!files.specular.empty()) {
-    STAGE_ASSIGN_OR_RETURN(maps->specular,
-                           ReadImage(files.specular, "sim.subject.asset.specular", 1, Encoding::kLinear));
-  }
-  if (!files.roughness.empty()) {
-    STAGE_ASSIGN_OR_RETURN(maps->roughness,
-                           ReadImage(files.roughness, "sim.subject.asset.roughness", 1, Encoding::kLinear));
-  }
-  if (!files.normal.empty()) {
-    STAGE_ASSIGN_OR_RETURN(maps->normal, ReadImage(files.normal, "sim.subject.asset.normal", 3, Encoding::kSigned));
-  }
+  if (files.albedo.empty()) return absl::InvalidArgumentError("sim.subject.asset.albedo: required with neutral_obj");
+  STAGE_ASSIGN_OR_RETURN(std::vector<Image> images, LoadMaps(files, &head->maps_origin_));
+  maps->albedo = std::move(images[0]);
+  maps->specular = std::move(images[1]);
+  maps->roughness = std::move(images[2]);
+  maps->normal = std::move(images[3]);
   head->maps_ = std::move(maps);
   return std::shared_ptr<const HeadModel>(std::move(head));
 }

@@ -1,11 +1,17 @@
 // A user's own head from files: OBJ blendshapes move the mesh as the weights say, the images give the material (sRGB
 // albedo decoded, specular scaled, tangent-space normals tilting the shading normal by their angle), the rig wires it
 // into the scene, and bad files are refused with the file or expression named.
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <Eigen/Geometry>
+#include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <thread>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -16,6 +22,7 @@
 namespace stage::sim {
 namespace {
 
+using ::testing::AllOf;
 using ::testing::HasSubstr;
 
 constexpr float kTiltDeg = 20;
@@ -167,6 +174,122 @@ TEST(HeadAssetTest, BadFilesAreNamed) {
   ASSERT_FALSE(bad.ok());
   EXPECT_THAT(bad.status().message(), HasSubstr("sim.subject.asset.albedo"));
   EXPECT_THAT(bad.status().message(), HasSubstr("nowhere.png"));
+}
+
+}  // namespace
+}  // namespace stage::sim
+
+namespace stage::sim {
+namespace {
+
+// The decoded maps are shared between processes: the first process to load an asset writes them to the cache, every
+// other one maps that file (one copy in the page cache for a whole stage), and what they sample is the same.
+TEST(HeadAssetTest, ProcessesShareOneDecodedCopyOfTheMaps) {
+  const std::string dir = ::testing::TempDir() + "/head-asset-cache";
+  std::filesystem::remove_all(dir);
+  const std::string cache = dir + "/cache";
+  setenv("FASTAGE_CACHE_DIR", cache.c_str(), 1);
+  const HeadAssetFiles files = WriteAsset(dir + "/asset");
+  // Another process loads it first (a camera node of the stage).
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    auto head = HeadModel::FromAsset(files);
+    _exit(head.ok() && (*head)->maps_origin() != "decoded" ? 0 : 3);
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(child, &status, 0), child);
+  ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+  std::vector<std::filesystem::path> written;
+  for (const auto& e : std::filesystem::directory_iterator(cache)) {
+    if (e.path().extension() == ".bin") written.push_back(e.path());
+  }
+  ASSERT_EQ(written.size(), 1u);
+  // This process maps the file the other one wrote, and samples what decoding gives.
+  auto head = HeadModel::FromAsset(files);
+  ASSERT_TRUE(head.ok()) << head.status();
+  EXPECT_EQ((*head)->maps_origin(), written[0].string());
+  const SurfaceSample left = (*head)->Surface({0.2f, 0.5f}, 0, {});
+  EXPECT_NEAR(left.material.albedo.x(), SrgbToLinear(200 / 255.0f), 1e-6);
+  EXPECT_NEAR(left.material.specular, 0.3f * files.specular_scale, 1e-6);
+  // A changed image is another cache entry, not the stale one.
+  cv::Mat albedo(32, 64, CV_8UC3, cv::Scalar(10, 20, 30));
+  std::this_thread::sleep_for(std::chrono::milliseconds(10));  // a modification time of its own
+  ASSERT_TRUE(cv::imwrite(files.albedo, albedo));
+  auto changed = HeadModel::FromAsset(files);
+  ASSERT_TRUE(changed.ok()) << changed.status();
+  EXPECT_NE((*changed)->maps_origin(), written[0].string());
+  EXPECT_NEAR((*changed)->Surface({0.2f, 0.5f}, 0, {}).material.albedo.x(), SrgbToLinear(30 / 255.0f), 1e-6);
+  unsetenv("FASTAGE_CACHE_DIR");
+}
+
+}  // namespace
+}  // namespace stage::sim
+
+namespace stage::sim {
+namespace {
+
+// Writes `text` to `path`.
+void Write(const std::string& path, const std::string& text) { std::ofstream(path) << text; }
+
+// A scan laid out in UV tiles (one a material) is refused, saying which tiles and how to pack them; it is never
+// clamped to the tile's edge without a word.
+TEST(HeadAssetTest, UvTilesAreRefusedWithHowToPackThem) {
+  const std::string dir = ::testing::TempDir() + "/head-asset-udim";
+  HeadAssetFiles files = WriteAsset(dir);
+  auto mesh = ReadObj(files.neutral_obj);
+  ASSERT_TRUE(mesh.ok());
+  for (Eigen::Vector2f& uv : mesh->uvs) {
+    if (uv.x() > 0.5f) uv.x() += 1;  // the right half of the face in tile 1002
+  }
+  ASSERT_TRUE(WriteObj(files.neutral_obj, *mesh).ok());
+  files.blendshapes.clear();
+  auto head = HeadModel::FromAsset(files);
+  ASSERT_FALSE(head.ok());
+  EXPECT_EQ(head.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(head.status().message()),
+              AllOf(HasSubstr(files.neutral_obj + ": texture coordinates reach outside [0, 1]"),
+                    HasSubstr("(UDIM 1001, 1002)"), HasSubstr("Pack the UVs into that one tile")));
+}
+
+// Transparent materials (an eye shell, an eyelash card) are left out, named; an open mesh says where its holes are; a
+// closed, opaque one has nothing to say.
+TEST(HeadAssetTest, TransparentMaterialsAreLeftOutAndHolesAreNamed) {
+  const std::string dir = ::testing::TempDir() + "/head-asset-materials";
+  HeadAssetFiles files = WriteAsset(dir);
+  files.blendshapes.clear();
+  auto closed = HeadModel::FromAsset(files);
+  ASSERT_TRUE(closed.ok()) << closed.status();
+  EXPECT_TRUE((*closed)->notes().empty()) << (*closed)->notes()[0];
+  const size_t all = (*closed)->neutral().triangles.size();
+
+  // The same mesh with its first 100 triangles as "EyeShell" (d 0.1) and the next 50 as "Lashes" (an alpha map).
+  std::ifstream in(files.neutral_obj);
+  std::string obj = "mtllib head.mtl\nusemtl Skin\n", line;
+  int faces = 0;
+  while (std::getline(in, line)) {
+    if (line.rfind("f ", 0) == 0) {
+      if (faces == 0) obj += "usemtl EyeShell\n";
+      if (faces == 100) obj += "usemtl Lashes\n";
+      if (faces == 150) obj += "usemtl Skin\n";
+      ++faces;
+    }
+    obj += line + "\n";
+  }
+  Write(files.neutral_obj, obj);
+  Write(dir + "/head.mtl",
+        "newmtl Skin\nKd 0.8 0.6 0.5\nd 1\nnewmtl EyeShell\nd 0.1\nnewmtl Lashes\nmap_Kd lash.png\nmap_d "
+        "lash_alpha.png\n");
+  auto head = HeadModel::FromAsset(files);
+  ASSERT_TRUE(head.ok()) << head.status();
+  EXPECT_EQ((*head)->neutral().triangles.size(), all - 150);
+  ASSERT_FALSE((*head)->notes().empty());
+  EXPECT_THAT((*head)->notes()[0], AllOf(HasSubstr("left out 150 triangles of transparent materials"),
+                                         HasSubstr("EyeShell (d 0.1, 100 triangles)"),
+                                         HasSubstr("Lashes (map_d lash_alpha.png, 50 triangles)")));
+  // Leaving them out opened the mesh where they were: said too.
+  ASSERT_EQ((*head)->notes().size(), 2u);
+  EXPECT_THAT((*head)->notes()[1], AllOf(HasSubstr("the mesh is open: "), HasSubstr("edges around (")));
 }
 
 }  // namespace

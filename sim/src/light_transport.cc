@@ -13,19 +13,28 @@ constexpr float kPi = 3.14159265358979323846f;
 // Shadow rays start this far off the surface, mm.
 constexpr float kShadowEpsilon = 1e-3f;
 
+// Runs body(0..n-1) on `threads` threads; each thread adds what it has done to `progress` every 64 items.
 template <typename F>
-void ParallelFor(size_t n, int threads, F&& body) {
+void ParallelFor(size_t n, int threads, WorkProgress* progress, F&& body) {
   if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  auto run = [&](size_t first, size_t step) {
+    uint64_t since = 0;
+    for (size_t i = first; i < n; i += step) {
+      body(i);
+      if (progress != nullptr && ++since == 64) {
+        progress->done.fetch_add(since, std::memory_order_relaxed);
+        since = 0;
+      }
+    }
+    if (progress != nullptr) progress->done.fetch_add(since, std::memory_order_relaxed);
+  };
   if (threads == 1 || n < 64) {
-    for (size_t i = 0; i < n; ++i) body(i);
+    run(0, 1);
     return;
   }
   std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    pool.emplace_back([&, t] {
-      for (size_t i = static_cast<size_t>(t); i < n; i += static_cast<size_t>(threads)) body(i);
-    });
-  }
+  for (int t = 0; t < threads; ++t)
+    pool.emplace_back([&, t] { run(static_cast<size_t>(t), static_cast<size_t>(threads)); });
   for (auto& th : pool) th.join();
 }
 
@@ -37,27 +46,31 @@ float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   return static_cast<float>(leakage + growth * (1 - c * c));
 }
 
-std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads, double dx, double dy) {
+std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads, double dx, double dy,
+                             WorkProgress* progress) {
   const std::vector<Eigen::Vector3f> rays = camera.PixelRays(dx, dy);
   const Eigen::Vector3f origin = camera.position().cast<float>();
   std::vector<Hit> all(rays.size());
-  ParallelFor(rays.size(), threads, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
+  ParallelFor(rays.size(), threads, progress, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
   return all;
 }
 
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
-                                int supersample) {
+                                int supersample, WorkProgress* progress) {
   PixelResponses r;
   r.width = camera.width();
   r.height = camera.height();
   const Eigen::Vector3f origin = camera.position().cast<float>();
   const int n = std::max(1, supersample);
+  const auto rays = static_cast<uint64_t>(r.width) * r.height * n * n;
+  // The rays, then a pixel's responses for each one that hits (at most every pixel; known once traced).
+  if (progress != nullptr) progress->total.store(progress->done.load() + 2 * rays);
   // Every ray that hits, grouped by pixel (rows in pixel order).
   std::vector<std::vector<Hit>> by_pixel(static_cast<size_t>(r.width) * r.height);
   for (int sy = 0; sy < n; ++sy) {
     for (int sx = 0; sx < n; ++sx) {
       const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
-      std::vector<Hit> all = TracePixels(camera, subject, threads, dx, dy);
+      std::vector<Hit> all = TracePixels(camera, subject, threads, dx, dy, progress);
       for (size_t i = 0; i < all.size(); ++i) {
         if (all[i].hit) by_pixel[i].push_back(all[i]);
       }
@@ -75,10 +88,11 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
   }
   const size_t count = rows.size();
   const size_t units = dome.units.size();
+  if (progress != nullptr) progress->total.store(progress->done.load() + count);
   const float weight = 1.0f / static_cast<float>(n * n);
   r.diffuse = RowMatrixXf::Zero(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
   r.specular = RowMatrixXf::Zero(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
-  ParallelFor(count, threads, [&](size_t i) {
+  ParallelFor(count, threads, progress, [&](size_t i) {
     const auto row = static_cast<Eigen::Index>(i);
     for (const Hit& h : *rows[i]) {
       const Eigen::Vector3f v = (origin - h.point).normalized();

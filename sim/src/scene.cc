@@ -7,6 +7,8 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/logging.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/time_base.h"
@@ -103,6 +105,7 @@ absl::Status SimScene::MakeSubject(const std::string& base_dir) {
       files.pivot_mm = Eigen::Vector3d(asset.pivot_mm(0), asset.pivot_mm(1), asset.pivot_mm(2)).cast<float>();
     }
     STAGE_ASSIGN_OR_RETURN(head_, HeadModel::FromAsset(files));
+    for (const std::string& note : head_->notes()) Logger("sim")->warn("{}", note);
     model_ = head_;
   } else {
     head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()));
@@ -254,11 +257,17 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
   if (!scene_->animated()) pose_frame = 0;
   std::lock_guard<std::mutex> lock(mutex_);
   if (responses_ == nullptr || responses_frame_ != pose_frame) {
+    compute_.done.store(0);
+    compute_.total.store(0);
+    computing_frame_.store(pose_frame);
     auto subject = scene_->SubjectAt(pose_frame);
     responses_ = std::make_shared<const PixelResponses>(
         ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_,
-                         static_cast<int>(scene_->rig().sim().supersample())));
+                         static_cast<int>(scene_->rig().sim().supersample()), &compute_));
     responses_frame_ = pose_frame;
+    work_before_.fetch_add(compute_.done.load());
+    compute_.done.store(0);
+    computing_frame_.store(-1);
   }
   return responses_;
 }
@@ -266,8 +275,24 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
 RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame) {
   const std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
   const std::vector<float> rgb = RenderRadiance(*r, levels, scene_->leakage(index_));
-  return ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(), stream_,
-                      counter);
+  RawImage raw = ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(),
+                              stream_, counter);
+  work_before_.fetch_add(1);
+  return raw;
+}
+
+CameraRenderer::Progress CameraRenderer::progress() const {
+  Progress p;
+  const int64_t frame = computing_frame_.load();
+  const uint64_t done = compute_.done.load(), total = compute_.total.load();
+  p.work = work_before_.load() + done;
+  if (frame >= 0) {
+    p.activity = total > 0
+                     ? absl::StrFormat("precomputing the subject's pose of frame %d: %.0f %%", frame,
+                                       100.0 * static_cast<double>(std::min(done, total)) / static_cast<double>(total))
+                     : absl::StrFormat("posing the subject for frame %d", frame);
+  }
+  return p;
 }
 
 }  // namespace stage::sim

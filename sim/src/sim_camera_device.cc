@@ -191,7 +191,11 @@ void SimCameraDevice::TriggerLoop(int device) {
   int64_t slot = p;
   while (true) {
     auto edge = world->WaitForEdge(device, slot);
-    if (!edge) break;
+    if (!edge) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (running_) Logger("sim")->warn("sim camera {}: the world ended or let it go at slot {}", serial_, slot);
+      break;
+    }
     const int64_t k = edge->slot;
     const WorldRun& run = edge->run;
     const int64_t missed = CountFiring(std::max(slot, run.first) - run.first, k - run.first, d, p);
@@ -245,8 +249,13 @@ void SimCameraDevice::RenderLoop() {
       jobs_changed_.wait(lock, [&] { return !running_ || !jobs_.empty(); });
       if (!running_) return;
       job = jobs_.front();
+      waiting_for_light_ = true;
     }
     auto levels = w.world->Exposure(job.t0_ns, job.t1_ns);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      waiting_for_light_ = false;
+    }
     if (!levels.ok()) {
       if (absl::IsCancelled(levels.status())) return;
       Logger("sim")->warn("sim camera {}: frame {} (slot {}) lost: {}", serial_, job.frame_id, job.slot,
@@ -280,6 +289,31 @@ void SimCameraDevice::RenderLoop() {
     jobs_.pop_front();
     jobs_changed_.notify_all();
   }
+}
+
+camera::DeviceBacklog SimCameraDevice::Backlog() const {
+  camera::DeviceBacklog b;
+  if (!world_) return b;
+  int64_t slot = -1;
+  bool waiting = false;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    b.frames_owed = static_cast<int64_t>(jobs_.size());
+    b.work_done = stats_.frames + stats_.dropped_frames + stats_.render_errors;
+    if (!jobs_.empty()) slot = jobs_.front().slot;
+    waiting = waiting_for_light_;
+  }
+  const CameraRenderer::Progress p = world_->renderer->progress();
+  b.work_done += p.work;
+  if (b.frames_owed == 0) return b;
+  if (waiting) {
+    b.activity = absl::StrCat("waiting for the light of slot ", slot);
+  } else if (!p.activity.empty()) {
+    b.activity = p.activity;
+  } else {
+    b.activity = absl::StrCat("rendering slot ", slot);
+  }
+  return b;
 }
 
 absl::Status SimCameraDevice::Trigger() {

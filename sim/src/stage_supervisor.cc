@@ -42,6 +42,30 @@ absl::StatusOr<std::string> ToJson(const google::protobuf::Message& message) {
 
 bool ProcessAlive(pid_t pid) { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
 
+// The effective rig lives in the run directory: every path the rig file gave relative to itself (a pattern-set file,
+// the take root, a performance, a head asset's mesh, blendshapes and maps) is made absolute against the file's folder,
+// so that it still points where it did.
+void MakeRigPathsAbsolute(v1::RigConfig* rig, const std::string& base_dir) {
+  auto absolute = [&](std::string* file) {
+    if (file->empty()) return;
+    const std::filesystem::path given(*file);
+    if (given.is_relative()) *file = std::filesystem::absolute(std::filesystem::path(base_dir) / given).string();
+  };
+  if (!IsBuiltinPatternSet(rig->pattern_set())) absolute(rig->mutable_pattern_set());
+  absolute(rig->mutable_storage()->mutable_root());
+  v1::SimSubject* subject = rig->mutable_sim()->mutable_subject();
+  const std::string& performance = subject->performance();
+  if (performance != "default" && performance != "still" && !performance.empty()) {
+    absolute(subject->mutable_performance());
+  }
+  v1::SimHeadAsset* asset = subject->mutable_asset();
+  for (std::string* file : {asset->mutable_neutral_obj(), asset->mutable_albedo(), asset->mutable_specular(),
+                            asset->mutable_roughness(), asset->mutable_normal()}) {
+    absolute(file);
+  }
+  for (auto& [expression, file] : *asset->mutable_blendshapes()) absolute(&file);
+}
+
 }  // namespace
 
 std::string LastLineOf(const std::string& path) {
@@ -176,19 +200,7 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path, bool wi
     for (auto& n : *rig.mutable_light_nodes()) n.set_address(address_of(n.id()));
     for (auto& w : *rig.mutable_processing_workers()) w.set_address(address_of(w.id()));
   }
-  // The effective rig lives in the run directory: paths the rig file gave relative to itself must stay where they
-  // pointed (a pattern-set file, the take root).
-  auto absolute = [&](const std::string& file) {
-    const std::filesystem::path given(file);
-    return given.is_relative() ? std::filesystem::absolute(std::filesystem::path(rig_.base_dir) / given).string()
-                               : file;
-  };
-  if (!IsBuiltinPatternSet(rig.pattern_set())) rig.set_pattern_set(absolute(rig.pattern_set()));
-  rig.mutable_storage()->set_root(absolute(rig.storage().root()));
-  const std::string& performance = rig.sim().subject().performance();
-  if (performance != "default" && performance != "still" && !performance.empty()) {
-    rig.mutable_sim()->mutable_subject()->set_performance(absolute(performance));
-  }
+  MakeRigPathsAbsolute(&rig, rig_.base_dir);
   // The controller listens where stage-sim says (--listen), whatever the rig's controller.listen is.
   STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(rig));
   return WriteFileAtomically(path, json);
@@ -289,7 +301,8 @@ absl::Status StageSupervisor::Start() {
     std::vector<std::string> args = {"--id", id, "--backend", "sim"};
     for (const auto& c : rig_.rig.cameras()) {
       // A fake GigE Vision camera of stage-sim's stands in for it: the node runs its real backend.
-      if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == "aravis") return std::vector<std::string>{"--id", id};
+      if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == "aravis")
+        return std::vector<std::string>{"--id", id};
     }
     for (const auto& n : rig_.rig.light_nodes()) {
       // A fake LED board of stage-sim's stands in for it (modbus.tcp points there): the node runs its real backend.

@@ -136,6 +136,8 @@ absl::Status World::StartRun(const WorldRun& run) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
+    // Asked again for the run it started (a caller whose first request's answer did not reach it): done already.
+    if (!runs_.empty() && runs_.back().first == run.first && runs_.back().end == run.end) return absl::OkStatus();
     const int64_t after = runs_.empty() ? 0 : runs_.back().end;
     if (run.first < after || run.end <= run.first) {
       return absl::FailedPreconditionError(
@@ -327,6 +329,12 @@ absl::StatusOr<EmitterLevels> World::Exposure(int64_t t0_ns, int64_t t1_ns) {
 int64_t World::current_slot() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return current_;
+}
+
+std::optional<WorldRun> World::LastRun() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (runs_.empty()) return std::nullopt;
+  return runs_.back();
 }
 
 }  // namespace stage::sim

@@ -63,19 +63,29 @@ grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* 
     }
   }
   if (!run.ok()) return ToGrpcStatus(run.status());
-  reply->set_first_slot(run->first);
-  reply->set_end_slot(run->end);
-  reply->set_first_edge_ns(world_->EdgeNs(run->first));
+  FillRunReply(*run, reply);
   return grpc::Status::OK;
 }
 
 grpc::Status WorldService::EndRun(grpc::ServerContext*, const v1::EndRunRequest* request, v1::WorldRunReply* reply) {
   auto run = world_->EndRun(request->align_slots());
   if (!run.ok()) return ToGrpcStatus(run.status());
-  reply->set_first_slot(run->first);
-  reply->set_end_slot(run->end);
-  reply->set_first_edge_ns(world_->EdgeNs(run->first));
+  FillRunReply(*run, reply);
   return grpc::Status::OK;
+}
+
+grpc::Status WorldService::GetRun(grpc::ServerContext*, const v1::GetRunRequest*, v1::WorldRunReply* reply) {
+  const std::optional<WorldRun> run = world_->LastRun();
+  if (!run) return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "the bus has had no run yet");
+  FillRunReply(*run, reply);
+  return grpc::Status::OK;
+}
+
+void WorldService::FillRunReply(const WorldRun& run, v1::WorldRunReply* reply) const {
+  reply->set_first_slot(run.first);
+  reply->set_end_slot(run.end);
+  reply->set_first_edge_ns(world_->EdgeNs(run.first));
+  reply->set_current_slot(world_->current_slot());
 }
 
 grpc::Status WorldService::WriteGroundTruth(grpc::ServerContext*, const v1::GroundTruthRequest* request,

@@ -25,6 +25,7 @@
 #include "stage/sim/world_devices.h"
 #include "stage/sim/world_service.h"
 #include "stage/timing/schedule.h"
+#include "stage/timing/timing_tool.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #if STAGE_WITH_ARAVIS
 #include "stage/sim/gige_fake_camera.h"
@@ -125,6 +126,45 @@ absl::Status WaitUntilRendered(const stage::sim::SimScene& scene, const stage::v
   return absl::OkStatus();
 }
 
+// stage-sim --check-config: the rig as stage-sim would run it, every error at once.
+int CheckConfig(const std::string& config, const std::vector<std::string>& overrides, bool with_world) {
+  std::vector<std::string> errors;
+  auto loaded = stage::LoadRig(config, {}, &errors);  // stage-sim assigns every node's address
+  for (const std::string& e : errors) std::cerr << e << "\n";
+  if (!loaded.ok()) {
+    if (errors.empty()) std::cerr << loaded.status().message() << "\n";
+    return 2;
+  }
+  if (!overrides.empty()) {
+    loaded = stage::ApplyRigOverrides(*loaded, overrides);
+    if (!loaded.ok()) {
+      std::cerr << loaded.status().message() << "\n";
+      return 2;
+    }
+  }
+  if (with_world) {
+    // The simulated subject and dome, as the world builds them (a head asset's files are read here).
+    auto scene = stage::sim::SimScene::FromLoadedRig(*loaded);
+    if (!scene.ok()) {
+      std::cerr << scene.status().message() << "\n";
+      return 2;
+    }
+    for (const std::string& note : (*scene)->notes()) std::cout << "note: " << note << "\n";
+  }
+  auto report = stage::timing::CheckTiming(*loaded, stage::v1::TimingQuery());
+  if (!report.ok()) {
+    std::cerr << report.status().message() << "\n";
+    return 2;
+  }
+  std::cout << stage::timing::FormatViolations(*report, loaded->source_name);
+  const auto& rig = loaded->rig;
+  if (report->errors() > 0) return 3;
+  std::cout << loaded->source_name << ": ok as stage-sim runs it (" << stage::Plural(rig.cameras_size(), "camera")
+            << ", " << stage::Plural(rig.light_nodes_size(), "light node") << ", "
+            << stage::Plural(rig.processing_workers_size(), "processing worker") << ")\n";
+  return 0;
+}
+
 std::string SelfDir() {
   std::error_code ec;
   auto self = std::filesystem::read_symlink("/proc/self/exe", ec);
@@ -194,6 +234,11 @@ int main(int argc, char** argv) {
   app.add_flag("--json", json, "--until-rendered: print the summary as JSON");
   app.add_option("--take-root", options.take_root,
                  "Where the controller records takes (default: the rig's storage.root, relative to here)");
+  bool check_config = false;
+  app.add_flag("--check-config", check_config,
+               "Check the rig as stage-sim runs it (node addresses are stage-sim's to assign; --set applied): print "
+               "every error of the rig file, the simulated subject and the timing verifier, and exit (0 ok, 2 the rig "
+               "is not valid, 3 the schedule has errors); starts nothing");
   std::string ground_truth_dir;
   app.add_option("--ground-truth", ground_truth_dir,
                  "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
@@ -211,6 +256,7 @@ int main(int argc, char** argv) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--until-rendered takes no command"));
   }
   options.rig = flags.config;
+  if (check_config) return CheckConfig(options.rig, options.overrides, world_mode != "none");
   options.startup_timeout = std::chrono::milliseconds(startup_timeout_ms);
   options.grace = std::chrono::milliseconds(grace_ms);
   if (!options.child_log_level.empty()) {
@@ -249,8 +295,8 @@ int main(int argc, char** argv) {
     info.set_slot_rate_hz(world_options.slot_rate_hz);
     info.set_lockstep(lockstep);
     info.set_t0_ns(0);
-    world_service = std::make_unique<stage::sim::WorldService>(
-        world.get(), info, [scene](const stage::v1::SimFault& f) {
+    world_service =
+        std::make_unique<stage::sim::WorldService>(world.get(), info, [scene](const stage::v1::SimFault& f) {
           if (f.has_packet_loss() || f.has_link_down_at_s() || f.has_link_down_s()) {
             // The fake GigE cameras take these from the rig when they start; nothing would apply them now.
             return absl::InvalidArgumentError(
@@ -267,7 +313,12 @@ int main(int argc, char** argv) {
       gt.cameras.assign(r.cameras().begin(), r.cameras().end());
       return stage::sim::WriteGroundTruth(*scene, r.dir(), gt);
     });
-    auto server = stage::RpcServer::Start({}, {world_service.get()});
+    // The world's devices are processes of this machine: one that dies closes its connection at once. A device slow
+    // to answer a keepalive ping (a starved machine, a stopped process) is still in the world: the lockstep world waits
+    // for it, so the ping's timeout is long rather than the default's 5 s.
+    stage::RpcServerOptions world_server_options;
+    world_server_options.keepalive_timeout_ms = 600'000;
+    auto server = stage::RpcServer::Start(world_server_options, {world_service.get()});
     if (!server.ok()) return stage::ReportFatal(kProgram, server.status());
     world_server = std::move(*server);
     options.world_address = world_server->address();
@@ -290,8 +341,8 @@ int main(int argc, char** argv) {
     }
     log->info("{} fake GigE Vision camera(s) up", fakes.size());
 #else
-    return stage::ReportFatal(kProgram, absl::FailedPreconditionError(
-                                            "sim.gige_fakes: this build has no Aravis (STAGE_WITH_ARAVIS=OFF)"));
+    return stage::ReportFatal(
+        kProgram, absl::FailedPreconditionError("sim.gige_fakes: this build has no Aravis (STAGE_WITH_ARAVIS=OFF)"));
 #endif
   }
   // Fake LED boards (sim.modbus_fakes) on loopback, one per modbus light node, up before the nodes that connect to
@@ -346,10 +397,11 @@ int main(int argc, char** argv) {
   const auto& rig = supervisor.rig().rig;
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started_at).count();
   std::cerr << absl::StrCat("stage-sim: stage \"", rig.stage().id(), "\" is up in ",
-                            static_cast<int>(seconds * 10) / 10.0, " s: ", rig.cameras_size(), " camera nodes, ",
-                            rig.light_nodes_size(), " light nodes, ", rig.processing_workers_size(),
-                            " processing worker(s), controller at ", supervisor.endpoints().controller(),
-                            "; endpoints in ", supervisor.endpoints_path())
+                            static_cast<int>(seconds * 10) / 10.0,
+                            " s: ", stage::Plural(rig.cameras_size(), "camera node"), ", ",
+                            stage::Plural(rig.light_nodes_size(), "light node"), ", ",
+                            stage::Plural(rig.processing_workers_size(), "processing worker"), ", controller at ",
+                            supervisor.endpoints().controller(), "; endpoints in ", supervisor.endpoints_path())
             << std::endl;
 
   const auto world_started = std::chrono::steady_clock::now();

@@ -8,10 +8,12 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <thread>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "stage/common/clock.h"
@@ -19,6 +21,7 @@
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/status.h"
+#include "stage/common/take_names.h"
 #include "stage/common/version.h"
 #include "stage/storage/frame_file.h"
 #include "stage/timing/pattern_set.h"
@@ -28,6 +31,7 @@
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
 #include "stage/v1/sim.grpc.pb.h"
+#include "take_watch.h"
 
 namespace stage::controller {
 namespace {
@@ -53,41 +57,72 @@ void Deadline(grpc::ClientContext* c, int ms) {
   c->set_deadline(std::chrono::system_clock::now() + std::chrono::milliseconds(ms));
 }
 
-void Add(v1::LedgerCounts* c, storage::LossReason reason) {
-  c->set_expected(c->expected() + 1);
-  if (reason == storage::LossReason::kNone) c->set_stored(c->stored() + 1);
-  if (reason != storage::LossReason::kNone) (*c->mutable_lost())[storage::LossReasonName(reason)] += 1;
+// Calls `rpc` with a fresh context and a deadline of `deadline_ms` a try until the node answers, fails for another
+// reason than its deadline (it is gone, or refuses), or `give_up` has passed. For requests a node answers the same when
+// asked twice (arming a take, its plan, disarming): a node slow to answer on a loaded host is asked again rather than
+// counted out.
+grpc::Status Patiently(int deadline_ms, Clock::time_point give_up,
+                       const std::function<grpc::Status(grpc::ClientContext*)>& rpc) {
+  while (true) {
+    grpc::ClientContext context;
+    Deadline(&context, deadline_ms);
+    grpc::Status s = rpc(&context);
+    if (s.error_code() != grpc::StatusCode::DEADLINE_EXCEEDED || Clock::now() >= give_up) return s;
+  }
 }
 
 // take.json: what the take was and how it ended (docs/storage.md).
 absl::Status WriteTakeJson(const std::string& dir, const v1::RigConfig& rig, const v1::Schedule& schedule,
-                           const v1::TakeSummary& summary, const std::string& state) {
-  std::string text =
-      absl::StrCat("{\n\"format\": \"fastage-take-1\",\n\"software\": \"FaStage ", kVersion, "\",\n\"state\": \"",
-                   state, "\",\n\"schedule_hash\": \"", schedule.hash(), "\",\n\"rig_hash\": \"", schedule.rig_hash(),
-                   "\",\n\"summary\": ", ToJson(summary), ",\n\"rig\": ", ToJson(rig), "\n}\n");
+                           const v1::TakeSummary& summary, v1::TakeState state) {
+  std::string text = absl::StrCat("{\n\"format\": \"fastage-take-1\",\n\"software\": \"FaStage ", kVersion,
+                                  "\",\n\"state\": \"", storage::TakeStateText(state), "\",\n\"schedule_hash\": \"",
+                                  schedule.hash(), "\",\n\"rig_hash\": \"", schedule.rig_hash(),
+                                  "\",\n\"summary\": ", ToJson(summary), ",\n\"rig\": ", ToJson(rig), "\n}\n");
   return WriteFileAtomically(dir + "/take.json", text);  // a reader sees the old file or the new one
 }
 
-// Tells the operator (the capture's event stream, when there is one) and the log.
-void Say(const CaptureEventFn& on_event, const std::string& message, bool warn = false) {
-  if (warn) {
-    Logger("controller")->warn("{}", message);
-  } else {
-    Logger("controller")->info("{}", message);
+// Adds one loss of `reason` to `counts` (its reasons in the enum's order, each once).
+void AddLoss(v1::LedgerCounts* counts, storage::LossReason reason, int64_t n = 1) {
+  const v1::LossReason r = storage::ToProto(reason);
+  for (v1::LossCount& l : *counts->mutable_lost()) {
+    if (l.reason() == r) {
+      l.set_frames(l.frames() + n);
+      return;
+    }
   }
-  if (!on_event) return;
-  v1::CaptureEvent e;
-  e.set_message(message);
-  on_event(e);
+  v1::LossCount* l = counts->add_lost();
+  l->set_reason(r);
+  l->set_frames(n);
+  std::sort(counts->mutable_lost()->begin(), counts->mutable_lost()->end(),
+            [](const v1::LossCount& a, const v1::LossCount& b) { return a.reason() < b.reason(); });
+}
+
+// The progress entry of `role`, made on first use (in the order the roles come).
+v1::RoleProgress* RoleOf(v1::CaptureProgress* progress, v1::CameraRole role) {
+  for (v1::RoleProgress& r : *progress->mutable_roles()) {
+    if (r.role() == role) return &r;
+  }
+  v1::RoleProgress* r = progress->add_roles();
+  r->set_role(role);
+  return r;
+}
+
+void Add(v1::LedgerCounts* c, storage::LossReason reason) {
+  c->set_expected(c->expected() + 1);
+  if (reason == storage::LossReason::kNone) {
+    c->set_stored(c->stored() + 1);
+  } else {
+    AddLoss(c, reason);
+  }
 }
 
 // The sync generator (the simulated world's bus): plans a run, or starts exactly the one planned.
-absl::StatusOr<v1::WorldRunReply> RunWorld(v1::SimWorld::Stub& world, const v1::RunWorldRequest& request) {
-  grpc::ClientContext context;
-  Deadline(&context, 5000);
+absl::StatusOr<v1::WorldRunReply> RunWorld(v1::SimWorld::Stub& world, const v1::RunWorldRequest& request,
+                                           Clock::time_point give_up) {
   v1::WorldRunReply run;
-  grpc::Status s = world.Run(&context, request, &run);
+  // Planning is a question, and starting the run planned twice starts it once: a world slow to answer is asked again.
+  grpc::Status s =
+      Patiently(5000, give_up, [&](grpc::ClientContext* context) { return world.Run(context, request, &run); });
   if (!s.ok()) return FromGrpcStatus(s);
   return run;
 }
@@ -160,6 +195,9 @@ struct Capturer::Take {
   Clock::time_point paused_since;
   bool aborted = false;
   bool ground_truth = true;
+  Clock::time_point armed_at = Clock::now();
+  // Why the take was given up before every frame came, if it was (nothing moved for the stall limit).
+  std::string stalled;
   // The lights' heartbeat (ArmLightRequest.heartbeat_timeout_ms) from arming to disarming, a thread per light node,
   // and what the nodes report of the take on the way: their take_faults, by light node index.
   std::vector<std::thread> heartbeats;
@@ -205,22 +243,41 @@ absl::StatusOr<std::unique_ptr<Capturer>> Capturer::Create(LoadedRig rig, v1::Sc
 
 Capturer::~Capturer() = default;
 
-std::string Capturer::state() const {
+v1::SessionState Capturer::state() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return state_;
 }
 
-void Capturer::SetState(const std::string& state, const CaptureEventFn& on_event) {
+std::string Capturer::current_take_id() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return current_take_;
+}
+
+void Capturer::SetState(v1::SessionState state) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (state_ == state) return;
-    Logger("controller")->info("session: {} -> {}", state_, state);
+    Logger("controller")->info("session: {} -> {}", SessionStateName(state_), SessionStateName(state));
     state_ = state;
+    // The session holds a take from its configuring to its end.
+    if (state == v1::SESSION_STATE_CONFIGURING) current_take_ = events_.take_id();
+    if (state == v1::SESSION_STATE_IDLE || state == v1::SESSION_STATE_ERROR) current_take_.clear();
   }
   if (options_.on_state_change) options_.on_state_change();
   v1::CaptureEvent e;
   e.set_state(state);
-  if (on_event) on_event(e);
+  events_.Emit(e);
+}
+
+void Capturer::Say(const std::string& message, bool warn) {
+  if (warn) {
+    Logger("controller")->warn("{}", message);
+  } else {
+    Logger("controller")->info("{}", message);
+  }
+  v1::CaptureEvent e;
+  e.set_message(message);
+  events_.Emit(e);
 }
 
 absl::StatusOr<v1::Preview> Capturer::GetPreview(const std::string& camera_id) const {
@@ -233,10 +290,13 @@ absl::StatusOr<v1::Preview> Capturer::GetPreview(const std::string& camera_id) c
   return absl::NotFoundError(absl::StrCat("\"", camera_id, "\" is no camera of the rig"));
 }
 
-absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::CaptureRequest& request,
-                                                                  const CaptureEventFn& on_event) {
+absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::CaptureRequest& request) {
   const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   const int64_t cycle = schedule_.patterns_size();
+  if (request.frames() != 0 && request.seconds() != 0) {
+    return absl::InvalidArgumentError(absl::StrCat("capture: give frames or seconds, not both (frames ",
+                                                   request.frames(), ", seconds ", request.seconds(), ")"));
+  }
   int64_t frames = request.frames();
   if (frames <= 0 && request.seconds() > 0) {
     frames =
@@ -250,25 +310,15 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
         absl::StrCat("the rig's schedule has ", timing_errors_, " error(s): `stagectl timing check` shows them"));
   }
   if (std::string why; options_.estop != nullptr && options_.estop->latched(&why)) {
-    return absl::FailedPreconditionError(absl::StrCat("the emergency stop is latched (", why,
-                                                      "): nothing arms until `stagectl estop --reset`"));
+    return absl::FailedPreconditionError(
+        absl::StrCat("the emergency stop is latched (", why, "): nothing arms until `stagectl estop --reset`"));
   }
   if (options_.world_address.empty()) {
     return absl::FailedPreconditionError(
         "no sync generator: the controller drives the simulated world's bus (stage-sim); a hardware slot clock comes "
         "with the light-node work");
   }
-  auto say = [&](const std::string& m) { Say(on_event, m); };
-  SetState("configuring", on_event);
-  struct BackToIdle {  // unless armed
-    Capturer* c;
-    const CaptureEventFn& f;
-    bool armed = false;
-    ~BackToIdle() {
-      if (!armed) c->SetState("idle", f);
-    }
-  } back{this, on_event};
-
+  auto say = [&](const std::string& m) { Say(m); };
   auto take = std::make_unique<Take>();
   take->cycle = cycle;
   take->ground_truth = !request.skip_ground_truth();
@@ -277,6 +327,17 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   take->run_end = take->slots;
   const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
   STAGE_ASSIGN_OR_RETURN(take->id, catalog_->NextTakeId(rig_.rig.stage().id(), now_unix));
+  // From here on every event names the take, the first (its configuring state) included.
+  events_.Begin(take->id);
+  SetState(v1::SESSION_STATE_CONFIGURING);
+  struct BackToIdle {  // unless armed
+    Capturer* c;
+    bool armed = false;
+    ~BackToIdle() {
+      if (!armed) c->SetState(v1::SESSION_STATE_IDLE);
+    }
+  } back{this};
+
   take->dir = (fs::path(options_.take_root) / take->id).string();
   std::error_code ec;
   fs::create_directories(take->dir + "/cameras", ec);
@@ -284,7 +345,7 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   storage::TakeRow& row = take->row;
   row.id = take->id;
   row.name = request.name();
-  row.state = "configuring";
+  row.state = v1::TAKE_STATE_CONFIGURING;
   row.created_unix_ns = now_unix;
   row.slots = take->slots;
   row.duration_s = static_cast<double>(take->slots) / base.slot_rate_hz();
@@ -298,7 +359,7 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   summary.set_dir(take->dir);
   summary.set_frames(frames);
   summary.set_slots(take->slots);
-  STAGE_RETURN_IF_ERROR(WriteTakeJson(take->dir, rig_.rig, schedule_, summary, "configuring"));
+  STAGE_RETURN_IF_ERROR(WriteTakeJson(take->dir, rig_.rig, schedule_, summary, v1::TAKE_STATE_CONFIGURING));
   {
     // The schedule as compiled, and as waveforms a logic-analyser viewer opens (the take's first 10 s at most).
     if (absl::Status s = WriteFileAtomically(take->dir + "/schedule.json", ToJson(schedule_)); !s.ok())
@@ -322,10 +383,10 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     *arm.mutable_table() = schedule_.light_nodes(i).table();
     arm.set_take_slots(take->slots);
     arm.set_heartbeat_timeout_ms(kLightHeartbeatTimeoutMs);
-    grpc::ClientContext context;
-    Deadline(&context, options_.arm_timeout_ms);
     v1::LightStats stats;
-    grpc::Status s = take->lights.back()->Arm(&context, arm, &stats);
+    grpc::Status s = Patiently(options_.arm_timeout_ms, StallDeadline(), [&](grpc::ClientContext* context) {
+      return take->lights.back()->Arm(context, arm, &stats);
+    });
     if (!s.ok()) take->not_ready.push_back(absl::StrCat(node.id(), " (", s.error_message(), ")"));
   }
   // The heartbeat: armed light nodes go dark when it stops (the controller died or lost them). One thread per node,
@@ -369,10 +430,9 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
     const bool hs = c.config->role() == v1::CAMERA_ROLE_HIGH_SPEED;
     arm.set_burst(hs);
     if (hs) arm.set_burst_bytes(static_cast<uint64_t>(c.config->ram_gib() * (1ull << 30)));
-    grpc::ClientContext context;
-    Deadline(&context, options_.arm_timeout_ms);
     v1::ArmCameraResponse armed;
-    grpc::Status s = c.stub->Arm(&context, arm, &armed);
+    grpc::Status s = Patiently(options_.arm_timeout_ms, StallDeadline(),
+                               [&](grpc::ClientContext* context) { return c.stub->Arm(context, arm, &armed); });
     if (s.ok()) {
       c.armed = true;
       if (!armed.path().empty()) c.path = armed.path();
@@ -384,11 +444,11 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   }
   if (!take->not_ready.empty()) say(absl::StrCat("not ready: ", absl::StrJoin(take->not_ready, ", ")));
   back.armed = true;
-  SetState("armed", on_event);
+  SetState(v1::SESSION_STATE_ARMED);
   return take;
 }
 
-void Capturer::UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event) {
+void Capturer::UpdateCameras(Take& take, bool with_t0) {
   v1::UpdateTakeRequest update;
   update.set_take_id(take.id);
   {
@@ -405,18 +465,18 @@ void Capturer::UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_
   }
   for (Take::Cam& c : take.cams) {
     if (!c.armed) continue;
-    grpc::ClientContext context;
-    Deadline(&context, options_.arm_timeout_ms);
     v1::ArmCameraResponse reply;
-    grpc::Status s = c.stub->UpdateTake(&context, update, &reply);
+    grpc::Status s = Patiently(options_.arm_timeout_ms, StallDeadline(), [&](grpc::ClientContext* context) {
+      return c.stub->UpdateTake(context, update, &reply);
+    });
     if (!s.ok()) {
       // It keeps what it recorded; its report is checked against the take's plan at the end.
-      Say(on_event, absl::StrCat(c.config->id(), " did not take the new plan: ", s.error_message()), /*warn=*/true);
+      Say(absl::StrCat(c.config->id(), " did not take the new plan: ", s.error_message()), /*warn=*/true);
     }
   }
 }
 
-bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
+bool Capturer::StartTake(Take& take) {
   const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
   // The run of the bus the take will be, planned first so that every camera knows its T0 before it starts.
   v1::RunWorldRequest plan;
@@ -424,10 +484,9 @@ bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
   plan.set_lead_slots(base.slot_rate_hz() / 2);  // real time: half a second to tell every node
   plan.set_align_slots(take.cycle);
   plan.set_plan_only(true);
-  auto run = RunWorld(*take.world, plan);
+  auto run = RunWorld(*take.world, plan, StallDeadline());
   if (!run.ok()) {
-    Say(on_event,
-        absl::StrCat("the sync generator (the simulated world at ", options_.world_address,
+    Say(absl::StrCat("the sync generator (the simulated world at ", options_.world_address,
                      ") cannot plan the take: ", run.status().message()),
         /*warn=*/true);
     return false;
@@ -437,32 +496,35 @@ bool Capturer::StartTake(Take& take, const CaptureEventFn& on_event) {
     take.first_bus = run->first_slot();
     take.summary.set_t0_bus_ns(run->first_edge_ns());
   }
-  UpdateCameras(take, /*with_t0=*/true, on_event);
+  UpdateCameras(take, /*with_t0=*/true);
   v1::RunWorldRequest start = plan;
   start.set_plan_only(false);
   start.set_first_slot(run->first_slot());
-  if (auto started = RunWorld(*take.world, start); !started.ok()) {
-    Say(on_event, absl::StrCat("the sync generator did not start: ", started.status().message()), /*warn=*/true);
+  if (auto started = RunWorld(*take.world, start, StallDeadline()); !started.ok()) {
+    Say(absl::StrCat("the sync generator did not start: ", started.status().message()), /*warn=*/true);
     return false;
   }
   const int64_t now_unix = RealClock(RealClock::Kind::kRealtime).NowNs();
   take.row.t0_unix_ns = now_unix;
   take.summary.set_t0_unix_ns(now_unix);
   take.ran = true;
-  SetState("capturing", on_event);
+  SetState(v1::SESSION_STATE_CAPTURING);
   return true;
 }
 
-void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
-  // Every camera's frames for the take, until all are in (and no pause holds the take), the take is aborted and what
-  // ran is in, or nothing has come for a while (a node down, the bus ended, frames lost).
+void Capturer::WatchTake(Take& take) {
+  // Every camera's frames for the take, until all are in (and no pause holds the take), or nothing more can come (the
+  // slot clock has produced every edge and no camera owes a frame), or nothing at all has moved for the stall limit.
+  // A slow machine only makes this longer: devices that work on the take say so (take_watch.h).
   const auto start = Clock::now();
-  int64_t last_total = -1;
-  auto last_change = Clock::now();
+  TakeWatchOptions watch_options;
+  watch_options.drain = std::chrono::milliseconds(options_.drain_ms);
+  watch_options.stall = std::chrono::seconds(rig_.rig.controller().take_stall_s());
+  TakeWatch watch(watch_options, start);
   while (true) {
     int64_t slots;
     Gaps gaps;
-    std::string state;
+    v1::SessionState state;
     bool aborted;
     {
       std::lock_guard<std::mutex> lock(mutex_);
@@ -472,30 +534,41 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
       aborted = take.aborted;
     }
     v1::CaptureProgress progress;
-    progress.set_phase(state);  // capturing, paused, aborting
-    int64_t total = 0, expected_now = 0;
+    progress.set_phase(state == v1::SESSION_STATE_PAUSED     ? v1::CAPTURE_PHASE_PAUSED
+                       : state == v1::SESSION_STATE_ABORTING ? v1::CAPTURE_PHASE_ABORTING
+                                                             : v1::CAPTURE_PHASE_CAPTURING);
+    TakeSnapshot snapshot;
     const auto now = Clock::now();
     for (Take::Cam& c : take.cams) {
-      const std::string role = CameraRoleName(c.config->role());
+      v1::RoleProgress* role = RoleOf(&progress, c.config->role());
       // What the take has so far (its end moves with a pause, a resume, an abort), and, shown, what it will have.
       const int64_t expected = ExpectedFrames(*c.timing, slots, gaps);
-      expected_now += expected;
       const int64_t shown = aborted ? expected : ExpectedFrames(*c.timing, take.capture_slots, {});
-      (*progress.mutable_expected_by_role())[role] += shown;
+      role->set_expected(role->expected() + shown);
       progress.set_frames_expected(progress.frames_expected() + shown);
       if (!c.armed) continue;
+      TakeSnapshot::Camera& seen = snapshot.cameras.emplace_back();
+      seen.id = c.config->id();
+      seen.expected = expected;
       grpc::ClientContext context;
       Deadline(&context, 1000);
       v1::CameraStats stats;
-      if (!c.stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok() || stats.take_id() != take.id) continue;
+      const grpc::Status polled = c.stub->GetStats(&context, v1::GetStatsRequest(), &stats);
+      // Gone (its process is not there): it delivers nothing more. Slow to answer: as it last said.
+      seen.down = polled.error_code() == grpc::StatusCode::UNAVAILABLE;
+      if (!polled.ok() || stats.take_id() != take.id) continue;
+      seen.answered = true;
+      seen.received = stats.take_frames_received();
+      seen.owed = stats.frames_owed();
+      seen.work = stats.device_work();
+      seen.activity = stats.device_activity();
       const int64_t got = std::min(stats.take_frames_received(), expected);
-      (*progress.mutable_received_by_role())[role] += got;
+      role->set_received(role->received() + got);
+      role->set_lost(role->lost() + stats.take_frames_lost());
       progress.set_frames_received(progress.frames_received() + got);
       progress.set_frames_written(progress.frames_written() + stats.take_frames_written());
       progress.set_frames_lost(progress.frames_lost() + stats.take_frames_lost());
-      if (stats.take_frames_lost() > 0) (*progress.mutable_lost_by_role())[role] += stats.take_frames_lost();
-      total += got;
-      if (state == "capturing" && now >= c.next_preview) {
+      if (state == v1::SESSION_STATE_CAPTURING && now >= c.next_preview) {
         // The console's view: the camera's latest full-on frame, small.
         c.next_preview = now + std::chrono::milliseconds(options_.preview_interval_ms);
         grpc::ClientContext pc;
@@ -509,31 +582,53 @@ void Capturer::WatchTake(Take& take, const CaptureEventFn& on_event) {
         }
       }
     }
+    ReadClock(take, &snapshot);
+    const TakeVerdict verdict = watch.Observe(snapshot, Clock::now());
+    progress.set_frames_owed(watch.owed());
+    progress.set_waiting_for(watch.waiting_for());
     progress.set_elapsed_s(std::chrono::duration<double>(Clock::now() - start).count());
     v1::CaptureEvent e;
     *e.mutable_progress() = progress;
-    if (on_event) on_event(e);
-    if (total != last_total) {
-      last_total = total;
-      last_change = Clock::now();
-    }
+    events_.Emit(e);
     {
       // Decided under the lock, so that a pause either comes before this (and holds the take) or finds it finishing.
       std::lock_guard<std::mutex> lock(mutex_);
       const bool changed = take.slots != slots || take.paused != gaps || state_ != state;
-      if (!changed && state_ != "paused") {
-        if (total >= expected_now) break;
-        const auto quiet =
-            std::chrono::milliseconds(options_.drain_ms) + std::chrono::seconds(state_ == "aborting" ? 0 : 5);
-        if (Clock::now() - last_change > quiet) {
-          Logger("controller")->warn("frames stopped coming before every camera had all of its frames");
-          break;
-        }
+      if (changed || state_ == v1::SESSION_STATE_PAUSED) {
+        watch.Restart(Clock::now());
+      } else if (verdict == TakeVerdict::kComplete) {
+        break;
+      } else if (verdict == TakeVerdict::kDrained) {
+        Logger("controller")
+            ->warn("take {}: the slot clock has ended and no camera owes a frame, {} short", take.id,
+                   progress.frames_expected() - progress.frames_received());
+        break;
+      } else if (verdict == TakeVerdict::kStalled) {
+        take.stalled =
+            absl::StrCat("nothing moved for ", rig_.rig.controller().take_stall_s(), " s",
+                         watch.waiting_for().empty() ? "" : absl::StrCat(" while waiting for ", watch.waiting_for()));
+        Logger("controller")->warn("take {}: stalled: {}", take.id, take.stalled);
+        break;
       }
     }
-    if (state == "paused") last_change = Clock::now();
     std::this_thread::sleep_for(std::chrono::milliseconds(250));
   }
+}
+
+void Capturer::ReadClock(Take& take, TakeSnapshot* snapshot) {
+  // The sync generator's run: how many of its edges it has produced (the simulated world's bus).
+  grpc::ClientContext context;
+  Deadline(&context, 1000);
+  v1::WorldRunReply run;
+  if (!take.world->GetRun(&context, v1::GetRunRequest(), &run).ok()) return;
+  int64_t run_first;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    run_first = take.first_bus + take.run_first;
+  }
+  if (run.first_slot() != run_first) return;  // not this take's run (yet)
+  snapshot->clock_run_slots = run.end_slot() - run.first_slot();
+  snapshot->clock_edges = std::clamp<int64_t>(run.current_slot() - run.first_slot() + 1, 0, snapshot->clock_run_slots);
 }
 
 absl::StatusOr<v1::SessionReply> Capturer::Pause() {
@@ -541,8 +636,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
   Take* take;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != "capturing" || running_ == nullptr) {
-      return absl::FailedPreconditionError(absl::StrCat("pause: the session is ", state_, ", not capturing"));
+    if (state_ != v1::SESSION_STATE_CAPTURING || running_ == nullptr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("pause: the session is ", SessionStateName(state_), ", not capturing"));
     }
     take = running_;
   }
@@ -565,9 +661,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
     reply.set_slot(at);
     reply.set_message(absl::StrCat("take ", take->id, " pauses at slot ", at, " (frame ", at / take->cycle, ")"));
   }
-  UpdateCameras(*take, /*with_t0=*/false, nullptr);
-  SetState("paused");
-  reply.set_state("paused");
+  UpdateCameras(*take, /*with_t0=*/false);
+  SetState(v1::SESSION_STATE_PAUSED);
+  reply.set_state(v1::SESSION_STATE_PAUSED);
   Logger("controller")->info("{}", reply.message());
   return reply;
 }
@@ -579,8 +675,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
   int64_t remaining, pause_at, min_gap;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != "paused" || running_ == nullptr) {
-      return absl::FailedPreconditionError(absl::StrCat("resume: the session is ", state_, ", not paused"));
+    if (state_ != v1::SESSION_STATE_PAUSED || running_ == nullptr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("resume: the session is ", SessionStateName(state_), ", not paused"));
     }
     take = running_;
     remaining = take->capture_slots - take->done_slots;
@@ -595,7 +692,7 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
   plan.set_align_slots(take->cycle);
   plan.set_min_first_slot(take->first_bus + pause_at + min_gap);
   plan.set_plan_only(true);
-  auto run = RunWorld(*take->world, plan);
+  auto run = RunWorld(*take->world, plan, StallDeadline());
   if (!run.ok()) return Annotate(run.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
   const int64_t from = run->first_slot() - take->first_bus;
   {
@@ -605,11 +702,11 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
     take->run_first = from;
     take->run_end = take->slots;
   }
-  UpdateCameras(*take, /*with_t0=*/false, nullptr);
+  UpdateCameras(*take, /*with_t0=*/false);
   v1::RunWorldRequest start = plan;
   start.set_plan_only(false);
   start.set_first_slot(run->first_slot());
-  if (auto started = RunWorld(*take->world, start); !started.ok()) {
+  if (auto started = RunWorld(*take->world, start, StallDeadline()); !started.ok()) {
     // Still paused: the gap stays open until a resume that starts, or an abort.
     std::lock_guard<std::mutex> lock(mutex_);
     take->paused.pop_back();
@@ -617,9 +714,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
     take->run_end = pause_at;
     return Annotate(started.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
   }
-  SetState("capturing");
+  SetState(v1::SESSION_STATE_CAPTURING);
   v1::SessionReply reply;
-  reply.set_state("capturing");
+  reply.set_state(v1::SESSION_STATE_CAPTURING);
   reply.set_take_id(take->id);
   reply.set_slot(from);
   reply.set_message(absl::StrCat("take ", take->id, " resumes at slot ", from, " (frame ", from / take->cycle,
@@ -632,33 +729,33 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
   std::lock_guard<std::mutex> control(control_mutex_);
   std::unique_ptr<Take> armed;
   Take* take = nullptr;
-  std::string was;
+  v1::SessionState was;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     was = state_;
-    if (state_ == "armed" && armed_ != nullptr) {
+    if (state_ == v1::SESSION_STATE_ARMED && armed_ != nullptr) {
       armed = std::move(armed_);
       armed->aborted = true;
-    } else if ((state_ == "capturing" || state_ == "paused") && running_ != nullptr) {
+    } else if ((state_ == v1::SESSION_STATE_CAPTURING || state_ == v1::SESSION_STATE_PAUSED) && running_ != nullptr) {
       take = running_;
     } else {
-      return absl::FailedPreconditionError(
-          absl::StrCat("abort: the session is ", state_, "; only an armed, capturing or paused take can be aborted"));
+      return absl::FailedPreconditionError(absl::StrCat("abort: the session is ", SessionStateName(state_),
+                                                        "; only an armed, capturing or paused take can be aborted"));
     }
   }
   v1::SessionReply reply;
   if (armed != nullptr) {
     // Nothing ran: the take ends here, with no frames.
-    SetState("aborting");
+    SetState(v1::SESSION_STATE_ABORTING);
     const std::string id = armed->id;
-    auto summary = FinalizeTake(*armed, nullptr);
+    auto summary = FinalizeTake(*armed);
     if (!summary.ok()) return summary.status();
     reply.set_state(state());
     reply.set_take_id(id);
     reply.set_message(absl::StrCat("take ", id, " aborted before it started"));
     return reply;
   }
-  if (was == "capturing") {
+  if (was == v1::SESSION_STATE_CAPTURING) {
     STAGE_ASSIGN_OR_RETURN(const int64_t run_end,
                            EndWorldRun(*take->world, 1, absl::StrCat("abort: take ", take->id, " cannot be stopped")));
     std::lock_guard<std::mutex> lock(mutex_);
@@ -673,9 +770,9 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
     take->aborted = true;
     at = take->slots;
   }
-  UpdateCameras(*take, /*with_t0=*/false, nullptr);
-  SetState("aborting");
-  reply.set_state("aborting");
+  UpdateCameras(*take, /*with_t0=*/false);
+  SetState(v1::SESSION_STATE_ABORTING);
+  reply.set_state(v1::SESSION_STATE_ABORTING);
   reply.set_take_id(take->id);
   reply.set_slot(at);
   reply.set_message(absl::StrCat("take ", take->id, " aborted at slot ", at, "; what it recorded is kept"));
@@ -686,11 +783,13 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
 absl::StatusOr<v1::TakeSummary> Capturer::Arm(const v1::CaptureRequest& request, const CaptureEventFn& on_event) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != "idle" && state_ != "error") {
-      return absl::FailedPreconditionError(absl::StrCat("arm: the session is ", state_, "; wait for it"));
+    if (state_ != v1::SESSION_STATE_IDLE && state_ != v1::SESSION_STATE_ERROR) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("arm: the session is ", SessionStateName(state_), "; wait for it"));
     }
   }
-  STAGE_ASSIGN_OR_RETURN(std::unique_ptr<Take> take, ArmTake(request, on_event));
+  Following following(&events_, on_event);
+  STAGE_ASSIGN_OR_RETURN(std::unique_ptr<Take> take, ArmTake(request));
   v1::TakeSummary summary = take->summary;
   std::lock_guard<std::mutex> lock(mutex_);
   armed_ = std::move(take);
@@ -701,7 +800,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
   std::unique_ptr<Take> take;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ == "armed" && armed_ != nullptr) {
+    if (state_ == v1::SESSION_STATE_ARMED && armed_ != nullptr) {
       const int64_t frames = armed_->capture_slots / armed_->cycle;
       if (request.frames() > 0 && request.frames() != frames) {
         return absl::InvalidArgumentError(absl::StrCat("capture: take ", armed_->id, " is armed for ", frames,
@@ -710,39 +809,40 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
       }
       take = std::move(armed_);
       running_ = take.get();
-    } else if (state_ != "idle" && state_ != "error") {
-      return absl::FailedPreconditionError(absl::StrCat("capture: the session is ", state_, "; wait for it"));
+    } else if (state_ != v1::SESSION_STATE_IDLE && state_ != v1::SESSION_STATE_ERROR) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("capture: the session is ", SessionStateName(state_), "; wait for it"));
     }
   }
+  // The caller follows the take's events until it ends (or goes away: the take goes on).
+  Following following(&events_, on_event);
   if (take == nullptr) {
-    STAGE_ASSIGN_OR_RETURN(take, ArmTake(request, on_event));
+    STAGE_ASSIGN_OR_RETURN(take, ArmTake(request));
     std::lock_guard<std::mutex> lock(mutex_);
     running_ = take.get();
   }
-  return RunArmedTake(std::move(take), on_event);
+  return RunArmedTake(std::move(take));
 }
 
-absl::StatusOr<v1::TakeSummary> Capturer::RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event) {
+absl::StatusOr<v1::TakeSummary> Capturer::RunArmedTake(std::unique_ptr<Take> take) {
   const bool abort_on_failure = rig_.rig.controller().node_failure_policy() == v1::NODE_FAILURE_POLICY_ABORT;
   bool any_camera = false;
   for (const Take::Cam& c : take->cams) any_camera = any_camera || c.armed;
   if (!any_camera) {
-    Say(on_event, "no camera is ready: the take does not run", /*warn=*/true);
+    Say("no camera is ready: the take does not run", /*warn=*/true);
   } else if (take->not_ready.empty() || !abort_on_failure) {
-    if (StartTake(*take, on_event)) WatchTake(*take, on_event);
+    if (StartTake(*take)) WatchTake(*take);
   }
-  auto summary = FinalizeTake(*take, on_event);
+  auto summary = FinalizeTake(*take);
   std::lock_guard<std::mutex> lock(mutex_);
   running_ = nullptr;
   return summary;
 }
 
-absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const CaptureEventFn& on_event) {
-  auto emit = [&](const v1::CaptureEvent& e) {
-    if (on_event) on_event(e);
-  };
-  auto say = [&](const std::string& m) { Say(on_event, m); };
-  if (state() != "aborting") SetState("finalizing", on_event);
+absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take) {
+  auto emit = [&](const v1::CaptureEvent& e) { events_.Emit(e); };
+  auto say = [&](const std::string& m) { Say(m); };
+  if (state() != v1::SESSION_STATE_ABORTING) SetState(v1::SESSION_STATE_FINALIZING);
   int64_t slots;
   Gaps gaps;
   bool aborted;
@@ -767,6 +867,9 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
   {
     std::vector<std::thread> finishing;
     std::atomic<size_t> done{0};
+    // Set (release) once a camera's Finish has returned: its report is then what it wrote.
+    std::unique_ptr<std::atomic<bool>[]> finished(new std::atomic<bool>[take.cams.size()]);
+    for (size_t i = 0; i < take.cams.size(); ++i) finished[i].store(false);
     for (size_t i = 0; i < take.cams.size(); ++i) {
       if (!take.cams[i].armed) continue;
       finishing.emplace_back([&, i] {
@@ -782,6 +885,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
         } else {
           c.error = s.error_message();
         }
+        finished[i].store(true, std::memory_order_release);
         done.fetch_add(1);
       });
     }
@@ -795,10 +899,15 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
       std::this_thread::sleep_for(std::chrono::milliseconds(500));
       if (done.load() >= finishing.size() || to_write == 0) continue;
       v1::CaptureProgress progress;
-      progress.set_phase("offloading");
+      progress.set_phase(v1::CAPTURE_PHASE_OFFLOADING);
       progress.set_frames_expected(to_write);
-      for (Take::Cam& c : take.cams) {
+      for (size_t i = 0; i < take.cams.size(); ++i) {
+        Take::Cam& c = take.cams[i];
         if (!c.armed || c.config->role() != v1::CAMERA_ROLE_HIGH_SPEED) continue;
+        if (finished[i].load(std::memory_order_acquire)) {
+          progress.set_frames_written(progress.frames_written() + (reported[i] ? reports[i].frames_written() : 0));
+          continue;
+        }
         grpc::ClientContext context;
         Deadline(&context, 1000);
         v1::CameraStats stats;
@@ -830,7 +939,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
     const v1::CameraTakeReport& report = reports[i];
     v1::CameraTakeSummary* cs = summary.add_cameras();
     cs->set_camera_id(c.config->id());
-    cs->set_role(CameraRoleName(c.config->role()));
+    cs->set_role(c.config->role());
     std::vector<int64_t> expected, in_gaps;
     CameraSlots(*c.timing, slots, gaps, &expected, &in_gaps);
     for (int64_t k : in_gaps) {
@@ -858,6 +967,8 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
       auto records = file.ok() ? (*file)->Records() : absl::StatusOr<std::vector<storage::FrameRecord>>(file.status());
       if (records.ok()) {
         cs->set_path(c.path);
+        // The writer died with space reserved ahead of its frames: give it back, so the file holds what it says.
+        if (absl::Status s = storage::ReleaseReservedSpace(c.path); !s.ok()) say(std::string(s.message()));
         std::error_code ec;
         cs->set_bytes(fs::file_size(c.path, ec));
         bytes += cs->bytes();
@@ -906,22 +1017,20 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
       as->set_message(a.message);
     }
   }
-  take.StopHeartbeat();
   std::vector<std::string> light_hints;
+  const std::vector<LightDisarmed> disarmed = DisarmLights(take);
   for (size_t i = 0; i < take.lights.size(); ++i) {
     const std::string& node_id = rig_.rig.light_nodes(static_cast<int>(i)).id();
-    v1::DisarmLightRequest disarm;
-    disarm.set_take_id(take.id);
-    grpc::ClientContext context;
-    Deadline(&context, 2000);
-    v1::LightStats stats;
-    grpc::Status s = take.lights[i]->Disarm(&context, disarm, &stats);
-    std::vector<std::string> faults = std::move(take.light_faults[static_cast<int>(i)]);
-    if (!s.ok()) {
-      say(absl::StrCat("light node ", node_id, " did not disarm: ", s.error_message()));
-      faults.push_back(absl::StrCat("did not disarm: ", s.error_message()));
-    } else if (stats.take_faults_size() > 0) {
-      faults.assign(stats.take_faults().begin(), stats.take_faults().end());
+    std::vector<std::string> faults;
+    {
+      std::lock_guard<std::mutex> lock(take.heartbeat_mutex);
+      faults = take.light_faults[static_cast<int>(i)];
+    }
+    if (!disarmed[i].error.empty()) {
+      say(absl::StrCat("light node ", node_id, " did not disarm: ", disarmed[i].error));
+      faults.push_back(absl::StrCat("did not disarm: ", disarmed[i].error));
+    } else if (disarmed[i].stats.take_faults_size() > 0) {
+      faults.assign(disarmed[i].stats.take_faults().begin(), disarmed[i].stats.take_faults().end());
     }
     for (const std::string& f : faults) {
       say(absl::StrCat("light node ", node_id, ": ", f));
@@ -975,6 +1084,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
     hints.push_back(take.not_ready.empty() ? "the sync generator never ran"
                                            : absl::StrCat("not ready: ", absl::StrJoin(take.not_ready, ", ")));
   }
+  if (!take.stalled.empty()) hints.push_back(absl::StrCat("the take stalled: ", take.stalled));
   bool aligned = true;
   for (const auto& a : summary.alignment()) {
     if (!a.ok()) {
@@ -986,17 +1096,19 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
     const int64_t lost = cs.counts().expected() - cs.counts().stored();
     if (lost <= 0) continue;
     std::vector<std::string> why;
-    for (const auto& [reason, n] : cs.counts().lost()) why.push_back(absl::StrCat(n, " ", reason));
+    for (const v1::LossCount& l : cs.counts().lost()) {
+      why.push_back(absl::StrCat(l.frames(), " ", LossReasonName(l.reason())));
+    }
     hints.push_back(absl::StrCat(cs.camera_id(), " lost ", lost, " (", absl::StrJoin(why, ", "), ")"));
   }
   // A light node that faulted during the take (a board that stopped answering, over temperature): its frames may be
   // lit wrong even where they are all stored.
   hints.insert(hints.end(), light_hints.begin(), light_hints.end());
-  std::string outcome = "COMPLETE";
+  v1::TakeOutcome outcome = v1::TAKE_OUTCOME_COMPLETE;
   if (!take.ran || aborted || total->stored() == 0) {
-    outcome = "FAILED";
+    outcome = v1::TAKE_OUTCOME_FAILED;
   } else if (total->stored() < total->expected() || !aligned || !light_hints.empty()) {
-    outcome = "DEGRADED";
+    outcome = v1::TAKE_OUTCOME_DEGRADED;
   }
   summary.set_outcome(outcome);
   summary.set_bytes(bytes);
@@ -1006,11 +1118,14 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
       hints.resize(5);
       hints.push_back(absl::StrCat("and ", more, " more"));
     }
-    summary.set_hint(absl::StrCat(outcome == "COMPLETE" ? "" : "retake? ", absl::StrJoin(hints, "; ")));
+    summary.set_hint(absl::StrCat(outcome == v1::TAKE_OUTCOME_COMPLETE ? "" : "retake? ", absl::StrJoin(hints, "; ")));
   }
   storage::TakeRow& row = take.row;
   const timing::TimeBase base = timing::TimeBase::FromProto(schedule_.time_base());
-  row.state = aborted ? "aborted" : outcome == "COMPLETE" ? "complete" : outcome == "DEGRADED" ? "degraded" : "failed";
+  row.state = aborted                                ? v1::TAKE_STATE_ABORTED
+              : outcome == v1::TAKE_OUTCOME_COMPLETE ? v1::TAKE_STATE_COMPLETE
+              : outcome == v1::TAKE_OUTCOME_DEGRADED ? v1::TAKE_STATE_DEGRADED
+                                                     : v1::TAKE_STATE_FAILED;
   row.outcome = outcome;
   row.slots = slots;
   row.duration_s = static_cast<double>(slots) / base.slot_rate_hz();
@@ -1023,16 +1138,118 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take, const Capture
   if (!kept.ok()) {
     // The take's records are incomplete: the operator must know before the next take.
     say(absl::StrCat("take ", take.id, ": its records could not be kept: ", kept.message()));
-    SetState("error", on_event);
+    SetState(v1::SESSION_STATE_ERROR);
     return kept;
+  }
+  {
+    // The take's final counts, once, then its summary.
+    v1::CaptureEvent done;
+    v1::CaptureProgress* p = done.mutable_progress();
+    p->set_phase(v1::CAPTURE_PHASE_DONE);
+    p->set_frames_expected(total->expected());
+    p->set_frames_received(total->stored());
+    p->set_frames_lost(total->expected() - total->stored());
+    for (size_t i = 0; i < take.cams.size(); ++i) {
+      const v1::CameraTakeSummary& cs = summary.cameras(static_cast<int>(i));
+      v1::RoleProgress* role = RoleOf(p, cs.role());
+      role->set_expected(role->expected() + cs.counts().expected());
+      role->set_received(role->received() + cs.counts().stored());
+      role->set_lost(role->lost() + cs.counts().expected() - cs.counts().stored());
+      if (reported[i]) p->set_frames_written(p->frames_written() + reports[i].frames_written());
+    }
+    p->set_elapsed_s(std::chrono::duration<double>(Clock::now() - take.armed_at).count());
+    emit(done);
   }
   v1::CaptureEvent last;
   *last.mutable_summary() = summary;
   emit(last);
   Logger("controller")
-      ->info("take {}: {} ({} of {} frames stored)", take.id, outcome, total->stored(), total->expected());
-  SetState("idle", on_event);
+      ->info("take {}: {} ({} of {} frames stored)", take.id, TakeOutcomeName(outcome), total->stored(),
+             total->expected());
+  SetState(v1::SESSION_STATE_IDLE);
   return summary;
+}
+
+Clock::time_point Capturer::StallDeadline() const {
+  const uint32_t stall_s = rig_.rig.controller().take_stall_s();
+  return stall_s == 0 ? Clock::time_point::max() : Clock::now() + std::chrono::seconds(stall_s);
+}
+
+std::vector<Capturer::LightDisarmed> Capturer::DisarmLights(Take& take) {
+  // Every light node at once. One that is slow to answer (a loaded host, a stopped process) is asked again for as long
+  // as it is there, up to the stall limit; one that is gone (its process is not there) is not. The heartbeat goes on
+  // meanwhile, so that a slow node does not go dark for the controller's silence; it stops once every node has
+  // answered.
+  std::vector<LightDisarmed> out(take.lights.size());
+  const auto give_up = StallDeadline();
+  std::vector<std::thread> disarming;
+  for (size_t i = 0; i < take.lights.size(); ++i) {
+    disarming.emplace_back([&, i] {
+      v1::DisarmLightRequest disarm;
+      disarm.set_take_id(take.id);
+      const grpc::Status s = Patiently(2000, give_up, [&](grpc::ClientContext* context) {
+        return take.lights[i]->Disarm(context, disarm, &out[i].stats);
+      });
+      if (!s.ok()) out[i].error = s.error_message();
+    });
+  }
+  for (std::thread& t : disarming) t.join();
+  take.StopHeartbeat();
+  return out;
+}
+
+absl::StatusOr<TakeEvents::Joined> Capturer::Follow(const std::string& take_id, CaptureEventFn fn) {
+  // Under the session's lock: the take cannot change between the check and the subscription.
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (current_take_.empty() || (!take_id.empty() && take_id != current_take_)) {
+    return absl::NotFoundError(take_id.empty() ? "no take is running (the session is " + SessionStateName(state_) + ")"
+                                               : absl::StrCat("take \"", take_id, "\" is not running"));
+  }
+  TakeEvents::Joined joined = events_.Subscribe(std::move(fn));
+  if (joined.take_id != current_take_) {
+    events_.Unsubscribe(joined.id);
+    return absl::NotFoundError(absl::StrCat("take \"", current_take_, "\" is not running"));
+  }
+  return joined;
+}
+
+absl::StatusOr<v1::LedgerPage> Capturer::GetLedger(const v1::GetLedgerRequest& request) const {
+  constexpr int kDefaultPage = 1000, kMaxPage = 10000;
+  if (request.page_size() < 0 || request.page_size() > kMaxPage) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_size ", request.page_size(), " is not in 0..", kMaxPage, " (0: ", kDefaultPage, ")"));
+  }
+  int64_t offset = 0;
+  if (!request.page_token().empty() && (!absl::SimpleAtoi(request.page_token(), &offset) || offset < 0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("page_token \"", request.page_token(), "\" is not one this controller gave"));
+  }
+  std::string id = request.take_id();
+  if (id == "latest") {
+    STAGE_ASSIGN_OR_RETURN(std::vector<storage::TakeRow> rows, catalog_->ListTakes());
+    if (rows.empty()) return absl::NotFoundError(absl::StrCat("no take yet in ", options_.take_root));
+    id = rows.back().id;
+  }
+  STAGE_RETURN_IF_ERROR(catalog_->GetTake(id).status());
+  const int64_t size = request.page_size() > 0 ? request.page_size() : kDefaultPage;
+  STAGE_ASSIGN_OR_RETURN(storage::Catalog::LedgerPage rows,
+                         catalog_->ReadLedgerPage(id, request.camera_id(), request.lost_only(), offset, size));
+  v1::LedgerPage page;
+  page.set_take_id(id);
+  page.set_total(rows.total);
+  for (const storage::LedgerEntry& e : rows.entries) {
+    v1::LedgerEntry* out = page.add_entries();
+    out->set_camera_id(e.camera_id);
+    out->set_slot(e.slot);
+    out->set_pattern(e.pattern);
+    out->set_reason(storage::ToProto(e.reason));
+    if (e.frame_id) out->set_frame_id(*e.frame_id);
+    out->set_detail(e.detail);
+  }
+  if (offset + static_cast<int64_t>(rows.entries.size()) < rows.total) {
+    page.set_next_page_token(absl::StrCat(offset + static_cast<int64_t>(rows.entries.size())));
+  }
+  return page;
 }
 
 absl::StatusOr<v1::TakeList> Capturer::ListTakes() const {

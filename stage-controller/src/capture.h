@@ -16,14 +16,18 @@
 #include <memory>
 #include <mutex>
 #include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
+#include "emergency_stop.h"
 #include "stage/common/rig.h"
 #include "stage/storage/catalog.h"
 #include "stage/timing/alignment.h"
-#include "emergency_stop.h"
 #include "stage/v1/controller.pb.h"
+#include "stage/v1/light_node.pb.h"
 #include "stage/v1/timing.pb.h"
+#include "take_events.h"
+#include "take_watch.h"
 
 namespace stage::controller {
 
@@ -46,8 +50,6 @@ struct CaptureOptions {
   const EmergencyStop* estop = nullptr;
 };
 
-using CaptureEventFn = std::function<void(const v1::CaptureEvent&)>;
-
 class Capturer {
  public:
   // `schedule`: the rig's compiled schedule (verified without errors, or Capture refuses).
@@ -57,9 +59,15 @@ class Capturer {
 
   // Arms a take and leaves it armed for Capture (or Abort). FailedPrecondition unless idle (or error).
   absl::StatusOr<v1::TakeSummary> Arm(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
-  // Runs one take to its end, arming it first unless one is armed; `on_event` gets states, progress and the summary
-  // (last). FailedPrecondition while another take runs, naming its state.
+  // Runs one take to its end, arming it first unless one is armed; `on_event` gets states, progress, the final counts
+  // and the summary (last), every event with the take's id. FailedPrecondition while another take runs, naming its
+  // state; InvalidArgument for no frames, or both frames and seconds.
   absl::StatusOr<v1::TakeSummary> Capture(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
+  // Follows the session's take (`take_id` empty, or its id) from now on: `fn` gets its events until Unfollow. The
+  // snapshot says where the take stands (its latest state and progress, its summary once it has ended). NotFound when
+  // the session holds no take, or another one than `take_id` (a take that has ended is the catalog's: GetTake).
+  absl::StatusOr<TakeEvents::Joined> Follow(const std::string& take_id, CaptureEventFn fn);
+  void Unfollow(int id) { events_.Unsubscribe(id); }
   // Pause at the next frame boundary, resume after it, abort (see controller.proto). FailedPrecondition names the
   // state when the request does not apply.
   absl::StatusOr<v1::SessionReply> Pause();
@@ -67,9 +75,14 @@ class Capturer {
   absl::StatusOr<v1::SessionReply> Abort();
 
   // See the state list above.
-  std::string state() const;
+  v1::SessionState state() const;
+  // The take the session holds (from configuring to its end), or empty.
+  std::string current_take_id() const;
 
   absl::StatusOr<v1::TakeList> ListTakes() const;
+  // A page of a take's ledger (GetLedger in controller.proto). NotFound names an unknown take; InvalidArgument a bad
+  // page token or size.
+  absl::StatusOr<v1::LedgerPage> GetLedger(const v1::GetLedgerRequest& request) const;
   // A take by id, or "latest": the newest in the catalog. NotFound names an unknown id.
   absl::StatusOr<v1::TakeSummary> GetTake(const std::string& id) const;
   // The latest preview a camera sent during a take. NotFound before there is one, or for an unknown camera.
@@ -78,18 +91,32 @@ class Capturer {
  private:
   struct Take;
   Capturer() = default;
-  void SetState(const std::string& state, const CaptureEventFn& on_event = nullptr);
+  // The session's state changes: logged, the status watchers woken, the take's followers told.
+  void SetState(v1::SessionState state);
+  // Tells the take's followers and the log.
+  void Say(const std::string& message, bool warn = false);
   // Creates the take and arms every node for it (state configuring, then armed).
-  absl::StatusOr<std::unique_ptr<Take>> ArmTake(const v1::CaptureRequest& request, const CaptureEventFn& on_event);
+  absl::StatusOr<std::unique_ptr<Take>> ArmTake(const v1::CaptureRequest& request);
   // Starts the sync generator for the armed take; false when it could not start.
-  bool StartTake(Take& take, const CaptureEventFn& on_event);
-  // Watches progress (and previews) until every frame is in, the take is aborted, or frames stop coming.
-  void WatchTake(Take& take, const CaptureEventFn& on_event);
+  bool StartTake(Take& take);
+  // Watches progress (and previews) until every frame is in, or no more can come, or nothing moves for the stall
+  // limit (take_watch.h).
+  void WatchTake(Take& take);
+  // How far the sync generator has got with the take's current run, into `snapshot` (unset where it cannot say).
+  void ReadClock(Take& take, TakeSnapshot* snapshot);
   // Finishes every camera, disarms the lights, keeps the ledger and the outcome.
-  absl::StatusOr<v1::TakeSummary> FinalizeTake(Take& take, const CaptureEventFn& on_event);
+  absl::StatusOr<v1::TakeSummary> FinalizeTake(Take& take);
   // Sends every camera the take's current plan (its length and gaps; T0 once it starts).
-  void UpdateCameras(Take& take, bool with_t0, const CaptureEventFn& on_event);
-  absl::StatusOr<v1::TakeSummary> RunArmedTake(std::unique_ptr<Take> take, const CaptureEventFn& on_event);
+  void UpdateCameras(Take& take, bool with_t0);
+  absl::StatusOr<v1::TakeSummary> RunArmedTake(std::unique_ptr<Take> take);
+  // Disarms every light node (its last report of the take, or why it did not answer), then stops the heartbeat.
+  struct LightDisarmed {
+    v1::LightStats stats;
+    std::string error;
+  };
+  std::vector<LightDisarmed> DisarmLights(Take& take);
+  // When a request to a node that is slow to answer is given up: the stall limit from now (controller.take_stall_s).
+  std::chrono::steady_clock::time_point StallDeadline() const;
 
   LoadedRig rig_;
   v1::Schedule schedule_;
@@ -102,7 +129,9 @@ class Capturer {
   // Pause, resume and abort one at a time (each talks to the world and the cameras).
   std::mutex control_mutex_;
   mutable std::mutex mutex_;
-  std::string state_ = "idle";  // guarded by mutex_
+  v1::SessionState state_ = v1::SESSION_STATE_IDLE;  // guarded by mutex_
+  std::string current_take_;                         // guarded by mutex_
+  TakeEvents events_;
   // The armed take no Capture has claimed yet (stagectl arm); guarded by mutex_.
   std::unique_ptr<Take> armed_;
   // The take being captured (owned by its Capture call); guarded by mutex_.

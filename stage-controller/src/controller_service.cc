@@ -1,15 +1,17 @@
 // gRPC StageController service.
 #include "controller_service.h"
 
+#include <grpcpp/grpcpp.h>
+
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
+#include <deque>
 #include <functional>
 #include <map>
 #include <mutex>
 #include <thread>
-
-#include <grpcpp/grpcpp.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -41,7 +43,7 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Sched
     quarter_slot_ns = schedule->time_base().ticks_per_slot() / schedule->time_base().ticks_per_ns() / 4;
   }
   for (const auto& c : rig.cameras()) {
-    NodeTarget t{c.id(), v1::NODE_KIND_CAMERA, CameraRoleName(c.role()), c.address()};
+    NodeTarget t{c.id(), v1::NODE_KIND_CAMERA, c.role(), c.address()};
     const v1::CameraTiming* timing = schedule != nullptr ? timing::FindCameraTiming(*schedule, c.id()) : nullptr;
     if (timing != nullptr && c.trigger().source() == v1::TRIGGER_SOURCE_SCHEDULED_SOFTWARE) {
       const int64_t slack_ns = timing->late_slack_ticks() / schedule->time_base().ticks_per_ns();
@@ -57,7 +59,7 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Sched
     targets.push_back(std::move(t));
   }
   for (const auto& n : rig.light_nodes()) {
-    NodeTarget t{n.id(), v1::NODE_KIND_LIGHT, "", n.address()};
+    NodeTarget t{n.id(), v1::NODE_KIND_LIGHT, v1::CAMERA_ROLE_UNSPECIFIED, n.address()};
     if (quarter_slot_ns > 0) {
       t.clock_limit_ns = quarter_slot_ns;
       t.clock_limit_reason = "measured slot edges are compared with the schedule: a quarter slot";
@@ -65,7 +67,7 @@ std::vector<NodeTarget> TargetsFromRig(const v1::RigConfig& rig, const v1::Sched
     targets.push_back(std::move(t));
   }
   for (const auto& w : rig.processing_workers()) {
-    targets.push_back({w.id(), v1::NODE_KIND_PROCESSING_WORKER, "", w.address()});
+    targets.push_back({w.id(), v1::NODE_KIND_PROCESSING_WORKER, v1::CAMERA_ROLE_UNSPECIFIED, w.address()});
   }
   return targets;
 }
@@ -112,8 +114,10 @@ v1::StageStatus ControllerService::Status() const {
   }
   status.set_nodes_up(up);
   status.set_nodes_total(status.nodes_size());
-  status.set_session_state(capturer_ ? capturer_->state() : "idle");
-  *status.mutable_controller() = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
+  status.set_session_state(capturer_ ? capturer_->state() : v1::SESSION_STATE_IDLE);
+  if (capturer_) status.set_current_take_id(capturer_->current_take_id());
+  *status.mutable_controller() =
+      MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, v1::CAMERA_ROLE_UNSPECIFIED, "", rig_hash_);
   status.set_schedule_hash(timing_.schedule().hash());
   status.set_timing_errors(timing_.errors());
   status.set_timing_warnings(timing_.warnings());
@@ -124,7 +128,7 @@ v1::StageStatus ControllerService::Status() const {
 }
 
 grpc::Status ControllerService::GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) {
-  *response = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, "", "", rig_hash_);
+  *response = MakeNodeInfo(stage_id_, v1::NODE_KIND_CONTROLLER, v1::CAMERA_ROLE_UNSPECIFIED, "", rig_hash_);
   return grpc::Status::OK;
 }
 
@@ -291,6 +295,66 @@ grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::
   return grpc::Status::OK;
 }
 
+grpc::Status ControllerService::WatchTake(grpc::ServerContext* context, const v1::WatchTakeRequest* request,
+                                          grpc::ServerWriter<v1::CaptureEvent>* writer) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  // The take's events come on its threads: they queue here and this call's thread writes them, so that a slow
+  // follower never holds the take up.
+  std::mutex mutex;
+  std::condition_variable wake;
+  std::deque<v1::CaptureEvent> queue;  // guarded by mutex
+  auto followed = capturer_->Follow(request->take_id(), [&](const v1::CaptureEvent& e) {
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      queue.push_back(e);
+    }
+    wake.notify_one();
+  });
+  if (!followed.ok()) {
+    if (request->take_id().empty()) return ToGrpcStatus(followed.status());
+    // A take that has ended: its summary is all there is to follow.
+    auto take = capturer_->GetTake(request->take_id());
+    if (!take.ok()) return ToGrpcStatus(take.status());
+    v1::CaptureEvent e;
+    e.set_take_id(take->take_id());
+    *e.mutable_summary() = *std::move(take);
+    writer->Write(e);
+    return grpc::Status::OK;
+  }
+  struct Unfollow {
+    Capturer* c;
+    int id;
+    ~Unfollow() { c->Unfollow(id); }
+  } unfollow{capturer_.get(), followed->id};
+  // Where the take stands, then what comes.
+  for (const auto* e : {&followed->state, &followed->progress, &followed->summary}) {
+    if (e->has_value() && !writer->Write(**e)) return grpc::Status::OK;
+  }
+  bool ended = followed->summary.has_value();
+  while (!ended && !context->IsCancelled()) {
+    std::unique_lock<std::mutex> lock(mutex);
+    wake.wait_for(lock, std::chrono::milliseconds(200), [&] { return !queue.empty(); });
+    while (!queue.empty()) {
+      v1::CaptureEvent e = std::move(queue.front());
+      queue.pop_front();
+      lock.unlock();
+      ended = ended || e.has_summary();
+      if (!writer->Write(e)) return grpc::Status::OK;  // the follower went away
+      lock.lock();
+    }
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status ControllerService::GetLedger(grpc::ServerContext*, const v1::GetLedgerRequest* request,
+                                          v1::LedgerPage* response) {
+  if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
+  auto page = capturer_->GetLedger(*request);
+  if (!page.ok()) return ToGrpcStatus(page.status());
+  *response = *std::move(page);
+  return grpc::Status::OK;
+}
+
 grpc::Status ControllerService::Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,
                                     grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
@@ -336,8 +400,8 @@ grpc::Status ControllerService::EmergencyStop(grpc::ServerContext*, const v1::Em
   if (estop_abort_.joinable()) estop_abort_.join();
   estop_abort_ = std::thread([this] {
     if (!capturer_) return;
-    const std::string state = capturer_->state();
-    if (state == "armed" || state == "capturing" || state == "paused") {
+    const v1::SessionState state = capturer_->state();
+    if (state == v1::SESSION_STATE_ARMED || state == v1::SESSION_STATE_CAPTURING || state == v1::SESSION_STATE_PAUSED) {
       if (auto aborted = capturer_->Abort(); !aborted.ok()) {
         Logger("controller")->warn("emergency stop: the take could not be aborted: {}", aborted.status().message());
       }
@@ -419,8 +483,8 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_last_frame(request->last_frame());
   *job.mutable_cameras() = request->cameras();
   job.set_geometry(request->geometry());
-  Logger("controller")->info("take {}: {} on worker {} ({})", request->take_id(), job.stage(), worker->id(),
-                             worker->address());
+  Logger("controller")
+      ->info("take {}: {} on worker {} ({})", request->take_id(), job.stage(), worker->id(), worker->address());
   auto stub = v1::ProcessingWorker::NewStub(grpc::CreateChannel(worker->address(), grpc::InsecureChannelCredentials()));
   grpc::ClientContext client;
   // The operator's cancel (Ctrl-C on stagectl) reaches the worker.
@@ -444,8 +508,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   done = true;
   watch.join();
   if (!status.ok()) {
-    return grpc::Status(status.error_code(),
-                        absl::StrCat("worker \"", worker->id(), "\": ", status.error_message()));
+    return grpc::Status(status.error_code(), absl::StrCat("worker \"", worker->id(), "\": ", status.error_message()));
   }
   return grpc::Status::OK;
 }

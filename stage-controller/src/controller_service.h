@@ -38,6 +38,9 @@ class ControllerService final : public v1::StageController::Service {
                                 v1::TriggerRehearsal* response) override;
   grpc::Status Capture(grpc::ServerContext* context, const v1::CaptureRequest* request,
                        grpc::ServerWriter<v1::CaptureEvent>* writer) override;
+  grpc::Status WatchTake(grpc::ServerContext* context, const v1::WatchTakeRequest* request,
+                         grpc::ServerWriter<v1::CaptureEvent>* writer) override;
+  grpc::Status GetLedger(grpc::ServerContext*, const v1::GetLedgerRequest* request, v1::LedgerPage* response) override;
   grpc::Status ListTakes(grpc::ServerContext*, const v1::ListTakesRequest*, v1::TakeList* response) override;
   grpc::Status GetTake(grpc::ServerContext*, const v1::GetTakeRequest* request, v1::TakeSummary* response) override;
   grpc::Status Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,

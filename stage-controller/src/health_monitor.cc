@@ -82,7 +82,7 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
     node->clock = v1::NodeClock::NewStub(node->channel);
     node->status.set_id(t.id);
     node->status.set_kind(t.kind);
-    node->status.set_role(t.role);
+    node->status.set_camera_role(t.role);
     node->status.set_address(t.address);
     node->status.set_state(v1::NODE_STATE_UNKNOWN);
     node->status.set_reason("not polled yet");

@@ -20,7 +20,7 @@ namespace stage::controller {
 struct NodeTarget {
   std::string id;
   v1::NodeKind kind = v1::NODE_KIND_UNSPECIFIED;
-  std::string role;
+  v1::CameraRole role = v1::CAMERA_ROLE_UNSPECIFIED;  // cameras' only
   std::string address;
   // The largest clock uncertainty the node's trigger mode tolerates (0 = no requirement), and why.
   int64_t clock_limit_ns = 0;

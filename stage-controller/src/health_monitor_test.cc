@@ -81,8 +81,8 @@ HealthMonitorOptions Fast() { return {std::chrono::milliseconds(50), std::chrono
 TEST(HealthMonitorTest, ReportsUpWithInfoAndDownWithReason) {
   ServedCamera camera("cam-a");
   std::string closed = ClosedPortAddress();
-  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, "machine-vision", camera.server->address()},
-                         {"cam-b", v1::NODE_KIND_CAMERA, "machine-vision", closed}},
+  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_MACHINE_VISION, camera.server->address()},
+                         {"cam-b", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_MACHINE_VISION, closed}},
                         Fast());
   EXPECT_EQ(monitor.Snapshot()[0].state(), v1::NODE_STATE_UNKNOWN);
   monitor.Start();
@@ -102,7 +102,8 @@ TEST(HealthMonitorTest, ReportsUpWithInfoAndDownWithReason) {
 
 TEST(HealthMonitorTest, NodeThatStopsIsSeenDownAndChangesGeneration) {
   ServedCamera camera("cam-a");
-  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, "", camera.server->address()}}, Fast());
+  HealthMonitor monitor({{"cam-a", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_UNSPECIFIED, camera.server->address()}},
+                        Fast());
   monitor.Start();
   ASSERT_EQ(WaitFor(monitor, 0, v1::NODE_STATE_UP).state(), v1::NODE_STATE_UP);
   uint64_t generation = monitor.generation();
@@ -116,7 +117,7 @@ TEST(HealthMonitorTest, NodeThatStopsIsSeenDownAndChangesGeneration) {
 
 TEST(HealthMonitorTest, SilentPeerIsUnreachableNotDown) {
   SilentSocket silent;
-  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, "", silent.address}}, Fast());
+  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_UNSPECIFIED, silent.address}}, Fast());
   monitor.Start();
   v1::NodeStatus s = WaitFor(monitor, 0, v1::NODE_STATE_UNREACHABLE);
   EXPECT_EQ(s.state(), v1::NODE_STATE_UNREACHABLE);
@@ -129,7 +130,8 @@ TEST(HealthMonitorTest, SilentPeerIsUnreachableNotDown) {
 
 TEST(HealthMonitorTest, WrongNodeAtTheAddressIsNotUp) {
   ServedCamera camera("cam-a");
-  HealthMonitor monitor({{"cam-z", v1::NODE_KIND_CAMERA, "", camera.server->address()}}, Fast());
+  HealthMonitor monitor({{"cam-z", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_UNSPECIFIED, camera.server->address()}},
+                        Fast());
   monitor.Start();
   v1::NodeStatus s = WaitFor(monitor, 0, v1::NODE_STATE_DOWN);
   EXPECT_THAT(s.reason(), HasSubstr("another node answers"));
@@ -137,7 +139,7 @@ TEST(HealthMonitorTest, WrongNodeAtTheAddressIsNotUp) {
 
 TEST(HealthMonitorTest, StopReturnsPromptly) {
   SilentSocket silent;
-  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, "", silent.address}}, Fast());
+  HealthMonitor monitor({{"cam-x", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_UNSPECIFIED, silent.address}}, Fast());
   monitor.Start();
   monitor.Stop();
   monitor.Stop();  // idempotent
@@ -187,7 +189,8 @@ TEST(HealthMonitorClockTest, MeasuresOffsetAndDriftAndFlagsTooUncertainClocks) {
   ASSERT_TRUE(server.ok());
   HealthMonitorOptions options{std::chrono::milliseconds(50), std::chrono::milliseconds(500),
                                std::chrono::milliseconds(100), 6};
-  NodeTarget tight{"hs-1", v1::NODE_KIND_CAMERA, "high-speed", (*server)->address(), 1, "a test limit of 1 ns"};
+  NodeTarget tight{"hs-1", v1::NODE_KIND_CAMERA,  v1::CAMERA_ROLE_HIGH_SPEED, (*server)->address(),
+                   1,      "a test limit of 1 ns"};
   HealthMonitor monitor({tight}, options);
   monitor.Start();
   v1::ClockStatus clock;
@@ -215,8 +218,10 @@ TEST(HealthMonitorClockTest, MeasuresOffsetAndDriftAndFlagsTooUncertainClocks) {
 // A camera on scheduled software triggers cannot fire right without a clock measurement: until it has one (here:
 // never, nothing answers) it is flagged; other nodes are merely unmeasured.
 TEST(HealthMonitorClockTest, ANodeThatNeedsAMeasurementAndHasNoneIsFlagged) {
-  NodeTarget needs{"mv-02", v1::NODE_KIND_CAMERA, "machine-vision", ClosedPortAddress(), 70'000, "scheduled", true};
-  NodeTarget other{"mv-03", v1::NODE_KIND_CAMERA, "machine-vision", ClosedPortAddress(), 274'000, "quarter slot"};
+  NodeTarget needs{
+      "mv-02", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_MACHINE_VISION, ClosedPortAddress(), 70'000, "scheduled", true};
+  NodeTarget other{"mv-03", v1::NODE_KIND_CAMERA, v1::CAMERA_ROLE_MACHINE_VISION, ClosedPortAddress(),
+                   274'000, "quarter slot"};
   HealthMonitor monitor({needs, other}, {std::chrono::milliseconds(50), std::chrono::milliseconds(200),
                                          std::chrono::milliseconds(100), 2});
   monitor.Start();

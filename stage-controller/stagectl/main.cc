@@ -4,28 +4,30 @@
 #include <grpcpp/grpcpp.h>
 #include <unistd.h>
 
-#include <chrono>
 #include <cerrno>
+#include <chrono>
 #include <cstdlib>
 #include <cstring>
-#include <iostream>
 #include <filesystem>
+#include <iostream>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
-#include "fmt/format.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "fmt/format.h"
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
+#include "stage/common/proto_json.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
+#include "stage/common/take_names.h"
 #include "stage/common/version.h"
 #include "stage/timing/timing_tool.h"
 #include "stage/v1/camera_node.grpc.pb.h"
@@ -55,7 +57,7 @@ absl::StatusOr<stage::v1::SimEndpoints> ReadEndpoints(const Connection& c, const
   }
   auto text = stage::ReadFileToString(path);
   if (!text.ok()) {
-    return absl::NotFoundError(absl::StrCat("no ", wanted, ": start stage-sim (no endpoint file at ", path, ")"));
+    return absl::NotFoundError(absl::StrCat("no ", wanted, " (no stage-sim endpoint file at ", path, ")"));
   }
   stage::v1::SimEndpoints endpoints;
   google::protobuf::util::JsonParseOptions options;
@@ -98,15 +100,7 @@ absl::Status RpcError(const grpc::Status& rpc, const std::string& address) {
   return stage::Annotate(stage::FromGrpcStatus(rpc), absl::StrCat("controller at ", address));
 }
 
-std::string ToJson(const google::protobuf::Message& message) {
-  google::protobuf::util::JsonPrintOptions options;
-  options.add_whitespace = true;
-  options.preserve_proto_field_names = true;
-  options.always_print_primitive_fields = true;  // scripts see "ok": false, not a missing key
-  std::string out;
-  (void)google::protobuf::util::MessageToJsonString(message, &out, options);
-  return out;
-}
+std::string ToJson(const google::protobuf::Message& message) { return stage::ToContractJson(message); }
 
 // stagectl status --cameras: every camera node's stream and link statistics (CameraNode.GetStats), asked of the
 // nodes at the addresses the controller knows.
@@ -129,40 +123,29 @@ int CameraStatus(const Connection& c, const stage::v1::StageStatus& status, bool
       j["error"] = rpc.error_message();
     } else {
       all_up = all_up && stats.link_up();
-      j["frames_completed"] = stats.frames_completed();
-      j["frames_failed"] = stats.frames_failed();
-      j["packets_missing"] = stats.packets_missing();
-      j["packets_resent"] = stats.packets_resent();
-      j["buffer_underruns"] = stats.buffer_underruns();
-      j["link_up"] = stats.link_up();
-      j["link_losses"] = stats.link_losses();
-      j["reconnects"] = stats.reconnects();
-      j["link_detail"] = stats.link_detail();
-      j["take_id"] = stats.take_id();
-      j["take_frames_written"] = stats.take_frames_written();
-      j["take_frames_expected"] = stats.take_frames_expected();
+      j["stats"] = nlohmann::json::parse(ToJson(stats));  // the CameraStats message, in the contract's convention
     }
     out.push_back(std::move(j));
   }
   if (json) {
-    std::cout << nlohmann::json{{"cameras", out}}.dump(2) << "\n";
+    std::cout << nlohmann::json{{"cameras", out}}.dump(1) << "\n";
   } else {
     std::cout << absl::StrFormat("%-8s %-7s %-5s %9s %7s %9s %7s %9s %6s %10s  %s\n", "CAMERA", "BACKEND", "LINK",
                                  "FRAMES", "FAILED", "MISSING", "RESENT", "UNDERRUNS", "LOSSES", "RECONNECTS",
                                  "DETAIL");
     for (const auto& j : out) {
       if (j.contains("error")) {
-        std::cout << absl::StrFormat("%-8s %-7s %-5s %s\n", j["id"].get<std::string>(),
-                                     j["backend"].get<std::string>(), "?", j["error"].get<std::string>());
+        std::cout << absl::StrFormat("%-8s %-7s %-5s %s\n", j["id"].get<std::string>(), j["backend"].get<std::string>(),
+                                     "?", j["error"].get<std::string>());
         continue;
       }
-      std::cout << absl::StrFormat(
-          "%-8s %-7s %-5s %9d %7d %9d %7d %9d %6d %10d  %s\n", j["id"].get<std::string>(),
-          j["backend"].get<std::string>(), j["link_up"].get<bool>() ? "up" : "DOWN",
-          j["frames_completed"].get<uint64_t>(), j["frames_failed"].get<uint64_t>(),
-          j["packets_missing"].get<uint64_t>(), j["packets_resent"].get<uint64_t>(),
-          j["buffer_underruns"].get<uint64_t>(), j["link_losses"].get<uint64_t>(), j["reconnects"].get<uint64_t>(),
-          j["link_detail"].get<std::string>());
+      const auto& s = j["stats"];
+      auto n = [&](const char* field) { return std::stoull(s[field].get<std::string>()); };
+      std::cout << absl::StrFormat("%-8s %-7s %-5s %9d %7d %9d %7d %9d %6d %10d  %s\n", j["id"].get<std::string>(),
+                                   j["backend"].get<std::string>(), s["link_up"].get<bool>() ? "up" : "DOWN",
+                                   n("frames_completed"), n("frames_failed"), n("packets_missing"), n("packets_resent"),
+                                   n("buffer_underruns"), n("link_losses"), n("reconnects"),
+                                   s["link_detail"].get<std::string>());
     }
   }
   return all_up ? 0 : kExitNotReady;
@@ -192,7 +175,7 @@ int Status(const Connection& c, bool json, bool cameras) {
   if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
   if (cameras) return CameraStatus(c, status, json);
   if (json) {
-    std::cout << stage::stagectl::StatusToJson(status) << "\n";
+    std::cout << ToJson(status) << "\n";
   } else {
     int64_t now =
         std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
@@ -220,8 +203,12 @@ absl::StatusOr<stage::v1::TimingReport> FetchReport(const Connection& c, const T
   stage::v1::TimingQuery query;
   for (const auto& o : f.overrides) query.add_overrides(o);
   if (!f.rig.empty()) {
-    auto loaded = stage::LoadRig(f.rig);
-    if (!loaded.ok()) return loaded.status();
+    std::vector<std::string> errors;
+    auto loaded = stage::LoadRig(f.rig, {}, &errors);
+    if (!loaded.ok()) {
+      // Every error of the file, not the first and a count.
+      return errors.size() > 1 ? absl::Status(loaded.status().code(), absl::StrJoin(errors, "\n")) : loaded.status();
+    }
     *rig_name = loaded->source_name;
     return stage::timing::CheckTiming(*loaded, query);
   }
@@ -376,22 +363,33 @@ constexpr int kExitDegraded = 4;
 std::string Counts(const stage::v1::LedgerCounts& c) {
   std::string out = absl::StrFormat("%d of %d stored", c.stored(), c.expected());
   std::vector<std::string> lost;
-  for (const auto& [reason, n] : c.lost()) lost.push_back(absl::StrCat(n, " ", reason));
+  for (const auto& l : c.lost()) {
+    lost.push_back(absl::StrCat(l.frames(), " ", stage::LossReasonName(l.reason())));
+  }
   if (!lost.empty()) absl::StrAppend(&out, " (", absl::StrJoin(lost, ", "), ")");
   return out;
 }
 
 void PrintSummary(const stage::v1::TakeSummary& t) {
-  std::cout << "take " << t.take_id() << (t.name().empty() ? "" : " (" + t.name() + ")") << ": " << t.outcome()
-            << "\n  " << t.frames() << " frames, " << t.slots() << " slots, "
+  std::cout << "take " << t.take_id() << (t.name().empty() ? "" : " (" + t.name() + ")") << ": "
+            << stage::TakeOutcomeName(t.outcome()) << "\n  " << t.frames() << " frames, " << t.slots() << " slots, "
             << absl::StrFormat("%.1f MB", static_cast<double>(t.bytes()) / 1e6) << " in " << t.dir() << "\n"
             << "  ledger: " << Counts(t.total()) << "\n";
   std::map<std::string, stage::v1::LedgerCounts> by_role;
   for (const auto& c : t.cameras()) {
-    auto& r = by_role[c.role()];
+    auto& r = by_role[stage::CameraRoleName(c.role())];
     r.set_expected(r.expected() + c.counts().expected());
     r.set_stored(r.stored() + c.counts().stored());
-    for (const auto& [reason, n] : c.counts().lost()) (*r.mutable_lost())[reason] += n;
+    for (const auto& l : c.counts().lost()) {
+      bool found = false;
+      for (auto& have : *r.mutable_lost()) {
+        if (have.reason() == l.reason()) {
+          have.set_frames(have.frames() + l.frames());
+          found = true;
+        }
+      }
+      if (!found) *r.add_lost() = l;
+    }
   }
   for (const auto& [role, counts] : by_role) std::cout << "    " << role << ": " << Counts(counts) << "\n";
   for (const auto& c : t.cameras()) {
@@ -437,6 +435,73 @@ void PrintGrid(const stage::v1::TakeSummary& t) {
   }
 }
 
+// Shows a take's events (Capture, Arm, WatchTake) on stderr as they come: states, messages, a progress line. Returns
+// the summary, if one came, and the stream's end.
+struct TakeStream {
+  std::optional<stage::v1::TakeSummary> summary;
+  grpc::Status status;
+};
+TakeStream ShowTakeEvents(grpc::ClientReader<stage::v1::CaptureEvent>& reader) {
+  stage::v1::CaptureEvent event;
+  TakeStream out;
+  const bool tty = isatty(STDERR_FILENO) != 0;
+  auto last_line = std::chrono::steady_clock::now() - std::chrono::seconds(10);
+  while (reader.Read(&event)) {
+    if (event.has_state()) {
+      if (tty) std::cerr << "\n";
+      std::cerr << "session: " << stage::SessionStateName(event.state()) << std::endl;
+    } else if (event.has_message()) {
+      if (tty) std::cerr << "\n";
+      std::cerr << event.message() << std::endl;
+    } else if (event.has_progress()) {
+      const auto& p = event.progress();
+      if (p.phase() == stage::v1::CAPTURE_PHASE_DONE) continue;  // the summary follows
+      const auto now = std::chrono::steady_clock::now();
+      if (!tty && now - last_line < std::chrono::seconds(2)) continue;
+      last_line = now;
+      std::string groups;
+      for (const auto& r : p.roles()) {
+        absl::StrAppend(&groups, "  ", stage::CameraRoleName(r.role()), " ", r.received(), "/", r.expected());
+        if (r.lost() > 0) absl::StrAppend(&groups, " (", r.lost(), " lost)");
+      }
+      if (p.phase() == stage::v1::CAPTURE_PHASE_OFFLOADING) {
+        // Burst cameras write what they held after the take.
+        std::cerr << (tty ? "\r" : "")
+                  << absl::StrFormat("offloading: %d/%d frames written", p.frames_written(), p.frames_expected())
+                  << (tty ? "" : "\n") << std::flush;
+        continue;
+      }
+      const double frac = p.frames_expected() > 0 ? static_cast<double>(p.frames_received()) / p.frames_expected() : 0;
+      const int bar = static_cast<int>(frac * 30);
+      // What the take waits for (cameras still rendering or reading out, the slot clock): on a terminal, cut to fit
+      // one line.
+      std::string waiting = p.waiting_for().empty() ? "" : absl::StrCat("  waiting for ", p.waiting_for());
+      if (tty && waiting.size() > 70) waiting = waiting.substr(0, 67) + "...";
+      std::cerr << (tty ? "\r" : "") << (p.phase() == stage::v1::CAPTURE_PHASE_PAUSED ? "paused " : "") << "["
+                << std::string(static_cast<size_t>(bar), '#') << std::string(static_cast<size_t>(30 - bar), '.') << "] "
+                << absl::StrFormat("%3.0f%% %d/%d frames, %.1f s", 100 * frac, p.frames_received(), p.frames_expected(),
+                                   p.elapsed_s())
+                << groups << waiting << (tty ? "\033[K" : "\n") << std::flush;
+    } else if (event.has_summary()) {
+      out.summary = event.summary();
+    }
+  }
+  if (tty) std::cerr << "\n";
+  out.status = reader.Finish();
+  return out;
+}
+
+// The take's verdict on stdout (or JSON) and as the exit code: 0 COMPLETE, 4 DEGRADED, 1 FAILED.
+int Verdict(const stage::v1::TakeSummary& summary, bool json) {
+  if (json) {
+    std::cout << ToJson(summary) << "\n";
+  } else {
+    PrintSummary(summary);
+  }
+  if (summary.outcome() == stage::v1::TAKE_OUTCOME_COMPLETE) return 0;
+  return summary.outcome() == stage::v1::TAKE_OUTCOME_DEGRADED ? kExitDegraded : 1;
+}
+
 // Capture (or Arm, `arm_only`): shows the session's events on stderr and the take's summary on stdout.
 int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json,
             bool arm_only = false, bool skip_ground_truth = false) {
@@ -450,52 +515,10 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
   request.set_name(name);
   request.set_skip_ground_truth(skip_ground_truth);
   auto reader = arm_only ? (*stub)->Arm(&context, request) : (*stub)->Capture(&context, request);
-  stage::v1::CaptureEvent event;
-  stage::v1::TakeSummary summary;
-  bool have_summary = false;
-  const bool tty = isatty(STDERR_FILENO) != 0;
-  auto last_line = std::chrono::steady_clock::now() - std::chrono::seconds(10);
-  while (reader->Read(&event)) {
-    if (event.has_state()) {
-      if (tty) std::cerr << "\n";
-      std::cerr << "session: " << event.state() << std::endl;
-    } else if (event.has_message()) {
-      if (tty) std::cerr << "\n";
-      std::cerr << event.message() << std::endl;
-    } else if (event.has_progress()) {
-      const auto& p = event.progress();
-      const auto now = std::chrono::steady_clock::now();
-      if (!tty && now - last_line < std::chrono::seconds(2)) continue;
-      last_line = now;
-      std::string groups;
-      for (const auto& [role, expected] : p.expected_by_role()) {
-        const auto got = p.received_by_role().count(role) ? p.received_by_role().at(role) : 0;
-        absl::StrAppend(&groups, "  ", role, " ", got, "/", expected);
-        if (p.lost_by_role().count(role)) absl::StrAppend(&groups, " (", p.lost_by_role().at(role), " lost)");
-      }
-      if (p.phase() == "offloading") {
-        // Burst cameras write what they held after the take.
-        std::cerr << (tty ? "\r" : "")
-                  << absl::StrFormat("offloading: %d/%d frames written", p.frames_written(), p.frames_expected())
-                  << (tty ? "" : "\n") << std::flush;
-        continue;
-      }
-      const double frac = p.frames_expected() > 0 ? static_cast<double>(p.frames_received()) / p.frames_expected() : 0;
-      const int bar = static_cast<int>(frac * 30);
-      std::cerr << (tty ? "\r" : "") << (p.phase() == "paused" ? "paused " : "") << "["
-                << std::string(static_cast<size_t>(bar), '#') << std::string(static_cast<size_t>(30 - bar), '.') << "] "
-                << absl::StrFormat("%3.0f%% %d/%d frames, %.1f s", 100 * frac, p.frames_received(), p.frames_expected(),
-                                   p.elapsed_s())
-                << groups << (tty ? "" : "\n") << std::flush;
-    } else if (event.has_summary()) {
-      summary = event.summary();
-      have_summary = true;
-    }
-  }
-  if (tty) std::cerr << "\n";
-  grpc::Status rpc = reader->Finish();
-  if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
-  if (!have_summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  TakeStream stream = ShowTakeEvents(*reader);
+  if (!stream.status.ok()) return stage::ReportFatal(kProgram, RpcError(stream.status, address));
+  if (!stream.summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  const stage::v1::TakeSummary& summary = *stream.summary;
   if (arm_only) {
     if (json) {
       std::cout << ToJson(summary) << "\n";
@@ -505,13 +528,57 @@ int Capture(const Connection& c, int64_t frames, double seconds, const std::stri
     }
     return 0;
   }
-  if (json) {
-    std::cout << ToJson(summary) << "\n";
-  } else {
-    PrintSummary(summary);
-  }
-  if (summary.outcome() == "COMPLETE") return 0;
-  return summary.outcome() == "DEGRADED" ? kExitDegraded : 1;
+  return Verdict(summary, json);
+}
+
+// Follows a running take (the session's, or `take_id`) to its end, as `capture` shows it; a take that has ended gives
+// its summary at once. The verdict is the exit code, as for capture.
+int Watch(const Connection& c, const std::string& take_id, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  grpc::ClientContext context;
+  stage::v1::WatchTakeRequest request;
+  request.set_take_id(take_id);
+  auto reader = (*stub)->WatchTake(&context, request);
+  TakeStream stream = ShowTakeEvents(*reader);
+  if (!stream.status.ok()) return stage::ReportFatal(kProgram, RpcError(stream.status, address));
+  if (!stream.summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  return Verdict(*stream.summary, json);
+}
+
+// A take's ledger, every page: a line per entry (camera, slot, pattern, what became of it), or JSON lines.
+int Ledger(const Connection& c, const std::string& take_id, const std::string& camera, bool lost_only, bool json) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  stage::v1::GetLedgerRequest request;
+  request.set_take_id(take_id);
+  request.set_camera_id(camera);
+  request.set_lost_only(lost_only);
+  int64_t shown = 0, total = 0;
+  std::string id = take_id;
+  do {
+    grpc::ClientContext context;
+    SetDeadline(&context, c);
+    stage::v1::LedgerPage page;
+    grpc::Status rpc = (*stub)->GetLedger(&context, request, &page);
+    if (!rpc.ok()) return stage::ReportFatal(kProgram, RpcError(rpc, address));
+    id = page.take_id();
+    total = page.total();
+    for (const auto& e : page.entries()) {
+      if (json) {
+        std::cout << ToJson(e) << "\n";
+      } else {
+        std::cout << absl::StrFormat("%-10s %8d %4d  %-14s %s\n", e.camera_id(), e.slot(), e.pattern(),
+                                     stage::LossReasonName(e.reason()), e.detail());
+      }
+    }
+    shown += page.entries_size();
+    request.set_page_token(page.next_page_token());
+  } while (!request.page_token().empty());
+  if (!json) std::cerr << shown << " of " << total << " entries of take " << id << "\n";
+  return 0;
 }
 
 // Pause, resume or abort the session's take.
@@ -664,8 +731,9 @@ int Takes(const Connection& c, bool json) {
   std::cout << absl::StrFormat("%-24s %-10s %-9s %8s %14s %10s  %s\n", "TAKE", "STATE", "OUTCOME", "SECONDS", "FRAMES",
                                "MB", "NAME");
   for (const auto& t : list.takes()) {
-    std::cout << absl::StrFormat("%-24s %-10s %-9s %8.2f %14s %10.1f  %s\n", t.id(), t.state(), t.outcome(),
-                                 t.duration_s(), absl::StrCat(t.frames_stored(), "/", t.frames_expected()),
+    std::cout << absl::StrFormat("%-24s %-10s %-9s %8.2f %14s %10.1f  %s\n", t.id(), stage::TakeStateName(t.state()),
+                                 stage::TakeOutcomeName(t.outcome()), t.duration_s(),
+                                 absl::StrCat(t.frames_stored(), "/", t.frames_expected()),
                                  static_cast<double>(t.size_bytes()) / 1e6, t.name());
   }
   std::cout << list.takes_size() << " take(s) in " << list.take_root() << "\n";
@@ -776,7 +844,8 @@ int main(int argc, char** argv) {
                    "Each camera's stream and link statistics instead (frames, failures, missing and resent packets, "
                    "underruns, link losses and reconnects; docs/cameras.md#statistics)");
   CLI::App* cameras = app.add_subcommand(
-      "cameras", "List the GigE Vision and USB3 Vision cameras this machine sees (Aravis discovery: camera-node --list)");
+      "cameras",
+      "List the GigE Vision and USB3 Vision cameras this machine sees (Aravis discovery: camera-node --list)");
   cameras->add_flag("--json", json, "Print JSON for scripts instead of the table");
 
   TimingFlags tf;
@@ -879,12 +948,28 @@ int main(int argc, char** argv) {
   CLI::App* take_show = take->add_subcommand("show", "A take's ledger summary, per role and camera, and its self-test");
   take_show->add_option("id", take_id, "Take id (stagectl takes lists them), or latest")->required();
   take_show->add_flag("--json", take_json, "Print JSON for scripts");
+  std::string ledger_id, ledger_camera;
+  bool ledger_lost = false, ledger_json = false;
+  CLI::App* take_ledger = take->add_subcommand(
+      "ledger", "A take's ledger: every expected (camera, slot) and what became of it (stored, or lost and why)");
+  take_ledger->add_option("id", ledger_id, "Take id, or latest")->required();
+  take_ledger->add_option("--camera", ledger_camera, "Only this camera's entries");
+  take_ledger->add_flag("--lost", ledger_lost, "Only the entries that were lost (neither stored nor paused)");
+  take_ledger->add_flag("--json", ledger_json, "Print one LedgerEntry as JSON per line");
+  std::string watch_id;
+  bool watch_json = false;
+  CLI::App* watch = app.add_subcommand(
+      "watch",
+      "Follow the running take (or TAKE) to its end, as `capture` shows it: for a console that reconnects, or a take "
+      "another client started. Exit codes as for capture; a take that has ended gives its verdict at once");
+  watch->add_option("take", watch_id, "Take id (default: the one the session holds)");
+  watch->add_flag("--json", watch_json, "Print the take's summary as JSON (progress still goes to stderr)");
 
   ProcessFlags pf;
-  CLI::App* process = app.add_subcommand(
-      "process",
-      "Run a processing stage over a take on one of the stage's processing workers (results in "
-      "TAKE/derived/STAGE/), with progress");
+  CLI::App* process =
+      app.add_subcommand("process",
+                         "Run a processing stage over a take on one of the stage's processing workers (results in "
+                         "TAKE/derived/STAGE/), with progress");
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
   process->add_option("--stage", pf.stage, "The stage: photometric")->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
@@ -946,6 +1031,8 @@ int main(int argc, char** argv) {
   if (preview->parsed()) return Preview(c, preview_camera, preview_out, preview_json);
   if (takes->parsed()) return Takes(c, takes_json);
   if (take_show->parsed()) return TakeShow(c, take_id, take_json);
+  if (take_ledger->parsed()) return Ledger(c, ledger_id, ledger_camera, ledger_lost, ledger_json);
+  if (watch->parsed()) return Watch(c, watch_id, watch_json);
   if (process->parsed()) return Process(c, pf);
   return 2;
 }

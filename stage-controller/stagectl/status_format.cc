@@ -2,11 +2,11 @@
 #include "status_format.h"
 
 #include <cmath>
-#include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/node_info.h"
+#include "stage/common/take_names.h"
 
 namespace stage::stagectl {
 namespace {
@@ -21,7 +21,8 @@ std::string FormatDuration(int64_t ns) {
 }
 
 std::string KindLabel(const v1::NodeStatus& n) {
-  if (n.kind() == v1::NODE_KIND_CAMERA) return n.role() == "high-speed" ? "camera HS" : "camera MV";
+  if (n.kind() == v1::NODE_KIND_CAMERA)
+    return n.camera_role() == v1::CAMERA_ROLE_HIGH_SPEED ? "camera HS" : "camera MV";
   if (n.kind() == v1::NODE_KIND_PROCESSING_WORKER) return "worker";
   return NodeKindName(n.kind());
 }
@@ -44,41 +45,12 @@ std::string FormatPtp(const v1::PtpStatus& p) {
   return absl::StrFormat("%s %+.1f us", p.port_state(), p.master_offset_ns() / 1e3);
 }
 
-nlohmann::ordered_json ClockJson(const v1::ClockStatus& c) {
-  nlohmann::ordered_json j = {{"measured", c.measured()},
-                              {"offset_ns", c.offset_ns()},
-                              {"uncertainty_ns", c.uncertainty_ns()},
-                              {"drift_ppm", c.drift_known() ? nlohmann::ordered_json(c.drift_ppm()) : nullptr},
-                              {"min_rtt_ns", c.min_rtt_ns()},
-                              {"samples", c.samples()},
-                              {"limit_ns", c.limit_ns()},
-                              {"limit_reason", c.limit_reason()},
-                              {"flagged", c.flagged()},
-                              {"last_sync_unix_ns", c.last_sync_unix_ns()},
-                              {"estimate_at_unix_ns", c.estimate_at_unix_ns()},
-                              {"error", c.error()}};
-  if (!c.ptp().source().empty()) {
-    const v1::PtpStatus& p = c.ptp();
-    j["ptp"] = {{"source", p.source()},
-                {"port_state", p.port_state()},
-                {"master_offset_ns", p.master_offset_ns()},
-                {"mean_path_delay_ns", p.mean_path_delay_ns()},
-                {"grandmaster_id", p.grandmaster_id()},
-                {"grandmaster_present", p.grandmaster_present()},
-                {"steps_removed", p.steps_removed()},
-                {"error", p.error()}};
-  } else {
-    j["ptp"] = nullptr;
-  }
-  return j;
-}
-
 }  // namespace
 
 std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns, bool color) {
   std::string out = absl::StrFormat("Stage %s (%s): %d of %d nodes up, session %s, controller %s\n\n",
                                     status.stage_id(), status.stage_name(), status.nodes_up(), status.nodes_total(),
-                                    status.session_state(), status.controller().version());
+                                    SessionStateName(status.session_state()), status.controller().version());
   if (!status.schedule_hash().empty()) {
     out.insert(
         out.size() - 1,
@@ -132,42 +104,6 @@ std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns
     out += absl::StrFormat("\n%d node%s not up.\n", down, down == 1 ? " is" : "s are");
   }
   return out;
-}
-
-std::string StatusToJson(const v1::StageStatus& status) {
-  nlohmann::ordered_json j;
-  j["stage"] = {{"id", status.stage_id()}, {"name", status.stage_name()}};
-  j["time_unix_ns"] = status.time_unix_ns();
-  j["session_state"] = status.session_state();
-  j["estop"] = {{"latched", status.estop_latched()}, {"reason", status.estop_reason()}};
-  j["controller"] = {{"version", status.controller().version()},
-                     {"pid", status.controller().pid()},
-                     {"hostname", status.controller().hostname()},
-                     {"uptime_ns", status.controller().uptime_ns()},
-                     {"rig_hash", status.controller().rig_hash()}};
-  j["summary"] = {{"nodes_up", status.nodes_up()}, {"nodes_total", status.nodes_total()}};
-  j["timing"] = {{"schedule_hash", status.schedule_hash()},
-                 {"errors", status.timing_errors()},
-                 {"warnings", status.timing_warnings()}};
-  nlohmann::ordered_json nodes = nlohmann::ordered_json::array();
-  for (const v1::NodeStatus& n : status.nodes()) {
-    nodes.push_back({{"id", n.id()},
-                     {"kind", NodeKindName(n.kind())},
-                     {"role", n.role()},
-                     {"address", n.address()},
-                     {"state", NodeStateName(n.state())},
-                     {"reason", n.reason()},
-                     {"version", n.version()},
-                     {"backend", n.backend()},
-                     {"pid", n.pid()},
-                     {"uptime_ns", n.uptime_ns()},
-                     {"last_seen_unix_ns", n.last_seen_unix_ns()},
-                     {"rtt_ns", n.rtt_ns()},
-                     {"state_since_unix_ns", n.state_since_unix_ns()},
-                     {"clock", ClockJson(n.clock())}});
-  }
-  j["nodes"] = std::move(nodes);
-  return j.dump(2);
 }
 
 }  // namespace stage::stagectl

@@ -1,4 +1,5 @@
-// How stagectl shows stage status: a table a person reads at a glance, and JSON for scripts.
+// How stagectl shows stage status: a table a person reads at a glance. (For scripts, `--json` prints the StageStatus
+// message itself in the project's JSON convention: stage/common/proto_json.h.)
 #pragma once
 
 #include <cstdint>
@@ -10,9 +11,5 @@ namespace stage::stagectl {
 
 // The status table. `now_unix_ns` is used for "last seen ... ago". `color` adds ANSI colours to the state column.
 std::string FormatStatusTable(const v1::StageStatus& status, int64_t now_unix_ns, bool color);
-
-// JSON (one object): {"stage": {...}, "controller": {...}, "summary": {...}, "nodes": [{...}, ...]}, with states
-// and kinds as words ("up", "camera") and times in ns. docs/operators.md documents the fields.
-std::string StatusToJson(const v1::StageStatus& status);
 
 }  // namespace stage::stagectl

@@ -5,6 +5,7 @@
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "stage/common/proto_json.h"
 
 namespace stage::stagectl {
 namespace {
@@ -15,13 +16,13 @@ v1::StageStatus Example() {
   v1::StageStatus s;
   s.set_stage_id("fastage");
   s.set_stage_name("FaStage");
-  s.set_session_state("idle");
+  s.set_session_state(v1::SESSION_STATE_IDLE);
   s.set_nodes_total(2);
   s.set_nodes_up(1);
   auto* a = s.add_nodes();
   a->set_id("mv-01");
   a->set_kind(v1::NODE_KIND_CAMERA);
-  a->set_role("machine-vision");
+  a->set_camera_role(v1::CAMERA_ROLE_MACHINE_VISION);
   a->set_address("127.0.0.1:5000");
   a->set_state(v1::NODE_STATE_UP);
   a->set_version("0.1.0");
@@ -67,21 +68,30 @@ TEST(StatusFormatTest, TableShowsEveryNodeAndTheSummary) {
   EXPECT_THAT(FormatStatusTable(Example(), 0, /*color=*/true), HasSubstr("\033[31mdown\033[0m"));
 }
 
-TEST(StatusFormatTest, JsonUsesWordsForStatesAndKinds) {
-  auto j = nlohmann::json::parse(StatusToJson(Example()));
-  EXPECT_EQ(j["stage"]["id"], "fastage");
-  EXPECT_EQ(j["summary"]["nodes_up"], 1);
+// `stagectl status --json` is the message in the project's JSON convention: enums by name, int64 as strings, every
+// field present; any protobuf library reads it back.
+TEST(StatusFormatTest, JsonIsTheMessageInTheContractsConvention) {
+  const std::string text = ToContractJson(Example());
+  auto j = nlohmann::json::parse(text);
+  EXPECT_EQ(j["stage_id"], "fastage");
+  EXPECT_EQ(j["session_state"], "SESSION_STATE_IDLE");
+  EXPECT_EQ(j["current_take_id"], "");
+  EXPECT_EQ(j["nodes_up"], 1);
   ASSERT_EQ(j["nodes"].size(), 2u);
-  EXPECT_EQ(j["nodes"][0]["state"], "up");
-  EXPECT_EQ(j["nodes"][0]["kind"], "camera");
-  EXPECT_EQ(j["nodes"][0]["rtt_ns"], 250000);
-  EXPECT_EQ(j["nodes"][1]["state"], "down");
+  EXPECT_EQ(j["nodes"][0]["state"], "NODE_STATE_UP");
+  EXPECT_EQ(j["nodes"][0]["kind"], "NODE_KIND_CAMERA");
+  EXPECT_EQ(j["nodes"][0]["camera_role"], "CAMERA_ROLE_MACHINE_VISION");
+  EXPECT_EQ(j["nodes"][0]["rtt_ns"], "250000");
+  EXPECT_EQ(j["nodes"][1]["state"], "NODE_STATE_DOWN");
   EXPECT_EQ(j["nodes"][1]["reason"], "Connection refused");
-  EXPECT_EQ(j["nodes"][0]["clock"]["offset_ns"], -3001234);
+  EXPECT_EQ(j["nodes"][0]["clock"]["offset_ns"], "-3001234");
   EXPECT_EQ(j["nodes"][0]["clock"]["flagged"], true);
   EXPECT_EQ(j["nodes"][0]["clock"]["drift_ppm"], 12.5);
   EXPECT_EQ(j["nodes"][0]["clock"]["ptp"]["port_state"], "SLAVE");
-  EXPECT_TRUE(j["nodes"][1]["clock"]["ptp"].is_null());
+  EXPECT_FALSE(j["nodes"][1]["clock"].contains("ptp"));  // a message not set is left out
+  v1::StageStatus back;
+  ASSERT_TRUE(FromContractJson(text, &back).ok());
+  EXPECT_EQ(back.SerializeAsString(), Example().SerializeAsString());
 }
 
 TEST(StatusFormatTest, AnUnmeasuredClockThatIsNeededIsFlagged) {

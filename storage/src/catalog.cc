@@ -7,9 +7,13 @@
 #include <ctime>
 #include <filesystem>
 
+#include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "stage/common/status.h"
+#include "stage/common/take_names.h"
 
 namespace stage::storage {
 namespace {
@@ -78,7 +82,7 @@ class Statement {
 void BindTake(Statement& s, const TakeRow& t) {
   s.Bind(1, t.id);
   s.Bind(2, t.name);
-  s.Bind(3, t.state);
+  s.Bind(3, TakeStateText(t.state));
   s.Bind(4, t.created_unix_ns);
   s.Bind(5, t.t0_unix_ns);
   s.Bind(6, t.slots);
@@ -86,17 +90,23 @@ void BindTake(Statement& s, const TakeRow& t) {
   s.Bind(8, t.size_bytes);
   s.Bind(9, t.frames_expected);
   s.Bind(10, t.frames_stored);
-  s.Bind(11, t.outcome);
+  s.Bind(11, TakeOutcomeText(t.outcome));
   s.Bind(12, t.rig_hash);
   s.Bind(13, t.schedule_hash);
   s.Bind(14, t.dir);
 }
 
-TakeRow ReadTake(const Statement& s) {
+absl::StatusOr<TakeRow> ReadTake(const Statement& s, const std::string& path) {
   TakeRow t;
   t.id = s.Text(0);
   t.name = s.Text(1);
-  t.state = s.Text(2);
+  auto state = TakeStateFromText(s.Text(2));
+  auto outcome = TakeOutcomeFromText(s.Text(10));
+  for (const absl::Status& bad : {state.status(), outcome.status()}) {
+    if (!bad.ok()) return absl::DataLossError(absl::StrCat(path, ": take ", t.id, ": ", bad.message()));
+  }
+  t.state = *state;
+  t.outcome = *outcome;
   t.created_unix_ns = s.Int(3);
   t.t0_unix_ns = s.Int(4);
   t.slots = s.Int(5);
@@ -104,7 +114,6 @@ TakeRow ReadTake(const Statement& s) {
   t.size_bytes = s.Int(7);
   t.frames_expected = s.Int(8);
   t.frames_stored = s.Int(9);
-  t.outcome = s.Text(10);
   t.rig_hash = s.Text(11);
   t.schedule_hash = s.Text(12);
   t.dir = s.Text(13);
@@ -119,29 +128,28 @@ void Count(LedgerCounts* c, const LedgerEntry& e) {
 
 }  // namespace
 
-const char* LossReasonName(LossReason reason) {
-  switch (reason) {
-    case LossReason::kNone:
-      return "stored";
-    case LossReason::kCameraDropped:
-      return "camera dropped";
-    case LossReason::kTriggerMissed:
-      return "trigger missed";
-    case LossReason::kNodeDown:
-      return "node down";
-    case LossReason::kLate:
-      return "late";
-    case LossReason::kWriteFailed:
-      return "write failed";
-    case LossReason::kIncomplete:
-      return "incomplete";
-    case LossReason::kPaused:
-      return "paused";
-    case LossReason::kLinkDown:
-      return "link down";
+std::string TakeStateText(v1::TakeState state) { return TakeStateName(state); }
+
+std::string TakeOutcomeText(v1::TakeOutcome outcome) { return TakeOutcomeName(outcome); }
+
+absl::StatusOr<v1::TakeState> TakeStateFromText(const std::string& text) {
+  v1::TakeState state;
+  if (text.empty() || !v1::TakeState_Parse(absl::StrCat("TAKE_STATE_", absl::AsciiStrToUpper(text)), &state)) {
+    return absl::InvalidArgumentError(absl::StrCat("state \"", text, "\" is none of take.proto's TakeState"));
   }
-  return "unknown";
+  return state;
 }
+
+absl::StatusOr<v1::TakeOutcome> TakeOutcomeFromText(const std::string& text) {
+  if (text.empty()) return v1::TAKE_OUTCOME_UNSPECIFIED;
+  v1::TakeOutcome outcome;
+  if (!v1::TakeOutcome_Parse(absl::StrCat("TAKE_OUTCOME_", text), &outcome)) {
+    return absl::InvalidArgumentError(absl::StrCat("outcome \"", text, "\" is none of take.proto's TakeOutcome"));
+  }
+  return outcome;
+}
+
+std::string LossReasonName(LossReason reason) { return stage::LossReasonName(ToProto(reason)); }
 
 absl::StatusOr<std::unique_ptr<Catalog>> Catalog::Open(const std::string& root) {
   std::error_code ec;
@@ -217,7 +225,7 @@ absl::StatusOr<TakeRow> Catalog::GetTake(const std::string& id) const {
   const int rc = sqlite3_step(s.get());
   if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("no take \"", id, "\" in ", path_));
   if (rc != SQLITE_ROW) return Error(absl::StrCat("cannot read take ", id));
-  return ReadTake(s);
+  return ReadTake(s, path_);
 }
 
 absl::StatusOr<std::vector<TakeRow>> Catalog::ListTakes() const {
@@ -225,7 +233,11 @@ absl::StatusOr<std::vector<TakeRow>> Catalog::ListTakes() const {
   if (!s.ok()) return Error("cannot prepare the query");
   std::vector<TakeRow> out;
   int rc;
-  while ((rc = sqlite3_step(s.get())) == SQLITE_ROW) out.push_back(ReadTake(s));
+  while ((rc = sqlite3_step(s.get())) == SQLITE_ROW) {
+    absl::StatusOr<TakeRow> take = ReadTake(s, path_);
+    if (!take.ok()) return take.status();
+    out.push_back(*std::move(take));
+  }
   if (rc != SQLITE_DONE) return Error("cannot list the takes");
   return out;
 }
@@ -285,13 +297,34 @@ absl::Status Catalog::RecordLedger(const std::string& take_id, const std::vector
 
 absl::StatusOr<std::vector<LedgerEntry>> Catalog::Ledger(const std::string& take_id,
                                                          const std::string& camera_id) const {
-  Statement s(db_,
-              "SELECT camera_id, slot, pattern, reason, frame_id, detail FROM ledger WHERE take_id=?1 AND "
-              "(?2 = '' OR camera_id=?2) ORDER BY camera_id, slot");
+  STAGE_ASSIGN_OR_RETURN(LedgerPage all, ReadLedgerPage(take_id, camera_id, false, 0, -1));
+  return std::move(all.entries);
+}
+
+absl::StatusOr<Catalog::LedgerPage> Catalog::ReadLedgerPage(const std::string& take_id, const std::string& camera_id,
+                                                            bool lost_only, int64_t offset, int64_t limit) const {
+  // Lost: neither stored (0) nor paused (7).
+  constexpr const char* kWhere = "WHERE take_id=?1 AND (?2 = '' OR camera_id=?2) AND (?3 = 0 OR reason NOT IN (0, 7))";
+  LedgerPage page;
+  {
+    Statement count(db_, absl::StrCat("SELECT COUNT(*) FROM ledger ", kWhere).c_str());
+    if (!count.ok()) return Error("cannot prepare the query");
+    count.Bind(1, take_id);
+    count.Bind(2, camera_id);
+    count.Bind(3, static_cast<int64_t>(lost_only));
+    if (sqlite3_step(count.get()) != SQLITE_ROW)
+      return Error(absl::StrCat("cannot count the ledger of take ", take_id));
+    page.total = count.Int(0);
+  }
+  Statement s(db_, absl::StrCat("SELECT camera_id, slot, pattern, reason, frame_id, detail FROM ledger ", kWhere,
+                                " ORDER BY camera_id, slot LIMIT ?4 OFFSET ?5")
+                       .c_str());
   if (!s.ok()) return Error("cannot prepare the query");
   s.Bind(1, take_id);
   s.Bind(2, camera_id);
-  std::vector<LedgerEntry> out;
+  s.Bind(3, static_cast<int64_t>(lost_only));
+  s.Bind(4, limit);
+  s.Bind(5, offset);
   int rc;
   while ((rc = sqlite3_step(s.get())) == SQLITE_ROW) {
     LedgerEntry e;
@@ -301,10 +334,10 @@ absl::StatusOr<std::vector<LedgerEntry>> Catalog::Ledger(const std::string& take
     e.reason = static_cast<LossReason>(s.Int(3));
     if (!s.Null(4)) e.frame_id = static_cast<uint64_t>(s.Int(4));
     e.detail = s.Text(5);
-    out.push_back(std::move(e));
+    page.entries.push_back(std::move(e));
   }
   if (rc != SQLITE_DONE) return Error(absl::StrCat("cannot read the ledger of take ", take_id));
-  return out;
+  return page;
 }
 
 absl::StatusOr<LedgerSummary> Catalog::Summarize(const std::string& take_id) const {

@@ -27,7 +27,7 @@ std::string FreshRoot(const std::string& name) {
 TakeRow Take(const std::string& id, int64_t created) {
   TakeRow t;
   t.id = id;
-  t.state = "configuring";
+  t.state = v1::TAKE_STATE_CONFIGURING;
   t.created_unix_ns = created;
   t.slots = 912;
   t.dir = id;
@@ -65,8 +65,8 @@ TEST(CatalogTest, TakesAreCreatedUpdatedListedAndNumberedPerDay) {
   EXPECT_EQ(suffix(c.NextTakeId("fastage", noon + 3 * 86'400'000'000'000)), "0001");
 
   TakeRow done = Take(*first, noon);
-  done.state = "complete";
-  done.outcome = "COMPLETE";
+  done.state = v1::TAKE_STATE_COMPLETE;
+  done.outcome = v1::TAKE_OUTCOME_COMPLETE;
   done.frames_expected = 3312;
   done.frames_stored = 3312;
   done.size_bytes = 123456789;
@@ -74,14 +74,19 @@ TEST(CatalogTest, TakesAreCreatedUpdatedListedAndNumberedPerDay) {
   ASSERT_TRUE(c.UpdateTake(done).ok());
   auto got = c.GetTake(*first);
   ASSERT_TRUE(got.ok());
-  EXPECT_EQ(got->outcome, "COMPLETE");
+  EXPECT_EQ(got->outcome, v1::TAKE_OUTCOME_COMPLETE);
+  EXPECT_EQ(got->state, v1::TAKE_STATE_COMPLETE);
+  // The columns hold the enums' names as docs/storage.md shows them, for the sqlite3 shell.
+  EXPECT_EQ(Shell("sqlite3 " + c.path() + " \"SELECT state, outcome FROM takes WHERE id='" + *first + "'\""),
+            "complete|COMPLETE\n");
   EXPECT_EQ(got->size_bytes, 123456789);
   EXPECT_EQ(got->frames_stored, 3312);
   auto list = c.ListTakes();
   ASSERT_TRUE(list.ok());
   ASSERT_EQ(list->size(), 2u);
   EXPECT_EQ((*list)[0].id, *first);
-  EXPECT_EQ((*list)[1].state, "configuring");
+  EXPECT_EQ((*list)[1].state, v1::TAKE_STATE_CONFIGURING);
+  EXPECT_EQ((*list)[1].outcome, v1::TAKE_OUTCOME_UNSPECIFIED);
   auto missing = c.GetTake("fastage-19990101-0001");
   EXPECT_TRUE(absl::IsNotFound(missing.status()));
   EXPECT_THAT(missing.status().message(), HasSubstr("no take \"fastage-19990101-0001\""));
@@ -123,6 +128,22 @@ TEST(CatalogTest, TheLedgerCountsPerCameraAndPattern) {
   ASSERT_EQ(hs2->size(), 76u);
   EXPECT_EQ(hs2->back().detail, "disk full");
   EXPECT_EQ(hs2->back().frame_id, 75u);
+  // Pages: in camera then slot order, of the lost entries only, a few at a time, with the total each time.
+  std::vector<std::pair<std::string, int64_t>> lost;
+  for (int64_t offset = 0;; offset += 3) {
+    auto page = c.ReadLedgerPage("t1", "", /*lost_only=*/true, offset, 3);
+    ASSERT_TRUE(page.ok()) << page.status();
+    EXPECT_EQ(page->total, 4);
+    if (page->entries.empty()) break;
+    for (const LedgerEntry& e : page->entries) lost.emplace_back(e.camera_id, e.slot);
+  }
+  EXPECT_EQ(lost,
+            (std::vector<std::pair<std::string, int64_t>>{{"hs-1", 3}, {"hs-1", 41}, {"hs-2", 10}, {"hs-2", 75}}));
+  auto mv = c.ReadLedgerPage("t1", "mv-01", false, 1, 10);
+  ASSERT_TRUE(mv.ok());
+  EXPECT_EQ(mv->total, 2);
+  ASSERT_EQ(mv->entries.size(), 1u);
+  EXPECT_EQ(mv->entries[0].slot, 57);
   EXPECT_EQ(std::string(LossReasonName(LossReason::kTriggerMissed)), "trigger missed");
   // The sqlite3 shell, an independent reader, sees the same file.
   EXPECT_EQ(Shell("sqlite3 " + c.path() + " \"SELECT count(*) FROM ledger WHERE take_id='t1' AND reason=0\""), "150\n");

@@ -4,6 +4,7 @@
 #include <fcntl.h>
 #include <hdf5.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -111,14 +112,15 @@ Id LatestFormatAccess() {
   return fapl;
 }
 
+// A variable-length UTF-8 string: h5py reads it as str (a fixed-length one comes back as bytes).
 bool WriteStringAttribute(hid_t where, const char* name, const std::string& value) {
   Id type(H5Tcopy(H5T_C_S1), H5Tclose);
-  H5Tset_size(type.get(), std::max<size_t>(1, value.size()));
-  H5Tset_strpad(type.get(), H5T_STR_NULLPAD);
+  H5Tset_size(type.get(), H5T_VARIABLE);
+  H5Tset_cset(type.get(), H5T_CSET_UTF8);
   Id space(H5Screate(H5S_SCALAR), H5Sclose);
   Id attr(H5Acreate2(where, name, type.get(), space.get(), H5P_DEFAULT, H5P_DEFAULT), H5Aclose);
-  const std::string padded = value.empty() ? std::string(1, '\0') : value;
-  return attr.ok() && H5Awrite(attr.get(), type.get(), padded.data()) >= 0;
+  const char* text = value.c_str();
+  return attr.ok() && H5Awrite(attr.get(), type.get(), &text) >= 0;
 }
 
 template <typename T>
@@ -128,11 +130,23 @@ bool WriteScalarAttribute(hid_t where, const char* name, hid_t file_type, hid_t 
   return attr.ok() && H5Awrite(attr.get(), mem_type, &value) >= 0;
 }
 
+// A string attribute, variable-length (written since 2026-11-27) or fixed-length (files written before).
 bool ReadStringAttribute(hid_t where, const char* name, std::string* out) {
   if (H5Aexists(where, name) <= 0) return false;
   Id attr(H5Aopen(where, name, H5P_DEFAULT), H5Aclose);
   Id type(H5Aget_type(attr.get()), H5Tclose);
-  if (H5Tget_class(type.get()) != H5T_STRING || H5Tis_variable_str(type.get()) > 0) return false;
+  if (H5Tget_class(type.get()) != H5T_STRING) return false;
+  if (H5Tis_variable_str(type.get()) > 0) {
+    Id memory(H5Tcopy(H5T_C_S1), H5Tclose);
+    H5Tset_size(memory.get(), H5T_VARIABLE);
+    H5Tset_cset(memory.get(), H5Tget_cset(type.get()));
+    char* text = nullptr;
+    if (H5Aread(attr.get(), memory.get(), &text) < 0) return false;
+    *out = text != nullptr ? text : "";
+    Id space(H5Aget_space(attr.get()), H5Sclose);
+    H5Dvlen_reclaim(memory.get(), space.get(), H5P_DEFAULT, &text);
+    return true;
+  }
   std::string buffer(H5Tget_size(type.get()), '\0');
   if (H5Aread(attr.get(), type.get(), buffer.data()) < 0) return false;
   buffer.resize(strnlen(buffer.data(), buffer.size()));
@@ -333,6 +347,24 @@ absl::Status FrameFileWriter::Close() {
   ok = h->frames.Reset() >= 0 && ok;
   ok = h->file.Reset() >= 0 && ok;
   if (!ok) return Hdf5Error(absl::StatusCode::kDataLoss, path_, "cannot close the frame file");
+  if (reserved_end_ > 0 && !reserve_unsupported_) return ReleaseReservedSpace(path_);
+  return absl::OkStatus();
+}
+
+absl::Status ReleaseReservedSpace(const std::string& path) {
+  // Truncating a file to its own size frees the blocks allocated beyond it (fallocate's KEEP_SIZE reserve).
+  const int fd = open(path.c_str(), O_WRONLY | O_CLOEXEC);
+  if (fd < 0)
+    return absl::UnavailableError(
+        absl::StrCat(path, ": cannot open to give back its reserved space: ", std::strerror(errno)));
+  struct stat st {};
+  int rc = fstat(fd, &st);
+  if (rc == 0) rc = ftruncate(fd, st.st_size);
+  const int error = errno;
+  close(fd);
+  if (rc != 0) {
+    return absl::UnavailableError(absl::StrCat(path, ": cannot give back its reserved space: ", std::strerror(error)));
+  }
   return absl::OkStatus();
 }
 

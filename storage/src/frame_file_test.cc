@@ -6,6 +6,7 @@
 #include <sched.h>
 #include <signal.h>
 #include <sys/mount.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -104,6 +105,108 @@ TEST(FrameFileTest, WhatIsWrittenReadsBack) {
   }
 }
 
+// Bytes the file system holds for `path` (what `du` counts).
+int64_t OnDisk(const std::string& path) {
+  struct stat st {};
+  EXPECT_EQ(stat(path.c_str(), &st), 0) << path;
+  return static_cast<int64_t>(st.st_blocks) * 512;
+}
+
+// The writer reserves space ahead of the frames it appends (16 MiB, or 16 frames); closing gives back what it did not
+// use, so the file holds on disk what its size says (the catalog's figure), give or take a block.
+TEST(FrameFileTest, ClosingGivesBackTheSpaceReservedBeyondTheFrames) {
+  const std::string path = ::testing::TempDir() + "/frames-reserve.h5";
+  std::filesystem::remove(path);
+  const FrameFileInfo info = Info();
+  auto writer = FrameFileWriter::Create(path, info);
+  ASSERT_TRUE(writer.ok()) << writer.status();
+  for (int64_t i = 0; i < 5; ++i) ASSERT_TRUE((*writer)->Append(Record(i), Pixels(info, i)).ok());
+  const int64_t reserved = OnDisk(path);
+  const auto size = static_cast<int64_t>(std::filesystem::file_size(path));
+  if (reserved < size + (8 << 20))
+    GTEST_SKIP() << "this file system reserves no space ahead (" << reserved << " bytes)";
+  ASSERT_TRUE((*writer)->Close().ok());
+  const auto closed_size = static_cast<int64_t>(std::filesystem::file_size(path));
+  EXPECT_LE(OnDisk(path), closed_size + 65536) << "size " << closed_size << ", reserved while open " << reserved;
+  ExpectFrames(path, 5, 5);
+}
+
+TEST(FrameFileTest, TheSpaceAWriterThatDiedReservedIsGivenBackOnRecovery) {
+  const std::string path = ::testing::TempDir() + "/frames-reserve-died.h5";
+  std::filesystem::remove(path);
+  const FrameFileInfo info = Info();
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    auto writer = FrameFileWriter::Create(path, info);
+    if (!writer.ok()) _exit(3);
+    for (int64_t i = 0; i < 3; ++i) {
+      if (!(*writer)->Append(Record(i), Pixels(info, i)).ok()) _exit(4);
+    }
+    kill(getpid(), SIGKILL);  // dies with the file open: no Close()
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(child, &status, 0), child);
+  ASSERT_TRUE(WIFSIGNALED(status)) << status;
+  const auto size = static_cast<int64_t>(std::filesystem::file_size(path));
+  if (OnDisk(path) < size + (8 << 20)) GTEST_SKIP() << "this file system reserves no space ahead";
+  ASSERT_TRUE(ReleaseReservedSpace(path).ok());
+  EXPECT_LE(OnDisk(path), size + 65536);
+  EXPECT_EQ(static_cast<int64_t>(std::filesystem::file_size(path)), size);
+  ExpectFrames(path, 3, 3);  // what it appended still reads back
+  const absl::Status missing = ReleaseReservedSpace(path + ".none");
+  EXPECT_TRUE(absl::IsUnavailable(missing));
+  EXPECT_THAT(missing.message(), HasSubstr(path + ".none"));
+}
+
+// The text attributes as a Python user reads them (h5py): str, not bytes (HDF5 variable-length UTF-8 strings).
+TEST(FrameFileTest, H5pyReadsTheTextAttributesAsStr) {
+  const std::string path = ::testing::TempDir() + "/frames-h5py.h5";
+  std::filesystem::remove(path);
+  FrameFileInfo info = Info(1);
+  info.patterns_json = R"([{"index": 0, "name": "cross-full", "polarization": "cross"}])";
+  info.camera_id = "hs-2 \u00e9";  // UTF-8 survives
+  {
+    auto writer = FrameFileWriter::Create(path, info);
+    ASSERT_TRUE(writer.ok()) << writer.status();
+    ASSERT_TRUE((*writer)->Append(Record(0), Pixels(info, 0)).ok());
+    ASSERT_TRUE((*writer)->Close().ok());
+  }
+  const std::string script =
+      "import h5py, sys\n"
+      "f = h5py.File(sys.argv[1], 'r')\n"
+      "for k in ('format', 'camera_id', 'take_id', 'pixel_format', 'calibration', 'patterns'):\n"
+      "    v = f.attrs[k]\n"
+      "    print(k, type(v).__name__, v)\n";
+  const std::string command = "/usr/bin/python3 -c \"" + script + "\" " + path + " 2>&1";
+  std::string out;
+  if (FILE* p = popen(command.c_str(), "r")) {
+    char buffer[4096];
+    for (size_t got; (got = fread(buffer, 1, sizeof buffer, p)) > 0;) out.append(buffer, got);
+    EXPECT_EQ(pclose(p), 0) << out;
+  }
+  EXPECT_THAT(out, HasSubstr("format str fastage-frames-1"));
+  EXPECT_THAT(out, HasSubstr("camera_id str hs-2 \u00e9"));
+  EXPECT_THAT(out, HasSubstr("pixel_format str BayerRG8"));
+  EXPECT_THAT(out, HasSubstr("patterns str [{\"index\": 0, \"name\": \"cross-full\""));
+  // And this project's reader reads them back...
+  auto reader = FrameFileReader::Open(path);
+  ASSERT_TRUE(reader.ok()) << reader.status();
+  EXPECT_EQ((*reader)->info().camera_id, info.camera_id);
+  EXPECT_EQ((*reader)->info().patterns_json, info.patterns_json);
+  reader->reset();
+  // ...as it reads the fixed-length strings of files written before (h5py writes numpy bytes that way).
+  const std::string rewrite =
+      "/usr/bin/python3 -c \"import h5py, numpy, sys; f = h5py.File(sys.argv[1], 'r+'); "
+      "f.attrs['camera_id'] = numpy.bytes_(b'mv-07')\" " +
+      path + " 2>&1";
+  ASSERT_EQ(std::system(rewrite.c_str()), 0);
+  auto old = FrameFileReader::Open(path);
+  ASSERT_TRUE(old.ok()) << old.status();
+  EXPECT_EQ((*old)->info().camera_id, "mv-07");
+  EXPECT_EQ((*old)->info().pixel_format, "BayerRG8");
+}
+
 TEST(FrameFileTest, RefusesToOverwriteAndWrongSizes) {
   const std::string path = ::testing::TempDir() + "/frames-refuse.h5";
   std::filesystem::remove(path);
@@ -180,8 +283,9 @@ TEST(FrameFileTest, AWriterKilledMidTakeLeavesEveryAppendedFrameReadable) {
   // before it (/slot) may hold one more, the frame the kill interrupted.
   EXPECT_THAT(dump("/status"), HasSubstr("SIMPLE { ( " + std::to_string(n) + " ) / ( H5S_UNLIMITED ) }"));
   const std::string slot_dump = dump("/slot");
-  EXPECT_THAT(slot_dump, ::testing::AnyOf(HasSubstr("SIMPLE { ( " + std::to_string(n) + " ) / ( H5S_UNLIMITED ) }"),
-                                          HasSubstr("SIMPLE { ( " + std::to_string(n + 1) + " ) / ( H5S_UNLIMITED ) }")));
+  EXPECT_THAT(slot_dump,
+              ::testing::AnyOf(HasSubstr("SIMPLE { ( " + std::to_string(n) + " ) / ( H5S_UNLIMITED ) }"),
+                               HasSubstr("SIMPLE { ( " + std::to_string(n + 1) + " ) / ( H5S_UNLIMITED ) }")));
   std::string slots;
   for (int64_t i = 0; i < n; ++i) slots += (i ? ", " : "") + std::to_string(i);
   EXPECT_THAT(slot_dump, HasSubstr(slots)) << slot_dump;

@@ -52,7 +52,7 @@ class SimulatedStageTest : public ::testing::Test {
     sim_ = std::move(*sim);
     // stage-sim writes the endpoint file once every node is up.
     std::string path = run_dir_.path() + "/endpoints.json";
-    auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(90);
+    auto deadline = std::chrono::steady_clock::now() + startup_deadline_;
     while (!std::filesystem::exists(path)) {
       ASSERT_FALSE(sim_->Poll().has_value()) << "stage-sim exited: " << ReadFile(run_dir_.path() + "/stage-sim.log");
       ASSERT_LT(std::chrono::steady_clock::now(), deadline) << ReadFile(run_dir_.path() + "/stage-sim.log");
@@ -72,7 +72,8 @@ class SimulatedStageTest : public ::testing::Test {
   }
 
   nlohmann::json StatusJson() {
-    CommandResult r = RunCommand({"stagectl", "--endpoints", Endpoints(), "status", "--json"}, std::chrono::seconds(20));
+    CommandResult r =
+        RunCommand({"stagectl", "--endpoints", Endpoints(), "status", "--json"}, std::chrono::seconds(20));
     EXPECT_FALSE(r.timed_out);
     return nlohmann::json::parse(r.out);
   }
@@ -97,7 +98,14 @@ class SimulatedStageTest : public ::testing::Test {
     return p.ok() ? std::move(*p) : nullptr;
   }
 
-  std::string SessionState() { return StatusJson()["session_state"]; }
+  // The session's state in words ("capturing"), from `stagectl status --json` (which carries the enum's name).
+  std::string SessionState() {
+    std::string name = StatusJson()["session_state"];
+    const std::string prefix = "SESSION_STATE_";
+    if (name.rfind(prefix, 0) == 0) name = name.substr(prefix.size());
+    for (char& c : name) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    return name;
+  }
 
   // Polls the session state (every 200 ms) until it is `want`; false when `timeout` passed first.
   bool WaitForSession(const std::string& want, std::chrono::seconds timeout) {
@@ -111,6 +119,8 @@ class SimulatedStageTest : public ::testing::Test {
 
   // How long Stagectl(args) waits for stagectl. Suites whose commands are all quick lower it.
   std::chrono::seconds stagectl_timeout_{300};
+  // How long StartStage waits for the stage to come up. Suites on a loaded machine raise it.
+  std::chrono::seconds startup_deadline_{90};
   TempDir run_dir_;
   std::unique_ptr<Subprocess> sim_;
   v1::SimEndpoints endpoints_;

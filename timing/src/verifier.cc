@@ -5,6 +5,8 @@
 #include <cmath>
 #include <complex>
 #include <map>
+#include <set>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/ascii.h"
@@ -12,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/timing/led_load.h"
 #include "stage/timing/schedule.h"
@@ -61,18 +64,32 @@ std::string LinkLabel(v1::LinkKind link) {
   }
 }
 
+// One way to fix a violation: in words, and as the rig overrides that make it. It is offered only if the verifier, run
+// again on the rig with those overrides, no longer finds the violation and finds no error it did not find before.
+struct Remedy {
+  std::string words;
+  std::vector<std::string> overrides;
+};
+
 class Report {
  public:
   explicit Report(v1::TimingReport* report) : report_(report) {}
   void Add(v1::Severity severity, absl::string_view check, const std::string& device, int64_t slot, std::string message,
            std::string fix) {
+    Add(severity, check, device, slot, std::move(message), {}, std::move(fix));
+  }
+  // `remedies` are tried (VerifySchedule) before they go into the fix, ahead of `other_fix` (advice that is no single
+  // setting, in words).
+  void Add(v1::Severity severity, absl::string_view check, const std::string& device, int64_t slot, std::string message,
+           std::vector<Remedy> remedies, std::string other_fix) {
+    if (!remedies.empty()) pending_.push_back({report_->violations_size(), std::move(remedies), other_fix});
     v1::Violation* v = report_->add_violations();
     v->set_severity(severity);
     v->set_check(std::string(check));
     v->set_device(device);
     v->set_slot(slot);
     v->set_message(std::move(message));
-    v->set_fix(std::move(fix));
+    v->set_fix(std::move(other_fix));  // remedies join it once tried
     if (severity == v1::SEVERITY_ERROR) {
       report_->set_errors(report_->errors() + 1);
     } else {
@@ -85,6 +102,13 @@ class Report {
   void Warning(absl::string_view check, const std::string& device, int64_t slot, std::string message, std::string fix) {
     Add(v1::SEVERITY_WARNING, check, device, slot, std::move(message), std::move(fix));
   }
+  // A violation's remedies, waiting to be tried.
+  struct Pending {
+    int violation;
+    std::vector<Remedy> remedies;
+    std::string other_fix;
+  };
+  const std::vector<Pending>& pending() const { return pending_; }
   void Load(absl::string_view kind, const std::string& device, double used, double budget, absl::string_view unit) {
     v1::LoadFigure* f = report_->add_loads();
     f->set_kind(std::string(kind));
@@ -97,6 +121,7 @@ class Report {
 
  private:
   v1::TimingReport* report_;
+  std::vector<Pending> pending_;
 };
 
 // Context shared by the checks.
@@ -117,6 +142,20 @@ struct Ctx {
   }
   std::string SlotLabel(int64_t slot) const { return absl::StrCat("slot ", slot, " (", PatternOf(slot), ")"); }
 };
+
+// ---- the rig as a whole: can a take run at all --------------------------------------------------------------------
+
+void CheckRig(Ctx& ctx) {
+  if (ctx.rig.cameras_size() == 0) {
+    ctx.out.Error(kCheckRig, "cameras", -1, "the rig has no camera: a take would record nothing",
+                  "add the stage's cameras under `cameras` (docs/configuration.md#cameras)");
+  }
+  if (ctx.rig.light_nodes_size() == 0) {
+    ctx.out.Error(kCheckRig, "light_nodes", -1,
+                  "the rig has no light node: no pattern would be shown and nothing would light the subject",
+                  "add the stage's LED controllers under `light_nodes` (docs/configuration.md#light_nodes)");
+  }
+}
 
 // ---- light nodes: is there a steady window at all ----------------------------------------------------------------
 
@@ -188,23 +227,39 @@ void CheckFrameRate(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTi
                                     config.frame_rate_hz()),
                     "use trigger.source hardware-line or scheduled-software for pattern-locked frames");
   } else if (std::abs(config.frame_rate_hz() - rate) > 1e-6 * rate) {
-    ctx.out.Warning(
-        kCheckFrameRate, c.id(), slot,
+    const auto divider =
+        static_cast<uint32_t>(std::max(1.0, std::round(ctx.base.slot_rate_hz() / config.frame_rate_hz())));
+    ctx.out.Add(
+        v1::SEVERITY_WARNING, kCheckFrameRate, c.id(), slot,
         absl::StrFormat("frame_rate_hz is %g but the schedule triggers it every %d slot(s) = %.6g Hz; the camera's "
                         "acquisition frame rate setting will not match its triggers",
                         config.frame_rate_hz(), c.divider(), rate),
-        absl::StrFormat("set cameras[%s].frame_rate_hz: %.6g, or trigger.divider to %.0f", c.id(), rate,
-                        std::max(1.0, std::round(ctx.base.slot_rate_hz() / config.frame_rate_hz()))));
+        {{absl::StrFormat("set cameras[%s].frame_rate_hz: %.6g", c.id(), rate),
+          {absl::StrFormat("cameras[%s].frame_rate_hz=%.17g", c.id(), rate)}},
+         {absl::StrFormat("set cameras[%s].trigger.divider: %u", c.id(), divider),
+          {absl::StrFormat("cameras[%s].trigger.divider=%u", c.id(), divider)}}},
+        "");
   }
   if (config.max_frame_rate_hz() > 0 && rate > config.max_frame_rate_hz() * (1 + 1e-9)) {
-    const double min_divider = std::ceil(ctx.base.slot_rate_hz() / config.max_frame_rate_hz() - 1e-9);
-    ctx.out.Error(
-        kCheckFrameRate, c.id(), slot,
+    const auto min_divider =
+        static_cast<uint32_t>(std::ceil(ctx.base.slot_rate_hz() / config.max_frame_rate_hz() - 1e-9));
+    // The smallest divider that is fast enough and keeps the camera on its pattern (a divisor or multiple of the
+    // cycle), with its frame rate to match.
+    const auto cycle = static_cast<uint32_t>(CycleLength(ctx.schedule));
+    uint32_t divider = min_divider;
+    while (cycle > 0 && divider % cycle != 0 && cycle % divider != 0) ++divider;
+    const double new_rate = ctx.base.slot_rate_hz() / divider;
+    ctx.out.Add(
+        v1::SEVERITY_ERROR, kCheckFrameRate, c.id(), slot,
         absl::StrFormat("triggered at %.6g Hz, but at %ux%u %s it reaches at most %g fps "
                         "(max_frame_rate_hz)",
                         rate, config.width(), config.height(), PixelFormatYaml(config.pixel_format()),
                         config.max_frame_rate_hz()),
-        absl::StrFormat("set cameras[%s].trigger.divider >= %.0f, or reduce the ROI (height)", c.id(), min_divider));
+        {{absl::StrFormat("set cameras[%s].trigger.divider: %u (and frame_rate_hz: %.6g)", c.id(), divider, new_rate),
+          {absl::StrFormat("cameras[%s].trigger.divider=%u", c.id(), divider),
+           absl::StrFormat("cameras[%s].trigger.slot_phase=%u", c.id(), c.slot_phase() % divider),
+           absl::StrFormat("cameras[%s].frame_rate_hz=%.17g", c.id(), new_rate)}}},
+        "reduce the ROI (height)");
   }
   if (c.readout_declared() && c.readout_ticks() > c.period_ticks()) {
     ctx.out.Error(kCheckFrameRate, c.id(), slot,
@@ -212,6 +267,28 @@ void CheckFrameRate(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTi
                                ctx.Us(c.period_ticks()), " us: readouts queue up and frames are lost"),
                   absl::StrCat("raise cameras[", c.id(), "].trigger.divider, or reduce the ROI to shorten readout"));
   }
+}
+
+void CheckPatternLock(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTiming& c) {
+  if (c.source() == v1::TRIGGER_SOURCE_FREE_RUN) return;  // not locked to slots: the frame-rate check warns
+  const auto cycle = static_cast<uint32_t>(CycleLength(ctx.schedule));
+  const uint32_t d = std::max<uint32_t>(1, c.divider());
+  if (cycle == 0 || d % cycle == 0 || cycle % d == 0) return;
+  // The pattern under its trigger moves from one cycle to the next: frames of the same camera are lit differently.
+  const int64_t first = NextFiringSlot(c, 0);
+  std::vector<std::string> seen;
+  for (int k = 0; k < 3; ++k) seen.push_back(ctx.SlotLabel(first + k * static_cast<int64_t>(d)));
+  std::vector<uint32_t> near;  // the dividers next to it that keep it on its pattern
+  for (uint32_t m = std::max<uint32_t>(1, d - 1); m > 0 && near.empty(); --m) {
+    if (m % cycle == 0 || cycle % m == 0) near.push_back(m);
+  }
+  near.push_back((d / cycle + 1) * cycle);
+  ctx.out.Error(kCheckPatternLock, c.id(), first,
+                absl::StrFormat("triggered every %u slots against a cycle of %u patterns, it fires on a different "
+                                "pattern each time (%s, ...): its frames are lit by different patterns",
+                                d, cycle, absl::StrJoin(seen, ", ")),
+                absl::StrFormat("set cameras[%s].trigger.divider to a divisor or a multiple of %u (e.g. %s)",
+                                config.id(), cycle, absl::StrJoin(near, " or ")));
 }
 
 void CheckTriggerOverlap(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTiming& c) {
@@ -537,6 +614,53 @@ void CheckFlicker(Ctx& ctx) {
   }
 }
 
+// Every check once; the violations' remedies are left in `out` untried.
+void RunChecks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::Schedule& schedule, Report& out) {
+  Ctx ctx{rig, patterns, schedule, TimeBase::FromProto(schedule.time_base()), out};
+  CheckRig(ctx);
+  CheckSlotTiming(ctx);
+  for (int i = 0; i < rig.cameras_size() && i < schedule.cameras_size(); ++i) {
+    const v1::CameraConfig& config = rig.cameras(i);
+    const v1::CameraTiming& c = schedule.cameras(i);
+    CheckSteadyLight(ctx, config, c);
+    CheckFrameRate(ctx, config, c);
+    CheckPatternLock(ctx, config, c);
+    CheckTriggerOverlap(ctx, config, c);
+    CheckTriggerLead(ctx, c);
+    CheckLink(ctx, config, c);
+    CheckCameraRam(ctx, config, c);
+  }
+  CheckDisks(ctx);
+  CheckLeds(ctx);
+  CheckFlicker(ctx);
+}
+
+// Whether `remedy` fixes violation `v` of `report` (the rig's): the rig with its overrides is valid, compiles, and
+// the verifier no longer finds that violation, nor any error it did not find before.
+bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::TimingReport& report,
+                 const v1::Violation& v, const Remedy& remedy) {
+  v1::RigConfig changed = rig;
+  for (const std::string& o : remedy.overrides) {
+    if (!ApplyRigOverride(&changed, o).ok()) return false;
+  }
+  ApplyRigDefaults(&changed);
+  if (!ValidateRig(changed, "").empty()) return false;
+  auto schedule = CompileSchedule(changed, patterns);
+  if (!schedule.ok()) return false;
+  v1::TimingReport after;
+  Report out(&after);
+  RunChecks(changed, patterns, *schedule, out);
+  std::set<std::pair<std::string, std::string>> errors_before;
+  for (const v1::Violation& b : report.violations()) {
+    if (b.severity() == v1::SEVERITY_ERROR) errors_before.insert({b.check(), b.device()});
+  }
+  for (const v1::Violation& a : after.violations()) {
+    if (a.check() == v.check() && a.device() == v.device()) return false;
+    if (a.severity() == v1::SEVERITY_ERROR && !errors_before.count({a.check(), a.device()})) return false;
+  }
+  return true;
+}
+
 }  // namespace
 
 double LinkBudgetBytesPerSecond(v1::LinkKind link) {
@@ -577,21 +701,19 @@ v1::TimingReport VerifySchedule(const v1::RigConfig& rig, const PatternSet& patt
   v1::TimingReport report;
   *report.mutable_schedule() = schedule;
   Report out(&report);
-  Ctx ctx{rig, patterns, schedule, TimeBase::FromProto(schedule.time_base()), out};
-  CheckSlotTiming(ctx);
-  for (int i = 0; i < rig.cameras_size() && i < schedule.cameras_size(); ++i) {
-    const v1::CameraConfig& config = rig.cameras(i);
-    const v1::CameraTiming& c = schedule.cameras(i);
-    CheckSteadyLight(ctx, config, c);
-    CheckFrameRate(ctx, config, c);
-    CheckTriggerOverlap(ctx, config, c);
-    CheckTriggerLead(ctx, c);
-    CheckLink(ctx, config, c);
-    CheckCameraRam(ctx, config, c);
+  RunChecks(rig, patterns, schedule, out);
+  // Every concrete setting a fix proposes is checked before it is offered: one that would not fix the violation (it
+  // is already so), or that would break something else, is left out.
+  for (const Report::Pending& p : out.pending()) {
+    v1::Violation* v = report.mutable_violations(p.violation);
+    std::vector<std::string> offered;
+    for (const Remedy& r : p.remedies) {
+      if (RemedyWorks(rig, patterns, report, *v, r)) offered.push_back(r.words);
+    }
+    if (!p.other_fix.empty()) offered.push_back(p.other_fix);
+    v->set_fix(offered.empty() ? "no single setting found that fixes it without breaking another check"
+                               : absl::StrJoin(offered, ", or "));
   }
-  CheckDisks(ctx);
-  CheckLeds(ctx);
-  CheckFlicker(ctx);
   return report;
 }
 

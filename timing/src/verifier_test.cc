@@ -7,8 +7,11 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <map>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
@@ -194,7 +197,8 @@ TEST(VerifierTest, TriggeredFasterThanTheCameraCan) {
   EXPECT_EQ(v[0].slot(), 0);
   EXPECT_THAT(v[0].message(),
               AllOf(HasSubstr("triggered at 912 Hz"), HasSubstr("4096x2304"), HasSubstr("at most 800 fps")));
-  EXPECT_THAT(v[0].fix(), HasSubstr("trigger.divider >= 2"));
+  // The divider proposed keeps the camera on its patterns (2 divides the 38-pattern cycle), with its frame rate.
+  EXPECT_EQ(v[0].fix(), "set cameras[hs-2].trigger.divider: 2 (and frame_rate_hz: 456), or reduce the ROI (height)");
 }
 
 TEST(VerifierTest, ReadoutLongerThanThePeriod) {
@@ -369,6 +373,97 @@ TEST(VerifierTest, ScheduledSoftwareTriggersWithTooLittleLead) {
   EXPECT_EQ(v[0].severity(), v1::SEVERITY_WARNING);
   EXPECT_THAT(v[0].message(), HasSubstr("sent 1 slot(s) = 1.096 ms ahead"));
   EXPECT_THAT(v[0].fix(), HasSubstr("trigger_lead_slots to >= 2"));
+}
+
+}  // namespace
+}  // namespace stage::timing
+
+namespace stage::timing {
+namespace {
+
+// The shipped rig at `slot_rate_hz` (its frame rates as written: 24 and 912), with exposures and high-speed cameras
+// that fit the shorter slot.
+v1::TimingReport VerifyAtSlotRate(double slot_rate_hz) {
+  return Verify([&](v1::RigConfig* rig) {
+    rig->mutable_timing()->set_slot_rate_hz(slot_rate_hz);
+    for (v1::CameraConfig& c : *rig->mutable_cameras()) {
+      c.set_exposure_us(600);
+      if (c.role() == v1::CAMERA_ROLE_HIGH_SPEED) {
+        c.set_readout_us(500);
+        c.set_max_frame_rate_hz(2000);
+      }
+    }
+  });
+}
+
+TEST(VerifierTest, AHintIsOfferedOnlyOnceTheVerifierHasCheckedIt) {
+  // At 1140 slots/s the cameras' written frame rates (24, 912) no longer match their triggers (30 Hz, 1140 Hz). A
+  // machine-vision divider of round(1140 / 24) = 48 would move its trigger off the full-lit pattern, and a high-speed
+  // divider of round(1140 / 912) = 1 is what it has: neither is offered.
+  const v1::TimingReport report = VerifyAtSlotRate(1140);
+  std::map<std::string, std::string> fixes;
+  for (const v1::Violation& v : Of(report, kCheckFrameRate)) fixes[v.device()] = v.fix();
+  ASSERT_EQ(fixes.size(), 27u) << Dump(report);
+  EXPECT_EQ(fixes["mv-01"], "set cameras[mv-01].frame_rate_hz: 30");
+  EXPECT_EQ(fixes["hs-1"], "set cameras[hs-1].frame_rate_hz: 1140");
+  EXPECT_EQ(report.errors(), 0) << Dump(report);
+}
+
+TEST(VerifierTest, ADividerOffTheCycleMovesTheCameraAcrossPatterns) {
+  const v1::TimingReport report = Verify([](v1::RigConfig* rig) {
+    Camera(rig, "mv-03")->mutable_trigger()->set_divider(48);
+    Camera(rig, "mv-03")->set_frame_rate_hz(19);
+  });
+  auto v = Of(report, kCheckPatternLock);
+  ASSERT_EQ(v.size(), 1u) << Dump(report);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_EQ(v[0].device(), "mv-03");
+  EXPECT_EQ(v[0].slot(), 19);
+  EXPECT_THAT(v[0].message(), AllOf(HasSubstr("every 48 slots against a cycle of 38 patterns"),
+                                    HasSubstr("slot 19 (parallel-full), slot 67 (")));
+  EXPECT_THAT(v[0].fix(), HasSubstr("divisor or a multiple of 38 (e.g. 38 or 76)"));
+  // The shipped dividers (1 and 38) keep every camera on its patterns.
+  EXPECT_TRUE(Of(Verify(), kCheckPatternLock).empty());
+}
+
+TEST(VerifierTest, FrameRatesThatAreNotWrittenFollowTheSlotRateAlsoUnderAWhatIf) {
+  // The shipped rig without its frame rates: they default to the slot rate over each camera's divider, and a what-if
+  // slot rate moves them with it, so no frame-rate warning comes of it.
+  std::string text(BuiltinRigText());
+  std::string stripped;
+  for (absl::string_view line : absl::StrSplit(text, '\n')) {
+    if (!absl::StrContains(line, " frame_rate_hz:")) absl::StrAppend(&stripped, line, "\n");
+  }
+  auto rig = LoadRigFromText(stripped, "fastage-without-frame-rates.yaml", ".");
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  EXPECT_DOUBLE_EQ(rig->rig.cameras(0).frame_rate_hz(), 24);
+  auto faster = ApplyRigOverrides(*rig, {"timing.slot_rate_hz=1140", "cameras[*].exposure_us=600",
+                                         "cameras[hs-*].readout_us=500", "cameras[hs-*].max_frame_rate_hz=2000"});
+  ASSERT_TRUE(faster.ok()) << faster.status();
+  for (const v1::CameraConfig& c : faster->rig.cameras()) {
+    EXPECT_DOUBLE_EQ(c.frame_rate_hz(), c.role() == v1::CAMERA_ROLE_HIGH_SPEED ? 1140 : 30) << c.id();
+  }
+  auto report = CheckRigTiming(faster->rig, ".");
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_TRUE(Of(*report, kCheckFrameRate).empty()) << Dump(*report);
+}
+
+TEST(VerifierTest, ARigWithoutCamerasOrLightNodesCannotRecordAndSaysWhy) {
+  const v1::TimingReport no_cameras = Verify([](v1::RigConfig* rig) { rig->clear_cameras(); });
+  auto v = Of(no_cameras, kCheckRig);
+  ASSERT_EQ(v.size(), 1u) << Dump(no_cameras);
+  EXPECT_EQ(v[0].severity(), v1::SEVERITY_ERROR);
+  EXPECT_EQ(v[0].device(), "cameras");
+  EXPECT_THAT(v[0].message(), HasSubstr("the rig has no camera: a take would record nothing"));
+  const v1::TimingReport no_lights = Verify([](v1::RigConfig* rig) {
+    rig->clear_light_nodes();
+    rig->mutable_timing()->clear_sync_generator();
+  });
+  v = Of(no_lights, kCheckRig);
+  ASSERT_EQ(v.size(), 1u) << Dump(no_lights);
+  EXPECT_EQ(v[0].device(), "light_nodes");
+  EXPECT_THAT(v[0].message(), HasSubstr("the rig has no light node: no pattern would be shown"));
+  EXPECT_TRUE(Of(Verify(), kCheckRig).empty());
 }
 
 }  // namespace

@@ -1,5 +1,5 @@
-// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice (camera-node/src/aravis_camera_device.h).
-// No backend library appears in this header.
+// A camera as the camera node sees it. Implementations: SimCameraDevice (sim/), AravisCameraDevice
+// (camera-node/src/aravis_camera_device.h). No backend library appears in this header.
 #pragma once
 
 #include <cstdint>
@@ -64,6 +64,18 @@ struct DeviceStats {
   uint64_t reconnects = 0;   // times it was regained and its settings restored
   bool link_up = true;
   std::string link_detail;  // why the link is down, or the last outage ("lost 12:00:01.2, back after 2.3 s")
+};
+
+// Frames a device owes: triggered (or exposed) and not delivered yet. A take waits for a camera that owes frames for as
+// long as `work_done` moves, however slow the machine (docs/operators.md#when-a-take-ends).
+struct DeviceBacklog {
+  // Triggers accepted whose frames are neither delivered nor known lost.
+  int64_t frames_owed = 0;
+  // Grows while the device works on them (a simulated camera's rendering, a real one's readout); unchanged while it
+  // waits for something else.
+  uint64_t work_done = 0;
+  // What it is doing, in words ("precomputing the subject's pose of frame 0: 45 %"); empty when idle.
+  std::string activity;
 };
 
 // One delivered image. Frames are shared read-only between recorder and preview (no copies). The pixels are either
@@ -132,6 +144,10 @@ class CameraDevice {
 
   // Transport statistics (GetStats, `stagectl status --cameras`).
   virtual DeviceStats Stats() const { return {}; }
+
+  // The frames it owes now (GetStats; the take's end). A device that delivers each frame within its readout time may
+  // keep the default: it owes nothing the take should wait for beyond the drain.
+  virtual DeviceBacklog Backlog() const { return {}; }
 };
 
 }  // namespace stage::camera

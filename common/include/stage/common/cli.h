@@ -55,6 +55,9 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
 // frame A. InvalidArgument names the flag.
 absl::Status ParseFrameRange(absl::string_view flag, absl::string_view text, int64_t* first, int64_t* last);
 
+// "1 camera node", "3 camera nodes": a count and a noun (regular English plural) for messages.
+std::string Plural(int64_t n, absl::string_view noun);
+
 // A progress bar on stderr for long work: redrawn in place on a terminal, a line every few seconds otherwise (logs,
 // pipes); messages print on their own line.
 class ProgressLine {

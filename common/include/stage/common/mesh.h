@@ -18,12 +18,18 @@ struct TriangleMesh {
   std::vector<Eigen::Vector2f> uvs;               // per vertex
   std::vector<std::array<int32_t, 3>> triangles;  // counter-clockwise seen from outside
   std::vector<uint8_t> parts;                     // per triangle (0 skin, 1 eye); empty: all 0
+  // From an OBJ: per triangle the index of its material (`usemtl`) in `material_names`, -1 before any; and the
+  // material libraries it names (`mtllib`, as written). Empty where the mesh has no materials.
+  std::vector<int32_t> materials;
+  std::vector<std::string> material_names;
+  std::vector<std::string> material_libraries;
 
   // Area-weighted vertex normals (unit).
   std::vector<Eigen::Vector3f> VertexNormals() const;
 };
 
-// Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed). Errors name the file and line.
+// Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed; usemtl and mtllib recorded).
+// Errors name the file and line.
 absl::StatusOr<TriangleMesh> ReadObj(const std::string& path);
 // Writes positions, texture coordinates and triangles as an OBJ (`comment` on its first line).
 absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment = "");

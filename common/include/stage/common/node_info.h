@@ -7,8 +7,9 @@
 
 namespace stage {
 
-// Fills id, kind, role, backend and rig hash as given, and version, pid, hostname and uptime from this process.
-v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, const std::string& role, const std::string& backend,
+// Fills id, kind, a camera's role, backend and rig hash as given, and version, pid, hostname and uptime from this
+// process.
+v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, v1::CameraRole role, const std::string& backend,
                           const std::string& rig_hash);
 
 // "camera", "light", "processing-worker", "controller".

@@ -2,6 +2,7 @@
 // errors name the file, the line and the field path ("fastage.yaml:42:7: cameras[3].exposure_us: 0 is not > 0").
 #pragma once
 
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -27,6 +28,10 @@ struct LoadedRig {
   // Directory that relative paths in the rig are resolved against.
   std::string base_dir;
   SourceMap source_map;
+  // The rig as its file wrote it, before the defaults (unset where the rig did not come from LoadRig): overrides apply
+  // to it, and the defaults that follow other fields follow them (a slot rate set with --set moves the frame rates
+  // that default to it).
+  std::optional<v1::RigConfig> as_written;
 };
 
 // Loads, fills defaults and validates. `path` is a YAML (or JSON) file, or kBuiltinRigName. On a validation failure
@@ -90,6 +95,9 @@ absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const Loa
 // Where stage-sim keeps its run directory (endpoint file, logs) unless told otherwise:
 // $XDG_RUNTIME_DIR/fastage/stage-sim, or /tmp/fastage-<uid>/stage-sim.
 std::string DefaultSimRunDir();
+// Where this user's processes share what they derive from files (a head asset's decoded maps):
+// $FASTAGE_CACHE_DIR, else $XDG_RUNTIME_DIR/fastage/cache, else /tmp/fastage-<uid>/cache.
+std::string DefaultCacheDir();
 
 // Pattern sets known without a file.
 bool IsBuiltinPatternSet(absl::string_view name);

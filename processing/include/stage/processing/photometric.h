@@ -112,6 +112,11 @@ struct PhotometricOptions {
   // A fitted lobe counts as measured when its normal's standard deviation is below this (degrees) and its intensity's
   // below half the intensity; else the pixel is flagged kNoSpecular (the lobe points off the dome, or is too faint).
   double max_specular_sigma_deg = 15;
+  // Above this the albedo a pixel solves to is no surface's: the model is wrong there (a deep cavity, light
+  // reflected between surfaces, an occlusion the geometry misses). Such a pixel is flagged kImplausible, its albedo is
+  // left out (0), its confidence is 0, and it lends no colour to its neighbours. Default 1.5 (skin reflects below
+  // 0.8; the margin is for noise).
+  double max_albedo = 1.5;
   // Radius (pixels) of the adaptive filter on the specular normals' departure from the diffuse ones, and on
   // roughness; 0: raw fits.
   int specular_filter_radius = 2;
@@ -121,28 +126,29 @@ struct PhotometricOptions {
 
 // Flags, per pixel.
 enum PhotometricFlag : uint8_t {
-  kSaturated = 1,         // some pattern image clipped
-  kLowSignal = 2,         // too dark to solve (below min_signal_dn or min_signal_sigma)
-  kBadFit = 4,            // the patterns disagree with a Lambertian surface (mislabeled or blended patterns, occlusion)
-  kShadowed = 8,          // the geometry hides more than half of the full-on light from the point
-  kNoSpecular = 16,       // no lobe measured: too faint, or reflecting off the dome
-  kSpecularBadFit = 32,   // the specular images disagree with a GGX lobe
+  kSaturated = 1,        // some pattern image clipped
+  kLowSignal = 2,        // too dark to solve (below min_signal_dn or min_signal_sigma)
+  kBadFit = 4,           // the patterns disagree with a Lambertian surface (mislabeled or blended patterns, occlusion)
+  kShadowed = 8,         // the geometry hides more than half of the full-on light from the point
+  kNoSpecular = 16,      // no lobe measured: too faint, or reflecting off the dome
+  kSpecularBadFit = 32,  // the specular images disagree with a GGX lobe
+  kImplausible = 64,     // the albedo solved to more than max_albedo: left out of the albedo map, confidence 0
 };
 
 struct PhotometricMaps {
   int width = 0, height = 0;
-  Image diffuse_normal_world;     // 3 channels, unit vectors, stage frame; 0 where not solved
-  Image diffuse_normal_camera;    // the same in the camera frame
-  Image albedo;                   // 3 channels, linear RGB (the images' channel order)
-  Image specular_normal_world;    // 3 channels: the regularized specular normal, stage frame; 0 where not solved
-  Image specular_normal_camera;   // the same in the camera frame
-  Image specular_normal_raw;      // 3 channels, stage frame: each pixel's own fit, before regularization
-  Image specular;                 // 1 channel: specular intensity (GGX rho_s)
-  Image roughness;                // 1 channel: GGX alpha (regularized)
-  Image specular_sigma;           // 1 channel: the specular fit's standard deviation of the normal, degrees
-  Image confidence;               // 1 channel, 0..1
-  Image fit_residual;             // 1 channel: the diffuse fit's reduced chi-square (about 1 for a good fit)
-  std::vector<uint8_t> flags;     // PhotometricFlag bits
+  Image diffuse_normal_world;    // 3 channels, unit vectors, stage frame; 0 where not solved
+  Image diffuse_normal_camera;   // the same in the camera frame
+  Image albedo;                  // 3 channels, linear RGB (the images' channel order)
+  Image specular_normal_world;   // 3 channels: the regularized specular normal, stage frame; 0 where not solved
+  Image specular_normal_camera;  // the same in the camera frame
+  Image specular_normal_raw;     // 3 channels, stage frame: each pixel's own fit, before regularization
+  Image specular;                // 1 channel: specular intensity (GGX rho_s)
+  Image roughness;               // 1 channel: GGX alpha (regularized)
+  Image specular_sigma;          // 1 channel: the specular fit's standard deviation of the normal, degrees
+  Image confidence;              // 1 channel, 0..1
+  Image fit_residual;            // 1 channel: the diffuse fit's reduced chi-square (about 1 for a good fit)
+  std::vector<uint8_t> flags;    // PhotometricFlag bits
   // The solvers' working memory (per pixel: the specular fit's noise, and the regularization's inputs), kept so that
   // the next solve of the same size reuses it.
   std::vector<float> work;

@@ -99,12 +99,20 @@ class HeadModel final : public RiggedModel {
 
   // The images of a loaded head (RGB(A) floats, row 0 at v = 1), or none.
   struct Maps;
+  // Where a loaded head's decoded images are: the shared cache file every process of the stage maps (its path), or
+  // "decoded" (this process's own copy); empty for the procedural head.
+  const std::string& maps_origin() const { return maps_origin_; }
+  // What a loaded mesh lacks or has that the simulator does not render, in words: its holes (where the cameras see
+  // through it), transparent materials left out. Empty for a closed, opaque mesh.
+  const std::vector<std::string>& notes() const { return notes_; }
 
  private:
   HeadModel() = default;
   float Height(const Eigen::Vector2f& uv, const std::array<float, kExpressionCount>& expr) const;
   uint64_t seed_ = 1;
   std::shared_ptr<const Maps> maps_;  // a loaded head's images
+  std::string maps_origin_;
+  std::vector<std::string> notes_;
 };
 
 }  // namespace stage::sim

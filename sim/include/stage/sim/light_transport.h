@@ -11,6 +11,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <atomic>
 #include <cstdint>
 #include <vector>
 
@@ -38,14 +39,22 @@ struct PixelResponses {
   RowMatrixXf specular;
 };
 
+// How far a long computation has got, for a reader on another thread: units of work done (rays traced, pixels lit) of
+// about `total` (refined as the work learns its size).
+struct WorkProgress {
+  std::atomic<uint64_t> done{0};
+  std::atomic<uint64_t> total{0};
+};
+
 // What every pixel's ray meets (row-major; hit == false where it misses the subject); rays through (x + dx, y + dy).
+// Each ray traced adds one to `progress->done` where given.
 std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0, double dx = 0,
-                             double dy = 0);
+                             double dy = 0, WorkProgress* progress = nullptr);
 
 // Camera direction -> pixel responses, on `threads` threads (0: one per core), with `supersample` x `supersample`
 // rays a pixel (1: through its centre).
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0,
-                                int supersample = 1);
+                                int supersample = 1, WorkProgress* progress = nullptr);
 
 // Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
 struct EmitterLevels {
@@ -58,6 +67,5 @@ std::vector<float> RenderRadiance(const PixelResponses& responses, const Emitter
 
 // Leakage of crossed polarizers for a camera: leakage + growth * sin^2 of its optical axis' angle from +z.
 float CrossLeakage(const CameraModel& camera, double leakage, double growth);
-
 
 }  // namespace stage::sim

@@ -3,15 +3,16 @@
 // cameras and stage-sim's world each build the same scene from the same rig, so they agree without talking.
 #pragma once
 
+#include <atomic>
 #include <memory>
 #include <mutex>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_model.h"
 #include "stage/common/rig.h"
 #include "stage/sim/board.h"
-#include "stage/common/camera_model.h"
 #include "stage/sim/dome.h"
 #include "stage/sim/head.h"
 #include "stage/sim/light_transport.h"
@@ -33,6 +34,8 @@ class SimScene {
                                                                 const std::string& base_dir = "");
   // Loads the rig's pattern set (relative to the rig file) and creates the scene.
   static absl::StatusOr<std::shared_ptr<const SimScene>> FromLoadedRig(const LoadedRig& loaded);
+  // What the subject's files lack or have that the simulator does not render (HeadModel::notes); empty otherwise.
+  std::vector<std::string> notes() const { return head_ != nullptr ? head_->notes() : std::vector<std::string>(); }
 
   const v1::RigConfig& rig() const { return rig_; }
   const v1::Schedule& schedule() const { return schedule_; }
@@ -109,6 +112,14 @@ class CameraRenderer {
   // camera's frame counter) selects the noise.
   RawImage Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame = 0);
 
+  // How far the renderer has got, from any thread: a counter of its work (rays traced, pixels lit, frames rendered)
+  // and, while it precomputes a pose, what it does in words ("precomputing the subject's pose of frame 3: 45 %").
+  struct Progress {
+    uint64_t work = 0;
+    std::string activity;
+  };
+  Progress progress() const;
+
  private:
   std::shared_ptr<const SimScene> scene_;
   int index_;
@@ -117,6 +128,10 @@ class CameraRenderer {
   int64_t responses_frame_ = -1;                     // guarded by mutex_
   std::shared_ptr<const PixelResponses> responses_;  // guarded by mutex_
   uint64_t stream_;
+  // Progress of the pose being precomputed (-1: none), and the work of everything finished before it.
+  std::atomic<int64_t> computing_frame_{-1};
+  WorkProgress compute_;
+  std::atomic<uint64_t> work_before_{0};
 };
 
 // Sensor bits and mosaic of a PFNC pixel format ("BayerRG8" -> 8, "RG"; "Mono12" -> 12, "mono"); InvalidArgument for

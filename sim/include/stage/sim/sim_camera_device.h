@@ -81,6 +81,8 @@ class SimCameraDevice final : public camera::CameraDevice {
   absl::Status Start(camera::FrameSink* sink) override;
   absl::Status Stop() override;
   absl::Status Trigger() override;
+  // In the world: the exposures triggered and not yet rendered, the renderer's work and what it does now.
+  camera::DeviceBacklog Backlog() const override;
 
   // The settings in force (what a real camera would read back).
   camera::CameraSettings settings() const;
@@ -123,6 +125,8 @@ class SimCameraDevice final : public camera::CameraDevice {
   std::condition_variable jobs_changed_;
   std::deque<Job> jobs_;       // guarded by mutex_
   SimCameraWorldStats stats_;  // guarded by mutex_
+  // The render thread waits for the light of the front job's exposure (the world's light nodes report it).
+  bool waiting_for_light_ = false;  // guarded by mutex_
 };
 
 }  // namespace stage::sim

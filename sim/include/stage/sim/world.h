@@ -116,6 +116,7 @@ class World {
   // (FailedPrecondition if it no longer fits: it overlaps the last run, or real time has passed its first slot).
   absl::StatusOr<WorldRun> PlanRun(int64_t count, int64_t lead_slots = 0, int64_t align = 1,
                                    int64_t min_first = 0) const;
+  // Starting the run that was started last is a no-op (idempotent: a retried request).
   absl::Status StartRun(const WorldRun& run);
   // Ends the last run early (a take paused or aborted): at the first slot after the edge the world stands at (or
   // last passed) that is a multiple of `align` after the run's first, if that is sooner than its end. Returns the run
@@ -124,6 +125,8 @@ class World {
 
   // The edge the world stands at (lockstep) or last passed (real time).
   int64_t current_slot() const;
+  // The last run as it now is (an EndRun shortens it); nullopt before the first.
+  std::optional<WorldRun> LastRun() const;
   const timing::TimeBase& base() const { return base_; }
   int64_t EdgeNs(int64_t slot) const { return options_.t0_ns + base_.SlotStartNs(slot); }
 
@@ -153,9 +156,9 @@ class World {
   std::unique_ptr<timing::SlotClock> clock_;
   mutable std::mutex mutex_;
   std::condition_variable changed_;
-  std::vector<Device> devices_;             // guarded by mutex_
-  std::map<int, int64_t> watermarks_;       // light node -> ns; guarded by mutex_
-  int64_t current_ = -1;                    // guarded by mutex_
+  std::vector<Device> devices_;        // guarded by mutex_
+  std::map<int, int64_t> watermarks_;  // light node -> ns; guarded by mutex_
+  int64_t current_ = -1;               // guarded by mutex_
   // Real time, between runs: the bus has been silent from the last run's end (quiet_from_ns_, the edge time of its
   // end slot) through quiet_through_ns_ (the last silent edge). A light node that has answered the run's last edge
   // (its watermark reaches quiet_from_ns_) changes no level until the next run, which starts ahead of now: its light

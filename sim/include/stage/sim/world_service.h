@@ -27,6 +27,7 @@ class WorldService final : public v1::SimWorld::Service {
   grpc::Status InjectFault(grpc::ServerContext*, const v1::SimFault* request, v1::WorldAck*) override;
   grpc::Status Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) override;
   grpc::Status EndRun(grpc::ServerContext*, const v1::EndRunRequest* request, v1::WorldRunReply* reply) override;
+  grpc::Status GetRun(grpc::ServerContext*, const v1::GetRunRequest* request, v1::WorldRunReply* reply) override;
   grpc::Status WriteGroundTruth(grpc::ServerContext*, const v1::GroundTruthRequest* request,
                                 v1::GroundTruthReply* reply) override;
   // Who writes ground truth (the process that holds the scene); without it WriteGroundTruth is UNIMPLEMENTED.
@@ -38,6 +39,8 @@ class WorldService final : public v1::SimWorld::Service {
   void Shutdown();
 
  private:
+  void FillRunReply(const WorldRun& run, v1::WorldRunReply* reply) const;
+
   World* world_;
   v1::WorldInfo info_;
   std::function<absl::Status(const v1::SimFault&)> check_fault_;

@@ -13,6 +13,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "stage/v1/take.pb.h"
 
 struct sqlite3;
 
@@ -21,8 +22,8 @@ namespace stage::storage {
 struct TakeRow {
   std::string id;    // e.g. "fastage-20261123-0001"
   std::string name;  // the operator's name for it, or empty
-  // configuring, armed, capturing, paused, finalizing, complete, degraded, failed, aborted.
-  std::string state;
+  // The column holds TakeStateText: "configuring", then "complete", "degraded", "failed" or "aborted".
+  v1::TakeState state = v1::TAKE_STATE_CONFIGURING;
   int64_t created_unix_ns = 0;
   int64_t t0_unix_ns = 0;  // slot 0, controller time; 0 before arming
   int64_t slots = 0;       // slots requested
@@ -30,26 +31,37 @@ struct TakeRow {
   int64_t size_bytes = 0;  // on disk, once finalized
   int64_t frames_expected = 0;
   int64_t frames_stored = 0;
-  // COMPLETE, DEGRADED or FAILED once finalized; empty before.
-  std::string outcome;
+  // Once finalized; the column holds TakeOutcomeText: "COMPLETE", "DEGRADED" or "FAILED" ("" before).
+  v1::TakeOutcome outcome = v1::TAKE_OUTCOME_UNSPECIFIED;
   std::string rig_hash;
   std::string schedule_hash;
   std::string dir;  // relative to the take root
 };
 
-// Why an expected frame is not stored.
+// The take.proto enums in the catalog's text columns: "complete" (state), "COMPLETE" (outcome; "" unspecified), and
+// back; InvalidArgument for text no enum value has.
+std::string TakeStateText(v1::TakeState state);
+std::string TakeOutcomeText(v1::TakeOutcome outcome);
+absl::StatusOr<v1::TakeState> TakeStateFromText(const std::string& text);
+absl::StatusOr<v1::TakeOutcome> TakeOutcomeFromText(const std::string& text);
+
+// Why an expected frame is not stored: v1::LossReason (take.proto, the one definition, whose numbers the ledger
+// stores), as a scoped enum for this code.
 enum class LossReason {
-  kNone = 0,       // stored
-  kCameraDropped,  // the camera exposed it and did not deliver it
-  kTriggerMissed,  // the camera never exposed: the trigger did not reach it, or it was busy
-  kNodeDown,       // the camera node was down
-  kLate,           // delivered too late to be matched to its slot
-  kWriteFailed,    // delivered, and the recorder could not write it (disk full, I/O)
-  kIncomplete,     // delivered with data missing (packets lost on the link): kept in the file, marked, and lost
-  kPaused,         // the take was paused over this slot (a recorded gap)
-  kLinkDown,       // the camera was off its link (control lost, being reconnected)
+  kNone = v1::LOSS_REASON_STORED,
+  kCameraDropped = v1::LOSS_REASON_CAMERA_DROPPED,
+  kTriggerMissed = v1::LOSS_REASON_TRIGGER_MISSED,
+  kNodeDown = v1::LOSS_REASON_NODE_DOWN,
+  kLate = v1::LOSS_REASON_LATE,
+  kWriteFailed = v1::LOSS_REASON_WRITE_FAILED,
+  kIncomplete = v1::LOSS_REASON_INCOMPLETE,
+  kPaused = v1::LOSS_REASON_PAUSED,
+  kLinkDown = v1::LOSS_REASON_LINK_DOWN,
+  kNotDelivered = v1::LOSS_REASON_NOT_DELIVERED,
 };
-const char* LossReasonName(LossReason reason);  // "stored", "camera dropped", "trigger missed", ...
+inline v1::LossReason ToProto(LossReason r) { return static_cast<v1::LossReason>(r); }
+inline LossReason FromProto(v1::LossReason r) { return static_cast<LossReason>(r); }
+std::string LossReasonName(LossReason reason);  // in words: "stored", "camera dropped", "trigger missed", ...
 
 struct LedgerEntry {
   std::string camera_id;
@@ -95,6 +107,14 @@ class Catalog {
   absl::Status RecordLedger(const std::string& take_id, const std::vector<LedgerEntry>& entries);
   // The take's ledger, by camera then slot; `camera_id` non-empty: that camera's only.
   absl::StatusOr<std::vector<LedgerEntry>> Ledger(const std::string& take_id, const std::string& camera_id = "") const;
+  // One page of it: `limit` entries from `offset` (in the same order), those of `camera_id` (empty: every camera),
+  // lost ones only if `lost_only` (neither stored nor paused); and how many match in all.
+  struct LedgerPage {
+    std::vector<LedgerEntry> entries;
+    int64_t total = 0;
+  };
+  absl::StatusOr<LedgerPage> ReadLedgerPage(const std::string& take_id, const std::string& camera_id, bool lost_only,
+                                            int64_t offset, int64_t limit) const;
   absl::StatusOr<LedgerSummary> Summarize(const std::string& take_id) const;
 
  private:

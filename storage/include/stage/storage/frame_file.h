@@ -63,6 +63,7 @@ class FrameFileWriter {
   absl::Status Append(const FrameRecord& record, absl::Span<const uint8_t> pixels);
   // Frames appended so far.
   int64_t frames() const { return frames_; }
+  // Closes the file and gives back the space reserved beyond its end (ReleaseReservedSpace).
   absl::Status Close();
 
  private:
@@ -78,6 +79,12 @@ class FrameFileWriter {
   uint64_t reserved_end_ = 0;  // the file is reserved up to here
   bool reserve_unsupported_ = false;
 };
+
+// Gives the file system back the space reserved beyond the end of frame file `path` (the writer reserves ahead of the
+// frames it appends, without changing the file's size): what the file holds on disk is then its size, as `du` and
+// the catalog count it. For a file whose writer closed it, and for one left by a writer that died (the controller
+// recovers it). Errors name the path.
+absl::Status ReleaseReservedSpace(const std::string& path);
 
 class FrameFileReader {
  public:

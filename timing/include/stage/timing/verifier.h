@@ -14,9 +14,11 @@
 namespace stage::timing {
 
 // Names of the checks, as they appear in Violation.check.
+inline constexpr absl::string_view kCheckRig = "rig";
 inline constexpr absl::string_view kCheckSlotTiming = "slot-timing";
 inline constexpr absl::string_view kCheckSteadyLight = "steady-light";
 inline constexpr absl::string_view kCheckFrameRate = "frame-rate";
+inline constexpr absl::string_view kCheckPatternLock = "pattern-lock";
 inline constexpr absl::string_view kCheckTriggerOverlap = "trigger-overlap";
 inline constexpr absl::string_view kCheckTriggerLead = "trigger-lead";
 inline constexpr absl::string_view kCheckLinkBandwidth = "link-bandwidth";
@@ -34,7 +36,8 @@ double LinkBudgetBytesPerSecond(v1::LinkKind link);
 double GigeWireBytesPerFrame(double frame_bytes, uint32_t packet_size);
 
 // Runs every check. `rig` has had its defaults applied and passed validation; `schedule` was compiled from it and
-// `patterns`. The report carries the schedule.
+// `patterns`. The report carries the schedule. A fix that proposes a setting (a divider, a frame rate) is offered only
+// after the checks, run again with that setting, find the violation gone and no new error.
 v1::TimingReport VerifySchedule(const v1::RigConfig& rig, const PatternSet& patterns, const v1::Schedule& schedule);
 
 // Loads the rig's pattern set (relative to `base_dir`), compiles and verifies.
