@@ -204,3 +204,26 @@ TEST(CliTest, TheMessageWithoutAStageSaysItsAdviceOnce) {
 
 }  // namespace
 }  // namespace stage::testing
+
+namespace stage::testing {
+namespace {
+
+// stage-sim-render on a rig without hs-2: it renders the rig's first high-speed camera, not a camera it lacks.
+TEST(CliTest, StageSimRenderTakesTheRigsFirstHighSpeedCamera) {
+  TempDir dir;
+  std::string text = ReadFile(std::string(FASTAGE_SOURCE_DIR) + "/common/rigs/fastage.yaml");
+  for (const std::string from : {"id: hs-1", "id: hs-2", "id: hs-3"}) {
+    const size_t at = text.find(from);
+    ASSERT_NE(at, std::string::npos) << from;
+    text.replace(at, from.size(), "id: fast-" + from.substr(from.size() - 1));
+  }
+  const std::string rig = dir.Write("no-hs-2.yaml", text);
+  CommandResult r = RunCommand({"stage-sim-render", "--config", rig, "--set", "sim.render_scale=0.01", "--out",
+                                dir.path() + "/sheet.png", "--json"},
+                               std::chrono::seconds(120));
+  ASSERT_EQ(r.exit.exit_code, 0) << r.err;
+  EXPECT_THAT(r.out, HasSubstr("\"camera\": \"fast-1\""));
+}
+
+}  // namespace
+}  // namespace stage::testing

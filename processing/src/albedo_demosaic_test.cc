@@ -153,7 +153,7 @@ namespace {
 
 // A pixel that solves to an albedo no surface has (a deep cavity: ~800 in a nostril) is flagged implausible and left
 // out, and lends no colour to its neighbours: the colours they do not measure stay their own hue's.
-TEST(AlbedoDemosaicTest, AnImplausibleAlbedoIsLeftOutAndLendsNoHue) {
+TEST(DemosaicAlbedoTest, AnImplausibleAlbedoIsLeftOutAndLendsNoHue) {
   Field f = MakeField(24, 24, 100);  // one hue everywhere
   f.maps.confidence = Image(24, 24, 1);
   std::fill(f.maps.confidence.pixels.begin(), f.maps.confidence.pixels.end(), 0.9f);
@@ -176,7 +176,7 @@ TEST(AlbedoDemosaicTest, AnImplausibleAlbedoIsLeftOutAndLendsNoHue) {
   }
 }
 
-TEST(AlbedoDemosaicTest, AnImplausibleRgbAlbedoIsLeftOut) {
+TEST(DemosaicAlbedoTest, AnImplausibleRgbAlbedoIsLeftOut) {
   PhotometricMaps m;
   m.width = 3;
   m.height = 1;
