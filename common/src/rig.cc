@@ -832,8 +832,12 @@ absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const Loa
 
 std::string DefaultCacheDir() {
   if (const char* dir = std::getenv("FASTAGE_CACHE_DIR"); dir != nullptr && *dir != '\0') return dir;
-  if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && *xdg != '\0') {
-    return absl::StrCat(xdg, "/fastage/cache");
+  // On disk, not in a tmpfs such as $XDG_RUNTIME_DIR: a cache file would hold memory there besides the page cache.
+  if (const char* xdg = std::getenv("XDG_CACHE_HOME"); xdg != nullptr && *xdg != '\0') {
+    return absl::StrCat(xdg, "/fastage");
+  }
+  if (const char* home = std::getenv("HOME"); home != nullptr && *home != '\0') {
+    return absl::StrCat(home, "/.cache/fastage");
   }
   return absl::StrCat("/tmp/fastage-", getuid(), "/cache");
 }

@@ -115,6 +115,17 @@ absl::Status LightNode::CheckLoad(const PatternTable& table, int64_t take_slots)
 }
 
 absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
+  // One arming at a time; asked again for the take it is armed for (a controller that did not hear the answer), the
+  // answer is the same and the table is not loaded twice.
+  std::lock_guard<std::mutex> arming(arm_mutex_);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (watching_ && !request.take_id().empty() && take_id_ == request.take_id() &&
+        driver_->State().mode == DriverMode::kArmed) {
+      heartbeat_.Beat(std::chrono::steady_clock::now());
+      return absl::OkStatus();
+    }
+  }
   const v1::PatternTable& table = request.table();
   PatternTable t;
   t.pattern_set = table.pattern_set();

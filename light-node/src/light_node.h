@@ -60,6 +60,7 @@ class LightNode {
   std::string rig_hash_;
   LightNodeOptions options_;
 
+  std::mutex arm_mutex_;  // Arm one at a time
   mutable std::mutex mutex_;
   std::condition_variable wake_;
   bool stopping_ = false;        // guarded by mutex_

@@ -232,6 +232,21 @@ TEST(HeartbeatWatchTest, TimeTheNodeDidNotRunCountsAgainstNobody) {
   EXPECT_EQ(t, t0 + milliseconds(10900));
 }
 
+TEST(HeartbeatWatchTest, OnlyOneAbsenceIsForgivenBetweenHeartbeats) {
+  // A node starved again and again while the controller is gone: the second absence counts, and the lights go dark
+  // within the timeout plus one absence.
+  HeartbeatWatch w(milliseconds(1000));
+  const auto t0 = HeartbeatWatch::Clock::time_point() + std::chrono::hours(1);
+  w.Beat(t0);
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(5000)));  // away 5 s: forgiven
+  EXPECT_TRUE(w.Expired(t0 + milliseconds(10000)));  // away 5 s again, no heartbeat between: not
+  // A heartbeat between two absences forgives the next one again.
+  w.Beat(t0 + milliseconds(20000));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(25000)));
+  w.Beat(t0 + milliseconds(25050));
+  EXPECT_FALSE(w.Expired(t0 + milliseconds(30000)));
+}
+
 TEST(HeartbeatWatchTest, ALateLookWithinAFewTicksIsNotAnAbsence) {
   // A loaded machine wakes the watchdog late; that is not the node being away, and it does not postpone the verdict.
   HeartbeatWatch w(milliseconds(1000));

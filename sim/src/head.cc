@@ -19,6 +19,7 @@
 #include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <set>
 #include <tuple>
 
@@ -326,7 +327,8 @@ absl::StatusOr<std::vector<Image>> MapCache(const std::string& path) {
     if (e.offset == 0) continue;
     const size_t floats =
         static_cast<size_t>(e.width) * static_cast<size_t>(e.height) * static_cast<size_t>(e.channels);
-    if (e.width <= 0 || e.height <= 0 || e.channels <= 0 || e.offset % 64 != 0 || e.offset + floats * 4 > bytes) {
+    if (e.width <= 0 || e.height <= 0 || e.channels <= 0 || e.offset % 64 != 0 || e.offset > bytes ||
+        floats > (bytes - e.offset) / 4) {
       return absl::DataLossError(absl::StrCat(path, ": image ", i, " runs past the end of the file"));
     }
     images[i].width = e.width;
@@ -401,9 +403,15 @@ absl::StatusOr<std::vector<Image>> LoadMaps(const HeadAssetFiles& files, std::st
     *origin = *path;
     return mapped;
   }
-  // One process decodes; the others wait for it and map what it wrote.
-  const int lock = open((*path + ".lock").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
-  if (lock >= 0) flock(lock, LOCK_EX);
+  // One process decodes; the others wait for it and map what it wrote. The lock goes with its descriptor, on every
+  // way out.
+  struct Lock {
+    int fd;
+    ~Lock() {
+      if (fd >= 0) close(fd);
+    }
+  } lock{open((*path + ".lock").c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644)};
+  if (lock.fd >= 0) flock(lock.fd, LOCK_EX);
   absl::StatusOr<std::vector<Image>> result = MapCache(*path);
   if (!result.ok()) {
     STAGE_ASSIGN_OR_RETURN(std::vector<Image> decoded, decode());
@@ -418,7 +426,6 @@ absl::StatusOr<std::vector<Image>> LoadMaps(const HeadAssetFiles& files, std::st
   } else {
     *origin = *path;
   }
-  if (lock >= 0) close(lock);  // releases the lock
   return result;
 }
 
@@ -451,10 +458,16 @@ absl::Status CheckUvTile(const std::string& obj, const TriangleMesh& m) {
       obj, lo.x(), hi.x(), lo.y(), hi.y(), absl::StrJoin(names, ", ")));
 }
 
-// The materials of `m`'s libraries (relative to the OBJ) that are transparent (d < 1, Tr > 0 without d, or an alpha
-// map), with why.
+// The materials of `m`'s libraries (relative to the OBJ) that are transparent, with why: a dissolve `d` below 1;
+// without a `d`, a `Tr` strictly between 0 and 1 (exporters disagree on Tr's sense: some write Tr 1 for opaque, so 0
+// and 1 are taken as opaque); or an alpha map `map_d` other than the diffuse texture (an exporter may point it at the
+// opaque diffuse image).
 std::map<std::string, std::string> TransparentMaterials(const std::string& obj, const TriangleMesh& m,
                                                         std::vector<std::string>* notes) {
+  struct Material {
+    std::optional<float> d, tr;
+    std::string map_d, map_kd;
+  };
   std::map<std::string, std::string> out;
   for (const std::string& library : m.material_libraries) {
     const std::filesystem::path path = std::filesystem::path(obj).parent_path() / library;
@@ -464,28 +477,31 @@ std::map<std::string, std::string> TransparentMaterials(const std::string& obj, 
                                     " cannot be read: every material is taken as opaque"));
       continue;
     }
+    std::map<std::string, Material> materials;
     std::string line, current;
-    std::map<std::string, std::pair<std::string, std::string>> seen;  // name -> (d or Tr reason, map_d reason)
     while (std::getline(in, line)) {
       std::vector<std::string> f = absl::StrSplit(line, absl::ByAnyChar(" \t\r"), absl::SkipEmpty());
-      if (f.empty()) continue;
+      if (f.size() < 2) continue;
       float value = 1;
-      if (f[0] == "newmtl" && f.size() > 1) {
+      if (f[0] == "newmtl") {
         current = f[1];
-      } else if (f[0] == "d" && f.size() > 1 && absl::SimpleAtof(f[1], &value) && value < 0.999f) {
-        seen[current].first = absl::StrFormat("d %g", value);
-      } else if (f[0] == "Tr" && f.size() > 1 && absl::SimpleAtof(f[1], &value) && value > 0.001f &&
-                 seen[current].first.empty()) {
-        seen[current].first = absl::StrFormat("Tr %g", value);
-      } else if (f[0] == "map_d" && f.size() > 1) {
-        seen[current].second = absl::StrCat("map_d ", f.back());
+        materials[current];
+      } else if (f[0] == "d" && absl::SimpleAtof(f[1], &value)) {
+        materials[current].d = value;
+      } else if (f[0] == "Tr" && absl::SimpleAtof(f[1], &value)) {
+        materials[current].tr = value;
+      } else if (f[0] == "map_d") {
+        materials[current].map_d = f.back();
+      } else if (f[0] == "map_Kd") {
+        materials[current].map_kd = f.back();
       }
     }
-    for (const auto& [name, why] : seen) {
-      if (!why.first.empty() || !why.second.empty()) {
-        out[name] = absl::StrJoin(std::vector<std::string>{why.first, why.second},
-                                  why.first.empty() || why.second.empty() ? "" : ", ");
-      }
+    for (const auto& [name, mat] : materials) {
+      std::vector<std::string> why;
+      if (mat.d && *mat.d < 0.999f) why.push_back(absl::StrFormat("d %g", *mat.d));
+      if (!mat.d && mat.tr && *mat.tr > 0.001f && *mat.tr < 0.999f) why.push_back(absl::StrFormat("Tr %g", *mat.tr));
+      if (!mat.map_d.empty() && mat.map_d != mat.map_kd) why.push_back(absl::StrCat("map_d ", mat.map_d));
+      if (!why.empty()) out[name] = absl::StrJoin(why, ", ");
     }
   }
   return out;
@@ -497,36 +513,46 @@ void LeaveOutTransparent(const std::string& obj, TriangleMesh* m, std::vector<st
   if (m->materials.empty()) return;
   const std::map<std::string, std::string> transparent = TransparentMaterials(obj, *m, notes);
   if (transparent.empty()) return;
-  std::vector<std::string> named;
-  std::vector<int64_t> dropped(m->material_names.size(), 0);
-  size_t kept = 0;
-  for (size_t t = 0; t < m->triangles.size(); ++t) {
+  auto left_out = [&](size_t t) {
     const int32_t mat = m->materials[t];
-    if (mat >= 0 && transparent.count(m->material_names[static_cast<size_t>(mat)])) {
-      ++dropped[static_cast<size_t>(mat)];
-      continue;
-    }
-    m->triangles[kept] = m->triangles[t];
-    m->materials[kept] = mat;
-    if (!m->parts.empty()) m->parts[kept] = m->parts[t];
-    ++kept;
-  }
+    return mat >= 0 && transparent.count(m->material_names[static_cast<size_t>(mat)]) > 0;
+  };
+  std::vector<int64_t> dropped(m->material_names.size(), 0);
   int64_t total = 0;
+  for (size_t t = 0; t < m->triangles.size(); ++t) {
+    if (!left_out(t)) continue;
+    ++dropped[static_cast<size_t>(m->materials[t])];
+    ++total;
+  }
+  if (total == 0) return;
+  std::vector<std::string> named;
   for (size_t i = 0; i < dropped.size(); ++i) {
     if (dropped[i] == 0) continue;
-    total += dropped[i];
     named.push_back(absl::StrCat(m->material_names[i], " (", transparent.at(m->material_names[i]), ", ", dropped[i],
                                  " triangles)"));
+  }
+  if (2 * total > static_cast<int64_t>(m->triangles.size())) {
+    // Most of the mesh would go: the library more likely means something else than a scan of mostly eye shells.
+    notes->push_back(absl::StrCat(obj, ": materials that look transparent hold ", total, " of ", m->triangles.size(),
+                                  " triangles, most of the mesh: kept and rendered opaque (check its material "
+                                  "library): ",
+                                  absl::StrJoin(named, "; ")));
+    return;
+  }
+  size_t kept = 0;
+  for (size_t t = 0; t < m->triangles.size(); ++t) {
+    if (left_out(t)) continue;
+    m->triangles[kept] = m->triangles[t];
+    m->materials[kept] = m->materials[t];
+    if (!m->parts.empty()) m->parts[kept] = m->parts[t];
+    ++kept;
   }
   m->triangles.resize(kept);
   m->materials.resize(kept);
   if (!m->parts.empty()) m->parts.resize(kept);
-  if (total > 0) {
-    notes->push_back(absl::StrCat(obj, ": left out ", total,
-                                  " triangles of transparent materials, as the simulator renders opaque surfaces "
-                                  "only: ",
-                                  absl::StrJoin(named, "; ")));
-  }
+  notes->push_back(absl::StrCat(obj, ": left out ", total,
+                                " triangles of transparent materials, as the simulator renders opaque surfaces only: ",
+                                absl::StrJoin(named, "; ")));
 }
 
 // Says where `m` is open: its holes (loops of edges that only one triangle has, vertices welded by position), largest
@@ -622,7 +648,6 @@ absl::StatusOr<std::shared_ptr<const HeadModel>> HeadModel::FromAsset(const Head
         absl::StrCat(files.neutral_obj, ": has no texture coordinates (vt), which the skin maps need"));
   }
   for (auto& p : m.positions) p *= files.units_mm;
-  STAGE_RETURN_IF_ERROR(CheckUvTile(files.neutral_obj, m));
   head->pivot_ = files.pivot_mm;
   for (const auto& [name, path] : files.blendshapes) {
     const int e = ExpressionIndex(name);
@@ -645,6 +670,7 @@ absl::StatusOr<std::shared_ptr<const HeadModel>> HeadModel::FromAsset(const Head
   }
   // What of the mesh the simulator renders, said now rather than seen later as black or opaque patches.
   LeaveOutTransparent(files.neutral_obj, &m, &head->notes_);
+  STAGE_RETURN_IF_ERROR(CheckUvTile(files.neutral_obj, m));  // of what is rendered: a lash card's tile does not count
   DescribeHoles(files.neutral_obj, m, &head->notes_);
   auto maps = std::make_shared<Maps>();
   maps->specular_value = files.specular_value;

@@ -290,6 +290,21 @@ TEST(HeadAssetTest, TransparentMaterialsAreLeftOutAndHolesAreNamed) {
   // Leaving them out opened the mesh where they were: said too.
   ASSERT_EQ((*head)->notes().size(), 2u);
   EXPECT_THAT((*head)->notes()[1], AllOf(HasSubstr("the mesh is open: "), HasSubstr("edges around (")));
+
+  // Exporters' other spellings of opaque: Tr 1 (Metashape, MeshLab), an alpha map that is the diffuse texture itself.
+  Write(dir + "/head.mtl",
+        "newmtl Skin\nTr 1.000000\nnewmtl EyeShell\nTr 1.0\nnewmtl Lashes\nmap_Kd skin.png\nmap_d skin.png\n");
+  auto opaque = HeadModel::FromAsset(files);
+  ASSERT_TRUE(opaque.ok()) << opaque.status();
+  EXPECT_EQ((*opaque)->neutral().triangles.size(), all);
+  EXPECT_TRUE((*opaque)->notes().empty()) << (*opaque)->notes()[0];
+  // A library that would leave out most of the mesh is not believed: kept, and said.
+  Write(dir + "/head.mtl", "newmtl Skin\nd 0.5\nnewmtl EyeShell\nd 0.1\nnewmtl Lashes\nd 1\n");
+  auto most = HeadModel::FromAsset(files);
+  ASSERT_TRUE(most.ok()) << most.status();
+  EXPECT_EQ((*most)->neutral().triangles.size(), all);
+  ASSERT_EQ((*most)->notes().size(), 1u);
+  EXPECT_THAT((*most)->notes()[0], HasSubstr("most of the mesh: kept and rendered opaque"));
 }
 
 }  // namespace

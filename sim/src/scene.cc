@@ -265,8 +265,7 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
         ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_,
                          static_cast<int>(scene_->rig().sim().supersample()), &compute_));
     responses_frame_ = pose_frame;
-    work_before_.fetch_add(compute_.done.load());
-    compute_.done.store(0);
+    work_before_.fetch_add(compute_.done.exchange(0));  // counted once, whenever a reader looks
     computing_frame_.store(-1);
   }
   return responses_;

@@ -11,6 +11,7 @@
 #include <functional>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <thread>
 
 #include "absl/strings/numbers.h"
@@ -174,6 +175,7 @@ struct Capturer::Take {
     bool armed = false;
     std::string error;
     Clock::time_point next_preview;
+    std::optional<Clock::time_point> refused_since;  // its node has refused every poll since
   };
   std::string id, dir;
   storage::TakeRow row;
@@ -195,6 +197,11 @@ struct Capturer::Take {
   Clock::time_point paused_since;
   bool aborted = false;
   bool ground_truth = true;
+  // A pause, resume or abort is changing the take's plan (set with its new slots, cleared once the session's state
+  // says so): the watch holds the take meanwhile. And the watch has ended: the take is finishing; a pause or abort
+  // comes too late.
+  bool plan_changing = false;
+  bool watch_ended = false;
   Clock::time_point armed_at = Clock::now();
   // Why the take was given up before every frame came, if it was (nothing moved for the stall limit).
   std::string stalled;
@@ -554,8 +561,15 @@ void Capturer::WatchTake(Take& take) {
       Deadline(&context, 1000);
       v1::CameraStats stats;
       const grpc::Status polled = c.stub->GetStats(&context, v1::GetStatsRequest(), &stats);
-      // Gone (its process is not there): it delivers nothing more. Slow to answer: as it last said.
-      seen.down = polled.error_code() == grpc::StatusCode::UNAVAILABLE;
+      // Gone: refused for the drain (a reconnect refuses for a moment too), or answering without the take (it was
+      // restarted): it delivers nothing more. Slow to answer: as it last said.
+      if (polled.error_code() == grpc::StatusCode::UNAVAILABLE) {
+        if (!c.refused_since) c.refused_since = now;
+        seen.down = now - *c.refused_since >= std::chrono::milliseconds(options_.drain_ms);
+      } else {
+        c.refused_since.reset();
+      }
+      if (polled.ok() && stats.take_id() != take.id) seen.down = true;
       if (!polled.ok() || stats.take_id() != take.id) continue;
       seen.answered = true;
       seen.received = stats.take_frames_received();
@@ -593,21 +607,25 @@ void Capturer::WatchTake(Take& take) {
     {
       // Decided under the lock, so that a pause either comes before this (and holds the take) or finds it finishing.
       std::lock_guard<std::mutex> lock(mutex_);
+      // A pause, a resume or an abort on its way (its plan set, its state not yet) holds the take as a pause does.
       const bool changed = take.slots != slots || take.paused != gaps || state_ != state;
-      if (changed || state_ == v1::SESSION_STATE_PAUSED) {
+      if (changed || take.plan_changing || state_ == v1::SESSION_STATE_PAUSED) {
         watch.Restart(Clock::now());
       } else if (verdict == TakeVerdict::kComplete) {
+        take.watch_ended = true;
         break;
       } else if (verdict == TakeVerdict::kDrained) {
         Logger("controller")
             ->warn("take {}: the slot clock has ended and no camera owes a frame, {} short", take.id,
                    progress.frames_expected() - progress.frames_received());
+        take.watch_ended = true;
         break;
       } else if (verdict == TakeVerdict::kStalled) {
         take.stalled =
             absl::StrCat("nothing moved for ", rig_.rig.controller().take_stall_s(), " s",
                          watch.waiting_for().empty() ? "" : absl::StrCat(" while waiting for ", watch.waiting_for()));
         Logger("controller")->warn("take {}: stalled: {}", take.id, take.stalled);
+        take.watch_ended = true;
         break;
       }
     }
@@ -649,10 +667,14 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     const int64_t at = run_end - take->first_bus;
+    if (take->watch_ended) {
+      return absl::FailedPreconditionError(absl::StrCat("pause: take ", take->id, " has ended; it is finishing"));
+    }
     if (at >= take->run_end) {
       return absl::FailedPreconditionError(
           absl::StrCat("pause: take ", take->id, " is in its last frame; it ends at slot ", take->run_end));
     }
+    take->plan_changing = true;  // until the session says paused
     take->done_slots += at - take->run_first;
     take->run_end = at;
     take->slots = at;
@@ -663,6 +685,10 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
   }
   UpdateCameras(*take, /*with_t0=*/false);
   SetState(v1::SESSION_STATE_PAUSED);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    take->plan_changing = false;
+  }
   reply.set_state(v1::SESSION_STATE_PAUSED);
   Logger("controller")->info("{}", reply.message());
   return reply;
@@ -695,8 +721,11 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
   auto run = RunWorld(*take->world, plan, StallDeadline());
   if (!run.ok()) return Annotate(run.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
   const int64_t from = run->first_slot() - take->first_bus;
+  int64_t run_first_before;
   {
     std::lock_guard<std::mutex> lock(mutex_);
+    take->plan_changing = true;  // until the session says capturing (or the resume fails)
+    run_first_before = take->run_first;
     take->paused.emplace_back(pause_at, from);
     take->slots = from + remaining;
     take->run_first = from;
@@ -712,9 +741,15 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
     take->paused.pop_back();
     take->slots = pause_at;
     take->run_end = pause_at;
+    take->run_first = run_first_before;
+    take->plan_changing = false;
     return Annotate(started.status(), absl::StrCat("resume: take ", take->id, ": the sync generator"));
   }
   SetState(v1::SESSION_STATE_CAPTURING);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    take->plan_changing = false;
+  }
   v1::SessionReply reply;
   reply.set_state(v1::SESSION_STATE_CAPTURING);
   reply.set_take_id(take->id);
@@ -755,6 +790,21 @@ absl::StatusOr<v1::SessionReply> Capturer::Abort() {
     reply.set_message(absl::StrCat("take ", id, " aborted before it started"));
     return reply;
   }
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (take->watch_ended) {
+      return absl::FailedPreconditionError(absl::StrCat("abort: take ", take->id, " has ended; it is finishing"));
+    }
+    take->plan_changing = true;  // until the session says aborting
+  }
+  struct Settled {  // the plan is settled on every way out
+    Capturer* c;
+    Take* t;
+    ~Settled() {
+      std::lock_guard<std::mutex> lock(c->mutex_);
+      t->plan_changing = false;
+    }
+  } settled{this, take};
   if (was == v1::SESSION_STATE_CAPTURING) {
     STAGE_ASSIGN_OR_RETURN(const int64_t run_end,
                            EndWorldRun(*take->world, 1, absl::StrCat("abort: take ", take->id, " cannot be stopped")));

@@ -15,6 +15,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "event_writer.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -264,20 +265,6 @@ grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::Tim
   return grpc::Status::OK;
 }
 
-namespace {
-// Streams a session's events to one client, from whichever thread sends them; the session goes on if the client (the
-// operator's console) goes away.
-struct EventStream {
-  grpc::ServerContext* context;
-  grpc::ServerWriter<v1::CaptureEvent>* writer;
-  std::mutex mutex;
-  void operator()(const v1::CaptureEvent& e) {
-    std::lock_guard<std::mutex> lock(mutex);
-    if (!context->IsCancelled()) writer->Write(e);
-  }
-};
-}  // namespace
-
 absl::Status ControllerService::EnableCapture(CaptureOptions options) {
   // The session's state is part of the stage's status: its changes wake the status watchers too.
   options.on_state_change = [monitor = monitor_] { monitor->NotifyChange(); };
@@ -289,8 +276,9 @@ absl::Status ControllerService::EnableCapture(CaptureOptions options) {
 grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::CaptureRequest* request,
                                         grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
-  EventStream stream{context, writer};
-  auto summary = capturer_->Capture(*request, std::ref(stream));
+  EventWriter events(context, writer);
+  auto summary = capturer_->Capture(*request, [&events](const v1::CaptureEvent& e) { events.Push(e); });
+  events.Finish();
   if (!summary.ok()) return ToGrpcStatus(summary.status());
   return grpc::Status::OK;
 }
@@ -298,19 +286,33 @@ grpc::Status ControllerService::Capture(grpc::ServerContext* context, const v1::
 grpc::Status ControllerService::WatchTake(grpc::ServerContext* context, const v1::WatchTakeRequest* request,
                                           grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
-  // The take's events come on its threads: they queue here and this call's thread writes them, so that a slow
-  // follower never holds the take up.
+  // The take's events come on its threads; EventWriter writes them on its own, so that a slow follower never holds the
+  // take up. Following ends with the take's summary, or the session's idle or error state (a take that ended without
+  // one), or an event of another take.
+  EventWriter events(context, writer);
   std::mutex mutex;
   std::condition_variable wake;
-  std::deque<v1::CaptureEvent> queue;  // guarded by mutex
+  bool ended = false;                   // guarded by mutex
+  std::string following;                // guarded by mutex; empty until Follow has answered
+  bool live = false;                    // guarded by mutex: where the take stood is queued; events go straight on
+  std::vector<v1::CaptureEvent> early;  // guarded by mutex: events that came before that
   auto followed = capturer_->Follow(request->take_id(), [&](const v1::CaptureEvent& e) {
-    {
-      std::lock_guard<std::mutex> lock(mutex);
-      queue.push_back(e);
+    std::lock_guard<std::mutex> lock(mutex);
+    if (!following.empty() && e.take_id() != following) {
+      ended = true;
+    } else {
+      if (live) {
+        events.Push(e);
+      } else {
+        early.push_back(e);
+      }
+      ended = ended || e.has_summary() ||
+              (e.has_state() && (e.state() == v1::SESSION_STATE_IDLE || e.state() == v1::SESSION_STATE_ERROR));
     }
-    wake.notify_one();
+    if (ended) wake.notify_all();
   });
   if (!followed.ok()) {
+    events.Finish();
     if (request->take_id().empty()) return ToGrpcStatus(followed.status());
     // A take that has ended: its summary is all there is to follow.
     auto take = capturer_->GetTake(request->take_id());
@@ -321,28 +323,20 @@ grpc::Status ControllerService::WatchTake(grpc::ServerContext* context, const v1
     writer->Write(e);
     return grpc::Status::OK;
   }
-  struct Unfollow {
-    Capturer* c;
-    int id;
-    ~Unfollow() { c->Unfollow(id); }
-  } unfollow{capturer_.get(), followed->id};
-  // Where the take stands, then what comes.
-  for (const auto* e : {&followed->state, &followed->progress, &followed->summary}) {
-    if (e->has_value() && !writer->Write(**e)) return grpc::Status::OK;
-  }
-  bool ended = followed->summary.has_value();
-  while (!ended && !context->IsCancelled()) {
+  {
+    // Where the take stands (as it was when the subscription began), then what came since, then what comes.
     std::unique_lock<std::mutex> lock(mutex);
-    wake.wait_for(lock, std::chrono::milliseconds(200), [&] { return !queue.empty(); });
-    while (!queue.empty()) {
-      v1::CaptureEvent e = std::move(queue.front());
-      queue.pop_front();
-      lock.unlock();
-      ended = ended || e.has_summary();
-      if (!writer->Write(e)) return grpc::Status::OK;  // the follower went away
-      lock.lock();
+    following = followed->take_id;
+    for (const auto* e : {&followed->state, &followed->progress, &followed->summary}) {
+      if (e->has_value()) events.Push(**e);
     }
+    for (const v1::CaptureEvent& e : early) events.Push(e);
+    live = true;
+    ended = ended || followed->summary.has_value();
+    while (!ended && !context->IsCancelled()) wake.wait_for(lock, std::chrono::milliseconds(200));
   }
+  capturer_->Unfollow(followed->id);
+  events.Finish();
   return grpc::Status::OK;
 }
 
@@ -358,12 +352,16 @@ grpc::Status ControllerService::GetLedger(grpc::ServerContext*, const v1::GetLed
 grpc::Status ControllerService::Arm(grpc::ServerContext* context, const v1::CaptureRequest* request,
                                     grpc::ServerWriter<v1::CaptureEvent>* writer) {
   if (!capturer_) return ToGrpcStatus(absl::FailedPreconditionError("this controller records no takes"));
-  EventStream stream{context, writer};
-  auto summary = capturer_->Arm(*request, std::ref(stream));
+  EventWriter events(context, writer);
+  auto summary = capturer_->Arm(*request, [&events](const v1::CaptureEvent& e) { events.Push(e); });
+  if (summary.ok()) {
+    v1::CaptureEvent last;
+    last.set_take_id(summary->take_id());
+    *last.mutable_summary() = *summary;
+    events.Push(last);
+  }
+  events.Finish();
   if (!summary.ok()) return ToGrpcStatus(summary.status());
-  v1::CaptureEvent last;
-  *last.mutable_summary() = *summary;
-  stream(last);
   return grpc::Status::OK;
 }
 

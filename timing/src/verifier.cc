@@ -79,10 +79,12 @@ class Report {
     Add(severity, check, device, slot, std::move(message), {}, std::move(fix));
   }
   // `remedies` are tried (VerifySchedule) before they go into the fix, ahead of `other_fix` (advice that is no single
-  // setting, in words).
+  // setting, in words). `kind` tells this violation from others of the same check and device (a frame-rate warning
+  // from a frame-rate error): a remedy fixes it when no violation of the same kind remains.
   void Add(v1::Severity severity, absl::string_view check, const std::string& device, int64_t slot, std::string message,
-           std::vector<Remedy> remedies, std::string other_fix) {
+           std::vector<Remedy> remedies, std::string other_fix, std::string kind = "") {
     if (!remedies.empty()) pending_.push_back({report_->violations_size(), std::move(remedies), other_fix});
+    kinds_.push_back(std::move(kind));
     v1::Violation* v = report_->add_violations();
     v->set_severity(severity);
     v->set_check(std::string(check));
@@ -109,6 +111,7 @@ class Report {
     std::string other_fix;
   };
   const std::vector<Pending>& pending() const { return pending_; }
+  const std::string& kind(int violation) const { return kinds_[static_cast<size_t>(violation)]; }
   void Load(absl::string_view kind, const std::string& device, double used, double budget, absl::string_view unit) {
     v1::LoadFigure* f = report_->add_loads();
     f->set_kind(std::string(kind));
@@ -122,6 +125,7 @@ class Report {
  private:
   v1::TimingReport* report_;
   std::vector<Pending> pending_;
+  std::vector<std::string> kinds_;  // per violation
 };
 
 // Context shared by the checks.
@@ -238,7 +242,7 @@ void CheckFrameRate(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTi
           {absl::StrFormat("cameras[%s].frame_rate_hz=%.17g", c.id(), rate)}},
          {absl::StrFormat("set cameras[%s].trigger.divider: %u", c.id(), divider),
           {absl::StrFormat("cameras[%s].trigger.divider=%u", c.id(), divider)}}},
-        "");
+        "", "rate mismatch");
   }
   if (config.max_frame_rate_hz() > 0 && rate > config.max_frame_rate_hz() * (1 + 1e-9)) {
     const auto min_divider =
@@ -259,7 +263,7 @@ void CheckFrameRate(Ctx& ctx, const v1::CameraConfig& config, const v1::CameraTi
           {absl::StrFormat("cameras[%s].trigger.divider=%u", c.id(), divider),
            absl::StrFormat("cameras[%s].trigger.slot_phase=%u", c.id(), c.slot_phase() % divider),
            absl::StrFormat("cameras[%s].frame_rate_hz=%.17g", c.id(), new_rate)}}},
-        "reduce the ROI (height)");
+        "reduce the ROI (height)", "above the camera's maximum");
   }
   if (c.readout_declared() && c.readout_ticks() > c.period_ticks()) {
     ctx.out.Error(kCheckFrameRate, c.id(), slot,
@@ -635,27 +639,36 @@ void RunChecks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::S
   CheckFlicker(ctx);
 }
 
-// Whether `remedy` fixes violation `v` of `report` (the rig's): the rig with its overrides is valid, compiles, and
-// the verifier no longer finds that violation, nor any error it did not find before.
-bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::TimingReport& report,
-                 const v1::Violation& v, const Remedy& remedy) {
+// Whether `remedy` fixes violation `index` of `before` (the rig's; `kinds` its violations' kinds): the rig with its
+// overrides is no less valid, compiles, and the verifier no longer finds that violation (of that kind), nor any error
+// it did not find before.
+bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::TimingReport& before,
+                 const Report& kinds, int index, const Remedy& remedy) {
   v1::RigConfig changed = rig;
   for (const std::string& o : remedy.overrides) {
     if (!ApplyRigOverride(&changed, o).ok()) return false;
   }
   ApplyRigDefaults(&changed);
-  if (!ValidateRig(changed, "").empty()) return false;
+  // Validated as the rig was (paths relative to the rig file resolve the same wrong way on both sides): only new
+  // errors count.
+  std::set<std::string> invalid_before;
+  for (const RigError& e : ValidateRig(rig, "")) invalid_before.insert(e.path + ": " + e.message);
+  for (const RigError& e : ValidateRig(changed, "")) {
+    if (!invalid_before.count(e.path + ": " + e.message)) return false;
+  }
   auto schedule = CompileSchedule(changed, patterns);
   if (!schedule.ok()) return false;
   v1::TimingReport after;
   Report out(&after);
   RunChecks(changed, patterns, *schedule, out);
+  const v1::Violation& v = before.violations(index);
   std::set<std::pair<std::string, std::string>> errors_before;
-  for (const v1::Violation& b : report.violations()) {
+  for (const v1::Violation& b : before.violations()) {
     if (b.severity() == v1::SEVERITY_ERROR) errors_before.insert({b.check(), b.device()});
   }
-  for (const v1::Violation& a : after.violations()) {
-    if (a.check() == v.check() && a.device() == v.device()) return false;
+  for (int i = 0; i < after.violations_size(); ++i) {
+    const v1::Violation& a = after.violations(i);
+    if (a.check() == v.check() && a.device() == v.device() && out.kind(i) == kinds.kind(index)) return false;
     if (a.severity() == v1::SEVERITY_ERROR && !errors_before.count({a.check(), a.device()})) return false;
   }
   return true;
@@ -708,7 +721,7 @@ v1::TimingReport VerifySchedule(const v1::RigConfig& rig, const PatternSet& patt
     v1::Violation* v = report.mutable_violations(p.violation);
     std::vector<std::string> offered;
     for (const Remedy& r : p.remedies) {
-      if (RemedyWorks(rig, patterns, report, *v, r)) offered.push_back(r.words);
+      if (RemedyWorks(rig, patterns, report, out, p.violation, r)) offered.push_back(r.words);
     }
     if (!p.other_fix.empty()) offered.push_back(p.other_fix);
     v->set_fix(offered.empty() ? "no single setting found that fixes it without breaking another check"

@@ -95,8 +95,9 @@ absl::StatusOr<const v1::ProcessingWorkerConfig*> FindProcessingWorker(const Loa
 // Where stage-sim keeps its run directory (endpoint file, logs) unless told otherwise:
 // $XDG_RUNTIME_DIR/fastage/stage-sim, or /tmp/fastage-<uid>/stage-sim.
 std::string DefaultSimRunDir();
-// Where this user's processes share what they derive from files (a head asset's decoded maps):
-// $FASTAGE_CACHE_DIR, else $XDG_RUNTIME_DIR/fastage/cache, else /tmp/fastage-<uid>/cache.
+// Where this user's processes share what they derive from files (a head asset's decoded maps): $FASTAGE_CACHE_DIR,
+// else $XDG_CACHE_HOME/fastage, else ~/.cache/fastage, else /tmp/fastage-<uid>/cache. What is there may be deleted at
+// any time: it is made again.
 std::string DefaultCacheDir();
 
 // Pattern sets known without a file.
