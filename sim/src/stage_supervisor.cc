@@ -16,6 +16,7 @@
 #include "stage/common/file_util.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/common/proto_json.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/status.h"
 #include "stage/v1/controller.grpc.pb.h"
@@ -104,10 +105,8 @@ absl::Status StageSupervisor::PrepareRunDir() {
   // Another stage-sim on the same run directory would overwrite its endpoint file: refuse.
   if (fs::exists(endpoints_path())) {
     v1::SimEndpoints other;
-    google::protobuf::util::JsonParseOptions parse;
-    parse.ignore_unknown_fields = true;
-    if (google::protobuf::util::JsonStringToMessage(ReadFile(endpoints_path()), &other, parse).ok() &&
-        other.stage_sim_pid() != getpid() && ProcessAlive(other.stage_sim_pid())) {
+    if (FromContractJson(ReadFile(endpoints_path()), &other).ok() && other.stage_sim_pid() != getpid() &&
+        ProcessAlive(other.stage_sim_pid())) {
       return absl::FailedPreconditionError(absl::StrCat("another stage-sim (pid ", other.stage_sim_pid(),
                                                         ") is running with run directory ", options_.run_dir,
                                                         "; stop it or pass --run-dir"));

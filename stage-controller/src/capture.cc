@@ -1,7 +1,6 @@
 // Capturing takes: see capture.h.
 #include "capture.h"
 
-#include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 
 #include <atomic>
@@ -21,6 +20,7 @@
 #include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
+#include "stage/common/proto_json.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
 #include "stage/common/version.h"
@@ -39,16 +39,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using Clock = std::chrono::steady_clock;
-
-std::string ToJson(const google::protobuf::Message& m) {
-  google::protobuf::util::JsonPrintOptions o;
-  o.add_whitespace = true;
-  o.preserve_proto_field_names = true;
-  o.always_print_primitive_fields = true;
-  std::string out;
-  (void)google::protobuf::util::MessageToJsonString(m, &out, o);
-  return out;
-}
 
 // Armed light nodes go dark after this long without the controller's heartbeat, which comes every kLightHeartbeatMs.
 constexpr uint32_t kLightHeartbeatTimeoutMs = 1000;
@@ -75,10 +65,10 @@ grpc::Status Patiently(int deadline_ms, Clock::time_point give_up,
 // take.json: what the take was and how it ended (docs/storage.md).
 absl::Status WriteTakeJson(const std::string& dir, const v1::RigConfig& rig, const v1::Schedule& schedule,
                            const v1::TakeSummary& summary, v1::TakeState state) {
-  std::string text = absl::StrCat("{\n\"format\": \"fastage-take-1\",\n\"software\": \"FaStage ", kVersion,
-                                  "\",\n\"state\": \"", storage::TakeStateText(state), "\",\n\"schedule_hash\": \"",
-                                  schedule.hash(), "\",\n\"rig_hash\": \"", schedule.rig_hash(),
-                                  "\",\n\"summary\": ", ToJson(summary), ",\n\"rig\": ", ToJson(rig), "\n}\n");
+  std::string text = absl::StrCat(
+      "{\n\"format\": \"fastage-take-1\",\n\"software\": \"FaStage ", kVersion, "\",\n\"state\": \"",
+      storage::TakeStateText(state), "\",\n\"schedule_hash\": \"", schedule.hash(), "\",\n\"rig_hash\": \"",
+      schedule.rig_hash(), "\",\n\"summary\": ", ToContractJson(summary), ",\n\"rig\": ", ToContractJson(rig), "\n}\n");
   return WriteFileAtomically(dir + "/take.json", text);  // a reader sees the old file or the new one
 }
 
@@ -369,7 +359,7 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   STAGE_RETURN_IF_ERROR(WriteTakeJson(take->dir, rig_.rig, schedule_, summary, v1::TAKE_STATE_CONFIGURING));
   {
     // The schedule as compiled, and as waveforms a logic-analyser viewer opens (the take's first 10 s at most).
-    if (absl::Status s = WriteFileAtomically(take->dir + "/schedule.json", ToJson(schedule_)); !s.ok())
+    if (absl::Status s = WriteFileAtomically(take->dir + "/schedule.json", ToContractJson(schedule_)); !s.ok())
       say(std::string(s.message()));
     auto vcd = timing::ScheduleToVcd(schedule_, {0, std::min<int64_t>(take->slots, 10 * base.slot_rate_hz())});
     const absl::Status written = vcd.ok() ? WriteFileAtomically(take->dir + "/schedule.vcd", *vcd) : vcd.status();
@@ -1340,10 +1330,9 @@ absl::StatusOr<v1::TakeSummary> Capturer::GetTake(const std::string& id) const {
     return absl::DataLossError(absl::StrCat(path, ": not a take file with a summary"));
   }
   v1::TakeSummary summary;
-  google::protobuf::util::JsonParseOptions o;
-  o.ignore_unknown_fields = true;
-  auto s = google::protobuf::util::JsonStringToMessage(take["summary"].dump(), &summary, o);
-  if (!s.ok()) return absl::DataLossError(absl::StrCat(path, ": ", s.message().as_string()));
+  if (absl::Status s = FromContractJson(take["summary"].dump(), &summary); !s.ok()) {
+    return absl::DataLossError(absl::StrCat(path, ": ", s.message()));
+  }
   return summary;
 }
 

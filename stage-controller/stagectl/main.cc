@@ -1,6 +1,5 @@
 // stagectl: the command-line console of the stage (a thin StageController client; `timing` also works on a rig file
 // without a controller).
-#include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 #include <unistd.h>
 
@@ -60,10 +59,8 @@ absl::StatusOr<stage::v1::SimEndpoints> ReadEndpoints(const Connection& c, const
     return absl::NotFoundError(absl::StrCat("no ", wanted, " (no stage-sim endpoint file at ", path, ")"));
   }
   stage::v1::SimEndpoints endpoints;
-  google::protobuf::util::JsonParseOptions options;
-  options.ignore_unknown_fields = true;
-  if (auto s = google::protobuf::util::JsonStringToMessage(*text, &endpoints, options); !s.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message().as_string()));
+  if (absl::Status s = stage::FromContractJson(*text, &endpoints); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message()));
   }
   return endpoints;
 }
