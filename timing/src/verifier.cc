@@ -639,22 +639,31 @@ void RunChecks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::S
   CheckFlicker(ctx);
 }
 
+// What a remedy is judged against, found once per rig: its validation errors (paths relative to the rig file resolve
+// the same wrong way with a remedy as without, so only new ones count) and the checks that failed it as errors.
+struct RemedyBaseline {
+  RemedyBaseline(const v1::RigConfig& rig, const v1::TimingReport& report) {
+    for (const RigError& e : ValidateRig(rig, "")) invalid.insert(e.path + ": " + e.message);
+    for (const v1::Violation& v : report.violations()) {
+      if (v.severity() == v1::SEVERITY_ERROR) errors.insert({v.check(), v.device()});
+    }
+  }
+  std::set<std::string> invalid;                         // "path: message"
+  std::set<std::pair<std::string, std::string>> errors;  // (check, device)
+};
+
 // Whether `remedy` fixes violation `index` of `before` (the rig's; `kinds` its violations' kinds): the rig with its
 // overrides is no less valid, compiles, and the verifier no longer finds that violation (of that kind), nor any error
 // it did not find before.
-bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const v1::TimingReport& before,
-                 const Report& kinds, int index, const Remedy& remedy) {
+bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const RemedyBaseline& baseline,
+                 const v1::TimingReport& before, const Report& kinds, int index, const Remedy& remedy) {
   v1::RigConfig changed = rig;
   for (const std::string& o : remedy.overrides) {
     if (!ApplyRigOverride(&changed, o).ok()) return false;
   }
   ApplyRigDefaults(&changed);
-  // Validated as the rig was (paths relative to the rig file resolve the same wrong way on both sides): only new
-  // errors count.
-  std::set<std::string> invalid_before;
-  for (const RigError& e : ValidateRig(rig, "")) invalid_before.insert(e.path + ": " + e.message);
   for (const RigError& e : ValidateRig(changed, "")) {
-    if (!invalid_before.count(e.path + ": " + e.message)) return false;
+    if (!baseline.invalid.count(e.path + ": " + e.message)) return false;
   }
   auto schedule = CompileSchedule(changed, patterns);
   if (!schedule.ok()) return false;
@@ -662,14 +671,10 @@ bool RemedyWorks(const v1::RigConfig& rig, const PatternSet& patterns, const v1:
   Report out(&after);
   RunChecks(changed, patterns, *schedule, out);
   const v1::Violation& v = before.violations(index);
-  std::set<std::pair<std::string, std::string>> errors_before;
-  for (const v1::Violation& b : before.violations()) {
-    if (b.severity() == v1::SEVERITY_ERROR) errors_before.insert({b.check(), b.device()});
-  }
   for (int i = 0; i < after.violations_size(); ++i) {
     const v1::Violation& a = after.violations(i);
     if (a.check() == v.check() && a.device() == v.device() && out.kind(i) == kinds.kind(index)) return false;
-    if (a.severity() == v1::SEVERITY_ERROR && !errors_before.count({a.check(), a.device()})) return false;
+    if (a.severity() == v1::SEVERITY_ERROR && !baseline.errors.count({a.check(), a.device()})) return false;
   }
   return true;
 }
@@ -717,11 +722,12 @@ v1::TimingReport VerifySchedule(const v1::RigConfig& rig, const PatternSet& patt
   RunChecks(rig, patterns, schedule, out);
   // Every concrete setting a fix proposes is checked before it is offered: one that would not fix the violation (it
   // is already so), or that would break something else, is left out.
+  const RemedyBaseline baseline(rig, report);
   for (const Report::Pending& p : out.pending()) {
     v1::Violation* v = report.mutable_violations(p.violation);
     std::vector<std::string> offered;
     for (const Remedy& r : p.remedies) {
-      if (RemedyWorks(rig, patterns, report, out, p.violation, r)) offered.push_back(r.words);
+      if (RemedyWorks(rig, patterns, baseline, report, out, p.violation, r)) offered.push_back(r.words);
     }
     if (!p.other_fix.empty()) offered.push_back(p.other_fix);
     v->set_fix(offered.empty() ? "no single setting found that fixes it without breaking another check"
