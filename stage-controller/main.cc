@@ -8,6 +8,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
+#include "stage/sim/world_sync_generator.h"
 #include "stage/timing/timing_tool.h"
 
 int main(int argc, char** argv) {
@@ -79,8 +80,18 @@ int main(int argc, char** argv) {
     std::error_code ec;
     capture.take_root =
         std::filesystem::absolute(take_root.empty() ? rig.storage().root() : take_root, ec).lexically_normal().string();
-    capture.world_address = world_address;
-    if (auto s = service.EnableCapture(capture); !s.ok()) {
+    // The sync generator, chosen by how the stage is run: the simulated world's bus (stage-sim passes --sim-world).
+    stage::controller::CaptureDevices devices;
+    devices.nodes = stage::controller::GrpcNodeClients();
+    if (!world_address.empty()) {
+      devices.generator = stage::sim::NewWorldSyncGenerator(world_address);
+      devices.truth = stage::sim::NewWorldTakeTruth(world_address);
+    } else {
+      devices.no_generator =
+          "the controller drives the simulated world's bus (stage-sim, --sim-world); a hardware slot clock comes with "
+          "the light-node work";
+    }
+    if (auto s = service.EnableCapture(capture, std::move(devices)); !s.ok()) {
       monitor.Stop();
       return stage::ReportFatal(kProgram, s);
     }

@@ -265,11 +265,12 @@ grpc::Status ControllerService::ExportTiming(grpc::ServerContext*, const v1::Tim
   return grpc::Status::OK;
 }
 
-absl::Status ControllerService::EnableCapture(CaptureOptions options) {
+absl::Status ControllerService::EnableCapture(CaptureOptions options, CaptureDevices devices) {
   // The session's state is part of the stage's status: its changes wake the status watchers too.
   options.on_state_change = [monitor = monitor_] { monitor->NotifyChange(); };
   options.estop = estop_.get();
-  STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options)));
+  STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options),
+                                                          std::move(devices)));
   return absl::OkStatus();
 }
 

@@ -24,7 +24,7 @@ class ControllerService final : public v1::StageController::Service {
   ~ControllerService() override;
   // Takes: the take root and the sync generator (capture.h). Without it, Capture, ListTakes and GetTake are
   // FAILED_PRECONDITION.
-  absl::Status EnableCapture(CaptureOptions options);
+  absl::Status EnableCapture(CaptureOptions options, CaptureDevices devices);
 
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetStageStatus(grpc::ServerContext*, const v1::GetStageStatusRequest*,

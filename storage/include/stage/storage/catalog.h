@@ -58,6 +58,7 @@ enum class LossReason {
   kPaused = v1::LOSS_REASON_PAUSED,
   kLinkDown = v1::LOSS_REASON_LINK_DOWN,
   kNotDelivered = v1::LOSS_REASON_NOT_DELIVERED,
+  kSyncGeneratorLost = v1::LOSS_REASON_SYNC_GENERATOR_LOST,
 };
 inline v1::LossReason ToProto(LossReason r) { return static_cast<v1::LossReason>(r); }
 inline LossReason FromProto(v1::LossReason r) { return static_cast<LossReason>(r); }
