@@ -11,6 +11,7 @@
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
 #include "stage/sim/world_devices.h"
+#include "stage/sim/world_slot_clock.h"
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -86,9 +87,21 @@ int main(int argc, char** argv) {
   stage::light::LightNodeOptions node_options;
   node_options.slot_rate_hz = loaded->rig.timing().slot_rate_hz();
   node_options.take_length_s = loaded->rig.timing().take_length_s();
-  auto node =
-      stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig), node_options);
+  auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig), node_options);
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
+  if (loaded->rig.timing().sync_generator() == config.id()) {
+    // The rig's sync generator: the controller runs the slot clock through this node. In the simulated stage its clock
+    // line is the world's bus.
+    if (!world_address.empty()) {
+      (*node)->SetSlotClock(stage::sim::NewWorldSlotClock(world_address, config.id()));
+    } else {
+      stage::Logger("light.node")
+          ->warn(
+              "{} is the rig's timing.sync_generator, but the gpiod backend's clock output cannot run a take's "
+              "planned runs yet: the controller's takes are refused",
+              config.id());
+    }
+  }
   std::string summary =
       fmt::format("light node {}: {} LED units on {} channels, backend {}, rig {}", config.id(), config.units_size(),
                   config.channel_count(), stage::light::LightBackendName(backend), loaded->source_name);

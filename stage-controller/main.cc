@@ -4,6 +4,7 @@
 
 #include "controller_service.h"
 #include "health_monitor.h"
+#include "light_sync_generator.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
@@ -27,7 +28,8 @@ int main(int argc, char** argv) {
                  "Where takes are recorded and catalogued (default: the rig's storage.root, relative to the working "
                  "directory)");
   app.add_option("--sim-world", world_address,
-                 "host:port of stage-sim's simulated world: the sync generator the controller runs takes on");
+                 "host:port of stage-sim's simulated world: each take's ground truth, and the slot clock of a rig "
+                 "that names no timing.sync_generator");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   const char* kProgram = "stage-controller";
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -80,17 +82,24 @@ int main(int argc, char** argv) {
     std::error_code ec;
     capture.take_root =
         std::filesystem::absolute(take_root.empty() ? rig.storage().root() : take_root, ec).lexically_normal().string();
-    // The sync generator, chosen by how the stage is run: the simulated world's bus (stage-sim passes --sim-world).
+    // The sync generator, chosen by the rig: the light node timing.sync_generator names drives the slot clock (in the
+    // simulated stage its clock line is the world's bus); a rig that names none has an external generator, and in
+    // the simulated stage (--sim-world) the world's own bus. The simulated world also keeps each take's ground truth.
     stage::controller::CaptureDevices devices;
     devices.nodes = stage::controller::GrpcNodeClients();
-    if (!world_address.empty()) {
+    const std::string& generator = rig.timing().sync_generator();
+    if (!generator.empty()) {
+      for (const auto& node : rig.light_nodes()) {
+        if (node.id() == generator) devices.generator = stage::controller::NewLightSyncGenerator(node);
+      }
+    } else if (!world_address.empty()) {
       devices.generator = stage::sim::NewWorldSyncGenerator(world_address);
-      devices.truth = stage::sim::NewWorldTakeTruth(world_address);
     } else {
       devices.no_generator =
-          "the controller drives the simulated world's bus (stage-sim, --sim-world); a hardware slot clock comes with "
-          "the light-node work";
+          "the rig names no timing.sync_generator (an external generator), and taking T0 from a light node's input "
+          "line is not built yet";
     }
+    if (!world_address.empty()) devices.truth = stage::sim::NewWorldTakeTruth(world_address);
     if (auto s = service.EnableCapture(capture, std::move(devices)); !s.ok()) {
       monitor.Stop();
       return stage::ReportFatal(kProgram, s);

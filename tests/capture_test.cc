@@ -24,6 +24,8 @@
 #include "stage/common/take_names.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
+#include "stage/v1/light_node.grpc.pb.h"
+#include "stage/v1/sim.grpc.pb.h"
 #include "test_support.h"
 
 namespace stage::testing {
@@ -61,6 +63,17 @@ class CaptureTest : public SimulatedStageTest {
   std::string SlotsOf(const std::string& root, const std::string& take, const std::string& camera, int reason) {
     return Sql(root, "SELECT group_concat(slot, ',') FROM (SELECT slot FROM ledger WHERE take_id='" + take +
                          "' AND camera_id='" + camera + "' AND reason=" + std::to_string(reason) + " ORDER BY slot)");
+  }
+
+  // The world's bus as the test sees it: who started its last run, and who has called Run, EndRun and GetRun.
+  v1::WorldRunReply WorldBus() {
+    auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    v1::GetRunRequest get;
+    get.set_requested_by("test");
+    v1::WorldRunReply run;
+    EXPECT_TRUE(world->GetRun(&context, get, &run).ok());
+    return run;
   }
 
   const v1::SimProcess* Process(const std::string& id) const {
@@ -291,6 +304,60 @@ TEST_F(CaptureTest, ACameraNodeKilledMidTakeLeavesItsFramesAndTheRestNodeDown) {
             "0\n");
   EXPECT_THAT(take["hint"].get<std::string>(), HasSubstr("mv-03 lost " + Digits(12 - in_file.size()) + " (" +
                                                          Digits(12 - in_file.size()) + " node down)"));
+}
+
+// The rig's sync generator is light node lights-gpio-1: its clock line is the world's bus. The controller runs the
+// take's clock through the node and never calls the world's bus itself; when the node is killed mid-take its line
+// goes quiet, the take ends DEGRADED (continue-degraded), every expected slot is stored or "sync generator lost", and
+// no light node is left armed.
+TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
+  TempDir root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  const v1::SimProcess* generator = Process("lights-gpio-1");
+  ASSERT_NE(generator, nullptr);
+  auto capture = SpawnStagectl({"capture", "--frames", "40", "--json"}, "capture");
+  ASSERT_NE(capture, nullptr);
+  const v1::SimProcess* witness = Process("mv-01");
+  ASSERT_NE(witness, nullptr);
+  auto camera = v1::CameraNode::NewStub(grpc::CreateChannel(witness->address(), grpc::InsecureChannelCredentials()));
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(180);
+  int64_t written = 0;
+  while (written < 3 && std::chrono::steady_clock::now() < deadline) {
+    grpc::ClientContext context;
+    v1::CameraStats stats;
+    if (camera->GetStats(&context, v1::GetStatsRequest(), &stats).ok()) written = stats.take_frames_written();
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  ASSERT_GE(written, 3);
+  const v1::WorldRunReply during = WorldBus();
+  EXPECT_EQ(during.started_by(), "lights-gpio-1");
+  EXPECT_EQ(during.bus_calls().count("controller"), 0u) << "the controller called the world's bus";
+  EXPECT_GT(during.bus_calls().at("lights-gpio-1"), 0);
+  ASSERT_EQ(kill(generator->pid(), SIGKILL), 0);
+
+  auto exit = capture->Wait(std::chrono::seconds(300));
+  ASSERT_TRUE(exit.has_value());
+  EXPECT_EQ(exit->exit_code, 4) << ReadFile(run_dir_.path() + "/capture.err");  // DEGRADED
+  nlohmann::json take = nlohmann::json::parse(ReadFile(run_dir_.path() + "/capture.out"));
+  const std::string id = take["take_id"];
+  EXPECT_THAT(take["hint"].get<std::string>(), HasSubstr("the sync generator was lost: light node lights-gpio-1"));
+  // Every slot of the 40 frames the take was asked for: 24 machine-vision cameras one a frame, 3 high-speed all 38.
+  EXPECT_EQ(take["total"]["expected"].get<std::string>(), Digits(24 * 40 + 3 * 40 * 38));
+  const std::string lost = Sql(root.path(), "SELECT count(*) FROM ledger WHERE take_id='" + id +
+                                                "' AND reason=" + Digits(v1::LOSS_REASON_SYNC_GENERATOR_LOST));
+  EXPECT_GT(std::stoll(lost), 0);
+  EXPECT_EQ(Sql(root.path(), "SELECT count(*) FROM ledger WHERE take_id='" + id + "' AND reason NOT IN (0, 7, " +
+                                 Digits(v1::LOSS_REASON_SYNC_GENERATOR_LOST) + ")"),
+            "0\n");
+  EXPECT_EQ(WorldBus().bus_calls().count("controller"), 0u);
+  for (const auto& p : endpoints_.processes()) {
+    if (p.kind() != v1::NODE_KIND_LIGHT || p.id() == "lights-gpio-1") continue;
+    auto light = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    v1::LightStats stats;
+    ASSERT_TRUE(light->GetStats(&context, v1::GetLightStatsRequest(), &stats).ok()) << p.id();
+    EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_IDLE) << p.id() << " is left armed";
+  }
 }
 
 // A frame file that reaches its size limit (the node's RLIMIT_FSIZE, as a full disk would): the node stops writing

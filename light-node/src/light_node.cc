@@ -249,4 +249,37 @@ void LightNode::Watchdog() {
   }
 }
 
+absl::StatusOr<v1::SlotClockRun> LightNode::RunSlotClock(const v1::SlotClockRunRequest& request) {
+  if (slot_clock_ == nullptr) return NoSlotClock();
+  if (request.slots() <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat("slot clock run: slots ", request.slots(), " is not above 0"));
+  }
+  auto run = slot_clock_->Run(request);
+  if (run.ok() && !request.plan_only()) {
+    Logger("light.node")
+        ->info("{}: slot clock run [{}, {}) started for {}", config_.id(), run->first_slot(), run->end_slot(),
+               request.requested_by().empty() ? "an unnamed caller" : request.requested_by());
+  }
+  return run;
+}
+
+absl::StatusOr<v1::SlotClockRun> LightNode::EndSlotClock(int64_t align_slots) {
+  if (slot_clock_ == nullptr) return NoSlotClock();
+  auto run = slot_clock_->End(align_slots);
+  if (run.ok()) Logger("light.node")->info("{}: slot clock run ends at slot {}", config_.id(), run->end_slot());
+  return run;
+}
+
+absl::StatusOr<v1::SlotClockRun> LightNode::GetSlotClock() {
+  if (slot_clock_ == nullptr) return NoSlotClock();
+  return slot_clock_->Get();
+}
+
+absl::Status LightNode::NoSlotClock() const {
+  return absl::FailedPreconditionError(absl::StrCat(
+      "light node ", config_.id(),
+      " runs no slot clock: it is not the rig's timing.sync_generator, or its backend cannot run a planned clock (its "
+      "log says which)"));
+}
+
 }  // namespace stage::light

@@ -13,6 +13,7 @@
 #include "absl/status/statusor.h"
 #include "heartbeat_watch.h"
 #include "stage/light/light_driver.h"
+#include "stage/light/slot_clock.h"
 #include "stage/v1/light_node.pb.h"
 #include "stage/v1/node.pb.h"
 #include "stage/v1/rig.pb.h"
@@ -49,10 +50,18 @@ class LightNode {
   // Heartbeat losses that blacked the node out, since start.
   uint64_t watchdog_trips() const;
 
+  // The slot clock this node drives (it is the rig's timing.sync_generator); set once, before serving.
+  void SetSlotClock(std::unique_ptr<SlotClockGenerator> clock) { slot_clock_ = std::move(clock); }
+  // See LightNode.RunSlotClock, EndSlotClock and GetSlotClock. FailedPrecondition on a node without a slot clock.
+  absl::StatusOr<v1::SlotClockRun> RunSlotClock(const v1::SlotClockRunRequest& request);
+  absl::StatusOr<v1::SlotClockRun> EndSlotClock(int64_t align_slots);
+  absl::StatusOr<v1::SlotClockRun> GetSlotClock();
+
  private:
   LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
             LightNodeOptions options);
   absl::Status CheckLoad(const PatternTable& table, int64_t take_slots) const;
+  absl::Status NoSlotClock() const;
   void Watchdog();
 
   v1::LightNodeConfig config_;
@@ -70,6 +79,7 @@ class LightNode {
   std::string blackout_reason_;  // guarded by mutex_
   uint64_t watchdog_trips_ = 0;  // guarded by mutex_
   std::thread watchdog_;
+  std::unique_ptr<SlotClockGenerator> slot_clock_;
 };
 
 }  // namespace stage::light

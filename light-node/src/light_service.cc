@@ -50,4 +50,29 @@ grpc::Status LightService::Heartbeat(grpc::ServerContext*, const v1::HeartbeatRe
   return grpc::Status::OK;
 }
 
+namespace {
+
+grpc::Status Reply(absl::StatusOr<v1::SlotClockRun> run, v1::SlotClockRun* response) {
+  if (!run.ok()) return ToGrpcStatus(run.status());
+  *response = *std::move(run);
+  return grpc::Status::OK;
+}
+
+}  // namespace
+
+grpc::Status LightService::RunSlotClock(grpc::ServerContext*, const v1::SlotClockRunRequest* request,
+                                        v1::SlotClockRun* response) {
+  return Reply(node_->RunSlotClock(*request), response);
+}
+
+grpc::Status LightService::EndSlotClock(grpc::ServerContext*, const v1::EndSlotClockRequest* request,
+                                        v1::SlotClockRun* response) {
+  return Reply(node_->EndSlotClock(request->align_slots()), response);
+}
+
+grpc::Status LightService::GetSlotClock(grpc::ServerContext*, const v1::GetSlotClockRequest*,
+                                        v1::SlotClockRun* response) {
+  return Reply(node_->GetSlotClock(), response);
+}
+
 }  // namespace stage::light

@@ -16,6 +16,11 @@ class LightService final : public v1::LightNode::Service {
   grpc::Status Blackout(grpc::ServerContext*, const v1::BlackoutRequest* request, v1::LightStats* response) override;
   grpc::Status ResetBlackout(grpc::ServerContext*, const v1::ResetBlackoutRequest*, v1::LightStats* response) override;
   grpc::Status Heartbeat(grpc::ServerContext*, const v1::HeartbeatRequest* request, v1::LightStats* response) override;
+  grpc::Status RunSlotClock(grpc::ServerContext*, const v1::SlotClockRunRequest* request,
+                            v1::SlotClockRun* response) override;
+  grpc::Status EndSlotClock(grpc::ServerContext*, const v1::EndSlotClockRequest* request,
+                            v1::SlotClockRun* response) override;
+  grpc::Status GetSlotClock(grpc::ServerContext*, const v1::GetSlotClockRequest*, v1::SlotClockRun* response) override;
 
  private:
   LightNode* node_;

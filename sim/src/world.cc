@@ -137,7 +137,10 @@ absl::Status World::StartRun(const WorldRun& run) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!started_ || stopped_) return absl::FailedPreconditionError("the world is not running");
     // Asked again for the run it started (a caller whose first request's answer did not reach it): done already.
-    if (!runs_.empty() && runs_.back().first == run.first && runs_.back().end == run.end) return absl::OkStatus();
+    if (!runs_.empty() && runs_.back().first == run.first && runs_.back().end == run.end &&
+        runs_.back().driver == run.driver) {
+      return absl::OkStatus();
+    }
     const int64_t after = runs_.empty() ? 0 : runs_.back().end;
     if (run.first < after || run.end <= run.first) {
       return absl::FailedPreconditionError(
@@ -182,6 +185,16 @@ void World::Unregister(int device) {
     if (device < 0 || device >= static_cast<int>(devices_.size()) || !devices_[device].active) return;
     Device& d = devices_[device];
     d.active = false;
+    if (!runs_.empty() && !d.name.empty() && runs_.back().driver == d.name) {
+      // The generator's line goes quiet: its run ends at the first slot no edge of which can be on its way.
+      WorldRun& run = runs_.back();
+      const int64_t end = std::max(run.first, current_ + 1);
+      if (run.end != INT64_MAX && end < run.end) {
+        Logger("sim")->warn("world: {}, which drives the run [{}, {}), left: the run ends at slot {}", d.name,
+                            run.first, run.end, end);
+        run.end = end;
+      }
+    }
     if (d.light_node >= 0) {
       // It emits nothing from what it last promised on, and holds no exposure up.
       int64_t& w = watermarks_[d.light_node];

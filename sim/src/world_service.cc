@@ -51,14 +51,16 @@ grpc::Status WorldService::WaitForEdge(grpc::ServerContext*, const v1::WaitForEd
 }
 
 grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* request, v1::WorldRunReply* reply) {
+  CountBusCall(request->requested_by());
   absl::StatusOr<WorldRun> run;
   if (request->first_slot() > 0 && !request->plan_only()) {
-    run = WorldRun{request->first_slot(), request->first_slot() + request->slots()};
+    run = WorldRun{request->first_slot(), request->first_slot() + request->slots(), request->requested_by()};
     if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
   } else {
     run = world_->PlanRun(request->slots(), request->lead_slots(), std::max<int64_t>(1, request->align_slots()),
                           request->min_first_slot());
     if (run.ok() && !request->plan_only()) {
+      run->driver = request->requested_by();
       if (absl::Status s = world_->StartRun(*run); !s.ok()) return ToGrpcStatus(s);
     }
   }
@@ -68,13 +70,15 @@ grpc::Status WorldService::Run(grpc::ServerContext*, const v1::RunWorldRequest* 
 }
 
 grpc::Status WorldService::EndRun(grpc::ServerContext*, const v1::EndRunRequest* request, v1::WorldRunReply* reply) {
+  CountBusCall(request->requested_by());
   auto run = world_->EndRun(request->align_slots());
   if (!run.ok()) return ToGrpcStatus(run.status());
   FillRunReply(*run, reply);
   return grpc::Status::OK;
 }
 
-grpc::Status WorldService::GetRun(grpc::ServerContext*, const v1::GetRunRequest*, v1::WorldRunReply* reply) {
+grpc::Status WorldService::GetRun(grpc::ServerContext*, const v1::GetRunRequest* request, v1::WorldRunReply* reply) {
+  CountBusCall(request->requested_by());
   const std::optional<WorldRun> run = world_->LastRun();
   if (!run) return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, "the bus has had no run yet");
   FillRunReply(*run, reply);
@@ -86,6 +90,14 @@ void WorldService::FillRunReply(const WorldRun& run, v1::WorldRunReply* reply) c
   reply->set_end_slot(run.end);
   reply->set_first_edge_ns(world_->EdgeNs(run.first));
   reply->set_current_slot(world_->current_slot());
+  reply->set_started_by(run.driver);
+  std::lock_guard<std::mutex> lock(bus_calls_mutex_);
+  reply->mutable_bus_calls()->insert(bus_calls_.begin(), bus_calls_.end());
+}
+
+void WorldService::CountBusCall(const std::string& caller) {
+  std::lock_guard<std::mutex> lock(bus_calls_mutex_);
+  ++bus_calls_[caller];
 }
 
 grpc::Status WorldService::WriteGroundTruth(grpc::ServerContext*, const v1::GroundTruthRequest* request,

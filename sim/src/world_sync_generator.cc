@@ -1,4 +1,4 @@
-// The simulated world's bus as a sync generator: see world_sync_generator.h.
+// The simulated world's bus as a sync generator, and its ground truth: see world_sync_generator.h.
 #include "stage/sim/world_sync_generator.h"
 
 #include <grpcpp/grpcpp.h>
@@ -7,7 +7,7 @@
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/status.h"
-#include "stage/v1/sim.grpc.pb.h"
+#include "stage/sim/world_bus.h"
 
 namespace stage::sim {
 namespace {
@@ -19,73 +19,54 @@ SyncRun FromReply(const v1::WorldRunReply& r) {
   return {r.first_slot(), r.end_slot(), r.first_edge_ns(), r.current_slot()};
 }
 
-std::shared_ptr<grpc::Channel> WorldChannel(const std::string& address) {
-  return grpc::CreateChannel(address, grpc::InsecureChannelCredentials());
+v1::RunWorldRequest ToRequest(const SyncRunRequest& r) {
+  v1::RunWorldRequest w;
+  w.set_slots(r.slots);
+  w.set_lead_slots(r.lead_slots);
+  w.set_align_slots(r.align_slots);
+  w.set_min_first_slot(r.min_first_slot);
+  return w;
 }
 
 class WorldSyncGenerator final : public controller::SyncGenerator {
  public:
-  explicit WorldSyncGenerator(const std::string& address)
-      : address_(address), world_(v1::SimWorld::NewStub(WorldChannel(address))) {}
+  explicit WorldSyncGenerator(const std::string& address) : bus_(address, "controller") {}
 
-  std::string Describe() const override { return absl::StrCat("the simulated world at ", address_); }
+  std::string Describe() const override { return absl::StrCat("the simulated world's bus at ", bus_.address()); }
 
   absl::StatusOr<SyncRun> Plan(const SyncRunRequest& request, std::chrono::steady_clock::time_point give_up) override {
     v1::RunWorldRequest plan = ToRequest(request);
     plan.set_plan_only(true);
-    return Run(plan, give_up);
+    STAGE_ASSIGN_OR_RETURN(const v1::WorldRunReply run, bus_.Run(plan, give_up));
+    return FromReply(run);
   }
 
   absl::StatusOr<SyncRun> Start(const SyncRunRequest& request, const SyncRun& planned,
                                 std::chrono::steady_clock::time_point give_up) override {
     v1::RunWorldRequest start = ToRequest(request);
     start.set_first_slot(planned.first_slot);
-    return Run(start, give_up);
+    STAGE_ASSIGN_OR_RETURN(const v1::WorldRunReply run, bus_.Run(start, give_up));
+    return FromReply(run);
   }
 
   absl::StatusOr<SyncRun> End(int64_t align_slots) override {
-    v1::EndRunRequest end;
-    end.set_align_slots(align_slots);
-    grpc::ClientContext context;
-    SetDeadline(&context, std::chrono::seconds(5));
-    v1::WorldRunReply run;
-    if (grpc::Status s = world_->EndRun(&context, end, &run); !s.ok()) return FromGrpcStatus(s);
+    STAGE_ASSIGN_OR_RETURN(const v1::WorldRunReply run, bus_.End(align_slots));
     return FromReply(run);
   }
 
   absl::StatusOr<SyncRun> GetRun() override {
-    grpc::ClientContext context;
-    SetDeadline(&context, std::chrono::seconds(1));
-    v1::WorldRunReply run;
-    if (grpc::Status s = world_->GetRun(&context, v1::GetRunRequest(), &run); !s.ok()) return FromGrpcStatus(s);
+    STAGE_ASSIGN_OR_RETURN(const v1::WorldRunReply run, bus_.Get());
     return FromReply(run);
   }
 
  private:
-  static v1::RunWorldRequest ToRequest(const SyncRunRequest& r) {
-    v1::RunWorldRequest w;
-    w.set_slots(r.slots);
-    w.set_lead_slots(r.lead_slots);
-    w.set_align_slots(r.align_slots);
-    w.set_min_first_slot(r.min_first_slot);
-    return w;
-  }
-
-  // Planning is a question, and starting the run planned twice starts it once: a world slow to answer is asked again.
-  absl::StatusOr<SyncRun> Run(const v1::RunWorldRequest& request, std::chrono::steady_clock::time_point give_up) {
-    v1::WorldRunReply run;
-    STAGE_RETURN_IF_ERROR(Patiently(std::chrono::seconds(5), give_up,
-                                    [&](grpc::ClientContext* context) { return world_->Run(context, request, &run); }));
-    return FromReply(run);
-  }
-
-  std::string address_;
-  std::unique_ptr<v1::SimWorld::Stub> world_;
+  WorldBus bus_;
 };
 
 class WorldTakeTruth final : public controller::TakeTruth {
  public:
-  explicit WorldTakeTruth(const std::string& address) : world_(v1::SimWorld::NewStub(WorldChannel(address))) {}
+  explicit WorldTakeTruth(const std::string& address)
+      : world_(v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
 
   absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames) override {
     v1::GroundTruthRequest gt;

@@ -56,6 +56,9 @@ struct WorldOptions {
 struct WorldRun {
   int64_t first = 0;
   int64_t end = INT64_MAX;
+  // The device whose line carries the run (a sync generator light node's id), or empty (the world drives it): when
+  // that device leaves the world, the run ends at the next slot.
+  std::string driver;
 };
 
 struct WorldEdge {
@@ -82,7 +85,8 @@ class World {
 
   // A device that takes part in lockstep. Light nodes give their node index (their emission is theirs), cameras -1.
   int Register(const std::string& name, int light_node = -1);
-  // The device is gone: it holds nobody up any longer; a light node goes dark from its watermark on.
+  // The device is gone: it holds nobody up any longer; a light node goes dark from its watermark on; a run it drives
+  // ends at the next slot.
   void Unregister(int device);
 
   // Blocks until slot `slot`'s edge (which also says the device is done with every earlier slot). nullopt after

@@ -4,6 +4,8 @@
 
 #include <atomic>
 #include <functional>
+#include <map>
+#include <mutex>
 
 #include "stage/sim/world.h"
 #include "stage/v1/sim.grpc.pb.h"
@@ -40,12 +42,15 @@ class WorldService final : public v1::SimWorld::Service {
 
  private:
   void FillRunReply(const WorldRun& run, v1::WorldRunReply* reply) const;
+  void CountBusCall(const std::string& caller);
 
   World* world_;
   v1::WorldInfo info_;
   std::function<absl::Status(const v1::SimFault&)> check_fault_;
   std::function<absl::Status(const v1::GroundTruthRequest&)> ground_truth_;
   std::atomic<bool> shutting_down_{false};
+  mutable std::mutex bus_calls_mutex_;
+  std::map<std::string, int64_t> bus_calls_;  // guarded by bus_calls_mutex_
 };
 
 }  // namespace stage::sim
