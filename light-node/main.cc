@@ -90,16 +90,15 @@ int main(int argc, char** argv) {
   auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig), node_options);
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
   if (loaded->rig.timing().sync_generator() == config.id()) {
-    // The rig's sync generator: the controller runs the slot clock through this node. In the simulated stage its clock
-    // line is the world's bus.
-    if (!world_address.empty()) {
-      (*node)->SetSlotClock(stage::sim::NewWorldSlotClock(world_address, config.id()));
-    } else {
+    // The rig's sync generator: the controller runs the slot clock through this node, on the gpiod driver's clock
+    // output; in the simulated stage the node's clock line is the world's bus.
+    if (!world_address.empty()) (*node)->SetSlotClock(stage::sim::NewWorldSlotClock(world_address, config.id()));
+    if (!(*node)->drives_slot_clock()) {
       stage::Logger("light.node")
           ->warn(
-              "{} is the rig's timing.sync_generator, but the gpiod backend's clock output cannot run a take's "
-              "planned runs yet: the controller's takes are refused",
-              config.id());
+              "{} is the rig's timing.sync_generator, but its {} backend has no clock output here (a simulated "
+              "node needs --sim-world): the controller's takes are refused",
+              config.id(), stage::light::LightBackendName(backend));
     }
   }
   std::string summary =

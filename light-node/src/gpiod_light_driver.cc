@@ -12,6 +12,24 @@
 
 namespace stage::light {
 
+// The driver's clock output as the node's slot clock.
+class GpiodSlotClock final : public SlotClockGenerator {
+ public:
+  explicit GpiodSlotClock(GpiodLightDriver* driver) : driver_(driver) {}
+  std::string Describe() const override {
+    const DriverDescription d = driver_->Describe();
+    return absl::StrCat("the gpiod clock output of ", d.device);
+  }
+  absl::StatusOr<v1::SlotClockRun> Run(const v1::SlotClockRunRequest& request) override {
+    return driver_->RunClock(request);
+  }
+  absl::StatusOr<v1::SlotClockRun> End(int64_t align_slots) override { return driver_->EndClock(align_slots); }
+  absl::StatusOr<v1::SlotClockRun> Get() override { return driver_->ClockRun(); }
+
+ private:
+  GpiodLightDriver* driver_;
+};
+
 absl::Status GpiodDriverOptions::Validate() const {
   const std::string who = absl::StrCat("light node \"", node_id, "\": ");
   if (channel_count < 1 || channel_count > 4096) {
@@ -38,8 +56,8 @@ absl::Status GpiodDriverOptions::Validate() const {
         absl::StrCat(who, "gpiod.slot_clock_line is required (the node steps on it, or drives it)"));
   }
   if (seen.count(*lines.slot_clock_line) > 0) {
-    return absl::InvalidArgumentError(absl::StrCat(who, "gpiod.slot_clock_line ", *lines.slot_clock_line,
-                                                   " is also a channel line"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(who, "gpiod.slot_clock_line ", *lines.slot_clock_line, " is also a channel line"));
   }
   if (!(slot_rate_hz > 0 && slot_rate_hz <= 100'000)) {
     return absl::InvalidArgumentError(absl::StrCat(who, "slot_rate_hz ", slot_rate_hz, " is not in (0, 100000]"));
@@ -111,11 +129,17 @@ absl::StatusOr<std::unique_ptr<GpiodLightDriver>> GpiodLightDriver::Create(Gpiod
   if (d->options_.run_edge_thread && !d->options_.lines.drives_slot_clock) {
     d->edge_thread_ = std::thread([raw = d.get()] { raw->InputLoop(); });
   }
+  if (d->options_.lines.drives_slot_clock) {
+    constexpr int64_t kSecond = 1'000'000'000;
+    d->epoch_ns_ = timing::HostClockNs(/*realtime_clock=*/true) / kSecond * kSecond;
+    d->slot_clock_ = std::make_unique<GpiodSlotClock>(d.get());
+  }
   Logger("light.gpiod")
       ->info("{}: {} ({} channels x {} lines){}", d->Who(), d->lines_->Describe(), d->options_.channel_count,
              d->options_.lines_per_channel,
              d->options_.lines.drives_slot_clock
-                 ? absl::StrFormat("; generates the slot clock at %g Hz while armed", d->options_.slot_rate_hz)
+                 ? absl::StrFormat("; generates the slot clock at %g Hz in the runs the controller plans",
+                                   d->options_.slot_rate_hz)
                  : std::string());
   return d;
 }
@@ -138,16 +162,100 @@ absl::Status GpiodLightDriver::AllLow() {
   return s;
 }
 
-absl::Status GpiodLightDriver::StartGenerator() {
-  // With mutex_ held (Arm). The run's first edge one slot from now: every listener is ready by then.
+absl::Status GpiodLightDriver::StartGenerator(int64_t first, int64_t count) {
+  // With mutex_ held. Edges at epoch + slot / rate on CLOCK_REALTIME, the clock every host shares through PTP.
   timing::SlotClockOptions clock;
   clock.slot_rate_hz = static_cast<uint32_t>(std::llround(options_.slot_rate_hz));
-  clock.t0_ns = timing::HostClockNs(false) + std::llround(1e9 / options_.slot_rate_hz);
+  clock.t0_ns = epoch_ns_;
+  clock.first_slot = first;
+  clock.slot_count = count;
+  clock.realtime_clock = true;
   auto created = timing::SlotClock::Create(clock);
   if (!created.ok()) return created.status();
   generator_ = *std::move(created);
   generator_->AddListener([this](const timing::SlotEdge& edge) { OnGeneratedEdge(edge); });
   return generator_->Start();
+}
+
+int64_t GpiodLightDriver::SlotNow() const {
+  const double since = static_cast<double>(timing::HostClockNs(/*realtime_clock=*/true) - epoch_ns_);
+  return static_cast<int64_t>(std::floor(since * options_.slot_rate_hz / 1e9));
+}
+
+v1::SlotClockRun GpiodLightDriver::RunNow() const {
+  v1::SlotClockRun run;
+  run.set_first_slot(run_first_);
+  run.set_end_slot(run_end_);
+  run.set_first_edge_ns(epoch_ns_ + std::llround(static_cast<double>(run_first_) * 1e9 / options_.slot_rate_hz));
+  run.set_current_slot(run_current_);
+  return run;
+}
+
+absl::StatusOr<v1::SlotClockRun> GpiodLightDriver::RunClock(const v1::SlotClockRunRequest& request) {
+  if (request.slots() <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(Who(), ": a clock run of ", request.slots(), " slots"));
+  }
+  const int64_t align = std::max<int64_t>(1, request.align_slots());
+  int64_t first;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    const int64_t now = SlotNow();
+    if (request.first_slot() > 0 && !request.plan_only()) {
+      first = request.first_slot();
+      // Asked again for the run it started (a caller whose first answer did not reach it): done already.
+      if (first == run_first_ && first + request.slots() == run_end_) return RunNow();
+      if (first <= now) {
+        return absl::FailedPreconditionError(
+            absl::StrCat(Who(), ": a run from slot ", first, " would start in the past; plan it with more lead"));
+      }
+    } else {
+      first = std::max({now + std::max<int64_t>(1, request.lead_slots()), run_end_, request.min_first_slot()});
+      first = (first + align - 1) / align * align;
+      if (request.plan_only()) {
+        v1::SlotClockRun plan;
+        plan.set_first_slot(first);
+        plan.set_end_slot(first + request.slots());
+        plan.set_first_edge_ns(epoch_ns_ + std::llround(static_cast<double>(first) * 1e9 / options_.slot_rate_hz));
+        plan.set_current_slot(-1);
+        return plan;
+      }
+    }
+    if (run_first_ >= 0 && first < run_end_ && run_current_ < run_end_ - 1) {
+      return absl::FailedPreconditionError(absl::StrCat(Who(), ": a run from slot ", first, " overlaps the last run [",
+                                                        run_first_, ", ", run_end_, ")"));
+    }
+  }
+  StopGenerator();  // the last run's thread, past its end
+  std::lock_guard<std::mutex> lock(mutex_);
+  run_first_ = first;
+  run_end_ = first + request.slots();
+  run_current_ = first - 1;
+  if (absl::Status s = StartGenerator(first, request.slots()); !s.ok()) {
+    run_end_ = first;  // nothing of it will come
+    return absl::Status(s.code(), absl::StrCat(Who(), ": the slot clock did not start: ", s.message()));
+  }
+  return RunNow();
+}
+
+absl::StatusOr<v1::SlotClockRun> GpiodLightDriver::EndClock(int64_t align_slots) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (run_first_ < 0) return absl::FailedPreconditionError(absl::StrCat(Who(), ": the clock has had no run"));
+  const int64_t current = std::max(run_current_, SlotNow());
+  if (current >= run_end_ - 1) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(Who(), ": the clock run [", run_first_, ", ", run_end_, ") is over"));
+  }
+  // The next edge may be on its way out; the one after it is the earliest safe end.
+  const int64_t align = std::max<int64_t>(1, align_slots);
+  const int64_t after = std::max(run_first_, current + 1);
+  run_end_ = std::min(run_end_, run_first_ + (after - run_first_ + align - 1) / align * align);
+  return RunNow();
+}
+
+absl::StatusOr<v1::SlotClockRun> GpiodLightDriver::ClockRun() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (run_first_ < 0) return absl::FailedPreconditionError(absl::StrCat(Who(), ": the clock has had no run"));
+  return RunNow();
 }
 
 void GpiodLightDriver::StopGenerator() {
@@ -176,6 +284,11 @@ void GpiodLightDriver::InputLoop() {
 }
 
 void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
+  {
+    // A run ended early (a pause, an abort) puts out no edge from its new end on.
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (edge.slot >= run_end_) return;
+  }
   // Slots the generator reached a whole slot late or more were not produced (SlotClock goes on with the current
   // slot): OnEdge counts them as lost and steps over them.
   absl::Status s = lines_->SetClock(true);
@@ -188,8 +301,11 @@ void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
   }
   // Low again after clock_duty (at most half) of the slot: the listener returns before the next edge is due.
   timing::SleepUntilHostNs(edge.scheduled_ns + std::llround(1e9 / options_.slot_rate_hz * options_.clock_duty),
-                           /*realtime_clock=*/false);
+                           /*realtime_clock=*/true);
   (void)lines_->SetClock(false);
+  // The slot's pulse is out (or was tried, and its fault noted).
+  std::lock_guard<std::mutex> lock(mutex_);
+  run_current_ = std::max(run_current_, edge.slot);
 }
 
 void GpiodLightDriver::NoteFault(const std::string& kind, const std::string& detail) {
@@ -216,9 +332,9 @@ void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_befo
     // Edges that never reached this node (the kernel's event queue of 16 overflowed, the line glitched), judged from
     // a gap of more than 1.5 periods; the generator says how many slots it did not produce (one it produced late is
     // not lost). The table steps over their slots, so it stays in phase with the clock.
-    lost = lost_before ? *lost_before
-                       : period > 1.5 * nominal ? static_cast<uint64_t>(std::llround(period / nominal)) - 1
-                                                : 0;
+    lost = lost_before              ? *lost_before
+           : period > 1.5 * nominal ? static_cast<uint64_t>(std::llround(period / nominal)) - 1
+                                    : 0;
     if (lost > 0) {
       timing_.lost_edges += lost;
       NoteFault("slot clock: edges lost (LightStats.slot_clock.lost_edges counts them)");
@@ -266,10 +382,9 @@ absl::Status GpiodLightDriver::LoadPatternTable(const PatternTable& table) {
   for (size_t r = 0; r < table.rows.size(); ++r) {
     const ChannelLevels& levels = table.rows[r];
     if (levels.size() != options_.channel_count) {
-      return absl::InvalidArgumentError(absl::StrCat(Who(), ": row ", r,
-                                                     r < table.row_names.size() ? " (" + table.row_names[r] + ")" : "",
-                                                     " has ", levels.size(), " levels; the node has ",
-                                                     options_.channel_count, " channels"));
+      return absl::InvalidArgumentError(
+          absl::StrCat(Who(), ": row ", r, r < table.row_names.size() ? " (" + table.row_names[r] + ")" : "", " has ",
+                       levels.size(), " levels; the node has ", options_.channel_count, " channels"));
     }
     for (size_t c = 0; c < levels.size(); ++c) {
       const double exact = levels[c] / 65535.0;
@@ -291,17 +406,19 @@ absl::Status GpiodLightDriver::LoadPatternTable(const PatternTable& table) {
   quantization_error_ = worst;
   if (worst > kQuantizationWarning) {
     Logger("light.gpiod")
-        ->warn("{}: the {}-row table rounds to {} line(s) per channel; worst error {:.1f} % of full scale at row {} "
-               "({}) channel {}",
-               Who(), table.rows.size(), options_.lines_per_channel, 100 * worst, worst_row,
-               worst_row < table.row_names.size() ? table.row_names[worst_row] : "", worst_channel);
+        ->warn(
+            "{}: the {}-row table rounds to {} line(s) per channel; worst error {:.1f} % of full scale at row {} "
+            "({}) channel {}",
+            Who(), table.rows.size(), options_.lines_per_channel, 100 * worst, worst_row,
+            worst_row < table.row_names.size() ? table.row_names[worst_row] : "", worst_channel);
   }
   return absl::OkStatus();
 }
 
 absl::Status GpiodLightDriver::Arm() {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (state_.mode != DriverMode::kIdle) return absl::FailedPreconditionError(absl::StrCat(Who(), ": arm only when idle"));
+  if (state_.mode != DriverMode::kIdle)
+    return absl::FailedPreconditionError(absl::StrCat(Who(), ": arm only when idle"));
   if (!table_loaded_) return absl::FailedPreconditionError(absl::StrCat(Who(), ": no pattern table loaded"));
   state_.mode = DriverMode::kArmed;
   state_.steps = 0;
@@ -311,12 +428,6 @@ absl::Status GpiodLightDriver::Arm() {
   edges_.clear();
   timing_ = EdgeTiming{};
   armed_at_ns_ = timing::HostClockNs(false);
-  if (options_.lines.drives_slot_clock && options_.run_edge_thread) {
-    if (absl::Status s = StartGenerator(); !s.ok()) {
-      state_.mode = DriverMode::kIdle;
-      return absl::Status(s.code(), absl::StrCat(Who(), ": the slot clock generator did not start: ", s.message()));
-    }
-  }
   return absl::OkStatus();
 }
 

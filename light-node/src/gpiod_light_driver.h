@@ -19,8 +19,8 @@
 #pragma once
 
 #include <atomic>
-#include <deque>
 #include <cstdint>
+#include <deque>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -31,6 +31,7 @@
 #include "absl/status/statusor.h"
 #include "gpio_lines.h"
 #include "stage/light/light_driver.h"
+#include "stage/light/slot_clock.h"
 #include "stage/timing/slot_clock.h"
 #include "stage/v1/rig.pb.h"
 
@@ -90,6 +91,13 @@ class GpiodLightDriver final : public LightDriver {
   absl::Status Blackout() override;
   absl::Status ResetBlackout() override;
   DriverState State() const override;
+  // The clock output as runs the controller plans (drives_slot_clock; null otherwise): see SlotClockGenerator. Slots
+  // count from the driver's epoch (its creation, to the second, on CLOCK_REALTIME: the PTP-disciplined clock T0 is
+  // in); edges come only in runs, at epoch + slot / rate, never between them.
+  SlotClockGenerator* slot_clock() override { return slot_clock_.get(); }
+  absl::StatusOr<v1::SlotClockRun> RunClock(const v1::SlotClockRunRequest& request);
+  absl::StatusOr<v1::SlotClockRun> EndClock(int64_t align_slots);
+  absl::StatusOr<v1::SlotClockRun> ClockRun() const;
 
   // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines. `lost_before`:
   // edges lost just before this one where the caller knows (the generator's skipped slots); unset, a gap of more
@@ -101,7 +109,11 @@ class GpiodLightDriver final : public LightDriver {
 
  private:
   GpiodLightDriver(GpiodDriverOptions options, std::unique_ptr<GpioLines> lines);
-  absl::Status StartGenerator();
+  // A run [first, first + count) on the generator (mutex_ held).
+  absl::Status StartGenerator(int64_t first, int64_t count);
+  // The slot passing now on the clock's epoch, and the run as the contract says it (mutex_ held).
+  int64_t SlotNow() const;
+  v1::SlotClockRun RunNow() const;
   void StopGenerator();
   void InputLoop();
   void OnGeneratedEdge(const timing::SlotEdge& edge);
@@ -113,17 +125,22 @@ class GpiodLightDriver final : public LightDriver {
   GpiodDriverOptions options_;
   std::unique_ptr<GpioLines> lines_;
   mutable std::mutex mutex_;
-  std::vector<std::vector<uint8_t>> row_lines_;  // guarded by mutex_: the table as line values
-  double quantization_error_ = 0;                // guarded by mutex_
-  bool table_loaded_ = false;                    // guarded by mutex_
-  DriverState state_;                            // guarded by mutex_
-  std::deque<int64_t> edges_;                    // guarded by mutex_: the last edge_log_capacity edges
-  EdgeTiming timing_;                            // guarded by mutex_: since Arm()
+  std::vector<std::vector<uint8_t>> row_lines_;   // guarded by mutex_: the table as line values
+  double quantization_error_ = 0;                 // guarded by mutex_
+  bool table_loaded_ = false;                     // guarded by mutex_
+  DriverState state_;                             // guarded by mutex_
+  std::deque<int64_t> edges_;                     // guarded by mutex_: the last edge_log_capacity edges
+  EdgeTiming timing_;                             // guarded by mutex_: since Arm()
   int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
   int64_t armed_at_ns_ = 0;                       // guarded by mutex_
   std::atomic<bool> stopping_{false};
-  std::thread edge_thread_;                   // input: waits for edges
-  std::unique_ptr<timing::SlotClock> generator_;  // guarded by mutex_: the slot clock while armed
+  std::thread edge_thread_;                       // input: waits for edges
+  std::unique_ptr<timing::SlotClock> generator_;  // guarded by mutex_: the current run's clock
+  // The clock's runs: its epoch (CLOCK_REALTIME ns), the last run [run_first_, run_end_) (an EndClock shortens it), and
+  // the last slot whose edge went out (-1 none); run_first_ < 0 before the first run.
+  int64_t epoch_ns_ = 0;
+  int64_t run_first_ = -1, run_end_ = -1, run_current_ = -1;  // guarded by mutex_
+  std::unique_ptr<SlotClockGenerator> slot_clock_;
 };
 
 }  // namespace stage::light

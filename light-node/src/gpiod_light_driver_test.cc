@@ -225,32 +225,65 @@ TEST(GpiodLightDriverTest, InputThreadStepsOnEveryQueuedEdge) {
     for (int i = 0; i < 5; ++i) r.lines->pending_edges.push_back(t0 + i * kPeriod);
     r.lines->edge_ready.notify_all();
   }
-  for (int i = 0; i < 500 && r.driver->State().steps < 5; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  for (int i = 0; i < 500 && r.driver->State().steps < 5; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
   EXPECT_EQ(r.driver->State().steps, 5u);
   EXPECT_EQ(r.driver->State().current_row, 1);
   EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 1));
   EXPECT_EQ(r.driver->Edges().times_ns.size(), 5u);
 }
 
-TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt) {
+// Waits (a test's bound only) until the driver's clock run has put out its last edge.
+void WaitForRunEnd(GpiodLightDriver& driver) {
+  for (int i = 0; i < 5000; ++i) {
+    auto run = driver.ClockRun();
+    if (run.ok() && run->current_slot() >= run->end_slot() - 1) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+}
+
+TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockInPlannedRunsAndStepsOnIt) {
   GpiodDriverOptions o = Options(1, 1, /*thread=*/true, /*drives=*/true);
   o.slot_rate_hz = 912;
   Rig r = Make(o);
+  ASSERT_NE(r.driver->slot_clock(), nullptr);
   ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
   ASSERT_TRUE(r.driver->Arm().ok());
-  for (int i = 0; i < 2000 && r.driver->Edges().timing.count < 200; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  ASSERT_TRUE(r.driver->Disarm().ok());
+  EXPECT_THAT(r.driver->ClockRun().status().message(), HasSubstr("the clock has had no run"));
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  EXPECT_EQ(r.driver->Edges().timing.count, 0u) << "armed, the clock waits for a run";
+
+  // Plan, then start exactly the planned run: its first slot a multiple of 38, T0 its edge on the epoch.
+  v1::SlotClockRunRequest request;
+  request.set_slots(250);
+  request.set_lead_slots(20);
+  request.set_align_slots(38);
+  request.set_plan_only(true);
+  auto plan = r.driver->RunClock(request);
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  EXPECT_EQ(plan->first_slot() % 38, 0);
+  EXPECT_EQ(plan->end_slot(), plan->first_slot() + 250);
+  request.set_plan_only(false);
+  request.set_first_slot(plan->first_slot());
+  auto started = r.driver->RunClock(request);
+  ASSERT_TRUE(started.ok()) << started.status();
+  EXPECT_EQ(started->first_edge_ns(), plan->first_edge_ns());
+  auto again = r.driver->RunClock(request);  // asked twice: started once
+  ASSERT_TRUE(again.ok()) << again.status();
+  WaitForRunEnd(*r.driver);
+  auto run = r.driver->ClockRun();
+  ASSERT_TRUE(run.ok());
+  EXPECT_EQ(run->current_slot(), plan->end_slot() - 1);
   MeasuredEdges m = r.driver->Edges();
-  ASSERT_GE(m.timing.count, 200u);
+  // Every slot of the run went out, or was one the generator reached too late and skipped (counted as lost).
+  EXPECT_EQ(m.timing.count + m.timing.lost_edges, 250u);
   EXPECT_EQ(r.driver->State().steps, m.timing.count + m.timing.lost_edges) << "one step per slot";
-  // The clock runs only while armed: one high and one low per edge the take recorded, alternating, starting high.
   {
+    // One high and one low per edge, alternating, starting high and ending low.
     std::lock_guard<std::mutex> lock(r.lines->mutex);
     ASSERT_EQ(r.lines->clock.size(), 2 * m.timing.count);
     EXPECT_TRUE(r.lines->clock.front().first);
-    EXPECT_FALSE(r.lines->clock.back().first) << "the clock stops low at disarm";
+    EXPECT_FALSE(r.lines->clock.back().first);
     for (size_t i = 1; i < r.lines->clock.size(); ++i) {
       ASSERT_NE(r.lines->clock[i].first, r.lines->clock[i - 1].first) << "clock write " << i;
     }
@@ -261,7 +294,43 @@ TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockAtTheSlotRateAndStepsOnIt)
   const double span = static_cast<double>(m.times_ns.back() - m.times_ns.front());
   const double slots = static_cast<double>(m.timing.count - 1 + m.timing.lost_edges);
   EXPECT_NEAR(span, slots * period, 20e6) << "over " << m.timing.count << " edges";
-  EXPECT_GT(span, 0.9 * (m.timing.count - 1) * period);
+
+  // A run in the past, or one overlapping the last, is refused.
+  request.set_first_slot(plan->first_slot() - 38);
+  EXPECT_THAT(r.driver->RunClock(request).status().message(), HasSubstr("would start in the past"));
+  ASSERT_TRUE(r.driver->Disarm().ok());
+}
+
+TEST(GpiodLightDriverTest, AClockRunEndedEarlyStopsAtAFrameBoundary) {
+  GpiodDriverOptions o = Options(1, 1, /*thread=*/true, /*drives=*/true);
+  o.slot_rate_hz = 912;
+  Rig r = Make(o);
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  v1::SlotClockRunRequest request;
+  request.set_slots(1'000'000);  // far longer than the test
+  request.set_lead_slots(5);
+  request.set_align_slots(38);
+  auto run = r.driver->RunClock(request);
+  ASSERT_TRUE(run.ok()) << run.status();
+  for (int i = 0; i < 5000 && r.driver->Edges().timing.count < 10; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  auto ended = r.driver->EndClock(38);
+  ASSERT_TRUE(ended.ok()) << ended.status();
+  EXPECT_EQ((ended->end_slot() - ended->first_slot()) % 38, 0);
+  EXPECT_LT(ended->end_slot(), run->end_slot());
+  WaitForRunEnd(*r.driver);
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));  // any edge past the end would have come by now
+  const MeasuredEdges m = r.driver->Edges();
+  EXPECT_EQ(m.timing.count + m.timing.lost_edges, static_cast<uint64_t>(ended->end_slot() - ended->first_slot()));
+  EXPECT_THAT(r.driver->EndClock(38).status().message(), HasSubstr("is over"));
+  // The next run follows the last one.
+  request.set_slots(38);
+  auto next = r.driver->RunClock(request);
+  ASSERT_TRUE(next.ok()) << next.status();
+  EXPECT_GE(next->first_slot(), ended->end_slot());
+  ASSERT_TRUE(r.driver->Disarm().ok());
 }
 
 TEST(GpiodLightDriverTest, AFailedOutputWriteIsAFaultAndABlackoutThatCannotConfirmSaysSo) {

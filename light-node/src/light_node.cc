@@ -30,6 +30,7 @@ absl::StatusOr<std::unique_ptr<LightNode>> LightNode::Create(const v1::LightNode
 LightNode::LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
                      LightNodeOptions options)
     : config_(std::move(config)), driver_(std::move(driver)), rig_hash_(std::move(rig_hash)), options_(options) {
+  slot_clock_ = driver_->slot_clock();
   watchdog_ = std::thread([this] { Watchdog(); });
 }
 

@@ -50,8 +50,13 @@ class LightNode {
   // Heartbeat losses that blacked the node out, since start.
   uint64_t watchdog_trips() const;
 
-  // The slot clock this node drives (it is the rig's timing.sync_generator); set once, before serving.
-  void SetSlotClock(std::unique_ptr<SlotClockGenerator> clock) { slot_clock_ = std::move(clock); }
+  // The slot clock this node drives (it is the rig's timing.sync_generator), in place of its driver's own (the gpiod
+  // driver's clock output); set once, before serving.
+  void SetSlotClock(std::unique_ptr<SlotClockGenerator> clock) {
+    owned_slot_clock_ = std::move(clock);
+    slot_clock_ = owned_slot_clock_.get();
+  }
+  bool drives_slot_clock() const { return slot_clock_ != nullptr; }
   // See LightNode.RunSlotClock, EndSlotClock and GetSlotClock. FailedPrecondition on a node without a slot clock.
   absl::StatusOr<v1::SlotClockRun> RunSlotClock(const v1::SlotClockRunRequest& request);
   absl::StatusOr<v1::SlotClockRun> EndSlotClock(int64_t align_slots);
@@ -79,7 +84,8 @@ class LightNode {
   std::string blackout_reason_;  // guarded by mutex_
   uint64_t watchdog_trips_ = 0;  // guarded by mutex_
   std::thread watchdog_;
-  std::unique_ptr<SlotClockGenerator> slot_clock_;
+  std::unique_ptr<SlotClockGenerator> owned_slot_clock_;
+  SlotClockGenerator* slot_clock_ = nullptr;  // owned_slot_clock_, or the driver's
 };
 
 }  // namespace stage::light

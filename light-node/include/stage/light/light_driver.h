@@ -63,6 +63,8 @@ struct DriverDescription {
   uint32_t channel_count = 0;
 };
 
+class SlotClockGenerator;
+
 class LightDriver {
  public:
   virtual ~LightDriver() = default;
@@ -85,6 +87,9 @@ class LightDriver {
   virtual absl::Status ResetBlackout() = 0;
 
   virtual DriverState State() const = 0;
+  // The slot clock this driver generates (a gpiod node with drives_slot_clock), owned by the driver; null for one
+  // that steps on a clock it does not drive.
+  virtual SlotClockGenerator* slot_clock() { return nullptr; }
 };
 
 }  // namespace stage::light
