@@ -4,14 +4,16 @@
 #include <iostream>
 #include <nlohmann/json.hpp>
 
-#include "backends.h"
+#include "camera_backends.h"
 #include "camera_node.h"
 #include "camera_service.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
-#include "stage/sim/world_devices.h"
+#ifdef STAGE_WITH_SIM
+#include "stage/sim/node_backends.h"
+#endif
 #if STAGE_WITH_ARAVIS
 #include "aravis_camera_device.h"
 #endif
@@ -87,36 +89,29 @@ int main(int argc, char** argv) {
   const stage::v1::CameraConfig& config = **camera;
   if (backend.empty()) backend = config.backend();
 
-  stage::RealClock clock(stage::RealClock::Kind::kRealtime);
-  auto device = stage::camera::CreateCameraDevice(backend, config, &clock);
-  if (!device.ok()) return stage::ReportFatal(kProgram, device.status());
-  // Declared before the node: the world outlives the device, which leaves it when stopped.
-  std::unique_ptr<stage::sim::WorldClient> world;
-  stage::sim::SimCameraDevice* sim_device = nullptr;
-  if (!world_address.empty() && config.trigger().source() != stage::v1::TRIGGER_SOURCE_HARDWARE_LINE) {
-    // The world's cameras hang on its trigger bus; software triggers have no time in a lockstep world.
-    stage::Logger(kProgram)->warn(
-        "camera {}: not in the simulated world (its trigger source is not hardware-line); it shows a test pattern",
-        config.id());
-  } else if (!world_address.empty()) {
-    sim_device = dynamic_cast<stage::sim::SimCameraDevice*>(device->get());
-    if (sim_device == nullptr) {
-      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
-    }
-    auto opened = stage::sim::OpenNodeWorld(*loaded, world_address);
-    if (!opened.ok()) return stage::ReportFatal(kProgram, opened.status());
-    world = std::move(opened->client);
-    auto plan = stage::sim::CameraWorld(opened->scene, config.id(), world.get());
-    if (!plan.ok()) return stage::ReportFatal(kProgram, plan.status());
-    plan->on_crash = [] { raise(SIGKILL); };  // a crash fault: the process dies as a crashed node would
-    if (auto s = sim_device->AttachWorld(*plan); !s.ok()) return stage::ReportFatal(kProgram, s);
+  // The backends this program has: the hardware one, and the simulator's when built with it.
+  stage::camera::CameraBackends backends;
+  stage::camera::RegisterHardwareCameraBackends(&backends);
+#ifdef STAGE_WITH_SIM
+  stage::sim::RegisterSimCameraBackend(&backends, [] { raise(SIGKILL); });
+#endif
+  if (!world_address.empty() && backend != "sim") {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
   }
-  auto node = stage::camera::CameraNode::Create(config, std::move(*device), stage::RigHash(loaded->rig));
+  stage::RealClock clock(stage::RealClock::Kind::kRealtime);
+  stage::camera::CameraBackendContext context;
+  context.rig = &*loaded;
+  context.clock = &clock;
+  context.world_address = world_address;
+  auto parts = backends.Create(backend, config, context);
+  if (!parts.ok()) return stage::ReportFatal(kProgram, parts.status());
+  // Declared before the node: what the device needs (the simulated world) outlives it.
+  const std::shared_ptr<void> keep = parts->keep;
+  auto node = stage::camera::CameraNode::Create(config, std::move(parts->device), stage::RigHash(loaded->rig));
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
   // A camera on the trigger line acquires from the start, waiting for the line's edges (in the world: the world's
   // trigger bus); frames outside a take are counted and not recorded. Scheduled software triggers start it per stream.
-  if (sim_device != nullptr ||
-      (backend != "sim" && config.trigger().source() == stage::v1::TRIGGER_SOURCE_HARDWARE_LINE)) {
+  if (parts->start_now) {
     if (auto s = (*node)->device().Start(node->get()); !s.ok()) return stage::ReportFatal(kProgram, s);
   }
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",

@@ -3,15 +3,16 @@
 
 #include <chrono>
 
-#include "backends.h"
+#include "light_backends.h"
 #include "light_node.h"
 #include "light_service.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
-#include "stage/sim/world_devices.h"
-#include "stage/sim/world_slot_clock.h"
+#ifdef STAGE_WITH_SIM
+#include "stage/sim/node_backends.h"
+#endif
 
 int main(int argc, char** argv) {
   stage::BlockShutdownSignals();
@@ -52,54 +53,53 @@ int main(int argc, char** argv) {
     if (!parsed.ok()) return stage::ReportFatal(kProgram, parsed.status());
     backend = *parsed;
   }
-  auto driver = stage::light::CreateLightDriver(backend, config, loaded->rig.timing().slot_rate_hz());
+  // The backends this program has: the hardware ones, and the simulator's when built with it.
+  stage::light::LightBackends backends;
+  stage::light::RegisterHardwareLightBackends(&backends);
+#ifdef STAGE_WITH_SIM
+  stage::sim::RegisterSimLightBackend(&backends, [] { raise(SIGKILL); });
+#endif
+  if (!world_address.empty() && backend != stage::v1::LIGHT_BACKEND_SIM) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
+  }
+  stage::light::LightBackendContext context;
+  context.rig = &*loaded;
+  context.slot_rate_hz = loaded->rig.timing().slot_rate_hz();
+  context.world_address = world_address;
+  context.self_arm = self_arm;
+  auto parts = backends.Create(backend, config, context);
   // A device not there yet (Unavailable: a board that does not answer; NotFound: no such chip) is tried again for
   // --device-wait-s; any other error (bad settings, a board of another kind) is final at once.
   const auto give_up = std::chrono::steady_clock::now() + std::chrono::duration<double>(device_wait_s);
-  while (!driver.ok() && (absl::IsUnavailable(driver.status()) || absl::IsNotFound(driver.status())) &&
+  while (!parts.ok() && (absl::IsUnavailable(parts.status()) || absl::IsNotFound(parts.status())) &&
          std::chrono::steady_clock::now() < give_up) {
     const double left = std::chrono::duration<double>(give_up - std::chrono::steady_clock::now()).count();
     stage::Logger("light.node")
-        ->warn("{}; trying again every second for another {:.0f} s", driver.status().message(), left);
+        ->warn("{}; trying again every second for another {:.0f} s", parts.status().message(), left);
     if (auto sig = stage::WaitForShutdownSignal(std::chrono::milliseconds(1000))) {
       stage::Logger("light.node")->info("stopped (signal {}) while waiting for the device", *sig);
       return 0;
     }
-    driver = stage::light::CreateLightDriver(backend, config, loaded->rig.timing().slot_rate_hz());
+    parts = backends.Create(backend, config, context);
   }
-  if (!driver.ok()) return stage::ReportFatal(kProgram, driver.status());
-  // Declared before the node: the world outlives the driver, which leaves it when destroyed.
-  std::unique_ptr<stage::sim::WorldClient> world;
-  if (!world_address.empty()) {
-    auto* sim_driver = dynamic_cast<stage::sim::SimLightDriver*>(driver->get());
-    if (sim_driver == nullptr) {
-      return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
-    }
-    auto opened = stage::sim::OpenNodeWorld(*loaded, world_address);
-    if (!opened.ok()) return stage::ReportFatal(kProgram, opened.status());
-    world = std::move(opened->client);
-    if (auto s = stage::sim::JoinLightNode(
-            sim_driver, *opened->scene, config.id(), world.get(), [] { raise(SIGKILL); }, self_arm);
-        !s.ok()) {
-      return stage::ReportFatal(kProgram, s);
-    }
-  }
+  if (!parts.ok()) return stage::ReportFatal(kProgram, parts.status());
+  // Declared before the node: what the driver needs (the simulated world) outlives it.
+  const std::shared_ptr<void> keep = parts->keep;
   stage::light::LightNodeOptions node_options;
   node_options.slot_rate_hz = loaded->rig.timing().slot_rate_hz();
   node_options.take_length_s = loaded->rig.timing().take_length_s();
-  auto node = stage::light::LightNode::Create(config, std::move(*driver), stage::RigHash(loaded->rig), node_options);
+  auto node =
+      stage::light::LightNode::Create(config, std::move(parts->driver), stage::RigHash(loaded->rig), node_options);
   if (!node.ok()) return stage::ReportFatal(kProgram, node.status());
-  if (loaded->rig.timing().sync_generator() == config.id()) {
-    // The rig's sync generator: the controller runs the slot clock through this node, on the gpiod driver's clock
-    // output; in the simulated stage the node's clock line is the world's bus.
-    if (!world_address.empty()) (*node)->SetSlotClock(stage::sim::NewWorldSlotClock(world_address, config.id()));
-    if (!(*node)->drives_slot_clock()) {
-      stage::Logger("light.node")
-          ->warn(
-              "{} is the rig's timing.sync_generator, but its {} backend has no clock output here (a simulated "
-              "node needs --sim-world): the controller's takes are refused",
-              config.id(), stage::light::LightBackendName(backend));
-    }
+  if (parts->slot_clock != nullptr) (*node)->SetSlotClock(std::move(parts->slot_clock));
+  if (loaded->rig.timing().sync_generator() == config.id() && !(*node)->drives_slot_clock()) {
+    // The rig's sync generator: the controller runs the slot clock through this node (gpiod's clock output; in the
+    // simulated stage, the world's bus).
+    stage::Logger("light.node")
+        ->warn(
+            "{} is the rig's timing.sync_generator, but its {} backend has no clock output here (a simulated node "
+            "needs --sim-world): the controller's takes are refused",
+            config.id(), stage::light::LightBackendName(backend));
   }
   std::string summary =
       fmt::format("light node {}: {} LED units on {} channels, backend {}, rig {}", config.id(), config.units_size(),

@@ -9,7 +9,9 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/shutdown.h"
+#ifdef STAGE_WITH_SIM
 #include "stage/sim/world_sync_generator.h"
+#endif
 #include "stage/timing/timing_tool.h"
 
 int main(int argc, char** argv) {
@@ -93,13 +95,24 @@ int main(int argc, char** argv) {
         if (node.id() == generator) devices.generator = stage::controller::NewLightSyncGenerator(node);
       }
     } else if (!world_address.empty()) {
+#ifdef STAGE_WITH_SIM
       devices.generator = stage::sim::NewWorldSyncGenerator(world_address);
+#endif
     } else {
       devices.no_generator =
           "the rig names no timing.sync_generator (an external generator), and taking T0 from a light node's input "
           "line is not built yet";
     }
+#ifdef STAGE_WITH_SIM
     if (!world_address.empty()) devices.truth = stage::sim::NewWorldTakeTruth(world_address);
+#else
+    if (!world_address.empty()) {
+      monitor.Stop();
+      return stage::ReportFatal(
+          kProgram, absl::InvalidArgumentError("--sim-world: this stage-controller is built without the simulator "
+                                               "(STAGE_WITH_SIM=OFF)"));
+    }
+#endif
     if (auto s = service.EnableCapture(capture, std::move(devices)); !s.ok()) {
       monitor.Stop();
       return stage::ReportFatal(kProgram, s);

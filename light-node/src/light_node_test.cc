@@ -5,9 +5,9 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
-#include "backends.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "light_backends.h"
 #include "stage/common/rig.h"
 #include "stage/sim/sim_light_driver.h"
 
@@ -157,21 +157,28 @@ TEST(LightNodeTest, ChannelCountMismatchIsRefused) {
 TEST(LightNodeTest, BackendsByName) {
   EXPECT_EQ(*ParseLightBackend("modbus"), v1::LIGHT_BACKEND_MODBUS);
   EXPECT_FALSE(ParseLightBackend("dmx").ok());
+  LightBackends backends;
+  RegisterHardwareLightBackends(&backends);
+  LightBackendContext context;
   v1::LightNodeConfig config = TestNode();
-  EXPECT_TRUE(CreateLightDriver(v1::LIGHT_BACKEND_SIM, config, 912).ok());
+  // The simulator's backend is registered only by a program built with it: asked for, the error names what there is.
+  auto sim = backends.Create(v1::LIGHT_BACKEND_SIM, config, context);
+  ASSERT_FALSE(sim.ok());
+  EXPECT_THAT(std::string(sim.status().message()), ::testing::HasSubstr("this program has no sim backend (it has: "));
+  EXPECT_THAT(std::string(sim.status().message()), ::testing::HasSubstr(config.id()));
   // The shipped rig's boards are not on this machine's network: the error names the board, with no fallback.
-  auto modbus = CreateLightDriver(v1::LIGHT_BACKEND_MODBUS, config, 912);
+  auto modbus = backends.Create(v1::LIGHT_BACKEND_MODBUS, config, context);
   ASSERT_FALSE(modbus.ok());
   EXPECT_THAT(std::string(modbus.status().message()),
               ::testing::AnyOf(::testing::HasSubstr("led-board-1.stage.lan"),
-                               ::testing::HasSubstr("this build has no modbus backend")));
+                               ::testing::HasSubstr("this program has no modbus backend")));
   // A gpiod node on a chip this machine does not have: the error names the node and the chip.
   config.set_backend(v1::LIGHT_BACKEND_GPIOD);
   auto* g = config.mutable_gpiod();
   g->set_chip("gpiochip-fastage-absent");
   for (uint32_t c = 0; c < config.channel_count(); ++c) g->add_channel_lines(c);
   g->set_slot_clock_line(config.channel_count());
-  auto gpiod = CreateLightDriver(v1::LIGHT_BACKEND_GPIOD, config, 912);
+  auto gpiod = backends.Create(v1::LIGHT_BACKEND_GPIOD, config, context);
   ASSERT_FALSE(gpiod.ok());
   EXPECT_THAT(std::string(gpiod.status().message()), ::testing::HasSubstr(config.id()));
   EXPECT_THAT(std::string(gpiod.status().message()),
@@ -179,7 +186,7 @@ TEST(LightNodeTest, BackendsByName) {
                                ::testing::HasSubstr("this build has no gpiod backend")));
   // Without its slot clock line the options are refused by name.
   g->clear_slot_clock_line();
-  auto no_clock = CreateLightDriver(v1::LIGHT_BACKEND_GPIOD, config, 912);
+  auto no_clock = backends.Create(v1::LIGHT_BACKEND_GPIOD, config, context);
   ASSERT_FALSE(no_clock.ok());
   EXPECT_THAT(std::string(no_clock.status().message()), ::testing::HasSubstr("gpiod.slot_clock_line"));
 }

@@ -1,0 +1,58 @@
+// Camera backends: see backends.h.
+#include "camera_backends.h"
+
+#ifndef STAGE_WITH_ARAVIS
+#define STAGE_WITH_ARAVIS 0
+#endif
+
+#include <vector>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#if STAGE_WITH_ARAVIS
+#include "aravis_camera_device.h"
+#endif
+
+namespace stage::camera {
+
+void CameraBackends::Register(const std::string& backend, CameraBackendFactory factory) {
+  factories_[backend] = std::move(factory);
+}
+
+absl::StatusOr<CameraBackendParts> CameraBackends::Create(const std::string& backend, const v1::CameraConfig& config,
+                                                          const CameraBackendContext& context) const {
+  auto it = factories_.find(backend);
+  if (it == factories_.end()) {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": this program has no ", backend,
+                                                   " backend (it has: ", Names(), ")"));
+  }
+  return it->second(config, context);
+}
+
+std::string CameraBackends::Names() const {
+  std::vector<std::string> names;
+  for (const auto& [backend, factory] : factories_) names.push_back(backend);
+  return names.empty() ? "none" : absl::StrJoin(names, ", ");
+}
+
+void RegisterHardwareCameraBackends(CameraBackends* backends) {
+#if STAGE_WITH_ARAVIS
+  backends->Register("aravis", [](const v1::CameraConfig& config,
+                                  const CameraBackendContext&) -> absl::StatusOr<CameraBackendParts> {
+    if (config.device().empty()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "camera \"", config.id(), "\": the aravis backend needs the camera's device (serial, user id or address)"));
+    }
+    auto device = AravisCameraDevice::Open(config.id(), config.device());
+    if (!device.ok()) return device.status();
+    CameraBackendParts parts;
+    parts.device = std::move(*device);
+    parts.start_now = config.trigger().source() == v1::TRIGGER_SOURCE_HARDWARE_LINE;
+    return parts;
+  });
+#else
+  (void)backends;
+#endif
+}
+
+}  // namespace stage::camera

@@ -1,0 +1,59 @@
+// Camera backends, registered in main() and chosen by the rig's `backend` (or --backend): the hardware one here
+// (aravis, where this build has Aravis), the simulator's in sim/ (sim/node_backends.h), registered only by a program
+// built with the simulator. Nothing here links the simulator.
+#pragma once
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "stage/camera/camera_device.h"
+#include "stage/common/clock.h"
+#include "stage/common/rig.h"
+#include "stage/v1/rig.pb.h"
+
+namespace stage::camera {
+
+// What a backend may need beyond the camera's entry in the rig.
+struct CameraBackendContext {
+  // The rig the node runs; not owned.
+  const LoadedRig* rig = nullptr;
+  // The node's clock (frame timestamps where the device has none of its own); outlives the device.
+  Clock* clock = nullptr;
+  // host:port of stage-sim's simulated world (--sim-world); empty on a real stage.
+  std::string world_address;
+};
+
+// What a backend makes for a node.
+struct CameraBackendParts {
+  std::unique_ptr<CameraDevice> device;
+  // The device acquires from the start, waiting for its trigger line's edges (a camera on the hardware line; in the
+  // simulated world, the world's bus): frames outside a take are counted and not recorded.
+  bool start_now = false;
+  // What must outlive the device (a connection to the simulated world): destroyed after it.
+  std::shared_ptr<void> keep;
+};
+
+using CameraBackendFactory =
+    std::function<absl::StatusOr<CameraBackendParts>(const v1::CameraConfig&, const CameraBackendContext&)>;
+
+class CameraBackends {
+ public:
+  void Register(const std::string& backend, CameraBackendFactory factory);
+  // The camera's device from `backend`. InvalidArgument names the camera and the backends this program has for one
+  // it lacks; the backend's own errors name the camera and its device.
+  absl::StatusOr<CameraBackendParts> Create(const std::string& backend, const v1::CameraConfig& config,
+                                            const CameraBackendContext& context) const;
+  // "aravis, sim": the registered backends.
+  std::string Names() const;
+
+ private:
+  std::map<std::string, CameraBackendFactory> factories_;
+};
+
+// aravis, where this build has Aravis.
+void RegisterHardwareCameraBackends(CameraBackends* backends);
+
+}  // namespace stage::camera
