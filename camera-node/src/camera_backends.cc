@@ -37,19 +37,20 @@ std::string CameraBackends::Names() const {
 
 void RegisterHardwareCameraBackends(CameraBackends* backends) {
 #if STAGE_WITH_ARAVIS
-  backends->Register("aravis", [](const v1::CameraConfig& config,
-                                  const CameraBackendContext&) -> absl::StatusOr<CameraBackendParts> {
-    if (config.device().empty()) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "camera \"", config.id(), "\": the aravis backend needs the camera's device (serial, user id or address)"));
-    }
-    auto device = AravisCameraDevice::Open(config.id(), config.device());
-    if (!device.ok()) return device.status();
-    CameraBackendParts parts;
-    parts.device = std::move(*device);
-    parts.start_now = config.trigger().source() == v1::TRIGGER_SOURCE_HARDWARE_LINE;
-    return parts;
-  });
+  backends->Register(
+      "aravis", [](const v1::CameraConfig& config, const CameraBackendContext&) -> absl::StatusOr<CameraBackendParts> {
+        if (config.device().empty()) {
+          return absl::InvalidArgumentError(
+              absl::StrCat("camera \"", config.id(),
+                           "\": the aravis backend needs the camera's device (serial, user id or address)"));
+        }
+        auto device = AravisCameraDevice::Open(config.id(), config.device());
+        if (!device.ok()) return device.status();
+        CameraBackendParts parts;
+        parts.device = std::move(*device);
+        parts.start_now = config.trigger().source() == v1::TRIGGER_SOURCE_HARDWARE_LINE;
+        return parts;
+      });
 #else
   (void)backends;
 #endif

@@ -53,28 +53,29 @@ std::string LightBackends::Names() const {
 }
 
 void RegisterHardwareLightBackends(LightBackends* backends) {
-  backends->Register(v1::LIGHT_BACKEND_GPIOD, [](const v1::LightNodeConfig& config,
-                                                 const LightBackendContext& context)
-                                                  -> absl::StatusOr<LightBackendParts> {
-    auto options = GpiodDriverOptionsFromRig(config, context.slot_rate_hz);
-    if (!options.ok()) return options.status();
-    auto driver = GpiodLightDriver::Open(*std::move(options));
-    if (!driver.ok()) return driver.status();
-    LightBackendParts parts;
-    parts.driver = std::move(*driver);
-    return parts;
-  });
+  backends->Register(
+      v1::LIGHT_BACKEND_GPIOD,
+      [](const v1::LightNodeConfig& config, const LightBackendContext& context) -> absl::StatusOr<LightBackendParts> {
+        auto options = GpiodDriverOptionsFromRig(config, context.slot_rate_hz);
+        if (!options.ok()) return options.status();
+        auto driver = GpiodLightDriver::Open(*std::move(options));
+        if (!driver.ok()) return driver.status();
+        LightBackendParts parts;
+        parts.driver = std::move(*driver);
+        return parts;
+      });
 #ifdef STAGE_WITH_MODBUS
-  backends->Register(v1::LIGHT_BACKEND_MODBUS, [](const v1::LightNodeConfig& config,
-                                                  const LightBackendContext&) -> absl::StatusOr<LightBackendParts> {
-    auto options = ModbusDriverOptionsFromRig(config);
-    if (!options.ok()) return options.status();
-    auto driver = ModbusLightDriver::Open(*std::move(options));
-    if (!driver.ok()) return driver.status();
-    LightBackendParts parts;
-    parts.driver = std::move(*driver);
-    return parts;
-  });
+  backends->Register(
+      v1::LIGHT_BACKEND_MODBUS,
+      [](const v1::LightNodeConfig& config, const LightBackendContext&) -> absl::StatusOr<LightBackendParts> {
+        auto options = ModbusDriverOptionsFromRig(config);
+        if (!options.ok()) return options.status();
+        auto driver = ModbusLightDriver::Open(*std::move(options));
+        if (!driver.ok()) return driver.status();
+        LightBackendParts parts;
+        parts.driver = std::move(*driver);
+        return parts;
+      });
 #endif
 }
 
