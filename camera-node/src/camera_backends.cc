@@ -22,6 +22,10 @@ void CameraBackends::Register(const std::string& backend, CameraBackendFactory f
 absl::StatusOr<CameraBackendParts> CameraBackends::Create(const std::string& backend, const v1::CameraConfig& config,
                                                           const CameraBackendContext& context) const {
   auto it = factories_.find(backend);
+  if (it == factories_.end() && backend != "aravis" && backend != "sim") {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": unknown backend \"", backend,
+                                                   "\" (this program has: ", Names(), ")"));
+  }
   if (it == factories_.end()) {
     return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": this program has no ", backend,
                                                    " backend (it has: ", Names(), ")"));
