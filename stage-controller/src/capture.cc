@@ -822,16 +822,31 @@ absl::StatusOr<v1::SessionReply> Capturer::AbortRunning(Take& take, v1::SessionS
   return reply;
 }
 
+absl::Status Capturer::ClaimArming(const char* what) {
+  // With mutex_ held. The check and the claim are one step: two requests cannot both arm.
+  if (session_.state() != v1::SESSION_STATE_IDLE && session_.state() != v1::SESSION_STATE_ERROR) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(what, ": the session is ", SessionStateName(session_.state()), "; wait for it"));
+  }
+  if (arming_) return absl::FailedPreconditionError(absl::StrCat(what, ": another take is being armed; wait for it"));
+  arming_ = true;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmClaimed(const v1::CaptureRequest& request) {
+  auto take = ArmTake(request);
+  std::lock_guard<std::mutex> lock(mutex_);
+  arming_ = false;
+  return take;
+}
+
 absl::StatusOr<v1::TakeSummary> Capturer::Arm(const v1::CaptureRequest& request, const CaptureEventFn& on_event) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (session_.state() != v1::SESSION_STATE_IDLE && session_.state() != v1::SESSION_STATE_ERROR) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("arm: the session is ", SessionStateName(session_.state()), "; wait for it"));
-    }
+    STAGE_RETURN_IF_ERROR(ClaimArming("arm"));
   }
   Following following(&events_, on_event);
-  STAGE_ASSIGN_OR_RETURN(std::unique_ptr<Take> take, ArmTake(request));
+  STAGE_ASSIGN_OR_RETURN(std::unique_ptr<Take> take, ArmClaimed(request));
   v1::TakeSummary summary = take->summary;
   std::lock_guard<std::mutex> lock(mutex_);
   armed_ = std::move(take);
@@ -852,15 +867,14 @@ absl::StatusOr<v1::TakeSummary> Capturer::Capture(const v1::CaptureRequest& requ
       }
       take = std::move(armed_);
       running_ = take.get();
-    } else if (state != v1::SESSION_STATE_IDLE && state != v1::SESSION_STATE_ERROR) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("capture: the session is ", SessionStateName(state), "; wait for it"));
+    } else {
+      STAGE_RETURN_IF_ERROR(ClaimArming("capture"));
     }
   }
   // The caller follows the take's events until it ends (or goes away: the take goes on).
   Following following(&events_, on_event);
   if (take == nullptr) {
-    STAGE_ASSIGN_OR_RETURN(take, ArmTake(request));
+    STAGE_ASSIGN_OR_RETURN(take, ArmClaimed(request));
     std::lock_guard<std::mutex> lock(mutex_);
     running_ = take.get();
   }

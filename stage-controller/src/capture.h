@@ -111,6 +111,11 @@ class Capturer {
   void SetState(v1::SessionState state);
   // Tells the take's followers and the log.
   void Say(const std::string& message, bool warn = false);
+  // Claims the session for arming a take (mutex_ held): FailedPrecondition, `what` first, unless the session is idle
+  // (or in error) and no other request is arming.
+  absl::Status ClaimArming(const char* what);
+  // ArmTake for a claimed session; the claim ends with it.
+  absl::StatusOr<std::unique_ptr<Take>> ArmClaimed(const v1::CaptureRequest& request);
   // Creates the take and arms every node for it (state configuring, then armed).
   absl::StatusOr<std::unique_ptr<Take>> ArmTake(const v1::CaptureRequest& request);
   // Arms every light node with its table, and starts their heartbeat.
@@ -174,6 +179,7 @@ class Capturer {
   mutable std::mutex mutex_;
   SessionMachine session_;    // guarded by mutex_
   std::string current_take_;  // guarded by mutex_
+  bool arming_ = false;       // a request is arming a take (ClaimArming); guarded by mutex_
   TakeEvents events_;
   // The armed take no Capture has claimed yet (stagectl arm); guarded by mutex_.
   std::unique_ptr<Take> armed_;

@@ -247,9 +247,26 @@ class FakeCamera final : public CameraClient {
 class FakeLight final : public LightClient {
  public:
   absl::Status Arm(const v1::ArmLightRequest&, SteadyTime, v1::LightStats*) override {
-    std::lock_guard<std::mutex> lock(mu_);
+    std::unique_lock<std::mutex> lock(mu_);
+    arming_ = true;
+    changed_.notify_all();
+    changed_.wait(lock, [&] { return !hold_arm_; });
     armed_ = true;
     return absl::OkStatus();
+  }
+  // Arm answers only once Release is called (a slow node), and the test can wait until it is asked.
+  void HoldArm() {
+    std::lock_guard<std::mutex> lock(mu_);
+    hold_arm_ = true;
+  }
+  void ReleaseArm() {
+    std::lock_guard<std::mutex> lock(mu_);
+    hold_arm_ = false;
+    changed_.notify_all();
+  }
+  bool WaitUntilAsked() {
+    std::unique_lock<std::mutex> lock(mu_);
+    return changed_.wait_for(lock, std::chrono::seconds(60), [&] { return arming_; });
   }
   absl::Status Heartbeat(const v1::HeartbeatRequest&, std::chrono::milliseconds, v1::LightStats*) override {
     std::lock_guard<std::mutex> lock(mu_);
@@ -272,7 +289,8 @@ class FakeLight final : public LightClient {
 
  private:
   mutable std::mutex mu_;
-  bool armed_ = false, gone_ = false;
+  std::condition_variable changed_;
+  bool armed_ = false, gone_ = false, hold_arm_ = false, arming_ = false;
 };
 
 // The session owns its clients for a take; the fakes stay with the test, to be looked at after the take.
@@ -319,6 +337,10 @@ class CaptureSessionTest : public ::testing::Test {
   }
   void TearDown() override {
     if (generator_ != nullptr) generator_->Release();
+    {
+      std::lock_guard<std::mutex> lock(fakes_mu_);
+      for (auto& [id, light] : lights_) light->ReleaseArm();
+    }
     if (capture_thread_.joinable()) capture_thread_.join();
   }
 
@@ -350,6 +372,7 @@ class CaptureSessionTest : public ::testing::Test {
     devices.generator = std::move(generator);
     devices.nodes.camera = [this, brightness](const v1::CameraConfig& c) -> std::unique_ptr<CameraClient> {
       auto cam = std::make_shared<FakeCamera>(generator_, brightness);
+      std::lock_guard<std::mutex> lock(fakes_mu_);
       cameras_[c.id()] = cam;
       if (c.id() == camera_gone_) cam->GoneAt(camera_gone_at_);
       if (c.id() == camera_refuses_) cam->RefuseArm();
@@ -357,6 +380,8 @@ class CaptureSessionTest : public ::testing::Test {
     };
     devices.nodes.light = [this](const v1::LightNodeConfig& n) -> std::unique_ptr<LightClient> {
       auto light = std::make_shared<FakeLight>();
+      if (n.id() == slow_light_) light->HoldArm();
+      std::lock_guard<std::mutex> lock(fakes_mu_);
       lights_[n.id()] = light;
       return std::make_unique<LightRef>(light);
     };
@@ -416,7 +441,8 @@ class CaptureSessionTest : public ::testing::Test {
   FakeGenerator* generator_ = nullptr;
   std::map<std::string, std::shared_ptr<FakeCamera>> cameras_;
   std::map<std::string, std::shared_ptr<FakeLight>> lights_;
-  std::string camera_gone_, camera_refuses_;
+  std::string camera_gone_, camera_refuses_, slow_light_;
+  std::mutex fakes_mu_;  // the session makes its clients (and the fakes) on its own thread
   int64_t camera_gone_at_ = -1;
   std::thread capture_thread_;
   absl::StatusOr<v1::TakeSummary> result_;
@@ -518,6 +544,32 @@ TEST_F(CaptureSessionTest, AbortEndsTheRunAtTheNextSlotAndKeepsWhatWasRecorded) 
   EXPECT_EQ(states().back(), v1::SESSION_STATE_IDLE);
   EXPECT_THAT(states(), ::testing::Contains(v1::SESSION_STATE_ABORTING));
   ExpectEveryNodeDone();
+}
+
+TEST_F(CaptureSessionTest, TwoRequestsCannotBothArm) {
+  slow_light_ = "lights-modbus-1";  // the first request's arming waits on it
+  Start();
+  CaptureInBackground(2);
+  std::shared_ptr<FakeLight> slow;
+  for (int i = 0; i < 6000 && slow == nullptr; ++i) {
+    {
+      std::lock_guard<std::mutex> lock(fakes_mu_);  // until the session has made the light's client
+      if (lights_.count(slow_light_) > 0) slow = lights_.at(slow_light_);
+    }
+    if (slow == nullptr) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ASSERT_NE(slow, nullptr);
+  ASSERT_TRUE(slow->WaitUntilAsked());
+  v1::CaptureRequest request;
+  request.set_frames(1);
+  const absl::Status second = capturer_->Capture(request, nullptr).status();
+  EXPECT_EQ(second.code(), absl::StatusCode::kFailedPrecondition) << second;
+  EXPECT_THAT(capturer_->Arm(request, nullptr).status().message(), HasSubstr("arm: the session is configuring"));
+  slow->ReleaseArm();
+  auto summary = Join();
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->outcome(), v1::TAKE_OUTCOME_COMPLETE) << summary->hint();
+  EXPECT_EQ(generator_->starts(), 1);
 }
 
 TEST_F(CaptureSessionTest, AnArmedTakeAbortedNeverRuns) {
