@@ -10,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "stage/common/file_util.h"
+#include "stage/common/ledger_counts.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
@@ -39,7 +40,7 @@ void Count(v1::LedgerCounts* c, storage::LossReason reason) {
   if (reason == storage::LossReason::kNone) {
     c->set_stored(c->stored() + 1);
   } else {
-    AddLoss(c, reason);
+    AddLoss(c, storage::ToProto(reason));
   }
 }
 
@@ -84,21 +85,6 @@ int64_t ExpectedFrames(const v1::CameraTiming& timing, int64_t slots, const Gaps
   auto before = [&](int64_t s) { return s > p ? (s - p - 1) / d + 1 : 0; };  // firings in [0, s)
   for (const auto& [first, end] : gaps) n -= before(std::min(end, slots)) - before(std::min(first, slots));
   return n;
-}
-
-void AddLoss(v1::LedgerCounts* counts, storage::LossReason reason, int64_t n) {
-  const v1::LossReason r = storage::ToProto(reason);
-  for (v1::LossCount& l : *counts->mutable_lost()) {
-    if (l.reason() == r) {
-      l.set_frames(l.frames() + n);
-      return;
-    }
-  }
-  v1::LossCount* l = counts->add_lost();
-  l->set_reason(r);
-  l->set_frames(n);
-  std::sort(counts->mutable_lost()->begin(), counts->mutable_lost()->end(),
-            [](const v1::LossCount& a, const v1::LossCount& b) { return a.reason() < b.reason(); });
 }
 
 v1::RoleProgress* RoleOf(v1::CaptureProgress* progress, v1::CameraRole role) {

@@ -30,8 +30,6 @@ void CameraSlots(const v1::CameraTiming& timing, int64_t slots, const Gaps& gaps
                  std::vector<int64_t>* paused);
 // How many frames a camera owes a take of `slots` slots with `gaps`.
 int64_t ExpectedFrames(const v1::CameraTiming& timing, int64_t slots, const Gaps& gaps);
-// Adds `n` losses of `reason` to `counts` (its reasons in the enum's order, each once).
-void AddLoss(v1::LedgerCounts* counts, storage::LossReason reason, int64_t n = 1);
 // The progress entry of `role`, made on first use (in the order the roles come).
 v1::RoleProgress* RoleOf(v1::CaptureProgress* progress, v1::CameraRole role);
 

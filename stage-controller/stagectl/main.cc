@@ -22,6 +22,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/ledger_counts.h"
 #include "stage/common/logging.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/rig.h"
@@ -374,19 +375,7 @@ void PrintSummary(const stage::v1::TakeSummary& t) {
             << "  ledger: " << Counts(t.total()) << "\n";
   std::map<std::string, stage::v1::LedgerCounts> by_role;
   for (const auto& c : t.cameras()) {
-    auto& r = by_role[stage::CameraRoleName(c.role())];
-    r.set_expected(r.expected() + c.counts().expected());
-    r.set_stored(r.stored() + c.counts().stored());
-    for (const auto& l : c.counts().lost()) {
-      bool found = false;
-      for (auto& have : *r.mutable_lost()) {
-        if (have.reason() == l.reason()) {
-          have.set_frames(have.frames() + l.frames());
-          found = true;
-        }
-      }
-      if (!found) *r.add_lost() = l;
-    }
+    stage::AddCounts(c.counts(), &by_role[stage::CameraRoleName(c.role())]);
   }
   for (const auto& [role, counts] : by_role) std::cout << "    " << role << ": " << Counts(counts) << "\n";
   for (const auto& c : t.cameras()) {
