@@ -65,6 +65,21 @@ class CaptureTest : public SimulatedStageTest {
                          "' AND camera_id='" + camera + "' AND reason=" + std::to_string(reason) + " ORDER BY slot)");
   }
 
+  // The frames a camera node has written of its take, asked every 100 ms until there are `at_least` (or `within` has
+  // passed: the last answer).
+  int64_t FramesWritten(const v1::SimProcess& node, int64_t at_least, std::chrono::seconds within) {
+    auto camera = v1::CameraNode::NewStub(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials()));
+    const auto deadline = std::chrono::steady_clock::now() + within;
+    int64_t written = 0;
+    while (written < at_least && std::chrono::steady_clock::now() < deadline) {
+      grpc::ClientContext context;
+      v1::CameraStats stats;
+      if (camera->GetStats(&context, v1::GetStatsRequest(), &stats).ok()) written = stats.take_frames_written();
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+    return written;
+  }
+
   // The world's bus as the test sees it: who started its last run, and who has called Run, EndRun and GetRun.
   v1::WorldRunReply WorldBus() {
     auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
@@ -272,16 +287,7 @@ TEST_F(CaptureTest, ACameraNodeKilledMidTakeLeavesItsFramesAndTheRestNodeDown) {
   ASSERT_NE(victim, nullptr);
   auto capture = SpawnStagectl({"capture", "--frames", "12", "--json"}, "capture");
   ASSERT_NE(capture, nullptr);
-  auto camera = v1::CameraNode::NewStub(grpc::CreateChannel(victim->address(), grpc::InsecureChannelCredentials()));
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
-  int64_t written = 0;
-  while (written < 3 && std::chrono::steady_clock::now() < deadline) {
-    grpc::ClientContext context;
-    v1::CameraStats stats;
-    if (camera->GetStats(&context, v1::GetStatsRequest(), &stats).ok()) written = stats.take_frames_written();
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  ASSERT_GE(written, 3);
+  ASSERT_GE(FramesWritten(*victim, 3, std::chrono::seconds(120)), 3);
   ASSERT_EQ(kill(victim->pid(), SIGKILL), 0);
 
   auto exit = capture->Wait(std::chrono::seconds(300));
@@ -319,16 +325,7 @@ TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
   ASSERT_NE(capture, nullptr);
   const v1::SimProcess* witness = Process("mv-01");
   ASSERT_NE(witness, nullptr);
-  auto camera = v1::CameraNode::NewStub(grpc::CreateChannel(witness->address(), grpc::InsecureChannelCredentials()));
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(180);
-  int64_t written = 0;
-  while (written < 3 && std::chrono::steady_clock::now() < deadline) {
-    grpc::ClientContext context;
-    v1::CameraStats stats;
-    if (camera->GetStats(&context, v1::GetStatsRequest(), &stats).ok()) written = stats.take_frames_written();
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  ASSERT_GE(written, 3);
+  ASSERT_GE(FramesWritten(*witness, 3, std::chrono::seconds(180)), 3);
   const v1::WorldRunReply during = WorldBus();
   EXPECT_EQ(during.started_by(), "lights-gpio-1");
   EXPECT_EQ(during.bus_calls().count("controller"), 0u) << "the controller called the world's bus";

@@ -182,11 +182,15 @@ int64_t GpiodLightDriver::SlotNow() const {
   return static_cast<int64_t>(std::floor(since * options_.slot_rate_hz / 1e9));
 }
 
+int64_t GpiodLightDriver::EdgeNs(int64_t slot) const {
+  return epoch_ns_ + std::llround(static_cast<double>(slot) * 1e9 / options_.slot_rate_hz);
+}
+
 v1::SlotClockRun GpiodLightDriver::RunNow() const {
   v1::SlotClockRun run;
   run.set_first_slot(run_first_);
   run.set_end_slot(run_end_);
-  run.set_first_edge_ns(epoch_ns_ + std::llround(static_cast<double>(run_first_) * 1e9 / options_.slot_rate_hz));
+  run.set_first_edge_ns(EdgeNs(run_first_));
   run.set_current_slot(run_current_);
   return run;
 }
@@ -215,7 +219,7 @@ absl::StatusOr<v1::SlotClockRun> GpiodLightDriver::RunClock(const v1::SlotClockR
         v1::SlotClockRun plan;
         plan.set_first_slot(first);
         plan.set_end_slot(first + request.slots());
-        plan.set_first_edge_ns(epoch_ns_ + std::llround(static_cast<double>(first) * 1e9 / options_.slot_rate_hz));
+        plan.set_first_edge_ns(EdgeNs(first));
         plan.set_current_slot(-1);
         return plan;
       }

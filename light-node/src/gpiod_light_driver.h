@@ -113,6 +113,8 @@ class GpiodLightDriver final : public LightDriver {
   absl::Status StartGenerator(int64_t first, int64_t count);
   // The slot passing now on the clock's epoch, and the run as the contract says it (mutex_ held).
   int64_t SlotNow() const;
+  // The time of `slot`'s edge on CLOCK_REALTIME: epoch + slot / rate.
+  int64_t EdgeNs(int64_t slot) const;
   v1::SlotClockRun RunNow() const;
   void StopGenerator();
   void InputLoop();

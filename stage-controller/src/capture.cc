@@ -34,6 +34,23 @@ using Clock = std::chrono::steady_clock;
 constexpr uint32_t kLightHeartbeatTimeoutMs = 1000;
 constexpr int kLightHeartbeatMs = 200;
 
+// A pause, resume or abort changing a take's plan: its plan_changing flag is cleared (under the session's lock) on
+// every way out.
+class PlanSettled {
+ public:
+  PlanSettled(std::mutex* mutex, bool* changing) : mutex_(mutex), changing_(changing) {}
+  ~PlanSettled() {
+    std::lock_guard<std::mutex> lock(*mutex_);
+    *changing_ = false;
+  }
+  PlanSettled(const PlanSettled&) = delete;
+  PlanSettled& operator=(const PlanSettled&) = delete;
+
+ private:
+  std::mutex* mutex_;
+  bool* changing_;
+};
+
 }  // namespace
 
 absl::Status CaptureOptions::Validate() const {
@@ -635,14 +652,7 @@ absl::StatusOr<v1::SessionReply> Capturer::Pause() {
     }
     take->plan_changing = true;  // until the session says paused (or the pause fails)
   }
-  struct Settled {  // the plan is settled on every way out
-    Capturer* c;
-    Take* t;
-    ~Settled() {
-      std::lock_guard<std::mutex> lock(c->mutex_);
-      t->plan_changing = false;
-    }
-  } settled{this, take};
+  const PlanSettled settled(&mutex_, &take->plan_changing);
   auto ended = devices_.generator->End(take->cycle);
   if (!ended.ok()) {
     return absl::FailedPreconditionError(
@@ -691,14 +701,7 @@ absl::StatusOr<v1::SessionReply> Capturer::Resume() {
     min_gap = std::max<int64_t>(take->cycle, static_cast<int64_t>(paused_s * base.slot_rate_hz()));
     take->plan_changing = true;  // until the session says capturing (or the resume fails)
   }
-  struct Settled {
-    Capturer* c;
-    Take* t;
-    ~Settled() {
-      std::lock_guard<std::mutex> lock(c->mutex_);
-      t->plan_changing = false;
-    }
-  } settled{this, take};
+  const PlanSettled settled(&mutex_, &take->plan_changing);
   SyncRunRequest request;
   request.slots = remaining;
   request.lead_slots = base.slot_rate_hz() / 2;
@@ -776,14 +779,7 @@ absl::StatusOr<v1::SessionReply> Capturer::AbortRunning(Take& take, v1::SessionS
     }
     take.plan_changing = true;  // until the session says aborting
   }
-  struct Settled {  // the plan is settled on every way out
-    Capturer* c;
-    Take* t;
-    ~Settled() {
-      std::lock_guard<std::mutex> lock(c->mutex_);
-      t->plan_changing = false;
-    }
-  } settled{this, &take};
+  const PlanSettled settled(&mutex_, &take.plan_changing);
   bool clock_lost;
   {
     std::lock_guard<std::mutex> lock(mutex_);

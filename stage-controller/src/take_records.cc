@@ -151,7 +151,7 @@ void AccountCamera(const TakeShape& take, const CameraOutcome& camera, const tim
   std::vector<int64_t> lost_by_pattern(static_cast<size_t>(take.cycle), 0);
   for (size_t j = first_entry; j < ledger->size(); ++j) {
     const storage::LedgerEntry& e = (*ledger)[j];
-    if (!e.stored() && e.reason != storage::LossReason::kPaused) {
+    if (!e.stored()) {
       ++lost_by_pattern[static_cast<size_t>(e.pattern) % lost_by_pattern.size()];
     }
   }
