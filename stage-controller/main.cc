@@ -1,8 +1,11 @@
 // stage-controller: owns the rig, watches every node's health, serves the StageController gRPC service.
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <iostream>
 
 #include "controller_service.h"
+#include "external_sync_generator.h"
 #include "health_monitor.h"
 #include "light_sync_generator.h"
 #include "stage/common/cli.h"
@@ -85,14 +88,29 @@ int main(int argc, char** argv) {
     capture.take_root =
         std::filesystem::absolute(take_root.empty() ? rig.storage().root() : take_root, ec).lexically_normal().string();
     // The sync generator, chosen by the rig: the light node timing.sync_generator names drives the slot clock (in the
-    // simulated stage its clock line is the world's bus); a rig that names none has an external generator, and in
-    // the simulated stage (--sim-world) the world's own bus. The simulated world also keeps each take's ground truth.
+    // simulated stage its clock line is the world's bus); a rig that names none has an external generator, watched on
+    // the input of the light node timing.clock_witness names; a rig with neither, in the simulated stage
+    // (--sim-world), the world's own bus. The simulated world also keeps each take's ground truth.
     stage::controller::CaptureDevices devices;
     devices.nodes = stage::controller::GrpcNodeClients();
     const std::string& generator = rig.timing().sync_generator();
+    const std::string& witness = rig.timing().clock_witness();
     if (!generator.empty()) {
       for (const auto& node : rig.light_nodes()) {
         if (node.id() == generator) devices.generator = stage::controller::NewLightSyncGenerator(node);
+      }
+    } else if (!witness.empty()) {
+      stage::controller::ExternalGeneratorOptions external;
+      external.slot_rate_hz = rig.timing().slot_rate_hz();
+      external.end_margin_slots = std::max<int64_t>(1, std::llround(external.slot_rate_hz / 10));
+      for (const auto& node : rig.light_nodes()) {
+        if (node.id() != witness) continue;
+        auto made = stage::controller::NewExternalSyncGenerator(stage::controller::NewGrpcClockWitness(node), external);
+        if (!made.ok()) {
+          monitor.Stop();
+          return stage::ReportFatal(kProgram, made.status());
+        }
+        devices.generator = *std::move(made);
       }
     } else if (!world_address.empty()) {
 #ifdef STAGE_WITH_SIM
@@ -100,8 +118,8 @@ int main(int argc, char** argv) {
 #endif
     } else {
       devices.no_generator =
-          "the rig names no timing.sync_generator (an external generator), and taking T0 from a light node's input "
-          "line is not built yet";
+          "the rig names neither timing.sync_generator (a light node that drives the clock) nor timing.clock_witness "
+          "(the light node that timestamps an external generator's edges)";
     }
 #ifdef STAGE_WITH_SIM
     if (!world_address.empty()) devices.truth = stage::sim::NewWorldTakeTruth(world_address);

@@ -690,6 +690,22 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
                                                       "gpiod.drives_slot_clock: true"));
     }
   }
+  if (!timing.clock_witness().empty()) {
+    const LightNodeConfig* witness = nullptr;
+    for (const auto& n : rig.light_nodes()) {
+      if (n.id() == timing.clock_witness()) witness = &n;
+    }
+    if (!timing.sync_generator().empty()) {
+      check.Add("timing.clock_witness", absl::StrCat("is set, but timing.sync_generator (\"", timing.sync_generator(),
+                                                     "\") drives the clock: a witness is for an external generator"));
+    } else if (witness == nullptr) {
+      check.Add("timing.clock_witness", absl::StrCat("light node \"", timing.clock_witness(), "\" is not defined"));
+    } else if (witness->backend() == v1::LIGHT_BACKEND_MODBUS) {
+      check.Add("timing.clock_witness", absl::StrCat("light node \"", witness->id(),
+                                                     "\" cannot timestamp the slot clock: its Modbus board steps on "
+                                                     "the edges out of its sight (use a gpiod node)"));
+    }
+  }
   // One line, one driver: only the sync generator drives the slot clock.
   for (int i = 0; i < rig.light_nodes_size(); ++i) {
     const LightNodeConfig& n = rig.light_nodes(i);

@@ -248,6 +248,18 @@ TEST(RigErrorTest, ReferencedNodeOfWrongKind) {
               HasSubstr("timing.sync_generator: light node \"board-a\" cannot generate the slot clock"));
 }
 
+TEST(RigErrorTest, ClockWitnessOnlyForAnExternalGeneratorAndNotOnAModbusBoard) {
+  EXPECT_THAT(LoadError(Replace("  sync_generator: gpio-a", "  sync_generator: gpio-a\n  clock_witness: gpio-a")),
+              HasSubstr("timing.clock_witness: is set, but timing.sync_generator (\"gpio-a\") drives the clock"));
+  const std::string external = absl::StrReplaceAll(
+      kGoodRig, {{"  sync_generator: gpio-a", "  clock_witness: board-a"}, {", drives_slot_clock: true", ""}});
+  EXPECT_THAT(LoadError(external),
+              HasSubstr("timing.clock_witness: light node \"board-a\" cannot timestamp the slot clock"));
+  EXPECT_EQ(LoadError(absl::StrReplaceAll(external, {{"clock_witness: board-a", "clock_witness: gpio-a"}})), "");
+  EXPECT_THAT(LoadError(absl::StrReplaceAll(external, {{"clock_witness: board-a", "clock_witness: gpio-z"}})),
+              HasSubstr("timing.clock_witness: light node \"gpio-z\" is not defined"));
+}
+
 TEST(RigErrorTest, UnreadableFile) {
   auto loaded = LoadRig("/nonexistent/dir/rig.yaml");
   ASSERT_FALSE(loaded.ok());

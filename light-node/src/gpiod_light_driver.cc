@@ -349,9 +349,23 @@ void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_befo
         static_cast<double>(time_ns - first_edge_ns_) / static_cast<double>(timing_.count + timing_.lost_edges);
   }
   last_edge_ns_ = time_ns;
+  if (timing_.count == 0) {
+    // The line's numbering: its first edge since the arm by its time since the epoch, then one per edge.
+    line_first_slot_ =
+        std::llround(static_cast<double>(time_ns + RealtimeOffsetNs() - epoch_ns_) * options_.slot_rate_hz / 1e9);
+  }
   ++timing_.count;
   edges_.push_back(time_ns);
   if (edges_.size() > options_.edge_log_capacity) edges_.pop_front();
+  if (start_at_mono_ns_ >= 0) {
+    // A free-running clock: the table waits, dark, for its planned first edge; then the stepping starts there.
+    if (start_at_mono_ns_ == kStartNotYet || time_ns < start_at_mono_ns_ - std::llround(nominal / 2)) return;
+    start_at_mono_ns_ = -1;
+    table_first_slot_ = LastSlot();
+    table_first_edge_ns_ = time_ns;
+    state_.steps = 0;
+    lost = 0;
+  }
   // The row is the slot's: the edges seen and lost since the arm, whether or not a write failed on the way.
   state_.steps += lost;
   const int row = static_cast<int>(state_.steps % row_lines_.size());
@@ -419,6 +433,55 @@ absl::Status GpiodLightDriver::LoadPatternTable(const PatternTable& table) {
   return absl::OkStatus();
 }
 
+int64_t GpiodLightDriver::RealtimeOffsetNs() {
+  return timing::HostClockNs(/*realtime_clock=*/true) - timing::HostClockNs(/*realtime_clock=*/false);
+}
+
+int64_t GpiodLightDriver::LastSlot() const {
+  return timing_.count == 0 ? -1 : line_first_slot_ + static_cast<int64_t>(timing_.count + timing_.lost_edges) - 1;
+}
+
+absl::Status GpiodLightDriver::StartAt(int64_t first_edge_ns) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kArmed) {
+    return absl::FailedPreconditionError(absl::StrCat(Who(), ": start a table only when armed"));
+  }
+  if (slot_clock_ != nullptr) {
+    return absl::FailedPreconditionError(absl::StrCat(Who(), ": it drives the slot clock; its runs start its table"));
+  }
+  const int64_t half = std::llround(5e8 / options_.slot_rate_hz);
+  int64_t mono = kStartNotYet;
+  if (first_edge_ns != kStartNotYet) {
+    mono = first_edge_ns - RealtimeOffsetNs();
+    if (timing_.count > 0 && mono + half <= last_edge_ns_) {
+      return absl::FailedPreconditionError(absl::StrCat(Who(), ": the edge at ", first_edge_ns,
+                                                        " ns has passed (the clock is at slot ", LastSlot(), ")"));
+    }
+  }
+  start_at_mono_ns_ = mono;
+  table_first_slot_ = table_first_edge_ns_ = -1;
+  state_.current_row = -1;
+  state_.steps = 0;
+  return AllLow();
+}
+
+absl::StatusOr<ClockInput> GpiodLightDriver::SlotClockInput() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (state_.mode != DriverMode::kArmed) {
+    return absl::FailedPreconditionError(absl::StrCat(Who(), ": it watches its slot-clock input only while armed"));
+  }
+  ClockInput in;
+  const int64_t offset = RealtimeOffsetNs();
+  in.last_slot = LastSlot();
+  if (in.last_slot >= 0) {
+    in.last_edge_ns = last_edge_ns_ + offset;
+    in.running = timing::HostClockNs(false) - last_edge_ns_ < std::llround(1.5e9 / options_.slot_rate_hz);
+  }
+  in.table_first_slot = table_first_slot_;
+  if (table_first_edge_ns_ >= 0) in.table_first_edge_ns = table_first_edge_ns_ + offset;
+  return in;
+}
+
 absl::Status GpiodLightDriver::Arm() {
   std::lock_guard<std::mutex> lock(mutex_);
   if (state_.mode != DriverMode::kIdle)
@@ -431,6 +494,8 @@ absl::Status GpiodLightDriver::Arm() {
   state_.faults.clear();
   edges_.clear();
   timing_ = EdgeTiming{};
+  start_at_mono_ns_ = -1;
+  table_first_slot_ = table_first_edge_ns_ = -1;
   armed_at_ns_ = timing::HostClockNs(false);
   return absl::OkStatus();
 }

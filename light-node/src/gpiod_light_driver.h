@@ -98,6 +98,10 @@ class GpiodLightDriver final : public LightDriver {
   absl::StatusOr<v1::SlotClockRun> RunClock(const v1::SlotClockRunRequest& request);
   absl::StatusOr<v1::SlotClockRun> EndClock(int64_t align_slots);
   absl::StatusOr<v1::SlotClockRun> ClockRun() const;
+  // A free-running clock on the input (an external generator): see LightDriver. Edge times are the kernel's
+  // CLOCK_MONOTONIC stamps moved onto CLOCK_REALTIME (the clock T0 is in) by the offset between the two now.
+  absl::Status StartAt(int64_t first_edge_ns) override;
+  absl::StatusOr<ClockInput> SlotClockInput() const override;
 
   // One slot-clock edge at `time_ns` (CLOCK_MONOTONIC): armed, the next row goes out on the lines. `lost_before`:
   // edges lost just before this one where the caller knows (the generator's skipped slots); unset, a gap of more
@@ -116,6 +120,9 @@ class GpiodLightDriver final : public LightDriver {
   // The time of `slot`'s edge on CLOCK_REALTIME: epoch + slot / rate.
   int64_t EdgeNs(int64_t slot) const;
   v1::SlotClockRun RunNow() const;
+  // CLOCK_REALTIME - CLOCK_MONOTONIC now; the number of the last input edge since the arm (-1 none; mutex_ held).
+  static int64_t RealtimeOffsetNs();
+  int64_t LastSlot() const;
   void StopGenerator();
   void InputLoop();
   void OnGeneratedEdge(const timing::SlotEdge& edge);
@@ -135,6 +142,12 @@ class GpiodLightDriver final : public LightDriver {
   EdgeTiming timing_;                             // guarded by mutex_: since Arm()
   int64_t first_edge_ns_ = 0, last_edge_ns_ = 0;  // guarded by mutex_
   int64_t armed_at_ns_ = 0;                       // guarded by mutex_
+  // The armed table's planned first edge on CLOCK_MONOTONIC (StartAt), kStartNotYet while it waits for one, -1 once
+  // it started or when it steps from the next edge; the number of the first edge since the arm (its time since the
+  // epoch), and the table's first edge (-1 none). Guarded by mutex_.
+  int64_t start_at_mono_ns_ = -1;
+  int64_t line_first_slot_ = 0;
+  int64_t table_first_slot_ = -1, table_first_edge_ns_ = -1;
   std::atomic<bool> stopping_{false};
   std::thread edge_thread_;                       // input: waits for edges
   std::unique_ptr<timing::SlotClock> generator_;  // guarded by mutex_: the current run's clock

@@ -169,6 +169,13 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
   }
   if (absl::Status s = driver_->LoadPatternTable(t); !s.ok()) return s;
   if (absl::Status s = driver_->Arm(); !s.ok()) return s;
+  if (request.start_at_planned_edge()) {
+    // The clock runs free: dark until StartTable names the first row's edge. A driver that cannot wait is disarmed.
+    if (absl::Status s = driver_->StartAt(kStartNotYet); !s.ok()) {
+      (void)driver_->Disarm();
+      return absl::FailedPreconditionError(absl::StrCat("light node \"", config_.id(), "\": ", s.message()));
+    }
+  }
   {
     std::lock_guard<std::mutex> lock(mutex_);
     watching_ = true;
@@ -182,6 +189,35 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
       ->info("{}: armed for take {} ({} rows) on {}", config_.id(), request.take_id(), t.rows.size(),
              driver_->Describe().device);
   return absl::OkStatus();
+}
+
+absl::Status LightNode::StartTable(const std::string& take_id, int64_t first_edge_ns) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!watching_ || take_id_ != take_id) {
+      return absl::FailedPreconditionError(absl::StrCat("light node \"", config_.id(), "\": not armed for take \"",
+                                                        take_id, "\"", take_id_.empty() ? "" : " (armed for \"",
+                                                        take_id_, take_id_.empty() ? "" : "\")"));
+    }
+  }
+  if (absl::Status s = driver_->StartAt(first_edge_ns); !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat("light node \"", config_.id(), "\": ", s.message()));
+  }
+  Logger("light.node")->info("{}: take {}: the table starts at the edge at {} ns", config_.id(), take_id, first_edge_ns);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<v1::ClockInput> LightNode::ClockInput() const {
+  auto in = driver_->SlotClockInput();
+  if (!in.ok()) return absl::Status(in.status().code(), absl::StrCat("light node \"", config_.id(), "\": ",
+                                                                     in.status().message()));
+  v1::ClockInput out;
+  out.set_running(in->running);
+  out.set_last_slot(in->last_slot);
+  out.set_last_edge_ns(in->last_edge_ns);
+  out.set_table_first_slot(in->table_first_slot);
+  out.set_table_first_edge_ns(in->table_first_edge_ns);
+  return out;
 }
 
 absl::Status LightNode::Disarm(const std::string& take_id) {

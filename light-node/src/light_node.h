@@ -61,6 +61,9 @@ class LightNode {
   absl::StatusOr<v1::SlotClockRun> RunSlotClock(const v1::SlotClockRunRequest& request);
   absl::StatusOr<v1::SlotClockRun> EndSlotClock(int64_t align_slots);
   absl::StatusOr<v1::SlotClockRun> GetSlotClock();
+  // See LightNode.StartTable and GetClockInput: a free-running clock's planned first edge, and the clock as seen.
+  absl::Status StartTable(const std::string& take_id, int64_t first_edge_ns);
+  absl::StatusOr<v1::ClockInput> ClockInput() const;
 
  private:
   LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,

@@ -75,4 +75,19 @@ grpc::Status LightService::GetSlotClock(grpc::ServerContext*, const v1::GetSlotC
   return Reply(node_->GetSlotClock(), response);
 }
 
+grpc::Status LightService::StartTable(grpc::ServerContext*, const v1::StartTableRequest* request,
+                                      v1::LightStats* response) {
+  if (absl::Status s = node_->StartTable(request->take_id(), request->first_edge_ns()); !s.ok()) return ToGrpcStatus(s);
+  *response = node_->Stats();
+  return grpc::Status::OK;
+}
+
+grpc::Status LightService::GetClockInput(grpc::ServerContext*, const v1::GetClockInputRequest*,
+                                         v1::ClockInput* response) {
+  auto in = node_->ClockInput();
+  if (!in.ok()) return ToGrpcStatus(in.status());
+  *response = *std::move(in);
+  return grpc::Status::OK;
+}
+
 }  // namespace stage::light

@@ -21,6 +21,9 @@ class LightService final : public v1::LightNode::Service {
   grpc::Status EndSlotClock(grpc::ServerContext*, const v1::EndSlotClockRequest* request,
                             v1::SlotClockRun* response) override;
   grpc::Status GetSlotClock(grpc::ServerContext*, const v1::GetSlotClockRequest*, v1::SlotClockRun* response) override;
+  grpc::Status StartTable(grpc::ServerContext*, const v1::StartTableRequest* request,
+                          v1::LightStats* response) override;
+  grpc::Status GetClockInput(grpc::ServerContext*, const v1::GetClockInputRequest*, v1::ClockInput* response) override;
 
  private:
   LightNode* node_;

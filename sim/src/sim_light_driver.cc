@@ -53,13 +53,55 @@ absl::Status SimLightDriver::Arm() {
   state_.mode = light::DriverMode::kArmed;
   state_.current_row = -1;
   state_.steps = 0;
+  start_at_ns_ = -1;
+  input_.table_first_slot = input_.table_first_edge_ns = -1;
   return absl::OkStatus();
 }
 
-absl::Status SimLightDriver::Disarm() {
+absl::Status SimLightDriver::StartAt(int64_t first_edge_ns) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_.mode != light::DriverMode::kArmed) {
+      return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": start a table only when armed"));
+    }
+    if (first_edge_ns != light::kStartNotYet && input_.last_slot >= 0 &&
+        first_edge_ns + half_period_ns_ <= input_.last_edge_ns) {
+      return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": the edge at ", first_edge_ns,
+                                                        " ns has passed (the clock is at slot ", input_.last_slot,
+                                                        ", ", input_.last_edge_ns, " ns)"));
+    }
+    start_at_ns_ = first_edge_ns;
+    state_.current_row = -1;
+    state_.steps = 0;
+    input_.table_first_slot = input_.table_first_edge_ns = -1;
+  }
+  start_changed_.notify_all();
+  return absl::OkStatus();
+}
+
+absl::StatusOr<light::ClockInput> SimLightDriver::SlotClockInput() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (state_.mode == light::DriverMode::kArmed) state_.mode = light::DriverMode::kIdle;
-  state_.current_row = -1;
+  if (!world_thread_.joinable()) {
+    return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": not in a world: it sees no clock"));
+  }
+  light::ClockInput in = input_;
+  // The run's last edge has come; in real time, an edge more than 1.5 periods old says the line went quiet too (a
+  // run ended early).
+  in.running = in.last_slot >= 0 && in.last_slot < input_run_end_ - 1;
+  if (in.running && !world_.world->lockstep() &&
+      RealClock(RealClock::Kind::kMonotonic).NowNs() - in.last_edge_ns > 3 * half_period_ns_) {
+    in.running = false;
+  }
+  return in;
+}
+
+absl::Status SimLightDriver::Disarm() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (state_.mode == light::DriverMode::kArmed) state_.mode = light::DriverMode::kIdle;
+    state_.current_row = -1;
+  }
+  start_changed_.notify_all();
   return absl::OkStatus();
 }
 
@@ -69,6 +111,7 @@ absl::Status SimLightDriver::Blackout() {
     state_.mode = light::DriverMode::kBlackout;
     state_.current_row = -1;
   }
+  start_changed_.notify_all();
   // In a real-time world the channels go dark now, as a board's do, not at the next edge: the world hears it before
   // this returns (a lockstep world has no "now" between edges: dark from the next one).
   std::lock_guard<std::mutex> lock(report_mutex_);
@@ -122,7 +165,11 @@ absl::Status SimLightDriver::AttachWorld(const SimLightWorld& world) {
 
 void SimLightDriver::DetachWorld() {
   if (!world_thread_.joinable()) return;
-  detaching_.store(true);
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    detaching_.store(true);
+  }
+  start_changed_.notify_all();
   world_.world->Leave(world_device_);
   world_thread_.join();
 }
@@ -134,8 +181,14 @@ void SimLightDriver::WorldLoop(int device) {
     return;
   }
   std::vector<double> levels(channel_count_);
+  const int64_t half_period = base->SlotStartNs(1) / 2;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    half_period_ns_ = half_period;
+  }
   int64_t slot = 0;
   while (!detaching_.load()) {
+    if (world_.world->lockstep()) HoldForStart();
     auto edge = world_.world->WaitForEdge(device, slot);
     if (!edge) break;
     for (const v1::SimFault& fault : edge->faults) {
@@ -155,7 +208,7 @@ void SimLightDriver::WorldLoop(int device) {
       break;
     }
     // A board steps on every edge; a process that saw some late catches up, so the table stays in phase.
-    for (int64_t i = 0; i <= edge->missed; ++i) Step();
+    StepOnEdge(edge->slot, edge->time_ns, edge->missed, edge->run.end, half_period);
     if (edge->missed > 0) late_edges_.fetch_add(static_cast<uint64_t>(edge->missed));
     std::lock_guard<std::mutex> report(report_mutex_);  // a blackout reports between two edges, never inside one
     const light::ChannelLevels out = Outputs();
@@ -168,6 +221,36 @@ void SimLightDriver::WorldLoop(int device) {
     last_switch_ns_ = switch_ns;
     slot = edge->slot + 1;
   }
+}
+
+void SimLightDriver::StepOnEdge(int64_t slot, int64_t time_ns, int64_t missed, int64_t run_end, int64_t half_period_ns) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  input_.last_slot = slot;
+  input_.last_edge_ns = time_ns;
+  input_run_end_ = run_end;
+  if (state_.mode != light::DriverMode::kArmed) return;
+  if (start_at_ns_ >= 0) {
+    // The table waits for its planned first edge, dark.
+    if (start_at_ns_ == light::kStartNotYet || time_ns < start_at_ns_ - half_period_ns) {
+      state_.current_row = -1;
+      return;
+    }
+    start_at_ns_ = -1;
+    input_.table_first_slot = slot;
+    input_.table_first_edge_ns = time_ns;
+    missed = 0;  // the table starts here: nothing to catch up
+  }
+  // A board steps on every edge; a process that saw some late catches up, so the table stays in phase.
+  state_.steps += static_cast<uint64_t>(missed);
+  state_.current_row = static_cast<int>(state_.steps % table_.rows.size());
+  ++state_.steps;
+}
+
+void SimLightDriver::HoldForStart() {
+  std::unique_lock<std::mutex> lock(mutex_);
+  start_changed_.wait(lock, [&] {
+    return detaching_.load() || state_.mode != light::DriverMode::kArmed || start_at_ns_ != light::kStartNotYet;
+  });
 }
 
 }  // namespace stage::sim

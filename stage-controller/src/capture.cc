@@ -314,6 +314,7 @@ void Capturer::ArmLights(Take& take) {
     *arm.mutable_table() = schedule_.light_nodes(i).table();
     arm.set_take_slots(take.slots);
     arm.set_heartbeat_timeout_ms(kLightHeartbeatTimeoutMs);
+    arm.set_start_at_planned_edge(devices_.generator->runs_free());
     v1::LightStats stats;
     if (absl::Status s = take.lights.back()->Arm(arm, StallDeadline(), &stats); !s.ok()) {
       take.not_ready.push_back(absl::StrCat(node.id(), " (", s.message(), ")"));
@@ -411,6 +412,7 @@ absl::StatusOr<SyncRun> Capturer::StartRun(Take& take, const SyncRunRequest& req
     apply(planned);
   }
   UpdateCameras(take, /*with_t0=*/true);
+  if (generator.runs_free() && !take.ran) STAGE_RETURN_IF_ERROR(StartLights(take, planned.first_edge_ns));
   STAGE_ASSIGN_OR_RETURN(const SyncRun started, generator.Start(request, planned, StallDeadline()));
   if (started.first_slot != planned.first_slot || started.first_edge_ns != planned.first_edge_ns) {
     // The generator found its run only when it started (an external generator's first edge): the cameras hear again.
@@ -421,6 +423,21 @@ absl::StatusOr<SyncRun> Capturer::StartRun(Take& take, const SyncRunRequest& req
     UpdateCameras(take, /*with_t0=*/true);
   }
   return started;
+}
+
+absl::Status Capturer::StartLights(Take& take, int64_t first_edge_ns) {
+  // The clock runs free: every light node's table starts at the take's first edge. One that cannot would light the
+  // take out of step, so the take does not start.
+  v1::StartTableRequest start;
+  start.set_take_id(take.id);
+  start.set_first_edge_ns(first_edge_ns);
+  for (size_t i = 0; i < take.lights.size(); ++i) {
+    if (absl::Status s = take.lights[i]->StartTable(start, StallDeadline()); !s.ok()) {
+      return Annotate(s, absl::StrCat(rig_.rig.light_nodes(static_cast<int>(i)).id(),
+                                      " could not start its table at the take's first edge"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 bool Capturer::StartTake(Take& take) {

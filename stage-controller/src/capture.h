@@ -127,6 +127,8 @@ class Capturer {
   // the plan; on an error the caller puts the take back as it was.
   absl::StatusOr<SyncRun> StartRun(Take& take, const SyncRunRequest& request,
                                    const std::function<void(const SyncRun&)>& apply);
+  // A clock that runs free: every light node's table starts at the take's first edge (LightNode.StartTable).
+  absl::Status StartLights(Take& take, int64_t first_edge_ns);
   // Starts the sync generator for the armed take; false when it could not start.
   bool StartTake(Take& take);
   // Watches progress (and previews) until every frame is in, or no more can come, or nothing moves for the stall

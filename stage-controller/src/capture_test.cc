@@ -12,6 +12,7 @@
 #include <set>
 #include <thread>
 
+#include "absl/strings/str_join.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
@@ -35,6 +36,13 @@ class FakeGenerator final : public SyncGenerator {
   };
 
   std::string Describe() const override { return "the fake generator"; }
+  bool runs_free() const override { return runs_free_; }
+  // Like an external generator: its clock runs outside the take's runs, and the run's first edge comes `late_ns`
+  // after the planned time (as the witness measures it).
+  void RunFree(int64_t late_ns) {
+    runs_free_ = true;
+    late_ns_ = late_ns;
+  }
 
   absl::StatusOr<SyncRun> Plan(const SyncRunRequest& r, std::chrono::steady_clock::time_point) override {
     std::lock_guard<std::mutex> lock(mu_);
@@ -50,7 +58,9 @@ class FakeGenerator final : public SyncGenerator {
     if (gone_) return absl::UnavailableError("gone");
     runs_.push_back({planned.first_slot, planned.first_slot + r.slots, planned.first_slot - 1});
     ++starts_;
-    return planned;
+    SyncRun started = planned;
+    started.first_edge_ns += late_ns_;
+    return started;
   }
 
   absl::StatusOr<SyncRun> End(int64_t align) override {
@@ -128,6 +138,8 @@ class FakeGenerator final : public SyncGenerator {
   std::vector<Run> runs_;
   int64_t step_ = 19, hold_at_ = -1, stop_at_ = -1, gone_at_ = -1;
   bool gone_ = false;
+  bool runs_free_ = false;
+  int64_t late_ns_ = 0;
   int starts_ = 0;
 };
 
@@ -166,11 +178,18 @@ class FakeCamera final : public CameraClient {
   absl::Status UpdateTake(const v1::UpdateTakeRequest& r, SteadyTime) override {
     std::lock_guard<std::mutex> lock(mu_);
     if (Gone()) return absl::UnavailableError("connection refused");
-    if (r.t0_bus_ns() != 0) first_bus_ = r.t0_bus_ns() / kEdgeNs;
+    if (r.t0_bus_ns() != 0) {
+      first_bus_ = r.t0_bus_ns() / kEdgeNs;
+      t0_ = r.t0_bus_ns();
+    }
     slots_ = r.slot_count();
     paused_.clear();
     for (const auto& g : r.paused()) paused_.emplace_back(g.first(), g.end());
     return absl::OkStatus();
+  }
+  int64_t t0() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return t0_;
   }
   absl::Status GetStats(v1::CameraStats* stats) override {
     std::lock_guard<std::mutex> lock(mu_);
@@ -237,7 +256,7 @@ class FakeCamera final : public CameraClient {
   std::map<int, double> brightness_;
   mutable std::mutex mu_;
   std::string take_;
-  int64_t slots_ = 0, first_bus_ = -1, gone_at_ = -1;
+  int64_t slots_ = 0, first_bus_ = -1, gone_at_ = -1, t0_ = 0;
   uint32_t divider_ = 1, phase_ = 0;
   bool high_speed_ = false, refuse_arm_ = false;
   int finishes_ = 0;
@@ -246,9 +265,10 @@ class FakeCamera final : public CameraClient {
 
 class FakeLight final : public LightClient {
  public:
-  absl::Status Arm(const v1::ArmLightRequest&, SteadyTime, v1::LightStats*) override {
+  absl::Status Arm(const v1::ArmLightRequest& r, SteadyTime, v1::LightStats*) override {
     std::unique_lock<std::mutex> lock(mu_);
     arming_ = true;
+    waits_for_start_ = r.start_at_planned_edge();
     changed_.notify_all();
     changed_.wait(lock, [&] { return !hold_arm_; });
     armed_ = true;
@@ -278,6 +298,24 @@ class FakeLight final : public LightClient {
     armed_ = false;
     return absl::OkStatus();
   }
+  absl::Status StartTable(const v1::StartTableRequest& r, SteadyTime) override {
+    std::lock_guard<std::mutex> lock(mu_);
+    if (refuse_start_) return absl::FailedPreconditionError("its board steps on every edge from arming");
+    started_at_.push_back(r.first_edge_ns());
+    return absl::OkStatus();
+  }
+  void RefuseStart() {
+    std::lock_guard<std::mutex> lock(mu_);
+    refuse_start_ = true;
+  }
+  std::vector<int64_t> started_at() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return started_at_;
+  }
+  bool waits_for_start() const {
+    std::lock_guard<std::mutex> lock(mu_);
+    return waits_for_start_;
+  }
   void Kill() {
     std::lock_guard<std::mutex> lock(mu_);
     gone_ = true;
@@ -291,6 +329,8 @@ class FakeLight final : public LightClient {
   mutable std::mutex mu_;
   std::condition_variable changed_;
   bool armed_ = false, gone_ = false, hold_arm_ = false, arming_ = false;
+  bool refuse_start_ = false, waits_for_start_ = false;
+  std::vector<int64_t> started_at_;
 };
 
 // The session owns its clients for a take; the fakes stay with the test, to be looked at after the take.
@@ -322,6 +362,7 @@ class LightRef final : public LightClient {
   absl::Status Disarm(const v1::DisarmLightRequest& r, SteadyTime t, v1::LightStats* s) override {
     return l_->Disarm(r, t, s);
   }
+  absl::Status StartTable(const v1::StartTableRequest& r, SteadyTime t) override { return l_->StartTable(r, t); }
 
  private:
   std::shared_ptr<FakeLight> l_;
@@ -368,6 +409,7 @@ class CaptureSessionTest : public ::testing::Test {
 
     CaptureDevices devices;
     auto generator = std::make_unique<FakeGenerator>();
+    if (free_running_late_ns_ >= 0) generator->RunFree(free_running_late_ns_);
     generator_ = generator.get();
     devices.generator = std::move(generator);
     devices.nodes.camera = [this, brightness](const v1::CameraConfig& c) -> std::unique_ptr<CameraClient> {
@@ -381,6 +423,7 @@ class CaptureSessionTest : public ::testing::Test {
     devices.nodes.light = [this](const v1::LightNodeConfig& n) -> std::unique_ptr<LightClient> {
       auto light = std::make_shared<FakeLight>();
       if (n.id() == slow_light_) light->HoldArm();
+      if (n.id() == light_refuses_start_) light->RefuseStart();
       std::lock_guard<std::mutex> lock(fakes_mu_);
       lights_[n.id()] = light;
       return std::make_unique<LightRef>(light);
@@ -441,9 +484,10 @@ class CaptureSessionTest : public ::testing::Test {
   FakeGenerator* generator_ = nullptr;
   std::map<std::string, std::shared_ptr<FakeCamera>> cameras_;
   std::map<std::string, std::shared_ptr<FakeLight>> lights_;
-  std::string camera_gone_, camera_refuses_, slow_light_;
+  std::string camera_gone_, camera_refuses_, slow_light_, light_refuses_start_;
   std::mutex fakes_mu_;  // the session makes its clients (and the fakes) on its own thread
   int64_t camera_gone_at_ = -1;
+  int64_t free_running_late_ns_ = -1;  // >= 0: the generator runs free, its first edge this late
   std::thread capture_thread_;
   absl::StatusOr<v1::TakeSummary> result_;
   std::mutex events_mu_;
@@ -469,6 +513,41 @@ TEST_F(CaptureSessionTest, ATakeRunsThroughEveryStateAndEndsComplete) {
                                                v1::SESSION_STATE_IDLE));
   ExpectEveryNodeDone();
   EXPECT_EQ(Ledger(summary->take_id()).size(), static_cast<size_t>(summary->total().expected()));
+}
+
+// An external generator's clock runs free: every light waits for the take's first edge, which the controller names
+// before the run; the cameras' T0 is the edge as the witness measured it.
+TEST_F(CaptureSessionTest, AFreeRunningClockStartsEveryLightAtThePlannedEdgeAndTheCamerasAtTheMeasuredOne) {
+  free_running_late_ns_ = 300;
+  Start();
+  v1::CaptureRequest request;
+  request.set_frames(3);
+  auto summary = capturer_->Capture(request, Recorder());
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  const int64_t planned_t0 = generator_->runs().at(0).first * kEdgeNs;
+  EXPECT_EQ(summary->t0_bus_ns(), planned_t0 + 300);
+  ASSERT_EQ(lights_.size(), 6u);
+  for (const auto& [id, light] : lights_) {
+    EXPECT_TRUE(light->waits_for_start()) << id;
+    EXPECT_THAT(light->started_at(), ::testing::ElementsAre(planned_t0)) << id;
+  }
+  for (const auto& [id, cam] : cameras_) EXPECT_EQ(cam->t0(), planned_t0 + 300) << id;
+  ExpectEveryNodeDone();
+}
+
+TEST_F(CaptureSessionTest, ALightThatCannotStartAtThePlannedEdgeKeepsAFreeRunningTakeFromRunning) {
+  free_running_late_ns_ = 0;
+  light_refuses_start_ = "lights-modbus-2";
+  Start();
+  v1::CaptureRequest request;
+  request.set_frames(3);
+  auto summary = capturer_->Capture(request, Recorder());
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->outcome(), v1::TAKE_OUTCOME_FAILED);
+  EXPECT_EQ(generator_->starts(), 0);
+  std::lock_guard<std::mutex> lock(events_mu_);
+  EXPECT_THAT(absl::StrJoin(messages_, "\n"),
+              ::testing::HasSubstr("lights-modbus-2 could not start its table at the take's first edge"));
 }
 
 TEST_F(CaptureSessionTest, ArmedThenCapturedAsArmed) {

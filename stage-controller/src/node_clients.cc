@@ -65,6 +65,10 @@ class GrpcLightClient final : public LightClient {
   absl::Status Disarm(const v1::DisarmLightRequest& request, SteadyTime give_up, v1::LightStats* stats) override {
     return Patiently(kDisarm, give_up, [&](grpc::ClientContext* c) { return stub_->Disarm(c, request, stats); });
   }
+  absl::Status StartTable(const v1::StartTableRequest& request, SteadyTime give_up) override {
+    v1::LightStats stats;
+    return Patiently(answer_, give_up, [&](grpc::ClientContext* c) { return stub_->StartTable(c, request, &stats); });
+  }
 
  private:
   static constexpr std::chrono::milliseconds kDisarm{2000};

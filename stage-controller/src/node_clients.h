@@ -41,6 +41,8 @@ class LightClient {
   virtual absl::Status Heartbeat(const v1::HeartbeatRequest& request, std::chrono::milliseconds deadline,
                                  v1::LightStats* stats) = 0;
   virtual absl::Status Disarm(const v1::DisarmLightRequest& request, SteadyTime give_up, v1::LightStats* stats) = 0;
+  // The edge of the armed table's first row, on a clock that runs free.
+  virtual absl::Status StartTable(const v1::StartTableRequest& request, SteadyTime give_up) = 0;
 };
 
 // How the session reaches the rig's nodes: one factory per kind.

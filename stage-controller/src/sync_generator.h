@@ -4,8 +4,8 @@
 // at a frame boundary (pause, abort), and reads how far the clock has got.
 //
 // Slots are counted on the generator's own line (the bus): a take's slot 0 is the first slot of its first run.
-// Implementations: the simulated world's bus (sim/, stage-sim's SimWorld service). Real hardware (a light node that
-// drives the clock line, an external generator a light node timestamps) follows the same interface.
+// Implementations: a light node that drives the clock line (light_sync_generator.h), an external generator a light
+// node timestamps (external_sync_generator.h), and the simulated world's bus (sim/, stage-sim's SimWorld service).
 #pragma once
 
 #include <chrono>
@@ -45,6 +45,9 @@ class SyncGenerator {
   virtual ~SyncGenerator() = default;
   // In words, for messages: "the simulated world at 127.0.0.1:41234".
   virtual std::string Describe() const = 0;
+  // The clock runs outside the take's runs too (an external generator): the light nodes arm to wait for the take's
+  // first edge (LightNode.StartTable), not to start at the next one, and step through a pause's gap.
+  virtual bool runs_free() const { return false; }
   // Which run a start would be, without starting it. Asked again while the generator is slow, up to `give_up`.
   virtual absl::StatusOr<SyncRun> Plan(const SyncRunRequest& request,
                                        std::chrono::steady_clock::time_point give_up) = 0;

@@ -2,12 +2,15 @@
 // GpiodLightDriver (light-node/src/). No backend library appears in this header.
 #pragma once
 
+#include <climits>
 #include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
 
 namespace stage::light {
 
@@ -57,6 +60,21 @@ struct DriverState {
   std::optional<EdgeTiming> edges;
 };
 
+// The slot-clock input as a driver that sees its edges reports it (the witness of an external generator). Edges are
+// numbered on the line: the first after a silence by its time since the driver's epoch, then one per edge (lost ones
+// counted). Times on the stage's clock (CLOCK_REALTIME; the world's clock in simulation).
+struct ClockInput {
+  bool running = false;  // the last edge is less than 1.5 periods old (simulation: the bus's run has not ended)
+  int64_t last_slot = -1;
+  int64_t last_edge_ns = 0;
+  // The edge that applied the armed table's first row after StartAt(), and its number; -1 until it came.
+  int64_t table_first_slot = -1;
+  int64_t table_first_edge_ns = -1;
+};
+
+// StartAt(kStartNotYet): the armed table waits, dark, until a StartAt() names its edge.
+inline constexpr int64_t kStartNotYet = INT64_MAX;
+
 struct DriverDescription {
   std::string backend;  // "sim", "modbus", "gpiod"
   std::string device;   // board address, chip name
@@ -90,6 +108,22 @@ class LightDriver {
   // The slot clock this driver generates (a gpiod node with drives_slot_clock), owned by the driver; null for one
   // that steps on a clock it does not drive.
   virtual SlotClockGenerator* slot_clock() { return nullptr; }
+
+  // A slot clock that runs free (an external generator): the armed table's first row applies at the first edge at or
+  // after `first_edge_ns` - half a slot (kStartNotYet: not until a later StartAt names it); dark until then, and the
+  // stepping starts over. Only armed; FailedPrecondition where the driver does not see the edges itself (a board that
+  // steps on every edge from arming), or the edge has passed.
+  virtual absl::Status StartAt(int64_t first_edge_ns) {
+    (void)first_edge_ns;
+    return absl::FailedPreconditionError(absl::StrCat(
+        Describe().backend, " light driver: its board steps on every slot-clock edge from arming, out of the node's "
+        "sight, so its first row cannot be placed at a planned edge of a free-running clock"));
+  }
+  // The slot-clock input as this driver sees it; FailedPrecondition where it does not see the edges.
+  virtual absl::StatusOr<ClockInput> SlotClockInput() const {
+    return absl::FailedPreconditionError(
+        absl::StrCat(Describe().backend, " light driver: it does not see the slot clock's edges"));
+  }
 };
 
 }  // namespace stage::light

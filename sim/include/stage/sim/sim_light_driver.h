@@ -8,6 +8,7 @@
 
 #include <atomic>
 #include <climits>
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <mutex>
@@ -51,6 +52,12 @@ class SimLightDriver final : public light::LightDriver {
   absl::Status Blackout() override;
   absl::Status ResetBlackout() override;
   light::DriverState State() const override;
+  // The table's first row at a planned edge of a free-running clock (an external generator). In a lockstep world an
+  // armed node that waits for its StartAt holds the world at the edge it stands at (time stands still while the
+  // controller plans, as it does for every device).
+  absl::Status StartAt(int64_t first_edge_ns) override;
+  // The world's edges as this node saw them (slots are the bus's).
+  absl::StatusOr<light::ClockInput> SlotClockInput() const override;
 
   // A slot-clock edge: when armed, applies the next row of the table.
   void Step();
@@ -66,6 +73,10 @@ class SimLightDriver final : public light::LightDriver {
 
  private:
   void WorldLoop(int device);
+  // An edge of the world: steps the table (catching up `missed` edges), or keeps it dark until its planned first edge.
+  void StepOnEdge(int64_t slot, int64_t time_ns, int64_t missed, int64_t run_end, int64_t half_period_ns);
+  // Lockstep: waits while the armed table waits for a StartAt that has not come (or the node leaves the world).
+  void HoldForStart();
 
   std::string node_id_;
   uint32_t channel_count_;
@@ -73,6 +84,14 @@ class SimLightDriver final : public light::LightDriver {
   light::PatternTable table_;  // guarded by mutex_
   bool table_loaded_ = false;  // guarded by mutex_
   light::DriverState state_;   // guarded by mutex_
+  // The armed table's planned first edge (StartAt), kStartNotYet while it waits for one, -1 once it started (or it
+  // steps from the next edge); guarded by mutex_, changes signalled on start_changed_.
+  int64_t start_at_ns_ = -1;
+  std::condition_variable start_changed_;
+  // The clock as seen: the last edge, the end of its run, the table's first edge; guarded by mutex_.
+  light::ClockInput input_;
+  int64_t input_run_end_ = -1;
+  int64_t half_period_ns_ = 0;
   SimLightWorld world_;
   int world_device_ = -1;
   std::atomic<bool> detaching_{false};
