@@ -147,6 +147,46 @@ TEST(GpiodLightDriverTest, StepsThroughTheTableOnEdgesAndRecordsThem) {
   EXPECT_EQ(r.driver->Edges().times_ns.size(), 1u);
 }
 
+// The witness of an external generator: a free-running clock on the input; the table waits, dark, for the edge the
+// controller names, and the node reports the edges it numbered and the one its table started on (CLOCK_REALTIME).
+TEST(GpiodLightDriverTest, OnAFreeRunningClockTheTableStartsAtThePlannedEdgeAndTheInputIsReported) {
+  Rig r = Make(Options(2, 2, /*thread=*/false));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->SlotClockInput().status())) << "idle: it does not watch";
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->StartAt(0)));
+  ASSERT_TRUE(r.driver->Arm().ok());
+  ASSERT_TRUE(r.driver->StartAt(kStartNotYet).ok());
+  const int64_t offset = timing::HostClockNs(true) - timing::HostClockNs(false);
+  const int64_t t0 = After();
+  for (int i = 0; i < 5; ++i) r.driver->OnEdge(t0 + i * kPeriod);
+  EXPECT_EQ(r.driver->State().steps, 0u) << "waiting for its planned edge: no step";
+  EXPECT_THAT(LastWrite(r), ElementsAre(0, 0, 0, 0));
+  auto in = r.driver->SlotClockInput();
+  ASSERT_TRUE(in.ok()) << in.status();
+  EXPECT_EQ(in->table_first_slot, -1);
+  const int64_t first_number = in->last_slot - 4;
+  EXPECT_NEAR(static_cast<double>(in->last_edge_ns), static_cast<double>(t0 + 4 * kPeriod + offset), 2e5);
+  // An edge that has passed cannot be the first; the 8th edge (5 us early) can.
+  EXPECT_TRUE(absl::IsFailedPrecondition(r.driver->StartAt(t0 + 2 * kPeriod + offset)));
+  ASSERT_TRUE(r.driver->StartAt(t0 + 7 * kPeriod + offset).ok());
+  r.driver->OnEdge(t0 + 5 * kPeriod);
+  r.driver->OnEdge(t0 + 6 * kPeriod);
+  EXPECT_EQ(r.driver->State().steps, 0u);
+  r.driver->OnEdge(t0 + 7 * kPeriod - 5000);
+  EXPECT_EQ(r.driver->State().current_row, 0);
+  EXPECT_THAT(LastWrite(r), ElementsAre(1, 1, 0, 0));
+  r.driver->OnEdge(t0 + 8 * kPeriod);
+  EXPECT_EQ(r.driver->State().current_row, 1);
+  in = r.driver->SlotClockInput();
+  ASSERT_TRUE(in.ok());
+  EXPECT_EQ(in->table_first_slot, first_number + 7);
+  EXPECT_EQ(in->last_slot, first_number + 8);
+  EXPECT_NEAR(static_cast<double>(in->table_first_edge_ns), static_cast<double>(t0 + 7 * kPeriod - 5000 + offset),
+              2e5);
+  // The edges are in the future (After()), so the line counts as running.
+  EXPECT_TRUE(in->running);
+}
+
 TEST(GpiodLightDriverTest, TheEdgeRecordKeepsTheLastEdgesAndCountsAll) {
   GpiodDriverOptions o = Options(1, 1, false);
   o.edge_log_capacity = 4;

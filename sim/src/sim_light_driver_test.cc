@@ -49,5 +49,14 @@ TEST(SimLightDriverTest, BlackoutLatchesUntilReset) {
   EXPECT_TRUE(d.Arm().ok());
 }
 
+TEST(SimLightDriverTest, StartsAtAPlannedEdgeOnlyWhenArmedAndSeesNoClockOutsideAWorld) {
+  SimLightDriver d("lights-a", 2);
+  ASSERT_TRUE(d.LoadPatternTable(Table()).ok());
+  EXPECT_THAT(std::string(d.StartAt(0).message()), HasSubstr("start a table only when armed"));
+  ASSERT_TRUE(d.Arm().ok());
+  EXPECT_TRUE(d.StartAt(light::kStartNotYet).ok());
+  EXPECT_THAT(std::string(d.SlotClockInput().status().message()), HasSubstr("not in a world"));
+}
+
 }  // namespace
 }  // namespace stage::sim
