@@ -357,6 +357,64 @@ TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
   }
 }
 
+// An external generator (a signal generator the operator started before the take) runs free on the world's bus; the
+// rig names no generator node, and lights-gpio-2 timestamps the clock (timing.clock_witness). Every light node is a
+// driver that sees the edges (no fake Modbus boards: a board that steps on every edge from arming cannot start at a
+// planned edge of a free-running clock, and the take would be refused). The take's T0 is the witness's measured edge
+// of a cycle-aligned slot well after the edge it last saw; the lights start their tables there; the take is COMPLETE,
+// its high-speed cameras aligned, its ledger exact; and neither the controller nor any node called the world's bus.
+TEST_F(CaptureTest, AnExternalGeneratorRunningBeforeTheTakeGivesItsT0FromTheWitnessEdge) {
+  TempDir root;
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--set", "sim.modbus_fakes=false", "--set",
+                                      "timing.sync_generator=\"\"", "--set", "timing.clock_witness=lights-gpio-2",
+                                      "--set", "light_nodes[lights-gpio-1].gpiod.drives_slot_clock=false",
+                                      "--take-root", root.path()}));
+  auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
+  {
+    // The operator starts the signal generator: it runs until stopped (a run of a billion slots, 12 days).
+    grpc::ClientContext context;
+    v1::RunWorldRequest run;
+    run.set_slots(1'000'000'000);
+    run.set_align_slots(38);
+    run.set_requested_by("signal-generator");
+    v1::WorldRunReply started;
+    ASSERT_TRUE(world->Run(&context, run, &started).ok());
+    EXPECT_EQ(started.first_slot(), 0);
+  }
+  auto exit = SpawnStagectl({"capture", "--frames", "6", "--json"}, "capture")->Wait(std::chrono::seconds(300));
+  ASSERT_TRUE(exit.has_value());
+  EXPECT_EQ(exit->exit_code, 0) << ReadFile(run_dir_.path() + "/capture.err");
+  nlohmann::json take = nlohmann::json::parse(ReadFile(run_dir_.path() + "/capture.out"));
+  const std::string id = take["take_id"];
+  EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE") << take["hint"];
+  EXPECT_EQ(take["total"]["expected"].get<std::string>(), Digits(24 * 6 + 3 * 6 * 38));
+  EXPECT_EQ(take["total"]["stored"], take["total"]["expected"]);
+  ASSERT_EQ(take["alignment"].size(), 3u);
+  for (const auto& a : take["alignment"]) EXPECT_TRUE(a["ok"].get<bool>()) << a.dump();
+  // T0 is the edge of a slot the pattern cycle divides, on the world's clock (lockstep: ns since slot 0), and not the
+  // first edge of the generator's run: the clock was running when the take began.
+  const int64_t t0 = std::stoll(take["t0_bus_ns"].get<std::string>());
+  const int64_t first_slot = std::llround(static_cast<double>(t0) * 912 / 1e9);
+  EXPECT_GT(first_slot, 0);
+  EXPECT_EQ(first_slot % 38, 0) << first_slot;
+  EXPECT_NEAR(static_cast<double>(t0), first_slot * 1e9 / 912, 2.0);
+  EXPECT_EQ(Sql(root.path(), "SELECT count(*) FROM ledger WHERE take_id='" + id + "' AND reason != 0"), "0\n");
+  // The bus is the signal generator's: nobody else started, ended or asked for a run.
+  const v1::WorldRunReply bus = WorldBus();
+  EXPECT_EQ(bus.started_by(), "signal-generator");
+  for (const auto& [who, calls] : bus.bus_calls()) {
+    EXPECT_TRUE(who == "signal-generator" || who == "test") << who << " called the world's bus " << calls << " times";
+  }
+  for (const auto& p : endpoints_.processes()) {
+    if (p.kind() != v1::NODE_KIND_LIGHT) continue;
+    auto light = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    v1::LightStats stats;
+    ASSERT_TRUE(light->GetStats(&context, v1::GetLightStatsRequest(), &stats).ok()) << p.id();
+    EXPECT_EQ(stats.mode(), v1::LIGHT_MODE_IDLE) << p.id() << " is left armed";
+  }
+}
+
 // A frame file that reaches its size limit (the node's RLIMIT_FSIZE, as a full disk would): the node stops writing
 // cleanly and reports it; the frames before are in the file and stored, every later one "write failed".
 TEST_F(CaptureTest, AFrameFileAtItsSizeLimitStopsCleanlyWithTheLossesAttributed) {

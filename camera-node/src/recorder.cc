@@ -180,16 +180,17 @@ void TakeRecorder::OnFrame(std::shared_ptr<const Frame> frame) {
     }
   }
   const size_t bytes = frame->pixels().size();
-  ++rec_.frames_received;
   if (!frame->after_outage.empty()) {
     pending_outage_ = frame->after_outage;
     ++outage_notes_;
   }
   auto it = index_of_.find(slot);
   if (it == index_of_.end() || matched_.count(slot) || finishing_) {
+    // Not the take's: outside its slots (a clock that ran before T0 or runs on after the end), or a second frame.
     ++rec_.frames_unmatched;
     return;
   }
+  ++rec_.frames_received;
   if (plan_.preview_pattern >= -1 &&
       (plan_.preview_pattern == -1 || slot % plan_.patterns_per_cycle == plan_.preview_pattern)) {
     preview_ = PreviewFrame{frame, slot, bus - plan_.t0_ns};

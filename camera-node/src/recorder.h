@@ -89,6 +89,7 @@ struct TakeRecording {
   std::vector<SlotOutcome> slots;
   // Mean brightness above black of every stored frame, by slot (the alignment self-test's input).
   std::map<int64_t, double> brightness;
+  // Frames matched to a slot of the take (the unmatched are counted apart).
   int64_t frames_received = 0;
   int64_t frames_written = 0;
   // Frames whose timestamp matched no slot this camera fires in (or one already taken).

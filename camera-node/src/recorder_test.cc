@@ -152,12 +152,17 @@ TEST(RecorderTest, EverySilentSlotGetsItsReasonFromTheFrameCounter) {
     if (k == 19) continue;  // after the last delivered frame: the counter cannot tell
     (*rec)->OnFrame(FrameFor(plan, k, id++));
   }
-  // A frame between slots, and a second frame for slot 5: neither matches.
+  // A frame between slots, a second frame for slot 5, and frames before slot 0 and after the take's end (a clock
+  // that runs free): none is the take's, and none counts as received.
   (*rec)->OnFrame(FrameFor(plan, 5, 99, kSlot / 2 - 1000));
   (*rec)->OnFrame(FrameFor(plan, 5, 100));
+  (*rec)->OnFrame(FrameFor(plan, -3, 101));
+  (*rec)->OnFrame(FrameFor(plan, 25, 102));
+  EXPECT_EQ((*rec)->frames_received(), 16);
   EXPECT_EQ((*rec)->frames_lost(), 2);  // live: the counter ran two ahead of what came
   const TakeRecording r = (*rec)->Finish();
-  EXPECT_EQ(r.frames_unmatched, 1 + 1);
+  EXPECT_EQ(r.frames_unmatched, 4);
+  EXPECT_EQ(r.frames_received, 16);
   std::map<int64_t, LossReason> lost;
   for (const SlotOutcome& s : r.slots) {
     if (s.reason != LossReason::kNone) lost[s.slot] = s.reason;
