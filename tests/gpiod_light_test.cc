@@ -8,10 +8,12 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+#include <thread>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -127,6 +129,115 @@ TEST(GpiodLightTest, StepsOnKernelTimestampedEdgesOfGpioSim) {
   }
   ASSERT_TRUE((*driver)->Blackout().ok());
   for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
+}
+
+// The node as the sync generator on gpio-sim: its clock line is an output the kernel holds. A sampler reads the line's
+// value back through sysfs while a planned run of 40 slots goes out: every edge the driver wrote is a rise the kernel
+// held, none more; after the run the line is low, and the channel lines hold the row of the last edge.
+TEST(GpiodLightTest, GeneratesTheSlotClockOnGpioSimAndTheKernelHoldsEveryEdge) {
+  if (std::string why = GpioSimChip::WhyNot(); !why.empty()) GTEST_SKIP() << why;
+  GpioSimChip sim(8);
+  ASSERT_TRUE(sim.ok()) << "could not make a gpio-sim chip";
+  GpiodDriverOptions o;
+  o.node_id = "lights-gpio-sim-generator";
+  o.channel_count = 3;
+  o.lines.chip = sim.chip();
+  o.lines.outputs = {0, 1, 2};
+  o.lines.slot_clock_line = 7;
+  o.lines.drives_slot_clock = true;
+  auto driver = GpiodLightDriver::Open(o);
+  ASSERT_TRUE(driver.ok()) << driver.status();
+  const PatternTable table{"t", {"a", "b", "c"}, {{65535, 0, 0}, {0, 65535, 0}, {65535, 65535, 65535}}};
+  ASSERT_TRUE((*driver)->LoadPatternTable(table).ok());
+  ASSERT_TRUE((*driver)->Arm().ok());
+  std::atomic<bool> sampling{true};
+  std::atomic<int> rises{0};
+  std::thread sampler([&] {
+    int last = sim.Value(7);
+    while (sampling.load()) {
+      const int v = sim.Value(7);
+      if (v == 1 && last == 0) rises.fetch_add(1);
+      last = v;
+    }
+  });
+  v1::SlotClockRunRequest run;
+  run.set_slots(40);
+  run.set_lead_slots(20);
+  auto started = (*driver)->RunClock(run);
+  ASSERT_TRUE(started.ok()) << started.status();
+  for (int i = 0; i < 2000; ++i) {
+    auto now = (*driver)->ClockRun();
+    if (now.ok() && now->current_slot() >= now->end_slot() - 1) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));  // the last pulse's low half
+  sampling.store(false);
+  sampler.join();
+  const EdgeTiming t = (*driver)->Edges().timing;
+  EXPECT_EQ(t.count + t.lost_edges, 40u);
+  EXPECT_EQ(rises.load(), static_cast<int>(t.count)) << "rises the kernel held, against edges written";
+  EXPECT_EQ(sim.Value(7), 0) << "the clock line is low after the run";
+  const uint64_t steps = (*driver)->State().steps;
+  ASSERT_GT(steps, 0u);
+  const ChannelLevels& row = table.rows[static_cast<size_t>((steps - 1) % 3)];
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), row[static_cast<size_t>(c)] ? 1 : 0) << "channel " << c;
+  ASSERT_TRUE((*driver)->Disarm().ok());
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
+}
+
+// The witness of an external generator on gpio-sim: the clock runs free on the input (the line's pull); the table
+// waits, dark, for the planned edge; the node numbers the edges it saw and reports the one its table started on.
+TEST(GpiodLightTest, OnAFreeRunningGpioSimInputTheTableStartsAtThePlannedEdge) {
+  if (std::string why = GpioSimChip::WhyNot(); !why.empty()) GTEST_SKIP() << why;
+  GpioSimChip sim(8);
+  ASSERT_TRUE(sim.ok()) << "could not make a gpio-sim chip";
+  GpiodDriverOptions o;
+  o.node_id = "lights-gpio-sim-witness";
+  o.channel_count = 3;
+  o.lines.chip = sim.chip();
+  o.lines.outputs = {0, 1, 2};
+  o.lines.slot_clock_line = 7;
+  o.slot_rate_hz = 100;  // edges made by hand, 10 ms apart
+  auto driver = GpiodLightDriver::Open(o);
+  ASSERT_TRUE(driver.ok()) << driver.status();
+  ASSERT_TRUE(sim.Pull(7, false));
+  const PatternTable table{"t", {"a", "b", "c"}, {{65535, 0, 0}, {0, 65535, 0}, {65535, 65535, 65535}}};
+  ASSERT_TRUE((*driver)->LoadPatternTable(table).ok());
+  ASSERT_TRUE((*driver)->Arm().ok());
+  ASSERT_TRUE((*driver)->StartAt(kStartNotYet).ok());
+  auto edge = [&](int n) {
+    for (int i = 0; i < n; ++i) {
+      ASSERT_TRUE(sim.Pull(7, true));
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      ASSERT_TRUE(sim.Pull(7, false));
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+  };
+  edge(3);
+  auto in = (*driver)->SlotClockInput();
+  for (int i = 0; i < 500 && in.ok() && (*driver)->Edges().timing.count < 3; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    in = (*driver)->SlotClockInput();
+  }
+  ASSERT_TRUE(in.ok()) << in.status();
+  EXPECT_EQ((*driver)->State().steps, 0u) << "dark until its planned edge";
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
+  // The planned edge: some time after the next one (the pulls are not a clock; the table starts on the first edge at
+  // or after the planned time less half a period, 5 ms).
+  const int64_t plan = timing::HostClockNs(true) + 12'000'000;
+  ASSERT_TRUE((*driver)->StartAt(plan).ok());
+  edge(1);  // before the planned time: still dark
+  EXPECT_EQ((*driver)->State().steps, 0u);
+  std::this_thread::sleep_for(std::chrono::milliseconds(15));
+  edge(2);
+  for (int i = 0; i < 500 && (*driver)->State().steps < 2; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  EXPECT_EQ((*driver)->State().steps, 2u);
+  for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), table.rows[1][static_cast<size_t>(c)] ? 1 : 0);
+  in = (*driver)->SlotClockInput();
+  ASSERT_TRUE(in.ok());
+  EXPECT_GE(in->table_first_edge_ns, plan - 5'000'000);
+  EXPECT_EQ(in->table_first_slot, in->last_slot - 1);
+  ASSERT_TRUE((*driver)->Disarm().ok());
 }
 
 TEST(GpiodLightTest, GeneratesTheSlotClockOnARealChip) {

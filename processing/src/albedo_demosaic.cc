@@ -355,7 +355,7 @@ void DemosaicAlbedo(const Mosaic& mosaic, const float* own, float max_albedo, in
         StreamCopy(m->albedo.at(0, y), buf.row.data(), buf.row.size());
       }
     }
-    _mm_sfence();
+    StreamFence();
   });
 }
 

@@ -10,11 +10,13 @@
 #include <mutex>
 
 // GCC 12 warns of the AVX-512 intrinsics' own undefined source operands (_mm512_undefined_*) where they are inlined.
+#if defined(__x86_64__)  // photometric_internal.h's STAGE_X86_64; first, so that the pragmas cover the intrinsics
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wuninitialized"
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <immintrin.h>
 #pragma GCC diagnostic pop
+#endif
 
 #include "absl/strings/str_cat.h"
 #include "photometric_internal.h"
@@ -110,8 +112,12 @@ bool& internal::FastVectorKernels() {
 }
 
 bool internal::FastVectorKernelsAvailable() {
+#if STAGE_X86_64
   static const bool has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
   return has;
+#else
+  return false;  // the portable kernels only (chosen at build time: not an x86-64 target)
+#endif
 }
 
 int& internal::FastTileColumns() {
@@ -405,6 +411,7 @@ void DiffuseLast(const DiffuseRow& a, int xb, int lanes, const float* lobe, floa
   }
 }
 
+#if STAGE_X86_64
 // The same two steps across the lanes of an AVX-512 register, on CPUs that have it. The same operations in the same
 // order as above (a multiply and an add never fused: see processing/CMakeLists.txt), so the same bits; the tables'
 // entries are gathered per lane.
@@ -599,6 +606,8 @@ STAGE_AVX512 void DiffuseLast16(const DiffuseRow& a, int xb, int lanes, const fl
   _mm512_mask_storeu_ps(b->own_albedo, solved, albedo);
 }
 
+#endif  // STAGE_X86_64
+
 // What the lobe's lookup reads for a row of a tile: the per-pair rows (np rows `stride` apart, from the tile's column
 // 0), the moments' rows, and the constants.
 struct LobeRow {
@@ -633,6 +642,7 @@ inline void Normalize(float& x, float& y, float& z) {
   z = positive ? z / n : z;
 }
 
+#if STAGE_X86_64
 // The roughness search of LookUpLobesImpl (below) in AVX-512 lanes (GCC 12 does not vectorize its gathers): the same
 // tests, so the same samples.
 STAGE_AVX512 inline void SearchRoughness16(const float* spreads, int nj, const int* row, const int* first,
@@ -656,6 +666,7 @@ STAGE_AVX512 inline void SearchRoughness16(const float* spreads, int nj, const i
   }
   _mm512_storeu_si512(k0, vk0);
 }
+#endif  // STAGE_X86_64
 
 // The specular of the solved lanes of a batch (row0: the image's index of the tile row's column 0): the lobe's mean
 // direction and spread from its moments; per lane, its entry in the table (interpolated between the two roughness
@@ -737,7 +748,9 @@ __attribute__((always_inline)) inline void LookUpLobesImpl(const LobeRow& a, int
   int row[kL];  // of the lane's cell in spreads
   for (int l = 0; l < kL; ++l) row[l] = cell[l] * nj;
   if constexpr (kAvx512) {
+#if STAGE_X86_64
     SearchRoughness16(spreads, nj, row, first, last, ok, spread, k0);
+#endif
   } else {
     for (int k = 0; k + 1 < nj; ++k) {
       for (int l = 0; l < kL; ++l) {
@@ -931,10 +944,12 @@ void LookUpLobes(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* 
   LookUpLobesImpl<false>(a, xb, lanes, row0, scratch, lobe, b);
 }
 
+#if STAGE_X86_64
 STAGE_AVX512 void LookUpLobes16(const LobeRow& a, int xb, int lanes, size_t row0, LobeScratch* scratch, float* lobe,
                                 Batch* b) {
   LookUpLobesImpl<true>(a, xb, lanes, row0, scratch, lobe, b);
 }
+#endif
 
 // One thread's buffers for a tile: corrected rows (a ring of three per pattern), the per-pair rows, and the per-pixel
 // scratch.
@@ -1245,7 +1260,9 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
                      .toward = toward,
                      .spec_scale = spec_scale,
                      .full = tw.full};
+#if STAGE_X86_64
     const bool avx512 = internal::FastVectorKernels() && internal::FastVectorKernelsAvailable();
+#endif
     auto row = [&](int p, int y) {  // the ring's slot of row y of pattern p; column x0 - 1 first
       return &rows[(static_cast<size_t>(p) * 3 + static_cast<size_t>((y + 3) % 3)) * stride];
     };
@@ -1361,17 +1378,25 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         for (int xb = lo; xb < hi; xb += kLanes) {
           const int lanes = std::min(kLanes, tw_cols - xb);
           // Diffuse: a first guess from the gradients, then u = M(n) d twice, across the batch.
+#if STAGE_X86_64
           if (avx512) {
             DiffuseFirst16(da, xb, lanes, &batch);
           } else {
             DiffuseFirst(da, xb, lanes, &batch);
           }
+#else
+          DiffuseFirst(da, xb, lanes, &batch);
+#endif
           // Specular: the lobe's moments, then through the table to its mirror direction, roughness and intensity.
+#if STAGE_X86_64
           if (avx512) {
             LookUpLobes16(la, xb, lanes, row0, &buffers.lobe_scratch, lobe_lanes, &batch);
           } else {
             LookUpLobes(la, xb, lanes, row0, &buffers.lobe_scratch, lobe_lanes, &batch);
           }
+#else
+          LookUpLobes(la, xb, lanes, row0, &buffers.lobe_scratch, lobe_lanes, &batch);
+#endif
           uint8_t lane_flags[kLanes];
           for (int l = 0; l < lanes; ++l) {
             const int xt = xb + l;
@@ -1397,11 +1422,15 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
             lane_flags[l] = flags;
           }
           // Diffuse again from both polarizations where the lobe is known; the fit's residual and the own albedo.
+#if STAGE_X86_64
           if (avx512) {
             DiffuseLast16(da, xb, lanes, lobe_lanes, d2_lanes, &batch);
           } else {
             DiffuseLast(da, xb, lanes, lobe_lanes, d2_lanes, &batch);
           }
+#else
+          DiffuseLast(da, xb, lanes, lobe_lanes, d2_lanes, &batch);
+#endif
           for (int l = 0; l < lanes; ++l) {
             if (!batch.solved[l]) continue;
             const int xt = xb + l;
@@ -1423,7 +1452,7 @@ absl::Status SolvePhotometricFast(const LightModel& light, const PhotometricTabl
         }
       }
     }
-    _mm_sfence();  // the streamed zeros, before other threads read the maps
+    internal::StreamFence();  // the streamed zeros, before other threads read the maps
   });
 
   // RGB albedo: each pixel's own colour as solved, the others from its neighbours' hue.

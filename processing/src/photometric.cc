@@ -1,7 +1,6 @@
 // Photometric stereo under spherical gradient illumination: see photometric.h.
 #include "stage/processing/photometric.h"
 
-#include <immintrin.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -236,6 +235,7 @@ __attribute__((always_inline)) inline void WindowSums16Impl(const WindowRow* con
   }
 }
 
+#if STAGE_X86_64
 // The same in AVX-512 lanes: the same operations in the same order per lane (the file is compiled without
 // contraction of multiply and add), so the same bits.
 __attribute__((target("avx512f,avx512dq"))) void WindowSums16Avx512(const WindowRow* const* rows, int n_rows,
@@ -293,14 +293,17 @@ __attribute__((target("avx512f,avx512dq"))) void WindowSums16Avx512(const Window
     _mm512_storeu_ps(out->sn[c], sn[c]);
   }
 }
+#endif  // STAGE_X86_64
 
 void WindowSums16(const WindowRow* const* rows, int n_rows, const WindowRow& mid, int xb, int r, const bool* center,
                   WindowSums* out) {
+#if STAGE_X86_64
   if (FastVectorKernels() && FastVectorKernelsAvailable()) {
     WindowSums16Avx512(rows, n_rows, mid, xb, r, center, out);
-  } else {
-    WindowSums16Impl(rows, n_rows, mid, xb, r, center, out);
+    return;
   }
+#endif
+  WindowSums16Impl(rows, n_rows, mid, xb, r, center, out);
 }
 
 }  // namespace
@@ -449,7 +452,7 @@ void RegularizeSpecular(int radius, int threads, const Eigen::Matrix3f& to_camer
         }
       }
     }
-    _mm_sfence();
+    StreamFence();
   });
   for (int y = 0; y < h; ++y) {
     const std::vector<float>& row = deferred[static_cast<size_t>(y)];

@@ -2,7 +2,14 @@
 // geometry; fast_photometric.cc: table-driven from the raw mosaic, without geometry). Not part of the library's API.
 #pragma once
 
+// The x86-64 kernels (AVX-512 chosen at run time, non-temporal stores) are built only for an x86-64 target; elsewhere
+// (an arm64 light node's host) the portable twins beside them are the only path.
+#if defined(__x86_64__)
+#define STAGE_X86_64 1
 #include <immintrin.h>
+#else
+#define STAGE_X86_64 0
+#endif
 
 #include <Eigen/Core>
 #include <algorithm>
@@ -198,19 +205,28 @@ constexpr int kStreamRun = 256;
 
 // Zeros n floats from p with non-temporal stores (the middle, 16-byte aligned; plain stores at the ends): for memory
 // nothing reads again soon (the background's maps), so that the lines are not first read from memory and do not
-// push the working set out of the caches. The stores are weakly ordered: the thread calls _mm_sfence() before others
-// read them.
+// push the working set out of the caches. The stores are weakly ordered: the thread calls StreamFence() before others
+// read them. Plain stores where the target has no x86 non-temporal stores.
 inline void StreamZeros(float* p, size_t n) {
   while (n > 0 && (reinterpret_cast<uintptr_t>(p) & 15) != 0) {
     *p++ = 0;
     --n;
   }
+#if STAGE_X86_64
   const __m128 zero = _mm_setzero_ps();
   for (; n >= 4; n -= 4, p += 4) _mm_stream_ps(p, zero);
+#endif
   while (n > 0) {
     *p++ = 0;
     --n;
   }
+}
+
+// Orders the non-temporal stores before later ones (x86 sfence; nothing to do for plain stores).
+inline void StreamFence() {
+#if STAGE_X86_64
+  _mm_sfence();
+#endif
 }
 
 // Copies n floats from src to dst with non-temporal stores, as StreamZeros.
@@ -219,7 +235,9 @@ inline void StreamCopy(float* dst, const float* src, size_t n) {
     *dst++ = *src++;
     --n;
   }
+#if STAGE_X86_64
   for (; n >= 4; n -= 4, dst += 4, src += 4) _mm_stream_ps(dst, _mm_loadu_ps(src));
+#endif
   while (n > 0) {
     *dst++ = *src++;
     --n;

@@ -69,6 +69,7 @@ TEST(PortableMathTest, ExpIsWithinTwoUlpOfTheTrueValue) {
 
 // The same functions over a row, vectorized for AVX-512 and for AVX2 with FMA (this file is compiled at -O3, as the
 // library's row loops are, and without contraction), and one value at a time.
+#if defined(__x86_64__)
 __attribute__((target("arch=x86-64-v4"))) void RowV4(const float* in, int n, float* lg, float* ex) {
   for (int i = 0; i < n; ++i) {
     lg[i] = internal::PortableLog(in[i]);
@@ -82,6 +83,8 @@ __attribute__((target("arch=x86-64-v3"))) void RowV3(const float* in, int n, flo
     ex[i] = internal::PortableExp(in[i]);
   }
 }
+
+#endif
 
 __attribute__((optimize("no-tree-vectorize"))) void RowScalar(const float* in, int n, float* lg, float* ex) {
   for (int i = 0; i < n; ++i) {
@@ -110,9 +113,13 @@ TEST(PortableMathTest, VectorLanesGiveTheBitsOfOneValueAtATime) {
     EXPECT_EQ(std::memcmp(ex_v.data(), ex_s.data(), in.size() * sizeof(float)), 0) << name;
     ++checked;
   };
+#if defined(__x86_64__)
   if (__builtin_cpu_supports("x86-64-v4")) check("x86-64-v4", RowV4);
   if (__builtin_cpu_supports("x86-64-v3")) check("x86-64-v3", RowV3);
-  if (checked == 0) GTEST_SKIP() << "neither AVX2 nor AVX-512 on this CPU";
+#else
+  (void)check;
+#endif
+  if (checked == 0) GTEST_SKIP() << "neither AVX2 nor AVX-512 on this CPU (or not an x86-64 target)";
 }
 
 // A float passes LobeLimits' float thresholds exactly when it passes the options' doubles (which the lobe's tests in
