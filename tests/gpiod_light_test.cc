@@ -101,6 +101,8 @@ TEST(GpiodLightTest, StepsOnKernelTimestampedEdgesOfGpioSim) {
   o.lines.chip = sim.chip();
   o.lines.outputs = {0, 1, 2};
   o.lines.slot_clock_line = 7;
+  // The pulls below come every few ms: a slow clock, so that no gap between them reads as edges lost (1.5 periods).
+  o.slot_rate_hz = 10;
   auto driver = GpiodLightDriver::Open(o);
   ASSERT_TRUE(driver.ok()) << driver.status();
   ASSERT_TRUE(sim.Pull(7, false));
@@ -132,7 +134,7 @@ TEST(GpiodLightTest, StepsOnKernelTimestampedEdgesOfGpioSim) {
 }
 
 // The node as the sync generator on gpio-sim: its clock line is an output the kernel holds. A sampler reads the line's
-// value back through sysfs while a planned run of 40 slots goes out: every edge the driver wrote is a rise the kernel
+// value back through sysfs while a planned run of 40 slots (at 100 Hz) goes out: every edge the driver wrote is a rise the kernel
 // held, none more; after the run the line is low, and the channel lines hold the row of the last edge.
 TEST(GpiodLightTest, GeneratesTheSlotClockOnGpioSimAndTheKernelHoldsEveryEdge) {
   if (std::string why = GpioSimChip::WhyNot(); !why.empty()) GTEST_SKIP() << why;
@@ -145,6 +147,7 @@ TEST(GpiodLightTest, GeneratesTheSlotClockOnGpioSimAndTheKernelHoldsEveryEdge) {
   o.lines.outputs = {0, 1, 2};
   o.lines.slot_clock_line = 7;
   o.lines.drives_slot_clock = true;
+  o.slot_rate_hz = 100;  // pulses 5 ms high: a sampler on a loaded (or emulated) machine sees every one
   auto driver = GpiodLightDriver::Open(o);
   ASSERT_TRUE(driver.ok()) << driver.status();
   const PatternTable table{"t", {"a", "b", "c"}, {{65535, 0, 0}, {0, 65535, 0}, {65535, 65535, 65535}}};
@@ -222,13 +225,13 @@ TEST(GpiodLightTest, OnAFreeRunningGpioSimInputTheTableStartsAtThePlannedEdge) {
   ASSERT_TRUE(in.ok()) << in.status();
   EXPECT_EQ((*driver)->State().steps, 0u) << "dark until its planned edge";
   for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
-  // The planned edge: some time after the next one (the pulls are not a clock; the table starts on the first edge at
-  // or after the planned time less half a period, 5 ms).
-  const int64_t plan = timing::HostClockNs(true) + 12'000'000;
+  // The planned edge, 300 ms ahead (the pulls are not a clock; the table starts on the first edge at or after the
+  // planned time less half a period, 5 ms): an edge now leaves it dark, the two after the planned time step it.
+  const int64_t plan = timing::HostClockNs(true) + 300'000'000;
   ASSERT_TRUE((*driver)->StartAt(plan).ok());
-  edge(1);  // before the planned time: still dark
+  edge(1);
   EXPECT_EQ((*driver)->State().steps, 0u);
-  std::this_thread::sleep_for(std::chrono::milliseconds(15));
+  while (timing::HostClockNs(true) < plan) std::this_thread::sleep_for(std::chrono::milliseconds(5));
   edge(2);
   for (int i = 0; i < 500 && (*driver)->State().steps < 2; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(1));
   EXPECT_EQ((*driver)->State().steps, 2u);
