@@ -65,13 +65,13 @@ int main(int argc, char** argv) {
   CLI::App app{"Serves one camera of the FaStage rig (CameraNode gRPC service and grpc.health.v1).", "camera-node"};
   stage::CommonFlags flags;
   std::string id;
-  std::string backend;
+  std::string backend_name;
   stage::AddCommonFlags(app, &flags, /*serves=*/true);
   app.add_option("--id", id, "Id of this camera in the rig file (required to serve)");
   bool list = false, json = false;
   app.add_flag("--list", list, "List the GigE Vision and USB3 Vision cameras Aravis finds, then exit");
   app.add_flag("--json", json, "With --list: one JSON array");
-  app.add_option("--backend", backend, "Use this backend instead of the rig's (sim, aravis)");
+  app.add_option("--backend", backend_name, "Use this backend instead of the rig's (sim, aravis)");
   std::string world_address;
   app.add_option("--sim-world", world_address,
                  "host:port of stage-sim's simulated world: the sim backend is triggered by its slot clock and renders "
@@ -87,7 +87,12 @@ int main(int argc, char** argv) {
   auto camera = stage::FindCamera(*loaded, id);
   if (!camera.ok()) return stage::ReportFatal(kProgram, camera.status());
   const stage::v1::CameraConfig& config = **camera;
-  if (backend.empty()) backend = config.backend();
+  stage::v1::CameraBackend backend = config.backend();
+  if (!backend_name.empty()) {
+    auto parsed = stage::camera::ParseCameraBackend(backend_name);
+    if (!parsed.ok()) return stage::ReportFatal(kProgram, parsed.status());
+    backend = *parsed;
+  }
 
   // The backends this program has: the hardware one, and the simulator's when built with it.
   stage::camera::CameraBackends backends;
@@ -95,7 +100,7 @@ int main(int argc, char** argv) {
 #ifdef STAGE_WITH_SIM
   stage::sim::RegisterSimCameraBackend(&backends, [] { raise(SIGKILL); });
 #endif
-  if (!world_address.empty() && backend != "sim") {
+  if (!world_address.empty() && backend != stage::v1::CAMERA_BACKEND_SIM) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--sim-world needs the sim backend"));
   }
   stage::RealClock clock(stage::RealClock::Kind::kRealtime);
@@ -117,7 +122,8 @@ int main(int argc, char** argv) {
   std::string summary = fmt::format("camera {}: {}, {}x{} {} at {} fps, exposure {} us, backend {}, rig {}",
                                     config.id(), stage::CameraRoleName(config.role()), config.width(), config.height(),
                                     stage::PixelFormatName(config.pixel_format()), config.frame_rate_hz(),
-                                    config.exposure_us(), backend, loaded->source_name);
+                                    config.exposure_us(), stage::camera::CameraBackendName(backend),
+                                    loaded->source_name);
 
   stage::camera::CameraService service(node->get());
   return stage::ServeUntilSignal(kProgram, flags, config.address().empty() ? "127.0.0.1:0" : config.address(),

@@ -84,7 +84,7 @@ TEST(CliTest, UnknownBackend) {
   ExpectOneLineError(RunCommand({"light-node", "--id", "lights-gpio-1", "--backend", "dmx"}, kTimeout), 2,
                      "unknown light backend \"dmx\"");
   ExpectOneLineError(RunCommand({"camera-node", "--id", "mv-01", "--backend", "usb"}, kTimeout), 2,
-                     "camera \"mv-01\": unknown backend \"usb\"");
+                     "unknown camera backend \"usb\" (sim, aravis)");
 }
 
 TEST(CliTest, AnAbsentHardwareCameraFailsLoudly) {

@@ -15,34 +15,47 @@
 
 namespace stage::camera {
 
-void CameraBackends::Register(const std::string& backend, CameraBackendFactory factory) {
+absl::StatusOr<v1::CameraBackend> ParseCameraBackend(const std::string& name) {
+  if (name == "sim") return v1::CAMERA_BACKEND_SIM;
+  if (name == "aravis") return v1::CAMERA_BACKEND_ARAVIS;
+  return absl::InvalidArgumentError(absl::StrCat("unknown camera backend \"", name, "\" (sim, aravis)"));
+}
+
+std::string CameraBackendName(v1::CameraBackend backend) {
+  switch (backend) {
+    case v1::CAMERA_BACKEND_SIM:
+      return "sim";
+    case v1::CAMERA_BACKEND_ARAVIS:
+      return "aravis";
+    default:
+      return "unspecified";
+  }
+}
+
+void CameraBackends::Register(v1::CameraBackend backend, CameraBackendFactory factory) {
   factories_[backend] = std::move(factory);
 }
 
-absl::StatusOr<CameraBackendParts> CameraBackends::Create(const std::string& backend, const v1::CameraConfig& config,
+absl::StatusOr<CameraBackendParts> CameraBackends::Create(v1::CameraBackend backend, const v1::CameraConfig& config,
                                                           const CameraBackendContext& context) const {
   auto it = factories_.find(backend);
-  if (it == factories_.end() && backend != "aravis" && backend != "sim") {
-    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": unknown backend \"", backend,
-                                                   "\" (this program has: ", Names(), ")"));
-  }
   if (it == factories_.end()) {
-    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": this program has no ", backend,
-                                                   " backend (it has: ", Names(), ")"));
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": this program has no ",
+                                                   CameraBackendName(backend), " backend (it has: ", Names(), ")"));
   }
   return it->second(config, context);
 }
 
 std::string CameraBackends::Names() const {
   std::vector<std::string> names;
-  for (const auto& [backend, factory] : factories_) names.push_back(backend);
+  for (const auto& [backend, factory] : factories_) names.push_back(CameraBackendName(backend));
   return names.empty() ? "none" : absl::StrJoin(names, ", ");
 }
 
 void RegisterHardwareCameraBackends(CameraBackends* backends) {
 #if STAGE_WITH_ARAVIS
   backends->Register(
-      "aravis", [](const v1::CameraConfig& config, const CameraBackendContext&) -> absl::StatusOr<CameraBackendParts> {
+      v1::CAMERA_BACKEND_ARAVIS, [](const v1::CameraConfig& config, const CameraBackendContext&) -> absl::StatusOr<CameraBackendParts> {
         if (config.device().empty()) {
           return absl::InvalidArgumentError(
               absl::StrCat("camera \"", config.id(),

@@ -39,18 +39,22 @@ struct CameraBackendParts {
 using CameraBackendFactory =
     std::function<absl::StatusOr<CameraBackendParts>(const v1::CameraConfig&, const CameraBackendContext&)>;
 
+// The rig's short names ("sim", "aravis"), for --backend and messages.
+absl::StatusOr<v1::CameraBackend> ParseCameraBackend(const std::string& name);
+std::string CameraBackendName(v1::CameraBackend backend);
+
 class CameraBackends {
  public:
-  void Register(const std::string& backend, CameraBackendFactory factory);
+  void Register(v1::CameraBackend backend, CameraBackendFactory factory);
   // The camera's device from `backend`. InvalidArgument names the camera and the backends this program has for one
   // it lacks; the backend's own errors name the camera and its device.
-  absl::StatusOr<CameraBackendParts> Create(const std::string& backend, const v1::CameraConfig& config,
+  absl::StatusOr<CameraBackendParts> Create(v1::CameraBackend backend, const v1::CameraConfig& config,
                                             const CameraBackendContext& context) const;
   // "aravis, sim": the registered backends.
   std::string Names() const;
 
  private:
-  std::map<std::string, CameraBackendFactory> factories_;
+  std::map<v1::CameraBackend, CameraBackendFactory> factories_;
 };
 
 // aravis, where this build has Aravis.

@@ -36,7 +36,6 @@ constexpr absl::string_view kFastage38 = "fastage-38";
 constexpr uint32_t kFastage38Length = 38;
 constexpr uint32_t kFastage38ParallelFullOn = 19;
 
-const std::set<std::string, std::less<>> kCameraBackends = {"sim", "aravis"};
 
 bool IsRoleHighSpeed(const CameraConfig& c) { return c.role() == v1::CAMERA_ROLE_HIGH_SPEED; }
 
@@ -111,12 +110,7 @@ void CheckCamera(Checker& check, const std::string& p, const CameraConfig& c, co
   if (c.role() == v1::CAMERA_ROLE_UNSPECIFIED) {
     check.Add(p + ".role", "required field is missing (machine-vision or high-speed)");
   }
-  if (!kCameraBackends.count(c.backend())) {
-    check.Add(
-        p + ".backend",
-        absl::StrCat("\"", c.backend(), "\" is not a camera backend; valid: ", absl::StrJoin(kCameraBackends, ", ")));
-  }
-  if (c.backend() == "aravis" && c.device().empty()) {
+  if (c.backend() == v1::CAMERA_BACKEND_ARAVIS && c.device().empty()) {
     check.Add(p + ".device", "required for the aravis backend (serial number, user id or IP address)");
   }
   CheckAddress(check, p + ".address", c.address(), options.require_addresses);
@@ -382,7 +376,7 @@ void ApplyRigDefaults(RigConfig* rig) {
 
   for (auto& c : *rig->mutable_cameras()) {
     const bool hs = IsRoleHighSpeed(c);
-    if (c.backend().empty()) c.set_backend("sim");
+    if (c.backend() == v1::CAMERA_BACKEND_UNSPECIFIED) c.set_backend(v1::CAMERA_BACKEND_SIM);
     if (c.pixel_format() == v1::PIXEL_FORMAT_UNSPECIFIED) c.set_pixel_format(v1::PIXEL_FORMAT_BAYER_RG8);
     if (!c.has_gain_db()) c.set_gain_db(0);
     if (!c.has_readout_us()) c.set_readout_us(0);
@@ -565,7 +559,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       // Each fake listens at its camera's address: GigE Vision's control port is fixed, so one camera per address.
       std::map<std::string, std::string> by_address;
       for (const auto& c : rig.cameras()) {
-        if (c.backend() != "aravis") continue;
+        if (c.backend() != v1::CAMERA_BACKEND_ARAVIS) continue;
         in_addr a{};
         if (inet_pton(AF_INET, c.device().c_str(), &a) != 1) {
           check.Add(absl::StrCat("cameras[", c.id(), "].device"),
@@ -609,7 +603,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
         const auto* c = camera ? &*std::find_if(rig.cameras().begin(), rig.cameras().end(),
                                                 [&](const v1::CameraConfig& cc) { return cc.id() == f.target(); })
                                : nullptr;
-        if (c == nullptr || !rig.sim().gige_fakes() || c->backend() != "aravis") {
+        if (c == nullptr || !rig.sim().gige_fakes() || c->backend() != v1::CAMERA_BACKEND_ARAVIS) {
           check.Add(p, "packet_loss and link_down apply to a fake GigE Vision camera (sim.gige_fakes, backend aravis)");
         }
       }

@@ -110,7 +110,7 @@ TEST(RigTest, GoodRigLoadsWithDefaults) {
   EXPECT_EQ(rig.cameras(0).trigger().slot_phase(), 19u);
   EXPECT_EQ(rig.cameras(1).frame_rate_hz(), 912);
   EXPECT_EQ(rig.cameras(1).trigger().divider(), 1u);
-  EXPECT_EQ(rig.cameras(0).backend(), "sim");
+  EXPECT_EQ(rig.cameras(0).backend(), v1::CAMERA_BACKEND_SIM);
   EXPECT_EQ(rig.cameras(0).pixel_format(), v1::PIXEL_FORMAT_BAYER_RG8);
   EXPECT_EQ(rig.light_nodes(1).modbus().tcp().port(), 502u);
   EXPECT_EQ(rig.light_nodes(0).unit_limits().max_duty_cycle(), 0.5);

@@ -74,7 +74,7 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
   pc.rays = model->PixelRays();
 
   const v1::PhotometricCalibration& cal = config->photometric();
-  const bool simulated = config->backend() == "sim";
+  const bool simulated = config->backend() == v1::CAMERA_BACKEND_SIM;
   SimSensor sim{};
   if (simulated) sim = SimulatedSensor(rig.rig, *config, *model, bits);
   auto field = [&](bool has, double value, double derived, const char* name) -> absl::StatusOr<double> {

@@ -35,7 +35,7 @@ void RegisterSimLightBackend(light::LightBackends* backends, std::function<void(
 
 void RegisterSimCameraBackend(camera::CameraBackends* backends, std::function<void()> on_crash) {
   backends->Register(
-      "sim",
+      v1::CAMERA_BACKEND_SIM,
       [on_crash](const v1::CameraConfig& config,
                  const camera::CameraBackendContext& context) -> absl::StatusOr<camera::CameraBackendParts> {
         auto device =

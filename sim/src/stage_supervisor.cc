@@ -300,7 +300,7 @@ absl::Status StageSupervisor::Start() {
     std::vector<std::string> args = {"--id", id, "--backend", "sim"};
     for (const auto& c : rig_.rig.cameras()) {
       // A fake GigE Vision camera of stage-sim's stands in for it: the node runs its real backend.
-      if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == "aravis")
+      if (c.id() == id && rig_.rig.sim().gige_fakes() && c.backend() == v1::CAMERA_BACKEND_ARAVIS)
         return std::vector<std::string>{"--id", id};
     }
     for (const auto& n : rig_.rig.light_nodes()) {

@@ -331,7 +331,7 @@ int main(int argc, char** argv) {
   if (scene != nullptr && scene->rig().sim().gige_fakes()) {
 #if STAGE_WITH_ARAVIS
     for (const auto& c : scene->rig().cameras()) {
-      if (c.backend() != "aravis") continue;
+      if (c.backend() != stage::v1::CAMERA_BACKEND_ARAVIS) continue;
       auto fake_options = stage::sim::GigEFakeOptionsFromRig(*scene, c.id());
       if (!fake_options.ok()) return stage::ReportFatal(kProgram, fake_options.status());
       fake_clients.push_back(stage::sim::LocalWorldClient(world.get()));
