@@ -5,10 +5,7 @@
 #define STAGE_WITH_ARAVIS 0
 #endif
 
-#include <vector>
-
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_join.h"
 #if STAGE_WITH_ARAVIS
 #include "aravis_camera_device.h"
 #endif
@@ -30,26 +27,6 @@ std::string CameraBackendName(v1::CameraBackend backend) {
     default:
       return "unspecified";
   }
-}
-
-void CameraBackends::Register(v1::CameraBackend backend, CameraBackendFactory factory) {
-  factories_[backend] = std::move(factory);
-}
-
-absl::StatusOr<CameraBackendParts> CameraBackends::Create(v1::CameraBackend backend, const v1::CameraConfig& config,
-                                                          const CameraBackendContext& context) const {
-  auto it = factories_.find(backend);
-  if (it == factories_.end()) {
-    return absl::InvalidArgumentError(absl::StrCat("camera \"", config.id(), "\": this program has no ",
-                                                   CameraBackendName(backend), " backend (it has: ", Names(), ")"));
-  }
-  return it->second(config, context);
-}
-
-std::string CameraBackends::Names() const {
-  std::vector<std::string> names;
-  for (const auto& [backend, factory] : factories_) names.push_back(CameraBackendName(backend));
-  return names.empty() ? "none" : absl::StrJoin(names, ", ");
 }
 
 void RegisterHardwareCameraBackends(CameraBackends* backends) {

@@ -3,13 +3,12 @@
 // built with the simulator. Nothing here links the simulator.
 #pragma once
 
-#include <functional>
-#include <map>
 #include <memory>
 #include <string>
 
 #include "absl/status/statusor.h"
 #include "stage/camera/camera_device.h"
+#include "stage/common/backend_registry.h"
 #include "stage/common/clock.h"
 #include "stage/common/rig.h"
 #include "stage/v1/rig.pb.h"
@@ -36,26 +35,16 @@ struct CameraBackendParts {
   std::shared_ptr<void> keep;
 };
 
-using CameraBackendFactory =
-    std::function<absl::StatusOr<CameraBackendParts>(const v1::CameraConfig&, const CameraBackendContext&)>;
-
 // The rig's short names ("sim", "aravis"), for --backend and messages.
 absl::StatusOr<v1::CameraBackend> ParseCameraBackend(const std::string& name);
 std::string CameraBackendName(v1::CameraBackend backend);
 
-class CameraBackends {
+class CameraBackends
+    : public BackendRegistry<v1::CameraBackend, v1::CameraConfig, CameraBackendContext, CameraBackendParts> {
  public:
-  void Register(v1::CameraBackend backend, CameraBackendFactory factory);
-  // The camera's device from `backend`. InvalidArgument names the camera and the backends this program has for one
-  // it lacks; the backend's own errors name the camera and its device.
-  absl::StatusOr<CameraBackendParts> Create(v1::CameraBackend backend, const v1::CameraConfig& config,
-                                            const CameraBackendContext& context) const;
-  // "aravis, sim": the registered backends.
-  std::string Names() const;
-
- private:
-  std::map<v1::CameraBackend, CameraBackendFactory> factories_;
+  CameraBackends() : BackendRegistry("camera", &CameraBackendName) {}
 };
+using CameraBackendFactory = CameraBackends::Factory;
 
 // aravis, where this build has Aravis.
 void RegisterHardwareCameraBackends(CameraBackends* backends);

@@ -1,10 +1,8 @@
 // Light backends: see backends.h.
 #include "light_backends.h"
 
-#include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_join.h"
 #include "gpiod_light_driver.h"
 #ifdef STAGE_WITH_MODBUS
 #include "modbus_light_driver.h"
@@ -30,26 +28,6 @@ std::string LightBackendName(v1::LightBackend backend) {
     default:
       return "unspecified";
   }
-}
-
-void LightBackends::Register(v1::LightBackend backend, LightBackendFactory factory) {
-  factories_[backend] = std::move(factory);
-}
-
-absl::StatusOr<LightBackendParts> LightBackends::Create(v1::LightBackend backend, const v1::LightNodeConfig& config,
-                                                        const LightBackendContext& context) const {
-  auto it = factories_.find(backend);
-  if (it == factories_.end()) {
-    return absl::InvalidArgumentError(absl::StrCat("light node \"", config.id(), "\": this program has no ",
-                                                   LightBackendName(backend), " backend (it has: ", Names(), ")"));
-  }
-  return it->second(config, context);
-}
-
-std::string LightBackends::Names() const {
-  std::vector<std::string> names;
-  for (const auto& [backend, factory] : factories_) names.push_back(LightBackendName(backend));
-  return names.empty() ? "none" : absl::StrJoin(names, ", ");
 }
 
 void RegisterHardwareLightBackends(LightBackends* backends) {

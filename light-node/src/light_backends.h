@@ -3,12 +3,11 @@
 // program built with the simulator. Nothing here links the simulator.
 #pragma once
 
-#include <functional>
-#include <map>
 #include <memory>
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "stage/common/backend_registry.h"
 #include "stage/common/rig.h"
 #include "stage/light/light_driver.h"
 #include "stage/light/slot_clock.h"
@@ -42,22 +41,12 @@ struct LightBackendParts {
   std::shared_ptr<void> keep;
 };
 
-using LightBackendFactory =
-    std::function<absl::StatusOr<LightBackendParts>(const v1::LightNodeConfig&, const LightBackendContext&)>;
-
-class LightBackends {
+class LightBackends
+    : public BackendRegistry<v1::LightBackend, v1::LightNodeConfig, LightBackendContext, LightBackendParts> {
  public:
-  void Register(v1::LightBackend backend, LightBackendFactory factory);
-  // The node's device from `backend`. InvalidArgument names the node and the backends this program has for one it
-  // lacks; the backend's own errors name the node and its device.
-  absl::StatusOr<LightBackendParts> Create(v1::LightBackend backend, const v1::LightNodeConfig& config,
-                                           const LightBackendContext& context) const;
-  // "gpiod, modbus, sim": the registered backends.
-  std::string Names() const;
-
- private:
-  std::map<v1::LightBackend, LightBackendFactory> factories_;
+  LightBackends() : BackendRegistry("light node", &LightBackendName) {}
 };
+using LightBackendFactory = LightBackends::Factory;
 
 // gpiod, and modbus where this build has libmodbus.
 void RegisterHardwareLightBackends(LightBackends* backends);
