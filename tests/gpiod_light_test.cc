@@ -264,11 +264,15 @@ TEST(GpiodLightTest, OnAFreeRunningGpioSimInputTheTableStartsAtThePlannedEdge) {
   ASSERT_TRUE(in.ok()) << in.status();
   EXPECT_EQ(driver->State().steps, 0u) << "dark until its planned edge";
   for (int c = 0; c < 3; ++c) EXPECT_EQ(sim.Value(c), 0);
-  // An edge that has passed cannot be the first. The planned edge: just after the last one seen (the pulls are not a
-  // clock): the next two edges step rows 0 and 1.
-  EXPECT_TRUE(absl::IsFailedPrecondition(driver->StartAt(in->last_edge_ns - 2'000'000'000)));
-  ASSERT_TRUE(driver->StartAt(in->last_edge_ns + 1'000'000).ok());
+  // An edge that has passed cannot be the first. The planned edge: a period (1 s) after the last one seen; the table
+  // starts on the first edge at or after half a period before it, so the test makes its next edges after that (the
+  // pulls are not a clock): they step rows 0 and 1. The same request again (a retry) changes nothing.
+  EXPECT_TRUE(absl::IsFailedPrecondition(driver->StartAt(in->last_edge_ns)));
+  const int64_t plan = in->last_edge_ns + 1'000'000'000;
+  ASSERT_TRUE(driver->StartAt(plan).ok());
+  ASSERT_TRUE(driver->StartAt(plan).ok());
   EXPECT_EQ(driver->State().steps, 0u);
+  while (timing::HostClockNs(true) < plan - 450'000'000) std::this_thread::sleep_for(std::chrono::milliseconds(5));
   edge(2);
   for (int i = 0; i < 500 && driver->State().steps < 2; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(1));
   EXPECT_EQ(driver->State().steps, 2u);

@@ -90,6 +90,9 @@ void TakeRecorder::Rebuild() {
   }
   index_of_ = std::move(index_of);
   rec_.slots = std::move(slots);
+  // Received: the frames matched to a slot the take still has (a pause or an abort can take slots away).
+  rec_.frames_received = 0;
+  for (const auto& [slot, frame_id] : matched_) rec_.frames_received += index_of_.count(slot) ? 1 : 0;
 }
 
 absl::Status TakeRecorder::Update(const PlanUpdate& update) {

@@ -449,16 +449,18 @@ absl::Status GpiodLightDriver::StartAt(int64_t first_edge_ns) {
   if (slot_clock_ != nullptr) {
     return absl::FailedPreconditionError(absl::StrCat(Who(), ": it drives the slot clock; its runs start its table"));
   }
+  if (first_edge_ns != kStartNotYet && first_edge_ns == start_requested_ns_) return absl::OkStatus();  // a retry
   const int64_t half = std::llround(5e8 / options_.slot_rate_hz);
   int64_t mono = kStartNotYet;
   if (first_edge_ns != kStartNotYet) {
     mono = first_edge_ns - RealtimeOffsetNs();
-    if (timing_.count > 0 && mono + half <= last_edge_ns_) {
+    if (timing_.count > 0 && last_edge_ns_ >= mono - half) {
       return absl::FailedPreconditionError(absl::StrCat(Who(), ": the edge at ", first_edge_ns,
                                                         " ns has passed (the clock is at slot ", LastSlot(), ")"));
     }
   }
   start_at_mono_ns_ = mono;
+  start_requested_ns_ = first_edge_ns;
   table_first_slot_ = table_first_edge_ns_ = -1;
   state_.current_row = -1;
   state_.steps = 0;
@@ -475,7 +477,8 @@ absl::StatusOr<ClockInput> GpiodLightDriver::SlotClockInput() const {
   in.last_slot = LastSlot();
   if (in.last_slot >= 0) {
     in.last_edge_ns = last_edge_ns_ + offset;
-    in.running = timing::HostClockNs(false) - last_edge_ns_ < std::llround(1.5e9 / options_.slot_rate_hz);
+    const int64_t quiet = std::max<int64_t>(kQuietLineMinNs, std::llround(kQuietLinePeriods * 1e9 / options_.slot_rate_hz));
+    in.running = timing::HostClockNs(false) - last_edge_ns_ < quiet;
   }
   in.table_first_slot = table_first_slot_;
   if (table_first_edge_ns_ >= 0) in.table_first_edge_ns = table_first_edge_ns_ + offset;
@@ -495,6 +498,7 @@ absl::Status GpiodLightDriver::Arm() {
   edges_.clear();
   timing_ = EdgeTiming{};
   start_at_mono_ns_ = -1;
+  start_requested_ns_ = -1;
   table_first_slot_ = table_first_edge_ns_ = -1;
   armed_at_ns_ = timing::HostClockNs(false);
   return absl::OkStatus();

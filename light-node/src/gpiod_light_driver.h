@@ -144,8 +144,10 @@ class GpiodLightDriver final : public LightDriver {
   int64_t armed_at_ns_ = 0;                       // guarded by mutex_
   // The armed table's planned first edge on CLOCK_MONOTONIC (StartAt), kStartNotYet while it waits for one, -1 once
   // it started or when it steps from the next edge; the number of the first edge since the arm (its time since the
-  // epoch), and the table's first edge (-1 none). Guarded by mutex_.
+  // epoch; a silence later counts as edges lost, it does not renumber), and the table's first edge (-1 none). Guarded
+  // by mutex_.
   int64_t start_at_mono_ns_ = -1;
+  int64_t start_requested_ns_ = -1;  // the StartAt asked last since the arm (CLOCK_REALTIME), -1 none
   int64_t line_first_slot_ = 0;
   int64_t table_first_slot_ = -1, table_first_edge_ns_ = -1;
   std::atomic<bool> stopping_{false};

@@ -54,6 +54,7 @@ absl::Status SimLightDriver::Arm() {
   state_.current_row = -1;
   state_.steps = 0;
   start_at_ns_ = -1;
+  start_requested_ns_ = -1;
   input_.table_first_slot = input_.table_first_edge_ns = -1;
   return absl::OkStatus();
 }
@@ -64,13 +65,15 @@ absl::Status SimLightDriver::StartAt(int64_t first_edge_ns) {
     if (state_.mode != light::DriverMode::kArmed) {
       return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": start a table only when armed"));
     }
+    if (first_edge_ns != light::kStartNotYet && first_edge_ns == start_requested_ns_) return absl::OkStatus();  // retry
     if (first_edge_ns != light::kStartNotYet && input_.last_slot >= 0 &&
-        first_edge_ns + half_period_ns_ <= input_.last_edge_ns) {
+        input_.last_edge_ns >= first_edge_ns - half_period_ns_) {
       return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": the edge at ", first_edge_ns,
                                                         " ns has passed (the clock is at slot ", input_.last_slot,
                                                         ", ", input_.last_edge_ns, " ns)"));
     }
     start_at_ns_ = first_edge_ns;
+    start_requested_ns_ = first_edge_ns;
     state_.current_row = -1;
     state_.steps = 0;
     input_.table_first_slot = input_.table_first_edge_ns = -1;
@@ -81,15 +84,14 @@ absl::Status SimLightDriver::StartAt(int64_t first_edge_ns) {
 
 absl::StatusOr<light::ClockInput> SimLightDriver::SlotClockInput() const {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (!world_thread_.joinable()) {
+  if (!attached_) {
     return absl::FailedPreconditionError(absl::StrCat("light node \"", node_id_, "\": not in a world: it sees no clock"));
   }
   light::ClockInput in = input_;
-  // The run's last edge has come; in real time, an edge more than 1.5 periods old says the line went quiet too (a
-  // run ended early).
+  // The run's last edge has come; in real time, an old last edge says the line went quiet too (a run ended early).
   in.running = in.last_slot >= 0 && in.last_slot < input_run_end_ - 1;
-  if (in.running && !world_.world->lockstep() &&
-      RealClock(RealClock::Kind::kMonotonic).NowNs() - in.last_edge_ns > 3 * half_period_ns_) {
+  const int64_t quiet = std::max(light::kQuietLineMinNs, light::kQuietLinePeriods * 2 * half_period_ns_);
+  if (in.running && !lockstep_ && RealClock(RealClock::Kind::kMonotonic).NowNs() - in.last_edge_ns > quiet) {
     in.running = false;
   }
   return in;
@@ -159,6 +161,11 @@ absl::Status SimLightDriver::AttachWorld(const SimLightWorld& world) {
   if (!device.ok()) return device.status();
   world_ = world;
   world_device_ = *device;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    attached_ = true;
+    lockstep_ = world.world->lockstep();
+  }
   world_thread_ = std::thread([this, d = *device] { WorldLoop(d); });
   return absl::OkStatus();
 }
@@ -168,6 +175,7 @@ void SimLightDriver::DetachWorld() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     detaching_.store(true);
+    attached_ = false;
   }
   start_changed_.notify_all();
   world_.world->Leave(world_device_);

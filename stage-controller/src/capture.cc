@@ -87,6 +87,7 @@ struct Capturer::Take {
   int64_t cycle = 38;
   int64_t capture_slots = 0;  // asked for: frames x cycle
   std::vector<std::unique_ptr<LightClient>> lights;
+  std::vector<bool> light_armed;  // by light: its Arm succeeded (a node not ready is not asked to start its table)
   std::vector<Cam> cams;
   std::vector<std::string> not_ready;
   bool ran = false;
@@ -316,9 +317,9 @@ void Capturer::ArmLights(Take& take) {
     arm.set_heartbeat_timeout_ms(kLightHeartbeatTimeoutMs);
     arm.set_start_at_planned_edge(devices_.generator->runs_free());
     v1::LightStats stats;
-    if (absl::Status s = take.lights.back()->Arm(arm, StallDeadline(), &stats); !s.ok()) {
-      take.not_ready.push_back(absl::StrCat(node.id(), " (", s.message(), ")"));
-    }
+    const absl::Status armed = take.lights.back()->Arm(arm, StallDeadline(), &stats);
+    take.light_armed.push_back(armed.ok());
+    if (!armed.ok()) take.not_ready.push_back(absl::StrCat(node.id(), " (", armed.message(), ")"));
   }
   // The heartbeat: armed light nodes go dark when it stops (the controller died or lost them). One thread per node,
   // so that a node that hangs delays no other's. Its replies carry what the node saw of the take so far.
@@ -432,6 +433,7 @@ absl::Status Capturer::StartLights(Take& take, int64_t first_edge_ns) {
   start.set_take_id(take.id);
   start.set_first_edge_ns(first_edge_ns);
   for (size_t i = 0; i < take.lights.size(); ++i) {
+    if (!take.light_armed[i]) continue;  // not ready at arming: named then, and dark
     if (absl::Status s = take.lights[i]->StartTable(start, StallDeadline()); !s.ok()) {
       return Annotate(s, absl::StrCat(rig_.rig.light_nodes(static_cast<int>(i)).id(),
                                       " could not start its table at the take's first edge"));
@@ -446,6 +448,7 @@ bool Capturer::StartTake(Take& take) {
   request.slots = take.capture_slots;
   request.lead_slots = base.slot_rate_hz() / 2;  // real time: half a second to tell every node
   request.align_slots = take.cycle;
+  request.first_of_take = true;
   // The run the take will be, planned first so that every camera knows its T0 before it starts.
   auto run = StartRun(take, request, [&](const SyncRun& r) {
     take.first_bus = r.first_slot;

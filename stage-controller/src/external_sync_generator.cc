@@ -12,7 +12,6 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
-#include "stage/common/logging.h"
 #include "stage/common/status.h"
 #include "stage/v1/light_node.grpc.pb.h"
 
@@ -76,18 +75,23 @@ class ExternalSyncGenerator final : public SyncGenerator {
       std::lock_guard<std::mutex> lock(mutex_);
       if (run_ && run_->first_slot == planned.first_slot) return *run_;  // asked again: it started once
     }
-    // The run starts with its first edge: wait for the witness to see it, for as long as the line moves.
-    STAGE_ASSIGN_OR_RETURN(const v1::ClockInput in, WaitForSlot(planned.first_slot, give_up));
+    // The run starts with its first edge: wait for the witness to see it, for as long as the line moves; on a take's
+    // first run, until the witness's table has started.
+    STAGE_ASSIGN_OR_RETURN(const v1::ClockInput in,
+                           WaitForSlot(planned.first_slot, request.first_of_take, give_up));
     SyncRun run = planned;
-    if (in.table_first_slot() == planned.first_slot) {
+    if (request.first_of_take) {
+      if (in.table_first_slot() != planned.first_slot) {
+        // Every light started where the witness did, a slot from the cameras' T0: the take would be out of step.
+        return absl::FailedPreconditionError(absl::StrCat(
+            "the lights started at slot ", in.table_first_slot(), " of the external clock, not the planned ",
+            planned.first_slot, " (seen on ", witness_->Describe(),
+            "): T0 was predicted more than half a slot off; is the generator at the rig's rate of ",
+            options_.slot_rate_hz, " Hz?"));
+      }
       run.first_edge_ns = in.table_first_edge_ns();  // the edge the witness's table started on, as it measured it
     } else {
-      if (in.table_first_slot() >= 0 && in.table_first_slot() > planned.first_slot - request.slots) {
-        Logger("controller")
-            ->warn("{}: its table started at slot {}, not the planned {}: the prediction of T0 was off by more than "
-                   "half a slot (is the generator at the rig's rate?)",
-                   witness_->Describe(), in.table_first_slot(), planned.first_slot);
-      }
+      // A resume: the lights step on through the gap; the run's first edge from the last one seen, at the rig's rate.
       run.first_edge_ns = in.last_edge_ns() - SlotsNs(in.last_slot() - planned.first_slot);
     }
     run.current_slot = std::min(in.last_slot(), run.end_slot - 1);
@@ -145,15 +149,16 @@ class ExternalSyncGenerator final : public SyncGenerator {
     }
   }
 
-  // Until the witness has seen `slot`'s edge; the wait lasts while the line moves (a slow machine), and ends with an
-  // error when the line goes quiet first, or stands still until `give_up` (renewed by every edge).
-  absl::StatusOr<v1::ClockInput> WaitForSlot(int64_t slot, Clock::time_point give_up) {
+  // Until the witness has seen `slot`'s edge (and, with `table`, started its table); the wait lasts while the line moves
+  // (a slow machine), and ends with an error when the line goes quiet first, or stands still until `give_up` (renewed
+  // by every edge).
+  absl::StatusOr<v1::ClockInput> WaitForSlot(int64_t slot, bool table, Clock::time_point give_up) {
     const auto patience = std::max<Clock::duration>(give_up - Clock::now(), std::chrono::seconds(1));
     int64_t seen = INT64_MIN;
     while (true) {
       auto in = witness_->Read();
       if (in.ok()) {
-        if (in->last_slot() >= slot) return *in;
+        if (in->last_slot() >= slot && (!table || in->table_first_slot() >= 0)) return *in;
         if (!in->running() && in->last_slot() >= 0) {
           return absl::UnavailableError(absl::StrCat("the external generator stopped at slot ", in->last_slot(),
                                                      ", before the run's first slot ", slot, " (seen on ",

@@ -91,7 +91,8 @@ TEST(ExternalSyncGeneratorTest, PlansALeadAheadAlignedAndTakesTheMeasuredEdgeAsT
   Fixture f = Make();
   EXPECT_TRUE(f.generator->runs_free());
   f.witness->Set(/*last=*/1000, /*step=*/0, /*jitter_ns=*/0);
-  SyncRunRequest request{/*slots=*/76, /*lead_slots=*/50, /*align_slots=*/38, /*min_first_slot=*/0};
+  SyncRunRequest request{/*slots=*/76, /*lead_slots=*/50, /*align_slots=*/38, /*min_first_slot=*/0,
+                         /*first_of_take=*/true};
   auto planned = f.generator->Plan(request, Soon());
   ASSERT_TRUE(planned.ok()) << planned.status();
   // 1000 + 50 = 1050, aligned up to 38: 1064; T0 predicted from the last edge at the nominal rate.
@@ -109,6 +110,22 @@ TEST(ExternalSyncGeneratorTest, PlansALeadAheadAlignedAndTakesTheMeasuredEdgeAsT
   auto again = f.generator->Start(request, *planned, Soon());
   ASSERT_TRUE(again.ok());
   EXPECT_EQ(again->first_edge_ns, started->first_edge_ns);
+}
+
+// The lights started a slot after the planned edge (T0 predicted late by more than half a slot): the take would be out
+// of step with its cameras, so the run does not start, and the error says why.
+TEST(ExternalSyncGeneratorTest, LightsThatStartedOffThePlannedEdgeFailTheStart) {
+  Fixture f = Make();
+  f.witness->Set(1000, 0);
+  SyncRunRequest request{76, 50, 38, 0, /*first_of_take=*/true};
+  auto planned = f.generator->Plan(request, Soon());
+  ASSERT_TRUE(planned.ok());
+  f.witness->Set(1000, 8);
+  f.witness->TableStartsAt(1065);
+  auto started = f.generator->Start(request, *planned, Soon());
+  EXPECT_TRUE(absl::IsFailedPrecondition(started.status()));
+  EXPECT_THAT(std::string(started.status().message()),
+              HasSubstr("the lights started at slot 1065 of the external clock, not the planned 1064"));
 }
 
 TEST(ExternalSyncGeneratorTest, APauseEndsTheRunAtAFrameBoundaryPastTheMarginAndAResumeStartsAfterIt) {

@@ -28,6 +28,8 @@ struct SyncRunRequest {
   int64_t align_slots = 1;
   // Start no earlier than this slot (a take resumed after a pause: its gap lasts at least until then).
   int64_t min_first_slot = 0;
+  // The take's first run (not a resume): where the lights start their tables (a clock that runs free).
+  bool first_of_take = false;
 };
 
 // A run of the clock: slots [first_slot, end_slot) on the bus, its first edge at first_edge_ns on the stage's clock

@@ -38,7 +38,7 @@ class BackendRegistry {
     return it->second(config, context);
   }
 
-  // "aravis, sim": the registered backends, in the enum's order.
+  // "sim, aravis": the registered backends, in the enum's order.
   std::string Names() const {
     std::vector<std::string> names;
     for (const auto& [backend, factory] : factories_) names.push_back(name_(backend));

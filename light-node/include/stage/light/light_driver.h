@@ -75,6 +75,11 @@ struct ClockInput {
 // StartAt(kStartNotYet): the armed table waits, dark, until a StartAt() names its edge.
 inline constexpr int64_t kStartNotYet = INT64_MAX;
 
+// A clock line is running while its last edge is younger than this many periods, and at least kQuietLineMinNs: one
+// late edge (a busy host) is not a stopped generator.
+inline constexpr int64_t kQuietLinePeriods = 4;
+inline constexpr int64_t kQuietLineMinNs = 100'000'000;
+
 struct DriverDescription {
   std::string backend;  // "sim", "modbus", "gpiod"
   std::string device;   // board address, chip name
@@ -111,8 +116,9 @@ class LightDriver {
 
   // A slot clock that runs free (an external generator): the armed table's first row applies at the first edge at or
   // after `first_edge_ns` - half a slot (kStartNotYet: not until a later StartAt names it); dark until then, and the
-  // stepping starts over. Only armed; FailedPrecondition where the driver does not see the edges itself (a board that
-  // steps on every edge from arming), or the edge has passed.
+  // stepping starts over. Asked again for the same edge (a retried request), it changes nothing. Only armed;
+  // FailedPrecondition where the driver does not see the edges itself (a board that steps on every edge from arming),
+  // or an edge at or after that time has already passed (the table would start late).
   virtual absl::Status StartAt(int64_t first_edge_ns) {
     (void)first_edge_ns;
     return absl::FailedPreconditionError(absl::StrCat(

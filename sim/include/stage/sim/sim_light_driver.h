@@ -87,6 +87,8 @@ class SimLightDriver final : public light::LightDriver {
   // The armed table's planned first edge (StartAt), kStartNotYet while it waits for one, -1 once it started (or it
   // steps from the next edge); guarded by mutex_, changes signalled on start_changed_.
   int64_t start_at_ns_ = -1;
+  int64_t start_requested_ns_ = -1;  // the StartAt asked last since the arm, -1 none
+  bool attached_ = false, lockstep_ = false;  // in a world (AttachWorld), and whether it steps in lockstep
   std::condition_variable start_changed_;
   // The clock as seen: the last edge, the end of its run, the table's first edge; guarded by mutex_.
   light::ClockInput input_;
