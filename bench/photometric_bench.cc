@@ -132,7 +132,7 @@ int main(int argc, char** argv) {
   }
   const double setup_s = Since(t);
   t = Clock::now();
-  auto setup = stage::processing::ResolveCamera(*loaded, *light, "hs-2", w, h, 12);
+  auto setup = stage::processing::ResolveCamera(*loaded, *light, "hs-2", w, h, 12, &(*scene)->true_cameras());
   if (!setup.ok()) Die(setup.status());
   const double rays_s = Since(t);
   stage::processing::PhotometricOptions options;

@@ -48,7 +48,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
 
   // The worker, through the controller: results in the take's derived/photometric.
   CommandResult worker = RunCommand(
-      {"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth", "--json"},
+      {"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth", "--calibration",
+       "ground_truth", "--json"},
       std::chrono::seconds(300));
   ASSERT_EQ(worker.exit.exit_code, 0) << worker.err;
   const nlohmann::json done = nlohmann::json::parse(worker.out);
@@ -58,13 +59,14 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
 
   // The batch command and the library, each into a directory of its own.
   CommandResult batch = RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "ground_truth",
-                                    "--output", dir + "/derived/batch"},
+                                    "--calibration", "ground_truth", "--output", dir + "/derived/batch"},
                                    std::chrono::seconds(300));
   ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
   EXPECT_THAT(batch.out, HasSubstr("3 camera frame(s) processed into " + dir + "/derived/batch"));
   processing::PhotometricJob job;
   job.take_dir = dir;
   job.geometry = "ground_truth";
+  job.calibration = "ground_truth";
   job.output_dir = dir + "/derived/library";
   job.options.threads = 1;  // the results do not depend on it
   std::vector<int64_t> seen;
@@ -107,6 +109,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   }
   EXPECT_THAT(fa.at("run.json"), HasSubstr("\"solver\": \"fast (tables, raw mosaic)\""));
   EXPECT_THAT(a.at("run.json"), HasSubstr("\"solver\": \"per pixel\""));
+  EXPECT_THAT(a.at("run.json"), HasSubstr("\"cameras_placed_by\": \"simulator truth\""));
+  EXPECT_THAT(fa.at("run.json"), HasSubstr("\"cameras_placed_by\": \"the rig's nominal models (uncalibrated)\""));
 
   // A cancelled job stops before its next camera frame and says so; nothing more is written.
   processing::PhotometricJob cancelled_job = fast_job;

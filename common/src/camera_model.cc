@@ -28,18 +28,13 @@ absl::StatusOr<CameraModel> CameraModel::FromConfig(const v1::CameraConfig& conf
   }
   if (in.distortion_size() > 5) return bad("intrinsics.distortion has more than 5 coefficients");
   CameraModel m;
-  m.width_ = std::max(1, static_cast<int>(std::lround(config.width() * render_scale)));
-  m.height_ = std::max(1, static_cast<int>(std::lround(config.height() * render_scale)));
-  // Scale about pixel corners: a pixel of the rendered image covers 1/render_scale sensor pixels.
-  const double sx = static_cast<double>(m.width_) / config.width();
-  const double sy = static_cast<double>(m.height_) / config.height();
+  m.width_ = static_cast<int>(config.width());
+  m.height_ = static_cast<int>(config.height());
   const double f_px = in.focal_length_mm() / (in.pixel_size_um() * 1e-3);
-  m.fx_ = f_px * sx;
-  m.fy_ = f_px * sy;
-  const double cx_sensor = (config.width() - 1) / 2.0 + in.principal_offset_x_px();
-  const double cy_sensor = (config.height() - 1) / 2.0 + in.principal_offset_y_px();
-  m.cx_ = (cx_sensor + 0.5) * sx - 0.5;
-  m.cy_ = (cy_sensor + 0.5) * sy - 0.5;
+  m.fx_ = f_px;
+  m.fy_ = f_px;
+  m.cx_ = (config.width() - 1) / 2.0 + in.principal_offset_x_px();
+  m.cy_ = (config.height() - 1) / 2.0 + in.principal_offset_y_px();
   for (int i = 0; i < in.distortion_size(); ++i) m.distortion_[i] = in.distortion(i);
 
   const Eigen::Vector3d position = ToEigen(config.pose().position_mm());
@@ -55,6 +50,52 @@ absl::StatusOr<CameraModel> CameraModel::FromConfig(const v1::CameraConfig& conf
   m.rotation_.row(1) = down.transpose();
   m.rotation_.row(2) = forward.transpose();
   m.position_ = position;
+  return m.Scaled(render_scale);
+}
+
+absl::StatusOr<CameraModel> CameraModel::FromParameters(const CameraParameters& p) {
+  if (p.width <= 0 || p.height <= 0) return absl::InvalidArgumentError("the image size must be positive");
+  if (!(p.fx > 0) || !(p.fy > 0)) return absl::InvalidArgumentError("the focal lengths must be positive");
+  const double orthonormal = (p.rotation * p.rotation.transpose() - Eigen::Matrix3d::Identity()).norm();
+  if (!(orthonormal < 1e-6) || !(p.rotation.determinant() > 0)) {
+    return absl::InvalidArgumentError("the rotation is not a rotation matrix");
+  }
+  for (double v : {p.cx, p.cy, p.position.x(), p.position.y(), p.position.z()}) {
+    if (!std::isfinite(v)) return absl::InvalidArgumentError("the principal point and position must be finite");
+  }
+  CameraModel m;
+  m.width_ = p.width;
+  m.height_ = p.height;
+  m.fx_ = p.fx;
+  m.fy_ = p.fy;
+  m.cx_ = p.cx;
+  m.cy_ = p.cy;
+  m.distortion_ = p.distortion;
+  m.position_ = p.position;
+  m.rotation_ = p.rotation;
+  return m;
+}
+
+CameraParameters CameraModel::parameters() const {
+  return {width_, height_, fx_, fy_, cx_, cy_, distortion_, position_, rotation_};
+}
+
+CameraModel CameraModel::Scaled(double render_scale) const {
+  return Resized(std::max(1, static_cast<int>(std::lround(width_ * render_scale))),
+                 std::max(1, static_cast<int>(std::lround(height_ * render_scale))));
+}
+
+CameraModel CameraModel::Resized(int width, int height) const {
+  CameraModel m = *this;
+  m.width_ = width;
+  m.height_ = height;
+  // Scale about pixel corners: a pixel of the smaller image covers width_ / width pixels of this one.
+  const double sx = static_cast<double>(width) / width_;
+  const double sy = static_cast<double>(height) / height_;
+  m.fx_ = fx_ * sx;
+  m.fy_ = fy_ * sy;
+  m.cx_ = (cx_ + 0.5) * sx - 0.5;
+  m.cy_ = (cy_ + 0.5) * sy - 0.5;
   return m;
 }
 

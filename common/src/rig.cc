@@ -342,6 +342,15 @@ void ApplyRigDefaults(RigConfig* rig) {
   if (!sim->has_read_noise_e()) sim->set_read_noise_e(5);
   if (!sim->has_full_well_e()) sim->set_full_well_e(10000);
   if (!sim->has_supersample()) sim->set_supersample(1);
+  auto* deviation = sim->mutable_camera_deviation();
+  if (!deviation->has_scale()) deviation->set_scale(1);
+  if (!deviation->has_position_mm()) deviation->set_position_mm(1.2);
+  if (!deviation->has_rotation_deg()) deviation->set_rotation_deg(0.17);
+  if (!deviation->has_focal()) deviation->set_focal(0.005);
+  if (!deviation->has_principal_px()) deviation->set_principal_px(3);
+  if (!deviation->has_radial()) deviation->set_radial(0.02);
+  if (!deviation->has_radial2()) deviation->set_radial2(0.02);
+  if (!deviation->has_tangential()) deviation->set_tangential(0.0003);
   auto* subject = sim->mutable_subject();
   if (subject->kind().empty()) subject->set_kind("head");
   if (subject->performance().empty()) subject->set_performance("default");
@@ -506,6 +515,17 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.read_noise_e", rig.sim().read_noise_e(), 0, 1000);
   check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
   check.InRange("sim.supersample", rig.sim().supersample(), 1, 8);
+  {
+    const v1::SimCameraDeviation& d = rig.sim().camera_deviation();
+    check.InRange("sim.camera_deviation.scale", d.scale(), 0, 100);
+    check.InRange("sim.camera_deviation.position_mm", d.position_mm(), 0, 100);
+    check.InRange("sim.camera_deviation.rotation_deg", d.rotation_deg(), 0, 10);
+    check.InRange("sim.camera_deviation.focal", d.focal(), 0, 0.2);
+    check.InRange("sim.camera_deviation.principal_px", d.principal_px(), 0, 1000);
+    check.InRange("sim.camera_deviation.radial", d.radial(), 0, 1);
+    check.InRange("sim.camera_deviation.radial2", d.radial2(), 0, 1);
+    check.InRange("sim.camera_deviation.tangential", d.tangential(), 0, 0.1);
+  }
   {
     const v1::SimSubject& subject = rig.sim().subject();
     if (subject.kind() != "head" && subject.kind() != "sphere" && subject.kind() != "plane" &&

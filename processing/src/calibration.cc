@@ -35,7 +35,7 @@ SimSensor SimulatedSensor(const v1::RigConfig& rig, const v1::CameraConfig& conf
 }  // namespace
 
 absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel& light, const std::string& camera_id,
-                                          int width, int height, int bits) {
+                                          int width, int height, int bits, const CameraCalibration* calibration) {
   const v1::CameraConfig* config = nullptr;
   for (const v1::CameraConfig& c : rig.rig.cameras()) {
     if (c.id() == camera_id) config = &c;
@@ -45,6 +45,25 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
     return absl::InvalidArgumentError(absl::StrCat("camera \"", camera_id, "\": ", what));
   };
   if (config->width() == 0 || width <= 0 || height <= 0) return bad("no image size");
+  // The whole sensor: as calibrated, or the rig's nominal model.
+  std::optional<CameraModel> sensor;
+  if (calibration != nullptr) {
+    const CameraModel* calibrated = calibration->Find(camera_id);
+    if (calibrated == nullptr) {
+      return absl::NotFoundError(absl::StrCat("camera \"", camera_id, "\" is not in the calibration (",
+                                              calibration->source, ")"));
+    }
+    if (calibrated->width() != static_cast<int>(config->width()) ||
+        calibrated->height() != static_cast<int>(config->height())) {
+      return bad(absl::StrCat("its calibration (", calibration->source, ") is of a ", calibrated->width(), "x",
+                              calibrated->height(), " sensor, the rig's of ", config->width(), "x", config->height()));
+    }
+    sensor = *calibrated;
+  } else {
+    auto m = CameraModel::FromConfig(*config, 1.0);
+    if (!m.ok()) return m.status();
+    sensor = *std::move(m);
+  }
   // The frames' scale of the sensor is what the take recorded: a simulated camera renders at the take's render scale
   // (its size rounded in each axis), a real camera (or a fake GigE Vision camera, which scales its frames up to the
   // sensor) delivers the whole sensor. Never inferred from one axis: a size that rounds unevenly would not fit.
@@ -52,14 +71,13 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
   std::optional<CameraModel> model;
   std::vector<std::string> tried;
   for (double scale : {render_scale, 1.0}) {
-    auto m = CameraModel::FromConfig(*config, scale);
-    if (!m.ok()) return m.status();
-    if (m->width() == width && m->height() == height) {
-      model = *std::move(m);
+    const CameraModel m = sensor->Scaled(scale);
+    if (m.width() == width && m.height() == height) {
+      model = m;
       break;
     }
     tried.push_back(
-        absl::StrCat(m->width(), "x", m->height(),
+        absl::StrCat(m.width(), "x", m.height(),
                      scale == 1.0 ? " (the whole sensor)" : absl::StrCat(" at the take's render scale ", scale)));
   }
   if (!model) {

@@ -82,8 +82,9 @@ void Render(const std::vector<std::string>& overrides, Rendered* out) {
   out->light = *made;
   const LightModel& light = out->light;
   const CameraModel& cam = (*scene)->camera(index);
-  // The camera as the pipeline sees it: from the rig, its calibration derived from the simulator's sensor model.
-  auto setup = ResolveCamera(*loaded, light, "hs-2", cam.width(), cam.height(), 12);
+  // The camera as the pipeline sees it: placed where it is (as a perfect calibration finds it), its radiometric
+  // calibration derived from the simulator's sensor model.
+  auto setup = ResolveCamera(*loaded, light, "hs-2", cam.width(), cam.height(), 12, &(*scene)->true_cameras());
   ASSERT_TRUE(setup.ok()) << setup.status();
   EXPECT_EQ(setup->source, "simulator");
   EXPECT_NEAR(setup->camera.gain_e_per_dn, sensor.Gain(), 1e-9 * sensor.Gain());

@@ -132,6 +132,17 @@ absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir) {
   return rig;
 }
 
+absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::string& take_dir,
+                                                                    const std::string& spec) {
+  if (spec.empty()) return std::optional<CameraCalibration>();
+  std::string path = fs::path(spec).is_absolute() ? spec : take_dir + "/" + spec;
+  if (fs::is_directory(path)) path += "/cameras.json";
+  auto calibration = ReadCameraCalibration(path);
+  if (!calibration.ok()) return calibration.status();
+  if (calibration->source.empty()) calibration->source = path;
+  return std::optional<CameraCalibration>(*std::move(calibration));
+}
+
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                          const std::function<void(const JobProgress&)>& progress,
                                          const std::function<bool()>& cancelled) {
@@ -148,6 +159,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
     }
     if (ids.empty()) return absl::NotFoundError(absl::StrCat(job.take_dir, ": the take's rig has no high-speed camera"));
   }
+  auto calibration = LoadJobCalibration(job.take_dir, job.calibration);
+  if (!calibration.ok()) return calibration.status();
   std::vector<CameraJob> cameras;
   int64_t whole_frames = -1;
   for (const std::string& id : ids) {
@@ -160,7 +173,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
     auto shape = ReadFrameFileShape(c.path);
     if (!shape.ok()) return shape.status();
     c.shape = *shape;
-    auto setup = ResolveCamera(*rig, *light, id, shape->width, shape->height, shape->bits);
+    auto setup = ResolveCamera(*rig, *light, id, shape->width, shape->height, shape->bits,
+                               calibration->has_value() ? &**calibration : nullptr);
     if (!setup.ok()) return setup.status();
     c.setup = std::move(*setup);
     if (!c.setup.flat_field.empty()) {
@@ -262,6 +276,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   run["frames"] = {first, last};
   run["cameras"] = ids;
   run["geometry"] = job.geometry.empty() ? "none" : job.geometry;
+  run["cameras_placed_by"] =
+      calibration->has_value() ? (*calibration)->source : "the rig's nominal models (uncalibrated)";
   run["solver"] = job.geometry.empty() && !job.exact ? "fast (tables, raw mosaic)" : "per pixel";
   run["options"] = {{"iterations", job.options.iterations},
                     {"table_size", job.options.table_size},

@@ -45,6 +45,7 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   p.last_frame = job->last_frame() > 0 ? job->last_frame() : -1;
   p.cameras.assign(job->cameras().begin(), job->cameras().end());
   p.geometry = job->geometry();
+  p.calibration = job->calibration();
   p.options.threads = static_cast<int>(threads_);
   Logger("worker")->info("worker {}: {} on {} frames [{}, {})", id_, job->stage(), job->take_dir(), p.first_frame,
                          p.last_frame);

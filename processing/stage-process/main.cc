@@ -47,6 +47,10 @@ int main(int argc, char** argv) {
       "--geometry", job.geometry,
       "Surface geometry: a directory with frame-NNNNNN/mesh.obj per frame, relative to the take or absolute (e.g. "
       "ground_truth on a simulated take, until multi-view stereo gives it); default: none");
+  photometric->add_option(
+      "--calibration", job.calibration,
+      "Where the cameras are: a calibration file or a directory holding cameras.json (stage-process calibrate's "
+      "output; ground_truth on a simulated take), relative to the take or absolute; default: the rig's nominal models");
   photometric->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/photometric)");
   photometric->add_option("--threads", job.options.threads, "Worker threads (default 0: one per core)")
       ->check(CLI::NonNegativeNumber);

@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
 #include "absl/strings/str_format.h"
 
 namespace stage::sim {
@@ -87,6 +88,12 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
   }
   const int total = static_cast<int>((options.last_frame - options.first_frame) * cameras.size());
   int done = 0;
+  {
+    std::error_code ec;
+    fs::create_directories(dir, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+    STAGE_RETURN_IF_ERROR(WriteCameraCalibration(dir + "/cameras.json", scene.true_cameras()));
+  }
   for (int64_t frame = options.first_frame; frame < options.last_frame; ++frame) {
     const std::string frame_dir = absl::StrFormat("%s/frame-%06d", dir, frame - options.name_offset);
     std::error_code ec;

@@ -2,6 +2,8 @@
 // UV position map covers the skin and lies on the posed mesh; the pose file carries the performance's weights.
 #include "stage/sim/ground_truth.h"
 
+#include <Eigen/Geometry>
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -23,6 +25,45 @@ std::shared_ptr<const SimScene> Scene(std::vector<std::string> overrides) {
   auto scene = SimScene::FromLoadedRig(*rig);
   EXPECT_TRUE(scene.ok()) << scene.status();
   return *scene;
+}
+
+TEST(GroundTruthTest, TheCamerasSitOffTheRigAsTheSeedSaysAndTheTruthSaysWhere) {
+  auto scene = Scene({"sim.subject.kind=sphere"});
+  const std::string dir = ::testing::TempDir() + "/gt-cameras";
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir, {.cameras = {"hs-2"}}).ok());
+  auto truth = ReadCameraCalibration(dir + "/cameras.json");
+  ASSERT_TRUE(truth.ok()) << truth.status();
+  EXPECT_EQ(truth->source, "simulator truth");
+  ASSERT_EQ(truth->cameras.size(), static_cast<size_t>(scene->rig().cameras_size()));
+  // Every camera renders as its true model says (scaled to the render), and the truth differs from the rig's model by
+  // about the defaults: ~2 mm, ~0.3 degrees, ~0.5 %, a few pixels (27 draws: loose bounds on their RMS).
+  double position2 = 0, angle2 = 0, focal2 = 0;
+  for (int i = 0; i < scene->rig().cameras_size(); ++i) {
+    const CameraModel* t = truth->Find(scene->rig().cameras(i).id());
+    ASSERT_NE(t, nullptr);
+    auto nominal = CameraModel::FromConfig(scene->rig().cameras(i), 1.0);
+    ASSERT_TRUE(nominal.ok());
+    const CameraModel rendered = t->Scaled(scene->rig().sim().render_scale());
+    EXPECT_DOUBLE_EQ(rendered.fx(), scene->camera(i).fx());
+    EXPECT_EQ(rendered.position(), scene->camera(i).position());
+    position2 += (t->position() - nominal->position()).squaredNorm();
+    const Eigen::AngleAxisd turn(t->rotation() * nominal->rotation().transpose());
+    angle2 += std::pow(turn.angle() * 180 / M_PI, 2);
+    focal2 += std::pow(t->fx() / nominal->fx() - 1, 2);
+  }
+  const double n = scene->rig().cameras_size();
+  EXPECT_NEAR(std::sqrt(position2 / n), 2.0, 0.8);
+  EXPECT_NEAR(std::sqrt(angle2 / n), 0.3, 0.12);
+  EXPECT_NEAR(std::sqrt(focal2 / n), 0.005, 0.002);
+  // The same seed places them the same; another seed elsewhere; scale 0 where the rig says.
+  EXPECT_EQ(Scene({"sim.subject.kind=sphere"})->true_cameras().cameras[3].model.position(),
+            truth->cameras[3].model.position());
+  EXPECT_NE(Scene({"sim.subject.kind=sphere", "sim.seed=2"})->true_cameras().cameras[3].model.position(),
+            truth->cameras[3].model.position());
+  auto nominal = Scene({"sim.subject.kind=sphere", "sim.camera_deviation.scale=0"});
+  auto model3 = CameraModel::FromConfig(nominal->rig().cameras(3), 1.0);
+  EXPECT_EQ(nominal->true_cameras().cameras[3].model.position(), model3->position());
+  EXPECT_EQ(nominal->true_cameras().cameras[3].model.rotation(), model3->rotation());
 }
 
 TEST(GroundTruthTest, ASpheresDepthAndNormalsAreTheClosedForm) {

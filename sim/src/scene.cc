@@ -3,7 +3,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <Eigen/Geometry>
 #include <filesystem>
+#include <random>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -153,18 +155,51 @@ std::shared_ptr<const Subject> SimScene::SubjectAt(int64_t frame) const {
   return posed;
 }
 
+absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation, uint64_t seed,
+                           int index) {
+  // One stream per camera, apart from every other use of the seed.
+  std::seed_seq seq{static_cast<uint32_t>(seed), static_cast<uint32_t>(seed >> 32), static_cast<uint32_t>(index),
+                    0xca11b7u};
+  std::mt19937_64 rng(seq);
+  std::normal_distribution<double> normal(0.0, deviation.scale());
+  auto draw = [&](double sigma) { return sigma * normal(rng); };
+  CameraParameters p = nominal.parameters();
+  const Eigen::Vector3d turn(draw(deviation.rotation_deg()), draw(deviation.rotation_deg()),
+                             draw(deviation.rotation_deg()));
+  const double angle = turn.norm() * M_PI / 180;
+  if (angle > 0) p.rotation = Eigen::AngleAxisd(angle, turn.normalized()).toRotationMatrix() * p.rotation;
+  for (int k = 0; k < 3; ++k) p.position[k] += draw(deviation.position_mm());
+  const double focal = 1 + draw(deviation.focal());
+  p.fx *= focal;
+  p.fy *= focal;
+  p.cx += draw(deviation.principal_px());
+  p.cy += draw(deviation.principal_px());
+  p.distortion[0] += draw(deviation.radial());
+  p.distortion[1] += draw(deviation.radial2());
+  p.distortion[2] += draw(deviation.tangential());
+  p.distortion[3] += draw(deviation.tangential());
+  return CameraModel::FromParameters(p);
+}
+
 absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::Create(const v1::RigConfig& rig,
                                                                  const timing::PatternSet& patterns,
                                                                  const std::string& base_dir) {
   std::shared_ptr<SimScene> scene(new SimScene());
   scene->rig_ = rig;
+  scene->true_cameras_.source = "simulator truth";
   STAGE_ASSIGN_OR_RETURN(scene->schedule_, timing::CompileSchedule(rig, patterns));
   scene->base_ = timing::TimeBase::FromProto(scene->schedule_.time_base());
   scene->dome_ = Dome::FromRig(rig, rig.sim().dome_radius_mm());
   STAGE_RETURN_IF_ERROR(scene->MakeSubject(base_dir));
   for (int i = 0; i < rig.cameras_size(); ++i) {
     const v1::CameraConfig& c = rig.cameras(i);
-    STAGE_ASSIGN_OR_RETURN(CameraModel model, CameraModel::FromConfig(c, rig.sim().render_scale()));
+    STAGE_ASSIGN_OR_RETURN(CameraModel nominal, CameraModel::FromConfig(c, 1.0));
+    auto truth = DeviatedCamera(nominal, rig.sim().camera_deviation(), rig.sim().seed(), i);
+    if (!truth.ok()) {
+      return absl::InvalidArgumentError(absl::StrCat("camera \"", c.id(), "\": sim.camera_deviation: ", truth.status().message()));
+    }
+    scene->true_cameras_.cameras.push_back({c.id(), *truth});
+    const CameraModel model = truth->Scaled(rig.sim().render_scale());
     scene->leakages_.push_back(CrossLeakage(model, rig.sim().cross_leakage(), rig.sim().cross_leakage_growth()));
     SensorParams sensor;
     sensor.full_well_e = rig.sim().full_well_e();

@@ -482,6 +482,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_last_frame(request->last_frame());
   *job.mutable_cameras() = request->cameras();
   job.set_geometry(request->geometry());
+  job.set_calibration(request->calibration());
   Logger("controller")
       ->info("take {}: {} on worker {} ({})", request->take_id(), job.stage(), worker->id(), worker->address());
   auto stub = v1::ProcessingWorker::NewStub(grpc::CreateChannel(worker->address(), grpc::InsecureChannelCredentials()));

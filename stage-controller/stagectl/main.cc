@@ -652,7 +652,7 @@ int Preview(const Connection& c, const std::string& camera, const std::string& o
 }
 
 struct ProcessFlags {
-  std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, worker;
+  std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, calibration, worker;
   bool json = false;
 };
 
@@ -673,6 +673,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
   request.set_last_frame(last < 0 ? 0 : last);
   for (absl::string_view id : absl::StrSplit(f.cameras, ',', absl::SkipEmpty())) request.add_cameras(std::string(id));
   request.set_geometry(f.geometry);
+  request.set_calibration(f.calibration);
   request.set_worker_id(f.worker);
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
@@ -964,6 +965,9 @@ int main(int argc, char** argv) {
   process->add_option("--geometry", pf.geometry,
                       "Surface geometry, a directory of frame-NNNNNN/mesh.obj relative to the take (e.g. "
                       "ground_truth on the simulated stage); default: none");
+  process->add_option("--calibration", pf.calibration,
+                      "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
+                      "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
 

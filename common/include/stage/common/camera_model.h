@@ -13,11 +13,31 @@
 
 namespace stage {
 
+// Every number of a camera model, as a calibration file holds it (camera_calibration.h).
+struct CameraParameters {
+  int width = 0, height = 0;                 // pixels
+  double fx = 0, fy = 0, cx = 0, cy = 0;     // pixels; pixel centres at integers
+  std::array<double, 5> distortion{};        // k1, k2, p1, p2, k3
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // centre of projection, stage frame, mm
+  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();  // world -> camera
+};
+
 class CameraModel {
  public:
+  CameraModel() = default;
   // From the rig's camera entry; `render_scale` in (0, 1] scales the sensor (width, height, focal length in pixels,
   // principal point). InvalidArgument names the camera and the field.
   static absl::StatusOr<CameraModel> FromConfig(const v1::CameraConfig& config, double render_scale);
+
+  // From explicit numbers; InvalidArgument when the size or a focal length is not positive, or the rotation is not
+  // one (orthonormal to 1e-6, determinant +1).
+  static absl::StatusOr<CameraModel> FromParameters(const CameraParameters& p);
+  CameraParameters parameters() const;
+  // This model (of the whole sensor) at `render_scale` in (0, 1]: the size rounded in each axis, intrinsics scaled
+  // about pixel corners, as FromConfig scales.
+  CameraModel Scaled(double render_scale) const;
+  // This model at another image size of the same sensor (scaled about pixel corners in each axis).
+  CameraModel Resized(int width, int height) const;
 
   int width() const { return width_; }
   int height() const { return height_; }

@@ -6,6 +6,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
 #include "stage/common/camera_model.h"
 #include "stage/common/rig.h"
 #include "stage/processing/light_model.h"
@@ -22,9 +23,12 @@ struct CameraSetup {
   std::string source;
 };
 
-// Camera `camera_id` of `rig`, recorded at width x height with `bits` of data (8, 12 or 16). Errors name the camera
-// and the field: no such camera, no calibration for a real camera, a value out of range.
+// Camera `camera_id` of `rig`, recorded at width x height with `bits` of data (8, 12 or 16), placed as `calibration`
+// says (a calibration file: camera_calibration.h), or where the rig's nominal model says when it is null. Errors
+// name the camera and the field: no such camera, not in the calibration, no radiometric calibration for a real
+// camera, a value out of range.
 absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel& light, const std::string& camera_id,
-                                          int width, int height, int bits);
+                                          int width, int height, int bits,
+                                          const CameraCalibration* calibration = nullptr);
 
 }  // namespace stage::processing

@@ -6,10 +6,12 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
 #include "stage/common/rig.h"
 #include "stage/processing/photometric.h"
 
@@ -26,6 +28,10 @@ struct PhotometricJob {
   // Surface geometry: a directory with frame-NNNNNN/mesh.obj (stage frame, mm) per frame of the take, relative to
   // the take directory or absolute (the simulator's ground_truth/ until multi-view stereo gives it). Empty: none.
   std::string geometry;
+  // Where the cameras are: a calibration file (camera_calibration.h), or a directory holding one as cameras.json
+  // (`stage-process calibrate`'s output, or the simulator's ground_truth/), relative to the take directory or
+  // absolute. Empty: the rig's nominal models (uncalibrated; said so in run.json).
+  std::string calibration;
   // Where the results go; empty: <take_dir>/derived/photometric.
   std::string output_dir;
   // Without geometry the table-driven solver runs (fast_photometric.h); true: the per-pixel one (photometric.h)
@@ -52,6 +58,11 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
 
 // The rig a take was recorded with (its take.json), for reading the take.
 absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir);
+
+// The calibration `spec` names (PhotometricJob::calibration: a file, or a directory with cameras.json, relative to
+// `take_dir` or absolute); nullopt for an empty spec. Errors name the path.
+absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::string& take_dir,
+                                                                    const std::string& spec);
 
 // The directory of frame `frame`, camera `camera` under a stage's output root (frame-NNNNNN/<camera>).
 std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera);

@@ -1,4 +1,5 @@
 // Ground truth of the simulated stage (docs/simulator.md): what processing results are judged against.
+//   DIR/cameras.json                    every camera where it really is (a calibration file, camera_calibration.h)
 //   DIR/frame-NNNNNN/pose.json          expression weights (head), rotation and translation, time; for the
 //                                       calibration board its layout and ChArUco corners (stage frame, mm)
 //   DIR/frame-NNNNNN/mesh.obj           the posed subject mesh (stage frame, mm), with texture coordinates

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
 #include "stage/common/camera_model.h"
 #include "stage/common/rig.h"
 #include "stage/sim/board.h"
@@ -63,6 +64,9 @@ class SimScene {
   // Camera `index` at the rig's render scale, its crossed-polarizer leakage and its sensor (calibrated so that a white
   // diffuse surface facing it collects sim.full_on_electrons under the cross-polarized full-on light in its exposure).
   const CameraModel& camera(int index) const { return cameras_[static_cast<size_t>(index)]; }
+  // Every camera where it really is (the rig's model moved by sim.camera_deviation), at its whole sensor: what
+  // calibration should find (written to ground_truth/cameras.json).
+  const CameraCalibration& true_cameras() const { return true_cameras_; }
   float leakage(int index) const { return leakages_[static_cast<size_t>(index)]; }
   const SensorParams& sensor(int index) const { return sensors_[static_cast<size_t>(index)]; }
 
@@ -94,6 +98,7 @@ class SimScene {
   mutable std::mutex cache_mutex_;
   mutable std::vector<std::pair<int64_t, std::shared_ptr<const Subject>>> cache_;  // guarded by cache_mutex_
   std::vector<CameraModel> cameras_;
+  CameraCalibration true_cameras_;
   std::vector<float> leakages_;
   std::vector<SensorParams> sensors_;
 };
@@ -133,6 +138,10 @@ class CameraRenderer {
   WorkProgress compute_;
   std::atomic<uint64_t> work_before_{0};
 };
+
+// `nominal` (a whole sensor) moved as `deviation` draws for camera `index` of a rig seeded `seed`.
+absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation, uint64_t seed,
+                           int index);
 
 // Sensor bits and mosaic of a PFNC pixel format ("BayerRG8" -> 8, "RG"; "Mono12" -> 12, "mono"); InvalidArgument for
 // formats the sensor model does not produce (RGB8).
