@@ -371,8 +371,8 @@ void ApplyRigDefaults(RigConfig* rig) {
   }
   if (subject->kind() == "charuco") {
     auto* board = subject->mutable_board();
-    if (!board->has_squares_x()) board->set_squares_x(7);
-    if (!board->has_squares_y()) board->set_squares_y(5);
+    if (!board->has_squares_x()) board->set_squares_x(11);
+    if (!board->has_squares_y()) board->set_squares_y(9);
     if (!board->has_square_mm()) board->set_square_mm(30);
     if (!board->has_marker_mm()) board->set_marker_mm(22);
     if (board->dictionary().empty()) board->set_dictionary("DICT_5X5_100");

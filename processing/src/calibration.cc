@@ -34,8 +34,8 @@ SimSensor SimulatedSensor(const v1::RigConfig& rig, const v1::CameraConfig& conf
 
 }  // namespace
 
-absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel& light, const std::string& camera_id,
-                                          int width, int height, int bits, const CameraCalibration* calibration) {
+absl::StatusOr<CameraModel> CameraAtImageSize(const LoadedRig& rig, const std::string& camera_id, int width,
+                                              int height, const CameraCalibration* calibration) {
   const v1::CameraConfig* config = nullptr;
   for (const v1::CameraConfig& c : rig.rig.cameras()) {
     if (c.id() == camera_id) config = &c;
@@ -84,6 +84,20 @@ absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel
     return bad(absl::StrCat("its frames are ", width, "x", height, ", but its sensor of ", config->width(), "x",
                             config->height(), " gives ", absl::StrJoin(tried, " or ")));
   }
+  return *model;
+}
+
+absl::StatusOr<CameraSetup> ResolveCamera(const LoadedRig& rig, const LightModel& light, const std::string& camera_id,
+                                          int width, int height, int bits, const CameraCalibration* calibration) {
+  auto model = CameraAtImageSize(rig, camera_id, width, height, calibration);
+  if (!model.ok()) return model.status();
+  const v1::CameraConfig* config = nullptr;
+  for (const v1::CameraConfig& c : rig.rig.cameras()) {
+    if (c.id() == camera_id) config = &c;
+  }
+  auto bad = [&](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", camera_id, "\": ", what));
+  };
   CameraSetup setup;
   setup.model = *model;
   PhotometricCamera& pc = setup.camera;

@@ -1,6 +1,7 @@
 // A cycle of a camera's take: see take_frames.h.
 #include "stage/processing/take_frames.h"
 
+#include <algorithm>
 #include <map>
 #include <nlohmann/json.hpp>
 
@@ -8,6 +9,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
 #include "stage/storage/frame_file.h"
 
 namespace stage::processing {
@@ -53,6 +55,28 @@ absl::StatusOr<Format> ParseFormat(const std::string& path, const std::string& f
 inline int Mirror(int i, int n) { return i < 0 ? -i : i >= n ? 2 * n - 2 - i : i; }
 
 }  // namespace
+
+// What the file says each pattern index is must be the light model's pattern of that index.
+absl::Status CheckPatterns(const std::string& path, const storage::FrameFileInfo& info, const LightModel& light) {
+  const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
+  if (!names.is_array() || names.empty()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, ": the file does not say which pattern each slot showed (no \"patterns\" attribute)"));
+  }
+  if (names.size() != light.patterns.size()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, ": its cycle has ", names.size(), " patterns, the light model ", light.patterns.size()));
+  }
+  for (size_t i = 0; i < names.size(); ++i) {
+    const std::string name = names[i].is_object() ? names[i].value("name", "") : "";
+    if (name != light.patterns[i].name) {
+      return absl::FailedPreconditionError(absl::StrCat(path, ": pattern ", i, " is \"", name, "\" in the file, \"",
+                                                        light.patterns[i].name, "\" in the light model"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 
 void DemosaicBilinear(const float* mosaic, int width, int height, const Mosaic& layout, Image* rgb) {
   const int red_x = layout.red_x, red_y = layout.red_y;
@@ -118,25 +142,7 @@ absl::StatusOr<CycleFrames> LoadCycle(const std::string& path, int64_t frame, co
     return absl::InvalidArgumentError(absl::StrCat(path, ": frames of ", out.width, "x", out.height,
                                                    " are too small to demosaic (2x2 at least)"));
   }
-  // What the file says each pattern index is must be the light model's pattern of that index.
-  const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
-  if (!names.is_array() || names.empty()) {
-    return absl::FailedPreconditionError(
-        absl::StrCat(path, ": the file does not say which pattern each slot showed (no \"patterns\" attribute)"));
-  }
-  {
-    if (names.size() != light.patterns.size()) {
-      return absl::FailedPreconditionError(
-          absl::StrCat(path, ": its cycle has ", names.size(), " patterns, the light model ", light.patterns.size()));
-    }
-    for (size_t i = 0; i < names.size(); ++i) {
-      const std::string name = names[i].is_object() ? names[i].value("name", "") : "";
-      if (name != light.patterns[i].name) {
-        return absl::FailedPreconditionError(absl::StrCat(path, ": pattern ", i, " is \"", name, "\" in the file, \"",
-                                                          light.patterns[i].name, "\" in the light model"));
-      }
-    }
-  }
+  STAGE_RETURN_IF_ERROR(CheckPatterns(path, info, light));
   auto records = (*file)->Records();
   if (!records.ok()) return records.status();
   const auto cycle = static_cast<int64_t>(light.patterns.size());
@@ -200,6 +206,68 @@ absl::StatusOr<std::vector<Image>> DemosaicCycle(const CycleFrames& cycle, const
     out.push_back(std::move(img));
   }
   return out;
+}
+
+}  // namespace stage::processing
+
+namespace stage::processing {
+
+absl::Status ForEachFullLitFrame(const std::string& path, int64_t first, int64_t last, const LightModel& light,
+                                 double black_level_dn,
+                                 const std::function<absl::Status(int64_t frame, const Image& grey)>& visit) {
+  auto file = storage::FrameFileReader::Open(path);
+  if (!file.ok()) return file.status();
+  const storage::FrameFileInfo& info = (*file)->info();
+  auto format = ParseFormat(path, info.pixel_format, info.bytes_per_pixel);
+  if (!format.ok()) return format.status();
+  STAGE_RETURN_IF_ERROR(CheckPatterns(path, info, light));
+  // The full-on patterns (every unit at 1), cross-polarized first: the least specular glare.
+  std::vector<int64_t> full;
+  for (int pass = 0; pass < 2; ++pass) {
+    for (size_t p = 0; p < light.patterns.size(); ++p) {
+      const LightPattern& pattern = light.patterns[p];
+      const bool all_on = !pattern.weights.empty() &&
+                          std::all_of(pattern.weights.begin(), pattern.weights.end(), [](double w) { return w > 0.999; });
+      if (all_on && pattern.parallel == (pass == 1)) full.push_back(static_cast<int64_t>(p));
+    }
+  }
+  if (full.empty()) return absl::FailedPreconditionError(absl::StrCat(path, ": the pattern set has no full-on pattern"));
+  auto records = (*file)->Records();
+  if (!records.ok()) return records.status();
+  const auto cycle = static_cast<int64_t>(light.patterns.size());
+  std::map<int64_t, int64_t> index_of_slot;
+  for (size_t i = 0; i < records->size(); ++i) {
+    const storage::FrameRecord& r = (*records)[i];
+    if (r.status == storage::FrameStatus::kOk) index_of_slot[r.slot] = static_cast<int64_t>(i);
+  }
+  const int w = static_cast<int>(info.width), h = static_cast<int>(info.height);
+  const size_t n = static_cast<size_t>(w) * h;
+  std::vector<float> mosaic(n);
+  Image rgb, grey(w, h, 1);
+  for (int64_t frame = first; frame < last; ++frame) {
+    int64_t index = -1;
+    for (int64_t p : full) {
+      auto it = index_of_slot.find(frame * cycle + p);
+      if (it != index_of_slot.end()) {
+        index = it->second;
+        break;
+      }
+    }
+    if (index < 0) continue;  // none recorded in this frame (lost, or the camera fires on other patterns)
+    auto pixels = (*file)->Pixels(index);
+    if (!pixels.ok()) return pixels.status();
+    const uint8_t* bytes = pixels->data();
+    for (size_t i = 0; i < n; ++i) {
+      const float v = format->bits == 8 ? bytes[i] : static_cast<float>(bytes[2 * i] | (bytes[2 * i + 1] << 8));
+      mosaic[i] = v - static_cast<float>(black_level_dn);
+    }
+    DemosaicBilinear(mosaic.data(), w, h, format->mosaic, &rgb);
+    for (size_t i = 0; i < n; ++i) {
+      grey.pixels[i] = (rgb.pixels[3 * i] + rgb.pixels[3 * i + 1] + rgb.pixels[3 * i + 2]) / 3.0f;
+    }
+    STAGE_RETURN_IF_ERROR(visit(frame, grey));
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace stage::processing

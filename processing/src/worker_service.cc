@@ -7,6 +7,7 @@
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/processing/calibrate.h"
 #include "stage/processing/photometric_stage.h"
 
 namespace stage::processing {
@@ -28,9 +29,10 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
 
 grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
-  if (job->stage() != "photometric") {
-    return ToGrpcStatus(absl::InvalidArgumentError(
-        absl::StrCat("worker \"", id_, "\": no stage \"", job->stage(), "\" (stages: photometric)")));
+  if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION) {
+    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": no stage ",
+                                                                v1::ProcessingStage_Name(job->stage()),
+                                                                " (stages: photometric, calibration)")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -39,27 +41,20 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     std::lock_guard<std::mutex> lock(mutex_);
     running_.push_back(job);
   }
-  PhotometricJob p;
-  p.take_dir = job->take_dir();
-  p.first_frame = job->first_frame();
-  p.last_frame = job->last_frame() > 0 ? job->last_frame() : -1;
-  p.cameras.assign(job->cameras().begin(), job->cameras().end());
-  p.geometry = job->geometry();
-  p.calibration = job->calibration();
-  p.options.threads = static_cast<int>(threads_);
-  Logger("worker")->info("worker {}: {} on {} frames [{}, {})", id_, job->stage(), job->take_dir(), p.first_frame,
-                         p.last_frame);
-  // The caller's cancel (the controller relays stagectl's Ctrl-C) stops the job between camera frames.
-  auto result = RunPhotometric(
-      p,
-      [&](const JobProgress& progress) {
-        v1::ProcessingProgress m;
-        m.set_frames_done(progress.done);
-        m.set_frames_total(progress.total);
-        m.set_message(progress.message);
-        if (!context->IsCancelled()) writer->Write(m);
-      },
-      [&] { return context->IsCancelled(); });
+  Logger("worker")->info("worker {}: {} on {} frames [{}, {})", id_, v1::ProcessingStage_Name(job->stage()),
+                         job->take_dir(), job->first_frame(), job->last_frame());
+  // The caller's cancel (the controller relays stagectl's Ctrl-C) stops the job between units.
+  auto report = [&](const JobProgress& progress) {
+    v1::ProcessingProgress m;
+    m.set_frames_done(progress.done);
+    m.set_frames_total(progress.total);
+    m.set_message(progress.message);
+    if (!context->IsCancelled()) writer->Write(m);
+  };
+  auto cancelled = [&] { return context->IsCancelled(); };
+  absl::StatusOr<v1::ProcessingProgress> result = job->stage() == v1::PROCESSING_STAGE_CALIBRATION
+                                                      ? RunCalibrationJob(*job, report, cancelled)
+                                                      : RunPhotometricJob(*job, report, cancelled);
   {
     std::lock_guard<std::mutex> lock(mutex_);
     running_.erase(std::find(running_.begin(), running_.end(), job));
@@ -70,14 +65,52 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     return ToGrpcStatus(result.status());
   }
   ++jobs_completed_;
+  result->set_finished(true);
+  writer->Write(*result);
+  return grpc::Status::OK;
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  PhotometricJob p;
+  p.take_dir = job.take_dir();
+  p.first_frame = job.first_frame();
+  p.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  p.cameras.assign(job.cameras().begin(), job.cameras().end());
+  p.geometry = job.geometry();
+  p.calibration = job.calibration();
+  p.options.threads = static_cast<int>(threads_);
+  auto result = RunPhotometric(p, progress, cancelled);
+  if (!result.ok()) return result.status();
   v1::ProcessingProgress done;
   done.set_frames_done(result->units);
   done.set_frames_total(result->units);
   done.set_output_dir(result->output_dir);
-  done.set_finished(true);
   done.set_message(absl::StrCat(result->units, " camera frame(s) processed into ", result->output_dir));
-  writer->Write(done);
-  return grpc::Status::OK;
+  return done;
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  if (!job.geometry().empty() || !job.calibration().empty()) {
+    return absl::InvalidArgumentError("calibration takes no geometry and no calibration");
+  }
+  CalibrationJob c;
+  c.take_dir = job.take_dir();
+  c.options.first_frame = job.first_frame();
+  c.options.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  c.options.cameras.assign(job.cameras().begin(), job.cameras().end());
+  c.options.threads = static_cast<int>(threads_);
+  auto report = RunCalibration(c, progress, cancelled);
+  if (!report.ok()) return report.status();
+  v1::ProcessingProgress done;
+  done.set_frames_done(static_cast<int64_t>(report->cameras.size()));
+  done.set_frames_total(static_cast<int64_t>(report->cameras.size()));
+  done.set_output_dir(report->output_dir);
+  done.set_message(FormatCalibrationReport(*report));
+  return done;
 }
 
 }  // namespace stage::processing

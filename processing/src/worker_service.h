@@ -3,10 +3,13 @@
 #pragma once
 
 #include <atomic>
+#include <functional>
 #include <mutex>
 #include <string>
 #include <vector>
 
+#include "absl/status/statusor.h"
+#include "stage/processing/photometric_stage.h"
 #include "stage/v1/processing_worker.grpc.pb.h"
 
 namespace stage::processing {
@@ -24,6 +27,13 @@ class WorkerService final : public v1::ProcessingWorker::Service {
                        grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
  private:
+  // One job of each stage: the final progress message (finished unset), or the stage's error.
+  absl::StatusOr<v1::ProcessingProgress> RunPhotometricJob(const v1::ProcessingJob& job,
+                                                           const std::function<void(const JobProgress&)>& progress,
+                                                           const std::function<bool()>& cancelled) const;
+  absl::StatusOr<v1::ProcessingProgress> RunCalibrationJob(const v1::ProcessingJob& job,
+                                                           const std::function<void(const JobProgress&)>& progress,
+                                                           const std::function<bool()>& cancelled) const;
   std::string id_;
   std::string rig_hash_;
   uint32_t threads_;

@@ -7,6 +7,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/version.h"
+#include "stage/processing/calibrate.h"
 #include "stage/processing/evaluate.h"
 #include "stage/processing/photometric_stage.h"
 
@@ -63,6 +64,33 @@ int main(int argc, char** argv) {
                         "(slower, less noisy specular maps)");
   photometric->add_flag("--json", json, "Print the result as JSON on stdout");
 
+  stage::processing::CalibrationJob cal;
+  std::string cal_frames = "0:", cal_cameras;
+  bool cal_json = false;
+  CLI::App* calibrate = app.add_subcommand(
+      "calibrate",
+      "Camera calibration from a take of the ChArUco board: the board's corners in every camera's full-lit frames, "
+      "one bundle adjustment over every camera and board pose, into TAKE/derived/calibration/cameras.json (what "
+      "--calibration of the later stages reads) and report.json; against the truth too on a simulated take");
+  calibrate->add_option("--take", cal.take_dir, "The calibration take's directory")->required();
+  calibrate->add_option("--frames", cal_frames, "Virtual frames A:B, A: or A")->capture_default_str();
+  calibrate->add_option("--cameras", cal_cameras, "Camera ids, comma-separated (default: every camera)");
+  calibrate->add_option("--output", cal.output_dir, "Results directory (default: TAKE/derived/calibration)");
+  calibrate->add_option("--min-corners", cal.options.min_corners, "Corners a view of the board needs")
+      ->capture_default_str()
+      ->check(CLI::Range(6, 10000));
+  calibrate->add_option("--min-frames", cal.options.min_frames, "Frames with the board a camera needs")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  calibrate->add_option("--loss-px", cal.options.loss_px, "Huber loss scale, pixels of the recorded images")
+      ->capture_default_str();
+  calibrate->add_flag("--fit-k3", cal.options.fit_k3, "Fit the sixth-order radial term too");
+  calibrate->add_flag("--require-all,!--no-require-all", cal.options.require_all,
+                      "Fail when a camera cannot be calibrated (the default; --no-require-all lists it and goes on)");
+  calibrate->add_option("--threads", cal.options.threads, "Threads (default 0: one per core)")
+      ->check(CLI::NonNegativeNumber);
+  calibrate->add_flag("--json", cal_json, "Print the report as JSON on stdout");
+
   stage::processing::EvaluateOptions eval;
   std::string eval_frames = "0:", eval_cameras;
   bool eval_json = false;
@@ -82,6 +110,17 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::Range(0.5, 50.0));
   eval_photometric->add_flag("--json", eval_json, "Print the table as JSON on stdout");
+
+  std::string eval_cal_take, eval_cal_calibration;
+  bool eval_cal_json = false;
+  CLI::App* eval_calibration = evaluate->add_subcommand(
+      "calibration",
+      "Per camera: centre, rotation, focal length, principal point and distortion against the simulator's truth "
+      "(TAKE/ground_truth/cameras.json), after the rigid motion that best fits the centres");
+  eval_calibration->add_option("--take", eval_cal_take, "The take directory")->required();
+  eval_calibration->add_option("--calibration", eval_cal_calibration,
+                               "The calibration (default: TAKE/derived/calibration)");
+  eval_calibration->add_flag("--json", eval_cal_json, "Print the table as JSON on stdout");
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
@@ -106,6 +145,33 @@ int main(int argc, char** argv) {
     } else {
       std::cout << result->units << " camera frame(s) processed into " << result->output_dir << "\n";
     }
+    return 0;
+  }
+  if (*calibrate) {
+    if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
+        !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    cal.options.cameras = SplitCameras(cal_cameras);
+    stage::ProgressLine bar("cameras");
+    auto report = stage::processing::RunCalibration(cal, [&](const stage::processing::JobProgress& p) {
+      if (p.done == 0) {
+        bar.Message(p.message);
+      } else {
+        bar.Update(p.done, p.total, p.message);
+      }
+    });
+    bar.Finish();
+    if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
+    std::cout << (cal_json ? stage::processing::CalibrationReportJson(*report) + "\n"
+                           : stage::processing::FormatCalibrationReport(*report));
+    return 0;
+  }
+  if (*eval_calibration) {
+    auto result = stage::processing::EvaluateCalibration(eval_cal_take, eval_cal_calibration);
+    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    std::cout << (eval_cal_json ? stage::processing::TruthComparisonJson(*result) + "\n"
+                                : stage::processing::FormatTruthComparison(*result));
     return 0;
   }
   if (*eval_photometric) {

@@ -11,52 +11,24 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/aruco_dictionaries.h"
 
 namespace stage::sim {
 namespace {
 
 constexpr float kThicknessMm = 3;
 
-struct NamedDictionary {
-  const char* name;
-  cv::aruco::PREDEFINED_DICTIONARY_NAME id;
-};
-constexpr NamedDictionary kDictionaries[] = {
-    {"DICT_4X4_50", cv::aruco::DICT_4X4_50},
-    {"DICT_4X4_100", cv::aruco::DICT_4X4_100},
-    {"DICT_4X4_250", cv::aruco::DICT_4X4_250},
-    {"DICT_4X4_1000", cv::aruco::DICT_4X4_1000},
-    {"DICT_5X5_50", cv::aruco::DICT_5X5_50},
-    {"DICT_5X5_100", cv::aruco::DICT_5X5_100},
-    {"DICT_5X5_250", cv::aruco::DICT_5X5_250},
-    {"DICT_5X5_1000", cv::aruco::DICT_5X5_1000},
-    {"DICT_6X6_50", cv::aruco::DICT_6X6_50},
-    {"DICT_6X6_100", cv::aruco::DICT_6X6_100},
-    {"DICT_6X6_250", cv::aruco::DICT_6X6_250},
-    {"DICT_6X6_1000", cv::aruco::DICT_6X6_1000},
-    {"DICT_7X7_50", cv::aruco::DICT_7X7_50},
-    {"DICT_7X7_100", cv::aruco::DICT_7X7_100},
-    {"DICT_7X7_250", cv::aruco::DICT_7X7_250},
-    {"DICT_7X7_1000", cv::aruco::DICT_7X7_1000},
-    {"DICT_ARUCO_ORIGINAL", cv::aruco::DICT_ARUCO_ORIGINAL},
-};
-
 }  // namespace
 
 absl::StatusOr<std::shared_ptr<const BoardModel>> BoardModel::Create(const v1::SimBoard& config) {
-  const NamedDictionary* named = nullptr;
-  for (const auto& d : kDictionaries) {
-    if (config.dictionary() == d.name) named = &d;
-  }
-  if (named == nullptr) {
-    std::string names;
-    for (const auto& d : kDictionaries) absl::StrAppend(&names, names.empty() ? "" : ", ", d.name);
+  const int dictionary_id = ArucoDictionaryId(config.dictionary());
+  if (dictionary_id < 0) {
     return absl::InvalidArgumentError(absl::StrCat("sim.subject.board.dictionary: \"", config.dictionary(),
-                                                   "\" is not an ArUco dictionary (", names, ")"));
+                                                   "\" is not an ArUco dictionary (", ArucoDictionaryNames(), ")"));
   }
   const int sx = static_cast<int>(config.squares_x()), sy = static_cast<int>(config.squares_y());
   const auto square = static_cast<float>(config.square_mm()), marker = static_cast<float>(config.marker_mm());
-  cv::Ptr<cv::aruco::Dictionary> dictionary = cv::aruco::getPredefinedDictionary(named->id);
+  cv::Ptr<cv::aruco::Dictionary> dictionary = cv::aruco::getPredefinedDictionary(dictionary_id);
   const int markers_needed = (sx * sy) / 2;
   if (markers_needed > dictionary->bytesList.rows) {
     return absl::InvalidArgumentError(absl::StrCat("sim.subject.board: ", sx, " x ", sy, " squares need ",
@@ -159,19 +131,30 @@ Performance BoardSequence() {
     pose.translation_mm = shift;
     p.keys.emplace_back(t, pose);
   };
+  // Every camera sees the printed face in several frames: first a turn to each side of the stage (rear-side cameras
+  // sit 105 degrees round from +z), then tilts, shifts through the head's volume (depth too: a plate at one depth
+  // leaves a camera's rotation and principal point trading off) and rolls.
   key(0.0, {0, 0, 0});
   key(0.25, {30, 0, 0});
-  key(0.5, {-30, 0, 0});
-  key(0.75, {0, 30, 0});
-  key(1.0, {0, -30, 0});
-  key(1.25, {20, 20, 30}, {60, 0, 0});
-  key(1.5, {-20, 20, -30}, {-60, 0, 0});
-  key(1.75, {20, -20, 15}, {0, 50, 40});
-  key(2.0, {-20, -20, -15}, {0, -50, 40});
-  key(2.25, {35, 10, 45}, {0, 0, -60});
-  key(2.5, {-35, -10, -45}, {0, 0, 60});
-  key(2.75, {0, 0, 90});
-  key(3.0, {0, 0, 0});
+  key(0.5, {-30, 0, 0}, {0, 0, 100});
+  key(0.75, {80, 0, 15}, {0, 40, 0});
+  key(1.0, {-80, 0, -15}, {0, -40, 0});
+  key(1.25, {105, 15, 0}, {0, 0, -60});
+  key(1.5, {-105, 15, 0}, {0, 0, -60});
+  key(1.75, {55, 10, 0}, {-50, 0, 50});
+  key(2.0, {-55, -10, 0}, {50, 0, 50});
+  key(2.25, {0, 30, 0}, {0, 0, 100});
+  key(2.5, {0, -30, 0}, {0, 0, -100});
+  key(2.75, {20, 20, 30}, {80, 70, 60});
+  key(3.0, {-20, -20, -30}, {-80, -70, -60});
+  key(3.25, {100, -20, 30}, {30, 50, 60});
+  key(3.5, {-100, -20, -30}, {-30, 50, 60});
+  key(3.75, {70, 25, -40}, {0, -50, -80});
+  key(4.0, {-70, 25, 40}, {0, -50, -80});
+  key(4.25, {35, -35, 45}, {60, 0, 120});
+  key(4.5, {-35, 35, -45}, {-60, 0, -120});
+  key(4.75, {0, 0, 90});
+  key(5.0, {0, 0, 0});
   return p;
 }
 

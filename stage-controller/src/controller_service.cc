@@ -476,7 +476,8 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
                       : absl::StrCat("no processing worker is up (", absl::StrJoin(known, ", "), ")")));
   }
   v1::ProcessingJob job;
-  job.set_stage(request->stage().empty() ? "photometric" : request->stage());
+  job.set_stage(request->stage() == v1::PROCESSING_STAGE_UNSPECIFIED ? v1::PROCESSING_STAGE_PHOTOMETRIC
+                                                                     : request->stage());
   job.set_take_dir(take->dir());
   job.set_first_frame(request->first_frame());
   job.set_last_frame(request->last_frame());
@@ -484,7 +485,8 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_geometry(request->geometry());
   job.set_calibration(request->calibration());
   Logger("controller")
-      ->info("take {}: {} on worker {} ({})", request->take_id(), job.stage(), worker->id(), worker->address());
+      ->info("take {}: {} on worker {} ({})", request->take_id(), v1::ProcessingStage_Name(job.stage()), worker->id(),
+             worker->address());
   auto stub = v1::ProcessingWorker::NewStub(grpc::CreateChannel(worker->address(), grpc::InsecureChannelCredentials()));
   grpc::ClientContext client;
   // The operator's cancel (Ctrl-C on stagectl) reaches the worker.

@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -664,7 +665,13 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
-  request.set_stage(f.stage);
+  stage::v1::ProcessingStage kind;
+  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
+      kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
+                                            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration)")));
+  }
+  request.set_stage(kind);
   int64_t first = 0, last = -1;
   if (auto s = stage::ParseFrameRange("--frames", f.frames, &first, &last); !s.ok()) {
     return stage::ReportFatal(kProgram, s);
@@ -958,7 +965,7 @@ int main(int argc, char** argv) {
                          "Run a processing stage over a take on one of the stage's processing workers (results in "
                          "TAKE/derived/STAGE/), with progress");
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
-  process->add_option("--stage", pf.stage, "The stage: photometric")->capture_default_str();
+  process->add_option("--stage", pf.stage, "The stage: photometric or calibration")->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
   process->add_option("--cameras", pf.cameras, "Camera ids, comma-separated (default: every high-speed camera)");

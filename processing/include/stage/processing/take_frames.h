@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -47,6 +48,13 @@ struct FrameFileShape {
   int64_t last_slot = -1;  // the highest slot stored
 };
 absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path);
+
+// Every frame of [first, last) of a camera's frame file that recorded a full-on pattern (every unit at 1; the
+// cross-polarized one preferred): black level removed, demosaiced and averaged to grey, handed to `visit` in frame
+// order (frames without one are skipped). Stops at the first error, of the file or of `visit`.
+absl::Status ForEachFullLitFrame(const std::string& path, int64_t first, int64_t last, const LightModel& light,
+                                 double black_level_dn,
+                                 const std::function<absl::Status(int64_t frame, const Image& grey)>& visit);
 
 // Bilinear demosaicing of a float mosaic (width x height, row-major) into RGB: each pixel keeps its own colour and
 // takes the others as the mean of its nearest neighbours of that colour (mirrored at the borders).

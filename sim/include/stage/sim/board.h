@@ -45,7 +45,8 @@ class BoardModel final : public RiggedModel {
   int texture_width_ = 0, texture_height_ = 0;
 };
 
-// Performance::Default's counterpart for the board: 3 s of tilts (up to 35 degrees each way), turns and shifts that a
+// Performance::Default's counterpart for the board: 5 s of turns towards every camera (up to 105 degrees each way),
+// tilts, rolls and shifts through the head's volume (up to 120 mm, depth too) that a
 // camera calibration wants, starting and ending square to the +z axis.
 Performance BoardSequence();
 

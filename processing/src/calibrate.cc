@@ -1,0 +1,552 @@
+// Camera calibration from a calibration take: see calibrate.h.
+#include "stage/processing/calibrate.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "calibrate_internal.h"
+#include "charuco.h"
+#include "stage/common/file_util.h"
+#include "stage/common/logging.h"
+#include "stage/common/status.h"
+#include "stage/processing/calibration.h"
+#include "stage/processing/light_model.h"
+#include "stage/processing/take_frames.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+
+// A camera of the job: its frames and what was found in them.
+struct CameraInput {
+  std::string id, path;
+  const v1::CameraConfig* config = nullptr;
+  CameraObservations observed;  // model: the rig's nominal at the images' size
+  int frames_read = 0;
+};
+
+// The grey image as 8 bits for the detector: its 99th percentile at 230.
+std::vector<uint8_t> ToEightBit(const Image& grey) {
+  std::vector<float> sample;
+  for (size_t i = 0; i < grey.pixels.size(); i += 7) sample.push_back(grey.pixels[i]);
+  const size_t k = sample.size() * 99 / 100;
+  std::nth_element(sample.begin(), sample.begin() + static_cast<std::ptrdiff_t>(k), sample.end());
+  const float scale = sample.empty() || !(sample[k] > 0) ? 1.0f : 230.0f / sample[k];
+  std::vector<uint8_t> out(grey.pixels.size());
+  for (size_t i = 0; i < out.size(); ++i) {
+    out[i] = static_cast<uint8_t>(std::clamp(grey.pixels[i] * scale + 0.5f, 0.0f, 255.0f));
+  }
+  return out;
+}
+
+cv::Matx33d K(const CameraModel& m) { return {m.fx(), 0, m.cx(), 0, m.fy(), m.cy(), 0, 0, 1}; }
+cv::Mat Distortion(const CameraModel& m) {
+  cv::Mat d(1, 5, CV_64F);
+  for (int i = 0; i < 5; ++i) d.at<double>(i) = m.distortion()[static_cast<size_t>(i)];
+  return d;
+}
+
+// solvePnP of `object` (any frame) seen at `pixels`: object -> camera. False when it fails.
+bool Pnp(const std::vector<cv::Point3d>& object, const std::vector<cv::Point2d>& pixels, const CameraModel& m,
+         Eigen::Isometry3d* pose, bool guess) {
+  cv::Mat rvec = cv::Mat::zeros(3, 1, CV_64F), tvec = cv::Mat::zeros(3, 1, CV_64F);
+  if (guess) {
+    Eigen::AngleAxisd aa(pose->linear());
+    for (int i = 0; i < 3; ++i) {
+      rvec.at<double>(i) = aa.angle() * aa.axis()[i];
+      tvec.at<double>(i) = pose->translation()[i];
+    }
+  }
+  // A planar board without a guess: IPPE (OpenCV's iterative solver can run away on a plane seen obliquely).
+  if (!cv::solvePnP(object, pixels, K(m), Distortion(m), rvec, tvec, guess,
+                    guess ? cv::SOLVEPNP_ITERATIVE : cv::SOLVEPNP_IPPE)) {
+    return false;
+  }
+  cv::Mat r;
+  cv::Rodrigues(rvec, r);
+  Eigen::Matrix3d rot;
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) rot(a, b) = r.at<double>(a, b);
+  }
+  pose->linear() = rot;
+  pose->translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  return std::isfinite(pose->translation().norm());
+}
+
+// The camera as an isometry: world -> camera.
+Eigen::Isometry3d WorldToCamera(const CameraModel& m) {
+  Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
+  t.linear() = m.rotation();
+  t.translation() = -m.rotation() * m.position();
+  return t;
+}
+
+CameraModel Placed(const CameraModel& m, const Eigen::Isometry3d& world_to_camera) {
+  CameraParameters p = m.parameters();
+  p.rotation = world_to_camera.linear();
+  p.position = -world_to_camera.linear().transpose() * world_to_camera.translation();
+  auto placed = CameraModel::FromParameters(p);
+  return placed.ok() ? *placed : m;
+}
+
+// Median reprojection error (pixels) of `corners` for a board at `board` (board -> world) seen by `m`.
+double MedianError(const std::vector<Eigen::Vector3d>& board_corners, const std::vector<CornerObservation>& corners,
+                   const CameraModel& m, const Eigen::Isometry3d& board) {
+  std::vector<double> e;
+  for (const CornerObservation& c : corners) {
+    Eigen::Vector2d px;
+    e.push_back(m.Project(board * board_corners[static_cast<size_t>(c.id)], &px) ? (px - c.pixel).norm() : 1e9);
+  }
+  std::nth_element(e.begin(), e.begin() + static_cast<std::ptrdiff_t>(e.size() / 2), e.end());
+  return e[e.size() / 2];
+}
+
+// Every frame's board pose: of the poses each camera's view gives (through its model), the one the other views of
+// the frame agree with best (the median of their median errors). A camera far off its model thus cannot pull the
+// board with it.
+BoardPoses InitialBoards(const std::vector<Eigen::Vector3d>& board_corners,
+                         const std::vector<CameraObservations>& cameras) {
+  std::map<int64_t, std::vector<std::pair<const CameraModel*, const std::vector<CornerObservation>*>>> by_frame;
+  for (const CameraObservations& c : cameras) {
+    for (const auto& [frame, corners] : c.frames) by_frame[frame].emplace_back(&c.model, &corners);
+  }
+  BoardPoses out;
+  for (const auto& [frame, views] : by_frame) {
+    double best = 1e300;
+    for (const auto& [model, corners] : views) {
+      std::vector<cv::Point3d> object;
+      std::vector<cv::Point2d> pixels;
+      for (const CornerObservation& c : *corners) {
+        const Eigen::Vector3d& p = board_corners[static_cast<size_t>(c.id)];
+        object.emplace_back(p.x(), p.y(), p.z());
+        pixels.emplace_back(c.pixel.x(), c.pixel.y());
+      }
+      Eigen::Isometry3d board_to_camera = Eigen::Isometry3d::Identity();
+      if (!Pnp(object, pixels, *model, &board_to_camera, false)) continue;
+      const Eigen::Isometry3d board = WorldToCamera(*model).inverse() * board_to_camera;
+      std::vector<double> errors;
+      for (const auto& [other, other_corners] : views) {
+        errors.push_back(MedianError(board_corners, *other_corners, *other, board));
+      }
+      std::nth_element(errors.begin(), errors.begin() + static_cast<std::ptrdiff_t>(errors.size() / 2), errors.end());
+      if (errors[errors.size() / 2] < best) {
+        best = errors[errors.size() / 2];
+        out[frame] = board;
+      }
+    }
+  }
+  return out;
+}
+
+// Every camera placed by all the board's corners it saw, where the boards are (its intrinsics as they are): a camera
+// centimetres off its model starts where it is.
+void PlaceCameras(const std::vector<Eigen::Vector3d>& board_corners, const BoardPoses& boards,
+                  std::vector<CameraObservations>* cameras) {
+  for (CameraObservations& c : *cameras) {
+    std::vector<cv::Point3d> object;
+    std::vector<cv::Point2d> pixels;
+    for (const auto& [frame, corners] : c.frames) {
+      const auto board = boards.find(frame);
+      if (board == boards.end()) continue;
+      for (const CornerObservation& k : corners) {
+        const Eigen::Vector3d p = board->second * board_corners[static_cast<size_t>(k.id)];
+        object.emplace_back(p.x(), p.y(), p.z());
+        pixels.emplace_back(k.pixel.x(), k.pixel.y());
+      }
+    }
+    if (object.size() < 6) continue;
+    Eigen::Isometry3d pose = WorldToCamera(c.model);
+    if (Pnp(object, pixels, c.model, &pose, true)) c.model = Placed(c.model, pose);
+  }
+}
+
+// The rigid motion (no scale) that best maps `from` onto `to` (Kabsch).
+Eigen::Isometry3d RigidFit(const std::vector<Eigen::Vector3d>& from, const std::vector<Eigen::Vector3d>& to) {
+  Eigen::Matrix3Xd a(3, from.size()), b(3, to.size());
+  for (size_t i = 0; i < from.size(); ++i) {
+    a.col(static_cast<Eigen::Index>(i)) = from[i];
+    b.col(static_cast<Eigen::Index>(i)) = to[i];
+  }
+  Eigen::Isometry3d t = Eigen::Isometry3d::Identity();
+  t.matrix() = Eigen::umeyama(a, b, false);
+  return t;
+}
+
+// `m` in a frame moved by `t` (old world -> new world).
+CameraModel Moved(const CameraModel& m, const Eigen::Isometry3d& t) {
+  return Placed(m, WorldToCamera(m) * t.inverse());
+}
+
+double AngleDeg(const Eigen::Matrix3d& r) { return Eigen::AngleAxisd(r).angle() * 180 / M_PI; }
+
+// RMS over a grid of the image of the difference the two models' lens terms make, with `truth`'s focal lengths and
+// principal point: sensor pixels.
+double DistortionDifference(const CameraModel& calibrated, const CameraModel& truth) {
+  CameraParameters p = truth.parameters();
+  p.rotation = Eigen::Matrix3d::Identity();
+  p.position = Eigen::Vector3d::Zero();
+  CameraParameters q = p;
+  q.distortion = calibrated.distortion();
+  auto a = CameraModel::FromParameters(p), b = CameraModel::FromParameters(q);
+  double sum2 = 0;
+  int n = 0;
+  for (int gy = 0; gy <= 8; ++gy) {
+    for (int gx = 0; gx <= 8; ++gx) {
+      const double x = (gx * (p.width - 1) / 8.0 - p.cx) / p.fx, y = (gy * (p.height - 1) / 8.0 - p.cy) / p.fy;
+      Eigen::Vector2d u, v;
+      a->Project({x, y, 1}, &u);
+      b->Project({x, y, 1}, &v);
+      sum2 += (u - v).squaredNorm();
+      ++n;
+    }
+  }
+  return std::sqrt(sum2 / n);
+}
+
+// The job's cameras with their frame files and nominal models at the images' size; cameras without a frame file go
+// to `missing`.
+absl::StatusOr<std::vector<CameraInput>> JobCameras(const CalibrationJob& job, const LoadedRig& rig,
+                                                    CalibrationReport* report) {
+  std::vector<std::string> ids = job.options.cameras;
+  if (ids.empty()) {
+    for (const v1::CameraConfig& c : rig.rig.cameras()) ids.push_back(c.id());
+  }
+  std::vector<CameraInput> out;
+  for (const std::string& id : ids) {
+    CameraInput c;
+    c.id = id;
+    for (const v1::CameraConfig& config : rig.rig.cameras()) {
+      if (config.id() == id) c.config = &config;
+    }
+    if (c.config == nullptr) return absl::NotFoundError(absl::StrCat("camera \"", id, "\" is not in the take's rig"));
+    c.path = job.take_dir + "/cameras/" + id + ".h5";
+    if (!fs::exists(c.path)) {
+      report->missing.emplace_back(id, "no frame file in the take");
+      continue;
+    }
+    auto shape = ReadFrameFileShape(c.path);
+    if (!shape.ok()) return shape.status();
+    auto model = CameraAtImageSize(rig, id, shape->width, shape->height);
+    if (!model.ok()) return model.status();
+    c.observed.id = id;
+    c.observed.model = *model;
+    report->image_scale = static_cast<double>(shape->width) / c.config->width();
+    out.push_back(std::move(c));
+  }
+  return out;
+}
+
+// Reads every camera's full-lit frames and finds the board in them.
+absl::Status Detect(const CalibrationJob& job, const LightModel& light, const CharucoBoardSpec& board, int64_t first,
+                    int64_t last, std::vector<CameraInput>* cameras, const std::function<void(const JobProgress&)>& progress,
+                    const std::function<bool()>& cancelled) {
+  JobProgress p{0, static_cast<int64_t>(cameras->size()) + 1,
+                absl::StrCat("calibration: finding the board in ", cameras->size(), " camera(s), frames ", first, "-",
+                             last - 1)};
+  if (progress) progress(p);
+  for (CameraInput& c : *cameras) {
+    if (cancelled && cancelled()) {
+      return absl::CancelledError(absl::StrCat("calibration of ", job.take_dir, " cancelled"));
+    }
+    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
+        c.path, first, last, light, c.config->photometric().black_level_dn(),
+        [&](int64_t frame, const Image& grey) -> absl::Status {
+          ++c.frames_read;
+          auto corners = DetectCharuco(ToEightBit(grey), grey.width, grey.height, board, job.options.min_corners);
+          if (!corners.empty()) c.observed.frames[frame] = std::move(corners);
+          return absl::OkStatus();
+        }));
+    ++p.done;
+    p.message = absl::StrFormat("%s: the board in %d of %d frame(s)", c.id, c.observed.frames.size(), c.frames_read);
+    if (progress) progress(p);
+  }
+  return absl::OkStatus();
+}
+
+// Share of a 10 x 10 grid over the image with a corner in it.
+double Coverage(const CameraObservations& o) {
+  bool cell[10][10] = {};
+  for (const auto& [frame, corners] : o.frames) {
+    for (const CornerObservation& c : corners) {
+      const int x = std::clamp(static_cast<int>(c.pixel.x() * 10 / o.model.width()), 0, 9);
+      const int y = std::clamp(static_cast<int>(c.pixel.y() * 10 / o.model.height()), 0, 9);
+      cell[y][x] = true;
+    }
+  }
+  int n = 0;
+  for (auto& row : cell) n += static_cast<int>(std::count(std::begin(row), std::end(row), true));
+  return n / 100.0;
+}
+
+absl::Status WriteReport(const CalibrationReport& report) {
+  return WriteFileAtomically(report.output_dir + "/report.json", CalibrationReportJson(report) + "\n");
+}
+
+}  // namespace
+
+absl::StatusOr<BundleResult> SolveCalibration(const std::vector<Eigen::Vector3d>& board_corners,
+                                              std::vector<CameraObservations> cameras, const BundleOptions& options) {
+  std::vector<Eigen::Vector3d> nominal;
+  for (const CameraObservations& c : cameras) nominal.push_back(c.model.position());
+  BoardPoses boards = InitialBoards(board_corners, cameras);
+  PlaceCameras(board_corners, boards, &cameras);
+  boards = InitialBoards(board_corners, cameras);
+  auto fit = BundleAdjust(board_corners, cameras, boards, options);
+  if (!fit.ok()) return fit.status();
+  // The stage frame: the rigid motion that best puts the calibrated centres on the nominal ones.
+  if (cameras.size() >= 3) {
+    std::vector<Eigen::Vector3d> from;
+    for (const CameraModel& m : fit->cameras) from.push_back(m.position());
+    const Eigen::Isometry3d to_stage = RigidFit(from, nominal);
+    for (CameraModel& m : fit->cameras) m = Moved(m, to_stage);
+    for (auto& [frame, pose] : fit->boards) pose = to_stage * pose;
+  }
+  return fit;
+}
+
+absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
+                                                 const std::function<void(const JobProgress&)>& progress,
+                                                 const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.options.Validate());
+  auto rig = LoadTakeRig(job.take_dir);
+  if (!rig.ok()) return rig.status();
+  auto light = LightModel::FromRig(*rig);
+  if (!light.ok()) return light.status();
+  const CharucoBoardSpec board = CharucoBoardSpec::FromRig(rig->rig.sim().subject().board());
+  STAGE_RETURN_IF_ERROR(board.Validate());
+  const std::vector<Eigen::Vector3d> corners = board.Corners();
+  CalibrationReport report;
+  report.take_dir = job.take_dir;
+  report.output_dir = job.output_dir.empty() ? job.take_dir + "/derived/calibration" : job.output_dir;
+  auto cameras = JobCameras(job, *rig, &report);
+  if (!cameras.ok()) return cameras.status();
+  // The frames: every whole cycle the cameras recorded.
+  const int64_t cycle = static_cast<int64_t>(light->patterns.size());
+  int64_t whole = 0;
+  for (const CameraInput& c : *cameras) {
+    auto shape = ReadFrameFileShape(c.path);
+    if (!shape.ok()) return shape.status();
+    whole = std::max(whole, (shape->last_slot + 1 + cycle - 1) / cycle);
+  }
+  const int64_t first = job.options.first_frame;
+  const int64_t last = job.options.last_frame < 0 ? whole : job.options.last_frame;
+  if (last <= first) {
+    return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last, ") hold nothing"));
+  }
+  STAGE_RETURN_IF_ERROR(Detect(job, *light, board, first, last, &*cameras, progress, cancelled));
+
+  // Cameras with too little of the board are named, not dropped silently.
+  std::vector<CameraInput> usable;
+  for (CameraInput& c : *cameras) {
+    report.frames_read = std::max(report.frames_read, c.frames_read);
+    if (static_cast<int>(c.observed.frames.size()) >= job.options.min_frames) {
+      usable.push_back(std::move(c));
+    } else {
+      report.missing.emplace_back(
+          c.id, c.observed.frames.empty()
+                    ? absl::StrCat("never saw the board in ", c.frames_read, " full-lit frame(s)")
+                    : absl::StrCat("saw the board in ", c.observed.frames.size(), " of ", c.frames_read,
+                                   " frame(s); ", job.options.min_frames, " needed"));
+    }
+  }
+  if (usable.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(job.take_dir, ": no camera saw the board in ",
+                                                      job.options.min_frames, " frame(s) or more"));
+  }
+  if (progress) progress({static_cast<int64_t>(usable.size()), static_cast<int64_t>(usable.size()) + 1,
+                          absl::StrCat("calibration: bundle adjustment of ", usable.size(), " camera(s)")});
+  std::vector<CameraObservations> observed;
+  for (const CameraInput& c : usable) observed.push_back(c.observed);
+  BundleOptions bundle;
+  bundle.loss_px = job.options.loss_px;
+  bundle.fit_k3 = job.options.fit_k3;
+  bundle.threads = job.options.threads;
+  auto fit = SolveCalibration(corners, observed, bundle);
+  if (!fit.ok()) return absl::Status(fit.status().code(), absl::StrCat(job.take_dir, ": ", fit.status().message()));
+  report.board_frames = static_cast<int>(fit->boards.size());
+  CameraCalibration calibration;
+  calibration.source = absl::StrCat("calibration take ", fs::path(job.take_dir).filename().string());
+  for (size_t i = 0; i < usable.size(); ++i) {
+    const CameraModel sensor = fit->cameras[i].Resized(static_cast<int>(usable[i].config->width()),
+                                            static_cast<int>(usable[i].config->height()));
+    calibration.cameras.push_back({usable[i].id, sensor});
+    const BundleCameraResult& r = fit->per_camera[i];
+    report.cameras.push_back({usable[i].id, r.frames, r.corners_used, r.corners_dropped, r.rms_px,
+                              r.rms_px / report.image_scale, Coverage(usable[i].observed)});
+  }
+  report.rms_px = fit->rms_px;
+  report.iterations = fit->iterations;
+  report.solver = fit->report;
+  std::error_code ec;
+  fs::create_directories(report.output_dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(report.output_dir, ": ", ec.message()));
+  STAGE_RETURN_IF_ERROR(WriteCameraCalibration(report.output_dir + "/cameras.json", calibration));
+  const std::string truth_path = job.take_dir + "/ground_truth/cameras.json";
+  if (fs::exists(truth_path)) {
+    auto truth = ReadCameraCalibration(truth_path);
+    if (!truth.ok()) return truth.status();
+    auto compared = CompareCalibrations(calibration, *truth);
+    if (compared.ok()) {
+      report.has_truth = true;
+      report.truth = *std::move(compared);
+    }
+  }
+  STAGE_RETURN_IF_ERROR(WriteReport(report));
+  if (job.options.require_all && !report.missing.empty()) {
+    std::vector<std::string> named;
+    for (const auto& [id, why] : report.missing) named.push_back(absl::StrCat(id, " (", why, ")"));
+    return absl::FailedPreconditionError(absl::StrCat(
+        job.take_dir, ": ", report.missing.size(), " camera(s) not calibrated: ", absl::StrJoin(named, ", "),
+        "; the other ", report.cameras.size(), " are in ", report.output_dir, "/cameras.json"));
+  }
+  return report;
+}
+
+std::string TruthComparisonJson(const TruthComparison& t) {
+  nlohmann::ordered_json j;
+  j["frame_offset_mm"] = t.frame_offset_mm;
+  j["frame_rotation_deg"] = t.frame_rotation_deg;
+  auto row = [](const CameraError& e) {
+    return nlohmann::ordered_json{{"id", e.id},
+                                  {"centre_mm", e.centre_mm},
+                                  {"rotation_deg", e.rotation_deg},
+                                  {"focal_percent", e.focal_percent},
+                                  {"principal_px", e.principal_px},
+                                  {"distortion_px", e.distortion_px}};
+  };
+  j["worst"] = row(t.worst);
+  j["cameras"] = nlohmann::ordered_json::array();
+  for (const CameraError& e : t.cameras) j["cameras"].push_back(row(e));
+  return j.dump(2);
+}
+
+std::string FormatTruthComparison(const TruthComparison& t) {
+  std::string out = absl::StrFormat(
+      "Against the simulator's truth, after the best rigid fit of the centres (%.3f mm, %.4f deg):\n"
+      "%-8s %10s %12s %10s %12s %13s\n",
+      t.frame_offset_mm, t.frame_rotation_deg, "camera", "centre mm", "rotation deg", "focal %", "principal px",
+      "distortion px");
+  auto line = [&](const CameraError& e) {
+    absl::StrAppendFormat(&out, "%-8s %10.4f %12.5f %+10.4f %12.3f %13.3f\n", e.id, e.centre_mm, e.rotation_deg,
+                          e.focal_percent, e.principal_px, e.distortion_px);
+  };
+  for (const CameraError& e : t.cameras) line(e);
+  line(t.worst);
+  return out;
+}
+
+std::string CalibrationReportJson(const CalibrationReport& r) {
+  nlohmann::ordered_json j;
+  j["stage"] = "calibration";
+  j["take"] = fs::path(r.take_dir).filename().string();
+  j["output"] = r.output_dir + "/cameras.json";
+  j["image_scale"] = r.image_scale;
+  j["frames_read"] = r.frames_read;
+  j["board_frames"] = r.board_frames;
+  j["rms_px"] = r.rms_px;
+  j["iterations"] = r.iterations;
+  j["solver"] = r.solver;
+  j["cameras"] = nlohmann::ordered_json::array();
+  for (const CameraCalibrationReport& c : r.cameras) {
+    j["cameras"].push_back({{"id", c.id},
+                            {"frames", c.frames},
+                            {"corners_used", c.corners_used},
+                            {"corners_dropped", c.corners_dropped},
+                            {"rms_px", c.rms_px},
+                            {"rms_sensor_px", c.rms_sensor_px},
+                            {"coverage", c.coverage}});
+  }
+  j["missing"] = nlohmann::ordered_json::array();
+  for (const auto& [id, why] : r.missing) j["missing"].push_back({{"id", id}, {"why", why}});
+  if (r.has_truth) j["truth"] = nlohmann::ordered_json::parse(TruthComparisonJson(r.truth));
+  return j.dump(2);
+}
+
+std::string FormatCalibrationReport(const CalibrationReport& r) {
+  std::string out = absl::StrFormat(
+      "Calibration of %s: %d camera(s) from %d frame(s) with the board, reprojection RMS %.3f px (images at %.3g of "
+      "the sensor), %d iterations\n%-8s %7s %8s %8s %9s %10s %9s\n",
+      fs::path(r.take_dir).filename().string(), r.cameras.size(), r.board_frames, r.rms_px, r.image_scale,
+      r.iterations, "camera", "frames", "corners", "dropped", "RMS px", "RMS sensor", "coverage");
+  for (const CameraCalibrationReport& c : r.cameras) {
+    absl::StrAppendFormat(&out, "%-8s %7d %8d %8d %9.3f %10.3f %8.0f%%\n", c.id, c.frames, c.corners_used,
+                          c.corners_dropped, c.rms_px, c.rms_sensor_px, 100 * c.coverage);
+  }
+  for (const auto& [id, why] : r.missing) absl::StrAppendFormat(&out, "%-8s NOT CALIBRATED: %s\n", id, why);
+  if (r.has_truth) out += FormatTruthComparison(r.truth);
+  absl::StrAppend(&out, "Written: ", r.output_dir, "/cameras.json and report.json\n");
+  return out;
+}
+
+absl::Status CalibrationOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError("calibration options: " + what); };
+  if (first_frame < 0) return bad("first_frame must be >= 0");
+  if (last_frame >= 0 && last_frame <= first_frame) return bad("the frame range is empty");
+  if (min_corners < 6 || min_corners > 10000) return bad("min_corners must be in [6, 10000]");
+  if (min_frames < 1) return bad("min_frames must be >= 1");
+  if (!(loss_px > 0 && loss_px <= 100)) return bad("loss_px must be in (0, 100]");
+  if (threads < 0) return bad("threads must be >= 0");
+  return absl::OkStatus();
+}
+
+absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& calibrated,
+                                                    const CameraCalibration& truth) {
+  std::vector<const CalibratedCamera*> mine;
+  std::vector<const CameraModel*> theirs;
+  std::vector<Eigen::Vector3d> from, to;
+  for (const CalibratedCamera& c : calibrated.cameras) {
+    const CameraModel* t = truth.Find(c.id);
+    if (t == nullptr) continue;
+    mine.push_back(&c);
+    theirs.push_back(t);
+    from.push_back(c.model.position());
+    to.push_back(t->position());
+  }
+  if (mine.size() < 3) {
+    return absl::NotFoundError(absl::StrCat("the calibration (", calibrated.source, ") and the truth (", truth.source,
+                                            ") share ", mine.size(), " camera(s); 3 are needed"));
+  }
+  const Eigen::Isometry3d align = RigidFit(from, to);
+  TruthComparison out;
+  out.frame_offset_mm = align.translation().norm();
+  out.frame_rotation_deg = AngleDeg(align.linear());
+  out.worst.id = "worst";
+  for (size_t i = 0; i < mine.size(); ++i) {
+    const CameraModel m = Moved(mine[i]->model, align);
+    const CameraModel& t = *theirs[i];
+    CameraError e;
+    e.id = mine[i]->id;
+    e.centre_mm = (m.position() - t.position()).norm();
+    e.rotation_deg = AngleDeg(m.rotation() * t.rotation().transpose());
+    e.focal_percent = 100 * ((m.fx() + m.fy()) / (t.fx() + t.fy()) - 1);
+    e.principal_px = std::hypot(m.cx() - t.cx(), m.cy() - t.cy());
+    e.distortion_px = DistortionDifference(m, t);
+    out.cameras.push_back(e);
+    out.worst.centre_mm = std::max(out.worst.centre_mm, e.centre_mm);
+    out.worst.rotation_deg = std::max(out.worst.rotation_deg, e.rotation_deg);
+    if (std::abs(e.focal_percent) > std::abs(out.worst.focal_percent)) out.worst.focal_percent = e.focal_percent;
+    out.worst.principal_px = std::max(out.worst.principal_px, e.principal_px);
+    out.worst.distortion_px = std::max(out.worst.distortion_px, e.distortion_px);
+  }
+  return out;
+}
+
+absl::StatusOr<TruthComparison> EvaluateCalibration(const std::string& take_dir, const std::string& calibration) {
+  auto calibrated = LoadJobCalibration(take_dir, calibration.empty() ? "derived/calibration" : calibration);
+  if (!calibrated.ok()) return calibrated.status();
+  auto truth = ReadCameraCalibration(take_dir + "/ground_truth/cameras.json");
+  if (!truth.ok()) return truth.status();
+  return CompareCalibrations(**calibrated, *truth);
+}
+
+}  // namespace stage::processing
