@@ -5,7 +5,6 @@
 #include <ceres/rotation.h>
 
 #include <cmath>
-#include <thread>
 
 #include "absl/strings/str_cat.h"
 
@@ -100,7 +99,9 @@ ceres::Solver::Summary Fit(const std::vector<Eigen::Vector3d>& board_corners,
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::DENSE_SCHUR;
   solver.max_num_iterations = options.max_iterations;
-  solver.num_threads = options.threads > 0 ? options.threads : static_cast<int>(std::thread::hardware_concurrency());
+  // One thread: Ceres's threads sum in an order that varies from run to run, and the calibration would differ in its
+  // last digits between runs (the fit takes seconds).
+  solver.num_threads = 1;
   solver.function_tolerance = 1e-12;
   solver.parameter_tolerance = 1e-12;
   solver.gradient_tolerance = 1e-14;

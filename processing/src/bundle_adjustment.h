@@ -35,8 +35,6 @@ struct BundleOptions {
   // before the final fit. Default 4.
   double outlier_factor = 4;
   int max_iterations = 200;
-  // Ceres threads; 0: one per core.
-  int threads = 0;
   // The board pose of this frame is held fixed (the fit's gauge); -1: the first frame.
   int64_t fixed_frame = -1;
 };

@@ -363,14 +363,16 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
     return absl::FailedPreconditionError(absl::StrCat(job.take_dir, ": no camera saw the board in ",
                                                       job.options.min_frames, " frame(s) or more"));
   }
-  if (progress) progress({static_cast<int64_t>(usable.size()), static_cast<int64_t>(usable.size()) + 1,
-                          absl::StrCat("calibration: bundle adjustment of ", usable.size(), " camera(s)")});
+  // Progress counts the cameras read, then the fit as one more unit.
+  const auto units = static_cast<int64_t>(cameras->size()) + 1;
+  if (progress) {
+    progress({units - 1, units, absl::StrCat("calibration: bundle adjustment of ", usable.size(), " camera(s)")});
+  }
   std::vector<CameraObservations> observed;
   for (const CameraInput& c : usable) observed.push_back(c.observed);
   BundleOptions bundle;
   bundle.loss_px = job.options.loss_px;
   bundle.fit_k3 = job.options.fit_k3;
-  bundle.threads = job.options.threads;
   auto fit = SolveCalibration(corners, observed, bundle);
   if (!fit.ok()) return absl::Status(fit.status().code(), absl::StrCat(job.take_dir, ": ", fit.status().message()));
   report.board_frames = static_cast<int>(fit->boards.size());
@@ -402,6 +404,10 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
     }
   }
   STAGE_RETURN_IF_ERROR(WriteReport(report));
+  if (progress) {
+    progress({units, units, absl::StrFormat("calibration: %d camera(s), reprojection RMS %.3f px", report.cameras.size(),
+                                            report.rms_px)});
+  }
   if (job.options.require_all && !report.missing.empty()) {
     std::vector<std::string> named;
     for (const auto& [id, why] : report.missing) named.push_back(absl::StrCat(id, " (", why, ")"));
@@ -495,7 +501,6 @@ absl::Status CalibrationOptions::Validate() const {
   if (min_corners < 6 || min_corners > 10000) return bad("min_corners must be in [6, 10000]");
   if (min_frames < 1) return bad("min_frames must be >= 1");
   if (!(loss_px > 0 && loss_px <= 100)) return bad("loss_px must be in (0, 100]");
-  if (threads < 0) return bad("threads must be >= 0");
   return absl::OkStatus();
 }
 

@@ -101,7 +101,6 @@ TruthComparison SolveAndCompare(double noise_px, double* rms_px) {
   Synthetic s = Make(0.25, 120, noise_px, /*far=*/4, /*blind=*/-1);
   for (const CameraObservations& c : s.observed) EXPECT_GE(c.frames.size(), 3u) << c.id;
   BundleOptions options;
-  options.threads = 2;
   auto fit = SolveCalibration(s.corners, s.observed, options);
   EXPECT_TRUE(fit.ok()) << fit.status();
   if (!fit.ok()) return {};

@@ -102,7 +102,6 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
   c.options.first_frame = job.first_frame();
   c.options.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
   c.options.cameras.assign(job.cameras().begin(), job.cameras().end());
-  c.options.threads = static_cast<int>(threads_);
   auto report = RunCalibration(c, progress, cancelled);
   if (!report.ok()) return report.status();
   v1::ProcessingProgress done;

@@ -87,8 +87,6 @@ int main(int argc, char** argv) {
   calibrate->add_flag("--fit-k3", cal.options.fit_k3, "Fit the sixth-order radial term too");
   calibrate->add_flag("--require-all,!--no-require-all", cal.options.require_all,
                       "Fail when a camera cannot be calibrated (the default; --no-require-all lists it and goes on)");
-  calibrate->add_option("--threads", cal.options.threads, "Threads (default 0: one per core)")
-      ->check(CLI::NonNegativeNumber);
   calibrate->add_flag("--json", cal_json, "Print the report as JSON on stdout");
 
   stage::processing::EvaluateOptions eval;

@@ -685,7 +685,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
-  stage::ProgressLine bar("camera frames");
+  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras" : "camera frames");
   while (reader->Read(&progress)) {
     if (progress.finished()) {
       last_message = progress;
@@ -707,6 +707,40 @@ int Process(const Connection& c, const ProcessFlags& f) {
     std::cout << last_message.message() << "\n";
   }
   return 0;
+}
+
+struct CalibrateFlags {
+  double seconds = 5;
+  std::string name = "calibration", worker;
+  bool json = false;
+};
+
+// Records a calibration take (the ChArUco board moved through the stage's volume) and runs the calibration stage on
+// it on one of the stage's workers: the take's summary, then the calibration's report (docs/geometry.md).
+int Calibrate(const Connection& c, const CalibrateFlags& f) {
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  stage::v1::CaptureRequest request;
+  request.set_seconds(f.seconds);
+  request.set_name(f.name);
+  grpc::ClientContext context;  // no deadline: a take lasts as long as it lasts
+  auto reader = (*stub)->Capture(&context, request);
+  TakeStream stream = ShowTakeEvents(*reader);
+  if (!stream.status.ok()) return stage::ReportFatal(kProgram, RpcError(stream.status, address));
+  if (!stream.summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
+  const stage::v1::TakeSummary& summary = *stream.summary;
+  if (!f.json) PrintSummary(summary);
+  if (summary.outcome() == stage::v1::TAKE_OUTCOME_FAILED) {
+    return stage::ReportFatal(kProgram, absl::AbortedError(absl::StrCat("the calibration take ", summary.take_id(),
+                                                                        " failed: nothing to calibrate from")));
+  }
+  ProcessFlags p;
+  p.take_id = summary.take_id();
+  p.stage = "calibration";
+  p.worker = f.worker;
+  p.json = f.json;
+  return Process(c, p);
 }
 
 int Takes(const Connection& c, bool json) {
@@ -978,6 +1012,17 @@ int main(int argc, char** argv) {
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
 
+  CalibrateFlags calf;
+  CLI::App* calibrate = app.add_subcommand(
+      "calibrate",
+      "Record a calibration take (the ChArUco board moved through the stage's volume; on the simulated stage, "
+      "stage-sim --set sim.subject.kind=charuco) and calibrate every camera from it on a processing worker: "
+      "TAKE/derived/calibration/cameras.json, which later stages take with --calibration");
+  calibrate->add_option("--seconds", calf.seconds, "Seconds to record")->capture_default_str()->check(CLI::PositiveNumber);
+  calibrate->add_option("--name", calf.name, "The take's name in the catalog")->capture_default_str();
+  calibrate->add_option("--worker", calf.worker, "The worker's id (default: the first that is up)");
+  calibrate->add_flag("--json", calf.json, "Print the calibration's result as JSON");
+
   FaultFlags ff;
   CLI::App* sim = app.add_subcommand("sim", "The simulated stage (stage-sim): inject faults into its world");
   sim->require_subcommand(1);
@@ -1031,5 +1076,6 @@ int main(int argc, char** argv) {
   if (take_ledger->parsed()) return Ledger(c, ledger_id, ledger_camera, ledger_lost, ledger_json);
   if (watch->parsed()) return Watch(c, watch_id, watch_json);
   if (process->parsed()) return Process(c, pf);
+  if (calibrate->parsed()) return Calibrate(c, calf);
   return 2;
 }

@@ -34,8 +34,6 @@ struct CalibrationOptions {
   // Every camera must be calibrated: false writes what could be calibrated and lists the rest in the report; true
   // (default) also fails the job, naming them.
   bool require_all = true;
-  // Threads (0: one per core).
-  int threads = 0;
 
   absl::Status Validate() const;
 };
