@@ -60,25 +60,24 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
     EXPECT_EQ(worker_bytes, Slurp(dir + "/derived/library/" + file)) << file;
   }
 
-  // Against the truth. Bounds for render scale 0.125 with one ray a pixel (corners found to ~0.4 px there; the
-  // errors scale with that noise: docs/geometry.md has the figures and the full-scale goals). The nominal models are
-  // ~2 mm, ~0.3 deg and ~0.5 % off: calibration must beat them by far.
+  // Against the truth. Bounds for render scale 0.125 with one ray a pixel, where the corners are found to ~0.4 px
+  // (3 sensor pixels: a pixel's one ray puts every edge on a pixel boundary). Measured: reprojection RMS 0.43 px; where
+  // the cameras see the head's volume (projection) RMS 12.2 and worst 19.5 sensor pixels against the nominal models'
+  // 40.5 and 93.8; centres RMS 3.0 mm (nominal 1.9). At this scale the corners' noise leaves a camera's rotation and
+  // principal point trading off (RMS 0.5 deg, 62 px) and calibration does not beat the nominal rig there: the figures
+  // at larger scales and the full-scale goals are in docs/geometry.md.
   ASSERT_TRUE(library->has_truth);
   const processing::TruthComparison& t = library->truth;
   EXPECT_EQ(t.cameras.size(), 27u);
   EXPECT_LT(library->rms_px, 0.6);
-  double centre2 = 0, rotation2 = 0;
-  for (const processing::CameraError& e : t.cameras) {
-    centre2 += e.centre_mm * e.centre_mm;
-    rotation2 += e.rotation_deg * e.rotation_deg;
-  }
-  // Measured: RMS over the cameras 2.1 mm and 0.55 deg... (see below)
-  EXPECT_LT(std::sqrt(centre2 / 27), 99);
-  EXPECT_LT(std::sqrt(rotation2 / 27), 99);
+  EXPECT_LT(t.rms.projection_px, 18);
+  EXPECT_LT(t.worst.projection_px, 28);
+  EXPECT_LT(t.rms.projection_px, library->nominal_truth.rms.projection_px / 2.5);
+  EXPECT_LT(t.rms.centre_mm, 4.5);
   CommandResult eval = RunCommand({"stage-process", "evaluate", "calibration", "--take", dir, "--json"},
                                   std::chrono::seconds(60));
   ASSERT_EQ(eval.exit.exit_code, 0) << eval.err;
-  EXPECT_EQ(nlohmann::json::parse(eval.out)["cameras"].size(), 27u);
+  EXPECT_EQ(nlohmann::json::parse(eval.out)["calibrated"]["cameras"].size(), 27u);
 
   // A camera whose nominal pose is 10 mm off: found where it is all the same.
   const std::string take_json = Slurp(dir + "/take.json");
@@ -91,9 +90,13 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   auto wrong = processing::RunCalibration(job);
   ASSERT_TRUE(WriteFileAtomically(dir + "/take.json", take_json).ok());
   ASSERT_TRUE(wrong.ok()) << wrong.status();
+  EXPECT_LT(wrong->rms_px, 0.6);
   for (size_t i = 0; i < t.cameras.size(); ++i) {
     if (t.cameras[i].id != "mv-05") continue;
-    EXPECT_LT(wrong->truth.cameras[i].centre_mm, 99) << "against " << t.cameras[i].centre_mm;
+    // Where it was found with the right nominal pose, within a pixel; its nominal model is now ~10 mm off (about 80
+    // sensor pixels).
+    EXPECT_NEAR(wrong->truth.cameras[i].projection_px, t.cameras[i].projection_px, 1.0);
+    EXPECT_GT(wrong->nominal_truth.cameras[i].projection_px, 50);
   }
 
   // Cameras that never see the board are named, and the others' calibration is still written.

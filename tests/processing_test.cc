@@ -146,7 +146,7 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   CommandResult stage_name =
       RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "mvs"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
-  EXPECT_THAT(stage_name.err, HasSubstr("no stage \"mvs\""));
+  EXPECT_THAT(stage_name.err, HasSubstr("--stage: \"mvs\" is not a stage (photometric, calibration)"));
   CommandResult no_take = RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"},
                                      std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);

@@ -1,6 +1,7 @@
 // Calibration files: see camera_calibration.h.
 #include "stage/common/camera_calibration.h"
 
+#include <cmath>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -54,6 +55,11 @@ absl::StatusOr<CalibratedCamera> ParseCamera(const nlohmann::json& entry, const 
   if (s.ok()) s = Numbers(entry, where, "position_mm", 3, p.position.data());
   if (s.ok()) s = Numbers(entry, where, "rotation", 9, rotation);
   if (!s.ok()) return s;
+  for (int k = 0; k < 2; ++k) {
+    if (!(size[k] >= 1 && size[k] <= 1e6) || size[k] != std::floor(size[k])) {
+      return absl::InvalidArgumentError(absl::StrCat(where, k == 0 ? ".width" : ".height", ": not a pixel count"));
+    }
+  }
   p.width = static_cast<int>(size[0]);
   p.height = static_cast<int>(size[1]);
   for (int r = 0; r < 3; ++r) {
@@ -82,9 +88,14 @@ absl::StatusOr<CameraCalibration> ReadCameraCalibration(const std::string& path)
   const nlohmann::json j = nlohmann::json::parse(text.str(), nullptr, /*allow_exceptions=*/false);
   auto bad = [&](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(path, ": ", what)); };
   if (j.is_discarded()) return bad("not JSON");
-  if (!j.is_object() || j.value("format", "") != kFormat) return bad(absl::StrCat("not a ", kFormat, " file"));
-  if (j.value("version", 0) != 1) return bad("version: only version 1 is read");
+  if (!j.is_object() || !j.contains("format") || !j["format"].is_string() || j["format"] != kFormat) {
+    return bad(absl::StrCat("not a ", kFormat, " file"));
+  }
+  if (!j.contains("version") || !j["version"].is_number_integer() || j["version"] != 1) {
+    return bad("version: only version 1 is read");
+  }
   if (!j.contains("cameras") || !j["cameras"].is_array()) return bad("cameras: missing");
+  if (j.contains("source") && !j["source"].is_string()) return bad("source: not a string");
   CameraCalibration out;
   out.source = j.value("source", "");
   for (size_t i = 0; i < j["cameras"].size(); ++i) {

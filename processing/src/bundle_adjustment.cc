@@ -4,6 +4,7 @@
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include "absl/strings/str_cat.h"
@@ -140,10 +141,18 @@ absl::StatusOr<BundleResult> BundleAdjust(const std::vector<Eigen::Vector3d>& bo
   result.per_camera.resize(cameras.size());
   ceres::Solver::Summary summary;
   for (int pass = 0; pass < 2; ++pass) {
-    summary = Fit(board_corners, cameras, use, options, fixed, &p);
+    // The held board: the one asked for, or (when outliers took all its corners) the first frame still seen.
+    int64_t held = -1;
+    for (size_t i = 0; i < cameras.size() && held != fixed; ++i) {
+      for (const auto& [frame, keep] : use[i]) {
+        if (std::find(keep.begin(), keep.end(), true) == keep.end()) continue;
+        if (frame == fixed || held < 0 || frame < held) held = frame;
+      }
+    }
+    summary = Fit(board_corners, cameras, use, options, held, &p);
     result.iterations += static_cast<int>(summary.iterations.size());
-    if (!summary.IsSolutionUsable()) {
-      return absl::FailedPreconditionError(absl::StrCat("bundle adjustment failed: ", summary.BriefReport()));
+    if (summary.termination_type != ceres::CONVERGENCE) {
+      return absl::FailedPreconditionError(absl::StrCat("bundle adjustment did not converge: ", summary.BriefReport()));
     }
     // Residuals per corner, then the outliers dropped for the second pass.
     double total2 = 0;

@@ -68,9 +68,13 @@ bool Pnp(const std::vector<cv::Point3d>& object, const std::vector<cv::Point2d>&
     }
   }
   // A planar board without a guess: IPPE (OpenCV's iterative solver can run away on a plane seen obliquely).
-  if (!cv::solvePnP(object, pixels, K(m), Distortion(m), rvec, tvec, guess,
-                    guess ? cv::SOLVEPNP_ITERATIVE : cv::SOLVEPNP_IPPE)) {
-    return false;
+  try {
+    if (!cv::solvePnP(object, pixels, K(m), Distortion(m), rvec, tvec, guess,
+                      guess ? cv::SOLVEPNP_ITERATIVE : cv::SOLVEPNP_IPPE)) {
+      return false;
+    }
+  } catch (const cv::Exception&) {
+    return false;  // degenerate corners (all on a line): this view gives no pose
   }
   cv::Mat r;
   cv::Rodrigues(rvec, r);
@@ -91,12 +95,15 @@ Eigen::Isometry3d WorldToCamera(const CameraModel& m) {
   return t;
 }
 
+// `m` with another pose. The rotation of an isometry made of rotations is one, up to rounding: FromParameters's
+// check (1e-6) cannot fail here, and the model is built without it.
 CameraModel Placed(const CameraModel& m, const Eigen::Isometry3d& world_to_camera) {
   CameraParameters p = m.parameters();
-  p.rotation = world_to_camera.linear();
-  p.position = -world_to_camera.linear().transpose() * world_to_camera.translation();
-  auto placed = CameraModel::FromParameters(p);
-  return placed.ok() ? *placed : m;
+  // Orthonormalized, so that rounding never accumulates over moves.
+  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(world_to_camera.linear(), Eigen::ComputeFullU | Eigen::ComputeFullV);
+  p.rotation = svd.matrixU() * svd.matrixV().transpose();
+  p.position = -p.rotation.transpose() * world_to_camera.translation();
+  return *CameraModel::FromParameters(p);
 }
 
 // Median reprojection error (pixels) of `corners` for a board at `board` (board -> world) seen by `m`.
@@ -187,6 +194,25 @@ CameraModel Moved(const CameraModel& m, const Eigen::Isometry3d& t) {
   return Placed(m, WorldToCamera(m) * t.inverse());
 }
 
+// RMS over a 7 x 7 x 7 grid of a 300 mm cube round the stage origin of the distance between the two models'
+// projections, pixels.
+double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
+  double sum2 = 0;
+  int n = 0;
+  for (int i = 0; i < 7; ++i) {
+    for (int j = 0; j < 7; ++j) {
+      for (int k = 0; k < 7; ++k) {
+        const Eigen::Vector3d p(-150 + 50 * i, -150 + 50 * j, -150 + 50 * k);
+        Eigen::Vector2d u, v;
+        if (!a.Project(p, &u) || !b.Project(p, &v)) continue;
+        sum2 += (u - v).squaredNorm();
+        ++n;
+      }
+    }
+  }
+  return n > 0 ? std::sqrt(sum2 / n) : 0;
+}
+
 double AngleDeg(const Eigen::Matrix3d& r) { return Eigen::AngleAxisd(r).angle() * 180 / M_PI; }
 
 // RMS over a grid of the image of the difference the two models' lens terms make, with `truth`'s focal lengths and
@@ -240,7 +266,6 @@ absl::StatusOr<std::vector<CameraInput>> JobCameras(const CalibrationJob& job, c
     if (!model.ok()) return model.status();
     c.observed.id = id;
     c.observed.model = *model;
-    report->image_scale = static_cast<double>(shape->width) / c.config->width();
     out.push_back(std::move(c));
   }
   return out;
@@ -301,6 +326,15 @@ absl::StatusOr<BundleResult> SolveCalibration(const std::vector<Eigen::Vector3d>
   BoardPoses boards = InitialBoards(board_corners, cameras);
   PlaceCameras(board_corners, boards, &cameras);
   boards = InitialBoards(board_corners, cameras);
+  // A frame no view of which gave a pose (degenerate corners) is left out.
+  for (CameraObservations& c : cameras) {
+    for (auto it = c.frames.begin(); it != c.frames.end();) {
+      it = boards.count(it->first) != 0 ? std::next(it) : c.frames.erase(it);
+    }
+    if (c.frames.empty()) {
+      return absl::FailedPreconditionError(absl::StrCat("camera \"", c.id, "\": no view of the board gave a pose"));
+    }
+  }
   auto fit = BundleAdjust(board_corners, cameras, boards, options);
   if (!fit.ok()) return fit.status();
   // The stage frame: the rigid motion that best puts the calibrated centres on the nominal ones.
@@ -383,26 +417,29 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
                                             static_cast<int>(usable[i].config->height()));
     calibration.cameras.push_back({usable[i].id, sensor});
     const BundleCameraResult& r = fit->per_camera[i];
-    report.cameras.push_back({usable[i].id, r.frames, r.corners_used, r.corners_dropped, r.rms_px,
-                              r.rms_px / report.image_scale, Coverage(usable[i].observed)});
+    const double scale = static_cast<double>(usable[i].observed.model.width()) / usable[i].config->width();
+    report.image_scale = scale;  // the same for every camera of a take, up to each size's rounding
+    report.cameras.push_back({usable[i].id, r.frames, r.corners_used, r.corners_dropped, r.rms_px, r.rms_px / scale,
+                              Coverage(usable[i].observed)});
   }
   report.rms_px = fit->rms_px;
   report.iterations = fit->iterations;
   report.solver = fit->report;
-  std::error_code ec;
-  fs::create_directories(report.output_dir, ec);
-  if (ec) return absl::UnavailableError(absl::StrCat(report.output_dir, ": ", ec.message()));
-  STAGE_RETURN_IF_ERROR(WriteCameraCalibration(report.output_dir + "/cameras.json", calibration));
+  // On a simulated take, against the truth (and the nominal rig against it); an unreadable truth is an error.
   const std::string truth_path = job.take_dir + "/ground_truth/cameras.json";
   if (fs::exists(truth_path)) {
     auto truth = ReadCameraCalibration(truth_path);
     if (!truth.ok()) return truth.status();
-    auto compared = CompareCalibrations(calibration, *truth);
-    if (compared.ok()) {
-      report.has_truth = true;
-      report.truth = *std::move(compared);
-    }
+    auto nominal = NominalCalibration(*rig);
+    if (!nominal.ok()) return nominal.status();
+    STAGE_ASSIGN_OR_RETURN(report.truth, CompareCalibrations(calibration, *truth));
+    STAGE_ASSIGN_OR_RETURN(report.nominal_truth, CompareCalibrations(*nominal, *truth));
+    report.has_truth = true;
   }
+  std::error_code ec;
+  fs::create_directories(report.output_dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(report.output_dir, ": ", ec.message()));
+  STAGE_RETURN_IF_ERROR(WriteCameraCalibration(report.output_dir + "/cameras.json", calibration));
   STAGE_RETURN_IF_ERROR(WriteReport(report));
   if (progress) {
     progress({units, units, absl::StrFormat("calibration: %d camera(s), reprojection RMS %.3f px", report.cameras.size(),
@@ -428,27 +465,42 @@ std::string TruthComparisonJson(const TruthComparison& t) {
                                   {"rotation_deg", e.rotation_deg},
                                   {"focal_percent", e.focal_percent},
                                   {"principal_px", e.principal_px},
-                                  {"distortion_px", e.distortion_px}};
+                                  {"distortion_px", e.distortion_px},
+                                  {"projection_px", e.projection_px}};
   };
+  j["rms"] = row(t.rms);
   j["worst"] = row(t.worst);
   j["cameras"] = nlohmann::ordered_json::array();
   for (const CameraError& e : t.cameras) j["cameras"].push_back(row(e));
   return j.dump(2);
 }
 
-std::string FormatTruthComparison(const TruthComparison& t) {
+std::string FormatTruthComparison(const TruthComparison& t, const TruthComparison* nominal) {
   std::string out = absl::StrFormat(
-      "Against the simulator's truth, after the best rigid fit of the centres (%.3f mm, %.4f deg):\n"
-      "%-8s %10s %12s %10s %12s %13s\n",
+      "Against the simulator's truth, after the best rigid fit of the centres (%.3f mm, %.4f deg); sensor pixels:\n"
+      "%-8s %10s %12s %10s %12s %13s %13s\n",
       t.frame_offset_mm, t.frame_rotation_deg, "camera", "centre mm", "rotation deg", "focal %", "principal px",
-      "distortion px");
-  auto line = [&](const CameraError& e) {
-    absl::StrAppendFormat(&out, "%-8s %10.4f %12.5f %+10.4f %12.3f %13.3f\n", e.id, e.centre_mm, e.rotation_deg,
-                          e.focal_percent, e.principal_px, e.distortion_px);
+      "distortion px", "projection px");
+  auto line = [&](const CameraError& e, const std::string& name) {
+    absl::StrAppendFormat(&out, "%-8s %10.4f %12.5f %+10.4f %12.3f %13.3f %13.3f\n", name, e.centre_mm,
+                          e.rotation_deg, e.focal_percent, e.principal_px, e.distortion_px, e.projection_px);
   };
-  for (const CameraError& e : t.cameras) line(e);
-  line(t.worst);
+  for (const CameraError& e : t.cameras) line(e, e.id);
+  line(t.rms, "rms");
+  line(t.worst, "worst");
+  if (nominal != nullptr) {
+    out += "The rig's nominal models against the same truth (what calibration is to beat):\n";
+    line(nominal->rms, "rms");
+    line(nominal->worst, "worst");
+  }
   return out;
+}
+
+std::string CalibrationEvaluationJson(const CalibrationEvaluation& e) {
+  nlohmann::ordered_json j;
+  j["calibrated"] = nlohmann::ordered_json::parse(TruthComparisonJson(e.calibrated));
+  j["nominal"] = nlohmann::ordered_json::parse(TruthComparisonJson(e.nominal));
+  return j.dump(2);
 }
 
 std::string CalibrationReportJson(const CalibrationReport& r) {
@@ -474,7 +526,10 @@ std::string CalibrationReportJson(const CalibrationReport& r) {
   }
   j["missing"] = nlohmann::ordered_json::array();
   for (const auto& [id, why] : r.missing) j["missing"].push_back({{"id", id}, {"why", why}});
-  if (r.has_truth) j["truth"] = nlohmann::ordered_json::parse(TruthComparisonJson(r.truth));
+  if (r.has_truth) {
+    j["truth"] = nlohmann::ordered_json::parse(TruthComparisonJson(r.truth));
+    j["nominal_truth"] = nlohmann::ordered_json::parse(TruthComparisonJson(r.nominal_truth));
+  }
   return j.dump(2);
 }
 
@@ -489,7 +544,7 @@ std::string FormatCalibrationReport(const CalibrationReport& r) {
                           c.corners_dropped, c.rms_px, c.rms_sensor_px, 100 * c.coverage);
   }
   for (const auto& [id, why] : r.missing) absl::StrAppendFormat(&out, "%-8s NOT CALIBRATED: %s\n", id, why);
-  if (r.has_truth) out += FormatTruthComparison(r.truth);
+  if (r.has_truth) out += FormatTruthComparison(r.truth, &r.nominal_truth);
   absl::StrAppend(&out, "Written: ", r.output_dir, "/cameras.json and report.json\n");
   return out;
 }
@@ -536,22 +591,53 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
     e.focal_percent = 100 * ((m.fx() + m.fy()) / (t.fx() + t.fy()) - 1);
     e.principal_px = std::hypot(m.cx() - t.cx(), m.cy() - t.cy());
     e.distortion_px = DistortionDifference(m, t);
+    e.projection_px = ProjectionDifference(m, t);
     out.cameras.push_back(e);
+    for (auto [sum, value] : {std::pair{&out.rms.centre_mm, e.centre_mm}, {&out.rms.rotation_deg, e.rotation_deg},
+                              {&out.rms.focal_percent, e.focal_percent}, {&out.rms.principal_px, e.principal_px},
+                              {&out.rms.distortion_px, e.distortion_px}, {&out.rms.projection_px, e.projection_px}}) {
+      *sum += value * value;
+    }
     out.worst.centre_mm = std::max(out.worst.centre_mm, e.centre_mm);
     out.worst.rotation_deg = std::max(out.worst.rotation_deg, e.rotation_deg);
     if (std::abs(e.focal_percent) > std::abs(out.worst.focal_percent)) out.worst.focal_percent = e.focal_percent;
     out.worst.principal_px = std::max(out.worst.principal_px, e.principal_px);
     out.worst.distortion_px = std::max(out.worst.distortion_px, e.distortion_px);
+    out.worst.projection_px = std::max(out.worst.projection_px, e.projection_px);
+  }
+  out.rms.id = "rms";
+  for (double* v : {&out.rms.centre_mm, &out.rms.rotation_deg, &out.rms.focal_percent, &out.rms.principal_px,
+                    &out.rms.distortion_px, &out.rms.projection_px}) {
+    *v = std::sqrt(*v / static_cast<double>(out.cameras.size()));
   }
   return out;
 }
 
-absl::StatusOr<TruthComparison> EvaluateCalibration(const std::string& take_dir, const std::string& calibration) {
+absl::StatusOr<CameraCalibration> NominalCalibration(const LoadedRig& rig) {
+  CameraCalibration out;
+  out.source = "the rig's nominal models";
+  for (const v1::CameraConfig& c : rig.rig.cameras()) {
+    auto m = CameraModel::FromConfig(c, 1.0);
+    if (!m.ok()) return m.status();
+    out.cameras.push_back({c.id(), *std::move(m)});
+  }
+  return out;
+}
+
+absl::StatusOr<CalibrationEvaluation> EvaluateCalibration(const std::string& take_dir,
+                                                          const std::string& calibration) {
   auto calibrated = LoadJobCalibration(take_dir, calibration.empty() ? "derived/calibration" : calibration);
   if (!calibrated.ok()) return calibrated.status();
   auto truth = ReadCameraCalibration(take_dir + "/ground_truth/cameras.json");
   if (!truth.ok()) return truth.status();
-  return CompareCalibrations(**calibrated, *truth);
+  auto rig = LoadTakeRig(take_dir);
+  if (!rig.ok()) return rig.status();
+  auto nominal = NominalCalibration(*rig);
+  if (!nominal.ok()) return nominal.status();
+  CalibrationEvaluation out;
+  STAGE_ASSIGN_OR_RETURN(out.calibrated, CompareCalibrations(**calibrated, *truth));
+  STAGE_ASSIGN_OR_RETURN(out.nominal, CompareCalibrations(*nominal, *truth));
+  return out;
 }
 
 }  // namespace stage::processing

@@ -54,7 +54,8 @@ Synthetic Make(double scale, int frames, double noise_px, int far, int blind) {
   }
   // Board poses: turned towards a random direction round the stage, tilted, shifted through +-100 mm.
   std::uniform_real_distribution<double> uniform(-1, 1);
-  const Eigen::Vector3d centre(spec.squares_x * 15, spec.squares_y * 15, 0);  // the board's corners span 0..210 x 0..150 mm
+  // The board's corners span 0..330 x 0..270 mm.
+  const Eigen::Vector3d centre(spec.squares_x * 15, spec.squares_y * 15, 0);
   for (int f = 0; f < frames; ++f) {
     const double yaw = 110 * uniform(rng) * M_PI / 180, pitch = 35 * uniform(rng) * M_PI / 180,
                  roll = 45 * uniform(rng) * M_PI / 180;

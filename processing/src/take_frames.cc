@@ -56,6 +56,8 @@ inline int Mirror(int i, int n) { return i < 0 ? -i : i >= n ? 2 * n - 2 - i : i
 
 }  // namespace
 
+namespace {
+
 // What the file says each pattern index is must be the light model's pattern of that index.
 absl::Status CheckPatterns(const std::string& path, const storage::FrameFileInfo& info, const LightModel& light) {
   const nlohmann::json names = nlohmann::json::parse(info.patterns_json, nullptr, /*allow_exceptions=*/false);
@@ -76,6 +78,8 @@ absl::Status CheckPatterns(const std::string& path, const storage::FrameFileInfo
   }
   return absl::OkStatus();
 }
+
+}  // namespace
 
 
 void DemosaicBilinear(const float* mosaic, int width, int height, const Mosaic& layout, Image* rgb) {
@@ -241,6 +245,9 @@ absl::Status ForEachFullLitFrame(const std::string& path, int64_t first, int64_t
     if (r.status == storage::FrameStatus::kOk) index_of_slot[r.slot] = static_cast<int64_t>(i);
   }
   const int w = static_cast<int>(info.width), h = static_cast<int>(info.height);
+  if (w < 2 || h < 2) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": frames of ", w, "x", h, " are too small (2x2 at least)"));
+  }
   const size_t n = static_cast<size_t>(w) * h;
   std::vector<float> mosaic(n);
   Image rgb, grey(w, h, 1);
@@ -261,9 +268,13 @@ absl::Status ForEachFullLitFrame(const std::string& path, int64_t first, int64_t
       const float v = format->bits == 8 ? bytes[i] : static_cast<float>(bytes[2 * i] | (bytes[2 * i + 1] << 8));
       mosaic[i] = v - static_cast<float>(black_level_dn);
     }
-    DemosaicBilinear(mosaic.data(), w, h, format->mosaic, &rgb);
-    for (size_t i = 0; i < n; ++i) {
-      grey.pixels[i] = (rgb.pixels[3 * i] + rgb.pixels[3 * i + 1] + rgb.pixels[3 * i + 2]) / 3.0f;
+    if (format->mosaic.mono) {
+      grey.pixels = mosaic;
+    } else {
+      DemosaicBilinear(mosaic.data(), w, h, format->mosaic, &rgb);
+      for (size_t i = 0; i < n; ++i) {
+        grey.pixels[i] = (rgb.pixels[3 * i] + rgb.pixels[3 * i + 1] + rgb.pixels[3 * i + 2]) / 3.0f;
+      }
     }
     STAGE_RETURN_IF_ERROR(visit(frame, grey));
   }

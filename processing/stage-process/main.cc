@@ -168,8 +168,8 @@ int main(int argc, char** argv) {
   if (*eval_calibration) {
     auto result = stage::processing::EvaluateCalibration(eval_cal_take, eval_cal_calibration);
     if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
-    std::cout << (eval_cal_json ? stage::processing::TruthComparisonJson(*result) + "\n"
-                                : stage::processing::FormatTruthComparison(*result));
+    std::cout << (eval_cal_json ? stage::processing::CalibrationEvaluationJson(*result) + "\n"
+                                : stage::processing::FormatTruthComparison(result->calibrated, &result->nominal));
     return 0;
   }
   if (*eval_photometric) {

@@ -155,17 +155,18 @@ std::shared_ptr<const Subject> SimScene::SubjectAt(int64_t frame) const {
   return posed;
 }
 
-absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation, uint64_t seed,
-                           int index) {
+absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation,
+                                           uint64_t seed, int index) {
   // One stream per camera, apart from every other use of the seed.
   std::seed_seq seq{static_cast<uint32_t>(seed), static_cast<uint32_t>(seed >> 32), static_cast<uint32_t>(index),
                     0xca11b7u};
   std::mt19937_64 rng(seq);
-  std::normal_distribution<double> normal(0.0, deviation.scale());
-  auto draw = [&](double sigma) { return sigma * normal(rng); };
+  std::normal_distribution<double> normal(0.0, 1.0);
+  // One draw a statement, in a fixed order (the order in which arguments are evaluated is the compiler's).
+  auto draw = [&](double sigma) { return deviation.scale() * sigma * normal(rng); };
   CameraParameters p = nominal.parameters();
-  const Eigen::Vector3d turn(draw(deviation.rotation_deg()), draw(deviation.rotation_deg()),
-                             draw(deviation.rotation_deg()));
+  Eigen::Vector3d turn;
+  for (int k = 2; k >= 0; --k) turn[k] = draw(deviation.rotation_deg());  // z, y, x
   const double angle = turn.norm() * M_PI / 180;
   if (angle > 0) p.rotation = Eigen::AngleAxisd(angle, turn.normalized()).toRotationMatrix() * p.rotation;
   for (int k = 0; k < 3; ++k) p.position[k] += draw(deviation.position_mm());

@@ -1002,7 +1002,9 @@ int main(int argc, char** argv) {
   process->add_option("--stage", pf.stage, "The stage: photometric or calibration")->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
-  process->add_option("--cameras", pf.cameras, "Camera ids, comma-separated (default: every high-speed camera)");
+  process->add_option("--cameras", pf.cameras,
+                      "Camera ids, comma-separated (default: the stage's; photometric: every high-speed camera, "
+                      "calibration: every camera)");
   process->add_option("--geometry", pf.geometry,
                       "Surface geometry, a directory of frame-NNNNNN/mesh.obj relative to the take (e.g. "
                       "ground_truth on the simulated stage); default: none");

@@ -53,14 +53,17 @@ struct CameraError {
   double focal_percent = 0;   // (fx + fy) / 2 against the truth's, relative, %
   double principal_px = 0;    // sensor pixels
   double distortion_px = 0;   // RMS over the image of the lens terms' difference, sensor pixels
+  // RMS distance between where the camera and its truth see the points of a 300 mm cube round the stage origin (the
+  // head's volume), sensor pixels: what processing feels of the camera's error.
+  double projection_px = 0;
 };
 
 struct TruthComparison {
   std::vector<CameraError> cameras;
   // The rigid motion from the calibration's frame to the truth's: its translation (mm) and angle (degrees).
   double frame_offset_mm = 0, frame_rotation_deg = 0;
-  // Worst over the cameras.
-  CameraError worst;
+  // Worst over the cameras, and the root mean square.
+  CameraError worst, rms;
 };
 
 struct CameraCalibrationReport {
@@ -81,6 +84,8 @@ struct CalibrationReport {
   std::vector<std::pair<std::string, std::string>> missing;
   bool has_truth = false;
   TruthComparison truth;
+  // The rig's nominal models against the truth: what calibration is to beat.
+  TruthComparison nominal_truth;
   std::string solver;  // Ceres's brief report
 };
 
@@ -95,13 +100,21 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
 absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& calibrated,
                                                     const CameraCalibration& truth);
 
+// The take rig's nominal models as a calibration (whole sensors).
+absl::StatusOr<CameraCalibration> NominalCalibration(const LoadedRig& rig);
+
 // `stage-process evaluate calibration`: TAKE/derived/calibration/cameras.json (or `calibration`) against
-// TAKE/ground_truth/cameras.json.
-absl::StatusOr<TruthComparison> EvaluateCalibration(const std::string& take_dir, const std::string& calibration = "");
+// TAKE/ground_truth/cameras.json, beside the rig's nominal models against it.
+struct CalibrationEvaluation {
+  TruthComparison calibrated, nominal;
+};
+absl::StatusOr<CalibrationEvaluation> EvaluateCalibration(const std::string& take_dir,
+                                                          const std::string& calibration = "");
 
 std::string CalibrationReportJson(const CalibrationReport& report);
 std::string FormatCalibrationReport(const CalibrationReport& report);
 std::string TruthComparisonJson(const TruthComparison& comparison);
-std::string FormatTruthComparison(const TruthComparison& comparison);
+std::string FormatTruthComparison(const TruthComparison& comparison, const TruthComparison* nominal = nullptr);
+std::string CalibrationEvaluationJson(const CalibrationEvaluation& evaluation);
 
 }  // namespace stage::processing
