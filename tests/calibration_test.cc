@@ -54,11 +54,19 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   job.output_dir = dir + "/derived/library";
   auto library = processing::RunCalibration(job);
   ASSERT_TRUE(library.ok()) << library.status();
-  for (const std::string file : {"cameras.json", "report.json"}) {
-    const std::string worker_bytes = Slurp(out + "/" + file);
-    EXPECT_EQ(worker_bytes, Slurp(dir + "/derived/batch/" + file)) << file;
-    EXPECT_EQ(worker_bytes, Slurp(dir + "/derived/library/" + file)) << file;
-  }
+  const std::string worker_bytes = Slurp(out + "/cameras.json");
+  EXPECT_TRUE(worker_bytes == Slurp(dir + "/derived/batch/cameras.json")) << "the worker's and the batch's differ";
+  EXPECT_TRUE(worker_bytes == Slurp(dir + "/derived/library/cameras.json")) << "the worker's and the library's differ";
+  // The reports differ only in where they say the calibration went.
+  auto report_of = [&](const std::string& where) {
+    nlohmann::json r = nlohmann::json::parse(Slurp(where + "/report.json"));
+    EXPECT_EQ(r["output"], where + "/cameras.json");
+    r.erase("output");
+    return r.dump();
+  };
+  const std::string worker_report = report_of(out);
+  EXPECT_TRUE(worker_report == report_of(dir + "/derived/batch")) << "the worker's and the batch's reports differ";
+  EXPECT_TRUE(worker_report == report_of(dir + "/derived/library")) << "the worker's and the library's reports differ";
 
   // Against the truth. Bounds for render scale 0.125 with one ray a pixel, where the corners are found to ~0.4 px
   // (3 sensor pixels: a pixel's one ray puts every edge on a pixel boundary). Measured: reprojection RMS 0.43 px; where
@@ -93,10 +101,9 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   EXPECT_LT(wrong->rms_px, 0.6);
   for (size_t i = 0; i < t.cameras.size(); ++i) {
     if (t.cameras[i].id != "mv-05") continue;
-    // Where it was found with the right nominal pose, within a pixel; its nominal model is now ~10 mm off (about 80
-    // sensor pixels).
+    // Where it was found with the right nominal pose, within a pixel, though its nominal centre is now ~10 mm off.
     EXPECT_NEAR(wrong->truth.cameras[i].projection_px, t.cameras[i].projection_px, 1.0);
-    EXPECT_GT(wrong->nominal_truth.cameras[i].projection_px, 50);
+    EXPECT_GT(wrong->nominal_truth.cameras[i].centre_mm, 7);
   }
 
   // Cameras that never see the board are named, and the others' calibration is still written.

@@ -1,5 +1,6 @@
 // stage-process: runs processing stages on a take from the command line (the batch form; the same library call the
 // ProcessingWorker service makes), and evaluates their results against the simulator's ground truth.
+#include <functional>
 #include <iostream>
 #include <nlohmann/json.hpp>
 
@@ -19,6 +20,17 @@ std::vector<std::string> SplitCameras(const std::string& list) {
   std::vector<std::string> out;
   for (absl::string_view id : absl::StrSplit(list, ',', absl::SkipEmpty())) out.emplace_back(id);
   return out;
+}
+
+// A job's progress on `bar`: its first message (nothing done yet) as a line, then the bar.
+std::function<void(const stage::processing::JobProgress&)> ShowOn(stage::ProgressLine& bar) {
+  return [&bar](const stage::processing::JobProgress& p) {
+    if (p.done == 0) {
+      bar.Message(p.message);
+    } else {
+      bar.Update(p.done, p.total, p.message);
+    }
+  };
 }
 
 }  // namespace
@@ -129,13 +141,7 @@ int main(int argc, char** argv) {
     }
     job.cameras = SplitCameras(cameras);
     stage::ProgressLine bar("camera frames");
-    auto result = stage::processing::RunPhotometric(job, [&](const stage::processing::JobProgress& p) {
-      if (p.done == 0) {
-        bar.Message(p.message);
-      } else {
-        bar.Update(p.done, p.total, p.message);
-      }
-    });
+    auto result = stage::processing::RunPhotometric(job, ShowOn(bar));
     bar.Finish();
     if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
     if (json) {
@@ -152,13 +158,7 @@ int main(int argc, char** argv) {
     }
     cal.options.cameras = SplitCameras(cal_cameras);
     stage::ProgressLine bar("cameras");
-    auto report = stage::processing::RunCalibration(cal, [&](const stage::processing::JobProgress& p) {
-      if (p.done == 0) {
-        bar.Message(p.message);
-      } else {
-        bar.Update(p.done, p.total, p.message);
-      }
-    });
+    auto report = stage::processing::RunCalibration(cal, ShowOn(bar));
     bar.Finish();
     if (!report.ok()) return stage::ReportFatal(kProgram, report.status());
     std::cout << (cal_json ? stage::processing::CalibrationReportJson(*report) + "\n"

@@ -490,22 +490,30 @@ int Verdict(const stage::v1::TakeSummary& summary, bool json) {
 }
 
 // Capture (or Arm, `arm_only`): shows the session's events on stderr and the take's summary on stdout.
-int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json,
-            bool arm_only = false, bool skip_ground_truth = false) {
+// Capture (or Arm, `arm_only`) with the session's events shown on stderr: the take's summary.
+absl::StatusOr<stage::v1::TakeSummary> RecordTake(const Connection& c, const stage::v1::CaptureRequest& request,
+                                                  bool arm_only) {
   std::string address;
   auto stub = Connect(c, &address);
-  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
+  if (!stub.ok()) return stub.status();
   grpc::ClientContext context;  // no deadline: a take lasts as long as it lasts
+  auto reader = arm_only ? (*stub)->Arm(&context, request) : (*stub)->Capture(&context, request);
+  TakeStream stream = ShowTakeEvents(*reader);
+  if (!stream.status.ok()) return RpcError(stream.status, address);
+  if (!stream.summary) return absl::DataLossError("the take ended without a summary");
+  return *stream.summary;
+}
+
+int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json,
+            bool arm_only = false, bool skip_ground_truth = false) {
   stage::v1::CaptureRequest request;
   request.set_frames(frames);
   request.set_seconds(seconds);
   request.set_name(name);
   request.set_skip_ground_truth(skip_ground_truth);
-  auto reader = arm_only ? (*stub)->Arm(&context, request) : (*stub)->Capture(&context, request);
-  TakeStream stream = ShowTakeEvents(*reader);
-  if (!stream.status.ok()) return stage::ReportFatal(kProgram, RpcError(stream.status, address));
-  if (!stream.summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
-  const stage::v1::TakeSummary& summary = *stream.summary;
+  auto recorded = RecordTake(c, request, arm_only);
+  if (!recorded.ok()) return stage::ReportFatal(kProgram, recorded.status());
+  const stage::v1::TakeSummary& summary = *recorded;
   if (arm_only) {
     if (json) {
       std::cout << ToJson(summary) << "\n";
@@ -718,18 +726,12 @@ struct CalibrateFlags {
 // Records a calibration take (the ChArUco board moved through the stage's volume) and runs the calibration stage on
 // it on one of the stage's workers: the take's summary, then the calibration's report (docs/geometry.md).
 int Calibrate(const Connection& c, const CalibrateFlags& f) {
-  std::string address;
-  auto stub = Connect(c, &address);
-  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
   stage::v1::CaptureRequest request;
   request.set_seconds(f.seconds);
   request.set_name(f.name);
-  grpc::ClientContext context;  // no deadline: a take lasts as long as it lasts
-  auto reader = (*stub)->Capture(&context, request);
-  TakeStream stream = ShowTakeEvents(*reader);
-  if (!stream.status.ok()) return stage::ReportFatal(kProgram, RpcError(stream.status, address));
-  if (!stream.summary) return stage::ReportFatal(kProgram, absl::DataLossError("the take ended without a summary"));
-  const stage::v1::TakeSummary& summary = *stream.summary;
+  auto recorded = RecordTake(c, request, /*arm_only=*/false);
+  if (!recorded.ok()) return stage::ReportFatal(kProgram, recorded.status());
+  const stage::v1::TakeSummary& summary = *recorded;
   if (!f.json) PrintSummary(summary);
   if (summary.outcome() == stage::v1::TAKE_OUTCOME_FAILED) {
     return stage::ReportFatal(kProgram, absl::AbortedError(absl::StrCat("the calibration take ", summary.take_id(),
