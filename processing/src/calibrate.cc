@@ -21,6 +21,7 @@
 #include "stage/processing/calibration.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/take_frames.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -32,6 +33,7 @@ struct CameraInput {
   std::string id, path;
   const v1::CameraConfig* config = nullptr;
   CameraObservations observed;  // model: the rig's nominal at the images' size
+  int64_t last_slot = -1;       // the highest slot its frame file stores
   int frames_read = 0;
 };
 
@@ -95,11 +97,9 @@ Eigen::Isometry3d WorldToCamera(const CameraModel& m) {
   return t;
 }
 
-// `m` with another pose. The rotation of an isometry made of rotations is one, up to rounding: FromParameters's
-// check (1e-6) cannot fail here, and the model is built without it.
+// `m` with another pose. The rotation is orthonormalized first, so FromParameters's check cannot fail here.
 CameraModel Placed(const CameraModel& m, const Eigen::Isometry3d& world_to_camera) {
   CameraParameters p = m.parameters();
-  // Orthonormalized, so that rounding never accumulates over moves.
   const Eigen::JacobiSVD<Eigen::Matrix3d> svd(world_to_camera.linear(), Eigen::ComputeFullU | Eigen::ComputeFullV);
   p.rotation = svd.matrixU() * svd.matrixV().transpose();
   p.position = -p.rotation.transpose() * world_to_camera.translation();
@@ -114,8 +114,18 @@ double MedianError(const std::vector<Eigen::Vector3d>& board_corners, const std:
     Eigen::Vector2d px;
     e.push_back(m.Project(board * board_corners[static_cast<size_t>(c.id)], &px) ? (px - c.pixel).norm() : 1e9);
   }
-  std::nth_element(e.begin(), e.begin() + static_cast<std::ptrdiff_t>(e.size() / 2), e.end());
-  return e[e.size() / 2];
+  return Median(std::move(e));
+}
+
+// The corners' points (through `board`: board -> world) and pixels, appended, as solvePnP takes them.
+void AppendCorrespondences(const std::vector<Eigen::Vector3d>& board_corners,
+                           const std::vector<CornerObservation>& corners, const Eigen::Isometry3d& board,
+                           std::vector<cv::Point3d>* object, std::vector<cv::Point2d>* pixels) {
+  for (const CornerObservation& c : corners) {
+    const Eigen::Vector3d p = board * board_corners[static_cast<size_t>(c.id)];
+    object->emplace_back(p.x(), p.y(), p.z());
+    pixels->emplace_back(c.pixel.x(), c.pixel.y());
+  }
 }
 
 // Every frame's board pose: of the poses each camera's view gives (through its model), the one the other views of
@@ -133,11 +143,7 @@ BoardPoses InitialBoards(const std::vector<Eigen::Vector3d>& board_corners,
     for (const auto& [model, corners] : views) {
       std::vector<cv::Point3d> object;
       std::vector<cv::Point2d> pixels;
-      for (const CornerObservation& c : *corners) {
-        const Eigen::Vector3d& p = board_corners[static_cast<size_t>(c.id)];
-        object.emplace_back(p.x(), p.y(), p.z());
-        pixels.emplace_back(c.pixel.x(), c.pixel.y());
-      }
+      AppendCorrespondences(board_corners, *corners, Eigen::Isometry3d::Identity(), &object, &pixels);
       Eigen::Isometry3d board_to_camera = Eigen::Isometry3d::Identity();
       if (!Pnp(object, pixels, *model, &board_to_camera, false)) continue;
       const Eigen::Isometry3d board = WorldToCamera(*model).inverse() * board_to_camera;
@@ -145,9 +151,9 @@ BoardPoses InitialBoards(const std::vector<Eigen::Vector3d>& board_corners,
       for (const auto& [other, other_corners] : views) {
         errors.push_back(MedianError(board_corners, *other_corners, *other, board));
       }
-      std::nth_element(errors.begin(), errors.begin() + static_cast<std::ptrdiff_t>(errors.size() / 2), errors.end());
-      if (errors[errors.size() / 2] < best) {
-        best = errors[errors.size() / 2];
+      const double agreement = Median(std::move(errors));
+      if (agreement < best) {
+        best = agreement;
         out[frame] = board;
       }
     }
@@ -164,12 +170,7 @@ void PlaceCameras(const std::vector<Eigen::Vector3d>& board_corners, const Board
     std::vector<cv::Point2d> pixels;
     for (const auto& [frame, corners] : c.frames) {
       const auto board = boards.find(frame);
-      if (board == boards.end()) continue;
-      for (const CornerObservation& k : corners) {
-        const Eigen::Vector3d p = board->second * board_corners[static_cast<size_t>(k.id)];
-        object.emplace_back(p.x(), p.y(), p.z());
-        pixels.emplace_back(k.pixel.x(), k.pixel.y());
-      }
+      if (board != boards.end()) AppendCorrespondences(board_corners, corners, board->second, &object, &pixels);
     }
     if (object.size() < 6) continue;
     Eigen::Isometry3d pose = WorldToCamera(c.model);
@@ -266,6 +267,7 @@ absl::StatusOr<std::vector<CameraInput>> JobCameras(const CalibrationJob& job, c
     if (!model.ok()) return model.status();
     c.observed.id = id;
     c.observed.model = *model;
+    c.last_slot = shape->last_slot;
     out.push_back(std::move(c));
   }
   return out;
@@ -273,24 +275,24 @@ absl::StatusOr<std::vector<CameraInput>> JobCameras(const CalibrationJob& job, c
 
 // Reads every camera's full-lit frames and finds the board in them.
 absl::Status Detect(const CalibrationJob& job, const LightModel& light, const CharucoBoardSpec& board, int64_t first,
-                    int64_t last, std::vector<CameraInput>* cameras, const std::function<void(const JobProgress&)>& progress,
-                    const std::function<bool()>& cancelled) {
-  JobProgress p{0, static_cast<int64_t>(cameras->size()) + 1,
-                absl::StrCat("calibration: finding the board in ", cameras->size(), " camera(s), frames ", first, "-",
-                             last - 1)};
+                    int64_t last, std::vector<CameraInput>* cameras,
+                    const std::function<void(const JobProgress&)>& progress, const std::function<bool()>& cancelled) {
+  JobProgress p{
+      0, static_cast<int64_t>(cameras->size()) + 1,
+      absl::StrCat("calibration: finding the board in ", cameras->size(), " camera(s), frames ", first, "-", last - 1)};
   if (progress) progress(p);
   for (CameraInput& c : *cameras) {
     if (cancelled && cancelled()) {
       return absl::CancelledError(absl::StrCat("calibration of ", job.take_dir, " cancelled"));
     }
-    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
-        c.path, first, last, light, c.config->photometric().black_level_dn(),
-        [&](int64_t frame, const Image& grey) -> absl::Status {
-          ++c.frames_read;
-          auto corners = DetectCharuco(ToEightBit(grey), grey.width, grey.height, board, job.options.min_corners);
-          if (!corners.empty()) c.observed.frames[frame] = std::move(corners);
-          return absl::OkStatus();
-        }));
+    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(c.path, first, last, light, c.config->photometric().black_level_dn(),
+                                              [&](int64_t frame, const Image& grey) -> absl::Status {
+                                                ++c.frames_read;
+                                                auto corners = DetectCharuco(ToEightBit(grey), grey.width, grey.height,
+                                                                             board, job.options.min_corners);
+                                                if (!corners.empty()) c.observed.frames[frame] = std::move(corners);
+                                                return absl::OkStatus();
+                                              }));
     ++p.done;
     p.message = absl::StrFormat("%s: the board in %d of %d frame(s)", c.id, c.observed.frames.size(), c.frames_read);
     if (progress) progress(p);
@@ -311,6 +313,60 @@ double Coverage(const CameraObservations& o) {
   int n = 0;
   for (auto& row : cell) n += static_cast<int>(std::count(std::begin(row), std::end(row), true));
   return n / 100.0;
+}
+
+// The fit as a calibration file (whole sensors), and its figures into the report.
+CameraCalibration Calibrated(const std::string& take_dir, const std::vector<CameraInput>& usable,
+                             const BundleResult& fit, CalibrationReport* report) {
+  CameraCalibration calibration;
+  calibration.source = absl::StrCat("calibration take ", fs::path(take_dir).filename().string());
+  for (size_t i = 0; i < usable.size(); ++i) {
+    const CameraModel sensor = fit.cameras[i].Resized(static_cast<int>(usable[i].config->width()),
+                                                      static_cast<int>(usable[i].config->height()));
+    calibration.cameras.push_back({usable[i].id, sensor});
+    const BundleCameraResult& r = fit.per_camera[i];
+    const double scale = static_cast<double>(usable[i].observed.model.width()) / usable[i].config->width();
+    report->image_scale = scale;  // the same for every camera of a take, up to each size's rounding
+    report->cameras.push_back({usable[i].id, r.frames, r.corners_used, r.corners_dropped, r.rms_px, r.rms_px / scale,
+                               Coverage(usable[i].observed)});
+  }
+  report->rms_px = fit.rms_px;
+  report->iterations = fit.iterations;
+  report->solver = fit.report;
+  return calibration;
+}
+
+std::string TruthPath(const std::string& take_dir) { return take_dir + "/ground_truth/cameras.json"; }
+
+// `calibration`, and the take rig's nominal models, against the take's truth.
+absl::StatusOr<CalibrationEvaluation> EvaluateAgainstTruth(const std::string& take_dir, const LoadedRig& rig,
+                                                           const CameraCalibration& calibration) {
+  auto truth = ReadCameraCalibration(TruthPath(take_dir));
+  if (!truth.ok()) return truth.status();
+  auto nominal = NominalCalibration(rig);
+  if (!nominal.ok()) return nominal.status();
+  CalibrationEvaluation out;
+  STAGE_ASSIGN_OR_RETURN(out.calibrated, CompareCalibrations(calibration, *truth));
+  STAGE_ASSIGN_OR_RETURN(out.nominal, CompareCalibrations(*nominal, *truth));
+  return out;
+}
+
+// The cameras that saw the board in `min_frames` frames or more; the others are named in the report, not dropped
+// silently.
+std::vector<CameraInput> Usable(std::vector<CameraInput> cameras, int min_frames, CalibrationReport* report) {
+  std::vector<CameraInput> usable;
+  for (CameraInput& c : cameras) {
+    report->frames_read = std::max(report->frames_read, c.frames_read);
+    if (static_cast<int>(c.observed.frames.size()) >= min_frames) {
+      usable.push_back(std::move(c));
+    } else {
+      report->missing.emplace_back(
+          c.id, c.observed.frames.empty() ? absl::StrCat("never saw the board in ", c.frames_read, " full-lit frame(s)")
+                                          : absl::StrCat("saw the board in ", c.observed.frames.size(), " of ",
+                                                         c.frames_read, " frame(s); ", min_frames, " needed"));
+    }
+  }
+  return usable;
 }
 
 absl::Status WriteReport(const CalibrationReport& report) {
@@ -367,11 +423,7 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
   // The frames: every whole cycle the cameras recorded.
   const int64_t cycle = static_cast<int64_t>(light->patterns.size());
   int64_t whole = 0;
-  for (const CameraInput& c : *cameras) {
-    auto shape = ReadFrameFileShape(c.path);
-    if (!shape.ok()) return shape.status();
-    whole = std::max(whole, (shape->last_slot + 1 + cycle - 1) / cycle);
-  }
+  for (const CameraInput& c : *cameras) whole = std::max(whole, (c.last_slot + 1 + cycle - 1) / cycle);
   const int64_t first = job.options.first_frame;
   const int64_t last = job.options.last_frame < 0 ? whole : job.options.last_frame;
   if (last <= first) {
@@ -379,26 +431,13 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
   }
   STAGE_RETURN_IF_ERROR(Detect(job, *light, board, first, last, &*cameras, progress, cancelled));
 
-  // Cameras with too little of the board are named, not dropped silently.
-  std::vector<CameraInput> usable;
-  for (CameraInput& c : *cameras) {
-    report.frames_read = std::max(report.frames_read, c.frames_read);
-    if (static_cast<int>(c.observed.frames.size()) >= job.options.min_frames) {
-      usable.push_back(std::move(c));
-    } else {
-      report.missing.emplace_back(
-          c.id, c.observed.frames.empty()
-                    ? absl::StrCat("never saw the board in ", c.frames_read, " full-lit frame(s)")
-                    : absl::StrCat("saw the board in ", c.observed.frames.size(), " of ", c.frames_read,
-                                   " frame(s); ", job.options.min_frames, " needed"));
-    }
-  }
-  if (usable.empty()) {
-    return absl::FailedPreconditionError(absl::StrCat(job.take_dir, ": no camera saw the board in ",
-                                                      job.options.min_frames, " frame(s) or more"));
-  }
-  // Progress counts the cameras read, then the fit as one more unit.
+  // Progress counts the cameras read (as Detect did), then the fit as one more unit.
   const auto units = static_cast<int64_t>(cameras->size()) + 1;
+  std::vector<CameraInput> usable = Usable(std::move(*cameras), job.options.min_frames, &report);
+  if (usable.empty()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(job.take_dir, ": no camera saw the board in ", job.options.min_frames, " frame(s) or more"));
+  }
   if (progress) {
     progress({units - 1, units, absl::StrCat("calibration: bundle adjustment of ", usable.size(), " camera(s)")});
   }
@@ -410,30 +449,13 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
   auto fit = SolveCalibration(corners, observed, bundle);
   if (!fit.ok()) return absl::Status(fit.status().code(), absl::StrCat(job.take_dir, ": ", fit.status().message()));
   report.board_frames = static_cast<int>(fit->boards.size());
-  CameraCalibration calibration;
-  calibration.source = absl::StrCat("calibration take ", fs::path(job.take_dir).filename().string());
-  for (size_t i = 0; i < usable.size(); ++i) {
-    const CameraModel sensor = fit->cameras[i].Resized(static_cast<int>(usable[i].config->width()),
-                                            static_cast<int>(usable[i].config->height()));
-    calibration.cameras.push_back({usable[i].id, sensor});
-    const BundleCameraResult& r = fit->per_camera[i];
-    const double scale = static_cast<double>(usable[i].observed.model.width()) / usable[i].config->width();
-    report.image_scale = scale;  // the same for every camera of a take, up to each size's rounding
-    report.cameras.push_back({usable[i].id, r.frames, r.corners_used, r.corners_dropped, r.rms_px, r.rms_px / scale,
-                              Coverage(usable[i].observed)});
-  }
-  report.rms_px = fit->rms_px;
-  report.iterations = fit->iterations;
-  report.solver = fit->report;
+  const CameraCalibration calibration = Calibrated(job.take_dir, usable, *fit, &report);
   // On a simulated take, against the truth (and the nominal rig against it); an unreadable truth is an error.
-  const std::string truth_path = job.take_dir + "/ground_truth/cameras.json";
-  if (fs::exists(truth_path)) {
-    auto truth = ReadCameraCalibration(truth_path);
-    if (!truth.ok()) return truth.status();
-    auto nominal = NominalCalibration(*rig);
-    if (!nominal.ok()) return nominal.status();
-    STAGE_ASSIGN_OR_RETURN(report.truth, CompareCalibrations(calibration, *truth));
-    STAGE_ASSIGN_OR_RETURN(report.nominal_truth, CompareCalibrations(*nominal, *truth));
+  if (fs::exists(TruthPath(job.take_dir))) {
+    STAGE_ASSIGN_OR_RETURN(const CalibrationEvaluation evaluation,
+                           EvaluateAgainstTruth(job.take_dir, *rig, calibration));
+    report.truth = evaluation.calibrated;
+    report.nominal_truth = evaluation.nominal;
     report.has_truth = true;
   }
   std::error_code ec;
@@ -442,8 +464,9 @@ absl::StatusOr<CalibrationReport> RunCalibration(const CalibrationJob& job,
   STAGE_RETURN_IF_ERROR(WriteCameraCalibration(report.output_dir + "/cameras.json", calibration));
   STAGE_RETURN_IF_ERROR(WriteReport(report));
   if (progress) {
-    progress({units, units, absl::StrFormat("calibration: %d camera(s), reprojection RMS %.3f px", report.cameras.size(),
-                                            report.rms_px)});
+    progress(
+        {units, units,
+         absl::StrFormat("calibration: %d camera(s), reprojection RMS %.3f px", report.cameras.size(), report.rms_px)});
   }
   if (job.options.require_all && !report.missing.empty()) {
     std::vector<std::string> named;
@@ -482,8 +505,8 @@ std::string FormatTruthComparison(const TruthComparison& t, const TruthCompariso
       t.frame_offset_mm, t.frame_rotation_deg, "camera", "centre mm", "rotation deg", "focal %", "principal px",
       "distortion px", "projection px");
   auto line = [&](const CameraError& e, const std::string& name) {
-    absl::StrAppendFormat(&out, "%-8s %10.4f %12.5f %+10.4f %12.3f %13.3f %13.3f\n", name, e.centre_mm,
-                          e.rotation_deg, e.focal_percent, e.principal_px, e.distortion_px, e.projection_px);
+    absl::StrAppendFormat(&out, "%-8s %10.4f %12.5f %+10.4f %12.3f %13.3f %13.3f\n", name, e.centre_mm, e.rotation_deg,
+                          e.focal_percent, e.principal_px, e.distortion_px, e.projection_px);
   };
   for (const CameraError& e : t.cameras) line(e, e.id);
   line(t.rms, "rms");
@@ -537,8 +560,8 @@ std::string FormatCalibrationReport(const CalibrationReport& r) {
   std::string out = absl::StrFormat(
       "Calibration of %s: %d camera(s) from %d frame(s) with the board, reprojection RMS %.3f px (images at %.3g of "
       "the sensor), %d iterations\n%-8s %7s %8s %8s %9s %10s %9s\n",
-      fs::path(r.take_dir).filename().string(), r.cameras.size(), r.board_frames, r.rms_px, r.image_scale,
-      r.iterations, "camera", "frames", "corners", "dropped", "RMS px", "RMS sensor", "coverage");
+      fs::path(r.take_dir).filename().string(), r.cameras.size(), r.board_frames, r.rms_px, r.image_scale, r.iterations,
+      "camera", "frames", "corners", "dropped", "RMS px", "RMS sensor", "coverage");
   for (const CameraCalibrationReport& c : r.cameras) {
     absl::StrAppendFormat(&out, "%-8s %7d %8d %8d %9.3f %10.3f %8.0f%%\n", c.id, c.frames, c.corners_used,
                           c.corners_dropped, c.rms_px, c.rms_sensor_px, 100 * c.coverage);
@@ -593,9 +616,12 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
     e.distortion_px = DistortionDifference(m, t);
     e.projection_px = ProjectionDifference(m, t);
     out.cameras.push_back(e);
-    for (auto [sum, value] : {std::pair{&out.rms.centre_mm, e.centre_mm}, {&out.rms.rotation_deg, e.rotation_deg},
-                              {&out.rms.focal_percent, e.focal_percent}, {&out.rms.principal_px, e.principal_px},
-                              {&out.rms.distortion_px, e.distortion_px}, {&out.rms.projection_px, e.projection_px}}) {
+    for (auto [sum, value] : {std::pair{&out.rms.centre_mm, e.centre_mm},
+                              {&out.rms.rotation_deg, e.rotation_deg},
+                              {&out.rms.focal_percent, e.focal_percent},
+                              {&out.rms.principal_px, e.principal_px},
+                              {&out.rms.distortion_px, e.distortion_px},
+                              {&out.rms.projection_px, e.projection_px}}) {
       *sum += value * value;
     }
     out.worst.centre_mm = std::max(out.worst.centre_mm, e.centre_mm);
@@ -624,20 +650,12 @@ absl::StatusOr<CameraCalibration> NominalCalibration(const LoadedRig& rig) {
   return out;
 }
 
-absl::StatusOr<CalibrationEvaluation> EvaluateCalibration(const std::string& take_dir,
-                                                          const std::string& calibration) {
+absl::StatusOr<CalibrationEvaluation> EvaluateCalibration(const std::string& take_dir, const std::string& calibration) {
   auto calibrated = LoadJobCalibration(take_dir, calibration.empty() ? "derived/calibration" : calibration);
   if (!calibrated.ok()) return calibrated.status();
-  auto truth = ReadCameraCalibration(take_dir + "/ground_truth/cameras.json");
-  if (!truth.ok()) return truth.status();
   auto rig = LoadTakeRig(take_dir);
   if (!rig.ok()) return rig.status();
-  auto nominal = NominalCalibration(*rig);
-  if (!nominal.ok()) return nominal.status();
-  CalibrationEvaluation out;
-  STAGE_ASSIGN_OR_RETURN(out.calibrated, CompareCalibrations(**calibrated, *truth));
-  STAGE_ASSIGN_OR_RETURN(out.nominal, CompareCalibrations(*nominal, *truth));
-  return out;
+  return EvaluateAgainstTruth(take_dir, *rig, **calibrated);
 }
 
 }  // namespace stage::processing

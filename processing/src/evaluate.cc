@@ -15,6 +15,7 @@
 #include "absl/strings/str_format.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -55,12 +56,6 @@ double Mean(const std::vector<double>& v) {
   double s = 0;
   for (double x : v) s += x;
   return v.empty() ? 0 : s / static_cast<double>(v.size());
-}
-
-double Median(std::vector<double> v) {
-  if (v.empty()) return 0;
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-  return v[v.size() / 2];
 }
 
 bool Zero(const float* v, int channels) {

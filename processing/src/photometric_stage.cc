@@ -20,6 +20,7 @@
 #include "stage/processing/fast_photometric.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/take_frames.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -83,11 +84,6 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
     rough.push_back(m.roughness.pixels[i]);
     spec.push_back(m.specular.pixels[i]);
   }
-  auto median = [](std::vector<float> v) -> double {
-    if (v.empty()) return 0;
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-    return v[v.size() / 2];
-  };
   nlohmann::ordered_json j;
   j["frame"] = frame;
   j["camera"] = camera;
@@ -98,9 +94,9 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
   j["flags"] = {{"saturated", counts[0]}, {"low_signal", counts[1]},  {"bad_fit", counts[2]},
                 {"shadowed", counts[3]},  {"no_specular", counts[4]}, {"specular_bad_fit", counts[5]}};
   j["mean_confidence"] = solved > 0 ? confidence / static_cast<double>(solved) : 0.0;
-  j["median_albedo"] = {median(albedo[0]), median(albedo[1]), median(albedo[2])};
-  j["median_specular"] = median(spec);
-  j["median_roughness"] = median(rough);
+  j["median_albedo"] = {Median(albedo[0]), Median(albedo[1]), Median(albedo[2])};
+  j["median_specular"] = Median(spec);
+  j["median_roughness"] = Median(rough);
   j["geometry"] = geometry.empty() ? "none" : geometry;
   j["calibration"] = calibration;
   return j.dump(2);
