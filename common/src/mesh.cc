@@ -4,6 +4,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <sstream>
@@ -14,6 +15,12 @@
 #include "absl/strings/str_split.h"
 
 namespace stage {
+namespace {
+
+// The names WriteObj gives parts 0 and 1, as materials.
+constexpr const char* kPartNames[2] = {"skin", "eye"};
+
+}  // namespace
 
 std::vector<Eigen::Vector3f> TriangleMesh::VertexNormals() const {
   // Vertices at the same place (a texture seam, a pole) share one normal.
@@ -222,20 +229,48 @@ absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
   }
   if (mesh.triangles.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no faces"));
   if (mesh.material_names.empty()) mesh.materials.clear();
+  // WriteObj's parts (usemtl skin / eye, no material library) come back as parts.
+  const bool parts = mesh.material_libraries.empty() && !mesh.material_names.empty() &&
+                     std::all_of(mesh.material_names.begin(), mesh.material_names.end(),
+                                 [](const std::string& n) { return n == kPartNames[0] || n == kPartNames[1]; });
+  if (parts) {
+    for (int32_t m : mesh.materials) mesh.parts.push_back(m >= 0 && mesh.material_names[m] == kPartNames[1] ? 1 : 0);
+  }
   return mesh;
 }
 
 absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment) {
-  std::ofstream out(path);
+  // Written beside and renamed over `path`: a reader never sees half a mesh.
+  const std::string temporary = path + ".partial";
+  std::ofstream out(temporary);
   if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
   if (!comment.empty()) out << "# " << comment << "\n";
   for (const auto& p : mesh.positions) out << absl::StrFormat("v %.4f %.4f %.4f\n", p.x(), p.y(), p.z());
-  for (const auto& t : mesh.uvs) out << absl::StrFormat("vt %.6f %.6f\n", t.x(), t.y());
-  for (const auto& f : mesh.triangles) {
-    out << absl::StrFormat("f %d/%d %d/%d %d/%d\n", f[0] + 1, f[0] + 1, f[1] + 1, f[1] + 1, f[2] + 1, f[2] + 1);
+  const bool uvs = !mesh.uvs.empty() && mesh.uvs.size() == mesh.positions.size();
+  if (uvs) {
+    for (const auto& t : mesh.uvs) out << absl::StrFormat("vt %.6f %.6f\n", t.x(), t.y());
+  }
+  // Parts as materials (usemtl skin / eye), where the mesh has parts and no materials of its own.
+  const bool parts = mesh.materials.empty() && mesh.parts.size() == mesh.triangles.size() &&
+                     std::any_of(mesh.parts.begin(), mesh.parts.end(), [](uint8_t p) { return p != 0; });
+  int part = -1;
+  for (size_t t = 0; t < mesh.triangles.size(); ++t) {
+    const auto& f = mesh.triangles[t];
+    if (parts && std::min<int>(mesh.parts[t], 1) != part) {
+      part = std::min<int>(mesh.parts[t], 1);
+      out << "usemtl " << kPartNames[part] << "\n";
+    }
+    if (uvs) {
+      out << absl::StrFormat("f %d/%d %d/%d %d/%d\n", f[0] + 1, f[0] + 1, f[1] + 1, f[1] + 1, f[2] + 1, f[2] + 1);
+    } else {
+      out << absl::StrFormat("f %d %d %d\n", f[0] + 1, f[1] + 1, f[2] + 1);
+    }
   }
   out.close();
   if (!out) return absl::DataLossError(absl::StrCat(path, ": write failed"));
+  std::error_code ec;
+  std::filesystem::rename(temporary, path, ec);
+  if (ec) return absl::DataLossError(absl::StrCat(path, ": cannot rename the written file over it: ", ec.message()));
   return absl::OkStatus();
 }
 

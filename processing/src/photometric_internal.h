@@ -22,6 +22,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "parallel.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/photometric.h"
 
@@ -95,22 +96,6 @@ struct Twins {
 };
 
 absl::StatusOr<Twins> PairPatterns(const LightModel& light);
-
-// Runs body(y0, y1) over bands of rows on `threads` threads (0: one per core).
-template <typename F>
-void ParallelRows(int height, int threads, F body) {
-  if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  // Small bands handed out in turn, so that a band of background does not leave a thread idle.
-  const int band = std::max(1, std::min(16, height / (4 * threads)));
-  std::atomic<int> next{0};
-  auto worker = [&] {
-    for (int y0; (y0 = next.fetch_add(band)) < height;) body(y0, std::min(height, y0 + band));
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
-}
 
 // Columns per tile of the fast solver's per-row work (SolvePhotometricFast): 512 by default. Results do not depend on
 // it; tests set it small to check that.

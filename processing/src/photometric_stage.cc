@@ -192,7 +192,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   }
   std::string geometry_root;
   if (!job.geometry.empty()) {
-    geometry_root = fs::path(job.geometry).is_absolute() ? job.geometry : job.take_dir + "/" + job.geometry;
+    // "mvs": multi-view stereo's meshes of the take (stage-process mvs).
+    const std::string dir = job.geometry == "mvs" ? "derived/mvs" : job.geometry;
+    geometry_root = fs::path(dir).is_absolute() ? dir : job.take_dir + "/" + dir;
     if (!fs::is_directory(geometry_root)) {
       return absl::NotFoundError(absl::StrCat(geometry_root, ": no such geometry directory"));
     }

@@ -8,6 +8,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/processing/calibrate.h"
+#include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
 
 namespace stage::processing {
@@ -29,10 +30,11 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
 
 grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
-  if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION) {
+  if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
+      job->stage() != v1::PROCESSING_STAGE_MVS) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": no stage ",
                                                                 v1::ProcessingStage_Name(job->stage()),
-                                                                " (stages: photometric, calibration)")));
+                                                                " (stages: photometric, calibration, mvs)")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -52,9 +54,17 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     if (!context->IsCancelled()) writer->Write(m);
   };
   auto cancelled = [&] { return context->IsCancelled(); };
-  absl::StatusOr<v1::ProcessingProgress> result = job->stage() == v1::PROCESSING_STAGE_CALIBRATION
-                                                      ? RunCalibrationJob(*job, report, cancelled)
-                                                      : RunPhotometricJob(*job, report, cancelled);
+  absl::StatusOr<v1::ProcessingProgress> result;
+  switch (job->stage()) {
+    case v1::PROCESSING_STAGE_CALIBRATION:
+      result = RunCalibrationJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_MVS:
+      result = RunMvsJob(*job, report, cancelled);
+      break;
+    default:
+      result = RunPhotometricJob(*job, report, cancelled);
+  }
   {
     std::lock_guard<std::mutex> lock(mutex_);
     running_.erase(std::find(running_.begin(), running_.end(), job));
@@ -109,6 +119,27 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
   done.set_frames_total(static_cast<int64_t>(report->cameras.size()));
   done.set_output_dir(report->output_dir);
   done.set_message(FormatCalibrationReport(*report));
+  return done;
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunMvsJob(const v1::ProcessingJob& job,
+                                                                const std::function<void(const JobProgress&)>& progress,
+                                                                const std::function<bool()>& cancelled) const {
+  if (!job.geometry().empty()) return absl::InvalidArgumentError("multi-view stereo takes no geometry: it makes it");
+  MvsJob m;
+  m.take_dir = job.take_dir();
+  m.first_frame = job.first_frame();
+  m.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  m.cameras.assign(job.cameras().begin(), job.cameras().end());
+  m.calibration = job.calibration();
+  m.options.threads = static_cast<int>(threads_);
+  auto result = RunMvs(m, progress, cancelled);
+  if (!result.ok()) return result.status();
+  v1::ProcessingProgress done;
+  done.set_frames_done(result->units);
+  done.set_frames_total(result->units);
+  done.set_output_dir(result->output_dir);
+  done.set_message(absl::StrCat(result->units, " frame(s) reconstructed into ", result->output_dir));
   return done;
 }
 

@@ -10,6 +10,8 @@
 #include "stage/common/version.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/evaluate.h"
+#include "stage/processing/evaluate_mvs.h"
+#include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
 
 namespace {
@@ -33,12 +35,68 @@ std::function<void(const stage::processing::JobProgress&)> ShowOn(stage::Progres
   };
 }
 
+// `stage-process mvs`: its options, and the run.
+struct MvsCommand {
+  stage::processing::MvsJob job;
+  std::string frames = "0:", cameras;
+  bool json = false;
+  CLI::App* app = nullptr;
+
+  void Add(CLI::App& parent) {
+    app = parent.add_subcommand(
+        "mvs",
+        "Multi-view stereo: per frame, a depth map per machine-vision camera from its full-lit image and its "
+        "neighbours', filtered by agreement, fused (TSDF) and meshed: TAKE/derived/mvs/frame-NNNNNN/mesh.obj (stage "
+        "frame, mm), depth/CAMERA.exr, metrics.json");
+    stage::processing::MvsOptions& o = job.options;
+    app->add_option("--take", job.take_dir, "The take directory (takes/<take-id>)")->required();
+    app->add_option("--frames", frames, "Virtual frames A:B (B excluded), A: to the end, or A")->capture_default_str();
+    app->add_option("--cameras", cameras, "Camera ids, comma-separated (default: every machine-vision camera)");
+    app->add_option("--calibration", job.calibration,
+                    "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
+                    "take or absolute; default: the rig's nominal models");
+    app->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/mvs)");
+    app->add_option("--image-scale", o.image_scale, "Processing resolution relative to the recorded images")
+        ->capture_default_str()
+        ->check(CLI::Range(0.05, 1.0));
+    app->add_option("--neighbours", o.neighbours, "Views each view is matched against")
+        ->capture_default_str()
+        ->check(CLI::Range(1, 16));
+    app->add_option("--window", o.window, "Correlation window, pixels (odd)")->capture_default_str();
+    app->add_option("--min-score", o.min_score, "Correlation a depth must reach")->capture_default_str();
+    app->add_option("--voxel-mm", o.voxel_mm, "Voxel of the fused volume, mm (0: a pixel's footprint)")
+        ->capture_default_str();
+    app->add_option("--volume-radius-mm", o.volume_radius_mm, "Radius of the head's volume about the stage origin")
+        ->capture_default_str();
+    app->add_option("--threads", o.threads, "Worker threads (default 0: one per core)")->check(CLI::NonNegativeNumber);
+    app->add_flag("--json", json, "Print the result as JSON on stdout");
+  }
+
+  int Run() {
+    if (auto s = stage::ParseFrameRange("--frames", frames, &job.first_frame, &job.last_frame); !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    job.cameras = SplitCameras(cameras);
+    stage::ProgressLine bar("frames");
+    auto result = stage::processing::RunMvs(job, ShowOn(bar));
+    bar.Finish();
+    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    if (json) {
+      std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->units}}.dump() << "\n";
+    } else {
+      std::cout << result->units << " frame(s) reconstructed into " << result->output_dir << "\n";
+    }
+    return 0;
+  }
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Runs FaStage processing stages on a take (the batch form of the ProcessingWorker service), and "
-               "evaluates their results against the simulator's ground truth.",
-               kProgram};
+  CLI::App app{
+      "Runs FaStage processing stages on a take (the batch form of the ProcessingWorker service), and "
+      "evaluates their results against the simulator's ground truth.",
+      kProgram};
   app.set_version_flag("--version", std::string(kProgram) + " (FaStage) " + std::string(stage::kVersion));
   app.require_subcommand(1);
   std::string log_level;
@@ -58,8 +116,9 @@ int main(int argc, char** argv) {
   photometric->add_option("--cameras", cameras, "Camera ids, comma-separated (default: every high-speed camera)");
   photometric->add_option(
       "--geometry", job.geometry,
-      "Surface geometry: a directory with frame-NNNNNN/mesh.obj per frame, relative to the take or absolute (e.g. "
-      "ground_truth on a simulated take, until multi-view stereo gives it); default: none");
+      "Surface geometry: mvs (multi-view stereo's meshes, TAKE/derived/mvs: run stage-process mvs first), or a "
+      "directory with frame-NNNNNN/mesh.obj per frame, relative to the take or absolute (ground_truth on a simulated "
+      "take: the truth's); default: none");
   photometric->add_option(
       "--calibration", job.calibration,
       "Where the cameras are: a calibration file or a directory holding cameras.json (stage-process calibrate's "
@@ -67,14 +126,18 @@ int main(int argc, char** argv) {
   photometric->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/photometric)");
   photometric->add_option("--threads", job.options.threads, "Worker threads (default 0: one per core)")
       ->check(CLI::NonNegativeNumber);
-  photometric->add_option("--specular-filter-radius", job.options.specular_filter_radius,
-                          "Radius (pixels) of the adaptive filter on specular normals and roughness; 0: raw fits")
+  photometric
+      ->add_option("--specular-filter-radius", job.options.specular_filter_radius,
+                   "Radius (pixels) of the adaptive filter on specular normals and roughness; 0: raw fits")
       ->capture_default_str()
       ->check(CLI::Range(0, 16));
   photometric->add_flag("--exact", job.exact,
                         "Without --geometry too, fit the specular lobe per pixel instead of the table-driven solver "
                         "(slower, less noisy specular maps)");
   photometric->add_flag("--json", json, "Print the result as JSON on stdout");
+
+  MvsCommand mvs;
+  mvs.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -132,6 +195,22 @@ int main(int argc, char** argv) {
                                "The calibration (default: TAKE/derived/calibration)");
   eval_calibration->add_flag("--json", eval_cal_json, "Print the table as JSON on stdout");
 
+  stage::processing::MvsEvaluateOptions eval_mvs;
+  std::string eval_mvs_frames = "0:";
+  bool eval_mvs_json = false;
+  CLI::App* eval_mvs_app = evaluate->add_subcommand(
+      "mvs",
+      "Per region of the head (skin, eyes, mouth): the distance of the reconstructed vertices to the true surface "
+      "(RMSE, median, 95th percentile) and the share of the true surface two cameras see within --within-mm of the "
+      "reconstruction");
+  eval_mvs_app->add_option("--take", eval_mvs.take_dir, "The take directory")->required();
+  eval_mvs_app->add_option("--frames", eval_mvs_frames, "Virtual frames A:B, A: or A")->capture_default_str();
+  eval_mvs_app->add_option("--results", eval_mvs.results_dir, "Results (default: TAKE/derived/mvs)");
+  eval_mvs_app->add_option("--truth", eval_mvs.truth_dir, "Ground truth (default: TAKE/ground_truth)");
+  eval_mvs_app->add_option("--within-mm", eval_mvs.within_mm, "Completeness: true surface within this, mm")
+      ->capture_default_str();
+  eval_mvs_app->add_flag("--json", eval_mvs_json, "Print the table as JSON on stdout");
+
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -151,6 +230,7 @@ int main(int argc, char** argv) {
     }
     return 0;
   }
+  if (*mvs.app) return mvs.Run();
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {
@@ -170,6 +250,17 @@ int main(int argc, char** argv) {
     if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
     std::cout << (eval_cal_json ? stage::processing::CalibrationEvaluationJson(*result) + "\n"
                                 : stage::processing::FormatTruthComparison(result->calibrated, &result->nominal));
+    return 0;
+  }
+  if (*eval_mvs_app) {
+    if (auto s = stage::ParseFrameRange("--frames", eval_mvs_frames, &eval_mvs.first_frame, &eval_mvs.last_frame);
+        !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    auto result = stage::processing::EvaluateMvs(eval_mvs);
+    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    std::cout << (eval_mvs_json ? stage::processing::MvsEvaluationJson(*result) + "\n"
+                                : stage::processing::FormatMvsEvaluation(*result));
     return 0;
   }
   if (*eval_photometric) {

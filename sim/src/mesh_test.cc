@@ -87,6 +87,27 @@ TEST(MeshTest, ReadsObjFilesAndNamesTheLineOfAnError) {
   EXPECT_THAT(ReadObj(::testing::TempDir() + "/missing.obj").status().message(), HasSubstr("missing.obj"));
 }
 
+TEST(MeshTest, WrittenObjFilesKeepPartsAndMayHaveNoTextureCoordinates) {
+  const std::string path = ::testing::TempDir() + "/parts.obj";
+  TriangleMesh m;
+  m.positions = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}};
+  m.parts = {0, 1};
+  ASSERT_TRUE(WriteObj(path, m, "two parts").ok());
+  auto back = ReadObj(path);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(back->uvs.empty());
+  EXPECT_EQ(back->parts, m.parts);
+  EXPECT_FALSE(std::ifstream(path + ".partial").good()) << "the temporary file was left behind";
+  // A mesh of one part is written without materials.
+  m.parts = {0, 0};
+  ASSERT_TRUE(WriteObj(path, m).ok());
+  back = ReadObj(path);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(back->parts.empty());
+  EXPECT_TRUE(back->material_names.empty());
+}
+
 // Where the ray from far in front along -z first meets the head, at height y and lateral offset x.
 Hit FromFront(const Subject& s, float x, float y) { return s.Intersect({x, y, 1000}, {0, 0, -1}); }
 

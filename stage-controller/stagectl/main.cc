@@ -677,7 +677,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
-                                            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration)")));
+                                            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs)")));
   }
   request.set_stage(kind);
   int64_t first = 0, last = -1;
@@ -693,7 +693,9 @@ int Process(const Connection& c, const ProcessFlags& f) {
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
-  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras" : "camera frames");
+  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
+                          : kind == stage::v1::PROCESSING_STAGE_MVS       ? "frames"
+                                                                          : "camera frames");
   while (reader->Read(&progress)) {
     if (progress.finished()) {
       last_message = progress;
@@ -1001,15 +1003,16 @@ int main(int argc, char** argv) {
                          "Run a processing stage over a take on one of the stage's processing workers (results in "
                          "TAKE/derived/STAGE/), with progress");
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
-  process->add_option("--stage", pf.stage, "The stage: photometric or calibration")->capture_default_str();
+  process->add_option("--stage", pf.stage, "The stage: photometric, calibration or mvs")->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
   process->add_option("--cameras", pf.cameras,
                       "Camera ids, comma-separated (default: the stage's; photometric: every high-speed camera, "
                       "calibration: every camera)");
   process->add_option("--geometry", pf.geometry,
-                      "Surface geometry, a directory of frame-NNNNNN/mesh.obj relative to the take (e.g. "
-                      "ground_truth on the simulated stage); default: none");
+                      "Surface geometry: mvs (multi-view stereo's meshes: process --stage mvs first), or a "
+                      "directory of frame-NNNNNN/mesh.obj relative to the take (ground_truth on the simulated stage: "
+                      "the truth's); default: none");
   process->add_option("--calibration", pf.calibration,
                       "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");

@@ -28,10 +28,13 @@ struct TriangleMesh {
   std::vector<Eigen::Vector3f> VertexNormals() const;
 };
 
-// Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed; usemtl and mtllib recorded).
-// Errors name the file and line.
+// Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed; usemtl and mtllib recorded;
+// a file whose only materials are WriteObj's part names, with no library, gets its parts back). Errors name the file
+// and line.
 absl::StatusOr<TriangleMesh> ReadObj(const std::string& path);
-// Writes positions, texture coordinates and triangles as an OBJ (`comment` on its first line).
+// Writes positions, texture coordinates (when every vertex has one) and triangles as an OBJ (`comment` on its first
+// line), atomically (a temporary file renamed over `path`). Parts, where a mesh without materials has any besides
+// 0, are written as materials without a library: `usemtl skin` (0) and `usemtl eye` (1).
 absl::Status WriteObj(const std::string& path, const TriangleMesh& mesh, const std::string& comment = "");
 
 // Where a ray meets a mesh: the triangle, the distance along the (unit) direction, and the barycentrics of vertices

@@ -26,7 +26,8 @@ struct PhotometricJob {
   // Camera ids; empty: every high-speed camera of the take's rig.
   std::vector<std::string> cameras;
   // Surface geometry: a directory with frame-NNNNNN/mesh.obj (stage frame, mm) per frame of the take, relative to
-  // the take directory or absolute (the simulator's ground_truth/ until multi-view stereo gives it). Empty: none.
+  // the take directory or absolute; "mvs" is derived/mvs, multi-view stereo's (mvs.h); the simulator's ground_truth/
+  // is the truth's. Empty: none.
   std::string geometry;
   // Where the cameras are: a calibration file (camera_calibration.h), or a directory holding one as cameras.json
   // (`stage-process calibrate`'s output, or the simulator's ground_truth/), relative to the take directory or

@@ -1,0 +1,70 @@
+// Multi-view stereo's meshes against the simulator's ground truth (docs/geometry.md#evaluation): per frame, the
+// distance of every reconstructed vertex to the true surface (accuracy: RMSE, median, 95th percentile) and the share
+// of the true surface within 1 mm of the reconstruction (completeness), over the surface at least two machine-vision
+// cameras see, with the skin, the eyes and the mouth apart.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/common/mesh.h"
+
+namespace stage::processing {
+
+// Distances from points to a triangle mesh's surface (exact point-to-triangle distance over the triangles nearest by
+// their centres, found in a k-d tree). Thread-safe once built.
+class SurfaceDistance {
+ public:
+  explicit SurfaceDistance(const TriangleMesh& mesh);
+  ~SurfaceDistance();
+  SurfaceDistance(const SurfaceDistance&) = delete;
+  SurfaceDistance& operator=(const SurfaceDistance&) = delete;
+  // The distance from `p` to the surface, mm, and the triangle it is nearest (-1: an empty mesh).
+  float Distance(const Eigen::Vector3f& p, int32_t* triangle = nullptr) const;
+
+ private:
+  struct Index;
+  const TriangleMesh& mesh_;
+  Index* index_;
+};
+
+// Where on the simulated head a true triangle is.
+enum class HeadRegion { kSkin = 0, kEyes = 1, kMouth = 2 };
+const char* HeadRegionName(HeadRegion r);
+
+struct MvsRegionError {
+  HeadRegion region = HeadRegion::kSkin;
+  int64_t vertices = 0;  // reconstructed vertices nearest to this region's seen surface
+  double rmse_mm = 0, median_mm = 0, p95_mm = 0;
+  double seen_area_mm2 = 0;  // the true surface of the region at least two cameras see
+  double completeness = 0;   // share of it within `within_mm` of the reconstruction
+};
+
+struct MvsEvaluateOptions {
+  std::string take_dir;
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;  // < 0: every frame with results
+  std::string results_dir;  // empty: <take>/derived/mvs
+  std::string truth_dir;    // empty: <take>/ground_truth (its cameras.json places the cameras that see)
+  double within_mm = 1;     // completeness: true surface within this of the reconstruction
+  int min_cameras = 2;      // the true surface counts where this many machine-vision cameras see it
+  absl::Status Validate() const;
+};
+
+struct MvsEvaluation {
+  int64_t frames = 0;
+  int64_t vertices = 0, unseen_vertices = 0;  // reconstructed; nearest to true surface no two cameras see
+  double within_mm = 1;
+  std::vector<MvsRegionError> regions;  // skin, eyes, mouth
+  // The views' depth maps against the truth's (at the recorded size), where both have one: signed and absolute.
+  int64_t depth_pixels = 0;
+  double depth_median_mm = 0, depth_median_abs_mm = 0;
+};
+
+absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& options);
+std::string FormatMvsEvaluation(const MvsEvaluation& e);
+std::string MvsEvaluationJson(const MvsEvaluation& e);
+
+}  // namespace stage::processing

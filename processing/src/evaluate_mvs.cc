@@ -1,0 +1,298 @@
+// Multi-view stereo's meshes against the ground truth: see evaluate_mvs.h.
+#include "stage/processing/evaluate_mvs.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <nanoflann.hpp>
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/camera_calibration.h"
+#include "stage/common/status.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/photometric_stage.h"
+#include "statistics.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr double kPi = 3.14159265358979323846;
+
+// The point of triangle (a, b, c) nearest p (Ericson, Real-Time Collision Detection, 5.1.5).
+Eigen::Vector3f ClosestOnTriangle(const Eigen::Vector3f& p, const Eigen::Vector3f& a, const Eigen::Vector3f& b,
+                                  const Eigen::Vector3f& c) {
+  const Eigen::Vector3f ab = b - a, ac = c - a, ap = p - a;
+  const float d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return a;
+  const Eigen::Vector3f bp = p - b;
+  const float d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return b;
+  const float vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return a + d1 / (d1 - d3) * ab;
+  const Eigen::Vector3f cp = p - c;
+  const float d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return c;
+  const float vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return a + d2 / (d2 - d6) * ac;
+  const float va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) return b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b);
+  const float denom = 1 / (va + vb + vc);
+  return a + ab * (vb * denom) + ac * (vc * denom);
+}
+
+// The region of a true triangle: the eyes are their own part; the mouth is where the procedural head's UV layout
+// puts it (sim/src/head.cc: the lips and the mouth line about theta 0, phi -0.485).
+HeadRegion RegionOf(const TriangleMesh& m, size_t t) {
+  if (!m.parts.empty() && m.parts[t] == 1) return HeadRegion::kEyes;
+  if (m.uvs.size() != m.positions.size()) return HeadRegion::kSkin;
+  const auto& tri = m.triangles[t];
+  const Eigen::Vector2f uv = (m.uvs[tri[0]] + m.uvs[tri[1]] + m.uvs[tri[2]]) / 3;
+  const double th = uv.x() * 2 * kPi - kPi, ph = uv.y() * kPi - kPi / 2;
+  return std::abs(th) < 0.3 && std::abs(ph + 0.485) < 0.07 ? HeadRegion::kMouth : HeadRegion::kSkin;
+}
+
+// Which true triangles at least `min_cameras` of `cameras` see: facing the camera, in its image, unoccluded.
+std::vector<char> SeenTriangles(const MeshBvh& bvh, const std::vector<CameraModel>& cameras, int min_cameras) {
+  const TriangleMesh& m = bvh.mesh();
+  std::vector<char> seen(m.triangles.size(), 0);
+  for (size_t t = 0; t < m.triangles.size(); ++t) {
+    const auto& tri = m.triangles[t];
+    const Eigen::Vector3f a = m.positions[tri[0]], b = m.positions[tri[1]], c = m.positions[tri[2]];
+    const Eigen::Vector3f centre = (a + b + c) / 3;
+    int count = 0;
+    for (const CameraModel& cam : cameras) {
+      // Facing or not: the head is closed, so a triangle facing away is hidden by the near side.
+      const Eigen::Vector3f eye = cam.position().cast<float>();
+      Eigen::Vector2d px;
+      if (!cam.Project(centre.cast<double>(), &px) || px.x() < 0 || px.y() < 0 || px.x() > cam.width() - 1 ||
+          px.y() > cam.height() - 1) {
+        continue;
+      }
+      if (bvh.Occluded(centre + 0.05f * (eye - centre).normalized(), eye)) continue;
+      if (++count >= min_cameras) break;
+    }
+    seen[t] = count >= min_cameras;
+  }
+  return seen;
+}
+
+double TriangleArea(const TriangleMesh& m, size_t t) {
+  const auto& tri = m.triangles[t];
+  return 0.5 * (m.positions[tri[1]] - m.positions[tri[0]]).cross(m.positions[tri[2]] - m.positions[tri[0]]).norm();
+}
+
+// The views' depth maps against the truth's, where both have a depth: signed differences, mm.
+absl::Status CompareDepthMaps(const std::string& results_frame, const std::string& truth_frame,
+                              std::vector<double>* differences) {
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(results_frame + "/depth", ec)) {
+    if (entry.path().extension() != ".exr") continue;
+    const std::string camera = entry.path().stem().string();
+    STAGE_ASSIGN_OR_RETURN(const Image got, ReadImageFile(entry.path().string()));
+    STAGE_ASSIGN_OR_RETURN(const Image want, ReadImageFile(truth_frame + "/" + camera + "/depth.exr"));
+    if (got.width != want.width || got.height != want.height) {
+      return absl::FailedPreconditionError(absl::StrCat(entry.path().string(), ": ", got.width, "x", got.height,
+                                                        ", the truth's ", want.width, "x", want.height,
+                                                        " (compare at --image-scale 1)"));
+    }
+    for (size_t i = 0; i < got.pixels.size(); ++i) {
+      const float g = got.pixels[i * got.channels], w = want.pixels[i * want.channels];
+      if (g > 0 && w > 0) differences->push_back(g - w);
+    }
+  }
+  return absl::OkStatus();
+}
+
+struct RegionSums {
+  std::vector<double> distances;
+  double seen_area = 0, within_area = 0;
+};
+
+// One frame's sums per region.
+void EvaluateFrame(const TriangleMesh& truth, const TriangleMesh& recon, const std::vector<CameraModel>& cameras,
+                   const MvsEvaluateOptions& o, RegionSums sums[3], MvsEvaluation* e) {
+  MeshBvh bvh(truth);
+  const std::vector<char> seen = SeenTriangles(bvh, cameras, o.min_cameras);
+  const SurfaceDistance to_truth(truth);
+  for (const Eigen::Vector3f& v : recon.positions) {
+    int32_t t = -1;
+    const float d = to_truth.Distance(v, &t);
+    ++e->vertices;
+    if (t < 0 || !seen[t]) {
+      ++e->unseen_vertices;
+      continue;
+    }
+    sums[static_cast<int>(RegionOf(truth, t))].distances.push_back(d);
+  }
+  const SurfaceDistance to_recon(recon);
+  for (size_t t = 0; t < truth.triangles.size(); ++t) {
+    if (!seen[t]) continue;
+    const auto& tri = truth.triangles[t];
+    const Eigen::Vector3f centre = (truth.positions[tri[0]] + truth.positions[tri[1]] + truth.positions[tri[2]]) / 3;
+    const double area = TriangleArea(truth, t);
+    RegionSums& s = sums[static_cast<int>(RegionOf(truth, t))];
+    s.seen_area += area;
+    if (!recon.triangles.empty() && to_recon.Distance(centre) <= o.within_mm) s.within_area += area;
+  }
+}
+
+}  // namespace
+
+// The triangles' centres in a k-d tree (nanoflann).
+struct SurfaceDistance::Index {
+  std::vector<Eigen::Vector3f> centres;
+  size_t kdtree_get_point_count() const { return centres.size(); }
+  float kdtree_get_pt(size_t i, size_t dim) const { return centres[i][static_cast<int>(dim)]; }
+  template <class Box>
+  bool kdtree_get_bbox(Box&) const {
+    return false;
+  }
+  using Tree = nanoflann::KDTreeSingleIndexAdaptor<nanoflann::L2_Simple_Adaptor<float, Index>, Index, 3>;
+  std::unique_ptr<Tree> tree;
+};
+
+SurfaceDistance::SurfaceDistance(const TriangleMesh& mesh) : mesh_(mesh), index_(new Index) {
+  for (const auto& tri : mesh.triangles) {
+    index_->centres.push_back((mesh.positions[tri[0]] + mesh.positions[tri[1]] + mesh.positions[tri[2]]) / 3);
+  }
+  index_->tree = std::make_unique<Index::Tree>(3, *index_, nanoflann::KDTreeSingleIndexAdaptorParams(10));
+  if (!index_->centres.empty()) index_->tree->buildIndex();
+}
+
+SurfaceDistance::~SurfaceDistance() { delete index_; }
+
+float SurfaceDistance::Distance(const Eigen::Vector3f& p, int32_t* triangle) const {
+  if (triangle != nullptr) *triangle = -1;
+  if (index_->centres.empty()) return std::numeric_limits<float>::infinity();
+  constexpr size_t kCandidates = 16;
+  uint32_t ids[kCandidates];
+  float d2[kCandidates];
+  const size_t found = index_->tree->knnSearch(p.data(), kCandidates, ids, d2);
+  float best = std::numeric_limits<float>::infinity();
+  for (size_t i = 0; i < found; ++i) {
+    const auto& tri = mesh_.triangles[ids[i]];
+    const float d =
+        (ClosestOnTriangle(p, mesh_.positions[tri[0]], mesh_.positions[tri[1]], mesh_.positions[tri[2]]) - p).norm();
+    if (d < best) {
+      best = d;
+      if (triangle != nullptr) *triangle = static_cast<int32_t>(ids[i]);
+    }
+  }
+  return best;
+}
+
+const char* HeadRegionName(HeadRegion r) {
+  switch (r) {
+    case HeadRegion::kSkin:
+      return "skin";
+    case HeadRegion::kEyes:
+      return "eyes";
+    case HeadRegion::kMouth:
+      return "mouth";
+  }
+  return "?";
+}
+
+absl::Status MvsEvaluateOptions::Validate() const {
+  if (take_dir.empty()) return absl::InvalidArgumentError("evaluate mvs: no take directory");
+  if (!(within_mm > 0)) return absl::InvalidArgumentError(absl::StrCat("evaluate mvs: within_mm ", within_mm, " <= 0"));
+  if (min_cameras < 1)
+    return absl::InvalidArgumentError(absl::StrCat("evaluate mvs: min_cameras ", min_cameras, " < 1"));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
+  STAGE_RETURN_IF_ERROR(o.Validate());
+  const std::string results = o.results_dir.empty() ? o.take_dir + "/derived/mvs" : o.results_dir;
+  const std::string truth = o.truth_dir.empty() ? o.take_dir + "/ground_truth" : o.truth_dir;
+  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(o.take_dir));
+  STAGE_ASSIGN_OR_RETURN(const CameraCalibration placed, ReadCameraCalibration(truth + "/cameras.json"));
+  std::vector<CameraModel> cameras;
+  for (const v1::CameraConfig& c : rig.rig.cameras()) {
+    if (c.role() != v1::CAMERA_ROLE_MACHINE_VISION) continue;
+    const CameraModel* m = placed.Find(c.id());
+    if (m == nullptr) return absl::NotFoundError(absl::StrCat(truth, "/cameras.json: no camera \"", c.id(), "\""));
+    cameras.push_back(*m);
+  }
+  MvsEvaluation e;
+  e.within_mm = o.within_mm;
+  RegionSums sums[3];
+  std::vector<double> depth_differences;
+  for (int64_t frame = o.first_frame; o.last_frame < 0 || frame < o.last_frame; ++frame) {
+    const std::string recon_path = absl::StrFormat("%s/frame-%06d/mesh.obj", results, frame);
+    if (!fs::exists(recon_path)) {
+      if (o.last_frame < 0 && e.frames > 0) break;
+      return absl::NotFoundError(absl::StrCat(recon_path, ": no reconstruction of frame ", frame));
+    }
+    STAGE_ASSIGN_OR_RETURN(const TriangleMesh recon, ReadObj(recon_path));
+    STAGE_ASSIGN_OR_RETURN(const TriangleMesh true_mesh,
+                           ReadObj(absl::StrFormat("%s/frame-%06d/mesh.obj", truth, frame)));
+    EvaluateFrame(true_mesh, recon, cameras, o, sums, &e);
+    STAGE_RETURN_IF_ERROR(CompareDepthMaps(absl::StrFormat("%s/frame-%06d", results, frame),
+                                           absl::StrFormat("%s/frame-%06d", truth, frame), &depth_differences));
+    ++e.frames;
+  }
+  e.depth_pixels = static_cast<int64_t>(depth_differences.size());
+  if (!depth_differences.empty()) {
+    e.depth_median_mm = Median(depth_differences);
+    for (double& d : depth_differences) d = std::abs(d);
+    e.depth_median_abs_mm = Median(depth_differences);
+  }
+  for (int r = 0; r < 3; ++r) {
+    MvsRegionError out;
+    out.region = static_cast<HeadRegion>(r);
+    std::vector<double>& d = sums[r].distances;
+    out.vertices = static_cast<int64_t>(d.size());
+    if (!d.empty()) {
+      double sq = 0;
+      for (double x : d) sq += x * x;
+      out.rmse_mm = std::sqrt(sq / static_cast<double>(d.size()));
+      std::sort(d.begin(), d.end());
+      out.median_mm = d[d.size() / 2];
+      out.p95_mm = d[std::min(d.size() - 1, d.size() * 95 / 100)];
+    }
+    out.seen_area_mm2 = sums[r].seen_area;
+    out.completeness = sums[r].seen_area > 0 ? sums[r].within_area / sums[r].seen_area : 0;
+    e.regions.push_back(out);
+  }
+  return e;
+}
+
+std::string FormatMvsEvaluation(const MvsEvaluation& e) {
+  std::string out = absl::StrFormat(
+      "multi-view stereo against the truth: %d frame(s), %d vertices (%d nearest to surface no two cameras see)\n",
+      e.frames, e.vertices, e.unseen_vertices);
+  absl::StrAppendFormat(&out, "%-8s %9s %9s %10s %8s %12s %14s\n", "region", "vertices", "RMSE mm", "median mm",
+                        "p95 mm", "seen mm^2", absl::StrFormat("within %.2g mm", e.within_mm));
+  for (const MvsRegionError& r : e.regions) {
+    absl::StrAppendFormat(&out, "%-8s %9d %9.3f %10.3f %8.3f %12.0f %13.1f%%\n", HeadRegionName(r.region), r.vertices,
+                          r.rmse_mm, r.median_mm, r.p95_mm, r.seen_area_mm2, 100 * r.completeness);
+  }
+  absl::StrAppendFormat(&out,
+                        "depth maps: %d pixels with a depth and a true one; median error %+.3f mm, median "
+                        "absolute %.3f mm\n",
+                        e.depth_pixels, e.depth_median_mm, e.depth_median_abs_mm);
+  return out;
+}
+
+std::string MvsEvaluationJson(const MvsEvaluation& e) {
+  nlohmann::ordered_json j;
+  j["frames"] = e.frames;
+  j["vertices"] = e.vertices;
+  j["unseen_vertices"] = e.unseen_vertices;
+  j["within_mm"] = e.within_mm;
+  j["depth_maps"] = {
+      {"pixels", e.depth_pixels}, {"median_mm", e.depth_median_mm}, {"median_abs_mm", e.depth_median_abs_mm}};
+  for (const MvsRegionError& r : e.regions) {
+    j["regions"][HeadRegionName(r.region)] = {{"vertices", r.vertices},           {"rmse_mm", r.rmse_mm},
+                                              {"median_mm", r.median_mm},         {"p95_mm", r.p95_mm},
+                                              {"seen_area_mm2", r.seen_area_mm2}, {"completeness", r.completeness}};
+  }
+  return j.dump();
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,326 @@
+// Multi-view stereo as a stage (mvs.h): the take's machine-vision frames read and undistorted, a depth map per view
+// (mvs_depth.cc), filtered by agreement, fused and meshed (tsdf_fusion.cc), trimmed and written.
+#include "stage/processing/mvs.h"
+
+#include <chrono>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "mvs_internal.h"
+#include "parallel.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/processing/calibration.h"
+#include "stage/processing/light_model.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/take_frames.h"
+#include "statistics.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+// The voxel: options.voxel_mm, or voxel_px footprints of a pixel at the volume's centre in the median view.
+double VoxelSize(const std::vector<MvsView>& views, const MvsOptions& o) {
+  if (o.voxel_mm > 0) return o.voxel_mm;
+  std::vector<double> footprint;
+  for (const MvsView& v : views) footprint.push_back((v.position - o.volume_centre_mm).norm() / v.fx);
+  return std::max(0.2, o.voxel_px * Median(footprint));
+}
+
+// A camera of the job: its frame file and its model at the recorded size.
+struct MvsCamera {
+  std::string id, path;
+  CameraModel model;  // at the recorded image size
+  double black_level_dn = 0;
+  int64_t last_slot = -1;
+};
+
+absl::StatusOr<std::vector<MvsCamera>> JobCameras(const MvsJob& job, const LoadedRig& rig,
+                                                  const CameraCalibration* calibration) {
+  std::vector<std::string> ids = job.cameras;
+  if (ids.empty()) {
+    for (const v1::CameraConfig& c : rig.rig.cameras()) {
+      if (c.role() == v1::CAMERA_ROLE_MACHINE_VISION) ids.push_back(c.id());
+    }
+  }
+  if (ids.size() < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(job.take_dir, ": multi-view stereo needs 2 cameras or more, ", ids.size(), " given"));
+  }
+  std::vector<MvsCamera> out;
+  for (const std::string& id : ids) {
+    MvsCamera c;
+    c.id = id;
+    for (const v1::CameraConfig& config : rig.rig.cameras()) {
+      if (config.id() == id) c.black_level_dn = config.photometric().black_level_dn();
+    }
+    c.path = job.take_dir + "/cameras/" + id + ".h5";
+    if (!fs::exists(c.path)) {
+      return absl::NotFoundError(absl::StrCat(c.path, ": no frame file for camera \"", id, "\" in the take"));
+    }
+    STAGE_ASSIGN_OR_RETURN(const FrameFileShape shape, ReadFrameFileShape(c.path));
+    STAGE_ASSIGN_OR_RETURN(c.model, CameraAtImageSize(rig, id, shape.width, shape.height, calibration));
+    c.last_slot = shape.last_slot;
+    out.push_back(std::move(c));
+  }
+  return out;
+}
+
+// A view's depth at the pixels of the image as recorded (with its lens's distortion), at the processing size:
+// `camera` is the recorded camera at that size.
+Image DepthAsRecorded(const DepthMap& depth, const CameraModel& camera) {
+  std::vector<cv::Point2f> pixels;
+  pixels.reserve(static_cast<size_t>(camera.width()) * camera.height());
+  for (int y = 0; y < camera.height(); ++y) {
+    for (int x = 0; x < camera.width(); ++x) pixels.emplace_back(static_cast<float>(x), static_cast<float>(y));
+  }
+  const cv::Matx33d k(camera.fx(), 0, camera.cx(), 0, camera.fy(), camera.cy(), 0, 0, 1);
+  const auto& d = camera.distortion();
+  std::vector<cv::Point2f> undistorted;
+  cv::undistortPoints(pixels, undistorted, k, std::vector<double>(d.begin(), d.end()), cv::noArray(), k);
+  Image out(camera.width(), camera.height(), 1);
+  for (size_t i = 0; i < undistorted.size(); ++i) {
+    const int u = static_cast<int>(std::lround(undistorted[i].x)), v = static_cast<int>(std::lround(undistorted[i].y));
+    if (u < 0 || v < 0 || u >= depth.width || v >= depth.height) continue;
+    out.pixels[i] = depth.depth[static_cast<size_t>(v) * depth.width + u];
+  }
+  return out;
+}
+
+std::string FrameMetrics(const MvsFrame& f, int64_t frame, const std::vector<std::string>& missing) {
+  nlohmann::ordered_json j;
+  j["frame"] = frame;
+  j["views"] = nlohmann::json::array();
+  for (const MvsViewMetrics& v : f.views) {
+    j["views"].push_back({{"camera", v.id},
+                          {"neighbours", v.neighbours},
+                          {"foreground_pixels", v.foreground},
+                          {"matched_pixels", v.matched},
+                          {"consistent_pixels", v.consistent}});
+  }
+  j["cameras_without_a_full_lit_frame"] = missing;
+  j["voxel_mm"] = f.voxel_mm;
+  j["mesh"] = {{"vertices", f.mesh.positions.size()},
+               {"triangles", f.mesh.triangles.size()},
+               {"vertices_before_trim", f.mesh_vertices_before_trim}};
+  return j.dump(2) + "\n";
+}
+
+absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::vector<MvsCamera>& cameras,
+                        const std::vector<CameraModel>& processed, int64_t frame, const std::string& take,
+                        const std::vector<std::string>& missing) {
+  std::error_code ec;
+  fs::create_directories(dir + "/depth", ec);
+  if (ec) return absl::InternalError(absl::StrCat(dir, "/depth: cannot create: ", ec.message()));
+  for (size_t i = 0; i < f.depths.size(); ++i) {
+    STAGE_RETURN_IF_ERROR(
+        WriteExr(dir + "/depth/" + f.views[i].id + ".exr", DepthAsRecorded(f.depths[i], processed[i])));
+  }
+  (void)cameras;
+  STAGE_RETURN_IF_ERROR(
+      WriteObj(dir + "/mesh.obj", f.mesh,
+               absl::StrFormat("FaStage multi-view stereo: %s frame %d, stage frame, mm", take, frame)));
+  return WriteFileAtomically(dir + "/metrics.json", FrameMetrics(f, frame, missing));
+}
+
+}  // namespace
+
+absl::Status MvsOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat("mvs options: ", what)); };
+  if (!(image_scale > 0 && image_scale <= 1))
+    return bad(absl::StrCat("image_scale ", image_scale, " is not in (0, 1]"));
+  if (neighbours < 1 || neighbours > 16) return bad(absl::StrCat("neighbours ", neighbours, " is not in 1..16"));
+  if (best_of < 1 || best_of > neighbours) return bad(absl::StrCat("best_of ", best_of, " is not in 1..neighbours"));
+  if (!(min_angle_deg >= 0 && max_angle_deg > min_angle_deg && max_angle_deg < 90)) {
+    return bad(absl::StrCat("angles [", min_angle_deg, ", ", max_angle_deg, "] are not 0 <= min < max < 90"));
+  }
+  if (window < 3 || window % 2 == 0 || window > 31) return bad(absl::StrCat("window ", window, " is not odd in 3..31"));
+  if (coarse_width < 16) return bad(absl::StrCat("coarse_width ", coarse_width, " is below 16"));
+  if (refine_steps < 1 || refine_steps > 16)
+    return bad(absl::StrCat("refine_steps ", refine_steps, " is not in 1..16"));
+  if (!(min_score > -1 && min_score < 1)) return bad(absl::StrCat("min_score ", min_score, " is not in (-1, 1)"));
+  if (!(min_signal >= 0 && min_signal < 1)) return bad(absl::StrCat("min_signal ", min_signal, " is not in [0, 1)"));
+  if (min_consistent < 0 || min_consistent > neighbours) {
+    return bad(absl::StrCat("min_consistent ", min_consistent, " is not in 0..neighbours"));
+  }
+  if (!(consistency_px > 0)) return bad(absl::StrCat("consistency_px ", consistency_px, " is not positive"));
+  if (!(volume_radius_mm > 0)) return bad(absl::StrCat("volume_radius_mm ", volume_radius_mm, " is not positive"));
+  if (!(voxel_mm >= 0) || !(voxel_px > 0)) return bad("voxel_mm must be >= 0 and voxel_px > 0");
+  if (!(truncation_voxels >= 1)) return bad(absl::StrCat("truncation_voxels ", truncation_voxels, " is below 1"));
+  if (min_views < 1) return bad(absl::StrCat("min_views ", min_views, " is below 1"));
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<MvsView> MakeMvsView(const std::string& id, const Image& grey, const CameraModel& camera, double scale) {
+  if (grey.channels != 1 || grey.width != camera.width() || grey.height != camera.height()) {
+    return absl::InvalidArgumentError(absl::StrCat("camera \"", id, "\": image ", grey.width, "x", grey.height, "x",
+                                                   grey.channels, ", its model ", camera.width(), "x", camera.height(),
+                                                   "x1"));
+  }
+  const int w = std::max(16, static_cast<int>(std::lround(grey.width * scale)));
+  const int h = std::max(16, static_cast<int>(std::lround(grey.height * scale)));
+  const CameraModel at = camera.Resized(w, h);
+  cv::Mat in(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data())), resized, out;
+  if (w == grey.width && h == grey.height) {
+    resized = in;
+  } else {
+    cv::resize(in, resized, {w, h}, 0, 0, cv::INTER_AREA);
+  }
+  const cv::Matx33d k(at.fx(), 0, at.cx(), 0, at.fy(), at.cy(), 0, 0, 1);
+  const auto& d = at.distortion();
+  cv::undistort(resized, out, k, std::vector<double>(d.begin(), d.end()), k);
+  MvsView v;
+  v.id = id;
+  v.width = w;
+  v.height = h;
+  v.fx = at.fx(), v.fy = at.fy(), v.cx = at.cx(), v.cy = at.cy();
+  v.rotation = at.rotation();
+  v.position = at.position();
+  v.grey.assign(out.ptr<float>(0), out.ptr<float>(0) + static_cast<size_t>(w) * h);
+  return v;
+}
+
+absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, const MvsOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  if (views.size() < 2)
+    return absl::InvalidArgumentError(absl::StrCat("multi-view stereo needs 2 views, got ", views.size()));
+  for (const MvsView& v : views) {
+    if (v.width < 16 || v.height < 16 || v.grey.size() != static_cast<size_t>(v.width) * v.height || v.fx <= 0 ||
+        v.fy <= 0) {
+      return absl::InvalidArgumentError(absl::StrCat("view \"", v.id, "\": no image or no intrinsics"));
+    }
+  }
+  MvsFrame f;
+  const auto neighbours = ChooseNeighbours(views, options);
+  for (size_t i = 0; i < views.size(); ++i) {
+    if (neighbours[i].empty()) {
+      return absl::FailedPreconditionError(absl::StrCat("view \"", views[i].id, "\": no other view within ",
+                                                        options.min_angle_deg, "-", options.max_angle_deg,
+                                                        " degrees of its axis"));
+    }
+  }
+  const int n = static_cast<int>(views.size());
+  f.views.resize(n);
+  std::vector<DepthMap> raw(n);
+  auto t0 = std::chrono::steady_clock::now();
+  internal::ParallelItems(n, options.threads, [&](int i) {
+    f.views[i].id = views[i].id;
+    for (int j : neighbours[i]) f.views[i].neighbours.push_back(views[j].id);
+    raw[i] = SweepDepth(views, i, neighbours[i], options, &f.views[i]);
+  });
+  f.depths.resize(n);
+  internal::ParallelItems(n, options.threads, [&](int i) {
+    f.views[i].consistent = KeepConsistent(views, raw, i, neighbours[i], options, &f.depths[i]);
+  });
+  f.depth_s = Seconds(t0);
+  t0 = std::chrono::steady_clock::now();
+  f.voxel_mm = VoxelSize(views, options);
+  STAGE_ASSIGN_OR_RETURN(TriangleMesh fused, FuseDepthMaps(views, f.depths, f.voxel_mm, options));
+  f.fusion_s = Seconds(t0);
+  t0 = std::chrono::steady_clock::now();
+  f.mesh_vertices_before_trim = static_cast<int64_t>(fused.positions.size());
+  f.mesh = TrimToHead(fused, options.volume_centre_mm, options.volume_radius_mm);
+  f.mesh_s = Seconds(t0);
+  return f;
+}
+
+absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(const JobProgress&)>& progress,
+                                 const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.options.Validate());
+  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(job.take_dir));
+  STAGE_ASSIGN_OR_RETURN(const LightModel light, LightModel::FromRig(rig));
+  STAGE_ASSIGN_OR_RETURN(const std::optional<CameraCalibration> calibration,
+                         LoadJobCalibration(job.take_dir, job.calibration));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<MvsCamera> cameras,
+                         JobCameras(job, rig, calibration.has_value() ? &*calibration : nullptr));
+  const int64_t cycle = static_cast<int64_t>(light.patterns.size());
+  int64_t whole = -1;
+  for (const MvsCamera& c : cameras) whole = std::max(whole, (c.last_slot + 1) / cycle);
+  const int64_t first = job.first_frame, last = job.last_frame < 0 ? whole : job.last_frame;
+  if (first < 0 || last <= first || last > whole) {
+    return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last, ") are ",
+                                                   last <= first ? "empty" : "not all in the take", " (it holds ",
+                                                   whole, " frame(s))"));
+  }
+  JobResult result;
+  result.output_dir = job.output_dir.empty() ? job.take_dir + "/derived/mvs" : job.output_dir;
+  const std::string take = fs::path(job.take_dir).filename().string();
+  JobProgress p{0, last - first,
+                absl::StrCat("multi-view stereo: ", last - first, " frame(s) x ", cameras.size(), " camera(s)")};
+  if (progress) progress(p);
+  for (int64_t frame = first; frame < last; ++frame) {
+    if (cancelled && cancelled()) {
+      return absl::CancelledError(
+          absl::StrCat("multi-view stereo on ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
+    }
+    std::vector<MvsView> views;
+    std::vector<CameraModel> processed;
+    std::vector<std::string> missing;
+    for (const MvsCamera& c : cameras) {
+      bool found = false;
+      STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
+          c.path, frame, frame + 1, light, c.black_level_dn, [&](int64_t, const Image& grey) -> absl::Status {
+            STAGE_ASSIGN_OR_RETURN(MvsView v, MakeMvsView(c.id, grey, c.model, job.options.image_scale));
+            processed.push_back(c.model.Resized(v.width, v.height));
+            views.push_back(std::move(v));
+            found = true;
+            return absl::OkStatus();
+          }));
+      if (!found) missing.push_back(c.id);
+    }
+    auto made = ReconstructFrame(views, job.options);
+    if (!made.ok()) {
+      return absl::Status(made.status().code(),
+                          absl::StrCat(job.take_dir, ": frame ", frame, ": ", made.status().message()));
+    }
+    const std::string dir = absl::StrFormat("%s/frame-%06d", result.output_dir, frame);
+    STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, cameras, processed, frame, take, missing));
+    ++result.units;
+    p.done = result.units;
+    p.message = absl::StrFormat("frame %d: %d views, mesh of %d vertices (depth %.1f s, fusion %.1f s)", frame,
+                                views.size(), made->mesh.positions.size(), made->depth_s, made->fusion_s);
+    if (progress) progress(p);
+  }
+  const MvsOptions& o = job.options;
+  nlohmann::ordered_json run;
+  run["stage"] = "mvs";
+  run["take"] = take;
+  run["frames"] = {first, last};
+  std::vector<std::string> ids;
+  for (const MvsCamera& c : cameras) ids.push_back(c.id);
+  run["cameras"] = ids;
+  run["cameras_placed_by"] = calibration.has_value() ? calibration->source : "the rig's nominal models (uncalibrated)";
+  run["options"] = {{"image_scale", o.image_scale},
+                    {"neighbours", o.neighbours},
+                    {"best_of", o.best_of},
+                    {"angles_deg", {o.min_angle_deg, o.max_angle_deg}},
+                    {"window", o.window},
+                    {"coarse_width", o.coarse_width},
+                    {"refine_steps", o.refine_steps},
+                    {"min_score", o.min_score},
+                    {"min_signal", o.min_signal},
+                    {"min_consistent", o.min_consistent},
+                    {"consistency_px", o.consistency_px},
+                    {"volume_centre_mm", {o.volume_centre_mm.x(), o.volume_centre_mm.y(), o.volume_centre_mm.z()}},
+                    {"volume_radius_mm", o.volume_radius_mm},
+                    {"voxel_mm", o.voxel_mm},
+                    {"voxel_px", o.voxel_px},
+                    {"truncation_voxels", o.truncation_voxels},
+                    {"min_views", o.min_views}};
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"));
+  return result;
+}
+
+}  // namespace stage::processing

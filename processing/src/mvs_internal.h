@@ -1,0 +1,35 @@
+// Multi-view stereo's steps (mvs.h), apart so that tests can run them one by one: the views' neighbours, each view's
+// depth by a coarse-to-fine sweep, the filter by agreement across views, fusion and meshing (the one file that
+// includes Open3D: tsdf_fusion.cc) and the trim to the head.
+#pragma once
+
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/common/mesh.h"
+#include "stage/processing/mvs.h"
+
+namespace stage::processing {
+
+// For every view, the indices of its neighbours (options.neighbours at most, nearest first by the angle between
+// optical axes within [min_angle_deg, max_angle_deg]).
+std::vector<std::vector<int>> ChooseNeighbours(const std::vector<MvsView>& views, const MvsOptions& options);
+
+// View `ref`'s depth from its neighbours `neighbours`, coarse to fine; `metrics` gets foreground and matched.
+DepthMap SweepDepth(const std::vector<MvsView>& views, int ref, const std::vector<int>& neighbours,
+                    const MvsOptions& options, MvsViewMetrics* metrics);
+
+// Clears the depths of view `ref` that fewer than options.min_consistent of its neighbours' maps agree with.
+// Returns the depths kept.
+int64_t KeepConsistent(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths, int ref,
+                       const std::vector<int>& neighbours, const MvsOptions& options, DepthMap* out);
+
+// The surface the depth maps agree on: fused into a truncated signed distance volume of `voxel_mm` voxels and meshed
+// where at least options.min_views views saw it (stage frame, mm).
+absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
+                                           double voxel_mm, const MvsOptions& options);
+
+// The largest connected piece of `mesh` with its vertices inside the sphere (centre, radius); unused vertices dropped.
+TriangleMesh TrimToHead(const TriangleMesh& mesh, const Eigen::Vector3d& centre, double radius_mm);
+
+}  // namespace stage::processing
