@@ -158,6 +158,9 @@ absl::Status MvsOptions::Validate() const {
   if (!(volume_radius_mm > 0)) return bad(absl::StrCat("volume_radius_mm ", volume_radius_mm, " is not positive"));
   if (!(voxel_mm >= 0) || !(voxel_px > 0)) return bad("voxel_mm must be >= 0 and voxel_px > 0");
   if (!(truncation_voxels >= 1)) return bad(absl::StrCat("truncation_voxels ", truncation_voxels, " is below 1"));
+  if (smooth_iterations < 0 || smooth_iterations > 1000) {
+    return bad(absl::StrCat("smooth_iterations ", smooth_iterations, " is not in 0..1000"));
+  }
   if (min_views < 1) return bad(absl::StrCat("min_views ", min_views, " is below 1"));
   if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
   return absl::OkStatus();
@@ -232,6 +235,7 @@ absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, con
   t0 = std::chrono::steady_clock::now();
   f.mesh_vertices_before_trim = static_cast<int64_t>(fused.positions.size());
   f.mesh = TrimToHead(fused, options.volume_centre_mm, options.volume_radius_mm);
+  SmoothMesh(options.smooth_iterations, &f.mesh);
   f.mesh_s = Seconds(t0);
   return f;
 }
@@ -247,7 +251,8 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
                          JobCameras(job, rig, calibration.has_value() ? &*calibration : nullptr));
   const int64_t cycle = static_cast<int64_t>(light.patterns.size());
   int64_t whole = -1;
-  for (const MvsCamera& c : cameras) whole = std::max(whole, (c.last_slot + 1) / cycle);
+  // A machine-vision camera records one slot of a frame's cycle: the frames are those its slots fall in.
+  for (const MvsCamera& c : cameras) whole = std::max(whole, c.last_slot < 0 ? 0 : c.last_slot / cycle + 1);
   const int64_t first = job.first_frame, last = job.last_frame < 0 ? whole : job.last_frame;
   if (first < 0 || last <= first || last > whole) {
     return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last, ") are ",
@@ -318,7 +323,8 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
                     {"voxel_mm", o.voxel_mm},
                     {"voxel_px", o.voxel_px},
                     {"truncation_voxels", o.truncation_voxels},
-                    {"min_views", o.min_views}};
+                    {"min_views", o.min_views},
+                    {"smooth_iterations", o.smooth_iterations}};
   STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"));
   return result;
 }

@@ -470,4 +470,38 @@ TriangleMesh TrimToHead(const TriangleMesh& mesh, const Eigen::Vector3d& centre,
   return out;
 }
 
+void SmoothMesh(int iterations, TriangleMesh* mesh) {
+  const size_t n = mesh->positions.size();
+  std::vector<std::vector<int32_t>> ring(n);
+  for (const auto& t : mesh->triangles) {
+    for (int k = 0; k < 3; ++k) {
+      ring[t[k]].push_back(t[(k + 1) % 3]);
+      ring[t[k]].push_back(t[(k + 2) % 3]);
+    }
+  }
+  for (auto& r : ring) {
+    std::sort(r.begin(), r.end());
+    r.erase(std::unique(r.begin(), r.end()), r.end());
+  }
+  std::vector<Eigen::Vector3f> next(n);
+  auto step = [&](float factor) {
+    for (size_t v = 0; v < n; ++v) {
+      if (ring[v].empty()) {
+        next[v] = mesh->positions[v];
+        continue;
+      }
+      Eigen::Vector3f mean = Eigen::Vector3f::Zero();
+      for (int32_t u : ring[v]) mean += mesh->positions[u];
+      mean /= static_cast<float>(ring[v].size());
+      next[v] = mesh->positions[v] + factor * (mean - mesh->positions[v]);
+    }
+    mesh->positions.swap(next);
+  };
+  // Taubin's lambda | mu: a shrinking step and an inflating one, so the surface keeps its size.
+  for (int i = 0; i < iterations; ++i) {
+    step(0.5f);
+    step(-0.53f);
+  }
+}
+
 }  // namespace stage::processing

@@ -32,4 +32,8 @@ absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, co
 // The largest connected piece of `mesh` with its vertices inside the sphere (centre, radius); unused vertices dropped.
 TriangleMesh TrimToHead(const TriangleMesh& mesh, const Eigen::Vector3d& centre, double radius_mm);
 
+// Taubin's smoothing (lambda 0.5, mu -0.53, uniform weights over each vertex's ring), `iterations` pairs of steps:
+// the fused surface's noise of a fraction of a voxel taken out without shrinking it.
+void SmoothMesh(int iterations, TriangleMesh* mesh);
+
 }  // namespace stage::processing

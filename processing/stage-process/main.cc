@@ -68,6 +68,9 @@ struct MvsCommand {
         ->capture_default_str();
     app->add_option("--volume-radius-mm", o.volume_radius_mm, "Radius of the head's volume about the stage origin")
         ->capture_default_str();
+    app->add_option("--smooth", o.smooth_iterations, "Taubin smoothing of the mesh, iterations")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 1000));
     app->add_option("--threads", o.threads, "Worker threads (default 0: one per core)")->check(CLI::NonNegativeNumber);
     app->add_flag("--json", json, "Print the result as JSON on stdout");
   }

@@ -58,6 +58,8 @@ struct MvsOptions {
   double truncation_voxels = 4;
   // A surface is meshed where at least this many views saw it. Default 2.
   int min_views = 2;
+  // Taubin smoothing of the mesh (mvs_internal.h): pairs of steps. Default 10.
+  int smooth_iterations = 10;
   // Worker threads (views at a time). 0: one per core.
   int threads = 0;
   absl::Status Validate() const;

@@ -1,0 +1,162 @@
+// Multi-view stereo on the simulated stage, the three ways a user runs it: the stage's worker (stagectl process
+// --stage mvs), the batch command (stage-process mvs) and the library call write the same bytes; the mesh is checked
+// against the ground truth with bounds for the reduced render scale; it opens in Open3D's Python module; photometric
+// stereo takes it as its geometry (--geometry mvs) and is compared with the same maps on the true geometry.
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "simulated_stage.h"
+#include "stage/common/mesh.h"
+#include "stage/processing/evaluate_mvs.h"
+#include "stage/processing/mvs.h"
+#include "test_support.h"
+
+namespace stage::testing {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+std::map<std::string, std::string> Files(const std::string& root) {
+  std::map<std::string, std::string> out;
+  for (const auto& entry : fs::recursive_directory_iterator(root)) {
+    if (!entry.is_regular_file()) continue;
+    std::ifstream in(entry.path(), std::ios::binary);
+    std::stringstream bytes;
+    bytes << in.rdbuf();
+    out[fs::relative(entry.path(), root).string()] = bytes.str();
+  }
+  return out;
+}
+
+// Photometric stereo's evaluation of `results`: the mean and median angle of the diffuse normals, degrees.
+std::pair<double, double> DiffuseNormalError(const std::string& take, const std::string& results) {
+  CommandResult eval = RunCommand(
+      {"stage-process", "evaluate", "photometric", "--take", take, "--results", results, "--json"},
+      std::chrono::seconds(120));
+  EXPECT_EQ(eval.exit.exit_code, 0) << eval.err;
+  const nlohmann::json j = nlohmann::json::parse(eval.out, nullptr, false);
+  for (const auto& m : j["maps"]) {
+    if (m["map"] == "diffuse normal") return {m["mean"].get<double>(), m["median"].get<double>()};
+  }
+  ADD_FAILURE() << "no diffuse normal in " << eval.out;
+  return {0, 0};
+}
+
+using MvsTest = SimulatedStageTest;
+
+TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
+  TempDir root;
+  // Render scale 0.125: 324 x 256 machine-vision images, a pixel ~1.1 mm on the head.
+  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.125", "--take-root", root.path()}));
+  const std::string endpoints = run_dir_.path() + "/endpoints.json";
+  CommandResult capture = RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--frames", "1", "--json"},
+                                     std::chrono::seconds(600));
+  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err;
+  const nlohmann::json take = nlohmann::json::parse(capture.out);
+  const std::string id = take["take_id"], dir = take["dir"];
+
+  // Photometric stereo cannot stand on a reconstruction that is not there yet: it says where it looked.
+  CommandResult early = RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "mvs"},
+                                   std::chrono::seconds(60));
+  EXPECT_NE(early.exit.exit_code, 0);
+  EXPECT_THAT(early.err, HasSubstr(dir + "/derived/mvs"));
+
+  CommandResult worker = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "mvs",
+                                     "--calibration", "ground_truth", "--json"},
+                                    std::chrono::seconds(600));
+  ASSERT_EQ(worker.exit.exit_code, 0) << worker.err;
+  EXPECT_EQ(nlohmann::json::parse(worker.out)["output_dir"], dir + "/derived/mvs");
+  CommandResult batch = RunCommand({"stage-process", "mvs", "--take", dir, "--calibration", "ground_truth", "--output",
+                                    dir + "/derived/mvs-batch", "--threads", "1"},
+                                   std::chrono::seconds(600));
+  ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
+  EXPECT_THAT(batch.out, HasSubstr("1 frame(s) reconstructed into " + dir + "/derived/mvs-batch"));
+  processing::MvsJob job;
+  job.take_dir = dir;
+  job.calibration = "ground_truth";
+  job.output_dir = dir + "/derived/mvs-library";
+  auto library = processing::RunMvs(job);
+  ASSERT_TRUE(library.ok()) << library.status();
+  const auto a = Files(dir + "/derived/mvs"), b = Files(dir + "/derived/mvs-batch"),
+             c = Files(dir + "/derived/mvs-library");
+  EXPECT_EQ(a.size(), 27u);  // mesh, metrics, run.json and 24 depth maps
+  EXPECT_TRUE(a.count("frame-000000/depth/mv-05.exr"));
+  for (const auto& [path, bytes] : a) {
+    if (path == "run.json") continue;
+    EXPECT_TRUE(b.count(path) && b.at(path) == bytes) << path << ": the worker's and the batch's differ";
+    EXPECT_TRUE(c.count(path) && c.at(path) == bytes) << path << ": the worker's and the library's differ";
+  }
+
+  // Against the truth. Bounds for render scale 0.125 (measured: skin RMSE 1.5 mm, median 0.7 mm, 35 % of the skin
+  // two cameras see within 1 mm and 54 % within 3 mm: grazing views at the sides are not reconstructed).
+  processing::MvsEvaluateOptions eval;
+  eval.take_dir = dir;
+  auto e = processing::EvaluateMvs(eval);
+  ASSERT_TRUE(e.ok()) << e.status();
+  const processing::MvsRegionError& skin = e->regions[0];
+  EXPECT_GT(skin.vertices, 20000);
+  EXPECT_LT(skin.rmse_mm, 2.2);
+  EXPECT_LT(skin.median_mm, 1.1);
+  EXPECT_GT(skin.completeness, 0.28);
+  EXPECT_GT(e->regions[1].vertices, 0) << "the eyes are reported apart";
+  EXPECT_LT(e->unseen_vertices, e->vertices / 50);
+  eval.within_mm = 3;
+  auto holes = processing::EvaluateMvs(eval);
+  ASSERT_TRUE(holes.ok()) << holes.status();
+  EXPECT_GT(holes->regions[0].completeness, 0.45) << "the seen skin has holes";
+  CommandResult table = RunCommand({"stage-process", "evaluate", "mvs", "--take", dir}, std::chrono::seconds(120));
+  ASSERT_EQ(table.exit.exit_code, 0) << table.err;
+  EXPECT_THAT(table.out, HasSubstr("skin"));
+
+  // The mesh in Open3D's Python module, as users open it.
+  auto mesh = ReadObj(dir + "/derived/mvs/frame-000000/mesh.obj");
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  Eigen::Vector3f lo = mesh->positions[0], hi = lo;
+  for (const auto& p : mesh->positions) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  CommandResult py = RunCommand(
+      {"/usr/bin/python3", "-c",
+       "import sys, open3d as o3d, numpy as np\n"
+       "m = o3d.io.read_triangle_mesh(sys.argv[1])\n"
+       "v = np.asarray(m.vertices)\n"
+       "print(len(v), len(m.triangles), *v.min(0), *v.max(0))\n",
+       dir + "/derived/mvs/frame-000000/mesh.obj"},
+      std::chrono::seconds(120));
+  ASSERT_EQ(py.exit.exit_code, 0) << py.err;
+  std::istringstream got(py.out);
+  size_t vertices = 0, triangles = 0;
+  float b3[6];
+  got >> vertices >> triangles >> b3[0] >> b3[1] >> b3[2] >> b3[3] >> b3[4] >> b3[5];
+  // Open3D's reader merges the odd pair of vertices that print the same at 0.1 um.
+  EXPECT_NEAR(static_cast<double>(vertices), static_cast<double>(mesh->positions.size()), 1e-3 * mesh->positions.size());
+  EXPECT_EQ(triangles, mesh->triangles.size());
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_NEAR(b3[k], lo[k], 1e-3);
+    EXPECT_NEAR(b3[3 + k], hi[k], 1e-3);
+  }
+
+  // Photometric stereo on the reconstruction, beside the same on the true geometry and on none (per-pixel solver).
+  for (const std::string geometry : {"mvs", "ground_truth", "none"}) {
+    std::vector<std::string> args = {"stage-process", "photometric", "--take", dir, "--calibration", "ground_truth",
+                                     "--output", dir + "/derived/ps-" + geometry, "--exact"};
+    if (geometry != "none") args.insert(args.end(), {"--geometry", geometry});
+    CommandResult run = RunCommand(args, std::chrono::seconds(600));
+    ASSERT_EQ(run.exit.exit_code, 0) << run.err;
+  }
+  const auto on_mvs = DiffuseNormalError(dir, dir + "/derived/ps-mvs");
+  const auto on_truth = DiffuseNormalError(dir, dir + "/derived/ps-ground_truth");
+  const auto on_none = DiffuseNormalError(dir, dir + "/derived/ps-none");
+  // Measured at this scale (mean, median degrees): on MVS 7.4, 4.1; on the truth 2.2, 1.4; on none 6.0, 5.3. The
+  // reconstruction's facets (noise of a millimetre) cut units off as shadowed where they are not: a heavy tail
+  // (docs/geometry.md).
+  EXPECT_LT(on_mvs.second, on_none.second) << "the reconstruction does not help photometric stereo";
+  EXPECT_LT(on_mvs.first, 4 * on_truth.first);
+}
+
+}  // namespace
+}  // namespace stage::testing
