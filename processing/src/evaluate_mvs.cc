@@ -44,29 +44,38 @@ Eigen::Vector3f ClosestOnTriangle(const Eigen::Vector3f& p, const Eigen::Vector3
   return a + ab * (vb * denom) + ac * (vc * denom);
 }
 
-// The region of a true triangle: the eyes are their own part; the mouth is where the procedural head's UV layout
-// puts it (sim/src/head.cc: the lips and the mouth line about theta 0, phi -0.485).
+// The region of a true triangle: the eyes are their own part; the mouth, the face and the rest of the skin are where
+// the procedural head's UV layout puts them (sim/src/head.cc: theta, the angle round the head from the front, is
+// u 2 pi - pi; phi, the elevation, v pi - pi / 2): the mouth about theta 0, phi -0.485 (lips and opening); the face
+// within 75 degrees of the front, from 40 degrees below the head's centre to 35 above (chin to forehead).
 HeadRegion RegionOf(const TriangleMesh& m, size_t t) {
   if (!m.parts.empty() && m.parts[t] == 1) return HeadRegion::kEyes;
-  if (m.uvs.size() != m.positions.size()) return HeadRegion::kSkin;
+  if (m.uvs.size() != m.positions.size()) return HeadRegion::kFace;
   const auto& tri = m.triangles[t];
   const Eigen::Vector2f uv = (m.uvs[tri[0]] + m.uvs[tri[1]] + m.uvs[tri[2]]) / 3;
   const double th = uv.x() * 2 * kPi - kPi, ph = uv.y() * kPi - kPi / 2;
-  return std::abs(th) < 0.3 && std::abs(ph + 0.485) < 0.07 ? HeadRegion::kMouth : HeadRegion::kSkin;
+  if (std::abs(th) < 0.3 && std::abs(ph + 0.485) < 0.07) return HeadRegion::kMouth;
+  const double deg = 180 / kPi;
+  return std::abs(th) * deg <= 75 && ph * deg >= -40 && ph * deg <= 35 ? HeadRegion::kFace : HeadRegion::kOtherSkin;
 }
 
 // Which true triangles at least `min_cameras` of `cameras` see: facing the camera, in its image, unoccluded.
-std::vector<char> SeenTriangles(const MeshBvh& bvh, const std::vector<CameraModel>& cameras, int min_cameras) {
+std::vector<char> SeenTriangles(const MeshBvh& bvh, const std::vector<CameraModel>& cameras, int min_cameras,
+                                double max_angle_deg) {
+  const float min_cos = static_cast<float>(std::cos(max_angle_deg * kPi / 180));
   const TriangleMesh& m = bvh.mesh();
   std::vector<char> seen(m.triangles.size(), 0);
   for (size_t t = 0; t < m.triangles.size(); ++t) {
     const auto& tri = m.triangles[t];
     const Eigen::Vector3f a = m.positions[tri[0]], b = m.positions[tri[1]], c = m.positions[tri[2]];
     const Eigen::Vector3f centre = (a + b + c) / 3;
+    const Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
     int count = 0;
     for (const CameraModel& cam : cameras) {
       // Facing or not: the head is closed, so a triangle facing away is hidden by the near side.
       const Eigen::Vector3f eye = cam.position().cast<float>();
+      // Either side (the winding is not relied on): seen at less than max_angle_deg from the surface's normal.
+      if (std::abs(normal.dot((eye - centre).normalized())) < min_cos) continue;
       Eigen::Vector2d px;
       if (!cam.Project(centre.cast<double>(), &px) || px.x() < 0 || px.y() < 0 || px.x() > cam.width() - 1 ||
           px.y() > cam.height() - 1) {
@@ -114,9 +123,9 @@ struct RegionSums {
 
 // One frame's sums per region.
 void EvaluateFrame(const TriangleMesh& truth, const TriangleMesh& recon, const std::vector<CameraModel>& cameras,
-                   const MvsEvaluateOptions& o, RegionSums sums[3], MvsEvaluation* e) {
+                   const MvsEvaluateOptions& o, RegionSums sums[kHeadRegions], MvsEvaluation* e) {
   MeshBvh bvh(truth);
-  const std::vector<char> seen = SeenTriangles(bvh, cameras, o.min_cameras);
+  const std::vector<char> seen = SeenTriangles(bvh, cameras, o.min_cameras, o.max_view_angle_deg);
   const SurfaceDistance to_truth(truth);
   for (const Eigen::Vector3f& v : recon.positions) {
     int32_t t = -1;
@@ -187,12 +196,14 @@ float SurfaceDistance::Distance(const Eigen::Vector3f& p, int32_t* triangle) con
 
 const char* HeadRegionName(HeadRegion r) {
   switch (r) {
-    case HeadRegion::kSkin:
-      return "skin";
+    case HeadRegion::kFace:
+      return "face";
     case HeadRegion::kEyes:
       return "eyes";
     case HeadRegion::kMouth:
       return "mouth";
+    case HeadRegion::kOtherSkin:
+      return "other skin";
   }
   return "?";
 }
@@ -220,7 +231,7 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
   }
   MvsEvaluation e;
   e.within_mm = o.within_mm;
-  RegionSums sums[3];
+  RegionSums sums[kHeadRegions];
   std::vector<double> depth_differences;
   for (int64_t frame = o.first_frame; o.last_frame < 0 || frame < o.last_frame; ++frame) {
     const std::string recon_path = absl::StrFormat("%s/frame-%06d/mesh.obj", results, frame);
@@ -242,7 +253,7 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
     for (double& d : depth_differences) d = std::abs(d);
     e.depth_median_abs_mm = Median(depth_differences);
   }
-  for (int r = 0; r < 3; ++r) {
+  for (int r = 0; r < kHeadRegions; ++r) {
     MvsRegionError out;
     out.region = static_cast<HeadRegion>(r);
     std::vector<double>& d = sums[r].distances;
@@ -266,10 +277,10 @@ std::string FormatMvsEvaluation(const MvsEvaluation& e) {
   std::string out = absl::StrFormat(
       "multi-view stereo against the truth: %d frame(s), %d vertices (%d nearest to surface no two cameras see)\n",
       e.frames, e.vertices, e.unseen_vertices);
-  absl::StrAppendFormat(&out, "%-8s %9s %9s %10s %8s %12s %14s\n", "region", "vertices", "RMSE mm", "median mm",
+  absl::StrAppendFormat(&out, "%-10s %9s %9s %10s %8s %12s %14s\n", "region", "vertices", "RMSE mm", "median mm",
                         "p95 mm", "seen mm^2", absl::StrFormat("within %.2g mm", e.within_mm));
   for (const MvsRegionError& r : e.regions) {
-    absl::StrAppendFormat(&out, "%-8s %9d %9.3f %10.3f %8.3f %12.0f %13.1f%%\n", HeadRegionName(r.region), r.vertices,
+    absl::StrAppendFormat(&out, "%-10s %9d %9.3f %10.3f %8.3f %12.0f %13.1f%%\n", HeadRegionName(r.region), r.vertices,
                           r.rmse_mm, r.median_mm, r.p95_mm, r.seen_area_mm2, 100 * r.completeness);
   }
   absl::StrAppendFormat(&out,

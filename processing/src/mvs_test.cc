@@ -3,6 +3,8 @@
 // nothing for stereo to match, as on a real stage, where test targets are speckle-painted); the fused mesh must lie on
 // the closed-form surface. Also: options are validated naming the field, neighbours are the nearest views, a view
 // without neighbours is refused by name, and the mesh trim keeps the largest piece inside the volume.
+#include "stage/processing/mvs.h"
+
 #include <Eigen/Geometry>
 #include <cmath>
 
@@ -10,7 +12,6 @@
 #include "gtest/gtest.h"
 #include "mvs_internal.h"
 #include "stage/common/rig.h"
-#include "stage/processing/mvs.h"
 
 namespace stage::processing {
 namespace {
@@ -29,8 +30,8 @@ float Speckle(const Eigen::Vector3d& p) {
 }
 
 // The subject: where the ray from `o` along unit `d` meets it, and its normal there.
-using Intersect = std::function<bool(const Eigen::Vector3d& o, const Eigen::Vector3d& d, double* t,
-                                     Eigen::Vector3d* normal)>;
+using Intersect =
+    std::function<bool(const Eigen::Vector3d& o, const Eigen::Vector3d& d, double* t, Eigen::Vector3d* normal)>;
 
 // Every machine-vision camera of the shipped rig at `scale`, seeing `subject` evenly lit (grey = its texture), as
 // undistorted views.
@@ -116,7 +117,8 @@ TEST(MvsTest, ASphereIsReconstructedOnItsClosedForm) {
 
 TEST(MvsTest, APlaneIsReconstructedOnItsClosedForm) {
   // A plane through (0, 10, 20) facing the front cameras, tilted 20 degrees about x; a 260 mm disc of it.
-  const Eigen::Vector3d normal = Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()) * Eigen::Vector3d::UnitZ();
+  const Eigen::Vector3d normal =
+      Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()) * Eigen::Vector3d::UnitZ();
   const Eigen::Vector3d point(0, 10, 20);
   const Intersect plane = [&](const Eigen::Vector3d& o, const Eigen::Vector3d& d, double* t, Eigen::Vector3d* n) {
     const double den = normal.dot(d);
@@ -176,8 +178,8 @@ TEST(MvsTest, OptionsAreCheckedByNameAndViewsWithoutNeighboursAreRefused) {
 TEST(MvsTest, TheTrimKeepsTheLargestPieceInsideTheVolume) {
   TriangleMesh m;
   // A big square (2 triangles) inside, a small triangle inside but apart, and one far outside.
-  m.positions = {{0, 0, 0}, {50, 0, 0}, {50, 50, 0}, {0, 50, 0}, {-80, 0, 0}, {-79, 0, 0}, {-80, 1, 0},
-                 {500, 0, 0}, {501, 0, 0}, {500, 1, 0}};
+  m.positions = {{0, 0, 0},   {50, 0, 0},  {50, 50, 0}, {0, 50, 0},  {-80, 0, 0},
+                 {-79, 0, 0}, {-80, 1, 0}, {500, 0, 0}, {501, 0, 0}, {500, 1, 0}};
   m.triangles = {{0, 1, 2}, {0, 2, 3}, {4, 5, 6}, {7, 8, 9}};
   const TriangleMesh t = TrimToHead(m, Eigen::Vector3d::Zero(), 200);
   EXPECT_EQ(t.triangles.size(), 2u);

@@ -212,6 +212,10 @@ int main(int argc, char** argv) {
   eval_mvs_app->add_option("--truth", eval_mvs.truth_dir, "Ground truth (default: TAKE/ground_truth)");
   eval_mvs_app->add_option("--within-mm", eval_mvs.within_mm, "Completeness: true surface within this, mm")
       ->capture_default_str();
+  eval_mvs_app
+      ->add_option("--max-view-angle", eval_mvs.max_view_angle_deg,
+                   "The true surface counts where 2 cameras see it at less than this from its normal, degrees")
+      ->capture_default_str();
   eval_mvs_app->add_flag("--json", eval_mvs_json, "Print the table as JSON on stdout");
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;

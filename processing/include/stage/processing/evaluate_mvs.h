@@ -1,7 +1,8 @@
 // Multi-view stereo's meshes against the simulator's ground truth (docs/geometry.md#evaluation): per frame, the
 // distance of every reconstructed vertex to the true surface (accuracy: RMSE, median, 95th percentile) and the share
 // of the true surface within 1 mm of the reconstruction (completeness), over the surface at least two machine-vision
-// cameras see, with the skin, the eyes and the mouth apart.
+// cameras see at less than 60 degrees from its normal, with the face, the eyes, the mouth and the rest of the skin
+// apart.
 #pragma once
 
 #include <cstdint>
@@ -30,12 +31,14 @@ class SurfaceDistance {
   Index* index_;
 };
 
-// Where on the simulated head a true triangle is.
-enum class HeadRegion { kSkin = 0, kEyes = 1, kMouth = 2 };
+// Where on the simulated head a true triangle is: the face's skin (chin to forehead, the front 150 degrees), the eyes,
+// the mouth (lips and opening), and the rest of the skin (scalp, neck, the back of the head).
+enum class HeadRegion { kFace = 0, kEyes = 1, kMouth = 2, kOtherSkin = 3 };
+inline constexpr int kHeadRegions = 4;
 const char* HeadRegionName(HeadRegion r);
 
 struct MvsRegionError {
-  HeadRegion region = HeadRegion::kSkin;
+  HeadRegion region = HeadRegion::kFace;
   int64_t vertices = 0;  // reconstructed vertices nearest to this region's seen surface
   double rmse_mm = 0, median_mm = 0, p95_mm = 0;
   double seen_area_mm2 = 0;  // the true surface of the region at least two cameras see
@@ -49,7 +52,10 @@ struct MvsEvaluateOptions {
   std::string results_dir;  // empty: <take>/derived/mvs
   std::string truth_dir;    // empty: <take>/ground_truth (its cameras.json places the cameras that see)
   double within_mm = 1;     // completeness: true surface within this of the reconstruction
-  int min_cameras = 2;      // the true surface counts where this many machine-vision cameras see it
+  // The true surface counts where this many machine-vision cameras see it (in their image, unoccluded), each at less
+  // than max_view_angle_deg from its normal (grazing views show stereo nothing to match). Defaults 2 and 60.
+  int min_cameras = 2;
+  double max_view_angle_deg = 60;
   absl::Status Validate() const;
 };
 
@@ -57,7 +63,7 @@ struct MvsEvaluation {
   int64_t frames = 0;
   int64_t vertices = 0, unseen_vertices = 0;  // reconstructed; nearest to true surface no two cameras see
   double within_mm = 1;
-  std::vector<MvsRegionError> regions;  // skin, eyes, mouth
+  std::vector<MvsRegionError> regions;  // by HeadRegion
   // The views' depth maps against the truth's (at the recorded size), where both have one: signed and absolute.
   int64_t depth_pixels = 0;
   double depth_median_mm = 0, depth_median_abs_mm = 0;
