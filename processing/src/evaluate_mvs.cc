@@ -7,6 +7,8 @@
 #include <filesystem>
 #include <nanoflann.hpp>
 #include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -271,6 +273,45 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
     e.regions.push_back(out);
   }
   return e;
+}
+
+absl::Status WriteMvsPictures(const std::string& take_dir, const std::string& results_dir, int64_t frame,
+                              const std::string& camera, const std::string& out_prefix, double error_range_mm) {
+  const std::string results = results_dir.empty() ? take_dir + "/derived/mvs" : results_dir;
+  STAGE_ASSIGN_OR_RETURN(TriangleMesh recon, ReadObj(absl::StrFormat("%s/frame-%06d/mesh.obj", results, frame)));
+  STAGE_ASSIGN_OR_RETURN(const TriangleMesh truth,
+                         ReadObj(absl::StrFormat("%s/ground_truth/frame-%06d/mesh.obj", take_dir, frame)));
+  STAGE_ASSIGN_OR_RETURN(const CameraCalibration placed,
+                         ReadCameraCalibration(take_dir + "/ground_truth/cameras.json"));
+  const CameraModel* sensor = placed.Find(camera);
+  if (sensor == nullptr) return absl::NotFoundError(absl::StrCat("no camera \"", camera, "\" in the ground truth"));
+  // The camera at a picture's size: 1024 pixels wide at most.
+  const CameraModel cam = sensor->Scaled(std::min(1.0, 1024.0 / sensor->width()));
+  const MeshBvh bvh(std::move(recon));
+  const SurfaceDistance to_truth(truth);
+  const std::vector<Eigen::Vector3f> rays = cam.PixelRays();
+  const Eigen::Vector3f origin = cam.position().cast<float>();
+  cv::Mat shaded(cam.height(), cam.width(), CV_8UC3, cv::Scalar(40, 40, 40)), error = shaded.clone();
+  for (int y = 0; y < cam.height(); ++y) {
+    for (int x = 0; x < cam.width(); ++x) {
+      const Eigen::Vector3f& d = rays[static_cast<size_t>(y) * cam.width() + x];
+      MeshHit hit;
+      if (!bvh.Nearest(origin, d, INFINITY, &hit)) continue;
+      const auto& t = bvh.mesh().triangles[static_cast<size_t>(hit.triangle)];
+      const auto& p = bvh.mesh().positions;
+      const Eigen::Vector3f n = (p[t[1]] - p[t[0]]).cross(p[t[2]] - p[t[0]]).normalized();
+      const auto v = static_cast<uint8_t>(std::clamp(40 + 215 * std::abs(n.dot(d)), 0.0f, 255.0f));
+      shaded.at<cv::Vec3b>(y, x) = {v, v, v};
+      const double e = to_truth.Distance(origin + hit.t * d);
+      cv::Mat one(1, 1, CV_8U, cv::Scalar(std::clamp(255 * e / error_range_mm, 0.0, 255.0))), colour;
+      cv::applyColorMap(one, colour, cv::COLORMAP_TURBO);
+      error.at<cv::Vec3b>(y, x) = colour.at<cv::Vec3b>(0, 0);
+    }
+  }
+  if (!cv::imwrite(out_prefix + "-mesh.png", shaded) || !cv::imwrite(out_prefix + "-error.png", error)) {
+    return absl::UnavailableError(absl::StrCat(out_prefix, "-{mesh,error}.png: cannot write"));
+  }
+  return absl::OkStatus();
 }
 
 std::string FormatMvsEvaluation(const MvsEvaluation& e) {

@@ -315,6 +315,7 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
                     {"coarse_width", o.coarse_width},
                     {"refine_steps", o.refine_steps},
                     {"min_score", o.min_score},
+                    {"keep_coarser", o.keep_coarser},
                     {"min_signal", o.min_signal},
                     {"min_consistent", o.min_consistent},
                     {"consistency_px", o.consistency_px},

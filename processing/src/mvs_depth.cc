@@ -381,6 +381,13 @@ DepthMap SweepDepth(const std::vector<MvsView>& views, int ref, const std::vecto
     // Coarser levels keep weaker matches: the finer levels look again.
     const bool finest = l == 0;
     depth = SweepLevel(rl, rs, nls, warps, h, options, finest ? options.min_score : 0.5 * options.min_score, !finest);
+    if (options.keep_coarser && l < levels - 1) {
+      // Where this level finds nothing (too little texture in its window, or no score high enough), the coarser
+      // level's depth stands: its windows cover more of the surface. The agreement across views judges it.
+      for (size_t i = 0; i < depth.depth.size(); ++i) {
+        if (depth.depth[i] <= 0 && h.step[i] > 0) depth.depth[i] = h.z0[i];
+      }
+    }
     if (finest && metrics != nullptr) {
       metrics->foreground = cv::countNonZero(rs.foreground);
       metrics->matched = std::count_if(depth.depth.begin(), depth.depth.end(), [](float z) { return z > 0; });

@@ -64,6 +64,13 @@ struct MvsCommand {
         ->check(CLI::Range(1, 16));
     app->add_option("--window", o.window, "Correlation window, pixels (odd)")->capture_default_str();
     app->add_option("--min-score", o.min_score, "Correlation a depth must reach")->capture_default_str();
+    app->add_flag("--keep-coarser,!--no-keep-coarser", o.keep_coarser,
+                  "Where a finer level finds no depth, keep the coarser level's (fewer holes, more noise)");
+    app->add_option("--min-views", o.min_views, "Views a surface needs to be meshed")
+        ->capture_default_str()
+        ->check(CLI::Range(1, 64));
+    app->add_option("--truncation-voxels", o.truncation_voxels, "Truncation of the signed distance, voxels")
+        ->capture_default_str();
     app->add_option("--voxel-mm", o.voxel_mm, "Voxel of the fused volume, mm (0: a pixel's footprint)")
         ->capture_default_str();
     app->add_option("--volume-radius-mm", o.volume_radius_mm, "Radius of the head's volume about the stage origin")
@@ -216,6 +223,11 @@ int main(int argc, char** argv) {
       ->add_option("--max-view-angle", eval_mvs.max_view_angle_deg,
                    "The true surface counts where 2 cameras see it at less than this from its normal, degrees")
       ->capture_default_str();
+  std::string eval_mvs_pictures, eval_mvs_camera = "mv-05";
+  eval_mvs_app->add_option("--pictures", eval_mvs_pictures,
+                           "Also write PREFIX-mesh.png and PREFIX-error.png: the first frame's mesh as --camera sees "
+                           "it, shaded, and its distance to the true surface (0-1 mm, colour map turbo)");
+  eval_mvs_app->add_option("--camera", eval_mvs_camera, "The camera of --pictures")->capture_default_str();
   eval_mvs_app->add_flag("--json", eval_mvs_json, "Print the table as JSON on stdout");
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
@@ -266,6 +278,13 @@ int main(int argc, char** argv) {
     }
     auto result = stage::processing::EvaluateMvs(eval_mvs);
     if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    if (!eval_mvs_pictures.empty()) {
+      if (auto s = stage::processing::WriteMvsPictures(eval_mvs.take_dir, eval_mvs.results_dir, eval_mvs.first_frame,
+                                                       eval_mvs_camera, eval_mvs_pictures);
+          !s.ok()) {
+        return stage::ReportFatal(kProgram, s);
+      }
+    }
     std::cout << (eval_mvs_json ? stage::processing::MvsEvaluationJson(*result) + "\n"
                                 : stage::processing::FormatMvsEvaluation(*result));
     return 0;

@@ -70,6 +70,12 @@ struct MvsEvaluation {
 };
 
 absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& options);
+
+// Pictures of a frame's mesh as `camera` (placed as the truth says) sees it, at most 1024 pixels wide:
+// <out_prefix>-mesh.png (shaded by its facets' angle to the camera) and <out_prefix>-error.png (each visible point's
+// distance to the true surface, colour map turbo from 0 to error_range_mm; grey: no mesh).
+absl::Status WriteMvsPictures(const std::string& take_dir, const std::string& results_dir, int64_t frame,
+                              const std::string& camera, const std::string& out_prefix, double error_range_mm = 1);
 std::string FormatMvsEvaluation(const MvsEvaluation& e);
 std::string MvsEvaluationJson(const MvsEvaluation& e);
 

@@ -40,6 +40,10 @@ struct MvsOptions {
   int refine_steps = 3;
   // A depth is kept where its score reaches this. Default 0.5.
   double min_score = 0.5;
+  // Where a finer level finds no depth (too little texture in its window, or no score high enough), keep the coarser
+  // level's (its windows cover more of the surface); the agreement across views then judges it. Default false:
+  // the holes it fills come back noisier (docs/geometry.md).
+  bool keep_coarser = false;
   // Pixels darker than this fraction of the image's 99th percentile are background. Default 0.04.
   double min_signal = 0.04;
   // A depth is kept where at least `min_consistent` neighbours' depth maps put the same point within consistency_px
