@@ -5,8 +5,6 @@
 #include "stage/processing/mvs.h"
 
 #include <filesystem>
-#include <fstream>
-#include <map>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
@@ -22,18 +20,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
-
-std::map<std::string, std::string> Files(const std::string& root) {
-  std::map<std::string, std::string> out;
-  for (const auto& entry : fs::recursive_directory_iterator(root)) {
-    if (!entry.is_regular_file()) continue;
-    std::ifstream in(entry.path(), std::ios::binary);
-    std::stringstream bytes;
-    bytes << in.rdbuf();
-    out[fs::relative(entry.path(), root).string()] = bytes.str();
-  }
-  return out;
-}
 
 // Photometric stereo's evaluation of `results`: the mean and median angle of the diffuse normals, degrees.
 std::pair<double, double> DiffuseNormalError(const std::string& take, const std::string& results) {
@@ -84,8 +70,8 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
   job.output_dir = dir + "/derived/mvs-library";
   auto library = processing::RunMvs(job);
   ASSERT_TRUE(library.ok()) << library.status();
-  const auto a = Files(dir + "/derived/mvs"), b = Files(dir + "/derived/mvs-batch"),
-             c = Files(dir + "/derived/mvs-library");
+  const auto a = FilesUnder(dir + "/derived/mvs"), b = FilesUnder(dir + "/derived/mvs-batch"),
+             c = FilesUnder(dir + "/derived/mvs-library");
   EXPECT_EQ(a.size(), 27u);  // mesh, metrics, run.json and 24 depth maps
   EXPECT_TRUE(a.count("frame-000000/depth/mv-05.exr"));
   for (const auto& [path, bytes] : a) {

@@ -3,8 +3,6 @@
 // write the same bytes for the same frame; the evaluation reads them against the take's ground truth; bad requests
 // are refused with the take, frame or path named.
 #include <filesystem>
-#include <fstream>
-#include <map>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
@@ -19,19 +17,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
-
-// Every file under `root`, by its path relative to it, with its bytes.
-std::map<std::string, std::string> Files(const std::string& root) {
-  std::map<std::string, std::string> out;
-  for (const auto& entry : fs::recursive_directory_iterator(root)) {
-    if (!entry.is_regular_file()) continue;
-    std::ifstream in(entry.path(), std::ios::binary);
-    std::stringstream bytes;
-    bytes << in.rdbuf();
-    out[fs::relative(entry.path(), root).string()] = bytes.str();
-  }
-  return out;
-}
 
 using ProcessingTest = SimulatedStageTest;
 
@@ -74,8 +59,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   ASSERT_TRUE(library.ok()) << library.status();
   EXPECT_EQ(seen, (std::vector<int64_t>{0, 1, 2, 3}));
 
-  const auto a = Files(dir + "/derived/photometric"), b = Files(dir + "/derived/batch"),
-             c = Files(dir + "/derived/library");
+  const auto a = FilesUnder(dir + "/derived/photometric"), b = FilesUnder(dir + "/derived/batch"),
+             c = FilesUnder(dir + "/derived/library");
   ASSERT_EQ(a.size(), 1 + 3 * 17u);  // run.json; per camera 8 EXR maps, flags, 6 previews, contact sheet, metrics
   for (const std::string camera : {"hs-1", "hs-2", "hs-3"}) {
     for (const std::string file : {"diffuse_normal_world.exr", "diffuse_normal_camera.exr",
@@ -101,7 +86,7 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   fast_job.output_dir = dir + "/derived/fast-library";
   fast_job.options.threads = 1;
   ASSERT_TRUE(processing::RunPhotometric(fast_job).ok());
-  const auto fa = Files(dir + "/derived/fast-batch"), fb = Files(dir + "/derived/fast-library");
+  const auto fa = FilesUnder(dir + "/derived/fast-batch"), fb = FilesUnder(dir + "/derived/fast-library");
   ASSERT_EQ(fa.size(), a.size());
   for (const auto& [name, bytes] : fa) {
     ASSERT_EQ(fb.count(name), 1u) << name;

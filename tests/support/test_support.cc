@@ -19,6 +19,15 @@ std::string BinDir() {
 
 std::string ReadFile(const std::string& path) { return ReadFileToString(path).value_or(""); }
 
+std::map<std::string, std::string> FilesUnder(const std::string& root) {
+  std::map<std::string, std::string> out;
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(root)) {
+    if (!entry.is_regular_file()) continue;
+    out[std::filesystem::relative(entry.path(), root).string()] = ReadFile(entry.path().string());
+  }
+  return out;
+}
+
 TempDir::TempDir() {
   char tmpl[] = "/tmp/fastage-test.XXXXXX";
   path_ = mkdtemp(tmpl);

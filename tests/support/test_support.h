@@ -3,6 +3,7 @@
 #pragma once
 
 #include <chrono>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -38,6 +39,9 @@ class TempDir {
 };
 
 std::string ReadFile(const std::string& path);
+
+// Every file under `root`, by its path relative to it, with its bytes (to compare what two runs wrote).
+std::map<std::string, std::string> FilesUnder(const std::string& root);
 
 // A pseudo-terminal pair made by socat (a serial line for RTU tests): `board()` and `host()` are its two ends, links in
 // `dir`. Check ok() (socat started and both ends appeared); socat is ended on destruction.
