@@ -117,9 +117,8 @@ std::string FrameMetrics(const MvsFrame& f, int64_t frame, const std::vector<std
   return j.dump(2) + "\n";
 }
 
-absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::vector<MvsCamera>& cameras,
-                        const std::vector<CameraModel>& processed, int64_t frame, const std::string& take,
-                        const std::vector<std::string>& missing) {
+absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::vector<CameraModel>& processed,
+                        int64_t frame, const std::string& take, const std::vector<std::string>& missing) {
   std::error_code ec;
   fs::create_directories(dir + "/depth", ec);
   if (ec) return absl::InternalError(absl::StrCat(dir, "/depth: cannot create: ", ec.message()));
@@ -127,11 +126,68 @@ absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::ve
     STAGE_RETURN_IF_ERROR(
         WriteExr(dir + "/depth/" + f.views[i].id + ".exr", DepthAsRecorded(f.depths[i], processed[i])));
   }
-  (void)cameras;
   STAGE_RETURN_IF_ERROR(
       WriteObj(dir + "/mesh.obj", f.mesh,
                absl::StrFormat("FaStage multi-view stereo: %s frame %d, stage frame, mm", take, frame)));
   return WriteFileAtomically(dir + "/metrics.json", FrameMetrics(f, frame, missing));
+}
+
+// A frame's views as read: the views, each one's camera at the processing size, and the cameras without a frame.
+struct FrameViews {
+  std::vector<MvsView> views;
+  std::vector<CameraModel> processed;
+  std::vector<std::string> missing;
+};
+
+absl::Status ReadFrameViews(const std::vector<MvsCamera>& cameras, const LightModel& light, int64_t frame, double scale,
+                            FrameViews* out) {
+  for (const MvsCamera& c : cameras) {
+    bool found = false;
+    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
+        c.path, frame, frame + 1, light, c.black_level_dn, [&](int64_t, const Image& grey) -> absl::Status {
+          STAGE_ASSIGN_OR_RETURN(MvsView v, MakeMvsView(c.id, grey, c.model, scale));
+          out->processed.push_back(c.model.Resized(v.width, v.height));
+          out->views.push_back(std::move(v));
+          found = true;
+          return absl::OkStatus();
+        }));
+    if (!found) out->missing.push_back(c.id);
+  }
+  return absl::OkStatus();
+}
+
+// What ran, for whoever reads the results (no times or hosts: the same job writes the same bytes).
+std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, int64_t last,
+                    const std::vector<MvsCamera>& cameras, const std::optional<CameraCalibration>& calibration) {
+  const MvsOptions& o = job.options;
+  nlohmann::ordered_json run;
+  run["stage"] = "mvs";
+  run["take"] = take;
+  run["frames"] = {first, last};
+  std::vector<std::string> ids;
+  for (const MvsCamera& c : cameras) ids.push_back(c.id);
+  run["cameras"] = ids;
+  run["cameras_placed_by"] = calibration.has_value() ? calibration->source : "the rig's nominal models (uncalibrated)";
+  run["options"] = {{"image_scale", o.image_scale},
+                    {"neighbours", o.neighbours},
+                    {"best_of", o.best_of},
+                    {"angles_deg", {o.min_angle_deg, o.max_angle_deg}},
+                    {"window", o.window},
+                    {"coarse_width", o.coarse_width},
+                    {"refine_steps", o.refine_steps},
+                    {"min_score", o.min_score},
+                    {"keep_coarser", o.keep_coarser},
+                    {"min_signal", o.min_signal},
+                    {"min_consistent", o.min_consistent},
+                    {"consistency_px", o.consistency_px},
+                    {"volume_centre_mm", {o.volume_centre_mm.x(), o.volume_centre_mm.y(), o.volume_centre_mm.z()}},
+                    {"volume_radius_mm", o.volume_radius_mm},
+                    {"voxel_mm", o.voxel_mm},
+                    {"voxel_px", o.voxel_px},
+                    {"truncation_voxels", o.truncation_voxels},
+                    {"min_views", o.min_views},
+                    {"smooth_iterations", o.smooth_iterations}};
+  return run.dump(2) + "\n";
 }
 
 }  // namespace
@@ -270,63 +326,23 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
       return absl::CancelledError(
           absl::StrCat("multi-view stereo on ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
     }
-    std::vector<MvsView> views;
-    std::vector<CameraModel> processed;
-    std::vector<std::string> missing;
-    for (const MvsCamera& c : cameras) {
-      bool found = false;
-      STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
-          c.path, frame, frame + 1, light, c.black_level_dn, [&](int64_t, const Image& grey) -> absl::Status {
-            STAGE_ASSIGN_OR_RETURN(MvsView v, MakeMvsView(c.id, grey, c.model, job.options.image_scale));
-            processed.push_back(c.model.Resized(v.width, v.height));
-            views.push_back(std::move(v));
-            found = true;
-            return absl::OkStatus();
-          }));
-      if (!found) missing.push_back(c.id);
-    }
-    auto made = ReconstructFrame(views, job.options);
+    FrameViews in;
+    STAGE_RETURN_IF_ERROR(ReadFrameViews(cameras, light, frame, job.options.image_scale, &in));
+    auto made = ReconstructFrame(in.views, job.options);
     if (!made.ok()) {
       return absl::Status(made.status().code(),
                           absl::StrCat(job.take_dir, ": frame ", frame, ": ", made.status().message()));
     }
     const std::string dir = absl::StrFormat("%s/frame-%06d", result.output_dir, frame);
-    STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, cameras, processed, frame, take, missing));
+    STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, in.processed, frame, take, in.missing));
     ++result.units;
     p.done = result.units;
     p.message = absl::StrFormat("frame %d: %d views, mesh of %d vertices (depth %.1f s, fusion %.1f s)", frame,
-                                views.size(), made->mesh.positions.size(), made->depth_s, made->fusion_s);
+                                in.views.size(), made->mesh.positions.size(), made->depth_s, made->fusion_s);
     if (progress) progress(p);
   }
-  const MvsOptions& o = job.options;
-  nlohmann::ordered_json run;
-  run["stage"] = "mvs";
-  run["take"] = take;
-  run["frames"] = {first, last};
-  std::vector<std::string> ids;
-  for (const MvsCamera& c : cameras) ids.push_back(c.id);
-  run["cameras"] = ids;
-  run["cameras_placed_by"] = calibration.has_value() ? calibration->source : "the rig's nominal models (uncalibrated)";
-  run["options"] = {{"image_scale", o.image_scale},
-                    {"neighbours", o.neighbours},
-                    {"best_of", o.best_of},
-                    {"angles_deg", {o.min_angle_deg, o.max_angle_deg}},
-                    {"window", o.window},
-                    {"coarse_width", o.coarse_width},
-                    {"refine_steps", o.refine_steps},
-                    {"min_score", o.min_score},
-                    {"keep_coarser", o.keep_coarser},
-                    {"min_signal", o.min_signal},
-                    {"min_consistent", o.min_consistent},
-                    {"consistency_px", o.consistency_px},
-                    {"volume_centre_mm", {o.volume_centre_mm.x(), o.volume_centre_mm.y(), o.volume_centre_mm.z()}},
-                    {"volume_radius_mm", o.volume_radius_mm},
-                    {"voxel_mm", o.voxel_mm},
-                    {"voxel_px", o.voxel_px},
-                    {"truncation_voxels", o.truncation_voxels},
-                    {"min_views", o.min_views},
-                    {"smooth_iterations", o.smooth_iterations}};
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/run.json", RunJson(job, take, first, last, cameras, calibration)));
   return result;
 }
 
