@@ -129,9 +129,9 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_EQ(unknown.exit.exit_code, 2);
   EXPECT_THAT(unknown.err, HasSubstr("no take \"nope\""));
   CommandResult stage_name =
-      RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "mvs"}, std::chrono::seconds(30));
+      RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "uv-maps"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
-  EXPECT_THAT(stage_name.err, HasSubstr("--stage: \"mvs\" is not a stage (photometric, calibration)"));
+  EXPECT_THAT(stage_name.err, HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs)"));
   CommandResult no_take = RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"},
                                      std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);
