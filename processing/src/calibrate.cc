@@ -41,9 +41,8 @@ struct CameraInput {
 std::vector<uint8_t> ToEightBit(const Image& grey) {
   std::vector<float> sample;
   for (size_t i = 0; i < grey.pixels.size(); i += 7) sample.push_back(grey.pixels[i]);
-  const size_t k = sample.size() * 99 / 100;
-  std::nth_element(sample.begin(), sample.begin() + static_cast<std::ptrdiff_t>(k), sample.end());
-  const float scale = sample.empty() || !(sample[k] > 0) ? 1.0f : 230.0f / sample[k];
+  const float p99 = static_cast<float>(Quantile(std::move(sample), 99, 100));
+  const float scale = !(p99 > 0) ? 1.0f : 230.0f / p99;
   std::vector<uint8_t> out(grey.pixels.size());
   for (size_t i = 0; i < out.size(); ++i) {
     out[i] = static_cast<uint8_t>(std::clamp(grey.pixels[i] * scale + 0.5f, 0.0f, 255.0f));

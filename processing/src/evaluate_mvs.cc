@@ -61,7 +61,9 @@ HeadRegion RegionOf(const TriangleMesh& m, size_t t) {
   return std::abs(th) * deg <= 75 && ph * deg >= -40 && ph * deg <= 35 ? HeadRegion::kFace : HeadRegion::kOtherSkin;
 }
 
-// Which true triangles at least `min_cameras` of `cameras` see: facing the camera, in its image, unoccluded.
+// Which true triangles at least `min_cameras` of `cameras` see: at less than max_angle_deg from the triangle's normal
+// (either side: the winding is not relied on; the head is closed, so a triangle facing away is hidden by the near
+// side), in the camera's image, unoccluded.
 std::vector<char> SeenTriangles(const MeshBvh& bvh, const std::vector<CameraModel>& cameras, int min_cameras,
                                 double max_angle_deg) {
   const float min_cos = static_cast<float>(std::cos(max_angle_deg * kPi / 180));
@@ -74,9 +76,7 @@ std::vector<char> SeenTriangles(const MeshBvh& bvh, const std::vector<CameraMode
     const Eigen::Vector3f normal = (b - a).cross(c - a).normalized();
     int count = 0;
     for (const CameraModel& cam : cameras) {
-      // Facing or not: the head is closed, so a triangle facing away is hidden by the near side.
       const Eigen::Vector3f eye = cam.position().cast<float>();
-      // Either side (the winding is not relied on): seen at less than max_angle_deg from the surface's normal.
       if (std::abs(normal.dot((eye - centre).normalized())) < min_cos) continue;
       Eigen::Vector2d px;
       if (!cam.Project(centre.cast<double>(), &px) || px.x() < 0 || px.y() < 0 || px.x() > cam.width() - 1 ||
@@ -110,7 +110,7 @@ absl::Status CompareDepthMaps(const std::string& results_frame, const std::strin
                                                         ", the truth's ", want.width, "x", want.height,
                                                         " (compare at --image-scale 1)"));
     }
-    for (size_t i = 0; i < got.pixels.size(); ++i) {
+    for (size_t i = 0; i < static_cast<size_t>(got.width) * got.height; ++i) {
       const float g = got.pixels[i * got.channels], w = want.pixels[i * want.channels];
       if (g > 0 && w > 0) differences->push_back(g - w);
     }
@@ -264,9 +264,8 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
       double sq = 0;
       for (double x : d) sq += x * x;
       out.rmse_mm = std::sqrt(sq / static_cast<double>(d.size()));
-      std::sort(d.begin(), d.end());
-      out.median_mm = d[d.size() / 2];
-      out.p95_mm = d[std::min(d.size() - 1, d.size() * 95 / 100)];
+      out.median_mm = Median(d);
+      out.p95_mm = Quantile(d, 95, 100);
     }
     out.seen_area_mm2 = sums[r].seen_area;
     out.completeness = sums[r].seen_area > 0 ? sums[r].within_area / sums[r].seen_area : 0;

@@ -15,6 +15,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "mvs_internal.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -325,15 +326,6 @@ DepthMap SweepLevel(const Level& rl, const RefStats& rs, const std::vector<const
   return out;
 }
 
-// The 99th percentile of an image's values (its bright end: the signal a threshold is relative to).
-float Percentile99(const std::vector<float>& v) {
-  if (v.empty()) return 0;
-  std::vector<float> s = v;
-  auto nth = s.begin() + static_cast<std::ptrdiff_t>(s.size() * 99 / 100);
-  std::nth_element(s.begin(), nth, s.end());
-  return *nth;
-}
-
 }  // namespace
 
 std::vector<std::vector<int>> ChooseNeighbours(const std::vector<MvsView>& views, const MvsOptions& options) {
@@ -363,7 +355,7 @@ DepthMap SweepDepth(const std::vector<MvsView>& views, int ref, const std::vecto
   const std::vector<Level> rp = BuildPyramid(rv, levels);
   std::vector<std::vector<Level>> np;
   for (int n : neighbours) np.push_back(BuildPyramid(views[n], levels));
-  const float min_signal = static_cast<float>(options.min_signal) * Percentile99(rv.grey);
+  const float min_signal = static_cast<float>(options.min_signal) * static_cast<float>(Quantile(rv.grey, 99, 100));
 
   DepthMap depth;
   for (int l = levels - 1; l >= 0; --l) {
@@ -403,6 +395,10 @@ int64_t KeepConsistent(const std::vector<MvsView>& views, const std::vector<Dept
   *out = in;
   const Eigen::Matrix3d to_ray =
       r.rotation.transpose() * (Eigen::Matrix3d() << r.fx, 0, r.cx, 0, r.fy, r.cy, 0, 0, 1).finished().inverse();
+  // Per neighbour, the sine of the pair's angle: how far a pixel of matching moves the depth is a pixel's footprint
+  // over it.
+  std::vector<double> sines;
+  for (int n : neighbours) sines.push_back(std::max(0.1, r.rotation.row(2).cross(views[n].rotation.row(2)).norm()));
   int64_t kept = 0;
   for (int y = 0; y < in.height; ++y) {
     for (int x = 0; x < in.width; ++x) {
@@ -410,7 +406,8 @@ int64_t KeepConsistent(const std::vector<MvsView>& views, const std::vector<Dept
       if (in.depth[i] <= 0) continue;
       const Eigen::Vector3d p = r.position + in.depth[i] * (to_ray * Eigen::Vector3d(x, y, 1));
       int agree = 0;
-      for (int n : neighbours) {
+      for (size_t k = 0; k < neighbours.size(); ++k) {
+        const int n = neighbours[k];
         const MvsView& v = views[n];
         const Eigen::Vector3d c = v.rotation * (p - v.position);
         if (c.z() <= 0) continue;
@@ -419,9 +416,7 @@ int64_t KeepConsistent(const std::vector<MvsView>& views, const std::vector<Dept
         if (u < 0 || w < 0 || u >= v.width || w >= v.height) continue;
         const float zn = depths[n].depth[static_cast<size_t>(w) * v.width + u];
         if (zn <= 0) continue;
-        // A pixel's footprint, over the sine of the pair's angle: how far a pixel of matching moves the depth.
-        const double sine = std::max(0.1, r.rotation.row(2).cross(v.rotation.row(2)).norm());
-        const double tolerance = options.consistency_px * c.z() / v.fx / sine;
+        const double tolerance = options.consistency_px * c.z() / v.fx / sines[k];
         if (std::abs(zn - c.z()) <= tolerance) ++agree;
       }
       if (agree >= options.min_consistent) {
