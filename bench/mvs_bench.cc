@@ -15,10 +15,7 @@
 
 #include "CLI/CLI.hpp"
 #include "mvs_internal.h"
-#include "stage/processing/calibration.h"
-#include "stage/processing/light_model.h"
 #include "stage/processing/mvs.h"
-#include "stage/processing/take_frames.h"
 
 namespace {
 
@@ -33,34 +30,16 @@ double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::
 using stage::processing::MvsView;
 
 // The views of `frame` as RunMvs reads them.
-std::vector<MvsView> ReadViews(const std::string& take, const std::string& calibration_spec, int64_t frame,
+std::vector<MvsView> ReadViews(const std::string& take_dir, const std::string& calibration, int64_t frame,
                                double scale) {
-  auto rig = stage::processing::LoadTakeRig(take);
-  if (!rig.ok()) Die(rig.status());
-  auto light = stage::processing::LightModel::FromRig(*rig);
-  if (!light.ok()) Die(light.status());
-  auto calibration = stage::processing::LoadJobCalibration(take, calibration_spec);
-  if (!calibration.ok()) Die(calibration.status());
-  std::vector<MvsView> views;
-  for (const auto& c : rig->rig.cameras()) {
-    if (c.role() != stage::v1::CAMERA_ROLE_MACHINE_VISION) continue;
-    const std::string path = take + "/cameras/" + c.id() + ".h5";
-    auto shape = stage::processing::ReadFrameFileShape(path);
-    if (!shape.ok()) Die(shape.status());
-    auto model = stage::processing::CameraAtImageSize(*rig, c.id(), shape->width, shape->height,
-                                                      calibration->has_value() ? &**calibration : nullptr);
-    if (!model.ok()) Die(model.status());
-    auto s = stage::processing::ForEachFullLitFrame(path, frame, frame + 1, *light, c.photometric().black_level_dn(),
-                                                    [&](int64_t, const stage::processing::Image& grey) -> absl::Status {
-                                                      auto v =
-                                                          stage::processing::MakeMvsView(c.id(), grey, *model, scale);
-                                                      if (!v.ok()) return v.status();
-                                                      views.push_back(std::move(*v));
-                                                      return absl::OkStatus();
-                                                    });
-    if (!s.ok()) Die(s);
-  }
-  return views;
+  stage::processing::MvsJob job;
+  job.take_dir = take_dir;
+  job.calibration = calibration;
+  auto take = stage::processing::OpenMvsTake(job);
+  if (!take.ok()) Die(take.status());
+  stage::processing::FrameViews in;
+  if (auto s = stage::processing::ReadFrameViews(*take, frame, scale, &in); !s.ok()) Die(s);
+  return std::move(in.views);
 }
 
 cv::Matx33d K(const MvsView& v) { return cv::Matx33d(v.fx, 0, v.cx, 0, v.fy, v.cy, 0, 0, 1); }

@@ -38,14 +38,6 @@ double VoxelSize(const std::vector<MvsView>& views, const MvsOptions& o) {
   return std::max(0.2, o.voxel_px * Median(footprint));
 }
 
-// A camera of the job: its frame file and its model at the recorded size.
-struct MvsCamera {
-  std::string id, path;
-  CameraModel model;  // at the recorded image size
-  double black_level_dn = 0;
-  int64_t last_slot = -1;
-};
-
 absl::StatusOr<std::vector<MvsCamera>> JobCameras(const MvsJob& job, const LoadedRig& rig,
                                                   const CameraCalibration* calibration) {
   std::vector<std::string> ids = job.cameras;
@@ -132,19 +124,13 @@ absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::ve
   return WriteFileAtomically(dir + "/metrics.json", FrameMetrics(f, frame, missing));
 }
 
-// A frame's views as read: the views, each one's camera at the processing size, and the cameras without a frame.
-struct FrameViews {
-  std::vector<MvsView> views;
-  std::vector<CameraModel> processed;
-  std::vector<std::string> missing;
-};
+}  // namespace
 
-absl::Status ReadFrameViews(const std::vector<MvsCamera>& cameras, const LightModel& light, int64_t frame, double scale,
-                            FrameViews* out) {
-  for (const MvsCamera& c : cameras) {
+absl::Status ReadFrameViews(const MvsTake& take, int64_t frame, double scale, FrameViews* out) {
+  for (const MvsCamera& c : take.cameras) {
     bool found = false;
     STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
-        c.path, frame, frame + 1, light, c.black_level_dn, [&](int64_t, const Image& grey) -> absl::Status {
+        c.path, frame, frame + 1, take.light, c.black_level_dn, [&](int64_t, const Image& grey) -> absl::Status {
           STAGE_ASSIGN_OR_RETURN(MvsView v, MakeMvsView(c.id, grey, c.model, scale));
           out->processed.push_back(c.model.Resized(v.width, v.height));
           out->views.push_back(std::move(v));
@@ -155,6 +141,23 @@ absl::Status ReadFrameViews(const std::vector<MvsCamera>& cameras, const LightMo
   }
   return absl::OkStatus();
 }
+
+absl::StatusOr<MvsTake> OpenMvsTake(const MvsJob& job) {
+  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(job.take_dir));
+  MvsTake take;
+  STAGE_ASSIGN_OR_RETURN(take.light, LightModel::FromRig(rig));
+  STAGE_ASSIGN_OR_RETURN(take.calibration, LoadJobCalibration(job.take_dir, job.calibration));
+  STAGE_ASSIGN_OR_RETURN(take.cameras,
+                         JobCameras(job, rig, take.calibration.has_value() ? &*take.calibration : nullptr));
+  const int64_t cycle = static_cast<int64_t>(take.light.patterns.size());
+  // A machine-vision camera records one slot of a frame's cycle: the frames are those its slots fall in.
+  for (const MvsCamera& c : take.cameras) {
+    take.frames = std::max(take.frames, c.last_slot < 0 ? 0 : c.last_slot / cycle + 1);
+  }
+  return take;
+}
+
+namespace {
 
 // What ran, for whoever reads the results (no times or hosts: the same job writes the same bytes).
 std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, int64_t last,
@@ -299,16 +302,9 @@ absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, con
 absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(const JobProgress&)>& progress,
                                  const std::function<bool()>& cancelled) {
   STAGE_RETURN_IF_ERROR(job.options.Validate());
-  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(job.take_dir));
-  STAGE_ASSIGN_OR_RETURN(const LightModel light, LightModel::FromRig(rig));
-  STAGE_ASSIGN_OR_RETURN(const std::optional<CameraCalibration> calibration,
-                         LoadJobCalibration(job.take_dir, job.calibration));
-  STAGE_ASSIGN_OR_RETURN(const std::vector<MvsCamera> cameras,
-                         JobCameras(job, rig, calibration.has_value() ? &*calibration : nullptr));
-  const int64_t cycle = static_cast<int64_t>(light.patterns.size());
-  int64_t whole = -1;
-  // A machine-vision camera records one slot of a frame's cycle: the frames are those its slots fall in.
-  for (const MvsCamera& c : cameras) whole = std::max(whole, c.last_slot < 0 ? 0 : c.last_slot / cycle + 1);
+  STAGE_ASSIGN_OR_RETURN(const MvsTake in_take, OpenMvsTake(job));
+  const std::vector<MvsCamera>& cameras = in_take.cameras;
+  const int64_t whole = in_take.frames;
   const int64_t first = job.first_frame, last = job.last_frame < 0 ? whole : job.last_frame;
   if (first < 0 || last <= first || last > whole) {
     return absl::InvalidArgumentError(absl::StrCat(job.take_dir, ": frames [", first, ", ", last, ") are ",
@@ -327,7 +323,7 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
           absl::StrCat("multi-view stereo on ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
     }
     FrameViews in;
-    STAGE_RETURN_IF_ERROR(ReadFrameViews(cameras, light, frame, job.options.image_scale, &in));
+    STAGE_RETURN_IF_ERROR(ReadFrameViews(in_take, frame, job.options.image_scale, &in));
     auto made = ReconstructFrame(in.views, job.options);
     if (!made.ok()) {
       return absl::Status(made.status().code(),
@@ -341,8 +337,8 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
                                 in.views.size(), made->mesh.positions.size(), made->depth_s, made->fusion_s);
     if (progress) progress(p);
   }
-  STAGE_RETURN_IF_ERROR(
-      WriteFileAtomically(result.output_dir + "/run.json", RunJson(job, take, first, last, cameras, calibration)));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json",
+                                            RunJson(job, take, first, last, cameras, in_take.calibration)));
   return result;
 }
 

@@ -3,13 +3,44 @@
 // includes Open3D: tsdf_fusion.cc) and the trim to the head.
 #pragma once
 
+#include <optional>
+#include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
 #include "stage/common/mesh.h"
+#include "stage/processing/light_model.h"
 #include "stage/processing/mvs.h"
 
 namespace stage::processing {
+
+// A camera of a job: its frame file and its model at the recorded size.
+struct MvsCamera {
+  std::string id, path;
+  CameraModel model;  // at the recorded image size
+  double black_level_dn = 0;
+  int64_t last_slot = -1;
+};
+
+// A job's take opened for reading (RunMvs, mvs_bench): its light model, the calibration the job names, its cameras
+// (the job's, or every machine-vision camera) placed by it, and the frames they recorded.
+struct MvsTake {
+  LightModel light;
+  std::optional<CameraCalibration> calibration;
+  std::vector<MvsCamera> cameras;
+  int64_t frames = 0;
+};
+absl::StatusOr<MvsTake> OpenMvsTake(const MvsJob& job);
+
+// A frame's views as read: the views, each one's camera at the processing size, and the cameras without a frame.
+struct FrameViews {
+  std::vector<MvsView> views;
+  std::vector<CameraModel> processed;
+  std::vector<std::string> missing;
+};
+// Frame `frame`'s full-lit views of `take`'s cameras at `scale` (MakeMvsView); errors name the file.
+absl::Status ReadFrameViews(const MvsTake& take, int64_t frame, double scale, FrameViews* out);
 
 // For every view, the indices of its neighbours (options.neighbours at most, nearest first by the angle between
 // optical axes within [min_angle_deg, max_angle_deg]).
