@@ -13,6 +13,20 @@
 
 namespace stage::processing {
 
+namespace {
+
+// A job's last message: `units` done of `units`, where the results are, and what happened.
+v1::ProcessingProgress Finished(int64_t units, const std::string& output_dir, const std::string& message) {
+  v1::ProcessingProgress done;
+  done.set_frames_done(units);
+  done.set_frames_total(units);
+  done.set_output_dir(output_dir);
+  done.set_message(message);
+  return done;
+}
+
+}  // namespace
+
 grpc::Status WorkerService::GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) {
   *response = MakeNodeInfo(id_, v1::NODE_KIND_PROCESSING_WORKER, v1::CAMERA_ROLE_UNSPECIFIED, "local", rig_hash_);
   return grpc::Status::OK;
@@ -93,12 +107,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
   p.options.threads = static_cast<int>(threads_);
   auto result = RunPhotometric(p, progress, cancelled);
   if (!result.ok()) return result.status();
-  v1::ProcessingProgress done;
-  done.set_frames_done(result->units);
-  done.set_frames_total(result->units);
-  done.set_output_dir(result->output_dir);
-  done.set_message(absl::StrCat(result->units, " camera frame(s) processed into ", result->output_dir));
-  return done;
+  return Finished(result->units, result->output_dir,
+                  absl::StrCat(result->units, " camera frame(s) processed into ", result->output_dir));
 }
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
@@ -114,12 +124,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
   c.options.cameras.assign(job.cameras().begin(), job.cameras().end());
   auto report = RunCalibration(c, progress, cancelled);
   if (!report.ok()) return report.status();
-  v1::ProcessingProgress done;
-  done.set_frames_done(static_cast<int64_t>(report->cameras.size()));
-  done.set_frames_total(static_cast<int64_t>(report->cameras.size()));
-  done.set_output_dir(report->output_dir);
-  done.set_message(FormatCalibrationReport(*report));
-  return done;
+  return Finished(static_cast<int64_t>(report->cameras.size()), report->output_dir, FormatCalibrationReport(*report));
 }
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunMvsJob(const v1::ProcessingJob& job,
@@ -135,12 +140,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunMvsJob(const v1::Proces
   m.options.threads = static_cast<int>(threads_);
   auto result = RunMvs(m, progress, cancelled);
   if (!result.ok()) return result.status();
-  v1::ProcessingProgress done;
-  done.set_frames_done(result->units);
-  done.set_frames_total(result->units);
-  done.set_output_dir(result->output_dir);
-  done.set_message(absl::StrCat(result->units, " frame(s) reconstructed into ", result->output_dir));
-  return done;
+  return Finished(result->units, result->output_dir,
+                  absl::StrCat(result->units, " frame(s) reconstructed into ", result->output_dir));
 }
 
 }  // namespace stage::processing
