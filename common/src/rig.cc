@@ -36,7 +36,6 @@ constexpr absl::string_view kFastage38 = "fastage-38";
 constexpr uint32_t kFastage38Length = 38;
 constexpr uint32_t kFastage38ParallelFullOn = 19;
 
-
 bool IsRoleHighSpeed(const CameraConfig& c) { return c.role() == v1::CAMERA_ROLE_HIGH_SPEED; }
 
 void ApplyLimitDefaults(v1::LedLimits* limits) {
@@ -378,6 +377,10 @@ void ApplyRigDefaults(RigConfig* rig) {
     if (board->dictionary().empty()) board->set_dictionary("DICT_5X5_100");
     if (!board->has_pixels_per_mm()) board->set_pixels_per_mm(8);
   }
+  if (!sim->has_texture_samples()) {
+    sim->set_texture_samples(subject->kind() == "charuco" ? std::max<uint32_t>(4, sim->supersample())
+                                                          : sim->supersample());
+  }
   auto* storage = rig->mutable_storage();
   if (storage->root().empty()) storage->set_root("takes");
   if (!storage->has_host_write_mb_per_s()) storage->set_host_write_mb_per_s(2000);
@@ -515,6 +518,7 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("sim.read_noise_e", rig.sim().read_noise_e(), 0, 1000);
   check.InRange("sim.full_well_e", rig.sim().full_well_e(), 1, 1e7);
   check.InRange("sim.supersample", rig.sim().supersample(), 1, 8);
+  check.InRange("sim.texture_samples", rig.sim().texture_samples(), std::max<uint32_t>(1, rig.sim().supersample()), 16);
   {
     const v1::SimCameraDeviation& d = rig.sim().camera_deviation();
     check.InRange("sim.camera_deviation.scale", d.scale(), 0, 100);

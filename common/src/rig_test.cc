@@ -337,6 +337,20 @@ TEST(RigErrorTest, BoardSilenceNeedsAFakeModbusBoard) {
   EXPECT_FALSE(ApplyRigOverrides(*rig, with_fakes).ok()) << "a gpiod node has no board";
 }
 
+TEST(RigTest, TextureSamplesDefaultToTheLightingsButFourOnTheBoard) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  auto head = ApplyRigOverrides(*rig, {"sim.supersample=2"});
+  ASSERT_TRUE(head.ok()) << head.status();
+  EXPECT_EQ(head->rig.sim().texture_samples(), 2u);
+  auto board = ApplyRigOverrides(*rig, {"sim.subject.kind=charuco"});
+  ASSERT_TRUE(board.ok()) << board.status();
+  EXPECT_EQ(board->rig.sim().texture_samples(), 4u);
+  auto coarser = ApplyRigOverrides(*rig, {"sim.supersample=3", "sim.texture_samples=2"});
+  ASSERT_FALSE(coarser.ok());
+  EXPECT_THAT(std::string(coarser.status().message()), HasSubstr("sim.texture_samples"));
+}
+
 TEST(RigErrorTest, ChannelOutOfRange) {
   EXPECT_THAT(LoadError(Replace("parallel_channel: 2, cross_channel: 3", "parallel_channel: 2, cross_channel: 4")),
               AllOf(StartsWith("rig.yaml:30:64:"),

@@ -37,19 +37,6 @@ struct CameraInput {
   int frames_read = 0;
 };
 
-// The grey image as 8 bits for the detector: its 99th percentile at 230.
-std::vector<uint8_t> ToEightBit(const Image& grey) {
-  std::vector<float> sample;
-  for (size_t i = 0; i < grey.pixels.size(); i += 7) sample.push_back(grey.pixels[i]);
-  const float p99 = static_cast<float>(Quantile(std::move(sample), 99, 100));
-  const float scale = !(p99 > 0) ? 1.0f : 230.0f / p99;
-  std::vector<uint8_t> out(grey.pixels.size());
-  for (size_t i = 0; i < out.size(); ++i) {
-    out[i] = static_cast<uint8_t>(std::clamp(grey.pixels[i] * scale + 0.5f, 0.0f, 255.0f));
-  }
-  return out;
-}
-
 cv::Matx33d K(const CameraModel& m) { return {m.fx(), 0, m.cx(), 0, m.fy(), m.cy(), 0, 0, 1}; }
 cv::Mat Distortion(const CameraModel& m) {
   cv::Mat d(1, 5, CV_64F);
@@ -284,14 +271,14 @@ absl::Status Detect(const CalibrationJob& job, const LightModel& light, const Ch
     if (cancelled && cancelled()) {
       return absl::CancelledError(absl::StrCat("calibration of ", job.take_dir, " cancelled"));
     }
-    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(c.path, first, last, light, c.config->photometric().black_level_dn(),
-                                              [&](int64_t frame, const Image& grey) -> absl::Status {
-                                                ++c.frames_read;
-                                                auto corners = DetectCharuco(ToEightBit(grey), grey.width, grey.height,
-                                                                             board, job.options.min_corners);
-                                                if (!corners.empty()) c.observed.frames[frame] = std::move(corners);
-                                                return absl::OkStatus();
-                                              }));
+    auto visit = [&](int64_t frame, const Image& grey) -> absl::Status {
+      ++c.frames_read;
+      auto corners = DetectCharuco(grey, board, job.options.min_corners);
+      if (!corners.empty()) c.observed.frames[frame] = std::move(corners);
+      return absl::OkStatus();
+    };
+    STAGE_RETURN_IF_ERROR(
+        ForEachFullLitFrame(c.path, first, last, light, c.config->photometric().black_level_dn(), visit));
     ++p.done;
     p.message = absl::StrFormat("%s: the board in %d of %d frame(s)", c.id, c.observed.frames.size(), c.frames_read);
     if (progress) progress(p);

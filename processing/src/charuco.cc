@@ -1,11 +1,16 @@
 // ChArUco detection: see charuco.h.
 #include "charuco.h"
 
+#include <algorithm>
+#include <cmath>
+#include <map>
 #include <opencv2/aruco.hpp>
 #include <opencv2/aruco/charuco.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/aruco_dictionaries.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -14,6 +19,45 @@ cv::Ptr<cv::aruco::CharucoBoard> MakeBoard(const CharucoBoardSpec& spec) {
   return cv::aruco::CharucoBoard::create(spec.squares_x, spec.squares_y, static_cast<float>(spec.square_mm),
                                          static_cast<float>(spec.marker_mm),
                                          cv::aruco::getPredefinedDictionary(ArucoDictionaryId(spec.dictionary)));
+}
+
+// The linear image as 8 bits for the marker detector: its 99th percentile at 230.
+cv::Mat EightBit(const Image& grey) {
+  std::vector<float> sample;
+  for (size_t i = 0; i < grey.pixels.size(); i += 7) sample.push_back(grey.pixels[i]);
+  const float p99 = static_cast<float>(Quantile(std::move(sample), 99, 100));
+  const float scale = !(p99 > 0) ? 1.0f : 230.0f / p99;
+  cv::Mat out(grey.height, grey.width, CV_8U);
+  for (size_t i = 0; i < grey.pixels.size(); ++i) {
+    out.data[i] = static_cast<uint8_t>(std::clamp(grey.pixels[i] * scale + 0.5f, 0.0f, 255.0f));
+  }
+  return out;
+}
+
+// Each corner's chessboard square, pixels: the median distance to its neighbours on the grid that were found (the
+// median over the view's corners for one without any).
+std::vector<double> SquareSizesPx(const CharucoBoardSpec& spec, const std::vector<CornerObservation>& corners) {
+  const int across = spec.squares_x - 1;  // corners along a row; ids run along rows
+  std::map<int, Eigen::Vector2d> by_id;
+  for (const CornerObservation& c : corners) by_id[c.id] = c.pixel;
+  std::vector<double> out(corners.size(), 0);
+  std::vector<double> all;
+  for (size_t k = 0; k < corners.size(); ++k) {
+    const int id = corners[k].id, col = id % across;
+    std::vector<double> d;
+    for (int n : {col > 0 ? id - 1 : -1, col + 1 < across ? id + 1 : -1, id - across, id + across}) {
+      auto it = n >= 0 ? by_id.find(n) : by_id.end();
+      if (it != by_id.end()) d.push_back((it->second - corners[k].pixel).norm());
+    }
+    if (d.empty()) continue;
+    out[k] = Median(std::move(d));
+    all.push_back(out[k]);
+  }
+  const double typical = all.empty() ? 0 : Median(std::move(all));
+  for (double& v : out) {
+    if (v == 0) v = typical;
+  }
+  return out;
 }
 
 }  // namespace
@@ -38,8 +82,8 @@ absl::Status CharucoBoardSpec::Validate() const {
   }
   const int id = ArucoDictionaryId(dictionary);
   if (id < 0) {
-    return bad(absl::StrCat("dictionary \"", dictionary, "\" is not an ArUco dictionary (", ArucoDictionaryNames(),
-                            ")"));
+    return bad(
+        absl::StrCat("dictionary \"", dictionary, "\" is not an ArUco dictionary (", ArucoDictionaryNames(), ")"));
   }
   const int markers = squares_x * squares_y / 2;
   const int available = cv::aruco::getPredefinedDictionary(id)->bytesList.rows;
@@ -57,9 +101,8 @@ std::vector<Eigen::Vector3d> CharucoBoardSpec::Corners() const {
   return out;
 }
 
-std::vector<CornerObservation> DetectCharuco(const std::vector<uint8_t>& grey, int width, int height,
-                                             const CharucoBoardSpec& spec, int min_corners) {
-  const cv::Mat image(height, width, CV_8U, const_cast<uint8_t*>(grey.data()));
+std::vector<CornerObservation> DetectCharuco(const Image& grey, const CharucoBoardSpec& spec, int min_corners) {
+  const cv::Mat image = EightBit(grey);
   const cv::Ptr<cv::aruco::CharucoBoard> board = MakeBoard(spec);
   std::vector<std::vector<cv::Point2f>> marker_corners, rejected;
   std::vector<int> marker_ids;
@@ -78,6 +121,40 @@ std::vector<CornerObservation> DetectCharuco(const std::vector<uint8_t>& grey, i
     // OpenCV 4.6's ChArUco corners put the top-left pixel's corner, not its centre, at (0, 0) (opencv_contrib #3024;
     // OpenCV 4.13 changes it back, opencv #28380): half a pixel off the camera model's convention.
     out.push_back({ids[k], Eigen::Vector2d(corners[k].x - 0.5, corners[k].y - 0.5)});
+  }
+  out = RefineCorners(grey, spec, std::move(out));
+  if (static_cast<int>(out.size()) < min_corners) return {};
+  return out;
+}
+
+std::vector<CornerObservation> RefineCorners(const Image& grey, const CharucoBoardSpec& spec,
+                                             std::vector<CornerObservation> corners) {
+  const cv::Mat image(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
+  const std::vector<double> square = SquareSizesPx(spec, corners);
+  const double margin_share = (spec.square_mm - spec.marker_mm) / 2 / spec.square_mm;
+  std::vector<CornerObservation> out;
+  out.reserve(corners.size());
+  for (size_t k = 0; k < corners.size(); ++k) {
+    // The plain chessboard about the corner reaches `margin` pixels along the edges; the window (2 win + 1 wide) and
+    // the smoothing (about 2 sigma) stay inside it.
+    const double margin = square[k] * margin_share;
+    const int win = std::clamp(static_cast<int>(margin) - 1, 2, 16);
+    const double sigma = std::clamp(win / 3.5, 0.6, 4.0);
+    const int reach = win + static_cast<int>(std::ceil(3 * sigma)) + 3;
+    const Eigen::Vector2d start = corners[k].pixel;
+    const cv::Rect roi = cv::Rect(static_cast<int>(std::lround(start.x())) - reach,
+                                  static_cast<int>(std::lround(start.y())) - reach, 2 * reach + 1, 2 * reach + 1) &
+                         cv::Rect(0, 0, image.cols, image.rows);
+    if (roi.width < 2 * reach + 1 || roi.height < 2 * reach + 1) continue;  // too near the image's edge to refine
+    cv::Mat patch;
+    cv::GaussianBlur(image(roi), patch, cv::Size(0, 0), sigma);
+    std::vector<cv::Point2f> p = {
+        cv::Point2f(static_cast<float>(start.x() - roi.x), static_cast<float>(start.y() - roi.y))};
+    cv::cornerSubPix(patch, p, cv::Size(win, win), cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 100, 1e-3));
+    const Eigen::Vector2d refined(p[0].x + roi.x, p[0].y + roi.y);
+    if ((refined - start).norm() > std::max(1.5, 0.5 * margin)) continue;  // lost: not a corner where it was found
+    out.push_back({corners[k].id, refined});
   }
   return out;
 }

@@ -11,8 +11,8 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
-#include "stage/common/status.h"
 #include "absl/strings/str_format.h"
+#include "stage/common/status.h"
 
 namespace stage::sim {
 namespace {
@@ -141,11 +141,13 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     }
     auto subject = scene.SubjectAt(frame);
     // A pixel integrates n x n rays (sim.supersample): its truth describes that area, as its value does (the mean
-    // normal normalized, the mean material); the depth is its centre's.
+    // normal normalized, the mean material; the albedo over sim.texture_samples rays); the depth is its centre's.
     const int n = std::max(1, static_cast<int>(scene.rig().sim().supersample()));
     for (int index : cameras) {
       const CameraModel& camera = scene.camera(index);
       const std::vector<Hit> hits = TracePixels(camera, *subject);
+      const int texture_n = static_cast<int>(scene.rig().sim().texture_samples());
+      const AreaAlbedo area = texture_n > n ? TraceAreaAlbedo(camera, *subject, texture_n) : AreaAlbedo{};
       std::vector<std::vector<Hit>> rays;
       if (n > 1) {
         for (int sy = 0; sy < n; ++sy) {
@@ -185,6 +187,7 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
           }
         }
         if (covered == 0) continue;
+        if (!area.rays.empty() && area.rays[i] > 0) hit.material.albedo = area.albedo[i];
         const int y = static_cast<int>(i) / w, x = static_cast<int>(i) % w;
         depth.at<float>(y, x) = (rot * (hit.point - center)).z();
         nw.at<cv::Vec3f>(y, x) = Bgr(hit.normal);

@@ -55,8 +55,32 @@ std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, 
   return all;
 }
 
+AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads,
+                           WorkProgress* progress) {
+  const size_t count = static_cast<size_t>(camera.width()) * static_cast<size_t>(camera.height());
+  AreaAlbedo out;
+  out.albedo.assign(count, Eigen::Vector3f::Zero());
+  out.rays.assign(count, 0);
+  const Eigen::Vector3f origin = camera.position().cast<float>();
+  for (int sy = 0; sy < n; ++sy) {
+    for (int sx = 0; sx < n; ++sx) {
+      const std::vector<Eigen::Vector3f> rays = camera.PixelRays((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5);
+      ParallelFor(rays.size(), threads, progress, [&](size_t i) {
+        const Hit h = subject.Intersect(origin, rays[i]);
+        if (!h.hit) return;
+        out.albedo[i] += h.material.albedo;
+        ++out.rays[i];
+      });
+    }
+  }
+  for (size_t i = 0; i < count; ++i) {
+    if (out.rays[i] > 1) out.albedo[i] /= static_cast<float>(out.rays[i]);
+  }
+  return out;
+}
+
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
-                                int supersample, WorkProgress* progress) {
+                                int supersample, WorkProgress* progress, int texture_samples) {
   PixelResponses r;
   r.width = camera.width();
   r.height = camera.height();
@@ -85,6 +109,16 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
     r.albedo.push_back(albedo / static_cast<float>(by_pixel[i].size()));
     r.hits.push_back(by_pixel[i].front());
     rows.push_back(&by_pixel[i]);
+  }
+  if (texture_samples > n) {
+    if (progress != nullptr) {
+      progress->total.fetch_add(static_cast<uint64_t>(r.width) * r.height * texture_samples * texture_samples);
+    }
+    const AreaAlbedo area = TraceAreaAlbedo(camera, subject, texture_samples, threads, progress);
+    for (size_t k = 0; k < r.pixels.size(); ++k) {
+      const auto p = static_cast<size_t>(r.pixels[k]);
+      if (area.rays[p] > 0) r.albedo[k] = area.albedo[p];
+    }
   }
   const size_t count = rows.size();
   const size_t units = dome.units.size();

@@ -178,6 +178,50 @@ TEST(LightTransportTest, SupersampledPixelsIntegrateTheirArea) {
   EXPECT_NEAR(total_four, total_one, 0.03 * total_one);
 }
 
+// A sphere printed black for x < 0.2 mm and white beyond (the edge a third of a pixel off the pixels' boundary).
+class HalfPrintedSphere final : public Subject {
+ public:
+  Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override {
+    Hit h = sphere_.Intersect(origin, direction);
+    if (h.hit) h.material.albedo = Eigen::Vector3f::Constant(h.point.x() < 0.2f ? 0.0f : 1.0f);
+    return h;
+  }
+  bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override {
+    return sphere_.Occluded(from, to);
+  }
+
+ private:
+  SphereSubject sphere_{Eigen::Vector3f::Zero(), 30, Material{}};
+};
+
+// With texture samples, a pixel's albedo averages its area (the print's edge falls partly into the pixels it crosses)
+// while its lighting stays what its lighting rays give.
+TEST(LightTransportTest, TextureSamplesAverageThePrintNotTheLighting) {
+  const Dome d = Dome::FromDirections(FibonacciSphere(64), 1000, 1e6);
+  const HalfPrintedSphere subject;
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 700}, 64, 48), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  const PixelResponses one = ComputeResponses(*camera, subject, d, 0, 1);
+  const PixelResponses textured = ComputeResponses(*camera, subject, d, 0, 1, nullptr, 8);
+  ASSERT_EQ(one.pixels, textured.pixels);
+  EXPECT_EQ((one.diffuse - textured.diffuse).cwiseAbs().maxCoeff(), 0.0f);
+  int grey = 0;
+  for (size_t i = 0; i < one.pixels.size(); ++i) {
+    const float a = textured.albedo[i].x();
+    if (a > 0.05f && a < 0.95f) {
+      ++grey;  // the edge at x = 0 crosses this pixel
+      const int column = one.pixels[i] % 64;
+      EXPECT_EQ(column, 32) << one.pixels[i];
+    } else {
+      EXPECT_NEAR(a, one.albedo[i].x(), 0.05f) << one.pixels[i];
+    }
+  }
+  EXPECT_GT(grey, 20);  // one column of the ~38 rows the sphere covers, about a third black
+  const AreaAlbedo area = TraceAreaAlbedo(*camera, subject, 8);
+  EXPECT_EQ(area.rays[24 * 64 + 32], 64);  // inside the sphere: every ray meets it
+  EXPECT_EQ(area.rays[0], 0);
+}
+
 TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {
   const double far = 1e7;  // distant LEDs
   Material m{Eigen::Vector3f::Constant(0.8f), 0.0f, 0.3f};

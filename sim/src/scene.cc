@@ -1,9 +1,9 @@
 // The simulated stage derived from the rig, and per-camera rendering.
 #include "stage/sim/scene.h"
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
-#include <Eigen/Geometry>
 #include <filesystem>
 #include <random>
 
@@ -197,7 +197,8 @@ absl::StatusOr<std::shared_ptr<const SimScene>> SimScene::Create(const v1::RigCo
     STAGE_ASSIGN_OR_RETURN(CameraModel nominal, CameraModel::FromConfig(c, 1.0));
     auto truth = DeviatedCamera(nominal, rig.sim().camera_deviation(), rig.sim().seed(), i);
     if (!truth.ok()) {
-      return absl::InvalidArgumentError(absl::StrCat("camera \"", c.id(), "\": sim.camera_deviation: ", truth.status().message()));
+      return absl::InvalidArgumentError(
+          absl::StrCat("camera \"", c.id(), "\": sim.camera_deviation: ", truth.status().message()));
     }
     scene->true_cameras_.cameras.push_back({c.id(), *truth});
     const CameraModel model = truth->Scaled(rig.sim().render_scale());
@@ -297,9 +298,9 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
     compute_.total.store(0);
     computing_frame_.store(pose_frame);
     auto subject = scene_->SubjectAt(pose_frame);
-    responses_ = std::make_shared<const PixelResponses>(
-        ComputeResponses(scene_->camera(index_), *subject, scene_->dome(), threads_,
-                         static_cast<int>(scene_->rig().sim().supersample()), &compute_));
+    responses_ = std::make_shared<const PixelResponses>(ComputeResponses(
+        scene_->camera(index_), *subject, scene_->dome(), threads_, static_cast<int>(scene_->rig().sim().supersample()),
+        &compute_, static_cast<int>(scene_->rig().sim().texture_samples())));
     responses_frame_ = pose_frame;
     work_before_.fetch_add(compute_.done.exchange(0));  // counted once, whenever a reader looks
     computing_frame_.store(-1);

@@ -51,10 +51,20 @@ struct WorkProgress {
 std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0, double dx = 0,
                              double dy = 0, WorkProgress* progress = nullptr);
 
+// Every pixel's albedo averaged over the n x n rays through it that meet the subject (row-major), and how many did
+// (0: none; its albedo is then zero).
+struct AreaAlbedo {
+  std::vector<Eigen::Vector3f> albedo;
+  std::vector<int> rays;
+};
+AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads = 0,
+                           WorkProgress* progress = nullptr);
+
 // Camera direction -> pixel responses, on `threads` threads (0: one per core), with `supersample` x `supersample`
-// rays a pixel (1: through its centre).
+// rays a pixel (1: through its centre). With `texture_samples` > `supersample` a pixel's albedo is the average of
+// texture_samples x texture_samples rays' (TraceAreaAlbedo) instead of its lighting rays'.
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0,
-                                int supersample = 1, WorkProgress* progress = nullptr);
+                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0);
 
 // Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
 struct EmitterLevels {
