@@ -182,7 +182,8 @@ CameraModel Moved(const CameraModel& m, const Eigen::Isometry3d& t) {
 }
 
 // RMS over a 7 x 7 x 7 grid of a 300 mm cube round the stage origin of the distance between the two models'
-// projections, pixels.
+// projections, pixels; points `b` sees outside its image do not count (a lens model says nothing there, and its
+// polynomial grows fast).
 double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
   double sum2 = 0;
   int n = 0;
@@ -192,6 +193,7 @@ double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
         const Eigen::Vector3d p(-150 + 50 * i, -150 + 50 * j, -150 + 50 * k);
         Eigen::Vector2d u, v;
         if (!a.Project(p, &u) || !b.Project(p, &v)) continue;
+        if (v.x() < -0.5 || v.y() < -0.5 || v.x() > b.width() - 0.5 || v.y() > b.height() - 0.5) continue;
         sum2 += (u - v).squaredNorm();
         ++n;
       }

@@ -34,8 +34,8 @@ cv::Mat EightBit(const Image& grey) {
   return out;
 }
 
-// Each corner's chessboard square, pixels: the median distance to its neighbours on the grid that were found (the
-// median over the view's corners for one without any).
+// Each corner's chessboard square, pixels: the shortest distance to its neighbours on the grid that were found (the
+// board's most foreshortened direction; the median over the view's corners for one without any).
 std::vector<double> SquareSizesPx(const CharucoBoardSpec& spec, const std::vector<CornerObservation>& corners) {
   const int across = spec.squares_x - 1;  // corners along a row; ids run along rows
   std::map<int, Eigen::Vector2d> by_id;
@@ -50,7 +50,7 @@ std::vector<double> SquareSizesPx(const CharucoBoardSpec& spec, const std::vecto
       if (it != by_id.end()) d.push_back((it->second - corners[k].pixel).norm());
     }
     if (d.empty()) continue;
-    out[k] = Median(std::move(d));
+    out[k] = *std::min_element(d.begin(), d.end());
     all.push_back(out[k]);
   }
   const double typical = all.empty() ? 0 : Median(std::move(all));
