@@ -181,25 +181,93 @@ CameraModel Moved(const CameraModel& m, const Eigen::Isometry3d& t) {
   return Placed(m, WorldToCamera(m) * t.inverse());
 }
 
-// RMS over a 7 x 7 x 7 grid of a 300 mm cube round the stage origin of the distance between the two models'
-// projections, pixels; points `b` sees outside its image do not count (a lens model says nothing there, and its
-// polynomial grows fast).
-double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
-  double sum2 = 0;
-  int n = 0;
+// The points of a 7 x 7 x 7 grid over a 300 mm cube round the stage origin (the head's volume) that `b` sees inside its
+// image (a lens model says nothing outside, and its polynomial grows fast), with where `b` sees them.
+struct SeenPoints {
+  std::vector<Eigen::Vector3d> points;
+  std::vector<Eigen::Vector2d> pixels;
+};
+SeenPoints SeenInVolume(const CameraModel& b) {
+  SeenPoints out;
   for (int i = 0; i < 7; ++i) {
     for (int j = 0; j < 7; ++j) {
       for (int k = 0; k < 7; ++k) {
         const Eigen::Vector3d p(-150 + 50 * i, -150 + 50 * j, -150 + 50 * k);
-        Eigen::Vector2d u, v;
-        if (!a.Project(p, &u) || !b.Project(p, &v)) continue;
+        Eigen::Vector2d v;
+        if (!b.Project(p, &v)) continue;
         if (v.x() < -0.5 || v.y() < -0.5 || v.x() > b.width() - 0.5 || v.y() > b.height() - 0.5) continue;
-        sum2 += (u - v).squaredNorm();
-        ++n;
+        out.points.push_back(p);
+        out.pixels.push_back(v);
       }
     }
   }
+  return out;
+}
+
+// Sum of squared distances between where `a` sees `seen`'s points and where `b` saw them, and how many `a` sees.
+double ProjectionSquares(const CameraModel& a, const SeenPoints& seen, int* n) {
+  double sum2 = 0;
+  for (size_t i = 0; i < seen.points.size(); ++i) {
+    Eigen::Vector2d u;
+    if (!a.Project(seen.points[i], &u)) continue;
+    sum2 += (u - seen.pixels[i]).squaredNorm();
+    ++*n;
+  }
+  return sum2;
+}
+
+// RMS distance between where the two models see the head's volume (SeenInVolume of `b`), pixels.
+double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
+  int n = 0;
+  const double sum2 = ProjectionSquares(a, SeenInVolume(b), &n);
   return n > 0 ? std::sqrt(sum2 / n) : 0;
+}
+
+// The rigid motion near `start` under which the calibrated cameras see the head's volume most nearly as the true ones
+// do (least squares over every camera's seen points; Gauss-Newton with numeric derivatives). A calibration fixes its
+// frame only up to a rigid motion; fitting the centres alone lets one poorly placed camera move the frame for all.
+Eigen::Isometry3d AlignByProjection(const std::vector<const CameraModel*>& calibrated,
+                                    const std::vector<const CameraModel*>& truth, Eigen::Isometry3d start) {
+  std::vector<SeenPoints> seen;
+  for (const CameraModel* t : truth) seen.push_back(SeenInVolume(*t));
+  auto residuals = [&](const Eigen::Isometry3d& align) {
+    std::vector<double> r;
+    for (size_t c = 0; c < calibrated.size(); ++c) {
+      const CameraModel m = Moved(*calibrated[c], align);
+      for (size_t i = 0; i < seen[c].points.size(); ++i) {
+        Eigen::Vector2d u = seen[c].pixels[i];  // a point the moved camera cannot see adds nothing
+        m.Project(seen[c].points[i], &u);
+        r.push_back(u.x() - seen[c].pixels[i].x());
+        r.push_back(u.y() - seen[c].pixels[i].y());
+      }
+    }
+    return Eigen::Map<Eigen::VectorXd>(r.data(), static_cast<Eigen::Index>(r.size())).eval();
+  };
+  auto step = [](const Eigen::Isometry3d& a, const Eigen::Matrix<double, 6, 1>& d) {
+    Eigen::Isometry3d delta = Eigen::Isometry3d::Identity();
+    const double angle = d.head<3>().norm();
+    if (angle > 0) delta.linear() = Eigen::AngleAxisd(angle, d.head<3>() / angle).toRotationMatrix();
+    delta.translation() = d.tail<3>();
+    return delta * a;
+  };
+  Eigen::Isometry3d align = start;
+  Eigen::VectorXd r = residuals(align);
+  for (int iteration = 0; iteration < 20; ++iteration) {
+    Eigen::MatrixXd j(r.size(), 6);
+    for (int k = 0; k < 6; ++k) {
+      Eigen::Matrix<double, 6, 1> d = Eigen::Matrix<double, 6, 1>::Zero();
+      d[k] = k < 3 ? 1e-7 : 1e-4;  // radians, mm
+      j.col(k) = (residuals(step(align, d)) - r) / d[k];
+    }
+    const Eigen::Matrix<double, 6, 1> d = (j.transpose() * j).ldlt().solve(-j.transpose() * r);
+    const Eigen::Isometry3d next = step(align, d);
+    const Eigen::VectorXd next_r = residuals(next);
+    if (!(next_r.squaredNorm() < r.squaredNorm())) break;
+    align = next;
+    r = next_r;
+    if (d.head<3>().norm() < 1e-10 && d.tail<3>().norm() < 1e-7) break;
+  }
+  return align;
 }
 
 double AngleDeg(const Eigen::Matrix3d& r) { return Eigen::AngleAxisd(r).angle() * 180 / M_PI; }
@@ -488,7 +556,9 @@ std::string TruthComparisonJson(const TruthComparison& t) {
 
 std::string FormatTruthComparison(const TruthComparison& t, const TruthComparison* nominal) {
   std::string out = absl::StrFormat(
-      "Against the simulator's truth, after the best rigid fit of the centres (%.3f mm, %.4f deg); sensor pixels:\n"
+      "Against the simulator's truth, in the frame where the cameras see the head's volume most nearly as the true "
+      "ones\n"
+      "do (moved %.3f mm, %.4f deg); sensor pixels:\n"
       "%-8s %10s %12s %10s %12s %13s %13s\n",
       t.frame_offset_mm, t.frame_rotation_deg, "camera", "centre mm", "rotation deg", "focal %", "principal px",
       "distortion px", "projection px");
@@ -587,7 +657,9 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
     return absl::NotFoundError(absl::StrCat("the calibration (", calibrated.source, ") and the truth (", truth.source,
                                             ") share ", mine.size(), " camera(s); 3 are needed"));
   }
-  const Eigen::Isometry3d align = RigidFit(from, to);
+  std::vector<const CameraModel*> calibrated_models;
+  for (const CalibratedCamera* c : mine) calibrated_models.push_back(&c->model);
+  const Eigen::Isometry3d align = AlignByProjection(calibrated_models, theirs, RigidFit(from, to));
   TruthComparison out;
   out.frame_offset_mm = align.translation().norm();
   out.frame_rotation_deg = AngleDeg(align.linear());

@@ -137,15 +137,19 @@ std::vector<CornerObservation> RefineCorners(const Image& grey, const CharucoBoa
   for (size_t k = 0; k < corners.size(); ++k) {
     // The plain chessboard about the corner reaches `margin` pixels along the edges; the window (2 win + 1 wide) and
     // the smoothing (about 2 sigma) stay inside it.
+    // Near the image's edge the window shrinks to fit (the patch holds the window and the smoothing's reach).
     const double margin = square[k] * margin_share;
-    const int win = std::clamp(static_cast<int>(margin) - 1, 2, 16);
-    const double sigma = std::clamp(win / 3.5, 0.6, 4.0);
-    const int reach = win + static_cast<int>(std::ceil(3 * sigma)) + 3;
     const Eigen::Vector2d start = corners[k].pixel;
-    const cv::Rect roi = cv::Rect(static_cast<int>(std::lround(start.x())) - reach,
-                                  static_cast<int>(std::lround(start.y())) - reach, 2 * reach + 1, 2 * reach + 1) &
-                         cv::Rect(0, 0, image.cols, image.rows);
-    if (roi.width < 2 * reach + 1 || roi.height < 2 * reach + 1) continue;  // too near the image's edge to refine
+    const int cx = static_cast<int>(std::lround(start.x())), cy = static_cast<int>(std::lround(start.y()));
+    const int room = std::min({cx, cy, image.cols - 1 - cx, image.rows - 1 - cy});
+    int win = std::clamp(static_cast<int>(margin) - 1, 2, 16);
+    auto sigma_of = [](int w) { return std::clamp(w / 3.5, 0.6, 4.0); };
+    auto reach_of = [&](int w) { return w + static_cast<int>(std::ceil(3 * sigma_of(w))) + 3; };
+    while (win > 2 && reach_of(win) > room) --win;
+    const double sigma = sigma_of(win);
+    const int reach = reach_of(win);
+    if (reach > room) continue;  // too near the image's edge to refine
+    const cv::Rect roi(cx - reach, cy - reach, 2 * reach + 1, 2 * reach + 1);
     cv::Mat patch;
     cv::GaussianBlur(image(roi), patch, cv::Size(0, 0), sigma);
     std::vector<cv::Point2f> p = {

@@ -50,9 +50,9 @@ struct CalibrationJob {
 struct CameraError {
   std::string id;
   double centre_mm = 0, rotation_deg = 0;
-  double focal_percent = 0;   // (fx + fy) / 2 against the truth's, relative, %
-  double principal_px = 0;    // sensor pixels
-  double distortion_px = 0;   // RMS over the image of the lens terms' difference, sensor pixels
+  double focal_percent = 0;  // (fx + fy) / 2 against the truth's, relative, %
+  double principal_px = 0;   // sensor pixels
+  double distortion_px = 0;  // RMS over the image of the lens terms' difference, sensor pixels
   // RMS distance between where the camera and its truth see the points of a 300 mm cube round the stage origin (the
   // head's volume), sensor pixels: what processing feels of the camera's error.
   double projection_px = 0;
@@ -60,7 +60,9 @@ struct CameraError {
 
 struct TruthComparison {
   std::vector<CameraError> cameras;
-  // The rigid motion from the calibration's frame to the truth's: its translation (mm) and angle (degrees).
+  // The rigid motion from the calibration's frame to the truth's (a calibration fixes its frame only up to one): the
+  // one under which the calibrated cameras see the head's volume most nearly as the true ones do, started from the best
+  // fit of the centres. Its translation (mm) and angle (degrees).
   double frame_offset_mm = 0, frame_rotation_deg = 0;
   // Worst over the cameras, and the root mean square.
   CameraError worst, rms;
@@ -69,14 +71,14 @@ struct TruthComparison {
 struct CameraCalibrationReport {
   std::string id;
   int frames = 0, corners_used = 0, corners_dropped = 0;
-  double rms_px = 0;          // reprojection RMS, pixels of the recorded images
-  double rms_sensor_px = 0;   // the same in sensor pixels
-  double coverage = 0;        // share of a 10 x 10 grid over the image with a corner in it
+  double rms_px = 0;         // reprojection RMS, pixels of the recorded images
+  double rms_sensor_px = 0;  // the same in sensor pixels
+  double coverage = 0;       // share of a 10 x 10 grid over the image with a corner in it
 };
 
 struct CalibrationReport {
   std::string take_dir, output_dir;
-  double image_scale = 1;     // recorded pixels per sensor pixel
+  double image_scale = 1;  // recorded pixels per sensor pixel
   int frames_read = 0, board_frames = 0, iterations = 0;
   double rms_px = 0;
   std::vector<CameraCalibrationReport> cameras;
