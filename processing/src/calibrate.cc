@@ -661,6 +661,7 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
   for (const CalibratedCamera* c : mine) calibrated_models.push_back(&c->model);
   const Eigen::Isometry3d align = AlignByProjection(calibrated_models, theirs, RigidFit(from, to));
   TruthComparison out;
+  out.to_truth = align;
   out.frame_offset_mm = align.translation().norm();
   out.frame_rotation_deg = AngleDeg(align.linear());
   out.worst.id = "worst";

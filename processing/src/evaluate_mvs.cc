@@ -5,15 +5,18 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <nanoflann.hpp>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/camera_calibration.h"
 #include "stage/common/status.h"
+#include "stage/processing/calibrate.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
 #include "statistics.h"
@@ -218,6 +221,39 @@ absl::Status MvsEvaluateOptions::Validate() const {
   return absl::OkStatus();
 }
 
+// The calibration an MVS run placed its cameras with (its run.json), against the truth's cameras.
+absl::StatusOr<TruthComparison> RunFrameToTruth(const std::string& take_dir, const std::string& results,
+                                                const CameraCalibration& truth, std::string* placed_by = nullptr) {
+  const std::string path = results + "/run.json";
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot read (the multi-view stereo run's record)"));
+  const nlohmann::json run = nlohmann::json::parse(in, nullptr, false);
+  if (run.is_discarded() || !run.contains("calibration") || !run["calibration"].is_string()) {
+    return absl::InvalidArgumentError(absl::StrCat(path,
+                                                   ": no \"calibration\" string (written before evaluation "
+                                                   "could take a calibration's frame out; run mvs again)"));
+  }
+  const std::string spec = run["calibration"].get<std::string>();
+  if (placed_by != nullptr) *placed_by = run.value("cameras_placed_by", spec);
+  std::optional<CameraCalibration> placed;
+  if (spec.empty()) {
+    STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(take_dir));
+    STAGE_ASSIGN_OR_RETURN(placed, NominalCalibration(rig));
+  } else {
+    STAGE_ASSIGN_OR_RETURN(placed, LoadJobCalibration(take_dir, spec));
+  }
+  auto compared = CompareCalibrations(*placed, truth);
+  if (!compared.ok())
+    return absl::Status(compared.status().code(), absl::StrCat(path, ": ", compared.status().message()));
+  return compared;
+}
+
+// `mesh` moved by `t`.
+void Move(const Eigen::Isometry3d& t, TriangleMesh* mesh) {
+  const Eigen::Isometry3f tf = t.cast<float>();
+  for (Eigen::Vector3f& p : mesh->positions) p = tf * p;
+}
+
 absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
   STAGE_RETURN_IF_ERROR(o.Validate());
   const std::string results = o.results_dir.empty() ? o.take_dir + "/derived/mvs" : o.results_dir;
@@ -233,6 +269,10 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
   }
   MvsEvaluation e;
   e.within_mm = o.within_mm;
+  STAGE_ASSIGN_OR_RETURN(const TruthComparison in_truth,
+                         RunFrameToTruth(o.take_dir, results, placed, &e.cameras_placed_by));
+  e.frame_offset_mm = in_truth.frame_offset_mm;
+  e.frame_rotation_deg = in_truth.frame_rotation_deg;
   RegionSums sums[kHeadRegions];
   std::vector<double> depth_differences;
   for (int64_t frame = o.first_frame; o.last_frame < 0 || frame < o.last_frame; ++frame) {
@@ -241,7 +281,8 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
       if (o.last_frame < 0 && e.frames > 0) break;
       return absl::NotFoundError(absl::StrCat(recon_path, ": no reconstruction of frame ", frame));
     }
-    STAGE_ASSIGN_OR_RETURN(const TriangleMesh recon, ReadObj(recon_path));
+    STAGE_ASSIGN_OR_RETURN(TriangleMesh recon, ReadObj(recon_path));
+    Move(in_truth.to_truth, &recon);
     STAGE_ASSIGN_OR_RETURN(const TriangleMesh true_mesh,
                            ReadObj(absl::StrFormat("%s/frame-%06d/mesh.obj", truth, frame)));
     EvaluateFrame(true_mesh, recon, cameras, o, sums, &e);
@@ -282,6 +323,8 @@ absl::Status WriteMvsPictures(const std::string& take_dir, const std::string& re
                          ReadObj(absl::StrFormat("%s/ground_truth/frame-%06d/mesh.obj", take_dir, frame)));
   STAGE_ASSIGN_OR_RETURN(const CameraCalibration placed,
                          ReadCameraCalibration(take_dir + "/ground_truth/cameras.json"));
+  STAGE_ASSIGN_OR_RETURN(const TruthComparison in_truth, RunFrameToTruth(take_dir, results, placed));
+  Move(in_truth.to_truth, &recon);
   const CameraModel* sensor = placed.Find(camera);
   if (sensor == nullptr) return absl::NotFoundError(absl::StrCat("no camera \"", camera, "\" in the ground truth"));
   // The camera at a picture's size: 1024 pixels wide at most.
@@ -317,6 +360,8 @@ std::string FormatMvsEvaluation(const MvsEvaluation& e) {
   std::string out = absl::StrFormat(
       "multi-view stereo against the truth: %d frame(s), %d vertices (%d nearest to surface no two cameras see)\n",
       e.frames, e.vertices, e.unseen_vertices);
+  absl::StrAppendFormat(&out, "(cameras placed by %s; its frame moved onto the truth's by %.3f mm, %.4f deg)\n",
+                        e.cameras_placed_by, e.frame_offset_mm, e.frame_rotation_deg);
   absl::StrAppendFormat(&out, "%-10s %9s %9s %10s %8s %12s %14s\n", "region", "vertices", "RMSE mm", "median mm",
                         "p95 mm", "seen mm^2", absl::StrFormat("within %.2g mm", e.within_mm));
   for (const MvsRegionError& r : e.regions) {
@@ -336,6 +381,8 @@ std::string MvsEvaluationJson(const MvsEvaluation& e) {
   j["vertices"] = e.vertices;
   j["unseen_vertices"] = e.unseen_vertices;
   j["within_mm"] = e.within_mm;
+  j["cameras_placed_by"] = e.cameras_placed_by;
+  j["frame_to_truth"] = {{"offset_mm", e.frame_offset_mm}, {"rotation_deg", e.frame_rotation_deg}};
   j["depth_maps"] = {
       {"pixels", e.depth_pixels}, {"median_mm", e.depth_median_mm}, {"median_abs_mm", e.depth_median_abs_mm}};
   for (const MvsRegionError& r : e.regions) {

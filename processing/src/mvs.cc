@@ -171,6 +171,7 @@ std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, i
   for (const MvsCamera& c : cameras) ids.push_back(c.id);
   run["cameras"] = ids;
   run["cameras_placed_by"] = calibration.has_value() ? calibration->source : "the rig's nominal models (uncalibrated)";
+  run["calibration"] = job.calibration;  // as named (MvsJob::calibration): evaluation finds its frame from it
   run["options"] = {{"image_scale", o.image_scale},
                     {"neighbours", o.neighbours},
                     {"best_of", o.best_of},

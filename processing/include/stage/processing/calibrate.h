@@ -6,6 +6,7 @@
 // ProcessingWorker job (`stagectl calibrate`).
 #pragma once
 
+#include <Eigen/Geometry>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -64,6 +65,7 @@ struct TruthComparison {
   // one under which the calibrated cameras see the head's volume most nearly as the true ones do, started from the best
   // fit of the centres. Its translation (mm) and angle (degrees).
   double frame_offset_mm = 0, frame_rotation_deg = 0;
+  Eigen::Isometry3d to_truth = Eigen::Isometry3d::Identity();  // calibration's frame -> truth's
   // Worst over the cameras, and the root mean square.
   CameraError worst, rms;
 };

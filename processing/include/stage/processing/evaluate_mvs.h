@@ -67,6 +67,12 @@ struct MvsEvaluation {
   // The views' depth maps against the truth's (at the recorded size), where both have one: signed and absolute.
   int64_t depth_pixels = 0;
   double depth_median_mm = 0, depth_median_abs_mm = 0;
+  // The meshes are in the frame of the cameras that made them; a calibration fixes its frame only up to a rigid
+  // motion (the rig's nominal frame), so they are moved into the truth's first, by the motion under which those
+  // cameras see the head's volume most nearly as the true ones do (CompareCalibrations). What placed the cameras
+  // (the results' run.json), and that motion's translation and angle.
+  std::string cameras_placed_by;
+  double frame_offset_mm = 0, frame_rotation_deg = 0;
 };
 
 absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& options);
