@@ -146,6 +146,32 @@ TEST(CalibrateTest, AStartThatAgreesWithNothingDoesNotConvergeToTheTruth) {
   EXPECT_GT(compared->worst.rotation_deg, 0.1);
 }
 
+TEST(CalibrateTest, TheComparisonTakesOutTheCalibrationsFrame) {
+  // The true cameras in a frame moved 0.8 mm and 0.05 deg: the same cameras, so nothing but the frame differs.
+  Synthetic s = Make(0.25, 1, 0, -1, -1);
+  Eigen::Isometry3d move = Eigen::Isometry3d::Identity();
+  move.linear() = Eigen::AngleAxisd(0.05 * M_PI / 180, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  move.translation() = Eigen::Vector3d(0.5, -0.4, 0.5);
+  std::vector<CameraModel> moved;
+  for (const CameraModel& m : s.truth) {
+    CameraParameters p = m.parameters();
+    p.position = move * p.position;
+    p.rotation = p.rotation * move.linear().transpose();
+    auto made = CameraModel::FromParameters(p);
+    ASSERT_TRUE(made.ok()) << made.status();
+    moved.push_back(*made);
+  }
+  auto compared = CompareCalibrations(AsCalibration(s.observed, moved, "moved"),
+                                      AsCalibration(s.observed, s.truth, "truth"));
+  ASSERT_TRUE(compared.ok()) << compared.status();
+  EXPECT_NEAR(compared->frame_offset_mm, (move.inverse()).translation().norm(), 1e-4);
+  EXPECT_NEAR(compared->frame_rotation_deg, 0.05, 1e-5);
+  EXPECT_LT((compared->to_truth * move).translation().norm(), 1e-4);
+  EXPECT_LT(compared->worst.centre_mm, 1e-4);
+  EXPECT_LT(compared->worst.rotation_deg, 1e-5);
+  EXPECT_LT(compared->worst.projection_px, 1e-3);
+}
+
 TEST(CalibrateTest, DetectionFindsADrawnBoardWhereItWasDrawn) {
   // OpenCV's own drawing of the board, warped by a homography: the corners come back where the homography puts them
   // (pixel centres at integers: the half-pixel offset of OpenCV 4.6's ChArUco corners is taken out).
