@@ -132,8 +132,11 @@ TEST(SlotClockTest, RealTimeMissesEdgesItIsASlotLateForAndCountsThem) {
     EXPECT_LT(e.actual_ns - e.scheduled_ns, 1'000'000) << "slot " << e.slot;
     reported_missing += e.missed_before;
   }
-  // Every missed edge is reported by the next delivered one.
-  EXPECT_EQ(static_cast<uint64_t>(reported_missing), stats.missed);
+  // Every missed edge is reported by the next delivered one; edges missed after the last delivered one (a loaded
+  // machine can stall the thread again near the end) have none to report them.
+  ASSERT_FALSE(rec.edges.empty());
+  const int64_t trailing = 29 - rec.edges.back().slot;
+  EXPECT_EQ(static_cast<uint64_t>(reported_missing + trailing), stats.missed);
   ASSERT_GE(stalled_at, 3);
   ASSERT_LT(stalled_at, 25) << "the machine is too loaded to reach slot 3 within 22 slots";
   size_t i = 0;
