@@ -204,32 +204,25 @@ SeenPoints SeenInVolume(const CameraModel& b) {
   return out;
 }
 
-// Sum of squared distances between where `a` sees `seen`'s points and where `b` saw them, and how many `a` sees.
-double ProjectionSquares(const CameraModel& a, const SeenPoints& seen, int* n) {
+// RMS distance between where `a` sees `seen`'s points and where the camera they were seen by saw them, pixels.
+double ProjectionDifference(const CameraModel& a, const SeenPoints& seen) {
   double sum2 = 0;
+  int n = 0;
   for (size_t i = 0; i < seen.points.size(); ++i) {
     Eigen::Vector2d u;
     if (!a.Project(seen.points[i], &u)) continue;
     sum2 += (u - seen.pixels[i]).squaredNorm();
-    ++*n;
+    ++n;
   }
-  return sum2;
-}
-
-// RMS distance between where the two models see the head's volume (SeenInVolume of `b`), pixels.
-double ProjectionDifference(const CameraModel& a, const CameraModel& b) {
-  int n = 0;
-  const double sum2 = ProjectionSquares(a, SeenInVolume(b), &n);
   return n > 0 ? std::sqrt(sum2 / n) : 0;
 }
 
 // The rigid motion near `start` under which the calibrated cameras see the head's volume most nearly as the true ones
 // do (least squares over every camera's seen points; Gauss-Newton with numeric derivatives). A calibration fixes its
 // frame only up to a rigid motion; fitting the centres alone lets one poorly placed camera move the frame for all.
+// `seen[c]`: SeenInVolume of calibrated camera c's truth.
 Eigen::Isometry3d AlignByProjection(const std::vector<const CameraModel*>& calibrated,
-                                    const std::vector<const CameraModel*>& truth, Eigen::Isometry3d start) {
-  std::vector<SeenPoints> seen;
-  for (const CameraModel* t : truth) seen.push_back(SeenInVolume(*t));
+                                    const std::vector<SeenPoints>& seen, Eigen::Isometry3d start) {
   auto residuals = [&](const Eigen::Isometry3d& align) {
     std::vector<double> r;
     for (size_t c = 0; c < calibrated.size(); ++c) {
@@ -659,7 +652,9 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
   }
   std::vector<const CameraModel*> calibrated_models;
   for (const CalibratedCamera* c : mine) calibrated_models.push_back(&c->model);
-  const Eigen::Isometry3d align = AlignByProjection(calibrated_models, theirs, RigidFit(from, to));
+  std::vector<SeenPoints> seen;
+  for (const CameraModel* t : theirs) seen.push_back(SeenInVolume(*t));
+  const Eigen::Isometry3d align = AlignByProjection(calibrated_models, seen, RigidFit(from, to));
   TruthComparison out;
   out.to_truth = align;
   out.frame_offset_mm = align.translation().norm();
@@ -675,7 +670,7 @@ absl::StatusOr<TruthComparison> CompareCalibrations(const CameraCalibration& cal
     e.focal_percent = 100 * ((m.fx() + m.fy()) / (t.fx() + t.fy()) - 1);
     e.principal_px = std::hypot(m.cx() - t.cx(), m.cy() - t.cy());
     e.distortion_px = DistortionDifference(m, t);
-    e.projection_px = ProjectionDifference(m, t);
+    e.projection_px = ProjectionDifference(m, seen[i]);
     out.cameras.push_back(e);
     for (auto [sum, value] : {std::pair{&out.rms.centre_mm, e.centre_mm},
                               {&out.rms.rotation_deg, e.rotation_deg},

@@ -53,7 +53,7 @@ std::vector<double> SquareSizesPx(const CharucoBoardSpec& spec, const std::vecto
     out[k] = *std::min_element(d.begin(), d.end());
     all.push_back(out[k]);
   }
-  const double typical = all.empty() ? 0 : Median(std::move(all));
+  const double typical = Median(std::move(all));  // 0 for none
   for (double& v : out) {
     if (v == 0) v = typical;
   }

@@ -5,7 +5,6 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
 #include <nanoflann.hpp>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -15,6 +14,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/camera_calibration.h"
+#include "stage/common/file_util.h"
 #include "stage/common/status.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/map_files.h"
@@ -225,9 +225,8 @@ absl::Status MvsEvaluateOptions::Validate() const {
 absl::StatusOr<TruthComparison> RunFrameToTruth(const std::string& take_dir, const std::string& results,
                                                 const CameraCalibration& truth, std::string* placed_by = nullptr) {
   const std::string path = results + "/run.json";
-  std::ifstream in(path);
-  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot read (the multi-view stereo run's record)"));
-  const nlohmann::json run = nlohmann::json::parse(in, nullptr, false);
+  STAGE_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, "the multi-view stereo run's record"));
+  const nlohmann::json run = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
   if (run.is_discarded() || !run.contains("calibration") || !run["calibration"].is_string()) {
     return absl::InvalidArgumentError(absl::StrCat(path,
                                                    ": no \"calibration\" string (written before evaluation "
