@@ -123,8 +123,15 @@ absl::Status CompareDepthMaps(const std::string& results_frame, const std::strin
 
 struct RegionSums {
   std::vector<double> distances;
-  double seen_area = 0, within_area = 0;
+  double seen_area = 0, within_area = 0, covered_area = 0;
 };
+
+// Whether the line along the true surface's normal at `centre` meets the reconstruction within +-reach: the surface
+// is there, not a hole beside which the nearest reconstructed point lies.
+bool Covered(const MeshBvh& recon, const Eigen::Vector3f& centre, const Eigen::Vector3f& normal, float reach) {
+  MeshHit hit;
+  return recon.Nearest(centre - reach * normal, normal, 2 * reach, &hit);
+}
 
 // One frame's sums per region.
 void EvaluateFrame(const TriangleMesh& truth, const TriangleMesh& recon, const std::vector<CameraModel>& cameras,
@@ -143,14 +150,20 @@ void EvaluateFrame(const TriangleMesh& truth, const TriangleMesh& recon, const s
     sums[static_cast<int>(RegionOf(truth, t))].distances.push_back(d);
   }
   const SurfaceDistance to_recon(recon);
+  const MeshBvh recon_bvh(recon);
   for (size_t t = 0; t < truth.triangles.size(); ++t) {
     if (!seen[t]) continue;
     const auto& tri = truth.triangles[t];
-    const Eigen::Vector3f centre = (truth.positions[tri[0]] + truth.positions[tri[1]] + truth.positions[tri[2]]) / 3;
+    const Eigen::Vector3f a = truth.positions[tri[0]], b = truth.positions[tri[1]], c = truth.positions[tri[2]];
+    const Eigen::Vector3f centre = (a + b + c) / 3;
     const double area = TriangleArea(truth, t);
     RegionSums& s = sums[static_cast<int>(RegionOf(truth, t))];
     s.seen_area += area;
-    if (!recon.triangles.empty() && to_recon.Distance(centre) <= o.within_mm) s.within_area += area;
+    if (recon.triangles.empty()) continue;
+    if (to_recon.Distance(centre) <= o.within_mm) s.within_area += area;
+    if (Covered(recon_bvh, centre, (b - a).cross(c - a).normalized(), static_cast<float>(o.within_mm))) {
+      s.covered_area += area;
+    }
   }
 }
 
@@ -309,6 +322,7 @@ absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& o) {
     }
     out.seen_area_mm2 = sums[r].seen_area;
     out.completeness = sums[r].seen_area > 0 ? sums[r].within_area / sums[r].seen_area : 0;
+    out.coverage = sums[r].seen_area > 0 ? sums[r].covered_area / sums[r].seen_area : 0;
     e.regions.push_back(out);
   }
   return e;
@@ -361,12 +375,15 @@ std::string FormatMvsEvaluation(const MvsEvaluation& e) {
       e.frames, e.vertices, e.unseen_vertices);
   absl::StrAppendFormat(&out, "(cameras placed by %s; its frame moved onto the truth's by %.3f mm, %.4f deg)\n",
                         e.cameras_placed_by, e.frame_offset_mm, e.frame_rotation_deg);
-  absl::StrAppendFormat(&out, "%-10s %9s %9s %10s %8s %12s %14s\n", "region", "vertices", "RMSE mm", "median mm",
-                        "p95 mm", "seen mm^2", absl::StrFormat("within %.2g mm", e.within_mm));
+  absl::StrAppendFormat(&out, "%-10s %9s %9s %10s %8s %12s %14s %9s\n", "region", "vertices", "RMSE mm", "median mm",
+                        "p95 mm", "seen mm^2", absl::StrFormat("within %.2g mm", e.within_mm), "covered");
   for (const MvsRegionError& r : e.regions) {
-    absl::StrAppendFormat(&out, "%-10s %9d %9.3f %10.3f %8.3f %12.0f %13.1f%%\n", HeadRegionName(r.region), r.vertices,
-                          r.rmse_mm, r.median_mm, r.p95_mm, r.seen_area_mm2, 100 * r.completeness);
+    absl::StrAppendFormat(&out, "%-10s %9d %9.3f %10.3f %8.3f %12.0f %13.1f%% %8.1f%%\n", HeadRegionName(r.region),
+                          r.vertices, r.rmse_mm, r.median_mm, r.p95_mm, r.seen_area_mm2, 100 * r.completeness,
+                          100 * r.coverage);
   }
+  absl::StrAppendFormat(&out, "(covered: the true surface's normal meets the mesh within %.2g mm; the rest is holes)\n",
+                        e.within_mm);
   absl::StrAppendFormat(&out,
                         "depth maps: %d pixels with a depth and a true one; median error %+.3f mm, median "
                         "absolute %.3f mm\n",
@@ -385,9 +402,13 @@ std::string MvsEvaluationJson(const MvsEvaluation& e) {
   j["depth_maps"] = {
       {"pixels", e.depth_pixels}, {"median_mm", e.depth_median_mm}, {"median_abs_mm", e.depth_median_abs_mm}};
   for (const MvsRegionError& r : e.regions) {
-    j["regions"][HeadRegionName(r.region)] = {{"vertices", r.vertices},           {"rmse_mm", r.rmse_mm},
-                                              {"median_mm", r.median_mm},         {"p95_mm", r.p95_mm},
-                                              {"seen_area_mm2", r.seen_area_mm2}, {"completeness", r.completeness}};
+    j["regions"][HeadRegionName(r.region)] = {{"vertices", r.vertices},
+                                              {"rmse_mm", r.rmse_mm},
+                                              {"median_mm", r.median_mm},
+                                              {"p95_mm", r.p95_mm},
+                                              {"seen_area_mm2", r.seen_area_mm2},
+                                              {"completeness", r.completeness},
+                                              {"coverage", r.coverage}};
   }
   return j.dump();
 }

@@ -1,6 +1,7 @@
 // Multi-view stereo's meshes against the simulator's ground truth (docs/geometry.md#evaluation): per frame, the
 // distance of every reconstructed vertex to the true surface (accuracy: RMSE, median, 95th percentile) and the share
-// of the true surface within 1 mm of the reconstruction (completeness), over the surface at least two machine-vision
+// of the true surface within 1 mm of the reconstruction (completeness) and the share the reconstruction covers (its
+// holes: the true normal meets no reconstruction within 1 mm), over the surface at least two machine-vision
 // cameras see at less than 60 degrees from its normal, with the face, the eyes, the mouth and the rest of the skin
 // apart.
 #pragma once
@@ -43,6 +44,9 @@ struct MvsRegionError {
   double rmse_mm = 0, median_mm = 0, p95_mm = 0;
   double seen_area_mm2 = 0;  // the true surface of the region at least two cameras see
   double completeness = 0;   // share of it within `within_mm` of the reconstruction
+  // Share of it where the line along its normal meets the reconstruction within +-within_mm: what is not a hole
+  // (completeness counts a point beside a small hole as near the surface).
+  double coverage = 0;
 };
 
 struct MvsEvaluateOptions {
