@@ -30,12 +30,17 @@ double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
 }
 
-// The voxel: options.voxel_mm, or voxel_px footprints of a pixel at the volume's centre in the median view.
-double VoxelSize(const std::vector<MvsView>& views, const MvsOptions& o) {
-  if (o.voxel_mm > 0) return o.voxel_mm;
+// A pixel's footprint at the volume's centre in the median view, mm.
+double PixelFootprint(const std::vector<MvsView>& views, const MvsOptions& o) {
   std::vector<double> footprint;
   for (const MvsView& v : views) footprint.push_back((v.position - o.volume_centre_mm).norm() / v.fx);
-  return std::max(0.2, o.voxel_px * Median(footprint));
+  return Median(footprint);
+}
+
+// The voxel: options.voxel_mm, or voxel_px footprints of a pixel, at least 0.2 mm.
+double VoxelSize(double pixel_mm, const MvsOptions& o) {
+  if (o.voxel_mm > 0) return o.voxel_mm;
+  return std::max(0.2, o.voxel_px * pixel_mm);
 }
 
 absl::StatusOr<std::vector<MvsCamera>> JobCameras(const MvsJob& job, const LoadedRig& rig,
@@ -102,10 +107,14 @@ std::string FrameMetrics(const MvsFrame& f, int64_t frame, const std::vector<std
                           {"consistent_pixels", v.consistent}});
   }
   j["cameras_without_a_full_lit_frame"] = missing;
+  j["pixel_mm"] = f.pixel_mm;
+  j["min_score"] = f.min_score;
   j["voxel_mm"] = f.voxel_mm;
   j["mesh"] = {{"vertices", f.mesh.positions.size()},
                {"triangles", f.mesh.triangles.size()},
-               {"vertices_before_trim", f.mesh_vertices_before_trim}};
+               {"vertices_before_trim", f.mesh_vertices_before_trim},
+               {"holes_filled", f.holes_filled},
+               {"filled_mm2", f.filled_mm2}};
   return j.dump(2) + "\n";
 }
 
@@ -179,7 +188,10 @@ std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, i
                     {"window", o.window},
                     {"coarse_width", o.coarse_width},
                     {"refine_steps", o.refine_steps},
+                    {"prior_median_radius", o.prior_median_radius},
                     {"min_score", o.min_score},
+                    {"fine_min_score", o.fine_min_score},
+                    {"fine_footprint_mm", o.fine_footprint_mm},
                     {"keep_coarser", o.keep_coarser},
                     {"min_signal", o.min_signal},
                     {"min_consistent", o.min_consistent},
@@ -190,6 +202,7 @@ std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, i
                     {"voxel_px", o.voxel_px},
                     {"truncation_voxels", o.truncation_voxels},
                     {"min_views", o.min_views},
+                    {"fill_holes_mm", o.fill_holes_mm},
                     {"smooth_iterations", o.smooth_iterations}};
   return run.dump(2) + "\n";
 }
@@ -209,7 +222,14 @@ absl::Status MvsOptions::Validate() const {
   if (coarse_width < 16) return bad(absl::StrCat("coarse_width ", coarse_width, " is below 16"));
   if (refine_steps < 1 || refine_steps > 16)
     return bad(absl::StrCat("refine_steps ", refine_steps, " is not in 1..16"));
+  if (prior_median_radius < 0 || prior_median_radius > 8) {
+    return bad(absl::StrCat("prior_median_radius ", prior_median_radius, " is not in 0..8"));
+  }
   if (!(min_score > -1 && min_score < 1)) return bad(absl::StrCat("min_score ", min_score, " is not in (-1, 1)"));
+  if (!(fine_min_score > -1 && fine_min_score < 1)) {
+    return bad(absl::StrCat("fine_min_score ", fine_min_score, " is not in (-1, 1)"));
+  }
+  if (!(fine_footprint_mm >= 0)) return bad(absl::StrCat("fine_footprint_mm ", fine_footprint_mm, " is negative"));
   if (!(min_signal >= 0 && min_signal < 1)) return bad(absl::StrCat("min_signal ", min_signal, " is not in [0, 1)"));
   if (min_consistent < 0 || min_consistent > neighbours) {
     return bad(absl::StrCat("min_consistent ", min_consistent, " is not in 0..neighbours"));
@@ -221,6 +241,7 @@ absl::Status MvsOptions::Validate() const {
   if (smooth_iterations < 0 || smooth_iterations > 1000) {
     return bad(absl::StrCat("smooth_iterations ", smooth_iterations, " is not in 0..1000"));
   }
+  if (!(fill_holes_mm >= 0)) return bad(absl::StrCat("fill_holes_mm ", fill_holes_mm, " is negative"));
   if (min_views < 1) return bad(absl::StrCat("min_views ", min_views, " is below 1"));
   if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
   return absl::OkStatus();
@@ -266,6 +287,10 @@ absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, con
     }
   }
   MvsFrame f;
+  f.pixel_mm = PixelFootprint(views, options);
+  MvsOptions o = options;
+  if (f.pixel_mm < options.fine_footprint_mm) o.min_score = options.fine_min_score;
+  f.min_score = o.min_score;
   const auto neighbours = ChooseNeighbours(views, options);
   for (size_t i = 0; i < views.size(); ++i) {
     if (neighbours[i].empty()) {
@@ -281,7 +306,7 @@ absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, con
   internal::ParallelItems(n, options.threads, [&](int i) {
     f.views[i].id = views[i].id;
     for (int j : neighbours[i]) f.views[i].neighbours.push_back(views[j].id);
-    raw[i] = SweepDepth(views, i, neighbours[i], options, &f.views[i]);
+    raw[i] = SweepDepth(views, i, neighbours[i], o, &f.views[i]);
   });
   f.depths.resize(n);
   internal::ParallelItems(n, options.threads, [&](int i) {
@@ -289,12 +314,15 @@ absl::StatusOr<MvsFrame> ReconstructFrame(const std::vector<MvsView>& views, con
   });
   f.depth_s = Seconds(t0);
   t0 = std::chrono::steady_clock::now();
-  f.voxel_mm = VoxelSize(views, options);
+  f.voxel_mm = VoxelSize(f.pixel_mm, options);
   STAGE_ASSIGN_OR_RETURN(TriangleMesh fused, FuseDepthMaps(views, f.depths, f.voxel_mm, options));
   f.fusion_s = Seconds(t0);
   t0 = std::chrono::steady_clock::now();
   f.mesh_vertices_before_trim = static_cast<int64_t>(fused.positions.size());
   f.mesh = TrimToHead(fused, options.volume_centre_mm, options.volume_radius_mm);
+  const HoleFill filled = FillHoles(options.fill_holes_mm, &f.mesh);
+  f.holes_filled = filled.holes;
+  f.filled_mm2 = filled.area_mm2;
   SmoothMesh(options.smooth_iterations, &f.mesh);
   f.mesh_s = Seconds(t0);
   return f;

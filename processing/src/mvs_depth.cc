@@ -311,6 +311,30 @@ std::vector<float> Upsample(const DepthMap& coarse, const Level& fine, const cv:
   return out;
 }
 
+// Each depth replaced by the median of the known depths about it (radius r; 0: none): a coarse level's outliers
+// would otherwise steer the finer levels' narrow sweeps, which cannot reach past them.
+DepthMap MedianDepth(const DepthMap& in, int r) {
+  if (r <= 0) return in;
+  DepthMap out = in;
+  std::vector<float> v;
+  for (int y = 0; y < in.height; ++y) {
+    for (int x = 0; x < in.width; ++x) {
+      const size_t i = static_cast<size_t>(y) * in.width + x;
+      if (in.depth[i] <= 0) continue;
+      v.clear();
+      for (int yy = std::max(0, y - r); yy <= std::min(in.height - 1, y + r); ++yy) {
+        for (int xx = std::max(0, x - r); xx <= std::min(in.width - 1, x + r); ++xx) {
+          const float z = in.depth[static_cast<size_t>(yy) * in.width + xx];
+          if (z > 0) v.push_back(z);
+        }
+      }
+      std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+      out.depth[i] = v[v.size() / 2];
+    }
+  }
+  return out;
+}
+
 // One level's sweep of view `ref`.
 DepthMap SweepLevel(const Level& rl, const RefStats& rs, const std::vector<const Level*>& nls,
                     const std::vector<PairWarp>& warps, const Hypotheses& h, const MvsOptions& o, double min_score,
@@ -367,9 +391,10 @@ DepthMap SweepDepth(const std::vector<MvsView>& views, int ref, const std::vecto
       nls.push_back(&np[n][l]);
       warps.push_back(MakeWarp(rv, rl, views[neighbours[n]], np[n][l]));
     }
-    const Hypotheses h = l == levels - 1
-                             ? VolumeSweep(rv, rl, warps, options)
-                             : RefineSweep(rl, Upsample(depth, rl, rs.foreground), warps, options.refine_steps);
+    const Hypotheses h =
+        l == levels - 1 ? VolumeSweep(rv, rl, warps, options)
+                        : RefineSweep(rl, Upsample(MedianDepth(depth, options.prior_median_radius), rl, rs.foreground),
+                                      warps, options.refine_steps);
     // Coarser levels keep weaker matches: the finer levels look again.
     const bool finest = l == 0;
     depth = SweepLevel(rl, rs, nls, warps, h, options, finest ? options.min_score : 0.5 * options.min_score, !finest);

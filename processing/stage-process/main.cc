@@ -64,6 +64,18 @@ struct MvsCommand {
         ->check(CLI::Range(1, 16));
     app->add_option("--window", o.window, "Correlation window, pixels (odd)")->capture_default_str();
     app->add_option("--min-score", o.min_score, "Correlation a depth must reach")->capture_default_str();
+    app->add_option("--fine-min-score", o.fine_min_score,
+                    "... where a pixel covers less than --fine-footprint-mm at the head")
+        ->capture_default_str();
+    app->add_option("--fine-footprint-mm", o.fine_footprint_mm,
+                    "Pixel footprint below which --fine-min-score applies, mm (0: never)")
+        ->capture_default_str()
+        ->check(CLI::NonNegativeNumber);
+    app->add_option("--prior-median", o.prior_median_radius,
+                    "Median filter of each coarser level's depth before the finer level sweeps about it, radius in "
+                    "coarser pixels (0: none)")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 8));
     app->add_flag("--keep-coarser,!--no-keep-coarser", o.keep_coarser,
                   "Where a finer level finds no depth, keep the coarser level's (fewer holes, more noise)");
     app->add_option("--min-views", o.min_views, "Views a surface needs to be meshed")
@@ -75,6 +87,9 @@ struct MvsCommand {
         ->capture_default_str();
     app->add_option("--volume-radius-mm", o.volume_radius_mm, "Radius of the head's volume about the stage origin")
         ->capture_default_str();
+    app->add_option("--fill-holes-mm", o.fill_holes_mm, "Close the mesh's holes at most this wide, mm (0: none)")
+        ->capture_default_str()
+        ->check(CLI::NonNegativeNumber);
     app->add_option("--smooth", o.smooth_iterations, "Taubin smoothing of the mesh, iterations")
         ->capture_default_str()
         ->check(CLI::Range(0, 1000));

@@ -38,8 +38,18 @@ struct MvsOptions {
   // At every finer level, depths within +-refine_steps steps (one step moves the point by at most a pixel in every
   // neighbour) of the coarser level's depth. Default 3.
   int refine_steps = 3;
+  // Before a finer level sweeps about it, every depth of the coarser level is replaced by the median of the depths
+  // within this radius (coarser pixels): a wrong coarse depth would otherwise steer the narrow sweep below it, and
+  // the finer levels could not recover (docs/geometry.md). 0: none. Default 3.
+  int prior_median_radius = 3;
   // A depth is kept where its score reaches this. Default 0.5.
   double min_score = 0.5;
+  // Where a pixel covers less than fine_footprint_mm at the head (the median view's, at the volume's centre),
+  // fine_min_score applies instead: a 7 x 7 window there holds too little of the skin's texture to score high, while
+  // the agreement across views (2 pixel footprints) is strict enough to filter what the lower bar lets through
+  // (docs/geometry.md). Defaults 0.3 below 0.35 mm (half resolution and finer on the shipped rig).
+  double fine_min_score = 0.3;
+  double fine_footprint_mm = 0.35;
   // Where a finer level finds no depth (too little texture in its window, or no score high enough), keep the coarser
   // level's (its windows cover more of the surface); the agreement across views then judges it. Default false:
   // the holes it fills come back noisier (docs/geometry.md).
@@ -62,6 +72,9 @@ struct MvsOptions {
   double truncation_voxels = 4;
   // A surface is meshed where at least this many views saw it. Default 2.
   int min_views = 2;
+  // Holes of the mesh at most this wide are closed (a membrane spanning the boundary, before the
+  // smoothing), mm; 0: none. Default 0 (docs/geometry.md: the holes left where no view matched).
+  double fill_holes_mm = 0;
   // Taubin smoothing of the mesh (mvs_internal.h): pairs of steps. Default 10.
   int smooth_iterations = 10;
   // Worker threads (views at a time). 0: one per core.
@@ -103,7 +116,11 @@ struct MvsFrame {
   std::vector<DepthMap> depths;  // per view, consistent depths only
   std::vector<MvsViewMetrics> views;
   double voxel_mm = 0;
+  double pixel_mm = 0;   // a pixel's footprint at the volume's centre (the median view's)
+  double min_score = 0;  // the bar the depths met (MvsOptions::min_score or fine_min_score)
   int64_t mesh_vertices_before_trim = 0;
+  int64_t holes_filled = 0;  // FillHoles: holes closed and their area
+  double filled_mm2 = 0;
   double depth_s = 0, fusion_s = 0, mesh_s = 0;  // wall time of each step
 };
 
