@@ -1,8 +1,9 @@
-// Closing a mesh's small holes (mvs_internal.h): every loop of boundary edges (an edge of one triangle) no longer
-// than the limit is filled with rings of new vertices shrinking to its centre, and the new vertices are then faired
-// (each moved to the mean of its neighbours, the loop held still) into the membrane the loop spans.
+// Closing a mesh's small holes (mvs_internal.h): every loop of boundary edges (an edge of one triangle) is spanned by
+// the triangles between its vertices of least area, and kept where the hole is narrow enough: 4 x that area over
+// the loop's length (a disc's diameter, a crack's width) within the limit.
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <unordered_map>
 
@@ -10,6 +11,10 @@
 
 namespace stage::processing {
 namespace {
+
+// A hole is filled if at most this many boundary vertices long, and at most kMaxLength times as long as wide.
+constexpr size_t kMaxLoop = 600;
+constexpr double kMaxLength = 5;
 
 uint64_t EdgeKey(int32_t a, int32_t b) {
   return (static_cast<uint64_t>(static_cast<uint32_t>(std::min(a, b))) << 32) | static_cast<uint32_t>(std::max(a, b));
@@ -66,7 +71,15 @@ std::vector<std::vector<int32_t>> BoundaryLoops(const TriangleMesh& mesh) {
   return loops;
 }
 
-// A loop's size: twice the largest distance of its vertices from their centre (a ragged boundary's length says
+double Perimeter(const TriangleMesh& mesh, const std::vector<int32_t>& loop) {
+  double sum = 0;
+  for (size_t i = 0; i < loop.size(); ++i) {
+    sum += (mesh.positions[loop[(i + 1) % loop.size()]] - mesh.positions[loop[i]]).norm();
+  }
+  return sum;
+}
+
+// A loop's length: twice the largest distance of its vertices from their centre (a ragged boundary's length says
 // little of the hole's size).
 double Diameter(const TriangleMesh& mesh, const std::vector<int32_t>& loop) {
   Eigen::Vector3f centre = Eigen::Vector3f::Zero();
@@ -77,76 +90,58 @@ double Diameter(const TriangleMesh& mesh, const std::vector<int32_t>& loop) {
   return 2 * radius;
 }
 
-// Fills one loop: rings of its vertices' copies moved towards its centre, a fan about the centre; then the new
-// vertices faired. Returns the filled area, mm^2.
-double FillLoop(const std::vector<int32_t>& loop, TriangleMesh* mesh) {
-  const int n = static_cast<int>(loop.size());
-  Eigen::Vector3f centre = Eigen::Vector3f::Zero();
-  for (int32_t v : loop) centre += mesh->positions[v];
-  centre /= static_cast<float>(n);
-  // Rings about a mean edge apart from the loop to the centre (the hole's radius is about n edges over 2 pi).
-  const int rings = std::max(0, static_cast<int>(std::lround(n / (2 * M_PI))) - 1);
-  const int32_t first_new = static_cast<int32_t>(mesh->positions.size());
-  std::vector<int32_t> outer = loop;
-  for (int r = 1; r <= rings; ++r) {
-    const float f = static_cast<float>(r) / static_cast<float>(rings + 1);
-    std::vector<int32_t> inner(n);
-    for (int i = 0; i < n; ++i) {
-      inner[i] = static_cast<int32_t>(mesh->positions.size());
-      mesh->positions.push_back((1 - f) * mesh->positions[loop[i]] + f * centre);
-    }
-    // The loop runs a -> b in its triangles; the new ones run b -> a.
-    for (int i = 0; i < n; ++i) {
-      const int j = (i + 1) % n;
-      mesh->triangles.push_back({outer[j], outer[i], inner[i]});
-      mesh->triangles.push_back({outer[j], inner[i], inner[j]});
-    }
-    outer = std::move(inner);
-  }
-  const int32_t c = static_cast<int32_t>(mesh->positions.size());
-  mesh->positions.push_back(centre);
-  for (int i = 0; i < n; ++i) mesh->triangles.push_back({outer[(i + 1) % n], outer[i], c});
+double TriangleArea(const Eigen::Vector3f& a, const Eigen::Vector3f& b, const Eigen::Vector3f& c) {
+  return 0.5 * (b - a).cross(c - a).norm();
+}
 
-  // Fairing: the new vertices to the mean of their neighbours, the loop fixed, until it settles (a membrane).
-  const int32_t count = static_cast<int32_t>(mesh->positions.size()) - first_new;
-  std::vector<std::vector<int32_t>> ring(count);
-  const size_t first_tri = mesh->triangles.size() - static_cast<size_t>(n) * (2 * rings + 1);
-  for (size_t t = first_tri; t < mesh->triangles.size(); ++t) {
-    const auto& tri = mesh->triangles[t];
-    for (int k = 0; k < 3; ++k) {
-      if (tri[k] < first_new) continue;
-      ring[tri[k] - first_new].push_back(tri[(k + 1) % 3]);
-      ring[tri[k] - first_new].push_back(tri[(k + 2) % 3]);
+// The triangulation of a loop of least area (Liepa 2003's dynamic programme, O(n^3)): a hole's boundary spanned by
+// triangles between its own vertices, whatever its shape (a crack as well as a disc). Triangles run against the
+// loop's direction. Returns the area.
+double SpanLoop(const TriangleMesh& mesh, const std::vector<int32_t>& loop,
+                std::vector<std::array<int32_t, 3>>* triangles) {
+  const int n = static_cast<int>(loop.size());
+  auto at = [&](int i) -> const Eigen::Vector3f& { return mesh.positions[loop[i]]; };
+  // area[i][k]: the least area spanning loop[i..k] and the chord k -> i; split[i][k]: its apex.
+  std::vector<double> area(static_cast<size_t>(n) * n, 0);
+  std::vector<int> split(static_cast<size_t>(n) * n, -1);
+  auto idx = [n](int i, int k) { return static_cast<size_t>(i) * n + k; };
+  for (int len = 2; len < n; ++len) {
+    for (int i = 0; i + len < n; ++i) {
+      const int k = i + len;
+      double best = INFINITY;
+      for (int m = i + 1; m < k; ++m) {
+        const double a = area[idx(i, m)] + area[idx(m, k)] + TriangleArea(at(i), at(m), at(k));
+        if (a < best) best = a, split[idx(i, k)] = m;
+      }
+      area[idx(i, k)] = best;
     }
   }
-  for (auto& r : ring) {
-    std::sort(r.begin(), r.end());
-    r.erase(std::unique(r.begin(), r.end()), r.end());
+  std::vector<std::pair<int, int>> todo = {{0, n - 1}};
+  while (!todo.empty()) {
+    const auto [i, k] = todo.back();
+    todo.pop_back();
+    if (k - i < 2) continue;
+    const int m = split[idx(i, k)];
+    triangles->push_back({loop[k], loop[m], loop[i]});
+    todo.emplace_back(i, m);
+    todo.emplace_back(m, k);
   }
-  for (int iteration = 0; iteration < 20 * (rings + 1); ++iteration) {
-    for (int32_t v = 0; v < count; ++v) {
-      Eigen::Vector3f mean = Eigen::Vector3f::Zero();
-      for (int32_t u : ring[v]) mean += mesh->positions[u];
-      mesh->positions[first_new + v] = mean / static_cast<float>(ring[v].size());
-    }
-  }
-  double area = 0;
-  for (size_t t = first_tri; t < mesh->triangles.size(); ++t) {
-    const auto& tri = mesh->triangles[t];
-    const auto& p = mesh->positions;
-    area += 0.5 * (p[tri[1]] - p[tri[0]]).cross(p[tri[2]] - p[tri[0]]).norm();
-  }
-  return area;
+  return area[idx(0, n - 1)];
 }
 
 }  // namespace
 
-HoleFill FillHoles(double max_diameter_mm, TriangleMesh* mesh) {
+HoleFill FillHoles(double max_width_mm, TriangleMesh* mesh) {
   HoleFill out;
-  if (max_diameter_mm <= 0) return out;
+  if (max_width_mm <= 0) return out;
   for (const std::vector<int32_t>& loop : BoundaryLoops(*mesh)) {
-    if (Diameter(*mesh, loop) > max_diameter_mm) continue;
-    out.area_mm2 += FillLoop(loop, mesh);
+    // Long openings (the mesh's own border, the mouth) are left; the programme is cubic in the loop's length.
+    if (loop.size() > kMaxLoop || Diameter(*mesh, loop) > kMaxLength * max_width_mm) continue;
+    std::vector<std::array<int32_t, 3>> patch;
+    const double area = SpanLoop(*mesh, loop, &patch);
+    if (4 * area / Perimeter(*mesh, loop) > max_width_mm) continue;
+    mesh->triangles.insert(mesh->triangles.end(), patch.begin(), patch.end());
+    out.area_mm2 += area;
     ++out.holes;
   }
   return out;

@@ -63,15 +63,14 @@ absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, co
 // The largest connected piece of `mesh` with its vertices inside the sphere (centre, radius); unused vertices dropped.
 TriangleMesh TrimToHead(const TriangleMesh& mesh, const Eigen::Vector3d& centre, double radius_mm);
 
-// Closes every hole of `mesh` at most max_diameter_mm across (twice its boundary's largest distance from the
-// boundary's centre; 0: none): rings of new vertices
-// from the loop to its centre, faired into the membrane the loop spans (each new vertex at the mean of its
-// neighbours). A loop through a vertex the boundary passes twice is left open.
+// Closes every hole of `mesh` at most max_width_mm wide (4 x its area over its boundary's length: a disc's diameter,
+// a crack's width) and at most 5 times as long (0: none), by the triangles between its boundary's vertices of least
+// area, no vertex added.
 struct HoleFill {
   int64_t holes = 0;
   double area_mm2 = 0;
 };
-HoleFill FillHoles(double max_diameter_mm, TriangleMesh* mesh);
+HoleFill FillHoles(double max_width_mm, TriangleMesh* mesh);
 
 // Taubin's smoothing (lambda 0.5, mu -0.53, uniform weights over each vertex's ring), `iterations` pairs of steps:
 // the fused surface's noise of a fraction of a voxel taken out without shrinking it.

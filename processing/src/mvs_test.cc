@@ -2,12 +2,13 @@
 // plane, rendered here by exact ray intersection (the simulator's analytic sphere and plane are one uniform material:
 // nothing for stereo to match, as on a real stage, where test targets are speckle-painted); the fused mesh must lie on
 // the closed-form surface. Also: options are validated naming the field, neighbours are the nearest views, a view
-// without neighbours is refused by name, the mesh trim keeps the largest piece inside the volume, and small holes
+// without neighbours is refused by name, the mesh trim keeps the largest piece inside the volume, and narrow holes
 // are closed on the surface about them.
 #include "stage/processing/mvs.h"
 
 #include <Eigen/Geometry>
 #include <cmath>
+#include <functional>
 #include <map>
 
 #include "gmock/gmock.h"
@@ -197,9 +198,9 @@ TEST(MvsTest, TheTrimKeepsTheLargestPieceInsideTheVolume) {
   EXPECT_EQ(t.positions.size(), 4u);
 }
 
-// A grid of `n` x `n` vertices `step` apart on the sphere of radius `r` about (0, 0, -r) (the cap about its top), with
-// the triangles whose centre lies within `hole` of the top left out, and those within `big` of (x0, 0) too.
-TriangleMesh CapWithHoles(int n, float step, float r, float hole, float x0, float big) {
+// A grid of `n` x `n` vertices `step` apart on the sphere of radius `r` about (0, 0, -r) (a cap about its top), less
+// the triangles whose centre's (x, y) `cut` says.
+TriangleMesh CapWithHoles(int n, float step, float r, const std::function<bool(const Eigen::Vector2f&)>& cut) {
   TriangleMesh m;
   auto on_sphere = [&](float x, float y) { return Eigen::Vector3f(x, y, std::sqrt(r * r - x * x - y * y) - r); };
   const float half = 0.5f * step * static_cast<float>(n - 1);
@@ -207,9 +208,7 @@ TriangleMesh CapWithHoles(int n, float step, float r, float hole, float x0, floa
     for (int i = 0; i < n; ++i) m.positions.push_back(on_sphere(i * step - half, j * step - half));
   }
   auto add = [&](int a, int b, int c) {
-    const Eigen::Vector3f centre = (m.positions[a] + m.positions[b] + m.positions[c]) / 3;
-    if (centre.head<2>().norm() < hole || (centre.head<2>() - Eigen::Vector2f(x0, 0)).norm() < big) return;
-    m.triangles.push_back({a, b, c});
+    if (!cut(((m.positions[a] + m.positions[b] + m.positions[c]) / 3).head<2>())) m.triangles.push_back({a, b, c});
   };
   for (int j = 0; j + 1 < n; ++j) {
     for (int i = 0; i + 1 < n; ++i) {
@@ -221,33 +220,40 @@ TriangleMesh CapWithHoles(int n, float step, float r, float hole, float x0, floa
   return m;
 }
 
-TEST(MvsTest, SmallHolesAreClosedOnTheSurfaceTheyInterruptAndLargeOnesAreLeft) {
-  // A cap of a 60 mm sphere (a cheek's curvature), 0.25 mm edges; a hole 2 mm across at the top, one 10 mm across
-  // beside it.
+TEST(MvsTest, NarrowHolesAreClosedOnTheSurfaceTheyInterruptAndWideOnesAreLeft) {
+  // A cap of a 60 mm sphere (a cheek's curvature), 0.25 mm edges, with a hole 2 mm across at the top, a crack 0.5 mm
+  // wide and 8 mm long, and a hole 10 mm across.
   const float r = 60;
-  TriangleMesh m = CapWithHoles(161, 0.25f, r, 1.0f, 12, 5);
-  const size_t before = m.positions.size();
+  TriangleMesh m = CapWithHoles(161, 0.25f, r, [](const Eigen::Vector2f& p) {
+    return p.norm() < 1 || (std::abs(p.x() + 8) < 0.25f && std::abs(p.y()) < 4) ||
+           (p - Eigen::Vector2f(10, 0)).norm() < 5;
+  });
+  const size_t vertices = m.positions.size(), before = m.triangles.size();
   const HoleFill filled = FillHoles(3, &m);
-  EXPECT_EQ(filled.holes, 1);
-  EXPECT_NEAR(filled.area_mm2, M_PI, 0.6);  // a disc 2 mm across, give or take the grid's steps
-  ASSERT_GT(m.positions.size(), before);
-  // The new vertices lie on the sphere (a membrane over a 2 mm hole sags by r^2 / 2R ~ 8 um).
-  for (size_t v = before; v < m.positions.size(); ++v) {
-    EXPECT_NEAR((m.positions[v] - Eigen::Vector3f(0, 0, -r)).norm(), r, 0.02) << v;
+  EXPECT_EQ(filled.holes, 2);
+  EXPECT_EQ(m.positions.size(), vertices);  // no vertex added
+  // The disc's pi mm^2 and the crack's 4 mm^2, give or take the grid's steps.
+  EXPECT_NEAR(filled.area_mm2, M_PI + 4, 1.5);
+  // The patches lie on the sphere: a chord across 2 mm sags r^2 / 2R ~ 8 um.
+  for (size_t t = before; t < m.triangles.size(); ++t) {
+    const Eigen::Vector3f c =
+        (m.positions[m.triangles[t][0]] + m.positions[m.triangles[t][1]] + m.positions[m.triangles[t][2]]) / 3;
+    EXPECT_NEAR((c - Eigen::Vector3f(0, 0, -r)).norm(), r, 0.02) << t;
   }
-  // The small hole is closed: a ray down through its centre meets the mesh; the big one is still open.
+  // The narrow holes are closed: rays down through them meet the mesh; the wide one is still open.
   const MeshBvh bvh(m);
   MeshHit hit;
   EXPECT_TRUE(bvh.Nearest({0.1f, 0.05f, 5}, {0, 0, -1}, 10, &hit));
-  EXPECT_FALSE(bvh.Nearest({12, 0, 5}, {0, 0, -1}, 10, &hit));
-  // Closed consistently: every edge inside is shared by two triangles, no edge by three.
-  std::map<std::pair<int32_t, int32_t>, int> uses;
+  EXPECT_TRUE(bvh.Nearest({-8.01f, 2.9f, 5}, {0, 0, -1}, 10, &hit));
+  EXPECT_FALSE(bvh.Nearest({10, 0, 5}, {0, 0, -1}, 10, &hit));
+  // Closed consistently: no edge of three triangles, and each edge of two runs once each way.
+  std::map<std::pair<int32_t, int32_t>, int> runs;
   for (const auto& t : m.triangles) {
-    for (int k = 0; k < 3; ++k) ++uses[{std::min(t[k], t[(k + 1) % 3]), std::max(t[k], t[(k + 1) % 3])}];
+    for (int k = 0; k < 3; ++k) ++runs[{t[k], t[(k + 1) % 3]}];
   }
-  for (const auto& [edge, count] : uses) EXPECT_LE(count, 2);
+  for (const auto& [edge, count] : runs) EXPECT_EQ(count, 1) << edge.first << " -> " << edge.second;
   // A limit of 0 closes nothing.
-  TriangleMesh untouched = CapWithHoles(41, 0.25f, r, 1.0f, 100, 0);
+  TriangleMesh untouched = CapWithHoles(41, 0.25f, r, [](const Eigen::Vector2f& p) { return p.norm() < 1; });
   const size_t triangles = untouched.triangles.size();
   EXPECT_EQ(FillHoles(0, &untouched).holes, 0);
   EXPECT_EQ(untouched.triangles.size(), triangles);

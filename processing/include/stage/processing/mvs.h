@@ -73,8 +73,8 @@ struct MvsOptions {
   // A surface is meshed where at least this many views saw it. Default 2.
   int min_views = 2;
   // Holes of the mesh at most this wide are closed (a membrane spanning the boundary, before the
-  // smoothing), mm; 0: none. Default 0 (docs/geometry.md: the holes left where no view matched).
-  double fill_holes_mm = 0;
+  // smoothing), mm; 0: none. Default 4: the pinholes left where no view matched (docs/geometry.md).
+  double fill_holes_mm = 4;
   // Taubin smoothing of the mesh (mvs_internal.h): pairs of steps. Default 10.
   int smooth_iterations = 10;
   // Worker threads (views at a time). 0: one per core.
