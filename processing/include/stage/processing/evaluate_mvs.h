@@ -47,6 +47,9 @@ struct MvsRegionError {
   // Share of it where the line along its normal meets the reconstruction within +-within_mm: what is not a hole
   // (completeness counts a point beside a small hole as near the surface).
   double coverage = 0;
+  // The distance of the mesh's triangle centres to the true surface, RMS weighted by area: the surface as well as
+  // its vertices (a filled hole's patch adds triangles, no vertex).
+  double surface_rmse_mm = 0;
 };
 
 struct MvsEvaluateOptions {
