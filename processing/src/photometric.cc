@@ -1,7 +1,6 @@
 // Photometric stereo under spherical gradient illumination: see photometric.h.
 #include "stage/processing/photometric.h"
 
-
 #include <Eigen/Dense>
 #include <algorithm>
 #include <atomic>
@@ -635,7 +634,7 @@ double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
 }
 
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
-                            const LightModel& light, int threads) {
+                            const LightModel& light, double clearance_mm, int threads) {
   PixelGeometry g;
   g.width = width;
   g.height = height;
@@ -644,6 +643,7 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
   g.points.assign(3 * pixels, std::nanf(""));
   g.visible.assign(pixels * static_cast<size_t>(g.words), 0);
   const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  const float clearance = static_cast<float>(clearance_mm);
   std::vector<Eigen::Vector3f> units;
   for (const Eigen::Vector3d& d : light.directions) units.push_back((d * light.radius_mm).cast<float>());
   ParallelRows(height, threads, [&](int y0, int y1) {
@@ -661,11 +661,12 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
         if (face.dot(dir) > 0) face = -face;
         const Eigen::Vector3f point = origin + hit.t * dir;
         std::copy(point.data(), point.data() + 3, &g.points[3 * i]);
-        // As the light meets the surface: from just off it, towards every unit in front of its face.
-        const Eigen::Vector3f start = point + 1e-3f * face;
+        // As the light meets the surface: from `clearance` off it towards each unit (at least a micrometre off the
+        // face it lands on).
+        const Eigen::Vector3f lifted = point + 1e-3f * face;
         uint64_t* bits = &g.visible[i * static_cast<size_t>(g.words)];
         for (size_t l = 0; l < units.size(); ++l) {
-          if (face.dot(units[l] - point) <= 0) continue;
+          const Eigen::Vector3f start = lifted + clearance * (units[l] - point).normalized();
           if (mesh.Occluded(start, units[l])) continue;
           bits[l / 64] |= uint64_t{1} << (l % 64);
         }
@@ -673,6 +674,27 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
     }
   });
   return g;
+}
+
+absl::Status PhotometricOptions::Validate() const {
+  auto bad = [](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric options: ", what));
+  };
+  if (iterations < 1) return bad(absl::StrCat("iterations ", iterations, " is below 1"));
+  if (table_size < 8) return bad(absl::StrCat("table_size ", table_size, " is below 8"));
+  if (!(min_signal_dn >= 0) || !(min_signal_sigma >= 0) || !(min_specular_snr >= 0)) {
+    return bad("min_signal_dn, min_signal_sigma and min_specular_snr must not be negative");
+  }
+  if (!(max_specular_sigma_deg > 0))
+    return bad(absl::StrCat("max_specular_sigma_deg ", max_specular_sigma_deg, " <= 0"));
+  if (!(max_albedo > 0)) return bad(absl::StrCat("max_albedo ", max_albedo, " <= 0"));
+  if (specular_filter_radius < 0 || specular_filter_radius > 16) {
+    return bad(absl::StrCat("specular_filter_radius ", specular_filter_radius, " is not in 0..16"));
+  }
+  if (!(shadow_clearance_mm >= 0))
+    return bad(absl::StrCat("shadow_clearance_mm ", shadow_clearance_mm, " is negative"));
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
 }
 
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,

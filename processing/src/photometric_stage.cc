@@ -16,6 +16,7 @@
 #include "absl/strings/str_format.h"
 #include "stage/common/file_util.h"
 #include "stage/common/mesh.h"
+#include "stage/common/status.h"
 #include "stage/processing/calibration.h"
 #include "stage/processing/fast_photometric.h"
 #include "stage/processing/map_files.h"
@@ -52,8 +53,8 @@ absl::StatusOr<Image> LoadFlatField(const std::string& path, int width, int heig
     std::copy(out.ptr<float>(0), out.ptr<float>(0) + scaled.pixels.size(), scaled.pixels.begin());
   }
   for (float v : scaled.pixels) {
-    if (!(v > 0.05f && v < 20.f)) return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field value ", v,
-                                                                                 " is not a relative response"));
+    if (!(v > 0.05f && v < 20.f))
+      return absl::InvalidArgumentError(absl::StrCat(path, ": a flat field value ", v, " is not a relative response"));
   }
   return scaled;
 }
@@ -69,8 +70,8 @@ std::pair<int64_t, int64_t> Solved(const PhotometricMaps& m) {
 }
 
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
-std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera,
-                        const std::string& geometry, const std::string& calibration) {
+std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera, const std::string& geometry,
+                        const std::string& calibration) {
   const auto [solved, specular] = Solved(m);
   int64_t counts[6] = {0, 0, 0, 0, 0, 0};
   double confidence = 0;
@@ -142,6 +143,7 @@ absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::s
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                          const std::function<void(const JobProgress&)>& progress,
                                          const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.options.Validate());
   auto rig = LoadTakeRig(job.take_dir);
   if (!rig.ok()) return rig.status();
   auto light = LightModel::FromRig(*rig);
@@ -153,7 +155,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
     for (const v1::CameraConfig& c : rig->rig.cameras()) {
       if (c.role() == v1::CAMERA_ROLE_HIGH_SPEED) ids.push_back(c.id());
     }
-    if (ids.empty()) return absl::NotFoundError(absl::StrCat(job.take_dir, ": the take's rig has no high-speed camera"));
+    if (ids.empty())
+      return absl::NotFoundError(absl::StrCat(job.take_dir, ": the take's rig has no high-speed camera"));
   }
   auto calibration = LoadJobCalibration(job.take_dir, job.calibration);
   if (!calibration.ok()) return calibration.status();
@@ -202,8 +205,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   JobResult result;
   result.output_dir = job.output_dir.empty() ? job.take_dir + "/derived/photometric" : job.output_dir;
   const int64_t total = (last - first) * static_cast<int64_t>(cameras.size());
-  JobProgress p{0, total, absl::StrCat("photometric stereo: ", last - first, " frame(s) x ", cameras.size(),
-                                        " camera(s)")};
+  JobProgress p{0, total,
+                absl::StrCat("photometric stereo: ", last - first, " frame(s) x ", cameras.size(), " camera(s)")};
   if (progress) progress(p);
   for (int64_t frame = first; frame < last; ++frame) {
     std::unique_ptr<MeshBvh> mesh;
@@ -239,7 +242,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         if (!frames.ok()) return frames.status();
         PixelGeometry geometry;
         if (mesh != nullptr) {
-          geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light, job.options.threads);
+          geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light,
+                                   job.options.shadow_clearance_mm, job.options.threads);
         }
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto maps =
@@ -253,8 +257,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       }
       const PhotometricMaps* maps = &c.maps;
       const std::string dir = UnitDir(result.output_dir, frame, c.id);
-      const std::string title = absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(),
-                                                frame, c.id, geometry_file.empty() ? "none" : geometry_file);
+      const std::string title =
+          absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(), frame, c.id,
+                          geometry_file.empty() ? "none" : geometry_file);
       if (auto s = WriteMapFiles(dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, c.setup.source), title);
           !s.ok()) {
         return s;
@@ -262,8 +267,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       ++result.units;
       p.done = result.units;
       const auto [solved, specular] = Solved(*maps);
-      p.message = absl::StrFormat("frame %d %s: %d pixels solved, a specular lobe on %d", frame, c.id, solved,
-                                  specular);
+      p.message =
+          absl::StrFormat("frame %d %s: %d pixels solved, a specular lobe on %d", frame, c.id, solved, specular);
       if (progress) progress(p);
     }
   }

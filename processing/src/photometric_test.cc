@@ -8,8 +8,8 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "shipped_light.h"
-#include "test_sphere.h"
 #include "stage/common/rig.h"
+#include "test_sphere.h"
 
 namespace stage::processing {
 namespace {
@@ -104,6 +104,73 @@ TEST(PhotometricTest, BadInputIsNamed) {
   EXPECT_THAT(m.status().message(), ::testing::HasSubstr(light.patterns[5].name));
   frames.pop_back();
   EXPECT_FALSE(SolvePhotometric(light, frames, PhotometricCamera()).ok());
+}
+
+// A reconstructed surface is rough at the scale of its error; its own facets must not shadow it, while a real occluder
+// must. A plane with bumps of +-0.3 mm every 0.5 mm, and a plate 20 mm above part of it.
+TEST(PhotometricTest, ShadowRaysClearTheGeometrysOwnRoughnessButNotARealOccluder) {
+  const LightModel light = ShippedLight();
+  TriangleMesh m;
+  const int n = 121;  // 60 mm a side
+  for (int j = 0; j < n; ++j) {
+    for (int i = 0; i < n; ++i) {
+      const uint32_t h = (static_cast<uint32_t>(i) * 73856093u) ^ (static_cast<uint32_t>(j) * 19349663u);
+      const float bump = 0.3f * (static_cast<float>(h % 1000) / 500.f - 1.f);
+      m.positions.emplace_back(0.5f * (i - 60), 0.5f * (j - 60), bump);
+    }
+  }
+  for (int j = 0; j + 1 < n; ++j) {
+    for (int i = 0; i + 1 < n; ++i) {
+      const int a = j * n + i;
+      m.triangles.push_back({a, a + 1, a + n + 1});
+      m.triangles.push_back({a, a + n + 1, a + n});
+    }
+  }
+  const int32_t p = static_cast<int32_t>(m.positions.size());
+  for (const auto& [x, y] : std::vector<std::pair<float, float>>{{5, -10}, {25, -10}, {25, 10}, {5, 10}}) {
+    m.positions.emplace_back(x, y, 20);
+  }
+  m.triangles.push_back({p, p + 1, p + 2});
+  m.triangles.push_back({p, p + 2, p + 3});
+  const MeshBvh bvh(m);
+  // Nine pixels looking down at points about the origin.
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int k = 0; k < 9; ++k) {
+    const Eigen::Vector3d at(0.7 * (k % 3 - 1), 0.7 * (k / 3 - 1), 0);
+    camera.rays.push_back((at - camera.position_mm).normalized().cast<float>());
+  }
+  auto hidden = [&](double clearance_mm, int64_t* by_plate, int64_t* above_20_deg) {
+    const PixelGeometry g = TraceGeometry(bvh, camera, 9, 1, light, clearance_mm, 1);
+    *by_plate = *above_20_deg = 0;
+    for (size_t i = 0; i < 9; ++i) {
+      EXPECT_TRUE(g.Covers(i));
+      const Eigen::Vector3d x(g.points[3 * i], g.points[3 * i + 1], g.points[3 * i + 2]);
+      for (int l = 0; l < light.units(); ++l) {
+        const Eigen::Vector3d d = (light.directions[l] * light.radius_mm - x).normalized();
+        const bool seen = (g.Visible(i)[l / 64] >> (l % 64)) & 1u;
+        // Through the plate (with a margin for the point's place): must be hidden.
+        const Eigen::Vector2d at = x.head<2>() + (20 - x.z()) / d.z() * d.head<2>();
+        if (d.z() > 0 && at.x() > 6 && at.x() < 24 && std::abs(at.y()) < 9) {
+          if (!seen) ++*by_plate;
+          EXPECT_FALSE(seen) << "unit " << l << " is behind the plate";
+        } else if (d.z() > std::sin(20 * M_PI / 180) && !seen && (at.x() < 4 || at.x() > 26 || std::abs(at.y()) > 11)) {
+          ++*above_20_deg;
+        }
+      }
+    }
+  };
+  int64_t plate = 0, rough = 0;
+  hidden(2, &plate, &rough);
+  EXPECT_GT(plate, 0) << "no unit lies behind the plate: the test sees nothing";
+  EXPECT_EQ(rough, 0) << "units above 20 degrees hidden by the surface's own bumps";
+  // Without the clearance, the bumps hide some of them. (Units whose ray passes within a millimetre of the plate's
+  // edge are counted neither way.)
+  hidden(0, &plate, &rough);
+  EXPECT_GT(rough, 0);
+  PhotometricOptions bad;
+  bad.shadow_clearance_mm = -1;
+  EXPECT_THAT(std::string(bad.Validate().message()), ::testing::HasSubstr("shadow_clearance_mm"));
 }
 
 }  // namespace

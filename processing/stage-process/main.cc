@@ -156,6 +156,12 @@ int main(int argc, char** argv) {
                    "Radius (pixels) of the adaptive filter on specular normals and roughness; 0: raw fits")
       ->capture_default_str()
       ->check(CLI::Range(0, 16));
+  photometric
+      ->add_option("--shadow-clearance-mm", job.options.shadow_clearance_mm,
+                   "With --geometry: shadow rays start this far from the surface, towards their light, mm (the "
+                   "geometry's own roughness must not shadow it)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   photometric->add_flag("--exact", job.exact,
                         "Without --geometry too, fit the specular lobe per pixel instead of the table-driven solver "
                         "(slower, less noisy specular maps)");

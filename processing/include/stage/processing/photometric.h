@@ -91,10 +91,13 @@ struct PixelGeometry {
   const uint64_t* Visible(size_t pixel) const { return &visible[pixel * static_cast<size_t>(words)]; }
 };
 
-// Traces every pixel's ray (camera.rays) into `mesh`, and from where it lands a shadow ray to every unit (a unit
-// behind the face it lands on, or with the mesh in between, is hidden). `threads` 0: one per core.
+// Traces every pixel's ray (camera.rays) into `mesh`, and from where it lands a shadow ray to every unit; a unit with
+// the mesh in between is hidden. The shadow rays start `clearance_mm` from the point, towards their unit: a
+// reconstructed mesh is rough at the scale of its error, and its own facets would otherwise shadow the point (which
+// units lie below the horizon the solver judges by the normal it solves, not by the mesh's facet). `threads` 0: one
+// per core.
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
-                            const LightModel& light, int threads = 0);
+                            const LightModel& light, double clearance_mm, int threads = 0);
 
 struct PhotometricOptions {
   // Re-solves of the diffuse normal with the lit set of the last normal.
@@ -120,8 +123,14 @@ struct PhotometricOptions {
   // Radius (pixels) of the adaptive filter on the specular normals' departure from the diffuse ones, and on
   // roughness; 0: raw fits.
   int specular_filter_radius = 2;
+  // With geometry: shadow rays start this far from the surface point, towards their unit (TraceGeometry), mm.
+  // Default 2: a multi-view stereo mesh's roughness (0.1-1 mm) must not shadow its own points; on the simulator's
+  // true mesh the maps change by under 0.01 degrees (docs/geometry.md).
+  double shadow_clearance_mm = 2;
   // Worker threads; 0: one per core. Results do not depend on it.
   int threads = 0;
+  // InvalidArgument naming the field.
+  absl::Status Validate() const;
 };
 
 // Flags, per pixel.
