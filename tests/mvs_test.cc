@@ -81,18 +81,18 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
     EXPECT_TRUE(c.count(path) && c.at(path) == bytes) << path << ": the worker's and the library's differ";
   }
 
-  // Against the truth. Bounds for render scale 0.125 (measured on the face: below, printed); the figures at half and
-  // full resolution are in docs/geometry.md.
+  // Against the truth. Bounds for render scale 0.125 (measured on the face, printed below: RMSE 1.07 mm, median
+  // 0.43 mm, 81 % within 1 mm, 78 % covered); the figures at half and full resolution are in docs/geometry.md.
   processing::MvsEvaluateOptions eval;
   eval.take_dir = dir;
   auto e = processing::EvaluateMvs(eval);
   ASSERT_TRUE(e.ok()) << e.status();
   const processing::MvsRegionError& face = e->regions[static_cast<int>(processing::HeadRegion::kFace)];
   EXPECT_GT(face.vertices, 20000);
-  EXPECT_LT(face.rmse_mm, 2.0);
-  EXPECT_LT(face.median_mm, 0.8);
-  EXPECT_GT(face.completeness, 0.6);
-  EXPECT_GT(face.coverage, 0.6) << "the face has holes";
+  EXPECT_LT(face.rmse_mm, 1.5);
+  EXPECT_LT(face.median_mm, 0.6);
+  EXPECT_GT(face.completeness, 0.7);
+  EXPECT_GT(face.coverage, 0.65) << "the face has holes";
   std::printf("face: RMSE %.3f mm, median %.3f mm, within 1 mm %.1f %%, covered %.1f %%\n", face.rmse_mm,
               face.median_mm, 100 * face.completeness, 100 * face.coverage);
   EXPECT_GT(e->regions[static_cast<int>(processing::HeadRegion::kEyes)].seen_area_mm2, 0) << "no eyes reported";
@@ -147,11 +147,10 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
   std::printf(
       "diffuse normals, mean and median degrees: on MVS %.2f, %.2f; on the truth %.2f, %.2f; on none %.2f, %.2f\n",
       on_mvs.first, on_mvs.second, on_truth.first, on_truth.second, on_none.first, on_none.second);
-  // Measured at this scale (mean, median degrees): on MVS 7.4, 4.1; on the truth 2.2, 1.4; on none 6.0, 5.3. The
-  // reconstruction's facets (noise of a millimetre) cut units off as shadowed where they are not: a heavy tail
-  // (docs/geometry.md).
+  // Measured at this scale (mean, median degrees): on MVS 4.3, 2.5; on the truth 2.2, 1.4; on none 6.0, 5.3. The
+  // reconstruction's error is a millimetre here (docs/geometry.md has half resolution).
   EXPECT_LT(on_mvs.second, on_none.second) << "the reconstruction does not help photometric stereo";
-  EXPECT_LT(on_mvs.first, 4 * on_truth.first);
+  EXPECT_LT(on_mvs.first, 2.5 * on_truth.first);
 }
 
 }  // namespace
