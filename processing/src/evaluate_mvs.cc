@@ -151,13 +151,14 @@ void EvaluateFrame(const TriangleMesh& truth, const TriangleMesh& recon, const s
     sums[static_cast<int>(RegionOf(truth, t))].distances.push_back(d);
   }
   // The surface as well as its vertices: a hole's patch (MvsOptions::fill_holes_mm) adds triangles, not vertices.
-  for (const auto& tri : recon.triangles) {
-    const Eigen::Vector3f a = recon.positions[tri[0]], b = recon.positions[tri[1]], c = recon.positions[tri[2]];
+  for (size_t k = 0; k < recon.triangles.size(); ++k) {
+    const auto& tri = recon.triangles[k];
     int32_t t = -1;
-    const float d = to_truth.Distance((a + b + c) / 3, &t);
+    const float d =
+        to_truth.Distance((recon.positions[tri[0]] + recon.positions[tri[1]] + recon.positions[tri[2]]) / 3, &t);
     if (t < 0 || !seen[t]) continue;
     RegionSums& r = sums[static_cast<int>(RegionOf(truth, t))];
-    const double area = 0.5 * (b - a).cross(c - a).norm();
+    const double area = TriangleArea(recon, k);
     r.surface_sq += area * d * d;
     r.surface_area += area;
   }

@@ -72,8 +72,9 @@ struct MvsOptions {
   double truncation_voxels = 4;
   // A surface is meshed where at least this many views saw it. Default 2.
   int min_views = 2;
-  // Holes of the mesh at most this wide are closed (a membrane spanning the boundary, before the
-  // smoothing), mm; 0: none. Default 4: the pinholes left where no view matched (docs/geometry.md).
+  // Holes of the mesh at most this wide (4 x area over boundary length) and 5 times as long are closed, before the
+  // smoothing, by the least-area triangles between their boundary's vertices; mm, 0: none. Default 4: the pinholes
+  // left where no view matched (docs/geometry.md).
   double fill_holes_mm = 4;
   // Taubin smoothing of the mesh (mvs_internal.h): pairs of steps. Default 10.
   int smooth_iterations = 10;
