@@ -38,11 +38,13 @@ std::vector<CornerObservation> DetectCharuco(const Image& grey, const CharucoBoa
 
 // Each corner (pixel centres at integers) moved to the chessboard's saddle point: the image around it smoothed by a
 // Gaussian and cv::cornerSubPix run to 0.001 px, with window and smoothing sized to the plain chessboard about the
-// corner (the margin between a square's edge and its marker, from the distance to the neighbouring corners), so no
-// marker edge enters the window. OpenCV 4.6's own ChArUco refinement stops once a step is under 0.1 px and works on the
-// raw pixels, whose box-filtered edges pull a corner towards the pixel grid ("pixel locking"): 0.12 px in the median on
-// the simulator's board at render scale 0.25, 0.023 px this way (charuco_sim_test.cc). A corner whose refinement
-// wanders further than its margin allows is dropped.
+// corner as the view shows it (the margin between a square's edge and its marker, through the Jacobian of the
+// homography from the board to the view's corners: foreshortened and sheared), so that only the plain chessboard and
+// the markers' black borders enter, never a marker's inner cells. OpenCV 4.6's own ChArUco refinement stops once a
+// step is under 0.1 px and works on the raw pixels, whose box-filtered edges pull a corner towards the pixel grid
+// ("pixel locking"): 0.12 px in the median on the simulator's board at render scale 0.25, 0.023 px this way
+// (charuco_sim_test.cc). Dropped: a corner whose edges meet at under 58 degrees (a square seen sheared), one with no
+// room for a 5 x 5 window, one whose refinement wanders further than its margin allows.
 std::vector<CornerObservation> RefineCorners(const Image& grey, const CharucoBoardSpec& board,
                                              std::vector<CornerObservation> corners);
 
