@@ -16,6 +16,9 @@ namespace {
 constexpr int kIntrinsics = 9;
 
 // A corner seen by a camera in a frame: residual = the model's projection (CameraModel::Project) - the detection.
+// The weight of a corner whose expected error is not known: that of a corner refined in a 9 x 9 window.
+constexpr double kUnknownCornerSigmaPx = 0.035;
+
 struct CornerResidual {
   CornerResidual(const Eigen::Vector3d& corner, const Eigen::Vector2d& pixel) : corner_(corner), pixel_(pixel) {}
 
@@ -55,8 +58,8 @@ Parameters Pack(const std::vector<CameraObservations>& cameras, const BoardPoses
     Eigen::AngleAxisd aa(m.rotation);
     const Eigen::Vector3d r = aa.angle() * aa.axis();
     p.poses.push_back({r.x(), r.y(), r.z(), m.position.x(), m.position.y(), m.position.z()});
-    p.intrinsics.push_back({m.fx, m.fy, m.cx, m.cy, m.distortion[0], m.distortion[1], m.distortion[2],
-                            m.distortion[3], m.distortion[4]});
+    p.intrinsics.push_back(
+        {m.fx, m.fy, m.cx, m.cy, m.distortion[0], m.distortion[1], m.distortion[2], m.distortion[3], m.distortion[4]});
   }
   for (const auto& [frame, pose] : boards) {
     Eigen::AngleAxisd aa(pose.rotation());
@@ -86,8 +89,13 @@ ceres::Solver::Summary Fit(const std::vector<Eigen::Vector3d>& board_corners,
         if (!keep[k]) continue;
         auto* cost = new ceres::AutoDiffCostFunction<CornerResidual, 2, 6, kIntrinsics, 6>(
             new CornerResidual(board_corners[static_cast<size_t>(corners[k].id)], corners[k].pixel));
-        problem.AddResidualBlock(cost, new ceres::HuberLoss(options.loss_px), p->poses[i].data(),
-                                 p->intrinsics[i].data(), p->boards.at(frame).data());
+        // Each corner weighs by its expected error (1 / sigma^2; the scale is arbitrary: every residual is a corner's):
+        // at render scale 0.25 the weights took the cameras' centres from 0.12 to 0.087 mm RMS.
+        const double sigma = corners[k].sigma_px > 0 ? corners[k].sigma_px : kUnknownCornerSigmaPx;
+        const double weight = std::pow(kUnknownCornerSigmaPx / sigma, 2);
+        problem.AddResidualBlock(
+            cost, new ceres::ScaledLoss(new ceres::HuberLoss(options.loss_px), weight, ceres::TAKE_OWNERSHIP),
+            p->poses[i].data(), p->intrinsics[i].data(), p->boards.at(frame).data());
       }
     }
     if (!options.fit_k3 && problem.HasParameterBlock(p->intrinsics[i].data())) {
@@ -128,7 +136,8 @@ absl::StatusOr<BundleResult> BundleAdjust(const std::vector<Eigen::Vector3d>& bo
       }
       for (const CornerObservation& c : corners) {
         if (c.id < 0 || c.id >= static_cast<int>(board_corners.size())) {
-          return absl::InvalidArgumentError(absl::StrCat("bundle adjustment: corner id ", c.id, " is not on the board"));
+          return absl::InvalidArgumentError(
+              absl::StrCat("bundle adjustment: corner id ", c.id, " is not on the board"));
         }
       }
       use[i][frame].assign(corners.size(), true);
@@ -201,8 +210,8 @@ absl::StatusOr<BundleResult> BundleAdjust(const std::vector<Eigen::Vector3d>& bo
     m.distortion = {k[4], k[5], k[6], k[7], k[8]};
     auto model = CameraModel::FromParameters(m);
     if (!model.ok()) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("bundle adjustment: camera \"", cameras[i].id, "\" came out unusable: ", model.status().message()));
+      return absl::FailedPreconditionError(absl::StrCat("bundle adjustment: camera \"", cameras[i].id,
+                                                        "\" came out unusable: ", model.status().message()));
     }
     result.cameras.push_back(*model);
   }

@@ -6,6 +6,7 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <cstdio>
 #include <iostream>
 #include <opencv2/aruco/charuco.hpp>
 #include <opencv2/imgproc.hpp>
@@ -134,6 +135,41 @@ TEST(CalibrateTest, TheSolverFindsEveryCameraFromTheNominalRigEvenOneTenMillimet
   EXPECT_LT(noisy.worst.distortion_px, 0.04);
   // The stage frame is the nominal rig's: within the deviations' mean of the truth's.
   EXPECT_LT(noisy.frame_offset_mm, 1.5);
+}
+
+TEST(CalibrateTest, CornersWeighByTheirExpectedError) {
+  // Every other corner found 10 times worse than the rest (as a 5 x 5 window finds them beside a 13 x 13 one): with
+  // each corner's sigma_px the fit leans on the good ones; without, it averages the bad ones in.
+  Synthetic s = Make(0.25, 60, 0, /*far=*/4, /*blind=*/-1);
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> normal(0, 1);
+  for (CameraObservations& c : s.observed) {
+    for (auto& [frame, corners] : c.frames) {
+      for (size_t k = 0; k < corners.size(); ++k) {
+        corners[k].sigma_px = k % 2 == 0 ? 0.02 : 0.2;
+        corners[k].pixel += corners[k].sigma_px * Eigen::Vector2d(normal(rng), normal(rng));
+      }
+    }
+  }
+  auto worst_centre = [&](const std::vector<CameraObservations>& observed) {
+    auto fit = SolveCalibration(s.corners, observed, BundleOptions{});
+    EXPECT_TRUE(fit.ok()) << fit.status();
+    if (!fit.ok()) return 1e9;
+    auto compared =
+        CompareCalibrations(AsCalibration(observed, fit->cameras, "fit"), AsCalibration(observed, s.truth, "truth"));
+    EXPECT_TRUE(compared.ok()) << compared.status();
+    return compared.ok() ? compared->worst.centre_mm : 1e9;
+  };
+  const double weighted = worst_centre(s.observed);
+  std::vector<CameraObservations> unweighted = s.observed;
+  for (CameraObservations& c : unweighted) {
+    for (auto& [frame, corners] : c.frames) {
+      for (CornerObservation& corner : corners) corner.sigma_px = 0;
+    }
+  }
+  const double equal = worst_centre(unweighted);
+  std::printf("worst centre: weighted %.4f mm, equal weights %.4f mm\n", weighted, equal);
+  EXPECT_LT(weighted, 0.6 * equal);
 }
 
 TEST(CalibrateTest, AStartThatAgreesWithNothingDoesNotConvergeToTheTruth) {

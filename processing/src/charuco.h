@@ -29,6 +29,9 @@ struct CornerObservation {
   int id = 0;
   // Pixel, x right, y down, pixel centres at integers (the camera model's convention).
   Eigen::Vector2d pixel = Eigen::Vector2d::Zero();
+  // The corner's expected error, pixels (0: not known): RefineCorners sets it from the window the corner was refined
+  // in; bundle adjustment weighs the corner by it.
+  double sigma_px = 0;
 };
 
 // The board's corners found in a linear grey image (1 channel): markers detected on an 8-bit copy (its 99th
@@ -44,7 +47,8 @@ std::vector<CornerObservation> DetectCharuco(const Image& grey, const CharucoBoa
 // step is under 0.1 px and works on the raw pixels, whose box-filtered edges pull a corner towards the pixel grid
 // ("pixel locking"): 0.12 px in the median on the simulator's board at render scale 0.25, 0.023 px this way
 // (charuco_sim_test.cc). Dropped: a corner whose edges meet at under 58 degrees (a square seen sheared), one with no
-// room for a 5 x 5 window, one whose refinement wanders further than its margin allows.
+// room for a 5 x 5 window, one whose refinement wanders further than its margin allows. Each corner's sigma_px is set
+// from its window.
 std::vector<CornerObservation> RefineCorners(const Image& grey, const CharucoBoardSpec& board,
                                              std::vector<CornerObservation> corners);
 
