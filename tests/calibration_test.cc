@@ -35,7 +35,9 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   ASSERT_NO_FATAL_FAILURE(
       StartStage({"--set", "sim.subject.kind=charuco", "--set", "sim.render_scale=0.125", "--take-root", root.path()}));
   CommandResult cal = RunCommand({"stagectl", "--endpoints", Endpoints(), "calibrate", "--seconds", "2", "--json"},
-                                 std::chrono::seconds(900));
+                                 std::chrono::seconds(2400));
+  // About 12 minutes on 2 idle cores (recording and the ground truth), twice that with both cores busy.
+  ASSERT_FALSE(cal.timed_out) << cal.err;
   ASSERT_EQ(cal.exit.exit_code, 0) << cal.err;
   const nlohmann::json done = nlohmann::json::parse(cal.out);
   const std::string out = done["output_dir"];
@@ -69,20 +71,21 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   EXPECT_TRUE(worker_report == report_of(dir + "/derived/library")) << "the worker's and the library's reports differ";
 
   // Against the truth. Bounds for render scale 0.125, where the corners are found to ~0.1 px (0.8 sensor pixels; 0.023
-  // px at 0.25). Measured: reprojection RMS 0.146 px; where the cameras see the head's volume (projection) RMS 0.33 and
-  // worst 0.95 sensor pixels against the nominal models' 39.4 and 94.1; centres RMS 1.5 mm (nominal 2.4), rotations
-  // 0.11 deg (0.29), focal lengths 0.15 % (0.49 %). The centres' error runs along each camera's axis with its focal
-  // length's (a board 1 m away fixes f / distance much better than either): the figures at 0.25 and the full-scale
-  // goals are in docs/geometry.md.
+  // px at 0.25). Measured: reprojection RMS 0.092 px; where the cameras see the head's volume (projection) RMS 0.19 and
+  // worst 0.49 sensor pixels against the nominal models' 39.4 and 94.1; centres RMS 0.62 mm (nominal 2.4), rotations
+  // 0.087 deg (0.29), focal lengths 0.06 % (0.49 %). (Before sheared squares' corners were dropped: 0.146 px, 0.33 and
+  // 0.95, 1.5 mm, 0.11 deg.) The centres' error runs along each camera's axis with its focal length's (a board 1 m
+  // away fixes f / distance much better than either): the figures at 0.25 and the full-scale goals are in
+  // docs/geometry.md.
   ASSERT_TRUE(library->has_truth);
   const processing::TruthComparison& t = library->truth;
   EXPECT_EQ(t.cameras.size(), 27u);
-  EXPECT_LT(library->rms_px, 0.25);
-  EXPECT_LT(t.rms.projection_px, 0.6);
-  EXPECT_LT(t.worst.projection_px, 1.8);
-  EXPECT_LT(t.rms.projection_px, library->nominal_truth.rms.projection_px / 40);
-  EXPECT_LT(t.rms.centre_mm, 2.5);
-  EXPECT_LT(t.rms.rotation_deg, 0.2);
+  EXPECT_LT(library->rms_px, 0.15);
+  EXPECT_LT(t.rms.projection_px, 0.35);
+  EXPECT_LT(t.worst.projection_px, 1.0);
+  EXPECT_LT(t.rms.projection_px, library->nominal_truth.rms.projection_px / 100);
+  EXPECT_LT(t.rms.centre_mm, 1.2);
+  EXPECT_LT(t.rms.rotation_deg, 0.15);
   EXPECT_LT(t.rms.rotation_deg, library->nominal_truth.rms.rotation_deg / 2);
   CommandResult eval =
       RunCommand({"stage-process", "evaluate", "calibration", "--take", dir, "--json"}, std::chrono::seconds(60));

@@ -5,6 +5,8 @@
 #include <cstdio>
 #include <map>
 #include <memory>
+#include <string>
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "charuco.h"
@@ -56,18 +58,18 @@ Image RecordedGrey(const sim::SimScene& scene, sim::CameraRenderer* renderer, in
   return grey;
 }
 
-// The scene at render scale 0.25 with the board for subject (mv-05 recording 12 bits, mv-21 8 bits as the rig says),
-// and the index of the pattern the machine-vision cameras record (parallel-full).
+// The scene at a render scale (0.25 by default) with the board for subject (mv-05 recording 12 bits, mv-21 8 bits as
+// the rig says), and the index of the pattern the machine-vision cameras record (parallel-full).
 struct BoardScene {
   std::shared_ptr<const sim::SimScene> scene;
   CharucoBoardSpec spec;
   int parallel_full = -1;
 };
 
-absl::StatusOr<BoardScene> MakeBoardScene() {
+absl::StatusOr<BoardScene> MakeBoardScene(const std::string& render_scale = "0.25") {
   auto builtin = LoadRig(kBuiltinRigName);
   if (!builtin.ok()) return builtin.status();
-  auto loaded = ApplyRigOverrides(*builtin, {"sim.subject.kind=charuco", "sim.render_scale=0.25"});
+  auto loaded = ApplyRigOverrides(*builtin, {"sim.subject.kind=charuco", "sim.render_scale=" + render_scale});
   if (!loaded.ok()) return loaded.status();
   for (auto& c : *loaded->rig.mutable_cameras()) {
     if (c.id() == "mv-05") c.set_pixel_format(v1::PIXEL_FORMAT_BAYER_RG12);
@@ -137,6 +139,29 @@ TEST(CharucoSimTest, ABoardSeenShearedGivesNoCornersRatherThanBadOnes) {
     if (e.found > 0) {
       EXPECT_LT(e.median_px, 0.08);
       EXPECT_LT(e.worst_px, 0.3);
+    }
+  }
+}
+
+// Not run by default (each frame renders 5.3 megapixels: about a minute on 2 cores): the corners as the cameras'
+// whole sensors record them, for the full-scale figures in docs/geometry.md. Run with
+// `stage_processing_sim_test --gtest_also_run_disabled_tests --gtest_filter=*FullScale*`.
+TEST(CharucoSimTest, DISABLED_FullScaleCorners) {
+  auto board = MakeBoardScene("1");
+  ASSERT_TRUE(board.ok()) << board.status();
+  const sim::SimScene& scene = *board->scene;
+  const std::vector<std::pair<std::string, std::vector<int64_t>>> views = {
+      {"mv-05", {0, 6}}, {"mv-19", {22, 38}}, {"mv-24", {16, 28}}};
+  for (const auto& [id, frames] : views) {
+    const int index = scene.CameraIndex(id);
+    ASSERT_GE(index, 0);
+    sim::CameraRenderer renderer(board->scene, index);
+    for (int64_t frame : frames) {
+      const Image grey = RecordedGrey(scene, &renderer, board->parallel_full, frame);
+      const Errors e = Compare(scene, index, frame, DetectCharuco(grey, board->spec));
+      std::printf("%s frame %d at full scale: %zu corners, median %.4f px, worst %.4f px\n", id.c_str(),
+                  static_cast<int>(frame), e.found, e.median_px, e.worst_px);
+      EXPECT_GE(e.found, 40u);
     }
   }
 }
