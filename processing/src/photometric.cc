@@ -633,6 +633,31 @@ double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::atan2(a.cross(b).norm(), a.dot(b)) * 180.0 / M_PI;
 }
 
+namespace {
+
+std::vector<Eigen::Vector3f> UnitPositions(const LightModel& light) {
+  std::vector<Eigen::Vector3f> units;
+  for (const Eigen::Vector3d& d : light.directions) units.push_back((d * light.radius_mm).cast<float>());
+  return units;
+}
+
+// Sets bit l of `bits` for every unit the mesh does not hide from `point`: a shadow ray from `clearance` off the point
+// towards the unit (and from `lifted`, the point a micrometre off the face it lands on).
+void MarkVisibleUnits(const MeshBvh& mesh, const Eigen::Vector3f& point, const Eigen::Vector3f& lifted,
+                      const std::vector<Eigen::Vector3f>& units, float clearance, uint64_t* bits) {
+  for (size_t l = 0; l < units.size(); ++l) {
+    const Eigen::Vector3f start = lifted + clearance * (units[l] - point).normalized();
+    if (mesh.Occluded(start, units[l])) continue;
+    bits[l / 64] |= uint64_t{1} << (l % 64);
+  }
+}
+
+Eigen::Vector3f PixelRay(const PhotometricCamera& camera, const Eigen::Vector3f& origin, size_t i) {
+  return camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
+}
+
+}  // namespace
+
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
                             const LightModel& light, double clearance_mm, int threads) {
   PixelGeometry g;
@@ -644,13 +669,12 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
   g.visible.assign(pixels * static_cast<size_t>(g.words), 0);
   const Eigen::Vector3f origin = camera.position_mm.cast<float>();
   const float clearance = static_cast<float>(clearance_mm);
-  std::vector<Eigen::Vector3f> units;
-  for (const Eigen::Vector3d& d : light.directions) units.push_back((d * light.radius_mm).cast<float>());
+  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
   ParallelRows(height, threads, [&](int y0, int y1) {
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < width; ++x) {
         const size_t i = static_cast<size_t>(y) * width + x;
-        const Eigen::Vector3f dir = camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
+        const Eigen::Vector3f dir = PixelRay(camera, origin, i);
         MeshHit hit;
         if (!mesh.Nearest(origin, dir, INFINITY, &hit)) continue;
         const auto& t = mesh.mesh().triangles[static_cast<size_t>(hit.triangle)];
@@ -661,19 +685,87 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
         if (face.dot(dir) > 0) face = -face;
         const Eigen::Vector3f point = origin + hit.t * dir;
         std::copy(point.data(), point.data() + 3, &g.points[3 * i]);
-        // As the light meets the surface: from `clearance` off it towards each unit (at least a micrometre off the
-        // face it lands on).
-        const Eigen::Vector3f lifted = point + 1e-3f * face;
-        uint64_t* bits = &g.visible[i * static_cast<size_t>(g.words)];
-        for (size_t l = 0; l < units.size(); ++l) {
-          const Eigen::Vector3f start = lifted + clearance * (units[l] - point).normalized();
-          if (mesh.Occluded(start, units[l])) continue;
-          bits[l / 64] |= uint64_t{1} << (l % 64);
-        }
+        MarkVisibleUnits(mesh, point, point + 1e-3f * face, units, clearance,
+                         &g.visible[i * static_cast<size_t>(g.words)]);
       }
     }
   });
   return g;
+}
+
+absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                                     const std::vector<Image>& frames, const PhotometricOptions& options,
+                                     PixelGeometry* g) {
+  if (options.geometry_fill_px <= 0) return 0;
+  auto twins = internal::PairPatterns(light);
+  if (!twins.ok()) return twins.status();
+  const size_t full = static_cast<size_t>(twins->cross[static_cast<size_t>(twins->full)]);
+  if (frames.size() != light.patterns.size() || frames[full].width != g->width || frames[full].height != g->height ||
+      frames[full].channels != 3) {
+    return absl::InvalidArgumentError("geometry fill: the images do not match the patterns or the geometry");
+  }
+  // Only pixels bright enough to be solved are placed (half the solver's bar: the leakage correction moves it a
+  // little).
+  const float lit = static_cast<float>(internal::MinSignalDn(options, camera) / 2);
+  const int max_px = options.geometry_fill_px;
+  const int threads = options.threads;
+  const double clearance_mm = options.shadow_clearance_mm;
+  const int w = g->width, h = g->height;
+  const size_t pixels = static_cast<size_t>(w) * h;
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  // Each covered pixel's distance along its ray; then one ring of missing pixels per pass takes the mean of its
+  // covered (or already filled) 8-neighbours'.
+  std::vector<float> depth(pixels, std::nanf(""));
+  for (size_t i = 0; i < pixels; ++i) {
+    if (!g->Covers(i)) continue;
+    depth[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
+  }
+  std::vector<float> next = depth;
+  for (int pass = 0; pass < max_px; ++pass) {
+    bool grew = false;
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) {
+        const size_t i = static_cast<size_t>(y) * w + x;
+        if (depth[i] == depth[i]) continue;
+        float sum = 0;
+        int n = 0;
+        for (int dy = -1; dy <= 1; ++dy) {
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = x + dx, yy = y + dy;
+            if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
+            const float d = depth[static_cast<size_t>(yy) * w + xx];
+            if (d == d) {
+              sum += d;
+              ++n;
+            }
+          }
+        }
+        if (n > 0) {
+          next[i] = sum / static_cast<float>(n);
+          grew = true;
+        }
+      }
+    }
+    depth = next;
+    if (!grew) break;
+  }
+  std::vector<size_t> filled;
+  for (size_t i = 0; i < pixels; ++i) {
+    if (g->Covers(i) || depth[i] != depth[i]) continue;
+    const float* v = &frames[full].pixels[3 * i];
+    if (v[0] + v[1] + v[2] >= lit) filled.push_back(i);
+  }
+  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
+  const float clearance = static_cast<float>(clearance_mm);
+  ParallelRows(static_cast<int>(filled.size()), threads, [&](int k0, int k1) {
+    for (int k = k0; k < k1; ++k) {
+      const size_t i = filled[static_cast<size_t>(k)];
+      const Eigen::Vector3f point = origin + depth[i] * PixelRay(camera, origin, i);
+      std::copy(point.data(), point.data() + 3, &g->points[3 * i]);
+      MarkVisibleUnits(mesh, point, point, units, clearance, &g->visible[i * static_cast<size_t>(g->words)]);
+    }
+  });
+  return static_cast<int64_t>(filled.size());
 }
 
 absl::Status PhotometricOptions::Validate() const {
@@ -693,6 +785,7 @@ absl::Status PhotometricOptions::Validate() const {
   }
   if (!(shadow_clearance_mm >= 0))
     return bad(absl::StrCat("shadow_clearance_mm ", shadow_clearance_mm, " is negative"));
+  if (geometry_fill_px < 0) return bad(absl::StrCat("geometry_fill_px ", geometry_fill_px, " is negative"));
   if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
   return absl::OkStatus();
 }

@@ -70,8 +70,9 @@ std::pair<int64_t, int64_t> Solved(const PhotometricMaps& m) {
 }
 
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
+// `geometry_filled`: the pixels FillGeometry placed (with geometry).
 std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera, const std::string& geometry,
-                        const std::string& calibration) {
+                        int64_t geometry_filled, const std::string& calibration) {
   const auto [solved, specular] = Solved(m);
   int64_t counts[6] = {0, 0, 0, 0, 0, 0};
   double confidence = 0;
@@ -99,6 +100,7 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
   j["median_specular"] = Median(spec);
   j["median_roughness"] = Median(rough);
   j["geometry"] = geometry.empty() ? "none" : geometry;
+  if (!geometry.empty()) j["geometry_filled_pixels"] = geometry_filled;
   j["calibration"] = calibration;
   return j.dump(2);
 }
@@ -229,6 +231,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       auto raw = LoadCycle(c.path, frame, *light);
       if (!raw.ok()) return raw.status();
       absl::Status status;
+      int64_t geometry_filled = 0;
       if (mesh == nullptr && !job.exact) {
         // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
         if (c.tables == nullptr) {
@@ -244,6 +247,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         if (mesh != nullptr) {
           geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light,
                                    job.options.shadow_clearance_mm, job.options.threads);
+          auto filled = FillGeometry(*mesh, c.setup.camera, *light, *frames, job.options, &geometry);
+          if (!filled.ok()) return filled.status();
+          geometry_filled = *filled;
         }
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto maps =
@@ -260,7 +266,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       const std::string title =
           absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(), frame, c.id,
                           geometry_file.empty() ? "none" : geometry_file);
-      if (auto s = WriteMapFiles(dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, c.setup.source), title);
+      if (auto s = WriteMapFiles(
+              dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, geometry_filled, c.setup.source), title);
           !s.ok()) {
         return s;
       }
@@ -288,7 +295,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                     {"min_signal_sigma", job.options.min_signal_sigma},
                     {"min_specular_snr", job.options.min_specular_snr},
                     {"max_specular_sigma_deg", job.options.max_specular_sigma_deg},
-                    {"specular_filter_radius", job.options.specular_filter_radius}};
+                    {"specular_filter_radius", job.options.specular_filter_radius},
+                    {"shadow_clearance_mm", job.options.shadow_clearance_mm},
+                    {"geometry_fill_px", job.options.geometry_fill_px}};
   for (const CameraJob& c : cameras) {
     run["calibration"][c.id] = {{"source", c.setup.source},
                                 {"white_scale", c.setup.camera.white_scale},

@@ -173,5 +173,55 @@ TEST(PhotometricTest, ShadowRaysClearTheGeometrysOwnRoughnessButNotARealOccluder
   EXPECT_THAT(std::string(bad.Validate().message()), ::testing::HasSubstr("shadow_clearance_mm"));
 }
 
+// A mesh that stops where the surface goes on (a reconstruction's edge at the side of the head): the pixels beyond
+// it that are lit, and no further than geometry_fill_px, are placed near the surface; dark ones and far ones are not.
+TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDistance) {
+  const LightModel light = ShippedLight();
+  TriangleMesh m;  // the plane z = 0 for x < 0 only
+  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}};
+  const MeshBvh bvh(m);
+  // A row of 20 pixels 1 mm apart on the plane, x = -9.5 .. 9.5, seen from 1 m above.
+  const int w = 20;
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int x = 0; x < w; ++x) {
+    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
+  }
+  PixelGeometry g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
+  for (int x = 0; x < w; ++x) EXPECT_EQ(g.Covers(static_cast<size_t>(x)), x < 10) << x;
+  // Every pattern's image bright but for the last pixel, dark.
+  std::vector<Image> frames(light.patterns.size(), Image(w, 1, 3));
+  for (Image& f : frames) {
+    for (int x = 0; x + 1 < w; ++x) f.pixels[3 * x] = f.pixels[3 * x + 1] = f.pixels[3 * x + 2] = 1000;
+  }
+  PhotometricOptions options;
+  options.threads = 1;
+  options.geometry_fill_px = 4;
+  auto filled = FillGeometry(bvh, camera, light, frames, options, &g);
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  EXPECT_EQ(*filled, 4);
+  for (int x = 10; x < w; ++x) {
+    SCOPED_TRACE(x);
+    EXPECT_EQ(g.Covers(static_cast<size_t>(x)), x < 14);
+    if (x >= 14) continue;
+    // At the edge's distance along its own ray: on the plane within the rays' spread (4 mm over 1 m).
+    EXPECT_NEAR(g.points[3 * x + 2], 0, 0.05);
+    EXPECT_NEAR(g.points[3 * x], x - 9.5, 0.01);
+    // Units above the plane seen from there: most of the dome's upper half.
+    int seen = 0;
+    for (int l = 0; l < light.units(); ++l) seen += (g.Visible(static_cast<size_t>(x))[l / 64] >> (l % 64)) & 1u;
+    EXPECT_GT(seen, light.units() / 3);
+  }
+  options.geometry_fill_px = 100;  // the dark pixel stays unplaced
+  g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
+  filled = FillGeometry(bvh, camera, light, frames, options, &g);
+  ASSERT_TRUE(filled.ok());
+  EXPECT_EQ(*filled, 9);
+  EXPECT_FALSE(g.Covers(w - 1));
+  options.geometry_fill_px = -1;
+  EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_fill_px"));
+}
+
 }  // namespace
 }  // namespace stage::processing

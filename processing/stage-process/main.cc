@@ -162,6 +162,13 @@ int main(int argc, char** argv) {
                    "geometry's own roughness must not shadow it)")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
+  photometric
+      ->add_option(
+          "--geometry-fill-px", job.options.geometry_fill_px,
+          "With --geometry: pixels the mesh misses within this many pixels of ones it covers (the sides of the "
+          "head a reconstruction does not reach) take their neighbours' distance; 0: none")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   photometric->add_flag("--exact", job.exact,
                         "Without --geometry too, fit the specular lobe per pixel instead of the table-driven solver "
                         "(slower, less noisy specular maps)");

@@ -99,6 +99,7 @@ struct PixelGeometry {
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
                             const LightModel& light, double clearance_mm, int threads = 0);
 
+
 struct PhotometricOptions {
   // Re-solves of the diffuse normal with the lit set of the last normal.
   int iterations = 3;
@@ -127,6 +128,9 @@ struct PhotometricOptions {
   // Default 2: a multi-view stereo mesh's roughness (0.1-1 mm) must not shadow its own points; on the simulator's
   // true mesh the maps change by under 0.01 degrees (docs/geometry.md).
   double shadow_clearance_mm = 2;
+  // Pixels the geometry's mesh misses within this many pixels of ones it covers are placed at their neighbours'
+  // distance (FillGeometry); 0: none. Default 64.
+  int geometry_fill_px = 64;
   // Worker threads; 0: one per core. Results do not depend on it.
   int threads = 0;
   // InvalidArgument naming the field.
@@ -162,6 +166,16 @@ struct PhotometricMaps {
   // the next solve of the same size reuses it.
   std::vector<float> work;
 };
+
+// Pixels of `g` the mesh misses, within options.geometry_fill_px of ones it covers and lit in the full-on image
+// (`frames`, one per pattern, as SolvePhotometric takes them), placed at their neighbours' distance along their own ray
+// (one ring a pass, each the mean of its placed 8-neighbours), with their shadows traced in the mesh from there (from
+// options.shadow_clearance_mm off). A reconstruction ends where the cameras see the skin at grazing angles (the sides
+// of the head, the neck); a pixel without a point sees the units from the stage origin, 0.1 m off there, and its fit
+// fails. Returns how many pixels were placed.
+absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                                     const std::vector<Image>& frames, const PhotometricOptions& options,
+                                     PixelGeometry* g);
 
 // `frames`: the cycle's images in pattern order (light.patterns), demosaiced RGB, DN above black. InvalidArgument
 // names a missing pattern or a size mismatch. `geometry` (optional) must have the images' size.
