@@ -668,8 +668,9 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
   g.points.assign(3 * pixels, std::nanf(""));
   g.visible.assign(pixels * static_cast<size_t>(g.words), 0);
   const Eigen::Vector3f origin = camera.position_mm.cast<float>();
-  const float clearance = static_cast<float>(clearance_mm);
-  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
+  // Every ray to its nearest facet, and which side of it it meets.
+  std::vector<Eigen::Vector3f> lifted(pixels);
+  std::vector<int8_t> side(pixels, 0);  // +1: the facet's front (its vertices counter-clockwise), -1: its back
   ParallelRows(height, threads, [&](int y0, int y1) {
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < width; ++x) {
@@ -682,12 +683,31 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
         Eigen::Vector3f face = (mesh.mesh().positions[static_cast<size_t>(t[1])] - p0)
                                    .cross(mesh.mesh().positions[static_cast<size_t>(t[2])] - p0)
                                    .normalized();
-        if (face.dot(dir) > 0) face = -face;
+        side[i] = face.dot(dir) > 0 ? -1 : 1;
+        if (side[i] < 0) face = -face;
         const Eigen::Vector3f point = origin + hit.t * dir;
         std::copy(point.data(), point.data() + 3, &g.points[3 * i]);
-        MarkVisibleUnits(mesh, point, point + 1e-3f * face, units, clearance,
-                         &g.visible[i * static_cast<size_t>(g.words)]);
+        lifted[i] = point + 1e-3f * face;  // a micrometre off the face it lands on
       }
+    }
+  });
+  // The side most rays meet is the surface's outside (a mesh may wind either way); a ray meeting the inside came
+  // through a hole in the surface (a reconstruction's: onto the inside of the far side of the head), and its pixel is
+  // left to FillGeometry.
+  int64_t front = 0, back = 0;
+  for (int8_t v : side) (v > 0 ? front : back) += v != 0;
+  const int8_t outside = front >= back ? 1 : -1;
+  const float clearance = static_cast<float>(clearance_mm);
+  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
+  ParallelRows(height, threads, [&](int y0, int y1) {
+    for (size_t i = static_cast<size_t>(y0) * width; i < static_cast<size_t>(y1) * width; ++i) {
+      if (side[i] == 0) continue;
+      if (side[i] != outside) {
+        std::fill(&g.points[3 * i], &g.points[3 * i] + 3, std::nanf(""));
+        continue;
+      }
+      const Eigen::Vector3f point = Eigen::Map<const Eigen::Vector3f>(&g.points[3 * i]);
+      MarkVisibleUnits(mesh, point, lifted[i], units, clearance, &g.visible[i * static_cast<size_t>(g.words)]);
     }
   });
   return g;

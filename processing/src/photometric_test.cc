@@ -223,5 +223,37 @@ TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDi
   EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_fill_px"));
 }
 
+// A reconstruction with a hole: the ray through it meets the inside of the far side of the head. The pixel is left
+// uncovered (for FillGeometry), whichever way the mesh is wound.
+TEST(PhotometricTest, ARayThroughAHoleInTheMeshIsNotTakenForTheSurface) {
+  const LightModel light = ShippedLight();
+  // A slab's front (z = 0, facing +z) with a 2 mm hole about x = 0, and its back (z = -50, facing -z).
+  TriangleMesh m;
+  m.positions = {{-50, -50, 0},   {-1, -50, 0},   {-1, 50, 0},   {-50, 50, 0},     // front, x < -1
+                 {1, -50, 0},     {50, -50, 0},   {50, 50, 0},   {1, 50, 0},       // front, x > 1
+                 {-50, -50, -50}, {50, -50, -50}, {50, 50, -50}, {-50, 50, -50}};  // back
+  m.triangles = {{0, 1, 2}, {0, 2, 3}, {4, 5, 6}, {4, 6, 7}, {8, 10, 9}, {8, 11, 10}};
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int x = 0; x < 7; ++x) {
+    camera.rays.push_back((Eigen::Vector3d(1.5 * (x - 3), 0, 0) - camera.position_mm).normalized().cast<float>());
+  }
+  for (bool flipped : {false, true}) {
+    SCOPED_TRACE(flipped ? "wound clockwise" : "wound counter-clockwise");
+    TriangleMesh mesh = m;
+    if (flipped) {
+      for (auto& t : mesh.triangles) std::swap(t[1], t[2]);
+    }
+    const MeshBvh bvh(mesh);
+    const PixelGeometry g = TraceGeometry(bvh, camera, 7, 1, light, 2, 1);
+    for (int x = 0; x < 7; ++x) {
+      EXPECT_EQ(g.Covers(static_cast<size_t>(x)), x != 3) << x;
+      if (x != 3) {
+        EXPECT_NEAR(g.points[3 * x + 2], 0, 1e-3) << x;
+      }
+    }
+  }
+}
+
 }  // namespace
 }  // namespace stage::processing

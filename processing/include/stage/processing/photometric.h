@@ -94,11 +94,11 @@ struct PixelGeometry {
 // Traces every pixel's ray (camera.rays) into `mesh`, and from where it lands a shadow ray to every unit; a unit with
 // the mesh in between is hidden. The shadow rays start `clearance_mm` from the point, towards their unit: a
 // reconstructed mesh is rough at the scale of its error, and its own facets would otherwise shadow the point (which
-// units lie below the horizon the solver judges by the normal it solves, not by the mesh's facet). `threads` 0: one
-// per core.
+// units lie below the horizon the solver judges by the normal it solves, not by the mesh's facet). A ray that meets
+// the side of the surface fewer rays meet (its inside, whichever way the mesh is wound) came through a hole in it, and
+// its pixel is left uncovered. `threads` 0: one per core.
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
                             const LightModel& light, double clearance_mm, int threads = 0);
-
 
 struct PhotometricOptions {
   // Re-solves of the diffuse normal with the lit set of the last normal.
