@@ -15,10 +15,10 @@ namespace {
 // Intrinsics block: fx, fy, cx, cy, k1, k2, p1, p2, k3 (CameraModel's distortion order).
 constexpr int kIntrinsics = 9;
 
-// A corner seen by a camera in a frame: residual = the model's projection (CameraModel::Project) - the detection.
 // The weight of a corner whose expected error is not known: that of a corner refined in a 9 x 9 window.
 constexpr double kUnknownCornerSigmaPx = 0.035;
 
+// A corner seen by a camera in a frame: residual = the model's projection (CameraModel::Project) - the detection.
 struct CornerResidual {
   CornerResidual(const Eigen::Vector3d& corner, const Eigen::Vector2d& pixel) : corner_(corner), pixel_(pixel) {}
 

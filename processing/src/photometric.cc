@@ -656,6 +656,39 @@ Eigen::Vector3f PixelRay(const PhotometricCamera& camera, const Eigen::Vector3f&
   return camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
 }
 
+// The NaN pixels of a w x h image within `passes` pixels of set ones take, one ring a pass, the mean of their set
+// 8-neighbours.
+void SpreadIntoGaps(int w, int h, int passes, std::vector<float>* values) {
+  std::vector<float>& v = *values;
+  std::vector<float> next = v;
+  for (int pass = 0; pass < passes; ++pass) {
+    bool grew = false;
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) {
+        const size_t i = static_cast<size_t>(y) * w + x;
+        if (v[i] == v[i]) continue;
+        float sum = 0;
+        int n = 0;
+        for (int yy = std::max(y - 1, 0); yy <= std::min(y + 1, h - 1); ++yy) {
+          for (int xx = std::max(x - 1, 0); xx <= std::min(x + 1, w - 1); ++xx) {
+            const float d = v[static_cast<size_t>(yy) * w + xx];
+            if (d == d) {
+              sum += d;
+              ++n;
+            }
+          }
+        }
+        if (n > 0) {
+          next[i] = sum / static_cast<float>(n);
+          grew = true;
+        }
+      }
+    }
+    if (!grew) return;
+    v = next;
+  }
+}
+
 }  // namespace
 
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
@@ -727,48 +760,16 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
   // Only pixels bright enough to be solved are placed (half the solver's bar: the leakage correction moves it a
   // little).
   const float lit = static_cast<float>(internal::MinSignalDn(options, camera) / 2);
-  const int max_px = options.geometry_fill_px;
-  const int threads = options.threads;
-  const double clearance_mm = options.shadow_clearance_mm;
   const int w = g->width, h = g->height;
   const size_t pixels = static_cast<size_t>(w) * h;
   const Eigen::Vector3f origin = camera.position_mm.cast<float>();
-  // Each covered pixel's distance along its ray; then one ring of missing pixels per pass takes the mean of its
-  // covered (or already filled) 8-neighbours'.
+  // Each covered pixel's distance along its ray, spread to the missing pixels about them.
   std::vector<float> depth(pixels, std::nanf(""));
   for (size_t i = 0; i < pixels; ++i) {
     if (!g->Covers(i)) continue;
     depth[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
   }
-  std::vector<float> next = depth;
-  for (int pass = 0; pass < max_px; ++pass) {
-    bool grew = false;
-    for (int y = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x) {
-        const size_t i = static_cast<size_t>(y) * w + x;
-        if (depth[i] == depth[i]) continue;
-        float sum = 0;
-        int n = 0;
-        for (int dy = -1; dy <= 1; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) {
-            const int xx = x + dx, yy = y + dy;
-            if (xx < 0 || yy < 0 || xx >= w || yy >= h) continue;
-            const float d = depth[static_cast<size_t>(yy) * w + xx];
-            if (d == d) {
-              sum += d;
-              ++n;
-            }
-          }
-        }
-        if (n > 0) {
-          next[i] = sum / static_cast<float>(n);
-          grew = true;
-        }
-      }
-    }
-    depth = next;
-    if (!grew) break;
-  }
+  SpreadIntoGaps(w, h, options.geometry_fill_px, &depth);
   std::vector<size_t> filled;
   for (size_t i = 0; i < pixels; ++i) {
     if (g->Covers(i) || depth[i] != depth[i]) continue;
@@ -776,8 +777,8 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
     if (v[0] + v[1] + v[2] >= lit) filled.push_back(i);
   }
   const std::vector<Eigen::Vector3f> units = UnitPositions(light);
-  const float clearance = static_cast<float>(clearance_mm);
-  ParallelRows(static_cast<int>(filled.size()), threads, [&](int k0, int k1) {
+  const float clearance = static_cast<float>(options.shadow_clearance_mm);
+  ParallelRows(static_cast<int>(filled.size()), options.threads, [&](int k0, int k1) {
     for (int k = k0; k < k1; ++k) {
       const size_t i = filled[static_cast<size_t>(k)];
       const Eigen::Vector3f point = origin + depth[i] * PixelRay(camera, origin, i);
