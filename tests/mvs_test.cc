@@ -50,8 +50,7 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
   const std::string id = take["take_id"], dir = take["dir"];
 
   // Photometric stereo cannot stand on a reconstruction that is not there yet: it says where it looked.
-  CommandResult early =
-      RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "mvs"}, std::chrono::seconds(60));
+  CommandResult early = RunCommand({"stage-process", "photometric", "--take", dir}, std::chrono::seconds(60));
   EXPECT_NE(early.exit.exit_code, 0);
   EXPECT_THAT(early.err, HasSubstr(dir + "/derived/mvs"));
 
@@ -137,7 +136,7 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
     std::vector<std::string> args = {"stage-process", "photometric",  "--take",   dir,
                                      "--calibration", "ground_truth", "--output", dir + "/derived/ps-" + geometry,
                                      "--exact"};
-    if (geometry != "none") args.insert(args.end(), {"--geometry", geometry});
+    if (geometry != "mvs") args.insert(args.end(), {"--geometry", geometry});  // mvs: the default
     CommandResult run = RunCommand(args, std::chrono::seconds(600));
     ASSERT_EQ(run.exit.exit_code, 0) << run.err;
   }

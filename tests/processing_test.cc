@@ -32,10 +32,9 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   ASSERT_TRUE(fs::exists(dir + "/ground_truth/frame-000000/mesh.obj"));
 
   // The worker, through the controller: results in the take's derived/photometric.
-  CommandResult worker = RunCommand(
-      {"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth", "--calibration",
-       "ground_truth", "--json"},
-      std::chrono::seconds(300));
+  CommandResult worker = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth",
+                                     "--calibration", "ground_truth", "--json"},
+                                    std::chrono::seconds(300));
   ASSERT_EQ(worker.exit.exit_code, 0) << worker.err;
   const nlohmann::json done = nlohmann::json::parse(worker.out);
   EXPECT_EQ(done["output_dir"], dir + "/derived/photometric");
@@ -50,7 +49,7 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_THAT(batch.out, HasSubstr("3 camera frame(s) processed into " + dir + "/derived/batch"));
   processing::PhotometricJob job;
   job.take_dir = dir;
-  job.geometry = "ground_truth";
+  job.geometry = {processing::GeometrySource::kDirectory, "ground_truth"};
   job.calibration = "ground_truth";
   job.output_dir = dir + "/derived/library";
   job.options.threads = 1;  // the results do not depend on it
@@ -63,9 +62,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
              c = FilesUnder(dir + "/derived/library");
   ASSERT_EQ(a.size(), 1 + 3 * 17u);  // run.json; per camera 8 EXR maps, flags, 6 previews, contact sheet, metrics
   for (const std::string camera : {"hs-1", "hs-2", "hs-3"}) {
-    for (const std::string file : {"diffuse_normal_world.exr", "diffuse_normal_camera.exr",
-                                   "specular_normal_world.exr", "albedo.exr", "roughness.exr", "metrics.json",
-                                   "contact_sheet.png"}) {
+    for (const std::string file : {"diffuse_normal_world.exr", "diffuse_normal_camera.exr", "specular_normal_world.exr",
+                                   "albedo.exr", "roughness.exr", "metrics.json", "contact_sheet.png"}) {
       EXPECT_EQ(a.count("frame-000000/" + camera + "/" + file), 1u) << camera << "/" << file;
     }
   }
@@ -77,12 +75,13 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   }
 
   // Without geometry the table-driven solver runs: the same bytes from the command (two threads) and the library (one).
-  CommandResult fast = RunCommand({"stage-process", "photometric", "--take", dir, "--output", dir + "/derived/fast-batch",
-                                   "--threads", "2"},
+  CommandResult fast = RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "none", "--output",
+                                   dir + "/derived/fast-batch", "--threads", "2"},
                                   std::chrono::seconds(300));
   ASSERT_EQ(fast.exit.exit_code, 0) << fast.err;
   processing::PhotometricJob fast_job;
   fast_job.take_dir = dir;
+  fast_job.geometry.source = processing::GeometrySource::kNone;
   fast_job.output_dir = dir + "/derived/fast-library";
   fast_job.options.threads = 1;
   ASSERT_TRUE(processing::RunPhotometric(fast_job).ok());
@@ -93,6 +92,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
     EXPECT_TRUE(bytes == fb.at(name)) << name << " differs between the command and the library (fast solver)";
   }
   EXPECT_THAT(fa.at("run.json"), HasSubstr("\"solver\": \"fast (tables, raw mosaic)\""));
+  EXPECT_THAT(fa.at("run.json"), HasSubstr("\"geometry\": \"none\""));
+  EXPECT_THAT(a.at("run.json"), HasSubstr("\"geometry\": \"ground_truth\""));
   EXPECT_THAT(a.at("run.json"), HasSubstr("\"solver\": \"per pixel\""));
   EXPECT_THAT(a.at("run.json"), HasSubstr("\"cameras_placed_by\": \"simulator truth\""));
   EXPECT_THAT(fa.at("run.json"), HasSubstr("\"cameras_placed_by\": \"the rig's nominal models (uncalibrated)\""));
@@ -125,31 +126,44 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_THAT(text.out, HasSubstr("pore band"));
 
   // Bad requests say what is wrong and write nothing.
-  CommandResult unknown = RunCommand({"stagectl", "--endpoints", endpoints, "process", "nope"}, std::chrono::seconds(30));
+  CommandResult unknown =
+      RunCommand({"stagectl", "--endpoints", endpoints, "process", "nope"}, std::chrono::seconds(30));
   EXPECT_EQ(unknown.exit.exit_code, 2);
   EXPECT_THAT(unknown.err, HasSubstr("no take \"nope\""));
   CommandResult stage_name =
       RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "uv-maps"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
   EXPECT_THAT(stage_name.err, HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs)"));
-  CommandResult no_take = RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"},
-                                     std::chrono::seconds(30));
+  CommandResult no_take =
+      RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"}, std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);
   EXPECT_THAT(no_take.err, HasSubstr(root.path() + "/missing/take.json"));
-  CommandResult past = RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "4", "--output",
-                                   dir + "/derived/past"},
-                                  std::chrono::seconds(60));
+  CommandResult past =
+      RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "4", "--output", dir + "/derived/past"},
+                 std::chrono::seconds(60));
   EXPECT_EQ(past.exit.exit_code, 2);
   EXPECT_THAT(past.err, HasSubstr("frames [4, 5) are not all in the take (it holds 1 whole frame(s))"));
   EXPECT_FALSE(fs::exists(dir + "/derived/past/run.json"));
-  CommandResult camera = RunCommand({"stage-process", "photometric", "--take", dir, "--cameras", "hs-9"},
-                                    std::chrono::seconds(60));
+  CommandResult camera =
+      RunCommand({"stage-process", "photometric", "--take", dir, "--cameras", "hs-9"}, std::chrono::seconds(60));
   EXPECT_EQ(camera.exit.exit_code, 2);
   EXPECT_THAT(camera.err, HasSubstr("no frame file for camera \"hs-9\""));
-  CommandResult range = RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "3:1"},
-                                   std::chrono::seconds(30));
+  CommandResult range =
+      RunCommand({"stage-process", "photometric", "--take", dir, "--frames", "3:1"}, std::chrono::seconds(30));
   EXPECT_EQ(range.exit.exit_code, 2);
   EXPECT_THAT(range.err, HasSubstr("--frames \"3:1\" is not a frame range"));
+  // Multi-view stereo's meshes are the default geometry: a take without them is refused, saying what to run, by the
+  // command and by the worker alike.
+  CommandResult no_mvs = RunCommand(
+      {"stage-process", "photometric", "--take", dir, "--output", dir + "/derived/no-mvs"}, std::chrono::seconds(60));
+  EXPECT_EQ(no_mvs.exit.exit_code, 2);
+  EXPECT_THAT(no_mvs.err, HasSubstr(dir + "/derived/mvs: no multi-view stereo meshes (the default geometry): run the "
+                                          "mvs stage first"));
+  EXPECT_FALSE(fs::exists(dir + "/derived/no-mvs/run.json"));
+  CommandResult no_mvs_worker = RunCommand(
+      {"stagectl", "--endpoints", endpoints, "process", id, "--calibration", "ground_truth"}, std::chrono::seconds(60));
+  EXPECT_NE(no_mvs_worker.exit.exit_code, 0);
+  EXPECT_THAT(no_mvs_worker.err, HasSubstr("or take --geometry none"));
 }
 
 }  // namespace

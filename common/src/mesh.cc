@@ -168,6 +168,10 @@ bool MeshBvh::Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) c
 absl::StatusOr<TriangleMesh> ReadObj(const std::string& path) {
   std::ifstream in(path);
   if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot open the OBJ file"));
+  return ParseObj(in, path);
+}
+
+absl::StatusOr<TriangleMesh> ParseObj(std::istream& in, const std::string& path) {
   std::vector<Eigen::Vector3f> v;
   std::vector<Eigen::Vector2f> vt;
   TriangleMesh mesh;

@@ -562,6 +562,10 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       check.InRange("sim.subject.board.pixels_per_mm", board.pixels_per_mm(), 0.5, 100);
     }
     check.InRange("sim.subject.head_resolution", subject.head_resolution(), 16, 4096);
+    if (subject.identity() != 0 && (subject.kind() != "head" || !subject.asset().neutral_obj().empty())) {
+      check.Add("sim.subject.identity",
+                "draws the procedural head's proportions: it needs kind \"head\" without an asset");
+    }
     check.InRange("sim.subject.size_mm", subject.size_mm(), 1, 2000);
     if (subject.albedo_size() != 3) {
       check.Add("sim.subject.albedo", absl::StrCat("needs 3 values (linear R, G, B), has ", subject.albedo_size()));

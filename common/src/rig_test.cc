@@ -351,6 +351,18 @@ TEST(RigTest, TextureSamplesDefaultToTheLightingsButFourOnTheBoard) {
   EXPECT_THAT(std::string(coarser.status().message()), HasSubstr("sim.texture_samples"));
 }
 
+TEST(RigTest, AnIdentityIsAProceduralHeadsOnly) {
+  auto rig = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(rig.ok());
+  auto performer = ApplyRigOverrides(*rig, {"sim.subject.identity=5"});
+  ASSERT_TRUE(performer.ok()) << performer.status();
+  EXPECT_EQ(performer->rig.sim().subject().identity(), 5u);
+  auto sphere = ApplyRigOverrides(*rig, {"sim.subject.kind=sphere", "sim.subject.identity=5"});
+  ASSERT_FALSE(sphere.ok());
+  EXPECT_THAT(std::string(sphere.status().message()),
+              HasSubstr("sim.subject.identity: draws the procedural head's proportions"));
+}
+
 TEST(RigErrorTest, ChannelOutOfRange) {
   EXPECT_THAT(LoadError(Replace("parallel_channel: 2, cross_channel: 3", "parallel_channel: 2, cross_channel: 4")),
               AllOf(StartsWith("rig.yaml:30:64:"),

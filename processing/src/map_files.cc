@@ -29,14 +29,17 @@ absl::Status Write(const std::string& path, const cv::Mat& image, const std::vec
   return absl::OkStatus();
 }
 
-// OpenCV's channel order is B, G, R: values x, y, z (R, G, B) go in reversed.
+// OpenCV's channel order is B, G, R(, A): values x, y, z (R, G, B) go in reversed, alpha stays last. The channel of
+// OpenCV's that holds value `c` of `channels`.
+int CvChannel(int c, int channels) { return channels == 4 ? (c < 3 ? 2 - c : 3) : channels - 1 - c; }
+
 cv::Mat ToMat(const Image& image) {
   cv::Mat m(image.height, image.width, CV_32FC(image.channels));
   for (int y = 0; y < image.height; ++y) {
     float* row = m.ptr<float>(y);
     for (int x = 0; x < image.width; ++x) {
       const float* v = image.at(x, y);
-      for (int c = 0; c < image.channels; ++c) row[x * image.channels + c] = v[image.channels - 1 - c];
+      for (int c = 0; c < image.channels; ++c) row[x * image.channels + CvChannel(c, image.channels)] = v[c];
     }
   }
   return m;
@@ -121,8 +124,8 @@ absl::StatusOr<Image> ReadImageFile(const std::string& path) {
   }
   if (m.empty()) return absl::NotFoundError(absl::StrCat(path, ": cannot read the image"));
   const int channels = m.channels();
-  if (channels != 1 && channels != 3) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": ", channels, " channels; 1 or 3 expected"));
+  if (channels != 1 && channels != 3 && channels != 4) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": ", channels, " channels; 1, 3 or 4 expected"));
   }
   double scale = 1;
   if (m.depth() == CV_8U) scale = 1.0 / 255;
@@ -134,7 +137,7 @@ absl::StatusOr<Image> ReadImageFile(const std::string& path) {
     const float* row = f.ptr<float>(y);
     for (int x = 0; x < f.cols; ++x) {
       float* o = out.at(x, y);
-      for (int c = 0; c < channels; ++c) o[c] = row[x * channels + (channels - 1 - c)];
+      for (int c = 0; c < channels; ++c) o[c] = row[x * channels + CvChannel(c, channels)];
     }
   }
   return out;
@@ -167,8 +170,8 @@ absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, 
       {"specular intensity (0..0.1)", ScalarPreview(maps.specular, 0.1f)},
       {"roughness (GGX alpha, 0..1)", ScalarPreview(maps.roughness, 1.f)},
       {"confidence (0..1)", ScalarPreview(maps.confidence, 1.f)}};
-  const char* files[] = {"diffuse_normal_world", "specular_normal_world", "albedo", "specular", "roughness",
-                         "confidence"};
+  const char* files[] = {
+      "diffuse_normal_world", "specular_normal_world", "albedo", "specular", "roughness", "confidence"};
   for (size_t i = 0; i < previews.size(); ++i) {
     if (auto s = Write(dir + "/" + files[i] + ".png", previews[i].second); !s.ok()) return s;
   }

@@ -9,6 +9,7 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "gap_fill.h"
 #include "photometric_internal.h"
 #include "stage/common/ggx.h"
 
@@ -656,39 +657,6 @@ Eigen::Vector3f PixelRay(const PhotometricCamera& camera, const Eigen::Vector3f&
   return camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
 }
 
-// The NaN pixels of a w x h image within `passes` pixels of set ones take, one ring a pass, the mean of their set
-// 8-neighbours.
-void SpreadIntoGaps(int w, int h, int passes, std::vector<float>* values) {
-  std::vector<float>& v = *values;
-  std::vector<float> next = v;
-  for (int pass = 0; pass < passes; ++pass) {
-    bool grew = false;
-    for (int y = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x) {
-        const size_t i = static_cast<size_t>(y) * w + x;
-        if (v[i] == v[i]) continue;
-        float sum = 0;
-        int n = 0;
-        for (int yy = std::max(y - 1, 0); yy <= std::min(y + 1, h - 1); ++yy) {
-          for (int xx = std::max(x - 1, 0); xx <= std::min(x + 1, w - 1); ++xx) {
-            const float d = v[static_cast<size_t>(yy) * w + xx];
-            if (d == d) {
-              sum += d;
-              ++n;
-            }
-          }
-        }
-        if (n > 0) {
-          next[i] = sum / static_cast<float>(n);
-          grew = true;
-        }
-      }
-    }
-    if (!grew) return;
-    v = next;
-  }
-}
-
 }  // namespace
 
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
@@ -769,7 +737,7 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
     if (!g->Covers(i)) continue;
     depth[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
   }
-  SpreadIntoGaps(w, h, options.geometry_fill_px, &depth);
+  SpreadIntoGaps(w, h, /*channels=*/1, options.geometry_fill_px, &depth);
   std::vector<size_t> filled;
   for (size_t i = 0; i < pixels; ++i) {
     if (g->Covers(i) || depth[i] != depth[i]) continue;

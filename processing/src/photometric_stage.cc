@@ -142,10 +142,40 @@ absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::s
   return std::optional<CameraCalibration>(*std::move(calibration));
 }
 
+GeometrySpec GeometrySpec::Parse(const std::string& flag) {
+  if (flag == "mvs") return {GeometrySource::kMvs, ""};
+  if (flag == "none") return {GeometrySource::kNone, ""};
+  return {GeometrySource::kDirectory, flag};
+}
+
+std::string GeometrySpec::ToString() const {
+  switch (source) {
+    case GeometrySource::kMvs:
+      return "mvs";
+    case GeometrySource::kNone:
+      return "none";
+    case GeometrySource::kDirectory:
+      break;
+  }
+  return dir;
+}
+
+absl::Status GeometrySpec::Validate() const {
+  if (source == GeometrySource::kDirectory && dir.empty()) {
+    return absl::InvalidArgumentError("geometry: a directory of meshes needs its path");
+  }
+  if (source != GeometrySource::kDirectory && !dir.empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("geometry: a directory (\"", dir, "\") is given with ", ToString(), " geometry"));
+  }
+  return absl::OkStatus();
+}
+
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                          const std::function<void(const JobProgress&)>& progress,
                                          const std::function<bool()>& cancelled) {
   STAGE_RETURN_IF_ERROR(job.options.Validate());
+  STAGE_RETURN_IF_ERROR(job.geometry.Validate());
   auto rig = LoadTakeRig(job.take_dir);
   if (!rig.ok()) return rig.status();
   auto light = LightModel::FromRig(*rig);
@@ -195,13 +225,17 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                                    last <= first ? "empty" : "not all in the take", " (it holds ",
                                                    whole_frames, " whole frame(s))"));
   }
-  std::string geometry_root;
-  if (!job.geometry.empty()) {
-    // "mvs": multi-view stereo's meshes of the take (stage-process mvs).
-    const std::string dir = job.geometry == "mvs" ? "derived/mvs" : job.geometry;
-    geometry_root = fs::path(dir).is_absolute() ? dir : job.take_dir + "/" + dir;
+  std::string geometry_dir, geometry_root;  // as given (relative to the take, or absolute), and as opened
+  if (job.geometry.has_mesh()) {
+    const bool mvs = job.geometry.source == GeometrySource::kMvs;
+    geometry_dir = fs::path(mvs ? "derived/mvs" : job.geometry.dir).lexically_normal().string();
+    geometry_root = fs::path(geometry_dir).is_absolute() ? geometry_dir : job.take_dir + "/" + geometry_dir;
     if (!fs::is_directory(geometry_root)) {
-      return absl::NotFoundError(absl::StrCat(geometry_root, ": no such geometry directory"));
+      return absl::NotFoundError(
+          mvs ? absl::StrCat(geometry_root,
+                             ": no multi-view stereo meshes (the default geometry): run the mvs stage first "
+                             "(stage-process mvs, stagectl process --stage mvs), or take --geometry none")
+              : absl::StrCat(geometry_root, ": no such geometry directory"));
     }
   }
   JobResult result;
@@ -218,7 +252,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       auto obj = ReadObj(geometry_root + "/" + geometry_file);
       if (!obj.ok()) return obj.status();
       mesh = std::make_unique<MeshBvh>(std::move(*obj));
-      geometry_file = fs::path(job.geometry).lexically_normal().string() + "/" + geometry_file;
+      geometry_file = geometry_dir + "/" + geometry_file;
     }
     for (CameraJob& c : cameras) {
       if (cancelled && cancelled()) {
@@ -285,10 +319,10 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   run["take"] = fs::path(job.take_dir).filename().string();
   run["frames"] = {first, last};
   run["cameras"] = ids;
-  run["geometry"] = job.geometry.empty() ? "none" : job.geometry;
+  run["geometry"] = job.geometry.ToString();
   run["cameras_placed_by"] =
       calibration->has_value() ? (*calibration)->source : "the rig's nominal models (uncalibrated)";
-  run["solver"] = job.geometry.empty() && !job.exact ? "fast (tables, raw mosaic)" : "per pixel";
+  run["solver"] = !job.geometry.has_mesh() && !job.exact ? "fast (tables, raw mosaic)" : "per pixel";
   run["options"] = {{"iterations", job.options.iterations},
                     {"table_size", job.options.table_size},
                     {"min_signal_dn", job.options.min_signal_dn},

@@ -102,7 +102,21 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
   p.first_frame = job.first_frame();
   p.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
   p.cameras.assign(job.cameras().begin(), job.cameras().end());
-  p.geometry = job.geometry();
+  switch (job.geometry_source()) {
+    case v1::GEOMETRY_SOURCE_UNSPECIFIED:
+    case v1::GEOMETRY_SOURCE_MVS:
+      p.geometry.source = GeometrySource::kMvs;
+      break;
+    case v1::GEOMETRY_SOURCE_NONE:
+      p.geometry.source = GeometrySource::kNone;
+      break;
+    case v1::GEOMETRY_SOURCE_DIRECTORY:
+      p.geometry.source = GeometrySource::kDirectory;
+      break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat("geometry_source: unknown value ", job.geometry_source()));
+  }
+  p.geometry.dir = job.geometry();
   p.calibration = job.calibration();
   p.options.threads = static_cast<int>(threads_);
   auto result = RunPhotometric(p, progress, cancelled);
@@ -114,7 +128,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
     const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
     const std::function<bool()>& cancelled) const {
-  if (!job.geometry().empty() || !job.calibration().empty()) {
+  if (!job.geometry().empty() || job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED ||
+      !job.calibration().empty()) {
     return absl::InvalidArgumentError("calibration takes no geometry and no calibration");
   }
   CalibrationJob c;
@@ -130,7 +145,9 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunCalibrationJob(
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunMvsJob(const v1::ProcessingJob& job,
                                                                 const std::function<void(const JobProgress&)>& progress,
                                                                 const std::function<bool()>& cancelled) const {
-  if (!job.geometry().empty()) return absl::InvalidArgumentError("multi-view stereo takes no geometry: it makes it");
+  if (!job.geometry().empty() || job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED) {
+    return absl::InvalidArgumentError("multi-view stereo takes no geometry: it makes it");
+  }
   MvsJob m;
   m.take_dir = job.take_dir();
   m.first_frame = job.first_frame();

@@ -128,7 +128,7 @@ int main(int argc, char** argv) {
   app.add_option("--log-level", log_level, "Log levels, e.g. debug (overrides SPDLOG_LEVEL)");
 
   stage::processing::PhotometricJob job;
-  std::string frames = "0:", cameras, threads_help;
+  std::string frames = "0:", cameras, threads_help, geometry = "mvs";
   bool json = false;
   CLI::App* photometric = app.add_subcommand(
       "photometric",
@@ -139,11 +139,13 @@ int main(int argc, char** argv) {
   photometric->add_option("--frames", frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
   photometric->add_option("--cameras", cameras, "Camera ids, comma-separated (default: every high-speed camera)");
-  photometric->add_option(
-      "--geometry", job.geometry,
-      "Surface geometry: mvs (multi-view stereo's meshes, TAKE/derived/mvs: run stage-process mvs first), or a "
-      "directory with frame-NNNNNN/mesh.obj per frame, relative to the take or absolute (ground_truth on a simulated "
-      "take: the truth's); default: none");
+  photometric
+      ->add_option(
+          "--geometry", geometry,
+          "Surface geometry: mvs (multi-view stereo's meshes, TAKE/derived/mvs: run stage-process mvs first), none "
+          "(every pixel sees the units from the stage origin), or a directory with frame-NNNNNN/mesh.obj per frame, "
+          "relative to the take or absolute (ground_truth on a simulated take: the truth's)")
+      ->capture_default_str();
   photometric->add_option(
       "--calibration", job.calibration,
       "Where the cameras are: a calibration file or a directory holding cameras.json (stage-process calibrate's "
@@ -158,20 +160,19 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0, 16));
   photometric
       ->add_option("--shadow-clearance-mm", job.options.shadow_clearance_mm,
-                   "With --geometry: shadow rays start this far from the surface, towards their light, mm (the "
+                   "With geometry: shadow rays start this far from the surface, towards their light, mm (the "
                    "geometry's own roughness must not shadow it)")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
   photometric
-      ->add_option(
-          "--geometry-fill-px", job.options.geometry_fill_px,
-          "With --geometry: pixels the mesh misses within this many pixels of ones it covers (the sides of the "
-          "head a reconstruction does not reach) take their neighbours' distance; 0: none")
+      ->add_option("--geometry-fill-px", job.options.geometry_fill_px,
+                   "With geometry: pixels the mesh misses within this many pixels of ones it covers (the sides of the "
+                   "head a reconstruction does not reach) take their neighbours' distance; 0: none")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
   photometric->add_flag("--exact", job.exact,
-                        "Without --geometry too, fit the specular lobe per pixel instead of the table-driven solver "
-                        "(slower, less noisy specular maps)");
+                        "With --geometry none too, fit the specular lobe per pixel instead of the table-driven "
+                        "solver (slower, less noisy specular maps; with geometry it always does)");
   photometric->add_flag("--json", json, "Print the result as JSON on stdout");
 
   MvsCommand mvs;
@@ -266,6 +267,7 @@ int main(int argc, char** argv) {
       return stage::ReportFatal(kProgram, s);
     }
     job.cameras = SplitCameras(cameras);
+    job.geometry = stage::processing::GeometrySpec::Parse(geometry);
     stage::ProgressLine bar("camera frames");
     auto result = stage::processing::RunPhotometric(job, ShowOn(bar));
     bar.Finish();

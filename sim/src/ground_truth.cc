@@ -13,6 +13,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/status.h"
+#include "stage/common/uv_raster.h"
 
 namespace stage::sim {
 namespace {
@@ -36,32 +37,14 @@ cv::Vec3f Bgr(const Eigen::Vector3f& v) { return {v.z(), v.y(), v.x()}; }
 }  // namespace
 
 std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size) {
+  const std::vector<UvTexel> texels = RasterizeUv(mesh, size, /*part=*/0);
   std::vector<float> map(static_cast<size_t>(size) * size * 4, 0.0f);
-  for (size_t k = 0; k < mesh.triangles.size(); ++k) {
-    if (!mesh.parts.empty() && mesh.parts[k] != 0) continue;
-    const auto& t = mesh.triangles[k];
-    const Eigen::Vector2f a = mesh.uvs[t[0]] * size, b = mesh.uvs[t[1]] * size, c = mesh.uvs[t[2]] * size;
-    const float det = (b.x() - a.x()) * (c.y() - a.y()) - (c.x() - a.x()) * (b.y() - a.y());
-    if (std::abs(det) < 1e-12f) continue;
-    const int x0 = std::max(0, static_cast<int>(std::floor(std::min({a.x(), b.x(), c.x()}))));
-    const int x1 = std::min(size - 1, static_cast<int>(std::ceil(std::max({a.x(), b.x(), c.x()}))));
-    const int y0 = std::max(0, static_cast<int>(std::floor(std::min({a.y(), b.y(), c.y()}))));
-    const int y1 = std::min(size - 1, static_cast<int>(std::ceil(std::max({a.y(), b.y(), c.y()}))));
-    for (int y = y0; y <= y1; ++y) {
-      for (int x = x0; x <= x1; ++x) {
-        const float px = x + 0.5f, py = y + 0.5f;
-        const float w1 = ((px - a.x()) * (c.y() - a.y()) - (c.x() - a.x()) * (py - a.y())) / det;
-        const float w2 = ((b.x() - a.x()) * (py - a.y()) - (px - a.x()) * (b.y() - a.y())) / det;
-        const float w0 = 1 - w1 - w2;
-        if (w0 < -1e-6f || w1 < -1e-6f || w2 < -1e-6f) continue;
-        const Eigen::Vector3f p = w0 * mesh.positions[t[0]] + w1 * mesh.positions[t[1]] + w2 * mesh.positions[t[2]];
-        float* out = &map[(static_cast<size_t>(y) * size + x) * 4];
-        out[0] = p.x();
-        out[1] = p.y();
-        out[2] = p.z();
-        out[3] = 1;
-      }
-    }
+  const std::vector<Eigen::Vector3f> points =
+      InterpolateAtTexels(mesh, texels, mesh.positions, Eigen::Vector3f::Zero());
+  for (size_t i = 0; i < texels.size(); ++i) {
+    if (!texels[i].covered()) continue;
+    std::copy(points[i].data(), points[i].data() + 3, &map[4 * i]);
+    map[4 * i + 3] = 1;
   }
   return map;
 }
@@ -133,7 +116,7 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
           !s.ok())
         return s;
       const std::vector<float> uv = UvPositionMap(mesh, options.uv_size);
-      // Row 0 of the image is v = 0 (the chin's side): the map is indexed as texture coordinates are.
+      // Row 0 of the image is v = 1 (the crown's side), as textures are stored (uv_raster.h).
       cv::Mat image(options.uv_size, options.uv_size, CV_32FC4, const_cast<float*>(uv.data()));
       cv::Mat bgra;
       cv::cvtColor(image, bgra, cv::COLOR_RGBA2BGRA);

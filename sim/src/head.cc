@@ -42,6 +42,8 @@ enum { kJaw, kSmileL, kSmileR, kBlinkL, kBlinkR, kBrow, kFrown, kPucker };
 
 // Eye placement (head frame, angles): azimuth from +z towards +x, elevation.
 constexpr float kEyeTheta = 0.36f, kEyePhi = 0.10f, kEyeRadius = 12;
+// The mouth line's elevation.
+constexpr float kMouthPhi = -0.485f;
 // The neck pivot the head turns about, mm.
 const Eigen::Vector3f kPivot(0, -95, -15);
 
@@ -66,23 +68,23 @@ Eigen::Vector3f EPhi(float th, float ph) {
   return {-std::sin(th) * std::sin(ph), std::cos(ph), -std::cos(th) * std::sin(ph)};
 }
 
-// Distance from the head centre to the skin in direction (th, ph), neutral, mm.
-float Radius(float th, float ph) {
+// Distance from the head centre to the skin in direction (th, ph), neutral, mm, for the head of proportions `s`.
+float Radius(float th, float ph, const HeadShape& s) {
   const Eigen::Vector3f d = Dir(th, ph);
-  const float ax = 76, ay = 112, az = 98;
+  const float ax = s.width_mm, ay = s.height_mm, az = s.depth_mm;
   float r = 1 / std::sqrt((d.x() / ax) * (d.x() / ax) + (d.y() / ay) * (d.y() / ay) + (d.z() / az) * (d.z() / az));
   // The jaw narrows below the cheekbones.
-  r *= 1 - 0.14f * Smooth(-0.15f, -0.8f, ph) * std::sin(th) * std::sin(th);
-  r += 26 * Blob(th, ph, 0, -0.08f, 0.10f, 0.20f) + 7 * Blob(th, ph, 0, -0.22f, 0.07f, 0.06f);  // nose, tip
-  r += 5 * Both(th, ph, 0.11f, -0.24f, 0.05f, 0.05f);                                           // nostril wings
-  r -= 13 * Both(th, ph, kEyeTheta, kEyePhi, 0.15f, 0.09f);                                     // eye sockets
-  r += 6 * Both(th, ph, kEyeTheta, 0.23f, 0.20f, 0.05f);                                        // brow ridges
-  r += 8 * Both(th, ph, 0.62f, -0.08f, 0.18f, 0.15f);                                           // cheekbones
-  r += 8 * Blob(th, ph, 0, -0.43f, 0.22f, 0.05f) + 8 * Blob(th, ph, 0, -0.54f, 0.20f, 0.05f);   // lips
-  r -= 4 * Blob(th, ph, 0, -0.485f, 0.18f, 0.012f);                                             // mouth line
-  r += 10 * Blob(th, ph, 0, -0.78f, 0.22f, 0.12f);                                              // chin
-  r += 20 * Both(th, ph, kPi / 2 + 0.05f, 0.02f, 0.10f, 0.20f);                                 // ears
-  r += 6 * Blob(th, ph, kPi, 0.2f, 0.6f, 0.5f);                                                 // back of the skull
+  r *= 1 - s.jaw * Smooth(-0.15f, -0.8f, ph) * std::sin(th) * std::sin(th);
+  r += s.nose_mm * Blob(th, ph, 0, -0.08f, 0.10f, 0.20f) + s.nose_tip_mm * Blob(th, ph, 0, -0.22f, 0.07f, 0.06f);
+  r += s.nostrils_mm * Both(th, ph, 0.11f, -0.24f, 0.05f, 0.05f);
+  r -= s.eye_sockets_mm * Both(th, ph, kEyeTheta, kEyePhi, 0.15f, 0.09f);
+  r += s.brows_mm * Both(th, ph, kEyeTheta, 0.23f, 0.20f, 0.05f);
+  r += s.cheekbones_mm * Both(th, ph, 0.62f, -0.08f, 0.18f, 0.15f);
+  r += s.lips_mm * (Blob(th, ph, 0, -0.43f, 0.22f, 0.05f) + Blob(th, ph, 0, -0.54f, 0.20f, 0.05f));
+  r -= 4 * Blob(th, ph, 0, kMouthPhi, 0.18f, 0.012f);  // mouth line
+  r += s.chin_mm * Blob(th, ph, 0, -0.78f, 0.22f, 0.12f);
+  r += s.ears_mm * Both(th, ph, kPi / 2 + 0.05f, 0.02f, 0.10f, 0.20f);
+  r += 6 * Blob(th, ph, kPi, 0.2f, 0.6f, 0.5f);  // back of the skull
   return r;
 }
 
@@ -96,7 +98,7 @@ Eigen::Vector3f Delta(int e, float th, float ph, const Eigen::Vector3f& p) {
       const float s = Smooth(-0.45f, -0.53f, ph) * G(AngleDiff(th, 0), 1.1f);
       const Eigen::Vector3f hinge(0, -20, -30);
       const Eigen::AngleAxisf turn(14 * kPi / 180, Eigen::Vector3f::UnitX());
-      return s * (turn * (p - hinge) + hinge - p) - 14 * Blob(th, ph, 0, -0.485f, 0.16f, 0.02f) * d;
+      return s * (turn * (p - hinge) + hinge - p) - 14 * Blob(th, ph, 0, kMouthPhi, 0.16f, 0.02f) * d;
     }
     case kSmileL:
     case kSmileR: {
@@ -117,7 +119,7 @@ Eigen::Vector3f Delta(int e, float th, float ph, const Eigen::Vector3f& p) {
       return b * (-4 * ep - 4 * side * et + 1.5f * d);
     }
     case kPucker: {
-      const float b = Blob(th, ph, 0, -0.485f, 0.2f, 0.09f);
+      const float b = Blob(th, ph, 0, kMouthPhi, 0.2f, 0.09f);
       return b * (9 * d - 5 * side * std::min(1.0f, std::abs(th) / 0.1f) * et);
     }
     default:
@@ -788,7 +790,31 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
   return p;
 }
 
-std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution) {
+HeadLandmarks ProceduralHeadLandmarks() { return {kEyeTheta, kEyePhi, kMouthPhi}; }
+
+HeadShape HeadShape::Drawn(uint64_t identity) {
+  HeadShape s;
+  if (identity == 0) return s;
+  // Normal draws (Box-Muller over the hash's uniforms), one per proportion.
+  int k = 0;
+  auto vary = [&](float* value, float relative) {
+    const float u1 = std::max(Rand(identity, 0, 0, 2 * k), 1e-7f), u2 = Rand(identity, 0, 0, 2 * k + 1);
+    ++k;
+    const float n = std::sqrt(-2 * std::log(u1)) * std::cos(2 * kPi * u2);
+    *value *= 1 + relative * std::clamp(n, -2.5f, 2.5f);
+  };
+  vary(&s.width_mm, 0.04f);
+  vary(&s.height_mm, 0.04f);
+  vary(&s.depth_mm, 0.04f);
+  vary(&s.jaw, 0.25f);
+  for (float* feature : {&s.nose_mm, &s.nose_tip_mm, &s.nostrils_mm, &s.eye_sockets_mm, &s.brows_mm, &s.cheekbones_mm,
+                         &s.lips_mm, &s.chin_mm, &s.ears_mm}) {
+    vary(feature, 0.2f);
+  }
+  return s;
+}
+
+std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution, const HeadShape& shape) {
   std::shared_ptr<HeadModel> head(new HeadModel());
   head->seed_ = seed;
   head->pivot_ = kPivot;
@@ -803,8 +829,9 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
       const float u = static_cast<float>(i) / cols;
       const float th = u * 2 * kPi - kPi;
       // The poles are one point each (exactly, or the fan around them has slivers).
-      m.positions.push_back(j == 0 || j == rows ? Eigen::Vector3f(0, j == 0 ? -Radius(0, ph) : Radius(0, ph), 0)
-                                                : Eigen::Vector3f(Dir(th, ph) * Radius(th, ph)));
+      m.positions.push_back(j == 0 || j == rows
+                                ? Eigen::Vector3f(0, j == 0 ? -Radius(0, ph, shape) : Radius(0, ph, shape), 0)
+                                : Eigen::Vector3f(Dir(th, ph) * Radius(th, ph, shape)));
       m.uvs.emplace_back(u, v);
       th_of.push_back(th);
       ph_of.push_back(ph);
@@ -823,7 +850,7 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
   // Eyes: spheres in the sockets, 2 mm proud of the socket's floor; uv.x = angle from the gaze / pi.
   for (float sgn : {1.0f, -1.0f}) {
     const float th = sgn * kEyeTheta;
-    const Eigen::Vector3f center = Dir(th, kEyePhi) * (Radius(th, kEyePhi) + 2 - kEyeRadius);
+    const Eigen::Vector3f center = Dir(th, kEyePhi) * (Radius(th, kEyePhi, shape) + 2 - kEyeRadius);
     const int er = 24, ec = 12;
     const auto first = static_cast<int32_t>(m.positions.size());
     for (int j = 0; j <= ec; ++j) {
@@ -934,7 +961,7 @@ SurfaceSample HeadModel::Surface(const Eigen::Vector2f& uv, int part,
   albedo = (1 - lips) * albedo + lips * Eigen::Vector3f(0.52f, 0.22f, 0.22f);
   albedo = (1 - brows) * albedo + brows * Eigen::Vector3f(0.10f, 0.07f, 0.05f);
   // The open mouth is dark inside.
-  albedo *= 1 - 0.9f * e[kJaw] * Blob(th, ph, 0, -0.485f, 0.15f, 0.03f);
+  albedo *= 1 - 0.9f * e[kJaw] * Blob(th, ph, 0, kMouthPhi, 0.15f, 0.03f);
   s.material.albedo = albedo;
   s.material.specular = (0.028f + 0.012f * tzone + 0.007f * lips) * (1 - 0.4f * pore) * (1 - 0.6f * brows);
   s.material.roughness = std::clamp(0.35f - 0.07f * tzone - 0.12f * lips + 0.3f * brows, 0.05f, 1.0f);

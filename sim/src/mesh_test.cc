@@ -138,6 +138,34 @@ TEST(HeadTest, HasAHeadsProportionsAndParts) {
   EXPECT_LT(eye.material.roughness, 0.1f);
 }
 
+TEST(HeadTest, AnIdentityDrawsAnotherPerformerWithTheSameLayout) {
+  const HeadShape shipped = HeadShape::Drawn(0), other = HeadShape::Drawn(5);
+  EXPECT_EQ(shipped.nose_mm, HeadShape{}.nose_mm);
+  EXPECT_EQ(shipped.width_mm, HeadShape{}.width_mm);
+  EXPECT_EQ(HeadShape::Drawn(5).nose_mm, other.nose_mm);  // the same identity, the same performer
+  auto a = HeadModel::Procedural(1, 64), b = HeadModel::Procedural(1, 64, other);
+  ASSERT_EQ(a->neutral().positions.size(), b->neutral().positions.size());
+  EXPECT_EQ(a->neutral().uvs, b->neutral().uvs);
+  EXPECT_EQ(a->neutral().triangles, b->neutral().triangles);
+  double sum = 0, worst = 0;
+  for (size_t v = 0; v < a->neutral().positions.size(); ++v) {
+    const double d = (a->neutral().positions[v] - b->neutral().positions[v]).norm();
+    sum += d;
+    worst = std::max(worst, d);
+  }
+  const double mean = sum / static_cast<double>(a->neutral().positions.size());
+  // Another face, not another species: millimetres apart on average, never more than a few centimetres.
+  EXPECT_GT(mean, 1.0);
+  EXPECT_LT(worst, 30.0);
+  // Every proportion is within 2.5 standard deviations of the shipped head's.
+  for (int identity = 1; identity < 50; ++identity) {
+    const HeadShape s = HeadShape::Drawn(static_cast<uint64_t>(identity));
+    EXPECT_NEAR(s.width_mm, shipped.width_mm, shipped.width_mm * 0.1 + 1e-3) << identity;
+    EXPECT_NEAR(s.nose_mm, shipped.nose_mm, shipped.nose_mm * 0.5 + 1e-3) << identity;
+    EXPECT_GT(s.jaw, 0) << identity;
+  }
+}
+
 TEST(HeadTest, ExpressionsMoveTheirRegionsAndABlinkCoversTheEye) {
   auto head = HeadModel::Procedural(1);
   auto neutral = head->Posed({});

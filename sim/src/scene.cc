@@ -110,7 +110,8 @@ absl::Status SimScene::MakeSubject(const std::string& base_dir) {
     for (const std::string& note : head_->notes()) Logger("sim")->warn("{}", note);
     model_ = head_;
   } else {
-    head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()));
+    head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()),
+                                  HeadShape::Drawn(config.identity()));
     model_ = head_;
   }
   if (config.performance() == "default") {

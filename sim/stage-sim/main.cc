@@ -19,6 +19,7 @@
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/subprocess.h"
+#include "stage/sim/face_template.h"
 #include "stage/sim/ground_truth.h"
 #include "stage/sim/scene.h"
 #include "stage/sim/stage_supervisor.h"
@@ -243,11 +244,24 @@ int main(int argc, char** argv) {
   app.add_option("--ground-truth", ground_truth_dir,
                  "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
                  "(every camera) into this directory (docs/simulator.md#ground-truth)");
+  std::string export_template_dir;
+  app.add_option("--export-face-template", export_template_dir,
+                 "Write the face template processing fits (the shipped procedural head's face: face-template.obj and "
+                 "face-template.json, as processing/data/ holds them; docs/assets.md) into this directory, and exit; "
+                 "starts nothing");
   app.footer(
       "Examples: stage-sim -- stagectl status\n"
       "          stage-sim --world-slots 912 --until-rendered --set sim.render_scale=0.03  # one second");
   if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (!export_template_dir.empty()) {
+    const auto head = stage::sim::HeadModel::Procedural(/*seed=*/1);
+    if (auto s = stage::sim::WriteFaceTemplate(stage::sim::MakeFaceTemplate(*head), export_template_dir); !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    std::cout << "face template written to " << export_template_dir << "/face-template.{obj,json}\n";
+    return 0;
+  }
   if ((until_rendered || !ground_truth_dir.empty()) && (world_slots <= 0 || world_mode == "none")) {
     return stage::ReportFatal(
         kProgram, absl::InvalidArgumentError("--until-rendered and --ground-truth need a world and --world-slots N"));

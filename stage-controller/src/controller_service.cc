@@ -269,8 +269,8 @@ absl::Status ControllerService::EnableCapture(CaptureOptions options, CaptureDev
   // The session's state is part of the stage's status: its changes wake the status watchers too.
   options.on_state_change = [monitor = monitor_] { monitor->NotifyChange(); };
   options.estop = estop_.get();
-  STAGE_ASSIGN_OR_RETURN(capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options),
-                                                          std::move(devices)));
+  STAGE_ASSIGN_OR_RETURN(
+      capturer_, Capturer::Create(rig_, timing_.schedule(), timing_.errors(), std::move(options), std::move(devices)));
   return absl::OkStatus();
 }
 
@@ -482,6 +482,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_first_frame(request->first_frame());
   job.set_last_frame(request->last_frame());
   *job.mutable_cameras() = request->cameras();
+  job.set_geometry_source(request->geometry_source());
   job.set_geometry(request->geometry());
   job.set_calibration(request->calibration());
   Logger("controller")

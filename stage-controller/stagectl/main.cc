@@ -676,8 +676,9 @@ int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessingStage kind;
   if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
-    return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
-                                            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs)")));
+    return stage::ReportFatal(
+        kProgram, absl::InvalidArgumentError(
+                      absl::StrCat("--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs)")));
   }
   request.set_stage(kind);
   int64_t first = 0, last = -1;
@@ -687,7 +688,14 @@ int Process(const Connection& c, const ProcessFlags& f) {
   request.set_first_frame(first);
   request.set_last_frame(last < 0 ? 0 : last);
   for (absl::string_view id : absl::StrSplit(f.cameras, ',', absl::SkipEmpty())) request.add_cameras(std::string(id));
-  request.set_geometry(f.geometry);
+  if (f.geometry == "none") {
+    request.set_geometry_source(stage::v1::GEOMETRY_SOURCE_NONE);
+  } else if (f.geometry == "mvs") {
+    request.set_geometry_source(stage::v1::GEOMETRY_SOURCE_MVS);
+  } else if (!f.geometry.empty()) {
+    request.set_geometry_source(stage::v1::GEOMETRY_SOURCE_DIRECTORY);
+    request.set_geometry(f.geometry);
+  }
   request.set_calibration(f.calibration);
   request.set_worker_id(f.worker);
   grpc::ClientContext context;
@@ -1010,9 +1018,9 @@ int main(int argc, char** argv) {
                       "Camera ids, comma-separated (default: the stage's; photometric: every high-speed camera, "
                       "calibration: every camera)");
   process->add_option("--geometry", pf.geometry,
-                      "Surface geometry: mvs (multi-view stereo's meshes: process --stage mvs first), or a "
-                      "directory of frame-NNNNNN/mesh.obj relative to the take (ground_truth on the simulated stage: "
-                      "the truth's); default: none");
+                      "Photometric stereo's surface geometry: mvs (multi-view stereo's meshes: process --stage mvs "
+                      "first; the default), none, or a directory of frame-NNNNNN/mesh.obj relative to the take "
+                      "(ground_truth on the simulated stage: the truth's)");
   process->add_option("--calibration", pf.calibration,
                       "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");
@@ -1025,7 +1033,9 @@ int main(int argc, char** argv) {
       "Record a calibration take (the ChArUco board moved through the stage's volume; on the simulated stage, "
       "stage-sim --set sim.subject.kind=charuco) and calibrate every camera from it on a processing worker: "
       "TAKE/derived/calibration/cameras.json, which later stages take with --calibration");
-  calibrate->add_option("--seconds", calf.seconds, "Seconds to record")->capture_default_str()->check(CLI::PositiveNumber);
+  calibrate->add_option("--seconds", calf.seconds, "Seconds to record")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   calibrate->add_option("--name", calf.name, "The take's name in the catalog")->capture_default_str();
   calibrate->add_option("--worker", calf.worker, "The worker's id (default: the first that is up)");
   calibrate->add_flag("--json", calf.json, "Print the calibration's result as JSON");

@@ -5,6 +5,7 @@
 #include <Eigen/Core>
 #include <array>
 #include <cstdint>
+#include <iosfwd>
 #include <string>
 #include <vector>
 
@@ -32,6 +33,8 @@ struct TriangleMesh {
 // a file whose only materials are WriteObj's part names, with no library, gets its parts back). Errors name the file
 // and line.
 absl::StatusOr<TriangleMesh> ReadObj(const std::string& path);
+// The same from a stream (an OBJ compiled into a program); `name` stands for the file in errors.
+absl::StatusOr<TriangleMesh> ParseObj(std::istream& in, const std::string& name);
 // Writes positions, texture coordinates (when every vertex has one) and triangles as an OBJ (`comment` on its first
 // line), atomically (a temporary file renamed over `path`). Parts, where a mesh without materials has any besides
 // 0, are written as materials without a library: `usemtl skin` (0) and `usemtl eye` (1).

@@ -17,10 +17,10 @@ namespace stage::processing {
 absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,
                            const std::string& title);
 
-// Reads a float image (OpenEXR, 1 or 3 channels; values in x, y, z / R, G, B order) or an 8/16-bit PNG.
+// Reads a float image (OpenEXR, 1, 3 or 4 channels; values in x, y, z / R, G, B(, A) order) or an 8/16-bit PNG.
 absl::StatusOr<Image> ReadImageFile(const std::string& path);
 
-// Writes a float image (1 or 3 channels) as float32 OpenEXR.
+// Writes a float image (1, 3 or 4 channels: R, G, B, A) as float32 OpenEXR.
 absl::Status WriteExr(const std::string& path, const Image& image);
 
 }  // namespace stage::processing

@@ -17,6 +17,27 @@
 
 namespace stage::processing {
 
+// Where photometric stereo's surface geometry comes from (v1::GeometrySource at the RPC edge).
+enum class GeometrySource {
+  kMvs,        // multi-view stereo's meshes, <take>/derived/mvs (mvs.h): the default
+  kNone,       // none: every pixel sees the units from the stage origin (the table-driven solver can run)
+  kDirectory,  // a directory of frame-NNNNNN/mesh.obj (the simulator's ground_truth/: the truth's)
+};
+
+struct GeometrySpec {
+  GeometrySource source = GeometrySource::kMvs;
+  // With kDirectory: the directory, relative to the take directory or absolute; empty otherwise.
+  std::string dir;
+
+  // "mvs", "none", or a directory (the command lines' --geometry).
+  static GeometrySpec Parse(const std::string& flag);
+  // The inverse of Parse, for run.json and logs.
+  std::string ToString() const;
+  // A directory with kDirectory, none otherwise.
+  absl::Status Validate() const;
+  bool has_mesh() const { return source != GeometrySource::kNone; }
+};
+
 struct PhotometricJob {
   // The take directory (takes/<take-id>, with take.json and cameras/<camera>.h5).
   std::string take_dir;
@@ -25,10 +46,9 @@ struct PhotometricJob {
   int64_t last_frame = -1;
   // Camera ids; empty: every high-speed camera of the take's rig.
   std::vector<std::string> cameras;
-  // Surface geometry: a directory with frame-NNNNNN/mesh.obj (stage frame, mm) per frame of the take, relative to
-  // the take directory or absolute; "mvs" is derived/mvs, multi-view stereo's (mvs.h); the simulator's ground_truth/
-  // is the truth's. Empty: none.
-  std::string geometry;
+  // Surface geometry: meshes (stage frame, mm) per frame of the take; by default multi-view stereo's, which must have
+  // run first (a take without them is refused, naming the directory).
+  GeometrySpec geometry;
   // Where the cameras are: a calibration file (camera_calibration.h), or a directory holding one as cameras.json
   // (`stage-process calibrate`'s output, or the simulator's ground_truth/), relative to the take directory or
   // absolute. Empty: the rig's nominal models (uncalibrated; said so in run.json).

@@ -40,7 +40,8 @@ struct GroundTruthOptions {
 
 absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options);
 
-// Stage-frame position per texel of the skin (part 0) of `mesh`, size x size, RGBA (alpha 1 where covered).
+// Stage-frame position per texel of the skin (part 0) of `mesh`, size x size, RGBA (alpha 1 where covered); row 0 at
+// v = 1 (stage/common/uv_raster.h).
 std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size);
 
 }  // namespace stage::sim

@@ -86,10 +86,34 @@ struct HeadAssetFiles {
   Eigen::Vector3f pivot_mm{0, -95, -15};
 };
 
+// Where the procedural head's features sit in its skin's layout, as azimuth (from +z towards +x) and elevation in
+// radians (u = azimuth / 2 pi + 1/2, v = elevation / pi + 1/2): for tools that mark regions of the face.
+struct HeadLandmarks {
+  float eye_azimuth;  // each eye at plus and minus this
+  float eye_elevation;
+  float mouth_elevation;  // the mouth line, centred at azimuth 0
+};
+HeadLandmarks ProceduralHeadLandmarks();
+
+// The proportions of the procedural head: one performer's face. Identity 0 is the shipped head (the one processing's
+// face template is made from, docs/assets.md); any other identity draws a performer about it.
+struct HeadShape {
+  float width_mm = 76, height_mm = 112, depth_mm = 98;  // the skull's semi-axes (x, y, z)
+  float jaw = 0.14f;                                    // how much the jaw narrows below the cheekbones
+  // Heights of the face's features over the skull, mm.
+  float nose_mm = 26, nose_tip_mm = 7, nostrils_mm = 5, eye_sockets_mm = 13, brows_mm = 6, cheekbones_mm = 8,
+        lips_mm = 8, chin_mm = 10, ears_mm = 20;
+
+  // Identity 0: the defaults above; another: the skull's axes varied by 4 % and the jaw and every feature by 20 %
+  // (standard deviations, clamped at 2.5), drawn from the identity.
+  static HeadShape Drawn(uint64_t identity);
+};
+
 class HeadModel final : public RiggedModel {
  public:
-  // The procedural head; `seed` varies the skin detail; `resolution` columns around the head (rows are half that).
-  static std::shared_ptr<const HeadModel> Procedural(uint64_t seed, int resolution = 256);
+  // The procedural head; `seed` varies the skin detail; `resolution` columns around the head (rows are half that);
+  // `shape` its proportions.
+  static std::shared_ptr<const HeadModel> Procedural(uint64_t seed, int resolution = 256, const HeadShape& shape = {});
   // A user's head: errors name the file (and line, or the expression) at fault.
   static absl::StatusOr<std::shared_ptr<const HeadModel>> FromAsset(const HeadAssetFiles& files);
 

@@ -1,0 +1,77 @@
+#include "stage/processing/face_template.h"
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "absl/strings/str_cat.h"
+
+extern const char kFaceTemplateObj[];
+extern const char kFaceTemplateJson[];
+
+namespace stage::processing {
+namespace {
+
+// The template from its mesh and its JSON text; `name` stands for the JSON file in errors.
+absl::StatusOr<FaceTemplate> FromParts(TriangleMesh mesh, const std::string& json_text, const std::string& name) {
+  FaceTemplate t;
+  t.mesh = std::move(mesh);
+  if (t.mesh.uvs.size() != t.mesh.positions.size()) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": the template's mesh needs a texture coordinate a vertex"));
+  }
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(json_text);
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": ", e.what()));
+  }
+  auto bad = [&](const std::string& field, const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": ", field, ": ", what));
+  };
+  if (j.value("format", "") != "fastage-face-template") return bad("format", "is not \"fastage-face-template\"");
+  if (j.value("version", 0) != 1) return bad("version", "only version 1 is read");
+  t.source = j.value("source", "");
+  try {
+    const auto& w = j.at("head_layout_window");
+    t.head_layout_lo = {w.at("u").at(0).get<float>(), w.at("v").at(0).get<float>()};
+    t.head_layout_hi = {w.at("u").at(1).get<float>(), w.at("v").at(1).get<float>()};
+  } catch (const nlohmann::json::exception& e) {
+    return bad("head_layout_window", e.what());
+  }
+  t.regions.assign(t.mesh.positions.size(), FaceRegion::kSkin);
+  for (const auto& [key, region] : {std::pair{"eyes", FaceRegion::kEye}, std::pair{"mouth", FaceRegion::kMouth}}) {
+    if (!j.contains("regions") || !j["regions"].contains(key)) continue;
+    for (const auto& v : j["regions"][key]) {
+      if (!v.is_number_integer() || v.get<int64_t>() < 0 ||
+          v.get<int64_t>() >= static_cast<int64_t>(t.regions.size())) {
+        return bad(absl::StrCat("regions.", key), absl::StrCat(v.dump(), " is not a vertex of the mesh"));
+      }
+      t.regions[v.get<size_t>()] = region;
+    }
+  }
+  return t;
+}
+
+}  // namespace
+
+absl::StatusOr<FaceTemplate> LoadFaceTemplate(const std::string& obj_path) {
+  auto mesh = ReadObj(obj_path);
+  if (!mesh.ok()) return mesh.status();
+  std::string json_path = obj_path;
+  if (json_path.size() > 4 && json_path.substr(json_path.size() - 4) == ".obj") json_path.resize(json_path.size() - 4);
+  json_path += ".json";
+  std::ifstream in(json_path);
+  if (!in) return absl::NotFoundError(absl::StrCat(json_path, ": cannot open the template's description"));
+  std::stringstream text;
+  text << in.rdbuf();
+  return FromParts(*std::move(mesh), text.str(), json_path);
+}
+
+absl::StatusOr<FaceTemplate> ShippedFaceTemplate() {
+  std::istringstream obj(kFaceTemplateObj);
+  auto mesh = ParseObj(obj, "(shipped) face-template.obj");
+  if (!mesh.ok()) return mesh.status();
+  return FromParts(*std::move(mesh), kFaceTemplateJson, "(shipped) face-template.json");
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,101 @@
+// The face template made from the shipped procedural head.
+#include "stage/sim/face_template.h"
+
+#include <array>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_cat.h"
+
+namespace stage::sim {
+namespace {
+
+constexpr float kPi = 3.14159265358979323846f;
+
+// The template's window in the head's skin layout: azimuth +-79 degrees (the ears, at +-93, left out: a fit gains
+// little there and multi-view stereo sees them edge on), elevation from 68 degrees below the head's centre (under the
+// chin) to 50 above (the forehead).
+constexpr float kULo = 0.28f, kUHi = 0.72f, kVLo = 0.12f, kVHi = 0.78f;
+
+TemplateRegion RegionAt(const Eigen::Vector2f& head_uv, const HeadLandmarks& landmarks) {
+  const float azimuth = (head_uv.x() - 0.5f) * 2 * kPi, elevation = (head_uv.y() - 0.5f) * kPi;
+  // The eyes' openings: where the lids close over the eyeballs (the blink's reach).
+  for (float side : {1.0f, -1.0f}) {
+    const float a = (azimuth - side * landmarks.eye_azimuth) / 0.13f,
+                e = (elevation - landmarks.eye_elevation) / 0.075f;
+    if (a * a + e * e < 1) return TemplateRegion::kEye;
+  }
+  // The mouth's opening: the lips' inner edges about the mouth line, which the jaw opens.
+  if (std::abs(azimuth) < 0.2f && std::abs(elevation - landmarks.mouth_elevation) < 0.03f) {
+    return TemplateRegion::kMouth;
+  }
+  return TemplateRegion::kSkin;
+}
+
+}  // namespace
+
+FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
+  const TriangleMesh& m = head.neutral();
+  auto inside = [](const Eigen::Vector2f& uv) {
+    return uv.x() >= kULo - 1e-6f && uv.x() <= kUHi + 1e-6f && uv.y() >= kVLo - 1e-6f && uv.y() <= kVHi + 1e-6f;
+  };
+  FaceTemplateData t;
+  t.u_lo = kULo;
+  t.u_hi = kUHi;
+  t.v_lo = kVLo;
+  t.v_hi = kVHi;
+  const HeadLandmarks landmarks = ProceduralHeadLandmarks();
+  std::vector<int32_t> index(m.positions.size(), -1);
+  for (size_t k = 0; k < m.triangles.size(); ++k) {
+    if (!m.parts.empty() && m.parts[k] != 0) continue;  // skin only: the eyeballs are not the template's
+    const auto& tri = m.triangles[k];
+    if (!inside(m.uvs[tri[0]]) || !inside(m.uvs[tri[1]]) || !inside(m.uvs[tri[2]])) continue;
+    std::array<int32_t, 3> out{};
+    for (int c = 0; c < 3; ++c) {
+      int32_t& i = index[static_cast<size_t>(tri[c])];
+      if (i < 0) {
+        i = static_cast<int32_t>(t.mesh.positions.size());
+        const Eigen::Vector2f& uv = m.uvs[tri[c]];
+        t.mesh.positions.push_back(m.positions[tri[c]]);
+        t.mesh.uvs.emplace_back((uv.x() - kULo) / (kUHi - kULo), (uv.y() - kVLo) / (kVHi - kVLo));
+        t.regions.push_back(RegionAt(uv, landmarks));
+        t.head_vertex.push_back(tri[c]);
+      }
+      out[c] = i;
+    }
+    t.mesh.triangles.push_back(out);
+  }
+  return t;
+}
+
+absl::Status WriteFaceTemplate(const FaceTemplateData& data, const std::string& dir) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  const std::string comment =
+      "FaStage face template: the shipped procedural head's face, neutral, head frame, mm (docs/assets.md)";
+  if (auto s = WriteObj(dir + "/face-template.obj", data.mesh, comment); !s.ok()) return s;
+  nlohmann::ordered_json j;
+  j["format"] = "fastage-face-template";
+  j["version"] = 1;
+  j["source"] = "the simulator's procedural head (identity 0), stage-sim --export-face-template";
+  j["mesh"] = "face-template.obj";
+  auto rounded = [](float x) { return std::round(static_cast<double>(x) * 1e6) / 1e6; };
+  j["head_layout_window"] = {{"u", {rounded(data.u_lo), rounded(data.u_hi)}},
+                             {"v", {rounded(data.v_lo), rounded(data.v_hi)}}};
+  std::vector<int> eyes, mouth;
+  for (size_t v = 0; v < data.regions.size(); ++v) {
+    if (data.regions[v] == TemplateRegion::kEye) eyes.push_back(static_cast<int>(v));
+    if (data.regions[v] == TemplateRegion::kMouth) mouth.push_back(static_cast<int>(v));
+  }
+  j["regions"] = {{"eyes", eyes}, {"mouth", mouth}};
+  const std::string path = dir + "/face-template.json";
+  std::ofstream out(path);
+  out << j.dump() << "\n";
+  if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
+  return absl::OkStatus();
+}
+
+}  // namespace stage::sim
