@@ -206,23 +206,34 @@ SurfaceDistance::SurfaceDistance(const TriangleMesh& mesh) : mesh_(mesh), index_
 SurfaceDistance::~SurfaceDistance() { delete index_; }
 
 float SurfaceDistance::Distance(const Eigen::Vector3f& p, int32_t* triangle) const {
+  if (index_->centres.empty()) {
+    if (triangle != nullptr) *triangle = -1;
+    return std::numeric_limits<float>::infinity();
+  }
+  return (Closest(p, triangle) - p).norm();
+}
+
+Eigen::Vector3f SurfaceDistance::Closest(const Eigen::Vector3f& p, int32_t* triangle) const {
   if (triangle != nullptr) *triangle = -1;
-  if (index_->centres.empty()) return std::numeric_limits<float>::infinity();
+  if (index_->centres.empty()) return p;
   constexpr size_t kCandidates = 16;
   uint32_t ids[kCandidates];
   float d2[kCandidates];
   const size_t found = index_->tree->knnSearch(p.data(), kCandidates, ids, d2);
   float best = std::numeric_limits<float>::infinity();
+  Eigen::Vector3f closest = p;
   for (size_t i = 0; i < found; ++i) {
     const auto& tri = mesh_.triangles[ids[i]];
-    const float d =
-        (ClosestOnTriangle(p, mesh_.positions[tri[0]], mesh_.positions[tri[1]], mesh_.positions[tri[2]]) - p).norm();
+    const Eigen::Vector3f q =
+        ClosestOnTriangle(p, mesh_.positions[tri[0]], mesh_.positions[tri[1]], mesh_.positions[tri[2]]);
+    const float d = (q - p).squaredNorm();
     if (d < best) {
       best = d;
+      closest = q;
       if (triangle != nullptr) *triangle = static_cast<int32_t>(ids[i]);
     }
   }
-  return best;
+  return closest;
 }
 
 const char* HeadRegionName(HeadRegion r) {

@@ -5,6 +5,8 @@
 
 #include <fstream>
 
+#include "stage/processing/template_fit.h"
+
 namespace stage::processing {
 namespace {
 
@@ -56,6 +58,31 @@ TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   EXPECT_EQ(good->regions[1], FaceRegion::kEye);
   EXPECT_EQ(good->regions[0], FaceRegion::kSkin);
   EXPECT_EQ(LoadFaceTemplate(dir + "/none.obj").status().code(), absl::StatusCode::kNotFound);
+}
+
+}  // namespace
+}  // namespace stage::processing
+
+namespace stage::processing {
+namespace {
+
+TEST(TemplateFitTest, OptionsOutOfRangeAndAnEmptySurfaceAreRefused) {
+  EXPECT_TRUE(TemplateFitOptions{}.Validate().ok());
+  EXPECT_FALSE((TemplateFitOptions{.stiffness = {10, 0}}.Validate().ok()));
+  EXPECT_FALSE(TemplateFitOptions{.iterations_per_stage = 0}.Validate().ok());
+  EXPECT_FALSE(TemplateFitOptions{.max_distance_mm = -1}.Validate().ok());
+  EXPECT_FALSE(TemplateFitOptions{.max_normal_angle_deg = 200}.Validate().ok());
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  const TemplateFit start = StartAt(*face, Eigen::Isometry3f::Identity());
+  auto empty = FitTemplate(*face, TriangleMesh{}, start);
+  EXPECT_THAT(std::string(empty.status().message()), HasSubstr("no triangles"));
+  // A surface a metre away: no vertex finds it.
+  TriangleMesh far;
+  far.positions = {{0, 0, 1000}, {1, 0, 1000}, {0, 1, 1000}};
+  far.triangles = {{{0, 1, 2}}};
+  auto none = FitTemplate(*face, far, start);
+  EXPECT_EQ(none.status().code(), absl::StatusCode::kNotFound) << none.status();
 }
 
 }  // namespace

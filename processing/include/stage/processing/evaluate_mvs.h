@@ -25,6 +25,8 @@ class SurfaceDistance {
   SurfaceDistance& operator=(const SurfaceDistance&) = delete;
   // The distance from `p` to the surface, mm, and the triangle it is nearest (-1: an empty mesh).
   float Distance(const Eigen::Vector3f& p, int32_t* triangle = nullptr) const;
+  // The point of the surface nearest `p` and its triangle (-1, and `p` itself: an empty mesh).
+  Eigen::Vector3f Closest(const Eigen::Vector3f& p, int32_t* triangle = nullptr) const;
 
  private:
   struct Index;

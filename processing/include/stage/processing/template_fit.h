@@ -1,0 +1,72 @@
+// The face template fitted to a frame's surface (docs/assets.md#the-fit): a rigid alignment (point-to-plane ICP)
+// from the previous frame's pose, then non-rigid ICP: every vertex drawn to the nearest point of the surface, held
+// to the template's shape by a membrane whose stiffness falls stage by stage (Eigen's sparse Cholesky; the same
+// matrix for x, y and z). The eyes' and the mouth's openings follow their neighbours (no data term there).
+// Evaluation against the simulator's truth maps every template vertex to the true surface through the head's UV
+// layout, so sliding along the surface is measured apart from distance to it.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "stage/common/mesh.h"
+#include "stage/processing/face_template.h"
+
+namespace stage::processing {
+
+struct TemplateFitOptions {
+  // Placement ICP iterations (point-to-plane, Gauss-Newton over rotation, translation and, with fit_scale, a uniform
+  // scale about the head's origin).
+  int rigid_iterations = 30;
+  bool fit_scale = true;
+  // Membrane stiffness of the non-rigid stages, from the first (stiff: the template's shape, placed) to the last
+  // (supple: the surface's detail); each is a weight against the data term's 1 per vertex.
+  std::vector<double> stiffness = {50, 15, 5, 1.5, 0.5};
+  // Correspondence updates per non-rigid stage.
+  int iterations_per_stage = 3;
+  // Correspondences further than this from the surface are left out, mm (the surface's holes and edges).
+  double max_distance_mm = 8;
+  // Correspondences whose surface normal turns further than this from the template's are left out, degrees.
+  double max_normal_angle_deg = 60;
+
+  absl::Status Validate() const;
+};
+
+struct TemplateFit {
+  // The template's vertices on the surface, stage frame, mm (the template's topology).
+  std::vector<Eigen::Vector3f> positions;
+  // The rigid part: the head frame to the stage's; and the template's scale about the head's origin (the performer's
+  // head against the template's).
+  Eigen::Isometry3f stage_from_head = Eigen::Isometry3f::Identity();
+  float scale = 1;
+  // Over the vertices with a correspondence at the end: their distance to the surface, RMS, mm; and their count.
+  double rms_mm = 0;
+  int64_t matched = 0;
+};
+
+// Fits `face` to `surface` (stage frame, mm), starting at `start` (the previous frame's fit; or the template at a
+// guessed pose: `StartAt`). Errors: options out of range, an empty surface, no vertex near the surface.
+absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const TriangleMesh& surface, const TemplateFit& start,
+                                        const TemplateFitOptions& options = {});
+
+// The template's neutral shape placed by `stage_from_head`: a first frame's start.
+TemplateFit StartAt(const FaceTemplate& face, const Eigen::Isometry3f& stage_from_head);
+
+// A fit against the simulator's truth: `truth` is the performer's posed mesh (stage frame) with the head's skin layout,
+// so template vertex i belongs at the truth's point at face.HeadLayoutUv(uv_i).
+struct FitError {
+  int64_t vertices = 0;
+  double rmse_mm = 0, p99_mm = 0;                  // distance to where the vertex belongs
+  double surface_rmse_mm = 0;                      // its part along the true surface's normal
+  double sliding_rmse_mm = 0, sliding_p99_mm = 0;  // its part along the surface
+};
+struct FitEvaluation {
+  FitError skin, eyes, mouth;
+};
+absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const TemplateFit& fit, const TriangleMesh& truth);
+
+}  // namespace stage::processing
