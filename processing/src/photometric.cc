@@ -737,7 +737,7 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
     if (!g->Covers(i)) continue;
     depth[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
   }
-  SpreadIntoGaps(w, h, /*channels=*/1, options.geometry_fill_px, &depth);
+  GrowIntoGaps(w, h, /*channels=*/1, options.geometry_fill_px, GapGrowth::kMean, &depth);
   std::vector<size_t> filled;
   for (size_t i = 0; i < pixels; ++i) {
     if (g->Covers(i) || depth[i] != depth[i]) continue;

@@ -49,7 +49,7 @@ absl::StatusOr<GeometryMap> MakeGeometryMap(const TriangleMesh& mesh, const Eige
     map.state[i] = texels[i].covered() ? TexelState::kCovered : TexelState::kEmpty;
     std::copy(map.points[i].data(), map.points[i].data() + 3, &flat[3 * i]);
   }
-  GrowLinearlyIntoGaps(options.size, options.size, /*channels=*/3, options.dilation_px, &flat);
+  GrowIntoGaps(options.size, options.size, /*channels=*/3, options.dilation_px, GapGrowth::kLinear, &flat);
   for (size_t i = 0; i < texels.size(); ++i) {
     if (map.state[i] != TexelState::kEmpty || flat[3 * i] != flat[3 * i]) continue;
     map.points[i] = Eigen::Map<const Eigen::Vector3f>(&flat[3 * i]);
