@@ -80,6 +80,26 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
     EXPECT_TRUE(c.count(path) && c.at(path) == bytes) << path << ": the worker's and the library's differ";
   }
 
+  // The face template fitted to the mesh on the stage's worker and by the batch command: the same bytes (the
+  // library's own run is in stage_fit_integration_test); the fit lies on the reconstruction.
+  CommandResult fit_worker = RunCommand(
+      {"stagectl", "--endpoints", endpoints, "process", id, "--stage", "fit", "--json"}, std::chrono::seconds(600));
+  ASSERT_EQ(fit_worker.exit.exit_code, 0) << fit_worker.err;
+  EXPECT_EQ(nlohmann::json::parse(fit_worker.out)["output_dir"], dir + "/derived/fit");
+  CommandResult fit_batch = RunCommand({"stage-process", "fit", "--take", dir, "--output", dir + "/derived/fit-batch"},
+                                       std::chrono::seconds(600));
+  ASSERT_EQ(fit_batch.exit.exit_code, 0) << fit_batch.err;
+  const auto fa = FilesUnder(dir + "/derived/fit"), fb = FilesUnder(dir + "/derived/fit-batch");
+  EXPECT_EQ(fa.size(), 5u);  // run.json; mesh, geometry map, pose, metrics
+  for (const auto& [path, bytes] : fa) {
+    EXPECT_TRUE(fb.count(path) && fb.at(path) == bytes) << path << ": the worker's and the batch's fits differ";
+  }
+  const nlohmann::json fit_metrics = nlohmann::json::parse(fa.at("frame-000000/metrics.json"));
+  std::printf("template fit on the MVS mesh: %d of %d vertices matched, %.3f mm rms to the surface\n",
+              fit_metrics["matched_vertices"].get<int>(), fit_metrics["template_vertices"].get<int>(),
+              fit_metrics["rms_to_surface_mm"].get<double>());
+  EXPECT_GT(fit_metrics["matched_vertices"].get<int>(), fit_metrics["template_vertices"].get<int>() / 2);
+
   // Against the truth. Bounds for render scale 0.125 (measured on the face, printed below: RMSE 1.07 mm, median
   // 0.43 mm, 81 % within 1 mm, 78 % covered); the figures at half and full resolution are in docs/geometry.md.
   processing::MvsEvaluateOptions eval;

@@ -4,11 +4,15 @@
 #include <Eigen/Sparse>
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <set>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/file_util.h"
 #include "stage/common/status.h"
 #include "stage/processing/evaluate_mvs.h"
 #include "stage/processing/uv_geometry.h"
@@ -308,6 +312,109 @@ absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const Templa
   out.eyes = summary(by_region[static_cast<int>(FaceRegion::kEye)]);
   out.mouth = summary(by_region[static_cast<int>(FaceRegion::kMouth)]);
   return out;
+}
+
+}  // namespace stage::processing
+
+namespace stage::processing {
+namespace {
+
+std::string FrameDir(const std::string& root, int64_t frame) { return absl::StrFormat("%s/frame-%06d", root, frame); }
+
+std::string PoseJson(const TemplateFit& fit, int64_t frame) {
+  nlohmann::ordered_json j;
+  j["frame"] = frame;
+  std::vector<float> m(16);
+  for (int r = 0; r < 4; ++r) {
+    for (int c = 0; c < 4; ++c) m[static_cast<size_t>(4 * r + c)] = fit.stage_from_head.matrix()(r, c);
+  }
+  j["stage_from_head"] = m;  // row-major 4 x 4, mm
+  j["scale"] = fit.scale;
+  return j.dump(2) + "\n";
+}
+
+}  // namespace
+
+absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(const JobProgress&)>& progress,
+                                 const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.options.Validate());
+  STAGE_RETURN_IF_ERROR(job.map.Validate());
+  STAGE_RETURN_IF_ERROR(job.surface.Validate());
+  if (!job.surface.has_mesh()) return absl::InvalidArgumentError("fit: the template is fitted to surfaces: not none");
+  auto face = job.template_obj.empty() ? ShippedFaceTemplate() : LoadFaceTemplate(job.template_obj);
+  if (!face.ok()) return face.status();
+  const std::string rel = job.surface.source == GeometrySource::kMvs ? "derived/mvs" : job.surface.dir;
+  const std::string surfaces = std::filesystem::path(rel).is_absolute() ? rel : job.take_dir + "/" + rel;
+  if (!std::filesystem::is_directory(surfaces)) {
+    return absl::NotFoundError(absl::StrCat(surfaces, ": no surfaces to fit (run the mvs stage first)"));
+  }
+  int64_t last = job.last_frame;
+  if (last < 0) {
+    last = job.first_frame;
+    while (std::filesystem::exists(FrameDir(surfaces, last) + "/mesh.obj")) ++last;
+  }
+  if (job.first_frame < 0 || last <= job.first_frame) {
+    return absl::InvalidArgumentError(absl::StrCat(surfaces, ": no frames [", job.first_frame, ", ", last, ")"));
+  }
+  JobResult result;
+  result.output_dir = job.output_dir.empty() ? job.take_dir + "/derived/fit" : job.output_dir;
+  JobProgress p{0, last - job.first_frame, absl::StrCat("template fit: ", last - job.first_frame, " frame(s)")};
+  if (progress) progress(p);
+  TemplateFit previous = StartAt(*face, Eigen::Isometry3f::Identity());
+  for (int64_t frame = job.first_frame; frame < last; ++frame) {
+    if (cancelled && cancelled()) {
+      return absl::CancelledError(
+          absl::StrCat("template fit on ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
+    }
+    auto surface = ReadObj(FrameDir(surfaces, frame) + "/mesh.obj");
+    if (!surface.ok()) return surface.status();
+    auto fit = FitTemplate(*face, *surface, previous, job.options);
+    if (!fit.ok()) {
+      return absl::Status(fit.status().code(),
+                          absl::StrCat(job.take_dir, ": frame ", frame, ": ", fit.status().message()));
+    }
+    TriangleMesh mesh = face->mesh;
+    mesh.positions = fit->positions;
+    auto map = MakeGeometryMap(mesh, fit->stage_from_head.inverse(), job.map);
+    if (!map.ok()) return map.status();
+    const std::string dir = FrameDir(result.output_dir, frame);
+    std::error_code ec;
+    std::filesystem::create_directories(dir, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+    STAGE_RETURN_IF_ERROR(
+        WriteObj(dir + "/mesh.obj", mesh, "FaStage face template fitted: stage frame, mm (docs/assets.md)"));
+    STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", *map));
+    STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/pose.json", PoseJson(*fit, frame)));
+    nlohmann::ordered_json metrics;
+    metrics["frame"] = frame;
+    metrics["surface"] = rel + absl::StrFormat("/frame-%06d/mesh.obj", frame);
+    metrics["matched_vertices"] = fit->matched;
+    metrics["template_vertices"] = face->mesh.positions.size();
+    metrics["rms_to_surface_mm"] = fit->rms_mm;
+    metrics["geometry_map_covered"] = map->Count(TexelState::kCovered);
+    STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/metrics.json", metrics.dump(2) + "\n"));
+    previous = *std::move(fit);
+    ++result.units;
+    p.done = result.units;
+    p.message = absl::StrFormat("frame %d: %d of %d vertices on the surface, %.3f mm rms", frame, previous.matched,
+                                face->mesh.positions.size(), previous.rms_mm);
+    if (progress) progress(p);
+  }
+  nlohmann::ordered_json run;
+  run["stage"] = "fit";
+  run["take"] = std::filesystem::path(job.take_dir).filename().string();
+  run["frames"] = {job.first_frame, last};
+  run["surface"] = job.surface.ToString();
+  run["template"] = job.template_obj.empty() ? "shipped (processing/data/face-template.obj)" : job.template_obj;
+  run["geometry_map"] = {{"size", job.map.size}, {"dilation_px", job.map.dilation_px}};
+  run["options"] = {{"rigid_iterations", job.options.rigid_iterations},
+                    {"fit_scale", job.options.fit_scale},
+                    {"stiffness", job.options.stiffness},
+                    {"iterations_per_stage", job.options.iterations_per_stage},
+                    {"max_distance_mm", job.options.max_distance_mm},
+                    {"max_normal_angle_deg", job.options.max_normal_angle_deg}};
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"));
+  return result;
 }
 
 }  // namespace stage::processing

@@ -10,6 +10,7 @@
 #include "stage/processing/calibrate.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
+#include "stage/processing/template_fit.h"
 
 namespace stage::processing {
 
@@ -45,10 +46,10 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
 grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
-      job->stage() != v1::PROCESSING_STAGE_MVS) {
+      job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": no stage ",
                                                                 v1::ProcessingStage_Name(job->stage()),
-                                                                " (stages: photometric, calibration, mvs)")));
+                                                                " (stages: photometric, calibration, mvs, fit)")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -76,6 +77,9 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     case v1::PROCESSING_STAGE_MVS:
       result = RunMvsJob(*job, report, cancelled);
       break;
+    case v1::PROCESSING_STAGE_FIT:
+      result = RunFitJob(*job, report, cancelled);
+      break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);
   }
@@ -94,6 +98,31 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   return grpc::Status::OK;
 }
 
+namespace {
+
+// Where a job's surfaces come from (photometric stereo's geometry, the fit's surfaces).
+absl::StatusOr<GeometrySpec> GeometryOf(const v1::ProcessingJob& job) {
+  GeometrySpec spec;
+  switch (job.geometry_source()) {
+    case v1::GEOMETRY_SOURCE_UNSPECIFIED:
+    case v1::GEOMETRY_SOURCE_MVS:
+      spec.source = GeometrySource::kMvs;
+      break;
+    case v1::GEOMETRY_SOURCE_NONE:
+      spec.source = GeometrySource::kNone;
+      break;
+    case v1::GEOMETRY_SOURCE_DIRECTORY:
+      spec.source = GeometrySource::kDirectory;
+      break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat("geometry_source: unknown value ", job.geometry_source()));
+  }
+  spec.dir = job.geometry();
+  return spec;
+}
+
+}  // namespace
+
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
     const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
     const std::function<bool()>& cancelled) const {
@@ -102,21 +131,9 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
   p.first_frame = job.first_frame();
   p.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
   p.cameras.assign(job.cameras().begin(), job.cameras().end());
-  switch (job.geometry_source()) {
-    case v1::GEOMETRY_SOURCE_UNSPECIFIED:
-    case v1::GEOMETRY_SOURCE_MVS:
-      p.geometry.source = GeometrySource::kMvs;
-      break;
-    case v1::GEOMETRY_SOURCE_NONE:
-      p.geometry.source = GeometrySource::kNone;
-      break;
-    case v1::GEOMETRY_SOURCE_DIRECTORY:
-      p.geometry.source = GeometrySource::kDirectory;
-      break;
-    default:
-      return absl::InvalidArgumentError(absl::StrCat("geometry_source: unknown value ", job.geometry_source()));
-  }
-  p.geometry.dir = job.geometry();
+  auto geometry = GeometryOf(job);
+  if (!geometry.ok()) return geometry.status();
+  p.geometry = *geometry;
   p.calibration = job.calibration();
   p.options.threads = static_cast<int>(threads_);
   auto result = RunPhotometric(p, progress, cancelled);
@@ -159,6 +176,25 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunMvsJob(const v1::Proces
   if (!result.ok()) return result.status();
   return Finished(result->units, result->output_dir,
                   absl::StrCat(result->units, " frame(s) reconstructed into ", result->output_dir));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunFitJob(const v1::ProcessingJob& job,
+                                                                const std::function<void(const JobProgress&)>& progress,
+                                                                const std::function<bool()>& cancelled) const {
+  if (job.cameras_size() > 0 || !job.calibration().empty()) {
+    return absl::InvalidArgumentError("the template fit takes no cameras and no calibration: it fits surfaces");
+  }
+  FitJob f;
+  f.take_dir = job.take_dir();
+  f.first_frame = job.first_frame();
+  f.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  auto surface = GeometryOf(job);
+  if (!surface.ok()) return surface.status();
+  f.surface = *surface;
+  auto result = RunFit(f, progress, cancelled);
+  if (!result.ok()) return result.status();
+  return Finished(result->units, result->output_dir,
+                  absl::StrCat(result->units, " frame(s) fitted into ", result->output_dir));
 }
 
 }  // namespace stage::processing

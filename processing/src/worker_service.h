@@ -21,8 +21,9 @@ class WorkerService final : public v1::ProcessingWorker::Service {
   grpc::Status GetInfo(grpc::ServerContext*, const v1::GetInfoRequest*, v1::NodeInfo* response) override;
   grpc::Status GetWorkerStatus(grpc::ServerContext*, const v1::GetWorkerStatusRequest*,
                                v1::WorkerStatus* response) override;
-  // Stages: "photometric". Errors: InvalidArgument for a bad job (unknown stage, no take directory), and the stage's
-  // own error (naming the frame, camera or file) otherwise.
+  // Stages: photometric stereo (the default), calibration, multi-view stereo, the template fit. Errors: InvalidArgument
+  // for a bad job (unknown stage, no take directory), and the stage's own error (naming the frame, camera or file)
+  // otherwise.
   grpc::Status Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                        grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
@@ -35,8 +36,11 @@ class WorkerService final : public v1::ProcessingWorker::Service {
                                                            const std::function<void(const JobProgress&)>& progress,
                                                            const std::function<bool()>& cancelled) const;
   absl::StatusOr<v1::ProcessingProgress> RunMvsJob(const v1::ProcessingJob& job,
-                                                           const std::function<void(const JobProgress&)>& progress,
-                                                           const std::function<bool()>& cancelled) const;
+                                                   const std::function<void(const JobProgress&)>& progress,
+                                                   const std::function<bool()>& cancelled) const;
+  absl::StatusOr<v1::ProcessingProgress> RunFitJob(const v1::ProcessingJob& job,
+                                                   const std::function<void(const JobProgress&)>& progress,
+                                                   const std::function<bool()>& cancelled) const;
   std::string id_;
   std::string rig_hash_;
   uint32_t threads_;

@@ -13,6 +13,7 @@
 #include "stage/processing/evaluate_mvs.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
+#include "stage/processing/template_fit.h"
 
 namespace {
 
@@ -115,6 +116,60 @@ struct MvsCommand {
   }
 };
 
+// `stage-process fit`: its options, and the run.
+struct FitCommand {
+  stage::processing::FitJob job;
+  std::string frames = "0:", surface = "mvs";
+  bool json = false;
+  CLI::App* app = nullptr;
+
+  void Add(CLI::App& parent) {
+    app = parent.add_subcommand(
+        "fit",
+        "The face template fitted to every frame's surface, tracked through the take (docs/assets.md): "
+        "TAKE/derived/fit/frame-NNNNNN/mesh.obj (the template's topology and UVs, stage frame, mm), "
+        "geometry_map.exr (head frame), pose.json, metrics.json");
+    app->add_option("--take", job.take_dir, "The take directory (takes/<take-id>)")->required();
+    app->add_option("--frames", frames, "Virtual frames A:B (B excluded), A: to the last surface, or A")
+        ->capture_default_str();
+    app->add_option("--surface", surface,
+                    "The surfaces: mvs (multi-view stereo's meshes, TAKE/derived/mvs) or a directory of "
+                    "frame-NNNNNN/mesh.obj relative to the take or absolute (ground_truth on a simulated take)")
+        ->capture_default_str();
+    app->add_option("--template", job.template_obj,
+                    "The face template, FILE.obj with FILE.json beside it (default: the shipped one)");
+    app->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/fit)");
+    app->add_option("--map-size", job.map.size, "Texels across the geometry map")
+        ->capture_default_str()
+        ->check(CLI::Range(16, 8192));
+    app->add_option("--map-dilation", job.map.dilation_px, "Rings of texels grown past the layout's edges")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 64));
+    app->add_option("--max-distance-mm", job.options.max_distance_mm,
+                    "Correspondences further than this from the surface are left out, mm")
+        ->capture_default_str()
+        ->check(CLI::PositiveNumber);
+    app->add_flag("--json", json, "Print the result as JSON on stdout");
+  }
+
+  int Run() {
+    if (auto s = stage::ParseFrameRange("--frames", frames, &job.first_frame, &job.last_frame); !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    job.surface = stage::processing::GeometrySpec::Parse(surface);
+    stage::ProgressLine bar("frames");
+    auto result = stage::processing::RunFit(job, ShowOn(bar));
+    bar.Finish();
+    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    if (json) {
+      std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->units}}.dump() << "\n";
+    } else {
+      std::cout << result->units << " frame(s) fitted into " << result->output_dir << "\n";
+    }
+    return 0;
+  }
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -177,6 +232,8 @@ int main(int argc, char** argv) {
 
   MvsCommand mvs;
   mvs.Add(app);
+  FitCommand fit;
+  fit.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -280,6 +337,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   if (*mvs.app) return mvs.Run();
+  if (*fit.app) return fit.Run();
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {

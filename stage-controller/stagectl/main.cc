@@ -678,7 +678,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
     return stage::ReportFatal(
         kProgram, absl::InvalidArgumentError(
-                      absl::StrCat("--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs)")));
+                      absl::StrCat("--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit)")));
   }
   request.set_stage(kind);
   int64_t first = 0, last = -1;
@@ -702,8 +702,9 @@ int Process(const Connection& c, const ProcessFlags& f) {
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
   stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
-                          : kind == stage::v1::PROCESSING_STAGE_MVS       ? "frames"
-                                                                          : "camera frames");
+                          : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT
+                              ? "frames"
+                              : "camera frames");
   while (reader->Read(&progress)) {
     if (progress.finished()) {
       last_message = progress;
@@ -1011,16 +1012,20 @@ int main(int argc, char** argv) {
                          "Run a processing stage over a take on one of the stage's processing workers (results in "
                          "TAKE/derived/STAGE/), with progress");
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
-  process->add_option("--stage", pf.stage, "The stage: photometric, calibration or mvs")->capture_default_str();
+  process
+      ->add_option("--stage", pf.stage,
+                   "The stage: photometric, calibration, mvs or fit (the face template on multi-view stereo's "
+                   "meshes, or on --geometry's)")
+      ->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
   process->add_option("--cameras", pf.cameras,
                       "Camera ids, comma-separated (default: the stage's; photometric: every high-speed camera, "
                       "calibration: every camera)");
   process->add_option("--geometry", pf.geometry,
-                      "Photometric stereo's surface geometry: mvs (multi-view stereo's meshes: process --stage mvs "
-                      "first; the default), none, or a directory of frame-NNNNNN/mesh.obj relative to the take "
-                      "(ground_truth on the simulated stage: the truth's)");
+                      "Photometric stereo's surface geometry, or the surfaces --stage fit fits: mvs (multi-view "
+                      "stereo's meshes: process --stage mvs first; the default), none, or a directory of "
+                      "frame-NNNNNN/mesh.obj relative to the take (ground_truth on the simulated stage: the truth's)");
   process->add_option("--calibration", pf.calibration,
                       "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");

@@ -9,12 +9,16 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <functional>
+#include <string>
 #include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "stage/common/mesh.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/photometric_stage.h"
+#include "stage/processing/uv_geometry.h"
 
 namespace stage::processing {
 
@@ -68,5 +72,29 @@ struct FitEvaluation {
   FitError skin, eyes, mouth;
 };
 absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const TemplateFit& fit, const TriangleMesh& truth);
+
+// The fit as a stage of the pipeline: over a take's frames, the template tracked through the surfaces (each frame's
+// fit starting from the one before; the first from the head at the stage's origin, facing +z), written to
+// <take>/derived/fit/frame-NNNNNN/: mesh.obj (the template's topology and UVs, stage frame, mm), geometry_map.exr
+// (uv_geometry.h, head frame), pose.json (the head frame to the stage's, and the scale), metrics.json; run.json at
+// the root.
+struct FitJob {
+  std::string take_dir;
+  // Frames [first_frame, last_frame); last_frame < 0: up to the last one the surfaces hold without a gap.
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  // The surfaces: multi-view stereo's meshes (the default), or a directory of frame-NNNNNN/mesh.obj (ground_truth on
+  // a simulated take). kNone is refused.
+  GeometrySpec surface;
+  // The template: FILE.obj with FILE.json beside it; empty: the shipped one.
+  std::string template_obj;
+  // Where the results go; empty: <take_dir>/derived/fit.
+  std::string output_dir;
+  GeometryMapOptions map;
+  TemplateFitOptions options;
+};
+
+absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(const JobProgress&)>& progress = {},
+                                 const std::function<bool()>& cancelled = {});
 
 }  // namespace stage::processing
