@@ -49,6 +49,30 @@ absl::StatusOr<FaceTemplate> FromParts(TriangleMesh mesh, const std::string& jso
       t.regions[v.get<size_t>()] = region;
     }
   }
+  t.jaw_weight.assign(t.mesh.positions.size(), 0.0f);
+  if (j.contains("jaw")) {
+    try {
+      const auto& jaw = j.at("jaw");
+      const auto& h = jaw.at("hinge_mm");
+      const auto& a = jaw.at("axis");
+      t.jaw_hinge = {h.at(0).get<float>(), h.at(1).get<float>(), h.at(2).get<float>()};
+      t.jaw_axis = Eigen::Vector3f(a.at(0).get<float>(), a.at(1).get<float>(), a.at(2).get<float>()).normalized();
+      const auto& vertices = jaw.at("vertices");
+      const auto& weights = jaw.at("weights");
+      if (vertices.size() != weights.size()) return bad("jaw", "vertices and weights differ in count");
+      for (size_t k = 0; k < vertices.size(); ++k) {
+        const int64_t v = vertices[k].get<int64_t>();
+        const float w = weights[k].get<float>();
+        if (v < 0 || v >= static_cast<int64_t>(t.jaw_weight.size())) {
+          return bad("jaw.vertices", absl::StrCat(v, " is not a vertex of the mesh"));
+        }
+        if (!(w >= 0 && w <= 1)) return bad("jaw.weights", absl::StrCat(w, " is not in [0, 1]"));
+        t.jaw_weight[static_cast<size_t>(v)] = w;
+      }
+    } catch (const nlohmann::json::exception& e) {
+      return bad("jaw", e.what());
+    }
+  }
   return t;
 }
 

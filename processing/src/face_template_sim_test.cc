@@ -22,8 +22,11 @@ TEST(FaceTemplateSimTest, TheShippedTemplateIsTheSimulatorsHeadsFace) {
     ASSERT_LT((shipped->mesh.positions[v] - made.mesh.positions[v]).norm(), 1e-3) << v;  // OBJ keeps 0.1 um
     ASSERT_LT((shipped->mesh.uvs[v] - made.mesh.uvs[v]).norm(), 1e-5) << v;
     ASSERT_EQ(static_cast<int>(shipped->regions[v]), static_cast<int>(made.regions[v])) << v;
+    ASSERT_NEAR(shipped->jaw_weight[v], made.jaw_weight[v], 1e-4) << v;
   }
   EXPECT_FLOAT_EQ(shipped->head_layout_lo.x(), made.u_lo);
+  EXPECT_EQ(shipped->jaw_hinge, made.jaw_hinge_mm);
+  EXPECT_EQ(shipped->jaw_axis, made.jaw_axis);
   EXPECT_FLOAT_EQ(shipped->head_layout_hi.y(), made.v_hi);
   // The face: ~9,500 vertices; the eyes' and the mouth's openings marked.
   EXPECT_GT(made.mesh.positions.size(), 9000u);

@@ -32,6 +32,15 @@ TEST(FaceTemplateTest, TheShippedTemplateIsAFaceWithItsRegions) {
   }
   EXPECT_NEAR(t->HeadLayoutUv({0, 0}).x(), 0.28f, 1e-6);
   EXPECT_NEAR(t->HeadLayoutUv({1, 1}).y(), 0.78f, 1e-6);
+  // The jaw: the lower face follows it, the forehead not.
+  int jaw = 0;
+  for (size_t v = 0; v < t->jaw_weight.size(); ++v) {
+    if (t->jaw_weight[v] > 0.99f) {
+      ++jaw;
+      EXPECT_LT(t->mesh.positions[v].y(), -40) << v;
+    }
+  }
+  EXPECT_GT(jaw, 300);
 }
 
 TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
@@ -49,6 +58,10 @@ TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0]}})");
   auto window = LoadFaceTemplate(dir + "/t.obj");
   EXPECT_THAT(std::string(window.status().message()), HasSubstr("head_layout_window"));
+  write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
+                 "jaw": {"hinge_mm": [0, -20, -30], "axis": [1, 0, 0], "vertices": [0, 2], "weights": [1, 1.5]}})");
+  EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()),
+              HasSubstr("t.json: jaw.weights: 1.5 is not in [0, 1]"));
   write_json(R"({"format": "something else"})");
   EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()), HasSubstr("format"));
   write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
@@ -57,6 +70,7 @@ TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   ASSERT_TRUE(good.ok()) << good.status();
   EXPECT_EQ(good->regions[1], FaceRegion::kEye);
   EXPECT_EQ(good->regions[0], FaceRegion::kSkin);
+  EXPECT_EQ(good->jaw_weight, std::vector<float>(3, 0.0f));  // no jaw: the fit turns none
   EXPECT_EQ(LoadFaceTemplate(dir + "/none.obj").status().code(), absl::StatusCode::kNotFound);
 }
 

@@ -77,30 +77,47 @@ Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::
   return c;
 }
 
-// One Gauss-Newton step of point-to-plane ICP over a rigid motion and, with `fit_scale`, a uniform scale about the
-// head's origin (a performer's head is not the template's size): the small motion (rotation w, translation t,
-// applied on the left after the scale 1 + s) that best moves the matched vertices onto their tangent planes. A scale
-// per axis was tried: it takes up the features' heights too (a smaller nose as a flatter head) and turned every
-// vertex's direction from the head's centre, sliding the fit 8.4 mm against 5.1 (docs/assets.md).
+// One Gauss-Newton step of point-to-plane ICP over a rigid motion, a uniform scale about the head's origin (with
+// `fit_scale`: a performer's head is not the template's size) and the jaw's turn about its hinge (the template's jaw
+// weights; the jaw moves the lower face along the surface, where a nearest-point term alone would leave it): the
+// small motion that best moves the matched vertices onto their tangent planes. A scale per axis was tried: it takes
+// up the features' heights too (a smaller nose as a flatter head) and turned every vertex's direction from the head's
+// centre, sliding the fit 8.4 mm against 5.1 (docs/assets.md).
+struct Placement {
+  Eigen::Vector3f origin, hinge, axis;  // stage frame: the head's origin, the jaw's hinge and axis
+  const std::vector<float>* jaw_weight;
+};
 struct PlacementStep {
   Eigen::Isometry3f rigid = Eigen::Isometry3f::Identity();
-  float scale = 1;
+  float scale = 1, jaw_rad = 0;
+
+  // `p` (vertex `i`) moved by the step: the jaw's turn, the scale, then the rigid motion.
+  Eigen::Vector3f Apply(const Placement& at, size_t i, const Eigen::Vector3f& p) const {
+    const float w = (*at.jaw_weight)[i];
+    const Eigen::Vector3f jawed =
+        w > 0 ? Eigen::Vector3f(at.hinge + Eigen::AngleAxisf(w * jaw_rad, at.axis) * (p - at.hinge)) : p;
+    return rigid * (at.origin + scale * (jawed - at.origin));
+  }
 };
 PlacementStep PlacementGaussNewton(const std::vector<Eigen::Vector3f>& positions, const Correspondences& c,
-                                   const Eigen::Vector3f& head_origin, bool fit_scale) {
-  constexpr int kN = 7;
+                                   const Placement& at, bool fit_scale) {
+  constexpr int kN = 8;
   Eigen::Matrix<double, kN, kN> ata = Eigen::Matrix<double, kN, kN>::Zero();
   Eigen::Matrix<double, kN, 1> atb = Eigen::Matrix<double, kN, 1>::Zero();
-  const Eigen::Vector3d origin = head_origin.cast<double>();
+  const Eigen::Vector3d origin = at.origin.cast<double>(), hinge = at.hinge.cast<double>(),
+                        axis = at.axis.cast<double>();
   for (size_t i = 0; i < positions.size(); ++i) {
     if (!c.valid[i]) continue;
     const Eigen::Vector3d p = positions[i].cast<double>(), n = c.normals[i].cast<double>();
+    const double w = (*at.jaw_weight)[i];
     Eigen::Matrix<double, kN, 1> a;
-    a << p.cross(n), n, fit_scale ? n.dot(p - origin) : 0.0;
+    a << p.cross(n), n, fit_scale ? n.dot(p - origin) : 0.0, w * n.dot(axis.cross(p - hinge));
     ata += a * a.transpose();
     atb += a * n.dot(c.points[i].cast<double>() - p);
   }
-  if (!fit_scale) ata(6, 6) = 1;
+  for (int k : {6, 7}) {
+    if (ata(k, k) < 1e-9) ata(k, k) = 1;  // a term the data does not see (no scale asked for, no jaw in the template)
+  }
   const Eigen::Matrix<double, kN, 1> x = ata.ldlt().solve(atb);
   PlacementStep step;
   const Eigen::Vector3d w = x.head<3>();
@@ -109,7 +126,22 @@ PlacementStep PlacementGaussNewton(const std::vector<Eigen::Vector3f>& positions
   rigid.translation() = x.segment<3>(3);
   step.rigid = rigid.cast<float>();
   step.scale = static_cast<float>(1 + x(6));
+  step.jaw_rad = static_cast<float>(x(7));
   return step;
+}
+
+// The template's vertices with the jaw turned by `jaw_rad`, scaled about the head's origin (head frame).
+std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, float scale, float jaw_rad) {
+  std::vector<Eigen::Vector3f> out(face.mesh.positions.size());
+  for (size_t i = 0; i < out.size(); ++i) {
+    const Eigen::Vector3f& t = face.mesh.positions[i];
+    const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
+    out[i] =
+        scale *
+        (w > 0 ? Eigen::Vector3f(face.jaw_hinge + Eigen::AngleAxisf(w * jaw_rad, face.jaw_axis) * (t - face.jaw_hinge))
+               : t);
+  }
+  return out;
 }
 
 // The rigid motion that best takes `from` onto `to` over the vertices `use` marks (Kabsch).
@@ -229,22 +261,26 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
   for (size_t i = 0; i < skin.size(); ++i) skin[i] = face.regions[i] == FaceRegion::kSkin ? 1 : 0;
 
   TemplateFit fit = start;
+  const std::vector<float> no_jaw(face.mesh.positions.size(), 0.0f);
   for (int it = 0; it < options.rigid_iterations; ++it) {
     const Correspondences c = Match(fit.positions, skin, face, nearest, surface_normals, options);
     if (c.count < 9) break;
-    const Eigen::Vector3f origin = fit.stage_from_head.translation();
-    const PlacementStep step = PlacementGaussNewton(fit.positions, c, origin, options.fit_scale);
-    for (auto& p : fit.positions) p = step.rigid * (origin + step.scale * (p - origin));
+    const Placement at{fit.stage_from_head.translation(), fit.stage_from_head * (fit.scale * face.jaw_hinge),
+                       fit.stage_from_head.linear() * face.jaw_axis,
+                       face.jaw_weight.empty() ? &no_jaw : &face.jaw_weight};
+    const PlacementStep step = PlacementGaussNewton(fit.positions, c, at, options.fit_scale);
+    for (size_t i = 0; i < fit.positions.size(); ++i) fit.positions[i] = step.Apply(at, i, fit.positions[i]);
     fit.stage_from_head = step.rigid * fit.stage_from_head;
     fit.scale *= step.scale;
+    fit.jaw_rad += step.jaw_rad;
     if (step.rigid.translation().norm() < 1e-4f && Eigen::AngleAxisf(step.rigid.linear()).angle() < 1e-6f &&
-        std::abs(step.scale - 1) < 1e-6f) {
+        std::abs(step.scale - 1) < 1e-6f && std::abs(step.jaw_rad) < 1e-6f) {
       break;
     }
   }
-  // The template as the placement scaled it: the membrane's rest shape, and the shape the pose is fitted to.
-  std::vector<Eigen::Vector3f> scaled(face.mesh.positions.size());
-  for (size_t i = 0; i < scaled.size(); ++i) scaled[i] = fit.scale * face.mesh.positions[i];
+  // The template as the placement shaped it (scale, jaw): the membrane's rest shape, and the shape the pose is fitted
+  // to.
+  const std::vector<Eigen::Vector3f> scaled = Shaped(face, fit.scale, fit.jaw_rad);
   const Eigen::SparseMatrix<double> laplacian = Laplacian(face.mesh);
   for (double alpha : options.stiffness) {
     std::vector<Eigen::Vector3f> rest(face.mesh.positions.size());
@@ -330,6 +366,7 @@ std::string PoseJson(const TemplateFit& fit, int64_t frame) {
   }
   j["stage_from_head"] = m;  // row-major 4 x 4, mm
   j["scale"] = fit.scale;
+  j["jaw_deg"] = fit.jaw_rad * 180 / kPi;
   return j.dump(2) + "\n";
 }
 

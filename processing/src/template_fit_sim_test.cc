@@ -31,10 +31,10 @@ Worst TrackPerformer(const FaceTemplate& face, uint64_t identity) {
     if (!e.ok()) return worst;
     std::printf(
         "identity %llu, t %.1f s: skin rmse %.3f p99 %.3f mm (along the normal %.3f, sliding %.3f, p99 "
-        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f\n",
+        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f, jaw %.1f deg\n",
         static_cast<unsigned long long>(identity), t, e->skin.rmse_mm, e->skin.p99_mm, e->skin.surface_rmse_mm,
         e->skin.sliding_rmse_mm, e->skin.sliding_p99_mm, e->eyes.rmse_mm, e->mouth.rmse_mm,
-        static_cast<long long>(fit->matched), fit->rms_mm, fit->scale);
+        static_cast<long long>(fit->matched), fit->rms_mm, fit->scale, fit->jaw_rad * 180 / 3.14159265358979);
     EXPECT_GT(fit->matched, static_cast<int64_t>(face.mesh.positions.size() * 9 / 10));
     worst.surface = std::max(worst.surface, e->skin.surface_rmse_mm);
     worst.rmse = std::max(worst.rmse, e->skin.rmse_mm);
@@ -52,14 +52,17 @@ Worst TrackPerformer(const FaceTemplate& face, uint64_t identity) {
 TEST(TemplateFitSimTest, TheFitLiesOnAPerformersSurfaceThroughThePerformance) {
   auto face = ShippedFaceTemplate();
   ASSERT_TRUE(face.ok()) << face.status();
-  // The shipped head (the template's own) and two other performers. Measured: the template's vertices within 0.2 mm
-  // of the true surface (RMS over the skin, worst frame) and 1.2 mm along its normal from where they belong; but they
-  // slide along it by 1 to 8 mm (the goal: 1 mm), most in the frames where the head turns fastest: nothing
-  // yet holds a vertex to its skin point but the surface's shape (no landmarks, no texture).
-  for (uint64_t identity : {0, 5, 7}) {
+  // The shipped head (the template's own) and two other performers. Measured (worst frame): the template's
+  // vertices 0.11-0.14 mm from the true surface (RMS over the skin) and 0.13-0.24 mm along its normal from where they
+  // belong; along the surface they slide 1.8 mm on the template's own head (the jaw opening) and 4-5 mm on the
+  // others (their proportions: nothing yet holds a vertex to its skin point but the surface's shape; the issue's
+  // goal is 1 mm). Before the jaw's turn was fitted: 5.2, 8.3 and 7.2 mm.
+  const std::vector<std::pair<uint64_t, double>> sliding_bounds = {{0, 2.5}, {5, 6.0}, {7, 5.0}};
+  for (const auto& [identity, sliding] : sliding_bounds) {
     const Worst w = TrackPerformer(*face, identity);
-    EXPECT_LT(w.matched_rms, 0.25) << identity;
-    EXPECT_LT(w.surface, 1.5) << identity;
+    EXPECT_LT(w.matched_rms, 0.2) << identity;
+    EXPECT_LT(w.surface, 0.35) << identity;
+    EXPECT_LT(w.sliding, sliding) << identity;
   }
 }
 

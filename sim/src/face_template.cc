@@ -1,6 +1,7 @@
 // The face template made from the shipped procedural head.
 #include "stage/sim/face_template.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <filesystem>
@@ -34,6 +35,18 @@ TemplateRegion RegionAt(const Eigen::Vector2f& head_uv, const HeadLandmarks& lan
   return TemplateRegion::kSkin;
 }
 
+// How far the skin at `head_uv` follows the jaw: the face below the mouth line (fully from 0.08 rad below it), across
+// the chin and the jaw's front (fully within 0.5 rad of the midline, none beyond 1.1 rad). An anatomical guess of the
+// template's own, not the simulator's blendshape.
+float JawWeight(const Eigen::Vector2f& head_uv, const HeadLandmarks& landmarks) {
+  const float azimuth = (head_uv.x() - 0.5f) * 2 * kPi, elevation = (head_uv.y() - 0.5f) * kPi;
+  auto ramp = [](float e0, float e1, float x) { return std::clamp((x - e0) / (e1 - e0), 0.0f, 1.0f); };
+  const float below = ramp(landmarks.mouth_elevation + 0.01f, landmarks.mouth_elevation - 0.08f, elevation);
+  const float front = ramp(1.1f, 0.5f, std::abs(azimuth));
+  const float w = below * front;
+  return w * w * (3 - 2 * w);  // smoothstep
+}
+
 }  // namespace
 
 FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
@@ -47,6 +60,8 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
   t.v_lo = kVLo;
   t.v_hi = kVHi;
   const HeadLandmarks landmarks = ProceduralHeadLandmarks();
+  t.jaw_hinge_mm = landmarks.jaw_hinge_mm;
+  t.jaw_axis = landmarks.jaw_axis;
   std::vector<int32_t> index(m.positions.size(), -1);
   for (size_t k = 0; k < m.triangles.size(); ++k) {
     if (!m.parts.empty() && m.parts[k] != 0) continue;  // skin only: the eyeballs are not the template's
@@ -61,6 +76,7 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
         t.mesh.positions.push_back(m.positions[tri[c]]);
         t.mesh.uvs.emplace_back((uv.x() - kULo) / (kUHi - kULo), (uv.y() - kVLo) / (kVHi - kVLo));
         t.regions.push_back(RegionAt(uv, landmarks));
+        t.jaw_weight.push_back(JawWeight(uv, landmarks));
         t.head_vertex.push_back(tri[c]);
       }
       out[c] = i;
@@ -91,6 +107,17 @@ absl::Status WriteFaceTemplate(const FaceTemplateData& data, const std::string& 
     if (data.regions[v] == TemplateRegion::kMouth) mouth.push_back(static_cast<int>(v));
   }
   j["regions"] = {{"eyes", eyes}, {"mouth", mouth}};
+  std::vector<int> jaw_vertices;
+  std::vector<double> jaw_weights;
+  for (size_t v = 0; v < data.jaw_weight.size(); ++v) {
+    if (data.jaw_weight[v] <= 0) continue;
+    jaw_vertices.push_back(static_cast<int>(v));
+    jaw_weights.push_back(std::round(static_cast<double>(data.jaw_weight[v]) * 1e4) / 1e4);
+  }
+  j["jaw"] = {{"hinge_mm", {data.jaw_hinge_mm.x(), data.jaw_hinge_mm.y(), data.jaw_hinge_mm.z()}},
+              {"axis", {data.jaw_axis.x(), data.jaw_axis.y(), data.jaw_axis.z()}},
+              {"vertices", jaw_vertices},
+              {"weights", jaw_weights}};
   const std::string path = dir + "/face-template.json";
   std::ofstream out(path);
   out << j.dump() << "\n";

@@ -44,6 +44,8 @@ enum { kJaw, kSmileL, kSmileR, kBlinkL, kBlinkR, kBrow, kFrown, kPucker };
 constexpr float kEyeTheta = 0.36f, kEyePhi = 0.10f, kEyeRadius = 12;
 // The mouth line's elevation.
 constexpr float kMouthPhi = -0.485f;
+// The jaw's hinge (it turns about the x axis through it), mm.
+const Eigen::Vector3f kJawHinge(0, -20, -30);
 // The neck pivot the head turns about, mm.
 const Eigen::Vector3f kPivot(0, -95, -15);
 
@@ -96,7 +98,7 @@ Eigen::Vector3f Delta(int e, float th, float ph, const Eigen::Vector3f& p) {
     case kJaw: {
       // The lower face turns down about the jaw hinge; the mouth line sinks into a dark opening.
       const float s = Smooth(-0.45f, -0.53f, ph) * G(AngleDiff(th, 0), 1.1f);
-      const Eigen::Vector3f hinge(0, -20, -30);
+      const Eigen::Vector3f& hinge = kJawHinge;
       const Eigen::AngleAxisf turn(14 * kPi / 180, Eigen::Vector3f::UnitX());
       return s * (turn * (p - hinge) + hinge - p) - 14 * Blob(th, ph, 0, kMouthPhi, 0.16f, 0.02f) * d;
     }
@@ -790,7 +792,7 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
   return p;
 }
 
-HeadLandmarks ProceduralHeadLandmarks() { return {kEyeTheta, kEyePhi, kMouthPhi}; }
+HeadLandmarks ProceduralHeadLandmarks() { return {kEyeTheta, kEyePhi, kMouthPhi, kJawHinge, Eigen::Vector3f::UnitX()}; }
 
 HeadShape HeadShape::Drawn(uint64_t identity) {
   HeadShape s;

@@ -26,6 +26,10 @@ struct FaceTemplate {
   // the simulator's truth, whose meshes carry that layout.
   Eigen::Vector2f head_layout_lo = Eigen::Vector2f::Zero(), head_layout_hi = Eigen::Vector2f::Ones();
   std::string source;
+  // The jaw (none when the template has no "jaw"): per vertex how far it follows the jaw's turn (0 to 1), and the axis
+  // the jaw turns about, head frame, mm.
+  std::vector<float> jaw_weight;
+  Eigen::Vector3f jaw_hinge = Eigen::Vector3f::Zero(), jaw_axis = Eigen::Vector3f::UnitX();
 
   Eigen::Vector2f HeadLayoutUv(const Eigen::Vector2f& uv) const {
     return head_layout_lo + uv.cwiseProduct(head_layout_hi - head_layout_lo);

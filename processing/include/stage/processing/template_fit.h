@@ -47,6 +47,8 @@ struct TemplateFit {
   // head against the template's).
   Eigen::Isometry3f stage_from_head = Eigen::Isometry3f::Identity();
   float scale = 1;
+  // How far the jaw is turned about its hinge from the template's (radians; the template's jaw weights).
+  float jaw_rad = 0;
   // Over the vertices with a correspondence at the end: their distance to the surface, RMS, mm; and their count.
   double rms_mm = 0;
   int64_t matched = 0;

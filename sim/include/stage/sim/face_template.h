@@ -21,6 +21,9 @@ struct FaceTemplateData {
   TriangleMesh mesh;                    // neutral, head frame, mm; its uvs the template's own layout, [0, 1]^2
   std::vector<TemplateRegion> regions;  // per vertex
   std::vector<int32_t> head_vertex;     // per vertex, the head's vertex it was (not written)
+  // The jaw: per vertex how far it follows the jaw's turn (0 to 1), and the axis it turns about (head frame, mm).
+  std::vector<float> jaw_weight;
+  Eigen::Vector3f jaw_hinge_mm = Eigen::Vector3f::Zero(), jaw_axis = Eigen::Vector3f::UnitX();
   // The template's square in the head's skin layout: uv_template = (uv_head - lo) / (hi - lo).
   float u_lo = 0, u_hi = 1, v_lo = 0, v_hi = 1;
 };

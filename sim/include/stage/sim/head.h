@@ -92,6 +92,8 @@ struct HeadLandmarks {
   float eye_azimuth;  // each eye at plus and minus this
   float eye_elevation;
   float mouth_elevation;  // the mouth line, centred at azimuth 0
+  // The axis the jaw turns about (the jaw's hinges), head frame, mm: a point on it and its direction.
+  Eigen::Vector3f jaw_hinge_mm, jaw_axis;
 };
 HeadLandmarks ProceduralHeadLandmarks();
 
