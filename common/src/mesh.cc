@@ -22,7 +22,10 @@ constexpr const char* kPartNames[2] = {"skin", "eye"};
 
 }  // namespace
 
-std::vector<Eigen::Vector3f> TriangleMesh::VertexNormals() const {
+std::vector<Eigen::Vector3f> TriangleMesh::VertexNormals() const { return stage::VertexNormals(positions, triangles); }
+
+std::vector<Eigen::Vector3f> VertexNormals(const std::vector<Eigen::Vector3f>& positions,
+                                           const std::vector<std::array<int32_t, 3>>& triangles) {
   // Vertices at the same place (a texture seam, a pole) share one normal.
   std::map<std::array<float, 3>, int32_t> first;
   std::vector<int32_t> welded(positions.size());

@@ -358,7 +358,7 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
       return absl::Status(made.status().code(),
                           absl::StrCat(job.take_dir, ": frame ", frame, ": ", made.status().message()));
     }
-    const std::string dir = absl::StrFormat("%s/frame-%06d", result.output_dir, frame);
+    const std::string dir = FrameDir(result.output_dir, frame);
     STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, in.processed, frame, take, in.missing));
     ++result.units;
     p.done = result.units;

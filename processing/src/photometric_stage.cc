@@ -107,8 +107,10 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
 
 }  // namespace
 
+std::string FrameDir(const std::string& root, int64_t frame) { return absl::StrFormat("%s/frame-%06d", root, frame); }
+
 std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera) {
-  return absl::StrFormat("%s/frame-%06d/%s", root, frame, camera);
+  return FrameDir(root, frame) + "/" + camera;
 }
 
 absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir) {
@@ -171,6 +173,16 @@ absl::Status GeometrySpec::Validate() const {
   return absl::OkStatus();
 }
 
+std::string GeometrySpec::RelativeDir() const {
+  if (source == GeometrySource::kNone) return "";
+  return fs::path(source == GeometrySource::kMvs ? "derived/mvs" : dir).lexically_normal().string();
+}
+
+std::string GeometrySpec::Root(const std::string& take_dir) const {
+  const std::string rel = RelativeDir();
+  return rel.empty() || fs::path(rel).is_absolute() ? rel : take_dir + "/" + rel;
+}
+
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                          const std::function<void(const JobProgress&)>& progress,
                                          const std::function<bool()>& cancelled) {
@@ -225,11 +237,10 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                                                    last <= first ? "empty" : "not all in the take", " (it holds ",
                                                    whole_frames, " whole frame(s))"));
   }
-  std::string geometry_dir, geometry_root;  // as given (relative to the take, or absolute), and as opened
+  // As given (relative to the take, or absolute), and as opened; empty without a mesh.
+  const std::string geometry_dir = job.geometry.RelativeDir(), geometry_root = job.geometry.Root(job.take_dir);
   if (job.geometry.has_mesh()) {
     const bool mvs = job.geometry.source == GeometrySource::kMvs;
-    geometry_dir = fs::path(mvs ? "derived/mvs" : job.geometry.dir).lexically_normal().string();
-    geometry_root = fs::path(geometry_dir).is_absolute() ? geometry_dir : job.take_dir + "/" + geometry_dir;
     if (!fs::is_directory(geometry_root)) {
       return absl::NotFoundError(
           mvs ? absl::StrCat(geometry_root,
@@ -248,11 +259,10 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
     std::unique_ptr<MeshBvh> mesh;
     std::string geometry_file;
     if (!geometry_root.empty()) {
-      geometry_file = absl::StrFormat("frame-%06d/mesh.obj", frame);
-      auto obj = ReadObj(geometry_root + "/" + geometry_file);
+      auto obj = ReadObj(FrameDir(geometry_root, frame) + "/mesh.obj");
       if (!obj.ok()) return obj.status();
       mesh = std::make_unique<MeshBvh>(std::move(*obj));
-      geometry_file = geometry_dir + "/" + geometry_file;
+      geometry_file = FrameDir(geometry_dir, frame) + "/mesh.obj";
     }
     for (CameraJob& c : cameras) {
       if (cancelled && cancelled()) {

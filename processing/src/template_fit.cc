@@ -40,13 +40,6 @@ std::vector<Eigen::Vector3f> TriangleNormals(const TriangleMesh& m) {
   return n;
 }
 
-std::vector<Eigen::Vector3f> VertexNormals(const std::vector<Eigen::Vector3f>& positions,
-                                           const TriangleMesh& topology) {
-  TriangleMesh m = topology;
-  m.positions = positions;
-  return m.VertexNormals();
-}
-
 // The surface's nearest points to `positions`; only where `use` and the surface's normal lies within the options'
 // angle of the template's (either winding: a reconstruction and the truth are wound differently).
 Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::vector<uint8_t>& use,
@@ -56,7 +49,7 @@ Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::
   c.points.resize(positions.size());
   c.normals.resize(positions.size());
   c.valid.assign(positions.size(), 0);
-  const std::vector<Eigen::Vector3f> normals = VertexNormals(positions, face.mesh);
+  const std::vector<Eigen::Vector3f> normals = VertexNormals(positions, face.mesh.triangles);
   const float cos_max = static_cast<float>(std::cos(options.max_normal_angle_deg * kPi / 180));
   double sum = 0;
   for (size_t i = 0; i < positions.size(); ++i) {
@@ -83,6 +76,12 @@ Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::
 // small motion that best moves the matched vertices onto their tangent planes. A scale per axis was tried: it takes
 // up the features' heights too (a smaller nose as a flatter head) and turned every vertex's direction from the head's
 // centre, sliding the fit 8.4 mm against 5.1 (docs/assets.md).
+// `p` turned by `weight` x `angle_rad` about the axis through `hinge` (the jaw's turn of one vertex).
+Eigen::Vector3f TurnJaw(const Eigen::Vector3f& p, const Eigen::Vector3f& hinge, const Eigen::Vector3f& axis,
+                        float weight, float angle_rad) {
+  return weight > 0 ? Eigen::Vector3f(hinge + Eigen::AngleAxisf(weight * angle_rad, axis) * (p - hinge)) : p;
+}
+
 struct Placement {
   Eigen::Vector3f origin, hinge, axis;  // stage frame: the head's origin, the jaw's hinge and axis
   const std::vector<float>* jaw_weight;
@@ -93,9 +92,7 @@ struct PlacementStep {
 
   // `p` (vertex `i`) moved by the step: the jaw's turn, the scale, then the rigid motion.
   Eigen::Vector3f Apply(const Placement& at, size_t i, const Eigen::Vector3f& p) const {
-    const float w = (*at.jaw_weight)[i];
-    const Eigen::Vector3f jawed =
-        w > 0 ? Eigen::Vector3f(at.hinge + Eigen::AngleAxisf(w * jaw_rad, at.axis) * (p - at.hinge)) : p;
+    const Eigen::Vector3f jawed = TurnJaw(p, at.hinge, at.axis, (*at.jaw_weight)[i], jaw_rad);
     return rigid * (at.origin + scale * (jawed - at.origin));
   }
 };
@@ -134,12 +131,8 @@ PlacementStep PlacementGaussNewton(const std::vector<Eigen::Vector3f>& positions
 std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, float scale, float jaw_rad) {
   std::vector<Eigen::Vector3f> out(face.mesh.positions.size());
   for (size_t i = 0; i < out.size(); ++i) {
-    const Eigen::Vector3f& t = face.mesh.positions[i];
     const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
-    out[i] =
-        scale *
-        (w > 0 ? Eigen::Vector3f(face.jaw_hinge + Eigen::AngleAxisf(w * jaw_rad, face.jaw_axis) * (t - face.jaw_hinge))
-               : t);
+    out[i] = scale * TurnJaw(face.mesh.positions[i], face.jaw_hinge, face.jaw_axis, w, jaw_rad);
   }
   return out;
 }
@@ -350,12 +343,7 @@ absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const Templa
   return out;
 }
 
-}  // namespace stage::processing
-
-namespace stage::processing {
 namespace {
-
-std::string FrameDir(const std::string& root, int64_t frame) { return absl::StrFormat("%s/frame-%06d", root, frame); }
 
 std::string PoseJson(const TemplateFit& fit, int64_t frame) {
   nlohmann::ordered_json j;
@@ -380,8 +368,7 @@ absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(con
   if (!job.surface.has_mesh()) return absl::InvalidArgumentError("fit: the template is fitted to surfaces: not none");
   auto face = job.template_obj.empty() ? ShippedFaceTemplate() : LoadFaceTemplate(job.template_obj);
   if (!face.ok()) return face.status();
-  const std::string rel = job.surface.source == GeometrySource::kMvs ? "derived/mvs" : job.surface.dir;
-  const std::string surfaces = std::filesystem::path(rel).is_absolute() ? rel : job.take_dir + "/" + rel;
+  const std::string rel = job.surface.RelativeDir(), surfaces = job.surface.Root(job.take_dir);
   if (!std::filesystem::is_directory(surfaces)) {
     return absl::NotFoundError(absl::StrCat(surfaces, ": no surfaces to fit (run the mvs stage first)"));
   }
@@ -424,7 +411,7 @@ absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(con
     STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/pose.json", PoseJson(*fit, frame)));
     nlohmann::ordered_json metrics;
     metrics["frame"] = frame;
-    metrics["surface"] = rel + absl::StrFormat("/frame-%06d/mesh.obj", frame);
+    metrics["surface"] = FrameDir(rel, frame) + "/mesh.obj";
     metrics["matched_vertices"] = fit->matched;
     metrics["template_vertices"] = face->mesh.positions.size();
     metrics["rms_to_surface_mm"] = fit->rms_mm;

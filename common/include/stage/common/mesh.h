@@ -29,6 +29,10 @@ struct TriangleMesh {
   std::vector<Eigen::Vector3f> VertexNormals() const;
 };
 
+// The same for `positions` over `triangles` (a mesh's topology with other positions, without copying the mesh).
+std::vector<Eigen::Vector3f> VertexNormals(const std::vector<Eigen::Vector3f>& positions,
+                                           const std::vector<std::array<int32_t, 3>>& triangles);
+
 // Reads a Wavefront OBJ (v, vt, f; polygons fan-triangulated, negative indices allowed; usemtl and mtllib recorded;
 // a file whose only materials are WriteObj's part names, with no library, gets its parts back). Errors name the file
 // and line.

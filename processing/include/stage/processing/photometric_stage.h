@@ -35,6 +35,10 @@ struct GeometrySpec {
   std::string ToString() const;
   // A directory with kDirectory, none otherwise.
   absl::Status Validate() const;
+  // Where the meshes are, as given (relative to the take, or absolute; normalized): derived/mvs for kMvs, the
+  // directory for kDirectory, empty for kNone. And that directory in the take `take_dir`.
+  std::string RelativeDir() const;
+  std::string Root(const std::string& take_dir) const;
   bool has_mesh() const { return source != GeometrySource::kNone; }
 };
 
@@ -85,7 +89,8 @@ absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir);
 absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::string& take_dir,
                                                                     const std::string& spec);
 
-// The directory of frame `frame`, camera `camera` under a stage's output root (frame-NNNNNN/<camera>).
+// The directory of frame `frame` under a stage's output root (frame-NNNNNN), and of its camera `camera` in it.
+std::string FrameDir(const std::string& root, int64_t frame);
 std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera);
 
 }  // namespace stage::processing
