@@ -358,6 +358,47 @@ std::string PoseJson(const TemplateFit& fit, int64_t frame) {
   return j.dump(2) + "\n";
 }
 
+// One frame's results in `dir`: the fitted mesh, its geometry map (head frame), the pose and the metrics.
+absl::Status WriteFitFrame(const FaceTemplate& face, const TemplateFit& fit, const GeometryMapOptions& map_options,
+                           const std::string& surface_file, const std::string& dir, int64_t frame) {
+  TriangleMesh mesh = face.mesh;
+  mesh.positions = fit.positions;
+  STAGE_ASSIGN_OR_RETURN(const GeometryMap map, MakeGeometryMap(mesh, fit.stage_from_head.inverse(), map_options));
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  STAGE_RETURN_IF_ERROR(
+      WriteObj(dir + "/mesh.obj", mesh, "FaStage face template fitted: stage frame, mm (docs/assets.md)"));
+  STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", map));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/pose.json", PoseJson(fit, frame)));
+  nlohmann::ordered_json metrics;
+  metrics["frame"] = frame;
+  metrics["surface"] = surface_file;
+  metrics["matched_vertices"] = fit.matched;
+  metrics["template_vertices"] = face.mesh.positions.size();
+  metrics["rms_to_surface_mm"] = fit.rms_mm;
+  metrics["geometry_map_covered"] = map.Count(TexelState::kCovered);
+  return WriteFileAtomically(dir + "/metrics.json", metrics.dump(2) + "\n");
+}
+
+// What ran, for whoever reads the results (no times or hosts: the same job writes the same bytes).
+std::string RunJson(const FitJob& job, int64_t last) {
+  nlohmann::ordered_json run;
+  run["stage"] = "fit";
+  run["take"] = std::filesystem::path(job.take_dir).filename().string();
+  run["frames"] = {job.first_frame, last};
+  run["surface"] = job.surface.ToString();
+  run["template"] = job.template_obj.empty() ? "shipped (processing/data/face-template.obj)" : job.template_obj;
+  run["geometry_map"] = {{"size", job.map.size}, {"dilation_px", job.map.dilation_px}};
+  run["options"] = {{"rigid_iterations", job.options.rigid_iterations},
+                    {"fit_scale", job.options.fit_scale},
+                    {"stiffness", job.options.stiffness},
+                    {"iterations_per_stage", job.options.iterations_per_stage},
+                    {"max_distance_mm", job.options.max_distance_mm},
+                    {"max_normal_angle_deg", job.options.max_normal_angle_deg}};
+  return run.dump(2) + "\n";
+}
+
 }  // namespace
 
 absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(const JobProgress&)>& progress,
@@ -397,26 +438,8 @@ absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(con
       return absl::Status(fit.status().code(),
                           absl::StrCat(job.take_dir, ": frame ", frame, ": ", fit.status().message()));
     }
-    TriangleMesh mesh = face->mesh;
-    mesh.positions = fit->positions;
-    auto map = MakeGeometryMap(mesh, fit->stage_from_head.inverse(), job.map);
-    if (!map.ok()) return map.status();
-    const std::string dir = FrameDir(result.output_dir, frame);
-    std::error_code ec;
-    std::filesystem::create_directories(dir, ec);
-    if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
-    STAGE_RETURN_IF_ERROR(
-        WriteObj(dir + "/mesh.obj", mesh, "FaStage face template fitted: stage frame, mm (docs/assets.md)"));
-    STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", *map));
-    STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/pose.json", PoseJson(*fit, frame)));
-    nlohmann::ordered_json metrics;
-    metrics["frame"] = frame;
-    metrics["surface"] = FrameDir(rel, frame) + "/mesh.obj";
-    metrics["matched_vertices"] = fit->matched;
-    metrics["template_vertices"] = face->mesh.positions.size();
-    metrics["rms_to_surface_mm"] = fit->rms_mm;
-    metrics["geometry_map_covered"] = map->Count(TexelState::kCovered);
-    STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/metrics.json", metrics.dump(2) + "\n"));
+    STAGE_RETURN_IF_ERROR(WriteFitFrame(*face, *fit, job.map, FrameDir(rel, frame) + "/mesh.obj",
+                                        FrameDir(result.output_dir, frame), frame));
     previous = *std::move(fit);
     ++result.units;
     p.done = result.units;
@@ -424,20 +447,7 @@ absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(con
                                 face->mesh.positions.size(), previous.rms_mm);
     if (progress) progress(p);
   }
-  nlohmann::ordered_json run;
-  run["stage"] = "fit";
-  run["take"] = std::filesystem::path(job.take_dir).filename().string();
-  run["frames"] = {job.first_frame, last};
-  run["surface"] = job.surface.ToString();
-  run["template"] = job.template_obj.empty() ? "shipped (processing/data/face-template.obj)" : job.template_obj;
-  run["geometry_map"] = {{"size", job.map.size}, {"dilation_px", job.map.dilation_px}};
-  run["options"] = {{"rigid_iterations", job.options.rigid_iterations},
-                    {"fit_scale", job.options.fit_scale},
-                    {"stiffness", job.options.stiffness},
-                    {"iterations_per_stage", job.options.iterations_per_stage},
-                    {"max_distance_mm", job.options.max_distance_mm},
-                    {"max_normal_angle_deg", job.options.max_normal_angle_deg}};
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", run.dump(2) + "\n"));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", RunJson(job, last)));
   return result;
 }
 
