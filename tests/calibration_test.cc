@@ -36,7 +36,8 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
       StartStage({"--set", "sim.subject.kind=charuco", "--set", "sim.render_scale=0.125", "--take-root", root.path()}));
   CommandResult cal = RunCommand({"stagectl", "--endpoints", Endpoints(), "calibrate", "--seconds", "2", "--json"},
                                  std::chrono::seconds(2400));
-  // About 12 minutes on 2 idle cores (recording and the ground truth), twice that with both cores busy.
+  // About 10 minutes on 2 cores also building (the board drawn without shadow rays; the take's ground truth only its
+  // scene: the true cameras and the board's poses), twice that with both cores busy.
   ASSERT_FALSE(cal.timed_out) << cal.err;
   ASSERT_EQ(cal.exit.exit_code, 0) << cal.err;
   const nlohmann::json done = nlohmann::json::parse(cal.out);
@@ -45,6 +46,10 @@ TEST_F(CalibrationTest, TheStageCalibratesItsCamerasFromATakeOfTheBoard) {
   EXPECT_EQ(out, dir + "/derived/calibration");
   EXPECT_THAT(std::string(done["message"]), HasSubstr("27 camera(s) from 48 frame(s)"));
   EXPECT_THAT(cal.err, HasSubstr("28/28 cameras"));
+  // The truth of a calibration take: the true cameras and each frame's board, no per-camera maps.
+  EXPECT_TRUE(fs::exists(dir + "/ground_truth/cameras.json"));
+  EXPECT_TRUE(fs::exists(dir + "/ground_truth/frame-000047/pose.json"));
+  EXPECT_FALSE(fs::exists(dir + "/ground_truth/frame-000000/mv-01"));
 
   // The batch command and the library write the same calibration.
   CommandResult batch =

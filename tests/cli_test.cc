@@ -125,6 +125,17 @@ TEST(CliTest, StagectlWithoutController) {
   ExpectOneLineError(RunCommand({"stagectl"}, kTimeout), 2, "stagectl: error:");
 }
 
+// How much ground truth a capture asks for is a word among three, and --no-ground-truth is one of them.
+TEST(CliTest, StagectlGroundTruthScopes) {
+  ExpectOneLineError(RunCommand({"stagectl", "capture", "--frames", "1", "--ground-truth", "some"}, kTimeout), 2,
+                     "--ground-truth: some not in {full,none,scene}");
+  ExpectOneLineError(
+      RunCommand({"stagectl", "capture", "--frames", "1", "--ground-truth", "full", "--no-ground-truth"}, kTimeout), 2,
+      "--ground-truth excludes --no-ground-truth");
+  ExpectOneLineError(RunCommand({"stagectl", "calibrate", "--ground-truth", "all"}, kTimeout), 2,
+                     "--ground-truth: all not in {full,none,scene}");
+}
+
 TEST(CliTest, StageSimBadListen) {
   TempDir dir;
   ExpectOneLineError(RunCommand({"stage-sim", "--run-dir", dir.path(), "--listen", "nowhere"}, kTimeout), 2,

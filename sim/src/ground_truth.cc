@@ -122,6 +122,11 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       cv::cvtColor(image, bgra, cv::COLOR_RGBA2BGRA);
       if (auto s = Write(frame_dir + "/uv_position.exr", bgra); !s.ok()) return s;
     }
+    if (!options.camera_maps) {
+      done += static_cast<int>(cameras.size());
+      if (options.progress) options.progress(done, total);
+      continue;
+    }
     auto subject = scene.SubjectAt(frame);
     // A pixel integrates n x n rays (sim.supersample): its truth describes that area, as its value does (the mean
     // normal normalized, the mean material; the albedo over sim.texture_samples rays); the depth is its centre's.

@@ -5,6 +5,7 @@
 #include <Eigen/Geometry>
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -130,6 +131,29 @@ TEST(GroundTruthTest, TheHeadsUvMapLiesOnItsMeshAndThePoseIsRecorded) {
   EXPECT_LT(worst, 0.05);                         // mm behind the surface at most
   EXPECT_TRUE(std::ifstream(dir + "/frame-000006/mesh.obj").good());
   EXPECT_FALSE(cv::imread(dir + "/frame-000006/uv_position.exr", cv::IMREAD_UNCHANGED).empty());
+}
+
+// A calibration take's truth: the true cameras and each frame's subject, no per-camera maps.
+TEST(GroundTruthTest, TheSceneAloneWritesNoCameraMaps) {
+  auto scene = Scene({"sim.subject.kind=charuco"});
+  const std::string dir = ::testing::TempDir() + "/gt-scene";
+  int calls = 0;
+  GroundTruthOptions options{.first_frame = 2, .last_frame = 4, .camera_maps = false};
+  options.progress = [&](int done, int total) {
+    ++calls;
+    EXPECT_LE(done, total);
+  };
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir, options).ok());
+  EXPECT_EQ(calls, 2);
+  EXPECT_TRUE(std::ifstream(dir + "/cameras.json").good());
+  for (const char* frame : {"/frame-000002", "/frame-000003"}) {
+    std::ifstream pose_file(dir + frame + "/pose.json");
+    ASSERT_TRUE(pose_file.good()) << frame;
+    EXPECT_EQ(nlohmann::json::parse(pose_file)["board"]["corners_mm"].size(), scene->board()->corners().size());
+    EXPECT_TRUE(std::ifstream(dir + frame + "/mesh.obj").good()) << frame;
+    EXPECT_FALSE(std::filesystem::exists(dir + frame + "/hs-2")) << frame;
+    EXPECT_FALSE(std::filesystem::exists(dir + frame + "/mv-01")) << frame;
+  }
 }
 
 TEST(GroundTruthTest, RefusesEmptyFramesAndUnknownCameras) {

@@ -905,7 +905,7 @@ TriangleMesh RiggedModel::PosedMesh(const HeadPose& pose) const {
 std::unique_ptr<MeshSubject> RiggedModel::Posed(const HeadPose& pose) const {
   const auto expr = pose.expression;
   return std::make_unique<MeshSubject>(
-      PosedMesh(pose), [this, expr](const Eigen::Vector2f& uv, int part) { return Surface(uv, part, expr); });
+      PosedMesh(pose), [this, expr](const Eigen::Vector2f& uv, int part) { return Surface(uv, part, expr); }, Convex());
 }
 
 float HeadModel::Height(const Eigen::Vector2f& uv, const std::array<float, kExpressionCount>& e) const {

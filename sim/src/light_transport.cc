@@ -122,6 +122,8 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
   }
   const size_t count = rows.size();
   const size_t units = dome.units.size();
+  // A convex subject shadows none of itself where the light is in front of the surface (checked below).
+  const bool shadows = !subject.Convex();
   if (progress != nullptr) progress->total.store(progress->done.load() + count);
   const float weight = 1.0f / static_cast<float>(n * n);
   r.diffuse = RowMatrixXf::Zero(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
@@ -139,7 +141,7 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
         const Eigen::Vector3f w = to_led / std::sqrt(d2);
         const float n_dot_w = nrm.dot(w);
         if (n_dot_w <= 0 || h.geometric_normal.dot(w) <= 0) continue;
-        if (subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
+        if (shadows && subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
         const float irradiance = weight * static_cast<float>(dome.units[l].intensity) / d2;
         const auto col = static_cast<Eigen::Index>(l);
         r.diffuse(row, col) += n_dot_w * irradiance / kPi;

@@ -2,12 +2,16 @@
 // here; the continuous-dome irradiance of a Lambertian sphere under gradient patterns; the polarization model.
 #include "stage/sim/light_transport.h"
 
+#include <Eigen/Geometry>
 #include <cmath>
 #include <cstdio>
 #include <map>
 #include <random>
 
 #include "gtest/gtest.h"
+#include "stage/common/rig.h"
+#include "stage/sim/board.h"
+#include "stage/sim/mesh.h"
 
 namespace stage::sim {
 namespace {
@@ -220,6 +224,71 @@ TEST(LightTransportTest, TextureSamplesAverageThePrintNotTheLighting) {
   const AreaAlbedo area = TraceAreaAlbedo(*camera, subject, 8);
   EXPECT_EQ(area.rays[24 * 64 + 32], 64);  // inside the sphere: every ray meets it
   EXPECT_EQ(area.rays[0], 0);
+}
+
+// A subject that says it is not convex, whatever it is: the renderer traces its shadow rays.
+class Traced final : public Subject {
+ public:
+  explicit Traced(const Subject& s) : s_(s) {}
+  Hit Intersect(const Eigen::Vector3f& o, const Eigen::Vector3f& d) const override { return s_.Intersect(o, d); }
+  bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override { return s_.Occluded(from, to); }
+
+ private:
+  const Subject& s_;
+};
+
+// A convex subject is rendered without shadow rays: on a sphere the same responses, to the bit, as with them; on the
+// calibration board's plate (two faces, open at the rim) the same for every pixel of its printed face, whichever way
+// it is turned. The head is not taken for convex.
+TEST(LightTransportTest, AConvexSubjectNeedsNoShadowRays) {
+  const Dome d = Dome::FromDirections(FibonacciSphere(128), 1000, 1e6);
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 1500}, 96, 72), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  const SphereSubject sphere(Eigen::Vector3f(10, -5, 20), 90, Material{});
+  ASSERT_TRUE(sphere.Convex());
+  const PixelResponses fast_sphere = ComputeResponses(*camera, sphere, d, 0, 2);
+  const PixelResponses slow_sphere = ComputeResponses(*camera, Traced(sphere), d, 0, 2);
+  ASSERT_EQ(fast_sphere.pixels, slow_sphere.pixels);
+  EXPECT_EQ((fast_sphere.diffuse - slow_sphere.diffuse).cwiseAbs().maxCoeff(), 0.0f);
+  EXPECT_EQ((fast_sphere.specular - slow_sphere.specular).cwiseAbs().maxCoeff(), 0.0f);
+
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.subject.kind=charuco"});  // the rig's board, defaults applied
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  auto board = BoardModel::Create(rig->rig.sim().subject().board());
+  ASSERT_TRUE(board.ok()) << board.status();
+  for (const float yaw : {0.0f, 50.0f, -80.0f}) {
+    HeadPose pose;
+    pose.rotation_deg = Eigen::Vector3f(yaw, 20, 10);
+    const std::unique_ptr<MeshSubject> plate = (*board)->Posed(pose);
+    ASSERT_TRUE(plate->Convex());
+    // One ray a pixel: its row is that ray's hit alone.
+    const PixelResponses fast = ComputeResponses(*camera, *plate, d, 0, 1);
+    const PixelResponses slow = ComputeResponses(*camera, Traced(*plate), d, 0, 1);
+    ASSERT_EQ(fast.pixels, slow.pixels);
+    // The printed face's outward normal (from the back's corner to the face's; a ray past the rim may meet the face
+    // from inside the plate).
+    const TriangleMesh& m = plate->mesh();
+    const Eigen::Vector3f out = (m.positions[0] - m.positions[4]).normalized();
+    int printed = 0, differ = 0;
+    for (size_t i = 0; i < fast.pixels.size(); ++i) {
+      const auto row = static_cast<Eigen::Index>(i);
+      const bool same =
+          fast.diffuse.row(row) == slow.diffuse.row(row) && fast.specular.row(row) == slow.specular.row(row);
+      differ += !same;
+      if (fast.hits[i].part == 0 && fast.hits[i].geometric_normal.dot(out) > 0) {
+        ++printed;
+        EXPECT_TRUE(same) << "yaw " << yaw << ", pixel " << fast.pixels[i];
+      }
+    }
+    EXPECT_GT(printed, 500) << "yaw " << yaw;
+    std::printf(
+        "yaw %+.0f deg: %d pixels see the print, %d of %zu differ (the plate's back, or its face seen past the rim "
+        "from inside)\n",
+        yaw, printed, differ, fast.pixels.size());
+  }
+  EXPECT_FALSE(HeadModel::Procedural(1, 32, HeadShape())->Posed(HeadPose())->Convex());
 }
 
 TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {

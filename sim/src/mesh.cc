@@ -6,8 +6,8 @@
 
 namespace stage::sim {
 
-MeshSubject::MeshSubject(TriangleMesh mesh, SurfaceFunction surface)
-    : bvh_(std::move(mesh)), surface_(std::move(surface)), normals_(bvh_.mesh().VertexNormals()) {}
+MeshSubject::MeshSubject(TriangleMesh mesh, SurfaceFunction surface, bool convex)
+    : bvh_(std::move(mesh)), surface_(std::move(surface)), normals_(bvh_.mesh().VertexNormals()), convex_(convex) {}
 
 Hit MeshSubject::Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const {
   Hit hit;

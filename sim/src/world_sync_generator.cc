@@ -68,8 +68,10 @@ class WorldTakeTruth final : public controller::TakeTruth {
   explicit WorldTakeTruth(const std::string& address)
       : world_(v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
 
-  absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames) override {
+  absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames,
+                     bool scene_only) override {
     v1::GroundTruthRequest gt;
+    gt.set_scene_only(scene_only);
     gt.set_dir(dir);
     gt.set_name_offset(name_offset);
     gt.set_first_frame(first_frame);

@@ -325,6 +325,7 @@ int main(int argc, char** argv) {
       gt.last_frame = r.first_frame() + r.frames();
       gt.name_offset = r.has_name_offset() ? r.name_offset() : r.first_frame();
       gt.cameras.assign(r.cameras().begin(), r.cameras().end());
+      gt.camera_maps = !r.scene_only();
       return stage::sim::WriteGroundTruth(*scene, r.dir(), gt);
     });
     // The world's devices are processes of this machine: one that dies closes its connection at once. A device slow

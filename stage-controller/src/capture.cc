@@ -101,7 +101,7 @@ struct Capturer::Take {
   Clock::time_point paused_since;
   bool aborted = false;
   std::string abort_reason;  // why it was aborted, when not by the operator
-  bool ground_truth = true;
+  v1::GroundTruthScope ground_truth = v1::GROUND_TRUTH_SCOPE_FULL;
   // A pause, resume or abort is changing the take's plan (set before the generator hears of it, cleared once the
   // session's state says so): the watch holds the take meanwhile, and does not take the run's new end for a lost
   // generator. And the watch has ended: the take is finishing; a pause or abort comes too late.
@@ -234,6 +234,10 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   if (frames <= 0 || request.frames() < 0 || request.seconds() < 0) {
     return absl::InvalidArgumentError("capture: give a number of frames or seconds above 0");
   }
+  if (!v1::GroundTruthScope_IsValid(request.ground_truth())) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("capture: ground_truth ", request.ground_truth(), " is not a GroundTruthScope"));
+  }
   if (timing_errors_ > 0) {
     return absl::FailedPreconditionError(
         absl::StrCat("the rig's schedule has ", timing_errors_, " error(s): `stagectl timing check` shows them"));
@@ -249,7 +253,8 @@ absl::StatusOr<std::unique_ptr<Capturer::Take>> Capturer::ArmTake(const v1::Capt
   auto say = [&](const std::string& m) { Say(m); };
   auto take = std::make_unique<Take>();
   take->cycle = cycle;
-  take->ground_truth = !request.skip_ground_truth();
+  take->ground_truth = request.ground_truth() == v1::GROUND_TRUTH_SCOPE_UNSPECIFIED ? v1::GROUND_TRUTH_SCOPE_FULL
+                                                                                    : request.ground_truth();
   take->capture_slots = frames * cycle;
   take->slots = take->capture_slots;
   take->run_end = take->slots;
@@ -1068,7 +1073,9 @@ std::vector<std::string> Capturer::LightFaults(Take& take) {
 }
 
 void Capturer::WriteTruth(Take& take, const TakeShape& shape) {
-  if (devices_.truth == nullptr || !take.ran || !take.ground_truth || shape.slots <= 0) return;
+  if (devices_.truth == nullptr || !take.ran || take.ground_truth == v1::GROUND_TRUTH_SCOPE_NONE || shape.slots <= 0) {
+    return;
+  }
   // The take's frames that ran [first, end), in frames of the take: not its pauses', nor after a lost clock.
   const int64_t slots = shape.clock_end >= 0 ? shape.clock_end : shape.slots;
   std::vector<std::pair<int64_t, int64_t>> runs;
@@ -1085,7 +1092,8 @@ void Capturer::WriteTruth(Take& take, const TakeShape& shape) {
   Say(absl::StrCat("writing the ground truth of ", frames, " frame(s) to ", dir));
   const int64_t bus_frame = take.first_bus / take.cycle;
   for (const auto& [first, end] : runs) {
-    const absl::Status s = devices_.truth->Write(dir, bus_frame, bus_frame + first, end - first);
+    const absl::Status s = devices_.truth->Write(dir, bus_frame, bus_frame + first, end - first,
+                                                 take.ground_truth == v1::GROUND_TRUTH_SCOPE_SCENE);
     if (!s.ok()) {
       if (!absl::IsUnimplemented(s)) Say(absl::StrCat("no ground truth: ", s.message()));
       take.summary.clear_ground_truth_dir();

@@ -71,8 +71,10 @@ class TakeTruth {
  public:
   virtual ~TakeTruth() = default;
   // Writes the truth of bus frames [first_frame, first_frame + frames) into `dir` (docs/simulator.md#ground-truth),
-  // the frame directories numbered from `name_offset`. Unimplemented where there is no truth to write.
-  virtual absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames) = 0;
+  // the frame directories numbered from `name_offset`; `scene_only`: the true cameras and each frame's subject, not
+  // every camera's per-pixel maps. Unimplemented where there is no truth to write.
+  virtual absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames,
+                             bool scene_only) = 0;
 };
 
 }  // namespace stage::controller

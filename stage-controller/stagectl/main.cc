@@ -490,6 +490,12 @@ int Verdict(const stage::v1::TakeSummary& summary, bool json) {
 }
 
 // Capture (or Arm, `arm_only`): shows the session's events on stderr and the take's summary on stdout.
+// --ground-truth's words.
+const std::map<std::string, stage::v1::GroundTruthScope> kGroundTruthScopes = {
+    {"full", stage::v1::GROUND_TRUTH_SCOPE_FULL},
+    {"scene", stage::v1::GROUND_TRUTH_SCOPE_SCENE},
+    {"none", stage::v1::GROUND_TRUTH_SCOPE_NONE}};
+
 // Capture (or Arm, `arm_only`) with the session's events shown on stderr: the take's summary.
 absl::StatusOr<stage::v1::TakeSummary> RecordTake(const Connection& c, const stage::v1::CaptureRequest& request,
                                                   bool arm_only) {
@@ -505,12 +511,12 @@ absl::StatusOr<stage::v1::TakeSummary> RecordTake(const Connection& c, const sta
 }
 
 int Capture(const Connection& c, int64_t frames, double seconds, const std::string& name, bool json,
-            bool arm_only = false, bool skip_ground_truth = false) {
+            bool arm_only = false, stage::v1::GroundTruthScope ground_truth = stage::v1::GROUND_TRUTH_SCOPE_FULL) {
   stage::v1::CaptureRequest request;
   request.set_frames(frames);
   request.set_seconds(seconds);
   request.set_name(name);
-  request.set_skip_ground_truth(skip_ground_truth);
+  request.set_ground_truth(ground_truth);
   auto recorded = RecordTake(c, request, arm_only);
   if (!recorded.ok()) return stage::ReportFatal(kProgram, recorded.status());
   const stage::v1::TakeSummary& summary = *recorded;
@@ -732,6 +738,7 @@ struct CalibrateFlags {
   double seconds = 5;
   std::string name = "calibration", worker;
   bool json = false;
+  std::string ground_truth = "scene";  // a key of kGroundTruthScopes
 };
 
 // Records a calibration take (the ChArUco board moved through the stage's volume) and runs the calibration stage on
@@ -740,6 +747,7 @@ int Calibrate(const Connection& c, const CalibrateFlags& f) {
   stage::v1::CaptureRequest request;
   request.set_seconds(f.seconds);
   request.set_name(f.name);
+  request.set_ground_truth(kGroundTruthScopes.at(f.ground_truth));
   auto recorded = RecordTake(c, request, /*arm_only=*/false);
   if (!recorded.ok()) return stage::ReportFatal(kProgram, recorded.status());
   const stage::v1::TakeSummary& summary = *recorded;
@@ -940,9 +948,16 @@ int main(int argc, char** argv) {
   frames_opt->excludes(seconds_opt);
   capture->add_option("--name", capture_name, "The take's name in the catalog");
   capture->add_flag("--json", capture_json, "Print the take's summary as JSON (progress still goes to stderr)");
+  std::string capture_truth = "full";
+  auto* truth_opt = capture
+                        ->add_option("--ground-truth", capture_truth,
+                                     "Simulated stage: how much of the world's ground truth goes into the take's "
+                                     "directory: full, scene (cameras and subject, no per-camera maps) or none")
+                        ->check(CLI::IsMember(kGroundTruthScopes))
+                        ->capture_default_str();
   bool no_ground_truth = false;
-  capture->add_flag("--no-ground-truth", no_ground_truth,
-                    "Simulated stage: do not write the world's ground truth of the take into its directory");
+  capture->add_flag("--no-ground-truth", no_ground_truth, "Simulated stage: the same as --ground-truth none")
+      ->excludes(truth_opt);
   int64_t arm_frames = 0;
   double arm_seconds = 0;
   std::string arm_name;
@@ -1044,6 +1059,12 @@ int main(int argc, char** argv) {
   calibrate->add_option("--name", calf.name, "The take's name in the catalog")->capture_default_str();
   calibrate->add_option("--worker", calf.worker, "The worker's id (default: the first that is up)");
   calibrate->add_flag("--json", calf.json, "Print the calibration's result as JSON");
+  calibrate
+      ->add_option("--ground-truth", calf.ground_truth,
+                   "Simulated stage: how much ground truth the take gets (full, scene or none); scene holds the "
+                   "true cameras the calibration is judged against")
+      ->check(CLI::IsMember(kGroundTruthScopes))
+      ->capture_default_str();
 
   FaultFlags ff;
   CLI::App* sim = app.add_subcommand("sim", "The simulated stage (stage-sim): inject faults into its world");
@@ -1080,7 +1101,8 @@ int main(int argc, char** argv) {
   if (fault->parsed()) return SimFault(c, ff);
   if (capture->parsed()) {
     // Without --frames or --seconds: the armed take as armed.
-    return Capture(c, capture_frames, capture_seconds, capture_name, capture_json, false, no_ground_truth);
+    return Capture(c, capture_frames, capture_seconds, capture_name, capture_json, false,
+                   no_ground_truth ? stage::v1::GROUND_TRUTH_SCOPE_NONE : kGroundTruthScopes.at(capture_truth));
   }
   if (arm->parsed()) {
     if (arm_frames == 0 && arm_seconds == 0) {

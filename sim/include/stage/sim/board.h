@@ -21,6 +21,10 @@ class BoardModel final : public RiggedModel {
   // Part 0 is the printed face (paper white, ink black, matte), part 1 the plate's grey back.
   SurfaceSample Surface(const Eigen::Vector2f& uv, int part,
                         const std::array<float, kExpressionCount>& expression) const override;
+  // A plate shadows none of itself: a point of its print sees every light in front of it, so the renderer skips the
+  // shadow rays (a third of a calibration take's rendering). The plate is its two faces, open at the rim: the few
+  // pixels at its edge whose rays pass the rim and meet a face from inside are lit as its outside would be.
+  bool Convex() const override { return true; }
 
   // The ChArUco corners, indexed by OpenCV's corner id, in the board's neutral place (z = 0, facing +z), mm.
   const std::vector<Eigen::Vector3f>& corners() const { return corners_; }

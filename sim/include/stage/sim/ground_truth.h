@@ -34,6 +34,9 @@ struct GroundTruthOptions {
   int64_t name_offset = 0;
   // Texels across the UV position map (256 and up).
   int uv_size = 256;
+  // Every camera's per-pixel maps (depth, normals, materials: two thirds of the time); false: the true cameras and
+  // each frame's subject only (`cameras` is then unused).
+  bool camera_maps = true;
   // Called after each camera of each frame: (done, total).
   std::function<void(int, int)> progress;
 };

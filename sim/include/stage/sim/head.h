@@ -60,6 +60,8 @@ class RiggedModel {
   // The surface of part `part` at `uv` under `expression`. Thread-safe.
   virtual SurfaceSample Surface(const Eigen::Vector2f& uv, int part,
                                 const std::array<float, kExpressionCount>& expression) const = 0;
+  // True if no part of a pose can shadow another (Subject::Convex): the board's plate, not a head.
+  virtual bool Convex() const { return false; }
 
   const TriangleMesh& neutral() const { return neutral_; }
   // True if expression `index` moves the mesh.

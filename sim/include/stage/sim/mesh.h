@@ -25,15 +25,18 @@ using SurfaceFunction = std::function<SurfaceSample(const Eigen::Vector2f& uv, i
 class MeshSubject final : public Subject {
  public:
   // Builds the hierarchy (median splits, 4 triangles a leaf). `surface` null: the default Material, no detail.
-  MeshSubject(TriangleMesh mesh, SurfaceFunction surface);
+  // `convex`: the maker vouches that no part of the mesh can shadow another (Subject::Convex).
+  MeshSubject(TriangleMesh mesh, SurfaceFunction surface, bool convex = false);
   Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+  bool Convex() const override { return convex_; }
   const TriangleMesh& mesh() const { return bvh_.mesh(); }
 
  private:
   MeshBvh bvh_;
   SurfaceFunction surface_;
   std::vector<Eigen::Vector3f> normals_;
+  bool convex_ = false;
 };
 
 }  // namespace stage::sim

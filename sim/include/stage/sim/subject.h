@@ -40,6 +40,9 @@ class Subject {
   // True if the segment from `from` towards `to` is blocked by the subject before reaching `to`. `from` is a surface
   // point: the caller offsets it along the normal.
   virtual bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const = 0;
+  // True if no point of the subject's surface can shadow another: a surface point sees every point in front of its
+  // tangent plane, so the renderer skips shadow rays towards those (a sphere, a plate; never a head).
+  virtual bool Convex() const { return false; }
 };
 
 class SphereSubject final : public Subject {
@@ -48,6 +51,7 @@ class SphereSubject final : public Subject {
       : center_(std::move(center)), radius_(radius), material_(material) {}
   Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+  bool Convex() const override { return true; }
 
  private:
   Eigen::Vector3f center_;
@@ -61,6 +65,7 @@ class PlaneSubject final : public Subject {
   PlaneSubject(Eigen::Vector3f center, Eigen::Vector3f normal, float size, Material material);
   Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+  bool Convex() const override { return true; }
 
  private:
   Eigen::Vector3f center_, normal_, u_, v_;
