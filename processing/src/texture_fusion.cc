@@ -1,0 +1,449 @@
+#include "stage/processing/texture_fusion.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <limits>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "gap_fill.h"
+#include "parallel.h"
+#include "stage/common/status.h"
+#include "stage/common/uv_raster.h"
+
+namespace stage::processing {
+namespace {
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+bool Solved(const float* n) { return n[0] != 0 || n[1] != 0 || n[2] != 0; }
+
+absl::Status CheckMap(const FusionView& view, const Image& map, const char* name, int channels, bool required) {
+  if (map.width == 0 && !required) return absl::OkStatus();
+  if (map.width != view.camera.width() || map.height != view.camera.height() || map.channels != channels ||
+      map.pixels.size() != static_cast<size_t>(map.width) * map.height * channels) {
+    return absl::InvalidArgumentError(absl::StrCat("texture fusion: view ", view.camera_id, ": the ", name, " map is ",
+                                                   map.width, " x ", map.height, " x ", map.channels, ", not ",
+                                                   view.camera.width(), " x ", view.camera.height(), " x ", channels));
+  }
+  return absl::OkStatus();
+}
+
+// What a view contributes at a pixel: its depth buffer and, per pixel, the weight of its edge distance (0 where the
+// pixel is not usable).
+struct PreparedView {
+  const FusionView* view = nullptr;
+  std::vector<float> depth;    // camera z of the mesh's first surface, mm
+  std::vector<float> feather;  // 0..1
+};
+
+PreparedView Prepare(const FusionView& view, const TriangleMesh& mesh, const FusionOptions& o) {
+  PreparedView p;
+  p.view = &view;
+  p.depth = DepthBuffer(mesh, view.camera);
+  const int w = view.camera.width(), h = view.camera.height();
+  cv::Mat usable(h, w, CV_8U, cv::Scalar(0));
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      const size_t i = static_cast<size_t>(y) * w + x;
+      const float z = p.depth[i];
+      if (z == kInf || !Solved(view.diffuse_normal.at(x, y))) continue;
+      if (view.confidence.width > 0 && view.confidence.at(x, y)[0] < o.min_confidence) continue;
+      // An occluding contour: a neighbour much nearer or farther (or nothing there).
+      bool contour = false;
+      constexpr int kDx[4] = {1, -1, 0, 0}, kDy[4] = {0, 0, 1, -1};
+      for (int k = 0; k < 4; ++k) {
+        const int nx = x + kDx[k], ny = y + kDy[k];
+        if (nx < 0 || ny < 0 || nx >= w || ny >= h) continue;
+        const float nz = p.depth[static_cast<size_t>(ny) * w + nx];
+        if (nz == kInf || std::abs(nz - z) > o.contour_mm) contour = true;
+      }
+      if (!contour) usable.at<uint8_t>(y, x) = 1;
+    }
+  }
+  p.feather.assign(static_cast<size_t>(w) * h, 0.0f);
+  if (o.feather_px <= 0) {
+    for (size_t i = 0; i < p.feather.size(); ++i) p.feather[i] = usable.data[i];
+    return p;
+  }
+  // The distance of every usable pixel to the nearest unusable one (the image's border counts as unusable).
+  cv::Mat padded;
+  cv::copyMakeBorder(usable, padded, 1, 1, 1, 1, cv::BORDER_CONSTANT, cv::Scalar(0));
+  cv::Mat distance;
+  cv::distanceTransform(padded, distance, cv::DIST_L2, cv::DIST_MASK_PRECISE);
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      const float d = distance.at<float>(y + 1, x + 1);
+      p.feather[static_cast<size_t>(y) * w + x] = std::min(1.0f, d / static_cast<float>(o.feather_px));
+    }
+  }
+  return p;
+}
+
+// The map's value at (x, y) interpolated bilinearly over the four nearest pixels that `use` accepts; false if none
+// does.
+template <typename Use>
+bool Sample(const Image& map, double x, double y, Use use, float* out) {
+  const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
+  const float fx = static_cast<float>(x - x0), fy = static_cast<float>(y - y0);
+  float weight = 0;
+  std::fill(out, out + map.channels, 0.0f);
+  for (int j = 0; j < 2; ++j) {
+    for (int i = 0; i < 2; ++i) {
+      const int px = x0 + i, py = y0 + j;
+      if (px < 0 || py < 0 || px >= map.width || py >= map.height || !use(px, py)) continue;
+      const float wgt = (i ? fx : 1 - fx) * (j ? fy : 1 - fy);
+      if (wgt <= 0) continue;
+      const float* v = map.at(px, py);
+      for (int c = 0; c < map.channels; ++c) out[c] += wgt * v[c];
+      weight += wgt;
+    }
+  }
+  if (weight <= 0) return false;
+  for (int c = 0; c < map.channels; ++c) out[c] /= weight;
+  return true;
+}
+
+// Sums of the views' weighted samples at every texel.
+struct Accumulator {
+  explicit Accumulator(size_t texels)
+      : albedo(3 * texels, 0),
+        normal(3 * texels, 0),
+        spec_normal(3 * texels, 0),
+        specular(texels, 0),
+        roughness(texels, 0),
+        weight(texels, 0),
+        spec_weight(texels, 0),
+        rough_weight(texels, 0),
+        spec_normal_weight(texels, 0) {}
+  std::vector<float> albedo, normal, spec_normal, specular, roughness;
+  std::vector<float> weight, spec_weight, rough_weight, spec_normal_weight;
+};
+
+// Adds what `view` sees of the surface point `p` (normal `n`) to texel `t`; true if it saw it.
+bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector3f& p, const Eigen::Vector3f& n,
+             size_t t, Accumulator* acc) {
+  const FusionView& v = *pv.view;
+  const CameraModel& cam = v.camera;
+  Eigen::Vector2d px;
+  if (!cam.Project(p.cast<double>(), &px)) return false;
+  const int w = cam.width(), h = cam.height();
+  const int ix = static_cast<int>(std::lround(px.x())), iy = static_cast<int>(std::lround(px.y()));
+  if (ix < 0 || iy < 0 || ix >= w || iy >= h) return false;
+  const size_t pixel = static_cast<size_t>(iy) * w + ix;
+  const float feather = pv.feather[pixel];
+  if (feather <= 0) return false;
+  const Eigen::Vector3f to_camera = cam.position().cast<float>() - p;
+  const float cos_view = n.dot(to_camera.normalized());
+  if (cos_view <= static_cast<float>(std::cos(o.max_view_angle_deg * M_PI / 180))) return false;
+  const float z = (cam.rotation().cast<float>() * -to_camera).z();
+  if (z > pv.depth[pixel] + static_cast<float>(o.occlusion_mm)) return false;  // something nearer hides it
+  auto usable = [&](int x, int y) { return pv.feather[static_cast<size_t>(y) * w + x] > 0; };
+  float albedo[3], normal[3], confidence = 1;
+  if (!Sample(v.albedo, px.x(), px.y(), usable, albedo) || !Sample(v.diffuse_normal, px.x(), px.y(), usable, normal)) {
+    return false;
+  }
+  if (v.confidence.width > 0) Sample(v.confidence, px.x(), px.y(), usable, &confidence);
+  const float weight = cos_view * cos_view * std::clamp(confidence, 0.0f, 1.0f) * feather;
+  if (weight <= 0) return false;
+  for (int c = 0; c < 3; ++c) {
+    acc->albedo[3 * t + c] += weight * albedo[c];
+    acc->normal[3 * t + c] += weight * normal[c];
+  }
+  acc->weight[t] += weight;
+  float value[3];
+  if (v.specular.width > 0 && Sample(v.specular, px.x(), px.y(), usable, value)) {
+    acc->specular[t] += weight * value[0];
+    acc->spec_weight[t] += weight;
+  }
+  if (v.roughness.width > 0 && Sample(v.roughness, px.x(), px.y(), usable, value)) {
+    acc->roughness[t] += weight * value[0];
+    acc->rough_weight[t] += weight;
+  }
+  auto solved = [&](int x, int y) { return usable(x, y) && Solved(v.specular_normal.at(x, y)); };
+  if (v.specular_normal.width > 0 && Sample(v.specular_normal, px.x(), px.y(), solved, value)) {
+    for (int c = 0; c < 3; ++c) acc->spec_normal[3 * t + c] += weight * value[c];
+    acc->spec_normal_weight[t] += weight;
+  }
+  return true;
+}
+
+// The texel's tangent frame (columns tangent, bitangent, normal) in the mesh's frame.
+Eigen::Matrix3f TexelFrame(const TriangleMesh& mesh, const UvTexel& texel, const std::vector<Eigen::Vector3f>& normals,
+                           const std::vector<Eigen::Vector4f>& tangents) {
+  const auto& tri = mesh.triangles[static_cast<size_t>(texel.triangle)];
+  const float b[3] = {1 - texel.b1 - texel.b2, texel.b1, texel.b2};
+  Eigen::Vector3f n = Eigen::Vector3f::Zero(), t = Eigen::Vector3f::Zero();
+  for (int k = 0; k < 3; ++k) {
+    n += b[k] * normals[static_cast<size_t>(tri[k])];
+    t += b[k] * tangents[static_cast<size_t>(tri[k])].head<3>();
+  }
+  n.normalize();
+  t = (t - n * n.dot(t)).normalized();
+  const float sign = tangents[static_cast<size_t>(tri[0])].w() < 0 ? -1.0f : 1.0f;
+  Eigen::Matrix3f frame;
+  frame.col(0) = t;
+  frame.col(1) = sign * n.cross(t);
+  frame.col(2) = n;
+  return frame;
+}
+
+// The mean of `sum` (channels per texel) over `weight` where it is positive; NaN elsewhere (for the dilation).
+Image Mean(const std::vector<float>& sum, const std::vector<float>& weight, int size, int channels, bool unit) {
+  Image out(size, size, channels);
+  for (size_t t = 0; t < weight.size(); ++t) {
+    float* o = &out.pixels[t * static_cast<size_t>(channels)];
+    if (weight[t] <= 0) {
+      std::fill(o, o + channels, kNaN);
+      continue;
+    }
+    for (int c = 0; c < channels; ++c) o[c] = sum[t * static_cast<size_t>(channels) + c] / weight[t];
+    if (unit) {
+      const float norm = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+      for (int c = 0; c < 3; ++c) o[c] = norm > 0 ? o[c] / norm : 0.0f;
+    }
+  }
+  return out;
+}
+
+// Grows the set texels `passes` rings (the mean of set neighbours), renormalizes unit vectors, zeroes what is left.
+void Dilate(Image* image, int passes, bool unit) {
+  GrowIntoGaps(image->width, image->height, image->channels, passes, GapGrowth::kMean, &image->pixels);
+  const auto c = static_cast<size_t>(image->channels);
+  for (size_t i = 0; i < image->pixels.size(); i += c) {
+    float* o = &image->pixels[i];
+    if (o[0] != o[0]) {
+      std::fill(o, o + c, 0.0f);
+    } else if (unit) {
+      const float norm = std::sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+      for (size_t k = 0; k < 3; ++k) o[k] = norm > 0 ? o[k] / norm : 0.0f;
+    }
+  }
+}
+
+// Normals (stage frame, per texel; NaN where empty, as wherever no triangle covers the texel) in the head's frame and
+// in each texel's tangent frame; NaN where empty.
+void ExpressNormals(const Image& stage_normals, const std::vector<UvTexel>& texels, const TriangleMesh& mesh,
+                    const std::vector<Eigen::Vector3f>& vertex_normals, const std::vector<Eigen::Vector4f>& tangents,
+                    const Eigen::Matrix3f& head_from_stage, Image* object, Image* tangent) {
+  const int size = stage_normals.width;
+  *object = Image(size, size, 3);
+  *tangent = Image(size, size, 3);
+  for (size_t t = 0; t < texels.size(); ++t) {
+    const float* s = &stage_normals.pixels[3 * t];
+    if (s[0] != s[0]) {
+      for (int c = 0; c < 3; ++c) object->pixels[3 * t + c] = tangent->pixels[3 * t + c] = kNaN;
+      continue;
+    }
+    const Eigen::Vector3f n(s[0], s[1], s[2]);
+    const Eigen::Vector3f o = head_from_stage * n;
+    const Eigen::Vector3f ts = TexelFrame(mesh, texels[t], vertex_normals, tangents).transpose() * n;
+    for (int c = 0; c < 3; ++c) {
+      object->pixels[3 * t + c] = o[c];
+      tangent->pixels[3 * t + c] = ts[c];
+    }
+  }
+}
+
+// +1 if the mesh's normals (its winding) point the way the views' normals do, -1 if they point into the surface: a
+// vote over every 16th covered texel of the views that see it unhidden.
+float Orientation(const std::vector<UvTexel>& texels, const std::vector<Eigen::Vector3f>& points,
+                  const std::vector<Eigen::Vector3f>& normals, const std::vector<PreparedView>& views,
+                  const FusionOptions& o) {
+  double vote = 0;
+  for (size_t t = 0; t < texels.size(); t += 16) {
+    if (!texels[t].covered()) continue;
+    for (const PreparedView& pv : views) {
+      const CameraModel& cam = pv.view->camera;
+      Eigen::Vector2d px;
+      if (!cam.Project(points[t].cast<double>(), &px)) continue;
+      const int ix = static_cast<int>(std::lround(px.x())), iy = static_cast<int>(std::lround(px.y()));
+      if (ix < 0 || iy < 0 || ix >= cam.width() || iy >= cam.height()) continue;
+      const size_t pixel = static_cast<size_t>(iy) * cam.width() + ix;
+      const float z = (cam.rotation().cast<float>() * (points[t] - cam.position().cast<float>())).z();
+      if (pv.feather[pixel] <= 0 || z > pv.depth[pixel] + static_cast<float>(o.occlusion_mm)) continue;
+      const float* n = pv.view->diffuse_normal.at(ix, iy);
+      vote += normals[t].dot(Eigen::Vector3f(n[0], n[1], n[2])) > 0 ? 1 : -1;
+    }
+  }
+  return vote < 0 ? -1.0f : 1.0f;
+}
+
+}  // namespace
+
+absl::Status FusionOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat("texture fusion: ", what)); };
+  if (size < 16 || size > 16384) return bad(absl::StrCat("size ", size, " is not in 16..16384"));
+  if (part < -1 || part > 255) return bad(absl::StrCat("part ", part, " is not -1 (every part) or a part"));
+  if (!(max_view_angle_deg >= 1 && max_view_angle_deg <= 89)) {
+    return bad(absl::StrCat("max_view_angle_deg ", max_view_angle_deg, " is not in 1..89"));
+  }
+  if (!(min_confidence >= 0 && min_confidence <= 1)) {
+    return bad(absl::StrCat("min_confidence ", min_confidence, " is not in 0..1"));
+  }
+  if (!(feather_px >= 0 && feather_px <= 256)) return bad(absl::StrCat("feather_px ", feather_px, " is not in 0..256"));
+  if (!(occlusion_mm > 0)) return bad(absl::StrCat("occlusion_mm ", occlusion_mm, " is not above 0"));
+  if (!(contour_mm > 0)) return bad(absl::StrCat("contour_mm ", contour_mm, " is not above 0"));
+  if (dilation_px < 0 || dilation_px > 64) return bad(absl::StrCat("dilation_px ", dilation_px, " is not in 0..64"));
+  return absl::OkStatus();
+}
+
+std::vector<Eigen::Vector4f> VertexTangents(const TriangleMesh& mesh, const std::vector<Eigen::Vector3f>& normals) {
+  const size_t n = mesh.positions.size();
+  std::vector<Eigen::Vector3f> tan(n, Eigen::Vector3f::Zero()), bitan(n, Eigen::Vector3f::Zero());
+  for (const auto& tri : mesh.triangles) {
+    const Eigen::Vector3f e1 = mesh.positions[tri[1]] - mesh.positions[tri[0]];
+    const Eigen::Vector3f e2 = mesh.positions[tri[2]] - mesh.positions[tri[0]];
+    const Eigen::Vector2f d1 = mesh.uvs[tri[1]] - mesh.uvs[tri[0]], d2 = mesh.uvs[tri[2]] - mesh.uvs[tri[0]];
+    const float det = d1.x() * d2.y() - d2.x() * d1.y();
+    if (std::abs(det) < 1e-12f) continue;
+    // dP/du and dP/dv of the triangle, times its UV area (twice): larger triangles weigh more.
+    const Eigen::Vector3f t = (e1 * d2.y() - e2 * d1.y()) * (det > 0 ? 1.0f : -1.0f);
+    const Eigen::Vector3f b = (e2 * d1.x() - e1 * d2.x()) * (det > 0 ? 1.0f : -1.0f);
+    for (int k = 0; k < 3; ++k) {
+      tan[static_cast<size_t>(tri[k])] += t;
+      bitan[static_cast<size_t>(tri[k])] += b;
+    }
+  }
+  std::vector<Eigen::Vector4f> out(n);
+  for (size_t v = 0; v < n; ++v) {
+    const Eigen::Vector3f& nv = normals[v];
+    Eigen::Vector3f t = tan[v] - nv * nv.dot(tan[v]);
+    if (t.squaredNorm() < 1e-20f) {
+      // No UV gradient here: any direction in the tangent plane.
+      t = nv.unitOrthogonal();
+    }
+    t.normalize();
+    const float sign = nv.cross(t).dot(bitan[v]) < 0 ? -1.0f : 1.0f;
+    out[v] << t, sign;
+  }
+  return out;
+}
+
+std::vector<float> DepthBuffer(const TriangleMesh& mesh, const CameraModel& camera) {
+  const int w = camera.width(), h = camera.height();
+  std::vector<float> depth(static_cast<size_t>(w) * h, kInf);
+  const size_t n = mesh.positions.size();
+  std::vector<Eigen::Vector2f> px(n);
+  std::vector<float> z(n);
+  std::vector<bool> ok(n);
+  const Eigen::Matrix3f rot = camera.rotation().cast<float>();
+  const Eigen::Vector3f centre = camera.position().cast<float>();
+  for (size_t v = 0; v < n; ++v) {
+    z[v] = (rot * (mesh.positions[v] - centre)).z();
+    Eigen::Vector2d p;
+    ok[v] = z[v] > 1.0f && camera.Project(mesh.positions[v].cast<double>(), &p);
+    px[v] = p.cast<float>();
+  }
+  for (const auto& tri : mesh.triangles) {
+    if (!ok[tri[0]] || !ok[tri[1]] || !ok[tri[2]]) continue;
+    const Eigen::Vector2f &a = px[tri[0]], &b = px[tri[1]], &c = px[tri[2]];
+    const float area = (b - a).x() * (c - a).y() - (c - a).x() * (b - a).y();
+    if (std::abs(area) < 1e-12f) continue;
+    const int x0 = std::max(0, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}))));
+    const int x1 = std::min(w - 1, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}))));
+    const int y0 = std::max(0, static_cast<int>(std::ceil(std::min({a.y(), b.y(), c.y()}))));
+    const int y1 = std::min(h - 1, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}))));
+    // 1 / z is linear across a triangle's image (perspective-correct depth).
+    const float iz[3] = {1 / z[tri[0]], 1 / z[tri[1]], 1 / z[tri[2]]};
+    for (int y = y0; y <= y1; ++y) {
+      for (int x = x0; x <= x1; ++x) {
+        const Eigen::Vector2f p(static_cast<float>(x), static_cast<float>(y));
+        const float w1 = ((p - a).x() * (c - a).y() - (c - a).x() * (p - a).y()) / area;
+        const float w2 = ((b - a).x() * (p - a).y() - (p - a).x() * (b - a).y()) / area;
+        const float w0 = 1 - w1 - w2;
+        if (w0 < 0 || w1 < 0 || w2 < 0) continue;
+        const float d = 1 / (w0 * iz[0] + w1 * iz[1] + w2 * iz[2]);
+        float& cell = depth[static_cast<size_t>(y) * w + x];
+        cell = std::min(cell, d);
+      }
+    }
+  }
+  return depth;
+}
+
+absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen::Isometry3f& head_from_stage,
+                                           const std::vector<FusionView>& views, const FusionOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  if (mesh.uvs.size() != mesh.positions.size()) {
+    return absl::InvalidArgumentError("texture fusion: the mesh has no texture coordinate per vertex");
+  }
+  for (const FusionView& v : views) {
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.albedo, "albedo", 3, true));
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.diffuse_normal, "diffuse normal", 3, true));
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.specular, "specular", 1, false));
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.roughness, "roughness", 1, false));
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.specular_normal, "specular normal", 3, false));
+    STAGE_RETURN_IF_ERROR(CheckMap(v, v.confidence, "confidence", 1, false));
+  }
+  std::vector<PreparedView> prepared(views.size());
+  internal::ParallelItems(static_cast<int>(views.size()), 0,
+                          [&](int i) { prepared[static_cast<size_t>(i)] = Prepare(views[i], mesh, options); });
+
+  const int size = options.size;
+  const std::vector<UvTexel> texels = RasterizeUv(mesh, size, options.part);
+  std::vector<Eigen::Vector3f> vertex_normals = mesh.VertexNormals();
+  const Eigen::Vector3f none(kNaN, kNaN, kNaN);
+  const std::vector<Eigen::Vector3f> points = InterpolateAtTexels(mesh, texels, mesh.positions, none);
+  std::vector<Eigen::Vector3f> normals = InterpolateAtTexels(mesh, texels, vertex_normals, none);
+  // Meshes come wound either way (the OBJ format does not say which side is out): the normals are turned to face
+  // where the views' normals do.
+  if (Orientation(texels, points, normals, prepared, options) < 0) {
+    for (auto& n : vertex_normals) n = -n;
+    for (auto& n : normals) n = -n;
+  }
+  const std::vector<Eigen::Vector4f> tangents = VertexTangents(mesh, vertex_normals);
+
+  Accumulator acc(texels.size());
+  std::vector<std::atomic<int64_t>> counts(views.size());
+  internal::ParallelRows(size, 0, [&](int y0, int y1) {
+    std::vector<int64_t> local(views.size(), 0);
+    for (int y = y0; y < y1; ++y) {
+      for (int x = 0; x < size; ++x) {
+        const size_t t = static_cast<size_t>(y) * size + x;
+        if (!texels[t].covered()) continue;
+        const Eigen::Vector3f n = normals[t].normalized();
+        for (size_t v = 0; v < prepared.size(); ++v) {
+          if (AddView(prepared[v], options, points[t], n, t, &acc)) ++local[v];
+        }
+      }
+    }
+    for (size_t v = 0; v < views.size(); ++v) counts[v] += local[v];
+  });
+
+  FusedTextures out;
+  out.size = size;
+  for (auto& c : counts) out.texels_per_view.push_back(c.load());
+  out.albedo = Mean(acc.albedo, acc.weight, size, 3, false);
+  out.specular = Mean(acc.specular, acc.spec_weight, size, 1, false);
+  out.roughness = Mean(acc.roughness, acc.rough_weight, size, 1, false);
+  Image normal = Mean(acc.normal, acc.weight, size, 3, true);
+  Image spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true);
+  // The normals in the head's frame and in tangent space where views saw the surface, then every texture grown past
+  // the covered texels (a grown texel has no frame of its own: its tangent-space normal is its neighbours' mean).
+  const Eigen::Matrix3f rotation = head_from_stage.linear();
+  ExpressNormals(normal, texels, mesh, vertex_normals, tangents, rotation, &out.normal_object, &out.normal_tangent);
+  ExpressNormals(spec_normal, texels, mesh, vertex_normals, tangents, rotation, &out.specular_normal_object,
+                 &out.specular_normal_tangent);
+  for (Image* image : {&out.albedo, &out.specular, &out.roughness}) Dilate(image, options.dilation_px, false);
+  for (Image* image :
+       {&out.normal_object, &out.normal_tangent, &out.specular_normal_object, &out.specular_normal_tangent}) {
+    Dilate(image, options.dilation_px, true);
+  }
+  out.state.assign(texels.size(), TexelState::kEmpty);
+  for (size_t t = 0; t < texels.size(); ++t) {
+    if (acc.weight[t] > 0) {
+      out.state[t] = TexelState::kCovered;
+    } else if (Solved(&out.normal_object.pixels[3 * t])) {
+      out.state[t] = TexelState::kDilated;
+    }
+  }
+  out.weight = Image(size, size, 1);
+  out.weight.pixels = acc.weight;
+  return out;
+}
+
+}  // namespace stage::processing
