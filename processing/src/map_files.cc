@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/file_util.h"
 
 namespace stage::processing {
 namespace {
@@ -141,6 +142,38 @@ absl::StatusOr<Image> ReadImageFile(const std::string& path) {
     }
   }
   return out;
+}
+
+absl::Status WriteTextureFiles(const std::string& dir, const std::vector<std::pair<std::string, const Image*>>& exr,
+                               const std::string& metrics_json, const std::string& title) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  std::vector<std::pair<std::string, cv::Mat>> previews;
+  for (const auto& [name, image] : exr) {
+    if (auto s = WriteExr(dir + "/" + name + ".exr", *image); !s.ok()) return s;
+    cv::Mat preview;
+    std::string caption = name;
+    if (name == "albedo") {
+      preview = AlbedoPreview(*image);
+      caption = "diffuse albedo (sRGB)";
+    } else if (name == "normal_tangent") {
+      preview = NormalPreview(*image);
+      caption = "diffuse normal (tangent space)";
+    } else if (name == "specular") {
+      preview = ScalarPreview(*image, 0.1f);
+      caption = "specular intensity (0..0.1)";
+    } else if (name == "roughness") {
+      preview = ScalarPreview(*image, 1.f);
+      caption = "roughness (GGX alpha, 0..1)";
+    } else {
+      continue;
+    }
+    if (auto s = Write(dir + "/" + name + ".png", preview); !s.ok()) return s;
+    previews.emplace_back(caption, preview);
+  }
+  if (auto s = Write(dir + "/contact_sheet.png", ContactSheet(previews, title)); !s.ok()) return s;
+  return WriteFileAtomically(dir + "/metrics.json", metrics_json + "\n");
 }
 
 absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,

@@ -11,6 +11,7 @@
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/template_fit.h"
+#include "stage/processing/texture_fusion.h"
 
 namespace stage::processing {
 
@@ -46,10 +47,11 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
 grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
-      job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT) {
-    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": no stage ",
-                                                                v1::ProcessingStage_Name(job->stage()),
-                                                                " (stages: photometric, calibration, mvs, fit)")));
+      job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
+      job->stage() != v1::PROCESSING_STAGE_TEXTURES) {
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
+                     " (stages: photometric, calibration, mvs, fit, textures)")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -79,6 +81,9 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       break;
     case v1::PROCESSING_STAGE_FIT:
       result = RunFitJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_TEXTURES:
+      result = RunTexturesJob(*job, report, cancelled);
       break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);
@@ -195,6 +200,25 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunFitJob(const v1::Proces
   if (!result.ok()) return result.status();
   return Finished(result->units, result->output_dir,
                   absl::StrCat(result->units, " frame(s) fitted into ", result->output_dir));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunTexturesJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty()) {
+    return absl::InvalidArgumentError("texture fusion takes no geometry: it reads the fit (run the fit stage first)");
+  }
+  TexturesJob t;
+  t.take_dir = job.take_dir();
+  t.first_frame = job.first_frame();
+  t.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  t.cameras.assign(job.cameras().begin(), job.cameras().end());
+  t.calibration = job.calibration();
+  if (job.texture_size() != 0) t.options.size = job.texture_size();
+  auto result = RunTextures(t, progress, cancelled);
+  if (!result.ok()) return result.status();
+  return Finished(result->units, result->output_dir,
+                  absl::StrCat(result->units, " frame(s) of textures fused into ", result->output_dir));
 }
 
 }  // namespace stage::processing

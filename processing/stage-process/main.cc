@@ -14,6 +14,7 @@
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/template_fit.h"
+#include "stage/processing/texture_fusion.h"
 
 namespace {
 
@@ -34,6 +35,25 @@ std::function<void(const stage::processing::JobProgress&)> ShowOn(stage::Progres
       bar.Update(p.done, p.total, p.message);
     }
   };
+}
+
+// A stage over frames run from the command line: --frames, a progress bar, and the result as JSON or in words
+// ("N frame(s) VERB into DIR").
+template <typename Job, typename RunJob>
+int RunOverFrames(const std::string& frames, bool json, const char* verb, Job* job, RunJob run) {
+  if (auto s = stage::ParseFrameRange("--frames", frames, &job->first_frame, &job->last_frame); !s.ok()) {
+    return stage::ReportFatal(kProgram, s);
+  }
+  stage::ProgressLine bar("frames");
+  auto result = run(*job, ShowOn(bar), {});
+  bar.Finish();
+  if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+  if (json) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->units}}.dump() << "\n";
+  } else {
+    std::cout << result->units << " frame(s) " << verb << " into " << result->output_dir << "\n";
+  }
+  return 0;
 }
 
 // `stage-process mvs`: its options, and the run.
@@ -99,20 +119,8 @@ struct MvsCommand {
   }
 
   int Run() {
-    if (auto s = stage::ParseFrameRange("--frames", frames, &job.first_frame, &job.last_frame); !s.ok()) {
-      return stage::ReportFatal(kProgram, s);
-    }
     job.cameras = SplitCameras(cameras);
-    stage::ProgressLine bar("frames");
-    auto result = stage::processing::RunMvs(job, ShowOn(bar));
-    bar.Finish();
-    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
-    if (json) {
-      std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->units}}.dump() << "\n";
-    } else {
-      std::cout << result->units << " frame(s) reconstructed into " << result->output_dir << "\n";
-    }
-    return 0;
+    return RunOverFrames(frames, json, "reconstructed", &job, stage::processing::RunMvs);
   }
 };
 
@@ -153,20 +161,55 @@ struct FitCommand {
   }
 
   int Run() {
-    if (auto s = stage::ParseFrameRange("--frames", frames, &job.first_frame, &job.last_frame); !s.ok()) {
-      return stage::ReportFatal(kProgram, s);
-    }
     job.surface = stage::processing::GeometrySpec::Parse(surface);
-    stage::ProgressLine bar("frames");
-    auto result = stage::processing::RunFit(job, ShowOn(bar));
-    bar.Finish();
-    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
-    if (json) {
-      std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->units}}.dump() << "\n";
-    } else {
-      std::cout << result->units << " frame(s) fitted into " << result->output_dir << "\n";
-    }
-    return 0;
+    return RunOverFrames(frames, json, "fitted", &job, stage::processing::RunFit);
+  }
+};
+
+// `stage-process textures`: its options, and the run.
+struct TexturesCommand {
+  stage::processing::TexturesJob job;
+  std::string frames = "0:", cameras;
+  bool json = false;
+  CLI::App* app = nullptr;
+
+  void Add(CLI::App& parent) {
+    app = parent.add_subcommand(
+        "textures",
+        "The views' photometric maps fused into the fitted template's UV layout (docs/assets.md): "
+        "TAKE/derived/textures/frame-NNNNNN/ albedo, specular, roughness, normal_object (head frame) and "
+        "normal_tangent as OpenEXR with PNG previews, a contact sheet, metrics.json");
+    app->add_option("--take", job.take_dir, "The take directory (takes/<take-id>)")->required();
+    app->add_option("--frames", frames, "Virtual frames A:B (B excluded), A: to the last fitted frame, or A")
+        ->capture_default_str();
+    app->add_option("--cameras", cameras,
+                    "Comma-separated views (default: every camera with photometric maps in the first frame)");
+    app->add_option("--calibration", job.calibration,
+                    "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
+                    "take or absolute (default: the rig's nominal models)");
+    app->add_option("--fit", job.fit_dir, "The fitted template (default: TAKE/derived/fit)");
+    app->add_option("--photometric", job.photometric_dir, "The photometric maps (default: TAKE/derived/photometric)");
+    app->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/textures)");
+    app->add_option("--size", job.options.size, "Texels across the textures")
+        ->capture_default_str()
+        ->check(CLI::Range(16, 16384));
+    app->add_option("--max-view-angle-deg", job.options.max_view_angle_deg,
+                    "Views seeing the surface more obliquely weigh nothing, degrees")
+        ->capture_default_str()
+        ->check(CLI::Range(1.0, 89.0));
+    app->add_option("--feather-px", job.options.feather_px,
+                    "A view's weight rises to full over this many of its pixels from the edge of what it sees")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 256.0));
+    app->add_option("--dilation", job.options.dilation_px, "Rings of texels grown past the covered ones")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 64));
+    app->add_flag("--json", json, "Print the result as JSON on stdout");
+  }
+
+  int Run() {
+    job.cameras = SplitCameras(cameras);
+    return RunOverFrames(frames, json, "of textures fused", &job, stage::processing::RunTextures);
   }
 };
 
@@ -234,6 +277,8 @@ int main(int argc, char** argv) {
   mvs.Add(app);
   FitCommand fit;
   fit.Add(app);
+  TexturesCommand textures;
+  textures.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -338,6 +383,7 @@ int main(int argc, char** argv) {
   }
   if (*mvs.app) return mvs.Run();
   if (*fit.app) return fit.Run();
+  if (*textures.app) return textures.Run();
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {

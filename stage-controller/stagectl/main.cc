@@ -668,6 +668,7 @@ int Preview(const Connection& c, const std::string& camera, const std::string& o
 
 struct ProcessFlags {
   std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, calibration, worker;
+  int32_t texture_size = 0;  // 0: the worker's default
   bool json = false;
 };
 
@@ -683,8 +684,8 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
     return stage::ReportFatal(
-        kProgram, absl::InvalidArgumentError(
-                      absl::StrCat("--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit)")));
+        kProgram, absl::InvalidArgumentError(absl::StrCat(
+                      "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit, textures)")));
   }
   request.set_stage(kind);
   int64_t first = 0, last = -1;
@@ -703,12 +704,14 @@ int Process(const Connection& c, const ProcessFlags& f) {
     request.set_geometry(f.geometry);
   }
   request.set_calibration(f.calibration);
+  request.set_texture_size(f.texture_size);
   request.set_worker_id(f.worker);
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
   stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
-                          : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT
+                          : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
+                                  kind == stage::v1::PROCESSING_STAGE_TEXTURES
                               ? "frames"
                               : "camera frames");
   while (reader->Read(&progress)) {
@@ -1029,8 +1032,8 @@ int main(int argc, char** argv) {
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
   process
       ->add_option("--stage", pf.stage,
-                   "The stage: photometric, calibration, mvs or fit (the face template on multi-view stereo's "
-                   "meshes, or on --geometry's)")
+                   "The stage: photometric, calibration, mvs, fit (the face template on multi-view stereo's "
+                   "meshes, or on --geometry's) or textures (the photometric maps fused into the fit's UV layout)")
       ->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
@@ -1044,6 +1047,8 @@ int main(int argc, char** argv) {
   process->add_option("--calibration", pf.calibration,
                       "Where the cameras are: a calibration file or a directory holding cameras.json, relative to the "
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");
+  process->add_option("--texture-size", pf.texture_size, "--stage textures: texels across the textures (default 4096)")
+      ->check(CLI::Range(16, 16384));
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
 

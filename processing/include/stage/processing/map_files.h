@@ -5,6 +5,8 @@
 #pragma once
 
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -16,6 +18,12 @@ namespace stage::processing {
 // contact sheet's caption.
 absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,
                            const std::string& title);
+
+// Fused UV textures into `dir` (created): every image of `exr` as NAME.exr, and for albedo, normal_tangent, specular
+// and roughness an 8-bit NAME.png preview, all of them on contact_sheet.png under `title`; `metrics_json` as
+// metrics.json.
+absl::Status WriteTextureFiles(const std::string& dir, const std::vector<std::pair<std::string, const Image*>>& exr,
+                               const std::string& metrics_json, const std::string& title);
 
 // Reads a float image (OpenEXR, 1, 3 or 4 channels; values in x, y, z / R, G, B(, A) order) or an 8/16-bit PNG.
 absl::StatusOr<Image> ReadImageFile(const std::string& path);

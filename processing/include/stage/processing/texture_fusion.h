@@ -14,6 +14,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -22,6 +23,7 @@
 #include "stage/common/camera_model.h"
 #include "stage/common/mesh.h"
 #include "stage/processing/photometric.h"
+#include "stage/processing/photometric_stage.h"
 #include "stage/processing/uv_geometry.h"
 
 namespace stage::processing {
@@ -80,6 +82,29 @@ struct FusedTextures {
 // a view whose maps' sizes differ from its camera's or lack the albedo or diffuse normal (named by camera id).
 absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen::Isometry3f& head_from_stage,
                                            const std::vector<FusionView>& views, const FusionOptions& options);
+
+// The stage (docs/assets.md#texture-fusion-as-a-stage): per frame, the fitted template (TAKE/derived/fit) and the
+// views' photometric maps (TAKE/derived/photometric/frame-NNNNNN/<camera>/) fused into
+// TAKE/derived/textures/frame-NNNNNN/: OpenEXR textures, PNG previews, a contact sheet and metrics.json.
+struct TexturesJob {
+  std::string take_dir;
+  // Frames [first_frame, last_frame); last_frame < 0: up to the last the fit holds without a gap.
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  // The views; empty: every camera with photometric maps in the first frame.
+  std::vector<std::string> cameras;
+  // Where the cameras are: a calibration file or a directory with cameras.json, relative to the take or absolute;
+  // empty: the rig's nominal models.
+  std::string calibration;
+  // Where the inputs are and the results go, relative to the take or absolute; empty: derived/fit,
+  // derived/photometric and derived/textures.
+  std::string fit_dir, photometric_dir, output_dir;
+  FusionOptions options;
+};
+
+absl::StatusOr<JobResult> RunTextures(const TexturesJob& job,
+                                      const std::function<void(const JobProgress&)>& progress = {},
+                                      const std::function<bool()>& cancelled = {});
 
 // Per vertex of `mesh`, the unit tangent (towards increasing u, orthogonal to the vertex normal) and in w the
 // bitangent's sign: +1 where normal x tangent points towards increasing v. Needs a uv per vertex.

@@ -1,0 +1,168 @@
+// Texture fusion as a stage (docs/assets.md#texture-fusion-as-a-stage): a take made of the simulator's truth (the
+// true per-pixel maps of the three high-speed cameras as the photometric maps, the face template placed on the true
+// surface as the fit, the true cameras as the calibration); the batch command, the worker's job and the library write
+// the same bytes, the textures are the head's own, and OpenImageIO's oiiotool reads them.
+#include <google/protobuf/util/json_util.h>
+#include <grpcpp/grpcpp.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <thread>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/common/rig.h"
+#include "stage/common/subprocess.h"
+#include "stage/common/uv_raster.h"
+#include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/texture_fusion.h"
+#include "stage/sim/ground_truth.h"
+#include "stage/sim/scene.h"
+#include "stage/v1/processing_worker.grpc.pb.h"
+#include "test_support.h"
+
+namespace stage::testing {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+
+// The take: take.json, ground_truth/ (cameras.json and the three views' maps), derived/photometric (those maps
+// under photometric stereo's names) and derived/fit (the template on the true surface). The head of frame 0.
+void MakeTake(const std::string& dir, std::shared_ptr<const sim::SimScene>* scene_out) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.125"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  std::string rig_json;
+  ASSERT_TRUE(google::protobuf::util::MessageToJsonString(rig->rig, &rig_json).ok());
+  std::ofstream(dir + "/take.json") << nlohmann::json{{"rig", nlohmann::json::parse(rig_json)}}.dump();
+  auto scene = sim::SimScene::FromLoadedRig(*rig);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  *scene_out = *scene;
+  const std::vector<std::string> ids = {"hs-1", "hs-2", "hs-3"};
+  ASSERT_TRUE(sim::WriteGroundTruth(**scene, dir + "/ground_truth", {.cameras = ids}).ok());
+  for (const std::string& id : ids) {
+    const std::string from = dir + "/ground_truth/frame-000000/" + id,
+                      to = dir + "/derived/photometric/frame-000000/" + id;
+    fs::create_directories(to);
+    for (const auto& [a, b] : {std::pair{"albedo", "albedo"},
+                               {"normal_world", "diffuse_normal_world"},
+                               {"specular", "specular"},
+                               {"roughness", "roughness"}}) {
+      fs::copy_file(from + "/" + a + ".exr", to + "/" + b + ".exr");
+    }
+  }
+  auto face = processing::ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  const sim::HeadPose pose = (*scene)->PoseAt(0);
+  auto truth_map =
+      processing::MakeGeometryMap((*scene)->head()->PosedMesh(pose), Eigen::Isometry3f::Identity(), {.size = 2048});
+  ASSERT_TRUE(truth_map.ok());
+  TriangleMesh placed = face->mesh;
+  for (size_t v = 0; v < placed.positions.size(); ++v) {
+    auto p = processing::SampleGeometryMap(*truth_map, face->HeadLayoutUv(placed.uvs[v]));
+    ASSERT_TRUE(p.has_value());
+    placed.positions[v] = *p;
+  }
+  const std::string fit = dir + "/derived/fit/frame-000000";
+  fs::create_directories(fit);
+  ASSERT_TRUE(WriteObj(fit + "/mesh.obj", placed).ok());
+  std::ofstream(fit + "/pose.json") << R"({"frame": 0, "stage_from_head": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]})";
+}
+
+TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead) {
+  TempDir take;
+  std::shared_ptr<const sim::SimScene> scene;
+  ASSERT_NO_FATAL_FAILURE(MakeTake(take.path(), &scene));
+
+  CommandResult no_fit = RunCommand({"stage-process", "textures", "--take", take.path(), "--fit", "derived/none"},
+                                    std::chrono::seconds(60));
+  EXPECT_EQ(no_fit.exit.exit_code, 2);
+  EXPECT_THAT(no_fit.err, HasSubstr(take.path() + "/derived/none: no fit (run the fit stage first)"));
+
+  CommandResult batch = RunCommand({"stage-process", "textures", "--take", take.path(), "--calibration", "ground_truth",
+                                    "--size", "256", "--output", "derived/textures-batch", "--json"},
+                                   std::chrono::seconds(300));
+  ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
+  EXPECT_EQ(nlohmann::json::parse(batch.out)["frames"], 1);
+  processing::TexturesJob job;
+  job.take_dir = take.path();
+  job.calibration = "ground_truth";
+  job.options.size = 256;
+  job.output_dir = "derived/textures-library";
+  auto library = processing::RunTextures(job);
+  ASSERT_TRUE(library.ok()) << library.status();
+  const auto a = FilesUnder(take.path() + "/derived/textures-batch");
+  const auto b = FilesUnder(take.path() + "/derived/textures-library");
+  ASSERT_EQ(a.size(), 1 + 8 + 4 + 2u);  // run.json; 8 EXRs, 4 previews, the contact sheet and metrics.json
+  for (const auto& [name, bytes] : a) {
+    ASSERT_EQ(b.count(name), 1u) << name;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and the library";
+  }
+
+  // The worker's job writes the same bytes (into the stage's default directory).
+  const std::string port_file = take.path() + "/worker.port";
+  auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
+                                            "127.0.0.1:0", "--port-file", port_file},
+                                   .stderr_path = take.path() + "/worker.log"});
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(take.path() + "/worker.log");
+  auto stub =
+      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
+  v1::ProcessingJob request;
+  request.set_stage(v1::PROCESSING_STAGE_TEXTURES);
+  request.set_take_dir(take.path());
+  request.set_calibration("ground_truth");
+  request.set_texture_size(256);
+  grpc::ClientContext context;
+  auto reader = stub->Process(&context, request);
+  v1::ProcessingProgress progress, last;
+  while (reader->Read(&progress)) last = progress;
+  const grpc::Status rpc = reader->Finish();
+  (*worker)->Terminate(std::chrono::milliseconds(2000));
+  ASSERT_TRUE(rpc.ok()) << rpc.error_message();
+  EXPECT_TRUE(last.finished());
+  EXPECT_EQ(last.output_dir(), take.path() + "/derived/textures");
+  const auto w = FilesUnder(take.path() + "/derived/textures");
+  ASSERT_EQ(w.size(), b.size());
+  for (const auto& [name, bytes] : w) {
+    ASSERT_EQ(b.count(name), 1u) << name;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the worker and the library";
+  }
+
+  // The fused albedo is the head's own texture (the resampling's error alone: TextureFusionSimTest's figures).
+  const std::string frame = take.path() + "/derived/textures-library/frame-000000";
+  auto albedo = processing::ReadImageFile(frame + "/albedo.exr");
+  ASSERT_TRUE(albedo.ok()) << albedo.status();
+  auto face = processing::ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  const sim::HeadPose pose = scene->PoseAt(0);
+  double fused = 0, truth = 0;
+  for (int y = 0; y < 256; y += 3) {
+    for (int x = 0; x < 256; x += 3) {
+      const float a_green = albedo->at(x, y)[1];
+      if (a_green <= 0) continue;
+      fused += a_green;
+      truth += scene->head()->Surface(face->HeadLayoutUv(TexelUv(x, y, 256)), 0, pose.expression).material.albedo.y();
+    }
+  }
+  EXPECT_NEAR(fused / truth, 1, 0.01);
+  const nlohmann::json metrics = nlohmann::json::parse(FilesUnder(frame).at("metrics.json"));
+  EXPECT_GT(metrics["texels_covered"].get<int64_t>(), 256 * 256 * 9 / 10);
+  EXPECT_EQ(metrics["texels_per_view"].size(), 3u);
+
+  // OpenImageIO reads every texture as what it is.
+  for (const auto& [file, channels] : {std::pair{"albedo", 3}, {"normal_tangent", 3}, {"roughness", 1}}) {
+    CommandResult info =
+        RunCommand({"/usr/bin/oiiotool", "--info", frame + "/" + file + ".exr"}, std::chrono::seconds(60));
+    ASSERT_EQ(info.exit.exit_code, 0) << info.err;
+    EXPECT_THAT(info.out, HasSubstr(absl::StrCat("256 x  256, ", channels, " channel, float openexr"))) << info.out;
+  }
+}
+
+}  // namespace
+}  // namespace stage::testing
