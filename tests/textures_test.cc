@@ -9,6 +9,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <thread>
+#include <tuple>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -161,6 +162,69 @@ TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead)
         RunCommand({"/usr/bin/oiiotool", "--info", frame + "/" + file + ".exr"}, std::chrono::seconds(60));
     ASSERT_EQ(info.exit.exit_code, 0) << info.err;
     EXPECT_THAT(info.out, HasSubstr(absl::StrCat("256 x  256, ", channels, " channel, float openexr"))) << info.out;
+  }
+}
+
+// The assets open in Blender (headless, Debian's): the fitted OBJ with its texture coordinates, and the textures as
+// images whose rows run as Blender's do (its pixel row 0 is v = 0, the bottom: our row size - 1).
+TEST(TexturesStageTest, BlenderOpensTheFittedMeshAndItsTextures) {
+  TempDir take;
+  std::shared_ptr<const sim::SimScene> scene;
+  ASSERT_NO_FATAL_FAILURE(MakeTake(take.path(), &scene));
+  processing::TexturesJob job;
+  job.take_dir = take.path();
+  job.calibration = "ground_truth";
+  job.options.size = 256;
+  ASSERT_TRUE(processing::RunTextures(job).ok());
+  const std::string frame = take.path() + "/derived/textures/frame-000000";
+  const std::string script = R"(
+import bpy, json, sys
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.wm.obj_import(filepath=sys.argv[-3])
+obj = bpy.context.selected_objects[0]
+me = obj.data
+uv = me.uv_layers.active
+albedo = bpy.data.images.load(sys.argv[-2])
+normal = bpy.data.images.load(sys.argv[-1])
+normal.colorspace_settings.name = "Non-Color"
+mat = bpy.data.materials.new("face")
+mat.use_nodes = True
+nodes, links = mat.node_tree.nodes, mat.node_tree.links
+base = nodes.new("ShaderNodeTexImage")
+base.image = albedo
+links.new(base.outputs["Color"], nodes["Principled BSDF"].inputs["Base Color"])
+obj.data.materials.append(mat)
+w, h = albedo.size
+px = albedo.pixels[:]
+def at(x, y):  # Blender's row y counts from the bottom
+    i = 4 * (y * w + x)
+    return px[i:i + 3]
+print("RESULT " + json.dumps({"vertices": len(me.vertices), "polygons": len(me.polygons),
+                              "uv_loops": len(uv.data) if uv else 0, "size": [w, h], "normal_size": list(normal.size),
+                              "bottom_left": at(60, 40), "top_right": at(200, 215)}))
+)";
+  const std::string mesh = take.path() + "/derived/fit/frame-000000/mesh.obj";
+  CommandResult blender = RunCommand({"/usr/bin/blender", "-b", "--factory-startup", "--python-expr", script, "--",
+                                      mesh, frame + "/albedo.exr", frame + "/normal_tangent.exr"},
+                                     std::chrono::seconds(300));
+  ASSERT_EQ(blender.exit.exit_code, 0) << blender.err << blender.out;
+  const size_t at = blender.out.find("RESULT ");
+  ASSERT_NE(at, std::string::npos) << blender.out << blender.err;
+  const nlohmann::json r = nlohmann::json::parse(blender.out.substr(at + 7, blender.out.find('\n', at) - at - 7));
+  auto face = processing::ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  std::printf("Blender: %s\n", r.dump().c_str());
+  EXPECT_EQ(r["vertices"], face->mesh.positions.size());
+  EXPECT_EQ(r["polygons"], face->mesh.triangles.size());
+  EXPECT_EQ(r["uv_loops"], 3 * face->mesh.triangles.size());
+  EXPECT_EQ(r["size"], nlohmann::json::array({256, 256}));
+  EXPECT_EQ(r["normal_size"], nlohmann::json::array({256, 256}));
+  auto albedo = processing::ReadImageFile(frame + "/albedo.exr");
+  ASSERT_TRUE(albedo.ok());
+  for (const auto& [key, x, y] : {std::tuple{"bottom_left", 60, 40}, {"top_right", 200, 215}}) {
+    for (int c = 0; c < 3; ++c) {
+      EXPECT_NEAR(r[key][c].get<double>(), albedo->at(x, 255 - y)[c], 1e-4) << key << " channel " << c;
+    }
   }
 }
 
