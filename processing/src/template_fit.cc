@@ -41,7 +41,7 @@ std::vector<Eigen::Vector3f> TriangleNormals(const TriangleMesh& m) {
 }
 
 // The surface's nearest points to `positions`; only where `use` and the surface's normal lies within the options'
-// angle of the template's (either winding: a reconstruction and the truth are wound differently).
+// angle of the template's (either winding: an OBJ does not say which side is out).
 Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::vector<uint8_t>& use,
                       const FaceTemplate& face, const SurfaceDistance& surface,
                       const std::vector<Eigen::Vector3f>& surface_normals, const TemplateFitOptions& options) {

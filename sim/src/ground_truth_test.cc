@@ -120,6 +120,9 @@ TEST(GroundTruthTest, TheHeadsUvMapLiesOnItsMeshAndThePoseIsRecorded) {
   for (int t = 0; t < 256 * 256; t += 37) {
     if (uv[4 * t + 3] == 0) continue;
     ++covered;
+    // The rows at the poles are each one point, where every triangle of the fan meets: a ray aimed at a vertex may
+    // pass between its triangles.
+    if (t / 256 == 0 || t / 256 == 255) continue;
     const Eigen::Vector3f p(uv[4 * t], uv[4 * t + 1], uv[4 * t + 2]);
     // A ray from outside towards the point meets the surface there (or in front of it: a fold may hide it).
     const Eigen::Vector3f from = p + 300 * (p - Eigen::Vector3f(0, 0, 0)).normalized();

@@ -842,9 +842,10 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
   auto at = [&](int i, int j) { return static_cast<int32_t>(j * (cols + 1) + i); };
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
-      // Outward-facing: u grows towards +x from the back (th = -pi) through the face, v upwards.
-      m.triangles.push_back({at(i, j), at(i, j + 1), at(i + 1, j)});
-      m.triangles.push_back({at(i + 1, j), at(i, j + 1), at(i + 1, j + 1)});
+      // Counter-clockwise seen from outside (outward normals; u grows towards +x from the back, th = -pi, through
+      // the face, v upwards).
+      m.triangles.push_back({at(i, j), at(i + 1, j), at(i, j + 1)});
+      m.triangles.push_back({at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)});
     }
   }
   m.parts.assign(m.triangles.size(), 0);
@@ -867,8 +868,8 @@ std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolu
     for (int j = 0; j < ec; ++j) {
       for (int i = 0; i < er; ++i) {
         const int32_t a = first + j * (er + 1) + i, b = a + er + 1;
-        m.triangles.push_back({a, a + 1, b});
-        m.triangles.push_back({a + 1, b + 1, b});
+        m.triangles.push_back({a, b, a + 1});  // counter-clockwise seen from outside
+        m.triangles.push_back({a + 1, b, b + 1});
         m.parts.push_back(1);
         m.parts.push_back(1);
       }
