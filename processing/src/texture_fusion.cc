@@ -3,9 +3,11 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "gap_fill.h"
@@ -36,13 +38,19 @@ absl::Status CheckMap(const FusionView& view, const Image& map, const char* name
 // pixel is not usable).
 struct PreparedView {
   const FusionView* view = nullptr;
-  std::vector<float> depth;    // camera z of the mesh's first surface, mm
-  std::vector<float> feather;  // 0..1
+  Eigen::Vector3f centre = Eigen::Vector3f::Zero();  // the camera's, stage frame
+  Eigen::Vector3f axis = Eigen::Vector3f::UnitZ();   // its optical axis
+  float cos_max = 0;                                 // of the options' largest view angle
+  std::vector<float> depth;                          // camera z of the mesh's first surface, mm
+  std::vector<float> feather;                        // 0..1
 };
 
 PreparedView Prepare(const FusionView& view, const TriangleMesh& mesh, const FusionOptions& o) {
   PreparedView p;
   p.view = &view;
+  p.centre = view.camera.position().cast<float>();
+  p.axis = view.camera.optical_axis().cast<float>();
+  p.cos_max = static_cast<float>(std::cos(o.max_view_angle_deg * M_PI / 180));
   p.depth = DepthBuffer(mesh, view.camera);
   const int w = view.camera.width(), h = view.camera.height();
   cv::Mat usable(h, w, CV_8U, cv::Scalar(0));
@@ -83,27 +91,44 @@ PreparedView Prepare(const FusionView& view, const TriangleMesh& mesh, const Fus
   return p;
 }
 
-// The map's value at (x, y) interpolated bilinearly over the four nearest pixels that `use` accepts; false if none
-// does.
+// The bilinear taps at (x, y) over the four nearest pixels that `use` accepts, their weights summing to 1: where a
+// map is sampled (the same taps serve every map of a view).
+struct Taps {
+  size_t pixel[4];
+  float weight[4];
+  int n = 0;
+
+  // The value of `map` (channels interleaved) at the taps.
+  void Apply(const Image& map, float* out) const {
+    const auto c = static_cast<size_t>(map.channels);
+    std::fill(out, out + c, 0.0f);
+    for (int k = 0; k < n; ++k) {
+      const float* v = &map.pixels[pixel[k] * c];
+      for (size_t i = 0; i < c; ++i) out[i] += weight[k] * v[i];
+    }
+  }
+};
+
 template <typename Use>
-bool Sample(const Image& map, double x, double y, Use use, float* out) {
+bool MakeTaps(int width, int height, double x, double y, Use use, Taps* taps) {
   const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
   const float fx = static_cast<float>(x - x0), fy = static_cast<float>(y - y0);
-  float weight = 0;
-  std::fill(out, out + map.channels, 0.0f);
+  float total = 0;
+  taps->n = 0;
   for (int j = 0; j < 2; ++j) {
     for (int i = 0; i < 2; ++i) {
       const int px = x0 + i, py = y0 + j;
-      if (px < 0 || py < 0 || px >= map.width || py >= map.height || !use(px, py)) continue;
+      if (px < 0 || py < 0 || px >= width || py >= height) continue;
       const float wgt = (i ? fx : 1 - fx) * (j ? fy : 1 - fy);
-      if (wgt <= 0) continue;
-      const float* v = map.at(px, py);
-      for (int c = 0; c < map.channels; ++c) out[c] += wgt * v[c];
-      weight += wgt;
+      const size_t pixel = static_cast<size_t>(py) * width + px;
+      if (wgt <= 0 || !use(pixel)) continue;
+      taps->pixel[taps->n] = pixel;
+      taps->weight[taps->n++] = wgt;
+      total += wgt;
     }
   }
-  if (weight <= 0) return false;
-  for (int c = 0; c < map.channels; ++c) out[c] /= weight;
+  if (total <= 0) return false;
+  for (int k = 0; k < taps->n; ++k) taps->weight[k] /= total;
   return true;
 }
 
@@ -136,17 +161,19 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
   const size_t pixel = static_cast<size_t>(iy) * w + ix;
   const float feather = pv.feather[pixel];
   if (feather <= 0) return false;
-  const Eigen::Vector3f to_camera = cam.position().cast<float>() - p;
+  const Eigen::Vector3f to_camera = pv.centre - p;
   const float cos_view = n.dot(to_camera.normalized());
-  if (cos_view <= static_cast<float>(std::cos(o.max_view_angle_deg * M_PI / 180))) return false;
-  const float z = (cam.rotation().cast<float>() * -to_camera).z();
+  if (cos_view <= pv.cos_max) return false;
+  const float z = -pv.axis.dot(to_camera);
   if (z > pv.depth[pixel] + static_cast<float>(o.occlusion_mm)) return false;  // something nearer hides it
-  auto usable = [&](int x, int y) { return pv.feather[static_cast<size_t>(y) * w + x] > 0; };
-  float albedo[3], normal[3], confidence = 1;
-  if (!Sample(v.albedo, px.x(), px.y(), usable, albedo) || !Sample(v.diffuse_normal, px.x(), px.y(), usable, normal)) {
+  Taps taps;
+  if (!MakeTaps(
+          w, h, px.x(), px.y(), [&](size_t i) { return pv.feather[i] > 0; }, &taps))
     return false;
-  }
-  if (v.confidence.width > 0) Sample(v.confidence, px.x(), px.y(), usable, &confidence);
+  float albedo[3], normal[3], confidence = 1;
+  taps.Apply(v.albedo, albedo);
+  taps.Apply(v.diffuse_normal, normal);
+  if (v.confidence.width > 0) taps.Apply(v.confidence, &confidence);
   const float weight = cos_view * cos_view * std::clamp(confidence, 0.0f, 1.0f) * feather;
   if (weight <= 0) return false;
   for (int c = 0; c < 3; ++c) {
@@ -155,16 +182,22 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
   }
   acc->weight[t] += weight;
   float value[3];
-  if (v.specular.width > 0 && Sample(v.specular, px.x(), px.y(), usable, value)) {
+  if (v.specular.width > 0) {
+    taps.Apply(v.specular, value);
     acc->specular[t] += weight * value[0];
     acc->spec_weight[t] += weight;
   }
-  if (v.roughness.width > 0 && Sample(v.roughness, px.x(), px.y(), usable, value)) {
+  if (v.roughness.width > 0) {
+    taps.Apply(v.roughness, value);
     acc->roughness[t] += weight * value[0];
     acc->rough_weight[t] += weight;
   }
-  auto solved = [&](int x, int y) { return usable(x, y) && Solved(v.specular_normal.at(x, y)); };
-  if (v.specular_normal.width > 0 && Sample(v.specular_normal, px.x(), px.y(), solved, value)) {
+  Taps solved;
+  if (v.specular_normal.width > 0 &&
+      MakeTaps(
+          w, h, px.x(), px.y(), [&](size_t i) { return pv.feather[i] > 0 && Solved(&v.specular_normal.pixels[3 * i]); },
+          &solved)) {
+    solved.Apply(v.specular_normal, value);
     for (int c = 0; c < 3; ++c) acc->spec_normal[3 * t + c] += weight * value[c];
     acc->spec_normal_weight[t] += weight;
   }
@@ -224,28 +257,39 @@ void Dilate(Image* image, int passes, bool unit) {
   }
 }
 
-// Normals (stage frame, per texel; NaN where empty, as wherever no triangle covers the texel) in the head's frame and
-// in each texel's tangent frame; NaN where empty.
-void ExpressNormals(const Image& stage_normals, const std::vector<UvTexel>& texels, const TriangleMesh& mesh,
-                    const std::vector<Eigen::Vector3f>& vertex_normals, const std::vector<Eigen::Vector4f>& tangents,
-                    const Eigen::Matrix3f& head_from_stage, Image* object, Image* tangent) {
-  const int size = stage_normals.width;
-  *object = Image(size, size, 3);
-  *tangent = Image(size, size, 3);
-  for (size_t t = 0; t < texels.size(); ++t) {
-    const float* s = &stage_normals.pixels[3 * t];
-    if (s[0] != s[0]) {
-      for (int c = 0; c < 3; ++c) object->pixels[3 * t + c] = tangent->pixels[3 * t + c] = kNaN;
-      continue;
+// Normals (stage frame, per texel; NaN where empty, as wherever no triangle covers the texel: the diffuse and the
+// specular) in the head's frame and in each texel's tangent frame (computed once for both); NaN where empty.
+struct ExpressedNormals {
+  Image object, tangent;
+};
+void ExpressNormals(const std::vector<const Image*>& stage_normals, const std::vector<UvTexel>& texels,
+                    const TriangleMesh& mesh, const std::vector<Eigen::Vector3f>& vertex_normals,
+                    const std::vector<Eigen::Vector4f>& tangents, const Eigen::Matrix3f& head_from_stage,
+                    const std::vector<ExpressedNormals*>& out) {
+  const int size = stage_normals[0]->width;
+  for (ExpressedNormals* e : out) e->object = e->tangent = Image(size, size, 3);
+  internal::ParallelRows(size, 0, [&](int y0, int y1) {
+    for (size_t t = static_cast<size_t>(y0) * size; t < static_cast<size_t>(y1) * size; ++t) {
+      std::optional<Eigen::Matrix3f> frame;
+      for (size_t k = 0; k < stage_normals.size(); ++k) {
+        const float* s = &stage_normals[k]->pixels[3 * t];
+        float* object = &out[k]->object.pixels[3 * t];
+        float* tangent = &out[k]->tangent.pixels[3 * t];
+        if (s[0] != s[0]) {
+          std::fill_n(object, 3, kNaN);
+          std::fill_n(tangent, 3, kNaN);
+          continue;
+        }
+        if (!frame) frame = TexelFrame(mesh, texels[t], vertex_normals, tangents).transpose();
+        const Eigen::Vector3f n(s[0], s[1], s[2]);
+        const Eigen::Vector3f o = head_from_stage * n, ts = *frame * n;
+        for (int c = 0; c < 3; ++c) {
+          object[c] = o[c];
+          tangent[c] = ts[c];
+        }
+      }
     }
-    const Eigen::Vector3f n(s[0], s[1], s[2]);
-    const Eigen::Vector3f o = head_from_stage * n;
-    const Eigen::Vector3f ts = TexelFrame(mesh, texels[t], vertex_normals, tangents).transpose() * n;
-    for (int c = 0; c < 3; ++c) {
-      object->pixels[3 * t + c] = o[c];
-      tangent->pixels[3 * t + c] = ts[c];
-    }
-  }
+  });
 }
 
 // +1 if the mesh's normals (its winding) point the way the views' normals do, -1 if they point into the surface: a
@@ -417,22 +461,36 @@ absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen
   FusedTextures out;
   out.size = size;
   for (auto& c : counts) out.texels_per_view.push_back(c.load());
-  out.albedo = Mean(acc.albedo, acc.weight, size, 3, false);
-  out.specular = Mean(acc.specular, acc.spec_weight, size, 1, false);
-  out.roughness = Mean(acc.roughness, acc.rough_weight, size, 1, false);
-  Image normal = Mean(acc.normal, acc.weight, size, 3, true);
-  Image spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true);
+  Image normal, spec_normal;
+  {
+    // The means, then (below) the dilations, one texture per thread.
+    const std::vector<std::function<void()>> means = {
+        [&] { out.albedo = Mean(acc.albedo, acc.weight, size, 3, false); },
+        [&] { out.specular = Mean(acc.specular, acc.spec_weight, size, 1, false); },
+        [&] { out.roughness = Mean(acc.roughness, acc.rough_weight, size, 1, false); },
+        [&] { normal = Mean(acc.normal, acc.weight, size, 3, true); },
+        [&] { spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true); }};
+    internal::ParallelItems(static_cast<int>(means.size()), 0, [&](int i) { means[static_cast<size_t>(i)](); });
+  }
   // The normals in the head's frame and in tangent space where views saw the surface, then every texture grown past
   // the covered texels (a grown texel has no frame of its own: its tangent-space normal is its neighbours' mean).
-  const Eigen::Matrix3f rotation = head_from_stage.linear();
-  ExpressNormals(normal, texels, mesh, vertex_normals, tangents, rotation, &out.normal_object, &out.normal_tangent);
-  ExpressNormals(spec_normal, texels, mesh, vertex_normals, tangents, rotation, &out.specular_normal_object,
-                 &out.specular_normal_tangent);
-  for (Image* image : {&out.albedo, &out.specular, &out.roughness}) Dilate(image, options.dilation_px, false);
-  for (Image* image :
-       {&out.normal_object, &out.normal_tangent, &out.specular_normal_object, &out.specular_normal_tangent}) {
-    Dilate(image, options.dilation_px, true);
-  }
+  ExpressedNormals diffuse, specular;
+  ExpressNormals({&normal, &spec_normal}, texels, mesh, vertex_normals, tangents, head_from_stage.linear(),
+                 {&diffuse, &specular});
+  out.normal_object = std::move(diffuse.object);
+  out.normal_tangent = std::move(diffuse.tangent);
+  out.specular_normal_object = std::move(specular.object);
+  out.specular_normal_tangent = std::move(specular.tangent);
+  const std::vector<std::pair<Image*, bool>> grown = {{&out.albedo, false},
+                                                      {&out.specular, false},
+                                                      {&out.roughness, false},
+                                                      {&out.normal_object, true},
+                                                      {&out.normal_tangent, true},
+                                                      {&out.specular_normal_object, true},
+                                                      {&out.specular_normal_tangent, true}};
+  internal::ParallelItems(static_cast<int>(grown.size()), 0, [&](int i) {
+    Dilate(grown[static_cast<size_t>(i)].first, options.dilation_px, grown[static_cast<size_t>(i)].second);
+  });
   out.state.assign(texels.size(), TexelState::kEmpty);
   for (size_t t = 0; t < texels.size(); ++t) {
     if (acc.weight[t] > 0) {
