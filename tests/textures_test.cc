@@ -18,6 +18,7 @@
 #include "stage/common/uv_raster.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/map_files.h"
+#include "stage/processing/template_fit.h"
 #include "stage/processing/texture_fusion.h"
 #include "stage/sim/ground_truth.h"
 #include "stage/sim/scene.h"
@@ -59,18 +60,11 @@ void MakeTake(const std::string& dir, std::shared_ptr<const sim::SimScene>* scen
   auto face = processing::ShippedFaceTemplate();
   ASSERT_TRUE(face.ok());
   const sim::HeadPose pose = (*scene)->PoseAt(0);
-  auto truth_map =
-      processing::MakeGeometryMap((*scene)->head()->PosedMesh(pose), Eigen::Isometry3f::Identity(), {.size = 2048});
-  ASSERT_TRUE(truth_map.ok());
-  TriangleMesh placed = face->mesh;
-  for (size_t v = 0; v < placed.positions.size(); ++v) {
-    auto p = processing::SampleGeometryMap(*truth_map, face->HeadLayoutUv(placed.uvs[v]));
-    ASSERT_TRUE(p.has_value());
-    placed.positions[v] = *p;
-  }
+  auto placed = processing::TemplateOnTruth(*face, (*scene)->head()->PosedMesh(pose));
+  ASSERT_TRUE(placed.ok()) << placed.status();
   const std::string fit = dir + "/derived/fit/frame-000000";
   fs::create_directories(fit);
-  ASSERT_TRUE(WriteObj(fit + "/mesh.obj", placed).ok());
+  ASSERT_TRUE(WriteObj(fit + "/mesh.obj", *placed).ok());
   std::ofstream(fit + "/pose.json") << R"({"frame": 0, "stage_from_head": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]})";
 }
 

@@ -136,7 +136,7 @@ absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir) {
 absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::string& take_dir,
                                                                     const std::string& spec) {
   if (spec.empty()) return std::optional<CameraCalibration>();
-  std::string path = fs::path(spec).is_absolute() ? spec : take_dir + "/" + spec;
+  std::string path = PathInTake(take_dir, spec);
   if (fs::is_directory(path)) path += "/cameras.json";
   auto calibration = ReadCameraCalibration(path);
   if (!calibration.ok()) return calibration.status();
@@ -178,9 +178,12 @@ std::string GeometrySpec::RelativeDir() const {
   return fs::path(source == GeometrySource::kMvs ? "derived/mvs" : dir).lexically_normal().string();
 }
 
-std::string GeometrySpec::Root(const std::string& take_dir) const {
-  const std::string rel = RelativeDir();
-  return rel.empty() || fs::path(rel).is_absolute() ? rel : take_dir + "/" + rel;
+std::string GeometrySpec::Root(const std::string& take_dir) const { return PathInTake(take_dir, RelativeDir()); }
+
+std::string PathInTake(const std::string& take_dir, const std::string& path, const std::string& fallback) {
+  const std::string& p = path.empty() ? fallback : path;
+  if (p.empty()) return "";
+  return fs::path(p).is_absolute() ? p : take_dir + "/" + p;
 }
 
 absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,

@@ -37,5 +37,12 @@ TEST(GeometrySpecTest, ADirectoryWithoutAPathOrAPathWithoutADirectoryIsRefused) 
   EXPECT_EQ(RunPhotometric(job).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(PathInTakeTest, RelativePathsAreUnderTheTakeAbsoluteOnesAreThemselves) {
+  EXPECT_EQ(PathInTake("/t", "derived/x"), "/t/derived/x");
+  EXPECT_EQ(PathInTake("/t", "/elsewhere/x", "derived/y"), "/elsewhere/x");
+  EXPECT_EQ(PathInTake("/t", "", "derived/y"), "/t/derived/y");
+  EXPECT_EQ(PathInTake("/t", ""), "");
+}
+
 }  // namespace
 }  // namespace stage::processing

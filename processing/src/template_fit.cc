@@ -295,6 +295,20 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
   return fit;
 }
 
+absl::StatusOr<TriangleMesh> TemplateOnTruth(const FaceTemplate& face, const TriangleMesh& truth) {
+  STAGE_ASSIGN_OR_RETURN(const GeometryMap map, MakeGeometryMap(truth, Eigen::Isometry3f::Identity(), {.size = 2048}));
+  TriangleMesh placed = face.mesh;
+  for (size_t v = 0; v < placed.positions.size(); ++v) {
+    const std::optional<Eigen::Vector3f> p = SampleGeometryMap(map, face.HeadLayoutUv(placed.uvs[v]));
+    if (!p) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("template on truth: the truth's layout does not cover template vertex ", v));
+    }
+    placed.positions[v] = *p;
+  }
+  return placed;
+}
+
 absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const TemplateFit& fit, const TriangleMesh& truth) {
   if (fit.positions.size() != face.mesh.positions.size()) {
     return absl::InvalidArgumentError("evaluate fit: the fit is not of this template");

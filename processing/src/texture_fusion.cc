@@ -409,9 +409,9 @@ std::vector<float> DepthBuffer(const TriangleMesh& mesh, const CameraModel& came
   return depth;
 }
 
-absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen::Isometry3f& head_from_stage,
-                                           const std::vector<FusionView>& views, const FusionOptions& options) {
-  STAGE_RETURN_IF_ERROR(options.Validate());
+namespace {
+
+absl::Status CheckInputs(const TriangleMesh& mesh, const std::vector<FusionView>& views) {
   if (mesh.uvs.size() != mesh.positions.size()) {
     return absl::InvalidArgumentError("texture fusion: the mesh has no texture coordinate per vertex");
   }
@@ -423,84 +423,118 @@ absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen
     STAGE_RETURN_IF_ERROR(CheckMap(v, v.specular_normal, "specular normal", 3, false));
     STAGE_RETURN_IF_ERROR(CheckMap(v, v.confidence, "confidence", 1, false));
   }
-  std::vector<PreparedView> prepared(views.size());
-  internal::ParallelItems(static_cast<int>(views.size()), 0,
-                          [&](int i) { prepared[static_cast<size_t>(i)] = Prepare(views[i], mesh, options); });
+  return absl::OkStatus();
+}
 
-  const int size = options.size;
-  const std::vector<UvTexel> texels = RasterizeUv(mesh, size, options.part);
-  std::vector<Eigen::Vector3f> vertex_normals = mesh.VertexNormals();
+// The surface at every texel of the layout: where it is and its (outward-turned) normal, and per vertex the normals
+// and tangent frames.
+struct TexelSurface {
+  std::vector<UvTexel> texels;
+  std::vector<Eigen::Vector3f> points, normals;
+  std::vector<Eigen::Vector3f> vertex_normals;
+  std::vector<Eigen::Vector4f> tangents;
+};
+
+TexelSurface SurfaceAtTexels(const TriangleMesh& mesh, const std::vector<PreparedView>& prepared,
+                             const FusionOptions& options) {
+  TexelSurface s;
+  s.texels = RasterizeUv(mesh, options.size, options.part);
+  s.vertex_normals = mesh.VertexNormals();
   const Eigen::Vector3f none(kNaN, kNaN, kNaN);
-  const std::vector<Eigen::Vector3f> points = InterpolateAtTexels(mesh, texels, mesh.positions, none);
-  std::vector<Eigen::Vector3f> normals = InterpolateAtTexels(mesh, texels, vertex_normals, none);
+  s.points = InterpolateAtTexels(mesh, s.texels, mesh.positions, none);
+  s.normals = InterpolateAtTexels(mesh, s.texels, s.vertex_normals, none);
   // Meshes come wound either way (the OBJ format does not say which side is out): the normals are turned to face
   // where the views' normals do.
-  if (Orientation(texels, points, normals, prepared, options) < 0) {
-    for (auto& n : vertex_normals) n = -n;
-    for (auto& n : normals) n = -n;
+  if (Orientation(s.texels, s.points, s.normals, prepared, options) < 0) {
+    for (auto& n : s.vertex_normals) n = -n;
+    for (auto& n : s.normals) n = -n;
   }
-  const std::vector<Eigen::Vector4f> tangents = VertexTangents(mesh, vertex_normals);
+  s.tangents = VertexTangents(mesh, s.vertex_normals);
+  return s;
+}
 
-  Accumulator acc(texels.size());
-  std::vector<std::atomic<int64_t>> counts(views.size());
+// Every view's weighted samples summed at every texel; the texels each view saw into `counts`.
+Accumulator Accumulate(const TexelSurface& s, const std::vector<PreparedView>& prepared, const FusionOptions& options,
+                       std::vector<int64_t>* counts) {
+  const int size = options.size;
+  Accumulator acc(s.texels.size());
+  std::vector<std::atomic<int64_t>> seen(prepared.size());
   internal::ParallelRows(size, 0, [&](int y0, int y1) {
-    std::vector<int64_t> local(views.size(), 0);
+    std::vector<int64_t> local(prepared.size(), 0);
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < size; ++x) {
         const size_t t = static_cast<size_t>(y) * size + x;
-        if (!texels[t].covered()) continue;
-        const Eigen::Vector3f n = normals[t].normalized();
+        if (!s.texels[t].covered()) continue;
+        const Eigen::Vector3f n = s.normals[t].normalized();
         for (size_t v = 0; v < prepared.size(); ++v) {
-          if (AddView(prepared[v], options, points[t], n, t, &acc)) ++local[v];
+          if (AddView(prepared[v], options, s.points[t], n, t, &acc)) ++local[v];
         }
       }
     }
-    for (size_t v = 0; v < views.size(); ++v) counts[v] += local[v];
+    for (size_t v = 0; v < prepared.size(); ++v) seen[v] += local[v];
   });
+  counts->clear();
+  for (auto& c : seen) counts->push_back(c.load());
+  return acc;
+}
 
-  FusedTextures out;
-  out.size = size;
-  for (auto& c : counts) out.texels_per_view.push_back(c.load());
+// The sums' means as textures: normals in the head's frame and in tangent space where views saw the surface, then
+// every texture grown past the covered texels (a grown texel has no frame of its own: its tangent-space normal is its
+// neighbours' mean).
+void MakeTextures(const Accumulator& acc, const TexelSurface& s, const TriangleMesh& mesh,
+                  const Eigen::Isometry3f& head_from_stage, const FusionOptions& options, FusedTextures* out) {
+  const int size = options.size;
+  out->size = size;
   Image normal, spec_normal;
-  {
-    // The means, then (below) the dilations, one texture per thread.
-    const std::vector<std::function<void()>> means = {
-        [&] { out.albedo = Mean(acc.albedo, acc.weight, size, 3, false); },
-        [&] { out.specular = Mean(acc.specular, acc.spec_weight, size, 1, false); },
-        [&] { out.roughness = Mean(acc.roughness, acc.rough_weight, size, 1, false); },
-        [&] { normal = Mean(acc.normal, acc.weight, size, 3, true); },
-        [&] { spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true); }};
-    internal::ParallelItems(static_cast<int>(means.size()), 0, [&](int i) { means[static_cast<size_t>(i)](); });
-  }
-  // The normals in the head's frame and in tangent space where views saw the surface, then every texture grown past
-  // the covered texels (a grown texel has no frame of its own: its tangent-space normal is its neighbours' mean).
+  const std::vector<std::function<void()>> means = {
+      [&] { out->albedo = Mean(acc.albedo, acc.weight, size, 3, false); },
+      [&] { out->specular = Mean(acc.specular, acc.spec_weight, size, 1, false); },
+      [&] { out->roughness = Mean(acc.roughness, acc.rough_weight, size, 1, false); },
+      [&] { normal = Mean(acc.normal, acc.weight, size, 3, true); },
+      [&] { spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true); }};
+  internal::ParallelItems(static_cast<int>(means.size()), 0, [&](int i) { means[static_cast<size_t>(i)](); });
   ExpressedNormals diffuse, specular;
-  ExpressNormals({&normal, &spec_normal}, texels, mesh, vertex_normals, tangents, head_from_stage.linear(),
+  ExpressNormals({&normal, &spec_normal}, s.texels, mesh, s.vertex_normals, s.tangents, head_from_stage.linear(),
                  {&diffuse, &specular});
-  out.normal_object = std::move(diffuse.object);
-  out.normal_tangent = std::move(diffuse.tangent);
-  out.specular_normal_object = std::move(specular.object);
-  out.specular_normal_tangent = std::move(specular.tangent);
-  const std::vector<std::pair<Image*, bool>> grown = {{&out.albedo, false},
-                                                      {&out.specular, false},
-                                                      {&out.roughness, false},
-                                                      {&out.normal_object, true},
-                                                      {&out.normal_tangent, true},
-                                                      {&out.specular_normal_object, true},
-                                                      {&out.specular_normal_tangent, true}};
+  out->normal_object = std::move(diffuse.object);
+  out->normal_tangent = std::move(diffuse.tangent);
+  out->specular_normal_object = std::move(specular.object);
+  out->specular_normal_tangent = std::move(specular.tangent);
+  const std::vector<std::pair<Image*, bool>> grown = {{&out->albedo, false},
+                                                      {&out->specular, false},
+                                                      {&out->roughness, false},
+                                                      {&out->normal_object, true},
+                                                      {&out->normal_tangent, true},
+                                                      {&out->specular_normal_object, true},
+                                                      {&out->specular_normal_tangent, true}};
   internal::ParallelItems(static_cast<int>(grown.size()), 0, [&](int i) {
     Dilate(grown[static_cast<size_t>(i)].first, options.dilation_px, grown[static_cast<size_t>(i)].second);
   });
-  out.state.assign(texels.size(), TexelState::kEmpty);
-  for (size_t t = 0; t < texels.size(); ++t) {
+  out->state.assign(s.texels.size(), TexelState::kEmpty);
+  for (size_t t = 0; t < s.texels.size(); ++t) {
     if (acc.weight[t] > 0) {
-      out.state[t] = TexelState::kCovered;
-    } else if (Solved(&out.normal_object.pixels[3 * t])) {
-      out.state[t] = TexelState::kDilated;
+      out->state[t] = TexelState::kCovered;
+    } else if (Solved(&out->normal_object.pixels[3 * t])) {
+      out->state[t] = TexelState::kDilated;
     }
   }
-  out.weight = Image(size, size, 1);
-  out.weight.pixels = acc.weight;
+  out->weight = Image(size, size, 1);
+  out->weight.pixels = acc.weight;
+}
+
+}  // namespace
+
+absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen::Isometry3f& head_from_stage,
+                                           const std::vector<FusionView>& views, const FusionOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  STAGE_RETURN_IF_ERROR(CheckInputs(mesh, views));
+  std::vector<PreparedView> prepared(views.size());
+  internal::ParallelItems(static_cast<int>(views.size()), 0,
+                          [&](int i) { prepared[static_cast<size_t>(i)] = Prepare(views[i], mesh, options); });
+  const TexelSurface surface = SurfaceAtTexels(mesh, prepared, options);
+  FusedTextures out;
+  const Accumulator acc = Accumulate(surface, prepared, options, &out.texels_per_view);
+  MakeTextures(acc, surface, mesh, head_from_stage, options, &out);
   return out;
 }
 

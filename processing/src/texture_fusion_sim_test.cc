@@ -10,8 +10,8 @@
 #include "stage/common/uv_raster.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/map_files.h"
+#include "stage/processing/template_fit.h"
 #include "stage/processing/texture_fusion.h"
-#include "stage/processing/uv_geometry.h"
 #include "stage/sim/ground_truth.h"
 #include "stage/sim/scene.h"
 
@@ -31,14 +31,8 @@ TEST(TextureFusionSimTest, TheTrueMapsOfTheThreeViewsFuseIntoTheHeadsTextures) {
   const sim::HeadPose pose = (*scene)->PoseAt(0);
 
   // The template exactly on the true surface: every vertex where the head's layout puts its skin point.
-  auto truth_map = MakeGeometryMap(head.PosedMesh(pose), Eigen::Isometry3f::Identity(), {.size = 2048});
-  ASSERT_TRUE(truth_map.ok()) << truth_map.status();
-  TriangleMesh placed = face->mesh;
-  for (size_t v = 0; v < placed.positions.size(); ++v) {
-    auto p = SampleGeometryMap(*truth_map, face->HeadLayoutUv(placed.uvs[v]));
-    ASSERT_TRUE(p.has_value()) << v;
-    placed.positions[v] = *p;
-  }
+  auto placed = TemplateOnTruth(*face, head.PosedMesh(pose));
+  ASSERT_TRUE(placed.ok()) << placed.status();
 
   const std::string dir = ::testing::TempDir() + "/fusion-truth";
   const std::vector<std::string> ids = {"hs-1", "hs-2", "hs-3"};
@@ -62,7 +56,7 @@ TEST(TextureFusionSimTest, TheTrueMapsOfTheThreeViewsFuseIntoTheHeadsTextures) {
   }
   FusionOptions options;
   options.size = 512;
-  auto fused = FuseTextures(placed, Eigen::Isometry3f::Identity(), views, options);
+  auto fused = FuseTextures(*placed, Eigen::Isometry3f::Identity(), views, options);
   ASSERT_TRUE(fused.ok()) << fused.status();
 
   std::vector<double> albedo_error, specular_error, roughness_error;

@@ -268,5 +268,21 @@ TEST(TextureFusionTest, RefusesBadOptionsAMeshWithoutUvsAndMapsOfTheWrongSize) {
               HasSubstr("view centre: the albedo map is 10 x 10 x 3, not 320 x 240 x 3"));
 }
 
+TEST(TextureFusionTest, AJobNamesItsTakeFramesAndCameras) {
+  TexturesJob job;
+  EXPECT_THAT(std::string(job.Validate().message()), HasSubstr("no take directory"));
+  job.take_dir = "/nonexistent-take";
+  EXPECT_TRUE(job.Validate().ok());
+  job.first_frame = 4;
+  job.last_frame = 4;
+  EXPECT_THAT(std::string(job.Validate().message()), HasSubstr("[4, 4) hold none"));
+  job.last_frame = -1;
+  job.cameras = {"hs-1", ""};
+  EXPECT_THAT(std::string(job.Validate().message()), HasSubstr("empty camera id"));
+  job.cameras = {"hs-1"};
+  job.options.size = 8;
+  EXPECT_THAT(std::string(RunTextures(job).status().message()), HasSubstr("size"));
+}
+
 }  // namespace
 }  // namespace stage::processing

@@ -18,11 +18,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-std::string Under(const std::string& take_dir, const std::string& dir, const std::string& fallback) {
-  if (dir.empty()) return take_dir + "/" + fallback;
-  return fs::path(dir).is_absolute() ? dir : take_dir + "/" + dir;
-}
-
 // The fit's stage_from_head of a frame (its pose.json), as head_from_stage.
 absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file) {
   std::ifstream in(pose_file);
@@ -112,25 +107,74 @@ std::vector<std::string> CamerasIn(const std::string& frame_dir) {
   return ids;
 }
 
-}  // namespace
-
-absl::StatusOr<JobResult> RunTextures(const TexturesJob& job, const std::function<void(const JobProgress&)>& progress,
-                                      const std::function<bool()>& cancelled) {
-  STAGE_RETURN_IF_ERROR(job.options.Validate());
-  const std::string fit = Under(job.take_dir, job.fit_dir, "derived/fit");
-  const std::string maps = Under(job.take_dir, job.photometric_dir, "derived/photometric");
-  if (!fs::is_directory(fit)) return absl::NotFoundError(absl::StrCat(fit, ": no fit (run the fit stage first)"));
-  if (!fs::is_directory(maps)) {
-    return absl::NotFoundError(absl::StrCat(maps, ": no photometric maps (run the photometric stage first)"));
-  }
+// The frames the job covers: [first_frame, last); an open range ends at the fit's first missing frame.
+absl::StatusOr<int64_t> LastFrame(const TexturesJob& job, const std::string& fit) {
   int64_t last = job.last_frame;
   if (last < 0) {
     last = job.first_frame;
     while (fs::exists(FrameDir(fit, last) + "/mesh.obj")) ++last;
   }
-  if (job.first_frame < 0 || last <= job.first_frame) {
+  if (last <= job.first_frame) {
     return absl::InvalidArgumentError(absl::StrCat(fit, ": no fitted frames [", job.first_frame, ", ", last, ")"));
   }
+  return last;
+}
+
+// Fuses one frame's views and writes its textures.
+absl::Status FuseFrame(const TexturesJob& job, const LoadedRig& rig, const CameraCalibration* calibration,
+                       const std::string& fit, const std::string& maps, const std::vector<std::string>& cameras,
+                       int64_t frame, const std::string& output_dir) {
+  STAGE_ASSIGN_OR_RETURN(const TriangleMesh mesh, ReadObj(FrameDir(fit, frame) + "/mesh.obj"));
+  STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(FrameDir(fit, frame) + "/pose.json"));
+  std::vector<FusionView> views;
+  for (const std::string& id : cameras) {
+    auto view = LoadView(rig, calibration, UnitDir(maps, frame, id), id);
+    if (!view.ok()) return view.status();
+    views.push_back(*std::move(view));
+  }
+  auto fused = FuseTextures(mesh, head_from_stage, views, job.options);
+  if (!fused.ok()) {
+    return absl::Status(fused.status().code(),
+                        absl::StrCat(job.take_dir, ": frame ", frame, ": ", fused.status().message()));
+  }
+  const std::vector<std::pair<std::string, const Image*>> files = {
+      {"albedo", &fused->albedo},
+      {"specular", &fused->specular},
+      {"roughness", &fused->roughness},
+      {"normal_object", &fused->normal_object},
+      {"normal_tangent", &fused->normal_tangent},
+      {"specular_normal_object", &fused->specular_normal_object},
+      {"specular_normal_tangent", &fused->specular_normal_tangent},
+      {"weight", &fused->weight}};
+  return WriteTextureFiles(FrameDir(output_dir, frame), files, MetricsJson(frame, *fused, views),
+                           absl::StrFormat("frame %d: %d views fused", frame, views.size()));
+}
+
+}  // namespace
+
+absl::Status TexturesJob::Validate() const {
+  if (take_dir.empty()) return absl::InvalidArgumentError("textures: no take directory");
+  if (first_frame < 0) return absl::InvalidArgumentError(absl::StrCat("textures: first frame ", first_frame, " < 0"));
+  if (last_frame >= 0 && last_frame <= first_frame) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("textures: the frames [", first_frame, ", ", last_frame, ") hold none"));
+  }
+  for (const std::string& id : cameras) {
+    if (id.empty()) return absl::InvalidArgumentError("textures: an empty camera id");
+  }
+  return options.Validate();
+}
+
+absl::StatusOr<JobResult> RunTextures(const TexturesJob& job, const std::function<void(const JobProgress&)>& progress,
+                                      const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  const std::string fit = PathInTake(job.take_dir, job.fit_dir, "derived/fit");
+  const std::string maps = PathInTake(job.take_dir, job.photometric_dir, "derived/photometric");
+  if (!fs::is_directory(fit)) return absl::NotFoundError(absl::StrCat(fit, ": no fit (run the fit stage first)"));
+  if (!fs::is_directory(maps)) {
+    return absl::NotFoundError(absl::StrCat(maps, ": no photometric maps (run the photometric stage first)"));
+  }
+  STAGE_ASSIGN_OR_RETURN(const int64_t last, LastFrame(job, fit));
   const std::vector<std::string> cameras =
       job.cameras.empty() ? CamerasIn(FrameDir(maps, job.first_frame)) : job.cameras;
   if (cameras.empty()) {
@@ -140,7 +184,7 @@ absl::StatusOr<JobResult> RunTextures(const TexturesJob& job, const std::functio
   STAGE_ASSIGN_OR_RETURN(const std::optional<CameraCalibration> calibration,
                          LoadJobCalibration(job.take_dir, job.calibration));
   JobResult result;
-  result.output_dir = Under(job.take_dir, job.output_dir, "derived/textures");
+  result.output_dir = PathInTake(job.take_dir, job.output_dir, "derived/textures");
   JobProgress p{0, last - job.first_frame,
                 absl::StrCat("texture fusion: ", last - job.first_frame, " frame(s) of ", cameras.size(), " view(s)")};
   if (progress) progress(p);
@@ -149,34 +193,12 @@ absl::StatusOr<JobResult> RunTextures(const TexturesJob& job, const std::functio
       return absl::CancelledError(
           absl::StrCat("texture fusion on ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
     }
-    STAGE_ASSIGN_OR_RETURN(const TriangleMesh mesh, ReadObj(FrameDir(fit, frame) + "/mesh.obj"));
-    STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(FrameDir(fit, frame) + "/pose.json"));
-    std::vector<FusionView> views;
-    for (const std::string& id : cameras) {
-      auto view = LoadView(rig, calibration ? &*calibration : nullptr, UnitDir(maps, frame, id), id);
-      if (!view.ok()) return view.status();
-      views.push_back(*std::move(view));
-    }
-    auto fused = FuseTextures(mesh, head_from_stage, views, job.options);
-    if (!fused.ok()) {
-      return absl::Status(fused.status().code(),
-                          absl::StrCat(job.take_dir, ": frame ", frame, ": ", fused.status().message()));
-    }
-    const std::vector<std::pair<std::string, const Image*>> files = {
-        {"albedo", &fused->albedo},
-        {"specular", &fused->specular},
-        {"roughness", &fused->roughness},
-        {"normal_object", &fused->normal_object},
-        {"normal_tangent", &fused->normal_tangent},
-        {"specular_normal_object", &fused->specular_normal_object},
-        {"specular_normal_tangent", &fused->specular_normal_tangent},
-        {"weight", &fused->weight}};
-    STAGE_RETURN_IF_ERROR(WriteTextureFiles(FrameDir(result.output_dir, frame), files,
-                                            MetricsJson(frame, *fused, views),
-                                            absl::StrFormat("frame %d: %d views fused", frame, views.size())));
+    STAGE_RETURN_IF_ERROR(
+        FuseFrame(job, rig, calibration ? &*calibration : nullptr, fit, maps, cameras, frame, result.output_dir));
     ++result.units;
     p.done = result.units;
-    p.message = absl::StrFormat("frame %d: %d views fused at %d x %d", frame, views.size(), fused->size, fused->size);
+    p.message = absl::StrFormat("frame %d: %d views fused at %d x %d", frame, cameras.size(), job.options.size,
+                                job.options.size);
     if (progress) progress(p);
   }
   STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", RunJson(job, cameras, last)));

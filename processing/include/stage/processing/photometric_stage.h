@@ -84,6 +84,10 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
 // The rig a take was recorded with (its take.json), for reading the take.
 absl::StatusOr<LoadedRig> LoadTakeRig(const std::string& take_dir);
 
+// A path a job names in its take: `path` itself when absolute, else under `take_dir`; `fallback` (under `take_dir`)
+// when `path` is empty, and empty when both are.
+std::string PathInTake(const std::string& take_dir, const std::string& path, const std::string& fallback = "");
+
 // The calibration `spec` names (PhotometricJob::calibration: a file, or a directory with cameras.json, relative to
 // `take_dir` or absolute); nullopt for an empty spec. Errors name the path.
 absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::string& take_dir,

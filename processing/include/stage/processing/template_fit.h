@@ -75,6 +75,10 @@ struct FitEvaluation {
 };
 absl::StatusOr<FitEvaluation> EvaluateFit(const FaceTemplate& face, const TemplateFit& fit, const TriangleMesh& truth);
 
+// The template placed exactly on the truth (the perfect fit, for checking what comes after the fit): every vertex
+// at the truth's point at face.HeadLayoutUv(uv). Errors: a vertex whose point the truth's layout does not cover.
+absl::StatusOr<TriangleMesh> TemplateOnTruth(const FaceTemplate& face, const TriangleMesh& truth);
+
 // The fit as a stage of the pipeline: over a take's frames, the template tracked through the surfaces (each frame's
 // fit starting from the one before; the first from the head at the stage's origin, facing +z), written to
 // <take>/derived/fit/frame-NNNNNN/: mesh.obj (the template's topology and UVs, stage frame, mm), geometry_map.exr

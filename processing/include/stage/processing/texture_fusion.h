@@ -100,6 +100,9 @@ struct TexturesJob {
   // derived/photometric and derived/textures.
   std::string fit_dir, photometric_dir, output_dir;
   FusionOptions options;
+
+  // The take named, a frame range that can hold frames, camera ids not empty, and the options.
+  absl::Status Validate() const;
 };
 
 absl::StatusOr<JobResult> RunTextures(const TexturesJob& job,
