@@ -92,7 +92,7 @@ TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead)
   ASSERT_TRUE(library.ok()) << library.status();
   const auto a = FilesUnder(take.path() + "/derived/textures-batch");
   const auto b = FilesUnder(take.path() + "/derived/textures-library");
-  ASSERT_EQ(a.size(), 1 + 8 + 4 + 2u);  // run.json; 8 EXRs, 4 previews, the contact sheet and metrics.json
+  ASSERT_EQ(a.size(), 1 + 9 + 4 + 2u);  // run.json; 9 EXRs, 4 previews, the contact sheet and metrics.json
   for (const auto& [name, bytes] : a) {
     ASSERT_EQ(b.count(name), 1u) << name;
     EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and the library";

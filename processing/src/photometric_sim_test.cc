@@ -12,6 +12,7 @@
 
 #include "gtest/gtest.h"
 #include "photometric_internal.h"
+#include "rendered_cycle.h"
 #include "stage/common/rig.h"
 #include "stage/processing/calibration.h"
 #include "stage/processing/photometric.h"
@@ -48,119 +49,8 @@ struct Result {
 // Which channel pixel (x, y) of an RGGB mosaic measures.
 int BayerChannel(int x, int y) { return (y % 2 == 0) ? (x % 2 == 0 ? 0 : 1) : (x % 2 == 0 ? 1 : 2); }
 
-struct Rendered {
-  LightModel light;
-  std::vector<Image> frames;
-  PhotometricCamera camera;
-  std::vector<sim::Hit> hits;
-  PixelGeometry truth_geometry;  // from the simulator's own subject: where each pixel lands, what it sees
-  std::shared_ptr<const sim::SimScene> scene;
-};
-
-// Renders the 38 patterns of virtual frame 0 for hs-2 with `overrides`.
-void Render(const std::vector<std::string>& overrides, Rendered* out) {
-  auto builtin = LoadRig(kBuiltinRigName);
-  ASSERT_TRUE(builtin.ok());
-  std::vector<std::string> all = {"sim.render_scale=0.125", "sim.subject.performance=still"};
-  all.insert(all.end(), overrides.begin(), overrides.end());
-  auto loaded = ApplyRigOverrides(*builtin, all);
-  ASSERT_TRUE(loaded.ok()) << loaded.status();
-  for (auto& c : *loaded->rig.mutable_cameras()) {
-    if (c.id() == "hs-2") c.set_pixel_format(v1::PIXEL_FORMAT_BAYER_RG12);
-  }
-  auto scene = sim::SimScene::FromLoadedRig(*loaded);
-  ASSERT_TRUE(scene.ok()) << scene.status();
-  out->scene = *scene;
-  const int index = (*scene)->CameraIndex("hs-2");
-  ASSERT_GE(index, 0);
-  sim::CameraRenderer renderer(*scene, index);
-  const sim::SensorParams& sensor = (*scene)->sensor(index);
-  ASSERT_EQ(sensor.bits, 12);
-  const double exposure_s = (*scene)->base().TicksToNs((*scene)->schedule().cameras(index).exposure_ticks()) * 1e-9;
-  auto made = LightModel::FromRig(*loaded);
-  ASSERT_TRUE(made.ok()) << made.status();
-  out->light = *made;
-  const LightModel& light = out->light;
-  const CameraModel& cam = (*scene)->camera(index);
-  // The camera as the pipeline sees it: placed where it is (as a perfect calibration finds it), its radiometric
-  // calibration derived from the simulator's sensor model.
-  auto setup = ResolveCamera(*loaded, light, "hs-2", cam.width(), cam.height(), 12, &(*scene)->true_cameras());
-  ASSERT_TRUE(setup.ok()) << setup.status();
-  EXPECT_EQ(setup->source, "simulator");
-  EXPECT_NEAR(setup->camera.gain_e_per_dn, sensor.Gain(), 1e-9 * sensor.Gain());
-  EXPECT_NEAR(setup->camera.cross_leak, (*scene)->leakage(index), 1e-6);
-  EXPECT_EQ(setup->black_level_dn, sensor.black_level_dn);
-  out->camera = setup->camera;
-  out->camera.mosaic = Mosaic{};  // RGGB, as demosaiced below
-
-  for (int p = 0; p < static_cast<int>(light.patterns.size()); ++p) {
-    const sim::RawImage raw = renderer.Render((*scene)->PatternLevels(p), exposure_s, static_cast<uint64_t>(p), 0);
-    std::vector<float> mosaic(raw.data.size());
-    for (size_t i = 0; i < mosaic.size(); ++i) {
-      mosaic[i] = static_cast<float>(raw.data[i]) - static_cast<float>(sensor.black_level_dn);
-    }
-    Image img;
-    DemosaicBilinear(mosaic.data(), raw.width, raw.height, Mosaic{}, &img);  // RGGB
-    out->frames.push_back(std::move(img));
-  }
-  const std::shared_ptr<const sim::Subject> subject = (*scene)->SubjectAt(0);
-  out->hits = sim::TracePixels(cam, *subject);
-  // With n x n rays a pixel (sim.supersample), the truth of a pixel is its rays' mean normal and material, as the
-  // ground truth files have it.
-  const int n = static_cast<int>(loaded->rig.sim().supersample());
-  if (n > 1) {
-    std::vector<Eigen::Vector3f> normal(out->hits.size(), Eigen::Vector3f::Zero()), albedo(normal);
-    std::vector<float> specular(out->hits.size(), 0), roughness(out->hits.size(), 0);
-    std::vector<int> count(out->hits.size(), 0);
-    for (int sy = 0; sy < n; ++sy) {
-      for (int sx = 0; sx < n; ++sx) {
-        const auto rays = sim::TracePixels(cam, *subject, 0, (sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5);
-        for (size_t i = 0; i < rays.size(); ++i) {
-          if (!rays[i].hit) continue;
-          normal[i] += rays[i].normal;
-          albedo[i] += rays[i].material.albedo;
-          specular[i] += rays[i].material.specular;
-          roughness[i] += rays[i].material.roughness;
-          ++count[i];
-        }
-      }
-    }
-    for (size_t i = 0; i < out->hits.size(); ++i) {
-      // Only pixels the subject fills: an edge pixel mixes in the background.
-      if (!out->hits[i].hit || count[i] < n * n) {
-        out->hits[i].hit = false;
-        continue;
-      }
-      out->hits[i].normal = normal[i].normalized();
-      out->hits[i].material.albedo = albedo[i] / static_cast<float>(count[i]);
-      out->hits[i].material.specular = specular[i] / static_cast<float>(count[i]);
-      out->hits[i].material.roughness = roughness[i] / static_cast<float>(count[i]);
-    }
-  }
-  // The geometry as the simulator has it: the point each pixel's ray lands on, and every unit in front of its face
-  // that nothing hides.
-  PixelGeometry& g = out->truth_geometry;
-  g.width = cam.width();
-  g.height = cam.height();
-  g.words = (light.units() + 63) / 64;
-  const std::vector<sim::Hit> centre = sim::TracePixels(cam, *subject);
-  g.points.assign(3 * centre.size(), std::nanf(""));
-  g.visible.assign(centre.size() * static_cast<size_t>(g.words), 0);
-  for (size_t i = 0; i < centre.size(); ++i) {
-    const sim::Hit& hit = centre[i];
-    if (!hit.hit) continue;
-    std::copy(hit.point.data(), hit.point.data() + 3, &g.points[3 * i]);
-    const Eigen::Vector3f start = hit.point + 1e-3f * hit.geometric_normal;
-    for (int l = 0; l < light.units(); ++l) {
-      const Eigen::Vector3f unit = (light.directions[static_cast<size_t>(l)] * light.radius_mm).cast<float>();
-      if (hit.geometric_normal.dot(unit - hit.point) <= 0 || subject->Occluded(start, unit)) continue;
-      g.visible[i * static_cast<size_t>(g.words) + static_cast<size_t>(l) / 64] |= uint64_t{1} << (l % 64);
-    }
-  }
-}
-
 // Errors on the skin (part 0; the sphere is all part 0).
-Result Evaluate(const Rendered& r, const PhotometricMaps& maps) {
+Result Evaluate(const RenderedCycle& r, const PhotometricMaps& maps) {
   std::vector<double> diffuse, specular, raw, albedo, rho, rough;
   double measured = 0, interpolated = 0;
   for (int y = 0; y < maps.height; ++y) {
@@ -211,7 +101,7 @@ void Print(const std::string& label, const Result& r) {
 
 // Solves the rendered cycle with the units seen from the dome's centre (far; skipped where far_result is null) and
 // with the geometry known (near), and prints both against the truth.
-void SolveFarAndNear(const Rendered& r, const std::string& subject, Result* far_result, Result* near_result,
+void SolveFarAndNear(const RenderedCycle& r, const std::string& subject, Result* far_result, Result* near_result,
                      PhotometricMaps* near_maps = nullptr) {
   if (far_result != nullptr) {
     auto far = SolvePhotometric(r.light, r.frames, r.camera);
@@ -228,8 +118,9 @@ void SolveFarAndNear(const Rendered& r, const std::string& subject, Result* far_
 
 // The simulator's sphere (100 mm, no self-shadowing) with noise made negligible: the solver's model is the renderer's.
 TEST(PhotometricSimTest, OnTheRenderedSphereTheModelIsTheRenderers) {
-  Rendered r;
-  ASSERT_NO_FATAL_FAILURE(Render(
+  RenderedCycle r;
+  ASSERT_NO_FATAL_FAILURE(RenderCycle(
+      "hs-2",
       {"sim.subject.kind=sphere", "sim.full_on_electrons=1000000", "sim.full_well_e=2500000", "sim.read_noise_e=0.1"},
       &r));
   Result rf, rn;
@@ -245,7 +136,7 @@ TEST(PhotometricSimTest, OnTheRenderedSphereTheModelIsTheRenderers) {
 // both polarizations (twice the cross images), summed over the patterns; an unbiased estimate of a Poisson scale from
 // N electrons errs by 1/sqrt(N) relative, a mean absolute error of sqrt(2/pi)/sqrt(N). Mean over the skin pixels the
 // solver solved.
-double AlbedoPhotonBound(const Rendered& r, const PhotometricMaps& maps) {
+double AlbedoPhotonBound(const RenderedCycle& r, const PhotometricMaps& maps) {
   auto twins = internal::PairPatterns(r.light);
   EXPECT_TRUE(twins.ok()) << twins.status();
   if (!twins.ok()) return 0;
@@ -277,8 +168,8 @@ double AlbedoPhotonBound(const Rendered& r, const PhotometricMaps& maps) {
 // Without the geometry (units from the dome's centre) the normals are 5 deg off: the units' real distance and the
 // head's own shadows matter.
 TEST(PhotometricSimTest, TheProceduralHeadAgainstGroundTruth) {
-  Rendered r;
-  ASSERT_NO_FATAL_FAILURE(Render({"sim.supersample=3"}, &r));
+  RenderedCycle r;
+  ASSERT_NO_FATAL_FAILURE(RenderCycle("hs-2", {"sim.supersample=3"}, &r));
   Result rf, rn;
   PhotometricMaps near;
   ASSERT_NO_FATAL_FAILURE(SolveFarAndNear(r, "head", &rf, &rn, &near));
@@ -306,9 +197,10 @@ TEST(PhotometricSimTest, TheProceduralHeadAgainstGroundTruth) {
 // hue, with their own error). That is above issue #6's 0.7 % before any noise is added (docs/processing.md#accuracy).
 // The bounds guard these systematic errors apart from the noise.
 TEST(PhotometricSimTest, TheProceduralHeadWithoutNoise) {
-  Rendered r;
-  ASSERT_NO_FATAL_FAILURE(Render(
-      {"sim.supersample=3", "sim.full_on_electrons=1000000", "sim.full_well_e=2500000", "sim.read_noise_e=0.1"}, &r));
+  RenderedCycle r;
+  ASSERT_NO_FATAL_FAILURE(RenderCycle(
+      "hs-2", {"sim.supersample=3", "sim.full_on_electrons=1000000", "sim.full_well_e=2500000", "sim.read_noise_e=0.1"},
+      &r));
   Result rn;
   ASSERT_NO_FATAL_FAILURE(SolveFarAndNear(r, "head without noise", nullptr, &rn));
   EXPECT_GT(rn.diffuse.pixels, 40000u);

@@ -14,6 +14,7 @@
 #include "parallel.h"
 #include "stage/common/status.h"
 #include "stage/common/uv_raster.h"
+#include "statistics.h"
 
 namespace stage::processing {
 namespace {
@@ -143,9 +144,11 @@ struct Accumulator {
         weight(texels, 0),
         spec_weight(texels, 0),
         rough_weight(texels, 0),
-        spec_normal_weight(texels, 0) {}
+        spec_normal_weight(texels, 0),
+        views(texels, 0) {}
   std::vector<float> albedo, normal, spec_normal, specular, roughness;
   std::vector<float> weight, spec_weight, rough_weight, spec_normal_weight;
+  std::vector<uint8_t> views;  // how many views saw the texel
 };
 
 // Adds what `view` sees of the surface point `p` (normal `n`) to texel `t`; true if it saw it.
@@ -181,23 +184,28 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
     acc->normal[3 * t + c] += weight * normal[c];
   }
   acc->weight[t] += weight;
+  // The lobe's maps only from pixels where the view measured a lobe (its specular normal solved; a view without
+  // specular normals: every pixel), or the unmeasured pixels' zeros would darken the intensity near their edge.
+  Taps lobe = taps;
+  if (v.specular_normal.width > 0 &&
+      !MakeTaps(
+          w, h, px.x(), px.y(), [&](size_t i) { return pv.feather[i] > 0 && Solved(&v.specular_normal.pixels[3 * i]); },
+          &lobe)) {
+    return true;
+  }
   float value[3];
   if (v.specular.width > 0) {
-    taps.Apply(v.specular, value);
+    lobe.Apply(v.specular, value);
     acc->specular[t] += weight * value[0];
     acc->spec_weight[t] += weight;
   }
   if (v.roughness.width > 0) {
-    taps.Apply(v.roughness, value);
+    lobe.Apply(v.roughness, value);
     acc->roughness[t] += weight * value[0];
     acc->rough_weight[t] += weight;
   }
-  Taps solved;
-  if (v.specular_normal.width > 0 &&
-      MakeTaps(
-          w, h, px.x(), px.y(), [&](size_t i) { return pv.feather[i] > 0 && Solved(&v.specular_normal.pixels[3 * i]); },
-          &solved)) {
-    solved.Apply(v.specular_normal, value);
+  if (v.specular_normal.width > 0) {
+    lobe.Apply(v.specular_normal, value);
     for (int c = 0; c < 3; ++c) acc->spec_normal[3 * t + c] += weight * value[c];
     acc->spec_normal_weight[t] += weight;
   }
@@ -240,6 +248,41 @@ Image Mean(const std::vector<float>& sum, const std::vector<float>& weight, int 
     }
   }
   return out;
+}
+
+// A lobe's map (1 channel, NaN where no view measured it) filled on the texels the views saw (`weight` > 0) but
+// measured no lobe on (`lobe_weight` 0) from the lobes measured around: a normalized convolution at 1/16 of the
+// texture's size (Gaussian, sigma 2 cells, ~2 % of the layout), enlarged bilinearly. Left NaN where none is near.
+void FillUnmeasured(Image* image, const std::vector<float>& lobe_weight, const std::vector<float>& weight) {
+  bool missing = false;
+  for (size_t t = 0; t < weight.size() && !missing; ++t) missing = weight[t] > 0 && lobe_weight[t] <= 0;
+  if (!missing) return;
+  const int size = image->width;
+  cv::Mat value(size, size, CV_32F, cv::Scalar(0)), measured(size, size, CV_32F, cv::Scalar(0));
+  bool any = false;
+  for (size_t t = 0; t < lobe_weight.size(); ++t) {
+    if (lobe_weight[t] <= 0) continue;
+    reinterpret_cast<float*>(value.data)[t] = image->pixels[t];
+    reinterpret_cast<float*>(measured.data)[t] = 1;
+    any = true;
+  }
+  if (!any) return;
+  const int small = std::max(8, size / 16);
+  cv::Mat v, m;
+  cv::resize(value, v, cv::Size(small, small), 0, 0, cv::INTER_AREA);
+  cv::resize(measured, m, cv::Size(small, small), 0, 0, cv::INTER_AREA);
+  cv::GaussianBlur(v, v, cv::Size(), 2);
+  cv::GaussianBlur(m, m, cv::Size(), 2);
+  cv::Mat mean(small, small, CV_32F);
+  for (int i = 0; i < small * small; ++i) {
+    const float mi = reinterpret_cast<float*>(m.data)[i];
+    reinterpret_cast<float*>(mean.data)[i] = mi > 1e-4f ? reinterpret_cast<float*>(v.data)[i] / mi : kNaN;
+  }
+  cv::Mat fill;
+  cv::resize(mean, fill, cv::Size(size, size), 0, 0, cv::INTER_LINEAR);
+  for (size_t t = 0; t < weight.size(); ++t) {
+    if (weight[t] > 0 && lobe_weight[t] <= 0) image->pixels[t] = reinterpret_cast<float*>(fill.data)[t];
+  }
 }
 
 // Grows the set texels `passes` rings (the mean of set neighbours), renormalizes unit vectors, zeroes what is left.
@@ -467,7 +510,9 @@ Accumulator Accumulate(const TexelSurface& s, const std::vector<PreparedView>& p
         if (!s.texels[t].covered()) continue;
         const Eigen::Vector3f n = s.normals[t].normalized();
         for (size_t v = 0; v < prepared.size(); ++v) {
-          if (AddView(prepared[v], options, s.points[t], n, t, &acc)) ++local[v];
+          if (!AddView(prepared[v], options, s.points[t], n, t, &acc)) continue;
+          ++local[v];
+          acc.views[t] = static_cast<uint8_t>(std::min(255, acc.views[t] + 1));
         }
       }
     }
@@ -493,6 +538,14 @@ void MakeTextures(const Accumulator& acc, const TexelSurface& s, const TriangleM
       [&] { normal = Mean(acc.normal, acc.weight, size, 3, true); },
       [&] { spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true); }};
   internal::ParallelItems(static_cast<int>(means.size()), 0, [&](int i) { means[static_cast<size_t>(i)](); });
+  // Where the views saw the surface but measured no lobe: the diffuse normal as the specular one, the intensity and
+  // roughness of the lobes measured around.
+  for (size_t t = 0; t < acc.weight.size(); ++t) {
+    if (acc.weight[t] > 0 && acc.spec_normal_weight[t] <= 0)
+      std::copy_n(&normal.pixels[3 * t], 3, &spec_normal.pixels[3 * t]);
+  }
+  FillUnmeasured(&out->specular, acc.spec_weight, acc.weight);
+  FillUnmeasured(&out->roughness, acc.rough_weight, acc.weight);
   ExpressedNormals diffuse, specular;
   ExpressNormals({&normal, &spec_normal}, s.texels, mesh, s.vertex_normals, s.tangents, head_from_stage.linear(),
                  {&diffuse, &specular});
@@ -520,6 +573,9 @@ void MakeTextures(const Accumulator& acc, const TexelSurface& s, const TriangleM
   }
   out->weight = Image(size, size, 1);
   out->weight.pixels = acc.weight;
+  out->views = acc.views;
+  out->specular_weight = Image(size, size, 1);
+  out->specular_weight.pixels = acc.spec_normal_weight;
 }
 
 }  // namespace
@@ -536,6 +592,58 @@ absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen
   const Accumulator acc = Accumulate(surface, prepared, options, &out.texels_per_view);
   MakeTextures(acc, surface, mesh, head_from_stage, options, &out);
   return out;
+}
+
+absl::StatusOr<TextureErrors> CompareTextures(const FusedTextures& fused, const FusedTextures& truth,
+                                              const std::vector<bool>* mask) {
+  const size_t n = static_cast<size_t>(fused.size) * static_cast<size_t>(fused.size);
+  if (fused.size != truth.size || fused.state.size() != n || truth.state.size() != n ||
+      fused.specular_weight.pixels.size() != n || truth.specular_weight.pixels.size() != n ||
+      (mask != nullptr && mask->size() != n)) {
+    return absl::InvalidArgumentError(absl::StrCat("compare textures: sizes ", fused.size, " and ", truth.size,
+                                                   " (or a state or mask of another size)"));
+  }
+  std::vector<double> albedo, normal, spec_normal, specular;
+  double roughness = 0;
+  auto angle = [](const float* a, const float* b) {
+    return AngleDeg(Eigen::Vector3d(a[0], a[1], a[2]), Eigen::Vector3d(b[0], b[1], b[2]));
+  };
+  for (size_t t = 0; t < n; ++t) {
+    if (fused.state[t] != TexelState::kCovered || truth.state[t] != TexelState::kCovered) continue;
+    if (mask != nullptr && !(*mask)[t]) continue;
+    const float *a = &fused.albedo.pixels[3 * t], *ta = &truth.albedo.pixels[3 * t];
+    if (ta[0] <= 0 || ta[1] <= 0 || ta[2] <= 0) continue;
+    double rel = 0;
+    for (int c = 0; c < 3; ++c) rel += std::abs(a[c] / ta[c] - 1) / 3;
+    albedo.push_back(rel);
+    normal.push_back(angle(&fused.normal_object.pixels[3 * t], &truth.normal_object.pixels[3 * t]));
+    const float *s = &fused.specular_normal_object.pixels[3 * t], *ts = &truth.specular_normal_object.pixels[3 * t];
+    if (fused.specular_weight.pixels[t] <= 0 || truth.specular_weight.pixels[t] <= 0) continue;
+    spec_normal.push_back(angle(s, ts));
+    if (truth.specular.pixels[t] > 0)
+      specular.push_back(std::abs(fused.specular.pixels[t] / truth.specular.pixels[t] - 1));
+    roughness += std::abs(fused.roughness.pixels[t] - truth.roughness.pixels[t]);
+  }
+  auto mean = [](const std::vector<double>& v) {
+    double sum = 0;
+    for (double x : v) sum += x;
+    return v.empty() ? 0.0 : sum / static_cast<double>(v.size());
+  };
+  TextureErrors e;
+  e.texels = static_cast<int64_t>(albedo.size());
+  e.albedo_mean = mean(albedo);
+  e.albedo_median = Median(albedo);
+  e.normal_mean_deg = mean(normal);
+  e.normal_median_deg = Median(normal);
+  e.normal_p90_deg = Quantile(normal, 9, 10);
+  e.specular_texels = static_cast<int64_t>(spec_normal.size());
+  e.specular_normal_mean_deg = mean(spec_normal);
+  e.specular_normal_median_deg = Median(spec_normal);
+  if (!spec_normal.empty()) {
+    e.specular_median = Median(specular);
+    e.roughness_mean = roughness / static_cast<double>(spec_normal.size());
+  }
+  return e;
 }
 
 }  // namespace stage::processing

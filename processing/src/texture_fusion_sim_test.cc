@@ -5,7 +5,9 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "absl/strings/str_cat.h"
 #include "gtest/gtest.h"
+#include "rendered_cycle.h"
 #include "stage/common/rig.h"
 #include "stage/common/uv_raster.h"
 #include "stage/processing/face_template.h"
@@ -95,6 +97,139 @@ TEST(TextureFusionSimTest, TheTrueMapsOfTheThreeViewsFuseIntoTheHeadsTextures) {
   EXPECT_LT(median(albedo_error), 0.005);
   EXPECT_LT(median(specular_error), 0.002);
   EXPECT_LT(median(roughness_error), 0.002);
+}
+
+// A rendered cycle's view: its photometric solve (the geometry known, as photometric_sim_test.cc solves it) and the
+// truth of the same pixels with the same weights (the solve's confidence, and only where the solve has a value), so
+// that fusing each gives the solve's textures and the truth's through the same blend. The eyes (part 1) are left out
+// of both.
+struct SolvedView {
+  FusionView solved, truth;
+};
+
+void SolveView(const std::string& id, SolvedView* out) {
+  RenderedCycle r;
+  ASSERT_NO_FATAL_FAILURE(RenderCycle(id, {"sim.supersample=3"}, &r));
+  auto maps = SolvePhotometric(r.light, r.frames, r.camera, {}, &r.truth_geometry);
+  ASSERT_TRUE(maps.ok()) << maps.status();
+  const int w = maps->width, h = maps->height;
+  FusionView& v = out->solved;
+  v.camera_id = id;
+  v.camera = r.scene->camera(r.index);
+  v.albedo = maps->albedo;
+  v.diffuse_normal = maps->diffuse_normal_world;
+  v.specular = maps->specular;
+  v.roughness = maps->roughness;
+  v.specular_normal = maps->specular_normal_world;
+  v.confidence = maps->confidence;
+  FusionView& t = out->truth;
+  t.camera_id = id;
+  t.camera = v.camera;
+  t.albedo = Image(w, h, 3);
+  t.diffuse_normal = Image(w, h, 3);
+  t.specular = Image(w, h, 1);
+  t.roughness = Image(w, h, 1);
+  t.specular_normal = Image(w, h, 3);
+  t.confidence = maps->confidence;
+  auto zero = [](Image* image, size_t i) { std::fill_n(&image->pixels[i * image->channels], image->channels, 0.0f); };
+  for (size_t i = 0; i < r.hits.size(); ++i) {
+    const sim::Hit& hit = r.hits[i];
+    const bool solved = v.diffuse_normal.pixels[3 * i] != 0 || v.diffuse_normal.pixels[3 * i + 1] != 0 ||
+                        v.diffuse_normal.pixels[3 * i + 2] != 0;
+    if (!hit.hit || hit.part != 0 || !solved) {
+      for (Image* image : {&v.albedo, &v.diffuse_normal, &v.specular, &v.roughness, &v.specular_normal}) {
+        zero(image, i);
+      }
+      continue;
+    }
+    std::copy_n(hit.material.albedo.data(), 3, &t.albedo.pixels[3 * i]);
+    std::copy_n(hit.normal.data(), 3, &t.diffuse_normal.pixels[3 * i]);
+    const float* sn = &v.specular_normal.pixels[3 * i];
+    if (sn[0] != 0 || sn[1] != 0 || sn[2] != 0) {
+      std::copy_n(hit.normal.data(), 3, &t.specular_normal.pixels[3 * i]);
+      t.specular.pixels[i] = hit.material.specular;
+      t.roughness.pixels[i] = hit.material.roughness;
+    } else {
+      v.specular.pixels[i] = v.roughness.pixels[i] = 0;
+    }
+  }
+}
+
+void PrintErrors(const std::string& label, const TextureErrors& e) {
+  std::printf(
+      "%s: %lld texels; albedo mean %.2f %% median %.2f %%; diffuse normal mean %.2f median %.2f p90 %.2f deg; "
+      "specular normal mean %.2f median %.2f deg over %lld texels; specular intensity median %.1f %%, roughness %.3f\n",
+      label.c_str(), static_cast<long long>(e.texels), 100 * e.albedo_mean, 100 * e.albedo_median, e.normal_mean_deg,
+      e.normal_median_deg, e.normal_p90_deg, e.specular_normal_mean_deg, e.specular_normal_median_deg,
+      static_cast<long long>(e.specular_texels), 100 * e.specular_median, e.roughness_mean);
+}
+
+// Issue #28's goals for fused textures, with noise as issue #6 measured it (12-bit Bayer, 4000 e- for white, read
+// noise 5 e-, 3 x 3 rays a pixel): the three high-speed views solved each on its own, fused through the template
+// placed on the true surface, against the truth fused with the same weights. At 1/8 of the cameras' resolution the
+// textures are 512 texels across: the cameras' pixels per texel of 4096 x 4096 textures at full resolution.
+TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok()) << face.status();
+  const std::vector<std::string> ids = {"hs-1", "hs-2", "hs-3"};
+  std::vector<SolvedView> views(ids.size());
+  for (size_t i = 0; i < ids.size(); ++i) ASSERT_NO_FATAL_FAILURE(SolveView(ids[i], &views[i]));
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.125", "sim.subject.performance=still"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  auto scene = sim::SimScene::FromLoadedRig(*rig);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  auto placed = TemplateOnTruth(*face, (*scene)->head()->PosedMesh((*scene)->PoseAt(0)));
+  ASSERT_TRUE(placed.ok()) << placed.status();
+
+  FusionOptions options;
+  options.size = 512;
+  auto fuse = [&](const std::vector<size_t>& which, bool truth) {
+    std::vector<FusionView> v;
+    for (size_t i : which) v.push_back(truth ? views[i].truth : views[i].solved);
+    auto fused = FuseTextures(*placed, Eigen::Isometry3f::Identity(), v, options);
+    EXPECT_TRUE(fused.ok()) << fused.status();
+    return fused.ok() ? *std::move(fused) : FusedTextures{};
+  };
+  const FusedTextures solved = fuse({0, 1, 2}, false), truth = fuse({0, 1, 2}, true);
+  ASSERT_EQ(solved.size, options.size);
+  auto all = CompareTextures(solved, truth);
+  ASSERT_TRUE(all.ok()) << all.status();
+  PrintErrors("three views fused", *all);
+  // Apart: where one view sees the skin (the sides) and where two or three do.
+  std::vector<TextureErrors> by_views(5);  // seen by 1, 2, 3; 4: by two or three
+  for (int k = 1; k <= 4; ++k) {
+    std::vector<bool> mask(solved.views.size());
+    for (size_t t = 0; t < mask.size(); ++t) mask[t] = k < 4 ? solved.views[t] == k : solved.views[t] >= 2;
+    auto e = CompareTextures(solved, truth, &mask);
+    ASSERT_TRUE(e.ok());
+    by_views[static_cast<size_t>(k)] = *e;
+    PrintErrors(k < 4 ? absl::StrCat("  seen by ", k) : "  seen by 2 or 3", *e);
+  }
+  // Each view alone, resampled into the same layout, on the texels it sees.
+  double single_albedo = 1, single_specular = 1;
+  for (size_t i = 0; i < ids.size(); ++i) {
+    auto one = CompareTextures(fuse({i}, false), fuse({i}, true));
+    ASSERT_TRUE(one.ok());
+    PrintErrors(ids[i] + " alone", *one);
+    single_albedo = std::min(single_albedo, one->albedo_mean);
+    single_specular = std::min(single_specular, one->specular_median);
+  }
+  // Measured (2026-11-28): 247,298 texels; albedo 0.79 % (1.01 % where one view sees the skin, 38 % of the texels;
+  // 0.70 % where two do, 0.57 % where three do), each view alone 0.82-0.87 %; diffuse normals 0.86 deg (each alone
+  // 0.97-1.00); specular normals 4.23 deg mean, 2.31 median on 68,173 texels with a lobe; intensity median 5.4 %
+  // (each alone 6.6-6.8 %). docs/assets.md#fusing-the-photometric-solves has the why.
+  EXPECT_GT(all->texels, options.size * options.size * 4 / 5);
+  EXPECT_LT(all->albedo_mean, 0.0085);
+  EXPECT_LT(all->albedo_mean, single_albedo);
+  EXPECT_LT(by_views[4].albedo_mean, 0.007);  // the goal, where two or three views see the skin
+  EXPECT_GT(by_views[1].albedo_mean, by_views[3].albedo_mean);
+  EXPECT_LT(all->normal_mean_deg, 1.2);  // the goal
+  EXPECT_LT(all->specular_normal_median_deg, 2.5);
+  EXPECT_LT(all->specular_normal_mean_deg, 5);  // the goal of 2.5 deg is not met on the mean
+  EXPECT_GT(all->specular_texels, all->texels / 5);
+  EXPECT_LT(all->specular_median, single_specular);
 }
 
 }  // namespace

@@ -64,13 +64,17 @@ std::string MetricsJson(int64_t frame, const FusedTextures& t, const std::vector
   nlohmann::ordered_json j;
   j["frame"] = frame;
   j["size"] = t.size;
-  int64_t covered = 0, dilated = 0;
-  for (TexelState s : t.state) {
-    covered += s == TexelState::kCovered;
-    dilated += s == TexelState::kDilated;
+  int64_t covered = 0, dilated = 0, lobe = 0, overlap = 0;
+  for (size_t i = 0; i < t.state.size(); ++i) {
+    covered += t.state[i] == TexelState::kCovered;
+    dilated += t.state[i] == TexelState::kDilated;
+    lobe += t.specular_weight.pixels[i] > 0;
+    overlap += t.views[i] >= 2;
   }
   j["texels_covered"] = covered;
   j["texels_dilated"] = dilated;
+  j["texels_seen_twice"] = overlap;
+  j["texels_with_a_lobe"] = lobe;
   for (size_t i = 0; i < views.size(); ++i) j["texels_per_view"][views[i].camera_id] = t.texels_per_view[i];
   return j.dump(2);
 }
@@ -145,7 +149,8 @@ absl::Status FuseFrame(const TexturesJob& job, const LoadedRig& rig, const Camer
       {"normal_tangent", &fused->normal_tangent},
       {"specular_normal_object", &fused->specular_normal_object},
       {"specular_normal_tangent", &fused->specular_normal_tangent},
-      {"weight", &fused->weight}};
+      {"weight", &fused->weight},
+      {"specular_weight", &fused->specular_weight}};
   return WriteTextureFiles(FrameDir(output_dir, frame), files, MetricsJson(frame, *fused, views),
                            absl::StrFormat("frame %d: %d views fused", frame, views.size()));
 }

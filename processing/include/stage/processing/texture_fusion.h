@@ -72,8 +72,13 @@ struct FusedTextures {
   Image normal_tangent;          // 3 channels: the same in tangent space, unit; 0 where empty
   Image specular_normal_object;  // 3 channels (0 where no view has one)
   Image specular_normal_tangent;
-  Image weight;                          // 1 channel: the views' summed weight (0: from the dilation, or nothing)
+  Image weight;  // 1 channel: the views' summed weight (0: from the dilation, or nothing)
+  // 1 channel: the weight of the views that measured a specular lobe there (their specular normal solved). Where it
+  // is 0 on a covered texel the specular maps are filled: the specular normal is the diffuse one, the intensity and
+  // roughness those of the lobes measured around (a normalized convolution over ~2 % of the layout).
+  Image specular_weight;
   std::vector<TexelState> state;         // covered: some view saw it; dilated: grown from neighbours; empty
+  std::vector<uint8_t> views;            // per texel, how many views saw it
   std::vector<int64_t> texels_per_view;  // texels each view contributed to (views' order)
 };
 
@@ -82,6 +87,23 @@ struct FusedTextures {
 // a view whose maps' sizes differ from its camera's or lack the albedo or diffuse normal (named by camera id).
 absl::StatusOr<FusedTextures> FuseTextures(const TriangleMesh& mesh, const Eigen::Isometry3f& head_from_stage,
                                            const std::vector<FusionView>& views, const FusionOptions& options);
+
+// Fused textures against a reference of the same layout and size (the truth's maps fused with the same views'
+// weights), on the texels both cover: the albedo's relative error (per texel the mean over its channels of
+// |fused / truth - 1|), the normals' angles in the head's frame; where both measured a specular lobe
+// (specular_weight > 0) the specular normals' angles, the intensity's relative error (median: a lobe's intensity is
+// the noisiest of the maps) and the roughness's absolute error.
+struct TextureErrors {
+  int64_t texels = 0;
+  double albedo_mean = 0, albedo_median = 0;
+  double normal_mean_deg = 0, normal_median_deg = 0, normal_p90_deg = 0;
+  int64_t specular_texels = 0;
+  double specular_normal_mean_deg = 0, specular_normal_median_deg = 0;
+  double specular_median = 0, roughness_mean = 0;
+};
+// Errors: sizes that differ. `mask` (optional, size x size): only texels where it is true count.
+absl::StatusOr<TextureErrors> CompareTextures(const FusedTextures& fused, const FusedTextures& truth,
+                                              const std::vector<bool>* mask = nullptr);
 
 // The stage (docs/assets.md#texture-fusion-as-a-stage): per frame, the fitted template (TAKE/derived/fit) and the
 // views' photometric maps (TAKE/derived/photometric/frame-NNNNNN/<camera>/) fused into
