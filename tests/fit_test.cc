@@ -84,6 +84,32 @@ TEST(FitStageTest, TheCommandAndTheLibraryFitEveryFrameAndWriteTheSameBytes) {
     EXPECT_NEAR(pose["scale"].get<double>(), 1, 0.1);
   }
 
+  // The evaluation against the truth, as a command: the library's figures of the same frames.
+  CommandResult evaluated =
+      RunCommand({"stage-process", "evaluate", "fit", "--take", take.path(), "--fit", "derived/fit-batch", "--json"},
+                 std::chrono::seconds(120));
+  ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
+  const nlohmann::json report = nlohmann::json::parse(evaluated.out);
+  EXPECT_EQ(report["fit_surface"], "ground_truth");
+  ASSERT_EQ(report["frames"].size(), 3u);
+  for (int frame = 0; frame < 3; ++frame) {
+    auto fitted = ReadObj(absl::StrFormat("%s/derived/fit-batch/frame-%06d/mesh.obj", take.path(), frame));
+    ASSERT_TRUE(fitted.ok());
+    processing::TemplateFit f;
+    f.positions = fitted->positions;
+    auto direct = processing::EvaluateFit(*face, f, truths[static_cast<size_t>(frame)]);
+    ASSERT_TRUE(direct.ok());
+    const nlohmann::json& skin = report["frames"][static_cast<size_t>(frame)]["fit"]["skin"];
+    EXPECT_EQ(skin["vertices"].get<int64_t>(), direct->skin.vertices);
+    EXPECT_NEAR(skin["rmse_mm"].get<double>(), direct->skin.rmse_mm, 1e-4);  // the truth read back from OBJ
+    EXPECT_NEAR(skin["sliding_rmse_mm"].get<double>(), direct->skin.sliding_rmse_mm, 1e-4);
+    EXPECT_LT(skin["surface_rmse_mm"].get<double>(), 0.25) << frame;
+  }
+  CommandResult no_fit =
+      RunCommand({"stage-process", "evaluate", "fit", "--take", take.path()}, std::chrono::seconds(60));
+  EXPECT_NE(no_fit.exit.exit_code, 0);
+  EXPECT_THAT(no_fit.err, HasSubstr(take.path() + "/derived/fit: no results from frame 0 (run the fit first)"));
+
   // The fitted mesh in Open3D's Python module, with a texture coordinate for every corner of every triangle.
   CommandResult py = RunCommand({"/usr/bin/python3", "-c",
                                  "import sys, open3d as o3d, numpy as np\n"

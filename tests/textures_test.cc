@@ -97,6 +97,27 @@ TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead)
     ASSERT_EQ(b.count(name), 1u) << name;
     EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and the library";
   }
+  // Evaluated against the truth: the maps fused here are the truth's own, so every error is nil; the command checks
+  // that the textures on disk are what fusion makes of the maps.
+  CommandResult evaluated = RunCommand({"stage-process", "evaluate", "textures", "--take", take.path(), "--textures",
+                                        "derived/textures-batch", "--json"},
+                                       std::chrono::seconds(120));
+  ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
+  const nlohmann::json all = nlohmann::json::parse(evaluated.out)["frames"][0]["textures"]["all"];
+  EXPECT_GT(all["texels"].get<int64_t>(), 256 * 256 / 4);
+  EXPECT_LT(all["albedo_mean"].get<double>(), 1e-6);
+  EXPECT_LT(all["normal_mean_deg"].get<double>(), 0.01);
+  EXPECT_EQ(all["specular_texels"].get<int64_t>(), 0);  // the truth's maps hold no specular normals: no lobe measured
+  // Textures that are not what the inputs make (a copy, its albedo replaced) are refused.
+  fs::copy(take.path() + "/derived/textures-library", take.path() + "/derived/textures-stale",
+           fs::copy_options::recursive);
+  fs::copy_file(take.path() + "/derived/textures-stale/frame-000000/roughness.exr",
+                take.path() + "/derived/textures-stale/frame-000000/albedo.exr", fs::copy_options::overwrite_existing);
+  CommandResult stale = RunCommand(
+      {"stage-process", "evaluate", "textures", "--take", take.path(), "--textures", "derived/textures-stale"},
+      std::chrono::seconds(120));
+  EXPECT_NE(stale.exit.exit_code, 0);
+  EXPECT_THAT(stale.err, HasSubstr("albedo.exr: not what fusion makes of"));
 
   // The worker's job writes the same bytes (into the stage's default directory).
   const std::string port_file = take.path() + "/worker.port";

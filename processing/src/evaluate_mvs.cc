@@ -260,7 +260,7 @@ absl::Status MvsEvaluateOptions::Validate() const {
 
 // The calibration an MVS run placed its cameras with (its run.json), against the truth's cameras.
 absl::StatusOr<TruthComparison> RunFrameToTruth(const std::string& take_dir, const std::string& results,
-                                                const CameraCalibration& truth, std::string* placed_by = nullptr) {
+                                                const CameraCalibration& truth, std::string* placed_by) {
   const std::string path = results + "/run.json";
   STAGE_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, "the multi-view stereo run's record"));
   const nlohmann::json run = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);

@@ -250,39 +250,86 @@ Image Mean(const std::vector<float>& sum, const std::vector<float>& weight, int 
   return out;
 }
 
-// A lobe's map (1 channel, NaN where no view measured it) filled on the texels the views saw (`weight` > 0) but
-// measured no lobe on (`lobe_weight` 0) from the lobes measured around: a normalized convolution at 1/16 of the
-// texture's size (Gaussian, sigma 2 cells, ~2 % of the layout), enlarged bilinearly. Left NaN where none is near.
-void FillUnmeasured(Image* image, const std::vector<float>& lobe_weight, const std::vector<float>& weight) {
-  bool missing = false;
-  for (size_t t = 0; t < weight.size() && !missing; ++t) missing = weight[t] > 0 && lobe_weight[t] <= 0;
-  if (!missing) return;
-  const int size = image->width;
-  cv::Mat value(size, size, CV_32F, cv::Scalar(0)), measured(size, size, CV_32F, cv::Scalar(0));
-  bool any = false;
-  for (size_t t = 0; t < lobe_weight.size(); ++t) {
-    if (lobe_weight[t] <= 0) continue;
-    reinterpret_cast<float*>(value.data)[t] = image->pixels[t];
-    reinterpret_cast<float*>(measured.data)[t] = 1;
-    any = true;
+// A lobe map's local typical value at every texel (1 channel): the median of the measured texels of each
+// 16 x 16-texel cell at least a quarter measured (robust to the solve's isolated bad lobes), a normalized convolution
+// of the cells' medians (Gaussian, sigma 2 cells) drawn slightly towards the median over the cells (which it is far
+// from every such cell; NaN if there is none), enlarged bilinearly.
+std::vector<float> LocalLobeValue(const Image& image, const std::vector<uint8_t>& measured) {
+  const int size = image.width;
+  constexpr int kCell = 16;
+  const int cells = (size + kCell - 1) / kCell;
+  cv::Mat value(cells, cells, CV_32F, cv::Scalar(0)), known(cells, cells, CV_32F, cv::Scalar(0));
+  std::vector<float> in_cell, medians;
+  for (int cy = 0; cy < cells; ++cy) {
+    for (int cx = 0; cx < cells; ++cx) {
+      in_cell.clear();
+      for (int y = cy * kCell; y < std::min(size, (cy + 1) * kCell); ++y) {
+        for (int x = cx * kCell; x < std::min(size, (cx + 1) * kCell); ++x) {
+          const size_t t = static_cast<size_t>(y) * size + x;
+          if (measured[t]) in_cell.push_back(image.pixels[t]);
+        }
+      }
+      // A cell a quarter measured or more: fewer are the scattered lobes at the edge of what the views measure.
+      if (in_cell.size() * 4 < static_cast<size_t>(kCell * kCell)) continue;
+      const float median = static_cast<float>(Median(in_cell));
+      value.at<float>(cy, cx) = median;
+      known.at<float>(cy, cx) = 1;
+      medians.push_back(median);
+    }
   }
-  if (!any) return;
-  const int small = std::max(8, size / 16);
-  cv::Mat v, m;
-  cv::resize(value, v, cv::Size(small, small), 0, 0, cv::INTER_AREA);
-  cv::resize(measured, m, cv::Size(small, small), 0, 0, cv::INTER_AREA);
-  cv::GaussianBlur(v, v, cv::Size(), 2);
-  cv::GaussianBlur(m, m, cv::Size(), 2);
-  cv::Mat mean(small, small, CV_32F);
-  for (int i = 0; i < small * small; ++i) {
-    const float mi = reinterpret_cast<float*>(m.data)[i];
-    reinterpret_cast<float*>(mean.data)[i] = mi > 1e-4f ? reinterpret_cast<float*>(v.data)[i] / mi : kNaN;
+  // Far from every such cell: the median over the cells (a prior of kPrior cells' weight everywhere, so the two meet
+  // smoothly).
+  const float overall = medians.empty() ? kNaN : static_cast<float>(Median(medians));
+  constexpr float kPrior = 0.05f;
+  cv::GaussianBlur(value, value, cv::Size(), 2);
+  cv::GaussianBlur(known, known, cv::Size(), 2);
+  cv::Mat mean(cells, cells, CV_32F);
+  for (int i = 0; i < cells * cells; ++i) {
+    const float k = reinterpret_cast<float*>(known.data)[i];
+    reinterpret_cast<float*>(mean.data)[i] =
+        (reinterpret_cast<float*>(value.data)[i] + kPrior * overall) / (k + kPrior);
   }
-  cv::Mat fill;
-  cv::resize(mean, fill, cv::Size(size, size), 0, 0, cv::INTER_LINEAR);
-  for (size_t t = 0; t < weight.size(); ++t) {
-    if (weight[t] > 0 && lobe_weight[t] <= 0) image->pixels[t] = reinterpret_cast<float*>(fill.data)[t];
+  // Cell centres sit at (c + 0.5) * kCell - 0.5 texels: resize's half-pixel convention with a scale of kCell.
+  cv::Mat full;
+  cv::resize(mean, full, cv::Size(cells * kCell, cells * kCell), 0, 0, cv::INTER_LINEAR);
+  std::vector<float> out(static_cast<size_t>(size) * size);
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) out[static_cast<size_t>(y) * size + x] = full.at<float>(y, x);
   }
+  return out;
+}
+
+// The lobe's maps (intensity, roughness, and the specular normal in the stage frame) where the views saw the surface
+// but measured no lobe, or measured one whose intensity or roughness is more than kOutlier times off its
+// neighbourhood's typical value (the solve's bad lobe fits: isolated specks): the normal is the diffuse one, intensity
+// and roughness the neighbourhood's typical values, and the texel's specular weight 0. Returns the texels rejected.
+int64_t FillLobes(const Accumulator& acc, const Image& normal, Image* spec_normal, FusedTextures* out) {
+  constexpr float kOutlier = 4;
+  const size_t n = acc.weight.size();
+  std::vector<uint8_t> measured(n, 0);
+  for (size_t t = 0; t < n; ++t) measured[t] = acc.spec_weight[t] > 0 && acc.rough_weight[t] > 0;
+  out->specular_weight = Image(out->size, out->size, 1);
+  out->specular_weight.pixels = acc.spec_normal_weight;
+  const std::vector<float> typical_specular = LocalLobeValue(out->specular, measured);
+  const std::vector<float> typical_roughness = LocalLobeValue(out->roughness, measured);
+  auto off = [&](float v, float typical) { return !(v >= typical / kOutlier && v <= typical * kOutlier); };
+  int64_t rejected = 0;
+  for (size_t t = 0; t < n; ++t) {
+    if (acc.weight[t] <= 0) continue;
+    float& specular = out->specular.pixels[t];
+    float& roughness = out->roughness.pixels[t];
+    if (measured[t] && (off(specular, typical_specular[t]) || off(roughness, typical_roughness[t]))) {
+      measured[t] = 0;
+      ++rejected;
+      out->specular_weight.pixels[t] = 0;
+    }
+    if (!measured[t]) {
+      specular = typical_specular[t];
+      roughness = typical_roughness[t];
+    }
+    if (out->specular_weight.pixels[t] <= 0) std::copy_n(&normal.pixels[3 * t], 3, &spec_normal->pixels[3 * t]);
+  }
+  return rejected;
 }
 
 // Grows the set texels `passes` rings (the mean of set neighbours), renormalizes unit vectors, zeroes what is left.
@@ -538,14 +585,7 @@ void MakeTextures(const Accumulator& acc, const TexelSurface& s, const TriangleM
       [&] { normal = Mean(acc.normal, acc.weight, size, 3, true); },
       [&] { spec_normal = Mean(acc.spec_normal, acc.spec_normal_weight, size, 3, true); }};
   internal::ParallelItems(static_cast<int>(means.size()), 0, [&](int i) { means[static_cast<size_t>(i)](); });
-  // Where the views saw the surface but measured no lobe: the diffuse normal as the specular one, the intensity and
-  // roughness of the lobes measured around.
-  for (size_t t = 0; t < acc.weight.size(); ++t) {
-    if (acc.weight[t] > 0 && acc.spec_normal_weight[t] <= 0)
-      std::copy_n(&normal.pixels[3 * t], 3, &spec_normal.pixels[3 * t]);
-  }
-  FillUnmeasured(&out->specular, acc.spec_weight, acc.weight);
-  FillUnmeasured(&out->roughness, acc.rough_weight, acc.weight);
+  out->lobes_rejected = FillLobes(acc, normal, &spec_normal, out);
   ExpressedNormals diffuse, specular;
   ExpressNormals({&normal, &spec_normal}, s.texels, mesh, s.vertex_normals, s.tangents, head_from_stage.linear(),
                  {&diffuse, &specular});
@@ -574,8 +614,6 @@ void MakeTextures(const Accumulator& acc, const TexelSurface& s, const TriangleM
   out->weight = Image(size, size, 1);
   out->weight.pixels = acc.weight;
   out->views = acc.views;
-  out->specular_weight = Image(size, size, 1);
-  out->specular_weight.pixels = acc.spec_normal_weight;
 }
 
 }  // namespace

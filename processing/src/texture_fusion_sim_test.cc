@@ -218,8 +218,8 @@ TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
   }
   // Measured (2026-11-28): 247,298 texels; albedo 0.79 % (1.01 % where one view sees the skin, 38 % of the texels;
   // 0.70 % where two do, 0.57 % where three do), each view alone 0.82-0.87 %; diffuse normals 0.86 deg (each alone
-  // 0.97-1.00); specular normals 4.23 deg mean, 2.31 median on 68,173 texels with a lobe; intensity median 5.4 %
-  // (each alone 6.6-6.8 %). docs/assets.md#fusing-the-photometric-solves has the why.
+  // 0.97-1.00); specular normals 3.49 deg mean, 2.23 median on 65,798 texels with a lobe (each alone 3.64-4.00);
+  // intensity median 5.2 % (each alone 6.5-6.7 %). docs/assets.md#fusing-the-photometric-solves has the why.
   EXPECT_GT(all->texels, options.size * options.size * 4 / 5);
   EXPECT_LT(all->albedo_mean, 0.0085);
   EXPECT_LT(all->albedo_mean, single_albedo);

@@ -268,6 +268,66 @@ TEST(TextureFusionTest, RefusesBadOptionsAMeshWithoutUvsAndMapsOfTheWrongSize) {
               HasSubstr("view centre: the albedo map is 10 x 10 x 3, not 320 x 240 x 3"));
 }
 
+// Lobes measured on the sheet's left half only (u < 0.5 seen by each view: specular 0.04, roughness 0.3, the
+// specular normal the diffuse one tilted), one speck of a bad fit among them (specular 1.0): the fused lobe maps hold
+// the measured values on the left, the typical ones on the right with the diffuse normal as the specular one, and
+// the speck is rejected like an unmeasured texel.
+TEST(TextureFusionTest, LobesComeFromWhereTheyWereMeasuredAndOutliersAreFilled) {
+  Scene s = MakeScene(/*occluder=*/false);
+  for (FusionView& v : s.views) {
+    const int w = v.camera.width(), h = v.camera.height();
+    v.specular = Image(w, h, 1);
+    v.roughness = Image(w, h, 1);
+    v.specular_normal = Image(w, h, 3);
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) {
+        const float* n = v.diffuse_normal.at(x, y);
+        // The sheet's left half (x < 0 in the stage frame) faces cameras whose image x grows with stage x.
+        if (n[0] == 0 && n[1] == 0 && n[2] == 0) continue;
+        const Eigen::Vector3f normal(n[0], n[1], n[2]);
+        if (std::atan2(normal.x(), normal.z()) > 0) continue;  // the sheet's angle a = atan2(x, z) > 0: u > 0.5
+        const bool speck = x == w / 2 - 30 && y == h / 2;
+        v.specular.at(x, y)[0] = speck ? 1.0f : 0.04f;
+        v.roughness.at(x, y)[0] = 0.3f;
+        const Eigen::Vector3f tilted = (normal + Eigen::Vector3f(0, 0.05f, 0)).normalized();
+        for (int c = 0; c < 3; ++c) v.specular_normal.at(x, y)[c] = tilted[c];
+      }
+    }
+  }
+  auto fused = FuseTextures(s.mesh, Eigen::Isometry3f::Identity(), s.views, Small());
+  ASSERT_TRUE(fused.ok()) << fused.status();
+  const int size = Small().size;
+  int left = 0, right = 0, halo = 0;
+  for (int y = size / 4; y < 3 * size / 4; ++y) {
+    for (int x = 4; x < size - 4; ++x) {
+      const size_t t = static_cast<size_t>(y) * size + x;
+      if (fused->state[t] != TexelState::kCovered) continue;
+      const float u = TexelUv(x, y, size).x();
+      const float* sn = &fused->specular_normal_object.pixels[3 * t];
+      const float* dn = &fused->normal_object.pixels[3 * t];
+      const double apart = AngleDeg(Eigen::Vector3d(sn[0], sn[1], sn[2]), Eigen::Vector3d(dn[0], dn[1], dn[2]));
+      if (u < 0.45f && fused->specular_weight.pixels[t] > 0) {
+        ++left;
+        // Beside the speck its value blends in (up to 4x the typical one before it is rejected).
+        if (std::abs(fused->specular.pixels[t] - 0.04f) > 1e-4) ++halo;
+        EXPECT_NEAR(fused->roughness.pixels[t], 0.3f, 1e-4);
+        EXPECT_GT(apart, 2.0);  // the tilted lobe's own normal
+      } else if (u > 0.55f) {
+        ++right;
+        EXPECT_EQ(fused->specular_weight.pixels[t], 0);
+        EXPECT_NEAR(fused->specular.pixels[t], 0.04f, 1e-3) << x << "," << y;  // the typical value, filled
+        EXPECT_NEAR(fused->roughness.pixels[t], 0.3f, 1e-3);
+        EXPECT_LT(apart, 1e-3);  // the diffuse normal
+      }
+    }
+  }
+  EXPECT_GT(left, 1000);
+  EXPECT_GT(right, 1000);
+  EXPECT_LT(halo, 30);
+  EXPECT_GT(fused->lobes_rejected, 0);  // the speck's texels
+  EXPECT_LT(fused->lobes_rejected, 40);
+}
+
 TEST(TextureFusionTest, AJobNamesItsTakeFramesAndCameras) {
   TexturesJob job;
   EXPECT_THAT(std::string(job.Validate().message()), HasSubstr("no take directory"));

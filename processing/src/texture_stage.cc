@@ -18,7 +18,8 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// The fit's stage_from_head of a frame (its pose.json), as head_from_stage.
+}  // namespace
+
 absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file) {
   std::ifstream in(pose_file);
   if (!in) return absl::NotFoundError(absl::StrCat(pose_file, ": cannot open the fit's pose"));
@@ -36,9 +37,8 @@ absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file) {
   return stage_from_head.inverse();
 }
 
-// One view's maps of a frame (PhotometricMaps' files), its camera at their size.
-absl::StatusOr<FusionView> LoadView(const LoadedRig& rig, const CameraCalibration* calibration, const std::string& dir,
-                                    const std::string& id) {
+absl::StatusOr<FusionView> LoadFusionView(const LoadedRig& rig, const CameraCalibration* calibration,
+                                          const std::string& dir, const std::string& id) {
   FusionView v;
   v.camera_id = id;
   struct Entry {
@@ -60,6 +60,8 @@ absl::StatusOr<FusionView> LoadView(const LoadedRig& rig, const CameraCalibratio
   return v;
 }
 
+namespace {
+
 std::string MetricsJson(int64_t frame, const FusedTextures& t, const std::vector<FusionView>& views) {
   nlohmann::ordered_json j;
   j["frame"] = frame;
@@ -75,6 +77,7 @@ std::string MetricsJson(int64_t frame, const FusedTextures& t, const std::vector
   j["texels_dilated"] = dilated;
   j["texels_seen_twice"] = overlap;
   j["texels_with_a_lobe"] = lobe;
+  j["lobes_rejected"] = t.lobes_rejected;
   for (size_t i = 0; i < views.size(); ++i) j["texels_per_view"][views[i].camera_id] = t.texels_per_view[i];
   return j.dump(2);
 }
@@ -132,7 +135,7 @@ absl::Status FuseFrame(const TexturesJob& job, const LoadedRig& rig, const Camer
   STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(FrameDir(fit, frame) + "/pose.json"));
   std::vector<FusionView> views;
   for (const std::string& id : cameras) {
-    auto view = LoadView(rig, calibration, UnitDir(maps, frame, id), id);
+    auto view = LoadFusionView(rig, calibration, UnitDir(maps, frame, id), id);
     if (!view.ok()) return view.status();
     views.push_back(*std::move(view));
   }

@@ -10,6 +10,7 @@
 #include "stage/common/version.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/evaluate.h"
+#include "stage/processing/evaluate_assets.h"
 #include "stage/processing/evaluate_mvs.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
@@ -361,6 +362,28 @@ int main(int argc, char** argv) {
   eval_mvs_app->add_option("--camera", eval_mvs_camera, "The camera of --pictures")->capture_default_str();
   eval_mvs_app->add_flag("--json", eval_mvs_json, "Print the table as JSON on stdout");
 
+  // evaluate fit / evaluate textures: one library call (EvaluateAssets), one of its two halves each.
+  stage::processing::AssetsEvaluateOptions eval_assets;
+  std::string eval_assets_frames = "0:";
+  bool eval_assets_json = false;
+  CLI::App* eval_fit = evaluate->add_subcommand(
+      "fit",
+      "Per frame and region (skin, eyes, mouth): every template vertex against where the head's layout puts its "
+      "point on the true surface (RMSE, 99th percentile, distance to the surface, sliding along it)");
+  CLI::App* eval_textures = evaluate->add_subcommand(
+      "textures",
+      "Per frame: the fused textures against the truth's per-camera maps fused through the same fit with the "
+      "solve's weights (albedo relative, diffuse and specular normals in degrees), over all texels and those two or "
+      "more views see");
+  for (CLI::App* sub : {eval_fit, eval_textures}) {
+    sub->add_option("--take", eval_assets.take_dir, "The take directory")->required();
+    sub->add_option("--frames", eval_assets_frames, "Virtual frames A:B, A: or A")->capture_default_str();
+    sub->add_option("--fit", eval_assets.fit_dir, "The fit (default: TAKE/derived/fit)");
+    sub->add_option("--truth", eval_assets.truth_dir, "Ground truth (default: TAKE/ground_truth)");
+    sub->add_flag("--json", eval_assets_json, "Print the table as JSON on stdout");
+  }
+  eval_textures->add_option("--textures", eval_assets.textures_dir, "The textures (default: TAKE/derived/textures)");
+
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -421,6 +444,20 @@ int main(int argc, char** argv) {
     }
     std::cout << (eval_mvs_json ? stage::processing::MvsEvaluationJson(*result) + "\n"
                                 : stage::processing::FormatMvsEvaluation(*result));
+    return 0;
+  }
+  if (*eval_fit || *eval_textures) {
+    if (auto s =
+            stage::ParseFrameRange("--frames", eval_assets_frames, &eval_assets.first_frame, &eval_assets.last_frame);
+        !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    eval_assets.fit = eval_fit->parsed();
+    eval_assets.textures = eval_textures->parsed();
+    auto result = stage::processing::EvaluateAssets(eval_assets);
+    if (!result.ok()) return stage::ReportFatal(kProgram, result.status());
+    std::cout << (eval_assets_json ? stage::processing::AssetsEvaluationJson(*result) + "\n"
+                                   : stage::processing::FormatAssetsEvaluation(*result));
     return 0;
   }
   if (*eval_photometric) {

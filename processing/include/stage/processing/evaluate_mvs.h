@@ -11,7 +11,9 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
 #include "stage/common/mesh.h"
+#include "stage/processing/calibrate.h"
 
 namespace stage::processing {
 
@@ -85,6 +87,12 @@ struct MvsEvaluation {
 };
 
 absl::StatusOr<MvsEvaluation> EvaluateMvs(const MvsEvaluateOptions& options);
+
+// The calibration a run placed its cameras with (`results`/run.json's "calibration": a file or directory in the take,
+// or empty for the rig's nominal models) against the truth's cameras: the motion from its frame to the truth's.
+// `placed_by` (optional): the run's "cameras_placed_by", or the calibration named. Errors name the run's file.
+absl::StatusOr<TruthComparison> RunFrameToTruth(const std::string& take_dir, const std::string& results,
+                                                const CameraCalibration& truth, std::string* placed_by = nullptr);
 
 // Pictures of a frame's mesh as `camera` (placed as the truth says) sees it, at most 1024 pixels wide:
 // <out_prefix>-mesh.png (shaded by its facets' angle to the camera) and <out_prefix>-error.png (each visible point's

@@ -75,8 +75,10 @@ struct FusedTextures {
   Image weight;  // 1 channel: the views' summed weight (0: from the dilation, or nothing)
   // 1 channel: the weight of the views that measured a specular lobe there (their specular normal solved). Where it
   // is 0 on a covered texel the specular maps are filled: the specular normal is the diffuse one, the intensity and
-  // roughness those of the lobes measured around (a normalized convolution over ~2 % of the layout).
+  // roughness the neighbourhood's typical values (medians of 16 x 16-texel cells, smoothed over a few cells). A
+  // measured lobe more than 4 times off those (the solve's isolated bad fits) is filled the same way.
   Image specular_weight;
+  int64_t lobes_rejected = 0;            // texels whose measured lobe was such an outlier
   std::vector<TexelState> state;         // covered: some view saw it; dilated: grown from neighbours; empty
   std::vector<uint8_t> views;            // per texel, how many views saw it
   std::vector<int64_t> texels_per_view;  // texels each view contributed to (views' order)
@@ -126,6 +128,14 @@ struct TexturesJob {
   // The take named, a frame range that can hold frames, camera ids not empty, and the options.
   absl::Status Validate() const;
 };
+
+// One view's photometric maps as the stage reads them (PhotometricMaps' files in `dir`: albedo, diffuse and specular
+// normals, specular, roughness, confidence), its camera placed by `calibration` (nullptr: the rig's nominal model) at
+// their size. Errors name the file.
+absl::StatusOr<FusionView> LoadFusionView(const LoadedRig& rig, const CameraCalibration* calibration,
+                                          const std::string& dir, const std::string& id);
+// The fit's pose of a frame (its pose.json: stage_from_head) as head_from_stage. Errors name the file.
+absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file);
 
 absl::StatusOr<JobResult> RunTextures(const TexturesJob& job,
                                       const std::function<void(const JobProgress&)>& progress = {},
