@@ -134,7 +134,7 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
       RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "uv-maps"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
   EXPECT_THAT(stage_name.err,
-              HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs, fit, textures)"));
+              HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize)"));
   CommandResult no_take =
       RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"}, std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);

@@ -18,6 +18,7 @@
 #include "stage/common/uv_raster.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/map_files.h"
+#include "stage/processing/stabilize.h"
 #include "stage/processing/template_fit.h"
 #include "stage/processing/texture_fusion.h"
 #include "stage/sim/ground_truth.h"
@@ -182,6 +183,89 @@ TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead)
 
 // The assets open in Blender (headless, Debian's): the fitted OBJ with its texture coordinates, and the textures as
 // images whose rows run as Blender's do (its pixel row 0 is v = 0, the bottom: our row size - 1).
+// Every image of `t` moved by (dx, dy) texels (zero where it moves in from outside).
+processing::FusedTextures Shifted(const processing::FusedTextures& t, int dx, int dy) {
+  processing::FusedTextures out = t;
+  for (processing::Image* image :
+       {&out.albedo, &out.specular, &out.roughness, &out.normal_object, &out.normal_tangent,
+        &out.specular_normal_object, &out.specular_normal_tangent, &out.weight, &out.specular_weight}) {
+    const processing::Image in = *image;
+    std::fill(image->pixels.begin(), image->pixels.end(), 0.0f);
+    for (int y = 0; y < in.height; ++y) {
+      for (int x = 0; x < in.width; ++x) {
+        const int sx = x - dx, sy = y - dy;
+        if (sx < 0 || sy < 0 || sx >= in.width || sy >= in.height) continue;
+        std::copy_n(in.at(sx, sy), in.channels, image->at(x, y));
+      }
+    }
+  }
+  return out;
+}
+
+// Stabilization as a stage: frame 1's textures are frame 0's moved by (3, -2) texels; the command, the library and the
+// worker's job write the same bytes, and frame 1 comes back onto frame 0.
+TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
+  TempDir take;
+  std::shared_ptr<const sim::SimScene> scene;
+  ASSERT_NO_FATAL_FAILURE(MakeTake(take.path(), &scene));
+  processing::TexturesJob fuse;
+  fuse.take_dir = take.path();
+  fuse.calibration = "ground_truth";
+  fuse.options.size = 128;
+  ASSERT_TRUE(processing::RunTextures(fuse).ok());
+  const std::string textures = take.path() + "/derived/textures";
+  auto frame0 = processing::ReadFusedTextures(textures + "/frame-000000");
+  ASSERT_TRUE(frame0.ok()) << frame0.status();
+  ASSERT_TRUE(processing::WriteFusedTextures(textures + "/frame-000001", Shifted(*frame0, 3, -2), "{}", "moved").ok());
+
+  CommandResult batch =
+      RunCommand({"stage-process", "stabilize", "--take", take.path(), "--output", "derived/stable-batch", "--json"},
+                 std::chrono::seconds(120));
+  ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
+  EXPECT_EQ(nlohmann::json::parse(batch.out)["frames"], 2);
+  processing::StabilizeJob job;
+  job.take_dir = take.path();
+  job.output_dir = "derived/stable-library";
+  ASSERT_TRUE(processing::RunStabilize(job).ok());
+
+  const std::string port_file = take.path() + "/worker.port";
+  auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
+                                            "127.0.0.1:0", "--port-file", port_file},
+                                   .stderr_path = take.path() + "/worker.log"});
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(take.path() + "/worker.log");
+  auto stub =
+      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
+  v1::ProcessingJob request;
+  request.set_stage(v1::PROCESSING_STAGE_STABILIZE);
+  request.set_take_dir(take.path());
+  grpc::ClientContext context;
+  auto reader = stub->Process(&context, request);
+  v1::ProcessingProgress progress, last;
+  while (reader->Read(&progress)) last = progress;
+  const grpc::Status rpc = reader->Finish();
+  (*worker)->Terminate(std::chrono::milliseconds(2000));
+  ASSERT_TRUE(rpc.ok()) << rpc.error_message();
+  EXPECT_EQ(last.output_dir(), take.path() + "/derived/textures-stable");
+
+  const auto a = FilesUnder(take.path() + "/derived/stable-batch");
+  ASSERT_EQ(a.size(), 1 + 2 * (9 + 4 + 2u));  // run.json; per frame 9 EXRs, 4 previews, contact sheet, metrics
+  for (const std::string other : {"stable-library", "textures-stable"}) {
+    const auto b = FilesUnder(take.path() + "/derived/" + other);
+    ASSERT_EQ(b.size(), a.size()) << other;
+    for (const auto& [name, bytes] : a) {
+      ASSERT_EQ(b.count(name), 1u) << name;
+      EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and " << other;
+    }
+  }
+  const nlohmann::json metrics = nlohmann::json::parse(a.at("frame-000001/metrics.json"));
+  EXPECT_NEAR(metrics["mean_flow_texels"].get<double>(), std::hypot(3, 2), 0.5);
+  EXPECT_LT(metrics["albedo_jitter_stabilized"].get<double>(), metrics["albedo_jitter_fused"].get<double>() / 3);
+  // The reference frame is written as it was fused.
+  EXPECT_TRUE(a.at("frame-000000/albedo.exr") == ReadFile(textures + "/frame-000000/albedo.exr"));
+}
+
 TEST(TexturesStageTest, BlenderOpensTheFittedMeshAndItsTextures) {
   TempDir take;
   std::shared_ptr<const sim::SimScene> scene;

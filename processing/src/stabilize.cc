@@ -3,11 +3,17 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/video/tracking.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/processing/photometric_stage.h"
 #include "statistics.h"
 
 namespace stage::processing {
@@ -147,6 +153,98 @@ double AlbedoJitter(const FusedTextures& a, const FusedTextures& b, const std::v
     ++count;
   }
   return count > 0 ? sum / static_cast<double>(count) : 0;
+}
+
+namespace {
+
+std::string FrameMetrics(int64_t frame, int64_t reference, double mean_flow, double jitter_fused,
+                         double jitter_stable) {
+  nlohmann::ordered_json j;
+  j["frame"] = frame;
+  j["reference_frame"] = reference;
+  j["mean_flow_texels"] = mean_flow;
+  // To the frame before (none for the reference): the albedo's jitter as fused and as stabilized.
+  j["albedo_jitter_fused"] = jitter_fused;
+  j["albedo_jitter_stabilized"] = jitter_stable;
+  return j.dump(2);
+}
+
+std::string StabilizeRunJson(const StabilizeJob& job, int64_t last) {
+  nlohmann::ordered_json run;
+  run["stage"] = "stabilize";
+  run["take"] = std::filesystem::path(job.take_dir).filename().string();
+  run["frames"] = {job.first_frame, last};
+  run["reference_frame"] = job.first_frame;
+  run["textures"] = job.textures_dir.empty() ? "derived/textures" : job.textures_dir;
+  run["method"] = "optical flow (OpenCV DIS) on the albedo in UV";
+  run["options"] = {{"patch_size", job.options.patch_size},
+                    {"patch_stride", job.options.patch_stride},
+                    {"refinement_iterations", job.options.refinement_iterations},
+                    {"max_flow_px", job.options.max_flow_px}};
+  return run.dump(2) + "\n";
+}
+
+}  // namespace
+
+absl::Status StabilizeJob::Validate() const {
+  if (take_dir.empty()) return absl::InvalidArgumentError("stabilize: no take directory");
+  if (first_frame < 0 || (last_frame >= 0 && last_frame <= first_frame)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("stabilize: the frames [", first_frame, ", ", last_frame, ") hold none"));
+  }
+  return options.Validate();
+}
+
+absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::function<void(const JobProgress&)>& progress,
+                                       const std::function<bool()>& cancelled) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  const std::string textures = PathInTake(job.take_dir, job.textures_dir, "derived/textures");
+  int64_t last = job.last_frame;
+  if (last < 0) {
+    last = job.first_frame;
+    while (std::filesystem::exists(FrameDir(textures, last) + "/albedo.exr")) ++last;
+  }
+  if (last <= job.first_frame) {
+    return absl::NotFoundError(
+        absl::StrCat(textures, ": no textures from frame ", job.first_frame, " (run the textures stage first)"));
+  }
+  JobResult result;
+  result.output_dir = PathInTake(job.take_dir, job.output_dir, "derived/textures-stable");
+  JobProgress p{0, last - job.first_frame,
+                absl::StrCat("stabilization: ", last - job.first_frame, " frame(s) onto frame ", job.first_frame)};
+  if (progress) progress(p);
+  STAGE_ASSIGN_OR_RETURN(const FusedTextures reference, ReadFusedTextures(FrameDir(textures, job.first_frame)));
+  FusedTextures previous_fused = reference, previous_stable = reference;
+  for (int64_t frame = job.first_frame; frame < last; ++frame) {
+    if (cancelled && cancelled()) {
+      return absl::CancelledError(
+          absl::StrCat("stabilization of ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
+    }
+    FusedTextures fused = reference;
+    StabilizedTextures stable{reference, Image(), 0};
+    if (frame != job.first_frame) {
+      STAGE_ASSIGN_OR_RETURN(fused, ReadFusedTextures(FrameDir(textures, frame)));
+      auto s = StabilizeTextures(reference, fused, job.options);
+      if (!s.ok())
+        return absl::Status(s.status().code(), absl::StrCat(FrameDir(textures, frame), ": ", s.status().message()));
+      stable = *std::move(s);
+    }
+    const double jitter_fused = AlbedoJitter(previous_fused, fused),
+                 jitter_stable = AlbedoJitter(previous_stable, stable.textures);
+    STAGE_RETURN_IF_ERROR(
+        WriteFusedTextures(FrameDir(result.output_dir, frame), stable.textures,
+                           FrameMetrics(frame, job.first_frame, stable.mean_flow_px, jitter_fused, jitter_stable),
+                           absl::StrFormat("frame %d stabilized onto frame %d", frame, job.first_frame)));
+    previous_fused = std::move(fused);
+    previous_stable = std::move(stable.textures);
+    ++result.units;
+    p.done = result.units;
+    p.message = absl::StrFormat("frame %d: flow %.2f texels, albedo jitter %.2f %% (fused %.2f %%)", frame,
+                                stable.mean_flow_px, 100 * jitter_stable, 100 * jitter_fused);
+    if (progress) progress(p);
+  }
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", StabilizeRunJson(job, last)));
+  return result;
 }
 
 }  // namespace stage::processing

@@ -144,21 +144,57 @@ absl::Status FuseFrame(const TexturesJob& job, const LoadedRig& rig, const Camer
     return absl::Status(fused.status().code(),
                         absl::StrCat(job.take_dir, ": frame ", frame, ": ", fused.status().message()));
   }
-  const std::vector<std::pair<std::string, const Image*>> files = {
-      {"albedo", &fused->albedo},
-      {"specular", &fused->specular},
-      {"roughness", &fused->roughness},
-      {"normal_object", &fused->normal_object},
-      {"normal_tangent", &fused->normal_tangent},
-      {"specular_normal_object", &fused->specular_normal_object},
-      {"specular_normal_tangent", &fused->specular_normal_tangent},
-      {"weight", &fused->weight},
-      {"specular_weight", &fused->specular_weight}};
-  return WriteTextureFiles(FrameDir(output_dir, frame), files, MetricsJson(frame, *fused, views),
-                           absl::StrFormat("frame %d: %d views fused", frame, views.size()));
+  return WriteFusedTextures(FrameDir(output_dir, frame), *fused, MetricsJson(frame, *fused, views),
+                            absl::StrFormat("frame %d: %d views fused", frame, views.size()));
+}
+
+// The textures' files, in the order they are written.
+std::vector<std::pair<std::string, Image FusedTextures::*>> TextureFiles() {
+  return {{"albedo", &FusedTextures::albedo},
+          {"specular", &FusedTextures::specular},
+          {"roughness", &FusedTextures::roughness},
+          {"normal_object", &FusedTextures::normal_object},
+          {"normal_tangent", &FusedTextures::normal_tangent},
+          {"specular_normal_object", &FusedTextures::specular_normal_object},
+          {"specular_normal_tangent", &FusedTextures::specular_normal_tangent},
+          {"weight", &FusedTextures::weight},
+          {"specular_weight", &FusedTextures::specular_weight}};
 }
 
 }  // namespace
+
+absl::Status WriteFusedTextures(const std::string& dir, const FusedTextures& textures, const std::string& metrics_json,
+                                const std::string& title) {
+  std::vector<std::pair<std::string, const Image*>> files;
+  for (const auto& [name, member] : TextureFiles()) files.emplace_back(name, &(textures.*member));
+  return WriteTextureFiles(dir, files, metrics_json, title);
+}
+
+absl::StatusOr<FusedTextures> ReadFusedTextures(const std::string& dir) {
+  FusedTextures t;
+  for (const auto& [name, member] : TextureFiles()) {
+    STAGE_ASSIGN_OR_RETURN(t.*member, ReadImageFile(dir + "/" + name + ".exr"));
+  }
+  t.size = t.albedo.width;
+  const size_t n = static_cast<size_t>(t.size) * t.size;
+  for (const auto& [name, member] : TextureFiles()) {
+    const Image& image = t.*member;
+    if (image.width != t.size || image.height != t.size) {
+      return absl::DataLossError(absl::StrFormat("%s/%s.exr: %d x %d, not the albedo's %d x %d", dir, name, image.width,
+                                                 image.height, t.size, t.size));
+    }
+  }
+  t.state.assign(n, TexelState::kEmpty);
+  for (size_t i = 0; i < n; ++i) {
+    const float* normal = &t.normal_object.pixels[3 * i];
+    if (t.weight.pixels[i] > 0) {
+      t.state[i] = TexelState::kCovered;
+    } else if (normal[0] != 0 || normal[1] != 0 || normal[2] != 0) {
+      t.state[i] = TexelState::kDilated;
+    }
+  }
+  return t;
+}
 
 absl::Status TexturesJob::Validate() const {
   if (take_dir.empty()) return absl::InvalidArgumentError("textures: no take directory");

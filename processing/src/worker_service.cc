@@ -10,6 +10,7 @@
 #include "stage/processing/calibrate.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
+#include "stage/processing/stabilize.h"
 #include "stage/processing/template_fit.h"
 #include "stage/processing/texture_fusion.h"
 
@@ -48,10 +49,10 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
       job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
-      job->stage() != v1::PROCESSING_STAGE_TEXTURES) {
+      job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE) {
     return ToGrpcStatus(absl::InvalidArgumentError(
         absl::StrCat("worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
-                     " (stages: photometric, calibration, mvs, fit, textures)")));
+                     " (stages: photometric, calibration, mvs, fit, textures, stabilize)")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -84,6 +85,9 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       break;
     case v1::PROCESSING_STAGE_TEXTURES:
       result = RunTexturesJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_STABILIZE:
+      result = RunStabilizeJob(*job, report, cancelled);
       break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);
@@ -219,6 +223,24 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunTexturesJob(
   if (!result.ok()) return result.status();
   return Finished(result->units, result->output_dir,
                   absl::StrCat(result->units, " frame(s) of textures fused into ", result->output_dir));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunStabilizeJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() ||
+      !job.calibration().empty() || job.cameras_size() > 0 || job.texture_size() != 0) {
+    return absl::InvalidArgumentError(
+        "stabilization takes no geometry, calibration, cameras or texture size: it reads the fused textures");
+  }
+  StabilizeJob s;
+  s.take_dir = job.take_dir();
+  s.first_frame = job.first_frame();
+  s.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  auto result = RunStabilize(s, progress, cancelled);
+  if (!result.ok()) return result.status();
+  return Finished(result->units, result->output_dir,
+                  absl::StrCat(result->units, " frame(s) of textures stabilized into ", result->output_dir));
 }
 
 }  // namespace stage::processing

@@ -14,6 +14,7 @@
 #include "stage/processing/evaluate_mvs.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
+#include "stage/processing/stabilize.h"
 #include "stage/processing/template_fit.h"
 #include "stage/processing/texture_fusion.h"
 
@@ -214,6 +215,36 @@ struct TexturesCommand {
   }
 };
 
+struct StabilizeCommand {
+  stage::processing::StabilizeJob job;
+  std::string frames = "0:";
+  bool json = false;
+  CLI::App* app = nullptr;
+
+  void Add(CLI::App& parent) {
+    app = parent.add_subcommand(
+        "stabilize",
+        "The fused textures of every frame warped onto the first frame's along the albedo's optical flow in UV "
+        "(docs/assets.md#temporal-stabilization): TAKE/derived/textures-stable/frame-NNNNNN/, the same files, "
+        "metrics.json with the flow and the albedo's jitter to the frame before");
+    app->add_option("--take", job.take_dir, "The take directory (takes/<take-id>)")->required();
+    app->add_option("--frames", frames,
+                    "Virtual frames A:B (B excluded), A: to the last frame with textures, or A; the first is the "
+                    "reference")
+        ->capture_default_str();
+    app->add_option("--textures", job.textures_dir, "The fused textures (default: TAKE/derived/textures)");
+    app->add_option("--output", job.output_dir, "Results directory (default: TAKE/derived/textures-stable)");
+    app->add_option("--patch-size", job.options.patch_size, "The optical flow's patches, texels")
+        ->capture_default_str()
+        ->check(CLI::Range(4, 64));
+    app->add_option("--max-flow", job.options.max_flow_px, "A longer flow is not trusted, texels")
+        ->capture_default_str();
+    app->add_flag("--json", json, "Print the result as JSON on stdout");
+  }
+
+  int Run() { return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize); }
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -280,6 +311,8 @@ int main(int argc, char** argv) {
   fit.Add(app);
   TexturesCommand textures;
   textures.Add(app);
+  StabilizeCommand stabilize;
+  stabilize.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -407,6 +440,7 @@ int main(int argc, char** argv) {
   if (*mvs.app) return mvs.Run();
   if (*fit.app) return fit.Run();
   if (*textures.app) return textures.Run();
+  if (*stabilize.app) return stabilize.Run();
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {

@@ -684,8 +684,9 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
     return stage::ReportFatal(
-        kProgram, absl::InvalidArgumentError(absl::StrCat(
-                      "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit, textures)")));
+        kProgram,
+        absl::InvalidArgumentError(absl::StrCat(
+            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize)")));
   }
   request.set_stage(kind);
   int64_t first = 0, last = -1;
@@ -711,7 +712,8 @@ int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessingProgress progress, last_message;
   stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
                           : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
-                                  kind == stage::v1::PROCESSING_STAGE_TEXTURES
+                                  kind == stage::v1::PROCESSING_STAGE_TEXTURES ||
+                                  kind == stage::v1::PROCESSING_STAGE_STABILIZE
                               ? "frames"
                               : "camera frames");
   while (reader->Read(&progress)) {
@@ -1033,7 +1035,8 @@ int main(int argc, char** argv) {
   process
       ->add_option("--stage", pf.stage,
                    "The stage: photometric, calibration, mvs, fit (the face template on multi-view stereo's "
-                   "meshes, or on --geometry's) or textures (the photometric maps fused into the fit's UV layout)")
+                   "meshes, or on --geometry's), textures (the photometric maps fused into the fit's UV layout) or "
+                   "stabilize (the textures warped onto the first frame's)")
       ->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();

@@ -26,8 +26,8 @@ struct CameraSetup {
 // The whole-sensor model of camera `camera_id` (from `calibration`, or the rig's nominal one when it is null) at the
 // size its frames were recorded at: the take's render scale (simulated cameras) or the whole sensor. Errors name the
 // camera: not in the rig or the calibration, frames of a size neither gives.
-absl::StatusOr<CameraModel> CameraAtImageSize(const LoadedRig& rig, const std::string& camera_id, int width,
-                                              int height, const CameraCalibration* calibration = nullptr);
+absl::StatusOr<CameraModel> CameraAtImageSize(const LoadedRig& rig, const std::string& camera_id, int width, int height,
+                                              const CameraCalibration* calibration = nullptr);
 
 // Camera `camera_id` of `rig`, recorded at width x height with `bits` of data (8, 12 or 16), placed as `calibration`
 // says (a calibration file: camera_calibration.h), or where the rig's nominal model says when it is null. Errors

@@ -6,6 +6,8 @@
 // albedo) is carried along, not flattened.
 #pragma once
 
+#include <functional>
+#include <string>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -39,5 +41,26 @@ absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& refere
 // The albedo's jitter between two frames' textures (the FaStage paper's Fig. 17 measure): over the texels `a` and `b`
 // both cover (and `mask` holds, if given), the mean of |la - lb| / ((la + lb) / 2), l the albedo's luminance.
 double AlbedoJitter(const FusedTextures& a, const FusedTextures& b, const std::vector<bool>* mask = nullptr);
+
+// The stage (docs/assets.md#temporal-stabilization): the fused textures of a take's frames
+// (TAKE/derived/textures/frame-NNNNNN/) warped onto those of the range's first frame (the reference: written as it
+// is) into TAKE/derived/textures-stable/frame-NNNNNN/ (the same files, metrics.json with the mean flow and the
+// albedo's jitter to the frame before, as fused and stabilized), run.json at the root.
+struct StabilizeJob {
+  std::string take_dir;
+  // Frames [first_frame, last_frame); last_frame < 0: up to the last the textures hold without a gap.
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  // Where the textures are and the results go, relative to the take or absolute; empty: derived/textures and
+  // derived/textures-stable.
+  std::string textures_dir, output_dir;
+  StabilizeOptions options;
+
+  absl::Status Validate() const;
+};
+
+absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job,
+                                       const std::function<void(const JobProgress&)>& progress = {},
+                                       const std::function<bool()>& cancelled = {});
 
 }  // namespace stage::processing

@@ -129,6 +129,13 @@ struct TexturesJob {
   absl::Status Validate() const;
 };
 
+// A frame's textures as the stage writes them (`dir`: the EXR textures, PNG previews, a contact sheet titled `title`,
+// `metrics_json`), and read back (the texel states from the weights: covered where a view saw it, dilated where only
+// the dilation put a normal; the view counts are not written). Errors name the file.
+absl::Status WriteFusedTextures(const std::string& dir, const FusedTextures& textures, const std::string& metrics_json,
+                                const std::string& title);
+absl::StatusOr<FusedTextures> ReadFusedTextures(const std::string& dir);
+
 // One view's photometric maps as the stage reads them (PhotometricMaps' files in `dir`: albedo, diffuse and specular
 // normals, specular, roughness, confidence), its camera placed by `calibration` (nullptr: the rig's nominal model) at
 // their size. Errors name the file.
