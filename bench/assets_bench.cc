@@ -101,19 +101,7 @@ int main(int argc, char** argv) {
   t = Steady::now();
   if (auto s = WriteObj(dir + "/out/mesh.obj", fitted); !s.ok()) Die(s);
   if (auto s = processing::WriteGeometryMap(dir + "/out/geometry_map.exr", map); !s.ok()) Die(s);
-  if (auto s = processing::WriteTextureFiles(dir + "/out",
-                                             {{"albedo", &fused.albedo},
-                                              {"specular", &fused.specular},
-                                              {"roughness", &fused.roughness},
-                                              {"normal_object", &fused.normal_object},
-                                              {"normal_tangent", &fused.normal_tangent},
-                                              {"specular_normal_object", &fused.specular_normal_object},
-                                              {"specular_normal_tangent", &fused.specular_normal_tangent},
-                                              {"weight", &fused.weight}},
-                                             "{}", "assets_bench");
-      !s.ok()) {
-    Die(s);
-  }
+  if (auto s = processing::WriteFusedTextures(dir + "/out", fused, "{}", "assets_bench"); !s.ok()) Die(s);
   const double write_s = Since(t);
   fs::remove_all(dir);
 
