@@ -279,6 +279,12 @@ std::vector<float> LocalLobeValue(const Image& image, const std::vector<uint8_t>
   }
   // Far from every such cell: the median over the cells (a prior of kPrior cells' weight everywhere, so the two meet
   // smoothly).
+  // With no such cell (lobes measured only here and there): the median of every measured texel; NaN with none.
+  if (medians.empty()) {
+    for (size_t t = 0; t < measured.size(); ++t) {
+      if (measured[t]) medians.push_back(image.pixels[t]);
+    }
+  }
   const float overall = medians.empty() ? kNaN : static_cast<float>(Median(medians));
   constexpr float kPrior = 0.05f;
   cv::GaussianBlur(value, value, cv::Size(), 2);
@@ -312,7 +318,10 @@ int64_t FillLobes(const Accumulator& acc, const Image& normal, Image* spec_norma
   out->specular_weight.pixels = acc.spec_normal_weight;
   const std::vector<float> typical_specular = LocalLobeValue(out->specular, measured);
   const std::vector<float> typical_roughness = LocalLobeValue(out->roughness, measured);
-  auto off = [&](float v, float typical) { return !(v >= typical / kOutlier && v <= typical * kOutlier); };
+  // Judged only against a typical value there is (a NaN one rejects nothing).
+  auto off = [&](float v, float typical) {
+    return std::isfinite(typical) && !(v >= typical / kOutlier && v <= typical * kOutlier);
+  };
   int64_t rejected = 0;
   for (size_t t = 0; t < n; ++t) {
     if (acc.weight[t] <= 0) continue;

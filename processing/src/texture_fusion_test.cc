@@ -328,6 +328,38 @@ TEST(TextureFusionTest, LobesComeFromWhereTheyWereMeasuredAndOutliersAreFilled) 
   EXPECT_LT(fused->lobes_rejected, 40);
 }
 
+// Lobes measured only at scattered pixels (every 9th column of every 9th row): no cell of the layout is a quarter
+// measured, and the lobes measured still say what the rest is; none is taken for an outlier.
+TEST(TextureFusionTest, ScatteredLobesStillFillTheRest) {
+  Scene s = MakeScene(/*occluder=*/false);
+  for (FusionView& v : s.views) {
+    const int w = v.camera.width(), h = v.camera.height();
+    v.specular = Image(w, h, 1);
+    v.roughness = Image(w, h, 1);
+    v.specular_normal = Image(w, h, 3);
+    for (int y = 0; y < h; y += 9) {
+      for (int x = 0; x < w; x += 9) {
+        const float* n = v.diffuse_normal.at(x, y);
+        if (n[0] == 0 && n[1] == 0 && n[2] == 0) continue;
+        v.specular.at(x, y)[0] = 0.04f;
+        v.roughness.at(x, y)[0] = 0.3f;
+        std::copy_n(n, 3, v.specular_normal.at(x, y));
+      }
+    }
+  }
+  auto fused = FuseTextures(s.mesh, Eigen::Isometry3f::Identity(), s.views, Small());
+  ASSERT_TRUE(fused.ok()) << fused.status();
+  EXPECT_EQ(fused->lobes_rejected, 0);
+  int covered = 0;
+  for (size_t t = 0; t < fused->state.size(); ++t) {
+    if (fused->state[t] != TexelState::kCovered) continue;
+    ++covered;
+    ASSERT_NEAR(fused->specular.pixels[t], 0.04f, 1e-4) << t;
+    ASSERT_NEAR(fused->roughness.pixels[t], 0.3f, 1e-4) << t;
+  }
+  EXPECT_GT(covered, 5000);
+}
+
 TEST(TextureFusionTest, AJobNamesItsTakeFramesAndCameras) {
   TexturesJob job;
   EXPECT_THAT(std::string(job.Validate().message()), HasSubstr("no take directory"));
