@@ -69,6 +69,27 @@ void MakeTake(const std::string& dir, std::shared_ptr<const sim::SimScene>* scen
   std::ofstream(fit + "/pose.json") << R"({"frame": 0, "stage_from_head": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]})";
 }
 
+// `request` run on a processing worker started for it (and stopped after); its last progress message into `last`.
+void RunOnWorker(const std::string& dir, const v1::ProcessingJob& request, v1::ProcessingProgress* last) {
+  const std::string port_file = dir + "/worker.port";
+  fs::remove(port_file);
+  auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
+                                            "127.0.0.1:0", "--port-file", port_file},
+                                   .stderr_path = dir + "/worker.log"});
+  ASSERT_TRUE(worker.ok()) << worker.status();
+  for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(dir + "/worker.log");
+  auto stub =
+      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  auto reader = stub->Process(&context, request);
+  v1::ProcessingProgress progress;
+  while (reader->Read(&progress)) *last = progress;
+  const grpc::Status rpc = reader->Finish();
+  (*worker)->Terminate(std::chrono::milliseconds(2000));
+  ASSERT_TRUE(rpc.ok()) << rpc.error_message();
+}
+
 TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead) {
   TempDir take;
   std::shared_ptr<const sim::SimScene> scene;
@@ -121,27 +142,13 @@ TEST(TexturesStageTest, TheCommandAndTheLibraryFuseTheSameTexturesThatToolsRead)
   EXPECT_THAT(stale.err, HasSubstr("albedo.exr: not what fusion makes of"));
 
   // The worker's job writes the same bytes (into the stage's default directory).
-  const std::string port_file = take.path() + "/worker.port";
-  auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
-                                            "127.0.0.1:0", "--port-file", port_file},
-                                   .stderr_path = take.path() + "/worker.log"});
-  ASSERT_TRUE(worker.ok()) << worker.status();
-  for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(take.path() + "/worker.log");
-  auto stub =
-      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
   v1::ProcessingJob request;
   request.set_stage(v1::PROCESSING_STAGE_TEXTURES);
   request.set_take_dir(take.path());
   request.set_calibration("ground_truth");
   request.set_texture_size(256);
-  grpc::ClientContext context;
-  auto reader = stub->Process(&context, request);
-  v1::ProcessingProgress progress, last;
-  while (reader->Read(&progress)) last = progress;
-  const grpc::Status rpc = reader->Finish();
-  (*worker)->Terminate(std::chrono::milliseconds(2000));
-  ASSERT_TRUE(rpc.ok()) << rpc.error_message();
+  v1::ProcessingProgress last;
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
   EXPECT_TRUE(last.finished());
   EXPECT_EQ(last.output_dir(), take.path() + "/derived/textures");
   const auto w = FilesUnder(take.path() + "/derived/textures");
@@ -228,25 +235,11 @@ TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
   job.output_dir = "derived/stable-library";
   ASSERT_TRUE(processing::RunStabilize(job).ok());
 
-  const std::string port_file = take.path() + "/worker.port";
-  auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
-                                            "127.0.0.1:0", "--port-file", port_file},
-                                   .stderr_path = take.path() + "/worker.log"});
-  ASSERT_TRUE(worker.ok()) << worker.status();
-  for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(take.path() + "/worker.log");
-  auto stub =
-      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
   v1::ProcessingJob request;
   request.set_stage(v1::PROCESSING_STAGE_STABILIZE);
   request.set_take_dir(take.path());
-  grpc::ClientContext context;
-  auto reader = stub->Process(&context, request);
-  v1::ProcessingProgress progress, last;
-  while (reader->Read(&progress)) last = progress;
-  const grpc::Status rpc = reader->Finish();
-  (*worker)->Terminate(std::chrono::milliseconds(2000));
-  ASSERT_TRUE(rpc.ok()) << rpc.error_message();
+  v1::ProcessingProgress last;
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
   EXPECT_EQ(last.output_dir(), take.path() + "/derived/textures-stable");
 
   const auto a = FilesUnder(take.path() + "/derived/stable-batch");
