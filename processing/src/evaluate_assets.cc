@@ -192,13 +192,6 @@ absl::Status EvaluateTexturesFrame(const TexturesRun& run, const std::string& te
   return absl::OkStatus();
 }
 
-// The frames with results in `dir` from `first` on, [first, last).
-int64_t LastFrame(const std::string& dir, const char* file, int64_t first) {
-  int64_t last = first;
-  while (fs::exists(FrameDir(dir, last) + "/" + file)) ++last;
-  return last;
-}
-
 }  // namespace
 
 absl::Status AssetsEvaluateOptions::Validate() const {
@@ -218,7 +211,7 @@ absl::StatusOr<AssetsEvaluation> EvaluateAssets(const AssetsEvaluateOptions& o) 
   const std::string truth = PathInTake(o.take_dir, o.truth_dir, "ground_truth");
   const std::string results = o.textures ? textures : fit;
   int64_t last =
-      o.last_frame >= 0 ? o.last_frame : LastFrame(results, o.textures ? "albedo.exr" : "mesh.obj", o.first_frame);
+      o.last_frame >= 0 ? o.last_frame : EndOfFrames(results, o.textures ? "albedo.exr" : "mesh.obj", o.first_frame);
   if (last <= o.first_frame) {
     return absl::NotFoundError(absl::StrCat(results, ": no results from frame ", o.first_frame,
                                             o.textures ? " (run the textures stage first)" : " (run the fit first)"));

@@ -109,6 +109,12 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
 
 std::string FrameDir(const std::string& root, int64_t frame) { return absl::StrFormat("%s/frame-%06d", root, frame); }
 
+int64_t EndOfFrames(const std::string& root, const std::string& file, int64_t first) {
+  int64_t end = first;
+  while (fs::exists(FrameDir(root, end) + "/" + file)) ++end;
+  return end;
+}
+
 std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera) {
   return FrameDir(root, frame) + "/" + camera;
 }

@@ -199,11 +199,7 @@ absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::funct
                                        const std::function<bool()>& cancelled) {
   STAGE_RETURN_IF_ERROR(job.Validate());
   const std::string textures = PathInTake(job.take_dir, job.textures_dir, "derived/textures");
-  int64_t last = job.last_frame;
-  if (last < 0) {
-    last = job.first_frame;
-    while (std::filesystem::exists(FrameDir(textures, last) + "/albedo.exr")) ++last;
-  }
+  const int64_t last = job.last_frame >= 0 ? job.last_frame : EndOfFrames(textures, "albedo.exr", job.first_frame);
   if (last <= job.first_frame) {
     return absl::NotFoundError(
         absl::StrCat(textures, ": no textures from frame ", job.first_frame, " (run the textures stage first)"));

@@ -427,11 +427,7 @@ absl::StatusOr<JobResult> RunFit(const FitJob& job, const std::function<void(con
   if (!std::filesystem::is_directory(surfaces)) {
     return absl::NotFoundError(absl::StrCat(surfaces, ": no surfaces to fit (run the mvs stage first)"));
   }
-  int64_t last = job.last_frame;
-  if (last < 0) {
-    last = job.first_frame;
-    while (std::filesystem::exists(FrameDir(surfaces, last) + "/mesh.obj")) ++last;
-  }
+  const int64_t last = job.last_frame >= 0 ? job.last_frame : EndOfFrames(surfaces, "mesh.obj", job.first_frame);
   if (job.first_frame < 0 || last <= job.first_frame) {
     return absl::InvalidArgumentError(absl::StrCat(surfaces, ": no frames [", job.first_frame, ", ", last, ")"));
   }

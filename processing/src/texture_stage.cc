@@ -116,11 +116,7 @@ std::vector<std::string> CamerasIn(const std::string& frame_dir) {
 
 // The frames the job covers: [first_frame, last); an open range ends at the fit's first missing frame.
 absl::StatusOr<int64_t> LastFrame(const TexturesJob& job, const std::string& fit) {
-  int64_t last = job.last_frame;
-  if (last < 0) {
-    last = job.first_frame;
-    while (fs::exists(FrameDir(fit, last) + "/mesh.obj")) ++last;
-  }
+  const int64_t last = job.last_frame >= 0 ? job.last_frame : EndOfFrames(fit, "mesh.obj", job.first_frame);
   if (last <= job.first_frame) {
     return absl::InvalidArgumentError(absl::StrCat(fit, ": no fitted frames [", job.first_frame, ", ", last, ")"));
   }

@@ -96,5 +96,8 @@ absl::StatusOr<std::optional<CameraCalibration>> LoadJobCalibration(const std::s
 // The directory of frame `frame` under a stage's output root (frame-NNNNNN), and of its camera `camera` in it.
 std::string FrameDir(const std::string& root, int64_t frame);
 std::string UnitDir(const std::string& root, int64_t frame, const std::string& camera);
+// The end of the run of frames from `first` under `root` that hold `file` (FrameDir(root, f)/file): the first frame
+// at or after `first` without it.
+int64_t EndOfFrames(const std::string& root, const std::string& file, int64_t first);
 
 }  // namespace stage::processing
