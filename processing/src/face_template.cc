@@ -1,5 +1,8 @@
 #include "stage/processing/face_template.h"
 
+#include <bit>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -8,12 +11,64 @@
 
 extern const char kFaceTemplateObj[];
 extern const char kFaceTemplateJson[];
+extern const unsigned char kFaceModelF32[];
+extern const unsigned char kFaceModelF32_end[];
 
 namespace stage::processing {
 namespace {
 
-// The template from its mesh and its JSON text; `name` stands for the JSON file in errors.
-absl::StatusOr<FaceTemplate> FromParts(TriangleMesh mesh, const std::string& json_text, const std::string& name) {
+// The bytes of a model file (`dir`/`file`), or of the shipped one when `dir` is empty.
+absl::StatusOr<std::string> ModelBytes(const std::string& dir, const std::string& file) {
+  if (dir.empty()) {
+    return std::string(reinterpret_cast<const char*>(kFaceModelF32),
+                       static_cast<size_t>(kFaceModelF32_end - kFaceModelF32));
+  }
+  const std::string path = dir + "/" + file;
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot open the template's model"));
+  std::stringstream bytes;
+  bytes << in.rdbuf();
+  return bytes.str();
+}
+
+// The JSON's "model" read into `t` from the model file in `dir` (empty: the shipped one).
+absl::Status ReadModel(const nlohmann::json& m, const std::string& dir, const std::string& name, FaceTemplate* t) {
+  static_assert(std::endian::native == std::endian::little, "face-model.f32 is little-endian");
+  auto bad = [&](const std::string& field, const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": model.", field, ": ", what));
+  };
+  size_t vertices = 0, components = 0;
+  std::string file;
+  try {
+    file = m.at("file").get<std::string>();
+    vertices = m.at("vertices").get<size_t>();
+    components = m.at("identity_components").get<size_t>();
+    t->expression_names = m.at("expressions").get<std::vector<std::string>>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(name, ": model: ", e.what()));
+  }
+  if (vertices != t->mesh.positions.size()) {
+    return bad("vertices", absl::StrCat(vertices, ", the mesh has ", t->mesh.positions.size()));
+  }
+  auto bytes = ModelBytes(dir, file);
+  if (!bytes.ok()) return bytes.status();
+  const size_t count = components + t->expression_names.size(), per = vertices * 3 * sizeof(float);
+  if (bytes->size() != count * per) {
+    return bad("file", absl::StrCat(file, " holds ", bytes->size(), " bytes, not the ", count * per, " of ", count,
+                                    " components of ", vertices, " vertices"));
+  }
+  for (size_t k = 0; k < count; ++k) {
+    std::vector<Eigen::Vector3f> component(vertices);
+    std::memcpy(static_cast<void*>(component.data()), bytes->data() + k * per, per);
+    (k < components ? t->identity_basis : t->expression_basis).push_back(std::move(component));
+  }
+  return absl::OkStatus();
+}
+
+// The template from its mesh and its JSON text; `name` stands for the JSON file in errors, `dir` is where the files
+// beside it are (empty: the shipped template's, compiled in).
+absl::StatusOr<FaceTemplate> FromParts(TriangleMesh mesh, const std::string& json_text, const std::string& name,
+                                       const std::string& dir) {
   FaceTemplate t;
   t.mesh = std::move(mesh);
   if (t.mesh.uvs.size() != t.mesh.positions.size()) {
@@ -73,6 +128,9 @@ absl::StatusOr<FaceTemplate> FromParts(TriangleMesh mesh, const std::string& jso
       return bad("jaw", e.what());
     }
   }
+  if (j.contains("model")) {
+    if (auto s = ReadModel(j.at("model"), dir, name, &t); !s.ok()) return s;
+  }
   return t;
 }
 
@@ -88,14 +146,15 @@ absl::StatusOr<FaceTemplate> LoadFaceTemplate(const std::string& obj_path) {
   if (!in) return absl::NotFoundError(absl::StrCat(json_path, ": cannot open the template's description"));
   std::stringstream text;
   text << in.rdbuf();
-  return FromParts(*std::move(mesh), text.str(), json_path);
+  const std::string dir = std::filesystem::path(json_path).parent_path().string();
+  return FromParts(*std::move(mesh), text.str(), json_path, dir.empty() ? "." : dir);
 }
 
 absl::StatusOr<FaceTemplate> ShippedFaceTemplate() {
   std::istringstream obj(kFaceTemplateObj);
   auto mesh = ParseObj(obj, "(shipped) face-template.obj");
   if (!mesh.ok()) return mesh.status();
-  return FromParts(*std::move(mesh), kFaceTemplateJson, "(shipped) face-template.json");
+  return FromParts(*std::move(mesh), kFaceTemplateJson, "(shipped) face-template.json", "");
 }
 
 }  // namespace stage::processing

@@ -3,6 +3,8 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <fstream>
 
 #include "stage/processing/template_fit.h"
@@ -43,6 +45,34 @@ TEST(FaceTemplateTest, TheShippedTemplateIsAFaceWithItsRegions) {
   EXPECT_GT(jaw, 300);
 }
 
+TEST(FaceTemplateTest, TheShippedTemplateCarriesAShapeAndExpressionModel) {
+  auto t = ShippedFaceTemplate();
+  ASSERT_TRUE(t.ok()) << t.status();
+  // Identity: the components of the drawn performers' faces, the first the largest, each a few millimetres at one
+  // standard deviation somewhere on the face.
+  ASSERT_GE(t->identity_basis.size(), 8u);
+  auto largest = [](const std::vector<Eigen::Vector3f>& d) {
+    float m = 0;
+    for (const auto& v : d) m = std::max(m, v.norm());
+    return m;
+  };
+  EXPECT_GT(largest(t->identity_basis[0]), 2.0f);
+  EXPECT_LT(largest(t->identity_basis[0]), 30.0f);
+  EXPECT_GT(largest(t->identity_basis[0]), largest(t->identity_basis.back()));
+  // Expressions: named; the jaw's opening moves the chin down, not the forehead.
+  ASSERT_EQ(t->expression_basis.size(), t->expression_names.size());
+  const auto jaw = std::find(t->expression_names.begin(), t->expression_names.end(), "jaw_open");
+  ASSERT_NE(jaw, t->expression_names.end());
+  const auto& open = t->expression_basis[static_cast<size_t>(jaw - t->expression_names.begin())];
+  float chin = 0, forehead = 0;
+  for (size_t v = 0; v < open.size(); ++v) {
+    if (t->mesh.positions[v].y() < -70) chin = std::min(chin, open[v].y());
+    if (t->mesh.positions[v].y() > 60) forehead = std::max(forehead, open[v].norm());
+  }
+  EXPECT_LT(chin, -5.0f);
+  EXPECT_LT(forehead, 0.01f);
+}
+
 TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   const std::string dir = ::testing::TempDir();
   {
@@ -72,6 +102,25 @@ TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   EXPECT_EQ(good->regions[0], FaceRegion::kSkin);
   EXPECT_EQ(good->jaw_weight, std::vector<float>(3, 0.0f));  // no jaw: the fit turns none
   EXPECT_EQ(LoadFaceTemplate(dir + "/none.obj").status().code(), absl::StatusCode::kNotFound);
+  // A model whose file is not the size its description says.
+  {
+    std::ofstream model(dir + "/m.f32", std::ios::binary);
+    const float zeros[9 * 2] = {};
+    model.write(reinterpret_cast<const char*>(zeros), sizeof(zeros));
+  }
+  write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
+                 "model": {"file": "m.f32", "vertices": 3, "identity_components": 1, "expressions": ["a", "b"]}})");
+  EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()),
+              HasSubstr("t.json: model.file: m.f32 holds 72 bytes, not the 108"));
+  write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
+                 "model": {"file": "m.f32", "vertices": 3, "identity_components": 1, "expressions": ["a"]}})");
+  auto modelled = LoadFaceTemplate(dir + "/t.obj");
+  ASSERT_TRUE(modelled.ok()) << modelled.status();
+  EXPECT_EQ(modelled->identity_basis.size(), 1u);
+  EXPECT_EQ(modelled->expression_names, std::vector<std::string>{"a"});
+  write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
+                 "model": {"file": "gone.f32", "vertices": 3, "identity_components": 1, "expressions": []}})");
+  EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()), HasSubstr("gone.f32: cannot open"));
 }
 
 }  // namespace
@@ -97,6 +146,53 @@ TEST(TemplateFitTest, OptionsOutOfRangeAndAnEmptySurfaceAreRefused) {
   far.triangles = {{{0, 1, 2}}};
   auto none = FitTemplate(*face, far, start);
   EXPECT_EQ(none.status().code(), absl::StatusCode::kNotFound) << none.status();
+  EXPECT_FALSE(TemplateFitOptions{.model_iterations = -1}.Validate().ok());
+  EXPECT_FALSE(TemplateFitOptions{.identity_prior_mm2 = -1}.Validate().ok());
+}
+
+// A face the model makes (identity and expression coefficients, the head moved): the fit finds the expression and
+// puts every vertex where it is on that face.
+TEST(TemplateFitTest, TheModelsCoefficientsAreFoundOnAFaceItMade) {
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  ASSERT_GE(face->identity_basis.size(), 4u);
+  std::vector<float> identity(face->identity_basis.size(), 0.0f), expression(face->expression_basis.size(), 0.0f);
+  identity[0] = 1.2f;
+  identity[1] = -0.8f;
+  identity[3] = 0.5f;
+  expression[1] = 0.6f;  // smile_left
+  expression[0] = 0.3f;  // jaw_open
+  TriangleMesh truth = face->mesh;
+  const Eigen::Isometry3f pose = Eigen::Translation3f(2, -1, 3) * Eigen::AngleAxisf(0.05f, Eigen::Vector3f::UnitY());
+  for (size_t v = 0; v < truth.positions.size(); ++v) {
+    Eigen::Vector3f p = face->mesh.positions[v];
+    for (size_t k = 0; k < identity.size(); ++k) p += identity[k] * face->identity_basis[k][v];
+    for (size_t k = 0; k < expression.size(); ++k) p += expression[k] * face->expression_basis[k][v];
+    truth.positions[v] = pose * p;
+  }
+  auto fit = FitTemplate(*face, truth, StartAt(*face, Eigen::Isometry3f::Identity()));
+  ASSERT_TRUE(fit.ok()) << fit.status();
+  // The identity's coefficients share the head's size with the fit's scale (the first component is mostly size), so
+  // they are not unique; the shape they make with it is checked below, vertex by vertex.
+  for (size_t k = 0; k < expression.size(); ++k) {
+    EXPECT_NEAR(fit->expression[k], expression[k], 0.05) << face->expression_names[k];
+  }
+  double sum = 0;
+  int64_t n = 0;
+  for (size_t v = 0; v < truth.positions.size(); ++v) {
+    if (face->regions[v] != FaceRegion::kSkin) continue;
+    sum += (fit->positions[v] - truth.positions[v]).squaredNorm();
+    ++n;
+  }
+  EXPECT_LT(std::sqrt(sum / static_cast<double>(n)), 0.05);
+  // Without the model the same fit lands on the surface but not on the same skin.
+  auto bare = FitTemplate(*face, truth, StartAt(*face, Eigen::Isometry3f::Identity()), {.model_iterations = 0});
+  ASSERT_TRUE(bare.ok());
+  double bare_sum = 0;
+  for (size_t v = 0; v < truth.positions.size(); ++v) {
+    if (face->regions[v] == FaceRegion::kSkin) bare_sum += (bare->positions[v] - truth.positions[v]).squaredNorm();
+  }
+  EXPECT_GT(std::sqrt(bare_sum / static_cast<double>(n)), 0.3);
 }
 
 }  // namespace

@@ -127,14 +127,87 @@ PlacementStep PlacementGaussNewton(const std::vector<Eigen::Vector3f>& positions
   return step;
 }
 
-// The template's vertices with the jaw turned by `jaw_rad`, scaled about the head's origin (head frame).
-std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, float scale, float jaw_rad) {
-  std::vector<Eigen::Vector3f> out(face.mesh.positions.size());
+// The template's face with the model's coefficients (head frame): the neutral template plus the identity and
+// expression components they weight.
+std::vector<Eigen::Vector3f> ModelShape(const FaceTemplate& face, const std::vector<float>& identity,
+                                        const std::vector<float>& expression) {
+  std::vector<Eigen::Vector3f> out = face.mesh.positions;
+  auto add = [&](const std::vector<std::vector<Eigen::Vector3f>>& basis, const std::vector<float>& weights) {
+    for (size_t k = 0; k < std::min(basis.size(), weights.size()); ++k) {
+      if (weights[k] == 0) continue;
+      for (size_t i = 0; i < out.size(); ++i) out[i] += weights[k] * basis[k][i];
+    }
+  };
+  add(face.identity_basis, identity);
+  add(face.expression_basis, expression);
+  return out;
+}
+
+// `base` (the template's face, head frame) with the jaw turned by `jaw_rad`, scaled about the head's origin.
+std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, const std::vector<Eigen::Vector3f>& base, float scale,
+                                    float jaw_rad) {
+  std::vector<Eigen::Vector3f> out(base.size());
   for (size_t i = 0; i < out.size(); ++i) {
     const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
-    out[i] = scale * TurnJaw(face.mesh.positions[i], face.jaw_hinge, face.jaw_axis, w, jaw_rad);
+    out[i] = scale * TurnJaw(base[i], face.jaw_hinge, face.jaw_axis, w, jaw_rad);
   }
   return out;
+}
+
+// One Gauss-Newton step of the model's fit: the placement's terms (rigid motion, scale, jaw) and the model's
+// coefficients together, point to plane, each coefficient held toward 0 by its prior. Updates `fit` (coefficients,
+// pose, scale, jaw; not its positions).
+void ModelStep(const FaceTemplate& face, const Correspondences& c, const TemplateFitOptions& options,
+               TemplateFit* fit) {
+  const size_t n_id = face.identity_basis.size(), n_ex = face.expression_basis.size();
+  const Eigen::Index n = static_cast<Eigen::Index>(8 + n_id + n_ex);
+  Eigen::MatrixXd ata = Eigen::MatrixXd::Zero(n, n);
+  Eigen::VectorXd atb = Eigen::VectorXd::Zero(n);
+  const Eigen::Matrix3f r = fit->stage_from_head.linear();
+  const Eigen::Vector3d origin = fit->stage_from_head.translation().cast<double>(),
+                        hinge = (fit->stage_from_head * (fit->scale * face.jaw_hinge)).cast<double>(),
+                        axis = (r * face.jaw_axis).cast<double>();
+  Eigen::VectorXd a(n);
+  for (size_t i = 0; i < c.valid.size(); ++i) {
+    if (!c.valid[i]) continue;
+    const Eigen::Vector3d p = fit->positions[i].cast<double>(), nrm = c.normals[i].cast<double>();
+    const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
+    a.head<3>() = p.cross(nrm);
+    a.segment<3>(3) = nrm;
+    a(6) = options.fit_scale ? nrm.dot(p - origin) : 0.0;
+    a(7) = w * nrm.dot(axis.cross(p - hinge));
+    // A component's displacement d (head frame) moves the vertex by R s J d (J the vertex's turn with the jaw).
+    const Eigen::Vector3f m =
+        fit->scale * (Eigen::AngleAxisf(w * fit->jaw_rad, face.jaw_axis).inverse() * (r.transpose() * c.normals[i]));
+    for (size_t k = 0; k < n_id; ++k) a(static_cast<Eigen::Index>(8 + k)) = m.dot(face.identity_basis[k][i]);
+    for (size_t k = 0; k < n_ex; ++k) a(static_cast<Eigen::Index>(8 + n_id + k)) = m.dot(face.expression_basis[k][i]);
+    ata.selfadjointView<Eigen::Lower>().rankUpdate(a);
+    atb += a * nrm.dot(c.points[i].cast<double>() - p);
+  }
+  ata = Eigen::MatrixXd(ata.selfadjointView<Eigen::Lower>());
+  for (int k : {6, 7}) {
+    if (ata(k, k) < 1e-9) ata(k, k) = 1;  // a term the data does not see (no scale asked for, no jaw)
+  }
+  for (size_t k = 0; k < n_id + n_ex; ++k) {
+    const auto j = static_cast<Eigen::Index>(8 + k);
+    const double prior = k < n_id ? options.identity_prior_mm2 : options.expression_prior_mm2;
+    const double value = k < n_id ? fit->identity[k] : fit->expression[k - n_id];
+    ata(j, j) += prior;
+    atb(j) -= prior * value;
+  }
+  const Eigen::VectorXd x = ata.ldlt().solve(atb);
+  const Eigen::Vector3d turn = x.head<3>();
+  Eigen::Isometry3d rigid = Eigen::Isometry3d::Identity();
+  if (turn.norm() > 0) rigid.linear() = Eigen::AngleAxisd(turn.norm(), turn.normalized()).toRotationMatrix();
+  rigid.translation() = x.segment<3>(3);
+  // The scale is about the head's origin and the rigid step about the stage's: the origin moves with the rigid step.
+  fit->stage_from_head = rigid.cast<float>() * fit->stage_from_head;
+  fit->scale *= static_cast<float>(1 + x(6));
+  fit->jaw_rad += static_cast<float>(x(7));
+  for (size_t k = 0; k < n_id; ++k) fit->identity[k] += static_cast<float>(x(static_cast<Eigen::Index>(8 + k)));
+  for (size_t k = 0; k < n_ex; ++k) {
+    fit->expression[k] += static_cast<float>(x(static_cast<Eigen::Index>(8 + n_id + k)));
+  }
 }
 
 // The rigid motion that best takes `from` onto `to` over the vertices `use` marks (Kabsch).
@@ -228,6 +301,15 @@ absl::Status TemplateFitOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("template fit: max_normal_angle_deg ", max_normal_angle_deg, " not in (0, 180]"));
   }
+  if (model_iterations < 0 || model_iterations > 1000) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("template fit: model_iterations ", model_iterations, " not in 0..1000"));
+  }
+  if (!(identity_prior_mm2 >= 0) || !(expression_prior_mm2 >= 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("template fit: identity_prior_mm2 ", identity_prior_mm2,
+                                                   " and expression_prior_mm2 ", expression_prior_mm2,
+                                                   " must be >= 0"));
+  }
   return absl::OkStatus();
 }
 
@@ -271,9 +353,22 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
       break;
     }
   }
-  // The template as the placement shaped it (scale, jaw): the membrane's rest shape, and the shape the pose is fitted
-  // to.
-  const std::vector<Eigen::Vector3f> scaled = Shaped(face, fit.scale, fit.jaw_rad);
+  // The model's coefficients, carried from the frame before (the template's neutral face on a first frame).
+  fit.identity.resize(face.identity_basis.size(), 0.0f);
+  fit.expression.resize(face.expression_basis.size(), 0.0f);
+  const bool has_model = !face.identity_basis.empty() || !face.expression_basis.empty();
+  for (int it = 0; has_model && it < options.model_iterations; ++it) {
+    const Correspondences c = Match(fit.positions, skin, face, nearest, surface_normals, options);
+    if (c.count < 9) break;
+    ModelStep(face, c, options, &fit);
+    const std::vector<Eigen::Vector3f> shaped =
+        Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
+    for (size_t i = 0; i < shaped.size(); ++i) fit.positions[i] = fit.stage_from_head * shaped[i];
+  }
+  // The template as the placement and the model shaped it (coefficients, scale, jaw): the membrane's rest shape, and
+  // the shape the pose is fitted to.
+  const std::vector<Eigen::Vector3f> scaled =
+      Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
   const Eigen::SparseMatrix<double> laplacian = Laplacian(face.mesh);
   for (double alpha : options.stiffness) {
     std::vector<Eigen::Vector3f> rest(face.mesh.positions.size());
@@ -369,6 +464,8 @@ std::string PoseJson(const TemplateFit& fit, int64_t frame) {
   j["stage_from_head"] = m;  // row-major 4 x 4, mm
   j["scale"] = fit.scale;
   j["jaw_deg"] = fit.jaw_rad * 180 / kPi;
+  if (!fit.identity.empty()) j["identity"] = fit.identity;        // the model's coefficients, standard deviations
+  if (!fit.expression.empty()) j["expression"] = fit.expression;  // blendshape weights, the template's names
   return j.dump(2) + "\n";
 }
 
@@ -409,7 +506,10 @@ std::string RunJson(const FitJob& job, int64_t last) {
                     {"stiffness", job.options.stiffness},
                     {"iterations_per_stage", job.options.iterations_per_stage},
                     {"max_distance_mm", job.options.max_distance_mm},
-                    {"max_normal_angle_deg", job.options.max_normal_angle_deg}};
+                    {"max_normal_angle_deg", job.options.max_normal_angle_deg},
+                    {"model_iterations", job.options.model_iterations},
+                    {"identity_prior_mm2", job.options.identity_prior_mm2},
+                    {"expression_prior_mm2", job.options.expression_prior_mm2}};
   return run.dump(2) + "\n";
 }
 

@@ -1,6 +1,7 @@
-// The face template fitted to the simulator's performers through the default performance, on their true surfaces
-// (multi-view stereo's meshes come later), tracked frame to frame from the head at the stage's origin, and each fit
-// measured against where every template vertex belongs (through the head's UV layout): docs/assets.md#the-fit.
+// The face template (with its shape and expression model) fitted to the simulator's performers through the default
+// performance, on their true surfaces (multi-view stereo's meshes: stage_mvs_integration_test and the demo), tracked
+// frame to frame from the head at the stage's origin, and each fit measured against where every template vertex belongs
+// (through the head's UV layout): docs/assets.md#the-fit.
 #include <cstdio>
 
 #include "gtest/gtest.h"
@@ -12,7 +13,7 @@ namespace stage::processing {
 namespace {
 
 struct Worst {
-  double surface = 0, rmse = 0, sliding = 0, matched_rms = 0;
+  double surface = 0, rmse = 0, p99 = 0, sliding = 0, matched_rms = 0;
 };
 
 // The performance at 0.5 s steps, each frame's fit starting from the one before.
@@ -31,13 +32,15 @@ Worst TrackPerformer(const FaceTemplate& face, uint64_t identity) {
     if (!e.ok()) return worst;
     std::printf(
         "identity %llu, t %.1f s: skin rmse %.3f p99 %.3f mm (along the normal %.3f, sliding %.3f, p99 "
-        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f, jaw %.1f deg\n",
+        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f, jaw %.1f deg, identity[0] %.2f\n",
         static_cast<unsigned long long>(identity), t, e->skin.rmse_mm, e->skin.p99_mm, e->skin.surface_rmse_mm,
         e->skin.sliding_rmse_mm, e->skin.sliding_p99_mm, e->eyes.rmse_mm, e->mouth.rmse_mm,
-        static_cast<long long>(fit->matched), fit->rms_mm, fit->scale, fit->jaw_rad * 180 / 3.14159265358979);
+        static_cast<long long>(fit->matched), fit->rms_mm, fit->scale, fit->jaw_rad * 180 / 3.14159265358979,
+        fit->identity.empty() ? 0.0f : fit->identity[0]);
     EXPECT_GT(fit->matched, static_cast<int64_t>(face.mesh.positions.size() * 9 / 10));
     worst.surface = std::max(worst.surface, e->skin.surface_rmse_mm);
     worst.rmse = std::max(worst.rmse, e->skin.rmse_mm);
+    worst.p99 = std::max(worst.p99, e->skin.p99_mm);
     worst.sliding = std::max(worst.sliding, e->skin.sliding_rmse_mm);
     worst.matched_rms = std::max(worst.matched_rms, fit->rms_mm);
     previous = *std::move(fit);
@@ -52,17 +55,17 @@ Worst TrackPerformer(const FaceTemplate& face, uint64_t identity) {
 TEST(TemplateFitSimTest, TheFitLiesOnAPerformersSurfaceThroughThePerformance) {
   auto face = ShippedFaceTemplate();
   ASSERT_TRUE(face.ok()) << face.status();
-  // The shipped head (the template's own) and two other performers. Measured (worst frame): the template's
-  // vertices 0.11-0.14 mm from the true surface (RMS over the skin) and 0.13-0.24 mm along its normal from where they
-  // belong; along the surface they slide 1.8 mm on the template's own head (the jaw opening) and 4-5 mm on the
-  // others (their proportions: nothing yet holds a vertex to its skin point but the surface's shape; the issue's
-  // goal is 1 mm). Before the jaw's turn was fitted: 5.2, 8.3 and 7.2 mm.
-  const std::vector<std::pair<uint64_t, double>> sliding_bounds = {{0, 2.5}, {5, 6.0}, {7, 5.0}};
-  for (const auto& [identity, sliding] : sliding_bounds) {
+  // The shipped head (the template's own) and two other performers, none of them among the performers the template's
+  // model was made from. Measured (worst frame, 2026-11-29): 0.013, 0.18 and 0.10 mm from where the vertices belong,
+  // almost all of it sliding along the surface; without the model (model_iterations 0) 1.8, 5.0 and 4.0 mm of
+  // sliding. Issue 28's goals: RMSE <= 0.5 mm, 99th percentile <= 2 mm, sliding <= 1 mm.
+  for (uint64_t identity : {0, 5, 7}) {
     const Worst w = TrackPerformer(*face, identity);
-    EXPECT_LT(w.matched_rms, 0.2) << identity;
-    EXPECT_LT(w.surface, 0.35) << identity;
-    EXPECT_LT(w.sliding, sliding) << identity;
+    EXPECT_LT(w.matched_rms, 0.05) << identity;
+    EXPECT_LT(w.surface, 0.05) << identity;
+    EXPECT_LT(w.rmse, 0.4) << identity;
+    EXPECT_LT(w.p99, 0.8) << identity;
+    EXPECT_LT(w.sliding, 0.4) << identity;
   }
 }
 

@@ -1,8 +1,10 @@
 // The face template made from the shipped procedural head.
 #include "stage/sim/face_template.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -86,6 +88,72 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
   return t;
 }
 
+FaceModelData MakeFaceModel(const FaceTemplateData& face, const HeadModel& head, uint64_t first_identity,
+                            int identities, int max_components, double variance_kept, int resolution) {
+  FaceModelData model;
+  model.first_identity = first_identity;
+  model.identities = identities;
+  const size_t n = face.head_vertex.size();
+  // The drawn faces' deviations from the template, one column each (x, y, z per vertex).
+  Eigen::MatrixXd x(3 * static_cast<Eigen::Index>(n), identities);
+  for (int k = 0; k < identities; ++k) {
+    const auto drawn =
+        HeadModel::Procedural(1, resolution, HeadShape::Drawn(first_identity + static_cast<uint64_t>(k)));
+    const auto& positions = drawn->neutral().positions;
+    for (size_t v = 0; v < n; ++v) {
+      const Eigen::Vector3f d = positions[static_cast<size_t>(face.head_vertex[v])] - face.mesh.positions[v];
+      x.block<3, 1>(3 * static_cast<Eigen::Index>(v), k) = d.cast<double>();
+    }
+  }
+  // Principal components about the template (not about the drawn faces' mean: a coefficient of 0 is the template),
+  // through the small Gram matrix.
+  const Eigen::MatrixXd gram = x.transpose() * x / identities;
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(gram);
+  const double total = std::max(eig.eigenvalues().sum(), 1e-30);
+  double kept = 0;
+  for (int k = identities - 1; k >= 0 && static_cast<int>(model.identity.size()) < max_components; --k) {
+    const double lambda = eig.eigenvalues()(k);
+    if (kept >= variance_kept || lambda <= 0) break;
+    kept += lambda / total;
+    // Unit direction X v / sqrt(N lambda), scaled by the standard deviation sqrt(lambda): X v / sqrt(N).
+    const Eigen::VectorXd c = x * eig.eigenvectors().col(k) / std::sqrt(static_cast<double>(identities));
+    std::vector<Eigen::Vector3f> component(n);
+    for (size_t v = 0; v < n; ++v) component[v] = c.segment<3>(3 * static_cast<Eigen::Index>(v)).cast<float>();
+    model.identity.push_back(std::move(component));
+    model.identity_variance_share.push_back(lambda / total);
+  }
+  // The shipped head's blendshapes, each at weight 1 with the head unmoved.
+  const auto& neutral = head.neutral().positions;
+  for (int e = 0; e < kExpressionCount; ++e) {
+    HeadPose pose;
+    pose.expression[static_cast<size_t>(e)] = 1;
+    const TriangleMesh posed = head.PosedMesh(pose);
+    std::vector<Eigen::Vector3f> delta(n);
+    for (size_t v = 0; v < n; ++v) {
+      const auto h = static_cast<size_t>(face.head_vertex[v]);
+      delta[v] = posed.positions[h] - neutral[h];
+    }
+    model.expression.push_back(std::move(delta));
+  }
+  return model;
+}
+
+namespace {
+
+absl::Status WriteFaceModel(const FaceModelData& model, const std::string& path) {
+  static_assert(std::endian::native == std::endian::little, "face-model.f32 is little-endian");
+  std::ofstream out(path, std::ios::binary);
+  for (const auto* set : {&model.identity, &model.expression}) {
+    for (const auto& component : *set) {
+      for (const Eigen::Vector3f& d : component) out.write(reinterpret_cast<const char*>(d.data()), 3 * sizeof(float));
+    }
+  }
+  if (!out) return absl::UnavailableError(absl::StrCat(path, ": cannot write"));
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::Status WriteFaceTemplate(const FaceTemplateData& data, const std::string& dir) {
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
@@ -118,6 +186,24 @@ absl::Status WriteFaceTemplate(const FaceTemplateData& data, const std::string& 
               {"axis", {data.jaw_axis.x(), data.jaw_axis.y(), data.jaw_axis.z()}},
               {"vertices", jaw_vertices},
               {"weights", jaw_weights}};
+  if (!data.model.identity.empty() || !data.model.expression.empty()) {
+    const FaceModelData& m = data.model;
+    if (auto s = WriteFaceModel(m, dir + "/face-model.f32"); !s.ok()) return s;
+    std::vector<std::string> expressions;
+    for (size_t e = 0; e < m.expression.size(); ++e) expressions.emplace_back(ExpressionName(static_cast<int>(e)));
+    std::vector<double> shares;
+    for (double s : m.identity_variance_share) shares.push_back(std::round(s * 1e6) / 1e6);
+    j["model"] = {{"file", "face-model.f32"},
+                  {"vertices", data.mesh.positions.size()},
+                  {"identity_components", m.identity.size()},
+                  {"identity_variance_share", shares},
+                  {"identity_source", absl::StrCat("principal components of the neutral faces of the simulator's "
+                                                   "performers ",
+                                                   m.first_identity, "..", m.first_identity + m.identities - 1,
+                                                   " about the template, each at one standard deviation")},
+                  {"expressions", expressions},
+                  {"expression_source", "the simulator's shipped head's blendshapes, each at weight 1"}};
+  }
   const std::string path = dir + "/face-template.json";
   std::ofstream out(path);
   out << j.dump() << "\n";

@@ -245,10 +245,12 @@ int main(int argc, char** argv) {
                  "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
                  "(every camera) into this directory (docs/simulator.md#ground-truth)");
   std::string export_template_dir;
-  app.add_option("--export-face-template", export_template_dir,
-                 "Write the face template processing fits (the shipped procedural head's face: face-template.obj and "
-                 "face-template.json, as processing/data/ holds them; docs/assets.md) into this directory, and exit; "
-                 "starts nothing");
+  app.add_option(
+      "--export-face-template", export_template_dir,
+      "Write the face template processing fits (the shipped procedural head's face: face-template.obj and "
+      "face-template.json, and its shape and expression model face-model.f32, as processing/data/ holds them; "
+      "docs/assets.md) into this directory, and exit; "
+      "starts nothing");
   app.footer(
       "Examples: stage-sim -- stagectl status\n"
       "          stage-sim --world-slots 912 --until-rendered --set sim.render_scale=0.03  # one second");
@@ -256,10 +258,15 @@ int main(int argc, char** argv) {
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
   if (!export_template_dir.empty()) {
     const auto head = stage::sim::HeadModel::Procedural(/*seed=*/1);
-    if (auto s = stage::sim::WriteFaceTemplate(stage::sim::MakeFaceTemplate(*head), export_template_dir); !s.ok()) {
+    stage::sim::FaceTemplateData face = stage::sim::MakeFaceTemplate(*head);
+    face.model =
+        stage::sim::MakeFaceModel(face, *head, stage::sim::kFaceModelFirstIdentity, stage::sim::kFaceModelIdentities);
+    if (auto s = stage::sim::WriteFaceTemplate(face, export_template_dir); !s.ok()) {
       return stage::ReportFatal(kProgram, s);
     }
-    std::cout << "face template written to " << export_template_dir << "/face-template.{obj,json}\n";
+    std::cout << "face template written to " << export_template_dir << "/face-template.{obj,json} and face-model.f32 ("
+              << face.model.identity.size() << " identity components, " << face.model.expression.size()
+              << " expressions)\n";
     return 0;
   }
   if ((until_rendered || !ground_truth_dir.empty()) && (world_slots <= 0 || world_mode == "none")) {

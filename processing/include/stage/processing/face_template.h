@@ -30,6 +30,12 @@ struct FaceTemplate {
   // the jaw turns about, head frame, mm.
   std::vector<float> jaw_weight;
   Eigen::Vector3f jaw_hinge = Eigen::Vector3f::Zero(), jaw_axis = Eigen::Vector3f::UnitX();
+  // The shape and expression model (empty when the template has none; docs/assets.md#the-model): per vertex, head
+  // frame, mm. identity_basis: the directions performers' faces differ from the template in, each at one standard
+  // deviation (a fit's coefficients are in standard deviations); expression_basis: blendshapes, each the
+  // displacement at weight 1, named by expression_names.
+  std::vector<std::vector<Eigen::Vector3f>> identity_basis, expression_basis;
+  std::vector<std::string> expression_names;
 
   Eigen::Vector2f HeadLayoutUv(const Eigen::Vector2f& uv) const {
     return head_layout_lo + uv.cwiseProduct(head_layout_hi - head_layout_lo);

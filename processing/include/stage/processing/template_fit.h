@@ -36,6 +36,14 @@ struct TemplateFitOptions {
   double max_distance_mm = 8;
   // Correspondences whose surface normal turns further than this from the template's are left out, degrees.
   double max_normal_angle_deg = 60;
+  // The model's fit, between placement and non-rigid ICP, when the template has a model (docs/assets.md#the-model):
+  // Gauss-Newton iterations over the pose, scale, jaw, identity and expression coefficients together, the
+  // correspondences updated each time; 0: no model fit (the template's own shape is the rest shape).
+  int model_iterations = 20;
+  // The coefficients' priors (ridge weights toward 0, the template's neutral face), in mm^2: a coefficient of one
+  // standard deviation (identity) or a whole blendshape (expression) costs as much as one vertex this far off its
+  // plane, squared.
+  double identity_prior_mm2 = 1, expression_prior_mm2 = 1;
 
   absl::Status Validate() const;
 };
@@ -49,6 +57,8 @@ struct TemplateFit {
   float scale = 1;
   // How far the jaw is turned about its hinge from the template's (radians; the template's jaw weights).
   float jaw_rad = 0;
+  // The model's coefficients (empty: none fitted): identity in standard deviations, expression in blendshape weights.
+  std::vector<float> identity, expression;
   // Over the vertices with a correspondence at the end: their distance to the surface, RMS, mm; and their count.
   double rms_mm = 0;
   int64_t matched = 0;
