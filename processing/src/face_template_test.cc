@@ -147,10 +147,11 @@ TEST(TemplateFitTest, OptionsOutOfRangeAndAnEmptySurfaceAreRefused) {
   auto none = FitTemplate(*face, far, start);
   EXPECT_EQ(none.status().code(), absl::StatusCode::kNotFound) << none.status();
   EXPECT_FALSE(TemplateFitOptions{.model_iterations = -1}.Validate().ok());
-  EXPECT_FALSE(TemplateFitOptions{.identity_prior_mm2 = -1}.Validate().ok());
+  EXPECT_FALSE(TemplateFitOptions{.identity_prior = -1}.Validate().ok());
+  EXPECT_FALSE(TemplateFitOptions{.identity_reach = 0}.Validate().ok());
 }
 
-// A face the model makes (identity and expression coefficients, the head moved): the fit finds the expression and
+// A face the model makes (identity and expression coefficients, the head moved): the fit finds the coefficients and
 // puts every vertex where it is on that face.
 TEST(TemplateFitTest, TheModelsCoefficientsAreFoundOnAFaceItMade) {
   auto face = ShippedFaceTemplate();
@@ -172,8 +173,10 @@ TEST(TemplateFitTest, TheModelsCoefficientsAreFoundOnAFaceItMade) {
   }
   auto fit = FitTemplate(*face, truth, StartAt(*face, Eigen::Isometry3f::Identity()));
   ASSERT_TRUE(fit.ok()) << fit.status();
-  // The identity's coefficients share the head's size with the fit's scale (the first component is mostly size), so
-  // they are not unique; the shape they make with it is checked below, vertex by vertex.
+  // With a model the fit leaves the scale alone (the identity's components carry the head's size), so the identity's
+  // coefficients are unique.
+  EXPECT_EQ(fit->scale, 1.0f);
+  for (size_t k = 0; k < identity.size(); ++k) EXPECT_NEAR(fit->identity[k], identity[k], 0.05) << "identity " << k;
   for (size_t k = 0; k < expression.size(); ++k) {
     EXPECT_NEAR(fit->expression[k], expression[k], 0.05) << face->expression_names[k];
   }

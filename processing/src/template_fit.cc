@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <set>
+#include <unordered_map>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -40,11 +41,42 @@ std::vector<Eigen::Vector3f> TriangleNormals(const TriangleMesh& m) {
   return n;
 }
 
-// The surface's nearest points to `positions`; only where `use` and the surface's normal lies within the options'
-// angle of the template's (either winding: an OBJ does not say which side is out).
+// The surface as the fit sees it: its nearest points, its triangles' normals, and the triangles that touch its border
+// (an edge of one triangle only: a hole's or the mesh's edge), whose nearest points are no evidence of where the skin
+// is (a vertex over a hole finds the hole's rim and would be drawn to it).
+struct Target {
+  explicit Target(const TriangleMesh& surface) : nearest(surface), normals(TriangleNormals(surface)) {
+    std::unordered_map<uint64_t, int> edges;
+    auto key = [](int32_t a, int32_t b) {
+      return (static_cast<uint64_t>(static_cast<uint32_t>(std::min(a, b))) << 32) |
+             static_cast<uint32_t>(std::max(a, b));
+    };
+    for (const auto& t : surface.triangles) {
+      for (int k = 0; k < 3; ++k) ++edges[key(t[k], t[(k + 1) % 3])];
+    }
+    std::vector<uint8_t> on_border(surface.positions.size(), 0);
+    for (const auto& [edge, count] : edges) {
+      if (count != 1) continue;
+      on_border[edge >> 32] = 1;
+      on_border[edge & 0xffffffffu] = 1;
+    }
+    border.resize(surface.triangles.size());
+    for (size_t k = 0; k < border.size(); ++k) {
+      const auto& t = surface.triangles[k];
+      border[k] = on_border[static_cast<size_t>(t[0])] | on_border[static_cast<size_t>(t[1])] |
+                  on_border[static_cast<size_t>(t[2])];
+    }
+  }
+  SurfaceDistance nearest;
+  std::vector<Eigen::Vector3f> normals;
+  std::vector<uint8_t> border;
+};
+
+// The surface's nearest points to `positions`; only where `use`, the surface's normal lies within the options'
+// angle of the template's (either winding: an OBJ does not say which side is out) and, with the options'
+// skip_border, the nearest point is not on a triangle at the surface's border.
 Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::vector<uint8_t>& use,
-                      const FaceTemplate& face, const SurfaceDistance& surface,
-                      const std::vector<Eigen::Vector3f>& surface_normals, const TemplateFitOptions& options) {
+                      const FaceTemplate& face, const Target& target, const TemplateFitOptions& options) {
   Correspondences c;
   c.points.resize(positions.size());
   c.normals.resize(positions.size());
@@ -55,10 +87,10 @@ Correspondences Match(const std::vector<Eigen::Vector3f>& positions, const std::
   for (size_t i = 0; i < positions.size(); ++i) {
     if (!use[i]) continue;
     int32_t triangle = -1;
-    const Eigen::Vector3f q = surface.Closest(positions[i], &triangle);
-    if (triangle < 0) continue;
+    const Eigen::Vector3f q = target.nearest.Closest(positions[i], &triangle);
+    if (triangle < 0 || (options.skip_border && target.border[static_cast<size_t>(triangle)])) continue;
     const float d = (q - positions[i]).norm();
-    const Eigen::Vector3f& n = surface_normals[static_cast<size_t>(triangle)];
+    const Eigen::Vector3f& n = target.normals[static_cast<size_t>(triangle)];
     if (d > options.max_distance_mm || std::abs(n.dot(normals[i])) < cos_max) continue;
     c.points[i] = q;
     c.normals[i] = n;
@@ -154,9 +186,9 @@ std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, const std::vector<
   return out;
 }
 
-// One Gauss-Newton step of the model's fit: the placement's terms (rigid motion, scale, jaw) and the model's
-// coefficients together, point to plane, each coefficient held toward 0 by its prior. Updates `fit` (coefficients,
-// pose, scale, jaw; not its positions).
+// One Gauss-Newton step of the model's fit: the placement's terms (rigid motion and jaw; not the scale, which the
+// identity's components carry) and the model's coefficients together, point to plane, each coefficient held toward 0
+// by its prior. Updates `fit` (coefficients, pose, jaw; not its positions).
 void ModelStep(const FaceTemplate& face, const Correspondences& c, const TemplateFitOptions& options,
                TemplateFit* fit) {
   const size_t n_id = face.identity_basis.size(), n_ex = face.expression_basis.size();
@@ -164,17 +196,18 @@ void ModelStep(const FaceTemplate& face, const Correspondences& c, const Templat
   Eigen::MatrixXd ata = Eigen::MatrixXd::Zero(n, n);
   Eigen::VectorXd atb = Eigen::VectorXd::Zero(n);
   const Eigen::Matrix3f r = fit->stage_from_head.linear();
-  const Eigen::Vector3d origin = fit->stage_from_head.translation().cast<double>(),
-                        hinge = (fit->stage_from_head * (fit->scale * face.jaw_hinge)).cast<double>(),
+  const Eigen::Vector3d hinge = (fit->stage_from_head * (fit->scale * face.jaw_hinge)).cast<double>(),
                         axis = (r * face.jaw_axis).cast<double>();
   Eigen::VectorXd a(n);
+  std::vector<double> squared;  // the point-to-plane residuals, squared
+  squared.reserve(static_cast<size_t>(c.count));
   for (size_t i = 0; i < c.valid.size(); ++i) {
     if (!c.valid[i]) continue;
     const Eigen::Vector3d p = fit->positions[i].cast<double>(), nrm = c.normals[i].cast<double>();
     const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
     a.head<3>() = p.cross(nrm);
     a.segment<3>(3) = nrm;
-    a(6) = options.fit_scale ? nrm.dot(p - origin) : 0.0;
+    a(6) = 0;  // the identity's components carry the head's size
     a(7) = w * nrm.dot(axis.cross(p - hinge));
     // A component's displacement d (head frame) moves the vertex by R s J d (J the vertex's turn with the jaw).
     const Eigen::Vector3f m =
@@ -182,15 +215,20 @@ void ModelStep(const FaceTemplate& face, const Correspondences& c, const Templat
     for (size_t k = 0; k < n_id; ++k) a(static_cast<Eigen::Index>(8 + k)) = m.dot(face.identity_basis[k][i]);
     for (size_t k = 0; k < n_ex; ++k) a(static_cast<Eigen::Index>(8 + n_id + k)) = m.dot(face.expression_basis[k][i]);
     ata.selfadjointView<Eigen::Lower>().rankUpdate(a);
-    atb += a * nrm.dot(c.points[i].cast<double>() - p);
+    const double residual = nrm.dot(c.points[i].cast<double>() - p);
+    atb += a * residual;
+    squared.push_back(residual * residual);
   }
   ata = Eigen::MatrixXd(ata.selfadjointView<Eigen::Lower>());
   for (int k : {6, 7}) {
     if (ata(k, k) < 1e-9) ata(k, k) = 1;  // a term the data does not see (no scale asked for, no jaw)
   }
+  // The priors weigh as many vertices at the fit's typical residual (robustly: the median squared residual of a normal
+  // distribution is 0.455 of its variance): loose on a surface the model meets closely, firm on a noisy one.
+  const double variance = squared.empty() ? 1.0 : Quantile(squared, 1, 2) / 0.455;
   for (size_t k = 0; k < n_id + n_ex; ++k) {
     const auto j = static_cast<Eigen::Index>(8 + k);
-    const double prior = k < n_id ? options.identity_prior_mm2 : options.expression_prior_mm2;
+    const double prior = variance * (k < n_id ? options.identity_prior : options.expression_prior);
     const double value = k < n_id ? fit->identity[k] : fit->expression[k - n_id];
     ata(j, j) += prior;
     atb(j) -= prior * value;
@@ -204,9 +242,15 @@ void ModelStep(const FaceTemplate& face, const Correspondences& c, const Templat
   fit->stage_from_head = rigid.cast<float>() * fit->stage_from_head;
   fit->scale *= static_cast<float>(1 + x(6));
   fit->jaw_rad += static_cast<float>(x(7));
-  for (size_t k = 0; k < n_id; ++k) fit->identity[k] += static_cast<float>(x(static_cast<Eigen::Index>(8 + k)));
+  // Kept to where the model means something: a face within the identity's reach, blendshapes between none and full.
+  const float reach = static_cast<float>(options.identity_reach);
+  for (size_t k = 0; k < n_id; ++k) {
+    fit->identity[k] =
+        std::clamp(fit->identity[k] + static_cast<float>(x(static_cast<Eigen::Index>(8 + k))), -reach, reach);
+  }
   for (size_t k = 0; k < n_ex; ++k) {
-    fit->expression[k] += static_cast<float>(x(static_cast<Eigen::Index>(8 + n_id + k)));
+    fit->expression[k] =
+        std::clamp(fit->expression[k] + static_cast<float>(x(static_cast<Eigen::Index>(8 + n_id + k))), 0.0f, 1.0f);
   }
 }
 
@@ -280,7 +324,58 @@ absl::Status NonRigidStep(const Eigen::SparseMatrix<double>& laplacian, const st
   return absl::OkStatus();
 }
 
+// Non-rigid ICP along the rest shape's normals only: y_i = r_i + d_i m_i (m the rest shape's vertex normals), the
+// offsets d a membrane (alpha sum_edges (d_a - d_b)^2) over the point-to-plane data term
+// sum_i (n_i . (r_i + d_i m_i - c_i))^2. The skin stays where the model put it along the surface; the surface's
+// detail comes in as offsets.
+absl::Status NormalStep(const Eigen::SparseMatrix<double>& laplacian, const std::vector<Eigen::Vector3f>& rest,
+                        const std::vector<Eigen::Vector3f>& rest_normals, const Correspondences& c, double alpha,
+                        std::vector<Eigen::Vector3f>* positions) {
+  const auto n = static_cast<Eigen::Index>(rest.size());
+  Eigen::SparseMatrix<double> a = alpha * laplacian;
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const auto k = static_cast<size_t>(i);
+    // A vertex off every correspondence's component (none in its part of the mesh) stays at its rest.
+    a.coeffRef(i, i) += 1e-9;
+    if (!c.valid[k]) continue;
+    const double w = c.normals[k].dot(rest_normals[k]);
+    a.coeffRef(i, i) += w * w;
+    rhs(i) += w * c.normals[k].dot(c.points[k] - rest[k]);
+  }
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver(a);
+  if (solver.info() != Eigen::Success) {
+    return absl::InternalError("template fit: the non-rigid system could not be factored (no vertex near the surface)");
+  }
+  const Eigen::VectorXd d = solver.solve(rhs);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const auto k = static_cast<size_t>(i);
+    (*positions)[k] = rest[k] + static_cast<float>(d(i)) * rest_normals[k];
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
+
+const char* NonRigidMotionName(NonRigidMotion m) {
+  switch (m) {
+    case NonRigidMotion::kAuto:
+      return "auto";
+    case NonRigidMotion::kFree:
+      return "free";
+    case NonRigidMotion::kAlongNormal:
+      return "along_normal";
+  }
+  return "?";
+}
+
+absl::StatusOr<NonRigidMotion> ParseNonRigidMotion(const std::string& name) {
+  for (NonRigidMotion m : {NonRigidMotion::kAuto, NonRigidMotion::kFree, NonRigidMotion::kAlongNormal}) {
+    if (name == NonRigidMotionName(m)) return m;
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat("template fit: non-rigid motion \"", name, "\" is not auto, free or along_normal"));
+}
 
 absl::Status TemplateFitOptions::Validate() const {
   if (rigid_iterations < 0 || rigid_iterations > 1000) {
@@ -305,10 +400,12 @@ absl::Status TemplateFitOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("template fit: model_iterations ", model_iterations, " not in 0..1000"));
   }
-  if (!(identity_prior_mm2 >= 0) || !(expression_prior_mm2 >= 0)) {
-    return absl::InvalidArgumentError(absl::StrCat("template fit: identity_prior_mm2 ", identity_prior_mm2,
-                                                   " and expression_prior_mm2 ", expression_prior_mm2,
-                                                   " must be >= 0"));
+  if (!(identity_reach > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("template fit: identity_reach ", identity_reach, " is not > 0"));
+  }
+  if (!(identity_prior >= 0) || !(expression_prior >= 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("template fit: identity_prior ", identity_prior,
+                                                   " and expression_prior ", expression_prior, " must be >= 0"));
   }
   return absl::OkStatus();
 }
@@ -329,21 +426,24 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
     return absl::InvalidArgumentError(absl::StrCat("template fit: the start has ", start.positions.size(),
                                                    " vertices, the template ", face.mesh.positions.size()));
   }
-  const SurfaceDistance nearest(surface);
-  const std::vector<Eigen::Vector3f> surface_normals = TriangleNormals(surface);
+  const Target target(surface);
   // The data term holds on the skin; the eyes' and mouth's openings follow their neighbours.
   std::vector<uint8_t> skin(face.regions.size());
   for (size_t i = 0; i < skin.size(); ++i) skin[i] = face.regions[i] == FaceRegion::kSkin ? 1 : 0;
 
   TemplateFit fit = start;
   const std::vector<float> no_jaw(face.mesh.positions.size(), 0.0f);
+  const bool has_model = !face.identity_basis.empty() || !face.expression_basis.empty();
+  // With an identity model the head's size is the model's (its components carry it): a free scale would trade with
+  // them from frame to frame.
+  const bool fit_scale = options.fit_scale && (face.identity_basis.empty() || options.model_iterations == 0);
   for (int it = 0; it < options.rigid_iterations; ++it) {
-    const Correspondences c = Match(fit.positions, skin, face, nearest, surface_normals, options);
+    const Correspondences c = Match(fit.positions, skin, face, target, options);
     if (c.count < 9) break;
     const Placement at{fit.stage_from_head.translation(), fit.stage_from_head * (fit.scale * face.jaw_hinge),
                        fit.stage_from_head.linear() * face.jaw_axis,
                        face.jaw_weight.empty() ? &no_jaw : &face.jaw_weight};
-    const PlacementStep step = PlacementGaussNewton(fit.positions, c, at, options.fit_scale);
+    const PlacementStep step = PlacementGaussNewton(fit.positions, c, at, fit_scale);
     for (size_t i = 0; i < fit.positions.size(); ++i) fit.positions[i] = step.Apply(at, i, fit.positions[i]);
     fit.stage_from_head = step.rigid * fit.stage_from_head;
     fit.scale *= step.scale;
@@ -356,9 +456,8 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
   // The model's coefficients, carried from the frame before (the template's neutral face on a first frame).
   fit.identity.resize(face.identity_basis.size(), 0.0f);
   fit.expression.resize(face.expression_basis.size(), 0.0f);
-  const bool has_model = !face.identity_basis.empty() || !face.expression_basis.empty();
   for (int it = 0; has_model && it < options.model_iterations; ++it) {
-    const Correspondences c = Match(fit.positions, skin, face, nearest, surface_normals, options);
+    const Correspondences c = Match(fit.positions, skin, face, target, options);
     if (c.count < 9) break;
     ModelStep(face, c, options, &fit);
     const std::vector<Eigen::Vector3f> shaped =
@@ -370,21 +469,26 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
   const std::vector<Eigen::Vector3f> scaled =
       Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
   const Eigen::SparseMatrix<double> laplacian = Laplacian(face.mesh);
+  const bool along_normal = options.nonrigid == NonRigidMotion::kAlongNormal ||
+                            (options.nonrigid == NonRigidMotion::kAuto && has_model && options.model_iterations > 0);
   for (double alpha : options.stiffness) {
     std::vector<Eigen::Vector3f> rest(face.mesh.positions.size());
     for (size_t i = 0; i < rest.size(); ++i) rest[i] = fit.stage_from_head * scaled[i];
+    const std::vector<Eigen::Vector3f> rest_normals =
+        along_normal ? VertexNormals(rest, face.mesh.triangles) : std::vector<Eigen::Vector3f>{};
     for (int it = 0; it < options.iterations_per_stage; ++it) {
-      const Correspondences c = Match(fit.positions, skin, face, nearest, surface_normals, options);
+      const Correspondences c = Match(fit.positions, skin, face, target, options);
       if (c.count == 0) {
         return absl::NotFoundError(absl::StrCat("template fit: no template vertex within ", options.max_distance_mm,
                                                 " mm of the surface (is the start's pose right?)"));
       }
-      STAGE_RETURN_IF_ERROR(NonRigidStep(laplacian, rest, c, alpha, &fit.positions));
+      STAGE_RETURN_IF_ERROR(along_normal ? NormalStep(laplacian, rest, rest_normals, c, alpha, &fit.positions)
+                                         : NonRigidStep(laplacian, rest, c, alpha, &fit.positions));
     }
     // The head's pose follows the shape: the rigid motion that best places the template on it.
     fit.stage_from_head = BestRigid(scaled, fit.positions, skin);
   }
-  const Correspondences last = Match(fit.positions, skin, face, nearest, surface_normals, options);
+  const Correspondences last = Match(fit.positions, skin, face, target, options);
   fit.rms_mm = last.rms_mm;
   fit.matched = last.count;
   return fit;
@@ -507,9 +611,12 @@ std::string RunJson(const FitJob& job, int64_t last) {
                     {"iterations_per_stage", job.options.iterations_per_stage},
                     {"max_distance_mm", job.options.max_distance_mm},
                     {"max_normal_angle_deg", job.options.max_normal_angle_deg},
+                    {"skip_border", job.options.skip_border},
+                    {"nonrigid", NonRigidMotionName(job.options.nonrigid)},
                     {"model_iterations", job.options.model_iterations},
-                    {"identity_prior_mm2", job.options.identity_prior_mm2},
-                    {"expression_prior_mm2", job.options.expression_prior_mm2}};
+                    {"identity_prior", job.options.identity_prior},
+                    {"expression_prior", job.options.expression_prior},
+                    {"identity_reach", job.options.identity_reach}};
   return run.dump(2) + "\n";
 }
 

@@ -32,11 +32,14 @@ Worst TrackPerformer(const FaceTemplate& face, uint64_t identity) {
     if (!e.ok()) return worst;
     std::printf(
         "identity %llu, t %.1f s: skin rmse %.3f p99 %.3f mm (along the normal %.3f, sliding %.3f, p99 "
-        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f, jaw %.1f deg, identity[0] %.2f\n",
+        "%.3f); eyes %.3f, mouth %.3f mm; %lld matched at %.3f mm rms; scale %.3f, jaw %.1f deg, largest identity "
+        "coefficient %.2f\n",
         static_cast<unsigned long long>(identity), t, e->skin.rmse_mm, e->skin.p99_mm, e->skin.surface_rmse_mm,
         e->skin.sliding_rmse_mm, e->skin.sliding_p99_mm, e->eyes.rmse_mm, e->mouth.rmse_mm,
         static_cast<long long>(fit->matched), fit->rms_mm, fit->scale, fit->jaw_rad * 180 / 3.14159265358979,
-        fit->identity.empty() ? 0.0f : fit->identity[0]);
+        fit->identity.empty() ? 0.0f
+                              : *std::max_element(fit->identity.begin(), fit->identity.end(),
+                                                  [](float a, float b) { return std::abs(a) < std::abs(b); }));
     EXPECT_GT(fit->matched, static_cast<int64_t>(face.mesh.positions.size() * 9 / 10));
     worst.surface = std::max(worst.surface, e->skin.surface_rmse_mm);
     worst.rmse = std::max(worst.rmse, e->skin.rmse_mm);
@@ -56,7 +59,7 @@ TEST(TemplateFitSimTest, TheFitLiesOnAPerformersSurfaceThroughThePerformance) {
   auto face = ShippedFaceTemplate();
   ASSERT_TRUE(face.ok()) << face.status();
   // The shipped head (the template's own) and two other performers, none of them among the performers the template's
-  // model was made from. Measured (worst frame, 2026-11-29): 0.013, 0.18 and 0.10 mm from where the vertices belong,
+  // model was made from. Measured (worst frame, 2026-11-29): 0.012, 0.21 and 0.08 mm from where the vertices belong,
   // almost all of it sliding along the surface; without the model (model_iterations 0) 1.8, 5.0 and 4.0 mm of
   // sliding. Issue 28's goals: RMSE <= 0.5 mm, 99th percentile <= 2 mm, sliding <= 1 mm.
   for (uint64_t identity : {0, 5, 7}) {

@@ -129,7 +129,7 @@ struct MvsCommand {
 // `stage-process fit`: its options, and the run.
 struct FitCommand {
   stage::processing::FitJob job;
-  std::string frames = "0:", surface = "mvs";
+  std::string frames = "0:", surface = "mvs", nonrigid = "auto";
   bool json = false;
   CLI::App* app = nullptr;
 
@@ -159,11 +159,39 @@ struct FitCommand {
                     "Correspondences further than this from the surface are left out, mm")
         ->capture_default_str()
         ->check(CLI::PositiveNumber);
+    app->add_option("--stiffness", job.options.stiffness,
+                    "The non-rigid stages' membrane stiffness, stiff to supple (a weight against each vertex's data "
+                    "term of 1)")
+        ->capture_default_str()
+        ->delimiter(',');
+    app->add_flag("!--keep-border", job.options.skip_border,
+                  "Keep correspondences on the surface's border (holes' rims), which the fit leaves out by default");
+    app->add_option("--nonrigid", nonrigid,
+                    "How the non-rigid stages may move a vertex: auto (along the normal when the template's model "
+                    "is fitted, else free), free, along_normal")
+        ->capture_default_str()
+        ->check(CLI::IsMember({"auto", "free", "along_normal"}));
+    app->add_option("--model-iterations", job.options.model_iterations,
+                    "Gauss-Newton iterations of the template's shape and expression model between placement and "
+                    "non-rigid ICP; 0: the template's own shape")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 1000));
+    app->add_option("--identity-prior", job.options.identity_prior,
+                    "Weight holding each identity coefficient toward the template: a standard deviation costs as "
+                    "much as this many vertices off by the fit's typical residual")
+        ->capture_default_str()
+        ->check(CLI::NonNegativeNumber);
+    app->add_option("--expression-prior", job.options.expression_prior,
+                    "Weight holding each expression coefficient toward neutral: a whole blendshape costs as much as "
+                    "this many vertices off by the fit's typical residual")
+        ->capture_default_str()
+        ->check(CLI::NonNegativeNumber);
     app->add_flag("--json", json, "Print the result as JSON on stdout");
   }
 
   int Run() {
     job.surface = stage::processing::GeometrySpec::Parse(surface);
+    job.options.nonrigid = *stage::processing::ParseNonRigidMotion(nonrigid);  // CLI11 checked the word
     return RunOverFrames(frames, json, "fitted", &job, stage::processing::RunFit);
   }
 };

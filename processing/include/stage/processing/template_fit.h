@@ -22,9 +22,20 @@
 
 namespace stage::processing {
 
+// How the non-rigid stages may move a vertex from the rest shape.
+enum class NonRigidMotion : uint8_t {
+  kAuto = 0,         // along the normal when the template has a model and it is fitted, freely otherwise
+  kFree = 1,         // anywhere: the membrane and the nearest points alone decide where along the surface it goes
+  kAlongNormal = 2,  // along the rest shape's normal only: the model places the skin, the membrane adds detail
+};
+const char* NonRigidMotionName(NonRigidMotion m);  // "auto", "free", "along_normal"
+// The motion named by NonRigidMotionName, or an error naming the word.
+absl::StatusOr<NonRigidMotion> ParseNonRigidMotion(const std::string& name);
+
 struct TemplateFitOptions {
   // Placement ICP iterations (point-to-plane, Gauss-Newton over rotation, translation and, with fit_scale, a uniform
-  // scale about the head's origin).
+  // scale about the head's origin; not with a template whose identity model is fitted: its components carry the
+  // head's size).
   int rigid_iterations = 30;
   bool fit_scale = true;
   // Membrane stiffness of the non-rigid stages, from the first (stiff: the template's shape, placed) to the last
@@ -36,14 +47,22 @@ struct TemplateFitOptions {
   double max_distance_mm = 8;
   // Correspondences whose surface normal turns further than this from the template's are left out, degrees.
   double max_normal_angle_deg = 60;
+  // Leave out correspondences on the surface's border (triangles touching an edge of one triangle: a hole's rim or
+  // the mesh's edge), which would draw the vertices over a hole to its rim.
+  bool skip_border = true;
+  NonRigidMotion nonrigid = NonRigidMotion::kAuto;
   // The model's fit, between placement and non-rigid ICP, when the template has a model (docs/assets.md#the-model):
   // Gauss-Newton iterations over the pose, scale, jaw, identity and expression coefficients together, the
   // correspondences updated each time; 0: no model fit (the template's own shape is the rest shape).
   int model_iterations = 20;
-  // The coefficients' priors (ridge weights toward 0, the template's neutral face), in mm^2: a coefficient of one
-  // standard deviation (identity) or a whole blendshape (expression) costs as much as one vertex this far off its
-  // plane, squared.
-  double identity_prior_mm2 = 1, expression_prior_mm2 = 1;
+  // The coefficients' priors (ridge weights toward 0, the template's neutral face), in vertices: a coefficient of one
+  // standard deviation (identity) or a whole blendshape (expression) costs as much as this many vertices off their
+  // planes by the fit's typical residual (the median's, each step). On a surface the model meets exactly the priors
+  // fade; on a noisy one (multi-view stereo's) they hold the coefficients from fitting its noise.
+  double identity_prior = 100, expression_prior = 1;
+  // The identity's coefficients are kept within this many standard deviations; the expression's within [0, 1] (a
+  // blendshape's weight, none to full).
+  double identity_reach = 3;
 
   absl::Status Validate() const;
 };
