@@ -99,6 +99,20 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
               fit_metrics["matched_vertices"].get<int>(), fit_metrics["template_vertices"].get<int>(),
               fit_metrics["rms_to_surface_mm"].get<double>());
   EXPECT_GT(fit_metrics["matched_vertices"].get<int>(), fit_metrics["template_vertices"].get<int>() / 2);
+  // The fit against where every template vertex belongs on the true head. At this render scale the reconstruction is
+  // ~1.1 mm off the skin (RMSE, below), which the fit follows along the normal; along the surface the model holds the
+  // skin in place. Measured (2026-11-29): skin RMSE 1.5 mm, sliding 1.0 mm; without the model (--model-iterations
+  // 0) sliding 3.5 mm, p99 13 mm.
+  CommandResult fit_eval =
+      RunCommand({"stage-process", "evaluate", "fit", "--take", dir, "--json"}, std::chrono::seconds(120));
+  ASSERT_EQ(fit_eval.exit.exit_code, 0) << fit_eval.err;
+  const nlohmann::json skin = nlohmann::json::parse(fit_eval.out)["frames"][0]["fit"]["skin"];
+  std::printf("template fit against the truth: skin RMSE %.3f mm, along the normal %.3f, sliding %.3f (p99 %.3f)\n",
+              skin["rmse_mm"].get<double>(), skin["surface_rmse_mm"].get<double>(),
+              skin["sliding_rmse_mm"].get<double>(), skin["sliding_p99_mm"].get<double>());
+  EXPECT_LT(skin["sliding_rmse_mm"].get<double>(), 1.5);
+  EXPECT_LT(skin["sliding_p99_mm"].get<double>(), 3.5);
+  EXPECT_LT(skin["rmse_mm"].get<double>(), 2.0);
 
   // Against the truth. Bounds for render scale 0.125 (measured on the face, printed below: RMSE 1.07 mm, median
   // 0.43 mm, 81 % within 1 mm, 78 % covered); the figures at half and full resolution are in docs/geometry.md.
