@@ -47,19 +47,28 @@ absl::Status ReadModel(const nlohmann::json& m, const std::string& dir, const st
   } catch (const nlohmann::json::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat(name, ": model: ", e.what()));
   }
-  if (vertices != t->mesh.positions.size()) {
+  if (vertices != t->mesh.positions.size() || vertices == 0) {
     return bad("vertices", absl::StrCat(vertices, ", the mesh has ", t->mesh.positions.size()));
+  }
+  if (file.empty() || file.find('/') != std::string::npos || file == "." || file == "..") {
+    return bad("file", absl::StrCat("\"", file, "\" is not a file name beside the description"));
   }
   auto bytes = ModelBytes(dir, file);
   if (!bytes.ok()) return bytes.status();
-  const size_t count = components + t->expression_names.size(), per = vertices * 3 * sizeof(float);
-  if (bytes->size() != count * per) {
+  static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float), "a vertex's three floats are packed");
+  const size_t per = vertices * 3 * sizeof(float), held = bytes->size() / per;
+  const size_t count = components + t->expression_names.size();
+  if (components > held || count > held || bytes->size() != count * per) {
     return bad("file", absl::StrCat(file, " holds ", bytes->size(), " bytes, not the ", count * per, " of ", count,
                                     " components of ", vertices, " vertices"));
   }
   for (size_t k = 0; k < count; ++k) {
     std::vector<Eigen::Vector3f> component(vertices);
     std::memcpy(static_cast<void*>(component.data()), bytes->data() + k * per, per);
+    for (const Eigen::Vector3f& d : component) {
+      if (!d.allFinite())
+        return bad("file", absl::StrCat(file, ": component ", k, " holds a value that is not finite"));
+    }
     (k < components ? t->identity_basis : t->expression_basis).push_back(std::move(component));
   }
   return absl::OkStatus();

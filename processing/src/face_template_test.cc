@@ -147,6 +147,9 @@ TEST(TemplateFitTest, OptionsOutOfRangeAndAnEmptySurfaceAreRefused) {
   auto none = FitTemplate(*face, far, start);
   EXPECT_EQ(none.status().code(), absl::StatusCode::kNotFound) << none.status();
   EXPECT_FALSE(TemplateFitOptions{.model_iterations = -1}.Validate().ok());
+  EXPECT_EQ(ParseNonRigidMotion("along_normal").value(), NonRigidMotion::kAlongNormal);
+  EXPECT_THAT(std::string(ParseNonRigidMotion("sideways").status().message()),
+              HasSubstr("\"sideways\" is not auto, free or along_normal"));
   EXPECT_FALSE(TemplateFitOptions{.identity_prior = -1}.Validate().ok());
   EXPECT_FALSE(TemplateFitOptions{.identity_reach = 0}.Validate().ok());
 }
@@ -196,6 +199,45 @@ TEST(TemplateFitTest, TheModelsCoefficientsAreFoundOnAFaceItMade) {
     if (face->regions[v] == FaceRegion::kSkin) bare_sum += (bare->positions[v] - truth.positions[v]).squaredNorm();
   }
   EXPECT_GT(std::sqrt(bare_sum / static_cast<double>(n)), 0.3);
+}
+
+// A surface with a hole where the template's forehead is: the vertices over the hole find nothing to be drawn to (the
+// hole's rim is left out) and keep the model's shape; keeping the rim, they are pulled to it.
+TEST(TemplateFitTest, AHolesRimDrawsNoVertex) {
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  // The template's own face as the surface, with its texture seams split as an OBJ reader splits them (each triangle
+  // its own corners: every edge then borders one triangle unless welded), and a hole cut in the forehead.
+  TriangleMesh surface;
+  auto in_hole = [&](const Eigen::Vector3f& p) { return p.y() > 45 && p.y() < 75 && std::abs(p.x()) < 20; };
+  for (const auto& t : face->mesh.triangles) {
+    const Eigen::Vector3f c =
+        (face->mesh.positions[t[0]] + face->mesh.positions[t[1]] + face->mesh.positions[t[2]]) / 3;
+    if (in_hole(c)) continue;
+    const auto base = static_cast<int32_t>(surface.positions.size());
+    for (int k = 0; k < 3; ++k) surface.positions.push_back(face->mesh.positions[t[k]]);
+    surface.triangles.push_back({base, base + 1, base + 2});
+  }
+  auto error_over_hole = [&](const TemplateFit& fit) {
+    double sum = 0;
+    int n = 0;
+    for (size_t v = 0; v < fit.positions.size(); ++v) {
+      if (!in_hole(face->mesh.positions[v])) continue;
+      sum += (fit.positions[v] - face->mesh.positions[v]).squaredNorm();
+      ++n;
+    }
+    EXPECT_GT(n, 30);
+    return std::sqrt(sum / std::max(n, 1));
+  };
+  const TemplateFit start = StartAt(*face, Eigen::Isometry3f::Identity());
+  auto skipped = FitTemplate(*face, surface, start);
+  ASSERT_TRUE(skipped.ok()) << skipped.status();
+  auto kept = FitTemplate(*face, surface, start, {.skip_border = false, .nonrigid = NonRigidMotion::kFree});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  // Split seams are no border: the rest of the face is matched (all but the hole, its rim and the face's own edge).
+  EXPECT_GT(skipped->matched, static_cast<int64_t>(face->mesh.positions.size() * 8 / 10));
+  EXPECT_LT(error_over_hole(*skipped), 0.05);
+  EXPECT_GT(error_over_hole(*kept), 2 * error_over_hole(*skipped));
 }
 
 }  // namespace

@@ -3,8 +3,10 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Sparse>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <set>
@@ -41,18 +43,25 @@ std::vector<Eigen::Vector3f> TriangleNormals(const TriangleMesh& m) {
   return n;
 }
 
-// The surface as the fit sees it: its nearest points, its triangles' normals, and the triangles that touch its border
-// (an edge of one triangle only: a hole's or the mesh's edge), whose nearest points are no evidence of where the skin
-// is (a vertex over a hole finds the hole's rim and would be drawn to it).
+// The surface as the fit sees it: its nearest points, its triangles' normals, and the triangles with a vertex on its
+// border (an edge of one triangle only: a hole's rim or the mesh's edge), whose nearest points are no evidence of
+// where the skin is (a vertex over a hole finds the hole's rim and would be drawn to it).
 struct Target {
   explicit Target(const TriangleMesh& surface) : nearest(surface), normals(TriangleNormals(surface)) {
+    // Vertices at the same place are one (an OBJ splits them at texture seams, which are no border).
+    std::map<std::array<float, 3>, int32_t> first;
+    std::vector<int32_t> welded(surface.positions.size());
+    for (size_t v = 0; v < welded.size(); ++v) {
+      const Eigen::Vector3f& p = surface.positions[v];
+      welded[v] = first.try_emplace({p.x(), p.y(), p.z()}, static_cast<int32_t>(v)).first->second;
+    }
     std::unordered_map<uint64_t, int> edges;
     auto key = [](int32_t a, int32_t b) {
       return (static_cast<uint64_t>(static_cast<uint32_t>(std::min(a, b))) << 32) |
              static_cast<uint32_t>(std::max(a, b));
     };
     for (const auto& t : surface.triangles) {
-      for (int k = 0; k < 3; ++k) ++edges[key(t[k], t[(k + 1) % 3])];
+      for (int k = 0; k < 3; ++k) ++edges[key(welded[t[k]], welded[t[(k + 1) % 3]])];
     }
     std::vector<uint8_t> on_border(surface.positions.size(), 0);
     for (const auto& [edge, count] : edges) {
@@ -63,8 +72,8 @@ struct Target {
     border.resize(surface.triangles.size());
     for (size_t k = 0; k < border.size(); ++k) {
       const auto& t = surface.triangles[k];
-      border[k] = on_border[static_cast<size_t>(t[0])] | on_border[static_cast<size_t>(t[1])] |
-                  on_border[static_cast<size_t>(t[2])];
+      border[k] = on_border[static_cast<size_t>(welded[t[0]])] | on_border[static_cast<size_t>(welded[t[1]])] |
+                  on_border[static_cast<size_t>(welded[t[2]])];
     }
   }
   SurfaceDistance nearest;
@@ -186,71 +195,85 @@ std::vector<Eigen::Vector3f> Shaped(const FaceTemplate& face, const std::vector<
   return out;
 }
 
-// One Gauss-Newton step of the model's fit: the placement's terms (rigid motion and jaw; not the scale, which the
-// identity's components carry) and the model's coefficients together, point to plane, each coefficient held toward 0
-// by its prior. Updates `fit` (coefficients, pose, jaw; not its positions).
-void ModelStep(const FaceTemplate& face, const Correspondences& c, const TemplateFitOptions& options,
-               TemplateFit* fit) {
-  const size_t n_id = face.identity_basis.size(), n_ex = face.expression_basis.size();
-  const Eigen::Index n = static_cast<Eigen::Index>(8 + n_id + n_ex);
-  Eigen::MatrixXd ata = Eigen::MatrixXd::Zero(n, n);
-  Eigen::VectorXd atb = Eigen::VectorXd::Zero(n);
-  const Eigen::Matrix3f r = fit->stage_from_head.linear();
-  const Eigen::Vector3d hinge = (fit->stage_from_head * (fit->scale * face.jaw_hinge)).cast<double>(),
+// The model step's unknowns, in order: the rigid motion (6), the jaw's turn (only for a template without expression
+// blendshapes: with them the jaw is jaw_open's, and the two would trade), then the identity's and the expression's
+// coefficients. No scale: the identity's components carry the head's size.
+struct ModelLayout {
+  bool jaw = false;
+  size_t n_id = 0, n_ex = 0;
+  Eigen::Index Id(size_t k) const { return static_cast<Eigen::Index>(6 + (jaw ? 1 : 0) + k); }
+  Eigen::Index Ex(size_t k) const { return Id(n_id) + static_cast<Eigen::Index>(k); }
+  Eigen::Index Size() const { return Ex(n_ex); }
+};
+
+// The model step's normal equations over the matched vertices, and the point-to-plane residuals' robust variance
+// (the median squared residual of a normal distribution is 0.455 of its variance).
+struct ModelSystem {
+  Eigen::MatrixXd ata;
+  Eigen::VectorXd atb;
+  double variance = 1;
+};
+ModelSystem ModelEquations(const FaceTemplate& face, const Correspondences& c, const ModelLayout& layout,
+                           const TemplateFit& fit) {
+  ModelSystem sys{Eigen::MatrixXd::Zero(layout.Size(), layout.Size()), Eigen::VectorXd::Zero(layout.Size())};
+  const Eigen::Matrix3f r = fit.stage_from_head.linear();
+  const Eigen::Vector3d hinge = (fit.stage_from_head * (fit.scale * face.jaw_hinge)).cast<double>(),
                         axis = (r * face.jaw_axis).cast<double>();
-  Eigen::VectorXd a(n);
-  std::vector<double> squared;  // the point-to-plane residuals, squared
+  Eigen::VectorXd a(layout.Size());
+  std::vector<double> squared;
   squared.reserve(static_cast<size_t>(c.count));
   for (size_t i = 0; i < c.valid.size(); ++i) {
     if (!c.valid[i]) continue;
-    const Eigen::Vector3d p = fit->positions[i].cast<double>(), nrm = c.normals[i].cast<double>();
+    const Eigen::Vector3d p = fit.positions[i].cast<double>(), nrm = c.normals[i].cast<double>();
     const float w = face.jaw_weight.empty() ? 0.0f : face.jaw_weight[i];
     a.head<3>() = p.cross(nrm);
     a.segment<3>(3) = nrm;
-    a(6) = 0;  // the identity's components carry the head's size
-    a(7) = w * nrm.dot(axis.cross(p - hinge));
+    if (layout.jaw) a(6) = w * nrm.dot(axis.cross(p - hinge));
     // A component's displacement d (head frame) moves the vertex by R s J d (J the vertex's turn with the jaw).
     const Eigen::Vector3f m =
-        fit->scale * (Eigen::AngleAxisf(w * fit->jaw_rad, face.jaw_axis).inverse() * (r.transpose() * c.normals[i]));
-    for (size_t k = 0; k < n_id; ++k) a(static_cast<Eigen::Index>(8 + k)) = m.dot(face.identity_basis[k][i]);
-    for (size_t k = 0; k < n_ex; ++k) a(static_cast<Eigen::Index>(8 + n_id + k)) = m.dot(face.expression_basis[k][i]);
-    ata.selfadjointView<Eigen::Lower>().rankUpdate(a);
+        fit.scale * (Eigen::AngleAxisf(w * fit.jaw_rad, face.jaw_axis).inverse() * (r.transpose() * c.normals[i]));
+    for (size_t k = 0; k < layout.n_id; ++k) a(layout.Id(k)) = m.dot(face.identity_basis[k][i]);
+    for (size_t k = 0; k < layout.n_ex; ++k) a(layout.Ex(k)) = m.dot(face.expression_basis[k][i]);
+    sys.ata.selfadjointView<Eigen::Lower>().rankUpdate(a);
     const double residual = nrm.dot(c.points[i].cast<double>() - p);
-    atb += a * residual;
+    sys.atb += a * residual;
     squared.push_back(residual * residual);
   }
-  ata = Eigen::MatrixXd(ata.selfadjointView<Eigen::Lower>());
-  for (int k : {6, 7}) {
-    if (ata(k, k) < 1e-9) ata(k, k) = 1;  // a term the data does not see (no scale asked for, no jaw)
+  sys.ata = Eigen::MatrixXd(sys.ata.selfadjointView<Eigen::Lower>());
+  if (layout.jaw && sys.ata(6, 6) < 1e-9) sys.ata(6, 6) = 1;  // no vertex follows the jaw
+  if (!squared.empty()) sys.variance = Quantile(squared, 1, 2) / 0.455;
+  return sys;
+}
+
+// One Gauss-Newton step of the model's fit: the pose (and the jaw, as the layout says) and the model's coefficients
+// together, point to plane, each coefficient held toward 0 by its prior, which weighs as many vertices at the fit's
+// typical residual (loose on a surface the model meets closely, firm on a noisy one). Updates `fit`'s coefficients,
+// pose and jaw, not its positions.
+void ModelStep(const FaceTemplate& face, const Correspondences& c, const TemplateFitOptions& options,
+               const ModelLayout& layout, TemplateFit* fit) {
+  ModelSystem sys = ModelEquations(face, c, layout, *fit);
+  for (size_t k = 0; k < layout.n_id; ++k) {
+    sys.ata(layout.Id(k), layout.Id(k)) += sys.variance * options.identity_prior;
+    sys.atb(layout.Id(k)) -= sys.variance * options.identity_prior * fit->identity[k];
   }
-  // The priors weigh as many vertices at the fit's typical residual (robustly: the median squared residual of a normal
-  // distribution is 0.455 of its variance): loose on a surface the model meets closely, firm on a noisy one.
-  const double variance = squared.empty() ? 1.0 : Quantile(squared, 1, 2) / 0.455;
-  for (size_t k = 0; k < n_id + n_ex; ++k) {
-    const auto j = static_cast<Eigen::Index>(8 + k);
-    const double prior = variance * (k < n_id ? options.identity_prior : options.expression_prior);
-    const double value = k < n_id ? fit->identity[k] : fit->expression[k - n_id];
-    ata(j, j) += prior;
-    atb(j) -= prior * value;
+  for (size_t k = 0; k < layout.n_ex; ++k) {
+    sys.ata(layout.Ex(k), layout.Ex(k)) += sys.variance * options.expression_prior;
+    sys.atb(layout.Ex(k)) -= sys.variance * options.expression_prior * fit->expression[k];
   }
-  const Eigen::VectorXd x = ata.ldlt().solve(atb);
+  const Eigen::VectorXd x = sys.ata.ldlt().solve(sys.atb);
   const Eigen::Vector3d turn = x.head<3>();
   Eigen::Isometry3d rigid = Eigen::Isometry3d::Identity();
   if (turn.norm() > 0) rigid.linear() = Eigen::AngleAxisd(turn.norm(), turn.normalized()).toRotationMatrix();
   rigid.translation() = x.segment<3>(3);
-  // The scale is about the head's origin and the rigid step about the stage's: the origin moves with the rigid step.
   fit->stage_from_head = rigid.cast<float>() * fit->stage_from_head;
-  fit->scale *= static_cast<float>(1 + x(6));
-  fit->jaw_rad += static_cast<float>(x(7));
+  if (layout.jaw) fit->jaw_rad += static_cast<float>(x(6));
   // Kept to where the model means something: a face within the identity's reach, blendshapes between none and full.
-  const float reach = static_cast<float>(options.identity_reach);
-  for (size_t k = 0; k < n_id; ++k) {
-    fit->identity[k] =
-        std::clamp(fit->identity[k] + static_cast<float>(x(static_cast<Eigen::Index>(8 + k))), -reach, reach);
+  const auto reach = static_cast<float>(options.identity_reach);
+  for (size_t k = 0; k < layout.n_id; ++k) {
+    fit->identity[k] = std::clamp(fit->identity[k] + static_cast<float>(x(layout.Id(k))), -reach, reach);
   }
-  for (size_t k = 0; k < n_ex; ++k) {
-    fit->expression[k] =
-        std::clamp(fit->expression[k] + static_cast<float>(x(static_cast<Eigen::Index>(8 + n_id + k))), 0.0f, 1.0f);
+  for (size_t k = 0; k < layout.n_ex; ++k) {
+    fit->expression[k] = std::clamp(fit->expression[k] + static_cast<float>(x(layout.Ex(k))), 0.0f, 1.0f);
   }
 }
 
@@ -418,6 +441,97 @@ TemplateFit StartAt(const FaceTemplate& face, const Eigen::Isometry3f& stage_fro
   return fit;
 }
 
+namespace {
+
+// What a fit of `face` fits, beside the pose: the scale (asked for, and no identity model fitted: its components carry
+// the head's size, and a free scale traded with them from frame to frame), the jaw's turn (no expression blendshapes
+// fitted: jaw_open is the jaw then), the model.
+struct FitTerms {
+  bool scale = false, jaw = false, model = false;
+};
+FitTerms TermsOf(const FaceTemplate& face, const TemplateFitOptions& options) {
+  FitTerms t;
+  t.model = options.model_iterations > 0 && (!face.identity_basis.empty() || !face.expression_basis.empty());
+  t.scale = options.fit_scale && !(t.model && !face.identity_basis.empty());
+  t.jaw = !face.jaw_weight.empty() && !(t.model && !face.expression_basis.empty());
+  return t;
+}
+
+// The placement: point-to-plane ICP over the rigid motion, and the scale and the jaw's turn as `terms` say.
+void Place(const FaceTemplate& face, const Target& target, const std::vector<uint8_t>& skin,
+           const TemplateFitOptions& options, const FitTerms& terms, TemplateFit* fit) {
+  const std::vector<float> no_jaw(face.mesh.positions.size(), 0.0f);
+  for (int it = 0; it < options.rigid_iterations; ++it) {
+    const Correspondences c = Match(fit->positions, skin, face, target, options);
+    if (c.count < 9) break;
+    const Placement at{fit->stage_from_head.translation(), fit->stage_from_head * (fit->scale * face.jaw_hinge),
+                       fit->stage_from_head.linear() * face.jaw_axis, terms.jaw ? &face.jaw_weight : &no_jaw};
+    const PlacementStep step = PlacementGaussNewton(fit->positions, c, at, terms.scale);
+    for (size_t i = 0; i < fit->positions.size(); ++i) fit->positions[i] = step.Apply(at, i, fit->positions[i]);
+    fit->stage_from_head = step.rigid * fit->stage_from_head;
+    fit->scale *= step.scale;
+    fit->jaw_rad += step.jaw_rad;
+    if (step.rigid.translation().norm() < 1e-4f && Eigen::AngleAxisf(step.rigid.linear()).angle() < 1e-6f &&
+        std::abs(step.scale - 1) < 1e-6f && std::abs(step.jaw_rad) < 1e-6f) {
+      break;
+    }
+  }
+}
+
+// The template's face as the model's coefficients, the scale and the jaw shape it (head frame).
+std::vector<Eigen::Vector3f> RestShape(const FaceTemplate& face, const TemplateFit& fit) {
+  return Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
+}
+
+// `fit`'s positions: its rest shape, posed.
+void PoseRestShape(const FaceTemplate& face, TemplateFit* fit) {
+  const std::vector<Eigen::Vector3f> shaped = RestShape(face, *fit);
+  for (size_t i = 0; i < shaped.size(); ++i) fit->positions[i] = fit->stage_from_head * shaped[i];
+}
+
+// The model's fit (coefficients carried from the frame before, the template's neutral face on a first frame).
+void FitModel(const FaceTemplate& face, const Target& target, const std::vector<uint8_t>& skin,
+              const TemplateFitOptions& options, const FitTerms& terms, TemplateFit* fit) {
+  fit->identity.resize(face.identity_basis.size(), 0.0f);
+  fit->expression.resize(face.expression_basis.size(), 0.0f);
+  // From the model's own shape, not the frame before's non-rigid detail.
+  PoseRestShape(face, fit);
+  const ModelLayout layout{terms.jaw, face.identity_basis.size(), face.expression_basis.size()};
+  for (int it = 0; it < options.model_iterations; ++it) {
+    const Correspondences c = Match(fit->positions, skin, face, target, options);
+    if (c.count < 9) break;
+    ModelStep(face, c, options, layout, fit);
+    PoseRestShape(face, fit);
+  }
+}
+
+// The non-rigid stages, from the rest shape `shaped` (head frame): along its normals or freely.
+absl::Status FitNonRigid(const FaceTemplate& face, const Target& target, const std::vector<uint8_t>& skin,
+                         const TemplateFitOptions& options, bool along_normal,
+                         const std::vector<Eigen::Vector3f>& shaped, TemplateFit* fit) {
+  const Eigen::SparseMatrix<double> laplacian = Laplacian(face.mesh);
+  for (double alpha : options.stiffness) {
+    std::vector<Eigen::Vector3f> rest(face.mesh.positions.size());
+    for (size_t i = 0; i < rest.size(); ++i) rest[i] = fit->stage_from_head * shaped[i];
+    const std::vector<Eigen::Vector3f> rest_normals =
+        along_normal ? VertexNormals(rest, face.mesh.triangles) : std::vector<Eigen::Vector3f>{};
+    for (int it = 0; it < options.iterations_per_stage; ++it) {
+      const Correspondences c = Match(fit->positions, skin, face, target, options);
+      if (c.count == 0) {
+        return absl::NotFoundError(absl::StrCat("template fit: no template vertex within ", options.max_distance_mm,
+                                                " mm of the surface (is the start's pose right?)"));
+      }
+      STAGE_RETURN_IF_ERROR(along_normal ? NormalStep(laplacian, rest, rest_normals, c, alpha, &fit->positions)
+                                         : NonRigidStep(laplacian, rest, c, alpha, &fit->positions));
+    }
+    // The head's pose follows the shape: the rigid motion that best places the rest shape on it.
+    fit->stage_from_head = BestRigid(shaped, fit->positions, skin);
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const TriangleMesh& surface, const TemplateFit& start,
                                         const TemplateFitOptions& options) {
   STAGE_RETURN_IF_ERROR(options.Validate());
@@ -430,64 +544,17 @@ absl::StatusOr<TemplateFit> FitTemplate(const FaceTemplate& face, const Triangle
   // The data term holds on the skin; the eyes' and mouth's openings follow their neighbours.
   std::vector<uint8_t> skin(face.regions.size());
   for (size_t i = 0; i < skin.size(); ++i) skin[i] = face.regions[i] == FaceRegion::kSkin ? 1 : 0;
-
+  const FitTerms terms = TermsOf(face, options);
   TemplateFit fit = start;
-  const std::vector<float> no_jaw(face.mesh.positions.size(), 0.0f);
-  const bool has_model = !face.identity_basis.empty() || !face.expression_basis.empty();
-  // With an identity model the head's size is the model's (its components carry it): a free scale would trade with
-  // them from frame to frame.
-  const bool fit_scale = options.fit_scale && (face.identity_basis.empty() || options.model_iterations == 0);
-  for (int it = 0; it < options.rigid_iterations; ++it) {
-    const Correspondences c = Match(fit.positions, skin, face, target, options);
-    if (c.count < 9) break;
-    const Placement at{fit.stage_from_head.translation(), fit.stage_from_head * (fit.scale * face.jaw_hinge),
-                       fit.stage_from_head.linear() * face.jaw_axis,
-                       face.jaw_weight.empty() ? &no_jaw : &face.jaw_weight};
-    const PlacementStep step = PlacementGaussNewton(fit.positions, c, at, fit_scale);
-    for (size_t i = 0; i < fit.positions.size(); ++i) fit.positions[i] = step.Apply(at, i, fit.positions[i]);
-    fit.stage_from_head = step.rigid * fit.stage_from_head;
-    fit.scale *= step.scale;
-    fit.jaw_rad += step.jaw_rad;
-    if (step.rigid.translation().norm() < 1e-4f && Eigen::AngleAxisf(step.rigid.linear()).angle() < 1e-6f &&
-        std::abs(step.scale - 1) < 1e-6f && std::abs(step.jaw_rad) < 1e-6f) {
-      break;
-    }
+  if (!terms.model) {
+    fit.identity.clear();
+    fit.expression.clear();
   }
-  // The model's coefficients, carried from the frame before (the template's neutral face on a first frame).
-  fit.identity.resize(face.identity_basis.size(), 0.0f);
-  fit.expression.resize(face.expression_basis.size(), 0.0f);
-  for (int it = 0; has_model && it < options.model_iterations; ++it) {
-    const Correspondences c = Match(fit.positions, skin, face, target, options);
-    if (c.count < 9) break;
-    ModelStep(face, c, options, &fit);
-    const std::vector<Eigen::Vector3f> shaped =
-        Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
-    for (size_t i = 0; i < shaped.size(); ++i) fit.positions[i] = fit.stage_from_head * shaped[i];
-  }
-  // The template as the placement and the model shaped it (coefficients, scale, jaw): the membrane's rest shape, and
-  // the shape the pose is fitted to.
-  const std::vector<Eigen::Vector3f> scaled =
-      Shaped(face, ModelShape(face, fit.identity, fit.expression), fit.scale, fit.jaw_rad);
-  const Eigen::SparseMatrix<double> laplacian = Laplacian(face.mesh);
-  const bool along_normal = options.nonrigid == NonRigidMotion::kAlongNormal ||
-                            (options.nonrigid == NonRigidMotion::kAuto && has_model && options.model_iterations > 0);
-  for (double alpha : options.stiffness) {
-    std::vector<Eigen::Vector3f> rest(face.mesh.positions.size());
-    for (size_t i = 0; i < rest.size(); ++i) rest[i] = fit.stage_from_head * scaled[i];
-    const std::vector<Eigen::Vector3f> rest_normals =
-        along_normal ? VertexNormals(rest, face.mesh.triangles) : std::vector<Eigen::Vector3f>{};
-    for (int it = 0; it < options.iterations_per_stage; ++it) {
-      const Correspondences c = Match(fit.positions, skin, face, target, options);
-      if (c.count == 0) {
-        return absl::NotFoundError(absl::StrCat("template fit: no template vertex within ", options.max_distance_mm,
-                                                " mm of the surface (is the start's pose right?)"));
-      }
-      STAGE_RETURN_IF_ERROR(along_normal ? NormalStep(laplacian, rest, rest_normals, c, alpha, &fit.positions)
-                                         : NonRigidStep(laplacian, rest, c, alpha, &fit.positions));
-    }
-    // The head's pose follows the shape: the rigid motion that best places the template on it.
-    fit.stage_from_head = BestRigid(scaled, fit.positions, skin);
-  }
+  Place(face, target, skin, options, terms, &fit);
+  if (terms.model) FitModel(face, target, skin, options, terms, &fit);
+  const bool along_normal =
+      options.nonrigid == NonRigidMotion::kAlongNormal || (options.nonrigid == NonRigidMotion::kAuto && terms.model);
+  STAGE_RETURN_IF_ERROR(FitNonRigid(face, target, skin, options, along_normal, RestShape(face, fit), &fit));
   const Correspondences last = Match(fit.positions, skin, face, target, options);
   fit.rms_mm = last.rms_mm;
   fit.matched = last.count;

@@ -186,6 +186,10 @@ struct FitCommand {
                     "this many vertices off by the fit's typical residual")
         ->capture_default_str()
         ->check(CLI::NonNegativeNumber);
+    app->add_option("--identity-reach", job.options.identity_reach,
+                    "The identity's coefficients are kept within this many standard deviations")
+        ->capture_default_str()
+        ->check(CLI::PositiveNumber);
     app->add_flag("--json", json, "Print the result as JSON on stdout");
   }
 

@@ -91,6 +91,10 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
 FaceModelData MakeFaceModel(const FaceTemplateData& face, const HeadModel& head, uint64_t first_identity,
                             int identities, int max_components, double variance_kept, int resolution) {
   FaceModelData model;
+  if (identities <= 0 || max_components <= 0 ||
+      HeadModel::Procedural(1, resolution)->neutral().positions.size() != head.neutral().positions.size()) {
+    return model;  // nothing to draw from, or `head` is not at `resolution`: no model (the caller checks it)
+  }
   model.first_identity = first_identity;
   model.identities = identities;
   const size_t n = face.head_vertex.size();

@@ -261,6 +261,9 @@ int main(int argc, char** argv) {
     stage::sim::FaceTemplateData face = stage::sim::MakeFaceTemplate(*head);
     face.model =
         stage::sim::MakeFaceModel(face, *head, stage::sim::kFaceModelFirstIdentity, stage::sim::kFaceModelIdentities);
+    if (face.model.identity.empty()) {
+      return stage::ReportFatal(kProgram, absl::InternalError("--export-face-template: the face model came out empty"));
+    }
     if (auto s = stage::sim::WriteFaceTemplate(face, export_template_dir); !s.ok()) {
       return stage::ReportFatal(kProgram, s);
     }

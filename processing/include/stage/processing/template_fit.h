@@ -1,7 +1,8 @@
 // The face template fitted to a frame's surface (docs/assets.md#the-fit): a rigid alignment (point-to-plane ICP)
-// from the previous frame's pose, then non-rigid ICP: every vertex drawn to the nearest point of the surface, held
-// to the template's shape by a membrane whose stiffness falls stage by stage (Eigen's sparse Cholesky; the same
-// matrix for x, y and z). The eyes' and the mouth's openings follow their neighbours (no data term there).
+// from the previous frame's pose; with the template's shape and expression model, a fit of its coefficients and the
+// pose together; then non-rigid ICP: every vertex drawn to the nearest point of the surface (along the rest shape's
+// normal once the model has placed the skin), held to the rest shape by a membrane whose stiffness falls stage by
+// stage (Eigen's sparse Cholesky). The eyes' and the mouth's openings follow their neighbours (no data term there).
 // Evaluation against the simulator's truth maps every template vertex to the true surface through the head's UV
 // layout, so sliding along the surface is measured apart from distance to it.
 #pragma once
@@ -33,10 +34,11 @@ const char* NonRigidMotionName(NonRigidMotion m);  // "auto", "free", "along_nor
 absl::StatusOr<NonRigidMotion> ParseNonRigidMotion(const std::string& name);
 
 struct TemplateFitOptions {
-  // Placement ICP iterations (point-to-plane, Gauss-Newton over rotation, translation and, with fit_scale, a uniform
-  // scale about the head's origin; not with a template whose identity model is fitted: its components carry the
-  // head's size).
+  // Placement ICP iterations (point-to-plane, Gauss-Newton over rotation, translation, the jaw's turn unless the
+  // template's expression blendshapes are fitted, and with fit_scale a uniform scale about the head's origin).
   int rigid_iterations = 30;
+  // Fit a uniform scale; not used when the template's identity model is fitted (its components carry the head's
+  // size, and a free scale would trade with them from frame to frame).
   bool fit_scale = true;
   // Membrane stiffness of the non-rigid stages, from the first (stiff: the template's shape, placed) to the last
   // (supple: the surface's detail); each is a weight against the data term's 1 per vertex.
@@ -50,10 +52,12 @@ struct TemplateFitOptions {
   // Leave out correspondences on the surface's border (triangles touching an edge of one triangle: a hole's rim or
   // the mesh's edge), which would draw the vertices over a hole to its rim.
   bool skip_border = true;
+  // How the non-rigid stages may move a vertex from the rest shape.
   NonRigidMotion nonrigid = NonRigidMotion::kAuto;
   // The model's fit, between placement and non-rigid ICP, when the template has a model (docs/assets.md#the-model):
-  // Gauss-Newton iterations over the pose, scale, jaw, identity and expression coefficients together, the
-  // correspondences updated each time; 0: no model fit (the template's own shape is the rest shape).
+  // Gauss-Newton iterations over the pose and the identity and expression coefficients together (and the jaw's turn
+  // when there are no blendshapes), the correspondences updated each time; 0: no model fit (the template's own
+  // shape, scaled and jawed by the placement, is the rest shape).
   int model_iterations = 20;
   // The coefficients' priors (ridge weights toward 0, the template's neutral face), in vertices: a coefficient of one
   // standard deviation (identity) or a whole blendshape (expression) costs as much as this many vertices off their
@@ -76,7 +80,8 @@ struct TemplateFit {
   float scale = 1;
   // How far the jaw is turned about its hinge from the template's (radians; the template's jaw weights).
   float jaw_rad = 0;
-  // The model's coefficients (empty: none fitted): identity in standard deviations, expression in blendshape weights.
+  // The model's coefficients (empty: no model fitted): identity in standard deviations (the drawn faces' RMS about
+  // the template), expression in blendshape weights.
   std::vector<float> identity, expression;
   // Over the vertices with a correspondence at the end: their distance to the surface, RMS, mm; and their count.
   double rms_mm = 0;
@@ -111,8 +116,8 @@ absl::StatusOr<TriangleMesh> TemplateOnTruth(const FaceTemplate& face, const Tri
 // The fit as a stage of the pipeline: over a take's frames, the template tracked through the surfaces (each frame's
 // fit starting from the one before; the first from the head at the stage's origin, facing +z), written to
 // <take>/derived/fit/frame-NNNNNN/: mesh.obj (the template's topology and UVs, stage frame, mm), geometry_map.exr
-// (uv_geometry.h, head frame), pose.json (the head frame to the stage's, and the scale), metrics.json; run.json at
-// the root.
+// (uv_geometry.h, head frame), pose.json (the head frame to the stage's, the scale, the jaw's turn and the model's
+// coefficients), metrics.json; run.json at the root.
 struct FitJob {
   std::string take_dir;
   // Frames [first_frame, last_frame); last_frame < 0: up to the last one the surfaces hold without a gap.

@@ -48,6 +48,7 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head);
 // The model of `face` (made from the shipped head at `resolution`): the principal components of the neutral faces
 // of `identities` performers (HeadShape::Drawn of first_identity onwards; keep them apart from the performers a test
 // fits), as many as hold `variance_kept` of their variance, at most `max_components`; and the head's blendshapes.
+// An empty model when there is nothing to draw (identities or max_components < 1) or `head` is not at `resolution`.
 // The shipped model's performers (processing/data/face-model.f32): identities 1000 to 1063, none a test's performer.
 inline constexpr uint64_t kFaceModelFirstIdentity = 1000;
 inline constexpr int kFaceModelIdentities = 64;
