@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/file_util.h"
 
 extern const char kFaceTemplateObj[];
 extern const char kFaceTemplateJson[];
@@ -23,12 +24,7 @@ absl::StatusOr<std::string> ModelBytes(const std::string& dir, const std::string
     return std::string(reinterpret_cast<const char*>(kFaceModelF32),
                        static_cast<size_t>(kFaceModelF32_end - kFaceModelF32));
   }
-  const std::string path = dir + "/" + file;
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot open the template's model"));
-  std::stringstream bytes;
-  bytes << in.rdbuf();
-  return bytes.str();
+  return ReadFileToString(dir + "/" + file, "the template's model");
 }
 
 // The JSON's "model" read into `t` from the model file in `dir` (empty: the shipped one).

@@ -120,7 +120,8 @@ TEST(FaceTemplateTest, ABrokenDescriptionIsRefusedNamingTheFileAndField) {
   EXPECT_EQ(modelled->expression_names, std::vector<std::string>{"a"});
   write_json(R"({"format": "fastage-face-template", "version": 1, "head_layout_window": {"u": [0, 1], "v": [0, 1]},
                  "model": {"file": "gone.f32", "vertices": 3, "identity_components": 1, "expressions": []}})");
-  EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()), HasSubstr("gone.f32: cannot open"));
+  EXPECT_THAT(std::string(LoadFaceTemplate(dir + "/t.obj").status().message()),
+              HasSubstr("gone.f32: cannot read the template's model"));
 }
 
 }  // namespace

@@ -91,10 +91,7 @@ FaceTemplateData MakeFaceTemplate(const HeadModel& head) {
 FaceModelData MakeFaceModel(const FaceTemplateData& face, const HeadModel& head, uint64_t first_identity,
                             int identities, int max_components, double variance_kept, int resolution) {
   FaceModelData model;
-  if (identities <= 0 || max_components <= 0 ||
-      HeadModel::Procedural(1, resolution)->neutral().positions.size() != head.neutral().positions.size()) {
-    return model;  // nothing to draw from, or `head` is not at `resolution`: no model (the caller checks it)
-  }
+  if (identities <= 0 || max_components <= 0) return model;  // nothing to draw from (the caller checks)
   model.first_identity = first_identity;
   model.identities = identities;
   const size_t n = face.head_vertex.size();
@@ -104,6 +101,7 @@ FaceModelData MakeFaceModel(const FaceTemplateData& face, const HeadModel& head,
     const auto drawn =
         HeadModel::Procedural(1, resolution, HeadShape::Drawn(first_identity + static_cast<uint64_t>(k)));
     const auto& positions = drawn->neutral().positions;
+    if (positions.size() != head.neutral().positions.size()) return {};  // `head` is not at `resolution`
     for (size_t v = 0; v < n; ++v) {
       const Eigen::Vector3f d = positions[static_cast<size_t>(face.head_vertex[v])] - face.mesh.positions[v];
       x.block<3, 1>(3 * static_cast<Eigen::Index>(v), k) = d.cast<double>();
