@@ -47,17 +47,23 @@ function(stage_test name)
     set(ARG_TIMEOUT 120)
   endif()
   set(env "FASTAGE_BIN_DIR=${CMAKE_BINARY_DIR}/bin")
+  # OpenMP's threads (libtorch, Open3D) wait passively: spinning, they take the cores of a busy machine from the
+  # threads they wait for (stage::ExecWithPassiveOpenMp does the same for the programs). A property of its own:
+  # gtest_discover_tests cannot pass a list through.
+  set(omp "OMP_WAIT_POLICY=set:PASSIVE")
   list(LENGTH ARG_LABELS label_count)
   if(label_count GREATER 1)
     # gtest_discover_tests cannot pass a list-valued property (several labels) through; such suites run as one
     # CTest test, and GoogleTest's output names each failing case.
     add_test(NAME ${name} COMMAND ${name})
     set_tests_properties(${name} PROPERTIES LABELS "${ARG_LABELS}" TIMEOUT ${ARG_TIMEOUT} ENVIRONMENT "${env}"
+                                            ENVIRONMENT_MODIFICATION "${omp}"
                                             ${ARG_PROPERTIES})
   else()
     include(GoogleTest)
     gtest_discover_tests(${name}
-      PROPERTIES LABELS "${ARG_LABELS}" TIMEOUT ${ARG_TIMEOUT} ENVIRONMENT "${env}" ${ARG_PROPERTIES}
+      PROPERTIES LABELS "${ARG_LABELS}" TIMEOUT ${ARG_TIMEOUT} ENVIRONMENT "${env}" ENVIRONMENT_MODIFICATION "${omp}"
+                 ${ARG_PROPERTIES}
       DISCOVERY_TIMEOUT 30)
   endif()
 endfunction()

@@ -8,6 +8,7 @@
 #include "worker_service.h"
 
 int main(int argc, char** argv) {
+  stage::ExecWithPassiveOpenMp(argv);  // torch's and Open3D's OpenMP loops
   stage::BlockShutdownSignals();
   CLI::App app{"Serves a FaStage processing worker (ProcessingWorker gRPC service and grpc.health.v1).",
                "processing-worker"};

@@ -4,6 +4,9 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
 #include <iostream>
 
 #include "absl/strings/numbers.h"
@@ -17,6 +20,14 @@
 #include "stage/common/version.h"
 
 namespace stage {
+
+void ExecWithPassiveOpenMp(char** argv) {
+  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
+  setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
+  execv("/proc/self/exe", argv);
+  std::cerr << argv[0] << ": warning: could not execute itself again with OMP_WAIT_POLICY=PASSIVE ("
+            << std::strerror(errno) << "); OpenMP's threads will spin while they wait\n";
+}
 
 void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves) {
   app.set_version_flag("--version", std::string(app.get_name()) + " (FaStage) " + std::string(kVersion));

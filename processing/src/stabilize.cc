@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <optional>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -13,6 +14,7 @@
 #include "absl/strings/str_format.h"
 #include "stage/common/file_util.h"
 #include "stage/common/status.h"
+#include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
 #include "statistics.h"
 
@@ -56,6 +58,23 @@ Image Warp(const Image& image, const cv::Mat& map, const std::vector<uint8_t>& u
 
 }  // namespace
 
+absl::string_view StabilizeMethodName(StabilizeMethod method) {
+  switch (method) {
+    case StabilizeMethod::kFlow:
+      return "flow";
+    case StabilizeMethod::kUNet:
+      return "unet";
+  }
+  return "unknown";
+}
+
+absl::StatusOr<StabilizeMethod> ParseStabilizeMethod(absl::string_view name) {
+  for (StabilizeMethod m : {StabilizeMethod::kFlow, StabilizeMethod::kUNet}) {
+    if (name == StabilizeMethodName(m)) return m;
+  }
+  return absl::InvalidArgumentError(absl::StrCat("stabilize: no method \"", name, "\" (flow, unet)"));
+}
+
 absl::Status StabilizeOptions::Validate() const {
   auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat("stabilize: ", what)); };
   if (patch_size < 4 || patch_size > 64) return bad(absl::StrCat("patch_size ", patch_size, " is not in 4..64"));
@@ -66,18 +85,31 @@ absl::Status StabilizeOptions::Validate() const {
     return bad(absl::StrCat("refinement_iterations ", refinement_iterations, " is not in 0..100"));
   }
   if (!(max_flow_px > 0)) return bad(absl::StrCat("max_flow_px ", max_flow_px, " is not above 0"));
+  if (net_size < 32 || net_size > 4096 || (net_size & (net_size - 1)) != 0) {
+    return bad(absl::StrCat("net_size ", net_size, " is not a power of two in 32..4096"));
+  }
+  if (method == StabilizeMethod::kUNet && net_size < (2 << net.levels)) {
+    return bad(absl::StrCat("net_size ", net_size, " is below 2^(levels + 1) = ", 2 << net.levels, " for ",
+                            net.levels, " levels"));
+  }
+  return net.Validate();
+}
+
+namespace {
+
+absl::Status CheckSizes(const FusedTextures& reference, const FusedTextures& frame) {
+  const size_t n = static_cast<size_t>(reference.size) * reference.size;
+  if (frame.size != reference.size || reference.state.size() != n || frame.state.size() != n) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("stabilize: textures of ", frame.size, " texels across against a reference of ", reference.size));
+  }
   return absl::OkStatus();
 }
 
-absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& reference, const FusedTextures& frame,
-                                                     const StabilizeOptions& options) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+// DIS's flow from `reference`'s albedo to `frame`'s: 2 channels, texels.
+Image OpticalFlow(const FusedTextures& reference, const FusedTextures& frame, const StabilizeOptions& options) {
   const int size = reference.size;
   const size_t n = static_cast<size_t>(size) * size;
-  if (frame.size != size || reference.state.size() != n || frame.state.size() != n) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("stabilize: textures of ", frame.size, " texels across against a reference of ", size));
-  }
   // Both frames' luminance on the reference's scale: its 99th percentile at white.
   std::vector<float> lum;
   for (size_t i = 0; i < n; ++i) {
@@ -90,20 +122,27 @@ absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& refere
   dis->setVariationalRefinementIterations(options.refinement_iterations);
   cv::Mat flow;
   dis->calc(Gray(reference, white), Gray(frame, white), flow);
+  Image out(size, size, 2);
+  std::copy_n(reinterpret_cast<const float*>(flow.data), out.pixels.size(), out.pixels.data());
+  return out;
+}
 
+// `frame`'s textures warped onto `reference`'s texels along `flow` (2 channels, texels, the textures' size).
+StabilizedTextures ApplyFlow(const FusedTextures& reference, const FusedTextures& frame, Image flow,
+                             double max_flow_px) {
+  const int size = reference.size;
+  const size_t n = static_cast<size_t>(size) * size;
   StabilizedTextures out;
-  out.flow = Image(size, size, 2);
+  out.flow = std::move(flow);
   cv::Mat map(size, size, CV_32FC2);
   std::vector<uint8_t> use(n, 0);
   double flow_sum = 0;
   int64_t flow_count = 0;
-  const float max2 = static_cast<float>(options.max_flow_px * options.max_flow_px);
+  const float max2 = static_cast<float>(max_flow_px * max_flow_px);
   for (int y = 0; y < size; ++y) {
     for (int x = 0; x < size; ++x) {
       const size_t i = static_cast<size_t>(y) * size + x;
-      const cv::Vec2f f = flow.at<cv::Vec2f>(y, x);
-      out.flow.pixels[2 * i] = f[0];
-      out.flow.pixels[2 * i + 1] = f[1];
+      const cv::Vec2f f(out.flow.pixels[2 * i], out.flow.pixels[2 * i + 1]);
       map.at<cv::Vec2f>(y, x) = cv::Vec2f(static_cast<float>(x) + f[0], static_cast<float>(y) + f[1]);
       const int sx = static_cast<int>(std::lround(x + f[0])), sy = static_cast<int>(std::lround(y + f[1]));
       const bool inside = sx >= 0 && sy >= 0 && sx < size && sy < size;
@@ -141,6 +180,106 @@ absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& refere
   return out;
 }
 
+// The U-Net's input for a frame's textures: their albedo's log-luminance and coverage averaged down to `net_size`
+// (a texel of the net is covered when every texel it holds is).
+Image NetInput(const FusedTextures& t, int net_size) {
+  const int size = t.size;
+  cv::Mat value(size, size, CV_32F, cv::Scalar(0)), cover(size, size, CV_32F, cv::Scalar(0));
+  for (size_t i = 0; i < t.state.size(); ++i) {
+    if (t.state[i] != TexelState::kCovered) continue;
+    value.at<float>(static_cast<int>(i)) = std::log(std::max(1e-4f, Luminance(&t.albedo.pixels[3 * i])));
+    cover.at<float>(static_cast<int>(i)) = 1;
+  }
+  if (net_size < size) {
+    cv::resize(value, value, cv::Size(net_size, net_size), 0, 0, cv::INTER_AREA);
+    cv::resize(cover, cover, cv::Size(net_size, net_size), 0, 0, cv::INTER_AREA);
+  }
+  const int n = std::min(net_size, size);
+  Image out(n, n, 2);
+  for (int i = 0; i < n * n; ++i) {
+    const float c = cover.at<float>(i);
+    out.pixels[2 * i] = c > 0 ? value.at<float>(i) / c : 0.0f;
+    out.pixels[2 * i + 1] = c > 0.999f ? 1.0f : 0.0f;
+  }
+  return out;
+}
+
+// A net's image (any channels) carried up to `size` bilinearly, its values times `gain`.
+Image Upsample(const Image& image, int size, float gain) {
+  if (image.width == size) return image;
+  cv::Mat in(image.height, image.width, CV_32FC(image.channels), const_cast<float*>(image.pixels.data())), out;
+  cv::resize(in, out, cv::Size(size, size), 0, 0, cv::INTER_LINEAR);
+  Image up(size, size, image.channels);
+  const float* p = reinterpret_cast<const float*>(out.data);
+  for (size_t i = 0; i < up.pixels.size(); ++i) up.pixels[i] = gain * p[i];
+  return up;
+}
+
+// The U-Net's stabilization: frames are added (their inputs kept at the net's size), the net trained on them, then
+// each frame's textures warped along its prediction.
+class NetStabilizer {
+ public:
+  static absl::StatusOr<NetStabilizer> Create(const FusedTextures& reference, const StabilizeOptions& options) {
+    STAGE_ASSIGN_OR_RETURN(std::unique_ptr<WarpNet> net, WarpNet::Create(options.net));
+    return NetStabilizer(reference, options, std::move(net));
+  }
+  void Add(const FusedTextures& frame) { inputs_.push_back(NetInput(frame, options_.net_size)); }
+  absl::Status Train(const std::function<bool(int, double)>& progress) {
+    return net_->Train(reference_input_, inputs_, progress);
+  }
+  absl::StatusOr<StabilizedTextures> Apply(const FusedTextures& frame) const {
+    STAGE_ASSIGN_OR_RETURN(const WarpNetPrediction p,
+                           net_->Predict(reference_input_, NetInput(frame, options_.net_size)));
+    const float gain = static_cast<float>(reference_->size) / static_cast<float>(p.flow.width);
+    StabilizedTextures out = ApplyFlow(*reference_, frame, Upsample(p.flow, reference_->size, gain),
+                                       options_.max_flow_px);
+    out.wrinkle = Upsample(p.wrinkle, reference_->size, 1.0f);
+    return out;
+  }
+  const std::vector<double>& losses() const { return net_->losses(); }
+
+ private:
+  NetStabilizer(const FusedTextures& reference, const StabilizeOptions& options, std::unique_ptr<WarpNet> net)
+      : reference_(&reference), options_(options), net_(std::move(net)),
+        reference_input_(NetInput(reference, options.net_size)) {}
+  const FusedTextures* reference_;
+  StabilizeOptions options_;
+  std::unique_ptr<WarpNet> net_;
+  Image reference_input_;
+  std::vector<Image> inputs_;
+};
+
+}  // namespace
+
+absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& reference, const FusedTextures& frame,
+                                                     const StabilizeOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  STAGE_RETURN_IF_ERROR(CheckSizes(reference, frame));
+  return ApplyFlow(reference, frame, OpticalFlow(reference, frame, options), options.max_flow_px);
+}
+
+absl::StatusOr<std::vector<StabilizedTextures>> StabilizeSequence(const FusedTextures& reference,
+                                                                  const std::vector<FusedTextures>& frames,
+                                                                  const StabilizeOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  for (const FusedTextures& frame : frames) STAGE_RETURN_IF_ERROR(CheckSizes(reference, frame));
+  std::vector<StabilizedTextures> out;
+  if (options.method == StabilizeMethod::kFlow) {
+    for (const FusedTextures& frame : frames) {
+      out.push_back(ApplyFlow(reference, frame, OpticalFlow(reference, frame, options), options.max_flow_px));
+    }
+    return out;
+  }
+  STAGE_ASSIGN_OR_RETURN(NetStabilizer net, NetStabilizer::Create(reference, options));
+  for (const FusedTextures& frame : frames) net.Add(frame);
+  STAGE_RETURN_IF_ERROR(net.Train({}));
+  for (const FusedTextures& frame : frames) {
+    STAGE_ASSIGN_OR_RETURN(StabilizedTextures s, net.Apply(frame));
+    out.push_back(std::move(s));
+  }
+  return out;
+}
+
 double AlbedoJitter(const FusedTextures& a, const FusedTextures& b, const std::vector<bool>* mask) {
   double sum = 0;
   int64_t count = 0;
@@ -169,19 +308,43 @@ std::string FrameMetrics(int64_t frame, int64_t reference, double mean_flow, dou
   return j.dump(2);
 }
 
-std::string StabilizeRunJson(const StabilizeJob& job, int64_t last) {
+std::string StabilizeRunJson(const StabilizeJob& job, int64_t last, const std::vector<double>& losses) {
   nlohmann::ordered_json run;
   run["stage"] = "stabilize";
   run["take"] = std::filesystem::path(job.take_dir).filename().string();
   run["frames"] = {job.first_frame, last};
   run["reference_frame"] = job.first_frame;
   run["textures"] = job.textures_dir.empty() ? "derived/textures" : job.textures_dir;
-  run["method"] = "optical flow (OpenCV DIS) on the albedo in UV";
-  run["options"] = {{"patch_size", job.options.patch_size},
-                    {"patch_stride", job.options.patch_stride},
-                    {"refinement_iterations", job.options.refinement_iterations},
-                    {"max_flow_px", job.options.max_flow_px}};
+  const StabilizeOptions& o = job.options;
+  run["method"] = StabilizeMethodName(o.method);
+  if (o.method == StabilizeMethod::kFlow) {
+    run["options"] = {{"patch_size", o.patch_size},
+                      {"patch_stride", o.patch_stride},
+                      {"refinement_iterations", o.refinement_iterations},
+                      {"max_flow_px", o.max_flow_px}};
+  } else {
+    run["options"] = {{"net_size", o.net_size},
+                      {"levels", o.net.levels},
+                      {"base_channels", o.net.base_channels},
+                      {"iterations", o.net.iterations},
+                      {"learning_rate", o.net.learning_rate},
+                      {"loss_scales", o.net.loss_scales},
+                      {"smoothness", o.net.smoothness},
+                      {"wrinkle_sparsity", o.net.wrinkle_sparsity},
+                      {"wrinkle_smoothness", o.net.wrinkle_smoothness},
+                      {"threads", o.net.threads},
+                      {"seed", o.net.seed},
+                      {"max_flow_px", o.max_flow_px}};
+    run["final_loss"] = losses.empty() ? 0.0 : losses.back();
+  }
   return run.dump(2) + "\n";
+}
+
+// The U-Net's losses, one row per training step.
+std::string LossCsv(const std::vector<double>& losses) {
+  std::string csv = "step,loss\n";
+  for (size_t i = 0; i < losses.size(); ++i) absl::StrAppendFormat(&csv, "%d,%.6g\n", i, losses[i]);
+  return csv;
 }
 
 }  // namespace
@@ -195,6 +358,38 @@ absl::Status StabilizeJob::Validate() const {
   return options.Validate();
 }
 
+namespace {
+
+// The U-Net's training for RunStabilize: every frame's albedo read, the net trained; progress every tenth of the steps.
+absl::StatusOr<std::optional<NetStabilizer>> TrainForTake(const StabilizeJob& job, const std::string& textures,
+                                                          int64_t last, const FusedTextures& reference,
+                                                          const std::function<void(const JobProgress&)>& progress,
+                                                          const std::function<bool()>& cancelled) {
+  if (job.options.method != StabilizeMethod::kUNet) return std::optional<NetStabilizer>();
+  STAGE_ASSIGN_OR_RETURN(NetStabilizer net, NetStabilizer::Create(reference, job.options));
+  // The reference against itself teaches nothing but the identity: the net trains on the other frames (on the
+  // reference only when it is the range's one frame).
+  for (int64_t frame = last > job.first_frame + 1 ? job.first_frame + 1 : job.first_frame; frame < last; ++frame) {
+    if (cancelled && cancelled()) {
+      return absl::CancelledError(absl::StrCat("stabilization of ", job.take_dir, " cancelled"));
+    }
+    STAGE_ASSIGN_OR_RETURN(const FusedTextures fused, ReadFusedTextures(FrameDir(textures, frame)));
+    net.Add(fused);
+  }
+  const int steps = job.options.net.iterations;
+  JobProgress p{0, last - job.first_frame, ""};
+  STAGE_RETURN_IF_ERROR(net.Train([&](int step, double loss) {
+    if (progress && ((step + 1) % std::max(1, steps / 10) == 0 || step + 1 == steps)) {
+      p.message = absl::StrFormat("U-Net: step %d of %d, loss %.4f", step + 1, steps, loss);
+      progress(p);
+    }
+    return !(cancelled && cancelled());
+  }));
+  return std::optional<NetStabilizer>(std::move(net));
+}
+
+}  // namespace
+
 absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::function<void(const JobProgress&)>& progress,
                                        const std::function<bool()>& cancelled) {
   STAGE_RETURN_IF_ERROR(job.Validate());
@@ -207,9 +402,12 @@ absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::funct
   JobResult result;
   result.output_dir = PathInTake(job.take_dir, job.output_dir, "derived/textures-stable");
   JobProgress p{0, last - job.first_frame,
-                absl::StrCat("stabilization: ", last - job.first_frame, " frame(s) onto frame ", job.first_frame)};
+                absl::StrCat("stabilization (", StabilizeMethodName(job.options.method), "): ", last - job.first_frame,
+                             " frame(s) onto frame ", job.first_frame)};
   if (progress) progress(p);
   STAGE_ASSIGN_OR_RETURN(const FusedTextures reference, ReadFusedTextures(FrameDir(textures, job.first_frame)));
+  STAGE_ASSIGN_OR_RETURN(const std::optional<NetStabilizer> net,
+                         TrainForTake(job, textures, last, reference, progress, cancelled));
   FusedTextures previous_fused = reference, previous_stable = reference;
   for (int64_t frame = job.first_frame; frame < last; ++frame) {
     if (cancelled && cancelled()) {
@@ -217,20 +415,23 @@ absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::funct
           absl::StrCat("stabilization of ", job.take_dir, " cancelled after ", result.units, " frame(s)"));
     }
     FusedTextures fused = reference;
-    StabilizedTextures stable{reference, Image(), 0};
+    StabilizedTextures stable{reference, Image(), 0, Image()};
+    if (net) stable.wrinkle = Image(reference.size, reference.size, 1);
     if (frame != job.first_frame) {
       STAGE_ASSIGN_OR_RETURN(fused, ReadFusedTextures(FrameDir(textures, frame)));
-      auto s = StabilizeTextures(reference, fused, job.options);
+      auto s = net ? net->Apply(fused) : StabilizeTextures(reference, fused, job.options);
       if (!s.ok())
         return absl::Status(s.status().code(), absl::StrCat(FrameDir(textures, frame), ": ", s.status().message()));
       stable = *std::move(s);
     }
     const double jitter_fused = AlbedoJitter(previous_fused, fused),
                  jitter_stable = AlbedoJitter(previous_stable, stable.textures);
+    const std::string out_dir = FrameDir(result.output_dir, frame);
     STAGE_RETURN_IF_ERROR(
-        WriteFusedTextures(FrameDir(result.output_dir, frame), stable.textures,
+        WriteFusedTextures(out_dir, stable.textures,
                            FrameMetrics(frame, job.first_frame, stable.mean_flow_px, jitter_fused, jitter_stable),
                            absl::StrFormat("frame %d stabilized onto frame %d", frame, job.first_frame)));
+    if (net) STAGE_RETURN_IF_ERROR(WriteExr(out_dir + "/wrinkle.exr", stable.wrinkle));
     previous_fused = std::move(fused);
     previous_stable = std::move(stable.textures);
     ++result.units;
@@ -239,7 +440,10 @@ absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::funct
                                 stable.mean_flow_px, 100 * jitter_stable, 100 * jitter_fused);
     if (progress) progress(p);
   }
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", StabilizeRunJson(job, last)));
+  const std::vector<double> no_losses;
+  const std::vector<double>& losses = net ? net->losses() : no_losses;
+  if (net) STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/loss.csv", LossCsv(losses)));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/run.json", StabilizeRunJson(job, last, losses)));
   return result;
 }
 

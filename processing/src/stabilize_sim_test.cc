@@ -6,6 +6,7 @@
 // warped onto the first frame's along the albedo's optical flow they hold still.
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 
 #include "absl/strings/str_format.h"
 #include "gtest/gtest.h"
@@ -94,6 +95,17 @@ TEST(StabilizeSimTest, TheFlowHoldsTheTexturesOfASlidingFitStill) {
         same = std::abs(head.Surface(uv, 0, poses[k].expression).material.albedo.y() - first) < 0.005f * first;
       }
       still[static_cast<size_t>(y) * kSize + x] = same;
+    }
+  }
+  // FASTAGE_STABILIZE_TAKE=DIR: the fused textures written as a take's (frames 0-3: DIR/derived/textures; the
+  // template where it belongs: DIR/derived/placed), for `stage-process stabilize --take DIR` (the U-Net's figures in
+  // docs/assets.md#the-u-net).
+  if (const char* take = std::getenv("FASTAGE_STABILIZE_TAKE")) {
+    for (size_t k = 0; k < frames.size(); ++k) {
+      for (const auto& [dir, t] : {std::pair{"textures", &fitted[k]}, std::pair{"placed", &placed[k]}}) {
+        const std::string path = absl::StrFormat("%s/derived/%s/frame-%06d", take, dir, k);
+        ASSERT_TRUE(WriteFusedTextures(path, *t, absl::StrFormat("{\"frame\": %d}", frames[k]), "fused").ok()) << path;
+      }
     }
   }
   StabilizeOptions options;

@@ -249,16 +249,17 @@ struct TexturesCommand {
 
 struct StabilizeCommand {
   stage::processing::StabilizeJob job;
-  std::string frames = "0:";
+  std::string frames = "0:", method = "flow";
   bool json = false;
   CLI::App* app = nullptr;
 
   void Add(CLI::App& parent) {
     app = parent.add_subcommand(
         "stabilize",
-        "The fused textures of every frame warped onto the first frame's along the albedo's optical flow in UV "
+        "The fused textures of every frame warped onto the first frame's along a warp found on the albedos in UV, "
+        "by optical flow or by a self-supervised U-Net trained on the take's frames "
         "(docs/assets.md#temporal-stabilization): TAKE/derived/textures-stable/frame-NNNNNN/, the same files, "
-        "metrics.json with the flow and the albedo's jitter to the frame before");
+        "wrinkle.exr (U-Net), metrics.json with the flow and the albedo's jitter to the frame before");
     app->add_option("--take", job.take_dir, "The take directory (takes/<take-id>)")->required();
     app->add_option("--frames", frames,
                     "Virtual frames A:B (B excluded), A: to the last frame with textures, or A; the first is the "
@@ -271,15 +272,37 @@ struct StabilizeCommand {
         ->check(CLI::Range(4, 64));
     app->add_option("--max-flow", job.options.max_flow_px, "A longer flow is not trusted, texels")
         ->capture_default_str();
+    app->add_option("--method", method, "flow (OpenCV's DIS, frame by frame) or unet (trained on the frames)")
+        ->capture_default_str()
+        ->check(CLI::IsMember({"flow", "unet"}));
+    stage::processing::WarpNetOptions& net = job.options.net;
+    app->add_option("--net-size", job.options.net_size, "The U-Net's resolution, texels across (a power of two)")
+        ->capture_default_str();
+    app->add_option("--net-levels", net.levels, "The U-Net's levels")->capture_default_str();
+    app->add_option("--net-channels", net.base_channels, "The U-Net's channels at its first level")
+        ->capture_default_str();
+    app->add_option("--iterations", net.iterations, "The U-Net's training steps")->capture_default_str();
+    app->add_option("--learning-rate", net.learning_rate, "Adam's learning rate")->capture_default_str();
+    app->add_option("--smoothness", net.smoothness, "Weight of the warp's smoothness loss")->capture_default_str();
+    app->add_option("--wrinkle-sparsity", net.wrinkle_sparsity, "Weight of the wrinkle map's L1 loss")
+        ->capture_default_str();
+    app->add_option("--wrinkle-smoothness", net.wrinkle_smoothness, "Weight of the wrinkle map's gradient loss")
+        ->capture_default_str();
+    app->add_option("--threads", net.threads, "Torch's threads (0: the machine's cores)")->capture_default_str();
+    app->add_option("--seed", net.seed, "The U-Net's initialization and the frames' order")->capture_default_str();
     app->add_flag("--json", json, "Print the result as JSON on stdout");
   }
 
-  int Run() { return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize); }
+  int Run() {
+    job.options.method = *stage::processing::ParseStabilizeMethod(method);  // CLI11 checked the word
+    return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize);
+  }
 };
 
 }  // namespace
 
 int main(int argc, char** argv) {
+  stage::ExecWithPassiveOpenMp(argv);  // torch's and Open3D's OpenMP loops
   CLI::App app{
       "Runs FaStage processing stages on a take (the batch form of the ProcessingWorker service), and "
       "evaluates their results against the simulator's ground truth.",

@@ -35,6 +35,14 @@ struct CommonFlags {
 // Adds --config, --log-level and --version (and --listen and --port-file when `serves`) to `app`.
 void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves);
 
+// For programs that run OpenMP loops (libtorch's, Open3D's: libgomp): its waiting threads spin unless
+// OMP_WAIT_POLICY says PASSIVE, and on a machine whose cores are busy a spinning thread takes the core from the one
+// it waits for (a U-Net's training step measured 2.8x slower). libgomp reads the variable when it loads, before
+// main(): a program that finds it unset sets it and executes itself again (the same process id, arguments and
+// descriptors). Call first thing in main(); an explicit OMP_WAIT_POLICY is kept. If the exec fails it says so on
+// stderr and goes on.
+void ExecWithPassiveOpenMp(char** argv);
+
 // Parses argv. Returns nullopt to go on, or the exit code to return now: 0 after --help/--version (printed to
 // stdout), 2 after a usage error (one line on stderr: "<program>: error: <what>; see --help").
 std::optional<int> ParseCommandLine(CLI::App& app, int argc, char** argv);

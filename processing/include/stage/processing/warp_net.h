@@ -1,0 +1,83 @@
+// The stabilization's self-supervised U-Net (docs/assets.md#the-u-net): given a frame's albedo and the reference
+// frame's in UV space, it predicts a warp field (where each reference texel is found in the frame) and a wrinkle map
+// (the change of the albedo's log-luminance the expression makes, which no warp explains). It learns from the take
+// itself: no ground truth, only the losses below, trained on the frames it then stabilizes. libtorch stays behind this
+// header (one translation unit includes it).
+//
+// Inputs are the net's resolution already (the caller averages the textures down and carries the warp back up): two
+// channels per texel, the albedo's log-luminance and its coverage (1 covered, 0 not; the value there is ignored).
+//
+// The losses, in our reading of the FaStage paper's equations 2-5 (the warped frame W(F, f), the reference r, the
+// wrinkle map k, texels where both are covered):
+//   photometric   sum over the pyramid's scales s of mean |avg_s(W(F, f)) - avg_s(r) - avg_s(k)|_eps
+//                 (Charbonnier, eps 0.01; each scale warps the frame averaged down by 2^s along the warp averaged down)
+//   smoothness    `smoothness` * mean |grad F|^2   (F in texels of the net's resolution)
+//   wrinkle       `wrinkle_sparsity` * mean |k| + `wrinkle_smoothness` * mean |grad k|
+//   total         their sum
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "stage/processing/photometric.h"
+
+namespace stage::processing {
+
+struct WarpNetOptions {
+  // U-Net levels (2..6) below the input's 2 x 2 folding: the input's size must divide by 2^levels, twice.
+  int levels = 4;
+  // Feature channels of the first level, doubled at each level below (4..64).
+  int base_channels = 12;
+  // Adam steps over the take's frames, one frame each (1..100000).
+  int iterations = 1200;
+  // Adam's rate (> 0); the last 30 % of the steps at a fifth of it. Twice this trains worse, three times diverges.
+  double learning_rate = 1e-3;
+  // Scales of the photometric loss's pyramid (1..6): the coarse ones widen the warp's reach.
+  int loss_scales = 4;
+  double smoothness = 0.2;           // >= 0
+  double wrinkle_sparsity = 0.05;    // >= 0
+  double wrinkle_smoothness = 0.5;   // >= 0
+  // Threads for torch's loops (0: the machine's cores); set explicitly, as OpenMP's default spins on a busy machine.
+  int threads = 0;
+  uint64_t seed = 1;  // the weights' initialization and the frames' order
+
+  absl::Status Validate() const;
+};
+
+// The net's inputs: 2 channels (log-luminance, coverage), `size` x `size`.
+struct WarpNetPrediction {
+  Image flow;     // 2 channels, texels of the net's resolution: reference texel (x, y) is at (x, y) + flow in the frame
+  Image wrinkle;  // 1 channel: log-luminance the frame has that the reference has not, at the reference's texels
+};
+
+class WarpNet {
+ public:
+  static absl::StatusOr<std::unique_ptr<WarpNet>> Create(const WarpNetOptions& options);
+  ~WarpNet();
+  WarpNet(const WarpNet&) = delete;
+  WarpNet& operator=(const WarpNet&) = delete;
+
+  // Trains on `frames` against `reference` (all the same size; at least one frame). `step` gets each step's loss and
+  // returns whether to go on (false: Train returns a cancelled error). Errors: inputs of other sizes or channels, a
+  // size the levels do not divide.
+  absl::Status Train(const Image& reference, const std::vector<Image>& frames,
+                     const std::function<bool(int step, double loss)>& step = {});
+  absl::StatusOr<WarpNetPrediction> Predict(const Image& reference, const Image& frame) const;
+  // The total loss of every step trained so far.
+  const std::vector<double>& losses() const;
+
+ private:
+  struct Impl;
+  explicit WarpNet(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// Sets torch's intra-op threads (0: the machine's cores) and, once per process, one inter-op thread; returns the
+// count set. Every torch entry point calls it with its options' threads.
+int SetTorchThreads(int threads);
+
+}  // namespace stage::processing
