@@ -204,6 +204,18 @@ Image NetInput(const FusedTextures& t, int net_size) {
   return out;
 }
 
+// A warp (2 channels, texels) averaged down to `size` texels across, its vectors in the smaller texels.
+Image Downsample(const Image& flow, int size) {
+  if (flow.width == size) return flow;
+  cv::Mat in(flow.height, flow.width, CV_32FC2, const_cast<float*>(flow.pixels.data())), out;
+  cv::resize(in, out, cv::Size(size, size), 0, 0, cv::INTER_AREA);
+  Image down(size, size, 2);
+  const float gain = static_cast<float>(size) / static_cast<float>(flow.width);
+  const float* p = reinterpret_cast<const float*>(out.data);
+  for (size_t i = 0; i < down.pixels.size(); ++i) down.pixels[i] = gain * p[i];
+  return down;
+}
+
 // A net's image (any channels) carried up to `size` bilinearly, its values times `gain`.
 Image Upsample(const Image& image, int size, float gain) {
   if (image.width == size) return image;
@@ -223,13 +235,17 @@ class NetStabilizer {
     STAGE_ASSIGN_OR_RETURN(std::unique_ptr<WarpNet> net, WarpNet::Create(options.net));
     return NetStabilizer(reference, options, std::move(net));
   }
-  void Add(const FusedTextures& frame) { inputs_.push_back(NetInput(frame, options_.net_size)); }
+  void Add(const FusedTextures& frame) {
+    inputs_.push_back(NetInput(frame, options_.net_size));
+    if (options_.net_from_flow) bases_.push_back(Base(frame));
+  }
   absl::Status Train(const std::function<bool(int, double)>& progress) {
-    return net_->Train(reference_input_, inputs_, progress);
+    return net_->Train(reference_input_, inputs_, bases_, progress);
   }
   absl::StatusOr<StabilizedTextures> Apply(const FusedTextures& frame) const {
-    STAGE_ASSIGN_OR_RETURN(const WarpNetPrediction p,
-                           net_->Predict(reference_input_, NetInput(frame, options_.net_size)));
+    STAGE_ASSIGN_OR_RETURN(
+        const WarpNetPrediction p,
+        net_->Predict(reference_input_, NetInput(frame, options_.net_size), options_.net_from_flow ? Base(frame) : Image()));
     const float gain = static_cast<float>(reference_->size) / static_cast<float>(p.flow.width);
     StabilizedTextures out = ApplyFlow(*reference_, frame, Upsample(p.flow, reference_->size, gain),
                                        options_.max_flow_px);
@@ -239,6 +255,10 @@ class NetStabilizer {
   const std::vector<double>& losses() const { return net_->losses(); }
 
  private:
+  // The optical flow's warp at the net's size.
+  Image Base(const FusedTextures& frame) const {
+    return Downsample(OpticalFlow(*reference_, frame, options_), reference_input_.width);
+  }
   NetStabilizer(const FusedTextures& reference, const StabilizeOptions& options, std::unique_ptr<WarpNet> net)
       : reference_(&reference), options_(options), net_(std::move(net)),
         reference_input_(NetInput(reference, options.net_size)) {}
@@ -246,7 +266,7 @@ class NetStabilizer {
   StabilizeOptions options_;
   std::unique_ptr<WarpNet> net_;
   Image reference_input_;
-  std::vector<Image> inputs_;
+  std::vector<Image> inputs_, bases_;
 };
 
 }  // namespace

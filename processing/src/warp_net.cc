@@ -50,7 +50,7 @@ TORCH_MODULE(Block);
 struct UNetImpl : torch::nn::Module {
   UNetImpl(int levels, int base) {
     std::vector<int> channels;
-    int in = 4 * 4;  // the frame's log-luminance and coverage, the reference's; of 2 x 2 texels
+    int in = 6 * 4;  // the frame's log-luminance and coverage, the reference's, the base warp; of 2 x 2 texels
     for (int l = 0; l < levels; ++l) {
       channels.push_back(base << l);
       down.push_back(register_module(absl::StrCat("down", l), Block(in, channels.back())));
@@ -171,23 +171,33 @@ struct WarpNet::Impl {
   WarpNetOptions options;
   UNet net{nullptr};
   std::vector<double> losses;
+  bool with_bases = false;  // trained with base warps
 
   // The net's input (1 x 4 x H x W) for a frame and the reference: log-luminances about the reference's covered mean,
   // in units of its standard deviation (the skin's contrast is a few percent: unscaled, the net barely learns), 0
   // where not covered.
-  static torch::Tensor Input(const torch::Tensor& frame, const torch::Tensor& reference) {
+  // The base warp enters in units of the head's gain.
+  static torch::Tensor Input(const torch::Tensor& frame, const torch::Tensor& reference, const torch::Tensor& base) {
     const torch::Tensor rc = reference.narrow(1, 1, 1), fc = frame.narrow(1, 1, 1), rv = reference.narrow(1, 0, 1);
     const torch::Tensor count = rc.sum().clamp_min(1);
     const torch::Tensor mean = (rv * rc).sum() / count;
     const torch::Tensor scale = 1 / ((rv - mean).pow(2) * rc).sum().div(count).sqrt().clamp_min(1e-3);
-    return torch::cat({(frame.narrow(1, 0, 1) - mean) * fc * scale, fc, (rv - mean) * rc * scale, rc}, 1);
+    return torch::cat({(frame.narrow(1, 0, 1) - mean) * fc * scale, fc, (rv - mean) * rc * scale, rc, base / kFlowGain},
+                      1);
+  }
+
+  // The net's warp (base + its correction) and wrinkle map for a frame.
+  std::pair<torch::Tensor, torch::Tensor> Run(const torch::Tensor& frame, const torch::Tensor& reference,
+                                              const torch::Tensor& base) {
+    const torch::Tensor out = net->forward(Input(frame, reference, base));
+    return {base + out.narrow(1, 0, 2) * kFlowGain, out.narrow(1, 2, 1)};
   }
 
   // The losses for one frame; `out` is the net's output for it. The warp answers to what the wrinkle map leaves (its
   // gradient stops at the map, so the map cannot explain away a misalignment), the wrinkle map to what the warp leaves
   // (its gradient stops at the warp), at the net's full resolution.
-  torch::Tensor Loss(const torch::Tensor& frame, const torch::Tensor& reference, const torch::Tensor& out) const {
-    const torch::Tensor flow = out.narrow(1, 0, 2) * kFlowGain, wrinkle = out.narrow(1, 2, 1);
+  torch::Tensor Loss(const torch::Tensor& frame, const torch::Tensor& reference, const torch::Tensor& flow,
+                     const torch::Tensor& wrinkle) const {
     const torch::Tensor fv = frame.narrow(1, 0, 1) * frame.narrow(1, 1, 1), fc = frame.narrow(1, 1, 1);
     const torch::Tensor rv = reference.narrow(1, 0, 1) * reference.narrow(1, 1, 1), rc = reference.narrow(1, 1, 1);
     torch::Tensor photometric = torch::zeros({}, torch::kFloat32), wrinkle_fit;
@@ -250,15 +260,25 @@ absl::Status CheckInput(const Image& image, const Image& reference, int levels, 
 }  // namespace
 
 absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& frames,
-                            const std::function<bool(int, double)>& progress) {
+                            const std::vector<Image>& bases, const std::function<bool(int, double)>& progress) {
   const WarpNetOptions& o = impl_->options;
   if (frames.empty()) return absl::InvalidArgumentError("warp net: no frames to train on");
+  if (!bases.empty() && bases.size() != frames.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("warp net: ", bases.size(), " base warp(s) for ", frames.size(), " frame(s)"));
+  }
   if (auto s = CheckInput(reference, reference, o.levels, "the reference"); !s.ok()) return s;
-  std::vector<torch::Tensor> inputs;
+  std::vector<torch::Tensor> inputs, base_tensors;
   for (size_t i = 0; i < frames.size(); ++i) {
     if (auto s = CheckInput(frames[i], reference, o.levels, absl::StrCat("frame ", i)); !s.ok()) return s;
     inputs.push_back(ToTensor(frames[i]));
+    if (!bases.empty()) {
+      if (auto s = CheckInput(bases[i], reference, o.levels, absl::StrCat("base warp ", i)); !s.ok()) return s;
+    }
+    base_tensors.push_back(bases.empty() ? torch::zeros({1, 2, reference.height, reference.width})
+                                         : ToTensor(bases[i]));
   }
+  impl_->with_bases = !bases.empty();
   SetTorchThreads(o.threads);
   const torch::Tensor ref = ToTensor(reference);
   impl_->net->train();
@@ -271,9 +291,10 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
         static_cast<torch::optim::AdamOptions&>(group.options()).lr(o.learning_rate / 5);
       }
     }
-    const torch::Tensor& frame = inputs[rng() % inputs.size()];
+    const size_t i = rng() % inputs.size();
     adam.zero_grad();
-    const torch::Tensor loss = impl_->Loss(frame, ref, impl_->net->forward(Impl::Input(frame, ref)));
+    const auto [flow, wrinkle] = impl_->Run(inputs[i], ref, base_tensors[i]);
+    const torch::Tensor loss = impl_->Loss(inputs[i], ref, flow, wrinkle);
     loss.backward();
     adam.step();
     impl_->losses.push_back(loss.item<double>());
@@ -284,15 +305,24 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
   return absl::OkStatus();
 }
 
-absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const Image& frame) const {
+absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const Image& frame,
+                                                   const Image& base) const {
   if (auto s = CheckInput(reference, reference, impl_->options.levels, "the reference"); !s.ok()) return s;
   if (auto s = CheckInput(frame, reference, impl_->options.levels, "the frame"); !s.ok()) return s;
+  const bool has_base = base.width > 0;
+  if (has_base != impl_->with_bases) {
+    return absl::InvalidArgumentError(has_base ? "warp net: a base warp for a net trained without them"
+                                               : "warp net: no base warp for a net trained with them");
+  }
+  if (has_base) {
+    if (auto s = CheckInput(base, reference, impl_->options.levels, "the base warp"); !s.ok()) return s;
+  }
   SetTorchThreads(impl_->options.threads);
   torch::NoGradGuard no_grad;
   impl_->net->eval();
-  const torch::Tensor f = ToTensor(frame), r = ToTensor(reference);
-  const torch::Tensor out = impl_->net->forward(Impl::Input(f, r));
-  return WarpNetPrediction{ToImage(out.narrow(1, 0, 2) * kFlowGain), ToImage(out.narrow(1, 2, 1))};
+  const torch::Tensor b = has_base ? ToTensor(base) : torch::zeros({1, 2, reference.height, reference.width});
+  const auto [flow, wrinkle] = impl_->Run(ToTensor(frame), ToTensor(reference), b);
+  return WarpNetPrediction{ToImage(flow), ToImage(wrinkle)};
 }
 
 const std::vector<double>& WarpNet::losses() const { return impl_->losses; }

@@ -250,7 +250,7 @@ struct TexturesCommand {
 struct StabilizeCommand {
   stage::processing::StabilizeJob job;
   std::string frames = "0:", method = "flow";
-  bool json = false;
+  bool json = false, net_alone = false;
   CLI::App* app = nullptr;
 
   void Add(CLI::App& parent) {
@@ -288,6 +288,8 @@ struct StabilizeCommand {
         ->capture_default_str();
     app->add_option("--wrinkle-smoothness", net.wrinkle_smoothness, "Weight of the wrinkle map's gradient loss")
         ->capture_default_str();
+    app->add_flag("--net-alone", net_alone,
+                  "The U-Net finds the whole warp (by default it corrects the optical flow's)");
     app->add_option("--threads", net.threads, "Torch's threads (0: the machine's cores)")->capture_default_str();
     app->add_option("--seed", net.seed, "The U-Net's initialization and the frames' order")->capture_default_str();
     app->add_flag("--json", json, "Print the result as JSON on stdout");
@@ -295,6 +297,7 @@ struct StabilizeCommand {
 
   int Run() {
     job.options.method = *stage::processing::ParseStabilizeMethod(method);  // CLI11 checked the word
+    job.options.net_from_flow = !net_alone;
     return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize);
   }
 };

@@ -40,6 +40,8 @@ struct StabilizeOptions {
   // averaged down to it when larger, and its warp and wrinkle map carried back up), and the net and its training.
   int net_size = 256;
   WarpNetOptions net;
+  // The U-Net corrects the optical flow's warp (sees it and adds to it) rather than finding the whole warp.
+  bool net_from_flow = true;
 
   absl::Status Validate() const;
 };

@@ -6,6 +6,8 @@
 //
 // Inputs are the net's resolution already (the caller averages the textures down and carries the warp back up): two
 // channels per texel, the albedo's log-luminance and its coverage (1 covered, 0 not; the value there is ignored).
+// A frame may come with a base warp (the optical flow's): the net sees it and predicts a correction to it, F = base +
+// net; without one the net predicts the whole warp.
 //
 // The losses, in our reading of the FaStage paper's equations 2-5 (the warped frame W(F, f), the reference r, the
 // wrinkle map k, texels where both are covered):
@@ -32,8 +34,9 @@ struct WarpNetOptions {
   int levels = 4;
   // Feature channels of the first level, doubled at each level below (4..64).
   int base_channels = 12;
-  // Adam steps over the take's frames, one frame each (1..100000).
-  int iterations = 1200;
+  // Adam steps over the take's frames, one frame each (1..100000). Correcting the optical flow's warp, 300 do as
+  // well as 1200 (docs/assets.md#the-u-net); finding the whole warp alone, the net needs 2400 to match the flow.
+  int iterations = 300;
   // Adam's rate (> 0); the last 30 % of the steps at a fifth of it. Twice this trains worse, three times diverges.
   double learning_rate = 1e-3;
   // Scales of the photometric loss's pyramid (1..6): the coarse ones widen the warp's reach.
@@ -61,12 +64,15 @@ class WarpNet {
   WarpNet(const WarpNet&) = delete;
   WarpNet& operator=(const WarpNet&) = delete;
 
-  // Trains on `frames` against `reference` (all the same size; at least one frame). `step` gets each step's loss and
-  // returns whether to go on (false: Train returns a cancelled error). Errors: inputs of other sizes or channels, a
-  // size the levels do not divide.
-  absl::Status Train(const Image& reference, const std::vector<Image>& frames,
+  // Trains on `frames` against `reference` (all the same size; at least one frame), with `bases` (none, or one warp
+  // per frame: 2 channels, texels). `step` gets each step's loss and returns whether to go on (false: Train returns a
+  // cancelled error). Errors: inputs of other sizes or channels, a size the levels do not divide, bases that do not
+  // match the frames.
+  absl::Status Train(const Image& reference, const std::vector<Image>& frames, const std::vector<Image>& bases = {},
                      const std::function<bool(int step, double loss)>& step = {});
-  absl::StatusOr<WarpNetPrediction> Predict(const Image& reference, const Image& frame) const;
+  // The warp (base + the net's correction; `base` empty: none) and wrinkle map of `frame`. A net trained with bases
+  // needs one here, and one trained without, none.
+  absl::StatusOr<WarpNetPrediction> Predict(const Image& reference, const Image& frame, const Image& base = {}) const;
   // The total loss of every step trained so far.
   const std::vector<double>& losses() const;
 
