@@ -5,6 +5,7 @@
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -70,23 +71,35 @@ void MakeTake(const std::string& dir, std::shared_ptr<const sim::SimScene>* scen
 }
 
 // `request` run on a processing worker started for it (and stopped after); its last progress message into `last`.
-void RunOnWorker(const std::string& dir, const v1::ProcessingJob& request, v1::ProcessingProgress* last) {
+// Runs `request` on a processing worker started for it; the RPC's status, the last progress message in `last`.
+grpc::Status RunOnWorkerStatus(const std::string& dir, const v1::ProcessingJob& request,
+                               v1::ProcessingProgress* last = nullptr) {
   const std::string port_file = dir + "/worker.port";
   fs::remove(port_file);
   auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",
                                             "127.0.0.1:0", "--port-file", port_file},
                                    .stderr_path = dir + "/worker.log"});
-  ASSERT_TRUE(worker.ok()) << worker.status();
+  if (!worker.ok()) return grpc::Status(grpc::StatusCode::INTERNAL, std::string(worker.status().message()));
   for (int i = 0; i < 1000 && !fs::exists(port_file); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  ASSERT_TRUE(fs::exists(port_file)) << ReadFile(dir + "/worker.log");
+  if (!fs::exists(port_file)) {
+    (*worker)->Terminate(std::chrono::milliseconds(2000));
+    return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the worker wrote no port: " + ReadFile(dir + "/worker.log"));
+  }
   auto stub =
       v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
   grpc::ClientContext context;
   auto reader = stub->Process(&context, request);
   v1::ProcessingProgress progress;
-  while (reader->Read(&progress)) *last = progress;
+  while (reader->Read(&progress)) {
+    if (last != nullptr) *last = progress;
+  }
   const grpc::Status rpc = reader->Finish();
   (*worker)->Terminate(std::chrono::milliseconds(2000));
+  return rpc;
+}
+
+void RunOnWorker(const std::string& dir, const v1::ProcessingJob& request, v1::ProcessingProgress* last) {
+  const grpc::Status rpc = RunOnWorkerStatus(dir, request, last);
   ASSERT_TRUE(rpc.ok()) << rpc.error_message();
 }
 
@@ -257,6 +270,41 @@ TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
   EXPECT_LT(metrics["albedo_jitter_stabilized"].get<double>(), metrics["albedo_jitter_fused"].get<double>() / 3);
   // The reference frame is written as it was fused.
   EXPECT_TRUE(a.at("frame-000000/albedo.exr") == ReadFile(textures + "/frame-000000/albedo.exr"));
+
+  // The U-Net, three ways (its default training: 300 steps from the flow's warp): the same bytes again (training is
+  // deterministic for a seed and a thread count), a wrinkle map per frame and the losses.
+  CommandResult unet = RunCommand({"stage-process", "stabilize", "--take", take.path(), "--output",
+                                   "derived/unet-batch", "--method", "unet", "--json"},
+                                  std::chrono::seconds(600));
+  ASSERT_EQ(unet.exit.exit_code, 0) << unet.err;
+  job.output_dir = "derived/unet-library";
+  job.options.method = processing::StabilizeMethod::kUNet;
+  ASSERT_TRUE(processing::RunStabilize(job).ok());
+  request.set_stabilize_method(v1::STABILIZE_METHOD_UNET);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
+  const auto u = FilesUnder(take.path() + "/derived/unet-batch");
+  ASSERT_EQ(u.size(), a.size() + 2 + 1u);  // and a wrinkle map per frame, loss.csv
+  EXPECT_EQ(std::count(u.at("loss.csv").begin(), u.at("loss.csv").end(), '\n'), 301);
+  for (const std::string other : {"unet-library", "textures-stable"}) {
+    const auto b = FilesUnder(take.path() + "/derived/" + other);
+    ASSERT_EQ(b.size(), u.size()) << other;
+    for (const auto& [name, bytes] : u) {
+      ASSERT_EQ(b.count(name), 1u) << name;
+      EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and " << other;
+    }
+  }
+  const nlohmann::json unet_metrics = nlohmann::json::parse(u.at("frame-000001/metrics.json"));
+  EXPECT_NEAR(unet_metrics["mean_flow_texels"].get<double>(), std::hypot(3, 2), 0.5);
+  EXPECT_LT(unet_metrics["albedo_jitter_stabilized"].get<double>(),
+            unet_metrics["albedo_jitter_fused"].get<double>() / 3);
+  auto wrinkle = processing::ReadImageFile(take.path() + "/derived/unet-batch/frame-000001/wrinkle.exr");
+  ASSERT_TRUE(wrinkle.ok()) << wrinkle.status();
+  EXPECT_EQ(wrinkle->width, 128);
+  EXPECT_EQ(wrinkle->channels, 1);
+  // A job that is not stabilization takes no method.
+  request.set_stage(v1::PROCESSING_STAGE_FIT);
+  EXPECT_NE(RunOnWorkerStatus(take.path(), request).error_message().find("takes no stabilize_method"),
+            std::string::npos);
 }
 
 TEST(TexturesStageTest, BlenderOpensTheFittedMeshAndItsTextures) {

@@ -57,6 +57,11 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
   }
+  if (job->stabilize_method() != v1::STABILIZE_METHOD_UNSPECIFIED && job->stage() != v1::PROCESSING_STAGE_STABILIZE) {
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()),
+                     " takes no stabilize_method (", v1::StabilizeMethod_Name(job->stabilize_method()), ")")));
+  }
   {
     std::lock_guard<std::mutex> lock(mutex_);
     running_.push_back(job);
@@ -237,6 +242,17 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunStabilizeJob(
   s.take_dir = job.take_dir();
   s.first_frame = job.first_frame();
   s.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  switch (job.stabilize_method()) {
+    case v1::STABILIZE_METHOD_UNSPECIFIED:
+    case v1::STABILIZE_METHOD_FLOW:
+      s.options.method = StabilizeMethod::kFlow;
+      break;
+    case v1::STABILIZE_METHOD_UNET:
+      s.options.method = StabilizeMethod::kUNet;
+      break;
+    default:
+      return absl::InvalidArgumentError(absl::StrCat("no stabilize_method ", job.stabilize_method()));
+  }
   auto result = RunStabilize(s, progress, cancelled);
   if (!result.ok()) return result.status();
   return Finished(result->units, result->output_dir,

@@ -486,6 +486,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_geometry(request->geometry());
   job.set_calibration(request->calibration());
   job.set_texture_size(request->texture_size());
+  job.set_stabilize_method(request->stabilize_method());
   Logger("controller")
       ->info("take {}: {} on worker {} ({})", request->take_id(), v1::ProcessingStage_Name(job.stage()), worker->id(),
              worker->address());

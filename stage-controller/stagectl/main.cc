@@ -668,7 +668,8 @@ int Preview(const Connection& c, const std::string& camera, const std::string& o
 
 struct ProcessFlags {
   std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, calibration, worker;
-  int32_t texture_size = 0;  // 0: the worker's default
+  std::string stabilize_method;  // empty: the worker's default (the flow)
+  int32_t texture_size = 0;      // 0: the worker's default
   bool json = false;
 };
 
@@ -706,6 +707,8 @@ int Process(const Connection& c, const ProcessFlags& f) {
   }
   request.set_calibration(f.calibration);
   request.set_texture_size(f.texture_size);
+  if (f.stabilize_method == "flow") request.set_stabilize_method(stage::v1::STABILIZE_METHOD_FLOW);
+  if (f.stabilize_method == "unet") request.set_stabilize_method(stage::v1::STABILIZE_METHOD_UNET);
   request.set_worker_id(f.worker);
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
@@ -1052,6 +1055,10 @@ int main(int argc, char** argv) {
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");
   process->add_option("--texture-size", pf.texture_size, "--stage textures: texels across the textures (default 4096)")
       ->check(CLI::Range(16, 16384));
+  process->add_option("--method", pf.stabilize_method,
+                      "--stage stabilize: flow (OpenCV's DIS, the default) or unet (the self-supervised U-Net, "
+                      "trained on the frames)")
+      ->check(CLI::IsMember({"flow", "unet"}));
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
 
