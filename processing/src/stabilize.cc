@@ -88,11 +88,12 @@ absl::Status StabilizeOptions::Validate() const {
   if (net_size < 32 || net_size > 4096 || (net_size & (net_size - 1)) != 0) {
     return bad(absl::StrCat("net_size ", net_size, " is not a power of two in 32..4096"));
   }
+  STAGE_RETURN_IF_ERROR(net.Validate());
   if (method == StabilizeMethod::kUNet && net_size < (2 << net.levels)) {
     return bad(absl::StrCat("net_size ", net_size, " is below 2^(levels + 1) = ", 2 << net.levels, " for ",
                             net.levels, " levels"));
   }
-  return net.Validate();
+  return absl::OkStatus();
 }
 
 namespace {
@@ -343,7 +344,8 @@ std::string StabilizeRunJson(const StabilizeJob& job, int64_t last, const std::v
                       {"refinement_iterations", o.refinement_iterations},
                       {"max_flow_px", o.max_flow_px}};
   } else {
-    run["options"] = {{"net_size", o.net_size},
+    run["options"] = {{"net_from_flow", o.net_from_flow},
+                      {"net_size", o.net_size},
                       {"levels", o.net.levels},
                       {"base_channels", o.net.base_channels},
                       {"iterations", o.net.iterations},
@@ -352,9 +354,14 @@ std::string StabilizeRunJson(const StabilizeJob& job, int64_t last, const std::v
                       {"smoothness", o.net.smoothness},
                       {"wrinkle_sparsity", o.net.wrinkle_sparsity},
                       {"wrinkle_smoothness", o.net.wrinkle_smoothness},
-                      {"threads", o.net.threads},
+                      {"threads", SetTorchThreads(o.net.threads)},  // the count used: results depend on it
                       {"seed", o.net.seed},
                       {"max_flow_px", o.max_flow_px}};
+    if (o.net_from_flow) {
+      run["options"]["flow"] = {{"patch_size", o.patch_size},
+                                {"patch_stride", o.patch_stride},
+                                {"refinement_iterations", o.refinement_iterations}};
+    }
     run["final_loss"] = losses.empty() ? 0.0 : losses.back();
   }
   return run.dump(2) + "\n";

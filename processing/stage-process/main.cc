@@ -298,6 +298,20 @@ struct StabilizeCommand {
   int Run() {
     job.options.method = *stage::processing::ParseStabilizeMethod(method);  // CLI11 checked the word
     job.options.net_from_flow = !net_alone;
+    // No option is ignored: the U-Net's belong to --method unet, the flow's patches to the flow (alone, or the
+    // U-Net's base).
+    const bool unet = job.options.method == stage::processing::StabilizeMethod::kUNet;
+    for (const char* name : {"--net-alone", "--net-size", "--net-levels", "--net-channels", "--iterations",
+                             "--learning-rate", "--smoothness", "--wrinkle-sparsity", "--wrinkle-smoothness",
+                             "--threads", "--seed"}) {
+      if (!unet && app->count(name) > 0) {
+        return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(name, " applies to --method unet")));
+      }
+    }
+    if (unet && net_alone && app->count("--patch-size") > 0) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(
+                                              "--patch-size applies to the optical flow, which --net-alone does not use"));
+    }
     return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize);
   }
 };

@@ -12,8 +12,12 @@
 // The losses, in our reading of the FaStage paper's equations 2-5 (the warped frame W(F, f), the reference r, the
 // wrinkle map k, texels where both are covered):
 //   photometric   sum over the pyramid's scales s of mean |avg_s(W(F, f)) - avg_s(r) - avg_s(k)|_eps
-//                 (Charbonnier, eps 0.01; each scale warps the frame averaged down by 2^s along the warp averaged down)
+//                 (Charbonnier, eps 0.01; each scale warps the frame averaged down by 2^s along the warp averaged
+//                 down; k's gradient stops here, so the map cannot explain away a misalignment; a reference texel
+//                 the warp takes off the frame's coverage costs 0.3)
 //   smoothness    `smoothness` * mean |grad F|^2   (F in texels of the net's resolution)
+//   wrinkle fit   mean |W(F, f) - r - k|_eps at full resolution, F's gradient stopped (the map answers to what the
+//                 warp leaves)
 //   wrinkle       `wrinkle_sparsity` * mean |k| + `wrinkle_smoothness` * mean |grad k|
 //   total         their sum
 #pragma once
@@ -35,7 +39,8 @@ struct WarpNetOptions {
   // Feature channels of the first level, doubled at each level below (4..64).
   int base_channels = 12;
   // Adam steps over the take's frames, one frame each (1..100000). Correcting the optical flow's warp, 300 do as
-  // well as 1200 (docs/assets.md#the-u-net); finding the whole warp alone, the net needs 2400 to match the flow.
+  // well as 1200 (docs/assets.md#the-u-net); finding the whole warp alone, the net needs 1200 and more (2400 to come
+  // near the flow).
   int iterations = 300;
   // Adam's rate (> 0); the last 30 % of the steps at a fifth of it. Twice this trains worse, three times diverges.
   double learning_rate = 1e-3;
@@ -44,14 +49,14 @@ struct WarpNetOptions {
   double smoothness = 0.2;           // >= 0
   double wrinkle_sparsity = 0.05;    // >= 0
   double wrinkle_smoothness = 0.5;   // >= 0
-  // Threads for torch's loops (0: the machine's cores); set explicitly, as OpenMP's default spins on a busy machine.
+  // Threads for torch's loops (0: the cores this process may run on); set explicitly, as OpenMP's default spins on a
+  // busy machine. The count is the process's (torch's and OpenMP's): concurrent nets share the last one set.
   int threads = 0;
   uint64_t seed = 1;  // the weights' initialization and the frames' order
 
   absl::Status Validate() const;
 };
 
-// The net's inputs: 2 channels (log-luminance, coverage), `size` x `size`.
 struct WarpNetPrediction {
   Image flow;     // 2 channels, texels of the net's resolution: reference texel (x, y) is at (x, y) + flow in the frame
   Image wrinkle;  // 1 channel: log-luminance the frame has that the reference has not, at the reference's texels
@@ -82,7 +87,7 @@ class WarpNet {
   std::unique_ptr<Impl> impl_;
 };
 
-// Sets torch's intra-op threads (0: the machine's cores) and, once per process, one inter-op thread; returns the
+// Sets torch's intra-op threads (0: the cores this process may run on) and, once per process, one inter-op thread; returns the
 // count set. Every torch entry point calls it with its options' threads.
 int SetTorchThreads(int threads);
 
