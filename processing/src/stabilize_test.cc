@@ -115,6 +115,9 @@ TEST(StabilizeTest, TheUNetLearnsTheMovesOfItsFramesAndKeepsAShadingChangeAsAWri
   EXPECT_LT(band.mean_flow_px, 1.0);
 }
 
+// libtorch's BLAS calls reach OpenBLAS, not ATLAS (which Ceres's link interface names) or the reference BLAS.
+TEST(StabilizeTest, TorchsBlasIsOpenBlas) { EXPECT_THAT(TorchBlasLibrary(), HasSubstr("libopenblas")); }
+
 TEST(StabilizeTest, RefusesBadOptionsAndTexturesOfAnotherSize) {
   StabilizeOptions o;
   o.patch_stride = 20;

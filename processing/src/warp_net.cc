@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 #include <torch/torch.h>
 
+#include <dlfcn.h>
 #include <sched.h>
 
 #include <algorithm>
@@ -15,6 +16,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/logging.h"
 
 // OpenBLAS, linked ahead of the reference BLAS Debian's libtorch names (processing/CMakeLists.txt).
 extern "C" void openblas_set_num_threads(int threads);
@@ -178,12 +180,24 @@ int SetTorchThreads(int threads) {
   }
   static std::once_flag once;
   std::call_once(once, [] {
+    if (const std::string blas = TorchBlasLibrary(); blas.find("openblas") == std::string::npos) {
+      Logger("processing.torch")
+          ->warn("torch's BLAS is {}, not OpenBLAS (see processing/CMakeLists.txt's link order): training runs slower",
+                 blas.empty() ? "missing" : blas);
+    }
     at::set_num_interop_threads(1);
     // Torch's own loops are the parallelism; a BLAS call inside one runs on its thread.
     openblas_set_num_threads(1);
   });
   at::set_num_threads(n);
   return n;
+}
+
+std::string TorchBlasLibrary() {
+  void* sgemm = dlsym(RTLD_DEFAULT, "sgemm_");
+  Dl_info info;
+  if (sgemm == nullptr || dladdr(sgemm, &info) == 0 || info.dli_fname == nullptr) return "";
+  return info.dli_fname;
 }
 
 struct WarpNet::Impl {

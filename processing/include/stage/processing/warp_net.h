@@ -25,6 +25,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -90,5 +91,9 @@ class WarpNet {
 // Sets torch's intra-op threads (0: the cores this process may run on) and, once per process, one inter-op thread; returns the
 // count set. Every torch entry point calls it with its options' threads.
 int SetTorchThreads(int threads);
+
+// The file of the library whose sgemm_ this process calls (libtorch's BLAS): libopenblas.so.0 when the link order
+// holds; empty if none is loaded.
+std::string TorchBlasLibrary();
 
 }  // namespace stage::processing
