@@ -130,10 +130,12 @@ int main(int argc, char** argv) {
   const double flow_s = Since(t) / 3;
 
   const double gflop = 2 * step_macs / 1e9;
-  std::printf("U-Net at %d x %d, %d thread(s): %.2f GFLOP of convolutions per training step\n", size, size, used, gflop);
+  std::printf("U-Net at %d x %d, %d thread(s): %.2f GFLOP of convolutions per training step\n", size, size, used,
+              gflop);
   std::printf("training step                 %8.1f ms  (%5.1f GFLOP/s; the first step %.1f ms)\n", 1e3 * step_s,
               gflop / step_s, 1e3 * first_s);
-  std::printf("  %d steps (the default)     %8.1f s\n", WarpNetOptions{}.iterations, WarpNetOptions{}.iterations * step_s);
+  std::printf("  %d steps (the default)     %8.1f s\n", WarpNetOptions{}.iterations,
+              WarpNetOptions{}.iterations * step_s);
   std::printf("prediction (one frame)        %8.1f ms\n", 1e3 * predict_s);
   std::printf("baseline: OpenBLAS sgemm %d^3 %7.1f ms  (%5.1f GFLOP/s)\n", n, 1e3 * gemm_s,
               2.0 * n * n * n / 1e9 / gemm_s);

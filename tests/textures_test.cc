@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <thread>
 #include <tuple>
@@ -222,6 +223,16 @@ processing::FusedTextures Shifted(const processing::FusedTextures& t, int dx, in
   return out;
 }
 
+// The command's files (`batch`, FilesUnder) and those under `dir`: the same names, the same bytes.
+void ExpectSameFiles(const std::map<std::string, std::string>& batch, const std::string& dir) {
+  const auto b = FilesUnder(dir);
+  ASSERT_EQ(b.size(), batch.size()) << dir;
+  for (const auto& [name, bytes] : batch) {
+    ASSERT_EQ(b.count(name), 1u) << name;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and " << dir;
+  }
+}
+
 // Stabilization as a stage: frame 1's textures are frame 0's moved by (3, -2) texels; the command, the library and the
 // worker's job write the same bytes, and frame 1 comes back onto frame 0.
 TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
@@ -258,12 +269,7 @@ TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
   const auto a = FilesUnder(take.path() + "/derived/stable-batch");
   ASSERT_EQ(a.size(), 1 + 2 * (9 + 4 + 2u));  // run.json; per frame 9 EXRs, 4 previews, contact sheet, metrics
   for (const std::string other : {"stable-library", "textures-stable"}) {
-    const auto b = FilesUnder(take.path() + "/derived/" + other);
-    ASSERT_EQ(b.size(), a.size()) << other;
-    for (const auto& [name, bytes] : a) {
-      ASSERT_EQ(b.count(name), 1u) << name;
-      EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and " << other;
-    }
+    ASSERT_NO_FATAL_FAILURE(ExpectSameFiles(a, take.path() + "/derived/" + other));
   }
   const nlohmann::json metrics = nlohmann::json::parse(a.at("frame-000001/metrics.json"));
   EXPECT_NEAR(metrics["mean_flow_texels"].get<double>(), std::hypot(3, 2), 0.5);
@@ -286,12 +292,7 @@ TEST(TexturesStageTest, StabilizationRunsThreeWaysAndMovesAMovedFrameBack) {
   ASSERT_EQ(u.size(), a.size() + 2 + 1u);  // and a wrinkle map per frame, loss.csv
   EXPECT_EQ(std::count(u.at("loss.csv").begin(), u.at("loss.csv").end(), '\n'), 301);
   for (const std::string other : {"unet-library", "textures-stable"}) {
-    const auto b = FilesUnder(take.path() + "/derived/" + other);
-    ASSERT_EQ(b.size(), u.size()) << other;
-    for (const auto& [name, bytes] : u) {
-      ASSERT_EQ(b.count(name), 1u) << name;
-      EXPECT_TRUE(bytes == b.at(name)) << name << " differs between the command and " << other;
-    }
+    ASSERT_NO_FATAL_FAILURE(ExpectSameFiles(u, take.path() + "/derived/" + other));
   }
   const nlohmann::json unet_metrics = nlohmann::json::parse(u.at("frame-000001/metrics.json"));
   EXPECT_NEAR(unet_metrics["mean_flow_texels"].get<double>(), std::hypot(3, 2), 0.5);

@@ -4,11 +4,11 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <optional>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/video/tracking.hpp>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -90,8 +90,8 @@ absl::Status StabilizeOptions::Validate() const {
   }
   STAGE_RETURN_IF_ERROR(net.Validate());
   if (method == StabilizeMethod::kUNet && net_size < (2 << net.levels)) {
-    return bad(absl::StrCat("net_size ", net_size, " is below 2^(levels + 1) = ", 2 << net.levels, " for ",
-                            net.levels, " levels"));
+    return bad(absl::StrCat("net_size ", net_size, " is below 2^(levels + 1) = ", 2 << net.levels, " for ", net.levels,
+                            " levels"));
   }
   return absl::OkStatus();
 }
@@ -205,27 +205,27 @@ Image NetInput(const FusedTextures& t, int net_size) {
   return out;
 }
 
-// A warp (2 channels, texels) averaged down to `size` texels across, its vectors in the smaller texels.
-Image Downsample(const Image& flow, int size) {
-  if (flow.width == size) return flow;
-  cv::Mat in(flow.height, flow.width, CV_32FC2, const_cast<float*>(flow.pixels.data())), out;
-  cv::resize(in, out, cv::Size(size, size), 0, 0, cv::INTER_AREA);
-  Image down(size, size, 2);
-  const float gain = static_cast<float>(size) / static_cast<float>(flow.width);
-  const float* p = reinterpret_cast<const float*>(out.data);
-  for (size_t i = 0; i < down.pixels.size(); ++i) down.pixels[i] = gain * p[i];
-  return down;
-}
-
-// A net's image (any channels) carried up to `size` bilinearly, its values times `gain`.
-Image Upsample(const Image& image, int size, float gain) {
+// `image` (any channels) resized to `size` texels across with `interpolation` (INTER_AREA down, INTER_LINEAR up), its
+// values times `gain` (for a warp, the ratio of the sizes: its vectors in the new texels).
+Image Resized(const Image& image, int size, float gain, int interpolation) {
   if (image.width == size) return image;
   cv::Mat in(image.height, image.width, CV_32FC(image.channels), const_cast<float*>(image.pixels.data())), out;
-  cv::resize(in, out, cv::Size(size, size), 0, 0, cv::INTER_LINEAR);
-  Image up(size, size, image.channels);
+  cv::resize(in, out, cv::Size(size, size), 0, 0, interpolation);
+  Image resized(size, size, image.channels);
   const float* p = reinterpret_cast<const float*>(out.data);
-  for (size_t i = 0; i < up.pixels.size(); ++i) up.pixels[i] = gain * p[i];
-  return up;
+  for (size_t i = 0; i < resized.pixels.size(); ++i) resized.pixels[i] = gain * p[i];
+  return resized;
+}
+
+// A warp (2 channels, texels) resized to `size` texels across, its vectors in the new texels.
+Image ResizedWarp(const Image& flow, int size, int interpolation) {
+  return Resized(flow, size, static_cast<float>(size) / static_cast<float>(flow.width), interpolation);
+}
+
+// The flow's stabilization of one frame.
+StabilizedTextures FlowStabilized(const FusedTextures& reference, const FusedTextures& frame,
+                                  const StabilizeOptions& options) {
+  return ApplyFlow(reference, frame, OpticalFlow(reference, frame, options), options.max_flow_px);
 }
 
 // The U-Net's stabilization: frames are added (their inputs kept at the net's size), the net trained on them, then
@@ -236,32 +236,33 @@ class NetStabilizer {
     STAGE_ASSIGN_OR_RETURN(std::unique_ptr<WarpNet> net, WarpNet::Create(options.net));
     return NetStabilizer(reference, options, std::move(net));
   }
+  // Frame i (in the order added): its input at the net's size and, with net_from_flow, the optical flow's warp there,
+  // kept for Apply.
   void Add(const FusedTextures& frame) {
     inputs_.push_back(NetInput(frame, options_.net_size));
-    if (options_.net_from_flow) bases_.push_back(Base(frame));
+    if (options_.net_from_flow) {
+      bases_.push_back(ResizedWarp(OpticalFlow(*reference_, frame, options_), reference_input_.width, cv::INTER_AREA));
+    }
   }
   absl::Status Train(const std::function<bool(int, double)>& progress) {
     return net_->Train(reference_input_, inputs_, bases_, progress);
   }
-  absl::StatusOr<StabilizedTextures> Apply(const FusedTextures& frame) const {
-    STAGE_ASSIGN_OR_RETURN(
-        const WarpNetPrediction p,
-        net_->Predict(reference_input_, NetInput(frame, options_.net_size), options_.net_from_flow ? Base(frame) : Image()));
-    const float gain = static_cast<float>(reference_->size) / static_cast<float>(p.flow.width);
-    StabilizedTextures out = ApplyFlow(*reference_, frame, Upsample(p.flow, reference_->size, gain),
-                                       options_.max_flow_px);
-    out.wrinkle = Upsample(p.wrinkle, reference_->size, 1.0f);
+  // Frame i's textures (the frame added i-th) warped along the net's prediction.
+  absl::StatusOr<StabilizedTextures> Apply(size_t i, const FusedTextures& frame) const {
+    STAGE_ASSIGN_OR_RETURN(const WarpNetPrediction p,
+                           net_->Predict(reference_input_, inputs_[i], bases_.empty() ? Image() : bases_[i]));
+    StabilizedTextures out =
+        ApplyFlow(*reference_, frame, ResizedWarp(p.flow, reference_->size, cv::INTER_LINEAR), options_.max_flow_px);
+    out.wrinkle = Resized(p.wrinkle, reference_->size, 1.0f, cv::INTER_LINEAR);
     return out;
   }
   const std::vector<double>& losses() const { return net_->losses(); }
 
  private:
-  // The optical flow's warp at the net's size.
-  Image Base(const FusedTextures& frame) const {
-    return Downsample(OpticalFlow(*reference_, frame, options_), reference_input_.width);
-  }
   NetStabilizer(const FusedTextures& reference, const StabilizeOptions& options, std::unique_ptr<WarpNet> net)
-      : reference_(&reference), options_(options), net_(std::move(net)),
+      : reference_(&reference),
+        options_(options),
+        net_(std::move(net)),
         reference_input_(NetInput(reference, options.net_size)) {}
   const FusedTextures* reference_;
   StabilizeOptions options_;
@@ -276,7 +277,7 @@ absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& refere
                                                      const StabilizeOptions& options) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   STAGE_RETURN_IF_ERROR(CheckSizes(reference, frame));
-  return ApplyFlow(reference, frame, OpticalFlow(reference, frame, options), options.max_flow_px);
+  return FlowStabilized(reference, frame, options);
 }
 
 absl::StatusOr<std::vector<StabilizedTextures>> StabilizeSequence(const FusedTextures& reference,
@@ -286,16 +287,14 @@ absl::StatusOr<std::vector<StabilizedTextures>> StabilizeSequence(const FusedTex
   for (const FusedTextures& frame : frames) STAGE_RETURN_IF_ERROR(CheckSizes(reference, frame));
   std::vector<StabilizedTextures> out;
   if (options.method == StabilizeMethod::kFlow) {
-    for (const FusedTextures& frame : frames) {
-      out.push_back(ApplyFlow(reference, frame, OpticalFlow(reference, frame, options), options.max_flow_px));
-    }
+    for (const FusedTextures& frame : frames) out.push_back(FlowStabilized(reference, frame, options));
     return out;
   }
   STAGE_ASSIGN_OR_RETURN(NetStabilizer net, NetStabilizer::Create(reference, options));
   for (const FusedTextures& frame : frames) net.Add(frame);
   STAGE_RETURN_IF_ERROR(net.Train({}));
-  for (const FusedTextures& frame : frames) {
-    STAGE_ASSIGN_OR_RETURN(StabilizedTextures s, net.Apply(frame));
+  for (size_t i = 0; i < frames.size(); ++i) {
+    STAGE_ASSIGN_OR_RETURN(StabilizedTextures s, net.Apply(i, frames[i]));
     out.push_back(std::move(s));
   }
   return out;
@@ -354,7 +353,7 @@ std::string StabilizeRunJson(const StabilizeJob& job, int64_t last, const std::v
                       {"smoothness", o.net.smoothness},
                       {"wrinkle_sparsity", o.net.wrinkle_sparsity},
                       {"wrinkle_smoothness", o.net.wrinkle_smoothness},
-                      {"threads", SetTorchThreads(o.net.threads)},  // the count used: results depend on it
+                      {"threads", TorchThreadCount(o.net.threads)},  // the count used: results depend on it
                       {"seed", o.net.seed},
                       {"max_flow_px", o.max_flow_px}};
     if (o.net_from_flow) {
@@ -395,7 +394,7 @@ absl::StatusOr<std::optional<NetStabilizer>> TrainForTake(const StabilizeJob& jo
   if (job.options.method != StabilizeMethod::kUNet) return std::optional<NetStabilizer>();
   STAGE_ASSIGN_OR_RETURN(NetStabilizer net, NetStabilizer::Create(reference, job.options));
   // The reference against itself teaches nothing but the identity: the net trains on the other frames (on the
-  // reference only when it is the range's one frame).
+  // reference only when it is the range's one frame). Frame f is the net's (f - first_frame - 1)-th.
   for (int64_t frame = last > job.first_frame + 1 ? job.first_frame + 1 : job.first_frame; frame < last; ++frame) {
     if (cancelled && cancelled()) {
       return absl::CancelledError(absl::StrCat("stabilization of ", job.take_dir, " cancelled"));
@@ -446,7 +445,8 @@ absl::StatusOr<JobResult> RunStabilize(const StabilizeJob& job, const std::funct
     if (net) stable.wrinkle = Image(reference.size, reference.size, 1);
     if (frame != job.first_frame) {
       STAGE_ASSIGN_OR_RETURN(fused, ReadFusedTextures(FrameDir(textures, frame)));
-      auto s = net ? net->Apply(fused) : StabilizeTextures(reference, fused, job.options);
+      auto s = net ? net->Apply(static_cast<size_t>(frame - job.first_frame - 1), fused)
+                   : StabilizeTextures(reference, fused, job.options);
       if (!s.ok())
         return absl::Status(s.status().code(), absl::StrCat(FrameDir(textures, frame), ": ", s.status().message()));
       stable = *std::move(s);

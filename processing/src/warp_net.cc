@@ -3,10 +3,9 @@
 #include "stage/processing/warp_net.h"
 
 #include <ATen/Parallel.h>
-#include <torch/torch.h>
-
 #include <dlfcn.h>
 #include <sched.h>
+#include <torch/torch.h>
 
 #include <algorithm>
 #include <mutex>
@@ -32,9 +31,7 @@ constexpr double kCharbonnierEps = 0.01;
 // The photometric loss of a reference texel the warp takes off the frame's coverage (log-luminance: a large residual).
 constexpr double kOffCoveragePenalty = 0.3;
 
-torch::nn::Conv2d Conv(int in, int out) {
-  return torch::nn::Conv2d(torch::nn::Conv2dOptions(in, out, 3).padding(1));
-}
+torch::nn::Conv2d Conv(int in, int out) { return torch::nn::Conv2d(torch::nn::Conv2dOptions(in, out, 3).padding(1)); }
 
 torch::Tensor LeakyRelu(const torch::Tensor& x) {
   return nnf::leaky_relu(x, nnf::LeakyReLUFuncOptions().negative_slope(0.1));
@@ -116,9 +113,9 @@ torch::Tensor Warp(const torch::Tensor& image, const torch::Tensor& flow) {
   const torch::Tensor xs = torch::arange(w, options).view({1, 1, w}), ys = torch::arange(h, options).view({1, h, 1});
   const torch::Tensor gx = (xs + flow.select(1, 0)) * (2.0 / std::max<int64_t>(1, w - 1)) - 1;
   const torch::Tensor gy = (ys + flow.select(1, 1)) * (2.0 / std::max<int64_t>(1, h - 1)) - 1;
-  return nnf::grid_sample(image, torch::stack({gx, gy}, 3),
-                          nnf::GridSampleFuncOptions().mode(torch::kBilinear).padding_mode(torch::kZeros).align_corners(
-                              true));
+  return nnf::grid_sample(
+      image, torch::stack({gx, gy}, 3),
+      nnf::GridSampleFuncOptions().mode(torch::kBilinear).padding_mode(torch::kZeros).align_corners(true));
 }
 
 torch::Tensor Charbonnier(const torch::Tensor& r) { return (r.pow(2) + kCharbonnierEps * kCharbonnierEps).sqrt(); }
@@ -158,7 +155,8 @@ absl::Status WarpNetOptions::Validate() const {
   if (base_channels < 4 || base_channels > 64) {
     return bad(absl::StrCat("base_channels ", base_channels, " is not in 4..64"));
   }
-  if (iterations < 1 || iterations > 100000) return bad(absl::StrCat("iterations ", iterations, " is not in 1..100000"));
+  if (iterations < 1 || iterations > 100000)
+    return bad(absl::StrCat("iterations ", iterations, " is not in 1..100000"));
   if (!(learning_rate > 0) || learning_rate > 1) {
     return bad(absl::StrCat("learning_rate ", learning_rate, " is not in (0, 1]"));
   }
@@ -170,14 +168,17 @@ absl::Status WarpNetOptions::Validate() const {
   return absl::OkStatus();
 }
 
+int TorchThreadCount(int threads) {
+  if (threads > 0) return threads;
+  // The cores this process may run on (its affinity: a cgroup's or taskset's cpuset).
+  cpu_set_t set;
+  const int n = sched_getaffinity(0, sizeof(set), &set) == 0 ? CPU_COUNT(&set)
+                                                             : static_cast<int>(std::thread::hardware_concurrency());
+  return std::max(1, n);
+}
+
 int SetTorchThreads(int threads) {
-  int n = threads;
-  if (n <= 0) {  // the cores this process may run on (its affinity: a cgroup's or taskset's cpuset)
-    cpu_set_t set;
-    n = sched_getaffinity(0, sizeof(set), &set) == 0 ? CPU_COUNT(&set)
-                                                     : static_cast<int>(std::thread::hardware_concurrency());
-    n = std::max(1, n);
-  }
+  const int n = TorchThreadCount(threads);
   static std::once_flag once;
   std::call_once(once, [] {
     if (const std::string blas = TorchBlasLibrary(); blas.find("openblas") == std::string::npos) {
@@ -241,7 +242,8 @@ struct WarpNet::Impl {
       const int64_t k = int64_t{1} << s;
       if (frame.size(2) / k < 4) break;
       const torch::Tensor ref_c = Pool(rc, k), ref_v = Pool(rv, k) / ref_c.clamp_min(1e-3);
-      const torch::Tensor warped = Warp(torch::cat({Pool(fv, k), Pool(fc, k)}, 1), Pool(flow, k) / static_cast<double>(k));
+      const torch::Tensor warped =
+          Warp(torch::cat({Pool(fv, k), Pool(fc, k)}, 1), Pool(flow, k) / static_cast<double>(k));
       const torch::Tensor warped_c = warped.narrow(1, 1, 1);
       const torch::Tensor warped_v = warped.narrow(1, 0, 1) / warped_c.clamp_min(1e-3).detach();
       // Where the reference is covered: the residual where the warp lands on covered texels, a fixed penalty where
@@ -293,8 +295,8 @@ absl::Status CheckInput(const Image& image, const Image& reference, int levels, 
         absl::StrCat("warp net: ", what, " has ", image.channels, " channel(s), not 2 (", channels, ")"));
   }
   if (image.pixels.size() != static_cast<size_t>(image.width) * image.height * 2) {
-    return absl::InvalidArgumentError(absl::StrCat("warp net: ", what, " holds ", image.pixels.size(),
-                                                   " values, not ", image.width, " x ", image.height, " x 2"));
+    return absl::InvalidArgumentError(absl::StrCat("warp net: ", what, " holds ", image.pixels.size(), " values, not ",
+                                                   image.width, " x ", image.height, " x 2"));
   }
   if (image.width != reference.width || image.height != reference.height) {
     return absl::InvalidArgumentError(absl::StrCat("warp net: ", what, " is ", image.width, " x ", image.height,
@@ -310,8 +312,8 @@ absl::Status CheckInput(const Image& image, const Image& reference, int levels, 
 
 }  // namespace
 
-absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& frames,
-                            const std::vector<Image>& bases, const std::function<bool(int, double)>& progress) {
+absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& frames, const std::vector<Image>& bases,
+                            const std::function<bool(int, double)>& progress) {
   const WarpNetOptions& o = impl_->options;
   if (frames.empty()) return absl::InvalidArgumentError("warp net: no frames to train on");
   if (!bases.empty() && bases.size() != frames.size()) {
@@ -325,7 +327,8 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
       if (auto s = CheckInput(frames[i], reference, o.levels, absl::StrCat("frame ", i)); !s.ok()) return s;
       inputs.push_back(ToTensor(frames[i]));
       if (!bases.empty()) {
-        if (auto s = CheckInput(bases[i], reference, o.levels, absl::StrCat("base warp ", i), "x, y"); !s.ok()) return s;
+        if (auto s = CheckInput(bases[i], reference, o.levels, absl::StrCat("base warp ", i), "x, y"); !s.ok())
+          return s;
       }
       base_tensors.push_back(bases.empty() ? torch::zeros({1, 2, reference.height, reference.width})
                                            : ToTensor(bases[i]));

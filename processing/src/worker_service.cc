@@ -59,8 +59,8 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   }
   if (job->stabilize_method() != v1::STABILIZE_METHOD_UNSPECIFIED && job->stage() != v1::PROCESSING_STAGE_STABILIZE) {
     return ToGrpcStatus(absl::InvalidArgumentError(
-        absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()),
-                     " takes no stabilize_method (", v1::StabilizeMethod_Name(job->stabilize_method()), ")")));
+        absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no stabilize_method (",
+                     v1::StabilizeMethod_Name(job->stabilize_method()), ")")));
   }
   {
     std::lock_guard<std::mutex> lock(mutex_);

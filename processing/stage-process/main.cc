@@ -290,7 +290,8 @@ struct StabilizeCommand {
         ->capture_default_str();
     app->add_flag("--net-alone", net_alone,
                   "The U-Net finds the whole warp (by default it corrects the optical flow's)");
-    app->add_option("--threads", net.threads, "Torch's threads (0: the machine's cores)")->capture_default_str();
+    app->add_option("--threads", net.threads, "Torch's threads (0: the cores this process may run on)")
+        ->capture_default_str();
     app->add_option("--seed", net.seed, "The U-Net's initialization and the frames' order")->capture_default_str();
     app->add_flag("--json", json, "Print the result as JSON on stdout");
   }
@@ -301,16 +302,18 @@ struct StabilizeCommand {
     // No option is ignored: the U-Net's belong to --method unet, the flow's patches to the flow (alone, or the
     // U-Net's base).
     const bool unet = job.options.method == stage::processing::StabilizeMethod::kUNet;
-    for (const char* name : {"--net-alone", "--net-size", "--net-levels", "--net-channels", "--iterations",
-                             "--learning-rate", "--smoothness", "--wrinkle-sparsity", "--wrinkle-smoothness",
-                             "--threads", "--seed"}) {
+    for (const char* name :
+         {"--net-alone", "--net-size", "--net-levels", "--net-channels", "--iterations", "--learning-rate",
+          "--smoothness", "--wrinkle-sparsity", "--wrinkle-smoothness", "--threads", "--seed"}) {
       if (!unet && app->count(name) > 0) {
-        return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(name, " applies to --method unet")));
+        return stage::ReportFatal(kProgram,
+                                  absl::InvalidArgumentError(absl::StrCat(name, " applies to --method unet")));
       }
     }
     if (unet && net_alone && app->count("--patch-size") > 0) {
-      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(
-                                              "--patch-size applies to the optical flow, which --net-alone does not use"));
+      return stage::ReportFatal(
+          kProgram,
+          absl::InvalidArgumentError("--patch-size applies to the optical flow, which --net-alone does not use"));
     }
     return RunOverFrames(frames, json, "stabilized", &job, stage::processing::RunStabilize);
   }

@@ -1055,9 +1055,10 @@ int main(int argc, char** argv) {
                       "take or absolute (e.g. ground_truth on the simulated stage); default: the rig's nominal models");
   process->add_option("--texture-size", pf.texture_size, "--stage textures: texels across the textures (default 4096)")
       ->check(CLI::Range(16, 16384));
-  process->add_option("--method", pf.stabilize_method,
-                      "--stage stabilize: flow (OpenCV's DIS, the default) or unet (the self-supervised U-Net, "
-                      "trained on the frames)")
+  process
+      ->add_option("--method", pf.stabilize_method,
+                   "--stage stabilize: flow (OpenCV's DIS, the default) or unet (the self-supervised U-Net, "
+                   "trained on the frames)")
       ->check(CLI::IsMember({"flow", "unet"}));
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");

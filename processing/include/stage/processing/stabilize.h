@@ -61,7 +61,8 @@ absl::StatusOr<std::vector<StabilizedTextures>> StabilizeSequence(const FusedTex
                                                                   const std::vector<FusedTextures>& frames,
                                                                   const StabilizeOptions& options);
 
-// `frame`'s textures warped onto `reference`'s texels along the optical flow (whatever `options.method`). Errors: options out of range, textures of different sizes.
+// `frame`'s textures warped onto `reference`'s texels along the optical flow (whatever `options.method`). Errors:
+// options out of range, textures of different sizes.
 absl::StatusOr<StabilizedTextures> StabilizeTextures(const FusedTextures& reference, const FusedTextures& frame,
                                                      const StabilizeOptions& options);
 

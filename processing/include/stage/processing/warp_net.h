@@ -47,9 +47,9 @@ struct WarpNetOptions {
   double learning_rate = 1e-3;
   // Scales of the photometric loss's pyramid (1..6): the coarse ones widen the warp's reach.
   int loss_scales = 4;
-  double smoothness = 0.2;           // >= 0
-  double wrinkle_sparsity = 0.05;    // >= 0
-  double wrinkle_smoothness = 0.5;   // >= 0
+  double smoothness = 0.2;          // >= 0
+  double wrinkle_sparsity = 0.05;   // >= 0
+  double wrinkle_smoothness = 0.5;  // >= 0
   // Threads for torch's loops (0: the cores this process may run on); set explicitly, as OpenMP's default spins on a
   // busy machine. The count is the process's (torch's and OpenMP's): concurrent nets share the last one set.
   int threads = 0;
@@ -88,8 +88,11 @@ class WarpNet {
   std::unique_ptr<Impl> impl_;
 };
 
-// Sets torch's intra-op threads (0: the cores this process may run on) and, once per process, one inter-op thread; returns the
-// count set. Every torch entry point calls it with its options' threads.
+// The threads `threads` stands for: itself, or for 0 the cores this process may run on.
+int TorchThreadCount(int threads);
+
+// Sets torch's intra-op threads (0: the cores this process may run on) and, once per process, one inter-op thread;
+// returns the count set. Every torch entry point calls it with its options' threads.
 int SetTorchThreads(int threads);
 
 // The file of the library whose sgemm_ this process calls (libtorch's BLAS): libopenblas.so.0 when the link order
