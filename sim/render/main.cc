@@ -86,6 +86,14 @@ int main(int argc, char** argv) {
   app.add_option("--uv-size", uv_size, "Ground truth: texels across the UV position map")
       ->capture_default_str()
       ->check(CLI::Range(16, 16384));
+  int64_t frame_step = 1;
+  bool no_camera_maps = false, no_meshes = false;
+  app.add_option("--frame-step", frame_step, "Ground truth: every Nth frame of --frames")
+      ->capture_default_str()
+      ->check(CLI::Range(int64_t{1}, int64_t{1} << 40));
+  app.add_flag("--no-camera-maps", no_camera_maps,
+               "Ground truth: no per-camera maps (the cameras, poses and UV position maps only)");
+  app.add_flag("--no-meshes", no_meshes, "Ground truth: no mesh.obj per frame (uv_position.exr holds the surface)");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -107,6 +115,9 @@ int main(int argc, char** argv) {
     }
     options.cameras = truth_cameras;
     options.uv_size = uv_size;
+    options.frame_step = frame_step;
+    options.camera_maps = !no_camera_maps;
+    options.meshes = !no_meshes;
     options.progress = [](int done, int total) {
       std::cerr << "\rground truth: " << done << "/" << total << " camera frames" << (done == total ? "\n" : "")
                 << std::flush;

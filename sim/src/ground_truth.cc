@@ -69,7 +69,11 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       cameras.push_back(i);
     }
   }
-  const int total = static_cast<int>((options.last_frame - options.first_frame) * cameras.size());
+  if (options.frame_step < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("ground truth: frame step ", options.frame_step, " is not 1 or more"));
+  }
+  const int64_t frames = (options.last_frame - options.first_frame + options.frame_step - 1) / options.frame_step;
+  const int total = static_cast<int>(frames * static_cast<int64_t>(cameras.size()));
   int done = 0;
   {
     std::error_code ec;
@@ -77,7 +81,7 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
     STAGE_RETURN_IF_ERROR(WriteCameraCalibration(dir + "/cameras.json", scene.true_cameras()));
   }
-  for (int64_t frame = options.first_frame; frame < options.last_frame; ++frame) {
+  for (int64_t frame = options.first_frame; frame < options.last_frame; frame += options.frame_step) {
     const std::string frame_dir = absl::StrFormat("%s/frame-%06d", dir, frame - options.name_offset);
     std::error_code ec;
     fs::create_directories(frame_dir, ec);
@@ -95,6 +99,18 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     j["rotation_deg"] = {
         {"yaw", pose.rotation_deg.x()}, {"pitch", pose.rotation_deg.y()}, {"roll", pose.rotation_deg.z()}};
     j["translation_mm"] = {pose.translation_mm.x(), pose.translation_mm.y(), pose.translation_mm.z()};
+    if (const RiggedModel* model = scene.model(); model != nullptr) {
+      // The head's frame to the stage's, as the fit writes it (row-major 4 x 4, mm): PosedMesh's turn about the
+      // pivot, then the translation.
+      const Eigen::Matrix3f r = PoseRotation(pose);
+      const Eigen::Vector3f t = model->pivot() + pose.translation_mm - r * model->pivot();
+      nlohmann::json m = nlohmann::json::array();
+      for (int row = 0; row < 4; ++row) {
+        for (int col = 0; col < 4; ++col) m.push_back(row < 3 ? (col < 3 ? r(row, col) : t[row]) : (col < 3 ? 0.f : 1.f));
+      }
+      j["stage_from_head"] = m;
+    }
+    if (const std::string sequence = scene.SequenceAt(frame); !sequence.empty()) j["sequence"] = sequence;
     if (const BoardModel* board = scene.board(); board != nullptr) {
       // The ChArUco corners where the board is, by OpenCV's corner id.
       nlohmann::json corners = nlohmann::json::array();
@@ -111,10 +127,10 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     }
     if (scene.model() != nullptr) {
       const TriangleMesh mesh = scene.model()->PosedMesh(pose);
-      if (auto s = WriteObj(frame_dir + "/mesh.obj", mesh,
-                            "FaStage simulator ground truth: posed subject, stage frame, millimetres");
-          !s.ok())
-        return s;
+      if (options.meshes) {
+        STAGE_RETURN_IF_ERROR(WriteObj(frame_dir + "/mesh.obj", mesh,
+                                       "FaStage simulator ground truth: posed subject, stage frame, millimetres"));
+      }
       const std::vector<float> uv = UvPositionMap(mesh, options.uv_size);
       // Row 0 of the image is v = 1 (the crown's side), as textures are stored (uv_raster.h).
       cv::Mat image(options.uv_size, options.uv_size, CV_32FC4, const_cast<float*>(uv.data()));

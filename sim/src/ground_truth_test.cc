@@ -166,5 +166,44 @@ TEST(GroundTruthTest, RefusesEmptyFramesAndUnknownCameras) {
   EXPECT_NE(s.message().find("hs-9"), std::string::npos) << s;
 }
 
+// A neural asset's long performance: every third frame, no meshes nor camera maps; each pose file says the head's
+// frame (it takes the neutral-pose mesh with the frame's expression onto the posed mesh) and the sequence.
+TEST(GroundTruthTest, ARangeOfMotionsFramesCarryTheirSequenceAndTheHeadsFrame) {
+  auto scene = Scene({"sim.subject.performance=range_of_motion", "sim.subject.head_resolution=64"});
+  const std::string dir = ::testing::TempDir() + "/gt-rom";
+  std::filesystem::remove_all(dir);
+  GroundTruthOptions options{
+      .first_frame = 300, .last_frame = 307, .frame_step = 3, .uv_size = 64, .camera_maps = false, .meshes = false};
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir, options).ok());
+  for (int64_t frame : {300, 303, 306}) {
+    const std::string frame_dir = dir + "/frame-000" + std::to_string(frame);
+    std::ifstream pose_file(frame_dir + "/pose.json");
+    ASSERT_TRUE(pose_file.good()) << frame;
+    const auto pose = nlohmann::json::parse(pose_file);
+    EXPECT_EQ(pose["sequence"].get<std::string>(), scene->SequenceAt(frame));
+    EXPECT_FALSE(pose["sequence"].get<std::string>().empty());
+    EXPECT_FALSE(std::filesystem::exists(frame_dir + "/mesh.obj"));
+    EXPECT_TRUE(std::filesystem::exists(frame_dir + "/uv_position.exr"));
+    Eigen::Matrix4f m;
+    for (int i = 0; i < 16; ++i) m(i / 4, i % 4) = pose["stage_from_head"][static_cast<size_t>(i)].get<float>();
+    HeadPose unmoved = scene->PoseAt(frame);
+    const TriangleMesh posed = scene->head()->PosedMesh(unmoved);
+    unmoved.rotation_deg.setZero();
+    unmoved.translation_mm.setZero();
+    const TriangleMesh head = scene->head()->PosedMesh(unmoved);
+    double worst = 0;
+    for (size_t v = 0; v < head.positions.size(); ++v) {
+      const Eigen::Vector3f p = m.topLeftCorner<3, 3>() * head.positions[v] + m.topRightCorner<3, 1>();
+      worst = std::max(worst, static_cast<double>((p - posed.positions[v]).norm()));
+    }
+    EXPECT_LT(worst, 1e-3) << frame;
+  }
+  for (int64_t frame : {301, 302, 304}) {
+    EXPECT_FALSE(std::filesystem::exists(dir + "/frame-000" + std::to_string(frame))) << frame;
+  }
+  // The head moves in this performance: the frames' poses differ.
+  EXPECT_NE(scene->PoseAt(300).rotation_deg, scene->PoseAt(306).rotation_deg);
+}
+
 }  // namespace
 }  // namespace stage::sim

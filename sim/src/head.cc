@@ -19,7 +19,9 @@
 #include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <numeric>
 #include <optional>
+#include <random>
 #include <set>
 #include <tuple>
 
@@ -716,6 +718,77 @@ HeadPose Performance::At(double t_s) const {
   return out;
 }
 
+std::string Performance::SequenceAt(double t_s) const {
+  std::string name;
+  for (const auto& [start, n] : sequences) {
+    if (start > t_s) break;
+    name = n;
+  }
+  return name;
+}
+
+Performance Performance::RangeOfMotion(uint64_t seed, double seconds) {
+  struct Group {
+    const char* name;
+    std::vector<int> expressions;  // worked together, at one drawn weight each
+  };
+  const std::vector<Group> groups = {
+      {"jaw", {kJaw}},           {"smile", {kSmileL, kSmileR}},  {"blink", {kBlinkL, kBlinkR}},
+      {"brows", {kBrow}},        {"frown", {kFrown}},            {"pucker", {kPucker}},
+      {"asymmetric", {kSmileL, kBlinkR, kBrow}},                 {"speech", {kJaw, kPucker, kSmileL, kSmileR}}};
+  std::seed_seq seq{static_cast<uint32_t>(seed), static_cast<uint32_t>(seed >> 32), 0x5e9u};
+  std::mt19937_64 rng(seq);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  constexpr double kSequenceS = 6.0, kKeyS = 0.5;
+  // The head's motion: a target every 1.5 s drawn anew, eased between (the keys sample it every half second).
+  constexpr double kMotionS = 1.5;
+  const int motion_keys = static_cast<int>(std::ceil(seconds / kMotionS)) + 2;
+  std::vector<Eigen::Matrix<float, 6, 1>> motion(static_cast<size_t>(motion_keys));
+  const Eigen::Matrix<float, 6, 1> range = (Eigen::Matrix<float, 6, 1>() << 30, 12, 6, 12, 12, 12).finished();
+  for (int m = 0; m < motion_keys; ++m) {
+    for (int c = 0; c < 6; ++c) motion[static_cast<size_t>(m)][c] = (m == 0 ? 0.f : 1.f) * range[c] * static_cast<float>(2 * unit(rng) - 1);
+  }
+  auto motion_at = [&](double t) {
+    const int m = std::min(motion_keys - 2, static_cast<int>(t / kMotionS));
+    const float s = Smooth(0, 1, static_cast<float>(t / kMotionS - m));
+    return Eigen::Matrix<float, 6, 1>(motion[static_cast<size_t>(m)] +
+                                      s * (motion[static_cast<size_t>(m) + 1] - motion[static_cast<size_t>(m)]));
+  };
+  Performance p;
+  std::vector<int> order(groups.size());
+  int round = 0;
+  size_t next = order.size();
+  for (double start = 0; start < seconds; start += kSequenceS) {
+    if (next == order.size()) {
+      std::iota(order.begin(), order.end(), 0);
+      std::shuffle(order.begin(), order.end(), rng);
+      next = 0;
+      ++round;
+    }
+    const Group& group = groups[static_cast<size_t>(order[next++])];
+    p.sequences.emplace_back(start, absl::StrCat(group.name, "-", round));
+    // Each sequence starts and ends neutral; between, its expressions rise and fall at drawn weights.
+    for (double t = start; t < std::min(seconds, start + kSequenceS) - 1e-9; t += kKeyS) {
+      HeadPose pose;
+      const bool rest = t == start || t + kKeyS >= start + kSequenceS - 1e-9;
+      for (int e : group.expressions) {
+        const double w = unit(rng);  // drawn for every key, so the stream does not depend on which are at rest
+        if (!rest) pose.expression[static_cast<size_t>(e)] = static_cast<float>(0.2 + 0.8 * w);
+      }
+      const Eigen::Matrix<float, 6, 1> m = motion_at(t);
+      pose.rotation_deg = m.head<3>();
+      pose.translation_mm = m.tail<3>();
+      p.keys.emplace_back(t, pose);
+    }
+  }
+  HeadPose last;
+  const Eigen::Matrix<float, 6, 1> m = motion_at(seconds);
+  last.rotation_deg = m.head<3>();
+  last.translation_mm = m.tail<3>();
+  p.keys.emplace_back(seconds, last);
+  return p;
+}
+
 Performance Performance::Default() {
   Performance p;
   auto key = [&](double t, std::initializer_list<std::pair<int, float>> expr, Eigen::Vector3f rot = {0, 0, 0}) {
@@ -761,6 +834,10 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
       t = key["t"].as<double>();
       for (const auto& field : key) {
         const std::string name = field.first.as<std::string>();
+        if (name == "sequence") {
+          p.sequences.emplace_back(t, field.second.as<std::string>());
+          continue;
+        }
         const double v = field.second.as<double>();
         const int e = ExpressionIndex(name);
         if (e >= 0) {
@@ -779,7 +856,7 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
           std::string known;
           for (const char* n : kNames) absl::StrAppend(&known, n, ", ");
           return absl::InvalidArgumentError(
-              absl::StrCat(where, ": unknown field \"", name, "\" (t, ", known, "yaw, pitch, roll, x, y, z)"));
+              absl::StrCat(where, ": unknown field \"", name, "\" (t, ", known, "yaw, pitch, roll, x, y, z, sequence)"));
         }
       }
     } catch (const YAML::Exception& e) {

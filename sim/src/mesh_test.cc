@@ -7,6 +7,7 @@
 #include <cmath>
 #include <fstream>
 #include <iterator>
+#include <map>
 #include <random>
 
 #include "gmock/gmock.h"
@@ -233,6 +234,48 @@ TEST(HeadTest, PerformancesEaseBetweenKeysAndLoadFromYaml) {
   auto bad = Performance::FromYaml(path);
   ASSERT_FALSE(bad.ok());
   EXPECT_THAT(bad.status().message(), HasSubstr("keys[1]: unknown field \"grin\""));
+  {
+    std::ofstream f(path);
+    f << "keys:\n  - {t: 0, sequence: warmup}\n  - {t: 1, jaw_open: 1}\n  - {t: 2, sequence: talk-1}\n";
+  }
+  auto named = Performance::FromYaml(path);
+  ASSERT_TRUE(named.ok()) << named.status();
+  EXPECT_EQ(named->SequenceAt(0.5), "warmup");
+  EXPECT_EQ(named->SequenceAt(2.5), "talk-1");
+  EXPECT_EQ(Performance::Default().SequenceAt(1), "");
+}
+
+TEST(HeadTest, RangeOfMotionWorksEveryExpressionInNamedSequencesUnderHeadMotion) {
+  const Performance p = Performance::RangeOfMotion(7, 180);
+  // 6 s sequences: 30, every group of 8 at least three times, named by group and round.
+  ASSERT_EQ(p.sequences.size(), 30u);
+  EXPECT_EQ(p.SequenceAt(-1), "");
+  std::map<std::string, int> rounds;
+  for (const auto& [start, name] : p.sequences) {
+    const std::string group = name.substr(0, name.rfind('-'));
+    ++rounds[group];
+    EXPECT_EQ(p.SequenceAt(start + 3), name);
+    // Each sequence starts at rest.
+    for (float w : p.At(start).expression) EXPECT_EQ(w, 0.f) << name;
+  }
+  EXPECT_EQ(rounds.size(), 8u);
+  for (const auto& [group, n] : rounds) EXPECT_GE(n, 3) << group;
+  // Every expression reaches a strong weight somewhere, and the head turns and moves well within its range.
+  std::array<float, kExpressionCount> peak{};
+  Eigen::Vector3f max_turn = Eigen::Vector3f::Zero(), max_move = Eigen::Vector3f::Zero();
+  for (double t = 0; t < 180; t += 0.1) {
+    const HeadPose pose = p.At(t);
+    for (int e = 0; e < kExpressionCount; ++e) peak[e] = std::max(peak[e], pose.expression[e]);
+    max_turn = max_turn.cwiseMax(pose.rotation_deg.cwiseAbs());
+    max_move = max_move.cwiseMax(pose.translation_mm.cwiseAbs());
+  }
+  for (int e = 0; e < kExpressionCount; ++e) EXPECT_GT(peak[e], 0.8f) << ExpressionName(e);
+  EXPECT_GT(max_turn.x(), 20);
+  EXPECT_LE(max_turn.x(), 30);
+  EXPECT_GT(max_move.norm(), 8);
+  // The same seed draws the same performance; another draws another.
+  EXPECT_EQ(Performance::RangeOfMotion(7, 180).At(42.3).rotation_deg, p.At(42.3).rotation_deg);
+  EXPECT_NE(Performance::RangeOfMotion(8, 180).At(42.3).rotation_deg, p.At(42.3).rotation_deg);
 }
 
 TEST(HeadTest, PoresAreTwoToTenTexelsAcrossAt4K) {

@@ -118,6 +118,11 @@ absl::Status SimScene::MakeSubject(const std::string& base_dir) {
     performance_ = board_ != nullptr ? BoardSequence() : Performance::Default();
   } else if (config.performance() == "still") {
     performance_.keys = {{0.0, HeadPose{}}};
+  } else if (config.performance() == "range_of_motion") {
+    if (board_ != nullptr) {
+      return absl::InvalidArgumentError("sim.subject.performance: \"range_of_motion\" is a head's, not the board's");
+    }
+    performance_ = Performance::RangeOfMotion(rig_.sim().seed(), kRangeOfMotionS);
   } else {
     STAGE_ASSIGN_OR_RETURN(performance_, Performance::FromYaml(resolve(config.performance())));
   }
@@ -142,6 +147,12 @@ HeadPose SimScene::PoseAt(int64_t frame) const {
   if (model_ == nullptr) return {};
   const double cycle_s = static_cast<double>(timing::CycleLength(schedule_)) / base_.slot_rate_hz();
   return performance_.At((static_cast<double>(frame) + 0.5) * cycle_s);
+}
+
+std::string SimScene::SequenceAt(int64_t frame) const {
+  if (model_ == nullptr) return "";
+  const double cycle_s = static_cast<double>(timing::CycleLength(schedule_)) / base_.slot_rate_hz();
+  return performance_.SequenceAt((static_cast<double>(frame) + 0.5) * cycle_s);
 }
 
 std::shared_ptr<const Subject> SimScene::SubjectAt(int64_t frame) const {

@@ -1,7 +1,9 @@
 // Ground truth of the simulated stage (docs/simulator.md): what processing results are judged against.
 //   DIR/cameras.json                    every camera where it really is (a calibration file, camera_calibration.h)
-//   DIR/frame-NNNNNN/pose.json          expression weights (head), rotation and translation, time; for the
-//                                       calibration board its layout and ChArUco corners (stage frame, mm)
+//   DIR/frame-NNNNNN/pose.json          expression weights (head), rotation and translation, stage_from_head (the
+//                                       head's frame to the stage's, row-major 4 x 4, mm), time, the performance's
+//                                       sequence; for the calibration board its layout and ChArUco corners (stage
+//                                       frame, mm)
 //   DIR/frame-NNNNNN/mesh.obj           the posed subject mesh (stage frame, mm), with texture coordinates
 //   DIR/frame-NNNNNN/uv_position.exr    stage-frame position (mm) per texel of the skin's UV map; alpha 1 where covered
 //   DIR/frame-NNNNNN/<camera>/depth.exr        distance along the camera's optical axis, mm (0: no subject)
@@ -28,6 +30,8 @@ struct GroundTruthOptions {
   // Virtual frames [first, last).
   int64_t first_frame = 0;
   int64_t last_frame = 1;
+  // Every frame_step-th frame of them, from first_frame (1 and up).
+  int64_t frame_step = 1;
   // Camera ids; empty: every camera.
   std::vector<std::string> cameras;
   // Directories are numbered frame - name_offset (a take's frames from 0: its first world frame).
@@ -37,6 +41,9 @@ struct GroundTruthOptions {
   // Every camera's per-pixel maps (depth, normals, materials: two thirds of the time); false: the true cameras and
   // each frame's subject only (`cameras` is then unused).
   bool camera_maps = true;
+  // The posed mesh as mesh.obj (4 MB a frame at the head's default resolution); false: uv_position.exr only holds
+  // the surface (a long performance for a neural asset's dataset).
+  bool meshes = true;
   // Called after each camera of each frame: (done, total).
   std::function<void(int, int)> progress;
 };

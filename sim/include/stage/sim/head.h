@@ -39,12 +39,23 @@ Eigen::Matrix3f PoseRotation(const HeadPose& pose);
 // Keyframes of expression and motion; between keys the pose eases (smoothstep) from one to the next.
 struct Performance {
   std::vector<std::pair<double, HeadPose>> keys;  // by time, seconds
+  // Named stretches of the performance (an expression sequence: "smile-2"), by start time; each lasts until the next
+  // begins. Empty: the performance is not divided.
+  std::vector<std::pair<double, std::string>> sequences;
   // The pose at `t_s` (held before the first key and after the last).
   HeadPose At(double t_s) const;
+  // The sequence `t_s` falls in ("" before the first, or when there are none).
+  std::string SequenceAt(double t_s) const;
   // The shipped script: 4 s through every expression and a turn of the head each way.
   static Performance Default();
-  // A YAML file: `keys: [{t: 0.5, jaw_open: 0.8, yaw: 10, pitch: -5, roll: 0, x: 0, y: 0, z: 0}, ...]`.
-  // Errors name the file and key.
+  // A range-of-motion session of `seconds` (the rig's "range_of_motion": 180 s), drawn from `seed`: sequences of
+  // about 6 s, each working one group of expressions (jaw, smile, blink, brows, frown, pucker, asymmetric, speech;
+  // every group in turn, in a drawn order, round after round) at drawn weights, named "<group>-<round>", while the
+  // head turns (yaw +-30, pitch +-12, roll +-6 degrees) and moves (+-12 mm) slowly throughout. What a neural asset
+  // trains on (docs/asset.md).
+  static Performance RangeOfMotion(uint64_t seed, double seconds);
+  // A YAML file: `keys: [{t: 0.5, jaw_open: 0.8, yaw: 10, pitch: -5, roll: 0, x: 0, y: 0, z: 0}, ...]`; a key may
+  // start a named sequence (`sequence: smile-1`). Errors name the file and key.
   static absl::StatusOr<Performance> FromYaml(const std::string& path);
 };
 

@@ -26,6 +26,9 @@
 
 namespace stage::sim {
 
+// How long the rig's "range_of_motion" performance lasts (Performance::RangeOfMotion), seconds.
+inline constexpr double kRangeOfMotionS = 180;
+
 class SimScene {
  public:
   // `rig` with defaults applied and validated; `patterns` resolved against it; files the rig names (a performance) are
@@ -47,6 +50,8 @@ class SimScene {
   std::shared_ptr<const Subject> SubjectAt(int64_t frame) const;
   // The pose of the head or board in that frame (neutral for the analytic subjects).
   HeadPose PoseAt(int64_t frame) const;
+  // The performance's named sequence that frame falls in ("" when it names none).
+  std::string SequenceAt(int64_t frame) const;
   // The posed model (head or board), or null for the analytic subjects; the head, or the board, or null.
   const RiggedModel* model() const { return model_.get(); }
   const HeadModel* head() const { return head_.get(); }
