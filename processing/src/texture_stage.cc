@@ -22,7 +22,7 @@ namespace fs = std::filesystem;
 
 absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file) {
   std::ifstream in(pose_file);
-  if (!in) return absl::NotFoundError(absl::StrCat(pose_file, ": cannot open the fit's pose"));
+  if (!in) return absl::NotFoundError(absl::StrCat(pose_file, ": cannot open the pose (stage_from_head)"));
   const nlohmann::json j = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
   if (j.is_discarded() || !j.contains("stage_from_head") || !j["stage_from_head"].is_array() ||
       j["stage_from_head"].size() != 16) {

@@ -8,6 +8,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/version.h"
+#include "asset_commands.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/evaluate.h"
 #include "stage/processing/evaluate_assets.h"
@@ -388,6 +389,8 @@ int main(int argc, char** argv) {
   textures.Add(app);
   StabilizeCommand stabilize;
   stabilize.Add(app);
+  stage::process::AssetCommands asset;
+  asset.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -516,6 +519,7 @@ int main(int argc, char** argv) {
   if (*fit.app) return fit.Run();
   if (*textures.app) return textures.Run();
   if (*stabilize.app) return stabilize.Run();
+  if (asset.Parsed()) return asset.Run();
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {

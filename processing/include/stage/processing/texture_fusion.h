@@ -141,7 +141,8 @@ absl::StatusOr<FusedTextures> ReadFusedTextures(const std::string& dir);
 // their size. Errors name the file.
 absl::StatusOr<FusionView> LoadFusionView(const LoadedRig& rig, const CameraCalibration* calibration,
                                           const std::string& dir, const std::string& id);
-// The fit's pose of a frame (its pose.json: stage_from_head) as head_from_stage. Errors name the file.
+// A frame's pose (a pose.json with stage_from_head: the fit's, or the simulator's truth) as head_from_stage. Errors
+// name the file.
 absl::StatusOr<Eigen::Isometry3f> HeadFromStage(const std::string& pose_file);
 
 absl::StatusOr<JobResult> RunTextures(const TexturesJob& job,

@@ -1,0 +1,103 @@
+// A neural asset's dataset (docs/asset.md#the-dataset): a take's frames turned into training samples, each the
+// frame's UV geometry map in the face template's layout (head frame, mm; the head's pose kept apart), with a
+// held-out split as the FaStage paper's: 20 % of the frames in contiguous blocks, and one whole expression sequence
+// never seen in training. The geometry comes from the reconstruction (the template fit's geometry maps) or from the
+// simulator's truth (its UV position maps resampled into the template's layout), chosen by `source`, so the asset
+// can be built before reconstruction is perfect. Written as one array file (stage/storage/array_file.h: HDF5, which
+// h5py reads):
+//   frame            int64 (N)                the take's frame
+//   split            uint8 (N)                SampleSplit
+//   sequence         int32 (N)                index into the description's `sequences`, -1 where none is named
+//   geometry         float32 (N, S, S, 3)     head frame, mm; 0 where not valid
+//   valid            uint8 (N, S, S)          1 where the texel holds the surface's point
+//   stage_from_head  float32 (N, 4, 4)        the head's pose
+//   attributes: format ("fastage-asset-dataset-1"), description (JSON: source, take, size, sequences, the split).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace stage::processing {
+
+// Where a dataset's geometry comes from.
+enum class AssetSource {
+  kTruth,           // the simulator's ground truth (TAKE/ground_truth/frame-NNNNNN/uv_position.exr, pose.json)
+  kReconstruction,  // the template fit (TAKE/derived/fit/frame-NNNNNN/geometry_map.exr, pose.json)
+};
+const char* AssetSourceName(AssetSource source);  // "truth", "reconstruction"
+absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name);
+
+enum class SampleSplit : uint8_t {
+  kTrain = 0,
+  kHeldOutBlock = 1,     // in one of the held-out contiguous blocks
+  kHeldOutSequence = 2,  // in the held-out expression sequence
+};
+const char* SampleSplitName(SampleSplit split);  // "train", "held_out_block", "held_out_sequence"
+
+struct DatasetOptions {
+  std::string take_dir;
+  // The dataset file; empty: TAKE/derived/asset/dataset.h5.
+  std::string output;
+  AssetSource source = AssetSource::kTruth;
+  // Frames [first_frame, last_frame) that the source holds; last_frame < 0: all from first_frame.
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  // Texels across the geometry map (16..1024).
+  int geometry_size = 256;
+  // The share of the frames (without the held-out sequence) held out, as `held_out_blocks` contiguous blocks spread
+  // evenly over the take (0 to 0.5; 1 to 64 blocks).
+  double held_out_fraction = 0.2;
+  int held_out_blocks = 5;
+  // The expression sequence held out whole (a name the simulator's pose files give, "smile-3"); empty: the last one
+  // the frames hold whole (none if the take names fewer than three); "none": none.
+  std::string held_out_sequence;
+  // Called after each frame: (done, total).
+  std::function<void(int64_t, int64_t)> progress;
+
+  absl::Status Validate() const;
+};
+
+struct DatasetSummary {
+  std::string path;
+  AssetSource source = AssetSource::kTruth;
+  int geometry_size = 0;
+  int64_t frames = 0, train = 0, held_out_block = 0, held_out_sequence = 0;
+  std::string sequence;  // held out; empty when none
+  std::vector<std::string> sequences;
+  // Over the frames' valid texels: the mean count per frame, and how far the geometry moves from the dataset's mean
+  // (RMS, mm): what a model of it has to explain.
+  double valid_texels = 0, rms_from_mean_mm = 0;
+};
+
+// Builds the dataset (see above). Errors name the take and what is missing: no frames from the source, a frame's
+// file, a sequence not in the take, a geometry map of another layout.
+absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options);
+
+// A dataset read back whole.
+struct AssetDataset {
+  std::string path;
+  int geometry_size = 0;
+  std::vector<int64_t> frame;
+  std::vector<SampleSplit> split;
+  std::vector<int32_t> sequence;
+  std::vector<std::string> sequences;
+  std::vector<float> geometry;        // frames x size x size x 3
+  std::vector<uint8_t> valid;         // frames x size x size
+  std::vector<float> stage_from_head;  // frames x 16, row-major
+  std::string description;            // the JSON attribute
+  int64_t frames() const { return static_cast<int64_t>(frame.size()); }
+};
+// Errors name the file: not a dataset, arrays of disagreeing lengths.
+absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path);
+
+// The split of `frames` frames (in take order) whose sequence ids are `sequence` (-1: none), holding out sequence
+// `held_out` (-1: none) and `fraction` of the rest in `blocks` even blocks. Exposed for tests.
+std::vector<SampleSplit> SplitFrames(const std::vector<int32_t>& sequence, int32_t held_out, double fraction,
+                                     int blocks);
+
+}  // namespace stage::processing

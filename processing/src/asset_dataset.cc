@@ -1,0 +1,389 @@
+// A neural asset's dataset: see asset_dataset.h.
+#include "stage/processing/asset_dataset.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
+#include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/photometric_stage.h"
+#include "stage/processing/texture_fusion.h"
+#include "stage/processing/uv_geometry.h"
+#include "stage/storage/array_file.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+using storage::ArrayType;
+
+constexpr const char* kFormat = "fastage-asset-dataset-1";
+
+// The frames under `root` (frame-NNNNNN directories) in [first, last) that hold `file`, in order.
+std::vector<int64_t> ListFrames(const std::string& root, const std::string& file, int64_t first, int64_t last) {
+  std::vector<int64_t> frames;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(root, ec)) {
+    const std::string name = entry.path().filename().string();
+    if (name.rfind("frame-", 0) != 0 || name.size() != 12) continue;
+    int64_t f = 0;
+    try {
+      f = std::stoll(name.substr(6));
+    } catch (const std::exception&) {
+      continue;
+    }
+    if (f < first || (last >= 0 && f >= last) || !fs::exists(entry.path() / file)) continue;
+    frames.push_back(f);
+  }
+  std::sort(frames.begin(), frames.end());
+  return frames;
+}
+
+// The texel centre (row, col) of a square map of `size` in its UV layout (row 0 at v = 1).
+Eigen::Vector2f TexelUv(int row, int col, int size) {
+  return {(static_cast<float>(col) + 0.5f) / static_cast<float>(size),
+          1.0f - (static_cast<float>(row) + 0.5f) / static_cast<float>(size)};
+}
+
+// The simulator's UV position map (stage frame, alpha 1 where covered) at `uv` of its layout, interpolated between
+// the four nearest texel centres; false where one of them is not covered.
+bool SamplePositionMap(const Image& map, const Eigen::Vector2f& uv, Eigen::Vector3f* out) {
+  const float x = uv.x() * static_cast<float>(map.width) - 0.5f, y = (1 - uv.y()) * static_cast<float>(map.height) - 0.5f;
+  const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
+  if (x0 < 0 || y0 < 0 || x0 + 1 >= map.width || y0 + 1 >= map.height) return false;
+  const float fx = x - static_cast<float>(x0), fy = y - static_cast<float>(y0);
+  Eigen::Vector3f p = Eigen::Vector3f::Zero();
+  for (int dy = 0; dy < 2; ++dy) {
+    for (int dx = 0; dx < 2; ++dx) {
+      const float* texel = &map.pixels[(static_cast<size_t>(y0 + dy) * map.width + x0 + dx) * 4];
+      if (texel[3] < 1) return false;
+      const float w = (dx ? fx : 1 - fx) * (dy ? fy : 1 - fy);
+      p += w * Eigen::Vector3f(texel[0], texel[1], texel[2]);
+    }
+  }
+  *out = p;
+  return true;
+}
+
+struct FrameGeometry {
+  std::vector<float> points;   // size x size x 3, head frame, mm
+  std::vector<uint8_t> valid;  // size x size
+  Eigen::Matrix4f stage_from_head = Eigen::Matrix4f::Identity();
+};
+
+// The truth's surface in frame `frame_dir` drawn into the template's layout: each texel the template's layout covers
+// (`layout`) takes the truth's point at its place in the head's layout, moved into the head's frame.
+absl::StatusOr<FrameGeometry> TruthGeometry(const FaceTemplate& face, const std::vector<uint8_t>& layout, int size,
+                                            const std::string& frame_dir) {
+  const std::string path = frame_dir + "/uv_position.exr";
+  STAGE_ASSIGN_OR_RETURN(const Image map, ReadImageFile(path));
+  if (map.channels != 4) return absl::InvalidArgumentError(absl::StrCat(path, ": not an RGBA position map"));
+  STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(frame_dir + "/pose.json"));
+  FrameGeometry g;
+  g.points.assign(static_cast<size_t>(size) * size * 3, 0.f);
+  g.valid.assign(static_cast<size_t>(size) * size, 0);
+  g.stage_from_head = head_from_stage.inverse().matrix();
+  for (int row = 0; row < size; ++row) {
+    for (int col = 0; col < size; ++col) {
+      const size_t t = static_cast<size_t>(row) * size + col;
+      Eigen::Vector3f p;
+      if (!layout[t] || !SamplePositionMap(map, face.HeadLayoutUv(TexelUv(row, col, size)), &p)) continue;
+      const Eigen::Vector3f head = head_from_stage * p;
+      std::copy(head.data(), head.data() + 3, &g.points[3 * t]);
+      g.valid[t] = 1;
+    }
+  }
+  return g;
+}
+
+// The fit's geometry map of frame `frame_dir`, resampled to `size` when it has another.
+absl::StatusOr<FrameGeometry> FitGeometry(int size, const std::string& frame_dir) {
+  STAGE_ASSIGN_OR_RETURN(const GeometryMap map, ReadGeometryMap(frame_dir + "/geometry_map.exr"));
+  STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(frame_dir + "/pose.json"));
+  FrameGeometry g;
+  g.points.assign(static_cast<size_t>(size) * size * 3, 0.f);
+  g.valid.assign(static_cast<size_t>(size) * size, 0);
+  g.stage_from_head = head_from_stage.inverse().matrix();
+  for (int row = 0; row < size; ++row) {
+    for (int col = 0; col < size; ++col) {
+      const size_t t = static_cast<size_t>(row) * size + col;
+      std::optional<Eigen::Vector3f> p;
+      if (map.size == size) {
+        if (map.state[t] != TexelState::kEmpty) p = map.points[t];
+      } else {
+        p = SampleGeometryMap(map, TexelUv(row, col, size));
+      }
+      if (!p) continue;
+      std::copy(p->data(), p->data() + 3, &g.points[3 * t]);
+      g.valid[t] = 1;
+    }
+  }
+  return g;
+}
+
+// The sequence each frame's truth names ("" where there is no truth or it names none).
+std::vector<std::string> FrameSequences(const std::string& take_dir, const std::vector<int64_t>& frames) {
+  std::vector<std::string> out;
+  for (int64_t f : frames) {
+    std::ifstream in(FrameDir(take_dir + "/ground_truth", f) + "/pose.json");
+    const nlohmann::json j = in ? nlohmann::json::parse(in, nullptr, false) : nlohmann::json();
+    out.push_back(j.is_object() && j.contains("sequence") && j["sequence"].is_string() ? j["sequence"].get<std::string>()
+                                                                                      : "");
+  }
+  return out;
+}
+
+// The sequence held out: the one named, or the last the frames hold whole (the first and the last named may be cut
+// by the take's ends). -1: none.
+absl::StatusOr<int32_t> HeldOutSequence(const DatasetOptions& options, const std::vector<std::string>& names) {
+  if (options.held_out_sequence == "none") return -1;
+  if (!options.held_out_sequence.empty()) {
+    for (size_t i = 0; i < names.size(); ++i) {
+      if (names[i] == options.held_out_sequence) return static_cast<int32_t>(i);
+    }
+    std::string known;
+    for (const std::string& n : names) absl::StrAppend(&known, known.empty() ? "" : ", ", n);
+    return absl::NotFoundError(absl::StrCat(options.take_dir, ": no frame of sequence \"", options.held_out_sequence,
+                                            "\" (", known.empty() ? "the take names no sequences" : known, ")"));
+  }
+  if (names.size() < 3) return -1;
+  // Sequences are numbered in the order they are first met: the last whole one is the one before the last.
+  return static_cast<int32_t>(names.size()) - 2;
+}
+
+double RmsFromMean(const std::vector<std::vector<float>>& points, const std::vector<std::vector<uint8_t>>& valid) {
+  if (points.empty()) return 0;
+  const size_t n = points[0].size();
+  std::vector<double> sum(n, 0), count(n / 3, 0);
+  for (size_t f = 0; f < points.size(); ++f) {
+    for (size_t t = 0; t < n / 3; ++t) {
+      if (!valid[f][t]) continue;
+      for (int c = 0; c < 3; ++c) sum[3 * t + c] += points[f][3 * t + c];
+      ++count[t];
+    }
+  }
+  double se = 0, m = 0;
+  for (size_t f = 0; f < points.size(); ++f) {
+    for (size_t t = 0; t < n / 3; ++t) {
+      if (!valid[f][t]) continue;
+      for (int c = 0; c < 3; ++c) {
+        const double d = points[f][3 * t + c] - sum[3 * t + c] / count[t];
+        se += d * d;
+      }
+      ++m;
+    }
+  }
+  return m > 0 ? std::sqrt(se / m) : 0;
+}
+
+}  // namespace
+
+const char* AssetSourceName(AssetSource source) {
+  return source == AssetSource::kTruth ? "truth" : "reconstruction";
+}
+
+absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name) {
+  if (name == "truth") return AssetSource::kTruth;
+  if (name == "reconstruction") return AssetSource::kReconstruction;
+  return absl::InvalidArgumentError(absl::StrCat("source \"", name, "\" is not truth or reconstruction"));
+}
+
+const char* SampleSplitName(SampleSplit split) {
+  switch (split) {
+    case SampleSplit::kTrain:
+      return "train";
+    case SampleSplit::kHeldOutBlock:
+      return "held_out_block";
+    case SampleSplit::kHeldOutSequence:
+      return "held_out_sequence";
+  }
+  return "?";
+}
+
+absl::Status DatasetOptions::Validate() const {
+  if (take_dir.empty()) return absl::InvalidArgumentError("dataset: no take directory");
+  if (geometry_size < 16 || geometry_size > 1024) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: geometry size ", geometry_size, " is not in 16..1024"));
+  }
+  if (!(held_out_fraction >= 0 && held_out_fraction <= 0.5)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("dataset: held-out fraction ", held_out_fraction, " is not in [0, 0.5]"));
+  }
+  if (held_out_blocks < 1 || held_out_blocks > 64) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: held-out blocks ", held_out_blocks, " is not in 1..64"));
+  }
+  if (first_frame < 0 || (last_frame >= 0 && last_frame <= first_frame)) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: frames [", first_frame, ", ", last_frame, ") are empty"));
+  }
+  return absl::OkStatus();
+}
+
+std::vector<SampleSplit> SplitFrames(const std::vector<int32_t>& sequence, int32_t held_out, double fraction,
+                                     int blocks) {
+  std::vector<SampleSplit> split(sequence.size(), SampleSplit::kTrain);
+  std::vector<size_t> rest;
+  for (size_t i = 0; i < sequence.size(); ++i) {
+    if (held_out >= 0 && sequence[i] == held_out) {
+      split[i] = SampleSplit::kHeldOutSequence;
+    } else {
+      rest.push_back(i);
+    }
+  }
+  const double n = static_cast<double>(rest.size());
+  const int64_t block = static_cast<int64_t>(std::llround(n * fraction / blocks));
+  if (block == 0) return split;
+  for (int b = 0; b < blocks; ++b) {
+    // Block b centred at (b + 1/2) / blocks of the way through the remaining frames.
+    const int64_t start = std::clamp<int64_t>(static_cast<int64_t>(std::llround((b + 0.5) / blocks * n)) - block / 2, 0,
+                                              static_cast<int64_t>(rest.size()) - block);
+    for (int64_t i = start; i < start + block; ++i) split[rest[static_cast<size_t>(i)]] = SampleSplit::kHeldOutBlock;
+  }
+  return split;
+}
+
+absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  if (!fs::is_directory(options.take_dir)) {
+    return absl::NotFoundError(absl::StrCat(options.take_dir, ": no such take directory"));
+  }
+  const bool truth = options.source == AssetSource::kTruth;
+  const std::string root = options.take_dir + (truth ? "/ground_truth" : "/derived/fit");
+  const std::string file = truth ? "uv_position.exr" : "geometry_map.exr";
+  const std::vector<int64_t> frames = ListFrames(root, file, options.first_frame, options.last_frame);
+  if (frames.empty()) {
+    return absl::NotFoundError(absl::StrCat(root, ": no frame-NNNNNN/", file, " in frames [", options.first_frame, ", ",
+                                            options.last_frame < 0 ? "end" : std::to_string(options.last_frame), ")",
+                                            truth ? " (the take has no ground truth: a real take, or not recorded)"
+                                                  : " (run `stage-process fit` first)"));
+  }
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  const int size = options.geometry_size;
+  // The texels the template's layout covers (with the map's dilation past its edges): the truth is drawn there.
+  STAGE_ASSIGN_OR_RETURN(const GeometryMap layout_map,
+                         MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = size}));
+  std::vector<uint8_t> layout(layout_map.state.size());
+  for (size_t t = 0; t < layout.size(); ++t) layout[t] = layout_map.state[t] != TexelState::kEmpty;
+
+  // Sequences, numbered in the order the frames first meet them.
+  const std::vector<std::string> named = FrameSequences(options.take_dir, frames);
+  std::vector<std::string> sequences;
+  std::vector<int32_t> ids;
+  for (const std::string& name : named) {
+    if (name.empty()) {
+      ids.push_back(-1);
+      continue;
+    }
+    auto it = std::find(sequences.begin(), sequences.end(), name);
+    if (it == sequences.end()) it = sequences.insert(sequences.end(), name);
+    ids.push_back(static_cast<int32_t>(it - sequences.begin()));
+  }
+  STAGE_ASSIGN_OR_RETURN(const int32_t held_out, HeldOutSequence(options, sequences));
+  const std::vector<SampleSplit> split =
+      SplitFrames(ids, held_out, options.held_out_fraction, options.held_out_blocks);
+
+  DatasetSummary summary;
+  summary.path = options.output.empty() ? options.take_dir + "/derived/asset/dataset.h5" : options.output;
+  summary.source = options.source;
+  summary.geometry_size = size;
+  summary.frames = static_cast<int64_t>(frames.size());
+  summary.sequences = sequences;
+  if (held_out >= 0) summary.sequence = sequences[static_cast<size_t>(held_out)];
+  for (SampleSplit s : split) {
+    (s == SampleSplit::kTrain            ? summary.train
+     : s == SampleSplit::kHeldOutBlock ? summary.held_out_block
+                                       : summary.held_out_sequence)++;
+  }
+  {
+    std::error_code ec;
+    fs::create_directories(fs::path(summary.path).parent_path(), ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(summary.path, ": ", ec.message()));
+  }
+  STAGE_ASSIGN_OR_RETURN(auto writer, storage::ArrayFileWriter::Create(summary.path));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("frame", ArrayType::kInt64, {}));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("split", ArrayType::kUint8, {}));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("sequence", ArrayType::kInt32, {}));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("geometry", ArrayType::kFloat32, {size, size, 3}));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("valid", ArrayType::kUint8, {size, size}, /*deflate=*/4));
+  STAGE_RETURN_IF_ERROR(writer->AddArray("stage_from_head", ArrayType::kFloat32, {4, 4}));
+  std::vector<std::vector<float>> points;
+  std::vector<std::vector<uint8_t>> valid;
+  double valid_texels = 0;
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const std::string frame_dir = FrameDir(root, frames[i]);
+    absl::StatusOr<FrameGeometry> g = truth ? TruthGeometry(face, layout, size, frame_dir) : FitGeometry(size, frame_dir);
+    if (!g.ok()) return g.status();
+    const uint8_t s = static_cast<uint8_t>(split[i]);
+    const Eigen::Matrix<float, 4, 4, Eigen::RowMajor> pose = g->stage_from_head;
+    STAGE_RETURN_IF_ERROR(writer->Append("frame", &frames[i]));
+    STAGE_RETURN_IF_ERROR(writer->Append("split", &s));
+    STAGE_RETURN_IF_ERROR(writer->Append("sequence", &ids[i]));
+    STAGE_RETURN_IF_ERROR(writer->Append("geometry", g->points.data()));
+    STAGE_RETURN_IF_ERROR(writer->Append("valid", g->valid.data()));
+    STAGE_RETURN_IF_ERROR(writer->Append("stage_from_head", pose.data()));
+    valid_texels += static_cast<double>(std::count(g->valid.begin(), g->valid.end(), 1));
+    points.push_back(std::move(g->points));
+    valid.push_back(std::move(g->valid));
+    if (options.progress) options.progress(static_cast<int64_t>(i) + 1, static_cast<int64_t>(frames.size()));
+  }
+  summary.valid_texels = valid_texels / static_cast<double>(frames.size());
+  summary.rms_from_mean_mm = RmsFromMean(points, valid);
+  nlohmann::json d;
+  d["source"] = AssetSourceName(options.source);
+  d["take"] = fs::absolute(options.take_dir).lexically_normal().string();
+  d["geometry_size"] = size;
+  d["template"] = face.source;
+  d["sequences"] = sequences;
+  d["held_out_sequence"] = summary.sequence;
+  d["held_out_fraction"] = options.held_out_fraction;
+  d["held_out_blocks"] = options.held_out_blocks;
+  d["splits"] = {{"train", summary.train},
+                 {"held_out_block", summary.held_out_block},
+                 {"held_out_sequence", summary.held_out_sequence}};
+  STAGE_RETURN_IF_ERROR(writer->SetAttribute("format", kFormat));
+  STAGE_RETURN_IF_ERROR(writer->SetAttribute("description", d.dump()));
+  STAGE_RETURN_IF_ERROR(writer->Close());
+  return summary;
+}
+
+absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
+  STAGE_ASSIGN_OR_RETURN(auto reader, storage::ArrayFileReader::Open(path));
+  auto format = reader->Attribute("format");
+  if (!format.ok() || *format != kFormat) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a FaStage asset dataset (format \"",
+                                                   format.ok() ? *format : "", "\", expected ", kFormat, ")"));
+  }
+  AssetDataset d;
+  d.path = path;
+  STAGE_ASSIGN_OR_RETURN(d.description, reader->Attribute("description"));
+  const nlohmann::json j = nlohmann::json::parse(d.description, nullptr, false);
+  if (!j.is_object() || !j.contains("sequences") || !j.contains("geometry_size")) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": the description is not a dataset's"));
+  }
+  d.sequences = j["sequences"].get<std::vector<std::string>>();
+  d.geometry_size = j["geometry_size"].get<int>();
+  STAGE_ASSIGN_OR_RETURN(d.frame, reader->ReadAll<int64_t>("frame"));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<uint8_t> split, reader->ReadAll<uint8_t>("split"));
+  STAGE_ASSIGN_OR_RETURN(d.sequence, reader->ReadAll<int32_t>("sequence"));
+  STAGE_ASSIGN_OR_RETURN(d.geometry, reader->ReadAll<float>("geometry"));
+  STAGE_ASSIGN_OR_RETURN(d.valid, reader->ReadAll<uint8_t>("valid"));
+  STAGE_ASSIGN_OR_RETURN(d.stage_from_head, reader->ReadAll<float>("stage_from_head"));
+  const size_t n = d.frame.size(), texels = static_cast<size_t>(d.geometry_size) * d.geometry_size;
+  if (split.size() != n || d.sequence.size() != n || d.geometry.size() != n * texels * 3 ||
+      d.valid.size() != n * texels || d.stage_from_head.size() != n * 16) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": arrays of disagreeing lengths"));
+  }
+  for (uint8_t s : split) {
+    if (s > 2) return absl::InvalidArgumentError(absl::StrCat(path, ": split value ", s, " is not 0, 1 or 2"));
+    d.split.push_back(static_cast<SampleSplit>(s));
+  }
+  return d;
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,145 @@
+// The neural asset's dataset on a made-up take: a truth whose surface is a known function of the head's layout (so
+// the expected geometry is exact), frames named into sequences; the split, the file and the errors.
+#include "stage/processing/asset_dataset.h"
+
+#include <Eigen/Geometry>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
+#include "stage/processing/photometric_stage.h"
+
+namespace stage::processing {
+namespace {
+
+using ::testing::HasSubstr;
+
+// The made-up truth's surface: linear in the head's layout, so bilinear interpolation between texels is exact.
+Eigen::Vector3f Surface(const Eigen::Vector2f& uv) { return {200 * uv.x() - 100, 150 * uv.y() - 60, 80 + 30 * uv.x()}; }
+
+Eigen::Isometry3f FramePose(int64_t frame) {
+  Eigen::Isometry3f pose = Eigen::Isometry3f::Identity();
+  pose.linear() = Eigen::AngleAxisf(0.01f * static_cast<float>(frame), Eigen::Vector3f::UnitY()).toRotationMatrix();
+  pose.translation() = Eigen::Vector3f(static_cast<float>(frame), 2, -3);
+  return pose;
+}
+
+// A take of `frames` frames of truth (a 128-texel position map each), sequences of 10 frames named "seq-K".
+std::string MakeTake(const std::string& name, int frames) {
+  const std::string take = ::testing::TempDir() + "/" + name;
+  std::filesystem::remove_all(take);
+  constexpr int kSize = 128;
+  for (int f = 0; f < frames; ++f) {
+    const std::string dir = FrameDir(take + "/ground_truth", f);
+    std::filesystem::create_directories(dir);
+    const Eigen::Isometry3f stage_from_head = FramePose(f);
+    Image map(kSize, kSize, 4);
+    for (int y = 0; y < kSize; ++y) {
+      for (int x = 0; x < kSize; ++x) {
+        const Eigen::Vector2f uv((x + 0.5f) / kSize, 1 - (y + 0.5f) / kSize);
+        const Eigen::Vector3f p = stage_from_head * Surface(uv);
+        float* t = map.at(x, y);
+        t[0] = p.x(), t[1] = p.y(), t[2] = p.z(), t[3] = 1;
+      }
+    }
+    EXPECT_TRUE(WriteExr(dir + "/uv_position.exr", map).ok());
+    nlohmann::json j;
+    j["sequence"] = "seq-" + std::to_string(f / 10);
+    for (int i = 0; i < 16; ++i) j["stage_from_head"].push_back(stage_from_head.matrix()(i / 4, i % 4));
+    std::ofstream(dir + "/pose.json") << j.dump();
+  }
+  return take;
+}
+
+TEST(AssetDatasetTest, TheTruthIsDrawnIntoTheTemplatesLayoutInTheHeadsFrameAndSplit) {
+  const std::string take = MakeTake("asset-take", 50);
+  DatasetOptions options{.take_dir = take, .geometry_size = 64};
+  int64_t calls = 0;
+  options.progress = [&](int64_t done, int64_t total) {
+    ++calls;
+    EXPECT_EQ(total, 50);
+  };
+  auto summary = BuildAssetDataset(options);
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(calls, 50);
+  EXPECT_EQ(summary->path, take + "/derived/asset/dataset.h5");
+  EXPECT_EQ(summary->frames, 50);
+  // Five sequences; the last whole one (seq-3) held out, then 20 % of the other 40 frames in 5 blocks of 2.
+  EXPECT_EQ(summary->sequences.size(), 5u);
+  EXPECT_EQ(summary->sequence, "seq-3");
+  EXPECT_EQ(summary->held_out_sequence, 10);
+  EXPECT_EQ(summary->held_out_block, 10);
+  EXPECT_EQ(summary->train, 30);
+
+  auto dataset = ReadAssetDataset(summary->path);
+  ASSERT_TRUE(dataset.ok()) << dataset.status();
+  ASSERT_EQ(dataset->frames(), 50);
+  EXPECT_EQ(dataset->geometry_size, 64);
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  int64_t valid = 0;
+  double worst = 0;
+  for (int64_t i = 0; i < 50; i += 7) {
+    EXPECT_EQ(dataset->frame[i], i);
+    EXPECT_EQ(dataset->split[i] == SampleSplit::kHeldOutSequence, i >= 30 && i < 40) << i;
+    for (int t = 0; t < 64 * 64; ++t) {
+      if (!dataset->valid[i * 64 * 64 + t]) continue;
+      ++valid;
+      // The head frame's point is the surface at the texel's place in the head's layout: the pose is taken out.
+      const Eigen::Vector2f uv((t % 64 + 0.5f) / 64, 1 - (t / 64 + 0.5f) / 64);
+      const Eigen::Vector3f expected = Surface(face->HeadLayoutUv(uv));
+      const Eigen::Vector3f got = Eigen::Map<const Eigen::Vector3f>(&dataset->geometry[(i * 64 * 64 + t) * 3]);
+      worst = std::max(worst, static_cast<double>((got - expected).norm()));
+    }
+    Eigen::Matrix4f pose;
+    for (int k = 0; k < 16; ++k) pose(k / 4, k % 4) = dataset->stage_from_head[i * 16 + k];
+    EXPECT_TRUE(pose.isApprox(FramePose(i).matrix(), 1e-5f)) << i;
+  }
+  EXPECT_LT(worst, 1e-3);
+  // The template's layout covers most of the square (its face and the dilation past its edges).
+  EXPECT_GT(valid, 8 * 64 * 64 / 2);
+  EXPECT_GT(summary->rms_from_mean_mm, 0);  // the truth is the same surface every frame, but numbers differ by rounding
+  EXPECT_LT(summary->rms_from_mean_mm, 1e-3);
+}
+
+TEST(AssetDatasetTest, TheSplitHoldsOutOneSequenceWholeAndEvenContiguousBlocks) {
+  std::vector<int32_t> sequence(200);
+  for (int i = 0; i < 200; ++i) sequence[i] = i / 25;
+  const std::vector<SampleSplit> split = SplitFrames(sequence, 6, 0.2, 5);
+  int held_sequence = 0, held_block = 0, runs = 0;
+  for (size_t i = 0; i < split.size(); ++i) {
+    held_sequence += split[i] == SampleSplit::kHeldOutSequence;
+    held_block += split[i] == SampleSplit::kHeldOutBlock;
+    if (split[i] == SampleSplit::kHeldOutBlock && (i == 0 || split[i - 1] != SampleSplit::kHeldOutBlock)) ++runs;
+    EXPECT_EQ(split[i] == SampleSplit::kHeldOutSequence, sequence[i] == 6) << i;
+  }
+  EXPECT_EQ(held_sequence, 25);
+  EXPECT_EQ(held_block, 35);  // 20 % of 175, in 5 blocks of 7
+  EXPECT_EQ(runs, 5);
+  // Nothing held out without a sequence and with no fraction.
+  for (SampleSplit s : SplitFrames(sequence, -1, 0, 5)) EXPECT_EQ(s, SampleSplit::kTrain);
+}
+
+TEST(AssetDatasetTest, ErrorsNameTheTakeTheSequenceAndTheFile) {
+  EXPECT_THAT(BuildAssetDataset({.take_dir = ::testing::TempDir() + "/no-take"}).status().message(),
+              HasSubstr("no-take: no such take directory"));
+  const std::string take = MakeTake("asset-errors", 12);
+  EXPECT_THAT(BuildAssetDataset({.take_dir = take, .held_out_sequence = "smile-9"}).status().message(),
+              HasSubstr("no frame of sequence \"smile-9\" (seq-0, seq-1)"));
+  EXPECT_THAT(BuildAssetDataset({.take_dir = take, .source = AssetSource::kReconstruction}).status().message(),
+              HasSubstr("run `stage-process fit` first"));
+  EXPECT_THAT(BuildAssetDataset({.take_dir = take, .geometry_size = 8}).status().message(),
+              HasSubstr("geometry size 8"));
+  std::filesystem::remove(FrameDir(take + "/ground_truth", 3) + "/pose.json");
+  EXPECT_THAT(BuildAssetDataset({.take_dir = take, .held_out_sequence = "none"}).status().message(),
+              HasSubstr("frame-000003/pose.json"));
+  EXPECT_THAT(ReadAssetDataset(take + "/ground_truth/frame-000000/uv_position.exr").status().message(),
+              HasSubstr("not an HDF5 file"));
+}
+
+}  // namespace
+}  // namespace stage::processing
