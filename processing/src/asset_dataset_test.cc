@@ -4,14 +4,12 @@
 
 #include <Eigen/Geometry>
 #include <filesystem>
-#include <fstream>
-#include <nlohmann/json.hpp>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/processing/face_template.h"
-#include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
+#include "asset_test_support.h"
 
 namespace stage::processing {
 namespace {
@@ -21,38 +19,8 @@ using ::testing::HasSubstr;
 // The made-up truth's surface: linear in the head's layout, so bilinear interpolation between texels is exact.
 Eigen::Vector3f Surface(const Eigen::Vector2f& uv) { return {200 * uv.x() - 100, 150 * uv.y() - 60, 80 + 30 * uv.x()}; }
 
-Eigen::Isometry3f FramePose(int64_t frame) {
-  Eigen::Isometry3f pose = Eigen::Isometry3f::Identity();
-  pose.linear() = Eigen::AngleAxisf(0.01f * static_cast<float>(frame), Eigen::Vector3f::UnitY()).toRotationMatrix();
-  pose.translation() = Eigen::Vector3f(static_cast<float>(frame), 2, -3);
-  return pose;
-}
-
-// A take of `frames` frames of truth (a 128-texel position map each), sequences of 10 frames named "seq-K".
 std::string MakeTake(const std::string& name, int frames) {
-  const std::string take = ::testing::TempDir() + "/" + name;
-  std::filesystem::remove_all(take);
-  constexpr int kSize = 128;
-  for (int f = 0; f < frames; ++f) {
-    const std::string dir = FrameDir(take + "/ground_truth", f);
-    std::filesystem::create_directories(dir);
-    const Eigen::Isometry3f stage_from_head = FramePose(f);
-    Image map(kSize, kSize, 4);
-    for (int y = 0; y < kSize; ++y) {
-      for (int x = 0; x < kSize; ++x) {
-        const Eigen::Vector2f uv((x + 0.5f) / kSize, 1 - (y + 0.5f) / kSize);
-        const Eigen::Vector3f p = stage_from_head * Surface(uv);
-        float* t = map.at(x, y);
-        t[0] = p.x(), t[1] = p.y(), t[2] = p.z(), t[3] = 1;
-      }
-    }
-    EXPECT_TRUE(WriteExr(dir + "/uv_position.exr", map).ok());
-    nlohmann::json j;
-    j["sequence"] = "seq-" + std::to_string(f / 10);
-    for (int i = 0; i < 16; ++i) j["stage_from_head"].push_back(stage_from_head.matrix()(i / 4, i % 4));
-    std::ofstream(dir + "/pose.json") << j.dump();
-  }
-  return take;
+  return asset_testing::MakeTruthTake(name, frames, [](const Eigen::Vector2f& uv, int) { return Surface(uv); });
 }
 
 TEST(AssetDatasetTest, TheTruthIsDrawnIntoTheTemplatesLayoutInTheHeadsFrameAndSplit) {
@@ -97,7 +65,7 @@ TEST(AssetDatasetTest, TheTruthIsDrawnIntoTheTemplatesLayoutInTheHeadsFrameAndSp
     }
     Eigen::Matrix4f pose;
     for (int k = 0; k < 16; ++k) pose(k / 4, k % 4) = dataset->stage_from_head[i * 16 + k];
-    EXPECT_TRUE(pose.isApprox(FramePose(i).matrix(), 1e-5f)) << i;
+    EXPECT_TRUE(pose.isApprox(asset_testing::MadeUpPose(i).matrix(), 1e-5f)) << i;
   }
   EXPECT_LT(worst, 1e-3);
   // The template's layout covers most of the square (its face and the dilation past its edges).

@@ -16,6 +16,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/logging.h"
+#include "torch_support.h"
 
 // OpenBLAS, linked ahead of the reference BLAS Debian's libtorch names (processing/CMakeLists.txt).
 extern "C" void openblas_set_num_threads(int threads);
@@ -121,15 +122,6 @@ torch::Tensor Warp(const torch::Tensor& image, const torch::Tensor& flow) {
 torch::Tensor Charbonnier(const torch::Tensor& r) { return (r.pow(2) + kCharbonnierEps * kCharbonnierEps).sqrt(); }
 
 // A torch exception (c10::Error, std::bad_alloc) as a status: nothing of torch's throws past this file.
-absl::Status TorchError(const std::string& doing, const std::exception& e) {
-  const std::string what = e.what();
-  const std::string first_line = what.substr(0, what.find('\n'));
-  if (dynamic_cast<const std::bad_alloc*>(&e) != nullptr || first_line.find("alloc") != std::string::npos) {
-    return absl::ResourceExhaustedError(absl::StrCat("warp net: out of memory ", doing, ": ", first_line));
-  }
-  return absl::InternalError(absl::StrCat("warp net: ", doing, ": ", first_line));
-}
-
 torch::Tensor Pool(const torch::Tensor& t, int64_t k) {
   return k == 1 ? t : nnf::avg_pool2d(t, nnf::AvgPool2dFuncOptions(k).stride(k));
 }
@@ -176,6 +168,24 @@ int TorchThreadCount(int threads) {
                                                              : static_cast<int>(std::thread::hardware_concurrency());
   return std::max(1, n);
 }
+
+namespace internal {
+
+absl::Status TorchError(const std::string& net, const std::string& doing, const std::exception& e) {
+  const std::string what = e.what();
+  const std::string first_line = what.substr(0, what.find('\n'));
+  if (dynamic_cast<const std::bad_alloc*>(&e) != nullptr || first_line.find("alloc") != std::string::npos) {
+    return absl::ResourceExhaustedError(absl::StrCat(net, ": out of memory ", doing, ": ", first_line));
+  }
+  return absl::InternalError(absl::StrCat(net, ": ", doing, ": ", first_line));
+}
+
+std::mutex& TorchSeedMutex() {
+  static std::mutex mutex;
+  return mutex;
+}
+
+}  // namespace internal
 
 int SetTorchThreads(int threads) {
   const int n = TorchThreadCount(threads);
@@ -275,14 +285,13 @@ absl::StatusOr<std::unique_ptr<WarpNet>> WarpNet::Create(const WarpNetOptions& o
     {
       // Torch's generator is the process's: a worker's concurrent jobs must not draw between another's seeding and
       // its weights.
-      static std::mutex seeding;
-      std::lock_guard<std::mutex> lock(seeding);
+      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
       torch::manual_seed(options.seed);
       impl->net = UNet(options.levels, options.base_channels);
     }
     return std::unique_ptr<WarpNet>(new WarpNet(std::move(impl)));
   } catch (const std::exception& e) {
-    return TorchError("creating the net", e);
+    return internal::TorchError("warp net", "creating the net", e);
   }
 }
 
@@ -359,7 +368,7 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
     }
     return absl::OkStatus();
   } catch (const std::exception& e) {
-    return TorchError("training", e);
+    return internal::TorchError("warp net", "training", e);
   }
 }
 
@@ -383,7 +392,7 @@ absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const
     const auto [flow, wrinkle] = impl_->Run(ToTensor(frame), ToTensor(reference), b);
     return WarpNetPrediction{ToImage(flow), ToImage(wrinkle)};
   } catch (const std::exception& e) {
-    return TorchError("predicting", e);
+    return internal::TorchError("warp net", "predicting", e);
   }
 }
 

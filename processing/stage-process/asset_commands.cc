@@ -4,6 +4,8 @@
 #include <iostream>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "stage/common/cli.h"
 
 namespace stage::process {
@@ -15,8 +17,8 @@ constexpr const char* kProgram = "stage-process";
 
 void AssetCommands::Add(CLI::App& parent) {
   app_ = parent.add_subcommand("asset",
-                               "The neural facial asset (docs/asset.md): its dataset from a take, and (to come) its "
-                               "training, inference and evaluation");
+                               "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
+                               "geometry VAE (the expression and texture networks, inference and evaluation are to come)");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -48,12 +50,55 @@ void AssetCommands::Add(CLI::App& parent) {
                              "The expression sequence held out whole (e.g. smile-3; default: the last the take holds "
                              "whole; none: no sequence)");
   build_dataset_->add_flag("--json", json_, "Print the summary as JSON on stdout");
+  AddTrain();
+}
+
+void AssetCommands::AddTrain() {
+  processing::AssetTrainJob& job = train_job_;
+  processing::GeometryVaeOptions& g = job.geometry;
+  train_ = app_->add_subcommand(
+      "train",
+      "Trains a network of the asset on a dataset (build-dataset's), resumably: checkpoints, loss.csv and loss.png, "
+      "and at the end the net and its error on the held-out frames beside PCA's and the neutral frame's "
+      "(docs/asset.md#training)");
+  train_->add_option("--dataset", job.dataset, "The dataset file (build-dataset's)")->required();
+  train_->add_option("--network", network_, "The network: geometry (the geometry VAE; the others are to come)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"geometry"}));
+  train_->add_option("--output", job.output_dir, "The run's directory (default: the dataset's directory/geometry)");
+  train_->add_option("--iterations", job.iterations, "Adam steps")->capture_default_str()->check(CLI::Range(1, 10000000));
+  train_->add_option("--batch", job.batch, "Maps a step")->capture_default_str()->check(CLI::Range(1, 1024));
+  train_->add_option("--learning-rate", job.learning_rate, "Adam's rate (the last 30 % of the steps at a fifth)")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  train_->add_option("--checkpoint-every", job.checkpoint_every, "Steps between checkpoints")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  train_->add_flag("--resume", job.resume, "Continue from the run directory's checkpoint (same options)");
+  train_->add_option("--input-size", g.input_size, "Texels across the maps the net sees (the dataset's must divide)")
+      ->capture_default_str();
+  train_->add_option("--levels", g.levels, "Stride-2 levels of the encoder and decoder")->capture_default_str();
+  train_->add_option("--base-channels", g.base_channels, "Channels at full resolution")->capture_default_str();
+  train_->add_option("--max-channels", g.max_channels, "Channels at most")->capture_default_str();
+  train_->add_option("--geometry-latent", g.geometry_latent, "Size of the geometry latent")->capture_default_str();
+  train_->add_option("--pose-latent", g.pose_latent, "Size of the pose latent")->capture_default_str();
+  train_->add_option("--kl-weight", g.kl_weight, "Weight of the KL terms")->capture_default_str();
+  train_->add_option("--augment-rotation", job.augment_rotation_deg, "Random turns of the training maps, degrees")
+      ->capture_default_str();
+  train_->add_option("--augment-translation", job.augment_translation_mm, "Random shifts of the training maps, mm")
+      ->capture_default_str();
+  train_->add_option("--threads", g.threads, "Torch's threads (0: the cores this process may use)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  train_->add_option("--seed", g.seed, "The weights' initialization and the batches' draws")->capture_default_str();
+  train_->add_flag("--json", json_, "Print the result as JSON on stdout");
 }
 
 bool AssetCommands::Parsed() const { return app_ != nullptr && app_->parsed(); }
 
 int AssetCommands::Run() {
   if (build_dataset_->parsed()) return BuildDataset();
+  if (train_->parsed()) return Train();
   return 0;
 }
 
@@ -90,6 +135,40 @@ int AssetCommands::BuildDataset() {
               << (summary->sequence.empty() ? " (none)" : " \"" + summary->sequence + "\"") << "; "
               << static_cast<int64_t>(summary->valid_texels) << " texels a frame, " << summary->rms_from_mean_mm
               << " mm RMS about the mean\n";
+  }
+  return 0;
+}
+
+}  // namespace stage::process
+
+namespace stage::process {
+
+int AssetCommands::Train() {
+  ProgressLine bar("steps");
+  train_job_.progress = [&bar](int64_t step, int64_t total, const processing::GeometryLosses& l) {
+    if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
+    return true;
+  };
+  auto result = processing::TrainGeometryAsset(train_job_);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  if (json_) {
+    nlohmann::json j = nlohmann::json::parse(processing::TrainedEvaluationJson(result->evaluation));
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"steps", result->steps},
+                                {"resumed_from", result->resumed_from},
+                                {"parameters", result->parameters},
+                                {"scale_mm", result->scale_mm},
+                                {"final_loss", result->losses.empty() ? 0.0 : result->losses.back().total},
+                                {"evaluation", j}}
+                     .dump()
+              << "\n";
+  } else {
+    std::cout << "geometry VAE (" << result->parameters << " weights) trained " << result->steps << " steps"
+              << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "")
+              << " into " << result->output_dir << "\n"
+              << "The maps encoded unmoved and decoded, against the truth (mm, at the net's resolution):\n"
+              << processing::FormatTrainedEvaluation(result->evaluation);
   }
   return 0;
 }

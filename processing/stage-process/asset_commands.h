@@ -4,6 +4,7 @@
 #include <CLI/CLI.hpp>
 
 #include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_train.h"
 
 namespace stage::process {
 
@@ -15,10 +16,15 @@ class AssetCommands {
   int Run();
 
  private:
+  void AddTrain();
   int BuildDataset();
+  int Train();
 
   CLI::App* app_ = nullptr;
   CLI::App* build_dataset_ = nullptr;
+  CLI::App* train_ = nullptr;
+  processing::AssetTrainJob train_job_;
+  std::string network_ = "geometry";
   processing::DatasetOptions dataset_;
   std::string frames_ = "0:", source_ = "truth";
   bool json_ = false;

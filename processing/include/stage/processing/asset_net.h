@@ -1,0 +1,105 @@
+// The neural asset's networks (docs/asset.md#the-networks), behind a torch-free interface: processing/src/asset_net.cc
+// is the one translation unit that includes torch's headers for them. Callers hand in batches as plain arrays (NCHW
+// floats, millimetres) with every random draw already made (the augmentation, the reparameterization's noise), so
+// that the training's randomness is the caller's one generator: a run is the same for a seed and a thread count, and
+// resumes from a checkpoint bit for bit.
+//
+// The geometry VAE (the FaStage paper's section 4.3): an encoder of a UV geometry map (3 channels, x y z in mm, and
+// a validity channel) to a geometry latent and a pose latent; a decoder of the geometry latent to the map in the
+// head's frame (canonical); a small MLP of the pose latent to a rotation (the 6D representation, Zhou et al. 2019)
+// and a translation applied to the decoded map. Training shows it maps under random rigid motions (the caller's
+// augmentation): the decoded map must be the unmoved one (the canonical loss), and the moved decoded map the moved
+// input (the posed loss), so the geometry latent cannot hold the pose.
+//
+// One step of our own before the encoder: each input map is first aligned rigidly onto the training maps' mean
+// (least squares over its valid texels, the Kabsch solution; no weights), and the pose MLP predicts the residual
+// motion on top of that alignment undone. Without it the small nets this project trains on CPUs spent their capacity
+// undoing the augmentation: on the unit test's made-up performance, held-out maps came back at 2.7 mm RMS after 300
+// steps at +-5 degrees of augmentation (0.35 mm with none); aligned first, 0.43 mm at +-5 and 0.58 mm at +-15
+// degrees (docs/asset.md#the-geometry-vae).
+//
+// Losses, over valid texels, in units of the dataset's spread (`scale`, mm):
+//   canonical   mean |decode(z_geometry) - canonical|^2
+//   posed       mean |R decode(z_geometry) + t - posed|^2 (the decoded map's gradient stopped: this term trains the
+//               pose, the canonical term the geometry)
+//   kl          the latents' KL divergence from N(0, I), summed over latent dimensions, mean over the batch
+//   total       canonical + posed + kl_weight * kl
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace stage::processing {
+
+struct GeometryVaeOptions {
+  // Texels across the maps the net sees (32..512, divisible by 2^levels).
+  int input_size = 128;
+  // Stride-2 levels of the encoder (and upsampling levels of the decoder), 2..7.
+  int levels = 5;
+  // Channels at full resolution, doubled at each level below up to max_channels (4..256).
+  int base_channels = 8;
+  int max_channels = 128;
+  int geometry_latent = 32;  // 1..1024
+  int pose_latent = 8;       // 1..64
+  double kl_weight = 1e-4;   // >= 0
+  // Threads for torch's loops (0: the cores this process may run on; SetTorchThreads).
+  int threads = 0;
+  uint64_t seed = 1;  // the weights' initialization
+  absl::Status Validate() const;
+};
+
+// One training batch (B maps of input_size^2 texels; the caller's draws).
+struct GeometryBatch {
+  int batch = 0;
+  std::vector<float> posed;      // B x 3 x S x S, mm: the input moved by the augmentation
+  std::vector<float> canonical;  // B x 3 x S x S, mm: the input as it is (head frame)
+  std::vector<float> valid;      // B x 1 x S x S, 1 or 0
+  std::vector<float> noise;      // B x (geometry_latent + pose_latent): N(0, 1) draws for the reparameterization
+};
+
+struct GeometryLosses {
+  double total = 0, canonical = 0, posed = 0, kl = 0;
+};
+
+class GeometryVae {
+ public:
+  // A new net; `mean` (3 x S x S, mm: the training maps' mean) and `scale` (mm, > 0: their spread about it) are its
+  // inputs' normalization, kept in its weights. Errors: options out of range, a mean of another size.
+  static absl::StatusOr<std::unique_ptr<GeometryVae>> Create(const GeometryVaeOptions& options,
+                                                             const std::vector<float>& mean, float scale);
+  ~GeometryVae();
+  GeometryVae(const GeometryVae&) = delete;
+  GeometryVae& operator=(const GeometryVae&) = delete;
+
+  // One Adam step at `learning_rate` on the batch. Errors: arrays of the wrong size.
+  absl::StatusOr<GeometryLosses> TrainStep(const GeometryBatch& batch, double learning_rate);
+  // The latents' means of `batch` maps (B x 3 x S x S, mm; valid B x S x S): B x (geometry_latent + pose_latent).
+  absl::StatusOr<std::vector<float>> Encode(const std::vector<float>& maps, const std::vector<float>& valid,
+                                            int batch) const;
+  // The canonical maps (B x 3 x S x S, mm) of `batch` geometry latents (B x geometry_latent).
+  absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& geometry_latents, int batch) const;
+  // The maps decoded and moved back where the inputs are (B x 3 x S x S, mm): the latents' means decoded, the pose
+  // latent's residual motion and the alignment undone.
+  absl::StatusOr<std::vector<float>> Reposed(const std::vector<float>& maps, const std::vector<float>& valid,
+                                             int batch) const;
+
+  // The weights and the optimizer's state (a torch archive). Load refuses a file of another net's shape
+  // (FailedPrecondition, naming the file).
+  absl::Status Save(const std::string& path) const;
+  absl::Status Load(const std::string& path);
+
+  const GeometryVaeOptions& options() const;
+  int64_t parameter_count() const;
+
+ private:
+  struct Impl;
+  explicit GeometryVae(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace stage::processing

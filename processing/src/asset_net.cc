@@ -1,0 +1,378 @@
+// The neural asset's networks (docs/asset.md#the-networks): see asset_net.h. With warp_net.cc, the only sources that
+// include torch's headers.
+#include "stage/processing/asset_net.h"
+
+#include <torch/torch.h>
+
+#include <algorithm>
+#include <filesystem>
+
+#include "absl/strings/str_cat.h"
+#include "stage/processing/warp_net.h"
+#include "torch_support.h"
+
+namespace stage::processing {
+namespace {
+
+namespace nnf = torch::nn::functional;
+constexpr const char* kNet = "geometry VAE";
+
+torch::Tensor Leaky(const torch::Tensor& x) {
+  return nnf::leaky_relu(x, nnf::LeakyReLUFuncOptions().negative_slope(0.1));
+}
+
+int Channels(const GeometryVaeOptions& o, int level) {
+  return std::min(o.max_channels, o.base_channels << std::min(level, 20));
+}
+
+// Map (3 channels, normalized, and validity) -> the latents' means and log-variances.
+struct EncoderImpl : torch::nn::Module {
+  explicit EncoderImpl(const GeometryVaeOptions& o) {
+    stem = register_module("stem", torch::nn::Conv2d(torch::nn::Conv2dOptions(4, Channels(o, 0), 3).padding(1)));
+    for (int i = 0; i < o.levels; ++i) {
+      downs.push_back(register_module(
+          "down" + std::to_string(i),
+          torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, i), Channels(o, i + 1), 3).stride(2).padding(1))));
+    }
+    const int side = o.input_size >> o.levels;
+    head = register_module(
+        "head", torch::nn::Linear(Channels(o, o.levels) * side * side, 2 * (o.geometry_latent + o.pose_latent)));
+  }
+  torch::Tensor forward(torch::Tensor x) {
+    x = Leaky(stem(x));
+    for (auto& d : downs) x = Leaky(d(x));
+    return head(x.flatten(1));
+  }
+  torch::nn::Conv2d stem{nullptr};
+  std::vector<torch::nn::Conv2d> downs;
+  torch::nn::Linear head{nullptr};
+};
+TORCH_MODULE(Encoder);
+
+// Geometry latent -> the normalized canonical map.
+struct DecoderImpl : torch::nn::Module {
+  explicit DecoderImpl(const GeometryVaeOptions& o) : levels(o.levels), side(o.input_size >> o.levels) {
+    top_channels = Channels(o, o.levels);
+    in = register_module("input", torch::nn::Linear(o.geometry_latent, top_channels * side * side));
+    for (int i = o.levels - 1; i >= 0; --i) {
+      ups.push_back(register_module(
+          "up" + std::to_string(i),
+          torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, i + 1), Channels(o, i), 3).padding(1))));
+    }
+    out = register_module("out", torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, 0), 3, 3).padding(1)));
+  }
+  torch::Tensor forward(const torch::Tensor& z) {
+    torch::Tensor x = Leaky(in(z)).view({z.size(0), top_channels, side, side});
+    for (auto& u : ups) {
+      x = nnf::interpolate(x, nnf::InterpolateFuncOptions()
+                                  .scale_factor(std::vector<double>{2, 2})
+                                  .mode(torch::kBilinear)
+                                  .align_corners(false));
+      x = Leaky(u(x));
+    }
+    return out(x);
+  }
+  int levels, side, top_channels = 0;
+  torch::nn::Linear in{nullptr};
+  std::vector<torch::nn::Conv2d> ups;
+  torch::nn::Conv2d out{nullptr};
+};
+TORCH_MODULE(Decoder);
+
+// Pose latent -> a rotation (6D: two columns, orthonormalized) and a translation (normalized units).
+struct PoseMlpImpl : torch::nn::Module {
+  explicit PoseMlpImpl(const GeometryVaeOptions& o) {
+    hidden = register_module("hidden", torch::nn::Linear(o.pose_latent, 64));
+    out = register_module("out", torch::nn::Linear(64, 9));
+    // Starts at the identity and no translation.
+    torch::NoGradGuard no_grad;
+    out->weight.mul_(0.01);
+    out->bias.copy_(torch::tensor({1.f, 0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 0.f}));
+  }
+  // (B x 3 x 3 rotations, B x 3 translations).
+  std::pair<torch::Tensor, torch::Tensor> forward(const torch::Tensor& z) {
+    const torch::Tensor y = out(Leaky(hidden(z)));
+    const torch::Tensor a = y.slice(1, 0, 3), b = y.slice(1, 3, 6);
+    const torch::Tensor c1 = nnf::normalize(a, nnf::NormalizeFuncOptions().dim(1));
+    const torch::Tensor c2 =
+        nnf::normalize(b - (c1 * b).sum(1, true) * c1, nnf::NormalizeFuncOptions().dim(1));
+    const torch::Tensor c3 = torch::cross(c1, c2, 1);
+    return {torch::stack({c1, c2, c3}, 2), y.slice(1, 6, 9)};
+  }
+  torch::nn::Linear hidden{nullptr}, out{nullptr};
+};
+TORCH_MODULE(PoseMlp);
+
+struct VaeImpl : torch::nn::Module {
+  VaeImpl(const GeometryVaeOptions& o, const torch::Tensor& mean_mm, float scale_mm)
+      : geometry_latent(o.geometry_latent), pose_latent(o.pose_latent) {
+    encoder = register_module("encoder", Encoder(o));
+    decoder = register_module("decoder", Decoder(o));
+    pose = register_module("pose", PoseMlp(o));
+    mean = register_buffer("mean", mean_mm);
+    scale = register_buffer("scale", torch::tensor({scale_mm}));
+  }
+  torch::Tensor Normalize(const torch::Tensor& mm, const torch::Tensor& valid) {
+    return torch::cat({(mm - mean) / scale * valid, valid}, 1);
+  }
+  // The rigid motion (least squares over valid texels, Kabsch) that takes each map onto the mean map: the encoder
+  // sees maps so aligned, and the pose is that motion undone after a residual the pose latent predicts.
+  struct Alignment {
+    torch::Tensor rotation;     // B x 3 x 3: aligned = R (map - map_centre) + mean_centre
+    torch::Tensor map_centre;   // B x 3
+    torch::Tensor mean_centre;  // B x 3
+  };
+  Alignment Align(const torch::Tensor& mm, const torch::Tensor& valid) {
+    torch::NoGradGuard no_grad;
+    const int64_t b = mm.size(0);
+    const torch::Tensor n = valid.sum({2, 3}).clamp_min(1);  // B x 1
+    Alignment a;
+    a.map_centre = (mm * valid).sum({2, 3}) / n;
+    a.mean_centre = (mean * valid).sum({2, 3}) / n;
+    const torch::Tensor p = ((mm - a.map_centre.view({b, 3, 1, 1})) * valid).view({b, 3, -1});
+    const torch::Tensor m = ((mean - a.mean_centre.view({b, 3, 1, 1})) * valid).view({b, 3, -1});
+    const auto [u, singular, vh] = torch::linalg::svd(m.bmm(p.transpose(1, 2)), /*full_matrices=*/false, c10::nullopt);
+    const torch::Tensor d = torch::sign(torch::linalg::det(u.bmm(vh)));
+    const torch::Tensor flip = torch::stack({torch::ones_like(d), torch::ones_like(d), d}, 1);  // B x 3
+    a.rotation = (u * flip.unsqueeze(1)).bmm(vh);
+    return a;
+  }
+  static torch::Tensor Apply(const torch::Tensor& r, const torch::Tensor& maps) {
+    return torch::einsum("bij,bjhw->bihw", {r, maps});
+  }
+  torch::Tensor Aligned(const torch::Tensor& mm, const Alignment& a) {
+    const int64_t b = mm.size(0);
+    return Apply(a.rotation, mm - a.map_centre.view({b, 3, 1, 1})) + a.mean_centre.view({b, 3, 1, 1});
+  }
+  // The decoded map (mm, the head's frame) moved by the pose latent's residual motion, then by the alignment undone.
+  torch::Tensor Posed(const torch::Tensor& decoded_mm, const torch::Tensor& z_pose, const Alignment& a) {
+    const int64_t b = decoded_mm.size(0);
+    const auto [r, t] = pose->forward(z_pose);
+    const torch::Tensor moved = Apply(r, decoded_mm - a.mean_centre.view({b, 3, 1, 1})) + (scale * t).view({b, 3, 1, 1});
+    return Apply(a.rotation.transpose(1, 2), moved) + a.map_centre.view({b, 3, 1, 1});
+  }
+  int geometry_latent, pose_latent;
+  Encoder encoder{nullptr};
+  Decoder decoder{nullptr};
+  PoseMlp pose{nullptr};
+  torch::Tensor mean, scale;
+};
+TORCH_MODULE(Vae);
+
+torch::Tensor FromVector(const std::vector<float>& v, std::vector<int64_t> shape) {
+  return torch::from_blob(const_cast<float*>(v.data()), shape, torch::kFloat32).clone();
+}
+
+std::vector<float> ToVector(const torch::Tensor& t) {
+  const torch::Tensor c = t.contiguous();
+  return std::vector<float>(c.data_ptr<float>(), c.data_ptr<float>() + c.numel());
+}
+
+absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char* what) {
+  if (static_cast<int64_t>(v.size()) == expected) return absl::OkStatus();
+  return absl::InvalidArgumentError(
+      absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
+}
+
+// Masked mean of the squared difference over valid texels (3 channels each).
+torch::Tensor MaskedMse(const torch::Tensor& a, const torch::Tensor& b, const torch::Tensor& valid) {
+  return ((a - b).pow(2) * valid).sum() / (3 * valid.sum()).clamp_min(1);
+}
+
+}  // namespace
+
+absl::Status GeometryVaeOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what)); };
+  if (levels < 2 || levels > 7) return bad(absl::StrCat("levels ", levels, " is not in 2..7"));
+  if (input_size < 32 || input_size > 512 || input_size % (1 << levels) != 0) {
+    return bad(absl::StrCat("input size ", input_size, " is not in 32..512 and divisible by 2^", levels));
+  }
+  if (base_channels < 4 || base_channels > 256 || max_channels < base_channels || max_channels > 256) {
+    return bad(absl::StrCat("channels ", base_channels, " to ", max_channels, " are not within 4..256, rising"));
+  }
+  if (geometry_latent < 1 || geometry_latent > 1024) return bad(absl::StrCat("geometry latent ", geometry_latent));
+  if (pose_latent < 1 || pose_latent > 64) return bad(absl::StrCat("pose latent ", pose_latent, " is not in 1..64"));
+  if (!(kl_weight >= 0)) return bad(absl::StrCat("KL weight ", kl_weight, " is negative"));
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+struct GeometryVae::Impl {
+  GeometryVaeOptions options;
+  Vae net{nullptr};
+  std::unique_ptr<torch::optim::Adam> adam;
+  int64_t texels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
+};
+
+GeometryVae::GeometryVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+GeometryVae::~GeometryVae() = default;
+
+absl::StatusOr<std::unique_ptr<GeometryVae>> GeometryVae::Create(const GeometryVaeOptions& options,
+                                                                 const std::vector<float>& mean, float scale) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  const int64_t s2 = static_cast<int64_t>(options.input_size) * options.input_size;
+  if (auto s = CheckSize(mean, 3 * s2, "the mean map"); !s.ok()) return s;
+  if (!(scale > 0)) return absl::InvalidArgumentError(absl::StrCat(kNet, ": scale ", scale, " is not positive"));
+  try {
+    SetTorchThreads(options.threads);
+    auto impl = std::make_unique<Impl>();
+    impl->options = options;
+    {
+      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
+      torch::manual_seed(options.seed);
+      impl->net = Vae(options, FromVector(mean, {1, 3, options.input_size, options.input_size}), scale);
+    }
+    impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
+    return std::unique_ptr<GeometryVae>(new GeometryVae(std::move(impl)));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, "creating the net", e);
+  }
+}
+
+const GeometryVaeOptions& GeometryVae::options() const { return impl_->options; }
+
+int64_t GeometryVae::parameter_count() const {
+  int64_t n = 0;
+  for (const auto& p : impl_->net->parameters()) n += p.numel();
+  return n;
+}
+
+absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch, double learning_rate) {
+  const GeometryVaeOptions& o = impl_->options;
+  const int64_t b = batch.batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
+  if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kNet, ": an empty batch"));
+  for (auto [v, n, what] : {std::tuple{&batch.posed, 3 * b * s * s, "the posed maps"},
+                            std::tuple{&batch.canonical, 3 * b * s * s, "the canonical maps"},
+                            std::tuple{&batch.valid, b * s * s, "the validity"},
+                            std::tuple{&batch.noise, b * latents, "the noise"}}) {
+    if (auto st = CheckSize(*v, n, what); !st.ok()) return st;
+  }
+  try {
+    SetTorchThreads(o.threads);
+    Vae& net = impl_->net;
+    net->train();
+    for (auto& group : impl_->adam->param_groups()) {
+      static_cast<torch::optim::AdamOptions&>(group.options()).lr(learning_rate);
+    }
+    const torch::Tensor posed = FromVector(batch.posed, {b, 3, s, s});
+    const torch::Tensor canonical = FromVector(batch.canonical, {b, 3, s, s});
+    const torch::Tensor valid = FromVector(batch.valid, {b, 1, s, s});
+    const torch::Tensor noise = FromVector(batch.noise, {b, latents});
+    impl_->adam->zero_grad();
+    const VaeImpl::Alignment alignment = net->Align(posed, valid);
+    const torch::Tensor stats = net->encoder->forward(net->Normalize(net->Aligned(posed, alignment), valid));
+    const torch::Tensor mu = stats.slice(1, 0, latents), logvar = stats.slice(1, latents, 2 * latents).clamp(-10, 10);
+    const torch::Tensor z = mu + noise * torch::exp(0.5 * logvar);
+    const torch::Tensor decoded = net->decoder->forward(z.slice(1, 0, o.geometry_latent));  // normalized
+    const torch::Tensor canonical_n = (canonical - net->mean) / net->scale;
+    const torch::Tensor posed_n = (posed - net->mean) / net->scale;
+    // The decoded map's gradient stops at the posed loss: it trains the pose (its MLP and the encoder's pose latent),
+    // the canonical loss the geometry.
+    const torch::Tensor moved_mm = net->Posed(net->mean + net->scale * decoded.detach(),
+                                              z.slice(1, o.geometry_latent, latents), alignment);
+    const torch::Tensor moved_n = (moved_mm - net->mean) / net->scale;
+    const torch::Tensor canonical_loss = MaskedMse(decoded, canonical_n, valid);
+    const torch::Tensor posed_loss = MaskedMse(moved_n, posed_n, valid);
+    const torch::Tensor kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
+    const torch::Tensor total = canonical_loss + posed_loss + o.kl_weight * kl;
+    total.backward();
+    impl_->adam->step();
+    return GeometryLosses{total.item<double>(), canonical_loss.item<double>(), posed_loss.item<double>(),
+                          kl.item<double>()};
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, "training", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> GeometryVae::Encode(const std::vector<float>& maps, const std::vector<float>& valid,
+                                                       int batch) const {
+  const GeometryVaeOptions& o = impl_->options;
+  const int64_t b = batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
+  if (auto st = CheckSize(maps, 3 * b * s * s, "the maps"); !st.ok()) return st;
+  if (auto st = CheckSize(valid, b * s * s, "the validity"); !st.ok()) return st;
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    const torch::Tensor mm = FromVector(maps, {b, 3, s, s}), v = FromVector(valid, {b, 1, s, s});
+    const torch::Tensor stats =
+        impl_->net->encoder->forward(impl_->net->Normalize(impl_->net->Aligned(mm, impl_->net->Align(mm, v)), v));
+    return ToVector(stats.slice(1, 0, latents));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, "encoding", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> GeometryVae::Decode(const std::vector<float>& geometry_latents, int batch) const {
+  const GeometryVaeOptions& o = impl_->options;
+  if (auto st = CheckSize(geometry_latents, int64_t{batch} * o.geometry_latent, "the geometry latents"); !st.ok()) {
+    return st;
+  }
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    const torch::Tensor d = impl_->net->decoder->forward(FromVector(geometry_latents, {batch, o.geometry_latent}));
+    return ToVector(impl_->net->mean + impl_->net->scale * d);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, "decoding", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>& maps,
+                                                        const std::vector<float>& valid, int batch) const {
+  const GeometryVaeOptions& o = impl_->options;
+  const int64_t b = batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
+  if (auto st = CheckSize(maps, 3 * b * s * s, "the maps"); !st.ok()) return st;
+  if (auto st = CheckSize(valid, b * s * s, "the validity"); !st.ok()) return st;
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    Vae& net = impl_->net;
+    net->eval();
+    const torch::Tensor mm = FromVector(maps, {b, 3, s, s}), v = FromVector(valid, {b, 1, s, s});
+    const VaeImpl::Alignment alignment = net->Align(mm, v);
+    const torch::Tensor mu = net->encoder->forward(net->Normalize(net->Aligned(mm, alignment), v)).slice(1, 0, latents);
+    const torch::Tensor decoded = net->mean + net->scale * net->decoder->forward(mu.slice(1, 0, o.geometry_latent));
+    return ToVector(net->Posed(decoded, mu.slice(1, o.geometry_latent, latents), alignment));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, "reposing", e);
+  }
+}
+
+absl::Status GeometryVae::Save(const std::string& path) const {
+  try {
+    torch::serialize::OutputArchive archive;
+    impl_->net->save(archive);
+    torch::serialize::OutputArchive adam;
+    impl_->adam->save(adam);
+    archive.write("adam", adam);
+    const std::string tmp = path + ".tmp";
+    archive.save_to(tmp);
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, absl::StrCat("saving ", path), e);
+  }
+}
+
+absl::Status GeometryVae::Load(const std::string& path) {
+  if (!std::filesystem::exists(path)) return absl::NotFoundError(absl::StrCat(path, ": no such checkpoint"));
+  try {
+    torch::serialize::InputArchive archive;
+    archive.load_from(path);
+    impl_->net->load(archive);
+    torch::serialize::InputArchive adam;
+    archive.read("adam", adam);
+    impl_->adam->load(adam);
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    const std::string what = e.what();
+    return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", kNet, " (",
+                                                      what.substr(0, what.find('\n')), ")"));
+  }
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,419 @@
+// Training the neural asset's networks: see asset_train.h.
+#include "stage/processing/asset_train.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <random>
+#include <sstream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/processing/asset_dataset.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr double kPi = 3.14159265358979323846;
+
+// The dataset's maps at the net's resolution, NCHW (3 x S x S each), with their validity (S x S each).
+struct NetMaps {
+  int size = 0;
+  std::vector<std::vector<float>> maps, valid;
+};
+
+// Averages each map's valid texels down by `factor` (a texel is valid where any of its sources is).
+NetMaps Downsample(const AssetDataset& d, int size) {
+  NetMaps out;
+  out.size = size;
+  const int in = d.geometry_size, k = in / size;
+  const size_t texels_in = static_cast<size_t>(in) * in, texels = static_cast<size_t>(size) * size;
+  for (int64_t f = 0; f < d.frames(); ++f) {
+    std::vector<float> map(3 * texels, 0.f), valid(texels, 0.f);
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        double sum[3] = {0, 0, 0};
+        int n = 0;
+        for (int dy = 0; dy < k; ++dy) {
+          for (int dx = 0; dx < k; ++dx) {
+            const size_t t = static_cast<size_t>(f) * texels_in + static_cast<size_t>(y * k + dy) * in + x * k + dx;
+            if (!d.valid[t]) continue;
+            for (int c = 0; c < 3; ++c) sum[c] += d.geometry[3 * t + c];
+            ++n;
+          }
+        }
+        if (n == 0) continue;
+        const size_t t = static_cast<size_t>(y) * size + x;
+        for (int c = 0; c < 3; ++c) map[c * texels + t] = static_cast<float>(sum[c] / n);
+        valid[t] = 1;
+      }
+    }
+    out.maps.push_back(std::move(map));
+    out.valid.push_back(std::move(valid));
+  }
+  return out;
+}
+
+// The training frames' mean map and their RMS spread about it (mm).
+void MeanAndScale(const NetMaps& m, const std::vector<int64_t>& train, std::vector<float>* mean, float* scale) {
+  const size_t texels = static_cast<size_t>(m.size) * m.size;
+  std::vector<double> sum(3 * texels, 0), count(texels, 0);
+  for (int64_t f : train) {
+    for (size_t t = 0; t < texels; ++t) {
+      if (!m.valid[f][t]) continue;
+      for (int c = 0; c < 3; ++c) sum[c * texels + t] += m.maps[f][c * texels + t];
+      ++count[t];
+    }
+  }
+  mean->assign(3 * texels, 0.f);
+  for (size_t t = 0; t < texels; ++t) {
+    for (int c = 0; c < 3; ++c) (*mean)[c * texels + t] = count[t] > 0 ? static_cast<float>(sum[c * texels + t] / count[t]) : 0.f;
+  }
+  double se = 0, n = 0;
+  for (int64_t f : train) {
+    for (size_t t = 0; t < texels; ++t) {
+      if (!m.valid[f][t]) continue;
+      for (int c = 0; c < 3; ++c) se += std::pow(m.maps[f][c * texels + t] - (*mean)[c * texels + t], 2);
+      n += 3;
+    }
+  }
+  *scale = static_cast<float>(std::max(1e-3, std::sqrt(se / std::max(1.0, n))));
+}
+
+// N(0, 1) from the engine alone (Box-Muller; no distribution object whose cached state a checkpoint would miss).
+float Normal(std::mt19937_64& rng) {
+  const double u1 = (static_cast<double>(rng() >> 11) + 0.5) * 0x1.0p-53, u2 = static_cast<double>(rng() >> 11) * 0x1.0p-53;
+  return static_cast<float>(std::sqrt(-2 * std::log(u1)) * std::cos(2 * kPi * u2));
+}
+double Uniform(std::mt19937_64& rng, double half_range) {
+  return half_range * (2 * static_cast<double>(rng() >> 11) * 0x1.0p-53 - 1);
+}
+
+GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, const AssetTrainJob& job,
+                        std::mt19937_64& rng) {
+  const int b = job.batch, s = m.size;
+  const size_t texels = static_cast<size_t>(s) * s;
+  const int latents = job.geometry.geometry_latent + job.geometry.pose_latent;
+  GeometryBatch batch;
+  batch.batch = b;
+  for (int i = 0; i < b; ++i) {
+    const int64_t f = train[static_cast<size_t>(rng() % train.size())];
+    const double deg = kPi / 180;
+    const Eigen::Matrix3f r =
+        (Eigen::AngleAxisd(Uniform(rng, job.augment_rotation_deg) * deg, Eigen::Vector3d::UnitY()) *
+         Eigen::AngleAxisd(Uniform(rng, job.augment_rotation_deg) * deg, Eigen::Vector3d::UnitX()) *
+         Eigen::AngleAxisd(Uniform(rng, job.augment_rotation_deg) * deg, Eigen::Vector3d::UnitZ()))
+            .toRotationMatrix()
+            .cast<float>();
+    Eigen::Vector3f t;
+    for (int c = 0; c < 3; ++c) t[c] = static_cast<float>(Uniform(rng, job.augment_translation_mm));
+    const std::vector<float>& map = m.maps[static_cast<size_t>(f)];
+    batch.canonical.insert(batch.canonical.end(), map.begin(), map.end());
+    const size_t base = batch.posed.size();
+    batch.posed.resize(base + 3 * texels);
+    for (size_t k = 0; k < texels; ++k) {
+      const Eigen::Vector3f p = r * Eigen::Vector3f(map[k], map[texels + k], map[2 * texels + k]) + t;
+      for (int c = 0; c < 3; ++c) batch.posed[base + c * texels + k] = p[c];
+    }
+    const std::vector<float>& valid = m.valid[static_cast<size_t>(f)];
+    batch.valid.insert(batch.valid.end(), valid.begin(), valid.end());
+    for (int l = 0; l < latents; ++l) batch.noise.push_back(Normal(rng));
+  }
+  return batch;
+}
+
+nlohmann::json OptionsJson(const AssetTrainJob& job) {
+  const GeometryVaeOptions& g = job.geometry;
+  return {{"network", "geometry"},
+          {"input_size", g.input_size},
+          {"levels", g.levels},
+          {"base_channels", g.base_channels},
+          {"max_channels", g.max_channels},
+          {"geometry_latent", g.geometry_latent},
+          {"pose_latent", g.pose_latent},
+          {"kl_weight", g.kl_weight},
+          {"seed", g.seed},
+          {"iterations", job.iterations},
+          {"batch", job.batch},
+          {"learning_rate", job.learning_rate},
+          {"augment_rotation_deg", job.augment_rotation_deg},
+          {"augment_translation_mm", job.augment_translation_mm},
+          {"dataset", fs::absolute(job.dataset).lexically_normal().string()}};
+}
+
+absl::Status WriteLosses(const std::string& dir, const std::vector<GeometryLosses>& losses) {
+  std::string csv = "step,total,canonical,posed,kl\n";
+  for (size_t i = 0; i < losses.size(); ++i) {
+    const GeometryLosses& l = losses[i];
+    absl::StrAppendFormat(&csv, "%d,%.17g,%.17g,%.17g,%.17g\n", i + 1, l.total, l.canonical, l.posed, l.kl);
+  }
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/loss.csv", csv));
+  // The curves, log scale, each smoothed over 1 % of the run.
+  constexpr int kW = 800, kH = 400, kPad = 40;
+  cv::Mat plot(kH, kW, CV_8UC3, cv::Scalar(255, 255, 255));
+  if (!losses.empty()) {
+    const std::vector<std::pair<double GeometryLosses::*, cv::Scalar>> curves = {
+        {&GeometryLosses::total, {0, 0, 0}}, {&GeometryLosses::canonical, {200, 80, 0}}, {&GeometryLosses::posed, {0, 140, 0}}};
+    double lo = INFINITY, hi = -INFINITY;
+    for (const auto& l : losses) {
+      for (const auto& [field, colour] : curves) {
+        if (l.*field > 0) lo = std::min(lo, std::log10(l.*field)), hi = std::max(hi, std::log10(l.*field));
+      }
+    }
+    if (!(hi > lo)) hi = lo + 1;
+    const int window = std::max<int>(1, static_cast<int>(losses.size() / 100));
+    for (const auto& [field, colour] : curves) {
+      std::vector<cv::Point> points;
+      for (size_t i = 0; i < losses.size(); i += static_cast<size_t>(window)) {
+        double sum = 0;
+        int n = 0;
+        for (size_t j = i; j < std::min(losses.size(), i + window); ++j) sum += losses[j].*field, ++n;
+        const double v = std::log10(std::max(1e-12, sum / n));
+        points.emplace_back(kPad + static_cast<int>((kW - 2 * kPad) * i / std::max<size_t>(1, losses.size() - 1)),
+                            kH - kPad - static_cast<int>((kH - 2 * kPad) * (v - lo) / (hi - lo)));
+      }
+      cv::polylines(plot, points, false, colour, 1, cv::LINE_AA);
+    }
+    cv::putText(plot, absl::StrFormat("loss (log10 %.2f .. %.2f): total black, canonical blue, posed green", lo, hi),
+                {kPad, 25}, cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
+    cv::putText(plot, absl::StrCat("step 1 .. ", losses.size()), {kPad, kH - 12}, cv::FONT_HERSHEY_SIMPLEX, 0.5,
+                {0, 0, 0}, 1, cv::LINE_AA);
+  }
+  if (!cv::imwrite(dir + "/loss.png", plot)) return absl::UnavailableError(absl::StrCat(dir, "/loss.png: cannot write"));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<GeometryLosses>> ReadLosses(const std::string& path, int64_t steps) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat(path, ": missing (the run's losses)"));
+  std::vector<GeometryLosses> out;
+  std::string line;
+  std::getline(in, line);
+  while (static_cast<int64_t>(out.size()) < steps && std::getline(in, line)) {
+    GeometryLosses l;
+    long long step = 0;
+    if (std::sscanf(line.c_str(), "%lld,%lf,%lf,%lf,%lf", &step, &l.total, &l.canonical, &l.posed, &l.kl) != 5) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": line \"", line, "\" is not step,total,canonical,posed,kl"));
+    }
+    out.push_back(l);
+  }
+  if (static_cast<int64_t>(out.size()) != steps) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": holds ", out.size(), " steps, the checkpoint ", steps));
+  }
+  return out;
+}
+
+absl::Status SaveCheckpoint(const std::string& dir, const GeometryVae& net, const AssetTrainJob& job, int64_t step,
+                            const std::mt19937_64& rng, const std::vector<GeometryLosses>& losses) {
+  STAGE_RETURN_IF_ERROR(net.Save(dir + "/checkpoint.pt"));
+  STAGE_RETURN_IF_ERROR(WriteLosses(dir, losses));
+  std::ostringstream state;
+  state << rng;
+  nlohmann::json j = {{"step", step}, {"rng", state.str()}, {"options", OptionsJson(job)}};
+  return WriteFileAtomically(dir + "/trainer.json", j.dump(2) + "\n");
+}
+
+// Each split's error of `recovered` maps (frame -> NCHW map) against the truth.
+SplitError Error(const NetMaps& m, const std::vector<int64_t>& frames,
+                 const std::function<std::vector<float>(int64_t)>& recovered) {
+  SplitError e;
+  std::vector<float> errors;
+  const size_t texels = static_cast<size_t>(m.size) * m.size;
+  double se = 0;
+  for (int64_t f : frames) {
+    const std::vector<float> r = recovered(f);
+    for (size_t t = 0; t < texels; ++t) {
+      if (!m.valid[f][t]) continue;
+      double d2 = 0;
+      for (int c = 0; c < 3; ++c) d2 += std::pow(r[c * texels + t] - m.maps[f][c * texels + t], 2);
+      se += d2;
+      errors.push_back(static_cast<float>(std::sqrt(d2)));
+    }
+  }
+  e.frames = static_cast<int64_t>(frames.size());
+  if (errors.empty()) return e;
+  e.rmse_mm = std::sqrt(se / static_cast<double>(errors.size()));
+  const size_t k = std::min(errors.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(errors.size())));
+  std::nth_element(errors.begin(), errors.begin() + static_cast<std::ptrdiff_t>(k), errors.end());
+  e.p99_mm = errors[k];
+  return e;
+}
+
+// PCA of the training maps about `mean` (components as the columns of the result, orthonormal), from the frames'
+// Gram matrix.
+Eigen::MatrixXf Pca(const NetMaps& m, const std::vector<int64_t>& train, const std::vector<float>& mean, int k) {
+  const size_t d = mean.size();
+  Eigen::MatrixXf x(static_cast<Eigen::Index>(d), static_cast<Eigen::Index>(train.size()));
+  for (size_t i = 0; i < train.size(); ++i) {
+    for (size_t j = 0; j < d; ++j) x(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = m.maps[train[i]][j] - mean[j];
+  }
+  const Eigen::MatrixXd gram = (x.transpose() * x).cast<double>();
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(gram);
+  const int n = std::min<int>(k, static_cast<int>(train.size()));
+  Eigen::MatrixXf basis(x.rows(), n);
+  for (int c = 0; c < n; ++c) {
+    const Eigen::Index col = gram.cols() - 1 - c;  // eigenvalues ascend
+    const double lambda = std::max(1e-12, eig.eigenvalues()[col]);
+    basis.col(c) = (x * eig.eigenvectors().col(col).cast<float>()) / static_cast<float>(std::sqrt(lambda));
+  }
+  return basis;
+}
+
+absl::StatusOr<TrainedEvaluation> Evaluate(const GeometryVae& net, const NetMaps& m, const AssetDataset& d,
+                                           const std::vector<float>& mean) {
+  std::vector<int64_t> split[3];
+  for (int64_t f = 0; f < d.frames(); ++f) split[static_cast<int>(d.split[f])].push_back(f);
+  const GeometryVaeOptions& o = net.options();
+  const Eigen::MatrixXf basis = Pca(m, split[0], mean, o.geometry_latent);
+  TrainedEvaluation e;
+  absl::Status failed;
+  for (int s = 0; s < 3; ++s) {
+    e.vae[s] = Error(m, split[s], [&](int64_t f) {
+      auto latents = net.Encode(m.maps[f], m.valid[f], 1);
+      if (!latents.ok()) {
+        failed = latents.status();
+        return std::vector<float>(mean.size(), 0.f);
+      }
+      latents->resize(static_cast<size_t>(o.geometry_latent));
+      auto map = net.Decode(*latents, 1);
+      if (!map.ok()) failed = map.status();
+      return map.ok() ? *map : std::vector<float>(mean.size(), 0.f);
+    });
+    e.pca[s] = Error(m, split[s], [&](int64_t f) {
+      const Eigen::Map<const Eigen::VectorXf> x(m.maps[f].data(), static_cast<Eigen::Index>(mean.size()));
+      const Eigen::Map<const Eigen::VectorXf> mu(mean.data(), static_cast<Eigen::Index>(mean.size()));
+      const Eigen::VectorXf r = mu + basis * (basis.transpose() * (x - mu));
+      return std::vector<float>(r.data(), r.data() + r.size());
+    });
+    e.neutral[s] = Error(m, split[s], [&](int64_t) { return m.maps[0]; });
+  }
+  if (!failed.ok()) return failed;
+  return e;
+}
+
+}  // namespace
+
+absl::Status AssetTrainJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("asset training: no dataset");
+  STAGE_RETURN_IF_ERROR(geometry.Validate());
+  if (iterations < 1 || iterations > 10'000'000) {
+    return absl::InvalidArgumentError(absl::StrCat("asset training: iterations ", iterations, " not in 1..10^7"));
+  }
+  if (batch < 1 || batch > 1024) return absl::InvalidArgumentError(absl::StrCat("asset training: batch ", batch));
+  if (!(learning_rate > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("asset training: learning rate ", learning_rate));
+  }
+  if (checkpoint_every < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("asset training: checkpoint every ", checkpoint_every, " steps"));
+  }
+  if (!(augment_rotation_deg >= 0 && augment_rotation_deg <= 90) ||
+      !(augment_translation_mm >= 0 && augment_translation_mm <= 200)) {
+    return absl::InvalidArgumentError("asset training: augmentation out of range (0..90 deg, 0..200 mm)");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  STAGE_ASSIGN_OR_RETURN(const AssetDataset dataset, ReadAssetDataset(job.dataset));
+  const int size = job.geometry.input_size;
+  if (dataset.geometry_size % size != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(job.dataset, ": its maps (", dataset.geometry_size,
+                                                   " texels across) do not divide into the net's ", size));
+  }
+  std::vector<int64_t> train;
+  for (int64_t f = 0; f < dataset.frames(); ++f) {
+    if (dataset.split[f] == SampleSplit::kTrain) train.push_back(f);
+  }
+  if (train.empty()) return absl::InvalidArgumentError(absl::StrCat(job.dataset, ": no training frames"));
+  const NetMaps maps = Downsample(dataset, size);
+  std::vector<float> mean;
+  float scale = 0;
+  MeanAndScale(maps, train, &mean, &scale);
+
+  AssetTrainResult result;
+  result.output_dir = job.output_dir.empty() ? (fs::path(job.dataset).parent_path() / "geometry").string()
+                                             : job.output_dir;
+  std::error_code ec;
+  fs::create_directories(result.output_dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(result.output_dir, ": ", ec.message()));
+  STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(job.geometry, mean, scale));
+  result.parameters = net->parameter_count();
+  result.scale_mm = scale;
+  std::mt19937_64 rng(job.geometry.seed ^ 0xa55e7ull);
+  const std::string trainer = result.output_dir + "/trainer.json";
+  if (job.resume && fs::exists(trainer)) {
+    std::ifstream in(trainer);
+    const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+    if (!j.is_object() || !j.contains("step") || !j.contains("rng") || !j.contains("options")) {
+      return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
+    }
+    const nlohmann::json mine = OptionsJson(job);
+    for (const auto& [key, value] : mine.items()) {
+      if (!j["options"].contains(key) || j["options"][key] != value) {
+        return absl::FailedPreconditionError(absl::StrCat(trainer, ": the checkpoint was trained with ", key, " = ",
+                                                          j["options"].value(key, nlohmann::json()).dump(), ", not ",
+                                                          value.dump(), " (start anew without --resume)"));
+      }
+    }
+    STAGE_RETURN_IF_ERROR(net->Load(result.output_dir + "/checkpoint.pt"));
+    std::istringstream state(j["rng"].get<std::string>());
+    state >> rng;
+    result.resumed_from = j["step"].get<int64_t>();
+    STAGE_ASSIGN_OR_RETURN(result.losses, ReadLosses(result.output_dir + "/loss.csv", result.resumed_from));
+  }
+  const int64_t slow_from = static_cast<int64_t>(0.7 * job.iterations);
+  for (int64_t step = result.resumed_from; step < job.iterations; ++step) {
+    const GeometryBatch batch = DrawBatch(maps, train, job, rng);
+    STAGE_ASSIGN_OR_RETURN(const GeometryLosses losses,
+                           net->TrainStep(batch, step < slow_from ? job.learning_rate : job.learning_rate / 5));
+    result.losses.push_back(losses);
+    const bool last = step + 1 == job.iterations;
+    if ((step + 1) % job.checkpoint_every == 0 || last) {
+      STAGE_RETURN_IF_ERROR(SaveCheckpoint(result.output_dir, *net, job, step + 1, rng, result.losses));
+    }
+    if (job.progress && !job.progress(step + 1, job.iterations, losses)) {
+      return absl::CancelledError(absl::StrCat("asset training stopped at step ", step + 1, " (checkpoint: ",
+                                               result.output_dir, "/checkpoint.pt)"));
+    }
+  }
+  result.steps = job.iterations;
+  STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/geometry_vae.pt"));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, Evaluate(*net, maps, dataset, mean));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/evaluation.json", TrainedEvaluationJson(result.evaluation) + "\n"));
+  return result;
+}
+
+std::string TrainedEvaluationJson(const TrainedEvaluation& e) {
+  nlohmann::json j;
+  const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
+  for (int s = 0; s < 3; ++s) {
+    for (auto [model, errors] : {std::pair{"vae", e.vae}, std::pair{"pca", e.pca}, std::pair{"neutral", e.neutral}}) {
+      j[names[s]][model] = {{"frames", errors[s].frames}, {"rmse_mm", errors[s].rmse_mm}, {"p99_mm", errors[s].p99_mm}};
+    }
+  }
+  return j.dump();
+}
+
+std::string FormatTrainedEvaluation(const TrainedEvaluation& e) {
+  std::string out = absl::StrFormat("%-18s %6s  %-17s  %-17s  %-17s\n", "split", "frames", "VAE rmse/p99 mm",
+                                    "PCA rmse/p99 mm", "neutral rmse/p99");
+  const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
+  for (int s = 0; s < 3; ++s) {
+    absl::StrAppendFormat(&out, "%-18s %6d  %7.3f / %7.3f  %7.3f / %7.3f  %7.3f / %7.3f\n", names[s], e.vae[s].frames,
+                          e.vae[s].rmse_mm, e.vae[s].p99_mm, e.pca[s].rmse_mm, e.pca[s].p99_mm, e.neutral[s].rmse_mm,
+                          e.neutral[s].p99_mm);
+  }
+  return out;
+}
+
+}  // namespace stage::processing
