@@ -8,12 +8,16 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/map_files.h"
+#include "stage/processing/light_model.h"
 #include "stage/processing/photometric_stage.h"
+#include "stage/processing/take_frames.h"
 #include "stage/processing/texture_fusion.h"
 #include "stage/processing/uv_geometry.h"
 #include "stage/storage/array_file.h"
@@ -183,6 +187,101 @@ double RmsFromMean(const std::vector<std::vector<float>>& points, const std::vec
   return m > 0 ? std::sqrt(se / m) : 0;
 }
 
+// Each camera's crops of the dataset's frames: a fixed square about where the face is when the head is at rest.
+struct Crops {
+  std::vector<std::string> cameras;
+  std::vector<nlohmann::json> boxes;         // per camera: centre and side, pixels of its frames
+  std::map<int64_t, std::vector<uint8_t>> images;  // frame -> cameras x size^2
+  std::map<int64_t, std::vector<uint8_t>> valid;   // frame -> cameras
+};
+
+// The grey frame's square of `side` pixels about `centre`, averaged down to size x size and mapped to 8 bits over
+// `white` (gamma 2.2).
+std::vector<uint8_t> Crop(const Image& grey, const Eigen::Vector2d& centre, double side, int size, double white) {
+  const cv::Mat frame(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
+  const int s = std::max(2, static_cast<int>(std::lround(side)));
+  cv::Mat patch, small;
+  cv::getRectSubPix(frame, cv::Size(s, s), cv::Point2f(static_cast<float>(centre.x()), static_cast<float>(centre.y())),
+                    patch);
+  cv::resize(patch, small, cv::Size(size, size), 0, 0, s > size ? cv::INTER_AREA : cv::INTER_LINEAR);
+  std::vector<uint8_t> out(static_cast<size_t>(size) * size);
+  for (int i = 0; i < size * size; ++i) {
+    const double v = std::clamp(small.at<float>(i / size, i % size) / white, 0.0, 1.0);
+    out[static_cast<size_t>(i)] = static_cast<uint8_t>(std::lround(255 * std::pow(v, 1 / 2.2)));
+  }
+  return out;
+}
+
+// The take's cameras (`options.cameras`, or every machine-vision camera with a frame file; none: no crops), each
+// frame of `frames` cropped.
+absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTemplate& face,
+                                 const std::vector<int64_t>& frames) {
+  Crops crops;
+  if (!fs::exists(options.take_dir + "/take.json")) {
+    if (!options.cameras.empty()) {
+      return absl::NotFoundError(absl::StrCat(options.take_dir, "/take.json: cannot open (the take's rig and cameras)"));
+    }
+    return crops;
+  }
+  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(options.take_dir));
+  std::vector<std::string> ids = options.cameras;
+  if (ids.empty()) {
+    for (const v1::CameraConfig& c : rig.rig.cameras()) {
+      if (c.role() == v1::CAMERA_ROLE_MACHINE_VISION && fs::exists(options.take_dir + "/cameras/" + c.id() + ".h5")) {
+        ids.push_back(c.id());
+      }
+    }
+  }
+  if (ids.empty()) return crops;
+  STAGE_ASSIGN_OR_RETURN(const LightModel light, LightModel::FromRig(rig));
+  STAGE_ASSIGN_OR_RETURN(const std::optional<CameraCalibration> calibration,
+                         LoadJobCalibration(options.take_dir, options.calibration));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<TakeCamera> cameras,
+                         OpenTakeCameras(options.take_dir, rig, ids, calibration ? &*calibration : nullptr));
+  // The face's centre: the template's vertices' mean, the head at rest (its frame the stage's).
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& p : face.mesh.positions) centre += p.cast<double>();
+  centre /= static_cast<double>(face.mesh.positions.size());
+  const size_t n = cameras.size(), texels = static_cast<size_t>(options.image_size) * options.image_size;
+  for (int64_t f : frames) {
+    crops.images[f].assign(n * texels, 0);
+    crops.valid[f].assign(n, 0);
+  }
+  for (size_t c = 0; c < n; ++c) {
+    const TakeCamera& camera = cameras[c];
+    Eigen::Vector2d pixel;
+    if (!camera.model.Project(centre, &pixel)) {
+      return absl::InvalidArgumentError(absl::StrCat(camera.id, ": the face is behind the camera"));
+    }
+    const double depth = camera.model.rotation().row(2).dot(centre - camera.model.position());
+    const double side = options.crop_mm * camera.model.fx() / depth;
+    crops.cameras.push_back(camera.id);
+    crops.boxes.push_back({{"camera", camera.id}, {"centre_px", {pixel.x(), pixel.y()}}, {"side_px", side}});
+    double white = 0;  // the camera's first crop's 99.5th percentile: one scale for all its frames
+    STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
+        camera.path, frames.front(), frames.back() + 1, light, camera.black_level_dn,
+        [&](int64_t frame, const Image& grey) -> absl::Status {
+          auto slot = crops.images.find(frame);
+          if (slot == crops.images.end()) return absl::OkStatus();
+          if (white == 0) {
+            const cv::Mat frame_mat(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
+            cv::Mat patch;
+            cv::getRectSubPix(frame_mat, cv::Size(std::max(2, static_cast<int>(side)), std::max(2, static_cast<int>(side))),
+                              cv::Point2f(static_cast<float>(pixel.x()), static_cast<float>(pixel.y())), patch);
+            std::vector<float> values(patch.begin<float>(), patch.end<float>());
+            const size_t k = static_cast<size_t>(0.995 * static_cast<double>(values.size() - 1));
+            std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
+            white = std::max(1.0, static_cast<double>(values[k]));
+          }
+          const std::vector<uint8_t> image = Crop(grey, pixel, side, options.image_size, white);
+          std::copy(image.begin(), image.end(), slot->second.begin() + static_cast<std::ptrdiff_t>(c * texels));
+          crops.valid[frame][c] = 1;
+          return absl::OkStatus();
+        }));
+  }
+  return crops;
+}
+
 }  // namespace
 
 const char* AssetSourceName(AssetSource source) {
@@ -215,6 +314,12 @@ absl::Status DatasetOptions::Validate() const {
   if (!(held_out_fraction >= 0 && held_out_fraction <= 0.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("dataset: held-out fraction ", held_out_fraction, " is not in [0, 0.5]"));
+  }
+  if (image_size < 16 || image_size > 512) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: image size ", image_size, " is not in 16..512"));
+  }
+  if (!(crop_mm >= 50 && crop_mm <= 1000)) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: crop of ", crop_mm, " mm is not in 50..1000"));
   }
   if (held_out_blocks < 1 || held_out_blocks > 64) {
     return absl::InvalidArgumentError(absl::StrCat("dataset: held-out blocks ", held_out_blocks, " is not in 1..64"));
@@ -312,6 +417,15 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   STAGE_RETURN_IF_ERROR(writer->AddArray("geometry", ArrayType::kFloat32, {size, size, 3}));
   STAGE_RETURN_IF_ERROR(writer->AddArray("valid", ArrayType::kUint8, {size, size}, /*deflate=*/4));
   STAGE_RETURN_IF_ERROR(writer->AddArray("stage_from_head", ArrayType::kFloat32, {4, 4}));
+  STAGE_ASSIGN_OR_RETURN(const Crops crops, CropImages(options, face, frames));
+  const int64_t views = static_cast<int64_t>(crops.cameras.size());
+  if (views > 0) {
+    STAGE_RETURN_IF_ERROR(
+        writer->AddArray("images", ArrayType::kUint8, {views, options.image_size, options.image_size}, /*deflate=*/1));
+    STAGE_RETURN_IF_ERROR(writer->AddArray("image_valid", ArrayType::kUint8, {views}));
+  }
+  summary.cameras = crops.cameras;
+  summary.image_size = views > 0 ? options.image_size : 0;
   std::vector<std::vector<float>> points;
   std::vector<std::vector<uint8_t>> valid;
   double valid_texels = 0;
@@ -327,6 +441,10 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     STAGE_RETURN_IF_ERROR(writer->Append("geometry", g->points.data()));
     STAGE_RETURN_IF_ERROR(writer->Append("valid", g->valid.data()));
     STAGE_RETURN_IF_ERROR(writer->Append("stage_from_head", pose.data()));
+    if (views > 0) {
+      STAGE_RETURN_IF_ERROR(writer->Append("images", crops.images.at(frames[i]).data()));
+      STAGE_RETURN_IF_ERROR(writer->Append("image_valid", crops.valid.at(frames[i]).data()));
+    }
     valid_texels += static_cast<double>(std::count(g->valid.begin(), g->valid.end(), 1));
     points.push_back(std::move(g->points));
     valid.push_back(std::move(g->valid));
@@ -343,6 +461,10 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   d["held_out_sequence"] = summary.sequence;
   d["held_out_fraction"] = options.held_out_fraction;
   d["held_out_blocks"] = options.held_out_blocks;
+  d["cameras"] = crops.cameras;
+  d["image_size"] = summary.image_size;
+  d["crop_mm"] = options.crop_mm;
+  d["crops"] = crops.boxes;
   d["splits"] = {{"train", summary.train},
                  {"held_out_block", summary.held_out_block},
                  {"held_out_sequence", summary.held_out_sequence}};
@@ -368,6 +490,8 @@ absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
   }
   d.sequences = j["sequences"].get<std::vector<std::string>>();
   d.geometry_size = j["geometry_size"].get<int>();
+  d.cameras = j.value("cameras", std::vector<std::string>());
+  d.image_size = j.value("image_size", 0);
   STAGE_ASSIGN_OR_RETURN(d.frame, reader->ReadAll<int64_t>("frame"));
   STAGE_ASSIGN_OR_RETURN(const std::vector<uint8_t> split, reader->ReadAll<uint8_t>("split"));
   STAGE_ASSIGN_OR_RETURN(d.sequence, reader->ReadAll<int32_t>("sequence"));
@@ -375,6 +499,14 @@ absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
   STAGE_ASSIGN_OR_RETURN(d.valid, reader->ReadAll<uint8_t>("valid"));
   STAGE_ASSIGN_OR_RETURN(d.stage_from_head, reader->ReadAll<float>("stage_from_head"));
   const size_t n = d.frame.size(), texels = static_cast<size_t>(d.geometry_size) * d.geometry_size;
+  if (!d.cameras.empty()) {
+    STAGE_ASSIGN_OR_RETURN(d.images, reader->ReadAll<uint8_t>("images"));
+    STAGE_ASSIGN_OR_RETURN(d.image_valid, reader->ReadAll<uint8_t>("image_valid"));
+    const size_t views = d.cameras.size(), pixels = static_cast<size_t>(d.image_size) * d.image_size;
+    if (d.images.size() != n * views * pixels || d.image_valid.size() != n * views) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": images of disagreeing lengths"));
+    }
+  }
   if (split.size() != n || d.sequence.size() != n || d.geometry.size() != n * texels * 3 ||
       d.valid.size() != n * texels || d.stage_from_head.size() != n * 16) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": arrays of disagreeing lengths"));

@@ -2,6 +2,7 @@
 // include torch's headers.
 #include "stage/processing/asset_net.h"
 
+#include <torch/script.h>
 #include <torch/torch.h>
 
 #include <algorithm>
@@ -355,6 +356,93 @@ absl::Status GeometryVae::Save(const std::string& path) const {
     return absl::OkStatus();
   } catch (const std::exception& e) {
     return internal::TorchError(kNet, absl::StrCat("saving ", path), e);
+  }
+}
+
+namespace {
+
+// TorchScript's source of the net (the same operations as the modules above, by aten's names: the C++ compiler of
+// TorchScript resolves torch.* builtins, not torch.nn.functional). Parameters are attributes named by their path,
+// dots as underscores.
+std::string ScriptSource(const GeometryVaeOptions& o) {
+  const std::string conv = ", [1, 1], [1, 1], [1, 1], 1)";
+  std::string src = R"(
+def leaky(self, x: Tensor) -> Tensor:
+    return torch.leaky_relu(x, 0.1)
+
+def decode(self, z: Tensor) -> Tensor:
+    x = self.leaky(torch.matmul(z, self.decoder_input_weight.t()) + self.decoder_input_bias)
+)";
+  src += absl::StrCat("    x = x.view(z.size(0), ", Channels(o, o.levels), ", ", o.input_size >> o.levels, ", ",
+                      o.input_size >> o.levels, ")
+");
+  for (int i = o.levels - 1; i >= 0; --i) {
+    src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])
+";
+    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i,
+                        "_bias", conv, ")
+");
+  }
+  src += absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "
+");
+  src += "    return self.mean + self.scale * x
+";
+  src += R"(
+def forward(self, z: Tensor) -> Tensor:
+    return self.decode(z)
+
+def encode(self, maps: Tensor, valid: Tensor) -> Tensor:
+    b = maps.size(0)
+    n = valid.sum([2, 3]).clamp_min(1.0)
+    map_centre = (maps * valid).sum([2, 3]) / n
+    mean_centre = (self.mean * valid).sum([2, 3]) / n
+    p = ((maps - map_centre.view(b, 3, 1, 1)) * valid).view(b, 3, -1)
+    m = ((self.mean - mean_centre.view(b, 3, 1, 1)) * valid).view(b, 3, -1)
+    u, s, vh = torch.linalg_svd(torch.bmm(m, p.transpose(1, 2)), False)
+    d = torch.sign(torch.linalg_det(torch.bmm(u, vh)))
+    flip = torch.stack([torch.ones_like(d), torch.ones_like(d), d], 1)
+    r = torch.bmm(u * flip.unsqueeze(1), vh)
+    aligned = torch.einsum("bij,bjhw->bihw", [r, maps - map_centre.view(b, 3, 1, 1)]) + mean_centre.view(b, 3, 1, 1)
+    x = torch.cat([(aligned - self.mean) / self.scale * valid, valid], 1)
+)";
+  src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias", conv,
+                      ")
+");
+  for (int i = 0; i < o.levels; ++i) {
+    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
+                        "_bias, [2, 2], [1, 1], [1, 1], 1))
+");
+  }
+  src += "    x = torch.matmul(x.flatten(1), self.encoder_head_weight.t()) + self.encoder_head_bias
+";
+  src += absl::StrCat("    return x[:, :", o.geometry_latent + o.pose_latent, "]
+");
+  return src;
+}
+
+}  // namespace
+
+absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
+  try {
+    torch::NoGradGuard no_grad;
+    torch::jit::Module script("FaStageGeometryVae");
+    auto name = [](std::string n) {
+      std::replace(n.begin(), n.end(), '.', '_');
+      return n;
+    };
+    for (const auto& p : impl_->net->named_parameters()) {
+      script.register_parameter(name(p.key()), p.value().detach().clone(), /*is_buffer=*/false);
+    }
+    for (const auto& b : impl_->net->named_buffers()) script.register_buffer(name(b.key()), b.value().clone());
+    script.define(ScriptSource(impl_->options));
+    const std::string tmp = path + ".tmp";
+    script.save(tmp);
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    return internal::TorchError(kNet, absl::StrCat("exporting ", path), e);
   }
 }
 

@@ -387,6 +387,7 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
   }
   result.steps = job.iterations;
   STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/geometry_vae.pt"));
+  STAGE_RETURN_IF_ERROR(net->ExportTorchScript(result.output_dir + "/geometry_vae.torchscript.pt"));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, Evaluate(*net, maps, dataset, mean));
   STAGE_RETURN_IF_ERROR(
       WriteFileAtomically(result.output_dir + "/evaluation.json", TrainedEvaluationJson(result.evaluation) + "\n"));

@@ -4,7 +4,10 @@
 #include "stage/processing/asset_train.h"
 
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 
 #include "asset_test_support.h"
 #include "gmock/gmock.h"
@@ -67,7 +70,7 @@ TEST(AssetTrainTest, TheLossesFallAndHeldOutFramesComeBackBetterThanTheNeutralFr
   ASSERT_EQ(result->losses.size(), 150u);
   EXPECT_LT(MeanTotal(result->losses, 130, 150), 0.3 * MeanTotal(result->losses, 0, 20));
   for (const char* file : {"checkpoint.pt", "trainer.json", "loss.csv", "loss.png", "geometry_vae.pt",
-                           "evaluation.json"}) {
+                           "geometry_vae.torchscript.pt", "evaluation.json"}) {
     EXPECT_TRUE(std::filesystem::exists(out + "/" + file)) << file;
   }
   const TrainedEvaluation& e = result->evaluation;
@@ -155,6 +158,61 @@ TEST(AssetTrainTest, TheDecodedGeometryDoesNotFollowARigidMotionOfTheInput) {
   const double motion_rms = std::sqrt(motion / 1024), change_rms = std::sqrt(change / 1024);
   EXPECT_GT(motion_rms, 8);
   EXPECT_LT(change_rms, 0.2 * motion_rms) << "decoded maps differ by " << change_rms << " mm RMS";
+}
+
+// The TorchScript file runs in Python's torch (Debian's python3-torch) without this project's code, and gives what
+// the library gives.
+TEST(AssetTrainTest, TheExportedNetRunsInPythonsTorchAsInTheLibrary) {
+  const std::string dataset = Dataset("script-take");
+  const std::string out = ::testing::TempDir() + "/script-run";
+  std::filesystem::remove_all(out);
+  AssetTrainJob job = TinyJob(dataset, out);
+  job.iterations = 20;
+  ASSERT_TRUE(TrainGeometryAsset(job).ok());
+  auto net = GeometryVae::Create(job.geometry, std::vector<float>(3 * 32 * 32, 0.f), 1.f);
+  ASSERT_TRUE(net.ok());
+  ASSERT_TRUE((*net)->Load(out + "/geometry_vae.pt").ok());
+  auto data = ReadAssetDataset(dataset);
+  ASSERT_TRUE(data.ok());
+  // Two frames' maps, NCHW at the net's size (the dataset's 32), all valid.
+  std::vector<float> maps(2 * 3 * 1024), valid(2 * 1024, 1.f);
+  for (int b = 0; b < 2; ++b) {
+    for (int t = 0; t < 1024; ++t) {
+      for (int c = 0; c < 3; ++c) maps[(b * 3 + c) * 1024 + t] = data->geometry[((b * 9) * 1024 + t) * 3 + c];
+    }
+  }
+  auto latents = (*net)->Encode(maps, valid, 2);
+  ASSERT_TRUE(latents.ok());
+  std::vector<float> z;
+  for (int b = 0; b < 2; ++b) z.insert(z.end(), latents->begin() + b * 7, latents->begin() + b * 7 + 4);
+  auto decoded = (*net)->Decode(z, 2);
+  ASSERT_TRUE(decoded.ok());
+  auto write = [&](const std::string& name, const std::vector<float>& v) {
+    std::ofstream(out + "/" + name, std::ios::binary).write(reinterpret_cast<const char*>(v.data()), v.size() * 4);
+  };
+  write("maps.f32", maps);
+  write("valid.f32", valid);
+  write("latents.f32", *latents);
+  write("z.f32", z);
+  write("decoded.f32", *decoded);
+  const std::string script = out + "/check.py";
+  std::ofstream(script) << "import sys, numpy as np, torch\n"
+                           "d = sys.argv[1]\n"
+                           "f = lambda n, *s: torch.from_numpy(np.fromfile(d + '/' + n, dtype=np.float32).reshape(*s))\n"
+                           "m = torch.jit.load(d + '/geometry_vae.torchscript.pt')\n"
+                           "with torch.no_grad():\n"
+                           "    lat = m.encode(f('maps.f32', 2, 3, 32, 32), f('valid.f32', 2, 1, 32, 32))\n"
+                           "    dec = m(f('z.f32', 2, 4))\n"
+                           "e1 = (lat - f('latents.f32', 2, 7)).abs().max().item()\n"
+                           "e2 = (dec - f('decoded.f32', 2, 3, 32, 32)).abs().max().item()\n"
+                           "print('encode', e1, 'decode', e2)\n"
+                           "sys.exit(0 if e1 < 1e-3 and e2 < 1e-2 else 1)\n";
+  const std::string command = "/usr/bin/python3 " + script + " " + out + " > " + out + "/check.log 2>&1";
+  const int rc = std::system(command.c_str());
+  std::ifstream log(out + "/check.log");
+  const std::string text((std::istreambuf_iterator<char>(log)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(rc, 0) << text;
+  EXPECT_THAT(text, HasSubstr("encode"));
 }
 
 }  // namespace

@@ -55,23 +55,7 @@ absl::StatusOr<std::vector<MvsCamera>> JobCameras(const MvsJob& job, const Loade
     return absl::InvalidArgumentError(
         absl::StrCat(job.take_dir, ": multi-view stereo needs 2 cameras or more, ", ids.size(), " given"));
   }
-  std::vector<MvsCamera> out;
-  for (const std::string& id : ids) {
-    MvsCamera c;
-    c.id = id;
-    for (const v1::CameraConfig& config : rig.rig.cameras()) {
-      if (config.id() == id) c.black_level_dn = config.photometric().black_level_dn();
-    }
-    c.path = job.take_dir + "/cameras/" + id + ".h5";
-    if (!fs::exists(c.path)) {
-      return absl::NotFoundError(absl::StrCat(c.path, ": no frame file for camera \"", id, "\" in the take"));
-    }
-    STAGE_ASSIGN_OR_RETURN(const FrameFileShape shape, ReadFrameFileShape(c.path));
-    STAGE_ASSIGN_OR_RETURN(c.model, CameraAtImageSize(rig, id, shape.width, shape.height, calibration));
-    c.last_slot = shape.last_slot;
-    out.push_back(std::move(c));
-  }
-  return out;
+  return OpenTakeCameras(job.take_dir, rig, ids, calibration);
 }
 
 // A view's depth at the pixels of the image as recorded (with its lens's distortion), at the processing size:

@@ -12,16 +12,12 @@
 #include "stage/common/mesh.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/mvs.h"
+#include "stage/processing/take_frames.h"
 
 namespace stage::processing {
 
 // A camera of a job: its frame file and its model at the recorded size.
-struct MvsCamera {
-  std::string id, path;
-  CameraModel model;  // at the recorded image size
-  double black_level_dn = 0;
-  int64_t last_slot = -1;
-};
+using MvsCamera = TakeCamera;
 
 // A job's take opened for reading (RunMvs, mvs_bench): its light model, the calibration the job names, its cameras
 // (the job's, or every machine-vision camera) placed by it, and the frames they recorded.

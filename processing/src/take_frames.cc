@@ -2,6 +2,7 @@
 #include "stage/processing/take_frames.h"
 
 #include <algorithm>
+#include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
 
@@ -10,6 +11,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
+#include "stage/processing/calibration.h"
 #include "stage/storage/frame_file.h"
 
 namespace stage::processing {
@@ -279,6 +281,32 @@ absl::Status ForEachFullLitFrame(const std::string& path, int64_t first, int64_t
     STAGE_RETURN_IF_ERROR(visit(frame, grey));
   }
   return absl::OkStatus();
+}
+
+}  // namespace stage::processing
+
+namespace stage::processing {
+
+absl::StatusOr<std::vector<TakeCamera>> OpenTakeCameras(const std::string& take_dir, const LoadedRig& rig,
+                                                        const std::vector<std::string>& ids,
+                                                        const CameraCalibration* calibration) {
+  std::vector<TakeCamera> out;
+  for (const std::string& id : ids) {
+    TakeCamera c;
+    c.id = id;
+    for (const v1::CameraConfig& config : rig.rig.cameras()) {
+      if (config.id() == id) c.black_level_dn = config.photometric().black_level_dn();
+    }
+    c.path = take_dir + "/cameras/" + id + ".h5";
+    if (!std::filesystem::exists(c.path)) {
+      return absl::NotFoundError(absl::StrCat(c.path, ": no frame file for camera \"", id, "\" in the take"));
+    }
+    STAGE_ASSIGN_OR_RETURN(const FrameFileShape shape, ReadFrameFileShape(c.path));
+    STAGE_ASSIGN_OR_RETURN(c.model, CameraAtImageSize(rig, id, shape.width, shape.height, calibration));
+    c.last_slot = shape.last_slot;
+    out.push_back(std::move(c));
+  }
+  return out;
 }
 
 }  // namespace stage::processing

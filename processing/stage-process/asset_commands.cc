@@ -49,6 +49,19 @@ void AssetCommands::Add(CLI::App& parent) {
   build_dataset_->add_option("--held-out-sequence", dataset_.held_out_sequence,
                              "The expression sequence held out whole (e.g. smile-3; default: the last the take holds "
                              "whole; none: no sequence)");
+  build_dataset_->add_option("--cameras", dataset_.cameras,
+                             "Machine-vision cameras whose full-lit frames are cropped about the face, comma-separated "
+                             "(default: every one the take recorded)")
+      ->delimiter(',');
+  build_dataset_->add_option("--calibration", dataset_.calibration,
+                             "Where the cameras are (a calibration file or a directory with cameras.json, relative to "
+                             "the take or absolute; default: the rig's nominal models)");
+  build_dataset_->add_option("--image-size", dataset_.image_size, "Pixels across a crop")
+      ->capture_default_str()
+      ->check(CLI::Range(16, 512));
+  build_dataset_->add_option("--crop-mm", dataset_.crop_mm, "The crop's side at the face, mm")
+      ->capture_default_str()
+      ->check(CLI::Range(50.0, 1000.0));
   build_dataset_->add_flag("--json", json_, "Print the summary as JSON on stdout");
   AddTrain();
 }
@@ -124,6 +137,8 @@ int AssetCommands::BuildDataset() {
                                 {"held_out_sequence", summary->held_out_sequence},
                                 {"sequence", summary->sequence},
                                 {"sequences", summary->sequences.size()},
+                                {"cameras", summary->cameras},
+                                {"image_size", summary->image_size},
                                 {"valid_texels", summary->valid_texels},
                                 {"rms_from_mean_mm", summary->rms_from_mean_mm}}
                      .dump()
@@ -133,7 +148,8 @@ int AssetCommands::BuildDataset() {
               << summary->path << ": " << summary->train << " to train on, " << summary->held_out_block
               << " in held-out blocks, " << summary->held_out_sequence << " in the held-out sequence"
               << (summary->sequence.empty() ? " (none)" : " \"" + summary->sequence + "\"") << "; "
-              << static_cast<int64_t>(summary->valid_texels) << " texels a frame, " << summary->rms_from_mean_mm
+              << summary->cameras.size() << " camera(s) cropped"
+              << "; " << static_cast<int64_t>(summary->valid_texels) << " texels a frame, " << summary->rms_from_mean_mm
               << " mm RMS about the mean\n";
   }
   return 0;

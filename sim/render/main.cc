@@ -10,10 +10,12 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/sim/ground_truth.h"
+#include "stage/sim/rendered_take.h"
 #include "stage/sim/scene.h"
 #include "stage/timing/schedule.h"
 
@@ -88,12 +90,21 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(16, 16384));
   int64_t frame_step = 1;
   bool no_camera_maps = false, no_meshes = false;
-  app.add_option("--frame-step", frame_step, "Ground truth: every Nth frame of --frames")
+  app.add_option("--frame-step", frame_step, "Ground truth and take: every Nth frame of --frames")
       ->capture_default_str()
       ->check(CLI::Range(int64_t{1}, int64_t{1} << 40));
   app.add_flag("--no-camera-maps", no_camera_maps,
                "Ground truth: no per-camera maps (the cameras, poses and UV position maps only)");
   app.add_flag("--no-meshes", no_meshes, "Ground truth: no mesh.obj per frame (uv_position.exr holds the surface)");
+  std::string take_dir, take_cameras;
+  bool all_patterns = false;
+  app.add_option("--take", take_dir,
+                 "Write a take (docs/asset.md#a-performance-to-learn-from) to this directory instead of a contact "
+                 "sheet: each camera's frames of --frames (every --frame-step) in its frame file, take.json and the "
+                 "ground truth (poses and UV position maps of --uv-size), without bringing the stage up");
+  app.add_option("--take-cameras", take_cameras,
+                 "Take: camera ids, comma-separated (default: every machine-vision camera)");
+  app.add_flag("--all-patterns", all_patterns, "Take: every pattern of the cycle (default: the full-on ones only)");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -103,16 +114,42 @@ int main(int argc, char** argv) {
   if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
   auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
   if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
-  if (!truth_dir.empty()) {
-    stage::sim::GroundTruthOptions options;
+  int64_t first_frame = 0, last_frame = 0;
+  {
     const auto colon = frames.find(':');
     try {
-      options.first_frame = std::stoll(frames.substr(0, colon));
-      options.last_frame = colon == std::string::npos ? options.first_frame + 1 : std::stoll(frames.substr(colon + 1));
+      first_frame = std::stoll(frames.substr(0, colon));
+      last_frame = colon == std::string::npos ? first_frame + 1 : std::stoll(frames.substr(colon + 1));
     } catch (const std::exception&) {
       return stage::ReportFatal(
           kProgram, absl::InvalidArgumentError(absl::StrCat("--frames \"", frames, "\" is not A:B (e.g. 0:24)")));
     }
+  }
+  if (!take_dir.empty()) {
+    stage::sim::RenderedTakeOptions options;
+    options.first_frame = first_frame;
+    options.last_frame = last_frame;
+    options.frame_step = frame_step;
+    options.cameras = absl::StrSplit(take_cameras, ',', absl::SkipEmpty());
+    options.full_lit_only = !all_patterns;
+    options.uv_size = uv_size;
+    stage::ProgressLine bar("camera frames");
+    options.progress = [&bar](int64_t done, int64_t total) { bar.Update(done, total); };
+    auto s = stage::sim::WriteRenderedTake(*scene, take_dir, options);
+    bar.Finish();
+    if (!s.ok()) return stage::ReportFatal(kProgram, s);
+    if (json) {
+      std::cout << nlohmann::json({{"take", take_dir}, {"first_frame", first_frame}, {"last_frame", last_frame},
+                                   {"frame_step", frame_step}})
+                       .dump(2)
+                << std::endl;
+    }
+    return 0;
+  }
+  if (!truth_dir.empty()) {
+    stage::sim::GroundTruthOptions options;
+    options.first_frame = first_frame;
+    options.last_frame = last_frame;
     options.cameras = truth_cameras;
     options.uv_size = uv_size;
     options.frame_step = frame_step;

@@ -11,7 +11,15 @@
 //   geometry         float32 (N, S, S, 3)     head frame, mm; 0 where not valid
 //   valid            uint8 (N, S, S)          1 where the texel holds the surface's point
 //   stage_from_head  float32 (N, 4, 4)        the head's pose
-//   attributes: format ("fastage-asset-dataset-1"), description (JSON: source, take, size, sequences, the split).
+//   images           uint8 (N, V, I, I)       each machine-vision camera's full-lit frame cropped about the face
+//                                             (grey, gamma 2.2 over the camera's white); only when the take has them
+//   image_valid      uint8 (N, V)             1 where the camera recorded the frame's full-lit slot
+//   attributes: format ("fastage-asset-dataset-1"), description (JSON: source, take, size, sequences, the split, the
+//   cameras and their crops).
+//
+// The crops are fixed per camera, as a stage's cameras are: a square of `crop_mm` at the face's place when the head
+// is at rest (the face template's centre at the stage's origin pose), wherever the head then moves, so that a new
+// image of the same camera is cropped the same way with no pose known.
 #pragma once
 
 #include <cstdint>
@@ -56,6 +64,14 @@ struct DatasetOptions {
   // The expression sequence held out whole (a name the simulator's pose files give, "smile-3"); empty: the last one
   // the frames hold whole (none if the take names fewer than three); "none": none.
   std::string held_out_sequence;
+  // The machine-vision cameras whose full-lit frames are cropped (ids; empty: every machine-vision camera the take
+  // has a frame file of; none recorded: no images). `calibration` places them (a file, or a directory holding
+  // cameras.json, relative to the take or absolute; empty: the rig's nominal models).
+  std::vector<std::string> cameras;
+  std::string calibration;
+  // Texels across a crop (16..512), and the crop's side at the face, mm (50..1000).
+  int image_size = 128;
+  double crop_mm = 280;
   // Called after each frame: (done, total).
   std::function<void(int64_t, int64_t)> progress;
 
@@ -69,6 +85,8 @@ struct DatasetSummary {
   int64_t frames = 0, train = 0, held_out_block = 0, held_out_sequence = 0;
   std::string sequence;  // held out; empty when none
   std::vector<std::string> sequences;
+  std::vector<std::string> cameras;  // whose crops the dataset holds
+  int image_size = 0;
   // Over the frames' valid texels: the mean count per frame, and how far the geometry moves from the dataset's mean
   // (RMS, mm): what a model of it has to explain.
   double valid_texels = 0, rms_from_mean_mm = 0;
@@ -89,6 +107,10 @@ struct AssetDataset {
   std::vector<float> geometry;        // frames x size x size x 3
   std::vector<uint8_t> valid;         // frames x size x size
   std::vector<float> stage_from_head;  // frames x 16, row-major
+  std::vector<std::string> cameras;    // of the images (empty: none)
+  int image_size = 0;
+  std::vector<uint8_t> images;         // frames x cameras x image_size^2
+  std::vector<uint8_t> image_valid;    // frames x cameras
   std::string description;            // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };

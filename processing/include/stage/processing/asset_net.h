@@ -93,6 +93,11 @@ class GeometryVae {
   absl::Status Save(const std::string& path) const;
   absl::Status Load(const std::string& path);
 
+  // The net as TorchScript, which Python's torch.jit.load runs without this project's code: methods
+  // encode(maps B x 3 x S x S mm, valid B x 1 x S x S) -> the latents' means (B x (geometry + pose), the alignment
+  // included), decode(geometry latents) -> maps (mm), and forward = decode. Written atomically.
+  absl::Status ExportTorchScript(const std::string& path) const;
+
   const GeometryVaeOptions& options() const;
   int64_t parameter_count() const;
 

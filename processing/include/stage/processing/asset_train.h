@@ -3,7 +3,8 @@
 //   checkpoint.pt      the net and Adam's state at the last checkpoint (replaced atomically)
 //   trainer.json       the step reached, the generator's state, the options (a resume must match them)
 //   loss.csv, loss.png every step's losses, and their curves (log scale)
-//   geometry_vae.pt    the trained net (at the end)
+//   geometry_vae.pt    the trained net (at the end), and geometry_vae.torchscript.pt, the same as TorchScript (Python's
+//                      torch.jit.load runs it: encode, decode)
 //   evaluation.json    the held-out frames' error beside the baselines (TrainedEvaluation)
 // A run killed at any point resumes from its last checkpoint (`resume`) and ends bit for bit where an unbroken run
 // of the same options and thread count ends.

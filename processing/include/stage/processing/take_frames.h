@@ -9,6 +9,9 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/common/camera_calibration.h"
+#include "stage/common/camera_model.h"
+#include "stage/common/rig.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/photometric.h"
 
@@ -48,6 +51,19 @@ struct FrameFileShape {
   int64_t last_slot = -1;  // the highest slot stored
 };
 absl::StatusOr<FrameFileShape> ReadFrameFileShape(const std::string& path);
+
+// A camera of a take as the stages read it: its frame file, its black level and its model at the recorded size.
+struct TakeCamera {
+  std::string id, path;
+  CameraModel model;
+  double black_level_dn = 0;
+  int64_t last_slot = -1;  // the highest slot its file stores
+};
+// Cameras `ids` of the take in `take_dir` (recorded with `rig`), placed by `calibration` (null: the rig's nominal
+// models). Errors name the file: a camera without a frame file, frames of a size the rig does not give.
+absl::StatusOr<std::vector<TakeCamera>> OpenTakeCameras(const std::string& take_dir, const LoadedRig& rig,
+                                                        const std::vector<std::string>& ids,
+                                                        const CameraCalibration* calibration);
 
 // Every frame of [first, last) of a camera's frame file that recorded a full-on pattern (every unit at 1; the
 // cross-polarized one preferred): black level removed, demosaiced and averaged to grey, handed to `visit` in frame
