@@ -6,6 +6,7 @@
 #include <torch/torch.h>
 
 #include <algorithm>
+#include <chrono>
 #include <filesystem>
 
 #include "absl/strings/str_cat.h"
@@ -374,19 +375,14 @@ def decode(self, z: Tensor) -> Tensor:
     x = self.leaky(torch.matmul(z, self.decoder_input_weight.t()) + self.decoder_input_bias)
 )";
   src += absl::StrCat("    x = x.view(z.size(0), ", Channels(o, o.levels), ", ", o.input_size >> o.levels, ", ",
-                      o.input_size >> o.levels, ")
-");
+                      o.input_size >> o.levels, ")\n");
   for (int i = o.levels - 1; i >= 0; --i) {
-    src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])
-";
+    src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])\n";
     src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i,
-                        "_bias", conv, ")
-");
+                        "_bias", conv, ")\n");
   }
-  src += absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "
-");
-  src += "    return self.mean + self.scale * x
-";
+  src += absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "\n");
+  src += "    return self.mean + self.scale * x\n";
   src += R"(
 def forward(self, z: Tensor) -> Tensor:
     return self.decode(z)
@@ -406,17 +402,13 @@ def encode(self, maps: Tensor, valid: Tensor) -> Tensor:
     x = torch.cat([(aligned - self.mean) / self.scale * valid, valid], 1)
 )";
   src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias", conv,
-                      ")
-");
+                      ")\n");
   for (int i = 0; i < o.levels; ++i) {
     src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
-                        "_bias, [2, 2], [1, 1], [1, 1], 1))
-");
+                        "_bias, [2, 2], [1, 1], [1, 1], 1))\n");
   }
-  src += "    x = torch.matmul(x.flatten(1), self.encoder_head_weight.t()) + self.encoder_head_bias
-";
-  src += absl::StrCat("    return x[:, :", o.geometry_latent + o.pose_latent, "]
-");
+  src += "    x = torch.matmul(x.flatten(1), self.encoder_head_weight.t()) + self.encoder_head_bias\n";
+  src += absl::StrCat("    return x[:, :", o.geometry_latent + o.pose_latent, "]\n");
   return src;
 }
 
@@ -460,6 +452,48 @@ absl::Status GeometryVae::Load(const std::string& path) {
     const std::string what = e.what();
     return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", kNet, " (",
                                                       what.substr(0, what.find('\n')), ")"));
+  }
+}
+
+double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
+  const double s = o.input_size;
+  double macs = s * s * 4 * Channels(o, 0) * 9;  // the stem
+  for (int i = 0; i < o.levels; ++i) {
+    const double r = s / (2 << i);  // each stride-2 level's output
+    macs += r * r * Channels(o, i) * Channels(o, i + 1) * 9;
+  }
+  const double side = o.input_size >> o.levels, top = Channels(o, o.levels) * side * side;
+  macs += top * 2 * (o.geometry_latent + o.pose_latent);  // the encoder's head
+  macs += o.geometry_latent * top;                         // the decoder's input
+  for (int i = o.levels - 1; i >= 0; --i) {
+    const double r = s / (1 << i);
+    macs += r * r * Channels(o, i + 1) * Channels(o, i) * 9;
+  }
+  macs += s * s * Channels(o, 0) * 3 * 9;  // the decoder's output
+  return macs + o.pose_latent * 64 + 64 * 9;
+}
+
+absl::StatusOr<double> ConvFloorMacsPerSecond(int size, int channels, int batch, int steps, int threads) {
+  if (size < 4 || channels < 1 || batch < 1 || steps < 1) {
+    return absl::InvalidArgumentError("conv floor: size, channels, batch and steps must be positive");
+  }
+  try {
+    SetTorchThreads(threads);
+    torch::manual_seed(1);
+    torch::nn::Conv2d conv(torch::nn::Conv2dOptions(channels, channels, 3).padding(1));
+    const torch::Tensor x = torch::randn({batch, channels, size, size});
+    auto step = [&] {
+      conv->zero_grad();
+      conv->forward(x).square().mean().backward();
+    };
+    step();  // warm-up
+    const auto start = std::chrono::steady_clock::now();
+    for (int i = 0; i < steps; ++i) step();
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    const double macs = 3.0 * batch * size * size * channels * channels * 9 * steps;
+    return macs / seconds;
+  } catch (const std::exception& e) {
+    return internal::TorchError("conv floor", "timing", e);
   }
 }
 

@@ -107,4 +107,13 @@ class GeometryVae {
   std::unique_ptr<Impl> impl_;
 };
 
+// Multiply-adds of one forward pass of the geometry VAE on one map (its convolutions and linear layers), for
+// benchmarks; a training step costs about three times that per map.
+double GeometryVaeForwardMacs(const GeometryVaeOptions& o);
+
+// The floor a net's training step is measured against (bench/asset_bench): one 3 x 3 convolution of `channels` to
+// `channels` at size x size on a batch, forward and backward, timed over `steps` after a warm-up: multiply-adds a
+// second (the backward counted as twice the forward).
+absl::StatusOr<double> ConvFloorMacsPerSecond(int size, int channels, int batch, int steps, int threads);
+
 }  // namespace stage::processing
