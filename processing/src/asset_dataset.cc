@@ -430,6 +430,9 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   std::vector<std::vector<uint8_t>> valid;
   double valid_texels = 0;
   for (size_t i = 0; i < frames.size(); ++i) {
+    if (options.cancelled && options.cancelled()) {
+      return absl::CancelledError(absl::StrCat("dataset: stopped at frame ", frames[i], " (nothing written)"));
+    }
     const std::string frame_dir = FrameDir(root, frames[i]);
     absl::StatusOr<FrameGeometry> g = truth ? TruthGeometry(face, layout, size, frame_dir) : FitGeometry(size, frame_dir);
     if (!g.ok()) return g.status();

@@ -7,6 +7,8 @@
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_train.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/mvs.h"
 #include "stage/processing/photometric_stage.h"
@@ -49,10 +51,16 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
       job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
-      job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE) {
+      job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE &&
+      job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET && job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
     return ToGrpcStatus(absl::InvalidArgumentError(
         absl::StrCat("worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
-                     " (stages: photometric, calibration, mvs, fit, textures, stabilize)")));
+                     " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train)")));
+  }
+  if (job->has_asset() && job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET &&
+      job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
+    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
+        "worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no asset options")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -93,6 +101,12 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       break;
     case v1::PROCESSING_STAGE_STABILIZE:
       result = RunStabilizeJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_ASSET_DATASET:
+      result = RunAssetDatasetJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_ASSET_TRAIN:
+      result = RunAssetTrainJob(*job, report, cancelled);
       break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);
@@ -257,6 +271,71 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunStabilizeJob(
   if (!result.ok()) return result.status();
   return Finished(result->units, result->output_dir,
                   absl::StrCat(result->units, " frame(s) of textures stabilized into ", result->output_dir));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0) {
+    return absl::InvalidArgumentError("the asset's dataset takes no geometry or texture size: asset.source says");
+  }
+  const v1::AssetOptions& a = job.asset();
+  if (a.iterations() != 0 || a.batch() != 0 || a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 ||
+      a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0) {
+    return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
+  }
+  DatasetOptions d;
+  d.take_dir = job.take_dir();
+  d.first_frame = job.first_frame();
+  d.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  d.source = a.source() == v1::ASSET_SOURCE_RECONSTRUCTION ? AssetSource::kReconstruction : AssetSource::kTruth;
+  if (a.geometry_size() != 0) d.geometry_size = a.geometry_size();
+  if (a.image_size() != 0) d.image_size = a.image_size();
+  d.cameras.assign(job.cameras().begin(), job.cameras().end());
+  d.calibration = job.calibration();
+  d.progress = [&](int64_t done, int64_t total) { progress({done, total, "frames"}); };
+  d.cancelled = cancelled;
+  auto result = BuildAssetDataset(d);
+  if (!result.ok()) return result.status();
+  return Finished(result->frames, result->path,
+                  absl::StrCat(result->frames, " frame(s) into the asset's dataset ", result->path));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  const v1::AssetOptions& a = job.asset();
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0 ||
+      job.cameras_size() > 0 || !job.calibration().empty() || job.first_frame() != 0 || job.last_frame() != 0 ||
+      a.source() != v1::ASSET_SOURCE_UNSPECIFIED || a.geometry_size() != 0 || a.image_size() != 0) {
+    return absl::InvalidArgumentError(
+        "the asset's training takes no frames, cameras, calibration, geometry or dataset options: it reads "
+        "TAKE/derived/asset/dataset.h5");
+  }
+  AssetTrainJob t;
+  t.dataset = job.take_dir() + "/derived/asset/dataset.h5";
+  if (a.iterations() != 0) t.iterations = a.iterations();
+  if (a.batch() != 0) t.batch = a.batch();
+  GeometryVaeOptions& g = t.geometry;
+  if (a.input_size() != 0) g.input_size = a.input_size();
+  if (a.levels() != 0) g.levels = a.levels();
+  if (a.base_channels() != 0) g.base_channels = a.base_channels();
+  if (a.max_channels() != 0) g.max_channels = a.max_channels();
+  if (a.geometry_latent() != 0) g.geometry_latent = a.geometry_latent();
+  if (a.pose_latent() != 0) g.pose_latent = a.pose_latent();
+  if (a.seed() != 0) g.seed = a.seed();
+  // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads), resumed where a job of the
+  // same options stopped.
+  t.resume = true;
+  t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) {
+    if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", l.total)});
+    return !cancelled();
+  };
+  auto result = TrainGeometryAsset(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("geometry VAE trained ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatTrainedEvaluation(result->evaluation)));
 }
 
 }  // namespace stage::processing

@@ -103,7 +103,10 @@ absl::StatusOr<std::unique_ptr<ArrayFileWriter>> ArrayFileWriter::Create(const s
   auto state = std::make_unique<State>();
   state->path = path;
   state->tmp = path + ".tmp";
-  state->file = Id(H5Fcreate(state->tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT), H5Fclose);
+  // No modification times in the objects' headers: the same arrays make the same bytes.
+  Id fcpl(H5Pcreate(H5P_FILE_CREATE), H5Pclose);
+  H5Pset_obj_track_times(fcpl.get(), false);
+  state->file = Id(H5Fcreate(state->tmp.c_str(), H5F_ACC_TRUNC, fcpl.get(), H5P_DEFAULT), H5Fclose);
   if (!state->file.ok()) return Hdf5Error(absl::StatusCode::kUnavailable, state->tmp, "cannot create");
   return std::unique_ptr<ArrayFileWriter>(new ArrayFileWriter(std::move(state)));
 }
@@ -124,6 +127,7 @@ absl::Status ArrayFileWriter::AddArray(const std::string& name, ArrayType type, 
   Id space(H5Screate_simple(rank, dims.data(), max.data()), H5Sclose);
   Id dcpl(H5Pcreate(H5P_DATASET_CREATE), H5Pclose);
   H5Pset_chunk(dcpl.get(), rank, chunk.data());
+  H5Pset_obj_track_times(dcpl.get(), false);
   if (deflate > 0) H5Pset_deflate(dcpl.get(), static_cast<unsigned>(std::min(deflate, 9)));
   State::Array array;
   array.dataset = Id(H5Dcreate2(state_->file.get(), name.c_str(), FileType(type), space.get(), H5P_DEFAULT, dcpl.get(),

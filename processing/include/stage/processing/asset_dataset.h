@@ -72,8 +72,10 @@ struct DatasetOptions {
   // Texels across a crop (16..512), and the crop's side at the face, mm (50..1000).
   int image_size = 128;
   double crop_mm = 280;
-  // Called after each frame: (done, total).
+  // Called after each frame: (done, total); and asked before each: true stops the build (Cancelled, nothing
+  // written).
   std::function<void(int64_t, int64_t)> progress;
+  std::function<bool()> cancelled;
 
   absl::Status Validate() const;
 };

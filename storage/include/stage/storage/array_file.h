@@ -1,7 +1,8 @@
 // Files of named arrays (HDF5, as h5py and h5dump read them): what processing writes for other programs and reads back
 // whole, a neural asset's dataset (docs/asset.md). Each array grows a row at a time along its first dimension; text
 // attributes on the file's root describe it. Written to PATH.tmp and renamed onto PATH when closed, so a reader never
-// sees half a file and a killed writer leaves nothing under PATH.
+// sees half a file and a killed writer leaves nothing under PATH. No times are stored: the same arrays give the same
+// bytes.
 #pragma once
 
 #include <cstdint>

@@ -1,0 +1,130 @@
+// The neural asset's stages three ways (stage-process asset ..., the library, the processing worker's job) on a take
+// the simulator renders: the same bytes each way; the dataset opens in h5py; clear errors.
+#include <filesystem>
+#include <map>
+#include <nlohmann/json.hpp>
+
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "stage/common/rig.h"
+#include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_train.h"
+#include "stage/sim/rendered_take.h"
+#include "test_support.h"
+#include "worker_support.h"
+
+namespace stage::testing {
+namespace {
+
+using ::testing::HasSubstr;
+
+// Twelve frames of the range-of-motion performance, 100 s apart by 8 s, seen by two machine-vision cameras.
+void MakeTake(const std::string& dir) {
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.05", "sim.subject.performance=range_of_motion",
+                                         "sim.subject.head_resolution=96"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  auto scene = sim::SimScene::FromLoadedRig(*rig);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ASSERT_TRUE(sim::WriteRenderedTake(*scene, dir,
+                                     {.first_frame = 0, .last_frame = 2400, .frame_step = 200,
+                                      .cameras = {"mv-01", "mv-05"}, .uv_size = 128})
+                  .ok());
+}
+
+TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
+  TempDir take;
+  ASSERT_NO_FATAL_FAILURE(MakeTake(take.path()));
+  const std::string asset = take.path() + "/derived/asset";
+
+  // The dataset.
+  CommandResult batch = RunCommand({"stage-process", "asset", "build-dataset", "--take", take.path(), "--geometry-size",
+                                    "32", "--image-size", "32", "--output", asset + "/batch.h5", "--json"},
+                                   std::chrono::seconds(120));
+  ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
+  const nlohmann::json summary = nlohmann::json::parse(batch.out);
+  EXPECT_EQ(summary["frames"], 12);
+  EXPECT_EQ(summary["cameras"].size(), 2u);
+  processing::DatasetOptions options{.take_dir = take.path(), .output = asset + "/library.h5", .geometry_size = 32,
+                                     .image_size = 32};
+  ASSERT_TRUE(processing::BuildAssetDataset(options).ok());
+  v1::ProcessingJob request;
+  request.set_stage(v1::PROCESSING_STAGE_ASSET_DATASET);
+  request.set_take_dir(take.path());
+  request.mutable_asset()->set_geometry_size(32);
+  request.mutable_asset()->set_image_size(32);
+  v1::ProcessingProgress last;
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/dataset.h5");
+  const std::string dataset = ReadFile(asset + "/dataset.h5");
+  EXPECT_TRUE(ReadFile(asset + "/batch.h5") == dataset);
+  EXPECT_TRUE(ReadFile(asset + "/library.h5") == dataset);
+  CommandResult h5py = RunCommand(
+      {"/usr/bin/python3", "-c",
+       "import h5py, sys; f = h5py.File(sys.argv[1]); print(f['geometry'].shape, f['images'].shape, f.attrs['format'])",
+       asset + "/dataset.h5"},
+      std::chrono::seconds(60));
+  ASSERT_EQ(h5py.exit.exit_code, 0) << h5py.err;
+  EXPECT_THAT(h5py.out, HasSubstr("(12, 32, 32, 3) (12, 2, 32, 32) fastage-asset-dataset-1"));
+
+  // The training, tiny.
+  const std::vector<std::string> tiny = {"--iterations", "30", "--batch",           "4", "--input-size",
+                                         "32",           "--levels", "3",           "--max-channels",
+                                         "32",           "--geometry-latent", "4",  "--pose-latent", "3"};
+  std::vector<std::string> argv = {"stage-process", "asset", "train", "--dataset", asset + "/dataset.h5",
+                                   "--output",      asset + "/geometry-batch", "--json"};
+  argv.insert(argv.end(), tiny.begin(), tiny.end());
+  CommandResult train = RunCommand(argv, std::chrono::seconds(300));
+  ASSERT_EQ(train.exit.exit_code, 0) << train.err;
+  EXPECT_EQ(nlohmann::json::parse(train.out)["steps"], 30);
+  processing::AssetTrainJob job;
+  job.dataset = asset + "/dataset.h5";
+  job.output_dir = asset + "/geometry-library";
+  job.iterations = 30;
+  job.batch = 4;
+  job.geometry = {.input_size = 32, .levels = 3, .max_channels = 32, .geometry_latent = 4, .pose_latent = 3};
+  ASSERT_TRUE(processing::TrainGeometryAsset(job).ok());
+  v1::ProcessingJob train_request;
+  train_request.set_stage(v1::PROCESSING_STAGE_ASSET_TRAIN);
+  train_request.set_take_dir(take.path());
+  v1::AssetOptions* a = train_request.mutable_asset();
+  a->set_iterations(30);
+  a->set_batch(4);
+  a->set_input_size(32);
+  a->set_levels(3);
+  a->set_max_channels(32);
+  a->set_geometry_latent(4);
+  a->set_pose_latent(3);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), train_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/geometry");
+  // Torch's own archives (checkpoint.pt, geometry_vae.pt) name the module's class with a counter of the modules the
+  // process made before, so their bytes differ between processes; the TorchScript file holds the same weights and is
+  // compared with the rest.
+  auto without_archives = [](std::map<std::string, std::string> files) {
+    EXPECT_EQ(files.erase("checkpoint.pt") + files.erase("geometry_vae.pt"), 2u);
+    return files;
+  };
+  const auto files = without_archives(FilesUnder(asset + "/geometry-batch"));
+  EXPECT_EQ(files.size(), 5u);  // trainer.json, loss.csv and .png, the TorchScript net, evaluation.json
+  for (const std::string other : {"geometry-library", "geometry"}) {
+    const auto theirs = without_archives(FilesUnder(asset + "/" + other));
+    ASSERT_EQ(theirs.size(), files.size()) << other;
+    for (const auto& [name, bytes] : files) EXPECT_TRUE(theirs.at(name) == bytes) << name << " differs in " << other;
+  }
+
+  // A job's options the stage does not take are refused, naming them.
+  v1::ProcessingJob wrong = request;
+  wrong.set_stage(v1::PROCESSING_STAGE_PHOTOMETRIC);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("takes no asset options"));
+  wrong = train_request;
+  wrong.set_first_frame(3);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));
+  CommandResult missing = RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"},
+                                     std::chrono::seconds(60));
+  EXPECT_EQ(missing.exit.exit_code, 2);
+  EXPECT_THAT(missing.err, HasSubstr("none.h5: no such file"));
+}
+
+}  // namespace
+}  // namespace stage::testing
