@@ -85,15 +85,16 @@ int main(int argc, char** argv) {
   }
   const int used = stage::processing::TorchThreadCount(threads);
   if (json) {
-    std::printf("{\"threads\": %d, \"batch\": %d, \"step_s\": %.5f, \"samples_per_s\": %.2f, \"vae_gmacs_per_s\": %.3f, "
-                "\"floor_gmacs_per_s\": %.3f, \"weights\": %lld}\n",
-                used, batch, step_s, batch / step_s, macs / step_s * 1e-9, *floor * 1e-9,
-                static_cast<long long>((*net)->parameter_count()));
+    std::printf(
+        "{\"threads\": %d, \"batch\": %d, \"step_s\": %.5f, \"samples_per_s\": %.2f, \"vae_gmacs_per_s\": %.3f, "
+        "\"floor_gmacs_per_s\": %.3f, \"weights\": %lld}\n",
+        used, batch, step_s, batch / step_s, macs / step_s * 1e-9, *floor * 1e-9,
+        static_cast<long long>((*net)->parameter_count()));
   } else {
     std::printf("geometry VAE (%lld weights, input %d, %d threads), training step of %d maps:\n",
                 static_cast<long long>((*net)->parameter_count()), size, used, batch);
-    std::printf("  %.1f ms a step, %.1f maps/s, %.2f GMAC/s (forward and backward, %.2f GMAC a step)\n",
-                1e3 * step_s, batch / step_s, macs / step_s * 1e-9, macs * 1e-9);
+    std::printf("  %.1f ms a step, %.1f maps/s, %.2f GMAC/s (forward and backward, %.2f GMAC a step)\n", 1e3 * step_s,
+                batch / step_s, macs / step_s * 1e-9, macs * 1e-9);
     std::printf("floor: one 3x3 convolution %d -> %d channels at %d x %d, forward and backward: %.2f GMAC/s\n",
                 floor_channels, floor_channels, floor_size, floor_size, *floor * 1e-9);
     std::printf("the VAE's step runs at %.0f %% of the floor's rate\n", 100 * macs / step_s / *floor);

@@ -22,15 +22,16 @@ using ::testing::HasSubstr;
 void MakeTake(const std::string& dir) {
   auto loaded = LoadRig(kBuiltinRigName);
   ASSERT_TRUE(loaded.ok());
-  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.05", "sim.subject.performance=range_of_motion",
-                                         "sim.subject.head_resolution=96"});
+  auto rig = ApplyRigOverrides(
+      *loaded, {"sim.render_scale=0.05", "sim.subject.performance=range_of_motion", "sim.subject.head_resolution=96"});
   ASSERT_TRUE(rig.ok()) << rig.status();
   auto scene = sim::SimScene::FromLoadedRig(*rig);
   ASSERT_TRUE(scene.ok()) << scene.status();
-  ASSERT_TRUE(sim::WriteRenderedTake(*scene, dir,
-                                     {.first_frame = 0, .last_frame = 2400, .frame_step = 200,
-                                      .cameras = {"mv-01", "mv-05"}, .uv_size = 128})
-                  .ok());
+  ASSERT_TRUE(
+      sim::WriteRenderedTake(
+          *scene, dir,
+          {.first_frame = 0, .last_frame = 2400, .frame_step = 200, .cameras = {"mv-01", "mv-05"}, .uv_size = 128})
+          .ok());
 }
 
 TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
@@ -46,8 +47,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   const nlohmann::json summary = nlohmann::json::parse(batch.out);
   EXPECT_EQ(summary["frames"], 12);
   EXPECT_EQ(summary["cameras"].size(), 2u);
-  processing::DatasetOptions options{.take_dir = take.path(), .output = asset + "/library.h5", .geometry_size = 32,
-                                     .image_size = 32};
+  processing::DatasetOptions options{
+      .take_dir = take.path(), .output = asset + "/library.h5", .geometry_size = 32, .image_size = 32};
   ASSERT_TRUE(processing::BuildAssetDataset(options).ok());
   v1::ProcessingJob request;
   request.set_stage(v1::PROCESSING_STAGE_ASSET_DATASET);
@@ -69,11 +70,12 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   EXPECT_THAT(h5py.out, HasSubstr("(12, 32, 32, 3) (12, 2, 32, 32) fastage-asset-dataset-1"));
 
   // The training, tiny.
-  const std::vector<std::string> tiny = {"--iterations", "30", "--batch",           "4", "--input-size",
-                                         "32",           "--levels", "3",           "--max-channels",
-                                         "32",           "--geometry-latent", "4",  "--pose-latent", "3"};
-  std::vector<std::string> argv = {"stage-process", "asset", "train", "--dataset", asset + "/dataset.h5",
-                                   "--output",      asset + "/geometry-batch", "--json"};
+  const std::vector<std::string> tiny = {"--iterations",  "30", "--batch",        "4",  "--input-size",      "32",
+                                         "--levels",      "3",  "--max-channels", "32", "--geometry-latent", "4",
+                                         "--pose-latent", "3"};
+  std::vector<std::string> argv = {
+      "stage-process",           "asset", "train", "--dataset", asset + "/dataset.h5", "--output",
+      asset + "/geometry-batch", "--json"};
   argv.insert(argv.end(), tiny.begin(), tiny.end());
   CommandResult train = RunCommand(argv, std::chrono::seconds(300));
   ASSERT_EQ(train.exit.exit_code, 0) << train.err;
@@ -120,8 +122,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   wrong = train_request;
   wrong.set_first_frame(3);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));
-  CommandResult missing = RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"},
-                                     std::chrono::seconds(60));
+  CommandResult missing =
+      RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);
   EXPECT_THAT(missing.err, HasSubstr("none.h5: no such file"));
 }

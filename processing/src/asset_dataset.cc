@@ -6,7 +6,9 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
+#include <optional>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -14,8 +16,8 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
 #include "stage/processing/face_template.h"
-#include "stage/processing/map_files.h"
 #include "stage/processing/light_model.h"
+#include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/take_frames.h"
 #include "stage/processing/texture_fusion.h"
@@ -59,7 +61,8 @@ Eigen::Vector2f TexelUv(int row, int col, int size) {
 // The simulator's UV position map (stage frame, alpha 1 where covered) at `uv` of its layout, interpolated between
 // the four nearest texel centres; false where one of them is not covered.
 bool SamplePositionMap(const Image& map, const Eigen::Vector2f& uv, Eigen::Vector3f* out) {
-  const float x = uv.x() * static_cast<float>(map.width) - 0.5f, y = (1 - uv.y()) * static_cast<float>(map.height) - 0.5f;
+  const float x = uv.x() * static_cast<float>(map.width) - 0.5f,
+              y = (1 - uv.y()) * static_cast<float>(map.height) - 0.5f;
   const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
   if (x0 < 0 || y0 < 0 || x0 + 1 >= map.width || y0 + 1 >= map.height) return false;
   const float fx = x - static_cast<float>(x0), fy = y - static_cast<float>(y0);
@@ -82,6 +85,26 @@ struct FrameGeometry {
   Eigen::Matrix4f stage_from_head = Eigen::Matrix4f::Identity();
 };
 
+// A frame's map of `size` texels: each texel's head-frame point from `point` (nullopt: not valid), the pose from
+// `head_from_stage`.
+FrameGeometry DrawFrame(int size, const Eigen::Isometry3f& head_from_stage,
+                        const std::function<std::optional<Eigen::Vector3f>(int row, int col)>& point) {
+  FrameGeometry g;
+  g.points.assign(static_cast<size_t>(size) * size * 3, 0.f);
+  g.valid.assign(static_cast<size_t>(size) * size, 0);
+  g.stage_from_head = head_from_stage.inverse().matrix();
+  for (int row = 0; row < size; ++row) {
+    for (int col = 0; col < size; ++col) {
+      const std::optional<Eigen::Vector3f> p = point(row, col);
+      if (!p) continue;
+      const size_t t = static_cast<size_t>(row) * size + col;
+      std::copy(p->data(), p->data() + 3, &g.points[3 * t]);
+      g.valid[t] = 1;
+    }
+  }
+  return g;
+}
+
 // The truth's surface in frame `frame_dir` drawn into the template's layout: each texel the template's layout covers
 // (`layout`) takes the truth's point at its place in the head's layout, moved into the head's frame.
 absl::StatusOr<FrameGeometry> TruthGeometry(const FaceTemplate& face, const std::vector<uint8_t>& layout, int size,
@@ -90,46 +113,26 @@ absl::StatusOr<FrameGeometry> TruthGeometry(const FaceTemplate& face, const std:
   STAGE_ASSIGN_OR_RETURN(const Image map, ReadImageFile(path));
   if (map.channels != 4) return absl::InvalidArgumentError(absl::StrCat(path, ": not an RGBA position map"));
   STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(frame_dir + "/pose.json"));
-  FrameGeometry g;
-  g.points.assign(static_cast<size_t>(size) * size * 3, 0.f);
-  g.valid.assign(static_cast<size_t>(size) * size, 0);
-  g.stage_from_head = head_from_stage.inverse().matrix();
-  for (int row = 0; row < size; ++row) {
-    for (int col = 0; col < size; ++col) {
-      const size_t t = static_cast<size_t>(row) * size + col;
-      Eigen::Vector3f p;
-      if (!layout[t] || !SamplePositionMap(map, face.HeadLayoutUv(TexelUv(row, col, size)), &p)) continue;
-      const Eigen::Vector3f head = head_from_stage * p;
-      std::copy(head.data(), head.data() + 3, &g.points[3 * t]);
-      g.valid[t] = 1;
+  return DrawFrame(size, head_from_stage, [&](int row, int col) -> std::optional<Eigen::Vector3f> {
+    Eigen::Vector3f p;
+    if (!layout[static_cast<size_t>(row) * size + col] ||
+        !SamplePositionMap(map, face.HeadLayoutUv(TexelUv(row, col, size)), &p)) {
+      return std::nullopt;
     }
-  }
-  return g;
+    return head_from_stage * p;
+  });
 }
 
-// The fit's geometry map of frame `frame_dir`, resampled to `size` when it has another.
+// The fit's geometry map of frame `frame_dir` (already in the head's frame), resampled to `size` when it has another.
 absl::StatusOr<FrameGeometry> FitGeometry(int size, const std::string& frame_dir) {
   STAGE_ASSIGN_OR_RETURN(const GeometryMap map, ReadGeometryMap(frame_dir + "/geometry_map.exr"));
   STAGE_ASSIGN_OR_RETURN(const Eigen::Isometry3f head_from_stage, HeadFromStage(frame_dir + "/pose.json"));
-  FrameGeometry g;
-  g.points.assign(static_cast<size_t>(size) * size * 3, 0.f);
-  g.valid.assign(static_cast<size_t>(size) * size, 0);
-  g.stage_from_head = head_from_stage.inverse().matrix();
-  for (int row = 0; row < size; ++row) {
-    for (int col = 0; col < size; ++col) {
-      const size_t t = static_cast<size_t>(row) * size + col;
-      std::optional<Eigen::Vector3f> p;
-      if (map.size == size) {
-        if (map.state[t] != TexelState::kEmpty) p = map.points[t];
-      } else {
-        p = SampleGeometryMap(map, TexelUv(row, col, size));
-      }
-      if (!p) continue;
-      std::copy(p->data(), p->data() + 3, &g.points[3 * t]);
-      g.valid[t] = 1;
-    }
-  }
-  return g;
+  return DrawFrame(size, head_from_stage, [&](int row, int col) -> std::optional<Eigen::Vector3f> {
+    if (map.size != size) return SampleGeometryMap(map, TexelUv(row, col, size));
+    const size_t t = static_cast<size_t>(row) * size + col;
+    if (map.state[t] == TexelState::kEmpty) return std::nullopt;
+    return map.points[t];
+  });
 }
 
 // The sequence each frame's truth names ("" where there is no truth or it names none).
@@ -138,8 +141,8 @@ std::vector<std::string> FrameSequences(const std::string& take_dir, const std::
   for (int64_t f : frames) {
     std::ifstream in(FrameDir(take_dir + "/ground_truth", f) + "/pose.json");
     const nlohmann::json j = in ? nlohmann::json::parse(in, nullptr, false) : nlohmann::json();
-    out.push_back(j.is_object() && j.contains("sequence") && j["sequence"].is_string() ? j["sequence"].get<std::string>()
-                                                                                      : "");
+    out.push_back(
+        j.is_object() && j.contains("sequence") && j["sequence"].is_string() ? j["sequence"].get<std::string>() : "");
   }
   return out;
 }
@@ -190,7 +193,7 @@ double RmsFromMean(const std::vector<std::vector<float>>& points, const std::vec
 // Each camera's crops of the dataset's frames: a fixed square about where the face is when the head is at rest.
 struct Crops {
   std::vector<std::string> cameras;
-  std::vector<nlohmann::json> boxes;         // per camera: centre and side, pixels of its frames
+  std::vector<nlohmann::json> boxes;               // per camera: centre and side, pixels of its frames
   std::map<int64_t, std::vector<uint8_t>> images;  // frame -> cameras x size^2
   std::map<int64_t, std::vector<uint8_t>> valid;   // frame -> cameras
 };
@@ -219,7 +222,8 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
   Crops crops;
   if (!fs::exists(options.take_dir + "/take.json")) {
     if (!options.cameras.empty()) {
-      return absl::NotFoundError(absl::StrCat(options.take_dir, "/take.json: cannot open (the take's rig and cameras)"));
+      return absl::NotFoundError(
+          absl::StrCat(options.take_dir, "/take.json: cannot open (the take's rig and cameras)"));
     }
     return crops;
   }
@@ -266,7 +270,8 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           if (white == 0) {
             const cv::Mat frame_mat(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
             cv::Mat patch;
-            cv::getRectSubPix(frame_mat, cv::Size(std::max(2, static_cast<int>(side)), std::max(2, static_cast<int>(side))),
+            cv::getRectSubPix(frame_mat,
+                              cv::Size(std::max(2, static_cast<int>(side)), std::max(2, static_cast<int>(side))),
                               cv::Point2f(static_cast<float>(pixel.x()), static_cast<float>(pixel.y())), patch);
             std::vector<float> values(patch.begin<float>(), patch.end<float>());
             const size_t k = static_cast<size_t>(0.995 * static_cast<double>(values.size() - 1));
@@ -284,9 +289,7 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
 
 }  // namespace
 
-const char* AssetSourceName(AssetSource source) {
-  return source == AssetSource::kTruth ? "truth" : "reconstruction";
-}
+const char* AssetSourceName(AssetSource source) { return source == AssetSource::kTruth ? "truth" : "reconstruction"; }
 
 absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name) {
   if (name == "truth") return AssetSource::kTruth;
@@ -363,10 +366,10 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   const std::string file = truth ? "uv_position.exr" : "geometry_map.exr";
   const std::vector<int64_t> frames = ListFrames(root, file, options.first_frame, options.last_frame);
   if (frames.empty()) {
-    return absl::NotFoundError(absl::StrCat(root, ": no frame-NNNNNN/", file, " in frames [", options.first_frame, ", ",
-                                            options.last_frame < 0 ? "end" : std::to_string(options.last_frame), ")",
-                                            truth ? " (the take has no ground truth: a real take, or not recorded)"
-                                                  : " (run `stage-process fit` first)"));
+    return absl::NotFoundError(absl::StrCat(
+        root, ": no frame-NNNNNN/", file, " in frames [", options.first_frame, ", ",
+        options.last_frame < 0 ? "end" : std::to_string(options.last_frame), ")",
+        truth ? " (the take has no ground truth: a real take, or not recorded)" : " (run `stage-process fit` first)"));
   }
   STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
   const int size = options.geometry_size;
@@ -390,8 +393,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     ids.push_back(static_cast<int32_t>(it - sequences.begin()));
   }
   STAGE_ASSIGN_OR_RETURN(const int32_t held_out, HeldOutSequence(options, sequences));
-  const std::vector<SampleSplit> split =
-      SplitFrames(ids, held_out, options.held_out_fraction, options.held_out_blocks);
+  const std::vector<SampleSplit> split = SplitFrames(ids, held_out, options.held_out_fraction, options.held_out_blocks);
 
   DatasetSummary summary;
   summary.path = options.output.empty() ? options.take_dir + "/derived/asset/dataset.h5" : options.output;
@@ -401,7 +403,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   summary.sequences = sequences;
   if (held_out >= 0) summary.sequence = sequences[static_cast<size_t>(held_out)];
   for (SampleSplit s : split) {
-    (s == SampleSplit::kTrain            ? summary.train
+    (s == SampleSplit::kTrain          ? summary.train
      : s == SampleSplit::kHeldOutBlock ? summary.held_out_block
                                        : summary.held_out_sequence)++;
   }
@@ -434,7 +436,8 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
       return absl::CancelledError(absl::StrCat("dataset: stopped at frame ", frames[i], " (nothing written)"));
     }
     const std::string frame_dir = FrameDir(root, frames[i]);
-    absl::StatusOr<FrameGeometry> g = truth ? TruthGeometry(face, layout, size, frame_dir) : FitGeometry(size, frame_dir);
+    absl::StatusOr<FrameGeometry> g =
+        truth ? TruthGeometry(face, layout, size, frame_dir) : FitGeometry(size, frame_dir);
     if (!g.ok()) return g.status();
     const uint8_t s = static_cast<uint8_t>(split[i]);
     const Eigen::Matrix<float, 4, 4, Eigen::RowMajor> pose = g->stage_from_head;

@@ -28,8 +28,11 @@ TEST(AssetDatasetSimTest, TheTruthsMapsHoldTheHeadAndTheCropsTheFace) {
   std::filesystem::remove_all(take);
   // Frames 200 and 560: two expressions, the head turned and moved.
   ASSERT_TRUE(sim::WriteRenderedTake(*scene, take,
-                                     {.first_frame = 200, .last_frame = 561, .frame_step = 360,
-                                      .cameras = {"mv-01", "mv-04", "mv-09"}, .uv_size = 512})
+                                     {.first_frame = 200,
+                                      .last_frame = 561,
+                                      .frame_step = 360,
+                                      .cameras = {"mv-01", "mv-04", "mv-09"},
+                                      .uv_size = 512})
                   .ok());
   auto summary = BuildAssetDataset({.take_dir = take, .held_out_fraction = 0, .held_out_sequence = "none"});
   ASSERT_TRUE(summary.ok()) << summary.status();

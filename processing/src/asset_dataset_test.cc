@@ -5,11 +5,11 @@
 #include <Eigen/Geometry>
 #include <filesystem>
 
+#include "asset_test_support.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/photometric_stage.h"
-#include "asset_test_support.h"
 
 namespace stage::processing {
 namespace {

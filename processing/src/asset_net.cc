@@ -96,8 +96,7 @@ struct PoseMlpImpl : torch::nn::Module {
     const torch::Tensor y = out(Leaky(hidden(z)));
     const torch::Tensor a = y.slice(1, 0, 3), b = y.slice(1, 3, 6);
     const torch::Tensor c1 = nnf::normalize(a, nnf::NormalizeFuncOptions().dim(1));
-    const torch::Tensor c2 =
-        nnf::normalize(b - (c1 * b).sum(1, true) * c1, nnf::NormalizeFuncOptions().dim(1));
+    const torch::Tensor c2 = nnf::normalize(b - (c1 * b).sum(1, true) * c1, nnf::NormalizeFuncOptions().dim(1));
     const torch::Tensor c3 = torch::cross(c1, c2, 1);
     return {torch::stack({c1, c2, c3}, 2), y.slice(1, 6, 9)};
   }
@@ -150,7 +149,8 @@ struct VaeImpl : torch::nn::Module {
   torch::Tensor Posed(const torch::Tensor& decoded_mm, const torch::Tensor& z_pose, const Alignment& a) {
     const int64_t b = decoded_mm.size(0);
     const auto [r, t] = pose->forward(z_pose);
-    const torch::Tensor moved = Apply(r, decoded_mm - a.mean_centre.view({b, 3, 1, 1})) + (scale * t).view({b, 3, 1, 1});
+    const torch::Tensor moved =
+        Apply(r, decoded_mm - a.mean_centre.view({b, 3, 1, 1})) + (scale * t).view({b, 3, 1, 1});
     return Apply(a.rotation.transpose(1, 2), moved) + a.map_centre.view({b, 3, 1, 1});
   }
   int geometry_latent, pose_latent;
@@ -172,8 +172,7 @@ std::vector<float> ToVector(const torch::Tensor& t) {
 
 absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char* what) {
   if (static_cast<int64_t>(v.size()) == expected) return absl::OkStatus();
-  return absl::InvalidArgumentError(
-      absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
+  return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
 }
 
 // Masked mean of the squared difference over valid texels (3 channels each).
@@ -203,7 +202,23 @@ struct GeometryVae::Impl {
   GeometryVaeOptions options;
   Vae net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
-  int64_t texels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
+
+  int64_t latents() const { return options.geometry_latent + options.pose_latent; }
+  absl::Status CheckMaps(const std::vector<float>& maps, const std::vector<float>& valid, int64_t batch) const {
+    const int64_t texels = static_cast<int64_t>(options.input_size) * options.input_size;
+    if (auto st = CheckSize(maps, 3 * batch * texels, "the maps"); !st.ok()) return st;
+    return CheckSize(valid, batch * texels, "the validity");
+  }
+  // The latents' means of `batch` maps (mm) and validity, in evaluation mode, and the alignment they were encoded
+  // under.
+  torch::Tensor Means(const std::vector<float>& maps, const std::vector<float>& valid, int64_t batch,
+                      VaeImpl::Alignment* alignment) {
+    const int64_t s = options.input_size;
+    net->eval();
+    const torch::Tensor mm = FromVector(maps, {batch, 3, s, s}), v = FromVector(valid, {batch, 1, s, s});
+    *alignment = net->Align(mm, v);
+    return net->encoder->forward(net->Normalize(net->Aligned(mm, *alignment), v)).slice(1, 0, latents());
+  }
 };
 
 GeometryVae::GeometryVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -243,10 +258,10 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
   const GeometryVaeOptions& o = impl_->options;
   const int64_t b = batch.batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
   if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kNet, ": an empty batch"));
-  for (auto [v, n, what] : {std::tuple{&batch.posed, 3 * b * s * s, "the posed maps"},
-                            std::tuple{&batch.canonical, 3 * b * s * s, "the canonical maps"},
-                            std::tuple{&batch.valid, b * s * s, "the validity"},
-                            std::tuple{&batch.noise, b * latents, "the noise"}}) {
+  for (auto [v, n, what] :
+       {std::tuple{&batch.posed, 3 * b * s * s, "the posed maps"},
+        std::tuple{&batch.canonical, 3 * b * s * s, "the canonical maps"},
+        std::tuple{&batch.valid, b * s * s, "the validity"}, std::tuple{&batch.noise, b * latents, "the noise"}}) {
     if (auto st = CheckSize(*v, n, what); !st.ok()) return st;
   }
   try {
@@ -270,8 +285,8 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     const torch::Tensor posed_n = (posed - net->mean) / net->scale;
     // The decoded map's gradient stops at the posed loss: it trains the pose (its MLP and the encoder's pose latent),
     // the canonical loss the geometry.
-    const torch::Tensor moved_mm = net->Posed(net->mean + net->scale * decoded.detach(),
-                                              z.slice(1, o.geometry_latent, latents), alignment);
+    const torch::Tensor moved_mm =
+        net->Posed(net->mean + net->scale * decoded.detach(), z.slice(1, o.geometry_latent, latents), alignment);
     const torch::Tensor moved_n = (moved_mm - net->mean) / net->scale;
     const torch::Tensor canonical_loss = MaskedMse(decoded, canonical_n, valid);
     const torch::Tensor posed_loss = MaskedMse(moved_n, posed_n, valid);
@@ -288,18 +303,12 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
 
 absl::StatusOr<std::vector<float>> GeometryVae::Encode(const std::vector<float>& maps, const std::vector<float>& valid,
                                                        int batch) const {
-  const GeometryVaeOptions& o = impl_->options;
-  const int64_t b = batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
-  if (auto st = CheckSize(maps, 3 * b * s * s, "the maps"); !st.ok()) return st;
-  if (auto st = CheckSize(valid, b * s * s, "the validity"); !st.ok()) return st;
+  if (auto st = impl_->CheckMaps(maps, valid, batch); !st.ok()) return st;
   try {
-    SetTorchThreads(o.threads);
+    SetTorchThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
-    impl_->net->eval();
-    const torch::Tensor mm = FromVector(maps, {b, 3, s, s}), v = FromVector(valid, {b, 1, s, s});
-    const torch::Tensor stats =
-        impl_->net->encoder->forward(impl_->net->Normalize(impl_->net->Aligned(mm, impl_->net->Align(mm, v)), v));
-    return ToVector(stats.slice(1, 0, latents));
+    VaeImpl::Alignment alignment;
+    return ToVector(impl_->Means(maps, valid, batch, &alignment));
   } catch (const std::exception& e) {
     return internal::TorchError(kNet, "encoding", e);
   }
@@ -321,22 +330,18 @@ absl::StatusOr<std::vector<float>> GeometryVae::Decode(const std::vector<float>&
   }
 }
 
-absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>& maps,
-                                                        const std::vector<float>& valid, int batch) const {
+absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>& maps, const std::vector<float>& valid,
+                                                        int batch) const {
   const GeometryVaeOptions& o = impl_->options;
-  const int64_t b = batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
-  if (auto st = CheckSize(maps, 3 * b * s * s, "the maps"); !st.ok()) return st;
-  if (auto st = CheckSize(valid, b * s * s, "the validity"); !st.ok()) return st;
+  if (auto st = impl_->CheckMaps(maps, valid, batch); !st.ok()) return st;
   try {
     SetTorchThreads(o.threads);
     torch::NoGradGuard no_grad;
+    VaeImpl::Alignment alignment;
+    const torch::Tensor mu = impl_->Means(maps, valid, batch, &alignment);
     Vae& net = impl_->net;
-    net->eval();
-    const torch::Tensor mm = FromVector(maps, {b, 3, s, s}), v = FromVector(valid, {b, 1, s, s});
-    const VaeImpl::Alignment alignment = net->Align(mm, v);
-    const torch::Tensor mu = net->encoder->forward(net->Normalize(net->Aligned(mm, alignment), v)).slice(1, 0, latents);
     const torch::Tensor decoded = net->mean + net->scale * net->decoder->forward(mu.slice(1, 0, o.geometry_latent));
-    return ToVector(net->Posed(decoded, mu.slice(1, o.geometry_latent, latents), alignment));
+    return ToVector(net->Posed(decoded, mu.slice(1, o.geometry_latent, impl_->latents()), alignment));
   } catch (const std::exception& e) {
     return internal::TorchError(kNet, "reposing", e);
   }
@@ -378,8 +383,8 @@ def decode(self, z: Tensor) -> Tensor:
                       o.input_size >> o.levels, ")\n");
   for (int i = o.levels - 1; i >= 0; --i) {
     src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])\n";
-    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i,
-                        "_bias", conv, ")\n");
+    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i, "_bias",
+                        conv, ")\n");
   }
   src += absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "\n");
   src += "    return self.mean + self.scale * x\n";
@@ -401,8 +406,8 @@ def encode(self, maps: Tensor, valid: Tensor) -> Tensor:
     aligned = torch.einsum("bij,bjhw->bihw", [r, maps - map_centre.view(b, 3, 1, 1)]) + mean_centre.view(b, 3, 1, 1)
     x = torch.cat([(aligned - self.mean) / self.scale * valid, valid], 1)
 )";
-  src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias", conv,
-                      ")\n");
+  src +=
+      absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias", conv, ")\n");
   for (int i = 0; i < o.levels; ++i) {
     src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
                         "_bias, [2, 2], [1, 1], [1, 1], 1))\n");
@@ -450,8 +455,8 @@ absl::Status GeometryVae::Load(const std::string& path) {
     return absl::OkStatus();
   } catch (const std::exception& e) {
     const std::string what = e.what();
-    return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", kNet, " (",
-                                                      what.substr(0, what.find('\n')), ")"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, ": not a checkpoint of this ", kNet, " (", what.substr(0, what.find('\n')), ")"));
   }
 }
 
@@ -464,7 +469,7 @@ double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
   }
   const double side = o.input_size >> o.levels, top = Channels(o, o.levels) * side * side;
   macs += top * 2 * (o.geometry_latent + o.pose_latent);  // the encoder's head
-  macs += o.geometry_latent * top;                         // the decoder's input
+  macs += o.geometry_latent * top;                        // the decoder's input
   for (int i = o.levels - 1; i >= 0; --i) {
     const double r = s / (1 << i);
     macs += r * r * Channels(o, i + 1) * Channels(o, i) * 9;

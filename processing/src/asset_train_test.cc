@@ -38,8 +38,14 @@ AssetTrainJob TinyJob(const std::string& dataset, const std::string& out) {
   AssetTrainJob job;
   job.dataset = dataset;
   job.output_dir = out;
-  job.geometry = {.input_size = 32, .levels = 3, .base_channels = 8, .max_channels = 32, .geometry_latent = 4,
-                  .pose_latent = 3, .threads = 2, .seed = 3};
+  job.geometry = {.input_size = 32,
+                  .levels = 3,
+                  .base_channels = 8,
+                  .max_channels = 32,
+                  .geometry_latent = 4,
+                  .pose_latent = 3,
+                  .threads = 2,
+                  .seed = 3};
   job.batch = 8;
   job.iterations = 150;
   job.checkpoint_every = 50;
@@ -77,6 +83,11 @@ TEST(AssetTrainTest, TheLossesFallAndHeldOutFramesComeBackBetterThanTheNeutralFr
   EXPECT_GT(e.vae[1].frames, 0);
   EXPECT_LT(e.vae[1].rmse_mm, 0.5 * e.neutral[1].rmse_mm);
   EXPECT_LT(e.vae[2].rmse_mm, 0.5 * e.neutral[2].rmse_mm);
+  // At the template's vertices too, region by region (the made-up surface moves under the eyes and the mouth).
+  EXPECT_GT(e.vae[1].face_mm, 0);
+  EXPECT_LT(e.vae[1].face_mm, 0.5 * e.neutral[1].face_mm);
+  EXPECT_GT(e.neutral[1].mouth_mm, 0);
+  EXPECT_GT(e.neutral[1].eyes_mm, 0);
   // Two signals: PCA with four components holds them nearly exactly; the tiny net comes within a few mm.
   EXPECT_LT(e.pca[1].rmse_mm, 0.5);
   EXPECT_LT(e.vae[1].rmse_mm, 3.0);
@@ -196,17 +207,18 @@ TEST(AssetTrainTest, TheExportedNetRunsInPythonsTorchAsInTheLibrary) {
   write("z.f32", z);
   write("decoded.f32", *decoded);
   const std::string script = out + "/check.py";
-  std::ofstream(script) << "import sys, numpy as np, torch\n"
-                           "d = sys.argv[1]\n"
-                           "f = lambda n, *s: torch.from_numpy(np.fromfile(d + '/' + n, dtype=np.float32).reshape(*s))\n"
-                           "m = torch.jit.load(d + '/geometry_vae.torchscript.pt')\n"
-                           "with torch.no_grad():\n"
-                           "    lat = m.encode(f('maps.f32', 2, 3, 32, 32), f('valid.f32', 2, 1, 32, 32))\n"
-                           "    dec = m(f('z.f32', 2, 4))\n"
-                           "e1 = (lat - f('latents.f32', 2, 7)).abs().max().item()\n"
-                           "e2 = (dec - f('decoded.f32', 2, 3, 32, 32)).abs().max().item()\n"
-                           "print('encode', e1, 'decode', e2)\n"
-                           "sys.exit(0 if e1 < 1e-3 and e2 < 1e-2 else 1)\n";
+  std::ofstream(script)
+      << "import sys, numpy as np, torch\n"
+         "d = sys.argv[1]\n"
+         "f = lambda n, *s: torch.from_numpy(np.fromfile(d + '/' + n, dtype=np.float32).reshape(*s))\n"
+         "m = torch.jit.load(d + '/geometry_vae.torchscript.pt')\n"
+         "with torch.no_grad():\n"
+         "    lat = m.encode(f('maps.f32', 2, 3, 32, 32), f('valid.f32', 2, 1, 32, 32))\n"
+         "    dec = m(f('z.f32', 2, 4))\n"
+         "e1 = (lat - f('latents.f32', 2, 7)).abs().max().item()\n"
+         "e2 = (dec - f('decoded.f32', 2, 3, 32, 32)).abs().max().item()\n"
+         "print('encode', e1, 'decode', e2)\n"
+         "sys.exit(0 if e1 < 1e-3 and e2 < 1e-2 else 1)\n";
   const std::string command = "/usr/bin/python3 " + script + " " + out + " > " + out + "/check.log 2>&1";
   const int rc = std::system(command.c_str());
   std::ifstream log(out + "/check.log");

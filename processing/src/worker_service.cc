@@ -53,14 +53,14 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
       job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE &&
       job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET && job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
-    return ToGrpcStatus(absl::InvalidArgumentError(
-        absl::StrCat("worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
-                     " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train)")));
+    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
+        "worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
+        " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train)")));
   }
   if (job->has_asset() && job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET &&
       job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
-    return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
-        "worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no asset options")));
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no asset options")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));

@@ -16,9 +16,10 @@ constexpr const char* kProgram = "stage-process";
 }  // namespace
 
 void AssetCommands::Add(CLI::App& parent) {
-  app_ = parent.add_subcommand("asset",
-                               "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
-                               "geometry VAE (the expression and texture networks, inference and evaluation are to come)");
+  app_ =
+      parent.add_subcommand("asset",
+                            "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
+                            "geometry VAE, and its evaluation (the expression and texture networks and inference are to come)");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -49,9 +50,10 @@ void AssetCommands::Add(CLI::App& parent) {
   build_dataset_->add_option("--held-out-sequence", dataset_.held_out_sequence,
                              "The expression sequence held out whole (e.g. smile-3; default: the last the take holds "
                              "whole; none: no sequence)");
-  build_dataset_->add_option("--cameras", dataset_.cameras,
-                             "Machine-vision cameras whose full-lit frames are cropped about the face, comma-separated "
-                             "(default: every one the take recorded)")
+  build_dataset_
+      ->add_option("--cameras", dataset_.cameras,
+                   "Machine-vision cameras whose full-lit frames are cropped about the face, comma-separated "
+                   "(default: every one the take recorded)")
       ->delimiter(',');
   build_dataset_->add_option("--calibration", dataset_.calibration,
                              "Where the cameras are (a calibration file or a directory with cameras.json, relative to "
@@ -79,7 +81,9 @@ void AssetCommands::AddTrain() {
       ->capture_default_str()
       ->check(CLI::IsMember({"geometry"}));
   train_->add_option("--output", job.output_dir, "The run's directory (default: the dataset's directory/geometry)");
-  train_->add_option("--iterations", job.iterations, "Adam steps")->capture_default_str()->check(CLI::Range(1, 10000000));
+  train_->add_option("--iterations", job.iterations, "Adam steps")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 10000000));
   train_->add_option("--batch", job.batch, "Maps a step")->capture_default_str()->check(CLI::Range(1, 1024));
   train_->add_option("--learning-rate", job.learning_rate, "Adam's rate (the last 30 % of the steps at a fifth)")
       ->capture_default_str()
@@ -105,6 +109,14 @@ void AssetCommands::AddTrain() {
       ->check(CLI::NonNegativeNumber);
   train_->add_option("--seed", g.seed, "The weights' initialization and the batches' draws")->capture_default_str();
   train_->add_flag("--json", json_, "Print the result as JSON on stdout");
+
+  evaluate_ = app_->add_subcommand(
+      "evaluate",
+      "A trained geometry VAE against a dataset's frames (each split; the whole face's texels, and the template's "
+      "vertices by region: face, eyes, mouth) beside PCA with as many components and the neutral frame");
+  evaluate_->add_option("--dataset", evaluate_dataset_, "The dataset file")->required();
+  evaluate_->add_option("--run", evaluate_run_, "The training run's directory (asset train's --output)")->required();
+  evaluate_->add_flag("--json", json_, "Print the evaluation as JSON on stdout");
 }
 
 bool AssetCommands::Parsed() const { return app_ != nullptr && app_->parsed(); }
@@ -112,6 +124,7 @@ bool AssetCommands::Parsed() const { return app_ != nullptr && app_->parsed(); }
 int AssetCommands::Run() {
   if (build_dataset_->parsed()) return BuildDataset();
   if (train_->parsed()) return Train();
+  if (evaluate_->parsed()) return Evaluate();
   return 0;
 }
 
@@ -181,11 +194,18 @@ int AssetCommands::Train() {
               << "\n";
   } else {
     std::cout << "geometry VAE (" << result->parameters << " weights) trained " << result->steps << " steps"
-              << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "")
-              << " into " << result->output_dir << "\n"
+              << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "") << " into "
+              << result->output_dir << "\n"
               << "The maps encoded unmoved and decoded, against the truth (mm, at the net's resolution):\n"
               << processing::FormatTrainedEvaluation(result->evaluation);
   }
+  return 0;
+}
+
+int AssetCommands::Evaluate() {
+  auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, evaluate_run_);
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n" : processing::FormatTrainedEvaluation(*result));
   return 0;
 }
 

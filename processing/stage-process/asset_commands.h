@@ -19,10 +19,13 @@ class AssetCommands {
   void AddTrain();
   int BuildDataset();
   int Train();
+  int Evaluate();
 
   CLI::App* app_ = nullptr;
   CLI::App* build_dataset_ = nullptr;
   CLI::App* train_ = nullptr;
+  CLI::App* evaluate_ = nullptr;
+  std::string evaluate_dataset_, evaluate_run_;
   processing::AssetTrainJob train_job_;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;

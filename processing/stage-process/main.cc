@@ -5,10 +5,10 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_split.h"
+#include "asset_commands.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/version.h"
-#include "asset_commands.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/evaluate.h"
 #include "stage/processing/evaluate_assets.h"

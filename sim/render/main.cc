@@ -139,7 +139,9 @@ int main(int argc, char** argv) {
     bar.Finish();
     if (!s.ok()) return stage::ReportFatal(kProgram, s);
     if (json) {
-      std::cout << nlohmann::json({{"take", take_dir}, {"first_frame", first_frame}, {"last_frame", last_frame},
+      std::cout << nlohmann::json({{"take", take_dir},
+                                   {"first_frame", first_frame},
+                                   {"last_frame", last_frame},
                                    {"frame_step", frame_step}})
                        .dump(2)
                 << std::endl;

@@ -70,7 +70,8 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     }
   }
   if (options.frame_step < 1) {
-    return absl::InvalidArgumentError(absl::StrCat("ground truth: frame step ", options.frame_step, " is not 1 or more"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("ground truth: frame step ", options.frame_step, " is not 1 or more"));
   }
   const int64_t frames = (options.last_frame - options.first_frame + options.frame_step - 1) / options.frame_step;
   const int total = static_cast<int>(frames * static_cast<int64_t>(cameras.size()));
@@ -106,7 +107,8 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       const Eigen::Vector3f t = model->pivot() + pose.translation_mm - r * model->pivot();
       nlohmann::json m = nlohmann::json::array();
       for (int row = 0; row < 4; ++row) {
-        for (int col = 0; col < 4; ++col) m.push_back(row < 3 ? (col < 3 ? r(row, col) : t[row]) : (col < 3 ? 0.f : 1.f));
+        for (int col = 0; col < 4; ++col)
+          m.push_back(row < 3 ? (col < 3 ? r(row, col) : t[row]) : (col < 3 ? 0.f : 1.f));
       }
       j["stage_from_head"] = m;
     }

@@ -17,9 +17,9 @@
 #include <fstream>
 #include <functional>
 #include <map>
+#include <numeric>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
-#include <numeric>
 #include <optional>
 #include <random>
 #include <set>
@@ -732,10 +732,14 @@ Performance Performance::RangeOfMotion(uint64_t seed, double seconds) {
     const char* name;
     std::vector<int> expressions;  // worked together, at one drawn weight each
   };
-  const std::vector<Group> groups = {
-      {"jaw", {kJaw}},           {"smile", {kSmileL, kSmileR}},  {"blink", {kBlinkL, kBlinkR}},
-      {"brows", {kBrow}},        {"frown", {kFrown}},            {"pucker", {kPucker}},
-      {"asymmetric", {kSmileL, kBlinkR, kBrow}},                 {"speech", {kJaw, kPucker, kSmileL, kSmileR}}};
+  const std::vector<Group> groups = {{"jaw", {kJaw}},
+                                     {"smile", {kSmileL, kSmileR}},
+                                     {"blink", {kBlinkL, kBlinkR}},
+                                     {"brows", {kBrow}},
+                                     {"frown", {kFrown}},
+                                     {"pucker", {kPucker}},
+                                     {"asymmetric", {kSmileL, kBlinkR, kBrow}},
+                                     {"speech", {kJaw, kPucker, kSmileL, kSmileR}}};
   std::seed_seq seq{static_cast<uint32_t>(seed), static_cast<uint32_t>(seed >> 32), 0x5e9u};
   std::mt19937_64 rng(seq);
   std::uniform_real_distribution<double> unit(0.0, 1.0);
@@ -746,7 +750,8 @@ Performance Performance::RangeOfMotion(uint64_t seed, double seconds) {
   std::vector<Eigen::Matrix<float, 6, 1>> motion(static_cast<size_t>(motion_keys));
   const Eigen::Matrix<float, 6, 1> range = (Eigen::Matrix<float, 6, 1>() << 30, 12, 6, 12, 12, 12).finished();
   for (int m = 0; m < motion_keys; ++m) {
-    for (int c = 0; c < 6; ++c) motion[static_cast<size_t>(m)][c] = (m == 0 ? 0.f : 1.f) * range[c] * static_cast<float>(2 * unit(rng) - 1);
+    for (int c = 0; c < 6; ++c)
+      motion[static_cast<size_t>(m)][c] = (m == 0 ? 0.f : 1.f) * range[c] * static_cast<float>(2 * unit(rng) - 1);
   }
   auto motion_at = [&](double t) {
     const int m = std::min(motion_keys - 2, static_cast<int>(t / kMotionS));
@@ -855,8 +860,8 @@ absl::StatusOr<Performance> Performance::FromYaml(const std::string& path) {
         } else if (name != "t") {
           std::string known;
           for (const char* n : kNames) absl::StrAppend(&known, n, ", ");
-          return absl::InvalidArgumentError(
-              absl::StrCat(where, ": unknown field \"", name, "\" (t, ", known, "yaw, pitch, roll, x, y, z, sequence)"));
+          return absl::InvalidArgumentError(absl::StrCat(where, ": unknown field \"", name, "\" (t, ", known,
+                                                         "yaw, pitch, roll, x, y, z, sequence)"));
         }
       }
     } catch (const YAML::Exception& e) {

@@ -77,8 +77,8 @@ absl::Status WriteTakeFile(const SimScene& scene, const std::string& dir, const 
 
 absl::Status RenderedTakeOptions::Validate() const {
   if (last_frame <= first_frame || first_frame < 0) {
-    return absl::InvalidArgumentError(absl::StrCat("rendered take: frames [", first_frame, ", ", last_frame,
-                                                   ") are empty"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("rendered take: frames [", first_frame, ", ", last_frame, ") are empty"));
   }
   if (frame_step < 1) return absl::InvalidArgumentError(absl::StrCat("rendered take: frame step ", frame_step));
   if (uv_size < 16 || uv_size > 16384) {
@@ -132,7 +132,8 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
       for (int p : patterns) {
         const RawImage raw = renderer.Render(scene->PatternLevels(p), exposure_s, counter, frame);
         if (writer == nullptr) {
-          STAGE_ASSIGN_OR_RETURN(writer, storage::FrameFileWriter::Create(path, FileInfo(*scene, camera, take_id, raw)));
+          STAGE_ASSIGN_OR_RETURN(writer,
+                                 storage::FrameFileWriter::Create(path, FileInfo(*scene, camera, take_id, raw)));
         }
         storage::FrameRecord record;
         record.frame_id = counter++;

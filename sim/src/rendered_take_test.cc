@@ -19,8 +19,8 @@ using ::testing::HasSubstr;
 std::shared_ptr<const SimScene> Scene() {
   auto loaded = LoadRig(kBuiltinRigName);
   EXPECT_TRUE(loaded.ok());
-  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.04", "sim.subject.performance=range_of_motion",
-                                         "sim.subject.head_resolution=64"});
+  auto rig = ApplyRigOverrides(
+      *loaded, {"sim.render_scale=0.04", "sim.subject.performance=range_of_motion", "sim.subject.head_resolution=64"});
   EXPECT_TRUE(rig.ok()) << rig.status();
   auto scene = SimScene::FromLoadedRig(*rig);
   EXPECT_TRUE(scene.ok()) << scene.status();
@@ -32,8 +32,8 @@ TEST(RenderedTakeTest, EachCamerasFullOnFramesSitAtTheirSlotsBesideTheRigAndTheT
   const std::string dir = ::testing::TempDir() + "/rendered-take";
   std::filesystem::remove_all(dir);
   int64_t calls = 0;
-  RenderedTakeOptions options{.first_frame = 10, .last_frame = 16, .frame_step = 3, .cameras = {"mv-01", "mv-07"},
-                              .uv_size = 64};
+  RenderedTakeOptions options{
+      .first_frame = 10, .last_frame = 16, .frame_step = 3, .cameras = {"mv-01", "mv-07"}, .uv_size = 64};
   options.progress = [&](int64_t done, int64_t total) {
     EXPECT_EQ(done, ++calls);
     EXPECT_EQ(total, 4);

@@ -56,8 +56,7 @@ void MakeRigPathsAbsolute(v1::RigConfig* rig, const std::string& base_dir) {
   absolute(rig->mutable_storage()->mutable_root());
   v1::SimSubject* subject = rig->mutable_sim()->mutable_subject();
   const std::string& performance = subject->performance();
-  if (performance != "default" && performance != "still" && performance != "range_of_motion" &&
-      !performance.empty()) {
+  if (performance != "default" && performance != "still" && performance != "range_of_motion" && !performance.empty()) {
     absolute(subject->mutable_performance());
   }
   v1::SimHeadAsset* asset = subject->mutable_asset();

@@ -130,9 +130,9 @@ absl::Status ArrayFileWriter::AddArray(const std::string& name, ArrayType type, 
   H5Pset_obj_track_times(dcpl.get(), false);
   if (deflate > 0) H5Pset_deflate(dcpl.get(), static_cast<unsigned>(std::min(deflate, 9)));
   State::Array array;
-  array.dataset = Id(H5Dcreate2(state_->file.get(), name.c_str(), FileType(type), space.get(), H5P_DEFAULT, dcpl.get(),
-                                H5P_DEFAULT),
-                     H5Dclose);
+  array.dataset = Id(
+      H5Dcreate2(state_->file.get(), name.c_str(), FileType(type), space.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT),
+      H5Dclose);
   if (!array.dataset.ok()) {
     return Hdf5Error(absl::StatusCode::kInternal, state_->tmp, absl::StrCat("cannot create array \"", name, "\""));
   }

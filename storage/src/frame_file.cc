@@ -14,8 +14,8 @@
 #include <filesystem>
 
 #include "absl/strings/str_cat.h"
-#include "stage/common/logging.h"
 #include "hdf5_util.h"
+#include "stage/common/logging.h"
 
 namespace stage::storage {
 namespace {
@@ -48,7 +48,6 @@ hid_t ColumnMemType(int c) {
       return H5T_NATIVE_INT64;
   }
 }
-
 
 }  // namespace
 

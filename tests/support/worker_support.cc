@@ -15,8 +15,7 @@ namespace stage::testing {
 namespace fs = std::filesystem;
 
 // Runs `request` on a processing worker started for it; the RPC's status, the last progress message in `last`.
-grpc::Status RunOnWorkerStatus(const std::string& dir, const v1::ProcessingJob& request,
-                               v1::ProcessingProgress* last) {
+grpc::Status RunOnWorkerStatus(const std::string& dir, const v1::ProcessingJob& request, v1::ProcessingProgress* last) {
   const std::string port_file = dir + "/worker.port";
   fs::remove(port_file);
   auto worker = Subprocess::Spawn({.argv = {BinDir() + "/processing-worker", "--id", "worker-1", "--listen",

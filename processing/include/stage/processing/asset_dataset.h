@@ -106,14 +106,14 @@ struct AssetDataset {
   std::vector<SampleSplit> split;
   std::vector<int32_t> sequence;
   std::vector<std::string> sequences;
-  std::vector<float> geometry;        // frames x size x size x 3
-  std::vector<uint8_t> valid;         // frames x size x size
+  std::vector<float> geometry;         // frames x size x size x 3
+  std::vector<uint8_t> valid;          // frames x size x size
   std::vector<float> stage_from_head;  // frames x 16, row-major
   std::vector<std::string> cameras;    // of the images (empty: none)
   int image_size = 0;
-  std::vector<uint8_t> images;         // frames x cameras x image_size^2
-  std::vector<uint8_t> image_valid;    // frames x cameras
-  std::string description;            // the JSON attribute
+  std::vector<uint8_t> images;       // frames x cameras x image_size^2
+  std::vector<uint8_t> image_valid;  // frames x cameras
+  std::string description;           // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };
 // Errors name the file: not a dataset, arrays of disagreeing lengths.

@@ -42,10 +42,13 @@ struct AssetTrainJob {
   absl::Status Validate() const;
 };
 
-// Error of maps recovered by a model against the truth, mm, over valid texels at the net's resolution.
+// Error of maps recovered by a model against the truth, mm, at the net's resolution: over every valid texel, and at
+// the face template's vertices (the maps sampled there) by region, as the paper reports it: the face (the skin), the
+// eyes (the lids about them) and the mouth (the lips' inner edges).
 struct SplitError {
   int64_t frames = 0;
   double rmse_mm = 0, p99_mm = 0;
+  double face_mm = 0, eyes_mm = 0, mouth_mm = 0;  // RMSE
 };
 struct TrainedEvaluation {
   // Each split of the dataset (train, held-out blocks, held-out sequence): the VAE's maps (encoded unmoved, the
@@ -56,15 +59,19 @@ struct TrainedEvaluation {
 
 struct AssetTrainResult {
   std::string output_dir;
-  int64_t steps = 0;        // reached
+  int64_t steps = 0;         // reached
   int64_t resumed_from = 0;  // the checkpoint's step (0: a fresh start)
   int64_t parameters = 0;
-  float scale_mm = 0;       // the training maps' spread about their mean
+  float scale_mm = 0;                  // the training maps' spread about their mean
   std::vector<GeometryLosses> losses;  // every step's, from the first
   TrainedEvaluation evaluation;
 };
 
 absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job);
+
+// The evaluation of a finished run (its directory's trainer.json and geometry_vae.pt) on `dataset` (the one it trained
+// on, or another of the same layout). Errors name the file.
+absl::StatusOr<TrainedEvaluation> EvaluateGeometryAsset(const std::string& dataset, const std::string& run_dir);
 
 // The evaluation as JSON, and as a table in words (the baselines beside the VAE).
 std::string TrainedEvaluationJson(const TrainedEvaluation& e);
