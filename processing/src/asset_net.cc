@@ -23,22 +23,30 @@ torch::Tensor Leaky(const torch::Tensor& x) {
   return nnf::leaky_relu(x, nnf::LeakyReLUFuncOptions().negative_slope(0.1));
 }
 
-int Channels(const GeometryVaeOptions& o, int level) {
-  return std::min(o.max_channels, o.base_channels << std::min(level, 20));
-}
+// The convolutional trunks' shape: input size, levels, channels at full resolution doubling to a cap.
+struct ConvShape {
+  int input_size, levels, base_channels, max_channels;
+  int Channels(int level) const { return std::min(max_channels, base_channels << std::min(level, 20)); }
+  int side() const { return input_size >> levels; }  // of the coarsest level
+};
 
-// Map (3 channels, normalized, and validity) -> the latents' means and log-variances.
+ConvShape ShapeOf(const GeometryVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
+
+int Channels(const GeometryVaeOptions& o, int level) { return ShapeOf(o).Channels(level); }
+
+// An image of `in` channels -> `outputs` numbers (the latents' means and log-variances): a 3 x 3 convolution, then
+// stride-2 3 x 3 convolutions down the levels, and a linear layer.
 struct EncoderImpl : torch::nn::Module {
-  explicit EncoderImpl(const GeometryVaeOptions& o) {
-    stem = register_module("stem", torch::nn::Conv2d(torch::nn::Conv2dOptions(4, Channels(o, 0), 3).padding(1)));
-    for (int i = 0; i < o.levels; ++i) {
-      downs.push_back(register_module(
-          "down" + std::to_string(i),
-          torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, i), Channels(o, i + 1), 3).stride(2).padding(1))));
+  EncoderImpl(const ConvShape& shape, int in, int outputs) {
+    stem = register_module("stem", torch::nn::Conv2d(torch::nn::Conv2dOptions(in, shape.Channels(0), 3).padding(1)));
+    for (int i = 0; i < shape.levels; ++i) {
+      downs.push_back(register_module("down" + std::to_string(i),
+                                      torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(i), shape.Channels(i + 1), 3)
+                                                            .stride(2)
+                                                            .padding(1))));
     }
-    const int side = o.input_size >> o.levels;
     head = register_module(
-        "head", torch::nn::Linear(Channels(o, o.levels) * side * side, 2 * (o.geometry_latent + o.pose_latent)));
+        "head", torch::nn::Linear(shape.Channels(shape.levels) * shape.side() * shape.side(), outputs));
   }
   torch::Tensor forward(torch::Tensor x) {
     x = Leaky(stem(x));
@@ -51,17 +59,19 @@ struct EncoderImpl : torch::nn::Module {
 };
 TORCH_MODULE(Encoder);
 
-// Geometry latent -> the normalized canonical map.
+// `latent` numbers -> an image of `out` channels: a linear layer to the coarsest level, then bilinear 2x upsamplings
+// each with a 3 x 3 convolution, and a last 3 x 3 convolution.
 struct DecoderImpl : torch::nn::Module {
-  explicit DecoderImpl(const GeometryVaeOptions& o) : levels(o.levels), side(o.input_size >> o.levels) {
-    top_channels = Channels(o, o.levels);
-    in = register_module("input", torch::nn::Linear(o.geometry_latent, top_channels * side * side));
-    for (int i = o.levels - 1; i >= 0; --i) {
+  DecoderImpl(const ConvShape& shape, int latent, int out_channels)
+      : side(shape.side()), top_channels(shape.Channels(shape.levels)) {
+    in = register_module("input", torch::nn::Linear(latent, top_channels * side * side));
+    for (int i = shape.levels - 1; i >= 0; --i) {
       ups.push_back(register_module(
           "up" + std::to_string(i),
-          torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, i + 1), Channels(o, i), 3).padding(1))));
+          torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(i + 1), shape.Channels(i), 3).padding(1))));
     }
-    out = register_module("out", torch::nn::Conv2d(torch::nn::Conv2dOptions(Channels(o, 0), 3, 3).padding(1)));
+    out = register_module(
+        "out", torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(0), out_channels, 3).padding(1)));
   }
   torch::Tensor forward(const torch::Tensor& z) {
     torch::Tensor x = Leaky(in(z)).view({z.size(0), top_channels, side, side});
@@ -74,7 +84,7 @@ struct DecoderImpl : torch::nn::Module {
     }
     return out(x);
   }
-  int levels, side, top_channels = 0;
+  int side, top_channels;
   torch::nn::Linear in{nullptr};
   std::vector<torch::nn::Conv2d> ups;
   torch::nn::Conv2d out{nullptr};
@@ -107,8 +117,8 @@ TORCH_MODULE(PoseMlp);
 struct VaeImpl : torch::nn::Module {
   VaeImpl(const GeometryVaeOptions& o, const torch::Tensor& mean_mm, float scale_mm)
       : geometry_latent(o.geometry_latent), pose_latent(o.pose_latent) {
-    encoder = register_module("encoder", Encoder(o));
-    decoder = register_module("decoder", Decoder(o));
+    encoder = register_module("encoder", Encoder(ShapeOf(o), 4, 2 * (o.geometry_latent + o.pose_latent)));
+    decoder = register_module("decoder", Decoder(ShapeOf(o), o.geometry_latent, 3));
     pose = register_module("pose", PoseMlp(o));
     mean = register_buffer("mean", mean_mm);
     scale = register_buffer("scale", torch::tensor({scale_mm}));
@@ -173,6 +183,43 @@ std::vector<float> ToVector(const torch::Tensor& t) {
 absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char* what) {
   if (static_cast<int64_t>(v.size()) == expected) return absl::OkStatus();
   return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
+}
+
+// A net's weights and its optimizer's state in one torch archive, written atomically.
+absl::Status SaveArchive(const torch::nn::Module& net, torch::optim::Adam& adam, const std::string& path,
+                         const char* what) {
+  try {
+    torch::serialize::OutputArchive archive;
+    net.save(archive);
+    torch::serialize::OutputArchive state;
+    adam.save(state);
+    archive.write("adam", state);
+    const std::string tmp = path + ".tmp";
+    archive.save_to(tmp);
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    return internal::TorchError(what, absl::StrCat("saving ", path), e);
+  }
+}
+
+absl::Status LoadArchive(torch::nn::Module& net, torch::optim::Adam& adam, const std::string& path, const char* what) {
+  if (!std::filesystem::exists(path)) return absl::NotFoundError(absl::StrCat(path, ": no such checkpoint"));
+  try {
+    torch::serialize::InputArchive archive;
+    archive.load_from(path);
+    net.load(archive);
+    torch::serialize::InputArchive state;
+    archive.read("adam", state);
+    adam.load(state);
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    const std::string message = e.what();
+    return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (",
+                                                      message.substr(0, message.find('\n')), ")"));
+  }
 }
 
 // Masked mean of the squared difference over valid texels (3 channels each).
@@ -348,21 +395,7 @@ absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>
 }
 
 absl::Status GeometryVae::Save(const std::string& path) const {
-  try {
-    torch::serialize::OutputArchive archive;
-    impl_->net->save(archive);
-    torch::serialize::OutputArchive adam;
-    impl_->adam->save(adam);
-    archive.write("adam", adam);
-    const std::string tmp = path + ".tmp";
-    archive.save_to(tmp);
-    std::error_code ec;
-    std::filesystem::rename(tmp, path, ec);
-    if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
-    return absl::OkStatus();
-  } catch (const std::exception& e) {
-    return internal::TorchError(kNet, absl::StrCat("saving ", path), e);
-  }
+  return SaveArchive(*impl_->net, *impl_->adam, path, kNet);
 }
 
 namespace {
@@ -444,20 +477,177 @@ absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
 }
 
 absl::Status GeometryVae::Load(const std::string& path) {
-  if (!std::filesystem::exists(path)) return absl::NotFoundError(absl::StrCat(path, ": no such checkpoint"));
-  try {
-    torch::serialize::InputArchive archive;
-    archive.load_from(path);
-    impl_->net->load(archive);
-    torch::serialize::InputArchive adam;
-    archive.read("adam", adam);
-    impl_->adam->load(adam);
-    return absl::OkStatus();
-  } catch (const std::exception& e) {
-    const std::string what = e.what();
-    return absl::FailedPreconditionError(
-        absl::StrCat(path, ": not a checkpoint of this ", kNet, " (", what.substr(0, what.find('\n')), ")"));
+  return LoadArchive(*impl_->net, *impl_->adam, path, kNet);
+}
+
+namespace {
+
+constexpr const char* kExpressionNet = "expression VAE";
+
+ConvShape ShapeOf(const ExpressionVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
+
+struct ExpressionNetImpl : torch::nn::Module {
+  explicit ExpressionNetImpl(const ExpressionVaeOptions& o)
+      : latents(o.expression_latent + o.view_latent), expression(o.expression_latent) {
+    encoder = register_module("encoder", Encoder(ShapeOf(o), 1, 2 * latents));
+    // The decoder's input: both latents and the indicator (0 for the performer).
+    decoder = register_module("decoder", Decoder(ShapeOf(o), latents + 1, 1));
   }
+  // Means and log-variances of images (B x 1 x I x I, 0..1; centred on 0.5 for the net).
+  std::pair<torch::Tensor, torch::Tensor> Encode(const torch::Tensor& images) {
+    const torch::Tensor stats = encoder->forward(images - 0.5);
+    return {stats.slice(1, 0, latents), stats.slice(1, latents, 2 * latents).clamp(-10, 10)};
+  }
+  torch::Tensor Decode(const torch::Tensor& z) {
+    return decoder->forward(torch::cat({z, torch::zeros({z.size(0), 1})}, 1)) + 0.5;
+  }
+  // [expression of a | view of b].
+  torch::Tensor Mix(const torch::Tensor& a, const torch::Tensor& b) {
+    return torch::cat({a.slice(1, 0, expression), b.slice(1, expression, latents)}, 1);
+  }
+  int latents, expression;
+  Encoder encoder{nullptr};
+  Decoder decoder{nullptr};
+};
+TORCH_MODULE(ExpressionNet);
+
+torch::Tensor Kl(const torch::Tensor& mu, const torch::Tensor& logvar) {
+  return (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
+}
+
+}  // namespace
+
+absl::Status ExpressionVaeOptions::Validate() const {
+  auto bad = [](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat(kExpressionNet, ": ", what));
+  };
+  if (levels < 2 || levels > 7) return bad(absl::StrCat("levels ", levels, " is not in 2..7"));
+  if (input_size < 32 || input_size > 512 || input_size % (1 << levels) != 0) {
+    return bad(absl::StrCat("input size ", input_size, " is not in 32..512 and divisible by 2^", levels));
+  }
+  if (base_channels < 4 || base_channels > 256 || max_channels < base_channels || max_channels > 256) {
+    return bad(absl::StrCat("channels ", base_channels, " to ", max_channels, " are not within 4..256, rising"));
+  }
+  if (expression_latent < 1 || expression_latent > 1024) {
+    return bad(absl::StrCat("expression latent ", expression_latent, " is not in 1..1024"));
+  }
+  if (view_latent < 1 || view_latent > 64) return bad(absl::StrCat("view latent ", view_latent, " is not in 1..64"));
+  if (!(kl_weight >= 0) || !(swap_weight >= 0) || !(cycle_weight >= 0)) return bad("a loss weight is negative");
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+struct ExpressionVae::Impl {
+  ExpressionVaeOptions options;
+  ExpressionNet net{nullptr};
+  std::unique_ptr<torch::optim::Adam> adam;
+  int64_t latents() const { return options.expression_latent + options.view_latent; }
+  int64_t pixels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
+};
+
+ExpressionVae::ExpressionVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+ExpressionVae::~ExpressionVae() = default;
+const ExpressionVaeOptions& ExpressionVae::options() const { return impl_->options; }
+
+int64_t ExpressionVae::parameter_count() const {
+  int64_t n = 0;
+  for (const auto& p : impl_->net->parameters()) n += p.numel();
+  return n;
+}
+
+absl::StatusOr<std::unique_ptr<ExpressionVae>> ExpressionVae::Create(const ExpressionVaeOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  try {
+    SetTorchThreads(options.threads);
+    auto impl = std::make_unique<Impl>();
+    impl->options = options;
+    {
+      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
+      torch::manual_seed(options.seed);
+      impl->net = ExpressionNet(options);
+    }
+    impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
+    return std::unique_ptr<ExpressionVae>(new ExpressionVae(std::move(impl)));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kExpressionNet, "creating the net", e);
+  }
+}
+
+absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch& batch, double learning_rate) {
+  const ExpressionVaeOptions& o = impl_->options;
+  const int64_t b = batch.batch, s = o.input_size, l = impl_->latents();
+  if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kExpressionNet, ": an empty batch"));
+  for (auto [v, n, what] : {std::tuple{&batch.anchor, b * impl_->pixels(), "the anchors"},
+                            std::tuple{&batch.same_expression, b * impl_->pixels(), "the same expressions"},
+                            std::tuple{&batch.same_view, b * impl_->pixels(), "the same views"},
+                            std::tuple{&batch.noise, 3 * b * l, "the noise"}}) {
+    if (auto st = CheckSize(*v, n, what); !st.ok()) return st;
+  }
+  try {
+    SetTorchThreads(o.threads);
+    ExpressionNet& net = impl_->net;
+    net->train();
+    for (auto& group : impl_->adam->param_groups()) {
+      static_cast<torch::optim::AdamOptions&>(group.options()).lr(learning_rate);
+    }
+    impl_->adam->zero_grad();
+    // The three images as one batch: anchors, same expressions, same views.
+    const torch::Tensor images = torch::cat({FromVector(batch.anchor, {b, 1, s, s}),
+                                             FromVector(batch.same_expression, {b, 1, s, s}),
+                                             FromVector(batch.same_view, {b, 1, s, s})});
+    const auto [mu, logvar] = net->Encode(images);
+    const torch::Tensor z = mu + FromVector(batch.noise, {3 * b, l}) * torch::exp(0.5 * logvar);
+    const torch::Tensor anchor = images.slice(0, 0, b);
+    const torch::Tensor z_anchor = z.slice(0, 0, b), z_expression = z.slice(0, b, 2 * b), z_view = z.slice(0, 2 * b);
+    const torch::Tensor reconstruction = (net->Decode(z) - images).pow(2).mean();
+    const torch::Tensor expression_swap = (net->Decode(net->Mix(z_expression, z_anchor)) - anchor).pow(2).mean();
+    const torch::Tensor view_swap = (net->Decode(net->Mix(z_anchor, z_view)) - anchor).pow(2).mean();
+    // Frame b's expression seen from the other camera: encoded again, the two latents come back.
+    const torch::Tensor crossed = net->Mix(mu.slice(0, 2 * b), mu.slice(0, b, 2 * b));
+    const torch::Tensor cycle = (net->Encode(net->Decode(crossed)).first - crossed.detach()).pow(2).mean();
+    const torch::Tensor kl = Kl(mu, logvar);
+    const torch::Tensor total = reconstruction + o.swap_weight * (expression_swap + view_swap) +
+                                o.cycle_weight * cycle + o.kl_weight * kl;
+    total.backward();
+    impl_->adam->step();
+    return ExpressionLosses{total.item<double>(),     reconstruction.item<double>(), expression_swap.item<double>(),
+                            view_swap.item<double>(), cycle.item<double>(),          kl.item<double>()};
+  } catch (const std::exception& e) {
+    return internal::TorchError(kExpressionNet, "training", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> ExpressionVae::Encode(const std::vector<float>& images, int batch) const {
+  const int64_t s = impl_->options.input_size;
+  if (auto st = CheckSize(images, batch * impl_->pixels(), "the images"); !st.ok()) return st;
+  try {
+    SetTorchThreads(impl_->options.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    return ToVector(impl_->net->Encode(FromVector(images, {batch, 1, s, s})).first);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kExpressionNet, "encoding", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> ExpressionVae::Decode(const std::vector<float>& latents, int batch) const {
+  if (auto st = CheckSize(latents, batch * impl_->latents(), "the latents"); !st.ok()) return st;
+  try {
+    SetTorchThreads(impl_->options.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    return ToVector(impl_->net->Decode(FromVector(latents, {batch, impl_->latents()})));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kExpressionNet, "decoding", e);
+  }
+}
+
+absl::Status ExpressionVae::Save(const std::string& path) const {
+  return SaveArchive(*impl_->net, *impl_->adam, path, kExpressionNet);
+}
+
+absl::Status ExpressionVae::Load(const std::string& path) {
+  return LoadArchive(*impl_->net, *impl_->adam, path, kExpressionNet);
 }
 
 double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
