@@ -40,13 +40,13 @@ struct EncoderImpl : torch::nn::Module {
   EncoderImpl(const ConvShape& shape, int in, int outputs) {
     stem = register_module("stem", torch::nn::Conv2d(torch::nn::Conv2dOptions(in, shape.Channels(0), 3).padding(1)));
     for (int i = 0; i < shape.levels; ++i) {
-      downs.push_back(register_module("down" + std::to_string(i),
-                                      torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(i), shape.Channels(i + 1), 3)
-                                                            .stride(2)
-                                                            .padding(1))));
+      downs.push_back(register_module(
+          "down" + std::to_string(i),
+          torch::nn::Conv2d(
+              torch::nn::Conv2dOptions(shape.Channels(i), shape.Channels(i + 1), 3).stride(2).padding(1))));
     }
-    head = register_module(
-        "head", torch::nn::Linear(shape.Channels(shape.levels) * shape.side() * shape.side(), outputs));
+    head =
+        register_module("head", torch::nn::Linear(shape.Channels(shape.levels) * shape.side() * shape.side(), outputs));
   }
   torch::Tensor forward(torch::Tensor x) {
     x = Leaky(stem(x));
@@ -70,8 +70,8 @@ struct DecoderImpl : torch::nn::Module {
           "up" + std::to_string(i),
           torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(i + 1), shape.Channels(i), 3).padding(1))));
     }
-    out = register_module(
-        "out", torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(0), out_channels, 3).padding(1)));
+    out = register_module("out",
+                          torch::nn::Conv2d(torch::nn::Conv2dOptions(shape.Channels(0), out_channels, 3).padding(1)));
   }
   torch::Tensor forward(const torch::Tensor& z) {
     torch::Tensor x = Leaky(in(z)).view({z.size(0), top_channels, side, side});
@@ -185,6 +185,27 @@ absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char
   return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
 }
 
+// The trunks' shape within the ranges the options' comments give; `bad` names the net.
+template <typename Bad>
+absl::Status ValidateShape(const ConvShape& shape, Bad bad) {
+  if (shape.levels < 2 || shape.levels > 7) return bad(absl::StrCat("levels ", shape.levels, " is not in 2..7"));
+  if (shape.input_size < 32 || shape.input_size > 512 || shape.input_size % (1 << shape.levels) != 0) {
+    return bad(absl::StrCat("input size ", shape.input_size, " is not in 32..512 and divisible by 2^", shape.levels));
+  }
+  if (shape.base_channels < 4 || shape.base_channels > 256 || shape.max_channels < shape.base_channels ||
+      shape.max_channels > 256) {
+    return bad(
+        absl::StrCat("channels ", shape.base_channels, " to ", shape.max_channels, " are not within 4..256, rising"));
+  }
+  return absl::OkStatus();
+}
+
+int64_t CountParameters(const torch::nn::Module& net) {
+  int64_t n = 0;
+  for (const auto& p : net.parameters()) n += p.numel();
+  return n;
+}
+
 // A net's weights and its optimizer's state in one torch archive, written atomically.
 absl::Status SaveArchive(const torch::nn::Module& net, torch::optim::Adam& adam, const std::string& path,
                          const char* what) {
@@ -217,8 +238,8 @@ absl::Status LoadArchive(torch::nn::Module& net, torch::optim::Adam& adam, const
     return absl::OkStatus();
   } catch (const std::exception& e) {
     const std::string message = e.what();
-    return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (",
-                                                      message.substr(0, message.find('\n')), ")"));
+    return absl::FailedPreconditionError(
+        absl::StrCat(path, ": not a checkpoint of this ", what, " (", message.substr(0, message.find('\n')), ")"));
   }
 }
 
@@ -231,13 +252,7 @@ torch::Tensor MaskedMse(const torch::Tensor& a, const torch::Tensor& b, const to
 
 absl::Status GeometryVaeOptions::Validate() const {
   auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what)); };
-  if (levels < 2 || levels > 7) return bad(absl::StrCat("levels ", levels, " is not in 2..7"));
-  if (input_size < 32 || input_size > 512 || input_size % (1 << levels) != 0) {
-    return bad(absl::StrCat("input size ", input_size, " is not in 32..512 and divisible by 2^", levels));
-  }
-  if (base_channels < 4 || base_channels > 256 || max_channels < base_channels || max_channels > 256) {
-    return bad(absl::StrCat("channels ", base_channels, " to ", max_channels, " are not within 4..256, rising"));
-  }
+  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
   if (geometry_latent < 1 || geometry_latent > 1024) return bad(absl::StrCat("geometry latent ", geometry_latent));
   if (pose_latent < 1 || pose_latent > 64) return bad(absl::StrCat("pose latent ", pose_latent, " is not in 1..64"));
   if (!(kl_weight >= 0)) return bad(absl::StrCat("KL weight ", kl_weight, " is negative"));
@@ -295,11 +310,7 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> GeometryVae::Create(const GeometryV
 
 const GeometryVaeOptions& GeometryVae::options() const { return impl_->options; }
 
-int64_t GeometryVae::parameter_count() const {
-  int64_t n = 0;
-  for (const auto& p : impl_->net->parameters()) n += p.numel();
-  return n;
-}
+int64_t GeometryVae::parameter_count() const { return CountParameters(*impl_->net); }
 
 absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch, double learning_rate) {
   const GeometryVaeOptions& o = impl_->options;
@@ -476,9 +487,7 @@ absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
   }
 }
 
-absl::Status GeometryVae::Load(const std::string& path) {
-  return LoadArchive(*impl_->net, *impl_->adam, path, kNet);
-}
+absl::Status GeometryVae::Load(const std::string& path) { return LoadArchive(*impl_->net, *impl_->adam, path, kNet); }
 
 namespace {
 
@@ -521,13 +530,7 @@ absl::Status ExpressionVaeOptions::Validate() const {
   auto bad = [](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat(kExpressionNet, ": ", what));
   };
-  if (levels < 2 || levels > 7) return bad(absl::StrCat("levels ", levels, " is not in 2..7"));
-  if (input_size < 32 || input_size > 512 || input_size % (1 << levels) != 0) {
-    return bad(absl::StrCat("input size ", input_size, " is not in 32..512 and divisible by 2^", levels));
-  }
-  if (base_channels < 4 || base_channels > 256 || max_channels < base_channels || max_channels > 256) {
-    return bad(absl::StrCat("channels ", base_channels, " to ", max_channels, " are not within 4..256, rising"));
-  }
+  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
   if (expression_latent < 1 || expression_latent > 1024) {
     return bad(absl::StrCat("expression latent ", expression_latent, " is not in 1..1024"));
   }
@@ -549,11 +552,7 @@ ExpressionVae::ExpressionVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)
 ExpressionVae::~ExpressionVae() = default;
 const ExpressionVaeOptions& ExpressionVae::options() const { return impl_->options; }
 
-int64_t ExpressionVae::parameter_count() const {
-  int64_t n = 0;
-  for (const auto& p : impl_->net->parameters()) n += p.numel();
-  return n;
-}
+int64_t ExpressionVae::parameter_count() const { return CountParameters(*impl_->net); }
 
 absl::StatusOr<std::unique_ptr<ExpressionVae>> ExpressionVae::Create(const ExpressionVaeOptions& options) {
   if (auto s = options.Validate(); !s.ok()) return s;
@@ -592,9 +591,9 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
     }
     impl_->adam->zero_grad();
     // The three images as one batch: anchors, same expressions, same views.
-    const torch::Tensor images = torch::cat({FromVector(batch.anchor, {b, 1, s, s}),
-                                             FromVector(batch.same_expression, {b, 1, s, s}),
-                                             FromVector(batch.same_view, {b, 1, s, s})});
+    const torch::Tensor images =
+        torch::cat({FromVector(batch.anchor, {b, 1, s, s}), FromVector(batch.same_expression, {b, 1, s, s}),
+                    FromVector(batch.same_view, {b, 1, s, s})});
     const auto [mu, logvar] = net->Encode(images);
     const torch::Tensor z = mu + FromVector(batch.noise, {3 * b, l}) * torch::exp(0.5 * logvar);
     const torch::Tensor anchor = images.slice(0, 0, b);
@@ -606,8 +605,8 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
     const torch::Tensor crossed = net->Mix(mu.slice(0, 2 * b), mu.slice(0, b, 2 * b));
     const torch::Tensor cycle = (net->Encode(net->Decode(crossed)).first - crossed.detach()).pow(2).mean();
     const torch::Tensor kl = Kl(mu, logvar);
-    const torch::Tensor total = reconstruction + o.swap_weight * (expression_swap + view_swap) +
-                                o.cycle_weight * cycle + o.kl_weight * kl;
+    const torch::Tensor total =
+        reconstruction + o.swap_weight * (expression_swap + view_swap) + o.cycle_weight * cycle + o.kl_weight * kl;
     total.backward();
     impl_->adam->step();
     return ExpressionLosses{total.item<double>(),     reconstruction.item<double>(), expression_swap.item<double>(),

@@ -2,12 +2,13 @@
 // the frame), each camera's view the background's shading. Training on triplets lowers its losses, and the latents
 // come apart: a frame's expression latent with another camera's view latent decodes to that frame seen by that
 // camera.
+#include "stage/processing/asset_net.h"
+
 #include <cmath>
 #include <random>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "stage/processing/asset_net.h"
 
 namespace stage::processing {
 namespace {
@@ -35,8 +36,14 @@ double Distance(const std::vector<float>& a, const std::vector<float>& b) {
 }
 
 TEST(ExpressionVaeTest, TrainingOnTripletsLowersTheLossesAndSeparatesExpressionFromView) {
-  ExpressionVaeOptions options{.input_size = kSize, .levels = 3, .base_channels = 8, .max_channels = 32,
-                               .expression_latent = 4, .view_latent = 2, .threads = 2, .seed = 5};
+  ExpressionVaeOptions options{.input_size = kSize,
+                               .levels = 3,
+                               .base_channels = 8,
+                               .max_channels = 32,
+                               .expression_latent = 4,
+                               .view_latent = 2,
+                               .threads = 2,
+                               .seed = 5};
   auto net = ExpressionVae::Create(options);
   ASSERT_TRUE(net.ok()) << net.status();
   std::mt19937 rng(11);
@@ -70,7 +77,7 @@ TEST(ExpressionVaeTest, TrainingOnTripletsLowersTheLossesAndSeparatesExpressionF
   pair.insert(pair.end(), other.begin(), other.end());
   auto latents = (*net)->Encode(pair, 2);
   ASSERT_TRUE(latents.ok());
-  std::vector<float> mixed(latents->begin(), latents->begin() + 4);  // frame 7's expression
+  std::vector<float> mixed(latents->begin(), latents->begin() + 4);            // frame 7's expression
   mixed.insert(mixed.end(), latents->begin() + 6 + 4, latents->begin() + 12);  // camera 2's view
   auto decoded = (*net)->Decode(mixed, 1);
   ASSERT_TRUE(decoded.ok());

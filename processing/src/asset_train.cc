@@ -230,7 +230,8 @@ absl::Status SaveCheckpoint(const std::string& dir, const GeometryVae& net, cons
 
 // An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped.
 Eigen::Vector3d SampleNchw(const std::vector<float>& map, int size, const Eigen::Vector2f& uv) {
-  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0), y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
+  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0),
+               y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
   const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
   const double fx = x - x0, fy = y - y0;
   const size_t texels = static_cast<size_t>(size) * size;

@@ -16,10 +16,10 @@ constexpr const char* kProgram = "stage-process";
 }  // namespace
 
 void AssetCommands::Add(CLI::App& parent) {
-  app_ =
-      parent.add_subcommand("asset",
-                            "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
-                            "geometry VAE, and its evaluation (the expression and texture networks and inference are to come)");
+  app_ = parent.add_subcommand(
+      "asset",
+      "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
+      "geometry VAE, and its evaluation (the expression and texture networks and inference are to come)");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -205,7 +205,8 @@ int AssetCommands::Train() {
 int AssetCommands::Evaluate() {
   auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, evaluate_run_);
   if (!result.ok()) return ReportFatal(kProgram, result.status());
-  std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n" : processing::FormatTrainedEvaluation(*result));
+  std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n"
+                      : processing::FormatTrainedEvaluation(*result));
   return 0;
 }
 
