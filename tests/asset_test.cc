@@ -100,11 +100,11 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   a->set_pose_latent(3);
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), train_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/geometry");
-  // Torch's own archives (checkpoint.pt, geometry_vae.pt) name the module's class with a counter of the modules the
-  // process made before, so their bytes differ between processes; the TorchScript file holds the same weights and is
-  // compared with the rest.
+  // Torch's own archives (checkpoint-000030.pt, geometry_vae.pt) name the module's class with a counter of the modules
+  // the process made before, so their bytes differ between processes; the TorchScript file holds the same weights and
+  // is compared with the rest.
   auto without_archives = [](std::map<std::string, std::string> files) {
-    EXPECT_EQ(files.erase("checkpoint.pt") + files.erase("geometry_vae.pt"), 2u);
+    EXPECT_EQ(files.erase("checkpoint-000030.pt") + files.erase("geometry_vae.pt"), 2u);
     return files;
   };
   const auto files = without_archives(FilesUnder(asset + "/geometry-batch"));

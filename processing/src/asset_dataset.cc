@@ -265,6 +265,9 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
     STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
         camera.path, frames.front(), frames.back() + 1, light, camera.black_level_dn,
         [&](int64_t frame, const Image& grey) -> absl::Status {
+          if (options.cancelled && options.cancelled()) {
+            return absl::CancelledError(absl::StrCat("dataset: stopped cropping ", camera.id, " (nothing written)"));
+          }
           auto slot = crops.images.find(frame);
           if (slot == crops.images.end()) return absl::OkStatus();
           if (white == 0) {
@@ -494,10 +497,14 @@ absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
   if (!j.is_object() || !j.contains("sequences") || !j.contains("geometry_size")) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": the description is not a dataset's"));
   }
-  d.sequences = j["sequences"].get<std::vector<std::string>>();
-  d.geometry_size = j["geometry_size"].get<int>();
-  d.cameras = j.value("cameras", std::vector<std::string>());
-  d.image_size = j.value("image_size", 0);
+  try {
+    d.sequences = j["sequences"].get<std::vector<std::string>>();
+    d.geometry_size = j["geometry_size"].get<int>();
+    d.cameras = j.value("cameras", std::vector<std::string>());
+    d.image_size = j.value("image_size", 0);
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": the description does not read: ", e.what()));
+  }
   STAGE_ASSIGN_OR_RETURN(d.frame, reader->ReadAll<int64_t>("frame"));
   STAGE_ASSIGN_OR_RETURN(const std::vector<uint8_t> split, reader->ReadAll<uint8_t>("split"));
   STAGE_ASSIGN_OR_RETURN(d.sequence, reader->ReadAll<int32_t>("sequence"));

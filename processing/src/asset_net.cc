@@ -231,7 +231,25 @@ absl::Status LoadArchive(torch::nn::Module& net, torch::optim::Adam& adam, const
   try {
     torch::serialize::InputArchive archive;
     archive.load_from(path);
+    // Torch's load takes the file's shapes without a word: a net of other options would fail later, or decode
+    // nonsense. Compare them here.
+    std::vector<std::pair<std::string, std::vector<int64_t>>> shapes;
+    for (const auto& p : net.named_parameters()) shapes.emplace_back(p.key(), p.value().sizes().vec());
+    for (const auto& b : net.named_buffers()) shapes.emplace_back(b.key(), b.value().sizes().vec());
     net.load(archive);
+    size_t i = 0;
+    for (const auto& p : net.named_parameters()) {
+      if (p.value().sizes().vec() != shapes[i++].second) {
+        return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (", p.key(),
+                                                          " has another shape: a net of other options)"));
+      }
+    }
+    for (const auto& b : net.named_buffers()) {
+      if (b.value().sizes().vec() != shapes[i++].second) {
+        return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (", b.key(),
+                                                          " has another shape: a net of other options)"));
+      }
+    }
     torch::serialize::InputArchive state;
     archive.read("adam", state);
     adam.load(state);
@@ -421,7 +439,7 @@ def leaky(self, x: Tensor) -> Tensor:
     return torch.leaky_relu(x, 0.1)
 
 def decode(self, z: Tensor) -> Tensor:
-    x = self.leaky(torch.matmul(z, self.decoder_input_weight.t()) + self.decoder_input_bias)
+    x = self.leaky(torch.linear(z, self.decoder_input_weight, self.decoder_input_bias))
 )";
   src += absl::StrCat("    x = x.view(z.size(0), ", Channels(o, o.levels), ", ", o.input_size >> o.levels, ", ",
                       o.input_size >> o.levels, ")\n");
@@ -456,7 +474,7 @@ def encode(self, maps: Tensor, valid: Tensor) -> Tensor:
     src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
                         "_bias, [2, 2], [1, 1], [1, 1], 1))\n");
   }
-  src += "    x = torch.matmul(x.flatten(1), self.encoder_head_weight.t()) + self.encoder_head_bias\n";
+  src += "    x = torch.linear(x.flatten(1), self.encoder_head_weight, self.encoder_head_bias)\n";
   src += absl::StrCat("    return x[:, :", o.geometry_latent + o.pose_latent, "]\n");
   return src;
 }

@@ -9,15 +9,18 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <random>
 #include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "stage/common/file_util.h"
+#include "stage/common/logging.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/warp_net.h"
 
 namespace stage::processing {
 namespace {
@@ -133,7 +136,21 @@ GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, con
   return batch;
 }
 
-nlohmann::json OptionsJson(const AssetTrainJob& job) {
+// A dataset's identity: FNV-1a of its description (source, take, sizes, sequences, split) and frame numbers.
+std::string DatasetId(const AssetDataset& d) {
+  uint64_t h = 1469598103934665603ull;
+  auto mix = [&](const void* data, size_t n) {
+    for (size_t i = 0; i < n; ++i) h = (h ^ static_cast<const uint8_t*>(data)[i]) * 1099511628211ull;
+  };
+  mix(d.description.data(), d.description.size());
+  mix(d.frame.data(), d.frame.size() * sizeof(int64_t));
+  return absl::StrFormat("%016x", h);
+}
+
+// What a resume must find the same (every option, the dataset's identity: a hash of its description and frame
+// count, so a rebuilt dataset of other frames is not trained on as the old one; and the threads, for bit-identical
+// steps).
+nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_id) {
   const GeometryVaeOptions& g = job.geometry;
   return {{"network", "geometry"},
           {"input_size", g.input_size},
@@ -149,7 +166,9 @@ nlohmann::json OptionsJson(const AssetTrainJob& job) {
           {"learning_rate", job.learning_rate},
           {"augment_rotation_deg", job.augment_rotation_deg},
           {"augment_translation_mm", job.augment_translation_mm},
-          {"dataset", fs::absolute(job.dataset).lexically_normal().string()}};
+          {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+          {"dataset_id", dataset_id},
+          {"threads", TorchThreadCount(g.threads)}};
 }
 
 absl::Status WriteLosses(const std::string& dir, const std::vector<GeometryLosses>& losses) {
@@ -192,8 +211,11 @@ absl::Status WriteLosses(const std::string& dir, const std::vector<GeometryLosse
     cv::putText(plot, absl::StrCat("step 1 .. ", losses.size()), {kPad, kH - 12}, cv::FONT_HERSHEY_SIMPLEX, 0.5,
                 {0, 0, 0}, 1, cv::LINE_AA);
   }
-  if (!cv::imwrite(dir + "/loss.png", plot))
-    return absl::UnavailableError(absl::StrCat(dir, "/loss.png: cannot write"));
+  const std::string tmp = dir + "/loss.tmp.png";
+  std::error_code ec;
+  if (!cv::imwrite(tmp, plot)) return absl::UnavailableError(absl::StrCat(tmp, ": cannot write"));
+  fs::rename(tmp, dir + "/loss.png", ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, "/loss.png: ", ec.message()));
   return absl::OkStatus();
 }
 
@@ -218,20 +240,71 @@ absl::StatusOr<std::vector<GeometryLosses>> ReadLosses(const std::string& path, 
   return out;
 }
 
-absl::Status SaveCheckpoint(const std::string& dir, const GeometryVae& net, const AssetTrainJob& job, int64_t step,
-                            const std::mt19937_64& rng, const std::vector<GeometryLosses>& losses) {
-  STAGE_RETURN_IF_ERROR(net.Save(dir + "/checkpoint.pt"));
+std::string CheckpointName(int64_t step) { return absl::StrFormat("checkpoint-%06d.pt", step); }
+
+// The run's state at `step`: the net and Adam's state in a file of the step's own (checkpoint-NNNNNN.pt), the losses,
+// then trainer.json naming that file (the state counts once it is renamed into place), then the previous checkpoint
+// removed. A kill at any point leaves trainer.json naming a whole checkpoint of its own step.
+absl::Status SaveCheckpoint(const std::string& dir, const GeometryVae& net, const AssetTrainJob& job,
+                            const std::string& dataset_id, int64_t step, const std::mt19937_64& rng,
+                            const std::vector<GeometryLosses>& losses, std::string* checkpoint) {
+  const std::string name = CheckpointName(step);
+  STAGE_RETURN_IF_ERROR(net.Save(dir + "/" + name));
   STAGE_RETURN_IF_ERROR(WriteLosses(dir, losses));
   std::ostringstream state;
   state << rng;
-  nlohmann::json j = {{"step", step}, {"rng", state.str()}, {"options", OptionsJson(job)}};
-  return WriteFileAtomically(dir + "/trainer.json", j.dump(2) + "\n");
+  nlohmann::json j = {
+      {"step", step}, {"checkpoint", name}, {"rng", state.str()}, {"options", OptionsJson(job, dataset_id)}};
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/trainer.json", j.dump(2) + "\n"));
+  if (!checkpoint->empty() && *checkpoint != name) {
+    std::error_code ec;
+    fs::remove(dir + "/" + *checkpoint, ec);
+  }
+  *checkpoint = name;
+  return absl::OkStatus();
 }
 
-// An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped.
-Eigen::Vector3d SampleNchw(const std::vector<float>& map, int size, const Eigen::Vector2f& uv) {
-  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0),
-               y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
+// trainer.json read back and checked against the job's options; the step, the checkpoint and the generator's state.
+struct TrainerState {
+  int64_t step = 0;
+  std::string checkpoint;
+  std::mt19937_64 rng;
+};
+// FailedPrecondition names an option the run was trained with otherwise.
+absl::StatusOr<TrainerState> ReadTrainerState(const std::string& path, const AssetTrainJob& job,
+                                              const std::string& dataset_id) {
+  std::ifstream in(path);
+  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  if (!j.is_object() || !j.contains("step") || !j["step"].is_number_integer() || !j.contains("rng") ||
+      !j["rng"].is_string() || !j.contains("checkpoint") || !j["checkpoint"].is_string() || !j.contains("options") ||
+      !j["options"].is_object()) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a training run's state"));
+  }
+  const nlohmann::json mine = OptionsJson(job, dataset_id);  // named: items() of a temporary would dangle
+  for (const auto& [key, value] : mine.items()) {
+    if (!j["options"].contains(key) || j["options"][key] != value) {
+      return absl::FailedPreconditionError(absl::StrCat(path, ": the checkpoint was trained with ", key, " = ",
+                                                        j["options"].value(key, nlohmann::json()).dump(), ", not ",
+                                                        value.dump()));
+    }
+  }
+  TrainerState t;
+  t.step = j["step"].get<int64_t>();
+  t.checkpoint = j["checkpoint"].get<std::string>();
+  std::istringstream state(j["rng"].get<std::string>());
+  state >> t.rng;
+  if (state.fail() || t.step < 0 || t.step > job.iterations) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": its step or generator state does not read"));
+  }
+  return t;
+}
+
+// An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped;
+// nullopt where one of the four texels is not valid.
+std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const std::vector<float>& valid, int size,
+                                          const Eigen::Vector2f& uv) {
+  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
+  const double y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
   const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
   const double fx = x - x0, fy = y - y0;
   const size_t texels = static_cast<size_t>(size) * size;
@@ -239,6 +312,7 @@ Eigen::Vector3d SampleNchw(const std::vector<float>& map, int size, const Eigen:
   for (int dy = 0; dy < 2; ++dy) {
     for (int dx = 0; dx < 2; ++dx) {
       const size_t t = static_cast<size_t>(y0 + dy) * size + x0 + dx;
+      if (!valid[t]) return std::nullopt;
       const double w = (dx ? fx : 1 - fx) * (dy ? fy : 1 - fy);
       for (int c = 0; c < 3; ++c) p[c] += w * map[c * texels + t];
     }
@@ -253,6 +327,7 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
   std::vector<float> errors;
   const size_t texels = static_cast<size_t>(m.size) * m.size;
   double se = 0, region_se[3] = {0, 0, 0}, region_n[3] = {0, 0, 0};
+  const std::vector<float> all_valid(texels, 1.f);
   for (int64_t f : frames) {
     const std::vector<float> r = recovered(f);
     for (size_t t = 0; t < texels; ++t) {
@@ -262,10 +337,12 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
       se += d2;
       errors.push_back(static_cast<float>(std::sqrt(d2)));
     }
+    // The vertices whose texels the frame's truth holds (a reconstruction's map has holes).
     for (size_t v = 0; v < face.mesh.uvs.size(); ++v) {
+      const std::optional<Eigen::Vector3d> truth = SampleNchw(m.maps[f], m.valid[f], m.size, face.mesh.uvs[v]);
+      if (!truth) continue;
       const int region = static_cast<int>(face.regions[v]);
-      region_se[region] +=
-          (SampleNchw(r, m.size, face.mesh.uvs[v]) - SampleNchw(m.maps[f], m.size, face.mesh.uvs[v])).squaredNorm();
+      region_se[region] += (*SampleNchw(r, all_valid, m.size, face.mesh.uvs[v]) - *truth).squaredNorm();
       ++region_n[region];
     }
   }
@@ -289,19 +366,23 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
 // Gram matrix.
 Eigen::MatrixXf Pca(const NetMaps& m, const std::vector<int64_t>& train, const std::vector<float>& mean, int k) {
   const size_t d = mean.size();
-  Eigen::MatrixXf x(static_cast<Eigen::Index>(d), static_cast<Eigen::Index>(train.size()));
+  Eigen::MatrixXd x(static_cast<Eigen::Index>(d), static_cast<Eigen::Index>(train.size()));
   for (size_t i = 0; i < train.size(); ++i) {
-    for (size_t j = 0; j < d; ++j)
+    for (size_t j = 0; j < d; ++j) {
       x(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = m.maps[train[i]][j] - mean[j];
+    }
   }
-  const Eigen::MatrixXd gram = (x.transpose() * x).cast<double>();
+  const Eigen::MatrixXd gram = x.transpose() * x;
   Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(gram);
-  const int n = std::min<int>(k, static_cast<int>(train.size()));
-  Eigen::MatrixXf basis(x.rows(), n);
-  for (int c = 0; c < n; ++c) {
-    const Eigen::Index col = gram.cols() - 1 - c;  // eigenvalues ascend
-    const double lambda = std::max(1e-12, eig.eigenvalues()[col]);
-    basis.col(c) = (x * eig.eigenvectors().col(col).cast<float>()) / static_cast<float>(std::sqrt(lambda));
+  const Eigen::Index n = gram.cols();
+  const double largest = std::max(1e-30, eig.eigenvalues()[n - 1]);
+  // At most k components, and none of the data's null space (a direction no training frame spans).
+  int kept = 0;
+  while (kept < std::min<int>(k, static_cast<int>(n)) && eig.eigenvalues()[n - 1 - kept] > 1e-9 * largest) ++kept;
+  Eigen::MatrixXf basis(x.rows(), kept);
+  for (int c = 0; c < kept; ++c) {
+    const Eigen::Index col = n - 1 - c;  // eigenvalues ascend
+    basis.col(c) = ((x * eig.eigenvectors().col(col)) / std::sqrt(eig.eigenvalues()[col])).cast<float>();
   }
   return basis;
 }
@@ -436,25 +517,22 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
   result.scale_mm = scale;
   std::mt19937_64 rng(job.geometry.seed ^ 0xa55e7ull);
   const std::string trainer = result.output_dir + "/trainer.json";
+  const std::string dataset_id = DatasetId(dataset);
+  std::string checkpoint;
   if (job.resume && fs::exists(trainer)) {
-    std::ifstream in(trainer);
-    const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
-    if (!j.is_object() || !j.contains("step") || !j.contains("rng") || !j.contains("options")) {
-      return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
+    absl::StatusOr<TrainerState> state = ReadTrainerState(trainer, job, dataset_id);
+    if (absl::IsFailedPrecondition(state.status()) && job.restart_if_different) {
+      Logger("processing.asset")->info("{} (starting anew)", state.status().message());
+    } else if (!state.ok()) {
+      return absl::Status(state.status().code(), absl::StrCat(state.status().message(),
+                                                              " (start anew: without resuming, or another directory)"));
+    } else {
+      STAGE_RETURN_IF_ERROR(net->Load(result.output_dir + "/" + state->checkpoint));
+      rng = state->rng;
+      checkpoint = state->checkpoint;
+      result.resumed_from = state->step;
+      STAGE_ASSIGN_OR_RETURN(result.losses, ReadLosses(result.output_dir + "/loss.csv", result.resumed_from));
     }
-    const nlohmann::json mine = OptionsJson(job);
-    for (const auto& [key, value] : mine.items()) {
-      if (!j["options"].contains(key) || j["options"][key] != value) {
-        return absl::FailedPreconditionError(absl::StrCat(trainer, ": the checkpoint was trained with ", key, " = ",
-                                                          j["options"].value(key, nlohmann::json()).dump(), ", not ",
-                                                          value.dump(), " (start anew without --resume)"));
-      }
-    }
-    STAGE_RETURN_IF_ERROR(net->Load(result.output_dir + "/checkpoint.pt"));
-    std::istringstream state(j["rng"].get<std::string>());
-    state >> rng;
-    result.resumed_from = j["step"].get<int64_t>();
-    STAGE_ASSIGN_OR_RETURN(result.losses, ReadLosses(result.output_dir + "/loss.csv", result.resumed_from));
   }
   const int64_t slow_from = static_cast<int64_t>(0.7 * job.iterations);
   for (int64_t step = result.resumed_from; step < job.iterations; ++step) {
@@ -464,11 +542,12 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
     result.losses.push_back(losses);
     const bool last = step + 1 == job.iterations;
     if ((step + 1) % job.checkpoint_every == 0 || last) {
-      STAGE_RETURN_IF_ERROR(SaveCheckpoint(result.output_dir, *net, job, step + 1, rng, result.losses));
+      STAGE_RETURN_IF_ERROR(
+          SaveCheckpoint(result.output_dir, *net, job, dataset_id, step + 1, rng, result.losses, &checkpoint));
     }
     if (job.progress && !job.progress(step + 1, job.iterations, losses)) {
       return absl::CancelledError(absl::StrCat("asset training stopped at step ", step + 1,
-                                               " (checkpoint: ", result.output_dir, "/checkpoint.pt)"));
+                                               " (checkpoint: ", result.output_dir, "/", checkpoint, ")"));
     }
   }
   result.steps = job.iterations;

@@ -324,9 +324,10 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   if (a.geometry_latent() != 0) g.geometry_latent = a.geometry_latent();
   if (a.pose_latent() != 0) g.pose_latent = a.pose_latent();
   if (a.seed() != 0) g.seed = a.seed();
-  // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads), resumed where a job of the
-  // same options stopped.
+  // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
+  // same options, dataset and threads stopped, else started anew.
   t.resume = true;
+  t.restart_if_different = true;
   t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) {
     if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", l.total)});
     return !cancelled();

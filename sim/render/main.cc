@@ -125,6 +125,17 @@ int main(int argc, char** argv) {
           kProgram, absl::InvalidArgumentError(absl::StrCat("--frames \"", frames, "\" is not A:B (e.g. 0:24)")));
     }
   }
+  if (!take_dir.empty() && (!truth_dir.empty() || no_camera_maps || no_meshes || !truth_cameras.empty())) {
+    return stage::ReportFatal(
+        kProgram, absl::InvalidArgumentError("--take writes its own truth (poses and UV position maps): it takes no "
+                                             "--ground-truth, --cameras, --no-camera-maps or --no-meshes"));
+  }
+  if (take_dir.empty() && (!take_cameras.empty() || all_patterns)) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--take-cameras and --all-patterns need --take"));
+  }
+  if (take_dir.empty() && truth_dir.empty() && frame_step != 1) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--frame-step needs --take or --ground-truth"));
+  }
   if (!take_dir.empty()) {
     stage::sim::RenderedTakeOptions options;
     options.first_frame = first_frame;

@@ -92,6 +92,9 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
                                const RenderedTakeOptions& options) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   if (fs::exists(dir + "/take.json")) return absl::AlreadyExistsError(absl::StrCat(dir, ": holds a take already"));
+  // A render cut short leaves frame files and no take file: begun again, it starts over.
+  std::error_code removed;
+  fs::remove_all(dir + "/cameras", removed);
   std::vector<int> cameras;
   if (options.cameras.empty()) {
     for (int i = 0; i < scene->rig().cameras_size(); ++i) {
@@ -115,8 +118,9 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
   std::error_code ec;
   fs::create_directories(dir + "/cameras", ec);
   if (ec) return absl::UnavailableError(absl::StrCat(dir, "/cameras: ", ec.message()));
-  const std::string take_id = fs::path(dir).lexically_normal().filename().string();
-  STAGE_RETURN_IF_ERROR(WriteTakeFile(*scene, dir, take_id));
+  fs::path normal = fs::path(dir).lexically_normal();
+  if (normal.filename().empty()) normal = normal.parent_path();  // "takes/a/" names take "a"
+  const std::string take_id = normal.filename().string();
 
   const int64_t cycle = scene->schedule().patterns_size();
   const int64_t frames = (options.last_frame - options.first_frame + options.frame_step - 1) / options.frame_step;
@@ -155,7 +159,9 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
   truth.camera_maps = options.truth_camera_maps;
   truth.meshes = options.truth_meshes;
   for (int camera : cameras) truth.cameras.push_back(scene->rig().cameras(camera).id());
-  return WriteGroundTruth(*scene, dir + "/ground_truth", truth);
+  STAGE_RETURN_IF_ERROR(WriteGroundTruth(*scene, dir + "/ground_truth", truth));
+  // Last: a render that failed half way leaves no take file, and can be run again into the same directory.
+  return WriteTakeFile(*scene, dir, take_id);
 }
 
 }  // namespace stage::sim

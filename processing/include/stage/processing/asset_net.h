@@ -144,7 +144,9 @@ struct ExpressionBatch {
   int batch = 0;
   // B x 1 x I x I each, 0..1.
   std::vector<float> anchor, same_expression, same_view;
-  std::vector<float> noise;  // B x 3 x (expression_latent + view_latent): N(0, 1) draws
+  // 3B x (expression_latent + view_latent): N(0, 1) draws, the anchors' B rows first, then the same expressions',
+  // then the same views'.
+  std::vector<float> noise;
 };
 
 struct ExpressionLosses {

@@ -1,7 +1,9 @@
 // Training the neural asset's networks on a dataset (docs/asset.md#training), resumably: the geometry VAE so far
 // (asset_net.h). Writes to the run's directory:
-//   checkpoint.pt      the net and Adam's state at the last checkpoint (replaced atomically)
-//   trainer.json       the step reached, the generator's state, the options (a resume must match them)
+//   checkpoint-NNNNNN.pt  the net and Adam's state at the last checkpoint's step
+//   trainer.json       the step reached, its checkpoint's file, the generator's state, the options, the dataset's
+//                      identity and the thread count (a resume must match them); replaced atomically after the
+//                      checkpoint is written, and the previous checkpoint removed after it
 //   loss.csv, loss.png every step's losses, and their curves (log scale)
 //   geometry_vae.pt    the trained net (at the end), and geometry_vae.torchscript.pt, the same as TorchScript (Python's
 //                      torch.jit.load runs it: encode, decode)
@@ -36,6 +38,9 @@ struct AssetTrainJob {
   // Continue from the run directory's checkpoint (its options must be these); false: start anew (a checkpoint there
   // is replaced).
   bool resume = false;
+  // With resume: a run of other options (or another dataset, or thread count) there is started anew instead of
+  // refused (the worker's jobs: a job of changed options retrains).
+  bool restart_if_different = false;
   // Called after every step: (step, iterations, losses); false stops the run (Cancelled) after writing its
   // checkpoint's state as it last stood.
   std::function<bool(int64_t, int64_t, const GeometryLosses&)> progress;
