@@ -165,30 +165,38 @@ absl::StatusOr<int32_t> HeldOutSequence(const DatasetOptions& options, const std
   return static_cast<int32_t>(names.size()) - 2;
 }
 
-double RmsFromMean(const std::vector<std::vector<float>>& points, const std::vector<std::vector<uint8_t>>& valid) {
-  if (points.empty()) return 0;
-  const size_t n = points[0].size();
-  std::vector<double> sum(n, 0), count(n / 3, 0);
-  for (size_t f = 0; f < points.size(); ++f) {
-    for (size_t t = 0; t < n / 3; ++t) {
-      if (!valid[f][t]) continue;
-      for (int c = 0; c < 3; ++c) sum[3 * t + c] += points[f][3 * t + c];
-      ++count[t];
+// How far the frames' maps spread about their per-texel mean (RMS of the 3D distance over valid texels), accumulated
+// a frame at a time (Welford's update), so that no frame has to stay in memory for it.
+class RunningSpread {
+ public:
+  void Add(const std::vector<float>& points, const std::vector<uint8_t>& valid) {
+    if (count_.empty()) {
+      count_.assign(valid.size(), 0);
+      mean_.assign(points.size(), 0);
+      m2_.assign(points.size(), 0);
     }
-  }
-  double se = 0, m = 0;
-  for (size_t f = 0; f < points.size(); ++f) {
-    for (size_t t = 0; t < n / 3; ++t) {
-      if (!valid[f][t]) continue;
-      for (int c = 0; c < 3; ++c) {
-        const double d = points[f][3 * t + c] - sum[3 * t + c] / count[t];
-        se += d * d;
+    for (size_t t = 0; t < valid.size(); ++t) {
+      if (!valid[t]) continue;
+      const double n = ++count_[t];
+      for (size_t c = 3 * t; c < 3 * t + 3; ++c) {
+        const double delta = points[c] - mean_[c];
+        mean_[c] += delta / n;
+        m2_[c] += delta * (points[c] - mean_[c]);
       }
-      ++m;
     }
   }
-  return m > 0 ? std::sqrt(se / m) : 0;
-}
+  double Rms() const {
+    double se = 0, n = 0;
+    for (size_t t = 0; t < count_.size(); ++t) {
+      n += count_[t];
+      se += m2_[3 * t] + m2_[3 * t + 1] + m2_[3 * t + 2];
+    }
+    return n > 0 ? std::sqrt(se / n) : 0;
+  }
+
+ private:
+  std::vector<double> count_, mean_, m2_;
+};
 
 // Each camera's crops of the dataset's frames: a fixed square about where the face is when the head is at rest.
 struct Crops {
@@ -431,8 +439,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   }
   summary.cameras = crops.cameras;
   summary.image_size = views > 0 ? options.image_size : 0;
-  std::vector<std::vector<float>> points;
-  std::vector<std::vector<uint8_t>> valid;
+  RunningSpread spread;
   double valid_texels = 0;
   for (size_t i = 0; i < frames.size(); ++i) {
     if (options.cancelled && options.cancelled()) {
@@ -455,12 +462,11 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
       STAGE_RETURN_IF_ERROR(writer->Append("image_valid", crops.valid.at(frames[i]).data()));
     }
     valid_texels += static_cast<double>(std::count(g->valid.begin(), g->valid.end(), 1));
-    points.push_back(std::move(g->points));
-    valid.push_back(std::move(g->valid));
+    spread.Add(g->points, g->valid);
     if (options.progress) options.progress(static_cast<int64_t>(i) + 1, static_cast<int64_t>(frames.size()));
   }
   summary.valid_texels = valid_texels / static_cast<double>(frames.size());
-  summary.rms_from_mean_mm = RmsFromMean(points, valid);
+  summary.rms_from_mean_mm = spread.Rms();
   nlohmann::json d;
   d["source"] = AssetSourceName(options.source);
   d["take"] = fs::absolute(options.take_dir).lexically_normal().string();
