@@ -206,15 +206,28 @@ struct Crops {
   std::map<int64_t, std::vector<uint8_t>> valid;   // frame -> cameras
 };
 
-// The grey frame's square of `side` pixels about `centre`, averaged down to size x size and mapped to 8 bits over
-// `white` (gamma 2.2).
-std::vector<uint8_t> Crop(const Image& grey, const Eigen::Vector2d& centre, double side, int size, double white) {
+// The grey frame's square of `side` pixels about `centre` (sub-pixel).
+cv::Mat Patch(const Image& grey, const Eigen::Vector2d& centre, double side) {
   const cv::Mat frame(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
   const int s = std::max(2, static_cast<int>(std::lround(side)));
-  cv::Mat patch, small;
+  cv::Mat patch;
   cv::getRectSubPix(frame, cv::Size(s, s), cv::Point2f(static_cast<float>(centre.x()), static_cast<float>(centre.y())),
                     patch);
-  cv::resize(patch, small, cv::Size(size, size), 0, 0, s > size ? cv::INTER_AREA : cv::INTER_LINEAR);
+  return patch;
+}
+
+// A patch's white: its 99.5th percentile (at least 1 DN).
+double White(const cv::Mat& patch) {
+  std::vector<float> values(patch.begin<float>(), patch.end<float>());
+  const size_t k = static_cast<size_t>(0.995 * static_cast<double>(values.size() - 1));
+  std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
+  return std::max(1.0, static_cast<double>(values[k]));
+}
+
+// A patch averaged down to size x size and mapped to 8 bits over `white` (gamma 2.2).
+std::vector<uint8_t> Crop(const cv::Mat& patch, int size, double white) {
+  cv::Mat small;
+  cv::resize(patch, small, cv::Size(size, size), 0, 0, patch.cols > size ? cv::INTER_AREA : cv::INTER_LINEAR);
   std::vector<uint8_t> out(static_cast<size_t>(size) * size);
   for (int i = 0; i < size * size; ++i) {
     const double v = std::clamp(small.at<float>(i / size, i % size) / white, 0.0, 1.0);
@@ -278,18 +291,9 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           }
           auto slot = crops.images.find(frame);
           if (slot == crops.images.end()) return absl::OkStatus();
-          if (white == 0) {
-            const cv::Mat frame_mat(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
-            cv::Mat patch;
-            cv::getRectSubPix(frame_mat,
-                              cv::Size(std::max(2, static_cast<int>(side)), std::max(2, static_cast<int>(side))),
-                              cv::Point2f(static_cast<float>(pixel.x()), static_cast<float>(pixel.y())), patch);
-            std::vector<float> values(patch.begin<float>(), patch.end<float>());
-            const size_t k = static_cast<size_t>(0.995 * static_cast<double>(values.size() - 1));
-            std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
-            white = std::max(1.0, static_cast<double>(values[k]));
-          }
-          const std::vector<uint8_t> image = Crop(grey, pixel, side, options.image_size, white);
+          const cv::Mat patch = Patch(grey, pixel, side);
+          if (white == 0) white = White(patch);
+          const std::vector<uint8_t> image = Crop(patch, options.image_size, white);
           std::copy(image.begin(), image.end(), slot->second.begin() + static_cast<std::ptrdiff_t>(c * texels));
           crops.valid[frame][c] = 1;
           return absl::OkStatus();

@@ -180,9 +180,19 @@ std::vector<float> ToVector(const torch::Tensor& t) {
   return std::vector<float>(c.data_ptr<float>(), c.data_ptr<float>() + c.numel());
 }
 
-absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char* what) {
+absl::Status CheckSize(const std::vector<float>& v, int64_t expected, const char* what, const char* net = kNet) {
   if (static_cast<int64_t>(v.size()) == expected) return absl::OkStatus();
-  return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what, " holds ", v.size(), " values, not ", expected));
+  return absl::InvalidArgumentError(absl::StrCat(net, ": ", what, " holds ", v.size(), " values, not ", expected));
+}
+
+// Adam's rate for the next step.
+void SetLearningRate(torch::optim::Adam& adam, double learning_rate) {
+  for (auto& group : adam.param_groups()) static_cast<torch::optim::AdamOptions&>(group.options()).lr(learning_rate);
+}
+
+// The KL divergence of N(mu, exp(logvar)) from N(0, I), summed over the latent's dimensions, mean over the batch.
+torch::Tensor Kl(const torch::Tensor& mu, const torch::Tensor& logvar) {
+  return (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
 }
 
 // The trunks' shape within the ranges the options' comments give; `bad` names the net.
@@ -233,20 +243,19 @@ absl::Status LoadArchive(torch::nn::Module& net, torch::optim::Adam& adam, const
     archive.load_from(path);
     // Torch's load takes the file's shapes without a word: a net of other options would fail later, or decode
     // nonsense. Compare them here.
-    std::vector<std::pair<std::string, std::vector<int64_t>>> shapes;
-    for (const auto& p : net.named_parameters()) shapes.emplace_back(p.key(), p.value().sizes().vec());
-    for (const auto& b : net.named_buffers()) shapes.emplace_back(b.key(), b.value().sizes().vec());
+    auto shapes = [&net] {
+      std::vector<std::pair<std::string, std::vector<int64_t>>> out;
+      for (const auto& p : net.named_parameters()) out.emplace_back(p.key(), p.value().sizes().vec());
+      for (const auto& b : net.named_buffers()) out.emplace_back(b.key(), b.value().sizes().vec());
+      return out;
+    };
+    const auto before = shapes();
     net.load(archive);
-    size_t i = 0;
-    for (const auto& p : net.named_parameters()) {
-      if (p.value().sizes().vec() != shapes[i++].second) {
-        return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (", p.key(),
-                                                          " has another shape: a net of other options)"));
-      }
-    }
-    for (const auto& b : net.named_buffers()) {
-      if (b.value().sizes().vec() != shapes[i++].second) {
-        return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (", b.key(),
+    const auto after = shapes();
+    for (size_t i = 0; i < before.size(); ++i) {
+      if (after[i].second != before[i].second) {
+        return absl::FailedPreconditionError(absl::StrCat(path, ": not a checkpoint of this ", what, " (",
+                                                          before[i].first,
                                                           " has another shape: a net of other options)"));
       }
     }
@@ -314,11 +323,9 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> GeometryVae::Create(const GeometryV
     SetTorchThreads(options.threads);
     auto impl = std::make_unique<Impl>();
     impl->options = options;
-    {
-      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
-      torch::manual_seed(options.seed);
-      impl->net = Vae(options, FromVector(mean, {1, 3, options.input_size, options.input_size}), scale);
-    }
+    impl->net = internal::Seeded(options.seed, [&] {
+      return Vae(options, FromVector(mean, {1, 3, options.input_size, options.input_size}), scale);
+    });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
     return std::unique_ptr<GeometryVae>(new GeometryVae(std::move(impl)));
   } catch (const std::exception& e) {
@@ -344,9 +351,7 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     SetTorchThreads(o.threads);
     Vae& net = impl_->net;
     net->train();
-    for (auto& group : impl_->adam->param_groups()) {
-      static_cast<torch::optim::AdamOptions&>(group.options()).lr(learning_rate);
-    }
+    SetLearningRate(*impl_->adam, learning_rate);
     const torch::Tensor posed = FromVector(batch.posed, {b, 3, s, s});
     const torch::Tensor canonical = FromVector(batch.canonical, {b, 3, s, s});
     const torch::Tensor valid = FromVector(batch.valid, {b, 1, s, s});
@@ -366,7 +371,7 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     const torch::Tensor moved_n = (moved_mm - net->mean) / net->scale;
     const torch::Tensor canonical_loss = MaskedMse(decoded, canonical_n, valid);
     const torch::Tensor posed_loss = MaskedMse(moved_n, posed_n, valid);
-    const torch::Tensor kl = (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
+    const torch::Tensor kl = Kl(mu, logvar);
     const torch::Tensor total = canonical_loss + posed_loss + o.kl_weight * kl;
     total.backward();
     impl_->adam->step();
@@ -538,10 +543,6 @@ struct ExpressionNetImpl : torch::nn::Module {
 };
 TORCH_MODULE(ExpressionNet);
 
-torch::Tensor Kl(const torch::Tensor& mu, const torch::Tensor& logvar) {
-  return (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
-}
-
 }  // namespace
 
 absl::Status ExpressionVaeOptions::Validate() const {
@@ -578,11 +579,7 @@ absl::StatusOr<std::unique_ptr<ExpressionVae>> ExpressionVae::Create(const Expre
     SetTorchThreads(options.threads);
     auto impl = std::make_unique<Impl>();
     impl->options = options;
-    {
-      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
-      torch::manual_seed(options.seed);
-      impl->net = ExpressionNet(options);
-    }
+    impl->net = internal::Seeded(options.seed, [&] { return ExpressionNet(options); });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
     return std::unique_ptr<ExpressionVae>(new ExpressionVae(std::move(impl)));
   } catch (const std::exception& e) {
@@ -598,15 +595,13 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
                             std::tuple{&batch.same_expression, b * impl_->pixels(), "the same expressions"},
                             std::tuple{&batch.same_view, b * impl_->pixels(), "the same views"},
                             std::tuple{&batch.noise, 3 * b * l, "the noise"}}) {
-    if (auto st = CheckSize(*v, n, what); !st.ok()) return st;
+    if (auto st = CheckSize(*v, n, what, kExpressionNet); !st.ok()) return st;
   }
   try {
     SetTorchThreads(o.threads);
     ExpressionNet& net = impl_->net;
     net->train();
-    for (auto& group : impl_->adam->param_groups()) {
-      static_cast<torch::optim::AdamOptions&>(group.options()).lr(learning_rate);
-    }
+    SetLearningRate(*impl_->adam, learning_rate);
     impl_->adam->zero_grad();
     // The three images as one batch: anchors, same expressions, same views.
     const torch::Tensor images =
@@ -636,7 +631,7 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
 
 absl::StatusOr<std::vector<float>> ExpressionVae::Encode(const std::vector<float>& images, int batch) const {
   const int64_t s = impl_->options.input_size;
-  if (auto st = CheckSize(images, batch * impl_->pixels(), "the images"); !st.ok()) return st;
+  if (auto st = CheckSize(images, batch * impl_->pixels(), "the images", kExpressionNet); !st.ok()) return st;
   try {
     SetTorchThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
@@ -648,7 +643,7 @@ absl::StatusOr<std::vector<float>> ExpressionVae::Encode(const std::vector<float
 }
 
 absl::StatusOr<std::vector<float>> ExpressionVae::Decode(const std::vector<float>& latents, int batch) const {
-  if (auto st = CheckSize(latents, batch * impl_->latents(), "the latents"); !st.ok()) return st;
+  if (auto st = CheckSize(latents, batch * impl_->latents(), "the latents", kExpressionNet); !st.ok()) return st;
   try {
     SetTorchThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
@@ -691,9 +686,10 @@ absl::StatusOr<double> ConvFloorMacsPerSecond(int size, int channels, int batch,
   }
   try {
     SetTorchThreads(threads);
-    torch::manual_seed(1);
-    torch::nn::Conv2d conv(torch::nn::Conv2dOptions(channels, channels, 3).padding(1));
-    const torch::Tensor x = torch::randn({batch, channels, size, size});
+    auto [conv, x] = internal::Seeded(1, [&] {
+      return std::pair{torch::nn::Conv2d(torch::nn::Conv2dOptions(channels, channels, 3).padding(1)),
+                       torch::randn({batch, channels, size, size})};
+    });
     auto step = [&] {
       conv->zero_grad();
       conv->forward(x).square().mean().backward();

@@ -85,7 +85,8 @@ TEST(ExpressionVaeTest, TrainingOnTripletsLowersTheLossesAndSeparatesExpressionF
   EXPECT_LT(to_target, 0.6 * Distance(*decoded, Crop(7, 0))) << to_target;
   EXPECT_LT(to_target, 0.6 * Distance(*decoded, Crop(23, 2))) << to_target;
 
-  EXPECT_THAT((*net)->Encode({1.f, 2.f}, 1).status().message(), ::testing::HasSubstr("the images holds 2 values"));
+  EXPECT_THAT((*net)->Encode({1.f, 2.f}, 1).status().message(),
+              ::testing::HasSubstr("expression VAE: the images holds 2 values"));
 }
 
 }  // namespace

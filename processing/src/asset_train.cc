@@ -17,6 +17,7 @@
 #include "absl/strings/str_format.h"
 #include "stage/common/file_util.h"
 #include "stage/common/logging.h"
+#include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
@@ -138,13 +139,8 @@ GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, con
 
 // A dataset's identity: FNV-1a of its description (source, take, sizes, sequences, split) and frame numbers.
 std::string DatasetId(const AssetDataset& d) {
-  uint64_t h = 1469598103934665603ull;
-  auto mix = [&](const void* data, size_t n) {
-    for (size_t i = 0; i < n; ++i) h = (h ^ static_cast<const uint8_t*>(data)[i]) * 1099511628211ull;
-  };
-  mix(d.description.data(), d.description.size());
-  mix(d.frame.data(), d.frame.size() * sizeof(int64_t));
-  return absl::StrFormat("%016x", h);
+  const absl::string_view frames(reinterpret_cast<const char*>(d.frame.data()), d.frame.size() * sizeof(int64_t));
+  return absl::StrFormat("%016x", Fnv1a64(frames, Fnv1a64(d.description)));
 }
 
 // What a resume must find the same (every option, the dataset's identity: a hash of its description and frame

@@ -185,6 +185,8 @@ std::mutex& TorchSeedMutex() {
   return mutex;
 }
 
+void SeedTorch(uint64_t seed) { torch::manual_seed(seed); }
+
 }  // namespace internal
 
 int SetTorchThreads(int threads) {
@@ -282,13 +284,7 @@ absl::StatusOr<std::unique_ptr<WarpNet>> WarpNet::Create(const WarpNetOptions& o
     SetTorchThreads(options.threads);
     auto impl = std::make_unique<Impl>();
     impl->options = options;
-    {
-      // Torch's generator is the process's: a worker's concurrent jobs must not draw between another's seeding and
-      // its weights.
-      std::lock_guard<std::mutex> lock(internal::TorchSeedMutex());
-      torch::manual_seed(options.seed);
-      impl->net = UNet(options.levels, options.base_channels);
-    }
+    impl->net = internal::Seeded(options.seed, [&] { return UNet(options.levels, options.base_channels); });
     return std::unique_ptr<WarpNet>(new WarpNet(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError("warp net", "creating the net", e);

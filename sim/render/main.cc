@@ -54,6 +54,42 @@ cv::Mat Viewable(const stage::sim::RawImage& raw, const stage::sim::SensorParams
   return out;
 }
 
+// `stage-sim-render --take`: the take, its progress, and what was written as JSON.
+int WriteTake(std::shared_ptr<const stage::sim::SimScene> scene, const std::string& dir,
+              stage::sim::RenderedTakeOptions options, bool json) {
+  stage::ProgressLine bar("camera frames");
+  options.progress = [&bar](int64_t done, int64_t total) { bar.Update(done, total); };
+  auto s = stage::sim::WriteRenderedTake(std::move(scene), dir, options);
+  bar.Finish();
+  if (!s.ok()) return stage::ReportFatal(kProgram, s);
+  if (json) {
+    std::cout << nlohmann::json({{"take", dir},
+                                 {"first_frame", options.first_frame},
+                                 {"last_frame", options.last_frame},
+                                 {"frame_step", options.frame_step}})
+                     .dump(2)
+              << std::endl;
+  }
+  return 0;
+}
+
+// `stage-sim-render --ground-truth`: the truth, its progress, and what was written as JSON.
+int WriteTruth(const stage::sim::SimScene& scene, const std::string& dir, stage::sim::GroundTruthOptions options,
+               bool json) {
+  options.progress = [](int done, int total) {
+    std::cerr << "\rground truth: " << done << "/" << total << " camera frames" << (done == total ? "\n" : "")
+              << std::flush;
+  };
+  if (auto s = stage::sim::WriteGroundTruth(scene, dir, options); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (json) {
+    std::cout << nlohmann::json(
+                     {{"ground_truth", dir}, {"first_frame", options.first_frame}, {"last_frame", options.last_frame}})
+                     .dump(2)
+              << std::endl;
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -144,20 +180,7 @@ int main(int argc, char** argv) {
     options.cameras = absl::StrSplit(take_cameras, ',', absl::SkipEmpty());
     options.full_lit_only = !all_patterns;
     options.uv_size = uv_size;
-    stage::ProgressLine bar("camera frames");
-    options.progress = [&bar](int64_t done, int64_t total) { bar.Update(done, total); };
-    auto s = stage::sim::WriteRenderedTake(*scene, take_dir, options);
-    bar.Finish();
-    if (!s.ok()) return stage::ReportFatal(kProgram, s);
-    if (json) {
-      std::cout << nlohmann::json({{"take", take_dir},
-                                   {"first_frame", first_frame},
-                                   {"last_frame", last_frame},
-                                   {"frame_step", frame_step}})
-                       .dump(2)
-                << std::endl;
-    }
-    return 0;
+    return WriteTake(*scene, take_dir, options, json);
   }
   if (!truth_dir.empty()) {
     stage::sim::GroundTruthOptions options;
@@ -168,21 +191,7 @@ int main(int argc, char** argv) {
     options.frame_step = frame_step;
     options.camera_maps = !no_camera_maps;
     options.meshes = !no_meshes;
-    options.progress = [](int done, int total) {
-      std::cerr << "\rground truth: " << done << "/" << total << " camera frames" << (done == total ? "\n" : "")
-                << std::flush;
-    };
-    if (auto s = stage::sim::WriteGroundTruth(**scene, truth_dir, options); !s.ok()) {
-      return stage::ReportFatal(kProgram, s);
-    }
-    if (json) {
-      std::cout << nlohmann::json({{"ground_truth", truth_dir},
-                                   {"first_frame", options.first_frame},
-                                   {"last_frame", options.last_frame}})
-                       .dump(2)
-                << std::endl;
-    }
-    return 0;
+    return WriteTruth(**scene, truth_dir, options, json);
   }
   if (camera_id.empty()) {
     // The rig's first high-speed camera: the one that sees every pattern.
