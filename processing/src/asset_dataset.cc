@@ -302,6 +302,57 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
   return crops;
 }
 
+// Sequence ids of the frames' names (-1 for none), numbered in the order the frames first meet them, into
+// `sequences`.
+std::vector<int32_t> NumberSequences(const std::vector<std::string>& names, std::vector<std::string>* sequences) {
+  std::vector<int32_t> ids;
+  for (const std::string& name : names) {
+    if (name.empty()) {
+      ids.push_back(-1);
+      continue;
+    }
+    auto it = std::find(sequences->begin(), sequences->end(), name);
+    if (it == sequences->end()) it = sequences->insert(sequences->end(), name);
+    ids.push_back(static_cast<int32_t>(it - sequences->begin()));
+  }
+  return ids;
+}
+
+// The dataset's arrays (asset_dataset.h), the images' only with `views` cameras.
+absl::Status AddArrays(storage::ArrayFileWriter& writer, int size, int64_t views, int image_size) {
+  STAGE_RETURN_IF_ERROR(writer.AddArray("frame", ArrayType::kInt64, {}));
+  STAGE_RETURN_IF_ERROR(writer.AddArray("split", ArrayType::kUint8, {}));
+  STAGE_RETURN_IF_ERROR(writer.AddArray("sequence", ArrayType::kInt32, {}));
+  STAGE_RETURN_IF_ERROR(writer.AddArray("geometry", ArrayType::kFloat32, {size, size, 3}));
+  STAGE_RETURN_IF_ERROR(writer.AddArray("valid", ArrayType::kUint8, {size, size}, /*deflate=*/4));
+  STAGE_RETURN_IF_ERROR(writer.AddArray("stage_from_head", ArrayType::kFloat32, {4, 4}));
+  if (views == 0) return absl::OkStatus();
+  STAGE_RETURN_IF_ERROR(writer.AddArray("images", ArrayType::kUint8, {views, image_size, image_size}, /*deflate=*/1));
+  return writer.AddArray("image_valid", ArrayType::kUint8, {views});
+}
+
+// The dataset's description attribute.
+nlohmann::json Description(const DatasetOptions& options, const FaceTemplate& face, const DatasetSummary& summary,
+                           const Crops& crops) {
+  nlohmann::json d;
+  d["source"] = AssetSourceName(options.source);
+  d["take"] = fs::absolute(options.take_dir).lexically_normal().string();
+  d["geometry_size"] = summary.geometry_size;
+  d["template"] = face.source;
+  d["sequences"] = summary.sequences;
+  d["held_out_sequence"] = summary.sequence;
+  d["held_out_fraction"] = options.held_out_fraction;
+  d["held_out_blocks"] = options.held_out_blocks;
+  d["cameras"] = crops.cameras;
+  d["image_size"] = summary.image_size;
+  d["crop_mm"] = options.crop_mm;
+  d["crops"] = crops.boxes;
+  d["splits"] = {{"train", summary.train},
+                 {"held_out_block", summary.held_out_block},
+                 {"held_out_sequence", summary.held_out_sequence}};
+  return d;
+}
+
 }  // namespace
 
 const char* AssetSourceName(AssetSource source) { return source == AssetSource::kTruth ? "truth" : "reconstruction"; }
@@ -394,19 +445,8 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   std::vector<uint8_t> layout(layout_map.state.size());
   for (size_t t = 0; t < layout.size(); ++t) layout[t] = layout_map.state[t] != TexelState::kEmpty;
 
-  // Sequences, numbered in the order the frames first meet them.
-  const std::vector<std::string> named = FrameSequences(options.take_dir, frames);
   std::vector<std::string> sequences;
-  std::vector<int32_t> ids;
-  for (const std::string& name : named) {
-    if (name.empty()) {
-      ids.push_back(-1);
-      continue;
-    }
-    auto it = std::find(sequences.begin(), sequences.end(), name);
-    if (it == sequences.end()) it = sequences.insert(sequences.end(), name);
-    ids.push_back(static_cast<int32_t>(it - sequences.begin()));
-  }
+  const std::vector<int32_t> ids = NumberSequences(FrameSequences(options.take_dir, frames), &sequences);
   STAGE_ASSIGN_OR_RETURN(const int32_t held_out, HeldOutSequence(options, sequences));
   const std::vector<SampleSplit> split = SplitFrames(ids, held_out, options.held_out_fraction, options.held_out_blocks);
 
@@ -428,19 +468,9 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     if (ec) return absl::UnavailableError(absl::StrCat(summary.path, ": ", ec.message()));
   }
   STAGE_ASSIGN_OR_RETURN(auto writer, storage::ArrayFileWriter::Create(summary.path));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("frame", ArrayType::kInt64, {}));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("split", ArrayType::kUint8, {}));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("sequence", ArrayType::kInt32, {}));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("geometry", ArrayType::kFloat32, {size, size, 3}));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("valid", ArrayType::kUint8, {size, size}, /*deflate=*/4));
-  STAGE_RETURN_IF_ERROR(writer->AddArray("stage_from_head", ArrayType::kFloat32, {4, 4}));
   STAGE_ASSIGN_OR_RETURN(const Crops crops, CropImages(options, face, frames));
   const int64_t views = static_cast<int64_t>(crops.cameras.size());
-  if (views > 0) {
-    STAGE_RETURN_IF_ERROR(
-        writer->AddArray("images", ArrayType::kUint8, {views, options.image_size, options.image_size}, /*deflate=*/1));
-    STAGE_RETURN_IF_ERROR(writer->AddArray("image_valid", ArrayType::kUint8, {views}));
-  }
+  STAGE_RETURN_IF_ERROR(AddArrays(*writer, size, views, options.image_size));
   summary.cameras = crops.cameras;
   summary.image_size = views > 0 ? options.image_size : 0;
   RunningSpread spread;
@@ -471,24 +501,8 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   }
   summary.valid_texels = valid_texels / static_cast<double>(frames.size());
   summary.rms_from_mean_mm = spread.Rms();
-  nlohmann::json d;
-  d["source"] = AssetSourceName(options.source);
-  d["take"] = fs::absolute(options.take_dir).lexically_normal().string();
-  d["geometry_size"] = size;
-  d["template"] = face.source;
-  d["sequences"] = sequences;
-  d["held_out_sequence"] = summary.sequence;
-  d["held_out_fraction"] = options.held_out_fraction;
-  d["held_out_blocks"] = options.held_out_blocks;
-  d["cameras"] = crops.cameras;
-  d["image_size"] = summary.image_size;
-  d["crop_mm"] = options.crop_mm;
-  d["crops"] = crops.boxes;
-  d["splits"] = {{"train", summary.train},
-                 {"held_out_block", summary.held_out_block},
-                 {"held_out_sequence", summary.held_out_sequence}};
   STAGE_RETURN_IF_ERROR(writer->SetAttribute("format", kFormat));
-  STAGE_RETURN_IF_ERROR(writer->SetAttribute("description", d.dump()));
+  STAGE_RETURN_IF_ERROR(writer->SetAttribute("description", Description(options, face, summary, crops).dump()));
   STAGE_RETURN_IF_ERROR(writer->Close());
   return summary;
 }
