@@ -83,8 +83,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   processing::AssetTrainJob job;
   job.dataset = asset + "/dataset.h5";
   job.output_dir = asset + "/geometry-library";
-  job.iterations = 30;
-  job.batch = 4;
+  job.schedule.iterations = 30;
+  job.schedule.batch = 4;
   job.geometry = {.input_size = 32, .levels = 3, .max_channels = 32, .geometry_latent = 4, .pose_latent = 3};
   ASSERT_TRUE(processing::TrainGeometryAsset(job).ok());
   v1::ProcessingJob train_request;

@@ -662,6 +662,128 @@ absl::Status ExpressionVae::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kExpressionNet);
 }
 
+namespace {
+
+constexpr const char* kMappingNet = "latent mapping";
+
+struct MappingNetImpl : torch::nn::Module {
+  MappingNetImpl(const LatentMappingOptions& o, const torch::Tensor& mean, const torch::Tensor& scale) {
+    for (int i = 0; i < o.layers; ++i) {
+      const int in = i == 0 ? o.input : o.hidden, out = i + 1 == o.layers ? o.output : o.hidden;
+      layers.push_back(register_module(absl::StrCat("linear", i), torch::nn::Linear(in, out)));
+    }
+    target_mean = register_buffer("target_mean", mean);
+    target_scale = register_buffer("target_scale", scale);
+  }
+  // The normalized targets' prediction.
+  torch::Tensor forward(torch::Tensor x) {
+    for (size_t i = 0; i < layers.size(); ++i) {
+      x = layers[i]->forward(x);
+      if (i + 1 < layers.size()) x = Leaky(x);
+    }
+    return x;
+  }
+  std::vector<torch::nn::Linear> layers;
+  torch::Tensor target_mean, target_scale;
+};
+TORCH_MODULE(MappingNet);
+
+}  // namespace
+
+absl::Status LatentMappingOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": ", what)); };
+  if (input < 1 || input > 1024 || output < 1 || output > 1024) {
+    return bad(absl::StrCat("sizes ", input, " -> ", output, " are not in 1..1024"));
+  }
+  if (hidden < 8 || hidden > 4096) return bad(absl::StrCat("hidden units ", hidden, " are not in 8..4096"));
+  if (layers < 2 || layers > 8) return bad(absl::StrCat("layers ", layers, " are not in 2..8"));
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+struct LatentMapping::Impl {
+  LatentMappingOptions options;
+  MappingNet net{nullptr};
+  std::unique_ptr<torch::optim::Adam> adam;
+};
+
+LatentMapping::LatentMapping(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+LatentMapping::~LatentMapping() = default;
+const LatentMappingOptions& LatentMapping::options() const { return impl_->options; }
+int64_t LatentMapping::parameter_count() const { return CountParameters(*impl_->net); }
+
+absl::StatusOr<std::unique_ptr<LatentMapping>> LatentMapping::Create(const LatentMappingOptions& options,
+                                                                     const std::vector<float>& target_mean,
+                                                                     const std::vector<float>& target_scale) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  if (auto s = CheckSize(target_mean, options.output, "the targets' mean", kMappingNet); !s.ok()) return s;
+  if (auto s = CheckSize(target_scale, options.output, "the targets' scale", kMappingNet); !s.ok()) return s;
+  if (*std::min_element(target_scale.begin(), target_scale.end()) <= 0) {
+    return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": a target's scale is not positive"));
+  }
+  try {
+    SetTorchThreads(options.threads);
+    auto impl = std::make_unique<Impl>();
+    impl->options = options;
+    impl->net = internal::Seeded(options.seed, [&] {
+      return MappingNet(options, FromVector(target_mean, {1, options.output}),
+                        FromVector(target_scale, {1, options.output}));
+    });
+    impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
+    return std::unique_ptr<LatentMapping>(new LatentMapping(std::move(impl)));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kMappingNet, "creating the net", e);
+  }
+}
+
+absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
+                                                const std::vector<float>& noise, int batch, double learning_rate) {
+  const LatentMappingOptions& o = impl_->options;
+  if (batch < 1) return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": an empty batch"));
+  for (auto [v, n, what] : {std::tuple{&inputs, int64_t{batch} * o.input, "the inputs"},
+                            std::tuple{&targets, int64_t{batch} * o.output, "the targets"},
+                            std::tuple{&noise, int64_t{batch} * o.input, "the noise"}}) {
+    if (auto st = CheckSize(*v, n, what, kMappingNet); !st.ok()) return st;
+  }
+  try {
+    SetTorchThreads(o.threads);
+    MappingNet& net = impl_->net;
+    net->train();
+    SetLearningRate(*impl_->adam, learning_rate);
+    impl_->adam->zero_grad();
+    const torch::Tensor x = FromVector(inputs, {batch, o.input}) + FromVector(noise, {batch, o.input});
+    const torch::Tensor y = (FromVector(targets, {batch, o.output}) - net->target_mean) / net->target_scale;
+    const torch::Tensor loss = (net->forward(x) - y).pow(2).mean();
+    loss.backward();
+    impl_->adam->step();
+    return loss.item<double>();
+  } catch (const std::exception& e) {
+    return internal::TorchError(kMappingNet, "training", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> LatentMapping::Map(const std::vector<float>& inputs, int batch) const {
+  const LatentMappingOptions& o = impl_->options;
+  if (auto st = CheckSize(inputs, int64_t{batch} * o.input, "the inputs", kMappingNet); !st.ok()) return st;
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    const torch::Tensor y = impl_->net->forward(FromVector(inputs, {batch, o.input}));
+    return ToVector(y * impl_->net->target_scale + impl_->net->target_mean);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kMappingNet, "mapping", e);
+  }
+}
+
+absl::Status LatentMapping::Save(const std::string& path) const {
+  return SaveArchive(*impl_->net, *impl_->adam, path, kMappingNet);
+}
+
+absl::Status LatentMapping::Load(const std::string& path) {
+  return LoadArchive(*impl_->net, *impl_->adam, path, kMappingNet);
+}
+
 double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
   const double s = o.input_size;
   double macs = s * s * 4 * Channels(o, 0) * 9;  // the stem

@@ -7,11 +7,8 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 #include <optional>
 #include <random>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -19,21 +16,20 @@
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
+#include "asset_train_internal.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/warp_net.h"
+#include "training_run.h"
 
 namespace stage::processing {
+namespace asset_internal {
 namespace {
 
 namespace fs = std::filesystem;
+using internal::Normal;
+using internal::Uniform;
 constexpr double kPi = 3.14159265358979323846;
-
-// The dataset's maps at the net's resolution, NCHW (3 x S x S each), with their validity (S x S each).
-struct NetMaps {
-  int size = 0;
-  std::vector<std::vector<float>> maps, valid;
-};
 
 // Averages each map's valid texels down by `factor` (a texel is valid where any of its sources is).
 NetMaps Downsample(const AssetDataset& d, int size) {
@@ -94,19 +90,9 @@ void MeanAndScale(const NetMaps& m, const std::vector<int64_t>& train, std::vect
   *scale = static_cast<float>(std::max(1e-3, std::sqrt(se / std::max(1.0, n))));
 }
 
-// N(0, 1) from the engine alone (Box-Muller; no distribution object whose cached state a checkpoint would miss).
-float Normal(std::mt19937_64& rng) {
-  const double u1 = (static_cast<double>(rng() >> 11) + 0.5) * 0x1.0p-53,
-               u2 = static_cast<double>(rng() >> 11) * 0x1.0p-53;
-  return static_cast<float>(std::sqrt(-2 * std::log(u1)) * std::cos(2 * kPi * u2));
-}
-double Uniform(std::mt19937_64& rng, double half_range) {
-  return half_range * (2 * static_cast<double>(rng() >> 11) * 0x1.0p-53 - 1);
-}
-
 GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, const AssetTrainJob& job,
                         std::mt19937_64& rng) {
-  const int b = job.batch, s = m.size;
+  const int b = job.schedule.batch, s = m.size;
   const size_t texels = static_cast<size_t>(s) * s;
   const int latents = job.geometry.geometry_latent + job.geometry.pose_latent;
   GeometryBatch batch;
@@ -137,18 +123,12 @@ GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, con
   return batch;
 }
 
-// A dataset's identity: FNV-1a of its description (source, take, sizes, sequences, split) and frame numbers.
-std::string DatasetId(const AssetDataset& d) {
-  const absl::string_view frames(reinterpret_cast<const char*>(d.frame.data()), d.frame.size() * sizeof(int64_t));
-  return absl::StrFormat("%016x", Fnv1a64(frames, Fnv1a64(d.description)));
-}
-
 // What a resume must find the same (every option, the dataset's identity: a hash of its description and frame
 // count, so a rebuilt dataset of other frames is not trained on as the old one; and the threads, for bit-identical
 // steps).
 nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_id) {
   const GeometryVaeOptions& g = job.geometry;
-  return {{"network", "geometry"},
+  nlohmann::json j = {{"network", "geometry"},
           {"input_size", g.input_size},
           {"levels", g.levels},
           {"base_channels", g.base_channels},
@@ -157,142 +137,13 @@ nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_
           {"pose_latent", g.pose_latent},
           {"kl_weight", g.kl_weight},
           {"seed", g.seed},
-          {"iterations", job.iterations},
-          {"batch", job.batch},
-          {"learning_rate", job.learning_rate},
           {"augment_rotation_deg", job.augment_rotation_deg},
           {"augment_translation_mm", job.augment_translation_mm},
           {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
           {"dataset_id", dataset_id},
           {"threads", TorchThreadCount(g.threads)}};
-}
-
-absl::Status WriteLosses(const std::string& dir, const std::vector<GeometryLosses>& losses) {
-  std::string csv = "step,total,canonical,posed,kl\n";
-  for (size_t i = 0; i < losses.size(); ++i) {
-    const GeometryLosses& l = losses[i];
-    absl::StrAppendFormat(&csv, "%d,%.17g,%.17g,%.17g,%.17g\n", i + 1, l.total, l.canonical, l.posed, l.kl);
-  }
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/loss.csv", csv));
-  // The curves, log scale, each smoothed over 1 % of the run.
-  constexpr int kW = 800, kH = 400, kPad = 40;
-  cv::Mat plot(kH, kW, CV_8UC3, cv::Scalar(255, 255, 255));
-  if (!losses.empty()) {
-    const std::vector<std::pair<double GeometryLosses::*, cv::Scalar>> curves = {
-        {&GeometryLosses::total, {0, 0, 0}},
-        {&GeometryLosses::canonical, {200, 80, 0}},
-        {&GeometryLosses::posed, {0, 140, 0}}};
-    double lo = INFINITY, hi = -INFINITY;
-    for (const auto& l : losses) {
-      for (const auto& [field, colour] : curves) {
-        if (l.*field > 0) lo = std::min(lo, std::log10(l.*field)), hi = std::max(hi, std::log10(l.*field));
-      }
-    }
-    if (!(hi > lo)) hi = lo + 1;
-    const int window = std::max<int>(1, static_cast<int>(losses.size() / 100));
-    for (const auto& [field, colour] : curves) {
-      std::vector<cv::Point> points;
-      for (size_t i = 0; i < losses.size(); i += static_cast<size_t>(window)) {
-        double sum = 0;
-        int n = 0;
-        for (size_t j = i; j < std::min(losses.size(), i + window); ++j) sum += losses[j].*field, ++n;
-        const double v = std::log10(std::max(1e-12, sum / n));
-        points.emplace_back(kPad + static_cast<int>((kW - 2 * kPad) * i / std::max<size_t>(1, losses.size() - 1)),
-                            kH - kPad - static_cast<int>((kH - 2 * kPad) * (v - lo) / (hi - lo)));
-      }
-      cv::polylines(plot, points, false, colour, 1, cv::LINE_AA);
-    }
-    cv::putText(plot, absl::StrFormat("loss (log10 %.2f .. %.2f): total black, canonical blue, posed green", lo, hi),
-                {kPad, 25}, cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
-    cv::putText(plot, absl::StrCat("step 1 .. ", losses.size()), {kPad, kH - 12}, cv::FONT_HERSHEY_SIMPLEX, 0.5,
-                {0, 0, 0}, 1, cv::LINE_AA);
-  }
-  const std::string tmp = dir + "/loss.tmp.png";
-  std::error_code ec;
-  if (!cv::imwrite(tmp, plot)) return absl::UnavailableError(absl::StrCat(tmp, ": cannot write"));
-  fs::rename(tmp, dir + "/loss.png", ec);
-  if (ec) return absl::UnavailableError(absl::StrCat(dir, "/loss.png: ", ec.message()));
-  return absl::OkStatus();
-}
-
-absl::StatusOr<std::vector<GeometryLosses>> ReadLosses(const std::string& path, int64_t steps) {
-  std::ifstream in(path);
-  if (!in) return absl::NotFoundError(absl::StrCat(path, ": missing (the run's losses)"));
-  std::vector<GeometryLosses> out;
-  std::string line;
-  std::getline(in, line);
-  while (static_cast<int64_t>(out.size()) < steps && std::getline(in, line)) {
-    GeometryLosses l;
-    long long step = 0;
-    if (std::sscanf(line.c_str(), "%lld,%lf,%lf,%lf,%lf", &step, &l.total, &l.canonical, &l.posed, &l.kl) != 5) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(path, ": line \"", line, "\" is not step,total,canonical,posed,kl"));
-    }
-    out.push_back(l);
-  }
-  if (static_cast<int64_t>(out.size()) != steps) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": holds ", out.size(), " steps, the checkpoint ", steps));
-  }
-  return out;
-}
-
-std::string CheckpointName(int64_t step) { return absl::StrFormat("checkpoint-%06d.pt", step); }
-
-// The run's state at `step`: the net and Adam's state in a file of the step's own (checkpoint-NNNNNN.pt), the losses,
-// then trainer.json naming that file (the state counts once it is renamed into place), then the previous checkpoint
-// removed. A kill at any point leaves trainer.json naming a whole checkpoint of its own step.
-absl::Status SaveCheckpoint(const std::string& dir, const GeometryVae& net, const AssetTrainJob& job,
-                            const std::string& dataset_id, int64_t step, const std::mt19937_64& rng,
-                            const std::vector<GeometryLosses>& losses, std::string* checkpoint) {
-  const std::string name = CheckpointName(step);
-  STAGE_RETURN_IF_ERROR(net.Save(dir + "/" + name));
-  STAGE_RETURN_IF_ERROR(WriteLosses(dir, losses));
-  std::ostringstream state;
-  state << rng;
-  nlohmann::json j = {
-      {"step", step}, {"checkpoint", name}, {"rng", state.str()}, {"options", OptionsJson(job, dataset_id)}};
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(dir + "/trainer.json", j.dump(2) + "\n"));
-  if (!checkpoint->empty() && *checkpoint != name) {
-    std::error_code ec;
-    fs::remove(dir + "/" + *checkpoint, ec);
-  }
-  *checkpoint = name;
-  return absl::OkStatus();
-}
-
-// trainer.json read back and checked against the job's options; the step, the checkpoint and the generator's state.
-struct TrainerState {
-  int64_t step = 0;
-  std::string checkpoint;
-  std::mt19937_64 rng;
-};
-// FailedPrecondition names an option the run was trained with otherwise.
-absl::StatusOr<TrainerState> ReadTrainerState(const std::string& path, const AssetTrainJob& job,
-                                              const std::string& dataset_id) {
-  std::ifstream in(path);
-  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
-  if (!j.is_object() || !j.contains("step") || !j["step"].is_number_integer() || !j.contains("rng") ||
-      !j["rng"].is_string() || !j.contains("checkpoint") || !j["checkpoint"].is_string() || !j.contains("options") ||
-      !j["options"].is_object()) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a training run's state"));
-  }
-  const nlohmann::json mine = OptionsJson(job, dataset_id);  // named: items() of a temporary would dangle
-  for (const auto& [key, value] : mine.items()) {
-    if (!j["options"].contains(key) || j["options"][key] != value) {
-      return absl::FailedPreconditionError(absl::StrCat(path, ": the checkpoint was trained with ", key, " = ",
-                                                        j["options"].value(key, nlohmann::json()).dump(), ", not ",
-                                                        value.dump()));
-    }
-  }
-  TrainerState t;
-  t.step = j["step"].get<int64_t>();
-  t.checkpoint = j["checkpoint"].get<std::string>();
-  std::istringstream state(j["rng"].get<std::string>());
-  state >> t.rng;
-  if (state.fail() || t.step < 0 || t.step > job.iterations) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": its step or generator state does not read"));
-  }
-  return t;
+  AddScheduleJson(job.schedule, &j);
+  return j;
 }
 
 // An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped;
@@ -316,7 +167,8 @@ std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const s
   return p;
 }
 
-// Each split's error of `recovered` maps (frame -> NCHW map) against the truth.
+}  // namespace
+
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered) {
   SplitError e;
@@ -357,6 +209,8 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
   e.mouth_mm = rmse(FaceRegion::kMouth);
   return e;
 }
+
+namespace {
 
 // PCA of the training maps about `mean` (components as the columns of the result, orthonormal), from the frames'
 // Gram matrix.
@@ -418,9 +272,84 @@ absl::StatusOr<TrainedEvaluation> Evaluate(const GeometryVae& net, const NetMaps
 
 }  // namespace
 
-absl::Status AssetTrainJob::Validate() const {
-  if (dataset.empty()) return absl::InvalidArgumentError("asset training: no dataset");
-  STAGE_RETURN_IF_ERROR(geometry.Validate());
+std::string DatasetId(const AssetDataset& d) {
+  const absl::string_view frames(reinterpret_cast<const char*>(d.frame.data()), d.frame.size() * sizeof(int64_t));
+  return absl::StrFormat("%016x", Fnv1a64(frames, Fnv1a64(d.description)));
+}
+
+std::vector<int64_t> FramesOf(const AssetDataset& d, SampleSplit split) {
+  std::vector<int64_t> out;
+  for (int64_t f = 0; f < d.frames(); ++f) {
+    if (d.split[f] == split) out.push_back(f);
+  }
+  return out;
+}
+
+absl::StatusOr<PreparedData> Prepare(const std::string& path, int size) {
+  PreparedData p;
+  STAGE_ASSIGN_OR_RETURN(p.dataset, ReadAssetDataset(path));
+  if (p.dataset.geometry_size % size != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": its maps (", p.dataset.geometry_size,
+                                                   " texels across) do not divide into the net's ", size));
+  }
+  p.train = FramesOf(p.dataset, SampleSplit::kTrain);
+  if (p.train.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no training frames"));
+  p.maps = Downsample(p.dataset, size);
+  MeanAndScale(p.maps, p.train, &p.mean, &p.scale);
+  return p;
+}
+
+absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir) {
+  const std::string trainer = run_dir + "/trainer.json";
+  std::ifstream in(trainer);
+  if (!in) return absl::NotFoundError(absl::StrCat(trainer, ": cannot open (is ", run_dir, " a training run?)"));
+  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  if (!j.is_object() || !j.contains("options") || !j["options"].is_object()) {
+    return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
+  }
+  return j["options"];
+}
+
+absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
+                                                             PreparedData* data, int threads) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  GeometryVaeOptions options;
+  options.threads = threads;
+  try {
+    if (o.at("network") != "geometry") {
+      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
+                                                     " network, not the geometry VAE"));
+    }
+    options.input_size = o.at("input_size").get<int>();
+    options.levels = o.at("levels").get<int>();
+    options.base_channels = o.at("base_channels").get<int>();
+    options.max_channels = o.at("max_channels").get<int>();
+    options.geometry_latent = o.at("geometry_latent").get<int>();
+    options.pose_latent = o.at("pose_latent").get<int>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
+  }
+  STAGE_ASSIGN_OR_RETURN(*data, Prepare(dataset, options.input_size));
+  STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(options, data->mean, data->scale));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/geometry_vae.pt"));
+  return net;
+}
+
+std::string RunDir(const std::string& dir, const std::string& dataset, const char* name) {
+  return dir.empty() ? (fs::path(dataset).parent_path() / name).string() : dir;
+}
+
+void AddScheduleJson(const TrainingSchedule& s, nlohmann::json* j) {
+  (*j)["iterations"] = s.iterations;
+  (*j)["batch"] = s.batch;
+  (*j)["learning_rate"] = s.learning_rate;
+}
+
+}  // namespace asset_internal
+
+using namespace asset_internal;  // NOLINT(build/namespaces): this file's own helpers
+
+absl::Status TrainingSchedule::Validate() const {
   if (iterations < 1 || iterations > 10'000'000) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: iterations ", iterations, " not in 1..10^7"));
   }
@@ -431,6 +360,13 @@ absl::Status AssetTrainJob::Validate() const {
   if (checkpoint_every < 1) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: checkpoint every ", checkpoint_every, " steps"));
   }
+  return absl::OkStatus();
+}
+
+absl::Status AssetTrainJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("asset training: no dataset");
+  STAGE_RETURN_IF_ERROR(geometry.Validate());
+  STAGE_RETURN_IF_ERROR(schedule.Validate());
   if (!(augment_rotation_deg >= 0 && augment_rotation_deg <= 90) ||
       !(augment_translation_mm >= 0 && augment_translation_mm <= 200)) {
     return absl::InvalidArgumentError("asset training: augmentation out of range (0..90 deg, 0..200 mm)");
@@ -438,58 +374,9 @@ absl::Status AssetTrainJob::Validate() const {
   return absl::OkStatus();
 }
 
-namespace {
-
-// A dataset read for a net of input `size`: its maps at that size, the training frames, their mean and spread.
-struct PreparedData {
-  AssetDataset dataset;
-  NetMaps maps;
-  std::vector<int64_t> train;
-  std::vector<float> mean;
-  float scale = 0;
-};
-
-absl::StatusOr<PreparedData> Prepare(const std::string& path, int size) {
-  PreparedData p;
-  STAGE_ASSIGN_OR_RETURN(p.dataset, ReadAssetDataset(path));
-  if (p.dataset.geometry_size % size != 0) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": its maps (", p.dataset.geometry_size,
-                                                   " texels across) do not divide into the net's ", size));
-  }
-  for (int64_t f = 0; f < p.dataset.frames(); ++f) {
-    if (p.dataset.split[f] == SampleSplit::kTrain) p.train.push_back(f);
-  }
-  if (p.train.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no training frames"));
-  p.maps = Downsample(p.dataset, size);
-  MeanAndScale(p.maps, p.train, &p.mean, &p.scale);
-  return p;
-}
-
-}  // namespace
-
 absl::StatusOr<TrainedEvaluation> EvaluateGeometryAsset(const std::string& dataset, const std::string& run_dir) {
-  const std::string trainer = run_dir + "/trainer.json";
-  std::ifstream in(trainer);
-  if (!in) return absl::NotFoundError(absl::StrCat(trainer, ": cannot open (is ", run_dir, " a training run?)"));
-  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
-  if (!j.is_object() || !j.contains("options") || !j["options"].is_object()) {
-    return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
-  }
-  const nlohmann::json& o = j["options"];
-  GeometryVaeOptions options;
-  try {
-    options.input_size = o.at("input_size").get<int>();
-    options.levels = o.at("levels").get<int>();
-    options.base_channels = o.at("base_channels").get<int>();
-    options.max_channels = o.at("max_channels").get<int>();
-    options.geometry_latent = o.at("geometry_latent").get<int>();
-    options.pose_latent = o.at("pose_latent").get<int>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(trainer, ": options: ", e.what()));
-  }
-  STAGE_ASSIGN_OR_RETURN(const PreparedData data, Prepare(dataset, options.input_size));
-  STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(options, data.mean, data.scale));
-  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/geometry_vae.pt"));
+  PreparedData data;
+  STAGE_ASSIGN_OR_RETURN(auto net, LoadGeometryRun(run_dir, dataset, &data));
   return Evaluate(*net, data.maps, data.dataset, data.mean);
 }
 
@@ -503,50 +390,37 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
   const AssetDataset& dataset = data.dataset;
 
   AssetTrainResult result;
-  result.output_dir =
-      job.output_dir.empty() ? (fs::path(job.dataset).parent_path() / "geometry").string() : job.output_dir;
-  std::error_code ec;
-  fs::create_directories(result.output_dir, ec);
-  if (ec) return absl::UnavailableError(absl::StrCat(result.output_dir, ": ", ec.message()));
+  result.output_dir = RunDir(job.output_dir, job.dataset, "geometry");
   STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(job.geometry, mean, scale));
   result.parameters = net->parameter_count();
   result.scale_mm = scale;
-  std::mt19937_64 rng(job.geometry.seed ^ 0xa55e7ull);
-  const std::string trainer = result.output_dir + "/trainer.json";
-  const std::string dataset_id = DatasetId(dataset);
-  std::string checkpoint;
-  if (job.resume && fs::exists(trainer)) {
-    absl::StatusOr<TrainerState> state = ReadTrainerState(trainer, job, dataset_id);
-    if (absl::IsFailedPrecondition(state.status()) && job.restart_if_different) {
-      Logger("processing.asset")->info("{} (starting anew)", state.status().message());
-    } else if (!state.ok()) {
-      return absl::Status(state.status().code(), absl::StrCat(state.status().message(),
-                                                              " (start anew: without resuming, or another directory)"));
-    } else {
-      STAGE_RETURN_IF_ERROR(net->Load(result.output_dir + "/" + state->checkpoint));
-      rng = state->rng;
-      checkpoint = state->checkpoint;
-      result.resumed_from = state->step;
-      STAGE_ASSIGN_OR_RETURN(result.losses, ReadLosses(result.output_dir + "/loss.csv", result.resumed_from));
-    }
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "geometry VAE";
+  loop.options = OptionsJson(job, DatasetId(dataset));
+  loop.loss_names = {"total", "canonical", "posed", "kl"};
+  loop.iterations = job.schedule.iterations;
+  loop.checkpoint_every = job.schedule.checkpoint_every;
+  loop.learning_rate = job.schedule.learning_rate;
+  loop.resume = job.schedule.resume;
+  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.seed = job.geometry.seed;
+  loop.save = [&net](const std::string& path) { return net->Save(path); };
+  loop.load = [&net](const std::string& path) { return net->Load(path); };
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    STAGE_ASSIGN_OR_RETURN(const GeometryLosses l, net->TrainStep(DrawBatch(maps, train, job, rng), rate));
+    return std::vector<double>{l.total, l.canonical, l.posed, l.kl};
+  };
+  auto losses_of = [](const std::vector<double>& v) { return GeometryLosses{v[0], v[1], v[2], v[3]}; };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, losses_of(l));
+    };
   }
-  const int64_t slow_from = static_cast<int64_t>(0.7 * job.iterations);
-  for (int64_t step = result.resumed_from; step < job.iterations; ++step) {
-    const GeometryBatch batch = DrawBatch(maps, train, job, rng);
-    STAGE_ASSIGN_OR_RETURN(const GeometryLosses losses,
-                           net->TrainStep(batch, step < slow_from ? job.learning_rate : job.learning_rate / 5));
-    result.losses.push_back(losses);
-    const bool last = step + 1 == job.iterations;
-    if ((step + 1) % job.checkpoint_every == 0 || last) {
-      STAGE_RETURN_IF_ERROR(
-          SaveCheckpoint(result.output_dir, *net, job, dataset_id, step + 1, rng, result.losses, &checkpoint));
-    }
-    if (job.progress && !job.progress(step + 1, job.iterations, losses)) {
-      return absl::CancelledError(absl::StrCat("asset training stopped at step ", step + 1,
-                                               " (checkpoint: ", result.output_dir, "/", checkpoint, ")"));
-    }
-  }
-  result.steps = job.iterations;
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(losses_of(l));
+  result.steps = job.schedule.iterations;
   STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/geometry_vae.pt"));
   STAGE_RETURN_IF_ERROR(net->ExportTorchScript(result.output_dir + "/geometry_vae.torchscript.pt"));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, Evaluate(*net, maps, dataset, mean));

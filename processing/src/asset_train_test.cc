@@ -46,10 +46,10 @@ AssetTrainJob TinyJob(const std::string& dataset, const std::string& out) {
                   .pose_latent = 3,
                   .threads = 2,
                   .seed = 3};
-  job.batch = 8;
-  job.iterations = 150;
-  job.checkpoint_every = 50;
-  job.learning_rate = 3e-3;
+  job.schedule.batch = 8;
+  job.schedule.iterations = 150;
+  job.schedule.checkpoint_every = 50;
+  job.schedule.learning_rate = 3e-3;
   return job;
 }
 
@@ -101,8 +101,8 @@ TEST(AssetTrainTest, AKilledRunResumesBitForBitAndOtherOptionsAreRefused) {
   std::filesystem::remove_all(whole);
   std::filesystem::remove_all(broken);
   AssetTrainJob job = TinyJob(dataset, whole);
-  job.iterations = 40;
-  job.checkpoint_every = 10;
+  job.schedule.iterations = 40;
+  job.schedule.checkpoint_every = 10;
   auto unbroken = TrainGeometryAsset(job);
   ASSERT_TRUE(unbroken.ok()) << unbroken.status();
 
@@ -111,7 +111,7 @@ TEST(AssetTrainTest, AKilledRunResumesBitForBitAndOtherOptionsAreRefused) {
   auto killed = TrainGeometryAsset(job);
   ASSERT_EQ(killed.status().code(), absl::StatusCode::kCancelled) << killed.status();
   job.progress = nullptr;
-  job.resume = true;
+  job.schedule.resume = true;
   auto resumed = TrainGeometryAsset(job);
   ASSERT_TRUE(resumed.ok()) << resumed.status();
   EXPECT_EQ(resumed->resumed_from, 20);
@@ -132,7 +132,7 @@ TEST(AssetTrainTest, TheDecodedGeometryDoesNotFollowARigidMotionOfTheInput) {
   const std::string out = ::testing::TempDir() + "/pose-run";
   std::filesystem::remove_all(out);
   AssetTrainJob job = TinyJob(dataset, out);
-  job.iterations = 300;
+  job.schedule.iterations = 300;
   ASSERT_TRUE(TrainGeometryAsset(job).ok());
   auto data = ReadAssetDataset(dataset);
   ASSERT_TRUE(data.ok());
@@ -180,7 +180,7 @@ TEST(AssetTrainTest, TheExportedNetRunsInPythonsTorchAsInTheLibrary) {
   const std::string out = ::testing::TempDir() + "/script-run";
   std::filesystem::remove_all(out);
   AssetTrainJob job = TinyJob(dataset, out);
-  job.iterations = 20;
+  job.schedule.iterations = 20;
   ASSERT_TRUE(TrainGeometryAsset(job).ok());
   auto net = GeometryVae::Create(job.geometry, std::vector<float>(3 * 32 * 32, 0.f), 1.f);
   ASSERT_TRUE(net.ok());

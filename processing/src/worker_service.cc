@@ -314,8 +314,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   }
   AssetTrainJob t;
   t.dataset = job.take_dir() + "/derived/asset/dataset.h5";
-  if (a.iterations() != 0) t.iterations = a.iterations();
-  if (a.batch() != 0) t.batch = a.batch();
+  if (a.iterations() != 0) t.schedule.iterations = a.iterations();
+  if (a.batch() != 0) t.schedule.batch = a.batch();
   GeometryVaeOptions& g = t.geometry;
   if (a.input_size() != 0) g.input_size = a.input_size();
   if (a.levels() != 0) g.levels = a.levels();
@@ -326,8 +326,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   if (a.seed() != 0) g.seed = a.seed();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
   // same options, dataset and threads stopped, else started anew.
-  t.resume = true;
-  t.restart_if_different = true;
+  t.schedule.resume = true;
+  t.schedule.restart_if_different = true;
   t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) {
     if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", l.total)});
     return !cancelled();

@@ -1,11 +1,14 @@
 // `stage-process asset ...`: see asset_commands.h.
 #include "asset_commands.h"
 
+#include <algorithm>
+#include <filesystem>
 #include <iostream>
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
 #include "stage/common/cli.h"
 
 namespace stage::process {
@@ -19,7 +22,8 @@ void AssetCommands::Add(CLI::App& parent) {
   app_ = parent.add_subcommand(
       "asset",
       "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
-      "geometry VAE, and its evaluation (the expression and texture networks and inference are to come)");
+      "geometry VAE, expression VAE and the mapping between their latents, and their evaluation (the texture "
+      "network and inference are to come)");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -71,39 +75,72 @@ void AssetCommands::Add(CLI::App& parent) {
 void AssetCommands::AddTrain() {
   processing::AssetTrainJob& job = train_job_;
   processing::GeometryVaeOptions& g = job.geometry;
+  processing::TrainingSchedule& schedule = job.schedule;
   train_ = app_->add_subcommand(
       "train",
-      "Trains a network of the asset on a dataset (build-dataset's), resumably: checkpoints, loss.csv and loss.png, "
-      "and at the end the net and its error on the held-out frames beside PCA's and the neutral frame's "
-      "(docs/asset.md#training)");
+      "Trains a network of the asset on a dataset (build-dataset's), resumably, each into a run directory of its "
+      "own beside the dataset: checkpoints, loss.csv and loss.png, and at the end the net and its evaluation. The "
+      "stages in order (docs/asset.md#training): geometry (the geometry VAE, on the maps), expression (the "
+      "expression VAE, on the crops; --held-out-cameras keeps views out of it) and mapping (expression latent to "
+      "geometry latent, both VAEs frozen: the asset driven from every camera is evaluated at the end)");
   train_->add_option("--dataset", job.dataset, "The dataset file (build-dataset's)")->required();
-  train_->add_option("--network", network_, "The network: geometry (the geometry VAE; the others are to come)")
+  train_->add_option("--network", network_, "The network: geometry, expression or mapping")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry"}));
-  train_->add_option("--output", job.output_dir, "The run's directory (default: the dataset's directory/geometry)");
-  train_->add_option("--iterations", job.iterations, "Adam steps")
-      ->capture_default_str()
+      ->check(CLI::IsMember({"geometry", "expression", "mapping"}));
+  train_->add_option("--output", job.output_dir,
+                     "The run's directory (default: the dataset's directory/geometry, /expression or /mapping)");
+  train_->add_option("--iterations", schedule.iterations, "Adam steps (default 4000; the mapping's 3000)")
       ->check(CLI::Range(1, 10000000));
-  train_->add_option("--batch", job.batch, "Maps a step")->capture_default_str()->check(CLI::Range(1, 1024));
-  train_->add_option("--learning-rate", job.learning_rate, "Adam's rate (the last 30 % of the steps at a fifth)")
+  train_->add_option("--batch", schedule.batch, "Samples a step (default 16; the mapping's 64)")
+      ->check(CLI::Range(1, 1024));
+  train_->add_option("--learning-rate", schedule.learning_rate, "Adam's rate (the last 30 % of the steps at a fifth)")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
-  train_->add_option("--checkpoint-every", job.checkpoint_every, "Steps between checkpoints")
+  train_->add_option("--checkpoint-every", schedule.checkpoint_every, "Steps between checkpoints")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
-  train_->add_flag("--resume", job.resume, "Continue from the run directory's checkpoint (same options)");
-  train_->add_option("--input-size", g.input_size, "Texels across the maps the net sees (the dataset's must divide)")
+  train_->add_flag("--resume", schedule.resume, "Continue from the run directory's checkpoint (same options)");
+  // The VAEs' trunks (geometry and expression).
+  train_->add_option("--input-size", g.input_size,
+                     "Texels (pixels) across the maps (crops) the net sees (the dataset's must be a multiple)")
       ->capture_default_str();
   train_->add_option("--levels", g.levels, "Stride-2 levels of the encoder and decoder")->capture_default_str();
   train_->add_option("--base-channels", g.base_channels, "Channels at full resolution")->capture_default_str();
   train_->add_option("--max-channels", g.max_channels, "Channels at most")->capture_default_str();
-  train_->add_option("--geometry-latent", g.geometry_latent, "Size of the geometry latent")->capture_default_str();
-  train_->add_option("--pose-latent", g.pose_latent, "Size of the pose latent")->capture_default_str();
   train_->add_option("--kl-weight", g.kl_weight, "Weight of the KL terms")->capture_default_str();
-  train_->add_option("--augment-rotation", job.augment_rotation_deg, "Random turns of the training maps, degrees")
+  // The geometry VAE's.
+  train_->add_option("--geometry-latent", g.geometry_latent, "geometry: size of the geometry latent")
       ->capture_default_str();
-  train_->add_option("--augment-translation", job.augment_translation_mm, "Random shifts of the training maps, mm")
+  train_->add_option("--pose-latent", g.pose_latent, "geometry: size of the pose latent")->capture_default_str();
+  train_->add_option("--augment-rotation", job.augment_rotation_deg,
+                     "geometry: random turns of the training maps, degrees")
       ->capture_default_str();
+  train_->add_option("--augment-translation", job.augment_translation_mm,
+                     "geometry: random shifts of the training maps, mm")
+      ->capture_default_str();
+  // The expression VAE's.
+  processing::ExpressionVaeOptions& e = expression_job_.expression;
+  train_->add_option("--expression-latent", e.expression_latent, "expression: size of the expression latent")
+      ->capture_default_str();
+  train_->add_option("--view-latent", e.view_latent, "expression: size of the view latent")->capture_default_str();
+  train_->add_option("--swap-weight", e.swap_weight, "expression: weight of the latent swaps")->capture_default_str();
+  train_->add_option("--cycle-weight", e.cycle_weight, "expression: weight of the cycle term")->capture_default_str();
+  train_
+      ->add_option("--held-out-cameras", expression_job_.held_out_cameras,
+                   "expression: cameras whose crops it never sees (the view the asset is driven from), "
+                   "comma-separated")
+      ->delimiter(',');
+  // The mapping's.
+  processing::LatentMappingOptions& m = mapping_job_.mapping;
+  train_->add_option("--hidden", m.hidden, "mapping: hidden units")->capture_default_str();
+  train_->add_option("--layers", m.layers, "mapping: linear layers")->capture_default_str();
+  train_->add_option("--input-noise", mapping_job_.input_noise,
+                     "mapping: noise added to its inputs, in units of their spread")
+      ->capture_default_str();
+  train_->add_option("--geometry-run", mapping_job_.geometry_run,
+                     "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
+  train_->add_option("--expression-run", mapping_job_.expression_run,
+                     "mapping: the expression VAE's run (default: the dataset's directory/expression)");
   train_->add_option("--threads", g.threads, "Torch's threads (0: the cores this process may use)")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
@@ -112,10 +149,19 @@ void AssetCommands::AddTrain() {
 
   evaluate_ = app_->add_subcommand(
       "evaluate",
-      "A trained geometry VAE against a dataset's frames (each split; the whole face's texels, and the template's "
-      "vertices by region: face, eyes, mouth) beside PCA with as many components and the neutral frame");
+      "A trained asset against a dataset's frames (each split; the whole face's texels, and the template's "
+      "vertices by region: face, eyes, mouth): the geometry VAE's run beside PCA and the neutral frame, or the "
+      "asset driven from each camera's crops (--network mapping: the paper's protocol)");
   evaluate_->add_option("--dataset", evaluate_dataset_, "The dataset file")->required();
-  evaluate_->add_option("--run", evaluate_run_, "The training run's directory (asset train's --output)")->required();
+  evaluate_->add_option("--network", evaluate_network_, "What to evaluate: geometry or mapping (the driven asset)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"geometry", "mapping"}));
+  evaluate_->add_option("--run", evaluate_run_,
+                        "The run's directory (default: the dataset's directory/geometry or /mapping)");
+  evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
+                        "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
+  evaluate_->add_option("--expression-run", evaluate_expression_run_,
+                        "mapping: the expression VAE's run (default: the dataset's directory/expression)");
   evaluate_->add_flag("--json", json_, "Print the evaluation as JSON on stdout");
 }
 
@@ -172,7 +218,35 @@ int AssetCommands::BuildDataset() {
 
 namespace stage::process {
 
+namespace {
+
+// The options given that `network` does not take (each names its network in its help: "geometry: ...").
+absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
+  const std::vector<std::pair<std::string, std::vector<std::string>>> only = {
+      {"--input-size", {"geometry", "expression"}},   {"--levels", {"geometry", "expression"}},
+      {"--base-channels", {"geometry", "expression"}}, {"--max-channels", {"geometry", "expression"}},
+      {"--kl-weight", {"geometry", "expression"}},    {"--geometry-latent", {"geometry"}},
+      {"--pose-latent", {"geometry"}},                {"--augment-rotation", {"geometry"}},
+      {"--augment-translation", {"geometry"}},        {"--expression-latent", {"expression"}},
+      {"--view-latent", {"expression"}},              {"--swap-weight", {"expression"}},
+      {"--cycle-weight", {"expression"}},             {"--held-out-cameras", {"expression"}},
+      {"--hidden", {"mapping"}},                      {"--layers", {"mapping"}},
+      {"--input-noise", {"mapping"}},                 {"--geometry-run", {"mapping"}},
+      {"--expression-run", {"mapping"}}};
+  for (const auto& [option, networks] : only) {
+    if (app.count(option) > 0 && std::find(networks.begin(), networks.end(), network) == networks.end()) {
+      return absl::InvalidArgumentError(absl::StrCat(option, " is not an option of the ", network, " network"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
 int AssetCommands::Train() {
+  if (auto s = CheckOptionsFor(*train_, network_); !s.ok()) return ReportFatal(kProgram, s);
+  if (network_ == "expression") return TrainExpression();
+  if (network_ == "mapping") return TrainMapping();
   ProgressLine bar("steps");
   train_job_.progress = [&bar](int64_t step, int64_t total, const processing::GeometryLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -202,8 +276,111 @@ int AssetCommands::Train() {
   return 0;
 }
 
+int AssetCommands::TrainExpression() {
+  processing::ExpressionTrainJob& job = expression_job_;
+  const processing::GeometryVaeOptions& g = train_job_.geometry;
+  job.dataset = train_job_.dataset;
+  job.output_dir = train_job_.output_dir;
+  job.schedule = train_job_.schedule;
+  job.expression.input_size = g.input_size;
+  job.expression.levels = g.levels;
+  job.expression.base_channels = g.base_channels;
+  job.expression.max_channels = g.max_channels;
+  job.expression.kl_weight = g.kl_weight;
+  job.expression.threads = g.threads;
+  job.expression.seed = g.seed;
+  ProgressLine bar("steps");
+  job.progress = [&bar](int64_t step, int64_t total, const processing::ExpressionLosses& l) {
+    if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
+    return true;
+  };
+  auto result = processing::TrainExpressionAsset(job);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  const processing::ExpressionEvaluation& e = result->evaluation;
+  if (json_) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"steps", result->steps},
+                                {"resumed_from", result->resumed_from},
+                                {"parameters", result->parameters},
+                                {"trained_cameras", result->trained_cameras},
+                                {"final_loss", result->losses.empty() ? 0.0 : result->losses.back().total},
+                                {"evaluation", nlohmann::json::parse(processing::ExpressionEvaluationJson(e))}}
+                     .dump()
+              << "\n";
+    return 0;
+  }
+  std::cout << "expression VAE (" << result->parameters << " weights) trained " << result->steps << " steps"
+            << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "")
+            << " on the crops of " << absl::StrJoin(result->trained_cameras, ", ") << " into " << result->output_dir
+            << "\n";
+  const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
+  std::cout << absl::StrFormat("%-18s %-28s %-28s %s\n", "split", "reconstruction (trained cams)",
+                               "reconstruction (held out)", "expression latent's share between views");
+  for (int s = 0; s < 3; ++s) {
+    std::cout << absl::StrFormat("%-18s %-28.5f %-28.5f %.3f\n", names[s], e.reconstruction_trained[s],
+                                 e.reconstruction_held_out[s], e.view_share[s]);
+  }
+  return 0;
+}
+
+int AssetCommands::TrainMapping() {
+  processing::MappingTrainJob& job = mapping_job_;
+  job.dataset = train_job_.dataset;
+  job.output_dir = train_job_.output_dir;
+  const processing::TrainingSchedule given = train_job_.schedule;
+  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
+  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
+  job.schedule.learning_rate = given.learning_rate;
+  job.schedule.checkpoint_every = given.checkpoint_every;
+  job.schedule.resume = given.resume;
+  job.mapping.threads = train_job_.geometry.threads;
+  job.mapping.seed = train_job_.geometry.seed;
+  ProgressLine bar("steps");
+  job.progress = [&bar](int64_t step, int64_t total, double loss) {
+    if (step % 50 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", loss));
+    return true;
+  };
+  auto result = processing::TrainLatentMapping(job);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  if (json_) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"steps", result->steps},
+                                {"resumed_from", result->resumed_from},
+                                {"parameters", result->parameters},
+                                {"pairs", result->pairs},
+                                {"final_loss", result->losses.empty() ? 0.0 : result->losses.back()},
+                                {"evaluation",
+                                 nlohmann::json::parse(processing::DrivenEvaluationJson(result->evaluation))}}
+                     .dump()
+              << "\n";
+    return 0;
+  }
+  std::cout << "latent mapping (" << result->parameters << " weights) trained " << result->steps << " steps on "
+            << result->pairs << " crops into " << result->output_dir << "\n"
+            << "The asset driven from each camera's crops, against the truth (mm, at the geometry net's "
+               "resolution):\n"
+            << processing::FormatDrivenEvaluation(result->evaluation);
+  return 0;
+}
+
 int AssetCommands::Evaluate() {
-  auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, evaluate_run_);
+  if (evaluate_network_ == "mapping") {
+    auto result = processing::EvaluateDrivenAsset(evaluate_dataset_, evaluate_geometry_run_,
+                                                  evaluate_expression_run_, evaluate_run_);
+    if (!result.ok()) return ReportFatal(kProgram, result.status());
+    std::cout << (json_ ? processing::DrivenEvaluationJson(*result) + "\n"
+                        : processing::FormatDrivenEvaluation(*result));
+    return 0;
+  }
+  if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0) {
+    return ReportFatal(kProgram, absl::InvalidArgumentError(
+                                     "--geometry-run and --expression-run are options of --network mapping"));
+  }
+  const std::string run = evaluate_run_.empty() ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()
+                                                : evaluate_run_;
+  auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, run);
   if (!result.ok()) return ReportFatal(kProgram, result.status());
   std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n"
                       : processing::FormatTrainedEvaluation(*result));

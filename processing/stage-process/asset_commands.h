@@ -19,14 +19,20 @@ class AssetCommands {
   void AddTrain();
   int BuildDataset();
   int Train();
+  int TrainExpression();
+  int TrainMapping();
   int Evaluate();
 
   CLI::App* app_ = nullptr;
   CLI::App* build_dataset_ = nullptr;
   CLI::App* train_ = nullptr;
   CLI::App* evaluate_ = nullptr;
-  std::string evaluate_dataset_, evaluate_run_;
+  std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_;
+  std::string evaluate_network_ = "geometry";
+  // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed).
   processing::AssetTrainJob train_job_;
+  processing::ExpressionTrainJob expression_job_;
+  processing::MappingTrainJob mapping_job_;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;
   std::string frames_ = "0:", source_ = "truth";

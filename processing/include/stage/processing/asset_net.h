@@ -120,8 +120,7 @@ class GeometryVae {
 //   kl               the latents' KL divergence from N(0, I), summed over dimensions, mean over the batch
 //   total            reconstruction + swap_weight (expression swap + view swap) + cycle_weight cycle + kl_weight kl
 // The networks are the geometry VAE's trunks (3 x 3 convolutions, stride-2 levels, bilinear upsampling) on one grey
-// channel. Built and tested on made-up crops (asset_net_test.cc); its training on a dataset's crops, the mapping of its
-// expression latent to the geometry latent and the asset driven from one camera are not built yet.
+// channel. Trained on a dataset's crops by TrainExpressionAsset (asset_train.h).
 struct ExpressionVaeOptions {
   int input_size = 128;  // pixels across a crop (32..512, divisible by 2^levels)
   int levels = 5;        // 2..7
@@ -173,6 +172,48 @@ class ExpressionVae {
  private:
   struct Impl;
   explicit ExpressionVae(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// The mapping (the FaStage paper's section 4.4): an MLP from the expression latent (its mean, of one camera's crop) to
+// the geometry latent (its mean, of the frame's map), trained with both VAEs frozen. Leaky ReLUs between `layers`
+// linear layers of `hidden` units; the targets normalized per dimension (`target_mean`, `target_scale`, kept in the
+// weights), the loss their mean squared error in those units. A dropout-free net this small needs its input noised to
+// generalize from a few hundred frames: `input_noise` (the caller's draws, scaled) is added to the training inputs.
+struct LatentMappingOptions {
+  int input = 32;    // the expression latent's size (1..1024)
+  int output = 32;   // the geometry latent's size (1..1024)
+  int hidden = 256;  // 8..4096
+  int layers = 3;    // linear layers, 2..8
+  int threads = 0;
+  uint64_t seed = 1;
+  absl::Status Validate() const;
+};
+
+class LatentMapping {
+ public:
+  // Errors: options out of range, a mean or scale of another size, a scale not positive.
+  static absl::StatusOr<std::unique_ptr<LatentMapping>> Create(const LatentMappingOptions& options,
+                                                               const std::vector<float>& target_mean,
+                                                               const std::vector<float>& target_scale);
+  ~LatentMapping();
+  LatentMapping(const LatentMapping&) = delete;
+  LatentMapping& operator=(const LatentMapping&) = delete;
+
+  // One Adam step on `batch` pairs (inputs B x input, targets B x output, noise B x input already scaled, added to
+  // the inputs); the mean squared error in the targets' normalized units.
+  absl::StatusOr<double> TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
+                                   const std::vector<float>& noise, int batch, double learning_rate);
+  // The geometry latents (B x output) of `batch` expression latents (B x input).
+  absl::StatusOr<std::vector<float>> Map(const std::vector<float>& inputs, int batch) const;
+  absl::Status Save(const std::string& path) const;
+  absl::Status Load(const std::string& path);
+  const LatentMappingOptions& options() const;
+  int64_t parameter_count() const;
+
+ private:
+  struct Impl;
+  explicit LatentMapping(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
 

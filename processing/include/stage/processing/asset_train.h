@@ -1,15 +1,16 @@
-// Training the neural asset's networks on a dataset (docs/asset.md#training), resumably: the geometry VAE so far
-// (asset_net.h). Writes to the run's directory:
+// Training the neural asset's networks on a dataset (docs/asset.md#training), each resumably in a run directory of its
+// own (processing/src/training_run.h): the geometry VAE (DATASET's directory/geometry), the expression VAE
+// (.../expression) and the mapping from its latent to the geometry latent with both frozen (.../mapping), the stages
+// of the paper's section 4.5. Each run's directory holds:
 //   checkpoint-NNNNNN.pt  the net and Adam's state at the last checkpoint's step
 //   trainer.json       the step reached, its checkpoint's file, the generator's state, the options, the dataset's
 //                      identity and the thread count (a resume must match them); replaced atomically after the
 //                      checkpoint is written, and the previous checkpoint removed after it
 //   loss.csv, loss.png every step's losses, and their curves (log scale)
-//   geometry_vae.pt    the trained net (at the end), and geometry_vae.torchscript.pt, the same as TorchScript (Python's
-//                      torch.jit.load runs it: encode, decode)
-//   evaluation.json    the held-out frames' error beside the baselines (TrainedEvaluation)
-// A run killed at any point resumes from its last checkpoint (`resume`) and ends bit for bit where an unbroken run
-// of the same options and thread count ends.
+//   evaluation.json    the held-out frames' error beside the baselines
+// and its net at the end: geometry_vae.pt (and geometry_vae.torchscript.pt, the same as TorchScript, which Python's
+// torch.jit.load runs: encode, decode), expression_vae.pt, mapping.pt. A run killed at any point resumes from its last
+// checkpoint (`resume`) and ends bit for bit where an unbroken run of the same options and thread count ends.
 #pragma once
 
 #include <cstdint>
@@ -23,24 +24,30 @@
 
 namespace stage::processing {
 
-struct AssetTrainJob {
-  std::string dataset;     // stage-process asset build-dataset's file
-  std::string output_dir;  // default: DATASET's directory/geometry
-  GeometryVaeOptions geometry;
+// What every network's training shares.
+struct TrainingSchedule {
   int iterations = 4000;        // Adam steps (1..10^7)
-  int batch = 16;               // maps a step (1..1024)
+  int batch = 16;               // samples a step (1..1024)
   double learning_rate = 1e-3;  // > 0; the last 30 % of the steps at a fifth of it
   int checkpoint_every = 250;   // steps between checkpoints (1 and up)
-  // The random rigid motion each training map is shown under (uniform in each axis): turns about the head's origin
-  // up to this many degrees about x, y and z, and shifts up to this many mm along each.
-  double augment_rotation_deg = 15;
-  double augment_translation_mm = 10;
   // Continue from the run directory's checkpoint (its options must be these); false: start anew (a checkpoint there
   // is replaced).
   bool resume = false;
   // With resume: a run of other options (or another dataset, or thread count) there is started anew instead of
   // refused (the worker's jobs: a job of changed options retrains).
   bool restart_if_different = false;
+  absl::Status Validate() const;
+};
+
+struct AssetTrainJob {
+  std::string dataset;     // stage-process asset build-dataset's file
+  std::string output_dir;  // default: DATASET's directory/geometry
+  GeometryVaeOptions geometry;
+  TrainingSchedule schedule;
+  // The random rigid motion each training map is shown under (uniform in each axis): turns about the head's origin
+  // up to this many degrees about x, y and z, and shifts up to this many mm along each.
+  double augment_rotation_deg = 15;
+  double augment_translation_mm = 10;
   // Called after every step: (step, iterations, losses); false stops the run (Cancelled) after writing its
   // checkpoint's state as it last stood.
   std::function<bool(int64_t, int64_t, const GeometryLosses&)> progress;
@@ -77,6 +84,86 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job);
 // The evaluation of a finished run (its directory's trainer.json and geometry_vae.pt) on `dataset` (the one it trained
 // on, or another of the same layout). Errors name the file.
 absl::StatusOr<TrainedEvaluation> EvaluateGeometryAsset(const std::string& dataset, const std::string& run_dir);
+
+// The expression VAE's training on the dataset's crops: triplets (frame a by camera i, frame a by camera j, frame b by
+// camera i) of the training frames and the cameras not held out.
+struct ExpressionTrainJob {
+  std::string dataset;
+  std::string output_dir;  // default: DATASET's directory/expression
+  ExpressionVaeOptions expression;  // input_size: the dataset's crops' size must be a multiple of it
+  // Cameras of the dataset whose crops the net never sees: the paper's held-out view, which the asset is then driven
+  // from (at least two cameras must remain).
+  std::vector<std::string> held_out_cameras;
+  TrainingSchedule schedule;
+  std::function<bool(int64_t, int64_t, const ExpressionLosses&)> progress;
+  absl::Status Validate() const;
+};
+
+// How the trained expression VAE does on each split (train, held-out blocks, held-out sequence): its crops' mean
+// squared reconstruction (0..1 units) on the cameras it trained on and on those held out, and how much of its
+// expression latent's spread over a split's crops lies between the cameras of one frame (0: the same latent from
+// every view, as the swaps ask; 1: nothing shared).
+struct ExpressionEvaluation {
+  double reconstruction_trained[3] = {0, 0, 0}, reconstruction_held_out[3] = {0, 0, 0};
+  double view_share[3] = {0, 0, 0};
+};
+
+struct ExpressionTrainResult {
+  std::string output_dir;
+  int64_t steps = 0, resumed_from = 0, parameters = 0;
+  std::vector<ExpressionLosses> losses;
+  std::vector<std::string> trained_cameras;
+  ExpressionEvaluation evaluation;
+};
+absl::StatusOr<ExpressionTrainResult> TrainExpressionAsset(const ExpressionTrainJob& job);
+
+// The mapping from the expression latent to the geometry latent, both VAEs frozen (their runs finished): pairs of a
+// training frame's crop by a trained camera (its expression latent's mean) and the frame's map (its geometry
+// latent's mean). At the end, the asset driven from every camera is evaluated (DrivenEvaluation).
+struct MappingTrainJob {
+  std::string dataset;
+  std::string output_dir;      // default: DATASET's directory/mapping
+  std::string geometry_run;    // default: DATASET's directory/geometry
+  std::string expression_run;  // default: DATASET's directory/expression
+  // The net (its input and output sizes are the VAEs' latents': left 0 here, they are set from the runs).
+  LatentMappingOptions mapping{.input = 0, .output = 0};
+  // The noise added to every training input, in units of the inputs' spread per dimension (0..2).
+  double input_noise = 0.1;
+  TrainingSchedule schedule{.iterations = 3000, .batch = 64};
+  std::function<bool(int64_t, int64_t, double)> progress;
+  absl::Status Validate() const;
+};
+
+// The asset driven from one camera's crops, as the paper's protocol: crop -> expression latent -> mapping -> geometry
+// latent -> decoded map, against the frame's map, for each split (SplitError: texels, and vertices by region), per
+// camera (those the expression VAE trained on, and the held-out ones the protocol is about); beside the geometry VAE
+// encoding the frame's own map (the ceiling driving can reach) and the neutral frame.
+struct DrivenEvaluation {
+  struct Camera {
+    std::string id;
+    bool trained = false;
+    SplitError error[3];
+  };
+  std::vector<Camera> cameras;
+  SplitError autoencoded[3], neutral[3];
+};
+
+struct MappingTrainResult {
+  std::string output_dir;
+  int64_t steps = 0, resumed_from = 0, parameters = 0, pairs = 0;
+  std::vector<double> losses;
+  DrivenEvaluation evaluation;
+};
+absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job);
+
+// The driven evaluation of finished runs on `dataset` (default run directories as in MappingTrainJob: empty names
+// DATASET's directory/geometry, .../expression, .../mapping). Errors name the file.
+absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run = "",
+                                                     const std::string& expression_run = "",
+                                                     const std::string& mapping_run = "");
+std::string DrivenEvaluationJson(const DrivenEvaluation& e);
+std::string FormatDrivenEvaluation(const DrivenEvaluation& e);
+std::string ExpressionEvaluationJson(const ExpressionEvaluation& e);
 
 // The evaluation as JSON, and as a table in words (the baselines beside the VAE).
 std::string TrainedEvaluationJson(const TrainedEvaluation& e);

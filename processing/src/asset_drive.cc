@@ -1,0 +1,616 @@
+// The asset driven from images: the expression VAE's training on a dataset's crops, the mapping of its latent to the
+// geometry latent, and the asset driven from one camera evaluated as the paper's protocol (see asset_train.h).
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "asset_train_internal.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/processing/asset_train.h"
+#include "stage/processing/warp_net.h"
+#include "training_run.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+using asset_internal::NetMaps;
+using asset_internal::PreparedData;
+using internal::Normal;
+
+// The dataset's crops at a net's input size (each averaged down from the dataset's), 0..1.
+struct Crops {
+  int size = 0, cameras = 0;
+  std::vector<float> pixels;  // frames x cameras x size^2
+  size_t Pixels() const { return static_cast<size_t>(size) * size; }
+  const float* At(int64_t frame, int camera) const {
+    return pixels.data() + (static_cast<size_t>(frame) * cameras + camera) * Pixels();
+  }
+};
+
+absl::StatusOr<Crops> CropsAt(const AssetDataset& d, int size) {
+  if (d.cameras.empty() || d.images.empty()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(d.path, ": the dataset holds no crops (build it from a take whose cameras recorded full-lit "
+                             "frames: stage-sim-render --take, or a recorded take)"));
+  }
+  if (d.image_size % size != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(d.path, ": its crops (", d.image_size,
+                                                   " pixels across) do not divide into the net's ", size));
+  }
+  Crops c;
+  c.size = size;
+  c.cameras = static_cast<int>(d.cameras.size());
+  const int k = d.image_size / size, in = d.image_size;
+  const size_t count = static_cast<size_t>(d.frames()) * c.cameras;
+  c.pixels.assign(count * c.Pixels(), 0.f);
+  for (size_t i = 0; i < count; ++i) {
+    const uint8_t* src = d.images.data() + i * static_cast<size_t>(in) * in;
+    float* dst = c.pixels.data() + i * c.Pixels();
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        int sum = 0;
+        for (int dy = 0; dy < k; ++dy) {
+          for (int dx = 0; dx < k; ++dx) sum += src[static_cast<size_t>(y * k + dy) * in + x * k + dx];
+        }
+        dst[static_cast<size_t>(y) * size + x] = static_cast<float>(sum) / (255.f * k * k);
+      }
+    }
+  }
+  return c;
+}
+
+bool ImageValid(const AssetDataset& d, int64_t frame, int camera) {
+  return d.image_valid[static_cast<size_t>(frame) * d.cameras.size() + camera] != 0;
+}
+
+// The dataset's cameras that are not held out (indices), checking the held-out names.
+absl::StatusOr<std::vector<int>> TrainedCameras(const AssetDataset& d, const std::vector<std::string>& held_out) {
+  for (const std::string& id : held_out) {
+    if (std::find(d.cameras.begin(), d.cameras.end(), id) == d.cameras.end()) {
+      return absl::NotFoundError(absl::StrCat(d.path, ": camera \"", id, "\" is not among its crops' (",
+                                              absl::StrJoin(d.cameras, ", "), ")"));
+    }
+  }
+  std::vector<int> out;
+  for (int c = 0; c < static_cast<int>(d.cameras.size()); ++c) {
+    if (std::find(held_out.begin(), held_out.end(), d.cameras[c]) == held_out.end()) out.push_back(c);
+  }
+  if (out.size() < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(d.path, ": ", out.size(), " camera(s) left to train on; the view swaps need two"));
+  }
+  return out;
+}
+
+// Triplets: frame a by camera i, frame a by camera j != i, frame b != a by camera i, all of training frames and
+// trained cameras that recorded them.
+class TripletSampler {
+ public:
+  TripletSampler(const AssetDataset& d, const Crops& crops, const std::vector<int>& cameras)
+      : d_(d), crops_(crops), cameras_(cameras) {
+    for (int64_t f : asset_internal::FramesOf(d, SampleSplit::kTrain)) {
+      int seen = 0;
+      for (int c : cameras) seen += ImageValid(d, f, c) ? 1 : 0;
+      if (seen >= 2) frames_.push_back(f);
+    }
+  }
+  bool usable() const { return frames_.size() >= 2; }
+  ExpressionBatch Draw(int batch, int latents, std::mt19937_64& rng) const {
+    ExpressionBatch b;
+    b.batch = batch;
+    auto append = [&](std::vector<float>* to, int64_t f, int c) {
+      to->insert(to->end(), crops_.At(f, c), crops_.At(f, c) + crops_.Pixels());
+    };
+    for (int n = 0; n < batch; ++n) {
+      int64_t a = 0, other = 0;
+      int i = 0, j = 0;
+      do {
+        a = frames_[rng() % frames_.size()];
+        i = cameras_[rng() % cameras_.size()];
+        j = cameras_[rng() % cameras_.size()];
+      } while (i == j || !ImageValid(d_, a, i) || !ImageValid(d_, a, j));
+      do {
+        other = frames_[rng() % frames_.size()];
+      } while (other == a || !ImageValid(d_, other, i));
+      append(&b.anchor, a, i);
+      append(&b.same_expression, a, j);
+      append(&b.same_view, other, i);
+    }
+    for (int n = 0; n < 3 * batch * latents; ++n) b.noise.push_back(Normal(rng));
+    return b;
+  }
+
+ private:
+  const AssetDataset& d_;
+  const Crops& crops_;
+  const std::vector<int>& cameras_;
+  std::vector<int64_t> frames_;
+};
+
+nlohmann::json ExpressionOptionsJson(const ExpressionTrainJob& job, const std::string& dataset_id) {
+  const ExpressionVaeOptions& e = job.expression;
+  nlohmann::json j = {{"network", "expression"},
+                      {"input_size", e.input_size},
+                      {"levels", e.levels},
+                      {"base_channels", e.base_channels},
+                      {"max_channels", e.max_channels},
+                      {"expression_latent", e.expression_latent},
+                      {"view_latent", e.view_latent},
+                      {"kl_weight", e.kl_weight},
+                      {"swap_weight", e.swap_weight},
+                      {"cycle_weight", e.cycle_weight},
+                      {"seed", e.seed},
+                      {"held_out_cameras", job.held_out_cameras},
+                      {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                      {"dataset_id", dataset_id},
+                      {"threads", TorchThreadCount(e.threads)}};
+  asset_internal::AddScheduleJson(job.schedule, &j);
+  return j;
+}
+
+// Every crop's latents' means (frames x cameras rows of expression + view latents), in batches.
+absl::StatusOr<std::vector<float>> EncodeAll(const ExpressionVae& net, const Crops& crops) {
+  const size_t count = crops.pixels.size() / crops.Pixels();
+  const int64_t latents = net.options().expression_latent + net.options().view_latent;
+  std::vector<float> out;
+  out.reserve(count * static_cast<size_t>(latents));
+  constexpr size_t kBatch = 32;
+  for (size_t i = 0; i < count; i += kBatch) {
+    const size_t n = std::min(kBatch, count - i);
+    const std::vector<float> images(crops.pixels.begin() + static_cast<std::ptrdiff_t>(i * crops.Pixels()),
+                                    crops.pixels.begin() + static_cast<std::ptrdiff_t>((i + n) * crops.Pixels()));
+    STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, net.Encode(images, static_cast<int>(n)));
+    out.insert(out.end(), z.begin(), z.end());
+  }
+  return out;
+}
+
+absl::StatusOr<ExpressionEvaluation> EvaluateExpression(const ExpressionVae& net, const AssetDataset& d,
+                                                        const Crops& crops, const std::vector<int>& trained) {
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, EncodeAll(net, crops));
+  const int latents = net.options().expression_latent + net.options().view_latent;
+  const int e = net.options().expression_latent;
+  ExpressionEvaluation out;
+  for (int s = 0; s < 3; ++s) {
+    double se[2] = {0, 0}, n[2] = {0, 0};
+    std::vector<double> all_mean(e, 0);
+    double within = 0, total = 0, count = 0;
+    std::vector<std::vector<double>> frame_means;
+    const std::vector<int64_t> frames = asset_internal::FramesOf(d, static_cast<SampleSplit>(s));
+    for (int64_t f : frames) {
+      std::vector<double> mean(e, 0);
+      int seen = 0;
+      for (int c = 0; c < crops.cameras; ++c) {
+        if (!ImageValid(d, f, c)) continue;
+        const size_t row = static_cast<size_t>(f) * crops.cameras + c;
+        const std::vector<float> latent(z.begin() + static_cast<std::ptrdiff_t>(row * latents),
+                                        z.begin() + static_cast<std::ptrdiff_t>((row + 1) * latents));
+        STAGE_ASSIGN_OR_RETURN(const std::vector<float> image, net.Decode(latent, 1));
+        const int held = std::find(trained.begin(), trained.end(), c) == trained.end() ? 1 : 0;
+        for (size_t p = 0; p < crops.Pixels(); ++p) se[held] += std::pow(image[p] - crops.At(f, c)[p], 2);
+        n[held] += static_cast<double>(crops.Pixels());
+        if (held) continue;
+        for (int k = 0; k < e; ++k) mean[k] += latent[k], all_mean[k] += latent[k];
+        ++seen;
+        ++count;
+      }
+      for (int k = 0; k < e; ++k) mean[k] /= std::max(1, seen);
+      frame_means.push_back(std::move(mean));
+    }
+    for (int k = 0; k < e; ++k) all_mean[k] /= std::max(1.0, count);
+    for (size_t i = 0; i < frames.size(); ++i) {
+      for (int c : trained) {
+        if (!ImageValid(d, frames[i], c)) continue;
+        const size_t row = static_cast<size_t>(frames[i]) * crops.cameras + c;
+        for (int k = 0; k < e; ++k) {
+          const double v = z[row * latents + k];
+          within += std::pow(v - frame_means[i][k], 2);
+          total += std::pow(v - all_mean[k], 2);
+        }
+      }
+    }
+    out.reconstruction_trained[s] = n[0] > 0 ? se[0] / n[0] : 0;
+    out.reconstruction_held_out[s] = n[1] > 0 ? se[1] / n[1] : 0;
+    out.view_share[s] = total > 0 ? within / total : 0;
+  }
+  return out;
+}
+
+absl::StatusOr<ExpressionVaeOptions> ExpressionOptionsOf(const std::string& run_dir, const nlohmann::json& o,
+                                                         int threads, std::vector<std::string>* held_out) {
+  ExpressionVaeOptions options;
+  options.threads = threads;
+  try {
+    if (o.at("network") != "expression") {
+      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
+                                                     " network, not the expression VAE"));
+    }
+    options.input_size = o.at("input_size").get<int>();
+    options.levels = o.at("levels").get<int>();
+    options.base_channels = o.at("base_channels").get<int>();
+    options.max_channels = o.at("max_channels").get<int>();
+    options.expression_latent = o.at("expression_latent").get<int>();
+    options.view_latent = o.at("view_latent").get<int>();
+    *held_out = o.at("held_out_cameras").get<std::vector<std::string>>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
+  }
+  return options;
+}
+
+// The three finished nets and what they read: the asset as the driven evaluation and inference use it.
+struct DrivenAsset {
+  PreparedData data;  // at the geometry net's size
+  std::unique_ptr<GeometryVae> geometry;
+  std::unique_ptr<ExpressionVae> expression;
+  std::unique_ptr<LatentMapping> mapping;  // null until trained or loaded
+  std::vector<std::string> held_out;
+  std::vector<int> trained;
+  Crops crops;
+  std::vector<float> expression_latents;  // every crop's (EncodeAll)
+  std::vector<float> geometry_latents;    // every frame's map's geometry latent's mean
+
+  int ExpressionSize() const { return expression->options().expression_latent; }
+  int GeometrySize() const { return geometry->options().geometry_latent; }
+  std::vector<float> ExpressionOf(int64_t frame, int camera) const {
+    const size_t row = static_cast<size_t>(frame) * crops.cameras + camera;
+    const size_t width = ExpressionSize() + expression->options().view_latent;
+    return {expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width),
+            expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width + ExpressionSize())};
+  }
+};
+
+absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const std::string& geometry_run,
+                                            const std::string& expression_run, int threads) {
+  DrivenAsset a;
+  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryRun(geometry_run, dataset, &a.data, threads));
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json options, asset_internal::RunOptions(expression_run));
+  STAGE_ASSIGN_OR_RETURN(const ExpressionVaeOptions e,
+                         ExpressionOptionsOf(expression_run, options, threads, &a.held_out));
+  STAGE_ASSIGN_OR_RETURN(a.expression, ExpressionVae::Create(e));
+  STAGE_RETURN_IF_ERROR(a.expression->Load(expression_run + "/expression_vae.pt"));
+  STAGE_ASSIGN_OR_RETURN(a.trained, TrainedCameras(a.data.dataset, a.held_out));
+  STAGE_ASSIGN_OR_RETURN(a.crops, CropsAt(a.data.dataset, e.input_size));
+  STAGE_ASSIGN_OR_RETURN(a.expression_latents, EncodeAll(*a.expression, a.crops));
+  const NetMaps& m = a.data.maps;
+  for (int64_t f = 0; f < a.data.dataset.frames(); ++f) {
+    STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a.geometry->Encode(m.maps[f], m.valid[f], 1));
+    a.geometry_latents.insert(a.geometry_latents.end(), z.begin(), z.begin() + a.GeometrySize());
+  }
+  return a;
+}
+
+absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  const AssetDataset& d = a.data.dataset;
+  const NetMaps& m = a.data.maps;
+  absl::Status failed;
+  auto decode = [&](const std::vector<float>& z) {
+    absl::StatusOr<std::vector<float>> map = a.geometry->Decode(z, 1);
+    if (!map.ok()) failed = map.status();
+    return map.ok() ? *map : std::vector<float>(m.maps[0].size(), 0.f);
+  };
+  DrivenEvaluation e;
+  for (int s = 0; s < 3; ++s) {
+    const std::vector<int64_t> frames = asset_internal::FramesOf(d, static_cast<SampleSplit>(s));
+    e.autoencoded[s] = asset_internal::Error(m, face, frames, [&](int64_t f) {
+      const auto begin = a.geometry_latents.begin() + static_cast<std::ptrdiff_t>(f * a.GeometrySize());
+      return decode(std::vector<float>(begin, begin + a.GeometrySize()));
+    });
+    e.neutral[s] = asset_internal::Error(m, face, frames, [&](int64_t) { return m.maps[0]; });
+  }
+  for (int c = 0; c < a.crops.cameras; ++c) {
+    DrivenEvaluation::Camera camera;
+    camera.id = d.cameras[c];
+    camera.trained = std::find(a.trained.begin(), a.trained.end(), c) != a.trained.end();
+    for (int s = 0; s < 3; ++s) {
+      std::vector<int64_t> frames;
+      for (int64_t f : asset_internal::FramesOf(d, static_cast<SampleSplit>(s))) {
+        if (ImageValid(d, f, c)) frames.push_back(f);
+      }
+      camera.error[s] = asset_internal::Error(m, face, frames, [&](int64_t f) {
+        absl::StatusOr<std::vector<float>> z = a.mapping->Map(a.ExpressionOf(f, c), 1);
+        if (!z.ok()) failed = z.status();
+        return decode(z.ok() ? *z : std::vector<float>(a.GeometrySize(), 0.f));
+      });
+    }
+    e.cameras.push_back(camera);
+  }
+  if (!failed.ok()) return failed;
+  return e;
+}
+
+// The mapping's training pairs: (frame, camera) of training frames by trained cameras that recorded them.
+std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a) {
+  std::vector<std::pair<int64_t, int>> out;
+  for (int64_t f : a.data.train) {
+    for (int c : a.trained) {
+      if (ImageValid(a.data.dataset, f, c)) out.emplace_back(f, c);
+    }
+  }
+  return out;
+}
+
+// Per dimension: the mean and the spread (standard deviation, at least 1e-6) of `rows` of `width` values.
+void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::vector<float>* mean,
+                   std::vector<float>* spread) {
+  mean->assign(width, 0.f);
+  spread->assign(width, 0.f);
+  std::vector<double> sum(width, 0), sum2(width, 0);
+  for (const auto& r : rows) {
+    for (int k = 0; k < width; ++k) sum[k] += r[k], sum2[k] += static_cast<double>(r[k]) * r[k];
+  }
+  const double n = std::max<size_t>(1, rows.size());
+  for (int k = 0; k < width; ++k) {
+    (*mean)[k] = static_cast<float>(sum[k] / n);
+    (*spread)[k] = static_cast<float>(std::max(1e-6, std::sqrt(std::max(0.0, sum2[k] / n - std::pow(sum[k] / n, 2)))));
+  }
+}
+
+nlohmann::json MappingOptionsJson(const MappingTrainJob& job, const LatentMappingOptions& o,
+                                  const std::string& dataset_id, const std::string& geometry_run,
+                                  const std::string& expression_run) {
+  nlohmann::json j = {{"network", "mapping"},
+                      {"input", o.input},
+                      {"output", o.output},
+                      {"hidden", o.hidden},
+                      {"layers", o.layers},
+                      {"seed", o.seed},
+                      {"input_noise", job.input_noise},
+                      {"geometry_run", fs::absolute(geometry_run).lexically_normal().string()},
+                      {"expression_run", fs::absolute(expression_run).lexically_normal().string()},
+                      {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                      {"dataset_id", dataset_id},
+                      {"threads", TorchThreadCount(o.threads)}};
+  asset_internal::AddScheduleJson(job.schedule, &j);
+  return j;
+}
+
+// The mapping's net for `a`, its targets normalized over the training pairs.
+absl::StatusOr<std::unique_ptr<LatentMapping>> CreateMapping(const DrivenAsset& a, LatentMappingOptions o,
+                                                            const std::vector<std::pair<int64_t, int>>& pairs) {
+  o.input = a.ExpressionSize();
+  o.output = a.GeometrySize();
+  std::vector<std::vector<float>> targets;
+  for (const auto& [f, c] : pairs) {
+    const auto begin = a.geometry_latents.begin() + static_cast<std::ptrdiff_t>(f * o.output);
+    targets.emplace_back(begin, begin + o.output);
+  }
+  std::vector<float> mean, spread;
+  MeanAndSpread(targets, o.output, &mean, &spread);
+  return LatentMapping::Create(o, mean, spread);
+}
+
+}  // namespace
+
+absl::Status ExpressionTrainJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("expression training: no dataset");
+  STAGE_RETURN_IF_ERROR(expression.Validate());
+  return schedule.Validate();
+}
+
+absl::StatusOr<ExpressionTrainResult> TrainExpressionAsset(const ExpressionTrainJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  STAGE_ASSIGN_OR_RETURN(const AssetDataset d, ReadAssetDataset(job.dataset));
+  STAGE_ASSIGN_OR_RETURN(const Crops crops, CropsAt(d, job.expression.input_size));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<int> trained, TrainedCameras(d, job.held_out_cameras));
+  const TripletSampler sampler(d, crops, trained);
+  if (!sampler.usable()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(job.dataset, ": fewer than two training frames seen by two of the cameras trained on"));
+  }
+  ExpressionTrainResult result;
+  result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "expression");
+  for (int c : trained) result.trained_cameras.push_back(d.cameras[c]);
+  STAGE_ASSIGN_OR_RETURN(auto net, ExpressionVae::Create(job.expression));
+  result.parameters = net->parameter_count();
+  const int latents = job.expression.expression_latent + job.expression.view_latent;
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "expression VAE";
+  loop.options = ExpressionOptionsJson(job, asset_internal::DatasetId(d));
+  loop.loss_names = {"total", "reconstruction", "expression_swap", "view_swap", "cycle", "kl"};
+  loop.iterations = job.schedule.iterations;
+  loop.checkpoint_every = job.schedule.checkpoint_every;
+  loop.learning_rate = job.schedule.learning_rate;
+  loop.resume = job.schedule.resume;
+  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.seed = job.expression.seed;
+  loop.save = [&net](const std::string& path) { return net->Save(path); };
+  loop.load = [&net](const std::string& path) { return net->Load(path); };
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    STAGE_ASSIGN_OR_RETURN(const ExpressionLosses l,
+                           net->TrainStep(sampler.Draw(job.schedule.batch, latents, rng), rate));
+    return std::vector<double>{l.total, l.reconstruction, l.expression_swap, l.view_swap, l.cycle, l.kl};
+  };
+  auto losses_of = [](const std::vector<double>& v) { return ExpressionLosses{v[0], v[1], v[2], v[3], v[4], v[5]}; };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, losses_of(l));
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(losses_of(l));
+  result.steps = job.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/expression_vae.pt"));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateExpression(*net, d, crops, trained));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/evaluation.json",
+                                            ExpressionEvaluationJson(result.evaluation) + "\n"));
+  return result;
+}
+
+absl::Status MappingTrainJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("mapping training: no dataset");
+  if (mapping.input != 0 || mapping.output != 0) {
+    return absl::InvalidArgumentError(
+        "mapping training: the mapping's input and output sizes are the VAEs' latents' (leave them 0)");
+  }
+  LatentMappingOptions sized = mapping;
+  sized.input = sized.output = 1;
+  STAGE_RETURN_IF_ERROR(sized.Validate());
+  if (!(input_noise >= 0 && input_noise <= 2)) {
+    return absl::InvalidArgumentError(absl::StrCat("mapping training: input noise ", input_noise, " is not in 0..2"));
+  }
+  return schedule.Validate();
+}
+
+absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  const std::string geometry_run = asset_internal::RunDir(job.geometry_run, job.dataset, "geometry");
+  const std::string expression_run = asset_internal::RunDir(job.expression_run, job.dataset, "expression");
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a, LoadDrivenAsset(job.dataset, geometry_run, expression_run,
+                                                        job.mapping.threads));
+  const std::vector<std::pair<int64_t, int>> pairs = MappingPairs(a);
+  if (pairs.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
+  }
+  STAGE_ASSIGN_OR_RETURN(a.mapping, CreateMapping(a, job.mapping, pairs));
+  const LatentMappingOptions& o = a.mapping->options();
+  std::vector<std::vector<float>> inputs;
+  for (const auto& [f, c] : pairs) inputs.push_back(a.ExpressionOf(f, c));
+  std::vector<float> input_mean, input_spread;
+  MeanAndSpread(inputs, o.input, &input_mean, &input_spread);
+
+  MappingTrainResult result;
+  result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "mapping");
+  result.parameters = a.mapping->parameter_count();
+  result.pairs = static_cast<int64_t>(pairs.size());
+  LatentMapping& net = *a.mapping;
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "latent mapping";
+  loop.options =
+      MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset), geometry_run, expression_run);
+  loop.loss_names = {"total"};
+  loop.iterations = job.schedule.iterations;
+  loop.checkpoint_every = job.schedule.checkpoint_every;
+  loop.learning_rate = job.schedule.learning_rate;
+  loop.resume = job.schedule.resume;
+  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.seed = o.seed;
+  loop.save = [&net](const std::string& path) { return net.Save(path); };
+  loop.load = [&net](const std::string& path) { return net.Load(path); };
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    const int b = job.schedule.batch;
+    std::vector<float> x, y, noise;
+    for (int n = 0; n < b; ++n) {
+      const size_t i = rng() % pairs.size();
+      const int64_t f = pairs[i].first;
+      const std::vector<float>& z = inputs[i];
+      x.insert(x.end(), z.begin(), z.end());
+      const auto target = a.geometry_latents.begin() + static_cast<std::ptrdiff_t>(f * o.output);
+      y.insert(y.end(), target, target + o.output);
+      for (int k = 0; k < o.input; ++k) {
+        noise.push_back(static_cast<float>(job.input_noise) * input_spread[k] * Normal(rng));
+      }
+    }
+    STAGE_ASSIGN_OR_RETURN(const double loss, net.TrainStep(x, y, noise, b, rate));
+    return std::vector<double>{loss};
+  };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, l[0]);
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
+  result.steps = job.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/mapping.pt"));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateDriven(a));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/evaluation.json",
+                                            DrivenEvaluationJson(result.evaluation) + "\n"));
+  return result;
+}
+
+absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
+                                                     const std::string& expression_run,
+                                                     const std::string& mapping_run) {
+  const std::string mapping_dir = asset_internal::RunDir(mapping_run, dataset, "mapping");
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(mapping_dir));
+  STAGE_ASSIGN_OR_RETURN(
+      DrivenAsset a,
+      LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
+                      asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
+  LatentMappingOptions options;
+  try {
+    if (o.at("network") != "mapping") {
+      return absl::InvalidArgumentError(absl::StrCat(mapping_dir, ": a run of the ", o.at("network").dump(),
+                                                     " network, not the latent mapping"));
+    }
+    options.hidden = o.at("hidden").get<int>();
+    options.layers = o.at("layers").get<int>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(mapping_dir, "/trainer.json: options: ", e.what()));
+  }
+  // The normalization is the trained net's (its buffers, loaded with its weights); these are placeholders.
+  STAGE_ASSIGN_OR_RETURN(a.mapping, CreateMapping(a, options, MappingPairs(a)));
+  STAGE_RETURN_IF_ERROR(a.mapping->Load(mapping_dir + "/mapping.pt"));
+  return EvaluateDriven(a);
+}
+
+std::string ExpressionEvaluationJson(const ExpressionEvaluation& e) {
+  nlohmann::json j;
+  const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
+  for (int s = 0; s < 3; ++s) {
+    j[names[s]] = {{"reconstruction_trained_cameras", e.reconstruction_trained[s]},
+                   {"reconstruction_held_out_cameras", e.reconstruction_held_out[s]},
+                   {"view_share", e.view_share[s]}};
+  }
+  return j.dump();
+}
+
+namespace {
+
+nlohmann::json SplitJson(const SplitError& x) {
+  return {{"frames", x.frames},   {"rmse_mm", x.rmse_mm}, {"p99_mm", x.p99_mm},
+          {"face_mm", x.face_mm}, {"eyes_mm", x.eyes_mm}, {"mouth_mm", x.mouth_mm}};
+}
+
+}  // namespace
+
+std::string DrivenEvaluationJson(const DrivenEvaluation& e) {
+  nlohmann::json j;
+  const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
+  for (int s = 0; s < 3; ++s) {
+    j["autoencoded"][names[s]] = SplitJson(e.autoencoded[s]);
+    j["neutral"][names[s]] = SplitJson(e.neutral[s]);
+  }
+  for (const DrivenEvaluation::Camera& c : e.cameras) {
+    nlohmann::json cj = {{"camera", c.id}, {"trained", c.trained}};
+    for (int s = 0; s < 3; ++s) cj[names[s]] = SplitJson(c.error[s]);
+    j["cameras"].push_back(cj);
+  }
+  return j.dump();
+}
+
+std::string FormatDrivenEvaluation(const DrivenEvaluation& e) {
+  std::string out = absl::StrFormat("%-18s %-22s %6s  %-19s %s\n", "split", "driven from", "frames",
+                                    "texels rmse / p99", "vertices rmse mm: face / eyes / mouth");
+  const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
+  auto row = [&](int s, const std::string& what, const SplitError& x) {
+    absl::StrAppendFormat(&out, "%-18s %-22s %6d  %7.3f / %7.3f   %7.3f / %7.3f / %7.3f\n", names[s], what, x.frames,
+                          x.rmse_mm, x.p99_mm, x.face_mm, x.eyes_mm, x.mouth_mm);
+  };
+  for (int s = 0; s < 3; ++s) {
+    for (const DrivenEvaluation::Camera& c : e.cameras) {
+      row(s, absl::StrCat(c.id, c.trained ? " (trained)" : " (HELD OUT)"), c.error[s]);
+    }
+    row(s, "its map (autoencoded)", e.autoencoded[s]);
+    row(s, "neutral frame", e.neutral[s]);
+  }
+  absl::StrAppend(&out,
+                  "(the paper's figures, driven from one held-out view: face 1.516, eyes 1.164, mouth 2.750 mm; its "
+                  "goals here: face <= 0.5, eyes <= 0.5, mouth <= 1.0 mm)\n");
+  return out;
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,61 @@
+// What the asset's training sources share (asset_train.cc: the geometry VAE and the run's files; asset_drive.cc: the
+// expression VAE, the mapping and the driven evaluation). Torch-free.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_net.h"
+#include "stage/processing/asset_train.h"
+#include "stage/processing/face_template.h"
+
+namespace stage::processing::asset_internal {
+
+// The dataset's maps at the net's resolution, NCHW (3 x S x S each), with their validity (S x S each).
+struct NetMaps {
+  int size = 0;
+  std::vector<std::vector<float>> maps, valid;
+};
+
+// A dataset read for a geometry net of input `size`: its maps at that size, the training frames, their mean and
+// spread (mm).
+struct PreparedData {
+  AssetDataset dataset;
+  NetMaps maps;
+  std::vector<int64_t> train;
+  std::vector<float> mean;
+  float scale = 0;
+};
+absl::StatusOr<PreparedData> Prepare(const std::string& path, int size);
+
+// The frames of each split, in take order.
+std::vector<int64_t> FramesOf(const AssetDataset& d, SampleSplit split);
+
+// A dataset's identity: FNV-1a of its description (source, take, sizes, sequences, split) and frame numbers.
+std::string DatasetId(const AssetDataset& d);
+
+// The error of `recovered` maps (frame -> NCHW map) of `frames` against the truth (SplitError).
+SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
+                 const std::function<std::vector<float>(int64_t)>& recovered);
+
+// A finished run's trainer.json options (NotFound naming the file where there is no run).
+absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir);
+
+// A finished geometry run's net (its options from trainer.json, its weights from geometry_vae.pt) on `data` (the
+// dataset prepared at the net's input size, which the run's options give: `data` is prepared here).
+absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
+                                                             PreparedData* data, int threads = 0);
+
+// A run directory: `dir`, or beside the dataset under `name`.
+std::string RunDir(const std::string& dir, const std::string& dataset, const char* name);
+
+// The schedule's options as a resume must find them.
+void AddScheduleJson(const TrainingSchedule& s, nlohmann::json* j);
+
+}  // namespace stage::processing::asset_internal
