@@ -1,5 +1,6 @@
 // The neural asset's stages three ways (stage-process asset ..., the library, the processing worker's job) on a take
-// the simulator renders: the same bytes each way; the dataset opens in h5py; clear errors.
+// the simulator renders: the dataset, the geometry VAE, the expression VAE and the mapping give the same bytes each
+// way; the dataset opens in h5py; clear errors.
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
@@ -115,6 +116,79 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
     for (const auto& [name, bytes] : files) EXPECT_TRUE(theirs.at(name) == bytes) << name << " differs in " << other;
   }
 
+  // The expression VAE (on both cameras' crops) and the mapping (from the worker's two VAEs), the same three ways.
+  auto same_runs = [&](const std::string& name, const char* archive) {
+    auto without = [&](std::map<std::string, std::string> run) {
+      EXPECT_EQ(run.erase("checkpoint-000020.pt") + run.erase(archive), 2u) << name;
+      return run;
+    };
+    const auto mine = without(FilesUnder(asset + "/" + name + "-batch"));
+    EXPECT_EQ(mine.size(), 4u) << name;  // trainer.json, loss.csv and .png, evaluation.json
+    for (const std::string& other : {name + "-library", name}) {
+      const auto theirs = without(FilesUnder(asset + "/" + other));
+      ASSERT_EQ(theirs.size(), mine.size()) << other;
+      for (const auto& [file, bytes] : mine) EXPECT_TRUE(theirs.at(file) == bytes) << file << " differs in " << other;
+    }
+  };
+  CommandResult expression = RunCommand(
+      {"stage-process", "asset", "train", "--network", "expression", "--dataset", asset + "/dataset.h5", "--output",
+       asset + "/expression-batch", "--iterations", "20", "--batch", "4", "--input-size", "32", "--levels", "3",
+       "--max-channels", "32", "--expression-latent", "4", "--view-latent", "2", "--json"},
+      std::chrono::seconds(300));
+  ASSERT_EQ(expression.exit.exit_code, 0) << expression.err;
+  EXPECT_EQ(nlohmann::json::parse(expression.out)["trained_cameras"].size(), 2u);
+  processing::ExpressionTrainJob expression_job;
+  expression_job.dataset = asset + "/dataset.h5";
+  expression_job.output_dir = asset + "/expression-library";
+  expression_job.schedule.iterations = 20;
+  expression_job.schedule.batch = 4;
+  expression_job.expression = {
+      .input_size = 32, .levels = 3, .max_channels = 32, .expression_latent = 4, .view_latent = 2};
+  ASSERT_TRUE(processing::TrainExpressionAsset(expression_job).ok());
+  v1::ProcessingJob expression_request = train_request;
+  a = expression_request.mutable_asset();
+  a->set_network(v1::ASSET_NETWORK_EXPRESSION);
+  a->clear_geometry_latent();
+  a->clear_pose_latent();
+  a->set_iterations(20);
+  a->set_expression_latent(4);
+  a->set_view_latent(2);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), expression_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/expression");
+  same_runs("expression", "expression_vae.pt");
+
+  CommandResult mapping = RunCommand({"stage-process", "asset", "train", "--network", "mapping", "--dataset",
+                                      asset + "/dataset.h5", "--output", asset + "/mapping-batch", "--iterations",
+                                      "20", "--batch", "8", "--hidden", "16", "--json"},
+                                     std::chrono::seconds(300));
+  ASSERT_EQ(mapping.exit.exit_code, 0) << mapping.err;
+  const nlohmann::json driven = nlohmann::json::parse(mapping.out)["evaluation"];
+  ASSERT_EQ(driven["cameras"].size(), 2u);
+  EXPECT_EQ(driven["cameras"][0]["camera"], "mv-01");
+  processing::MappingTrainJob mapping_job;
+  mapping_job.dataset = asset + "/dataset.h5";
+  mapping_job.output_dir = asset + "/mapping-library";
+  mapping_job.schedule.iterations = 20;
+  mapping_job.schedule.batch = 8;
+  mapping_job.mapping.hidden = 16;
+  ASSERT_TRUE(processing::TrainLatentMapping(mapping_job).ok());
+  v1::ProcessingJob mapping_request;
+  mapping_request.set_stage(v1::PROCESSING_STAGE_ASSET_TRAIN);
+  mapping_request.set_take_dir(take.path());
+  a = mapping_request.mutable_asset();
+  a->set_network(v1::ASSET_NETWORK_MAPPING);
+  a->set_iterations(20);
+  a->set_batch(8);
+  a->set_hidden(16);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), mapping_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/mapping");
+  same_runs("mapping", "mapping.pt");
+  CommandResult evaluated = RunCommand({"stage-process", "asset", "evaluate", "--network", "mapping", "--dataset",
+                                        asset + "/dataset.h5", "--json"},
+                                       std::chrono::seconds(120));
+  ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
+  EXPECT_EQ(nlohmann::json::parse(evaluated.out), nlohmann::json::parse(ReadFile(asset + "/mapping/evaluation.json")));
+
   // A job's options the stage does not take are refused, naming them.
   v1::ProcessingJob wrong = request;
   wrong.set_stage(v1::PROCESSING_STAGE_PHOTOMETRIC);
@@ -122,6 +196,15 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   wrong = train_request;
   wrong.set_first_frame(3);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));
+  wrong = mapping_request;
+  wrong.mutable_asset()->set_view_latent(3);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_MAPPING network's"));
+  CommandResult misplaced = RunCommand({"stage-process", "asset", "train", "--network", "mapping", "--dataset",
+                                        asset + "/dataset.h5", "--pose-latent", "2"},
+                                       std::chrono::seconds(60));
+  EXPECT_EQ(misplaced.exit.exit_code, 2);
+  EXPECT_THAT(misplaced.err, HasSubstr("--pose-latent is not an option of the mapping network"));
   CommandResult missing =
       RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);

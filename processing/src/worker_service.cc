@@ -281,7 +281,9 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   }
   const v1::AssetOptions& a = job.asset();
   if (a.iterations() != 0 || a.batch() != 0 || a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 ||
-      a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0) {
+      a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
+      a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
+      a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -312,26 +314,80 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
         "the asset's training takes no frames, cameras, calibration, geometry or dataset options: it reads "
         "TAKE/derived/asset/dataset.h5");
   }
-  AssetTrainJob t;
-  t.dataset = job.take_dir() + "/derived/asset/dataset.h5";
-  if (a.iterations() != 0) t.schedule.iterations = a.iterations();
-  if (a.batch() != 0) t.schedule.batch = a.batch();
-  GeometryVaeOptions& g = t.geometry;
-  if (a.input_size() != 0) g.input_size = a.input_size();
-  if (a.levels() != 0) g.levels = a.levels();
-  if (a.base_channels() != 0) g.base_channels = a.base_channels();
-  if (a.max_channels() != 0) g.max_channels = a.max_channels();
-  if (a.geometry_latent() != 0) g.geometry_latent = a.geometry_latent();
-  if (a.pose_latent() != 0) g.pose_latent = a.pose_latent();
-  if (a.seed() != 0) g.seed = a.seed();
+  const std::string dataset = job.take_dir() + "/derived/asset/dataset.h5";
+  const v1::AssetNetwork network = a.network() == v1::ASSET_NETWORK_UNSPECIFIED ? v1::ASSET_NETWORK_GEOMETRY
+                                                                                : a.network();
+  // Each option belongs to some of the networks; one given to another is refused, not ignored.
+  const bool vae = network != v1::ASSET_NETWORK_MAPPING;
+  if ((!vae && (a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 || a.max_channels() != 0)) ||
+      (network != v1::ASSET_NETWORK_GEOMETRY && (a.geometry_latent() != 0 || a.pose_latent() != 0)) ||
+      (network != v1::ASSET_NETWORK_EXPRESSION &&
+       (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
+      (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0))) {
+    return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
+                                                   v1::AssetNetwork_Name(network), " network's"));
+  }
+  TrainingSchedule schedule{.resume = true, .restart_if_different = true};
+  if (network == v1::ASSET_NETWORK_MAPPING) schedule = MappingTrainJob{}.schedule;
+  if (a.iterations() != 0) schedule.iterations = a.iterations();
+  if (a.batch() != 0) schedule.batch = a.batch();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
   // same options, dataset and threads stopped, else started anew.
-  t.schedule.resume = true;
-  t.schedule.restart_if_different = true;
-  t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) {
-    if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", l.total)});
+  schedule.resume = true;
+  schedule.restart_if_different = true;
+  auto report = [&](int64_t step, int64_t total, double loss) {
+    if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", loss)});
     return !cancelled();
   };
+  auto set = [](int32_t value, auto* field) {
+    if (value != 0) *field = value;
+  };
+  if (network == v1::ASSET_NETWORK_EXPRESSION) {
+    ExpressionTrainJob t;
+    t.dataset = dataset;
+    t.schedule = schedule;
+    ExpressionVaeOptions& e = t.expression;
+    set(a.input_size(), &e.input_size);
+    set(a.levels(), &e.levels);
+    set(a.base_channels(), &e.base_channels);
+    set(a.max_channels(), &e.max_channels);
+    set(a.expression_latent(), &e.expression_latent);
+    set(a.view_latent(), &e.view_latent);
+    if (a.seed() != 0) e.seed = a.seed();
+    t.held_out_cameras.assign(a.held_out_cameras().begin(), a.held_out_cameras().end());
+    t.progress = [&](int64_t step, int64_t total, const ExpressionLosses& l) { return report(step, total, l.total); };
+    auto result = TrainExpressionAsset(t);
+    if (!result.ok()) return result.status();
+    return Finished(result->steps, result->output_dir,
+                    absl::StrCat("expression VAE trained ", result->steps, " steps into ", result->output_dir, ": ",
+                                 ExpressionEvaluationJson(result->evaluation)));
+  }
+  if (network == v1::ASSET_NETWORK_MAPPING) {
+    MappingTrainJob t;
+    t.dataset = dataset;
+    t.schedule = schedule;
+    set(a.hidden(), &t.mapping.hidden);
+    set(a.layers(), &t.mapping.layers);
+    if (a.seed() != 0) t.mapping.seed = a.seed();
+    t.progress = report;
+    auto result = TrainLatentMapping(t);
+    if (!result.ok()) return result.status();
+    return Finished(result->steps, result->output_dir,
+                    absl::StrCat("latent mapping trained ", result->steps, " steps into ", result->output_dir, "\n",
+                                 FormatDrivenEvaluation(result->evaluation)));
+  }
+  AssetTrainJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  GeometryVaeOptions& g = t.geometry;
+  set(a.input_size(), &g.input_size);
+  set(a.levels(), &g.levels);
+  set(a.base_channels(), &g.base_channels);
+  set(a.max_channels(), &g.max_channels);
+  set(a.geometry_latent(), &g.geometry_latent);
+  set(a.pose_latent(), &g.pose_latent);
+  if (a.seed() != 0) g.seed = a.seed();
+  t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) { return report(step, total, l.total); };
   auto result = TrainGeometryAsset(t);
   if (!result.ok()) return result.status();
   return Finished(result->steps, result->output_dir,
