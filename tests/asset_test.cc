@@ -9,6 +9,7 @@
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
 #include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
 #include "stage/sim/rendered_take.h"
 #include "test_support.h"
@@ -188,6 +189,49 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                                        std::chrono::seconds(120));
   ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
   EXPECT_EQ(nlohmann::json::parse(evaluated.out), nlohmann::json::parse(ReadFile(asset + "/mapping/evaluation.json")));
+
+  // The asset driven from mv-05's frames of the take, three ways: the same files; each frame's crop is the dataset's
+  // own crop of that camera and frame, and the mesh opens in Open3D with the template's UVs.
+  CommandResult infer = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
+                                    "mv-05", "--take", take.path(), "--output", asset + "/infer-batch", "--json"},
+                                   std::chrono::seconds(120));
+  ASSERT_EQ(infer.exit.exit_code, 0) << infer.err;
+  EXPECT_EQ(nlohmann::json::parse(infer.out)["frames"].size(), 12u);
+  ASSERT_TRUE(processing::InferAsset({.dataset = asset + "/dataset.h5",
+                                      .camera = "mv-05",
+                                      .take_dir = take.path(),
+                                      .output_dir = asset + "/infer-library"})
+                  .ok());
+  v1::ProcessingJob infer_request;
+  infer_request.set_stage(v1::PROCESSING_STAGE_ASSET_INFER);
+  infer_request.set_take_dir(take.path());
+  infer_request.add_cameras("mv-05");
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), infer_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/infer/mv-05");
+  const auto inferred = FilesUnder(asset + "/infer-batch");
+  EXPECT_EQ(inferred.size(), 12u * 3 + 1);  // crop.png, geometry_map.exr, mesh.obj a frame; frames.json
+  for (const char* other : {"infer-library", "infer/mv-05"}) {
+    const auto theirs = FilesUnder(asset + "/" + other);
+    ASSERT_EQ(theirs.size(), inferred.size()) << other;
+    for (const auto& [file, bytes] : inferred) EXPECT_TRUE(theirs.at(file) == bytes) << file << " differs in " << other;
+  }
+  CommandResult opened = RunCommand(
+      {"/usr/bin/python3", "-c",
+       "import h5py, numpy, open3d, sys\n"
+       "d = h5py.File(sys.argv[1] + '/dataset.h5')\n"
+       "i = list(d['frame'][:]).index(400)\n"
+       "crop = numpy.asarray(open3d.io.read_image(sys.argv[1] + '/infer-batch/frame-000400/crop.png'))\n"
+       "mesh = open3d.io.read_triangle_mesh(sys.argv[1] + '/infer-batch/frame-000400/mesh.obj')\n"
+       "print(numpy.array_equal(crop, d['images'][i, 1]), len(mesh.vertices) > 1000, mesh.has_triangle_uvs())",
+       asset},
+      std::chrono::seconds(60));
+  ASSERT_EQ(opened.exit.exit_code, 0) << opened.err;
+  EXPECT_THAT(opened.out, HasSubstr("True True True"));
+  CommandResult unknown = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5",
+                                      "--camera", "mv-09", "--take", take.path()},
+                                     std::chrono::seconds(60));
+  EXPECT_EQ(unknown.exit.exit_code, 2);
+  EXPECT_THAT(unknown.err, HasSubstr("no crop of camera \"mv-09\" (it cropped: mv-01, mv-05)"));
 
   // A job's options the stage does not take are refused, naming them.
   v1::ProcessingJob wrong = request;

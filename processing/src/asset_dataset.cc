@@ -14,6 +14,7 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "stage/common/status.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/light_model.h"
@@ -224,14 +225,14 @@ double White(const cv::Mat& patch) {
   return std::max(1.0, static_cast<double>(values[k]));
 }
 
-// A patch averaged down to size x size and mapped to 8 bits over `white` (gamma 2.2).
-std::vector<uint8_t> Crop(const cv::Mat& patch, int size, double white) {
+// A patch averaged down to size x size and mapped to 8 bits over `white` (through 1 / gamma).
+std::vector<uint8_t> Crop(const cv::Mat& patch, int size, double white, double gamma = 2.2) {
   cv::Mat small;
   cv::resize(patch, small, cv::Size(size, size), 0, 0, patch.cols > size ? cv::INTER_AREA : cv::INTER_LINEAR);
   std::vector<uint8_t> out(static_cast<size_t>(size) * size);
   for (int i = 0; i < size * size; ++i) {
     const double v = std::clamp(small.at<float>(i / size, i % size) / white, 0.0, 1.0);
-    out[static_cast<size_t>(i)] = static_cast<uint8_t>(std::lround(255 * std::pow(v, 1 / 2.2)));
+    out[static_cast<size_t>(i)] = static_cast<uint8_t>(std::lround(255 * std::pow(v, 1 / gamma)));
   }
   return out;
 }
@@ -281,7 +282,6 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
     const double depth = camera.model.rotation().row(2).dot(centre - camera.model.position());
     const double side = options.crop_mm * camera.model.fx() / depth;
     crops.cameras.push_back(camera.id);
-    crops.boxes.push_back({{"camera", camera.id}, {"centre_px", {pixel.x(), pixel.y()}}, {"side_px", side}});
     double white = 0;  // the camera's first crop's 99.5th percentile: one scale for all its frames
     STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
         camera.path, frames.front(), frames.back() + 1, light, camera.black_level_dn,
@@ -298,6 +298,9 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           crops.valid[frame][c] = 1;
           return absl::OkStatus();
         }));
+    // Where and how bright: what cropping a new frame of the camera the same way needs (CropBox).
+    crops.boxes.push_back(
+        {{"camera", camera.id}, {"centre_px", {pixel.x(), pixel.y()}}, {"side_px", side}, {"white_dn", white}});
   }
   return crops;
 }
@@ -507,28 +510,51 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   return summary;
 }
 
-absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
-  STAGE_ASSIGN_OR_RETURN(auto reader, storage::ArrayFileReader::Open(path));
-  auto format = reader->Attribute("format");
+namespace {
+
+// The description attribute read into `d` (sizes, sequences, cameras, crops).
+absl::Status ReadDescription(const storage::ArrayFileReader& reader, const std::string& path, AssetDataset* d) {
+  auto format = reader.Attribute("format");
   if (!format.ok() || *format != kFormat) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": not a FaStage asset dataset (format \"",
                                                    format.ok() ? *format : "", "\", expected ", kFormat, ")"));
   }
-  AssetDataset d;
-  d.path = path;
-  STAGE_ASSIGN_OR_RETURN(d.description, reader->Attribute("description"));
-  const nlohmann::json j = nlohmann::json::parse(d.description, nullptr, false);
+  d->path = path;
+  STAGE_ASSIGN_OR_RETURN(d->description, reader.Attribute("description"));
+  const nlohmann::json j = nlohmann::json::parse(d->description, nullptr, false);
   if (!j.is_object() || !j.contains("sequences") || !j.contains("geometry_size")) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": the description is not a dataset's"));
   }
   try {
-    d.sequences = j["sequences"].get<std::vector<std::string>>();
-    d.geometry_size = j["geometry_size"].get<int>();
-    d.cameras = j.value("cameras", std::vector<std::string>());
-    d.image_size = j.value("image_size", 0);
+    d->sequences = j["sequences"].get<std::vector<std::string>>();
+    d->geometry_size = j["geometry_size"].get<int>();
+    d->cameras = j.value("cameras", std::vector<std::string>());
+    d->image_size = j.value("image_size", 0);
+    for (const nlohmann::json& box : j.value("crops", nlohmann::json::array())) {
+      if (!box.contains("white_dn")) continue;  // written before the white was kept
+      d->crops.push_back({box.at("camera").get<std::string>(), box.at("centre_px").at(0).get<double>(),
+                          box.at("centre_px").at(1).get<double>(), box.at("side_px").get<double>(),
+                          box.at("white_dn").get<double>()});
+    }
   } catch (const nlohmann::json::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": the description does not read: ", e.what()));
   }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<AssetDataset> ReadAssetDatasetDescription(const std::string& path) {
+  STAGE_ASSIGN_OR_RETURN(auto reader, storage::ArrayFileReader::Open(path));
+  AssetDataset d;
+  STAGE_RETURN_IF_ERROR(ReadDescription(*reader, path, &d));
+  return d;
+}
+
+absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
+  STAGE_ASSIGN_OR_RETURN(auto reader, storage::ArrayFileReader::Open(path));
+  AssetDataset d;
+  STAGE_RETURN_IF_ERROR(ReadDescription(*reader, path, &d));
   STAGE_ASSIGN_OR_RETURN(d.frame, reader->ReadAll<int64_t>("frame"));
   STAGE_ASSIGN_OR_RETURN(const std::vector<uint8_t> split, reader->ReadAll<uint8_t>("split"));
   STAGE_ASSIGN_OR_RETURN(d.sequence, reader->ReadAll<int32_t>("sequence"));
@@ -553,6 +579,48 @@ absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
     d.split.push_back(static_cast<SampleSplit>(s));
   }
   return d;
+}
+
+absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string& camera) {
+  for (const CropBox& box : d.crops) {
+    if (box.camera == camera) return box;
+  }
+  std::vector<std::string> ids;
+  for (const CropBox& box : d.crops) ids.push_back(box.camera);
+  return absl::NotFoundError(absl::StrCat(d.path, ": no crop of camera \"", camera, "\" (it cropped: ",
+                                          ids.empty() ? "none kept: rebuild it" : absl::StrJoin(ids, ", "), ")"));
+}
+
+std::vector<uint8_t> CropFrame(const std::vector<float>& grey, int width, int height, const CropBox& box, int size,
+                               double white, double gamma) {
+  Image image(width, height, 1);
+  image.pixels = grey;
+  return Crop(Patch(image, {box.centre_x, box.centre_y}, box.side), size, white, gamma);
+}
+
+double CropWhite(const std::vector<float>& grey, int width, int height, const CropBox& box) {
+  Image image(width, height, 1);
+  image.pixels = grey;
+  return White(Patch(image, {box.centre_x, box.centre_y}, box.side));
+}
+
+absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, int size, int64_t first, int64_t last,
+                             const std::function<absl::Status(int64_t, const std::vector<uint8_t>&)>& fn) {
+  if (!(box.white > 0)) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("camera ", box.camera, ": its crops have no white (the dataset saw no frame of it)"));
+  }
+  STAGE_ASSIGN_OR_RETURN(const LoadedRig rig, LoadTakeRig(take_dir));
+  STAGE_ASSIGN_OR_RETURN(const LightModel light, LightModel::FromRig(rig));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<TakeCamera> cameras, OpenTakeCameras(take_dir, rig, {box.camera}, nullptr));
+  const TakeCamera& camera = cameras.front();
+  const int64_t cycle = static_cast<int64_t>(light.patterns.size());
+  const int64_t end = last < 0 ? camera.last_slot / std::max<int64_t>(1, cycle) + 1 : last;
+  return ForEachFullLitFrame(camera.path, first, end, light, camera.black_level_dn,
+                             [&](int64_t frame, const Image& grey) -> absl::Status {
+                               return fn(frame, Crop(Patch(grey, {box.centre_x, box.centre_y}, box.side), size,
+                                                     box.white));
+                             });
 }
 
 }  // namespace stage::processing

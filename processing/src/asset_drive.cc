@@ -223,28 +223,6 @@ absl::StatusOr<ExpressionEvaluation> EvaluateExpression(const ExpressionVae& net
   return out;
 }
 
-absl::StatusOr<ExpressionVaeOptions> ExpressionOptionsOf(const std::string& run_dir, const nlohmann::json& o,
-                                                         int threads, std::vector<std::string>* held_out) {
-  ExpressionVaeOptions options;
-  options.threads = threads;
-  try {
-    if (o.at("network") != "expression") {
-      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
-                                                     " network, not the expression VAE"));
-    }
-    options.input_size = o.at("input_size").get<int>();
-    options.levels = o.at("levels").get<int>();
-    options.base_channels = o.at("base_channels").get<int>();
-    options.max_channels = o.at("max_channels").get<int>();
-    options.expression_latent = o.at("expression_latent").get<int>();
-    options.view_latent = o.at("view_latent").get<int>();
-    *held_out = o.at("held_out_cameras").get<std::vector<std::string>>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
-  }
-  return options;
-}
-
 // The three finished nets and what they read: the asset as the driven evaluation and inference use it.
 struct DrivenAsset {
   PreparedData data;  // at the geometry net's size
@@ -271,13 +249,9 @@ absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const st
                                             const std::string& expression_run, int threads) {
   DrivenAsset a;
   STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryRun(geometry_run, dataset, &a.data, threads));
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json options, asset_internal::RunOptions(expression_run));
-  STAGE_ASSIGN_OR_RETURN(const ExpressionVaeOptions e,
-                         ExpressionOptionsOf(expression_run, options, threads, &a.held_out));
-  STAGE_ASSIGN_OR_RETURN(a.expression, ExpressionVae::Create(e));
-  STAGE_RETURN_IF_ERROR(a.expression->Load(expression_run + "/expression_vae.pt"));
+  STAGE_ASSIGN_OR_RETURN(a.expression, asset_internal::LoadExpressionNet(expression_run, threads, &a.held_out));
   STAGE_ASSIGN_OR_RETURN(a.trained, TrainedCameras(a.data.dataset, a.held_out));
-  STAGE_ASSIGN_OR_RETURN(a.crops, CropsAt(a.data.dataset, e.input_size));
+  STAGE_ASSIGN_OR_RETURN(a.crops, CropsAt(a.data.dataset, a.expression->options().input_size));
   STAGE_ASSIGN_OR_RETURN(a.expression_latents, EncodeAll(*a.expression, a.crops));
   const NetMaps& m = a.data.maps;
   for (int64_t f = 0; f < a.data.dataset.frames(); ++f) {
@@ -389,6 +363,63 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> CreateMapping(const DrivenAsset& 
 }
 
 }  // namespace
+
+namespace asset_internal {
+
+absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::string& run_dir, int threads,
+                                                                 std::vector<std::string>* held_out) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  ExpressionVaeOptions options;
+  options.threads = threads;
+  try {
+    if (o.at("network") != "expression") {
+      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
+                                                     " network, not the expression VAE"));
+    }
+    options.input_size = o.at("input_size").get<int>();
+    options.levels = o.at("levels").get<int>();
+    options.base_channels = o.at("base_channels").get<int>();
+    options.max_channels = o.at("max_channels").get<int>();
+    options.expression_latent = o.at("expression_latent").get<int>();
+    options.view_latent = o.at("view_latent").get<int>();
+    *held_out = o.at("held_out_cameras").get<std::vector<std::string>>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
+  }
+  STAGE_ASSIGN_OR_RETURN(auto net, ExpressionVae::Create(options));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/expression_vae.pt"));
+  return net;
+}
+
+absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string& run_dir, int input, int output,
+                                                              int threads) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  LatentMappingOptions options;
+  options.threads = threads;
+  try {
+    if (o.at("network") != "mapping") {
+      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
+                                                     " network, not the latent mapping"));
+    }
+    options.input = o.at("input").get<int>();
+    options.output = o.at("output").get<int>();
+    options.hidden = o.at("hidden").get<int>();
+    options.layers = o.at("layers").get<int>();
+  } catch (const nlohmann::json::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
+  }
+  if (options.input != input || options.output != output) {
+    return absl::FailedPreconditionError(absl::StrCat(run_dir, ": maps ", options.input, " to ", options.output,
+                                                      " latents, the VAEs have ", input, " and ", output));
+  }
+  // The normalization is the trained net's (buffers of its weights, loaded below).
+  STAGE_ASSIGN_OR_RETURN(auto net, LatentMapping::Create(options, std::vector<float>(output, 0.f),
+                                                         std::vector<float>(output, 1.f)));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/mapping.pt"));
+  return net;
+}
+
+}  // namespace asset_internal
 
 absl::Status ExpressionTrainJob::Validate() const {
   if (dataset.empty()) return absl::InvalidArgumentError("expression training: no dataset");
@@ -534,26 +565,13 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                                      const std::string& expression_run,
                                                      const std::string& mapping_run) {
-  const std::string mapping_dir = asset_internal::RunDir(mapping_run, dataset, "mapping");
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(mapping_dir));
   STAGE_ASSIGN_OR_RETURN(
       DrivenAsset a,
       LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
                       asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
-  LatentMappingOptions options;
-  try {
-    if (o.at("network") != "mapping") {
-      return absl::InvalidArgumentError(absl::StrCat(mapping_dir, ": a run of the ", o.at("network").dump(),
-                                                     " network, not the latent mapping"));
-    }
-    options.hidden = o.at("hidden").get<int>();
-    options.layers = o.at("layers").get<int>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(mapping_dir, "/trainer.json: options: ", e.what()));
-  }
-  // The normalization is the trained net's (its buffers, loaded with its weights); these are placeholders.
-  STAGE_ASSIGN_OR_RETURN(a.mapping, CreateMapping(a, options, MappingPairs(a)));
-  STAGE_RETURN_IF_ERROR(a.mapping->Load(mapping_dir + "/mapping.pt"));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadMappingNet(asset_internal::RunDir(mapping_run, dataset, "mapping"),
+                                                        a.ExpressionSize(), a.GeometrySize(), /*threads=*/0));
   return EvaluateDriven(a);
 }
 

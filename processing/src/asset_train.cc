@@ -310,8 +310,7 @@ absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir) {
   return j["options"];
 }
 
-absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
-                                                             PreparedData* data, int threads) {
+absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryNet(const std::string& run_dir, int threads) {
   STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
   GeometryVaeOptions options;
   options.threads = threads;
@@ -329,9 +328,17 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& 
   } catch (const nlohmann::json::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
   }
-  STAGE_ASSIGN_OR_RETURN(*data, Prepare(dataset, options.input_size));
-  STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(options, data->mean, data->scale));
+  // The normalization is the trained net's (buffers of its weights, loaded below).
+  const size_t texels = static_cast<size_t>(options.input_size) * options.input_size;
+  STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(options, std::vector<float>(3 * texels, 0.f), 1.f));
   STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/geometry_vae.pt"));
+  return net;
+}
+
+absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
+                                                             PreparedData* data, int threads) {
+  STAGE_ASSIGN_OR_RETURN(auto net, LoadGeometryNet(run_dir, threads));
+  STAGE_ASSIGN_OR_RETURN(*data, Prepare(dataset, net->options().input_size));
   return net;
 }
 

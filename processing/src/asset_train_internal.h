@@ -47,8 +47,16 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
 // A finished run's trainer.json options (NotFound naming the file where there is no run).
 absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir);
 
-// A finished geometry run's net (its options from trainer.json, its weights from geometry_vae.pt) on `data` (the
-// dataset prepared at the net's input size, which the run's options give: `data` is prepared here).
+// Finished runs' nets: their options from trainer.json, their weights (and normalizations) from the run's net file
+// (geometry_vae.pt, expression_vae.pt, mapping.pt). The expression run's held-out cameras into `held_out`; the
+// mapping's sizes are checked against `input` and `output`.
+absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryNet(const std::string& run_dir, int threads);
+absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::string& run_dir, int threads,
+                                                                 std::vector<std::string>* held_out);
+absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string& run_dir, int input, int output,
+                                                              int threads);
+
+// A finished geometry run's net with `data`, the dataset prepared at the net's input size.
 absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
                                                              PreparedData* data, int threads = 0);
 

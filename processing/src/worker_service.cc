@@ -8,6 +8,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/calibrate.h"
 #include "stage/processing/mvs.h"
@@ -52,10 +53,12 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
       job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
       job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE &&
-      job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET && job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
+      job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET && job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN &&
+      job->stage() != v1::PROCESSING_STAGE_ASSET_INFER) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
         "worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
-        " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train)")));
+        " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train, asset "
+        "infer)")));
   }
   if (job->has_asset() && job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET &&
       job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
@@ -107,6 +110,9 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       break;
     case v1::PROCESSING_STAGE_ASSET_TRAIN:
       result = RunAssetTrainJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_ASSET_INFER:
+      result = RunAssetInferJob(*job, report, cancelled);
       break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);
@@ -393,6 +399,33 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   return Finished(result->steps, result->output_dir,
                   absl::StrCat("geometry VAE trained ", result->steps, " steps into ", result->output_dir, "\n",
                                FormatTrainedEvaluation(result->evaluation)));
+}
+
+absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetInferJob(
+    const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
+    const std::function<bool()>& cancelled) const {
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0 ||
+      !job.calibration().empty() || job.has_asset()) {
+    return absl::InvalidArgumentError(
+        "the asset's inference takes one camera and frames only: it reads the asset of TAKE/derived/asset");
+  }
+  if (job.cameras_size() != 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the asset's inference drives it from one camera: the job names ", job.cameras_size()));
+  }
+  AssetInferOptions o;
+  o.dataset = job.take_dir() + "/derived/asset/dataset.h5";
+  o.camera = job.cameras(0);
+  o.take_dir = job.take_dir();
+  o.first_frame = job.first_frame();
+  o.last_frame = job.last_frame() > 0 ? job.last_frame() : -1;
+  o.progress = [&](int64_t done) { progress({done, 0, "frames driven"}); };
+  o.cancelled = cancelled;
+  auto result = InferAsset(o);
+  if (!result.ok()) return result.status();
+  return Finished(static_cast<int64_t>(result->frames.size()), result->output_dir,
+                  absl::StrCat(result->frames.size(), " frame(s) of ", o.camera, " drove the asset into ",
+                               result->output_dir));
 }
 
 }  // namespace stage::processing

@@ -53,6 +53,9 @@ class WorkerService final : public v1::ProcessingWorker::Service {
   absl::StatusOr<v1::ProcessingProgress> RunAssetTrainJob(const v1::ProcessingJob& job,
                                                           const std::function<void(const JobProgress&)>& progress,
                                                           const std::function<bool()>& cancelled) const;
+  absl::StatusOr<v1::ProcessingProgress> RunAssetInferJob(const v1::ProcessingJob& job,
+                                                          const std::function<void(const JobProgress&)>& progress,
+                                                          const std::function<bool()>& cancelled) const;
   std::string id_;
   std::string rig_hash_;
   uint32_t threads_;

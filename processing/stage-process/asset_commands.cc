@@ -22,8 +22,8 @@ void AssetCommands::Add(CLI::App& parent) {
   app_ = parent.add_subcommand(
       "asset",
       "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
-      "geometry VAE, expression VAE and the mapping between their latents, and their evaluation (the texture "
-      "network and inference are to come)");
+      "geometry VAE, expression VAE and the mapping between their latents, their evaluation, and the asset driven "
+      "from a camera's images (the texture network is to come)");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -163,6 +163,61 @@ void AssetCommands::AddTrain() {
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
                         "mapping: the expression VAE's run (default: the dataset's directory/expression)");
   evaluate_->add_flag("--json", json_, "Print the evaluation as JSON on stdout");
+  AddInfer();
+}
+
+void AssetCommands::AddInfer() {
+  processing::AssetInferOptions& o = infer_;
+  infer_app_ = app_->add_subcommand(
+      "infer",
+      "Drives the trained asset from one camera's images (docs/asset.md#inference): each cropped as the dataset "
+      "crops that camera, encoded, mapped and decoded to the frame's UV geometry map and the face template's mesh "
+      "(OUTPUT/frame-NNNNNN/crop.png, geometry_map.exr, mesh.obj; frames.json)");
+  infer_app_->add_option("--dataset", o.dataset, "The asset's dataset (the trained runs beside it)")->required();
+  infer_app_->add_option("--camera", o.camera, "The camera the images are of (one the dataset cropped)")->required();
+  auto* take = infer_app_->add_option("--take", o.take_dir, "A take whose full-lit frames of the camera drive it");
+  auto* video = infer_app_->add_option(
+      "--video", o.video,
+      "Or a video file (or an image sequence, dir/frame-%04d.png) of the camera's view, display-referred 8-bit");
+  take->excludes(video);
+  infer_app_->add_option("--frames", infer_frames_, "The take's frames A:B (B excluded), A: to the end, or A")
+      ->capture_default_str();
+  infer_app_->add_option("--output", o.output_dir,
+                         "The output directory (default TAKE/derived/asset/infer/CAMERA, or VIDEO-asset beside it)");
+  infer_app_->add_option("--geometry-run", o.geometry_run, "The geometry VAE's run (default: beside the dataset)");
+  infer_app_->add_option("--expression-run", o.expression_run, "The expression VAE's run (default: beside it)");
+  infer_app_->add_option("--mapping-run", o.mapping_run, "The mapping's run (default: beside it)");
+  infer_app_->add_flag("--no-meshes", no_meshes_, "Write no mesh.obj");
+  infer_app_->add_option("--threads", o.threads, "Torch's threads (0: the cores this process may use)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  infer_app_->add_flag("--json", json_, "Print the result as JSON on stdout");
+}
+
+int AssetCommands::Infer() {
+  processing::AssetInferOptions& o = infer_;
+  if (!o.take_dir.empty()) {
+    if (auto s = ParseFrameRange("--frames", infer_frames_, &o.first_frame, &o.last_frame); !s.ok()) {
+      return ReportFatal(kProgram, s);
+    }
+  } else if (infer_app_->count("--frames") > 0) {
+    return ReportFatal(kProgram, absl::InvalidArgumentError("--frames are a take's: a --video is read whole"));
+  }
+  o.meshes = !no_meshes_;
+  ProgressLine bar("frames");
+  o.progress = [&bar](int64_t done) {  // the count is not known ahead (a video's, a take's lost frames)
+    if (done % 10 == 0) bar.Message(absl::StrCat(done, " frame(s) driven"));
+  };
+  auto result = processing::InferAsset(o);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  if (json_) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->frames}}.dump() << "\n";
+  } else {
+    std::cout << result->frames.size() << " frame(s) of " << o.camera << " drove the asset into " << result->output_dir
+              << "\n";
+  }
+  return 0;
 }
 
 bool AssetCommands::Parsed() const { return app_ != nullptr && app_->parsed(); }
@@ -171,6 +226,7 @@ int AssetCommands::Run() {
   if (build_dataset_->parsed()) return BuildDataset();
   if (train_->parsed()) return Train();
   if (evaluate_->parsed()) return Evaluate();
+  if (infer_app_->parsed()) return Infer();
   return 0;
 }
 

@@ -4,6 +4,7 @@
 #include <CLI/CLI.hpp>
 
 #include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
 
 namespace stage::process {
@@ -17,11 +18,13 @@ class AssetCommands {
 
  private:
   void AddTrain();
+  void AddInfer();
   int BuildDataset();
   int Train();
   int TrainExpression();
   int TrainMapping();
   int Evaluate();
+  int Infer();
 
   CLI::App* app_ = nullptr;
   CLI::App* build_dataset_ = nullptr;
@@ -35,6 +38,10 @@ class AssetCommands {
   processing::MappingTrainJob mapping_job_;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;
+  CLI::App* infer_app_ = nullptr;
+  processing::AssetInferOptions infer_;
+  std::string infer_frames_ = "0:";
+  bool no_meshes_ = false;
   std::string frames_ = "0:", source_ = "truth";
   bool json_ = false;
 };

@@ -98,6 +98,13 @@ struct DatasetSummary {
 // file, a sequence not in the take, a geometry map of another layout.
 absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options);
 
+// How the dataset crops a camera's frames (its description's "crops"): the square's centre and side in the camera's
+// pixels, and the white its crops are scaled to (DN over the black level; 0 where the camera recorded no frame).
+struct CropBox {
+  std::string camera;
+  double centre_x = 0, centre_y = 0, side = 0, white = 0;
+};
+
 // A dataset read back whole.
 struct AssetDataset {
   std::string path;
@@ -113,11 +120,28 @@ struct AssetDataset {
   int image_size = 0;
   std::vector<uint8_t> images;       // frames x cameras x image_size^2
   std::vector<uint8_t> image_valid;  // frames x cameras
+  std::vector<CropBox> crops;        // per camera (empty in a dataset written before they were kept)
   std::string description;           // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };
 // Errors name the file: not a dataset, arrays of disagreeing lengths.
 absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path);
+// The description alone (sizes, sequences, cameras and crops; no arrays read).
+absl::StatusOr<AssetDataset> ReadAssetDatasetDescription(const std::string& path);
+
+// The crop box of `camera` in `d` (errors name the dataset, and the cameras it cropped).
+absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string& camera);
+// A grey frame (width x height floats, row-major) cropped as the dataset crops: the box's square averaged down to
+// size x size pixels, over `white`, through a 1/gamma curve (2.2 for a camera's linear frames, as the dataset's
+// crops; 1 for display-referred frames), 8 bits.
+std::vector<uint8_t> CropFrame(const std::vector<float>& grey, int width, int height, const CropBox& box, int size,
+                               double white, double gamma);
+// The 99.5th percentile of the box's square in a grey frame (at least 1).
+double CropWhite(const std::vector<float>& grey, int width, int height, const CropBox& box);
+// The full-lit frames [first, last) (last < 0: to the end) of the box's camera in a take, cropped as the dataset
+// cropped its own (black level removed, demosaiced to grey, the box's white, gamma 2.2): fn(frame, crop).
+absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, int size, int64_t first, int64_t last,
+                             const std::function<absl::Status(int64_t, const std::vector<uint8_t>&)>& fn);
 
 // The split of `frames` frames (in take order) whose sequence ids are `sequence` (-1: none), holding out sequence
 // `held_out` (-1: none) and `fraction` of the rest in `blocks` even blocks. Exposed for tests.

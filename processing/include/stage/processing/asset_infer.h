@@ -1,0 +1,59 @@
+// The trained asset driven from images (docs/asset.md#inference): each image of one camera cropped as the asset's
+// dataset crops that camera's frames, encoded by the expression VAE, its expression latent mapped to the geometry
+// latent, and decoded to the frame's UV geometry map (the head's frame, mm) and the face template's mesh at it.
+// The camera may be one the expression VAE never trained on (the paper's held-out view) but must be one the dataset
+// cropped, since its crop box and white are what place the face in its images with no pose known.
+//
+// Per frame, into the output directory's frame-NNNNNN/:
+//   crop.png          the crop the nets saw (8-bit grey)
+//   geometry_map.exr  the decoded map at the geometry VAE's resolution (stage/processing/uv_geometry.h's format)
+//   mesh.obj          the face template with its vertices where the map puts them (its UVs kept)
+// and frames.json (the camera, the source, the frames) once all are written.
+// Textures (the texture VAE's wrinkle maps over the neutral textures) are not built yet.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace stage::processing {
+
+struct AssetInferOptions {
+  // The asset's dataset: its crop of `camera`, and the trained runs beside it.
+  std::string dataset;
+  // The runs (default: the dataset's directory/geometry, /expression, /mapping).
+  std::string geometry_run, expression_run, mapping_run;
+  // The camera the images are of (one the dataset cropped).
+  std::string camera;
+  // The images, from one of: a take's full-lit frames of the camera, frames [first_frame, last_frame) (last < 0: to
+  // the end); or a video file (or an image sequence, "dir/frame-%04d.png") of the camera's view that OpenCV reads:
+  // display-referred 8-bit frames at the camera's resolution, numbered from 0.
+  std::string take_dir;
+  int64_t first_frame = 0;
+  int64_t last_frame = -1;
+  std::string video;
+  // Default: TAKE/derived/asset/infer/<camera>, or beside the video: <its name without extension>-asset.
+  std::string output_dir;
+  bool meshes = true;  // false: no mesh.obj
+  int threads = 0;     // torch's (0: the cores this process may use)
+  // After each frame (frames done); asked before each: true stops (Cancelled; the frames written are kept, the
+  // frames.json is not).
+  std::function<void(int64_t)> progress;
+  std::function<bool()> cancelled;
+  absl::Status Validate() const;
+};
+
+struct AssetInferResult {
+  std::string output_dir;
+  std::vector<int64_t> frames;
+};
+
+// Errors name the file or the camera: no crop of the camera in the dataset, a run missing, a video that does not
+// open or whose frames do not hold the camera's crop box.
+absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options);
+
+}  // namespace stage::processing

@@ -1,0 +1,189 @@
+// The trained asset driven from images: see asset_infer.h.
+#include "stage/processing/asset_infer.h"
+
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <opencv2/videoio.hpp>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "asset_train_internal.h"
+#include "stage/common/file_util.h"
+#include "stage/common/mesh.h"
+#include "stage/common/status.h"
+#include "stage/processing/asset_dataset.h"
+#include "stage/processing/face_template.h"
+#include "stage/processing/photometric_stage.h"
+#include "stage/processing/uv_geometry.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+
+// The three nets and what placing a frame's output needs.
+struct Asset {
+  std::unique_ptr<GeometryVae> geometry;
+  std::unique_ptr<ExpressionVae> expression;
+  std::unique_ptr<LatentMapping> mapping;
+  FaceTemplate face;
+  int image_size = 0;  // the dataset's crops'
+};
+
+// A crop of the dataset's size averaged down to the expression net's input, 0..1.
+std::vector<float> NetInput(const std::vector<uint8_t>& crop, int size, int input) {
+  const int k = size / input;
+  std::vector<float> out(static_cast<size_t>(input) * input);
+  for (int y = 0; y < input; ++y) {
+    for (int x = 0; x < input; ++x) {
+      int sum = 0;
+      for (int dy = 0; dy < k; ++dy) {
+        for (int dx = 0; dx < k; ++dx) sum += crop[static_cast<size_t>(y * k + dy) * size + x * k + dx];
+      }
+      out[static_cast<size_t>(y) * input + x] = static_cast<float>(sum) / (255.f * k * k);
+    }
+  }
+  return out;
+}
+
+// One frame's crop driven through the nets, its files written into `dir`.
+absl::Status DriveFrame(const Asset& a, const std::vector<uint8_t>& crop, const std::string& dir, bool meshes) {
+  const int input = a.expression->options().input_size;
+  STAGE_ASSIGN_OR_RETURN(std::vector<float> z, a.expression->Encode(NetInput(crop, a.image_size, input), 1));
+  z.resize(static_cast<size_t>(a.expression->options().expression_latent));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> geometry_latent, a.mapping->Map(z, 1));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> nchw, a.geometry->Decode(geometry_latent, 1));
+  const int s = a.geometry->options().input_size;
+  const size_t texels = static_cast<size_t>(s) * s;
+  GeometryMap map;
+  map.size = s;
+  map.points.resize(texels);
+  map.state.assign(texels, TexelState::kCovered);
+  for (size_t t = 0; t < texels; ++t) map.points[t] = {nchw[t], nchw[texels + t], nchw[2 * texels + t]};
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  const cv::Mat image(a.image_size, a.image_size, CV_8U, const_cast<uint8_t*>(crop.data()));
+  if (!cv::imwrite(dir + "/crop.png", image)) return absl::UnavailableError(absl::StrCat(dir, "/crop.png: cannot write"));
+  STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", map));
+  if (!meshes) return absl::OkStatus();
+  TriangleMesh mesh = a.face.mesh;
+  for (size_t v = 0; v < mesh.positions.size(); ++v) {
+    if (const auto p = SampleGeometryMap(map, mesh.uvs[v])) mesh.positions[v] = *p;
+  }
+  return WriteObj(dir + "/mesh.obj", mesh, "FaStage neural asset: the face template driven from one camera's image");
+}
+
+// Each frame of a video (or image sequence) of the box's camera cropped as the dataset crops (display-referred
+// frames: the first crop's white, no gamma).
+absl::Status ForEachVideoCrop(const std::string& path, const CropBox& box, int size,
+                              const std::function<absl::Status(int64_t, const std::vector<uint8_t>&)>& fn) {
+  cv::VideoCapture video(path);
+  if (!video.isOpened()) return absl::NotFoundError(absl::StrCat(path, ": OpenCV cannot open it as a video"));
+  cv::Mat frame, grey, values;
+  double white = 0;
+  for (int64_t index = 0; video.read(frame); ++index) {
+    if (frame.channels() == 3) {
+      cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
+    } else {
+      grey = frame;
+    }
+    grey.convertTo(values, CV_32F);
+    const double half = box.side / 2;
+    if (box.centre_x - half < 0 || box.centre_y - half < 0 || box.centre_x + half > values.cols ||
+        box.centre_y + half > values.rows) {
+      return absl::InvalidArgumentError(
+          absl::StrFormat("%s: frames of %dx%d do not hold camera %s's crop box (%.0f px about %.0f, %.0f): are they "
+                          "of that camera, at its resolution?",
+                          path, values.cols, values.rows, box.camera, box.side, box.centre_x, box.centre_y));
+    }
+    const std::vector<float> pixels(values.begin<float>(), values.end<float>());
+    if (white == 0) white = CropWhite(pixels, values.cols, values.rows, box);
+    STAGE_RETURN_IF_ERROR(fn(index, CropFrame(pixels, values.cols, values.rows, box, size, white, /*gamma=*/1)));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status AssetInferOptions::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("asset inference: no dataset (the asset's)");
+  if (camera.empty()) return absl::InvalidArgumentError("asset inference: no camera (whose images drive the asset)");
+  if (take_dir.empty() == video.empty()) {
+    return absl::InvalidArgumentError("asset inference: the images come from a take or a video, one of the two");
+  }
+  if (!video.empty() && (first_frame != 0 || last_frame >= 0)) {
+    return absl::InvalidArgumentError("asset inference: frames are a take's: a video is read whole");
+  }
+  if (first_frame < 0 || (last_frame >= 0 && last_frame <= first_frame)) {
+    return absl::InvalidArgumentError(absl::StrCat("asset inference: frames [", first_frame, ", ", last_frame, ")"));
+  }
+  if (threads < 0) return absl::InvalidArgumentError(absl::StrCat("asset inference: threads ", threads));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  STAGE_ASSIGN_OR_RETURN(const AssetDataset d, ReadAssetDatasetDescription(options.dataset));
+  STAGE_ASSIGN_OR_RETURN(const CropBox box, DatasetCropBox(d, options.camera));
+  using asset_internal::RunDir;
+  Asset a;
+  a.image_size = d.image_size;
+  std::vector<std::string> held_out;
+  STAGE_ASSIGN_OR_RETURN(a.expression, asset_internal::LoadExpressionNet(
+                                           RunDir(options.expression_run, options.dataset, "expression"),
+                                           options.threads, &held_out));
+  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(
+                                         RunDir(options.geometry_run, options.dataset, "geometry"), options.threads));
+  STAGE_ASSIGN_OR_RETURN(
+      a.mapping, asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
+                                                a.expression->options().expression_latent,
+                                                a.geometry->options().geometry_latent, options.threads));
+  if (d.image_size % a.expression->options().input_size != 0) {
+    return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
+                                                      " px) are not the expression VAE's input size's multiple"));
+  }
+  STAGE_ASSIGN_OR_RETURN(a.face, ShippedFaceTemplate());
+
+  AssetInferResult result;
+  if (!options.output_dir.empty()) {
+    result.output_dir = options.output_dir;
+  } else if (!options.take_dir.empty()) {
+    result.output_dir = options.take_dir + "/derived/asset/infer/" + options.camera;
+  } else {
+    const fs::path video(options.video);
+    result.output_dir = (video.parent_path() / (video.stem().string() + "-asset")).string();
+  }
+  auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
+    if (options.cancelled && options.cancelled()) {
+      return absl::CancelledError(absl::StrCat("asset inference stopped before frame ", frame, " (", result.frames.size(),
+                                               " written into ", result.output_dir, ")"));
+    }
+    STAGE_RETURN_IF_ERROR(DriveFrame(a, crop, FrameDir(result.output_dir, frame), options.meshes));
+    result.frames.push_back(frame);
+    if (options.progress) options.progress(static_cast<int64_t>(result.frames.size()));
+    return absl::OkStatus();
+  };
+  if (!options.take_dir.empty()) {
+    STAGE_RETURN_IF_ERROR(
+        ForEachTakeCrop(options.take_dir, box, d.image_size, options.first_frame, options.last_frame, drive));
+  } else {
+    STAGE_RETURN_IF_ERROR(ForEachVideoCrop(options.video, box, d.image_size, drive));
+  }
+  if (result.frames.empty()) {
+    return absl::NotFoundError(absl::StrCat(options.take_dir.empty() ? options.video : options.take_dir,
+                                            ": no frame of camera ", options.camera, " to drive the asset from"));
+  }
+  const nlohmann::json summary = {
+      {"camera", options.camera},
+      {"held_out", std::find(held_out.begin(), held_out.end(), options.camera) != held_out.end()},
+      {"source", options.take_dir.empty() ? "video" : "take"},
+      {"frames", result.frames},
+      {"geometry_size", a.geometry->options().input_size}};
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/frames.json", summary.dump(2) + "\n"));
+  return result;
+}
+
+}  // namespace stage::processing
