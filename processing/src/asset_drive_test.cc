@@ -6,10 +6,14 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <opencv2/imgcodecs.hpp>
+
+#include "absl/strings/str_format.h"
 
 #include "asset_test_support.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
 
 namespace stage::processing {
@@ -101,6 +105,30 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
         << ", autoencoded " << ceiling;
   }
   std::cout << FormatDrivenEvaluation(m->evaluation);
+
+  // Driven from a video of the held-out camera (an image sequence; its frames are the crops themselves): a map and a
+  // mesh a frame.
+  const std::string video = ::testing::TempDir() + "/drive-video";
+  std::filesystem::remove_all(video);
+  std::filesystem::create_directories(video);
+  for (int f = 0; f < 3; ++f) {
+    cv::Mat frame(kImage, kImage, CV_8U);
+    for (int y = 0; y < kImage; ++y) {
+      for (int x = 0; x < kImage; ++x) frame.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(255 * CropPixel(60 + f, 1, x, y));
+    }
+    ASSERT_TRUE(cv::imwrite(absl::StrFormat("%s/frame-%04d.png", video, f), frame));
+  }
+  auto inferred = InferAsset({.dataset = dataset, .camera = "cam-1", .video = video + "/frame-%04d.png"});
+  ASSERT_TRUE(inferred.ok()) << inferred.status();
+  EXPECT_THAT(inferred->frames, ::testing::ElementsAre(0, 1, 2));
+  EXPECT_EQ(inferred->output_dir, ::testing::TempDir() + "/drive-video/frame-%04d-asset");
+  for (const char* file : {"/frame-000002/geometry_map.exr", "/frame-000002/mesh.obj", "/frames.json"}) {
+    EXPECT_TRUE(std::filesystem::exists(inferred->output_dir + file)) << file;
+  }
+  cv::Mat tiny(16, 16, CV_8U, cv::Scalar(10));
+  ASSERT_TRUE(cv::imwrite(video + "/tiny-0000.png", tiny));
+  EXPECT_THAT(InferAsset({.dataset = dataset, .camera = "cam-1", .video = video + "/tiny-%04d.png"}).status().message(),
+              HasSubstr("frames of 16x16 do not hold camera cam-1's crop box"));
 
   // The same evaluation from the finished runs.
   auto again = EvaluateDrivenAsset(dataset);

@@ -114,9 +114,18 @@ inline std::string WriteMadeUpDataset(const std::string& name, int frames, int s
     EXPECT_TRUE((*writer)->Append("images", images.data()).ok());
     EXPECT_TRUE((*writer)->Append("image_valid", image_valid.data()).ok());
   }
+  // Each camera's frames are its crops: the box is the whole frame, white at full scale.
+  nlohmann::json boxes = nlohmann::json::array();
+  for (const std::string& id : cameras) {
+    boxes.push_back({{"camera", id},
+                     {"centre_px", {image_size / 2.0, image_size / 2.0}},
+                     {"side_px", image_size},
+                     {"white_dn", 255.0}});
+  }
   nlohmann::json description = {{"source", "truth"},     {"take", name},
                                  {"geometry_size", size}, {"sequences", names},
-                                 {"cameras", cameras},    {"image_size", image_size}};
+                                 {"cameras", cameras},    {"image_size", image_size},
+                                 {"crops", boxes}};
   EXPECT_TRUE((*writer)->SetAttribute("format", "fastage-asset-dataset-1").ok());
   EXPECT_TRUE((*writer)->SetAttribute("description", description.dump()).ok());
   EXPECT_TRUE((*writer)->Close().ok());
