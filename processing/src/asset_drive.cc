@@ -368,24 +368,20 @@ namespace asset_internal {
 
 absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::string& run_dir, int threads,
                                                                  std::vector<std::string>* held_out) {
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "expression"));
   ExpressionVaeOptions options;
   options.threads = threads;
-  try {
-    if (o.at("network") != "expression") {
-      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
-                                                     " network, not the expression VAE"));
-    }
-    options.input_size = o.at("input_size").get<int>();
-    options.levels = o.at("levels").get<int>();
-    options.base_channels = o.at("base_channels").get<int>();
-    options.max_channels = o.at("max_channels").get<int>();
-    options.expression_latent = o.at("expression_latent").get<int>();
-    options.view_latent = o.at("view_latent").get<int>();
-    *held_out = o.at("held_out_cameras").get<std::vector<std::string>>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
+  STAGE_RETURN_IF_ERROR(ReadIntOptions(run_dir, o,
+                                       {{"input_size", &options.input_size},
+                                        {"levels", &options.levels},
+                                        {"base_channels", &options.base_channels},
+                                        {"max_channels", &options.max_channels},
+                                        {"expression_latent", &options.expression_latent},
+                                        {"view_latent", &options.view_latent}}));
+  if (!o.contains("held_out_cameras") || !o["held_out_cameras"].is_array()) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: option held_out_cameras is missing"));
   }
+  *held_out = o["held_out_cameras"].get<std::vector<std::string>>();
   STAGE_ASSIGN_OR_RETURN(auto net, ExpressionVae::Create(options));
   STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/expression_vae.pt"));
   return net;
@@ -393,21 +389,14 @@ absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::stri
 
 absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string& run_dir, int input, int output,
                                                               int threads) {
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "mapping"));
   LatentMappingOptions options;
   options.threads = threads;
-  try {
-    if (o.at("network") != "mapping") {
-      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
-                                                     " network, not the latent mapping"));
-    }
-    options.input = o.at("input").get<int>();
-    options.output = o.at("output").get<int>();
-    options.hidden = o.at("hidden").get<int>();
-    options.layers = o.at("layers").get<int>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
-  }
+  STAGE_RETURN_IF_ERROR(ReadIntOptions(run_dir, o,
+                                       {{"input", &options.input},
+                                        {"output", &options.output},
+                                        {"hidden", &options.hidden},
+                                        {"layers", &options.layers}}));
   if (options.input != input || options.output != output) {
     return absl::FailedPreconditionError(absl::StrCat(run_dir, ": maps ", options.input, " to ", options.output,
                                                       " latents, the VAEs have ", input, " and ", output));

@@ -299,7 +299,7 @@ absl::StatusOr<PreparedData> Prepare(const std::string& path, int size) {
   return p;
 }
 
-absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir) {
+absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir, const std::string& network) {
   const std::string trainer = run_dir + "/trainer.json";
   std::ifstream in(trainer);
   if (!in) return absl::NotFoundError(absl::StrCat(trainer, ": cannot open (is ", run_dir, " a training run?)"));
@@ -307,27 +307,36 @@ absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir) {
   if (!j.is_object() || !j.contains("options") || !j["options"].is_object()) {
     return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
   }
-  return j["options"];
+  const nlohmann::json& o = j["options"];
+  if (o.value("network", "") != network) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.value("network", nlohmann::json()).dump(),
+                                                   " network, not the ", network, " one"));
+  }
+  return o;
+}
+
+absl::Status ReadIntOptions(const std::string& run_dir, const nlohmann::json& o,
+                            std::initializer_list<std::pair<const char*, int*>> fields) {
+  for (const auto& [name, field] : fields) {
+    if (!o.contains(name) || !o[name].is_number_integer()) {
+      return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: option ", name, " is missing"));
+    }
+    *field = o[name].get<int>();
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryNet(const std::string& run_dir, int threads) {
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir));
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "geometry"));
   GeometryVaeOptions options;
   options.threads = threads;
-  try {
-    if (o.at("network") != "geometry") {
-      return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.at("network").dump(),
-                                                     " network, not the geometry VAE"));
-    }
-    options.input_size = o.at("input_size").get<int>();
-    options.levels = o.at("levels").get<int>();
-    options.base_channels = o.at("base_channels").get<int>();
-    options.max_channels = o.at("max_channels").get<int>();
-    options.geometry_latent = o.at("geometry_latent").get<int>();
-    options.pose_latent = o.at("pose_latent").get<int>();
-  } catch (const nlohmann::json::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: options: ", e.what()));
-  }
+  STAGE_RETURN_IF_ERROR(ReadIntOptions(run_dir, o,
+                                       {{"input_size", &options.input_size},
+                                        {"levels", &options.levels},
+                                        {"base_channels", &options.base_channels},
+                                        {"max_channels", &options.max_channels},
+                                        {"geometry_latent", &options.geometry_latent},
+                                        {"pose_latent", &options.pose_latent}}));
   // The normalization is the trained net's (buffers of its weights, loaded below).
   const size_t texels = static_cast<size_t>(options.input_size) * options.input_size;
   STAGE_ASSIGN_OR_RETURN(auto net, GeometryVae::Create(options, std::vector<float>(3 * texels, 0.f), 1.f));

@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <initializer_list>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -44,8 +45,12 @@ std::string DatasetId(const AssetDataset& d);
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered);
 
-// A finished run's trainer.json options (NotFound naming the file where there is no run).
-absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir);
+// A finished run's trainer.json options, of a run of `network` ("geometry", "expression", "mapping"; NotFound naming
+// the file where there is no run, InvalidArgument where it is another network's).
+absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir, const std::string& network);
+// Integer options of `o` into `fields` (errors name the run's trainer.json and the option).
+absl::Status ReadIntOptions(const std::string& run_dir, const nlohmann::json& o,
+                            std::initializer_list<std::pair<const char*, int*>> fields);
 
 // Finished runs' nets: their options from trainer.json, their weights (and normalizations) from the run's net file
 // (geometry_vae.pt, expression_vae.pt, mapping.pt). The expression run's held-out cameras into `held_out`; the
