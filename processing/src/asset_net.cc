@@ -614,9 +614,13 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
     const torch::Tensor reconstruction = (net->Decode(z) - images).pow(2).mean();
     const torch::Tensor expression_swap = (net->Decode(net->Mix(z_expression, z_anchor)) - anchor).pow(2).mean();
     const torch::Tensor view_swap = (net->Decode(net->Mix(z_anchor, z_view)) - anchor).pow(2).mean();
-    // Frame b's expression seen from the other camera: encoded again, the two latents come back.
-    const torch::Tensor crossed = net->Mix(mu.slice(0, 2 * b), mu.slice(0, b, 2 * b));
-    const torch::Tensor cycle = (net->Encode(net->Decode(crossed)).first - crossed.detach()).pow(2).mean();
+    // Frame b's expression seen from the other camera: encoded again, the two latents come back. Not computed when
+    // its weight is 0 (the default; a quarter of the step's work).
+    torch::Tensor cycle = torch::zeros({});
+    if (o.cycle_weight > 0) {
+      const torch::Tensor crossed = net->Mix(mu.slice(0, 2 * b), mu.slice(0, b, 2 * b));
+      cycle = (net->Encode(net->Decode(crossed)).first - crossed.detach()).pow(2).mean();
+    }
     const torch::Tensor kl = Kl(mu, logvar);
     const torch::Tensor total =
         reconstruction + o.swap_weight * (expression_swap + view_swap) + o.cycle_weight * cycle + o.kl_weight * kl;
