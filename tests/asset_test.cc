@@ -131,11 +131,31 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
       for (const auto& [file, bytes] : mine) EXPECT_TRUE(theirs.at(file) == bytes) << file << " differs in " << other;
     }
   };
-  CommandResult expression = RunCommand(
-      {"stage-process", "asset", "train", "--network", "expression", "--dataset", asset + "/dataset.h5", "--output",
-       asset + "/expression-batch", "--iterations", "20", "--batch", "4", "--input-size", "32", "--levels", "3",
-       "--max-channels", "32", "--expression-latent", "4", "--view-latent", "2", "--json"},
-      std::chrono::seconds(300));
+  CommandResult expression = RunCommand({"stage-process",
+                                         "asset",
+                                         "train",
+                                         "--network",
+                                         "expression",
+                                         "--dataset",
+                                         asset + "/dataset.h5",
+                                         "--output",
+                                         asset + "/expression-batch",
+                                         "--iterations",
+                                         "20",
+                                         "--batch",
+                                         "4",
+                                         "--input-size",
+                                         "32",
+                                         "--levels",
+                                         "3",
+                                         "--max-channels",
+                                         "32",
+                                         "--expression-latent",
+                                         "4",
+                                         "--view-latent",
+                                         "2",
+                                         "--json"},
+                                        std::chrono::seconds(300));
   ASSERT_EQ(expression.exit.exit_code, 0) << expression.err;
   EXPECT_EQ(nlohmann::json::parse(expression.out)["trained_cameras"].size(), 2u);
   processing::ExpressionTrainJob expression_job;
@@ -158,10 +178,10 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   EXPECT_EQ(last.output_dir(), asset + "/expression");
   same_runs("expression", "expression_vae.pt");
 
-  CommandResult mapping = RunCommand({"stage-process", "asset", "train", "--network", "mapping", "--dataset",
-                                      asset + "/dataset.h5", "--output", asset + "/mapping-batch", "--iterations",
-                                      "20", "--batch", "8", "--hidden", "16", "--json"},
-                                     std::chrono::seconds(300));
+  CommandResult mapping = RunCommand(
+      {"stage-process", "asset", "train", "--network", "mapping", "--dataset", asset + "/dataset.h5", "--output",
+       asset + "/mapping-batch", "--iterations", "20", "--batch", "8", "--hidden", "16", "--json"},
+      std::chrono::seconds(300));
   ASSERT_EQ(mapping.exit.exit_code, 0) << mapping.err;
   const nlohmann::json driven = nlohmann::json::parse(mapping.out)["evaluation"];
   ASSERT_EQ(driven["cameras"].size(), 2u);
@@ -184,9 +204,9 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), mapping_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/mapping");
   same_runs("mapping", "mapping.pt");
-  CommandResult evaluated = RunCommand({"stage-process", "asset", "evaluate", "--network", "mapping", "--dataset",
-                                        asset + "/dataset.h5", "--json"},
-                                       std::chrono::seconds(120));
+  CommandResult evaluated = RunCommand(
+      {"stage-process", "asset", "evaluate", "--network", "mapping", "--dataset", asset + "/dataset.h5", "--json"},
+      std::chrono::seconds(120));
   ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
   EXPECT_EQ(nlohmann::json::parse(evaluated.out), nlohmann::json::parse(ReadFile(asset + "/mapping/evaluation.json")));
 
@@ -227,8 +247,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
       std::chrono::seconds(60));
   ASSERT_EQ(opened.exit.exit_code, 0) << opened.err;
   EXPECT_THAT(opened.out, HasSubstr("True True True"));
-  CommandResult unknown = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5",
-                                      "--camera", "mv-09", "--take", take.path()},
+  CommandResult unknown = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
+                                      "mv-09", "--take", take.path()},
                                      std::chrono::seconds(60));
   EXPECT_EQ(unknown.exit.exit_code, 2);
   EXPECT_THAT(unknown.err, HasSubstr("no crop of camera \"mv-09\" (it cropped: mv-01, mv-05)"));

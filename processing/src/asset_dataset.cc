@@ -616,11 +616,10 @@ absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, in
   const TakeCamera& camera = cameras.front();
   const int64_t cycle = static_cast<int64_t>(light.patterns.size());
   const int64_t end = last < 0 ? camera.last_slot / std::max<int64_t>(1, cycle) + 1 : last;
-  return ForEachFullLitFrame(camera.path, first, end, light, camera.black_level_dn,
-                             [&](int64_t frame, const Image& grey) -> absl::Status {
-                               return fn(frame, Crop(Patch(grey, {box.centre_x, box.centre_y}, box.side), size,
-                                                     box.white));
-                             });
+  return ForEachFullLitFrame(
+      camera.path, first, end, light, camera.black_level_dn, [&](int64_t frame, const Image& grey) -> absl::Status {
+        return fn(frame, Crop(Patch(grey, {box.centre_x, box.centre_y}, box.side), size, box.white));
+      });
 }
 
 }  // namespace stage::processing

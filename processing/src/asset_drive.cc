@@ -37,12 +37,13 @@ struct Crops {
 absl::StatusOr<Crops> CropsAt(const AssetDataset& d, int size) {
   if (d.cameras.empty() || d.images.empty()) {
     return absl::FailedPreconditionError(
-        absl::StrCat(d.path, ": the dataset holds no crops (build it from a take whose cameras recorded full-lit "
-                             "frames: stage-sim-render --take, or a recorded take)"));
+        absl::StrCat(d.path,
+                     ": the dataset holds no crops (build it from a take whose cameras recorded full-lit "
+                     "frames: stage-sim-render --take, or a recorded take)"));
   }
   if (d.image_size % size != 0) {
-    return absl::InvalidArgumentError(absl::StrCat(d.path, ": its crops (", d.image_size,
-                                                   " pixels across) do not divide into the net's ", size));
+    return absl::InvalidArgumentError(
+        absl::StrCat(d.path, ": its crops (", d.image_size, " pixels across) do not divide into the net's ", size));
   }
   Crops c;
   c.size = size;
@@ -74,8 +75,8 @@ bool ImageValid(const AssetDataset& d, int64_t frame, int camera) {
 absl::StatusOr<std::vector<int>> TrainedCameras(const AssetDataset& d, const std::vector<std::string>& held_out) {
   for (const std::string& id : held_out) {
     if (std::find(d.cameras.begin(), d.cameras.end(), id) == d.cameras.end()) {
-      return absl::NotFoundError(absl::StrCat(d.path, ": camera \"", id, "\" is not among its crops' (",
-                                              absl::StrJoin(d.cameras, ", "), ")"));
+      return absl::NotFoundError(
+          absl::StrCat(d.path, ": camera \"", id, "\" is not among its crops' (", absl::StrJoin(d.cameras, ", "), ")"));
     }
   }
   std::vector<int> out;
@@ -349,7 +350,7 @@ nlohmann::json MappingOptionsJson(const MappingTrainJob& job, const LatentMappin
 
 // The mapping's net for `a`, its targets normalized over the training pairs.
 absl::StatusOr<std::unique_ptr<LatentMapping>> CreateMapping(const DrivenAsset& a, LatentMappingOptions o,
-                                                            const std::vector<std::pair<int64_t, int>>& pairs) {
+                                                             const std::vector<std::pair<int64_t, int>>& pairs) {
   o.input = a.ExpressionSize();
   o.output = a.GeometrySize();
   std::vector<std::vector<float>> targets;
@@ -402,8 +403,8 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string&
                                                       " latents, the VAEs have ", input, " and ", output));
   }
   // The normalization is the trained net's (buffers of its weights, loaded below).
-  STAGE_ASSIGN_OR_RETURN(auto net, LatentMapping::Create(options, std::vector<float>(output, 0.f),
-                                                         std::vector<float>(output, 1.f)));
+  STAGE_ASSIGN_OR_RETURN(
+      auto net, LatentMapping::Create(options, std::vector<float>(output, 0.f), std::vector<float>(output, 1.f)));
   STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/mapping.pt"));
   return net;
 }
@@ -462,8 +463,8 @@ absl::StatusOr<ExpressionTrainResult> TrainExpressionAsset(const ExpressionTrain
   result.steps = job.schedule.iterations;
   STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/expression_vae.pt"));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateExpression(*net, d, crops, trained));
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/evaluation.json",
-                                            ExpressionEvaluationJson(result.evaluation) + "\n"));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/evaluation.json", ExpressionEvaluationJson(result.evaluation) + "\n"));
   return result;
 }
 
@@ -486,8 +487,8 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   STAGE_RETURN_IF_ERROR(job.Validate());
   const std::string geometry_run = asset_internal::RunDir(job.geometry_run, job.dataset, "geometry");
   const std::string expression_run = asset_internal::RunDir(job.expression_run, job.dataset, "expression");
-  STAGE_ASSIGN_OR_RETURN(DrivenAsset a, LoadDrivenAsset(job.dataset, geometry_run, expression_run,
-                                                        job.mapping.threads));
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
+                         LoadDrivenAsset(job.dataset, geometry_run, expression_run, job.mapping.threads));
   const std::vector<std::pair<int64_t, int>> pairs = MappingPairs(a);
   if (pairs.empty()) {
     return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
@@ -507,8 +508,7 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   internal::TrainingLoop loop;
   loop.dir = result.output_dir;
   loop.what = "latent mapping";
-  loop.options =
-      MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset), geometry_run, expression_run);
+  loop.options = MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset), geometry_run, expression_run);
   loop.loss_names = {"total"};
   loop.iterations = job.schedule.iterations;
   loop.checkpoint_every = job.schedule.checkpoint_every;
@@ -546,18 +546,17 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   result.steps = job.schedule.iterations;
   STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/mapping.pt"));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateDriven(a));
-  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/evaluation.json",
-                                            DrivenEvaluationJson(result.evaluation) + "\n"));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
   return result;
 }
 
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                                      const std::string& expression_run,
                                                      const std::string& mapping_run) {
-  STAGE_ASSIGN_OR_RETURN(
-      DrivenAsset a,
-      LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
-                      asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
+                         LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
+                                         asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
   STAGE_ASSIGN_OR_RETURN(a.mapping,
                          asset_internal::LoadMappingNet(asset_internal::RunDir(mapping_run, dataset, "mapping"),
                                                         a.ExpressionSize(), a.GeometrySize(), /*threads=*/0));

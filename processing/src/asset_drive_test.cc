@@ -9,7 +9,6 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "absl/strings/str_format.h"
-
 #include "asset_test_support.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
@@ -44,8 +43,7 @@ float CropPixel(int frame, int camera, int x, int y) {
 }
 
 std::string Dataset() {
-  return asset_testing::WriteMadeUpDataset("drive-take", 80, 32, Face, {"cam-0", "cam-1", "cam-2"}, kImage,
-                                           CropPixel);
+  return asset_testing::WriteMadeUpDataset("drive-take", 80, 32, Face, {"cam-0", "cam-1", "cam-2"}, kImage, CropPixel);
 }
 
 TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFramesNeverTrainedOn) {
@@ -114,7 +112,8 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   for (int f = 0; f < 3; ++f) {
     cv::Mat frame(kImage, kImage, CV_8U);
     for (int y = 0; y < kImage; ++y) {
-      for (int x = 0; x < kImage; ++x) frame.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(255 * CropPixel(60 + f, 1, x, y));
+      for (int x = 0; x < kImage; ++x)
+        frame.at<uint8_t>(y, x) = cv::saturate_cast<uint8_t>(255 * CropPixel(60 + f, 1, x, y));
     }
     ASSERT_TRUE(cv::imwrite(absl::StrFormat("%s/frame-%04d.png", video, f), frame));
   }
@@ -137,8 +136,8 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
 }
 
 TEST(AssetDriveTest, ErrorsNameTheCameraTheDatasetAndWhatIsMissing) {
-  const std::string dataset = asset_testing::WriteMadeUpDataset("drive-errors", 20, 32, Face, {"cam-0", "cam-1"},
-                                                                kImage, CropPixel);
+  const std::string dataset =
+      asset_testing::WriteMadeUpDataset("drive-errors", 20, 32, Face, {"cam-0", "cam-1"}, kImage, CropPixel);
   ExpressionTrainJob job;
   job.dataset = dataset;
   job.expression = {.input_size = kImage, .levels = 3, .max_channels = 32, .threads = 1};

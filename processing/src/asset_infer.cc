@@ -66,7 +66,8 @@ absl::Status DriveFrame(const Asset& a, const std::vector<uint8_t>& crop, const 
   fs::create_directories(dir, ec);
   if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
   const cv::Mat image(a.image_size, a.image_size, CV_8U, const_cast<uint8_t*>(crop.data()));
-  if (!cv::imwrite(dir + "/crop.png", image)) return absl::UnavailableError(absl::StrCat(dir, "/crop.png: cannot write"));
+  if (!cv::imwrite(dir + "/crop.png", image))
+    return absl::UnavailableError(absl::StrCat(dir, "/crop.png: cannot write"));
   STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", map));
   if (!meshes) return absl::OkStatus();
   TriangleMesh mesh = a.face.mesh;
@@ -132,15 +133,15 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   Asset a;
   a.image_size = d.image_size;
   std::vector<std::string> held_out;
-  STAGE_ASSIGN_OR_RETURN(a.expression, asset_internal::LoadExpressionNet(
-                                           RunDir(options.expression_run, options.dataset, "expression"),
-                                           options.threads, &held_out));
+  STAGE_ASSIGN_OR_RETURN(
+      a.expression, asset_internal::LoadExpressionNet(RunDir(options.expression_run, options.dataset, "expression"),
+                                                      options.threads, &held_out));
   STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(
                                          RunDir(options.geometry_run, options.dataset, "geometry"), options.threads));
-  STAGE_ASSIGN_OR_RETURN(
-      a.mapping, asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
-                                                a.expression->options().expression_latent,
-                                                a.geometry->options().geometry_latent, options.threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
+                                                        a.expression->options().expression_latent,
+                                                        a.geometry->options().geometry_latent, options.threads));
   if (d.image_size % a.expression->options().input_size != 0) {
     return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
                                                       " px) are not the expression VAE's input size's multiple"));
@@ -158,8 +159,8 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   }
   auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
     if (options.cancelled && options.cancelled()) {
-      return absl::CancelledError(absl::StrCat("asset inference stopped before frame ", frame, " (", result.frames.size(),
-                                               " written into ", result.output_dir, ")"));
+      return absl::CancelledError(absl::StrCat("asset inference stopped before frame ", frame, " (",
+                                               result.frames.size(), " written into ", result.output_dir, ")"));
     }
     STAGE_RETURN_IF_ERROR(DriveFrame(a, crop, FrameDir(result.output_dir, frame), options.meshes));
     result.frames.push_back(frame);

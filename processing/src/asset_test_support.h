@@ -10,8 +10,8 @@
 #include <string>
 
 #include "gtest/gtest.h"
-#include "stage/processing/map_files.h"
 #include "stage/processing/asset_dataset.h"
+#include "stage/processing/map_files.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/storage/array_file.h"
 
@@ -122,10 +122,9 @@ inline std::string WriteMadeUpDataset(const std::string& name, int frames, int s
                      {"side_px", image_size},
                      {"white_dn", 255.0}});
   }
-  nlohmann::json description = {{"source", "truth"},     {"take", name},
-                                 {"geometry_size", size}, {"sequences", names},
-                                 {"cameras", cameras},    {"image_size", image_size},
-                                 {"crops", boxes}};
+  nlohmann::json description = {{"source", "truth"},  {"take", name},       {"geometry_size", size},
+                                {"sequences", names}, {"cameras", cameras}, {"image_size", image_size},
+                                {"crops", boxes}};
   EXPECT_TRUE((*writer)->SetAttribute("format", "fastage-asset-dataset-1").ok());
   EXPECT_TRUE((*writer)->SetAttribute("description", description.dump()).ok());
   EXPECT_TRUE((*writer)->Close().ok());

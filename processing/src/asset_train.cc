@@ -12,11 +12,11 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "asset_train_internal.h"
 #include "stage/common/file_util.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
-#include "asset_train_internal.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
 #include "stage/processing/warp_net.h"
@@ -129,19 +129,19 @@ GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, con
 nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_id) {
   const GeometryVaeOptions& g = job.geometry;
   nlohmann::json j = {{"network", "geometry"},
-          {"input_size", g.input_size},
-          {"levels", g.levels},
-          {"base_channels", g.base_channels},
-          {"max_channels", g.max_channels},
-          {"geometry_latent", g.geometry_latent},
-          {"pose_latent", g.pose_latent},
-          {"kl_weight", g.kl_weight},
-          {"seed", g.seed},
-          {"augment_rotation_deg", job.augment_rotation_deg},
-          {"augment_translation_mm", job.augment_translation_mm},
-          {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
-          {"dataset_id", dataset_id},
-          {"threads", TorchThreadCount(g.threads)}};
+                      {"input_size", g.input_size},
+                      {"levels", g.levels},
+                      {"base_channels", g.base_channels},
+                      {"max_channels", g.max_channels},
+                      {"geometry_latent", g.geometry_latent},
+                      {"pose_latent", g.pose_latent},
+                      {"kl_weight", g.kl_weight},
+                      {"seed", g.seed},
+                      {"augment_rotation_deg", job.augment_rotation_deg},
+                      {"augment_translation_mm", job.augment_translation_mm},
+                      {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                      {"dataset_id", dataset_id},
+                      {"threads", TorchThreadCount(g.threads)}};
   AddScheduleJson(job.schedule, &j);
   return j;
 }
@@ -309,8 +309,9 @@ absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir, const std:
   }
   const nlohmann::json& o = j["options"];
   if (o.value("network", "") != network) {
-    return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ", o.value("network", nlohmann::json()).dump(),
-                                                   " network, not the ", network, " one"));
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ",
+                                                   o.value("network", nlohmann::json()).dump(), " network, not the ",
+                                                   network, " one"));
   }
   return o;
 }

@@ -200,8 +200,8 @@ absl::StatusOr<TrainingOutcome> RunTraining(const TrainingLoop& loop) {
     STAGE_ASSIGN_OR_RETURN(std::vector<double> losses,
                            loop.step(rng, step < slow_from ? loop.learning_rate : loop.learning_rate / 5));
     if (losses.size() != loop.loss_names.size()) {
-      return absl::InternalError(absl::StrCat(loop.what, ": a step gave ", losses.size(), " losses, not ",
-                                              loop.loss_names.size()));
+      return absl::InternalError(
+          absl::StrCat(loop.what, ": a step gave ", losses.size(), " losses, not ", loop.loss_names.size()));
     }
     out.losses.push_back(std::move(losses));
     if ((step + 1) % loop.checkpoint_every == 0 || step + 1 == loop.iterations) {

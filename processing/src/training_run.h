@@ -33,7 +33,7 @@ struct TrainingLoop {
   bool resume = false;
   bool restart_if_different = false;
   uint64_t seed = 1;  // the generator's, for a fresh start
-  std::function<absl::Status(const std::string& path)> save, load;
+  std::function<absl::Status(const std::string&path)> save, load;
   // One step: a batch drawn from `rng`, trained at `learning_rate`; the losses in loss_names' order.
   std::function<absl::StatusOr<std::vector<double>>(std::mt19937_64& rng, double learning_rate)> step;
   // After every step: false stops the run (Cancelled) with its last checkpoint kept.

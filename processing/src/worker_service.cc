@@ -321,8 +321,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
         "TAKE/derived/asset/dataset.h5");
   }
   const std::string dataset = job.take_dir() + "/derived/asset/dataset.h5";
-  const v1::AssetNetwork network = a.network() == v1::ASSET_NETWORK_UNSPECIFIED ? v1::ASSET_NETWORK_GEOMETRY
-                                                                                : a.network();
+  const v1::AssetNetwork network =
+      a.network() == v1::ASSET_NETWORK_UNSPECIFIED ? v1::ASSET_NETWORK_GEOMETRY : a.network();
   // Each option belongs to some of the networks; one given to another is refused, not ignored.
   const bool vae = network != v1::ASSET_NETWORK_MAPPING;
   if ((!vae && (a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 || a.max_channels() != 0)) ||
@@ -423,9 +423,9 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetInferJob(
   o.cancelled = cancelled;
   auto result = InferAsset(o);
   if (!result.ok()) return result.status();
-  return Finished(static_cast<int64_t>(result->frames.size()), result->output_dir,
-                  absl::StrCat(result->frames.size(), " frame(s) of ", o.camera, " drove the asset into ",
-                               result->output_dir));
+  return Finished(
+      static_cast<int64_t>(result->frames.size()), result->output_dir,
+      absl::StrCat(result->frames.size(), " frame(s) of ", o.camera, " drove the asset into ", result->output_dir));
 }
 
 }  // namespace stage::processing

@@ -101,8 +101,9 @@ void AssetCommands::AddTrain() {
       ->check(CLI::PositiveNumber);
   train_->add_flag("--resume", schedule.resume, "Continue from the run directory's checkpoint (same options)");
   // The VAEs' trunks (geometry and expression).
-  train_->add_option("--input-size", g.input_size,
-                     "Texels (pixels) across the maps (crops) the net sees (the dataset's must be a multiple)")
+  train_
+      ->add_option("--input-size", g.input_size,
+                   "Texels (pixels) across the maps (crops) the net sees (the dataset's must be a multiple)")
       ->capture_default_str();
   train_->add_option("--levels", g.levels, "Stride-2 levels of the encoder and decoder")->capture_default_str();
   train_->add_option("--base-channels", g.base_channels, "Channels at full resolution")->capture_default_str();
@@ -112,11 +113,13 @@ void AssetCommands::AddTrain() {
   train_->add_option("--geometry-latent", g.geometry_latent, "geometry: size of the geometry latent")
       ->capture_default_str();
   train_->add_option("--pose-latent", g.pose_latent, "geometry: size of the pose latent")->capture_default_str();
-  train_->add_option("--augment-rotation", job.augment_rotation_deg,
-                     "geometry: random turns of the training maps, degrees")
+  train_
+      ->add_option("--augment-rotation", job.augment_rotation_deg,
+                   "geometry: random turns of the training maps, degrees")
       ->capture_default_str();
-  train_->add_option("--augment-translation", job.augment_translation_mm,
-                     "geometry: random shifts of the training maps, mm")
+  train_
+      ->add_option("--augment-translation", job.augment_translation_mm,
+                   "geometry: random shifts of the training maps, mm")
       ->capture_default_str();
   // The expression VAE's.
   processing::ExpressionVaeOptions& e = expression_job_.expression;
@@ -134,8 +137,9 @@ void AssetCommands::AddTrain() {
   processing::LatentMappingOptions& m = mapping_job_.mapping;
   train_->add_option("--hidden", m.hidden, "mapping: hidden units")->capture_default_str();
   train_->add_option("--layers", m.layers, "mapping: linear layers")->capture_default_str();
-  train_->add_option("--input-noise", mapping_job_.input_noise,
-                     "mapping: noise added to its inputs, in units of their spread")
+  train_
+      ->add_option("--input-noise", mapping_job_.input_noise,
+                   "mapping: noise added to its inputs, in units of their spread")
       ->capture_default_str();
   train_->add_option("--geometry-run", mapping_job_.geometry_run,
                      "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
@@ -279,15 +283,24 @@ namespace {
 // The options given that `network` does not take (each names its network in its help: "geometry: ...").
 absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
   const std::vector<std::pair<std::string, std::vector<std::string>>> only = {
-      {"--input-size", {"geometry", "expression"}},   {"--levels", {"geometry", "expression"}},
-      {"--base-channels", {"geometry", "expression"}}, {"--max-channels", {"geometry", "expression"}},
-      {"--kl-weight", {"geometry", "expression"}},    {"--geometry-latent", {"geometry"}},
-      {"--pose-latent", {"geometry"}},                {"--augment-rotation", {"geometry"}},
-      {"--augment-translation", {"geometry"}},        {"--expression-latent", {"expression"}},
-      {"--view-latent", {"expression"}},              {"--swap-weight", {"expression"}},
-      {"--cycle-weight", {"expression"}},             {"--held-out-cameras", {"expression"}},
-      {"--hidden", {"mapping"}},                      {"--layers", {"mapping"}},
-      {"--input-noise", {"mapping"}},                 {"--geometry-run", {"mapping"}},
+      {"--input-size", {"geometry", "expression"}},
+      {"--levels", {"geometry", "expression"}},
+      {"--base-channels", {"geometry", "expression"}},
+      {"--max-channels", {"geometry", "expression"}},
+      {"--kl-weight", {"geometry", "expression"}},
+      {"--geometry-latent", {"geometry"}},
+      {"--pose-latent", {"geometry"}},
+      {"--augment-rotation", {"geometry"}},
+      {"--augment-translation", {"geometry"}},
+      {"--expression-latent", {"expression"}},
+      {"--view-latent", {"expression"}},
+      {"--swap-weight", {"expression"}},
+      {"--cycle-weight", {"expression"}},
+      {"--held-out-cameras", {"expression"}},
+      {"--hidden", {"mapping"}},
+      {"--layers", {"mapping"}},
+      {"--input-noise", {"mapping"}},
+      {"--geometry-run", {"mapping"}},
       {"--expression-run", {"mapping"}}};
   for (const auto& [option, networks] : only) {
     if (app.count(option) > 0 && std::find(networks.begin(), networks.end(), network) == networks.end()) {
@@ -423,19 +436,20 @@ int AssetCommands::TrainMapping() {
 
 int AssetCommands::Evaluate() {
   if (evaluate_network_ == "mapping") {
-    auto result = processing::EvaluateDrivenAsset(evaluate_dataset_, evaluate_geometry_run_,
-                                                  evaluate_expression_run_, evaluate_run_);
+    auto result = processing::EvaluateDrivenAsset(evaluate_dataset_, evaluate_geometry_run_, evaluate_expression_run_,
+                                                  evaluate_run_);
     if (!result.ok()) return ReportFatal(kProgram, result.status());
     std::cout << (json_ ? processing::DrivenEvaluationJson(*result) + "\n"
                         : processing::FormatDrivenEvaluation(*result));
     return 0;
   }
   if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0) {
-    return ReportFatal(kProgram, absl::InvalidArgumentError(
-                                     "--geometry-run and --expression-run are options of --network mapping"));
+    return ReportFatal(
+        kProgram, absl::InvalidArgumentError("--geometry-run and --expression-run are options of --network mapping"));
   }
-  const std::string run = evaluate_run_.empty() ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()
-                                                : evaluate_run_;
+  const std::string run = evaluate_run_.empty()
+                              ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()
+                              : evaluate_run_;
   auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, run);
   if (!result.ok()) return ReportFatal(kProgram, result.status());
   std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n"

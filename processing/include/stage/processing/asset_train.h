@@ -89,7 +89,7 @@ absl::StatusOr<TrainedEvaluation> EvaluateGeometryAsset(const std::string& datas
 // camera i) of the training frames and the cameras not held out.
 struct ExpressionTrainJob {
   std::string dataset;
-  std::string output_dir;  // default: DATASET's directory/expression
+  std::string output_dir;           // default: DATASET's directory/expression
   ExpressionVaeOptions expression;  // input_size: the dataset's crops' size must be a multiple of it
   // Cameras of the dataset whose crops the net never sees: the paper's held-out view, which the asset is then driven
   // from (at least two cameras must remain).
