@@ -11,6 +11,7 @@
 #include "absl/strings/str_join.h"
 #include "asset_train_internal.h"
 #include "stage/common/file_util.h"
+#include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/warp_net.h"
@@ -329,9 +330,18 @@ void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::
   }
 }
 
-nlohmann::json MappingOptionsJson(const MappingTrainJob& job, const LatentMappingOptions& o,
-                                  const std::string& dataset_id, const std::string& geometry_run,
-                                  const std::string& expression_run) {
+// A finished run's identity: a hash of its trainer.json (its options, its last step and generator state), so that a
+// mapping is not resumed over VAEs trained again since.
+absl::StatusOr<std::string> RunId(const std::string& run_dir) {
+  STAGE_ASSIGN_OR_RETURN(const std::string trainer, ReadFileToString(run_dir + "/trainer.json", "training run"));
+  return absl::StrFormat("%016x", Fnv1a64(trainer));
+}
+
+absl::StatusOr<nlohmann::json> MappingOptionsJson(const MappingTrainJob& job, const LatentMappingOptions& o,
+                                                  const std::string& dataset_id, const std::string& geometry_run,
+                                                  const std::string& expression_run) {
+  STAGE_ASSIGN_OR_RETURN(const std::string geometry_id, RunId(geometry_run));
+  STAGE_ASSIGN_OR_RETURN(const std::string expression_id, RunId(expression_run));
   nlohmann::json j = {{"network", "mapping"},
                       {"input", o.input},
                       {"output", o.output},
@@ -341,6 +351,8 @@ nlohmann::json MappingOptionsJson(const MappingTrainJob& job, const LatentMappin
                       {"input_noise", job.input_noise},
                       {"geometry_run", fs::absolute(geometry_run).lexically_normal().string()},
                       {"expression_run", fs::absolute(expression_run).lexically_normal().string()},
+                      {"geometry_run_id", geometry_id},
+                      {"expression_run_id", expression_id},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", dataset_id},
                       {"threads", TorchThreadCount(o.threads)}};
@@ -508,7 +520,8 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   internal::TrainingLoop loop;
   loop.dir = result.output_dir;
   loop.what = "latent mapping";
-  loop.options = MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset), geometry_run, expression_run);
+  STAGE_ASSIGN_OR_RETURN(loop.options, MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset),
+                                                          geometry_run, expression_run));
   loop.loss_names = {"total"};
   loop.iterations = job.schedule.iterations;
   loop.checkpoint_every = job.schedule.checkpoint_every;

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <opencv2/imgcodecs.hpp>
 
 #include "absl/strings/str_format.h"
@@ -133,6 +134,14 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   auto again = EvaluateDrivenAsset(dataset);
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_DOUBLE_EQ(again->cameras[1].error[1].face_mm, held.error[1].face_mm);
+
+  // A resume finds the run done; over an expression VAE trained again since, it is refused, naming why.
+  mapping.schedule.resume = true;
+  auto resumed = TrainLatentMapping(mapping);
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_EQ(resumed->resumed_from, 600);
+  std::ofstream(e->output_dir + "/trainer.json", std::ios::app) << " ";
+  EXPECT_THAT(TrainLatentMapping(mapping).status().message(), HasSubstr("trained with expression_run_id"));
 }
 
 TEST(AssetDriveTest, ErrorsNameTheCameraTheDatasetAndWhatIsMissing) {
