@@ -49,16 +49,24 @@ std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size) {
   return map;
 }
 
+absl::Status GroundTruthOptions::Validate() const {
+  if (last_frame <= first_frame) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("ground truth: frames [", first_frame, ", ", last_frame, ") are empty"));
+  }
+  if (frame_step < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("ground truth: frame step ", frame_step, " is not 1 or more"));
+  }
+  if (uv_size < 16 || uv_size > 16384) {
+    return absl::InvalidArgumentError(absl::StrCat("ground truth: uv size ", uv_size, " is not in 16..16384"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options) {
   // OpenCV reads OpenEXR only when asked to (a guard against untrusted files); these are our own.
   setenv("OPENCV_IO_ENABLE_OPENEXR", "1", 0);
-  if (options.last_frame <= options.first_frame) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("ground truth: frames [", options.first_frame, ", ", options.last_frame, ") are empty"));
-  }
-  if (options.uv_size < 16 || options.uv_size > 16384) {
-    return absl::InvalidArgumentError(absl::StrCat("ground truth: uv size ", options.uv_size, " is not in 16..16384"));
-  }
+  if (auto st = options.Validate(); !st.ok()) return st;
   std::vector<int> cameras;
   if (options.cameras.empty()) {
     for (int i = 0; i < scene.rig().cameras_size(); ++i) cameras.push_back(i);
@@ -68,10 +76,6 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       if (i < 0) return absl::NotFoundError(absl::StrCat("ground truth: camera \"", id, "\" is not in the rig"));
       cameras.push_back(i);
     }
-  }
-  if (options.frame_step < 1) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("ground truth: frame step ", options.frame_step, " is not 1 or more"));
   }
   const int64_t frames = (options.last_frame - options.first_frame + options.frame_step - 1) / options.frame_step;
   const int total = static_cast<int>(frames * static_cast<int64_t>(cameras.size()));

@@ -36,7 +36,7 @@ struct GroundTruthOptions {
   std::vector<std::string> cameras;
   // Directories are numbered frame - name_offset (a take's frames from 0: its first world frame).
   int64_t name_offset = 0;
-  // Texels across the UV position map (256 and up).
+  // Texels across the UV position map (16..16384).
   int uv_size = 256;
   // Every camera's per-pixel maps (depth, normals, materials: two thirds of the time); false: the true cameras and
   // each frame's subject only (`cameras` is then unused).
@@ -46,6 +46,8 @@ struct GroundTruthOptions {
   bool meshes = true;
   // Called after each camera of each frame: (done, total).
   std::function<void(int, int)> progress;
+  // Frames not empty, a step of 1 or more, the map's size in range (the cameras are checked against the scene's rig).
+  absl::Status Validate() const;
 };
 
 absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options);
