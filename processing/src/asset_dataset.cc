@@ -207,9 +207,9 @@ struct Crops {
   std::map<int64_t, std::vector<uint8_t>> valid;   // frame -> cameras
 };
 
-// The grey frame's square of `side` pixels about `centre` (sub-pixel).
-cv::Mat Patch(const Image& grey, const Eigen::Vector2d& centre, double side) {
-  const cv::Mat frame(grey.height, grey.width, CV_32F, const_cast<float*>(grey.pixels.data()));
+// The grey frame's (width x height floats) square of `side` pixels about `centre` (sub-pixel).
+cv::Mat Patch(const float* grey, int width, int height, const Eigen::Vector2d& centre, double side) {
+  const cv::Mat frame(height, width, CV_32F, const_cast<float*>(grey));
   const int s = std::max(2, static_cast<int>(std::lround(side)));
   cv::Mat patch;
   cv::getRectSubPix(frame, cv::Size(s, s), cv::Point2f(static_cast<float>(centre.x()), static_cast<float>(centre.y())),
@@ -291,7 +291,7 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           }
           auto slot = crops.images.find(frame);
           if (slot == crops.images.end()) return absl::OkStatus();
-          const cv::Mat patch = Patch(grey, pixel, side);
+          const cv::Mat patch = Patch(grey.pixels.data(), grey.width, grey.height, pixel, side);
           if (white == 0) white = White(patch);
           const std::vector<uint8_t> image = Crop(patch, options.image_size, white);
           std::copy(image.begin(), image.end(), slot->second.begin() + static_cast<std::ptrdiff_t>(c * texels));
@@ -591,17 +591,13 @@ absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string&
                                           ids.empty() ? "none kept: rebuild it" : absl::StrJoin(ids, ", "), ")"));
 }
 
-std::vector<uint8_t> CropFrame(const std::vector<float>& grey, int width, int height, const CropBox& box, int size,
-                               double white, double gamma) {
-  Image image(width, height, 1);
-  image.pixels = grey;
-  return Crop(Patch(image, {box.centre_x, box.centre_y}, box.side), size, white, gamma);
+std::vector<uint8_t> CropFrame(const float* grey, int width, int height, const CropBox& box, int size, double white,
+                               double gamma) {
+  return Crop(Patch(grey, width, height, {box.centre_x, box.centre_y}, box.side), size, white, gamma);
 }
 
-double CropWhite(const std::vector<float>& grey, int width, int height, const CropBox& box) {
-  Image image(width, height, 1);
-  image.pixels = grey;
-  return White(Patch(image, {box.centre_x, box.centre_y}, box.side));
+double CropWhite(const float* grey, int width, int height, const CropBox& box) {
+  return White(Patch(grey, width, height, {box.centre_x, box.centre_y}, box.side));
 }
 
 absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, int size, int64_t first, int64_t last,
@@ -618,7 +614,7 @@ absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, in
   const int64_t end = last < 0 ? camera.last_slot / std::max<int64_t>(1, cycle) + 1 : last;
   return ForEachFullLitFrame(
       camera.path, first, end, light, camera.black_level_dn, [&](int64_t frame, const Image& grey) -> absl::Status {
-        return fn(frame, Crop(Patch(grey, {box.centre_x, box.centre_y}, box.side), size, box.white));
+        return fn(frame, CropFrame(grey.pixels.data(), grey.width, grey.height, box, size, box.white, /*gamma=*/2.2));
       });
 }
 

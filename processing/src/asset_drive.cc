@@ -49,21 +49,11 @@ absl::StatusOr<Crops> CropsAt(const AssetDataset& d, int size) {
   Crops c;
   c.size = size;
   c.cameras = static_cast<int>(d.cameras.size());
-  const int k = d.image_size / size, in = d.image_size;
   const size_t count = static_cast<size_t>(d.frames()) * c.cameras;
   c.pixels.assign(count * c.Pixels(), 0.f);
+  const size_t in = static_cast<size_t>(d.image_size) * d.image_size;
   for (size_t i = 0; i < count; ++i) {
-    const uint8_t* src = d.images.data() + i * static_cast<size_t>(in) * in;
-    float* dst = c.pixels.data() + i * c.Pixels();
-    for (int y = 0; y < size; ++y) {
-      for (int x = 0; x < size; ++x) {
-        int sum = 0;
-        for (int dy = 0; dy < k; ++dy) {
-          for (int dx = 0; dx < k; ++dx) sum += src[static_cast<size_t>(y * k + dy) * in + x * k + dx];
-        }
-        dst[static_cast<size_t>(y) * size + x] = static_cast<float>(sum) / (255.f * k * k);
-      }
-    }
+    asset_internal::CropToNetInput(d.images.data() + i * in, d.image_size, size, c.pixels.data() + i * c.Pixels());
   }
   return c;
 }
@@ -379,6 +369,19 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> CreateMapping(const DrivenAsset& 
 
 namespace asset_internal {
 
+void CropToNetInput(const uint8_t* crop, int size, int input, float* out) {
+  const int k = size / input;
+  for (int y = 0; y < input; ++y) {
+    for (int x = 0; x < input; ++x) {
+      int sum = 0;
+      for (int dy = 0; dy < k; ++dy) {
+        for (int dx = 0; dx < k; ++dx) sum += crop[static_cast<size_t>(y * k + dy) * size + x * k + dx];
+      }
+      out[static_cast<size_t>(y) * input + x] = static_cast<float>(sum) / (255.f * k * k);
+    }
+  }
+}
+
 absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::string& run_dir, int threads,
                                                                  std::vector<std::string>* held_out) {
   STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "expression"));
@@ -450,11 +453,7 @@ absl::StatusOr<ExpressionTrainResult> TrainExpressionAsset(const ExpressionTrain
   loop.what = "expression VAE";
   loop.options = ExpressionOptionsJson(job, asset_internal::DatasetId(d));
   loop.loss_names = {"total", "reconstruction", "expression_swap", "view_swap", "cycle", "kl"};
-  loop.iterations = job.schedule.iterations;
-  loop.checkpoint_every = job.schedule.checkpoint_every;
-  loop.learning_rate = job.schedule.learning_rate;
-  loop.resume = job.schedule.resume;
-  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.schedule = job.schedule;
   loop.seed = job.expression.seed;
   loop.save = [&net](const std::string& path) { return net->Save(path); };
   loop.load = [&net](const std::string& path) { return net->Load(path); };
@@ -523,11 +522,7 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   STAGE_ASSIGN_OR_RETURN(loop.options, MappingOptionsJson(job, o, asset_internal::DatasetId(a.data.dataset),
                                                           geometry_run, expression_run));
   loop.loss_names = {"total"};
-  loop.iterations = job.schedule.iterations;
-  loop.checkpoint_every = job.schedule.checkpoint_every;
-  loop.learning_rate = job.schedule.learning_rate;
-  loop.resume = job.schedule.resume;
-  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.schedule = job.schedule;
   loop.seed = o.seed;
   loop.save = [&net](const std::string& path) { return net.Save(path); };
   loop.load = [&net](const std::string& path) { return net.Load(path); };
@@ -587,25 +582,16 @@ std::string ExpressionEvaluationJson(const ExpressionEvaluation& e) {
   return j.dump();
 }
 
-namespace {
-
-nlohmann::json SplitJson(const SplitError& x) {
-  return {{"frames", x.frames},   {"rmse_mm", x.rmse_mm}, {"p99_mm", x.p99_mm},
-          {"face_mm", x.face_mm}, {"eyes_mm", x.eyes_mm}, {"mouth_mm", x.mouth_mm}};
-}
-
-}  // namespace
-
 std::string DrivenEvaluationJson(const DrivenEvaluation& e) {
   nlohmann::json j;
   const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
   for (int s = 0; s < 3; ++s) {
-    j["autoencoded"][names[s]] = SplitJson(e.autoencoded[s]);
-    j["neutral"][names[s]] = SplitJson(e.neutral[s]);
+    j["autoencoded"][names[s]] = asset_internal::SplitJson(e.autoencoded[s]);
+    j["neutral"][names[s]] = asset_internal::SplitJson(e.neutral[s]);
   }
   for (const DrivenEvaluation::Camera& c : e.cameras) {
     nlohmann::json cj = {{"camera", c.id}, {"trained", c.trained}};
-    for (int s = 0; s < 3; ++s) cj[names[s]] = SplitJson(c.error[s]);
+    for (int s = 0; s < 3; ++s) cj[names[s]] = asset_internal::SplitJson(c.error[s]);
     j["cameras"].push_back(cj);
   }
   return j.dump();

@@ -32,26 +32,12 @@ struct Asset {
   int image_size = 0;  // the dataset's crops'
 };
 
-// A crop of the dataset's size averaged down to the expression net's input, 0..1.
-std::vector<float> NetInput(const std::vector<uint8_t>& crop, int size, int input) {
-  const int k = size / input;
-  std::vector<float> out(static_cast<size_t>(input) * input);
-  for (int y = 0; y < input; ++y) {
-    for (int x = 0; x < input; ++x) {
-      int sum = 0;
-      for (int dy = 0; dy < k; ++dy) {
-        for (int dx = 0; dx < k; ++dx) sum += crop[static_cast<size_t>(y * k + dy) * size + x * k + dx];
-      }
-      out[static_cast<size_t>(y) * input + x] = static_cast<float>(sum) / (255.f * k * k);
-    }
-  }
-  return out;
-}
-
 // One frame's crop driven through the nets, its files written into `dir`.
 absl::Status DriveFrame(const Asset& a, const std::vector<uint8_t>& crop, const std::string& dir, bool meshes) {
   const int input = a.expression->options().input_size;
-  STAGE_ASSIGN_OR_RETURN(std::vector<float> z, a.expression->Encode(NetInput(crop, a.image_size, input), 1));
+  std::vector<float> net_input(static_cast<size_t>(input) * input);
+  asset_internal::CropToNetInput(crop.data(), a.image_size, input, net_input.data());
+  STAGE_ASSIGN_OR_RETURN(std::vector<float> z, a.expression->Encode(net_input, 1));
   z.resize(static_cast<size_t>(a.expression->options().expression_latent));
   STAGE_ASSIGN_OR_RETURN(const std::vector<float> geometry_latent, a.mapping->Map(z, 1));
   STAGE_ASSIGN_OR_RETURN(const std::vector<float> nchw, a.geometry->Decode(geometry_latent, 1));
@@ -100,7 +86,7 @@ absl::Status ForEachVideoCrop(const std::string& path, const CropBox& box, int s
                           "of that camera, at its resolution?",
                           path, values.cols, values.rows, box.camera, box.side, box.centre_x, box.centre_y));
     }
-    const std::vector<float> pixels(values.begin<float>(), values.end<float>());
+    const float* pixels = values.ptr<float>();  // convertTo's output is continuous
     if (white == 0) white = CropWhite(pixels, values.cols, values.rows, box);
     STAGE_RETURN_IF_ERROR(fn(index, CropFrame(pixels, values.cols, values.rows, box, size, white, /*gamma=*/1)));
   }

@@ -14,7 +14,6 @@
 #include "absl/strings/str_format.h"
 #include "asset_train_internal.h"
 #include "stage/common/file_util.h"
-#include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
@@ -356,6 +355,11 @@ std::string RunDir(const std::string& dir, const std::string& dataset, const cha
   return dir.empty() ? (fs::path(dataset).parent_path() / name).string() : dir;
 }
 
+nlohmann::json SplitJson(const SplitError& x) {
+  return {{"frames", x.frames},   {"rmse_mm", x.rmse_mm}, {"p99_mm", x.p99_mm},
+          {"face_mm", x.face_mm}, {"eyes_mm", x.eyes_mm}, {"mouth_mm", x.mouth_mm}};
+}
+
 void AddScheduleJson(const TrainingSchedule& s, nlohmann::json* j) {
   (*j)["iterations"] = s.iterations;
   (*j)["batch"] = s.batch;
@@ -416,11 +420,7 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
   loop.what = "geometry VAE";
   loop.options = OptionsJson(job, DatasetId(dataset));
   loop.loss_names = {"total", "canonical", "posed", "kl"};
-  loop.iterations = job.schedule.iterations;
-  loop.checkpoint_every = job.schedule.checkpoint_every;
-  loop.learning_rate = job.schedule.learning_rate;
-  loop.resume = job.schedule.resume;
-  loop.restart_if_different = job.schedule.restart_if_different;
+  loop.schedule = job.schedule;
   loop.seed = job.geometry.seed;
   loop.save = [&net](const std::string& path) { return net->Save(path); };
   loop.load = [&net](const std::string& path) { return net->Load(path); };
@@ -451,9 +451,7 @@ std::string TrainedEvaluationJson(const TrainedEvaluation& e) {
   const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
   for (int s = 0; s < 3; ++s) {
     for (auto [model, errors] : {std::pair{"vae", e.vae}, std::pair{"pca", e.pca}, std::pair{"neutral", e.neutral}}) {
-      j[names[s]][model] = {{"frames", errors[s].frames},   {"rmse_mm", errors[s].rmse_mm},
-                            {"p99_mm", errors[s].p99_mm},   {"face_mm", errors[s].face_mm},
-                            {"eyes_mm", errors[s].eyes_mm}, {"mouth_mm", errors[s].mouth_mm}};
+      j[names[s]][model] = SplitJson(errors[s]);
     }
   }
   return j.dump();

@@ -68,6 +68,13 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& 
 // A run directory: `dir`, or beside the dataset under `name`.
 std::string RunDir(const std::string& dir, const std::string& dataset, const char* name);
 
+// A crop of `size` pixels across (8 bits) averaged down to `input` pixels across (size a multiple of it), 0..1, into
+// `out` (input^2 values): what the expression VAE sees of a dataset's crop or of a new image's.
+void CropToNetInput(const uint8_t* crop, int size, int input, float* out);
+
+// A split's error as JSON (the evaluations' files).
+nlohmann::json SplitJson(const SplitError& x);
+
 // The schedule's options as a resume must find them.
 void AddScheduleJson(const TrainingSchedule& s, nlohmann::json* j);
 

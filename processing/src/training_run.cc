@@ -154,7 +154,7 @@ absl::StatusOr<TrainerState> ReadTrainerState(const std::string& path, const Tra
   t.checkpoint = j["checkpoint"].get<std::string>();
   std::istringstream state(j["rng"].get<std::string>());
   state >> t.rng;
-  if (state.fail() || t.step < 0 || t.step > loop.iterations) {
+  if (state.fail() || t.step < 0 || t.step > loop.schedule.iterations) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": its step or generator state does not read"));
   }
   return t;
@@ -173,6 +173,7 @@ double Uniform(std::mt19937_64& rng, double half_range) {
 }
 
 absl::StatusOr<TrainingOutcome> RunTraining(const TrainingLoop& loop) {
+  const TrainingSchedule& schedule = loop.schedule;
   std::error_code ec;
   fs::create_directories(loop.dir, ec);
   if (ec) return absl::UnavailableError(absl::StrCat(loop.dir, ": ", ec.message()));
@@ -180,9 +181,9 @@ absl::StatusOr<TrainingOutcome> RunTraining(const TrainingLoop& loop) {
   std::mt19937_64 rng(loop.seed ^ 0xa55e7ull);
   const std::string trainer = loop.dir + "/trainer.json";
   std::string checkpoint;
-  if (loop.resume && fs::exists(trainer)) {
+  if (schedule.resume && fs::exists(trainer)) {
     absl::StatusOr<TrainerState> state = ReadTrainerState(trainer, loop);
-    if (absl::IsFailedPrecondition(state.status()) && loop.restart_if_different) {
+    if (absl::IsFailedPrecondition(state.status()) && schedule.restart_if_different) {
       Logger("processing.asset")->info("{} (starting anew)", state.status().message());
     } else if (!state.ok()) {
       return absl::Status(state.status().code(), absl::StrCat(state.status().message(),
@@ -195,19 +196,19 @@ absl::StatusOr<TrainingOutcome> RunTraining(const TrainingLoop& loop) {
       STAGE_ASSIGN_OR_RETURN(out.losses, ReadLosses(loop.dir + "/loss.csv", out.resumed_from, loop.loss_names));
     }
   }
-  const int64_t slow_from = static_cast<int64_t>(0.7 * static_cast<double>(loop.iterations));
-  for (int64_t step = out.resumed_from; step < loop.iterations; ++step) {
+  const int64_t slow_from = static_cast<int64_t>(0.7 * static_cast<double>(schedule.iterations));
+  for (int64_t step = out.resumed_from; step < schedule.iterations; ++step) {
     STAGE_ASSIGN_OR_RETURN(std::vector<double> losses,
-                           loop.step(rng, step < slow_from ? loop.learning_rate : loop.learning_rate / 5));
+                           loop.step(rng, step < slow_from ? schedule.learning_rate : schedule.learning_rate / 5));
     if (losses.size() != loop.loss_names.size()) {
       return absl::InternalError(
           absl::StrCat(loop.what, ": a step gave ", losses.size(), " losses, not ", loop.loss_names.size()));
     }
     out.losses.push_back(std::move(losses));
-    if ((step + 1) % loop.checkpoint_every == 0 || step + 1 == loop.iterations) {
+    if ((step + 1) % schedule.checkpoint_every == 0 || step + 1 == schedule.iterations) {
       STAGE_RETURN_IF_ERROR(SaveCheckpoint(loop, step + 1, rng, out.losses, &checkpoint));
     }
-    if (loop.progress && !loop.progress(step + 1, loop.iterations, out.losses.back())) {
+    if (loop.progress && !loop.progress(step + 1, schedule.iterations, out.losses.back())) {
       return absl::CancelledError(absl::StrCat(loop.what, " training stopped at step ", step + 1,
                                                " (checkpoint: ", loop.dir, "/", checkpoint, ")"));
     }

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "stage/processing/asset_train.h"
 
 namespace stage::processing::internal {
 
@@ -27,11 +28,8 @@ struct TrainingLoop {
   nlohmann::json options;
   // The losses' names in the order `step` returns them, the total first; the plot draws the first three.
   std::vector<std::string> loss_names;
-  int64_t iterations = 0;
-  int checkpoint_every = 1;
-  double learning_rate = 1e-3;  // the last 30 % of the steps at a fifth of it
-  bool resume = false;
-  bool restart_if_different = false;
+  // Its steps, rate (the last 30 % of the steps at a fifth of it), checkpoints and resume (the batch is `step`'s).
+  TrainingSchedule schedule;
   uint64_t seed = 1;  // the generator's, for a fresh start
   std::function<absl::Status(const std::string&path)> save, load;
   // One step: a batch drawn from `rng`, trained at `learning_rate`; the losses in loss_names' order.

@@ -309,6 +309,78 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
                   absl::StrCat(result->frames, " frame(s) into the asset's dataset ", result->path));
 }
 
+namespace {
+
+// A training job's progress: (step, steps, total loss); false stops it.
+using TrainReport = std::function<bool(int64_t, int64_t, double)>;
+
+// `value` into `field` where the job gives one (0: the default).
+template <typename V, typename T>
+void SetIfGiven(V value, T* field) {
+  if (value != 0) *field = static_cast<T>(value);
+}
+
+absl::StatusOr<v1::ProcessingProgress> TrainExpressionJob(const v1::AssetOptions& a, const std::string& dataset,
+                                                          const TrainingSchedule& schedule, const TrainReport& report) {
+  ExpressionTrainJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  ExpressionVaeOptions& e = t.expression;
+  SetIfGiven(a.input_size(), &e.input_size);
+  SetIfGiven(a.levels(), &e.levels);
+  SetIfGiven(a.base_channels(), &e.base_channels);
+  SetIfGiven(a.max_channels(), &e.max_channels);
+  SetIfGiven(a.expression_latent(), &e.expression_latent);
+  SetIfGiven(a.view_latent(), &e.view_latent);
+  SetIfGiven(a.seed(), &e.seed);
+  t.held_out_cameras.assign(a.held_out_cameras().begin(), a.held_out_cameras().end());
+  t.progress = [&](int64_t step, int64_t total, const ExpressionLosses& l) { return report(step, total, l.total); };
+  auto result = TrainExpressionAsset(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("expression VAE trained ", result->steps, " steps into ", result->output_dir, ": ",
+                               ExpressionEvaluationJson(result->evaluation)));
+}
+
+absl::StatusOr<v1::ProcessingProgress> TrainMappingJob(const v1::AssetOptions& a, const std::string& dataset,
+                                                       const TrainingSchedule& schedule, const TrainReport& report) {
+  MappingTrainJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  SetIfGiven(a.hidden(), &t.mapping.hidden);
+  SetIfGiven(a.layers(), &t.mapping.layers);
+  SetIfGiven(a.seed(), &t.mapping.seed);
+  t.progress = report;
+  auto result = TrainLatentMapping(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("latent mapping trained ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatDrivenEvaluation(result->evaluation)));
+}
+
+absl::StatusOr<v1::ProcessingProgress> TrainGeometryJob(const v1::AssetOptions& a, const std::string& dataset,
+                                                        const TrainingSchedule& schedule, const TrainReport& report) {
+  AssetTrainJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  GeometryVaeOptions& g = t.geometry;
+  SetIfGiven(a.input_size(), &g.input_size);
+  SetIfGiven(a.levels(), &g.levels);
+  SetIfGiven(a.base_channels(), &g.base_channels);
+  SetIfGiven(a.max_channels(), &g.max_channels);
+  SetIfGiven(a.geometry_latent(), &g.geometry_latent);
+  SetIfGiven(a.pose_latent(), &g.pose_latent);
+  SetIfGiven(a.seed(), &g.seed);
+  t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) { return report(step, total, l.total); };
+  auto result = TrainGeometryAsset(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("geometry VAE trained ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatTrainedEvaluation(result->evaluation)));
+}
+
+}  // namespace
+
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
     const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
     const std::function<bool()>& cancelled) const {
@@ -333,72 +405,20 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }
-  TrainingSchedule schedule{.resume = true, .restart_if_different = true};
-  if (network == v1::ASSET_NETWORK_MAPPING) schedule = MappingTrainJob{}.schedule;
+  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING ? MappingTrainJob{}.schedule : TrainingSchedule{};
   if (a.iterations() != 0) schedule.iterations = a.iterations();
   if (a.batch() != 0) schedule.batch = a.batch();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
   // same options, dataset and threads stopped, else started anew.
   schedule.resume = true;
   schedule.restart_if_different = true;
-  auto report = [&](int64_t step, int64_t total, double loss) {
+  const TrainReport report = [&](int64_t step, int64_t total, double loss) {
     if (step % 10 == 0 || step == total) progress({step, total, absl::StrCat("steps, loss ", loss)});
     return !cancelled();
   };
-  auto set = [](int32_t value, auto* field) {
-    if (value != 0) *field = value;
-  };
-  if (network == v1::ASSET_NETWORK_EXPRESSION) {
-    ExpressionTrainJob t;
-    t.dataset = dataset;
-    t.schedule = schedule;
-    ExpressionVaeOptions& e = t.expression;
-    set(a.input_size(), &e.input_size);
-    set(a.levels(), &e.levels);
-    set(a.base_channels(), &e.base_channels);
-    set(a.max_channels(), &e.max_channels);
-    set(a.expression_latent(), &e.expression_latent);
-    set(a.view_latent(), &e.view_latent);
-    if (a.seed() != 0) e.seed = a.seed();
-    t.held_out_cameras.assign(a.held_out_cameras().begin(), a.held_out_cameras().end());
-    t.progress = [&](int64_t step, int64_t total, const ExpressionLosses& l) { return report(step, total, l.total); };
-    auto result = TrainExpressionAsset(t);
-    if (!result.ok()) return result.status();
-    return Finished(result->steps, result->output_dir,
-                    absl::StrCat("expression VAE trained ", result->steps, " steps into ", result->output_dir, ": ",
-                                 ExpressionEvaluationJson(result->evaluation)));
-  }
-  if (network == v1::ASSET_NETWORK_MAPPING) {
-    MappingTrainJob t;
-    t.dataset = dataset;
-    t.schedule = schedule;
-    set(a.hidden(), &t.mapping.hidden);
-    set(a.layers(), &t.mapping.layers);
-    if (a.seed() != 0) t.mapping.seed = a.seed();
-    t.progress = report;
-    auto result = TrainLatentMapping(t);
-    if (!result.ok()) return result.status();
-    return Finished(result->steps, result->output_dir,
-                    absl::StrCat("latent mapping trained ", result->steps, " steps into ", result->output_dir, "\n",
-                                 FormatDrivenEvaluation(result->evaluation)));
-  }
-  AssetTrainJob t;
-  t.dataset = dataset;
-  t.schedule = schedule;
-  GeometryVaeOptions& g = t.geometry;
-  set(a.input_size(), &g.input_size);
-  set(a.levels(), &g.levels);
-  set(a.base_channels(), &g.base_channels);
-  set(a.max_channels(), &g.max_channels);
-  set(a.geometry_latent(), &g.geometry_latent);
-  set(a.pose_latent(), &g.pose_latent);
-  if (a.seed() != 0) g.seed = a.seed();
-  t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) { return report(step, total, l.total); };
-  auto result = TrainGeometryAsset(t);
-  if (!result.ok()) return result.status();
-  return Finished(result->steps, result->output_dir,
-                  absl::StrCat("geometry VAE trained ", result->steps, " steps into ", result->output_dir, "\n",
-                               FormatTrainedEvaluation(result->evaluation)));
+  if (network == v1::ASSET_NETWORK_EXPRESSION) return TrainExpressionJob(a, dataset, schedule, report);
+  if (network == v1::ASSET_NETWORK_MAPPING) return TrainMappingJob(a, dataset, schedule, report);
+  return TrainGeometryJob(a, dataset, schedule, report);
 }
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetInferJob(

@@ -134,10 +134,10 @@ absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string&
 // A grey frame (width x height floats, row-major) cropped as the dataset crops: the box's square averaged down to
 // size x size pixels, over `white`, through a 1/gamma curve (2.2 for a camera's linear frames, as the dataset's
 // crops; 1 for display-referred frames), 8 bits.
-std::vector<uint8_t> CropFrame(const std::vector<float>& grey, int width, int height, const CropBox& box, int size,
-                               double white, double gamma);
+std::vector<uint8_t> CropFrame(const float* grey, int width, int height, const CropBox& box, int size, double white,
+                               double gamma);
 // The 99.5th percentile of the box's square in a grey frame (at least 1).
-double CropWhite(const std::vector<float>& grey, int width, int height, const CropBox& box);
+double CropWhite(const float* grey, int width, int height, const CropBox& box);
 // The full-lit frames [first, last) (last < 0: to the end) of the box's camera in a take, cropped as the dataset
 // cropped its own (black level removed, demosaiced to grey, the box's white, gamma 2.2): fn(frame, crop).
 absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, int size, int64_t first, int64_t last,
