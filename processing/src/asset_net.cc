@@ -615,7 +615,7 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
     const torch::Tensor expression_swap = (net->Decode(net->Mix(z_expression, z_anchor)) - anchor).pow(2).mean();
     const torch::Tensor view_swap = (net->Decode(net->Mix(z_anchor, z_view)) - anchor).pow(2).mean();
     // Frame b's expression seen from the other camera: encoded again, the two latents come back. Not computed when
-    // its weight is 0 (the default; a quarter of the step's work).
+    // its weight is 0 (the default: a decode and an encode of a batch's anchors saved).
     torch::Tensor cycle = torch::zeros({});
     if (o.cycle_weight > 0) {
       const torch::Tensor crossed = net->Mix(mu.slice(0, 2 * b), mu.slice(0, b, 2 * b));

@@ -70,6 +70,8 @@ void AssetCommands::Add(CLI::App& parent) {
       ->check(CLI::Range(50.0, 1000.0));
   build_dataset_->add_flag("--json", json_, "Print the summary as JSON on stdout");
   AddTrain();
+  AddEvaluate();
+  AddInfer();
 }
 
 void AssetCommands::AddTrain() {
@@ -121,6 +123,16 @@ void AssetCommands::AddTrain() {
       ->add_option("--augment-translation", job.augment_translation_mm,
                    "geometry: random shifts of the training maps, mm")
       ->capture_default_str();
+  AddTrainNetworkOptions();
+  train_->add_option("--threads", g.threads, "Torch's threads (0: the cores this process may use)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  train_->add_option("--seed", g.seed, "The weights' initialization and the batches' draws")->capture_default_str();
+  train_->add_flag("--json", json_, "Print the result as JSON on stdout");
+}
+
+// The options of the expression VAE and the mapping (the geometry VAE's are its job's, bound above).
+void AssetCommands::AddTrainNetworkOptions() {
   // The expression VAE's.
   processing::ExpressionVaeOptions& e = expression_job_.expression;
   train_->add_option("--expression-latent", e.expression_latent, "expression: size of the expression latent")
@@ -145,12 +157,9 @@ void AssetCommands::AddTrain() {
                      "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
   train_->add_option("--expression-run", mapping_job_.expression_run,
                      "mapping: the expression VAE's run (default: the dataset's directory/expression)");
-  train_->add_option("--threads", g.threads, "Torch's threads (0: the cores this process may use)")
-      ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
-  train_->add_option("--seed", g.seed, "The weights' initialization and the batches' draws")->capture_default_str();
-  train_->add_flag("--json", json_, "Print the result as JSON on stdout");
+}
 
+void AssetCommands::AddEvaluate() {
   evaluate_ = app_->add_subcommand(
       "evaluate",
       "A trained asset against a dataset's frames (each split; the whole face's texels, and the template's "
@@ -167,7 +176,6 @@ void AssetCommands::AddTrain() {
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
                         "mapping: the expression VAE's run (default: the dataset's directory/expression)");
   evaluate_->add_flag("--json", json_, "Print the evaluation as JSON on stdout");
-  AddInfer();
 }
 
 void AssetCommands::AddInfer() {

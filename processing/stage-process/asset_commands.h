@@ -18,6 +18,8 @@ class AssetCommands {
 
  private:
   void AddTrain();
+  void AddTrainNetworkOptions();
+  void AddEvaluate();
   void AddInfer();
   int BuildDataset();
   int Train();
