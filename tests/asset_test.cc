@@ -1,16 +1,20 @@
 // The neural asset's stages three ways (stage-process asset ..., the library, the processing worker's job) on a take
 // the simulator renders: the dataset, the geometry VAE, the expression VAE and the mapping give the same bytes each
 // way; the dataset opens in h5py; clear errors.
+#include <tiny_gltf.h>
+
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
+#include "stage/common/mesh.h"
 #include "stage/common/rig.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
+#include "stage/processing/face_template.h"
 #include "stage/sim/rendered_take.h"
 #include "test_support.h"
 #include "worker_support.h"
@@ -19,6 +23,30 @@ namespace stage::testing {
 namespace {
 
 using ::testing::HasSubstr;
+
+// Frame k of a driven sequence's glTF (mesh_sequence.h), in mm: its rest positions moved by morph target k.
+std::vector<Eigen::Vector3f> GlbFrame(const std::string& path, int k) {
+  tinygltf::TinyGLTF loader;
+  tinygltf::Model model;
+  std::string error, warning;
+  EXPECT_TRUE(loader.LoadBinaryFromFile(&model, &error, &warning, path)) << path << ": " << error;
+  if (model.meshes.size() != 1) return {};
+  const tinygltf::Primitive& primitive = model.meshes[0].primitives.at(0);
+  auto floats = [&model](int accessor) {
+    const tinygltf::Accessor& a = model.accessors.at(accessor);
+    const tinygltf::BufferView& view = model.bufferViews.at(a.bufferView);
+    const auto* data =
+        reinterpret_cast<const float*>(model.buffers.at(view.buffer).data.data() + view.byteOffset + a.byteOffset);
+    return std::vector<float>(data, data + 3 * a.count);
+  };
+  const std::vector<float> rest = floats(primitive.attributes.at("POSITION"));
+  const std::vector<float> offset = floats(primitive.targets.at(k).at("POSITION"));
+  std::vector<Eigen::Vector3f> out(rest.size() / 3);
+  for (size_t v = 0; v < out.size(); ++v) {
+    for (int c = 0; c < 3; ++c) out[v][c] = 1000 * (rest[3 * v + c] + offset[3 * v + c]);
+  }
+  return out;
+}
 
 // Twelve frames of the range-of-motion performance, 100 s apart by 8 s, seen by two machine-vision cameras.
 void MakeTake(const std::string& dir) {
@@ -124,7 +152,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
       return run;
     };
     const auto mine = without(FilesUnder(asset + "/" + name + "-batch"));
-    EXPECT_EQ(mine.size(), 4u) << name;  // trainer.json, loss.csv and .png, evaluation.json
+    // trainer.json, loss.csv and .png, evaluation.json; the mapping's picture of a frame driven (driven.png)
+    EXPECT_EQ(mine.size(), name == "mapping" ? 5u : 4u) << name;
     for (const std::string& other : {name + "-library", name}) {
       const auto theirs = without(FilesUnder(asset + "/" + other));
       ASSERT_EQ(theirs.size(), mine.size()) << other;
@@ -229,7 +258,9 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), infer_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/infer/mv-05");
   const auto inferred = FilesUnder(asset + "/infer-batch");
-  EXPECT_EQ(inferred.size(), 12u * 3 + 1);  // crop.png, geometry_map.exr, mesh.obj a frame; frames.json
+  // crop.png, geometry_map.exr, mesh.obj a frame; the twelve meshes as one glTF animation; frames.json
+  EXPECT_EQ(inferred.size(), 12u * 3 + 2);
+  EXPECT_EQ(nlohmann::json::parse(infer.out)["gltf"], nlohmann::json::array({"animation-000000.glb"}));
   for (const char* other : {"infer-library", "infer/mv-05"}) {
     const auto theirs = FilesUnder(asset + "/" + other);
     ASSERT_EQ(theirs.size(), inferred.size()) << other;
@@ -247,6 +278,19 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
       std::chrono::seconds(60));
   ASSERT_EQ(opened.exit.exit_code, 0) << opened.err;
   EXPECT_THAT(opened.out, HasSubstr("True True True"));
+  // The glTF's third frame (400) is that frame's mesh: the rest (the template) moved by its morph target.
+  auto face = processing::ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  auto mesh = ReadObj(asset + "/infer-batch/frame-000400/mesh.obj");
+  ASSERT_TRUE(mesh.ok()) << mesh.status();
+  const std::vector<Eigen::Vector3f> from_glb = GlbFrame(asset + "/infer-batch/animation-000000.glb", 2);
+  ASSERT_EQ(from_glb.size(), mesh->positions.size());
+  double worst = 0;
+  for (size_t v = 0; v < from_glb.size(); ++v) {
+    worst = std::max<double>(worst, (from_glb[v] - mesh->positions[v]).norm());
+  }
+  EXPECT_LT(worst, 1e-3) << "mm (the OBJ's 6 decimals)";
+  EXPECT_GT((mesh->positions[0] - face->mesh.positions[0]).norm(), 1e-3) << "the frame's mesh is not the rest's";
   CommandResult unknown = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
                                       "mv-09", "--take", take.path()},
                                      std::chrono::seconds(60));

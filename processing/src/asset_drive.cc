@@ -293,6 +293,42 @@ absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
   return e;
 }
 
+// The picture (WriteDrivenPicture) of the middle frame of the held-out blocks (of the training frames where none is
+// held out), driven from the first held-out camera that recorded it (a trained one where none is held out).
+absl::Status WritePicture(const DrivenAsset& a, const std::string& path) {
+  const AssetDataset& d = a.data.dataset;
+  std::vector<int64_t> frames = asset_internal::FramesOf(d, SampleSplit::kHeldOutBlock);
+  const bool held_out_frame = !frames.empty();
+  if (frames.empty()) frames = a.data.train;
+  if (frames.empty()) return absl::FailedPreconditionError(absl::StrCat(d.path, ": no frame to draw"));
+  const int64_t f = frames[frames.size() / 2];
+  std::vector<int> order;
+  for (const std::string& id : a.held_out) {
+    order.push_back(static_cast<int>(std::find(d.cameras.begin(), d.cameras.end(), id) - d.cameras.begin()));
+  }
+  order.insert(order.end(), a.trained.begin(), a.trained.end());
+  const auto camera = std::find_if(order.begin(), order.end(), [&](int c) { return ImageValid(d, f, c); });
+  if (camera == order.end()) {
+    return absl::FailedPreconditionError(absl::StrCat(d.path, ": no camera recorded frame ", d.frame[f]));
+  }
+  const bool held_out_camera = camera - order.begin() < static_cast<std::ptrdiff_t>(a.held_out.size());
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a.mapping->Map(a.ExpressionOf(f, *camera), 1));
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  asset_internal::DrivenPicture p;
+  p.title = absl::StrFormat("frame %d (%s), driven from camera %s (%s): the geometry map in the head's frame",
+                            d.frame[f], held_out_frame ? "a held-out block" : "trained on", d.cameras[*camera],
+                            held_out_camera ? "held out" : "trained on");
+  p.camera_label = absl::StrCat(d.cameras[*camera], "'s crop");
+  p.crop = d.images.data() + (static_cast<size_t>(f) * d.cameras.size() + *camera) * d.image_size * d.image_size;
+  p.crop_size = d.image_size;
+  p.truth = a.data.maps.maps[f];
+  p.valid = a.data.maps.valid[f];
+  STAGE_ASSIGN_OR_RETURN(p.driven, a.geometry->Decode(z, 1));
+  p.size = a.data.maps.size;
+  p.face = &face;
+  return asset_internal::WriteDrivenPicture(path, p);
+}
+
 // The mapping's training pairs: (frame, camera) of training frames by trained cameras that recorded them.
 std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a) {
   std::vector<std::pair<int64_t, int>> out;
@@ -556,18 +592,20 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateDriven(a));
   STAGE_RETURN_IF_ERROR(
       WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
+  STAGE_RETURN_IF_ERROR(WritePicture(a, result.output_dir + "/driven.png"));
   return result;
 }
 
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
-                                                     const std::string& expression_run,
-                                                     const std::string& mapping_run) {
+                                                     const std::string& expression_run, const std::string& mapping_run,
+                                                     const std::string& picture) {
   STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
                          LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
                                          asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
   STAGE_ASSIGN_OR_RETURN(a.mapping,
                          asset_internal::LoadMappingNet(asset_internal::RunDir(mapping_run, dataset, "mapping"),
                                                         a.ExpressionSize(), a.GeometrySize(), /*threads=*/0));
+  if (!picture.empty()) STAGE_RETURN_IF_ERROR(WritePicture(a, picture));
   return EvaluateDriven(a);
 }
 

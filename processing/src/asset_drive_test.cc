@@ -122,7 +122,9 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   ASSERT_TRUE(inferred.ok()) << inferred.status();
   EXPECT_THAT(inferred->frames, ::testing::ElementsAre(0, 1, 2));
   EXPECT_EQ(inferred->output_dir, ::testing::TempDir() + "/drive-video/frame-%04d-asset");
-  for (const char* file : {"/frame-000002/geometry_map.exr", "/frame-000002/mesh.obj", "/frames.json"}) {
+  EXPECT_THAT(inferred->gltf_files, ::testing::ElementsAre("animation-000000.glb"));
+  for (const char* file :
+       {"/frame-000002/geometry_map.exr", "/frame-000002/mesh.obj", "/frames.json", "/animation-000000.glb"}) {
     EXPECT_TRUE(std::filesystem::exists(inferred->output_dir + file)) << file;
   }
   cv::Mat tiny(16, 16, CV_8U, cv::Scalar(10));
@@ -134,6 +136,26 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   auto again = EvaluateDrivenAsset(dataset);
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_DOUBLE_EQ(again->cameras[1].error[1].face_mm, held.error[1].face_mm);
+
+  // The picture, in the mapping's run and where asked: four tiles of 256 under a title; the truth's tile shows the
+  // surface (not the background's grey 40) over much of it, the error's tile it in colour.
+  const std::string picture = ::testing::TempDir() + "/drive-picture.png";
+  ASSERT_TRUE(EvaluateDrivenAsset(dataset, "", "", "", picture).ok());
+  for (const std::string& path : {m->output_dir + "/driven.png", picture}) {
+    const cv::Mat image = cv::imread(path);
+    ASSERT_EQ(image.cols, 4 * 256) << path;
+    ASSERT_EQ(image.rows, 256 + 52) << path;
+    int surface = 0, coloured = 0;
+    for (int y = 52; y < image.rows; ++y) {
+      for (int x = 0; x < 256; ++x) {
+        surface += image.at<cv::Vec3b>(y, 256 + x) != cv::Vec3b(40, 40, 40);
+        const cv::Vec3b colour = image.at<cv::Vec3b>(y, 768 + x);
+        coloured += colour[0] != colour[1] || colour[1] != colour[2];
+      }
+    }
+    EXPECT_GT(surface, 256 * 256 / 4) << path;
+    EXPECT_GT(coloured, 256 * 256 / 4) << path;
+  }
 
   // A resume finds the run done; over an expression VAE trained again since, it is refused, naming why.
   mapping.schedule.resume = true;

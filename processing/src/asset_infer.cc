@@ -15,6 +15,7 @@
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/mesh_sequence.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/uv_geometry.h"
 
@@ -32,8 +33,10 @@ struct Asset {
   int image_size = 0;  // the dataset's crops'
 };
 
-// One frame's crop driven through the nets, its files written into `dir`.
-absl::Status DriveFrame(const Asset& a, const std::vector<uint8_t>& crop, const std::string& dir, bool meshes) {
+// One frame's crop driven through the nets, its files written into `dir`; returns the template's vertices where the
+// decoded map puts them.
+absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const std::vector<uint8_t>& crop,
+                                                        const std::string& dir, bool meshes) {
   const int input = a.expression->options().input_size;
   std::vector<float> net_input(static_cast<size_t>(input) * input);
   asset_internal::CropToNetInput(crop.data(), a.image_size, input, net_input.data());
@@ -55,13 +58,51 @@ absl::Status DriveFrame(const Asset& a, const std::vector<uint8_t>& crop, const 
   if (!cv::imwrite(dir + "/crop.png", image))
     return absl::UnavailableError(absl::StrCat(dir, "/crop.png: cannot write"));
   STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", map));
-  if (!meshes) return absl::OkStatus();
   TriangleMesh mesh = a.face.mesh;
   for (size_t v = 0; v < mesh.positions.size(); ++v) {
     if (const auto p = SampleGeometryMap(map, mesh.uvs[v])) mesh.positions[v] = *p;
   }
-  return WriteObj(dir + "/mesh.obj", mesh, "FaStage neural asset: the face template driven from one camera's image");
+  if (meshes) {
+    STAGE_RETURN_IF_ERROR(
+        WriteObj(dir + "/mesh.obj", mesh, "FaStage neural asset: the face template driven from one camera's image"));
+  }
+  return std::move(mesh.positions);
 }
+
+// The driven frames gathered into glTF binaries of `segment` frames each, `animation-<first frame>.glb`.
+class GltfSegments {
+ public:
+  GltfSegments(const AssetInferOptions& options, const TriangleMesh& rest, std::string dir)
+      : options_(options), rest_(rest), dir_(std::move(dir)) {}
+
+  absl::Status Add(int64_t frame, std::vector<Eigen::Vector3f> positions) {
+    if (options_.gltf_segment_frames == 0) return absl::OkStatus();
+    pending_.push_back({frame, std::move(positions)});
+    if (static_cast<int>(pending_.size()) < options_.gltf_segment_frames) return absl::OkStatus();
+    return Flush();
+  }
+
+  absl::Status Flush() {
+    if (pending_.empty()) return absl::OkStatus();
+    const std::string name = absl::StrFormat("animation-%06d.glb", pending_.front().frame);
+    MeshSequenceOptions sequence;
+    sequence.frames_per_second = options_.gltf_frames_per_second;
+    sequence.generator = "FaStage neural asset, driven from camera " + options_.camera;
+    STAGE_RETURN_IF_ERROR(WriteMeshSequenceGlb(dir_ + "/" + name, rest_, pending_, sequence));
+    files_.push_back({{"file", name}, {"first_frame", pending_.front().frame}, {"frames", pending_.size()}});
+    pending_.clear();
+    return absl::OkStatus();
+  }
+
+  const nlohmann::json& files() const { return files_; }
+
+ private:
+  const AssetInferOptions& options_;
+  const TriangleMesh& rest_;
+  const std::string dir_;
+  std::vector<MeshSequenceFrame> pending_;
+  nlohmann::json files_ = nlohmann::json::array();
+};
 
 // Each frame of a video (or image sequence) of the box's camera cropped as the dataset crops (display-referred
 // frames: the first crop's white, no gamma).
@@ -108,6 +149,12 @@ absl::Status AssetInferOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("asset inference: frames [", first_frame, ", ", last_frame, ")"));
   }
   if (threads < 0) return absl::InvalidArgumentError(absl::StrCat("asset inference: threads ", threads));
+  if (gltf_segment_frames < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("asset inference: gltf_segment_frames ", gltf_segment_frames));
+  }
+  if (!(gltf_frames_per_second > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("asset inference: gltf_frames_per_second ", gltf_frames_per_second));
+  }
   return absl::OkStatus();
 }
 
@@ -143,12 +190,15 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
     const fs::path video(options.video);
     result.output_dir = (video.parent_path() / (video.stem().string() + "-asset")).string();
   }
+  GltfSegments gltf(options, a.face.mesh, result.output_dir);
   auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
     if (options.cancelled && options.cancelled()) {
       return absl::CancelledError(absl::StrCat("asset inference stopped before frame ", frame, " (",
                                                result.frames.size(), " written into ", result.output_dir, ")"));
     }
-    STAGE_RETURN_IF_ERROR(DriveFrame(a, crop, FrameDir(result.output_dir, frame), options.meshes));
+    STAGE_ASSIGN_OR_RETURN(std::vector<Eigen::Vector3f> positions,
+                           DriveFrame(a, crop, FrameDir(result.output_dir, frame), options.meshes));
+    STAGE_RETURN_IF_ERROR(gltf.Add(frame, std::move(positions)));
     result.frames.push_back(frame);
     if (options.progress) options.progress(static_cast<int64_t>(result.frames.size()));
     return absl::OkStatus();
@@ -163,12 +213,15 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
     return absl::NotFoundError(absl::StrCat(options.take_dir.empty() ? options.video : options.take_dir,
                                             ": no frame of camera ", options.camera, " to drive the asset from"));
   }
+  STAGE_RETURN_IF_ERROR(gltf.Flush());
+  for (const auto& file : gltf.files()) result.gltf_files.push_back(file["file"].get<std::string>());
   const nlohmann::json summary = {
       {"camera", options.camera},
       {"held_out", std::find(held_out.begin(), held_out.end(), options.camera) != held_out.end()},
       {"source", options.take_dir.empty() ? "video" : "take"},
       {"frames", result.frames},
-      {"geometry_size", a.geometry->options().input_size}};
+      {"geometry_size", a.geometry->options().input_size},
+      {"gltf", gltf.files()}};
   STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/frames.json", summary.dump(2) + "\n"));
   return result;
 }

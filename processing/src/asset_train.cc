@@ -145,8 +145,8 @@ nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_
   return j;
 }
 
-// An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped;
-// nullopt where one of the four texels is not valid.
+}  // namespace
+
 std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const std::vector<float>& valid, int size,
                                           const Eigen::Vector2f& uv) {
   const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
@@ -165,8 +165,6 @@ std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const s
   }
   return p;
 }
-
-}  // namespace
 
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered) {

@@ -7,6 +7,7 @@
 #include <initializer_list>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -41,6 +42,11 @@ std::vector<int64_t> FramesOf(const AssetDataset& d, SampleSplit split);
 // A dataset's identity: FNV-1a of its description (source, take, sizes, sequences, split) and frame numbers.
 std::string DatasetId(const AssetDataset& d);
 
+// An NCHW map of `size` texels at `uv` (texel centres at (i + 0.5) / size, row 0 at v = 1), bilinear, clamped;
+// nullopt where one of the four texels is not valid.
+std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const std::vector<float>& valid, int size,
+                                          const Eigen::Vector2f& uv);
+
 // The error of `recovered` maps (frame -> NCHW map) of `frames` against the truth (SplitError).
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered);
@@ -71,6 +77,18 @@ std::string RunDir(const std::string& dir, const std::string& dataset, const cha
 // A crop of `size` pixels across (8 bits) averaged down to `input` pixels across (size a multiple of it), 0..1, into
 // `out` (input^2 values): what the expression VAE sees of a dataset's crop or of a new image's.
 void CropToNetInput(const uint8_t* crop, int size, int input, float* out);
+
+// One frame of the asset driven from one camera, drawn (docs/asset.md's picture): the camera's crop, the frame's
+// truth and the driven mesh seen from the front, and the driven mesh's distance to the truth per vertex in colour.
+struct DrivenPicture {
+  std::string title, camera_label;
+  const uint8_t* crop = nullptr;  // 8-bit grey, crop_size^2
+  int crop_size = 0;
+  std::vector<float> truth, valid, driven;  // NCHW maps at `size` (head frame, mm), the truth's validity
+  int size = 0;
+  const FaceTemplate* face = nullptr;
+};
+absl::Status WriteDrivenPicture(const std::string& path, const DrivenPicture& p);
 
 // A split's error as JSON (the evaluations' files).
 nlohmann::json SplitJson(const SplitError& x);

@@ -175,6 +175,9 @@ void AssetCommands::AddEvaluate() {
                         "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
                         "mapping: the expression VAE's run (default: the dataset's directory/expression)");
+  evaluate_->add_option("--picture", evaluate_picture_,
+                        "--network mapping: draw one frame into this PNG (the middle held-out block frame driven from "
+                        "the held-out camera: its crop, the truth, the driven mesh, the error)");
   evaluate_->add_flag("--json", json_, "Print the evaluation as JSON on stdout");
 }
 
@@ -184,7 +187,8 @@ void AssetCommands::AddInfer() {
       "infer",
       "Drives the trained asset from one camera's images (docs/asset.md#inference): each cropped as the dataset "
       "crops that camera, encoded, mapped and decoded to the frame's UV geometry map and the face template's mesh "
-      "(OUTPUT/frame-NNNNNN/crop.png, geometry_map.exr, mesh.obj; frames.json)");
+      "(OUTPUT/frame-NNNNNN/crop.png, geometry_map.exr, mesh.obj; the meshes as glTF animations, "
+      "OUTPUT/animation-NNNNNN.glb; frames.json)");
   infer_app_->add_option("--dataset", o.dataset, "The asset's dataset (the trained runs beside it)")->required();
   infer_app_->add_option("--camera", o.camera, "The camera the images are of (one the dataset cropped)")->required();
   auto* take = infer_app_->add_option("--take", o.take_dir, "A take whose full-lit frames of the camera drive it");
@@ -200,6 +204,14 @@ void AssetCommands::AddInfer() {
   infer_app_->add_option("--expression-run", o.expression_run, "The expression VAE's run (default: beside it)");
   infer_app_->add_option("--mapping-run", o.mapping_run, "The mapping's run (default: beside it)");
   infer_app_->add_flag("--no-meshes", no_meshes_, "Write no mesh.obj");
+  infer_app_
+      ->add_option("--gltf-segment-frames", o.gltf_segment_frames,
+                   "Frames per glTF file (a morph target and shape key per frame; 0: no glTF)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  infer_app_->add_option("--fps", o.gltf_frames_per_second, "The glTF animation's frames per second")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   infer_app_->add_option("--threads", o.threads, "Torch's threads (0: the cores this process may use)")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
@@ -224,10 +236,14 @@ int AssetCommands::Infer() {
   bar.Finish();
   if (!result.ok()) return ReportFatal(kProgram, result.status());
   if (json_) {
-    std::cout << nlohmann::json{{"output_dir", result->output_dir}, {"frames", result->frames}}.dump() << "\n";
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"frames", result->frames},
+                                {"gltf", result->gltf_files}}
+                     .dump()
+              << "\n";
   } else {
     std::cout << result->frames.size() << " frame(s) of " << o.camera << " drove the asset into " << result->output_dir
-              << "\n";
+              << " (" << result->gltf_files.size() << " glTF animation(s))\n";
   }
   return 0;
 }
@@ -445,15 +461,17 @@ int AssetCommands::TrainMapping() {
 int AssetCommands::Evaluate() {
   if (evaluate_network_ == "mapping") {
     auto result = processing::EvaluateDrivenAsset(evaluate_dataset_, evaluate_geometry_run_, evaluate_expression_run_,
-                                                  evaluate_run_);
+                                                  evaluate_run_, evaluate_picture_);
     if (!result.ok()) return ReportFatal(kProgram, result.status());
     std::cout << (json_ ? processing::DrivenEvaluationJson(*result) + "\n"
                         : processing::FormatDrivenEvaluation(*result));
     return 0;
   }
-  if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0) {
+  if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0 ||
+      evaluate_->count("--picture") > 0) {
     return ReportFatal(
-        kProgram, absl::InvalidArgumentError("--geometry-run and --expression-run are options of --network mapping"));
+        kProgram,
+        absl::InvalidArgumentError("--geometry-run, --expression-run and --picture are options of --network mapping"));
   }
   const std::string run = evaluate_run_.empty()
                               ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()

@@ -32,7 +32,7 @@ class AssetCommands {
   CLI::App* build_dataset_ = nullptr;
   CLI::App* train_ = nullptr;
   CLI::App* evaluate_ = nullptr;
-  std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_;
+  std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_, evaluate_picture_;
   std::string evaluate_network_ = "geometry";
   // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed).
   processing::AssetTrainJob train_job_;

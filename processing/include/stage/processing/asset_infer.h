@@ -8,7 +8,9 @@
 //   crop.png          the crop the nets saw (8-bit grey)
 //   geometry_map.exr  the decoded map at the geometry VAE's resolution (stage/processing/uv_geometry.h's format)
 //   mesh.obj          the face template with its vertices where the map puts them (its UVs kept)
-// and frames.json (the camera, the source, the frames) once all are written.
+// every `gltf_segment_frames` frames animation-<first frame>.glb, those frames' meshes as one glTF binary (the
+// template with a morph target per frame and their animation: stage/processing/mesh_sequence.h), and frames.json
+// (the camera, the source, the frames, the glTF files) once all are written.
 // Textures (the texture VAE's wrinkle maps over the neutral textures) are not built yet.
 #pragma once
 
@@ -39,6 +41,10 @@ struct AssetInferOptions {
   // Default: TAKE/derived/asset/infer/<camera>, or beside the video: <its name without extension>-asset.
   std::string output_dir;
   bool meshes = true;  // false: no mesh.obj
+  // Frames per glTF file (0: none). A file holds a morph target per frame: 240 frames of the template's 9,492
+  // vertices are 27 MB, and Blender imports them as 240 shape keys.
+  int gltf_segment_frames = 240;
+  double gltf_frames_per_second = 24;  // the glTF animation's (the stage records 24 frames a second)
   int threads = 0;     // torch's (0: the cores this process may use)
   // After each frame (frames done); asked before each: true stops (Cancelled; the frames written are kept, the
   // frames.json is not).
@@ -50,6 +56,7 @@ struct AssetInferOptions {
 struct AssetInferResult {
   std::string output_dir;
   std::vector<int64_t> frames;
+  std::vector<std::string> gltf_files;  // in the output directory, in frame order
 };
 
 // Errors name the file or the camera: no crop of the camera in the dataset, a run missing, a video that does not

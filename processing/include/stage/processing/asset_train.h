@@ -119,7 +119,8 @@ absl::StatusOr<ExpressionTrainResult> TrainExpressionAsset(const ExpressionTrain
 
 // The mapping from the expression latent to the geometry latent, both VAEs frozen (their runs finished): pairs of a
 // training frame's crop by a trained camera (its expression latent's mean) and the frame's map (its geometry
-// latent's mean). At the end, the asset driven from every camera is evaluated (DrivenEvaluation).
+// latent's mean). At the end, the asset driven from every camera is evaluated (DrivenEvaluation, evaluation.json) and
+// one frame drawn (driven.png: see EvaluateDrivenAsset).
 struct MappingTrainJob {
   std::string dataset;
   std::string output_dir;      // default: DATASET's directory/mapping
@@ -157,10 +158,13 @@ struct MappingTrainResult {
 absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job);
 
 // The driven evaluation of finished runs on `dataset` (default run directories as in MappingTrainJob: empty names
-// DATASET's directory/geometry, .../expression, .../mapping). Errors name the file.
+// DATASET's directory/geometry, .../expression, .../mapping), and where `picture` names a PNG file, one frame drawn
+// there as the mapping's training draws it into its run (driven.png: the middle frame of the held-out blocks, driven
+// from the first held-out camera; its crop, the truth, the driven mesh and its error). Errors name the file.
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run = "",
                                                      const std::string& expression_run = "",
-                                                     const std::string& mapping_run = "");
+                                                     const std::string& mapping_run = "",
+                                                     const std::string& picture = "");
 std::string DrivenEvaluationJson(const DrivenEvaluation& e);
 std::string FormatDrivenEvaluation(const DrivenEvaluation& e);
 std::string ExpressionEvaluationJson(const ExpressionEvaluation& e);
