@@ -1,5 +1,4 @@
 // A frame of the asset driven from one camera as a picture (asset_train_internal.h: WriteDrivenPicture).
-#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgcodecs.hpp>
@@ -15,13 +14,14 @@ constexpr int kTile = 256;
 constexpr double kErrorRangeMm = 5;  // the error's colour scale: 0 (dark blue) .. 5 mm (dark red)
 
 // The mesh seen from the front (from +z, orthographically; the square `window` of x and y in mm: centre x, y and
-// half side), grey by the surface's slope to a light from the upper left; and where `values` (per vertex) is given, the
-// hit's blend of them coloured on the error's scale. Background where no surface is.
+// half side), grey by its (interpolated vertex) normal's slope to a light from the upper left; and where `values`
+// (per vertex) is given, the hit's blend of them coloured on the error's scale. Background where no surface is.
 void FrontView(const TriangleMesh& mesh, const Eigen::Vector3f& window, const std::vector<float>* values,
                cv::Mat* shaded, cv::Mat* coloured) {
   *shaded = cv::Mat(kTile, kTile, CV_8UC3, cv::Scalar::all(40));
   if (coloured != nullptr) *coloured = shaded->clone();
   const MeshBvh bvh(mesh);
+  const std::vector<Eigen::Vector3f> normals = mesh.VertexNormals();
   cv::Mat level(kTile, kTile, CV_8U, cv::Scalar(0)), hits = level.clone();
   const Eigen::Vector3f direction(0, 0, -1);
   const Eigen::Vector3f light = Eigen::Vector3f(-0.4f, 0.5f, 1).normalized();  // from the upper left, before the face
@@ -33,8 +33,8 @@ void FrontView(const TriangleMesh& mesh, const Eigen::Vector3f& window, const st
       MeshHit hit;
       if (!bvh.Nearest(origin, direction, 4000, &hit)) continue;
       const auto& t = mesh.triangles[static_cast<size_t>(hit.triangle)];
-      const auto& p = mesh.positions;
-      const Eigen::Vector3f n = (p[t[1]] - p[t[0]]).cross(p[t[2]] - p[t[0]]).normalized();
+      const Eigen::Vector3f n =
+          ((1 - hit.b1 - hit.b2) * normals[t[0]] + hit.b1 * normals[t[1]] + hit.b2 * normals[t[2]]).normalized();
       const auto grey = static_cast<uint8_t>(std::clamp(40 + 215 * std::abs(n.dot(light)), 0.0f, 255.0f));
       shaded->at<cv::Vec3b>(y, x) = {grey, grey, grey};
       if (coloured == nullptr) continue;
