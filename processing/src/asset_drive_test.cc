@@ -127,6 +127,16 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
        {"/frame-000002/geometry_map.exr", "/frame-000002/mesh.obj", "/frames.json", "/animation-000000.glb"}) {
     EXPECT_TRUE(std::filesystem::exists(inferred->output_dir + file)) << file;
   }
+  // Two frames a glTF file: the third frame starts the second.
+  auto segmented = InferAsset({.dataset = dataset,
+                               .camera = "cam-1",
+                               .video = video + "/frame-%04d.png",
+                               .output_dir = video + "/segmented",
+                               .meshes = false,
+                               .gltf_segment_frames = 2});
+  ASSERT_TRUE(segmented.ok()) << segmented.status();
+  EXPECT_THAT(segmented->gltf_files, ::testing::ElementsAre("animation-000000.glb", "animation-000002.glb"));
+  EXPECT_FALSE(std::filesystem::exists(video + "/segmented/frame-000000/mesh.obj"));
   cv::Mat tiny(16, 16, CV_8U, cv::Scalar(10));
   ASSERT_TRUE(cv::imwrite(video + "/tiny-0000.png", tiny));
   EXPECT_THAT(InferAsset({.dataset = dataset, .camera = "cam-1", .video = video + "/tiny-%04d.png"}).status().message(),

@@ -30,8 +30,39 @@ struct Asset {
   std::unique_ptr<ExpressionVae> expression;
   std::unique_ptr<LatentMapping> mapping;
   FaceTemplate face;
-  int image_size = 0;  // the dataset's crops'
+  int image_size = 0;                 // the dataset's crops'
+  std::vector<std::string> held_out;  // the cameras the expression VAE did not train on
 };
+
+// The runs' nets the options name (or those beside the dataset `d`), checked against its crops.
+absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDataset& d) {
+  using asset_internal::RunDir;
+  Asset a;
+  a.image_size = d.image_size;
+  STAGE_ASSIGN_OR_RETURN(
+      a.expression, asset_internal::LoadExpressionNet(RunDir(options.expression_run, options.dataset, "expression"),
+                                                      options.threads, &a.held_out));
+  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(
+                                         RunDir(options.geometry_run, options.dataset, "geometry"), options.threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
+                                                        a.expression->options().expression_latent,
+                                                        a.geometry->options().geometry_latent, options.threads));
+  if (d.image_size % a.expression->options().input_size != 0) {
+    return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
+                                                      " px) are not the expression VAE's input size's multiple"));
+  }
+  STAGE_ASSIGN_OR_RETURN(a.face, ShippedFaceTemplate());
+  return a;
+}
+
+// The output directory: the options', or the take's derived/asset/infer/<camera>, or <video's name>-asset beside it.
+std::string OutputDir(const AssetInferOptions& options) {
+  if (!options.output_dir.empty()) return options.output_dir;
+  if (!options.take_dir.empty()) return options.take_dir + "/derived/asset/infer/" + options.camera;
+  const fs::path video(options.video);
+  return (video.parent_path() / (video.stem().string() + "-asset")).string();
+}
 
 // One frame's crop driven through the nets, its files written into `dir`; returns the template's vertices where the
 // decoded map puts them.
@@ -162,34 +193,9 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   STAGE_ASSIGN_OR_RETURN(const AssetDataset d, ReadAssetDatasetDescription(options.dataset));
   STAGE_ASSIGN_OR_RETURN(const CropBox box, DatasetCropBox(d, options.camera));
-  using asset_internal::RunDir;
-  Asset a;
-  a.image_size = d.image_size;
-  std::vector<std::string> held_out;
-  STAGE_ASSIGN_OR_RETURN(
-      a.expression, asset_internal::LoadExpressionNet(RunDir(options.expression_run, options.dataset, "expression"),
-                                                      options.threads, &held_out));
-  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(
-                                         RunDir(options.geometry_run, options.dataset, "geometry"), options.threads));
-  STAGE_ASSIGN_OR_RETURN(a.mapping,
-                         asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
-                                                        a.expression->options().expression_latent,
-                                                        a.geometry->options().geometry_latent, options.threads));
-  if (d.image_size % a.expression->options().input_size != 0) {
-    return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
-                                                      " px) are not the expression VAE's input size's multiple"));
-  }
-  STAGE_ASSIGN_OR_RETURN(a.face, ShippedFaceTemplate());
-
+  STAGE_ASSIGN_OR_RETURN(const Asset a, LoadAsset(options, d));
   AssetInferResult result;
-  if (!options.output_dir.empty()) {
-    result.output_dir = options.output_dir;
-  } else if (!options.take_dir.empty()) {
-    result.output_dir = options.take_dir + "/derived/asset/infer/" + options.camera;
-  } else {
-    const fs::path video(options.video);
-    result.output_dir = (video.parent_path() / (video.stem().string() + "-asset")).string();
-  }
+  result.output_dir = OutputDir(options);
   GltfSegments gltf(options, a.face.mesh, result.output_dir);
   auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
     if (options.cancelled && options.cancelled()) {
@@ -217,7 +223,7 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   for (const auto& file : gltf.files()) result.gltf_files.push_back(file["file"].get<std::string>());
   const nlohmann::json summary = {
       {"camera", options.camera},
-      {"held_out", std::find(held_out.begin(), held_out.end(), options.camera) != held_out.end()},
+      {"held_out", std::find(a.held_out.begin(), a.held_out.end(), options.camera) != a.held_out.end()},
       {"source", options.take_dir.empty() ? "video" : "take"},
       {"frames", result.frames},
       {"geometry_size", a.geometry->options().input_size},

@@ -47,7 +47,7 @@ struct AssetInferOptions {
   double gltf_frames_per_second = 24;  // the glTF animation's (the stage records 24 frames a second)
   int threads = 0;     // torch's (0: the cores this process may use)
   // After each frame (frames done); asked before each: true stops (Cancelled; the frames written are kept, the
-  // frames.json is not).
+  // frames.json and the glTF file under way are not).
   std::function<void(int64_t)> progress;
   std::function<bool()> cancelled;
   absl::Status Validate() const;
