@@ -6,6 +6,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "asset_train_internal.h"
+#include "contact_sheet.h"
 
 namespace stage::processing::asset_internal {
 namespace {
@@ -86,14 +87,7 @@ absl::Status WriteDrivenPicture(const std::string& path, const DrivenPicture& p)
   FrontView(driven, window, &error, &tiles[2].second, &tiles[3].second);
   tiles[2].first = "driven from the image";
   tiles[3].first = absl::StrCat("distance to the truth, 0..", kErrorRangeMm, " mm");
-  const int label = 22, header = 30;
-  cv::Mat sheet(header + label + kTile, 4 * kTile, CV_8UC3, cv::Scalar::all(24));
-  cv::putText(sheet, p.title, {6, 21}, cv::FONT_HERSHEY_SIMPLEX, 0.5, cv::Scalar::all(235), 1, cv::LINE_AA);
-  for (int i = 0; i < 4; ++i) {
-    tiles[i].second.copyTo(sheet(cv::Rect(i * kTile, header + label, kTile, kTile)));
-    cv::putText(sheet, tiles[i].first, {i * kTile + 4, header + 16}, cv::FONT_HERSHEY_SIMPLEX, 0.42,
-                cv::Scalar::all(235), 1, cv::LINE_AA);
-  }
+  const cv::Mat sheet = ContactSheet(tiles, p.title, /*columns=*/4);
   if (!cv::imwrite(path, sheet)) return absl::UnavailableError(absl::StrCat(path, ": cannot write the picture"));
   return absl::OkStatus();
 }

@@ -11,6 +11,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "contact_sheet.h"
 #include "stage/common/file_util.h"
 
 namespace stage::processing {
@@ -88,9 +89,9 @@ cv::Mat ScalarPreview(const Image& s, float full) {
   return m;
 }
 
-// Tiles of at least 256 pixels across (nearest-neighbour enlargement of small images), labelled, under a title.
-cv::Mat ContactSheet(const std::vector<std::pair<std::string, cv::Mat>>& tiles, const std::string& title) {
-  const int columns = 3;
+}  // namespace
+
+cv::Mat ContactSheet(const std::vector<std::pair<std::string, cv::Mat>>& tiles, const std::string& title, int columns) {
   const int w = tiles[0].second.cols, h = tiles[0].second.rows;
   const int scale = std::max(1, (256 + w - 1) / w);
   const int tw = w * scale, th = h * scale, label = 22, header = 30;
@@ -107,8 +108,6 @@ cv::Mat ContactSheet(const std::vector<std::pair<std::string, cv::Mat>>& tiles, 
   }
   return sheet;
 }
-
-}  // namespace
 
 absl::Status WriteExr(const std::string& path, const Image& image) {
   EnableExr();

@@ -320,19 +320,24 @@ void SetIfGiven(V value, T* field) {
   if (value != 0) *field = static_cast<T>(value);
 }
 
+// The options both VAEs' convolutional nets have (GeometryVaeOptions, ExpressionVaeOptions), where the job gives them.
+template <typename Net>
+void SetConvolutionalOptions(const v1::AssetOptions& a, Net* o) {
+  SetIfGiven(a.input_size(), &o->input_size);
+  SetIfGiven(a.levels(), &o->levels);
+  SetIfGiven(a.base_channels(), &o->base_channels);
+  SetIfGiven(a.max_channels(), &o->max_channels);
+  SetIfGiven(a.seed(), &o->seed);
+}
+
 absl::StatusOr<v1::ProcessingProgress> TrainExpressionJob(const v1::AssetOptions& a, const std::string& dataset,
                                                           const TrainingSchedule& schedule, const TrainReport& report) {
   ExpressionTrainJob t;
   t.dataset = dataset;
   t.schedule = schedule;
-  ExpressionVaeOptions& e = t.expression;
-  SetIfGiven(a.input_size(), &e.input_size);
-  SetIfGiven(a.levels(), &e.levels);
-  SetIfGiven(a.base_channels(), &e.base_channels);
-  SetIfGiven(a.max_channels(), &e.max_channels);
-  SetIfGiven(a.expression_latent(), &e.expression_latent);
-  SetIfGiven(a.view_latent(), &e.view_latent);
-  SetIfGiven(a.seed(), &e.seed);
+  SetConvolutionalOptions(a, &t.expression);
+  SetIfGiven(a.expression_latent(), &t.expression.expression_latent);
+  SetIfGiven(a.view_latent(), &t.expression.view_latent);
   t.held_out_cameras.assign(a.held_out_cameras().begin(), a.held_out_cameras().end());
   t.progress = [&](int64_t step, int64_t total, const ExpressionLosses& l) { return report(step, total, l.total); };
   auto result = TrainExpressionAsset(t);
@@ -363,14 +368,9 @@ absl::StatusOr<v1::ProcessingProgress> TrainGeometryJob(const v1::AssetOptions& 
   AssetTrainJob t;
   t.dataset = dataset;
   t.schedule = schedule;
-  GeometryVaeOptions& g = t.geometry;
-  SetIfGiven(a.input_size(), &g.input_size);
-  SetIfGiven(a.levels(), &g.levels);
-  SetIfGiven(a.base_channels(), &g.base_channels);
-  SetIfGiven(a.max_channels(), &g.max_channels);
-  SetIfGiven(a.geometry_latent(), &g.geometry_latent);
-  SetIfGiven(a.pose_latent(), &g.pose_latent);
-  SetIfGiven(a.seed(), &g.seed);
+  SetConvolutionalOptions(a, &t.geometry);
+  SetIfGiven(a.geometry_latent(), &t.geometry.geometry_latent);
+  SetIfGiven(a.pose_latent(), &t.geometry.pose_latent);
   t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) { return report(step, total, l.total); };
   auto result = TrainGeometryAsset(t);
   if (!result.ok()) return result.status();
