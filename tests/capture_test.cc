@@ -106,7 +106,7 @@ std::string Digits(int64_t n) { return std::to_string(n); }
 // Requests that do not fit the session's state are refused with the state named.
 TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   CommandResult idle_pause = Stagectl({"pause"});
   EXPECT_EQ(idle_pause.exit.exit_code, 2);
   EXPECT_THAT(idle_pause.err, HasSubstr("the session is idle, not capturing"));
@@ -224,7 +224,7 @@ TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
 // armed ran no slot at all.
 TEST_F(CaptureTest, AnArmedTakeStartsOnCaptureAndAnAbortKeepsWhatItRecorded) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   CommandResult zero = Stagectl({"capture", "--frames", "0"});
   EXPECT_EQ(zero.exit.exit_code, 2);
   CommandResult idle_abort = Stagectl({"abort"});
@@ -282,7 +282,7 @@ TEST_F(CaptureTest, AnArmedTakeStartsOnCaptureAndAnAbortKeepsWhatItRecorded) {
 // camera is complete.
 TEST_F(CaptureTest, ACameraNodeKilledMidTakeLeavesItsFramesAndTheRestNodeDown) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   const v1::SimProcess* victim = Process("mv-03");
   ASSERT_NE(victim, nullptr);
   auto capture = SpawnStagectl({"capture", "--frames", "12", "--json"}, "capture");
@@ -318,7 +318,7 @@ TEST_F(CaptureTest, ACameraNodeKilledMidTakeLeavesItsFramesAndTheRestNodeDown) {
 // no light node is left armed.
 TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   const v1::SimProcess* generator = Process("lights-gpio-1");
   ASSERT_NE(generator, nullptr);
   auto capture = SpawnStagectl({"capture", "--frames", "40", "--json"}, "capture");
@@ -365,10 +365,10 @@ TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
 // its high-speed cameras aligned, its ledger exact; and neither the controller nor any node called the world's bus.
 TEST_F(CaptureTest, AnExternalGeneratorRunningBeforeTheTakeGivesItsT0FromTheWitnessEdge) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--set", "sim.modbus_fakes=false", "--set",
-                                      "timing.sync_generator=\"\"", "--set", "timing.clock_witness=lights-gpio-2",
-                                      "--set", "light_nodes[lights-gpio-1].gpiod.drives_slot_clock=false",
-                                      "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(
+      ControlPlaneScene({"--set", "sim.modbus_fakes=false", "--set", "timing.sync_generator=\"\"", "--set",
+                         "timing.clock_witness=lights-gpio-2", "--set",
+                         "light_nodes[lights-gpio-1].gpiod.drives_slot_clock=false", "--take-root", root.path()})));
   auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
   {
     // The operator starts the signal generator: it runs until stopped (a run of a billion slots, 12 days).
@@ -419,7 +419,7 @@ TEST_F(CaptureTest, AnExternalGeneratorRunningBeforeTheTakeGivesItsT0FromTheWitn
 // cleanly and reports it; the frames before are in the file and stored, every later one "write failed".
 TEST_F(CaptureTest, AFrameFileAtItsSizeLimitStopsCleanlyWithTheLossesAttributed) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   const v1::SimProcess* node = Process("mv-05");
   ASSERT_NE(node, nullptr);
   struct rlimit limit {};
@@ -452,7 +452,7 @@ TEST_F(CaptureTest, AFrameFileAtItsSizeLimitStopsCleanlyWithTheLossesAttributed)
 // high-speed cameras' self-test saying why; the ledger has no loss.
 TEST_F(CaptureTest, TheSelfTestFindsBlendedPatternsAndATableOffByOne) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   std::vector<std::string> lights;
   for (const auto& n : endpoints_.processes()) {
     if (n.kind() == v1::NODE_KIND_LIGHT) lights.push_back(n.id());

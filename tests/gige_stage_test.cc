@@ -39,10 +39,8 @@ class GigEStageTest : public SimulatedStageTest {
   // The stage with kGigE on fake GigE Vision cameras at 127.0.0.11.. (the other cameras simulated as usual), and
   // `extra` rig overrides.
   void StartGigEStage(const std::string& take_root, std::vector<std::string> extra = {}) {
-    std::vector<std::string> args = {"--take-root", take_root,
-                                     "--set",       "sim.render_scale=0.02",
-                                     "--set",       "sim.gige_fakes=true",
-                                     "--set",       "cameras[mv-*].backend=sim"};
+    std::vector<std::string> args = ControlPlaneScene(
+        {"--take-root", take_root, "--set", "sim.gige_fakes=true", "--set", "cameras[mv-*].backend=sim"});
     for (size_t i = 0; i < kGigE.size(); ++i) {
       const std::string c = "cameras[" + kGigE[i] + "].";
       // A 256x192 region of the sensor: Aravis enlarges a stream's receive buffer only once the first frame's leader

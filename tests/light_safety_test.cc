@@ -68,8 +68,7 @@ class LightSafetyTest : public SimulatedStageTest {
 TEST_F(LightSafetyTest, TheEmergencyStopDarkensEveryLightBeforeItAnswersAndLatchesUntilReset) {
   TempDir root;
   // A real-time world: its clock is the monotonic clock, so "after the acknowledgement" has one meaning everywhere.
-  ASSERT_NO_FATAL_FAILURE(
-      StartStage({"--world", "realtime", "--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--world", "realtime", "--take-root", root.path()})));
   auto capture = SpawnCapture(240);  // 10 s of stage
   ASSERT_NE(capture, nullptr);
   ASSERT_TRUE(WaitForSession("capturing", 120s)) << ReadFile(run_dir_.path() + "/capture.err");
@@ -132,8 +131,7 @@ TEST_F(LightSafetyTest, TheEmergencyStopDarkensEveryLightBeforeItAnswersAndLatch
 TEST_F(LightSafetyTest, AControllerKilledMidTakeLeavesEveryLightDark) {
   TempDir root;
   // A real-time world: its clock is the monotonic clock, so "after the acknowledgement" has one meaning everywhere.
-  ASSERT_NO_FATAL_FAILURE(
-      StartStage({"--world", "realtime", "--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--world", "realtime", "--take-root", root.path()})));
   auto capture = SpawnCapture(480);  // 20 s of stage: the bus runs on after the controller dies
   ASSERT_NE(capture, nullptr);
   ASSERT_TRUE(WaitForSession("capturing", 120s)) << ReadFile(run_dir_.path() + "/capture.err");

@@ -27,8 +27,7 @@ using namespace std::chrono_literals;
 class ModbusStageTest : public SimulatedStageTest {
  protected:
   void StartModbusStage(const std::string& take_root, std::vector<std::string> extra = {}) {
-    std::vector<std::string> args = {"--take-root",           take_root, "--set",
-                                     "sim.render_scale=0.02", "--set",   "sim.modbus_fakes=true"};
+    std::vector<std::string> args = ControlPlaneScene({"--take-root", take_root, "--set", "sim.modbus_fakes=true"});
     for (std::string& e : extra) {
       args.push_back("--set");
       args.push_back(std::move(e));

@@ -37,7 +37,7 @@ class PythonClientTest : public SimulatedStageTest {
 
 TEST_F(PythonClientTest, StatusCaptureWatchAndLedgerFromPython) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
 
   // Status: the same message stagectl prints.
   CommandResult status = Client({"status", "--json"});
@@ -101,7 +101,7 @@ TEST_F(PythonClientTest, StatusCaptureWatchAndLedgerFromPython) {
 // Frames and seconds both: refused, naming both, whoever asks (stagectl refuses it before asking).
 TEST_F(PythonClientTest, ACaptureWithFramesAndSecondsIsRefused) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   auto stub =
       v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
   grpc::ClientContext context;

@@ -204,7 +204,7 @@ TEST_F(StageSimTest, TriggerRehearsalThroughTheController) {
 // camera-node is triggered by it and renders; over 76 slots every high-speed camera completes 76 frames and every
 // machine-vision camera 2, exactly, and every light node took 76 steps.
 TEST_F(StageSimTest, TheWorldAcrossProcessesTriggersEveryCameraAndStepsEveryLight) {
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--world", "lockstep", "--world-slots", "76"}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--world", "lockstep", "--world-slots", "76"})));
   auto loaded = LoadRig(kBuiltinRigName);
   ASSERT_TRUE(loaded.ok());
   std::map<std::string, uint64_t> expected;
@@ -300,7 +300,7 @@ TEST_F(StageSimTest, UntilRenderedReportsEveryFrameAndWritesTheGroundTruth) {
 // read by h5dump, as the schedule says. A second take follows in the same stage; bad requests are refused.
 TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
   TempDir root;
-  ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.02", "--take-root", root.path()}));
+  ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
   const std::string endpoints = run_dir_.path() + "/endpoints.json";
   CommandResult r =
       RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--seconds", "1", "--name", "one", "--json"},
@@ -380,7 +380,7 @@ TEST_F(StageSimTest, AOneSecondTakeIsCompleteInTheLedgerTheCatalogAndTheFiles) {
 TEST_F(StageSimTest, ATakeWithDroppedFramesIsDegradedWithExactlyThoseSlotsInTheLedger) {
   auto loaded = LoadRig(kBuiltinRigName);
   ASSERT_TRUE(loaded.ok());
-  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.02"});
+  auto rig = ApplyRigOverrides(*loaded, {"sim.render_scale=0.02", "sim.subject.performance=still"});
   ASSERT_TRUE(rig.ok()) << rig.status();
   auto* fault = rig->rig.mutable_sim()->add_faults();
   fault->set_target("hs-2");

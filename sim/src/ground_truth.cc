@@ -5,6 +5,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -77,6 +78,9 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
       cameras.push_back(i);
     }
   }
+  // Each camera's rays undistorted once for every frame (a few MB a camera at the simulator's usual scales).
+  std::map<int, CameraRays> rays_of;
+  for (int index : cameras) rays_of.emplace(index, CameraRays(scene.camera(index), size_t{16} << 20));
   const int64_t frames = (options.last_frame - options.first_frame + options.frame_step - 1) / options.frame_step;
   const int total = static_cast<int>(frames * static_cast<int64_t>(cameras.size()));
   int done = 0;
@@ -155,14 +159,15 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
     const int n = std::max(1, static_cast<int>(scene.rig().sim().supersample()));
     for (int index : cameras) {
       const CameraModel& camera = scene.camera(index);
-      const std::vector<Hit> hits = TracePixels(camera, *subject);
+      CameraRays& camera_rays = rays_of.at(index);
+      const std::vector<Hit> hits = TracePixels(camera_rays, *subject);
       const int texture_n = static_cast<int>(scene.rig().sim().texture_samples());
-      const AreaAlbedo area = texture_n > n ? TraceAreaAlbedo(camera, *subject, texture_n) : AreaAlbedo{};
+      const AreaAlbedo area = texture_n > n ? TraceAreaAlbedo(camera_rays, *subject, texture_n) : AreaAlbedo{};
       std::vector<std::vector<Hit>> rays;
       if (n > 1) {
         for (int sy = 0; sy < n; ++sy) {
           for (int sx = 0; sx < n; ++sx) {
-            rays.push_back(TracePixels(camera, *subject, 0, (sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5));
+            rays.push_back(TracePixels(camera_rays, *subject, 0, (sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5));
           }
         }
       }

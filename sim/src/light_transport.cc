@@ -46,17 +46,48 @@ float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   return static_cast<float>(leakage + growth * (1 - c * c));
 }
 
+std::shared_ptr<const std::vector<Eigen::Vector3f>> CameraRays::At(double dx, double dy) {
+  const std::pair<double, double> key(dx, dy);
+  if (auto it = kept_.find(key); it != kept_.end()) return it->second;
+  auto rays = std::make_shared<const std::vector<Eigen::Vector3f>>(camera_.PixelRays(dx, dy));
+  const size_t bytes = rays->size() * sizeof(Eigen::Vector3f);
+  if (kept_bytes_ + bytes <= budget_bytes_) {
+    kept_.emplace(key, rays);
+    kept_bytes_ += bytes;
+  }
+  return rays;
+}
+
+std::vector<Hit> TracePixels(CameraRays& camera_rays, const Subject& subject, int threads, double dx, double dy,
+                             WorkProgress* progress) {
+  const std::shared_ptr<const std::vector<Eigen::Vector3f>> rays = camera_rays.At(dx, dy);
+  const Eigen::Vector3f origin = camera_rays.camera().position().cast<float>();
+  std::vector<Hit> all(rays->size());
+  ParallelFor(rays->size(), threads, progress, [&](size_t i) { all[i] = subject.Intersect(origin, (*rays)[i]); });
+  return all;
+}
+
 std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads, double dx, double dy,
                              WorkProgress* progress) {
-  const std::vector<Eigen::Vector3f> rays = camera.PixelRays(dx, dy);
-  const Eigen::Vector3f origin = camera.position().cast<float>();
-  std::vector<Hit> all(rays.size());
-  ParallelFor(rays.size(), threads, progress, [&](size_t i) { all[i] = subject.Intersect(origin, rays[i]); });
-  return all;
+  CameraRays rays(camera);
+  return TracePixels(rays, subject, threads, dx, dy, progress);
 }
 
 AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads,
                            WorkProgress* progress) {
+  CameraRays rays(camera);
+  return TraceAreaAlbedo(rays, subject, n, threads, progress);
+}
+
+PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
+                                int supersample, WorkProgress* progress, int texture_samples) {
+  CameraRays rays(camera);
+  return ComputeResponses(rays, subject, dome, threads, supersample, progress, texture_samples);
+}
+
+AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int n, int threads,
+                           WorkProgress* progress) {
+  const CameraModel& camera = camera_rays.camera();
   const size_t count = static_cast<size_t>(camera.width()) * static_cast<size_t>(camera.height());
   AreaAlbedo out;
   out.albedo.assign(count, Eigen::Vector3f::Zero());
@@ -64,9 +95,10 @@ AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, in
   const Eigen::Vector3f origin = camera.position().cast<float>();
   for (int sy = 0; sy < n; ++sy) {
     for (int sx = 0; sx < n; ++sx) {
-      const std::vector<Eigen::Vector3f> rays = camera.PixelRays((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5);
-      ParallelFor(rays.size(), threads, progress, [&](size_t i) {
-        const Hit h = subject.Intersect(origin, rays[i]);
+      const std::shared_ptr<const std::vector<Eigen::Vector3f>> rays =
+          camera_rays.At((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5);
+      ParallelFor(rays->size(), threads, progress, [&](size_t i) {
+        const Hit h = subject.Intersect(origin, (*rays)[i]);
         if (!h.hit) return;
         out.albedo[i] += h.material.albedo;
         ++out.rays[i];
@@ -79,8 +111,9 @@ AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, in
   return out;
 }
 
-PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
+PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject, const Dome& dome, int threads,
                                 int supersample, WorkProgress* progress, int texture_samples) {
+  const CameraModel& camera = camera_rays.camera();
   PixelResponses r;
   r.width = camera.width();
   r.height = camera.height();
@@ -94,7 +127,7 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
   for (int sy = 0; sy < n; ++sy) {
     for (int sx = 0; sx < n; ++sx) {
       const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
-      std::vector<Hit> all = TracePixels(camera, subject, threads, dx, dy, progress);
+      std::vector<Hit> all = TracePixels(camera_rays, subject, threads, dx, dy, progress);
       for (size_t i = 0; i < all.size(); ++i) {
         if (all[i].hit) by_pixel[i].push_back(all[i]);
       }
@@ -114,7 +147,7 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
     if (progress != nullptr) {
       progress->total.fetch_add(static_cast<uint64_t>(r.width) * r.height * texture_samples * texture_samples);
     }
-    const AreaAlbedo area = TraceAreaAlbedo(camera, subject, texture_samples, threads, progress);
+    const AreaAlbedo area = TraceAreaAlbedo(camera_rays, subject, texture_samples, threads, progress);
     for (size_t k = 0; k < r.pixels.size(); ++k) {
       const auto p = static_cast<size_t>(r.pixels[k]);
       if (area.rays[p] > 0) r.albedo[k] = area.albedo[p];

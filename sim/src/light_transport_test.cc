@@ -226,6 +226,36 @@ TEST(LightTransportTest, TextureSamplesAverageThePrintNotTheLighting) {
   EXPECT_EQ(area.rays[0], 0);
 }
 
+// A camera's rays are the camera model's, undistorted once per offset and handed out again while they fit the budget;
+// responses through kept rays are the same to the bit, frame after frame.
+TEST(LightTransportTest, CameraRaysAreTheModelsAndKeptWithinTheirBudget) {
+  auto camera = CameraModel::FromConfig(Camera({0, 0, 700}, 64, 48), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  const size_t one = size_t{64} * 48 * sizeof(Eigen::Vector3f);
+  CameraRays rays(*camera, 2 * one);
+  const auto centre = rays.At(0, 0);
+  EXPECT_EQ(*centre, camera->PixelRays(0, 0));
+  EXPECT_EQ(rays.At(0, 0), centre);  // kept
+  const auto shifted = rays.At(0.25, -0.25);
+  EXPECT_EQ(*shifted, camera->PixelRays(0.25, -0.25));
+  EXPECT_NE(*shifted, *centre);
+  const auto third = rays.At(-0.25, 0.25);  // over the budget: computed, not kept
+  EXPECT_EQ(*third, camera->PixelRays(-0.25, 0.25));
+  EXPECT_NE(rays.At(-0.25, 0.25), third);
+  EXPECT_EQ(rays.At(0.25, -0.25), shifted);
+
+  const Dome d = Dome::FromDirections(FibonacciSphere(64), 1000, 1e6);
+  const HalfPrintedSphere subject;
+  const PixelResponses fresh = ComputeResponses(*camera, subject, d, 0, 2, nullptr, 4);
+  for (int frame = 0; frame < 2; ++frame) {
+    const PixelResponses kept = ComputeResponses(rays, subject, d, 0, 2, nullptr, 4);
+    ASSERT_EQ(kept.pixels, fresh.pixels);
+    EXPECT_EQ((kept.diffuse - fresh.diffuse).cwiseAbs().maxCoeff(), 0.0f);
+    EXPECT_EQ((kept.specular - fresh.specular).cwiseAbs().maxCoeff(), 0.0f);
+    EXPECT_EQ(kept.albedo, fresh.albedo);
+  }
+}
+
 // A subject that says it is not convex, whatever it is: the renderer traces its shadow rays.
 class Traced final : public Subject {
  public:

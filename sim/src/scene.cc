@@ -300,6 +300,7 @@ CameraRenderer::CameraRenderer(std::shared_ptr<const SimScene> scene, int camera
     : scene_(std::move(scene)),
       index_(camera_index),
       threads_(threads),
+      rays_(scene_->camera(camera_index)),
       stream_(Fnv1a64(scene_->rig().cameras(camera_index).id())) {}
 
 std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_frame) {
@@ -310,9 +311,9 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
     compute_.total.store(0);
     computing_frame_.store(pose_frame);
     auto subject = scene_->SubjectAt(pose_frame);
-    responses_ = std::make_shared<const PixelResponses>(ComputeResponses(
-        scene_->camera(index_), *subject, scene_->dome(), threads_, static_cast<int>(scene_->rig().sim().supersample()),
-        &compute_, static_cast<int>(scene_->rig().sim().texture_samples())));
+    responses_ = std::make_shared<const PixelResponses>(
+        ComputeResponses(rays_, *subject, scene_->dome(), threads_, static_cast<int>(scene_->rig().sim().supersample()),
+                         &compute_, static_cast<int>(scene_->rig().sim().texture_samples())));
     responses_frame_ = pose_frame;
     work_before_.fetch_add(compute_.done.exchange(0));  // counted once, whenever a reader looks
     computing_frame_.store(-1);

@@ -13,6 +13,9 @@
 #include <Eigen/Core>
 #include <atomic>
 #include <cstdint>
+#include <map>
+#include <memory>
+#include <utility>
 #include <vector>
 
 #include "stage/common/camera_model.h"
@@ -46,8 +49,28 @@ struct WorkProgress {
   std::atomic<uint64_t> total{0};
 };
 
+// A camera's pixel rays (CameraModel::PixelRays) for each sub-pixel offset asked for, undistorted once and kept while
+// they fit in `budget_bytes`: OpenCV's iterative undistortion of every pixel was a quarter of a camera node's time when
+// a moving subject had it redone every frame. Not thread-safe: one per camera, used by one thread at a time.
+class CameraRays {
+ public:
+  explicit CameraRays(const CameraModel& camera, size_t budget_bytes = size_t{256} << 20)
+      : camera_(camera), budget_bytes_(budget_bytes) {}
+  const CameraModel& camera() const { return camera_; }
+  // Rays through (x + dx, y + dy), row-major, unit length, stage frame.
+  std::shared_ptr<const std::vector<Eigen::Vector3f>> At(double dx, double dy);
+
+ private:
+  CameraModel camera_;
+  size_t budget_bytes_;
+  size_t kept_bytes_ = 0;
+  std::map<std::pair<double, double>, std::shared_ptr<const std::vector<Eigen::Vector3f>>> kept_;
+};
+
 // What every pixel's ray meets (row-major; hit == false where it misses the subject); rays through (x + dx, y + dy).
 // Each ray traced adds one to `progress->done` where given.
+std::vector<Hit> TracePixels(CameraRays& rays, const Subject& subject, int threads = 0, double dx = 0, double dy = 0,
+                             WorkProgress* progress = nullptr);
 std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads = 0, double dx = 0,
                              double dy = 0, WorkProgress* progress = nullptr);
 
@@ -57,12 +80,16 @@ struct AreaAlbedo {
   std::vector<Eigen::Vector3f> albedo;
   std::vector<int> rays;
 };
+AreaAlbedo TraceAreaAlbedo(CameraRays& rays, const Subject& subject, int n, int threads = 0,
+                           WorkProgress* progress = nullptr);
 AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads = 0,
                            WorkProgress* progress = nullptr);
 
 // Camera direction -> pixel responses, on `threads` threads (0: one per core), with `supersample` x `supersample`
 // rays a pixel (1: through its centre). With `texture_samples` > `supersample` a pixel's albedo is the average of
 // texture_samples x texture_samples rays' (TraceAreaAlbedo) instead of its lighting rays'.
+PixelResponses ComputeResponses(CameraRays& rays, const Subject& subject, const Dome& dome, int threads = 0,
+                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0);
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0,
                                 int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0);
 

@@ -137,6 +137,7 @@ class CameraRenderer {
   std::mutex mutex_;
   int64_t responses_frame_ = -1;                     // guarded by mutex_
   std::shared_ptr<const PixelResponses> responses_;  // guarded by mutex_
+  CameraRays rays_;                                  // guarded by mutex_: undistorted once, for every pose
   uint64_t stream_;
   // Progress of the pose being precomputed (-1: none), and the work of everything finished before it.
   std::atomic<int64_t> computing_frame_{-1};
