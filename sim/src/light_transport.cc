@@ -69,19 +69,19 @@ std::vector<Hit> TracePixels(CameraRays& camera_rays, const Subject& subject, in
 
 std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, int threads, double dx, double dy,
                              WorkProgress* progress) {
-  CameraRays rays(camera);
+  CameraRays rays(camera, /*budget_bytes=*/0);  // one call: each offset's rays freed once traced, as before
   return TracePixels(rays, subject, threads, dx, dy, progress);
 }
 
 AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads,
                            WorkProgress* progress) {
-  CameraRays rays(camera);
+  CameraRays rays(camera, /*budget_bytes=*/0);
   return TraceAreaAlbedo(rays, subject, n, threads, progress);
 }
 
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
                                 int supersample, WorkProgress* progress, int texture_samples) {
-  CameraRays rays(camera);
+  CameraRays rays(camera, /*budget_bytes=*/0);
   return ComputeResponses(rays, subject, dome, threads, supersample, progress, texture_samples);
 }
 
