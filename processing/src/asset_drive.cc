@@ -18,22 +18,20 @@
 #include "training_run.h"
 
 namespace stage::processing {
-namespace {
-
 namespace fs = std::filesystem;
+using asset_internal::Crops;
+using asset_internal::CropsAt;
+using asset_internal::DrivenAsset;
+using asset_internal::ImageValid;
+using asset_internal::LoadDrivenAsset;
+using asset_internal::MeanAndSpread;
 using asset_internal::NetMaps;
 using asset_internal::PreparedData;
+using asset_internal::RunId;
+using asset_internal::TrainedCameras;
 using internal::Normal;
 
-// The dataset's crops at a net's input size (each averaged down from the dataset's), 0..1.
-struct Crops {
-  int size = 0, cameras = 0;
-  std::vector<float> pixels;  // frames x cameras x size^2
-  size_t Pixels() const { return static_cast<size_t>(size) * size; }
-  const float* At(int64_t frame, int camera) const {
-    return pixels.data() + (static_cast<size_t>(frame) * cameras + camera) * Pixels();
-  }
-};
+namespace asset_internal {
 
 absl::StatusOr<Crops> CropsAt(const AssetDataset& d, int size) {
   if (d.cameras.empty() || d.images.empty()) {
@@ -62,7 +60,6 @@ bool ImageValid(const AssetDataset& d, int64_t frame, int camera) {
   return d.image_valid[static_cast<size_t>(frame) * d.cameras.size() + camera] != 0;
 }
 
-// The dataset's cameras that are not held out (indices), checking the held-out names.
 absl::StatusOr<std::vector<int>> TrainedCameras(const AssetDataset& d, const std::vector<std::string>& held_out) {
   for (const std::string& id : held_out) {
     if (std::find(d.cameras.begin(), d.cameras.end(), id) == d.cameras.end()) {
@@ -80,6 +77,10 @@ absl::StatusOr<std::vector<int>> TrainedCameras(const AssetDataset& d, const std
   }
   return out;
 }
+
+}  // namespace asset_internal
+
+namespace {
 
 // Triplets: frame a by camera i, frame a by camera j != i, frame b != a by camera i, all of training frames and
 // trained cameras that recorded them.
@@ -215,27 +216,9 @@ absl::StatusOr<ExpressionEvaluation> EvaluateExpression(const ExpressionVae& net
   return out;
 }
 
-// The three finished nets and what they read: the asset as the driven evaluation and inference use it.
-struct DrivenAsset {
-  PreparedData data;  // at the geometry net's size
-  std::unique_ptr<GeometryVae> geometry;
-  std::unique_ptr<ExpressionVae> expression;
-  std::unique_ptr<LatentMapping> mapping;  // null until trained or loaded
-  std::vector<std::string> held_out;
-  std::vector<int> trained;
-  Crops crops;
-  std::vector<float> expression_latents;  // every crop's (EncodeAll)
-  std::vector<float> geometry_latents;    // every frame's map's geometry latent's mean
+}  // namespace
 
-  int ExpressionSize() const { return expression->options().expression_latent; }
-  int GeometrySize() const { return geometry->options().geometry_latent; }
-  std::vector<float> ExpressionOf(int64_t frame, int camera) const {
-    const size_t row = static_cast<size_t>(frame) * crops.cameras + camera;
-    const size_t width = ExpressionSize() + expression->options().view_latent;
-    return {expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width),
-            expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width + ExpressionSize())};
-  }
-};
+namespace asset_internal {
 
 absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                             const std::string& expression_run, int threads) {
@@ -251,6 +234,31 @@ absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const st
     a.geometry_latents.insert(a.geometry_latents.end(), z.begin(), z.begin() + a.GeometrySize());
   }
   return a;
+}
+
+absl::Status Drive(DrivenAsset* a) {
+  const size_t count = a->crops.pixels.size() / a->crops.Pixels();
+  a->driven.clear();
+  a->driven.reserve(count * a->GeometrySize());
+  if (a->driver == nullptr) {
+    for (size_t row = 0; row < count; ++row) {
+      STAGE_ASSIGN_OR_RETURN(const std::vector<float> z,
+                             a->mapping->Map(a->ExpressionOf(static_cast<int64_t>(row) / a->crops.cameras,
+                                                             static_cast<int>(row % a->crops.cameras)),
+                                             1));
+      a->driven.insert(a->driven.end(), z.begin(), z.end());
+    }
+    return absl::OkStatus();
+  }
+  constexpr size_t kBatch = 32;
+  for (size_t i = 0; i < count; i += kBatch) {
+    const size_t n = std::min(kBatch, count - i);
+    const std::vector<float> images(a->crops.pixels.begin() + static_cast<std::ptrdiff_t>(i * a->crops.Pixels()),
+                                    a->crops.pixels.begin() + static_cast<std::ptrdiff_t>((i + n) * a->crops.Pixels()));
+    STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a->driver->Drive(images, static_cast<int>(n)));
+    a->driven.insert(a->driven.end(), z.begin(), z.end());
+  }
+  return absl::OkStatus();
 }
 
 absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
@@ -281,11 +289,7 @@ absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
       for (int64_t f : asset_internal::FramesOf(d, static_cast<SampleSplit>(s))) {
         if (ImageValid(d, f, c)) frames.push_back(f);
       }
-      camera.error[s] = asset_internal::Error(m, face, frames, [&](int64_t f) {
-        absl::StatusOr<std::vector<float>> z = a.mapping->Map(a.ExpressionOf(f, c), 1);
-        if (!z.ok()) failed = z.status();
-        return decode(z.ok() ? *z : std::vector<float>(a.GeometrySize(), 0.f));
-      });
+      camera.error[s] = asset_internal::Error(m, face, frames, [&](int64_t f) { return decode(a.DrivenOf(f, c)); });
     }
     e.cameras.push_back(camera);
   }
@@ -293,8 +297,6 @@ absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
   return e;
 }
 
-// The picture (WriteDrivenPicture) of the middle frame of the held-out blocks (of the training frames where none is
-// held out), driven from the first held-out camera that recorded it (a trained one where none is held out).
 absl::Status WritePicture(const DrivenAsset& a, const std::string& path) {
   const AssetDataset& d = a.data.dataset;
   std::vector<int64_t> frames = asset_internal::FramesOf(d, SampleSplit::kHeldOutBlock);
@@ -312,7 +314,7 @@ absl::Status WritePicture(const DrivenAsset& a, const std::string& path) {
     return absl::FailedPreconditionError(absl::StrCat(d.path, ": no camera recorded frame ", d.frame[f]));
   }
   const bool held_out_camera = camera - order.begin() < static_cast<std::ptrdiff_t>(a.held_out.size());
-  STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a.mapping->Map(a.ExpressionOf(f, *camera), 1));
+  const std::vector<float> z = a.DrivenOf(f, *camera);
   STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
   asset_internal::DrivenPicture p;
   p.title = absl::StrFormat("frame %d (%s), driven from camera %s (%s): the geometry map in the head's frame",
@@ -329,7 +331,6 @@ absl::Status WritePicture(const DrivenAsset& a, const std::string& path) {
   return asset_internal::WriteDrivenPicture(path, p);
 }
 
-// The mapping's training pairs: (frame, camera) of training frames by trained cameras that recorded them.
 std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a) {
   std::vector<std::pair<int64_t, int>> out;
   for (int64_t f : a.data.train) {
@@ -340,7 +341,6 @@ std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a) {
   return out;
 }
 
-// Per dimension: the mean and the spread (standard deviation, at least 1e-6) of `rows` of `width` values.
 void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::vector<float>* mean,
                    std::vector<float>* spread) {
   mean->assign(width, 0.f);
@@ -356,12 +356,14 @@ void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::
   }
 }
 
-// A finished run's identity: a hash of its trainer.json (its options, its last step and generator state), so that a
-// mapping is not resumed over VAEs trained again since.
 absl::StatusOr<std::string> RunId(const std::string& run_dir) {
   STAGE_ASSIGN_OR_RETURN(const std::string trainer, ReadFileToString(run_dir + "/trainer.json", "training run"));
   return absl::StrFormat("%016x", Fnv1a64(trainer));
 }
+
+}  // namespace asset_internal
+
+namespace {
 
 absl::StatusOr<nlohmann::json> MappingOptionsJson(const MappingTrainJob& job, const LatentMappingOptions& o,
                                                   const std::string& dataset_id, const std::string& geometry_run,
@@ -589,6 +591,7 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
   for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
   result.steps = job.schedule.iterations;
   STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/mapping.pt"));
+  STAGE_RETURN_IF_ERROR(Drive(&a));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateDriven(a));
   STAGE_RETURN_IF_ERROR(
       WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
@@ -598,13 +601,21 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
 
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                                      const std::string& expression_run, const std::string& mapping_run,
-                                                     const std::string& picture) {
+                                                     const std::string& picture, const std::string& finetune_run) {
   STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
                          LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
                                          asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
   STAGE_ASSIGN_OR_RETURN(a.mapping,
                          asset_internal::LoadMappingNet(asset_internal::RunDir(mapping_run, dataset, "mapping"),
                                                         a.ExpressionSize(), a.GeometrySize(), /*threads=*/0));
+  if (finetune_run != "none") {
+    STAGE_ASSIGN_OR_RETURN(
+        a.driver, asset_internal::LoadDrivingNet(asset_internal::RunDir(finetune_run, dataset, "finetune"),
+                                                 asset_internal::RunDir(expression_run, dataset, "expression"),
+                                                 asset_internal::RunDir(mapping_run, dataset, "mapping"), *a.expression,
+                                                 *a.mapping, /*threads=*/0));
+  }
+  STAGE_RETURN_IF_ERROR(Drive(&a));
   if (!picture.empty()) STAGE_RETURN_IF_ERROR(WritePicture(a, picture));
   return EvaluateDriven(a);
 }

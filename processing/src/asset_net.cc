@@ -788,6 +788,142 @@ absl::Status LatentMapping::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kMappingNet);
 }
 
+namespace {
+
+constexpr const char* kDrivingNet = "driving net";
+
+// The expression encoder and the mapping, as DrivingNet trains them.
+struct DrivingModuleImpl : torch::nn::Module {
+  DrivingModuleImpl(const ExpressionVaeOptions& e, const LatentMappingOptions& m, const torch::Tensor& mean,
+                    const torch::Tensor& scale)
+      : expression(e.expression_latent) {
+    encoder = register_module("encoder", Encoder(ShapeOf(e), 1, 2 * (e.expression_latent + e.view_latent)));
+    mapping = register_module("mapping", MappingNet(m, mean, scale));
+  }
+  // The normalized geometry latents of crops (0..1).
+  torch::Tensor forward(const torch::Tensor& images) {
+    return mapping->forward(encoder->forward(images - 0.5).slice(1, 0, expression));
+  }
+  int expression;
+  Encoder encoder{nullptr};
+  MappingNet mapping{nullptr};
+};
+TORCH_MODULE(DrivingModule);
+
+// `to`'s parameters and buffers set to `from`'s of the same names (the same architecture).
+void CopyWeights(const torch::nn::Module& from, torch::nn::Module& to) {
+  torch::NoGradGuard no_grad;
+  auto source = from.named_parameters();
+  for (auto& p : to.named_parameters()) p.value().copy_(source[p.key()]);
+  auto buffers = from.named_buffers();
+  for (auto& b : to.named_buffers()) b.value().copy_(buffers[b.key()]);
+}
+
+}  // namespace
+
+absl::Status DrivingNetOptions::Validate() const {
+  if (threads < 0) return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+struct DrivingNet::Impl {
+  DrivingNetOptions options;
+  int input_size = 0;
+  DrivingModule net{nullptr};
+  std::unique_ptr<torch::optim::Adam> adam;
+  std::vector<torch::Tensor> Trained() const {
+    return options.train_encoder ? net->parameters() : net->mapping->parameters();
+  }
+};
+
+DrivingNet::DrivingNet(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+DrivingNet::~DrivingNet() = default;
+const DrivingNetOptions& DrivingNet::options() const { return impl_->options; }
+int DrivingNet::input_size() const { return impl_->input_size; }
+int DrivingNet::output() const { return static_cast<int>(impl_->net->mapping->target_mean.size(1)); }
+
+int64_t DrivingNet::trained_parameters() const {
+  int64_t n = 0;
+  for (const auto& p : impl_->Trained()) n += p.numel();
+  return n;
+}
+
+absl::StatusOr<std::unique_ptr<DrivingNet>> DrivingNet::Create(const ExpressionVae& expression,
+                                                               const LatentMapping& mapping,
+                                                               const DrivingNetOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  const ExpressionVaeOptions& eo = expression.options();
+  if (mapping.options().input != eo.expression_latent) {
+    return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": the mapping takes ", mapping.options().input,
+                                                   " numbers, the expression latent has ", eo.expression_latent));
+  }
+  try {
+    SetTorchThreads(options.threads);
+    auto impl = std::make_unique<Impl>();
+    impl->options = options;
+    impl->input_size = eo.input_size;
+    const MappingNet& m = mapping.impl_->net;
+    impl->net = DrivingModule(eo, mapping.options(), m->target_mean.clone(), m->target_scale.clone());
+    CopyWeights(*expression.impl_->net->encoder, *impl->net->encoder);
+    CopyWeights(*m, *impl->net->mapping);
+    for (auto& p : impl->net->encoder->parameters()) p.set_requires_grad(options.train_encoder);
+    impl->adam = std::make_unique<torch::optim::Adam>(impl->Trained(), torch::optim::AdamOptions(1e-4));
+    return std::unique_ptr<DrivingNet>(new DrivingNet(std::move(impl)));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kDrivingNet, "creating the net", e);
+  }
+}
+
+absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, const std::vector<float>& targets,
+                                             int batch, double learning_rate) {
+  const int64_t s = impl_->input_size, out = output();
+  if (batch < 1) return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": an empty batch"));
+  if (auto st = CheckSize(images, batch * s * s, "the images", kDrivingNet); !st.ok()) return st;
+  if (auto st = CheckSize(targets, batch * out, "the targets", kDrivingNet); !st.ok()) return st;
+  try {
+    SetTorchThreads(impl_->options.threads);
+    DrivingModule& net = impl_->net;
+    net->train();
+    SetLearningRate(*impl_->adam, learning_rate);
+    impl_->adam->zero_grad();
+    const torch::Tensor y =
+        (FromVector(targets, {batch, out}) - net->mapping->target_mean) / net->mapping->target_scale;
+    // Each dimension weighed by its spread (the mapping's normalization undone, over the mean spread): a latent
+    // dimension the geometry VAE barely uses does not count as much as one that moves the face.
+    const torch::Tensor variance = net->mapping->target_scale.pow(2);
+    const torch::Tensor weight = variance / variance.mean();
+    const torch::Tensor loss = ((net->forward(FromVector(images, {batch, 1, s, s})) - y).pow(2) * weight).mean();
+    loss.backward();
+    impl_->adam->step();
+    return loss.item<double>();
+  } catch (const std::exception& e) {
+    return internal::TorchError(kDrivingNet, "training", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> DrivingNet::Drive(const std::vector<float>& images, int batch) const {
+  const int64_t s = impl_->input_size;
+  if (auto st = CheckSize(images, batch * s * s, "the images", kDrivingNet); !st.ok()) return st;
+  try {
+    SetTorchThreads(impl_->options.threads);
+    torch::NoGradGuard no_grad;
+    DrivingModule& net = impl_->net;
+    net->eval();
+    const torch::Tensor y = net->forward(FromVector(images, {batch, 1, s, s}));
+    return ToVector(y * net->mapping->target_scale + net->mapping->target_mean);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kDrivingNet, "driving", e);
+  }
+}
+
+absl::Status DrivingNet::Save(const std::string& path) const {
+  return SaveArchive(*impl_->net, *impl_->adam, path, kDrivingNet);
+}
+
+absl::Status DrivingNet::Load(const std::string& path) {
+  return LoadArchive(*impl_->net, *impl_->adam, path, kDrivingNet);
+}
+
 double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
   const double s = o.input_size;
   double macs = s * s * 4 * Channels(o, 0) * 9;  // the stem

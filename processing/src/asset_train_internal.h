@@ -78,6 +78,79 @@ std::string RunDir(const std::string& dir, const std::string& dataset, const cha
 // `out` (input^2 values): what the expression VAE sees of a dataset's crop or of a new image's.
 void CropToNetInput(const uint8_t* crop, int size, int input, float* out);
 
+// The dataset's crops at a net's input size (each averaged down from the dataset's), 0..1.
+struct Crops {
+  int size = 0, cameras = 0;
+  std::vector<float> pixels;  // frames x cameras x size^2
+  size_t Pixels() const { return static_cast<size_t>(size) * size; }
+  const float* At(int64_t frame, int camera) const {
+    return pixels.data() + (static_cast<size_t>(frame) * cameras + camera) * Pixels();
+  }
+};
+
+absl::StatusOr<Crops> CropsAt(const AssetDataset& d, int size);
+bool ImageValid(const AssetDataset& d, int64_t frame, int camera);
+// The dataset's cameras that are not held out (indices), checking the held-out names.
+absl::StatusOr<std::vector<int>> TrainedCameras(const AssetDataset& d, const std::vector<std::string>& held_out);
+
+// The three finished nets and what they read: the asset as the driven evaluation and inference use it.
+struct DrivenAsset {
+  PreparedData data;  // at the geometry net's size
+  std::unique_ptr<GeometryVae> geometry;
+  std::unique_ptr<ExpressionVae> expression;
+  std::unique_ptr<LatentMapping> mapping;  // null until trained or loaded
+  std::unique_ptr<DrivingNet> driver;      // the fine-tuned driving path, where one is trained or loaded
+  std::vector<std::string> held_out;
+  std::vector<int> trained;
+  Crops crops;
+  std::vector<float> expression_latents;  // every crop's (EncodeAll)
+  std::vector<float> geometry_latents;    // every frame's map's geometry latent's mean
+  std::vector<float> driven;              // every crop's geometry latent as driven (Drive), frames x cameras rows
+
+  int ExpressionSize() const { return expression->options().expression_latent; }
+  int GeometrySize() const { return geometry->options().geometry_latent; }
+  std::vector<float> DrivenOf(int64_t frame, int camera) const {
+    const size_t row = static_cast<size_t>(frame) * crops.cameras + camera;
+    return {driven.begin() + static_cast<std::ptrdiff_t>(row * GeometrySize()),
+            driven.begin() + static_cast<std::ptrdiff_t>((row + 1) * GeometrySize())};
+  }
+  std::vector<float> ExpressionOf(int64_t frame, int camera) const {
+    const size_t row = static_cast<size_t>(frame) * crops.cameras + camera;
+    const size_t width = ExpressionSize() + expression->options().view_latent;
+    return {expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width),
+            expression_latents.begin() + static_cast<std::ptrdiff_t>(row * width + ExpressionSize())};
+  }
+};
+
+// The geometry VAE's and expression VAE's finished runs on `dataset`, every crop encoded and every frame's map.
+absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const std::string& geometry_run,
+                                            const std::string& expression_run, int threads);
+// `a.driven`: every crop's geometry latent through the driver where there is one, else the mapping.
+absl::Status Drive(DrivenAsset* a);
+// A finished fine-tuning run's driving net (FineTuneDrivingAsset's) over the nets of the expression and mapping runs
+// given, which must be those it was fine-tuned from (FailedPrecondition naming the run otherwise).
+absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir,
+                                                           const std::string& expression_run,
+                                                           const std::string& mapping_run,
+                                                           const ExpressionVae& expression,
+                                                           const LatentMapping& mapping, int threads);
+// The fine-tuning run inference and evaluation use: `run` ("" : DATASET's directory/finetune where it holds a run's
+// trainer.json, else none), or "" for none where `run` is "none".
+std::string FineTuneRun(const std::string& run, const std::string& dataset);
+// The paper's protocol on `a.driven` (DrivenEvaluation).
+absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a);
+// The picture (WriteDrivenPicture) of the middle frame of the held-out blocks (of the training frames where none is
+// held out), driven from the first held-out camera that recorded it (a trained one where none is held out).
+absl::Status WritePicture(const DrivenAsset& a, const std::string& path);
+// The mapping's training pairs: (frame, camera) of training frames by trained cameras that recorded them.
+std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a);
+// Per dimension: the mean and the spread (standard deviation, at least 1e-6) of `rows` of `width` values.
+void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::vector<float>* mean,
+                   std::vector<float>* spread);
+// A finished run's identity: a hash of its trainer.json (its options, its last step and generator state), so that a
+// later stage is not resumed over runs trained again since.
+absl::StatusOr<std::string> RunId(const std::string& run_dir);
+
 // One frame of the asset driven from one camera, drawn (docs/asset.md's picture): the camera's crop, the frame's
 // truth and the driven mesh seen from the front, and the driven mesh's distance to the truth per vertex in colour.
 struct DrivenPicture {

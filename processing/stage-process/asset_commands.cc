@@ -83,20 +83,25 @@ void AssetCommands::AddTrain() {
       "Trains a network of the asset on a dataset (build-dataset's), resumably, each into a run directory of its "
       "own beside the dataset: checkpoints, loss.csv and loss.png, and at the end the net and its evaluation. The "
       "stages in order (docs/asset.md#training): geometry (the geometry VAE, on the maps), expression (the "
-      "expression VAE, on the crops; --held-out-cameras keeps views out of it) and mapping (expression latent to "
-      "geometry latent, both VAEs frozen: the asset driven from every camera is evaluated at the end)");
+      "expression VAE, on the crops; --held-out-cameras keeps views out of it), mapping (expression latent to "
+      "geometry latent, both VAEs frozen: the asset driven from every camera is evaluated at the end) and finetune "
+      "(the expression encoder and the mapping trained together on the geometry latents, the crops jittered: the "
+      "driving path inference uses; evaluated as the mapping)");
   train_->add_option("--dataset", job.dataset, "The dataset file (build-dataset's)")->required();
-  train_->add_option("--network", network_, "The network: geometry, expression or mapping")
+  train_->add_option("--network", network_, "The network: geometry, expression, mapping or finetune")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "expression", "mapping"}));
-  train_->add_option("--output", job.output_dir,
-                     "The run's directory (default: the dataset's directory/geometry, /expression or /mapping)");
-  train_->add_option("--iterations", schedule.iterations, "Adam steps (default 4000; the mapping's 3000)")
+      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune"}));
+  train_->add_option(
+      "--output", job.output_dir,
+      "The run's directory (default: the dataset's directory/geometry, /expression, /mapping or /finetune)");
+  train_
+      ->add_option("--iterations", schedule.iterations, "Adam steps (default 4000; the mapping's and finetune's 3000)")
       ->check(CLI::Range(1, 10000000));
-  train_->add_option("--batch", schedule.batch, "Samples a step (default 16; the mapping's 64)")
+  train_->add_option("--batch", schedule.batch, "Samples a step (default 16; the mapping's 64, finetune's 32)")
       ->check(CLI::Range(1, 1024));
-  train_->add_option("--learning-rate", schedule.learning_rate, "Adam's rate (the last 30 % of the steps at a fifth)")
-      ->capture_default_str()
+  train_
+      ->add_option("--learning-rate", schedule.learning_rate,
+                   "Adam's rate (the last 30 % of the steps at a fifth; default 1e-3, finetune's 3e-4)")
       ->check(CLI::PositiveNumber);
   train_->add_option("--checkpoint-every", schedule.checkpoint_every, "Steps between checkpoints")
       ->capture_default_str()
@@ -154,9 +159,25 @@ void AssetCommands::AddTrainNetworkOptions() {
                    "mapping: noise added to its inputs, in units of their spread")
       ->capture_default_str();
   train_->add_option("--geometry-run", mapping_job_.geometry_run,
-                     "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
+                     "mapping, finetune: the geometry VAE's run (default: the dataset's directory/geometry)");
   train_->add_option("--expression-run", mapping_job_.expression_run,
-                     "mapping: the expression VAE's run (default: the dataset's directory/expression)");
+                     "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
+  // The fine-tuning's.
+  processing::FineTuneJob& f = finetune_job_;
+  train_->add_option("--mapping-run", f.mapping_run,
+                     "finetune: the mapping's run (default: the dataset's directory/mapping)");
+  train_->add_flag("--freeze-encoder", freeze_encoder_,
+                   "finetune: train only the mapping, the expression encoder frozen (the paper's choice)");
+  train_->add_option("--jitter-scale", f.jitter_scale, "finetune: the crops' random scale, +- this fraction")
+      ->capture_default_str();
+  train_->add_option("--jitter-rotation", f.jitter_rotation_deg, "finetune: the crops' random turn, +- degrees")
+      ->capture_default_str();
+  train_->add_option("--jitter-shift", f.jitter_shift, "finetune: the crops' random shift, +- this fraction of a side")
+      ->capture_default_str();
+  train_->add_option("--jitter-gain", f.jitter_gain, "finetune: the crops' random gain, 1 +- this")
+      ->capture_default_str();
+  train_->add_option("--jitter-noise", f.jitter_noise, "finetune: noise on the crops' pixels (0..1 units)")
+      ->capture_default_str();
 }
 
 void AssetCommands::AddEvaluate() {
@@ -164,13 +185,19 @@ void AssetCommands::AddEvaluate() {
       "evaluate",
       "A trained asset against a dataset's frames (each split; the whole face's texels, and the template's "
       "vertices by region: face, eyes, mouth): the geometry VAE's run beside PCA and the neutral frame, or the "
-      "asset driven from each camera's crops (--network mapping: the paper's protocol)");
+      "asset driven from each camera's crops (--network mapping, or finetune for the fine-tuned driving path: the "
+      "paper's protocol)");
   evaluate_->add_option("--dataset", evaluate_dataset_, "The dataset file")->required();
-  evaluate_->add_option("--network", evaluate_network_, "What to evaluate: geometry or mapping (the driven asset)")
+  evaluate_
+      ->add_option("--network", evaluate_network_,
+                   "What to evaluate: geometry, mapping (the asset driven through the mapping) or finetune (driven "
+                   "through the fine-tuned path)")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "mapping"}));
+      ->check(CLI::IsMember({"geometry", "mapping", "finetune"}));
   evaluate_->add_option("--run", evaluate_run_,
-                        "The run's directory (default: the dataset's directory/geometry or /mapping)");
+                        "The run's directory (default: the dataset's directory/geometry, /mapping or /finetune)");
+  evaluate_->add_option("--mapping-run", evaluate_mapping_run_,
+                        "finetune: the mapping's run (default: the dataset's directory/mapping)");
   evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
                         "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
@@ -203,6 +230,9 @@ void AssetCommands::AddInfer() {
   infer_app_->add_option("--geometry-run", o.geometry_run, "The geometry VAE's run (default: beside the dataset)");
   infer_app_->add_option("--expression-run", o.expression_run, "The expression VAE's run (default: beside it)");
   infer_app_->add_option("--mapping-run", o.mapping_run, "The mapping's run (default: beside it)");
+  infer_app_->add_option("--finetune-run", o.finetune_run,
+                         "The fine-tuned driving path's run (default: beside the dataset where there is one, else "
+                         "the mapping alone; none: the mapping alone)");
   infer_app_->add_flag("--no-meshes", no_meshes_, "Write no mesh.obj");
   infer_app_
       ->add_option("--gltf-segment-frames", o.gltf_segment_frames,
@@ -324,8 +354,15 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
       {"--hidden", {"mapping"}},
       {"--layers", {"mapping"}},
       {"--input-noise", {"mapping"}},
-      {"--geometry-run", {"mapping"}},
-      {"--expression-run", {"mapping"}}};
+      {"--geometry-run", {"mapping", "finetune"}},
+      {"--expression-run", {"mapping", "finetune"}},
+      {"--mapping-run", {"finetune"}},
+      {"--freeze-encoder", {"finetune"}},
+      {"--jitter-scale", {"finetune"}},
+      {"--jitter-rotation", {"finetune"}},
+      {"--jitter-shift", {"finetune"}},
+      {"--jitter-gain", {"finetune"}},
+      {"--jitter-noise", {"finetune"}}};
   for (const auto& [option, networks] : only) {
     if (app.count(option) > 0 && std::find(networks.begin(), networks.end(), network) == networks.end()) {
       return absl::InvalidArgumentError(absl::StrCat(option, " is not an option of the ", network, " network"));
@@ -340,6 +377,7 @@ int AssetCommands::Train() {
   if (auto s = CheckOptionsFor(*train_, network_); !s.ok()) return ReportFatal(kProgram, s);
   if (network_ == "expression") return TrainExpression();
   if (network_ == "mapping") return TrainMapping();
+  if (network_ == "finetune") return FineTune();
   ProgressLine bar("steps");
   train_job_.progress = [&bar](int64_t step, int64_t total, const processing::GeometryLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -436,6 +474,36 @@ int AssetCommands::TrainMapping() {
   };
   auto result = processing::TrainLatentMapping(job);
   bar.Finish();
+  return PrintDriven("latent mapping", result);
+}
+
+int AssetCommands::FineTune() {
+  processing::FineTuneJob& job = finetune_job_;
+  job.dataset = train_job_.dataset;
+  job.output_dir = train_job_.output_dir;
+  job.geometry_run = mapping_job_.geometry_run;
+  job.expression_run = mapping_job_.expression_run;
+  const processing::TrainingSchedule given = train_job_.schedule;
+  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
+  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
+  if (train_->count("--learning-rate") > 0) job.schedule.learning_rate = given.learning_rate;
+  job.schedule.checkpoint_every = given.checkpoint_every;
+  job.schedule.resume = given.resume;
+  job.driving.train_encoder = !freeze_encoder_;
+  job.driving.threads = train_job_.geometry.threads;
+  ProgressLine bar("steps");
+  job.progress = [&bar](int64_t step, int64_t total, double loss) {
+    if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", loss));
+    return true;
+  };
+  auto result = processing::FineTuneDrivingAsset(job);
+  bar.Finish();
+  return PrintDriven(freeze_encoder_ ? "driving path (the mapping; the encoder frozen)"
+                                     : "driving path (the expression encoder and the mapping)",
+                     result);
+}
+
+int AssetCommands::PrintDriven(const std::string& what, const absl::StatusOr<processing::MappingTrainResult>& result) {
   if (!result.ok()) return ReportFatal(kProgram, result.status());
   if (json_) {
     std::cout << nlohmann::json{{"output_dir", result->output_dir},
@@ -450,7 +518,7 @@ int AssetCommands::TrainMapping() {
               << "\n";
     return 0;
   }
-  std::cout << "latent mapping (" << result->parameters << " weights) trained " << result->steps << " steps on "
+  std::cout << what << " (" << result->parameters << " weights) trained " << result->steps << " steps on "
             << result->pairs << " crops into " << result->output_dir << "\n"
             << "The asset driven from each camera's crops, against the truth (mm, at the geometry net's "
                "resolution):\n"
@@ -459,9 +527,14 @@ int AssetCommands::TrainMapping() {
 }
 
 int AssetCommands::Evaluate() {
-  if (evaluate_network_ == "mapping") {
+  if (evaluate_network_ != "finetune" && evaluate_->count("--mapping-run") > 0) {
+    return ReportFatal(kProgram, absl::InvalidArgumentError("--mapping-run is an option of --network finetune"));
+  }
+  if (evaluate_network_ == "mapping" || evaluate_network_ == "finetune") {
+    const bool finetune = evaluate_network_ == "finetune";
     auto result = processing::EvaluateDrivenAsset(evaluate_dataset_, evaluate_geometry_run_, evaluate_expression_run_,
-                                                  evaluate_run_, evaluate_picture_);
+                                                  finetune ? evaluate_mapping_run_ : evaluate_run_, evaluate_picture_,
+                                                  finetune ? evaluate_run_ : "none");
     if (!result.ok()) return ReportFatal(kProgram, result.status());
     std::cout << (json_ ? processing::DrivenEvaluationJson(*result) + "\n"
                         : processing::FormatDrivenEvaluation(*result));
@@ -470,8 +543,8 @@ int AssetCommands::Evaluate() {
   if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0 ||
       evaluate_->count("--picture") > 0) {
     return ReportFatal(
-        kProgram,
-        absl::InvalidArgumentError("--geometry-run, --expression-run and --picture are options of --network mapping"));
+        kProgram, absl::InvalidArgumentError(
+                      "--geometry-run, --expression-run and --picture are options of --network mapping and finetune"));
   }
   const std::string run = evaluate_run_.empty()
                               ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()

@@ -25,6 +25,9 @@ class AssetCommands {
   int Train();
   int TrainExpression();
   int TrainMapping();
+  int FineTune();
+  // A mapping's or fine-tuning's result, as JSON or a table (1 and the error on failure).
+  int PrintDriven(const std::string& what, const absl::StatusOr<processing::MappingTrainResult>& result);
   int Evaluate();
   int Infer();
 
@@ -32,12 +35,15 @@ class AssetCommands {
   CLI::App* build_dataset_ = nullptr;
   CLI::App* train_ = nullptr;
   CLI::App* evaluate_ = nullptr;
-  std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_, evaluate_picture_;
+  std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_, evaluate_picture_,
+      evaluate_mapping_run_;
   std::string evaluate_network_ = "geometry";
   // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed).
   processing::AssetTrainJob train_job_;
   processing::ExpressionTrainJob expression_job_;
   processing::MappingTrainJob mapping_job_;
+  processing::FineTuneJob finetune_job_;
+  bool freeze_encoder_ = false;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;
   CLI::App* infer_app_ = nullptr;

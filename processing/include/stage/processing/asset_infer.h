@@ -1,8 +1,9 @@
 // The trained asset driven from images (docs/asset.md#inference): each image of one camera cropped as the asset's
 // dataset crops that camera's frames, encoded by the expression VAE, its expression latent mapped to the geometry
-// latent, and decoded to the frame's UV geometry map (the head's frame, mm) and the face template's mesh at it.
-// The camera may be one the expression VAE never trained on (the paper's held-out view) but must be one the dataset
-// cropped, since its crop box and white are what place the face in its images with no pose known.
+// latent (through the fine-tuned driving path where there is one), and decoded to the frame's UV geometry map (the
+// head's frame, mm) and the face template's mesh at it. The camera may be one the expression VAE never trained on (the
+// paper's held-out view) but must be one the dataset cropped, since its crop box and white are what place the face in
+// its images with no pose known.
 //
 // Per frame, into the output directory's frame-NNNNNN/:
 //   crop.png          the crop the nets saw (8-bit grey)
@@ -29,6 +30,9 @@ struct AssetInferOptions {
   std::string dataset;
   // The runs (default: the dataset's directory/geometry, /expression, /mapping).
   std::string geometry_run, expression_run, mapping_run;
+  // The fine-tuned driving path (asset_train.h's FineTuneDrivingAsset) the images drive through: its run; empty:
+  // the dataset's directory/finetune where it holds a finished run, else the mapping; "none": the mapping.
+  std::string finetune_run;
   // The camera the images are of (one the dataset cropped).
   std::string camera;
   // The images, from one of: a take's full-lit frames of the camera, frames [first_frame, last_frame) (last < 0: to

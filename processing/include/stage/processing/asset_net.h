@@ -171,6 +171,7 @@ class ExpressionVae {
   int64_t parameter_count() const;
 
  private:
+  friend class DrivingNet;
   struct Impl;
   explicit ExpressionVae(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
@@ -213,8 +214,55 @@ class LatentMapping {
   int64_t parameter_count() const;
 
  private:
+  friend class DrivingNet;
   struct Impl;
   explicit LatentMapping(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
+// The driving path fine-tuned (the third training stage, docs/asset.md#fine-tuning): the expression VAE's encoder and
+// the mapping as one net, image -> expression latent's mean -> mapping -> geometry latent, trained together on the
+// frames' geometry latents (in the mapping's normalized units: mean squared error). The paper's third stage fine-tunes
+// all but the expression network; trained that way (`train_encoder` false) the driving path cannot learn what its
+// frozen expression latent does not hold, and on the simulated performance it did not generalize to frames it never
+// saw (docs/asset.md). With the encoder trained too, the geometry decides what the encoder keeps of an image: the
+// expression, not the head's pose or the camera's view. Created from the two finished nets (their weights copied);
+// the expression VAE's decoder and view latent play no part.
+struct DrivingNetOptions {
+  // Train the expression encoder with the mapping (false: only the mapping, the paper's choice).
+  bool train_encoder = true;
+  int threads = 0;
+  absl::Status Validate() const;
+};
+
+class DrivingNet {
+ public:
+  // Errors: options out of range.
+  static absl::StatusOr<std::unique_ptr<DrivingNet>> Create(const ExpressionVae& expression,
+                                                            const LatentMapping& mapping,
+                                                            const DrivingNetOptions& options);
+  ~DrivingNet();
+  DrivingNet(const DrivingNet&) = delete;
+  DrivingNet& operator=(const DrivingNet&) = delete;
+
+  // One Adam step on `batch` crops (B x 1 x I x I, 0..1, the caller's augmentation applied) and their frames'
+  // geometry latents (B x geometry latent): the mean squared error in the mapping's normalized units, each dimension
+  // weighed by its spread over the mean spread (the latent's own units, so a dimension the geometry VAE barely
+  // uses counts for little).
+  absl::StatusOr<double> TrainStep(const std::vector<float>& images, const std::vector<float>& targets, int batch,
+                                   double learning_rate);
+  // The geometry latents (B x geometry latent) of `batch` crops (B x 1 x I x I).
+  absl::StatusOr<std::vector<float>> Drive(const std::vector<float>& images, int batch) const;
+  absl::Status Save(const std::string& path) const;
+  absl::Status Load(const std::string& path);
+  const DrivingNetOptions& options() const;
+  int input_size() const;  // the crops' pixels across
+  int output() const;      // the geometry latent's size
+  int64_t trained_parameters() const;
+
+ private:
+  struct Impl;
+  explicit DrivingNet(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
 

@@ -157,14 +157,45 @@ struct MappingTrainResult {
 };
 absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job);
 
+// The third stage (docs/asset.md#fine-tuning): the driving path (DrivingNet: the expression VAE's encoder and the
+// mapping) trained together on the training frames' geometry latents, from the finished runs of the stages before,
+// on the mapping's pairs (a training frame's crop by a trained camera). Each crop is shown under a random jitter of
+// its box (scale, turn, shift) and its exposure (gain, noise): a camera's crop box is fixed while the head moves in
+// it, and the jitter stands in for the views and poses the frames do not hold. The run's directory (default
+// DATASET's directory/finetune) holds the loop's files (training_run.h), driving_net.pt, evaluation.json (the paper's
+// protocol, DrivenEvaluation) and driven.png, as the mapping's.
+struct FineTuneJob {
+  std::string dataset;
+  std::string output_dir;  // default: DATASET's directory/finetune
+  // Default: DATASET's directory/geometry, /expression, /mapping.
+  std::string geometry_run, expression_run, mapping_run;
+  DrivingNetOptions driving;
+  // The jitter, uniform within each bound: scale by 1 +- jitter_scale, turn by +- jitter_rotation_deg about the
+  // crop's centre, shift by +- jitter_shift of the crop's side along each axis, gain 1 +- jitter_gain, and normal
+  // noise of jitter_noise (0..1 units) on every pixel. All 0: the crops as they are.
+  double jitter_scale = 0.05;      // 0..0.5
+  double jitter_rotation_deg = 3;  // 0..45
+  double jitter_shift = 0.05;      // 0..0.5
+  double jitter_gain = 0.1;        // 0..0.9
+  double jitter_noise = 0.01;      // 0..0.5
+  TrainingSchedule schedule{.iterations = 3000, .batch = 32, .learning_rate = 3e-4};
+  std::function<bool(int64_t, int64_t, double)> progress;
+  absl::Status Validate() const;
+};
+// The result: as the mapping's (its pairs, losses and the driven evaluation), of the fine-tuned path.
+absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job);
+
 // The driven evaluation of finished runs on `dataset` (default run directories as in MappingTrainJob: empty names
 // DATASET's directory/geometry, .../expression, .../mapping), and where `picture` names a PNG file, one frame drawn
 // there as the mapping's training draws it into its run (driven.png: the middle frame of the held-out blocks, driven
-// from the first held-out camera; its crop, the truth, the driven mesh and its error). Errors name the file.
+// from the first held-out camera; its crop, the truth, the driven mesh and its error). `finetune_run`: the driving
+// path fine-tuned (FineTuneDrivingAsset's run; "" names DATASET's directory/finetune), or "none": the mapping's path.
+// Errors name the file.
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run = "",
                                                      const std::string& expression_run = "",
                                                      const std::string& mapping_run = "",
-                                                     const std::string& picture = "");
+                                                     const std::string& picture = "",
+                                                     const std::string& finetune_run = "none");
 std::string DrivenEvaluationJson(const DrivenEvaluation& e);
 std::string FormatDrivenEvaluation(const DrivenEvaluation& e);
 std::string ExpressionEvaluationJson(const ExpressionEvaluation& e);

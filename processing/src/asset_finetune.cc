@@ -1,0 +1,185 @@
+// The neural asset's third training stage: the driving path (the expression encoder and the mapping) fine-tuned on the
+// frames' geometry latents, and the loading of such a run (see asset_train.h's FineTuneDrivingAsset).
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "asset_train_internal.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/processing/asset_train.h"
+#include "stage/processing/warp_net.h"
+#include "training_run.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+using asset_internal::DrivenAsset;
+using internal::Normal;
+using internal::Uniform;
+
+constexpr double kPi = 3.14159265358979323846;
+
+// `in` (size x size, 0..1) jittered into `out` as FineTuneJob's bounds say: sampled bilinearly through a scale, a
+// turn and a shift about the centre (0 outside), times a gain, plus noise; every draw from `rng`.
+void Jitter(const FineTuneJob& job, const float* in, int size, std::mt19937_64& rng, float* out) {
+  const double scale = 1 + Uniform(rng, job.jitter_scale);
+  const double angle = Uniform(rng, job.jitter_rotation_deg) * kPi / 180;
+  const double sx = Uniform(rng, job.jitter_shift) * size, sy = Uniform(rng, job.jitter_shift) * size;
+  const double gain = 1 + Uniform(rng, job.jitter_gain);
+  // Output pixel p samples the input at centre + R^-1 (p - centre - shift) / scale.
+  const double c = std::cos(angle) / scale, s = std::sin(angle) / scale, mid = 0.5 * (size - 1);
+  auto at = [&](int x, int y) {
+    return x < 0 || y < 0 || x >= size || y >= size ? 0.f : in[static_cast<size_t>(y) * size + x];
+  };
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      const double dx = x - mid - sx, dy = y - mid - sy;
+      const double u = mid + c * dx + s * dy, v = mid - s * dx + c * dy;
+      const int x0 = static_cast<int>(std::floor(u)), y0 = static_cast<int>(std::floor(v));
+      const float fx = static_cast<float>(u - x0), fy = static_cast<float>(v - y0);
+      const float value = (at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx) * (1 - fy) +
+                          (at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx) * fy;
+      const float noise = job.jitter_noise > 0 ? static_cast<float>(job.jitter_noise) * Normal(rng) : 0.f;
+      out[static_cast<size_t>(y) * size + x] = std::clamp(static_cast<float>(gain) * value + noise, 0.f, 1.f);
+    }
+  }
+}
+
+absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const DrivenAsset& a,
+                                                   const std::string& geometry_run, const std::string& expression_run,
+                                                   const std::string& mapping_run) {
+  nlohmann::json j = {{"network", "finetune"},
+                      {"train_encoder", job.driving.train_encoder},
+                      {"jitter_scale", job.jitter_scale},
+                      {"jitter_rotation_deg", job.jitter_rotation_deg},
+                      {"jitter_shift", job.jitter_shift},
+                      {"jitter_gain", job.jitter_gain},
+                      {"jitter_noise", job.jitter_noise},
+                      {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                      {"dataset_id", asset_internal::DatasetId(a.data.dataset)},
+                      {"threads", TorchThreadCount(job.driving.threads)}};
+  for (const auto& [name, dir] : {std::pair{"geometry", geometry_run}, std::pair{"expression", expression_run},
+                                  std::pair{"mapping", mapping_run}}) {
+    j[absl::StrCat(name, "_run")] = fs::absolute(dir).lexically_normal().string();
+    STAGE_ASSIGN_OR_RETURN(j[absl::StrCat(name, "_run_id")], asset_internal::RunId(dir));
+  }
+  asset_internal::AddScheduleJson(job.schedule, &j);
+  return j;
+}
+
+bool InRange(double v, double high) { return v >= 0 && v <= high; }
+
+}  // namespace
+
+namespace asset_internal {
+
+absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir,
+                                                           const std::string& expression_run,
+                                                           const std::string& mapping_run,
+                                                           const ExpressionVae& expression,
+                                                           const LatentMapping& mapping, int threads) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "finetune"));
+  for (const auto& [name, dir] : {std::pair{"expression", expression_run}, std::pair{"mapping", mapping_run}}) {
+    STAGE_ASSIGN_OR_RETURN(const std::string id, RunId(dir));
+    if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
+      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": fine-tuned from another ", name, " run than ", dir,
+                                                        " (trained again since?): fine-tune again"));
+    }
+  }
+  if (!o.contains("train_encoder") || !o["train_encoder"].is_boolean()) {
+    return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: option train_encoder is missing"));
+  }
+  DrivingNetOptions options{.train_encoder = o["train_encoder"].get<bool>(), .threads = threads};
+  STAGE_ASSIGN_OR_RETURN(auto net, DrivingNet::Create(expression, mapping, options));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/driving_net.pt"));
+  return net;
+}
+
+std::string FineTuneRun(const std::string& run, const std::string& dataset) {
+  if (run == "none") return "";
+  if (!run.empty()) return run;
+  const std::string dir = RunDir("", dataset, "finetune");
+  return fs::exists(dir + "/driving_net.pt") ? dir : "";
+}
+
+}  // namespace asset_internal
+
+absl::Status FineTuneJob::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat("fine-tuning: ", what)); };
+  if (dataset.empty()) return bad("no dataset");
+  STAGE_RETURN_IF_ERROR(driving.Validate());
+  for (const auto& [name, v, high] :
+       {std::tuple{"jitter_scale", jitter_scale, 0.5}, std::tuple{"jitter_rotation_deg", jitter_rotation_deg, 45.0},
+        std::tuple{"jitter_shift", jitter_shift, 0.5}, std::tuple{"jitter_gain", jitter_gain, 0.9},
+        std::tuple{"jitter_noise", jitter_noise, 0.5}}) {
+    if (!InRange(v, high)) return bad(absl::StrCat(name, " ", v, " is not in 0..", high));
+  }
+  return schedule.Validate();
+}
+
+absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  const std::string geometry_run = asset_internal::RunDir(job.geometry_run, job.dataset, "geometry");
+  const std::string expression_run = asset_internal::RunDir(job.expression_run, job.dataset, "expression");
+  const std::string mapping_run = asset_internal::RunDir(job.mapping_run, job.dataset, "mapping");
+  const int threads = job.driving.threads;
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
+                         asset_internal::LoadDrivenAsset(job.dataset, geometry_run, expression_run, threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadMappingNet(mapping_run, a.ExpressionSize(), a.GeometrySize(), threads));
+  const std::vector<std::pair<int64_t, int>> pairs = asset_internal::MappingPairs(a);
+  if (pairs.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
+  }
+  STAGE_ASSIGN_OR_RETURN(a.driver, DrivingNet::Create(*a.expression, *a.mapping, job.driving));
+  MappingTrainResult result;
+  result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "finetune");
+  result.parameters = a.driver->trained_parameters();
+  result.pairs = static_cast<int64_t>(pairs.size());
+  DrivingNet& net = *a.driver;
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "driving net";
+  STAGE_ASSIGN_OR_RETURN(loop.options, FineTuneOptionsJson(job, a, geometry_run, expression_run, mapping_run));
+  loop.loss_names = {"total"};
+  loop.schedule = job.schedule;
+  loop.seed = a.mapping->options().seed;
+  loop.save = [&net](const std::string& path) { return net.Save(path); };
+  loop.load = [&net](const std::string& path) { return net.Load(path); };
+  const int g = a.GeometrySize(), size = a.crops.size;
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    const int b = job.schedule.batch;
+    std::vector<float> images(static_cast<size_t>(b) * a.crops.Pixels()), targets;
+    for (int n = 0; n < b; ++n) {
+      const auto [f, c] = pairs[rng() % pairs.size()];
+      Jitter(job, a.crops.At(f, c), size, rng, images.data() + n * a.crops.Pixels());
+      const auto target = a.geometry_latents.begin() + static_cast<std::ptrdiff_t>(f * g);
+      targets.insert(targets.end(), target, target + g);
+    }
+    STAGE_ASSIGN_OR_RETURN(const double loss, net.TrainStep(images, targets, b, rate));
+    return std::vector<double>{loss};
+  };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, l[0]);
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
+  result.steps = job.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/driving_net.pt"));
+  STAGE_RETURN_IF_ERROR(asset_internal::Drive(&a));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, asset_internal::EvaluateDriven(a));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
+  STAGE_RETURN_IF_ERROR(asset_internal::WritePicture(a, result.output_dir + "/driven.png"));
+  return result;
+}
+
+}  // namespace stage::processing
