@@ -153,7 +153,7 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
     };
     const auto mine = without(FilesUnder(asset + "/" + name + "-batch"));
     // trainer.json, loss.csv and .png, evaluation.json; the mapping's picture of a frame driven (driven.png)
-    EXPECT_EQ(mine.size(), name == "mapping" ? 5u : 4u) << name;
+    EXPECT_EQ(mine.size(), name == "mapping" || name == "finetune" ? 5u : 4u) << name;
     for (const std::string& other : {name + "-library", name}) {
       const auto theirs = without(FilesUnder(asset + "/" + other));
       ASSERT_EQ(theirs.size(), mine.size()) << other;
@@ -239,6 +239,28 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_EQ(evaluated.exit.exit_code, 0) << evaluated.err;
   EXPECT_EQ(nlohmann::json::parse(evaluated.out), nlohmann::json::parse(ReadFile(asset + "/mapping/evaluation.json")));
 
+  // The third stage (the driving path fine-tuned, from the worker's runs), the same three ways; inference below then
+  // drives through the worker's.
+  CommandResult finetune =
+      RunCommand({"stage-process", "asset", "train", "--network", "finetune", "--dataset", asset + "/dataset.h5",
+                  "--output", asset + "/finetune-batch", "--iterations", "20", "--batch", "8", "--json"},
+                 std::chrono::seconds(300));
+  ASSERT_EQ(finetune.exit.exit_code, 0) << finetune.err;
+  EXPECT_EQ(nlohmann::json::parse(finetune.out)["evaluation"]["cameras"].size(), 2u);
+  processing::FineTuneJob finetune_job;
+  finetune_job.dataset = asset + "/dataset.h5";
+  finetune_job.output_dir = asset + "/finetune-library";
+  finetune_job.schedule.iterations = 20;
+  finetune_job.schedule.batch = 8;
+  ASSERT_TRUE(processing::FineTuneDrivingAsset(finetune_job).ok());
+  v1::ProcessingJob finetune_request = mapping_request;
+  a = finetune_request.mutable_asset();
+  a->set_network(v1::ASSET_NETWORK_FINETUNE);
+  a->clear_hidden();
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), finetune_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/finetune");
+  same_runs("finetune", "driving_net.pt");
+
   // The asset driven from mv-05's frames of the take, three ways: the same files; each frame's crop is the dataset's
   // own crop of that camera and frame, and the mesh opens in Open3D with the template's UVs.
   CommandResult infer = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
@@ -313,6 +335,10 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                                        std::chrono::seconds(60));
   EXPECT_EQ(misplaced.exit.exit_code, 2);
   EXPECT_THAT(misplaced.err, HasSubstr("--pose-latent is not an option of the mapping network"));
+  wrong = finetune_request;
+  wrong.mutable_asset()->set_hidden(8);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_FINETUNE network's"));
   CommandResult missing =
       RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);

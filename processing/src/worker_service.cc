@@ -363,6 +363,20 @@ absl::StatusOr<v1::ProcessingProgress> TrainMappingJob(const v1::AssetOptions& a
                                FormatDrivenEvaluation(result->evaluation)));
 }
 
+absl::StatusOr<v1::ProcessingProgress> FineTuneJobOf(const v1::AssetOptions& a, const std::string& dataset,
+                                                     const TrainingSchedule& schedule, const TrainReport& report) {
+  FineTuneJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  t.driving.train_encoder = !a.freeze_encoder();
+  t.progress = report;
+  auto result = FineTuneDrivingAsset(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("driving path fine-tuned ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatDrivenEvaluation(result->evaluation)));
+}
+
 absl::StatusOr<v1::ProcessingProgress> TrainGeometryJob(const v1::AssetOptions& a, const std::string& dataset,
                                                         const TrainingSchedule& schedule, const TrainReport& report) {
   AssetTrainJob t;
@@ -396,16 +410,20 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   const v1::AssetNetwork network =
       a.network() == v1::ASSET_NETWORK_UNSPECIFIED ? v1::ASSET_NETWORK_GEOMETRY : a.network();
   // Each option belongs to some of the networks; one given to another is refused, not ignored.
-  const bool vae = network != v1::ASSET_NETWORK_MAPPING;
+  const bool vae = network == v1::ASSET_NETWORK_GEOMETRY || network == v1::ASSET_NETWORK_EXPRESSION;
   if ((!vae && (a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 || a.max_channels() != 0)) ||
       (network != v1::ASSET_NETWORK_GEOMETRY && (a.geometry_latent() != 0 || a.pose_latent() != 0)) ||
       (network != v1::ASSET_NETWORK_EXPRESSION &&
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
-      (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0))) {
+      (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0)) ||
+      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
+      (network == v1::ASSET_NETWORK_FINETUNE && a.seed() != 0)) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }
-  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING ? MappingTrainJob{}.schedule : TrainingSchedule{};
+  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING    ? MappingTrainJob{}.schedule
+                              : network == v1::ASSET_NETWORK_FINETUNE ? FineTuneJob{}.schedule
+                                                                      : TrainingSchedule{};
   if (a.iterations() != 0) schedule.iterations = a.iterations();
   if (a.batch() != 0) schedule.batch = a.batch();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
@@ -418,6 +436,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   };
   if (network == v1::ASSET_NETWORK_EXPRESSION) return TrainExpressionJob(a, dataset, schedule, report);
   if (network == v1::ASSET_NETWORK_MAPPING) return TrainMappingJob(a, dataset, schedule, report);
+  if (network == v1::ASSET_NETWORK_FINETUNE) return FineTuneJobOf(a, dataset, schedule, report);
   return TrainGeometryJob(a, dataset, schedule, report);
 }
 
