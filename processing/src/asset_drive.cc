@@ -261,6 +261,26 @@ absl::Status Drive(DrivenAsset* a) {
   return absl::OkStatus();
 }
 
+absl::Status RunDrivenTraining(internal::TrainingLoop loop,
+                               const std::function<bool(int64_t, int64_t, double)>& progress,
+                               const std::string& net_file, DrivenAsset* a, MappingTrainResult* result) {
+  if (progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return progress(step, total, l[0]);
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result->resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result->losses.push_back(l[0]);
+  result->steps = loop.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(loop.save(result->output_dir + "/" + net_file));
+  STAGE_RETURN_IF_ERROR(Drive(a));
+  STAGE_ASSIGN_OR_RETURN(result->evaluation, EvaluateDriven(*a));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result->output_dir + "/evaluation.json", DrivenEvaluationJson(result->evaluation) + "\n"));
+  return WritePicture(*a, result->output_dir + "/driven.png");
+}
+
 absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a) {
   STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
   const AssetDataset& d = a.data.dataset;
@@ -581,21 +601,7 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
     STAGE_ASSIGN_OR_RETURN(const double loss, net.TrainStep(x, y, noise, b, rate));
     return std::vector<double>{loss};
   };
-  if (job.progress) {
-    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
-      return job.progress(step, total, l[0]);
-    };
-  }
-  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
-  result.resumed_from = outcome.resumed_from;
-  for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
-  result.steps = job.schedule.iterations;
-  STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/mapping.pt"));
-  STAGE_RETURN_IF_ERROR(Drive(&a));
-  STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateDriven(a));
-  STAGE_RETURN_IF_ERROR(
-      WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
-  STAGE_RETURN_IF_ERROR(WritePicture(a, result.output_dir + "/driven.png"));
+  STAGE_RETURN_IF_ERROR(asset_internal::RunDrivenTraining(loop, job.progress, "mapping.pt", &a, &result));
   return result;
 }
 

@@ -164,21 +164,7 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
     STAGE_ASSIGN_OR_RETURN(const double loss, net.TrainStep(images, targets, b, rate));
     return std::vector<double>{loss};
   };
-  if (job.progress) {
-    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
-      return job.progress(step, total, l[0]);
-    };
-  }
-  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
-  result.resumed_from = outcome.resumed_from;
-  for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
-  result.steps = job.schedule.iterations;
-  STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/driving_net.pt"));
-  STAGE_RETURN_IF_ERROR(asset_internal::Drive(&a));
-  STAGE_ASSIGN_OR_RETURN(result.evaluation, asset_internal::EvaluateDriven(a));
-  STAGE_RETURN_IF_ERROR(
-      WriteFileAtomically(result.output_dir + "/evaluation.json", DrivenEvaluationJson(result.evaluation) + "\n"));
-  STAGE_RETURN_IF_ERROR(asset_internal::WritePicture(a, result.output_dir + "/driven.png"));
+  STAGE_RETURN_IF_ERROR(asset_internal::RunDrivenTraining(loop, job.progress, "driving_net.pt", &a, &result));
   return result;
 }
 

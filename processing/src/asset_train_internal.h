@@ -16,6 +16,7 @@
 #include "stage/processing/asset_net.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/face_template.h"
+#include "training_run.h"
 
 namespace stage::processing::asset_internal {
 
@@ -139,6 +140,12 @@ absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& ru
 std::string FineTuneRun(const std::string& run, const std::string& dataset);
 // The paper's protocol on `a.driven` (DrivenEvaluation).
 absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a);
+// A driven net's training (the mapping's, the fine-tuning's: `loop` with one loss) run to its end into `result` (its
+// steps, resume and losses; `progress` after every step), the net saved as the run's `net_file`, then `a` driven
+// (Drive), evaluated (evaluation.json) and drawn (driven.png).
+absl::Status RunDrivenTraining(internal::TrainingLoop loop,
+                               const std::function<bool(int64_t, int64_t, double)>& progress,
+                               const std::string& net_file, DrivenAsset* a, MappingTrainResult* result);
 // The picture (WriteDrivenPicture) of the middle frame of the held-out blocks (of the training frames where none is
 // held out), driven from the first held-out camera that recorded it (a trained one where none is held out).
 absl::Status WritePicture(const DrivenAsset& a, const std::string& path);

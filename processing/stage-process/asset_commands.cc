@@ -95,7 +95,8 @@ void AssetCommands::AddTrain() {
       "--output", job.output_dir,
       "The run's directory (default: the dataset's directory/geometry, /expression, /mapping or /finetune)");
   train_
-      ->add_option("--iterations", schedule.iterations, "Adam steps (default 4000; the mapping's and finetune's 3000)")
+      ->add_option("--iterations", schedule.iterations,
+                   "Adam steps (default 4000; the mapping's 3000, finetune's 6000)")
       ->check(CLI::Range(1, 10000000));
   train_->add_option("--batch", schedule.batch, "Samples a step (default 16; the mapping's 64, finetune's 32)")
       ->check(CLI::Range(1, 1024));
