@@ -617,6 +617,7 @@ absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset,
   if (finetune_run != "none") {
     STAGE_ASSIGN_OR_RETURN(
         a.driver, asset_internal::LoadDrivingNet(asset_internal::RunDir(finetune_run, dataset, "finetune"),
+                                                 asset_internal::RunDir(geometry_run, dataset, "geometry"),
                                                  asset_internal::RunDir(expression_run, dataset, "expression"),
                                                  asset_internal::RunDir(mapping_run, dataset, "mapping"), *a.expression,
                                                  *a.mapping, /*threads=*/0));

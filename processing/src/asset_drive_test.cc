@@ -130,6 +130,17 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   auto tuned_again = EvaluateDrivenAsset(dataset, "", "", "", "", "");
   ASSERT_TRUE(tuned_again.ok()) << tuned_again.status();
   EXPECT_DOUBLE_EQ(tuned_again->cameras[1].error[1].face_mm, tuned->evaluation.cameras[1].error[1].face_mm);
+  // The paper's choice (the encoder frozen) trains the mapping alone; its finished run loads and evaluates the same.
+  FineTuneJob frozen = finetune;
+  frozen.driving.train_encoder = false;
+  frozen.output_dir = ::testing::TempDir() + "/drive-take/frozen";
+  frozen.schedule.iterations = 20;
+  auto mapping_alone = FineTuneDrivingAsset(frozen);
+  ASSERT_TRUE(mapping_alone.ok()) << mapping_alone.status();
+  EXPECT_LT(mapping_alone->parameters, tuned->parameters);
+  auto frozen_again = EvaluateDrivenAsset(dataset, "", "", "", "", frozen.output_dir);
+  ASSERT_TRUE(frozen_again.ok()) << frozen_again.status();
+  EXPECT_DOUBLE_EQ(frozen_again->cameras[1].error[1].face_mm, mapping_alone->evaluation.cameras[1].error[1].face_mm);
 
   // Driven from a video of the held-out camera (an image sequence; its frames are the crops themselves): a map and a
   // mesh a frame.
@@ -207,6 +218,8 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   EXPECT_THAT(TrainLatentMapping(mapping).status().message(), HasSubstr("trained with expression_run_id"));
   EXPECT_THAT(EvaluateDrivenAsset(dataset, "", "", "", "", "").status().message(),
               HasSubstr("fine-tuned from another expression run"));
+  EXPECT_THAT(FineTuneDrivingAsset(finetune).status().message(),
+              HasSubstr("the mapping was trained from another expression run"));
   EXPECT_THAT(
       InferAsset({.dataset = dataset, .camera = "cam-1", .video = video + "/frame-%04d.png"}).status().message(),
       HasSubstr("fine-tuned from another expression run"));

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <random>
 
@@ -60,6 +61,7 @@ absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const
                       {"jitter_shift", job.jitter_shift},
                       {"jitter_gain", job.jitter_gain},
                       {"jitter_noise", job.jitter_noise},
+                      {"seed", job.seed},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", asset_internal::DatasetId(a.data.dataset)},
                       {"threads", TorchThreadCount(job.driving.threads)}};
@@ -74,22 +76,47 @@ absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const
 
 bool InRange(double v, double high) { return v >= 0 && v <= high; }
 
+// FailedPrecondition unless the run `run_dir` (its trainer.json's options `o`) was trained from the runs given, by
+// their identities (asset_internal::RunId).
+absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& o, const char* trained,
+                              std::initializer_list<std::pair<const char*, std::string>> runs) {
+  for (const auto& [name, dir] : runs) {
+    STAGE_ASSIGN_OR_RETURN(const std::string id, asset_internal::RunId(dir));
+    if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
+      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
+                                                        dir, " (trained again since?): train it again"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 namespace asset_internal {
 
-absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir,
+// The step a run's trainer.json says it reached, and its options' iterations (-1 each where unreadable).
+std::pair<int64_t, int64_t> StepsOf(const std::string& run_dir) {
+  std::ifstream in(run_dir + "/trainer.json");
+  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  if (!j.is_object() || !j.contains("step") || !j["step"].is_number_integer() || !j.contains("options")) {
+    return {-1, -1};
+  }
+  return {j["step"].get<int64_t>(), j["options"].value("iterations", int64_t{-1})};
+}
+
+absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir, const std::string& geometry_run,
                                                            const std::string& expression_run,
                                                            const std::string& mapping_run,
                                                            const ExpressionVae& expression,
                                                            const LatentMapping& mapping, int threads) {
   STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "finetune"));
-  for (const auto& [name, dir] : {std::pair{"expression", expression_run}, std::pair{"mapping", mapping_run}}) {
-    STAGE_ASSIGN_OR_RETURN(const std::string id, RunId(dir));
-    if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
-      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": fine-tuned from another ", name, " run than ", dir,
-                                                        " (trained again since?): fine-tune again"));
-    }
+  STAGE_RETURN_IF_ERROR(
+      CheckTrainedFrom(run_dir, o, "fine-tuned",
+                       {{"geometry", geometry_run}, {"expression", expression_run}, {"mapping", mapping_run}}));
+  // A run started again and stopped part way keeps the last finished run's net beside its own state: not its own.
+  if (const auto [step, iterations] = StepsOf(run_dir); step != iterations) {
+    return absl::FailedPreconditionError(absl::StrCat(run_dir, ": stopped at step ", step, " of ", iterations,
+                                                      " (resume it with --resume, or name another run)"));
   }
   if (!o.contains("train_encoder") || !o["train_encoder"].is_boolean()) {
     return absl::InvalidArgumentError(absl::StrCat(run_dir, "/trainer.json: option train_encoder is missing"));
@@ -104,7 +131,8 @@ std::string FineTuneRun(const std::string& run, const std::string& dataset) {
   if (run == "none") return "";
   if (!run.empty()) return run;
   const std::string dir = RunDir("", dataset, "finetune");
-  return fs::exists(dir + "/driving_net.pt") ? dir : "";
+  if (!fs::exists(dir + "/driving_net.pt")) return "";
+  return dir;  // LoadDrivingNet refuses it, naming why, if it stopped part way
 }
 
 }  // namespace asset_internal
@@ -132,6 +160,11 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
                          asset_internal::LoadDrivenAsset(job.dataset, geometry_run, expression_run, threads));
   STAGE_ASSIGN_OR_RETURN(a.mapping,
                          asset_internal::LoadMappingNet(mapping_run, a.ExpressionSize(), a.GeometrySize(), threads));
+  {
+    STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(mapping_run, "mapping"));
+    STAGE_RETURN_IF_ERROR(CheckTrainedFrom(mapping_run, o, "the mapping was trained",
+                                           {{"geometry", geometry_run}, {"expression", expression_run}}));
+  }
   const std::vector<std::pair<int64_t, int>> pairs = asset_internal::MappingPairs(a);
   if (pairs.empty()) {
     return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
@@ -148,7 +181,7 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
   STAGE_ASSIGN_OR_RETURN(loop.options, FineTuneOptionsJson(job, a, geometry_run, expression_run, mapping_run));
   loop.loss_names = {"total"};
   loop.schedule = job.schedule;
-  loop.seed = a.mapping->options().seed;
+  loop.seed = job.seed;
   loop.save = [&net](const std::string& path) { return net.Save(path); };
   loop.load = [&net](const std::string& path) { return net.Load(path); };
   const int g = a.GeometrySize(), size = a.crops.size;

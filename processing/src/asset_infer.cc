@@ -53,7 +53,8 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
   a.driver_run = asset_internal::FineTuneRun(options.finetune_run, options.dataset);
   if (!a.driver_run.empty()) {
     STAGE_ASSIGN_OR_RETURN(a.driver, asset_internal::LoadDrivingNet(
-                                         a.driver_run, RunDir(options.expression_run, options.dataset, "expression"),
+                                         a.driver_run, RunDir(options.geometry_run, options.dataset, "geometry"),
+                                         RunDir(options.expression_run, options.dataset, "expression"),
                                          RunDir(options.mapping_run, options.dataset, "mapping"), *a.expression,
                                          *a.mapping, options.threads));
   }

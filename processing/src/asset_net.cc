@@ -888,7 +888,7 @@ absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, c
     impl_->adam->zero_grad();
     const torch::Tensor y =
         (FromVector(targets, {batch, out}) - net->mapping->target_mean) / net->mapping->target_scale;
-    // Each dimension weighed by its spread (the mapping's normalization undone, over the mean spread): a latent
+    // Each dimension weighed by its variance (the mapping's normalization undone, over the mean variance): a latent
     // dimension the geometry VAE barely uses does not count as much as one that moves the face.
     const torch::Tensor variance = net->mapping->target_scale.pow(2);
     const torch::Tensor weight = variance / variance.mean();

@@ -129,14 +129,16 @@ absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const st
 // `a.driven`: every crop's geometry latent through the driver where there is one, else the mapping.
 absl::Status Drive(DrivenAsset* a);
 // A finished fine-tuning run's driving net (FineTuneDrivingAsset's) over the nets of the expression and mapping runs
-// given, which must be those it was fine-tuned from (FailedPrecondition naming the run otherwise).
-absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir,
+// given; the geometry, expression and mapping runs must be those it was fine-tuned from (FailedPrecondition naming
+// the run otherwise: its output is the geometry VAE's latent, which another geometry run decodes wrongly).
+absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir, const std::string& geometry_run,
                                                            const std::string& expression_run,
                                                            const std::string& mapping_run,
                                                            const ExpressionVae& expression,
                                                            const LatentMapping& mapping, int threads);
-// The fine-tuning run inference and evaluation use: `run` ("" : DATASET's directory/finetune where it holds a run's
-// trainer.json, else none), or "" for none where `run` is "none".
+// The fine-tuning run inference and evaluation use: `run`; where it is empty, DATASET's directory/finetune if it holds
+// a run's net (driving_net.pt, written at a run's end), else none (""); and none where `run` is "none". A run started
+// again and stopped part way is refused by LoadDrivingNet, not passed over.
 std::string FineTuneRun(const std::string& run, const std::string& dataset);
 // The paper's protocol on `a.driven` (DrivenEvaluation).
 absl::StatusOr<DrivenEvaluation> EvaluateDriven(const DrivenAsset& a);

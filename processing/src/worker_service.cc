@@ -369,6 +369,7 @@ absl::StatusOr<v1::ProcessingProgress> FineTuneJobOf(const v1::AssetOptions& a, 
   t.dataset = dataset;
   t.schedule = schedule;
   t.driving.train_encoder = !a.freeze_encoder();
+  SetIfGiven(a.seed(), &t.seed);
   t.progress = report;
   auto result = FineTuneDrivingAsset(t);
   if (!result.ok()) return result.status();
@@ -416,8 +417,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
       (network != v1::ASSET_NETWORK_EXPRESSION &&
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
       (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0)) ||
-      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
-      (network == v1::ASSET_NETWORK_FINETUNE && a.seed() != 0)) {
+      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder())) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }

@@ -200,9 +200,9 @@ void AssetCommands::AddEvaluate() {
   evaluate_->add_option("--mapping-run", evaluate_mapping_run_,
                         "finetune: the mapping's run (default: the dataset's directory/mapping)");
   evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
-                        "mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
+                        "mapping, finetune: the geometry VAE's run (default: the dataset's directory/geometry)");
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
-                        "mapping: the expression VAE's run (default: the dataset's directory/expression)");
+                        "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
   evaluate_->add_option("--picture", evaluate_picture_,
                         "--network mapping: draw one frame into this PNG (the middle held-out block frame driven from "
                         "the held-out camera: its crop, the truth, the driven mesh, the error)");
@@ -491,6 +491,7 @@ int AssetCommands::FineTune() {
   job.schedule.checkpoint_every = given.checkpoint_every;
   job.schedule.resume = given.resume;
   job.driving.train_encoder = !freeze_encoder_;
+  job.seed = train_job_.geometry.seed;
   job.driving.threads = train_job_.geometry.threads;
   ProgressLine bar("steps");
   job.progress = [&bar](int64_t step, int64_t total, double loss) {

@@ -247,7 +247,7 @@ class DrivingNet {
 
   // One Adam step on `batch` crops (B x 1 x I x I, 0..1, the caller's augmentation applied) and their frames'
   // geometry latents (B x geometry latent): the mean squared error in the mapping's normalized units, each dimension
-  // weighed by its spread over the mean spread (the latent's own units, so a dimension the geometry VAE barely
+  // weighed by its variance over the mean variance (the latent's own units, so a dimension the geometry VAE barely
   // uses counts for little).
   absl::StatusOr<double> TrainStep(const std::vector<float>& images, const std::vector<float>& targets, int batch,
                                    double learning_rate);
