@@ -227,7 +227,6 @@ absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const st
   STAGE_ASSIGN_OR_RETURN(a.expression, asset_internal::LoadExpressionNet(expression_run, threads, &a.held_out));
   STAGE_ASSIGN_OR_RETURN(a.trained, TrainedCameras(a.data.dataset, a.held_out));
   STAGE_ASSIGN_OR_RETURN(a.crops, CropsAt(a.data.dataset, a.expression->options().input_size));
-  STAGE_ASSIGN_OR_RETURN(a.expression_latents, EncodeAll(*a.expression, a.crops));
   const NetMaps& m = a.data.maps;
   for (int64_t f = 0; f < a.data.dataset.frames(); ++f) {
     STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a.geometry->Encode(m.maps[f], m.valid[f], 1));
@@ -240,22 +239,21 @@ absl::Status Drive(DrivenAsset* a) {
   const size_t count = a->crops.pixels.size() / a->crops.Pixels();
   a->driven.clear();
   a->driven.reserve(count * a->GeometrySize());
-  if (a->driver == nullptr) {
-    for (size_t row = 0; row < count; ++row) {
-      STAGE_ASSIGN_OR_RETURN(const std::vector<float> z,
-                             a->mapping->Map(a->ExpressionOf(static_cast<int64_t>(row) / a->crops.cameras,
-                                                             static_cast<int>(row % a->crops.cameras)),
-                                             1));
-      a->driven.insert(a->driven.end(), z.begin(), z.end());
-    }
-    return absl::OkStatus();
+  // Without a fine-tuned path, the expression VAE's encoder and the mapping as they stand: the same function.
+  std::unique_ptr<DrivingNet> mapped;
+  const DrivingNet* driver = a->driver.get();
+  if (driver == nullptr) {
+    STAGE_ASSIGN_OR_RETURN(mapped,
+                           DrivingNet::Create(*a->expression, *a->mapping,
+                                              {.train_encoder = false, .threads = a->expression->options().threads}));
+    driver = mapped.get();
   }
   constexpr size_t kBatch = 32;
   for (size_t i = 0; i < count; i += kBatch) {
     const size_t n = std::min(kBatch, count - i);
     const std::vector<float> images(a->crops.pixels.begin() + static_cast<std::ptrdiff_t>(i * a->crops.Pixels()),
                                     a->crops.pixels.begin() + static_cast<std::ptrdiff_t>((i + n) * a->crops.Pixels()));
-    STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, a->driver->Drive(images, static_cast<int>(n)));
+    STAGE_ASSIGN_OR_RETURN(const std::vector<float> z, driver->Drive(images, static_cast<int>(n)));
     a->driven.insert(a->driven.end(), z.begin(), z.end());
   }
   return absl::OkStatus();
@@ -381,6 +379,26 @@ absl::StatusOr<std::string> RunId(const std::string& run_dir) {
   return absl::StrFormat("%016x", Fnv1a64(trainer));
 }
 
+absl::Status AddRunIdentities(std::initializer_list<std::pair<const char*, std::string>> runs, nlohmann::json* j) {
+  for (const auto& [name, dir] : runs) {
+    (*j)[absl::StrCat(name, "_run")] = fs::absolute(dir).lexically_normal().string();
+    STAGE_ASSIGN_OR_RETURN((*j)[absl::StrCat(name, "_run_id")], RunId(dir));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& o, const char* trained,
+                              std::initializer_list<std::pair<const char*, std::string>> runs) {
+  for (const auto& [name, dir] : runs) {
+    STAGE_ASSIGN_OR_RETURN(const std::string id, RunId(dir));
+    if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
+      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
+                                                        dir, " (trained again since?): train it again"));
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace asset_internal
 
 namespace {
@@ -388,8 +406,6 @@ namespace {
 absl::StatusOr<nlohmann::json> MappingOptionsJson(const MappingTrainJob& job, const LatentMappingOptions& o,
                                                   const std::string& dataset_id, const std::string& geometry_run,
                                                   const std::string& expression_run) {
-  STAGE_ASSIGN_OR_RETURN(const std::string geometry_id, RunId(geometry_run));
-  STAGE_ASSIGN_OR_RETURN(const std::string expression_id, RunId(expression_run));
   nlohmann::json j = {{"network", "mapping"},
                       {"input", o.input},
                       {"output", o.output},
@@ -397,13 +413,11 @@ absl::StatusOr<nlohmann::json> MappingOptionsJson(const MappingTrainJob& job, co
                       {"layers", o.layers},
                       {"seed", o.seed},
                       {"input_noise", job.input_noise},
-                      {"geometry_run", fs::absolute(geometry_run).lexically_normal().string()},
-                      {"expression_run", fs::absolute(expression_run).lexically_normal().string()},
-                      {"geometry_run_id", geometry_id},
-                      {"expression_run_id", expression_id},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", dataset_id},
                       {"threads", TorchThreadCount(o.threads)}};
+  STAGE_RETURN_IF_ERROR(
+      asset_internal::AddRunIdentities({{"geometry", geometry_run}, {"expression", expression_run}}, &j));
   asset_internal::AddScheduleJson(job.schedule, &j);
   return j;
 }
@@ -563,6 +577,7 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
     return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
   }
   STAGE_ASSIGN_OR_RETURN(a.mapping, CreateMapping(a, job.mapping, pairs));
+  STAGE_ASSIGN_OR_RETURN(a.expression_latents, EncodeAll(*a.expression, a.crops));
   const LatentMappingOptions& o = a.mapping->options();
   std::vector<std::vector<float>> inputs;
   for (const auto& [f, c] : pairs) inputs.push_back(a.ExpressionOf(f, c));

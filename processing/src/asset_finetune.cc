@@ -65,34 +65,13 @@ absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", asset_internal::DatasetId(a.data.dataset)},
                       {"threads", TorchThreadCount(job.driving.threads)}};
-  for (const auto& [name, dir] : {std::pair{"geometry", geometry_run}, std::pair{"expression", expression_run},
-                                  std::pair{"mapping", mapping_run}}) {
-    j[absl::StrCat(name, "_run")] = fs::absolute(dir).lexically_normal().string();
-    STAGE_ASSIGN_OR_RETURN(j[absl::StrCat(name, "_run_id")], asset_internal::RunId(dir));
-  }
+  STAGE_RETURN_IF_ERROR(asset_internal::AddRunIdentities(
+      {{"geometry", geometry_run}, {"expression", expression_run}, {"mapping", mapping_run}}, &j));
   asset_internal::AddScheduleJson(job.schedule, &j);
   return j;
 }
 
 bool InRange(double v, double high) { return v >= 0 && v <= high; }
-
-// FailedPrecondition unless the run `run_dir` (its trainer.json's options `o`) was trained from the runs given, by
-// their identities (asset_internal::RunId).
-absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& o, const char* trained,
-                              std::initializer_list<std::pair<const char*, std::string>> runs) {
-  for (const auto& [name, dir] : runs) {
-    STAGE_ASSIGN_OR_RETURN(const std::string id, asset_internal::RunId(dir));
-    if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
-      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
-                                                        dir, " (trained again since?): train it again"));
-    }
-  }
-  return absl::OkStatus();
-}
-
-}  // namespace
-
-namespace asset_internal {
 
 // The step a run's trainer.json says it reached, and its options' iterations (-1 each where unreadable).
 std::pair<int64_t, int64_t> StepsOf(const std::string& run_dir) {
@@ -103,6 +82,10 @@ std::pair<int64_t, int64_t> StepsOf(const std::string& run_dir) {
   }
   return {j["step"].get<int64_t>(), j["options"].value("iterations", int64_t{-1})};
 }
+
+}  // namespace
+
+namespace asset_internal {
 
 absl::StatusOr<std::unique_ptr<DrivingNet>> LoadDrivingNet(const std::string& run_dir, const std::string& geometry_run,
                                                            const std::string& expression_run,
@@ -162,8 +145,8 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
                          asset_internal::LoadMappingNet(mapping_run, a.ExpressionSize(), a.GeometrySize(), threads));
   {
     STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(mapping_run, "mapping"));
-    STAGE_RETURN_IF_ERROR(CheckTrainedFrom(mapping_run, o, "the mapping was trained",
-                                           {{"geometry", geometry_run}, {"expression", expression_run}}));
+    STAGE_RETURN_IF_ERROR(asset_internal::CheckTrainedFrom(
+        mapping_run, o, "the mapping was trained", {{"geometry", geometry_run}, {"expression", expression_run}}));
   }
   const std::vector<std::pair<int64_t, int>> pairs = asset_internal::MappingPairs(a);
   if (pairs.empty()) {

@@ -29,7 +29,8 @@ struct Asset {
   std::unique_ptr<GeometryVae> geometry;
   std::unique_ptr<ExpressionVae> expression;
   std::unique_ptr<LatentMapping> mapping;
-  std::unique_ptr<DrivingNet> driver;  // the fine-tuned driving path, where there is one
+  // The driving path: the fine-tuned run's (driver_run), or the expression VAE's encoder and the mapping as trained.
+  std::unique_ptr<DrivingNet> driver;
   std::string driver_run;
   FaceTemplate face;
   int image_size = 0;                 // the dataset's crops'
@@ -57,6 +58,9 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
                                          RunDir(options.expression_run, options.dataset, "expression"),
                                          RunDir(options.mapping_run, options.dataset, "mapping"), *a.expression,
                                          *a.mapping, options.threads));
+  } else {
+    STAGE_ASSIGN_OR_RETURN(
+        a.driver, DrivingNet::Create(*a.expression, *a.mapping, {.train_encoder = false, .threads = options.threads}));
   }
   if (d.image_size % a.expression->options().input_size != 0) {
     return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
@@ -81,14 +85,7 @@ absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const st
   const int input = a.expression->options().input_size;
   std::vector<float> net_input(static_cast<size_t>(input) * input);
   asset_internal::CropToNetInput(crop.data(), a.image_size, input, net_input.data());
-  std::vector<float> geometry_latent;
-  if (a.driver != nullptr) {
-    STAGE_ASSIGN_OR_RETURN(geometry_latent, a.driver->Drive(net_input, 1));
-  } else {
-    STAGE_ASSIGN_OR_RETURN(std::vector<float> z, a.expression->Encode(net_input, 1));
-    z.resize(static_cast<size_t>(a.expression->options().expression_latent));
-    STAGE_ASSIGN_OR_RETURN(geometry_latent, a.mapping->Map(z, 1));
-  }
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> geometry_latent, a.driver->Drive(net_input, 1));
   STAGE_ASSIGN_OR_RETURN(const std::vector<float> nchw, a.geometry->Decode(geometry_latent, 1));
   const int s = a.geometry->options().input_size;
   const size_t texels = static_cast<size_t>(s) * s;
@@ -238,7 +235,7 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   for (const auto& file : gltf.files()) result.gltf_files.push_back(file["file"].get<std::string>());
   const nlohmann::json summary = {
       {"camera", options.camera},
-      {"driven_through", a.driver != nullptr ? "finetune" : "mapping"},
+      {"driven_through", a.driver_run.empty() ? "mapping" : "finetune"},
       {"finetune_run", a.driver_run},
       {"held_out", std::find(a.held_out.begin(), a.held_out.end(), options.camera) != a.held_out.end()},
       {"source", options.take_dir.empty() ? "video" : "take"},

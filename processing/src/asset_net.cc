@@ -766,20 +766,6 @@ absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs
   }
 }
 
-absl::StatusOr<std::vector<float>> LatentMapping::Map(const std::vector<float>& inputs, int batch) const {
-  const LatentMappingOptions& o = impl_->options;
-  if (auto st = CheckSize(inputs, int64_t{batch} * o.input, "the inputs", kMappingNet); !st.ok()) return st;
-  try {
-    SetTorchThreads(o.threads);
-    torch::NoGradGuard no_grad;
-    impl_->net->eval();
-    const torch::Tensor y = impl_->net->forward(FromVector(inputs, {batch, o.input}));
-    return ToVector(y * impl_->net->target_scale + impl_->net->target_mean);
-  } catch (const std::exception& e) {
-    return internal::TorchError(kMappingNet, "mapping", e);
-  }
-}
-
 absl::Status LatentMapping::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kMappingNet);
 }

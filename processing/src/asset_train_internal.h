@@ -104,7 +104,7 @@ struct DrivenAsset {
   std::vector<std::string> held_out;
   std::vector<int> trained;
   Crops crops;
-  std::vector<float> expression_latents;  // every crop's (EncodeAll)
+  std::vector<float> expression_latents;  // every crop's (EncodeAll), where the mapping's training needs them
   std::vector<float> geometry_latents;    // every frame's map's geometry latent's mean
   std::vector<float> driven;              // every crop's geometry latent as driven (Drive), frames x cameras rows
 
@@ -123,10 +123,12 @@ struct DrivenAsset {
   }
 };
 
-// The geometry VAE's and expression VAE's finished runs on `dataset`, every crop encoded and every frame's map.
+// The geometry VAE's and expression VAE's finished runs on `dataset`: the crops at the expression VAE's size and
+// every frame's map's geometry latent.
 absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                             const std::string& expression_run, int threads);
-// `a.driven`: every crop's geometry latent through the driver where there is one, else the mapping.
+// `a.driven`: every crop's geometry latent through the fine-tuned driver where there is one, else through the
+// expression VAE's encoder and the mapping.
 absl::Status Drive(DrivenAsset* a);
 // A finished fine-tuning run's driving net (FineTuneDrivingAsset's) over the nets of the expression and mapping runs
 // given; the geometry, expression and mapping runs must be those it was fine-tuned from (FailedPrecondition naming
@@ -156,6 +158,12 @@ std::vector<std::pair<int64_t, int>> MappingPairs(const DrivenAsset& a);
 // Per dimension: the mean and the spread (standard deviation, at least 1e-6) of `rows` of `width` values.
 void MeanAndSpread(const std::vector<std::vector<float>>& rows, int width, std::vector<float>* mean,
                    std::vector<float>* spread);
+// Into a run's options `j`: each named run's directory ("<name>_run") and identity ("<name>_run_id", RunId).
+absl::Status AddRunIdentities(std::initializer_list<std::pair<const char*, std::string>> runs, nlohmann::json* j);
+// FailedPrecondition naming `run_dir` unless its options `o` hold the named runs' identities as they are now (the run
+// was `trained` from them, not from runs trained again since).
+absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& o, const char* trained,
+                              std::initializer_list<std::pair<const char*, std::string>> runs);
 // A finished run's identity: a hash of its trainer.json (its options, its last step and generator state), so that a
 // later stage is not resumed over runs trained again since.
 absl::StatusOr<std::string> RunId(const std::string& run_dir);

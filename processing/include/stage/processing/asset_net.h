@@ -206,8 +206,7 @@ class LatentMapping {
   // the inputs); the mean squared error in the targets' normalized units.
   absl::StatusOr<double> TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
                                    const std::vector<float>& noise, int batch, double learning_rate);
-  // The geometry latents (B x output) of `batch` expression latents (B x input).
-  absl::StatusOr<std::vector<float>> Map(const std::vector<float>& inputs, int batch) const;
+  // Applied to images by DrivingNet (the expression VAE's encoder and the mapping as one net).
   absl::Status Save(const std::string& path) const;
   absl::Status Load(const std::string& path);
   const LatentMappingOptions& options() const;
@@ -227,7 +226,8 @@ class LatentMapping {
 // frozen expression latent does not hold, and on the simulated performance it did not generalize to frames it never
 // saw (docs/asset.md). With the encoder trained too, the geometry decides what the encoder keeps of an image: the
 // expression, not the head's pose or the camera's view. Created from the two finished nets (their weights copied);
-// the expression VAE's decoder and view latent play no part.
+// the expression VAE's decoder and view latent play no part. Untrained, it is the mapping's own driving path (encoder,
+// then mapping), which is how the driven evaluation and inference apply a mapping that was not fine-tuned.
 struct DrivingNetOptions {
   // Train the expression encoder with the mapping (false: only the mapping, the paper's choice).
   bool train_encoder = true;
