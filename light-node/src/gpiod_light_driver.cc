@@ -174,6 +174,7 @@ absl::Status GpiodLightDriver::StartGenerator(int64_t first, int64_t count) {
   if (!created.ok()) return created.status();
   generator_ = *std::move(created);
   generator_->AddListener([this](const timing::SlotEdge& edge) { OnGeneratedEdge(edge); });
+  generator_->AddEndListener([this, end = first + count](int64_t missed) { OnGeneratedRunEnd(end, missed); });
   return generator_->Start();
 }
 
@@ -289,9 +290,13 @@ void GpiodLightDriver::InputLoop() {
 
 void GpiodLightDriver::OnGeneratedEdge(const timing::SlotEdge& edge) {
   {
-    // A run ended early (a pause, an abort) puts out no edge from its new end on.
+    // A run ended early (a pause, an abort) puts out no edge from its new end on. The run's slots the generator
+    // skipped on its way past the end were lost all the same.
     std::lock_guard<std::mutex> lock(mutex_);
-    if (edge.slot >= run_end_) return;
+    if (edge.slot >= run_end_) {
+      PassedRunEndLocked(edge.slot, edge.missed_before);
+      return;
+    }
   }
   // Slots the generator reached a whole slot late or more were not produced (SlotClock goes on with the current
   // slot): OnEdge counts them as lost and steps over them.
@@ -323,6 +328,26 @@ void GpiodLightDriver::NoteFault(const std::string& kind, const std::string& det
   RecordTakeFault(&state_.take_faults, kind, detail);
 }
 
+void GpiodLightDriver::OnGeneratedRunEnd(int64_t generator_end, int64_t missed_at_end) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  PassedRunEndLocked(generator_end, missed_at_end);
+}
+
+void GpiodLightDriver::PassedRunEndLocked(int64_t slot, int64_t missed_before) {
+  // The skipped slots [slot - missed_before, slot) that are the run's never went out: lost. The run is over.
+  if (run_current_ >= run_end_ - 1) return;  // counted already
+  const int64_t skipped = std::min(missed_before, run_end_ - (slot - missed_before));
+  if (skipped > 0) CountLostLocked(static_cast<uint64_t>(skipped));
+  run_current_ = run_end_ - 1;
+}
+
+void GpiodLightDriver::CountLostLocked(uint64_t lost) {
+  if (state_.mode != DriverMode::kArmed || timing_.count == 0) return;
+  timing_.lost_edges += lost;
+  state_.steps += lost;
+  NoteFault("slot clock: edges lost (LightStats.slot_clock.lost_edges counts them)");
+}
+
 void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_before) {
   std::lock_guard<std::mutex> lock(mutex_);
   // Only edges of the take: one the kernel stamped before the arm (queued while idle) is not the take's first.
@@ -330,7 +355,14 @@ void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_befo
   const double nominal = 1e9 / options_.slot_rate_hz;
   uint64_t lost = 0;
   if (timing_.count == 0) {
-    first_edge_ns_ = time_ns;
+    // The generator's first run may have begun late: the slots it skipped before this edge are the take's, lost;
+    // the mean period counts from when the first of them was due.
+    lost = lost_before.value_or(0);
+    first_edge_ns_ = time_ns - std::llround(static_cast<double>(lost) * nominal);
+    if (lost > 0) {
+      timing_.lost_edges += lost;
+      NoteFault("slot clock: edges lost (LightStats.slot_clock.lost_edges counts them)");
+    }
   } else {
     const double period = static_cast<double>(time_ns - last_edge_ns_);
     // Edges that never reached this node (the kernel's event queue of 16 overflowed, the line glitched), judged from
@@ -351,8 +383,10 @@ void GpiodLightDriver::OnEdge(int64_t time_ns, std::optional<uint64_t> lost_befo
   last_edge_ns_ = time_ns;
   if (timing_.count == 0) {
     // The line's numbering: its first edge since the arm by its time since the epoch, then one per edge.
+    // Slots lost before it are numbered first.
     line_first_slot_ =
-        std::llround(static_cast<double>(time_ns + RealtimeOffsetNs() - epoch_ns_) * options_.slot_rate_hz / 1e9);
+        std::llround(static_cast<double>(time_ns + RealtimeOffsetNs() - epoch_ns_) * options_.slot_rate_hz / 1e9) -
+        static_cast<int64_t>(lost);
   }
   ++timing_.count;
   edges_.push_back(time_ns);

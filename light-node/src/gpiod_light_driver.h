@@ -126,6 +126,13 @@ class GpiodLightDriver final : public LightDriver {
   void StopGenerator();
   void InputLoop();
   void OnGeneratedEdge(const timing::SlotEdge& edge);
+  // The generator's run of slots up to generator_end is over, its last missed_at_end skipped.
+  void OnGeneratedRunEnd(int64_t generator_end, int64_t missed_at_end);
+  // The generator reached `slot`, at or past the run's end, skipping the missed_before slots before it. mutex_ held.
+  void PassedRunEndLocked(int64_t slot, int64_t missed_before);
+  // Slots of a run that never went out (the generator passed them): counted as lost, and the table steps over them.
+  // mutex_ held.
+  void CountLostLocked(uint64_t lost);
   // With mutex_ held: a fault now and in the take's record, once per kind (`detail` is what varies: an error text).
   void NoteFault(const std::string& kind, const std::string& detail = "");
   absl::Status AllLow();

@@ -31,6 +31,13 @@ struct FakeLinesState {
   std::deque<int64_t> pending_edges;
   std::vector<std::pair<bool, int64_t>> clock;  // SetClock(level) with when
   bool fail_outputs = false;
+  // The generator held at its rising edge number stall_rise (from 0) until the test sets release: the slots due
+  // meanwhile pass, as on a machine that did not run the generator's thread in time.
+  int stall_rise = -1;
+  int rises = 0;
+  bool stalled = false;
+  bool release = false;
+  std::condition_variable stall_changed;
 };
 
 class FakeLines final : public GpioLines {
@@ -51,7 +58,12 @@ class FakeLines final : public GpioLines {
     return edges;
   }
   absl::Status SetClock(bool high) override {
-    std::lock_guard<std::mutex> lock(s_->mutex);
+    std::unique_lock<std::mutex> lock(s_->mutex);
+    if (high && s_->rises++ == s_->stall_rise) {
+      s_->stalled = true;
+      s_->stall_changed.notify_all();
+      s_->stall_changed.wait(lock, [&] { return s_->release; });
+    }
     s_->clock.emplace_back(high, NowNs());
     return absl::OkStatus();
   }
@@ -145,6 +157,25 @@ TEST(GpiodLightDriverTest, StepsThroughTheTableOnEdgesAndRecordsThem) {
   r.driver->OnEdge(After());
   EXPECT_EQ(LastWrite(r), expect[0]);
   EXPECT_EQ(r.driver->Edges().times_ns.size(), 1u);
+}
+
+TEST(GpiodLightDriverTest, SlotsTheGeneratorSkippedBeforeItsFirstEdgeAreLostAndStepped) {
+  Rig r = Make(Options(2, 2, /*thread=*/false));
+  ASSERT_TRUE(r.driver->LoadPatternTable(ThreeRows()).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  const int64_t t0 = After();
+  r.driver->OnEdge(t0, /*lost_before=*/2);  // the run's first two slots passed before the generator woke
+  EXPECT_EQ(r.driver->State().current_row, 2) << "the row of the run's third slot";
+  EXPECT_THAT(LastWrite(r), ElementsAre(1, 0, 1, 1));
+  r.driver->OnEdge(t0 + kPeriod, /*lost_before=*/0);
+  EXPECT_EQ(r.driver->State().current_row, 0);
+  const DriverState state = r.driver->State();
+  ASSERT_TRUE(state.edges.has_value());
+  EXPECT_EQ(state.edges->count, 2u);
+  EXPECT_EQ(state.edges->lost_edges, 2u);
+  EXPECT_EQ(state.steps, 4u);
+  EXPECT_NEAR(state.edges->period_mean_ns, kPeriod, 2.0) << "from when the first lost slot was due";
+  ASSERT_TRUE(r.driver->Disarm().ok());
 }
 
 // The witness of an external generator: a free-running clock on the input; the table waits, dark, for the edge the
@@ -338,6 +369,80 @@ TEST(GpiodLightDriverTest, GeneratorDrivesTheSlotClockInPlannedRunsAndStepsOnIt)
   // A run in the past, or one overlapping the last, is refused.
   request.set_first_slot(plan->first_slot() - 38);
   EXPECT_THAT(r.driver->RunClock(request).status().message(), HasSubstr("would start in the past"));
+  ASSERT_TRUE(r.driver->Disarm().ok());
+}
+
+// Holds the generator at its stalled edge until the slot `until` of the driver's clock has passed, then lets it go.
+void StallUntilSlotPassed(Rig& r, int64_t until_edge_ns) {
+  std::unique_lock<std::mutex> lock(r.lines->mutex);
+  ASSERT_TRUE(r.lines->stall_changed.wait_for(lock, std::chrono::seconds(30), [&] { return r.lines->stalled; }));
+  lock.unlock();
+  while (timing::HostClockNs(/*realtime_clock=*/true) < until_edge_ns + 2 * kPeriod) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  lock.lock();
+  r.lines->release = true;
+  r.lines->stall_changed.notify_all();
+}
+
+// A 38-slot run whose generator is held at one edge past later slots: every slot of the run is sent or counted lost,
+// the table steps once per slot (so it stays in phase), and the run ends.
+void ExpectStalledRunAccounted(int stall_rise, int64_t stall_slots) {
+  GpiodDriverOptions o = Options(1, 1, /*thread=*/true, /*drives=*/true);
+  o.slot_rate_hz = 912;
+  Rig r = Make(o);
+  r.lines->stall_rise = stall_rise;
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  v1::SlotClockRunRequest request;
+  request.set_slots(38);
+  request.set_lead_slots(5);
+  auto run = r.driver->RunClock(request);
+  ASSERT_TRUE(run.ok()) << run.status();
+  StallUntilSlotPassed(r, run->first_edge_ns() + (stall_rise + stall_slots) * kPeriod);
+  WaitForRunEnd(*r.driver);
+  auto ended = r.driver->ClockRun();
+  ASSERT_TRUE(ended.ok());
+  EXPECT_EQ(ended->current_slot(), run->end_slot() - 1) << "the run is over";
+  const MeasuredEdges m = r.driver->Edges();
+  EXPECT_GE(m.timing.lost_edges, static_cast<uint64_t>(std::min<int64_t>(stall_slots, 38 - stall_rise - 1)));
+  EXPECT_EQ(m.timing.count + m.timing.lost_edges, 38u);
+  EXPECT_EQ(r.driver->State().steps, 38u) << "one step per slot, lost or not";
+  ASSERT_TRUE(r.driver->Disarm().ok());
+}
+
+TEST(GpiodLightDriverTest, SlotsSkippedAfterTheFirstEdgeAreCountedLost) { ExpectStalledRunAccounted(0, 5); }
+
+TEST(GpiodLightDriverTest, SlotsSkippedAtTheRunsEndAreCountedLostAndTheRunEnds) { ExpectStalledRunAccounted(35, 4); }
+
+TEST(GpiodLightDriverTest, SlotsSkippedPastAnEarlyEndAreCountedLostAndTheRunEnds) {
+  GpiodDriverOptions o = Options(1, 1, /*thread=*/true, /*drives=*/true);
+  o.slot_rate_hz = 912;
+  Rig r = Make(o);
+  r.lines->stall_rise = 10;
+  ASSERT_TRUE(r.driver->LoadPatternTable({"t", {"on", "off"}, {{65535}, {0}}}).ok());
+  ASSERT_TRUE(r.driver->Arm().ok());
+  v1::SlotClockRunRequest request;
+  request.set_slots(1'000'000);
+  request.set_lead_slots(5);
+  request.set_align_slots(38);
+  auto run = r.driver->RunClock(request);
+  ASSERT_TRUE(run.ok()) << run.status();
+  {
+    std::unique_lock<std::mutex> lock(r.lines->mutex);
+    ASSERT_TRUE(r.lines->stall_changed.wait_for(lock, std::chrono::seconds(30), [&] { return r.lines->stalled; }));
+  }
+  // Ended while the generator is held: it comes back past the new end.
+  auto ended = r.driver->EndClock(38);
+  ASSERT_TRUE(ended.ok()) << ended.status();
+  StallUntilSlotPassed(r, run->first_edge_ns() + (ended->end_slot() - run->first_slot()) * kPeriod);
+  WaitForRunEnd(*r.driver);
+  auto after = r.driver->ClockRun();
+  ASSERT_TRUE(after.ok());
+  EXPECT_EQ(after->current_slot(), ended->end_slot() - 1) << "the run is over";
+  const MeasuredEdges m = r.driver->Edges();
+  EXPECT_EQ(m.timing.count, 11u) << "edges 0..10 went out, the 11th once let go";
+  EXPECT_EQ(m.timing.count + m.timing.lost_edges, static_cast<uint64_t>(ended->end_slot() - ended->first_slot()));
   ASSERT_TRUE(r.driver->Disarm().ok());
 }
 

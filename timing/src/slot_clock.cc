@@ -74,6 +74,8 @@ SlotClock::~SlotClock() { Stop(); }
 
 void SlotClock::AddListener(SlotListener listener) { listeners_.push_back(std::move(listener)); }
 
+void SlotClock::AddEndListener(SlotRunEndListener listener) { end_listeners_.push_back(std::move(listener)); }
+
 absl::Status SlotClock::Start() {
   if (thread_.joinable()) return absl::FailedPreconditionError("the slot clock is already started");
   if (clock_ != nullptr) {
@@ -136,6 +138,10 @@ void SlotClock::Deliver(const SlotEdge& edge) {
   stats_.max_late_ns = std::max(stats_.max_late_ns, edge.actual_ns - edge.scheduled_ns);
 }
 
+void SlotClock::DeliverEnd(int64_t missed_at_end) {
+  for (const SlotRunEndListener& listener : end_listeners_) listener(missed_at_end);
+}
+
 void SlotClock::RunVirtual() {
   const int64_t end = options_.slot_count < 0 ? INT64_MAX : options_.first_slot + options_.slot_count;
   for (int64_t k = options_.first_slot; k < end && !stop_.load(); ++k) {
@@ -145,6 +151,7 @@ void SlotClock::RunVirtual() {
     if (stop_.load()) return;
     Deliver({k, due, clock_->NowNs(), 0});
   }
+  if (!stop_.load() && options_.slot_count >= 0) DeliverEnd(0);
 }
 
 void SlotClock::RunRealTime() {
@@ -180,6 +187,7 @@ void SlotClock::RunRealTime() {
     std::lock_guard<std::mutex> lock(mutex_);
     stats_.missed += static_cast<uint64_t>(missed);
   }
+  if (!stop_.load() && k >= end) DeliverEnd(missed);
 }
 
 }  // namespace stage::timing

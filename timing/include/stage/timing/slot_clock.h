@@ -36,6 +36,10 @@ struct SlotEdge {
 
 // Called on the generator's thread at each edge; must return quickly (well within a slot).
 using SlotListener = std::function<void(const SlotEdge&)>;
+// Called on the generator's thread once, when a run of slot_count slots is over (never after Stop()), with the
+// run's last slots the generator skipped after its last edge because it was a slot or more late (0 when none): no
+// edge comes after them to carry them as missed_before.
+using SlotRunEndListener = std::function<void(int64_t missed_at_end)>;
 
 struct SlotClockOptions {
   // Slots per second. Required (1..1000000).
@@ -76,6 +80,7 @@ class SlotClock {
 
   // Before Start().
   void AddListener(SlotListener listener);
+  void AddEndListener(SlotRunEndListener listener);
 
   // Starts the generator thread. Once.
   absl::Status Start();
@@ -92,12 +97,14 @@ class SlotClock {
   void RunVirtual();
   void RunRealTime();
   void Deliver(const SlotEdge& edge);
+  void DeliverEnd(int64_t missed_at_end);
   int64_t EdgeNs(int64_t slot) const { return options_.t0_ns + base_.SlotStartNs(slot); }
 
   SlotClockOptions options_;
   TimeBase base_;
   Clock* clock_;
   std::vector<SlotListener> listeners_;
+  std::vector<SlotRunEndListener> end_listeners_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
   std::atomic<bool> finished_{false};  // the virtual-mode thread has returned
