@@ -132,6 +132,10 @@ int main(int argc, char** argv) {
   app.add_flag("--no-camera-maps", no_camera_maps,
                "Ground truth: no per-camera maps (the cameras, poses and UV position maps only)");
   app.add_flag("--no-meshes", no_meshes, "Ground truth: no mesh.obj per frame (uv_position.exr holds the surface)");
+  bool uv_textures = false;
+  app.add_flag("--uv-textures", uv_textures,
+               "Ground truth and take: the skin's textures in the UV layout too (uv_albedo.exr, uv_material.exr, "
+               "uv_normal.exr: what a neural asset's textures learn from)");
   std::string take_dir, take_cameras;
   bool all_patterns = false;
   app.add_option("--take", take_dir,
@@ -180,6 +184,7 @@ int main(int argc, char** argv) {
     options.cameras = absl::StrSplit(take_cameras, ',', absl::SkipEmpty());
     options.full_lit_only = !all_patterns;
     options.uv_size = uv_size;
+    options.truth_textures = uv_textures;
     return WriteTake(*scene, take_dir, options, json);
   }
   if (!truth_dir.empty()) {
@@ -191,6 +196,7 @@ int main(int argc, char** argv) {
     options.frame_step = frame_step;
     options.camera_maps = !no_camera_maps;
     options.meshes = !no_meshes;
+    options.uv_textures = uv_textures;
     return WriteTruth(**scene, truth_dir, options, json);
   }
   if (camera_id.empty()) {

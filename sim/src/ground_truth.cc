@@ -35,7 +35,49 @@ absl::Status Write(const std::string& path, const cv::Mat& image) {
 // OpenCV writes channels as B, G, R: put the values' x, y, z (or R, G, B) in that order.
 cv::Vec3f Bgr(const Eigen::Vector3f& v) { return {v.z(), v.y(), v.x()}; }
 
+// An RGBA map (row 0 at v = 1) as an OpenEXR file.
+absl::Status WriteRgba(const std::string& path, const std::vector<float>& rgba, int size) {
+  cv::Mat image(size, size, CV_32FC4, const_cast<float*>(rgba.data()));
+  cv::Mat bgra;
+  cv::cvtColor(image, bgra, cv::COLOR_RGBA2BGRA);
+  return Write(path, bgra);
+}
+
 }  // namespace
+
+UvMaterialMaps UvMaterials(const RiggedModel& model, const HeadPose& pose, int size) {
+  HeadPose still;  // the expression in the head's frame: no turn, no move
+  still.expression = pose.expression;
+  const TriangleMesh mesh = model.PosedMesh(still);
+  const std::vector<UvTexel> texels = RasterizeUv(mesh, size, /*part=*/0);
+  const std::vector<Eigen::Vector3f> normals = mesh.VertexNormals();
+  const size_t n = static_cast<size_t>(size) * size;
+  UvMaterialMaps maps;
+  maps.albedo.assign(4 * n, 0.f);
+  maps.material.assign(4 * n, 0.f);
+  maps.normal.assign(4 * n, 0.f);
+  for (size_t i = 0; i < n; ++i) {
+    const UvTexel& texel = texels[i];
+    if (!texel.covered()) continue;
+    const auto& tr = mesh.triangles[static_cast<size_t>(texel.triangle)];
+    const float b0 = 1 - texel.b1 - texel.b2;
+    const Eigen::Vector2f uv = b0 * mesh.uvs[tr[0]] + texel.b1 * mesh.uvs[tr[1]] + texel.b2 * mesh.uvs[tr[2]];
+    const SurfaceSample s = model.Surface(uv, 0, pose.expression);
+    Eigen::Vector3f normal = (b0 * normals[tr[0]] + texel.b1 * normals[tr[1]] + texel.b2 * normals[tr[2]]).normalized();
+    Eigen::Vector3f pu, pv;
+    const Eigen::Vector3f& p0 = mesh.positions[tr[0]];
+    if (TriangleTangents(mesh.positions[tr[1]] - p0, mesh.positions[tr[2]] - p0, mesh.uvs[tr[1]] - mesh.uvs[tr[0]],
+                         mesh.uvs[tr[2]] - mesh.uvs[tr[0]], &pu, &pv)) {
+      normal = DetailedNormal(normal, pu, pv, s);
+    }
+    std::copy(s.material.albedo.data(), s.material.albedo.data() + 3, &maps.albedo[4 * i]);
+    maps.material[4 * i] = s.material.specular;
+    maps.material[4 * i + 1] = s.material.roughness;
+    std::copy(normal.data(), normal.data() + 3, &maps.normal[4 * i]);
+    maps.albedo[4 * i + 3] = maps.material[4 * i + 3] = maps.normal[4 * i + 3] = 1;
+  }
+  return maps;
+}
 
 std::vector<float> UvPositionMap(const TriangleMesh& mesh, int size) {
   const std::vector<UvTexel> texels = RasterizeUv(mesh, size, /*part=*/0);
@@ -141,12 +183,15 @@ absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, con
         STAGE_RETURN_IF_ERROR(WriteObj(frame_dir + "/mesh.obj", mesh,
                                        "FaStage simulator ground truth: posed subject, stage frame, millimetres"));
       }
-      const std::vector<float> uv = UvPositionMap(mesh, options.uv_size);
       // Row 0 of the image is v = 1 (the crown's side), as textures are stored (uv_raster.h).
-      cv::Mat image(options.uv_size, options.uv_size, CV_32FC4, const_cast<float*>(uv.data()));
-      cv::Mat bgra;
-      cv::cvtColor(image, bgra, cv::COLOR_RGBA2BGRA);
-      if (auto s = Write(frame_dir + "/uv_position.exr", bgra); !s.ok()) return s;
+      STAGE_RETURN_IF_ERROR(
+          WriteRgba(frame_dir + "/uv_position.exr", UvPositionMap(mesh, options.uv_size), options.uv_size));
+      if (options.uv_textures) {
+        const UvMaterialMaps maps = UvMaterials(*scene.model(), pose, options.uv_size);
+        STAGE_RETURN_IF_ERROR(WriteRgba(frame_dir + "/uv_albedo.exr", maps.albedo, options.uv_size));
+        STAGE_RETURN_IF_ERROR(WriteRgba(frame_dir + "/uv_material.exr", maps.material, options.uv_size));
+        STAGE_RETURN_IF_ERROR(WriteRgba(frame_dir + "/uv_normal.exr", maps.normal, options.uv_size));
+      }
     }
     if (!options.camera_maps) {
       done += static_cast<int>(cameras.size());

@@ -136,6 +136,59 @@ TEST(GroundTruthTest, TheHeadsUvMapLiesOnItsMeshAndThePoseIsRecorded) {
   EXPECT_FALSE(cv::imread(dir + "/frame-000006/uv_position.exr", cv::IMREAD_UNCHANGED).empty());
 }
 
+// The truth's textures in UV are what the renderer shades with: a ray at a texel's point meets the posed subject with
+// the texel's albedo and, turned by the pose, its shading normal (the wrinkles the brow raise brings included).
+TEST(GroundTruthTest, TheHeadsUvTexturesAreWhatTheRendererShadesWith) {
+  auto scene = Scene({});
+  const std::string dir = ::testing::TempDir() + "/gt-textures";
+  ASSERT_TRUE(WriteGroundTruth(*scene, dir,
+                               {.first_frame = 6,
+                                .last_frame = 7,
+                                .uv_size = 512,
+                                .camera_maps = false,
+                                .meshes = false,
+                                .uv_textures = true})
+                  .ok());
+  const std::string frame = dir + "/frame-000006";
+  const cv::Mat position = cv::imread(frame + "/uv_position.exr", cv::IMREAD_UNCHANGED);
+  const cv::Mat albedo = cv::imread(frame + "/uv_albedo.exr", cv::IMREAD_UNCHANGED);
+  const cv::Mat material = cv::imread(frame + "/uv_material.exr", cv::IMREAD_UNCHANGED);
+  const cv::Mat normal = cv::imread(frame + "/uv_normal.exr", cv::IMREAD_UNCHANGED);
+  for (const cv::Mat* m : {&position, &albedo, &material, &normal}) {
+    ASSERT_EQ(m->type(), CV_32FC4);
+    ASSERT_EQ(m->rows, 512);
+  }
+  const HeadPose pose = scene->PoseAt(6);
+  const Eigen::Matrix3f turn = PoseRotation(pose);
+  const auto subject = scene->SubjectAt(6);
+  int compared = 0;
+  double worst_angle = 0, worst_albedo = 0, worst_specular = 0;
+  for (int y = 120; y < 360; y += 7) {  // the face: v from 0.77 down to 0.30, u about 0.5
+    for (int x = 180; x < 332; x += 7) {
+      const cv::Vec4f p4 = position.at<cv::Vec4f>(y, x), n4 = normal.at<cv::Vec4f>(y, x);
+      if (p4[3] < 1) continue;
+      ASSERT_EQ(n4[3], 1.f);
+      const Eigen::Vector3f p(p4[2], p4[1], p4[0]), n(n4[2], n4[1], n4[0]);  // OpenCV's B, G, R
+      ASSERT_NEAR(n.norm(), 1, 1e-4);
+      const Eigen::Vector3f out = turn * n;
+      const Eigen::Vector3f from = p + 40 * out;
+      const Hit h = subject->Intersect(from, (p - from).normalized());
+      if (!h.hit || std::abs(h.t - 40) > 0.01f) continue;  // something nearer: another part of the face
+      ++compared;
+      worst_angle = std::max(worst_angle, std::acos(std::clamp<double>(h.normal.dot(out), -1, 1)) * 180 / M_PI);
+      const cv::Vec4f a = albedo.at<cv::Vec4f>(y, x), m = material.at<cv::Vec4f>(y, x);
+      worst_albedo =
+          std::max(worst_albedo,
+                   static_cast<double>((h.material.albedo - Eigen::Vector3f(a[2], a[1], a[0])).cwiseAbs().maxCoeff()));
+      worst_specular = std::max(worst_specular, static_cast<double>(std::abs(h.material.specular - m[2])));
+    }
+  }
+  EXPECT_GT(compared, 400);
+  EXPECT_LT(worst_angle, 0.5) << "degrees";
+  EXPECT_LT(worst_albedo, 2e-3);
+  EXPECT_LT(worst_specular, 2e-4);
+}
+
 // A calibration take's truth: the true cameras and each frame's subject, no per-camera maps.
 TEST(GroundTruthTest, TheSceneAloneWritesNoCameraMaps) {
   auto scene = Scene({"sim.subject.kind=charuco"});

@@ -6,6 +6,36 @@
 
 namespace stage::sim {
 
+bool TriangleTangents(const Eigen::Vector3f& e1, const Eigen::Vector3f& e2, const Eigen::Vector2f& d1,
+                      const Eigen::Vector2f& d2, Eigen::Vector3f* pu, Eigen::Vector3f* pv) {
+  const float det = d1.x() * d2.y() - d2.x() * d1.y();
+  if (std::abs(det) <= 1e-12f) return false;
+  *pu = (e1 * d2.y() - e2 * d1.y()) / det;
+  *pv = (e2 * d1.x() - e1 * d2.x()) / det;
+  return true;
+}
+
+Eigen::Vector3f DetailedNormal(const Eigen::Vector3f& n, const Eigen::Vector3f& pu, const Eigen::Vector3f& pv,
+                               const SurfaceSample& s) {
+  const bool mapped = s.tangent_normal != Eigen::Vector3f::UnitZ();
+  if (s.dh_du == 0 && s.dh_dv == 0 && !mapped) return n;
+  // Project the tangents on the shading normal's plane so the detail rides on the smooth surface.
+  Eigen::Vector3f tu = pu - n * n.dot(pu), tv = pv - n * n.dot(pv);
+  Eigen::Vector3f detailed;
+  if (mapped) {
+    // Normal map: the tangent frame (u, v orthogonalized, n), whatever side the ray came from.
+    tu.normalize();
+    tv = (tv - tu * tu.dot(tv)).normalized();
+    detailed = s.tangent_normal.x() * tu + s.tangent_normal.y() * tv + s.tangent_normal.z() * n;
+  } else {
+    // Bump mapping: the tangents tilted by the height's slope.
+    detailed = (tu + s.dh_du * n).cross(tv + s.dh_dv * n);
+    if (detailed.dot(n) < 0) detailed = -detailed;
+  }
+  if (detailed.squaredNorm() == 0) return n;
+  return detailed.normalized();
+}
+
 MeshSubject::MeshSubject(TriangleMesh mesh, SurfaceFunction surface, bool convex)
     : bvh_(std::move(mesh)), surface_(std::move(surface)), normals_(bvh_.mesh().VertexNormals()), convex_(convex) {}
 
@@ -39,32 +69,11 @@ Hit MeshSubject::Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f&
     if (surface_) {
       const SurfaceSample s = surface_(hit.uv, hit.part);
       hit.material = s.material;
-      const bool mapped = s.tangent_normal != Eigen::Vector3f::UnitZ();
-      if (s.dh_du != 0 || s.dh_dv != 0 || mapped) {
-        // The tangents dP/du, dP/dv of the triangle.
-        const Eigen::Vector2f d1 = t1 - t0, d2 = t2 - t0;
-        const float det = d1.x() * d2.y() - d2.x() * d1.y();
-        if (std::abs(det) > 1e-12f) {
-          const Eigen::Vector3f pu = (e1 * d2.y() - e2 * d1.y()) / det;
-          const Eigen::Vector3f pv = (e2 * d1.x() - e1 * d2.x()) / det;
-          // Project the tangents on the shading normal's plane so the detail rides on the smooth surface.
-          Eigen::Vector3f tu = pu - n * n.dot(pu), tv = pv - n * n.dot(pv);
-          Eigen::Vector3f detailed;
-          if (mapped) {
-            // Normal map: the tangent frame (u, v orthogonalized, n), whatever side the ray came from.
-            tu.normalize();
-            tv = (tv - tu * tu.dot(tv)).normalized();
-            detailed = s.tangent_normal.x() * tu + s.tangent_normal.y() * tv + s.tangent_normal.z() * n;
-          } else {
-            // Bump mapping: the tangents tilted by the height's slope.
-            detailed = (tu + s.dh_du * n).cross(tv + s.dh_dv * n);
-            if (detailed.dot(n) < 0) detailed = -detailed;
-          }
-          if (detailed.squaredNorm() > 0) {
-            detailed.normalize();
-            if (detailed.dot(g) > 0.05f) n = detailed;
-          }
-        }
+      const Eigen::Vector2f d1 = t1 - t0, d2 = t2 - t0;
+      Eigen::Vector3f pu, pv;
+      if (TriangleTangents(e1, e2, d1, d2, &pu, &pv)) {
+        const Eigen::Vector3f detailed = DetailedNormal(n, pu, pv, s);
+        if (detailed.dot(g) > 0.05f) n = detailed;
       }
     }
   }

@@ -158,6 +158,7 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
   truth.uv_size = options.uv_size;
   truth.camera_maps = options.truth_camera_maps;
   truth.meshes = options.truth_meshes;
+  truth.uv_textures = options.truth_textures;
   for (int camera : cameras) truth.cameras.push_back(scene->rig().cameras(camera).id());
   STAGE_RETURN_IF_ERROR(WriteGroundTruth(*scene, dir + "/ground_truth", truth));
   // Last: a render that failed half way leaves no take file, and can be run again into the same directory.

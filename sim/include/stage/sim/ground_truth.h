@@ -6,6 +6,11 @@
 //                                       frame, mm)
 //   DIR/frame-NNNNNN/mesh.obj           the posed subject mesh (stage frame, mm), with texture coordinates
 //   DIR/frame-NNNNNN/uv_position.exr    stage-frame position (mm) per texel of the skin's UV map; alpha 1 where covered
+//   DIR/frame-NNNNNN/uv_albedo.exr      with uv_textures: the skin's diffuse albedo (linear RGB) per texel of the same
+//                                       map, as the expression has it (the open mouth's dark); alpha 1 where covered
+//   DIR/frame-NNNNNN/uv_material.exr    specular intensity (R) and roughness (G, GGX alpha) per texel
+//   DIR/frame-NNNNNN/uv_normal.exr      the shading normal with its pore and wrinkle detail per texel, in the head's
+//                                       frame (the pose taken out: what the renderer shades with, turned back)
 //   DIR/frame-NNNNNN/<camera>/depth.exr        distance along the camera's optical axis, mm (0: no subject)
 //   DIR/frame-NNNNNN/<camera>/normal_world.exr shading normal (with pore and wrinkle detail), stage frame
 //   DIR/frame-NNNNNN/<camera>/normal_camera.exr the same in the camera frame (x right, y down, z forward)
@@ -44,6 +49,9 @@ struct GroundTruthOptions {
   // The posed mesh as mesh.obj (4 MB a frame at the head's default resolution); false: uv_position.exr only holds
   // the surface (a long performance for a neural asset's dataset).
   bool meshes = true;
+  // The skin's textures in the same UV layout (uv_albedo, uv_material, uv_normal): what a neural asset's texture
+  // branch learns (docs/asset.md).
+  bool uv_textures = false;
   // Called after each camera of each frame: (done, total).
   std::function<void(int, int)> progress;
   // Frames not empty, a step of 1 or more, the map's size in range (the cameras are checked against the scene's rig).
@@ -51,6 +59,15 @@ struct GroundTruthOptions {
 };
 
 absl::Status WriteGroundTruth(const SimScene& scene, const std::string& dir, const GroundTruthOptions& options);
+
+// The skin's material and detailed shading normal per texel of its UV layout (part 0 of `model`) under `pose`'s
+// expression, size x size, RGBA each (alpha 1 where covered, row 0 at v = 1): albedo (linear RGB), specular intensity
+// and roughness (R, G), and the shading normal in the head's frame (unit; bump or normal-mapped detail on the posed
+// mesh's smooth normal, as the renderer shades).
+struct UvMaterialMaps {
+  std::vector<float> albedo, material, normal;
+};
+UvMaterialMaps UvMaterials(const RiggedModel& model, const HeadPose& pose, int size);
 
 // Stage-frame position per texel of the skin (part 0) of `mesh`, size x size, RGBA (alpha 1 where covered); row 0 at
 // v = 1 (stage/common/uv_raster.h).

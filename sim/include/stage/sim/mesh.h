@@ -22,6 +22,17 @@ struct SurfaceSample {
 };
 using SurfaceFunction = std::function<SurfaceSample(const Eigen::Vector2f& uv, int part)>;
 
+// A triangle's tangents dP/du and dP/dv from its edges e1 = p1 - p0, e2 = p2 - p0 and their texture coordinates
+// d1 = t1 - t0, d2 = t2 - t0; false where its texture coordinates are degenerate.
+bool TriangleTangents(const Eigen::Vector3f& e1, const Eigen::Vector3f& e2, const Eigen::Vector2f& d1,
+                      const Eigen::Vector2f& d2, Eigen::Vector3f* pu, Eigen::Vector3f* pv);
+
+// The shading normal of a surface whose smooth normal is `n` (unit) and whose tangents are `pu`, `pv`, with the
+// detail `s` brings (its height's slope, or its tangent-space normal); `n` where it brings none. What the renderer
+// shades with (where the result is not turned away from the triangle's own normal).
+Eigen::Vector3f DetailedNormal(const Eigen::Vector3f& n, const Eigen::Vector3f& pu, const Eigen::Vector3f& pv,
+                               const SurfaceSample& s);
+
 class MeshSubject final : public Subject {
  public:
   // Builds the hierarchy (median splits, 4 triangles a leaf). `surface` null: the default Material, no detail.

@@ -31,6 +31,8 @@ struct RenderedTakeOptions {
   // The ground truth's extras (ground_truth.h): per-camera maps, meshes, the UV position map's size.
   bool truth_camera_maps = false;
   bool truth_meshes = false;
+  // The truth's skin textures in UV too (GroundTruthOptions::uv_textures).
+  bool truth_textures = false;
   int uv_size = 512;
   // Renderer threads (0: one per core).
   int threads = 0;
