@@ -59,9 +59,10 @@ Eigen::Vector2f TexelUv(int row, int col, int size) {
           1.0f - (static_cast<float>(row) + 0.5f) / static_cast<float>(size)};
 }
 
-// The simulator's UV position map (stage frame, alpha 1 where covered) at `uv` of its layout, interpolated between
-// the four nearest texel centres; false where one of them is not covered.
-bool SamplePositionMap(const Image& map, const Eigen::Vector2f& uv, Eigen::Vector3f* out) {
+// One of the simulator's RGBA UV maps (uv_position, uv_albedo, ...: alpha 1 where covered) at `uv` of its layout,
+// its first three channels interpolated between the four nearest texel centres; false where one of them is not
+// covered.
+bool SampleTruthMap(const Image& map, const Eigen::Vector2f& uv, Eigen::Vector3f* out) {
   const float x = uv.x() * static_cast<float>(map.width) - 0.5f,
               y = (1 - uv.y()) * static_cast<float>(map.height) - 0.5f;
   const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
@@ -117,7 +118,7 @@ absl::StatusOr<FrameGeometry> TruthGeometry(const FaceTemplate& face, const std:
   return DrawFrame(size, head_from_stage, [&](int row, int col) -> std::optional<Eigen::Vector3f> {
     Eigen::Vector3f p;
     if (!layout[static_cast<size_t>(row) * size + col] ||
-        !SamplePositionMap(map, face.HeadLayoutUv(TexelUv(row, col, size)), &p)) {
+        !SampleTruthMap(map, face.HeadLayoutUv(TexelUv(row, col, size)), &p)) {
       return std::nullopt;
     }
     return head_from_stage * p;
@@ -134,6 +135,127 @@ absl::StatusOr<FrameGeometry> FitGeometry(int size, const std::string& frame_dir
     if (map.state[t] == TexelState::kEmpty) return std::nullopt;
     return map.points[t];
   });
+}
+
+// A frame's textures in the template's layout: size x size x kTextureChannels (linear albedo RGB, specular intensity,
+// the tangent-space normal), and where they hold the skin.
+struct FrameTextures {
+  std::vector<float> maps;
+  std::vector<uint8_t> valid;
+};
+
+// Head-frame normals (channels 4..6 of `maps`) turned into tangent space, over the frame's geometry at the textures'
+// size (`points`, head frame, mm): per texel the tangent is the surface's direction of increasing u, made orthogonal
+// to its normal, the bitangent the normal x tangent towards increasing v (+y is +v, OpenGL's convention, as
+// texture fusion writes them: docs/assets.md#texture-fusion); finite differences of the map, one-sided at its edge.
+// A texel without a neighbour each way is not valid.
+void NormalsToTangentSpace(const std::vector<float>& points, int size, FrameTextures* t) {
+  auto at = [&](int r, int c) {
+    return Eigen::Map<const Eigen::Vector3f>(&points[3 * (static_cast<size_t>(r) * size + c)]);
+  };
+  auto ok = [&](int r, int c) {
+    return r >= 0 && c >= 0 && r < size && c < size && t->valid[static_cast<size_t>(r) * size + c];
+  };
+  std::vector<uint8_t> valid = t->valid;
+  for (int r = 0; r < size; ++r) {
+    for (int c = 0; c < size; ++c) {
+      const size_t i = static_cast<size_t>(r) * size + c;
+      if (!t->valid[i]) continue;
+      const int c0 = ok(r, c - 1) ? c - 1 : c, c1 = ok(r, c + 1) ? c + 1 : c;
+      const int r0 = ok(r + 1, c) ? r + 1 : r, r1 = ok(r - 1, c) ? r - 1 : r;  // v rises as the row falls
+      float* m = &t->maps[kTextureChannels * i];
+      if (c0 == c1 || r0 == r1) {
+        valid[i] = 0;
+        std::fill(m, m + kTextureChannels, 0.f);
+        continue;
+      }
+      const Eigen::Vector3f du = at(r, c1) - at(r, c0), dv = at(r1, c) - at(r0, c);
+      const Eigen::Vector3f n(m[4], m[5], m[6]);
+      Eigen::Vector3f normal = du.cross(dv).normalized();
+      if (normal.dot(n) < 0) normal = -normal;
+      const Eigen::Vector3f tangent = (du - normal * normal.dot(du)).normalized();
+      Eigen::Vector3f bitangent = normal.cross(tangent);
+      if (bitangent.dot(dv) < 0) bitangent = -bitangent;
+      m[4] = n.dot(tangent);
+      m[5] = n.dot(bitangent);
+      m[6] = n.dot(normal);
+    }
+  }
+  t->valid = std::move(valid);
+}
+
+// The truth's textures of frame `frame_dir` drawn into the template's layout as TruthGeometry draws its surface:
+// uv_albedo, uv_material's specular intensity and uv_normal (head frame) at each texel's place in the head's layout,
+// the normals then in tangent space over the truth's own surface.
+absl::StatusOr<FrameTextures> TruthTextures(const FaceTemplate& face, const std::vector<uint8_t>& layout, int size,
+                                            const std::string& frame_dir) {
+  STAGE_ASSIGN_OR_RETURN(const FrameGeometry g, TruthGeometry(face, layout, size, frame_dir));
+  std::vector<Image> maps;
+  for (const char* name : {"uv_albedo.exr", "uv_material.exr", "uv_normal.exr"}) {
+    const std::string path = frame_dir + "/" + name;
+    STAGE_ASSIGN_OR_RETURN(Image map, ReadImageFile(path));
+    if (map.channels != 4) return absl::InvalidArgumentError(absl::StrCat(path, ": not an RGBA UV map"));
+    maps.push_back(std::move(map));
+  }
+  FrameTextures t;
+  t.maps.assign(static_cast<size_t>(size) * size * kTextureChannels, 0.f);
+  t.valid.assign(static_cast<size_t>(size) * size, 0);
+  for (int row = 0; row < size; ++row) {
+    for (int col = 0; col < size; ++col) {
+      const size_t i = static_cast<size_t>(row) * size + col;
+      if (!g.valid[i]) continue;
+      const Eigen::Vector2f uv = face.HeadLayoutUv(TexelUv(row, col, size));
+      Eigen::Vector3f albedo, material, normal;
+      if (!SampleTruthMap(maps[0], uv, &albedo) || !SampleTruthMap(maps[1], uv, &material) ||
+          !SampleTruthMap(maps[2], uv, &normal) || normal.squaredNorm() == 0) {
+        continue;
+      }
+      normal.normalize();
+      float* m = &t.maps[kTextureChannels * i];
+      std::copy(albedo.data(), albedo.data() + 3, m);
+      m[3] = material.x();
+      std::copy(normal.data(), normal.data() + 3, m + 4);
+      t.valid[i] = 1;
+    }
+  }
+  NormalsToTangentSpace(g.points, size, &t);
+  return t;
+}
+
+// One of texture fusion's maps at `size` texels across: averaged down (or bilinear up) from the size it was fused at.
+cv::Mat ResizedMap(const Image& image, int size) {
+  cv::Mat m(image.height, image.width, CV_32FC(image.channels), const_cast<float*>(image.pixels.data()));
+  if (image.width == size) return m.clone();
+  cv::Mat out;
+  cv::resize(m, out, cv::Size(size, size), 0, 0, image.width > size ? cv::INTER_AREA : cv::INTER_LINEAR);
+  return out;
+}
+
+// The fused textures of frame `frame_dir` (TAKE/derived/textures/frame-NNNNNN: texture fusion's albedo, specular
+// intensity and tangent-space normals) at `size`; valid where at least half of the texel was covered by a view.
+absl::StatusOr<FrameTextures> FusedFrameTextures(int size, const std::string& frame_dir) {
+  STAGE_ASSIGN_OR_RETURN(const FusedTextures fused, ReadFusedTextures(frame_dir));
+  Image covered(fused.size, fused.size, 1);
+  for (size_t i = 0; i < fused.state.size(); ++i) covered.pixels[i] = fused.state[i] == TexelState::kCovered;
+  const cv::Mat albedo = ResizedMap(fused.albedo, size), specular = ResizedMap(fused.specular, size),
+                normal = ResizedMap(fused.normal_tangent, size), valid = ResizedMap(covered, size);
+  FrameTextures t;
+  t.maps.assign(static_cast<size_t>(size) * size * kTextureChannels, 0.f);
+  t.valid.assign(static_cast<size_t>(size) * size, 0);
+  for (int row = 0; row < size; ++row) {
+    for (int col = 0; col < size; ++col) {
+      const size_t i = static_cast<size_t>(row) * size + col;
+      const cv::Vec3f n = normal.at<cv::Vec3f>(row, col);
+      if (valid.at<float>(row, col) < 0.5f || cv::norm(n) == 0) continue;
+      float* m = &t.maps[kTextureChannels * i];
+      const cv::Vec3f a = albedo.at<cv::Vec3f>(row, col);
+      const cv::Vec3f unit = n / cv::norm(n);
+      m[0] = a[0], m[1] = a[1], m[2] = a[2], m[3] = specular.at<float>(row, col);
+      m[4] = unit[0], m[5] = unit[1], m[6] = unit[2];
+      t.valid[i] = 1;
+    }
+  }
+  return t;
 }
 
 // The sequence each frame's truth names ("" where there is no truth or it names none).
@@ -322,8 +444,13 @@ std::vector<int32_t> NumberSequences(const std::vector<std::string>& names, std:
 }
 
 // The dataset's arrays (asset_dataset.h), the images' only with `views` cameras.
-absl::Status AddArrays(storage::ArrayFileWriter& writer, int size, int64_t views, int image_size) {
+absl::Status AddArrays(storage::ArrayFileWriter& writer, int size, int64_t views, int image_size, int texture_size) {
   STAGE_RETURN_IF_ERROR(writer.AddArray("frame", ArrayType::kInt64, {}));
+  if (texture_size > 0) {
+    STAGE_RETURN_IF_ERROR(
+        writer.AddArray("textures", ArrayType::kFloat32, {texture_size, texture_size, kTextureChannels}));
+    STAGE_RETURN_IF_ERROR(writer.AddArray("texture_valid", ArrayType::kUint8, {texture_size, texture_size}, 4));
+  }
   STAGE_RETURN_IF_ERROR(writer.AddArray("split", ArrayType::kUint8, {}));
   STAGE_RETURN_IF_ERROR(writer.AddArray("sequence", ArrayType::kInt32, {}));
   STAGE_RETURN_IF_ERROR(writer.AddArray("geometry", ArrayType::kFloat32, {size, size, 3}));
@@ -348,6 +475,10 @@ nlohmann::json Description(const DatasetOptions& options, const FaceTemplate& fa
   d["held_out_blocks"] = options.held_out_blocks;
   d["cameras"] = crops.cameras;
   d["image_size"] = summary.image_size;
+  d["texture_size"] = summary.texture_size;
+  if (summary.texture_size > 0) {
+    d["texture_channels"] = {"albedo_r", "albedo_g", "albedo_b", "specular", "normal_x", "normal_y", "normal_z"};
+  }
   d["crop_mm"] = options.crop_mm;
   d["crops"] = crops.boxes;
   d["splits"] = {{"train", summary.train},
@@ -386,6 +517,9 @@ absl::Status DatasetOptions::Validate() const {
   if (!(held_out_fraction >= 0 && held_out_fraction <= 0.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("dataset: held-out fraction ", held_out_fraction, " is not in [0, 0.5]"));
+  }
+  if (texture_size != 0 && (texture_size < 16 || texture_size > 1024)) {
+    return absl::InvalidArgumentError(absl::StrCat("dataset: texture size ", texture_size, " is not 0 or 16..1024"));
   }
   if (image_size < 16 || image_size > 512) {
     return absl::InvalidArgumentError(absl::StrCat("dataset: image size ", image_size, " is not in 16..512"));
@@ -470,10 +604,27 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     fs::create_directories(fs::path(summary.path).parent_path(), ec);
     if (ec) return absl::UnavailableError(absl::StrCat(summary.path, ": ", ec.message()));
   }
+  // The textures, where the source has them.
+  const std::string texture_root = truth ? root : options.take_dir + "/derived/textures";
+  const std::string texture_file = truth ? "uv_albedo.exr" : "albedo.exr";
+  std::vector<uint8_t> texture_layout;
+  if (options.texture_size == 0) {
+    summary.textures_note = "none asked for (texture size 0)";
+  } else if (!fs::exists(FrameDir(texture_root, frames.front()) + "/" + texture_file)) {
+    summary.textures_note =
+        absl::StrCat("none: ", FrameDir(texture_root, frames.front()), " has no ", texture_file,
+                     truth ? " (render the truth with --uv-textures)" : " (run `stage-process textures` first)");
+  } else {
+    summary.texture_size = options.texture_size;
+    STAGE_ASSIGN_OR_RETURN(const GeometryMap map,
+                           MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = options.texture_size}));
+    texture_layout.resize(map.state.size());
+    for (size_t t = 0; t < map.state.size(); ++t) texture_layout[t] = map.state[t] != TexelState::kEmpty;
+  }
   STAGE_ASSIGN_OR_RETURN(auto writer, storage::ArrayFileWriter::Create(summary.path));
   STAGE_ASSIGN_OR_RETURN(const Crops crops, CropImages(options, face, frames));
   const int64_t views = static_cast<int64_t>(crops.cameras.size());
-  STAGE_RETURN_IF_ERROR(AddArrays(*writer, size, views, options.image_size));
+  STAGE_RETURN_IF_ERROR(AddArrays(*writer, size, views, options.image_size, summary.texture_size));
   summary.cameras = crops.cameras;
   summary.image_size = views > 0 ? options.image_size : 0;
   RunningSpread spread;
@@ -497,6 +648,14 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     if (views > 0) {
       STAGE_RETURN_IF_ERROR(writer->Append("images", crops.images.at(frames[i]).data()));
       STAGE_RETURN_IF_ERROR(writer->Append("image_valid", crops.valid.at(frames[i]).data()));
+    }
+    if (summary.texture_size > 0) {
+      const std::string dir = FrameDir(texture_root, frames[i]);
+      absl::StatusOr<FrameTextures> t = truth ? TruthTextures(face, texture_layout, summary.texture_size, dir)
+                                              : FusedFrameTextures(summary.texture_size, dir);
+      if (!t.ok()) return t.status();
+      STAGE_RETURN_IF_ERROR(writer->Append("textures", t->maps.data()));
+      STAGE_RETURN_IF_ERROR(writer->Append("texture_valid", t->valid.data()));
     }
     valid_texels += static_cast<double>(std::count(g->valid.begin(), g->valid.end(), 1));
     spread.Add(g->points, g->valid);
@@ -530,6 +689,7 @@ absl::Status ReadDescription(const storage::ArrayFileReader& reader, const std::
     d->geometry_size = j["geometry_size"].get<int>();
     d->cameras = j.value("cameras", std::vector<std::string>());
     d->image_size = j.value("image_size", 0);
+    d->texture_size = j.value("texture_size", 0);
     for (const nlohmann::json& box : j.value("crops", nlohmann::json::array())) {
       if (!box.contains("white_dn")) continue;  // written before the white was kept
       d->crops.push_back({box.at("camera").get<std::string>(), box.at("centre_px").at(0).get<double>(),
@@ -568,6 +728,14 @@ absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {
     const size_t views = d.cameras.size(), pixels = static_cast<size_t>(d.image_size) * d.image_size;
     if (d.images.size() != n * views * pixels || d.image_valid.size() != n * views) {
       return absl::InvalidArgumentError(absl::StrCat(path, ": images of disagreeing lengths"));
+    }
+  }
+  if (d.texture_size > 0) {
+    STAGE_ASSIGN_OR_RETURN(d.textures, reader->ReadAll<float>("textures"));
+    STAGE_ASSIGN_OR_RETURN(d.texture_valid, reader->ReadAll<uint8_t>("texture_valid"));
+    const size_t texture_texels = static_cast<size_t>(d.texture_size) * d.texture_size;
+    if (d.textures.size() != n * texture_texels * kTextureChannels || d.texture_valid.size() != n * texture_texels) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": textures of disagreeing lengths"));
     }
   }
   if (split.size() != n || d.sequence.size() != n || d.geometry.size() != n * texels * 3 ||

@@ -32,6 +32,7 @@ TEST(AssetDatasetSimTest, TheTruthsMapsHoldTheHeadAndTheCropsTheFace) {
                                       .last_frame = 561,
                                       .frame_step = 360,
                                       .cameras = {"mv-01", "mv-04", "mv-09"},
+                                      .truth_textures = true,
                                       .uv_size = 512})
                   .ok());
   auto summary = BuildAssetDataset({.take_dir = take, .held_out_fraction = 0, .held_out_sequence = "none"});
@@ -75,6 +76,30 @@ TEST(AssetDatasetSimTest, TheTruthsMapsHoldTheHeadAndTheCropsTheFace) {
                 static_cast<long long>(frame), mean, p99);
     EXPECT_LT(mean, 0.05);
     EXPECT_LT(p99, 0.3);
+
+    // The textures: the head's own albedo at each texel's place in its layout (resampled from the truth's 512
+    // texels: pores and freckles are finer than that, so the median is the measure), and tangent-space normals
+    // about the surface's (the detail tilts them a little).
+    ASSERT_EQ(dataset->texture_size, 128);
+    std::vector<double> albedo_errors;
+    double mean_z = 0;
+    for (int t = 0; t < 128 * 128; ++t) {
+      if (!dataset->texture_valid[i * 128 * 128 + t]) continue;
+      const float* got = &dataset->textures[(static_cast<size_t>(i) * 128 * 128 + t) * kTextureChannels];
+      const Eigen::Vector2f uv((t % 128 + 0.5f) / 128, 1 - (t / 128 + 0.5f) / 128);
+      const Eigen::Vector3f want =
+          (*scene)->head()->Surface(face->HeadLayoutUv(uv), 0, pose.expression).material.albedo;
+      albedo_errors.push_back((Eigen::Vector3f(got[0], got[1], got[2]) - want).norm() / want.norm());
+      mean_z += got[6];
+    }
+    ASSERT_GT(albedo_errors.size(), 128u * 128 / 2);
+    mean_z /= static_cast<double>(albedo_errors.size());
+    std::nth_element(albedo_errors.begin(), albedo_errors.begin() + albedo_errors.size() / 2, albedo_errors.end());
+    const double albedo_median = albedo_errors[albedo_errors.size() / 2];
+    std::printf("frame %lld: %zu texture texels; albedo median error %.4f; tangent normals' mean z %.4f\n",
+                static_cast<long long>(frame), albedo_errors.size(), albedo_median, mean_z);
+    EXPECT_LT(albedo_median, 0.01);
+    EXPECT_GT(mean_z, 0.99);
 
     // Each camera's crop: the face in the middle, bright against the dark stage at the corners.
     const int size = dataset->image_size;

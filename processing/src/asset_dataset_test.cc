@@ -74,6 +74,73 @@ TEST(AssetDatasetTest, TheTruthIsDrawnIntoTheTemplatesLayoutInTheHeadsFrameAndSp
   EXPECT_LT(summary->rms_from_mean_mm, 1e-3);
 }
 
+// The truth's textures (uv_albedo, uv_material, uv_normal in the head's frame) drawn into the template's layout, the
+// normals in tangent space over the surface: on the made-up plane the tangent frame is known, so a normal tilted
+// from it by a known amount must come back as that tilt.
+TEST(AssetDatasetTest, TheTruthsTexturesAreDrawnIntoTheLayoutWithTangentSpaceNormals) {
+  const std::string take = MakeTake("asset-textures", 3);
+  const Eigen::Vector3f du(200, 0, 30), dv(0, 150, 0);  // Surface's slopes along the head layout's u and v
+  const Eigen::Vector3f normal = du.cross(dv).normalized(), tangent = du.normalized(),
+                        bitangent = normal.cross(tangent);
+  const Eigen::Vector3f tilt = Eigen::Vector3f(0.2f, -0.1f, 1).normalized();
+  const Eigen::Vector3f detailed = tilt.x() * tangent + tilt.y() * bitangent + tilt.z() * normal;
+  auto albedo = [](const Eigen::Vector2f& uv) { return Eigen::Vector3f(0.3f + 0.2f * uv.x(), 0.4f, 0.5f * uv.y()); };
+  for (int f = 0; f < 3; ++f) {
+    Image a(128, 128, 4), m(128, 128, 4), n(128, 128, 4);
+    for (int y = 0; y < 128; ++y) {
+      for (int x = 0; x < 128; ++x) {
+        const Eigen::Vector3f rgb = albedo({(x + 0.5f) / 128, 1 - (y + 0.5f) / 128});
+        std::copy(rgb.data(), rgb.data() + 3, a.at(x, y));
+        std::copy(detailed.data(), detailed.data() + 3, n.at(x, y));
+        m.at(x, y)[0] = 0.05f;
+        a.at(x, y)[3] = m.at(x, y)[3] = n.at(x, y)[3] = 1;
+      }
+    }
+    const std::string dir = FrameDir(take + "/ground_truth", f);
+    ASSERT_TRUE(WriteExr(dir + "/uv_albedo.exr", a).ok());
+    ASSERT_TRUE(WriteExr(dir + "/uv_material.exr", m).ok());
+    ASSERT_TRUE(WriteExr(dir + "/uv_normal.exr", n).ok());
+  }
+  auto summary = BuildAssetDataset({.take_dir = take, .geometry_size = 32, .texture_size = 48});
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->texture_size, 48);
+  auto dataset = ReadAssetDataset(summary->path);
+  ASSERT_TRUE(dataset.ok()) << dataset.status();
+  ASSERT_EQ(dataset->texture_size, 48);
+  auto face = ShippedFaceTemplate();
+  ASSERT_TRUE(face.ok());
+  int64_t valid = 0;
+  double worst_albedo = 0, worst_angle = 0, worst_specular = 0;
+  for (int64_t i = 0; i < 3; ++i) {
+    for (int t = 0; t < 48 * 48; ++t) {
+      if (!dataset->texture_valid[i * 48 * 48 + t]) continue;
+      ++valid;
+      const float* got = &dataset->textures[(i * 48 * 48 + t) * kTextureChannels];
+      const Eigen::Vector2f uv((t % 48 + 0.5f) / 48, 1 - (t / 48 + 0.5f) / 48);
+      worst_albedo = std::max(
+          worst_albedo,
+          static_cast<double>(
+              (Eigen::Vector3f(got[0], got[1], got[2]) - albedo(face->HeadLayoutUv(uv))).cwiseAbs().maxCoeff()));
+      worst_specular = std::max(worst_specular, std::abs(got[3] - 0.05));
+      const Eigen::Vector3f n(got[4], got[5], got[6]);
+      worst_angle = std::max(worst_angle, std::acos(std::clamp<double>(n.dot(tilt), -1, 1)) * 180 / M_PI);
+    }
+  }
+  EXPECT_GT(valid, 3 * 48 * 48 / 2);
+  EXPECT_LT(worst_albedo, 1e-4);
+  EXPECT_LT(worst_specular, 1e-6);
+  EXPECT_LT(worst_angle, 0.05) << "degrees";
+  // Without the textures in the truth (or asked for none) the dataset has none, and says why.
+  auto none = BuildAssetDataset({.take_dir = MakeTake("asset-no-textures", 3), .geometry_size = 32});
+  ASSERT_TRUE(none.ok()) << none.status();
+  EXPECT_EQ(none->texture_size, 0);
+  EXPECT_THAT(none->textures_note, HasSubstr("--uv-textures"));
+  auto off = BuildAssetDataset({.take_dir = take, .geometry_size = 32, .texture_size = 0});
+  ASSERT_TRUE(off.ok()) << off.status();
+  EXPECT_EQ(off->texture_size, 0);
+  EXPECT_EQ(ReadAssetDataset(off->path)->textures.size(), 0u);
+}
+
 TEST(AssetDatasetTest, TheSplitHoldsOutOneSequenceWholeAndEvenContiguousBlocks) {
   std::vector<int32_t> sequence(200);
   for (int i = 0; i < 200; ++i) sequence[i] = i / 25;

@@ -282,8 +282,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunStabilizeJob(
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
     const v1::ProcessingJob& job, const std::function<void(const JobProgress&)>& progress,
     const std::function<bool()>& cancelled) const {
-  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0) {
-    return absl::InvalidArgumentError("the asset's dataset takes no geometry or texture size: asset.source says");
+  if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty()) {
+    return absl::InvalidArgumentError("the asset's dataset takes no geometry: asset.source says");
   }
   const v1::AssetOptions& a = job.asset();
   if (a.iterations() != 0 || a.batch() != 0 || a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 ||
@@ -299,6 +299,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   d.source = a.source() == v1::ASSET_SOURCE_RECONSTRUCTION ? AssetSource::kReconstruction : AssetSource::kTruth;
   if (a.geometry_size() != 0) d.geometry_size = a.geometry_size();
   if (a.image_size() != 0) d.image_size = a.image_size();
+  if (job.texture_size() != 0) d.texture_size = job.texture_size();  // taken where the source has textures
   d.cameras.assign(job.cameras().begin(), job.cameras().end());
   d.calibration = job.calibration();
   d.progress = [&](int64_t done, int64_t total) { progress({done, total, "frames"}); };

@@ -62,6 +62,12 @@ void AssetCommands::Add(CLI::App& parent) {
   build_dataset_->add_option("--calibration", dataset_.calibration,
                              "Where the cameras are (a calibration file or a directory with cameras.json, relative to "
                              "the take or absolute; default: the rig's nominal models)");
+  build_dataset_
+      ->add_option("--texture-size", dataset_.texture_size,
+                   "Texels across the textures (albedo, specular, tangent-space normals), taken where the source has "
+                   "them; 0: none")
+      ->capture_default_str()
+      ->check(CLI::IsMember({0}) | CLI::Range(16, 1024));
   build_dataset_->add_option("--image-size", dataset_.image_size, "Pixels across a crop")
       ->capture_default_str()
       ->check(CLI::Range(16, 512));
@@ -313,6 +319,8 @@ int AssetCommands::BuildDataset() {
                                 {"sequences", summary->sequences.size()},
                                 {"cameras", summary->cameras},
                                 {"image_size", summary->image_size},
+                                {"texture_size", summary->texture_size},
+                                {"textures_note", summary->textures_note},
                                 {"valid_texels", summary->valid_texels},
                                 {"rms_from_mean_mm", summary->rms_from_mean_mm}}
                      .dump()
@@ -323,6 +331,9 @@ int AssetCommands::BuildDataset() {
               << " in held-out blocks, " << summary->held_out_sequence << " in the held-out sequence"
               << (summary->sequence.empty() ? " (none)" : " \"" + summary->sequence + "\"") << "; "
               << summary->cameras.size() << " camera(s) cropped"
+              << "; textures "
+              << (summary->texture_size > 0 ? absl::StrCat(summary->texture_size, " texels across")
+                                            : summary->textures_note)
               << "; " << static_cast<int64_t>(summary->valid_texels) << " texels a frame, " << summary->rms_from_mean_mm
               << " mm RMS about the mean\n";
   }

@@ -14,6 +14,10 @@
 //   images           uint8 (N, V, I, I)       each machine-vision camera's full-lit frame cropped about the face
 //                                             (grey, gamma 2.2 over the camera's white); only when the take has them
 //   image_valid      uint8 (N, V)             1 where the camera recorded the frame's full-lit slot
+//   textures         float32 (N, T, T, 7)     the skin's textures in the template's layout: linear albedo RGB,
+//                                             specular intensity, the tangent-space normal (x along +u, y along +v,
+//                                             z out); 0 where not valid. Only when the source has them
+//   texture_valid    uint8 (N, T, T)          1 where the texel holds the skin's textures
 //   attributes: format ("fastage-asset-dataset-1"), description (JSON: source, take, size, sequences, the split, the
 //   cameras and their crops).
 //
@@ -32,11 +36,18 @@
 
 namespace stage::processing {
 
-// Where a dataset's geometry comes from.
+// Where a dataset's geometry and textures come from.
 enum class AssetSource {
-  kTruth,           // the simulator's ground truth (TAKE/ground_truth/frame-NNNNNN/uv_position.exr, pose.json)
-  kReconstruction,  // the template fit (TAKE/derived/fit/frame-NNNNNN/geometry_map.exr, pose.json)
+  // The simulator's ground truth (TAKE/ground_truth/frame-NNNNNN/uv_position.exr, pose.json; the textures from
+  // uv_albedo.exr, uv_material.exr and uv_normal.exr, which stage-sim-render writes with --uv-textures).
+  kTruth,
+  // The template fit (TAKE/derived/fit/frame-NNNNNN/geometry_map.exr, pose.json) and texture fusion
+  // (TAKE/derived/textures/frame-NNNNNN/).
+  kReconstruction,
 };
+
+// The channels of a dataset's textures: albedo R, G, B (linear), specular intensity, tangent-space normal x, y, z.
+inline constexpr int kTextureChannels = 7;
 const char* AssetSourceName(AssetSource source);  // "truth", "reconstruction"
 absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name);
 
@@ -69,6 +80,9 @@ struct DatasetOptions {
   // cameras.json, relative to the take or absolute; empty: the rig's nominal models).
   std::vector<std::string> cameras;
   std::string calibration;
+  // Texels across the textures (16..1024), taken where the source has them for the first frame (then every frame
+  // must); 0: none.
+  int texture_size = 128;
   // Texels across a crop (16..512), and the crop's side at the face, mm (50..1000).
   int image_size = 128;
   double crop_mm = 280;
@@ -89,6 +103,9 @@ struct DatasetSummary {
   std::vector<std::string> sequences;
   std::vector<std::string> cameras;  // whose crops the dataset holds
   int image_size = 0;
+  // Texels across the textures; 0: none, and `textures_note` says why.
+  int texture_size = 0;
+  std::string textures_note;
   // Over the frames' valid texels: the mean count per frame, and how far the geometry moves from the dataset's mean
   // (RMS, mm): what a model of it has to explain.
   double valid_texels = 0, rms_from_mean_mm = 0;
@@ -121,6 +138,9 @@ struct AssetDataset {
   std::vector<uint8_t> images;       // frames x cameras x image_size^2
   std::vector<uint8_t> image_valid;  // frames x cameras
   std::vector<CropBox> crops;        // per camera (empty in a dataset written before they were kept)
+  int texture_size = 0;              // 0: no textures
+  std::vector<float> textures;       // frames x texture_size^2 x kTextureChannels
+  std::vector<uint8_t> texture_valid;  // frames x texture_size^2
   std::string description;           // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };
