@@ -10,6 +10,7 @@
 #include <filesystem>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/status.h"
 #include "stage/processing/warp_net.h"
 #include "torch_support.h"
 
@@ -908,6 +909,153 @@ absl::Status DrivingNet::Save(const std::string& path) const {
 
 absl::Status DrivingNet::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kDrivingNet);
+}
+
+// The texture VAE.
+namespace {
+
+constexpr const char* kTextureNet = "texture VAE";
+
+ConvShape ShapeOf(const TextureVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
+
+struct TextureNetImpl : torch::nn::Module {
+  TextureNetImpl(const TextureVaeOptions& o, const torch::Tensor& neutral_textures, const torch::Tensor& spread)
+      : latent(o.texture_latent) {
+    encoder = register_module("encoder", Encoder(ShapeOf(o), o.channels + 1, 2 * o.texture_latent));
+    decoder = register_module("decoder", Decoder(ShapeOf(o), o.texture_latent, o.channels));
+    neutral = register_buffer("neutral", neutral_textures);
+    scale = register_buffer("scale", spread);
+  }
+  // The latent's means and log-variances of textures (B x C x S x S) and validity (B x 1 x S x S).
+  std::pair<torch::Tensor, torch::Tensor> Stats(const torch::Tensor& textures, const torch::Tensor& valid) {
+    const torch::Tensor out = encoder->forward(torch::cat({(textures - neutral) / scale * valid, valid}, 1));
+    return {out.slice(1, 0, latent), out.slice(1, latent, 2 * latent).clamp(-10, 10)};
+  }
+  int latent;
+  Encoder encoder{nullptr};
+  Decoder decoder{nullptr};
+  torch::Tensor neutral, scale;
+};
+TORCH_MODULE(TextureNet);
+
+}  // namespace
+
+absl::Status TextureVaeOptions::Validate() const {
+  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": ", what)); };
+  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
+  if (channels < 1 || channels > 16) return bad(absl::StrCat("channels ", channels, " is not in 1..16"));
+  if (texture_latent < 1 || texture_latent > 1024) {
+    return bad(absl::StrCat("texture latent ", texture_latent, " is not in 1..1024"));
+  }
+  if (!(kl_weight >= 0)) return bad(absl::StrCat("KL weight ", kl_weight, " is negative"));
+  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
+  return absl::OkStatus();
+}
+
+struct TextureVae::Impl {
+  TextureVaeOptions options;
+  TextureNet net{nullptr};
+  std::unique_ptr<torch::optim::Adam> adam;
+  int64_t texels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
+};
+
+TextureVae::TextureVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+TextureVae::~TextureVae() = default;
+const TextureVaeOptions& TextureVae::options() const { return impl_->options; }
+int64_t TextureVae::parameter_count() const { return CountParameters(*impl_->net); }
+
+absl::StatusOr<std::unique_ptr<TextureVae>> TextureVae::Create(const TextureVaeOptions& options,
+                                                               const std::vector<float>& neutral,
+                                                               const std::vector<float>& scale) {
+  STAGE_RETURN_IF_ERROR(options.Validate());
+  const int64_t s = options.input_size, c = options.channels;
+  STAGE_RETURN_IF_ERROR(CheckSize(neutral, c * s * s, "the neutral textures", kTextureNet));
+  STAGE_RETURN_IF_ERROR(CheckSize(scale, c, "the spread", kTextureNet));
+  for (float x : scale) {
+    if (!(x > 0)) return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": a spread of ", x, " is not positive"));
+  }
+  try {
+    SetTorchThreads(options.threads);
+    auto impl = std::make_unique<Impl>();
+    impl->options = options;
+    impl->net = internal::Seeded(options.seed, [&] {
+      return TextureNet(options, FromVector(neutral, {1, c, s, s}), FromVector(scale, {1, c, 1, 1}));
+    });
+    impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
+    return std::unique_ptr<TextureVae>(new TextureVae(std::move(impl)));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kTextureNet, "creating the net", e);
+  }
+}
+
+absl::StatusOr<TextureLosses> TextureVae::TrainStep(const TextureBatch& batch, double learning_rate) {
+  const TextureVaeOptions& o = impl_->options;
+  const int64_t b = batch.batch, s = o.input_size, c = o.channels;
+  if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": an empty batch"));
+  STAGE_RETURN_IF_ERROR(CheckSize(batch.textures, b * c * s * s, "the textures", kTextureNet));
+  STAGE_RETURN_IF_ERROR(CheckSize(batch.valid, b * s * s, "the validity", kTextureNet));
+  STAGE_RETURN_IF_ERROR(CheckSize(batch.noise, b * o.texture_latent, "the noise", kTextureNet));
+  try {
+    SetTorchThreads(o.threads);
+    TextureNet& net = impl_->net;
+    net->train();
+    SetLearningRate(*impl_->adam, learning_rate);
+    const torch::Tensor textures = FromVector(batch.textures, {b, c, s, s});
+    const torch::Tensor valid = FromVector(batch.valid, {b, 1, s, s});
+    impl_->adam->zero_grad();
+    const auto [mu, logvar] = net->Stats(textures, valid);
+    const torch::Tensor z = mu + FromVector(batch.noise, {b, o.texture_latent}) * torch::exp(0.5 * logvar);
+    const torch::Tensor decoded = net->decoder->forward(z);  // normalized wrinkle maps
+    const torch::Tensor target = (textures - net->neutral) / net->scale;
+    const torch::Tensor reconstruction = ((decoded - target).pow(2) * valid).sum() / (c * valid.sum()).clamp_min(1);
+    const torch::Tensor kl = Kl(mu, logvar);
+    const torch::Tensor total = reconstruction + o.kl_weight * kl;
+    total.backward();
+    impl_->adam->step();
+    return TextureLosses{total.item<double>(), reconstruction.item<double>(), kl.item<double>()};
+  } catch (const std::exception& e) {
+    return internal::TorchError(kTextureNet, "training", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> TextureVae::Encode(const std::vector<float>& textures,
+                                                      const std::vector<float>& valid, int batch) const {
+  const TextureVaeOptions& o = impl_->options;
+  const int64_t s = o.input_size;
+  STAGE_RETURN_IF_ERROR(
+      CheckSize(textures, int64_t{batch} * o.channels * impl_->texels(), "the textures", kTextureNet));
+  STAGE_RETURN_IF_ERROR(CheckSize(valid, int64_t{batch} * impl_->texels(), "the validity", kTextureNet));
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    return ToVector(
+        impl_->net->Stats(FromVector(textures, {batch, o.channels, s, s}), FromVector(valid, {batch, 1, s, s})).first);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kTextureNet, "encoding", e);
+  }
+}
+
+absl::StatusOr<std::vector<float>> TextureVae::Decode(const std::vector<float>& latents, int batch) const {
+  const TextureVaeOptions& o = impl_->options;
+  STAGE_RETURN_IF_ERROR(CheckSize(latents, int64_t{batch} * o.texture_latent, "the texture latents", kTextureNet));
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    impl_->net->eval();
+    const torch::Tensor d = impl_->net->decoder->forward(FromVector(latents, {batch, o.texture_latent}));
+    return ToVector(impl_->net->neutral + impl_->net->scale * d);
+  } catch (const std::exception& e) {
+    return internal::TorchError(kTextureNet, "decoding", e);
+  }
+}
+
+absl::Status TextureVae::Save(const std::string& path) const {
+  return SaveArchive(*impl_->net, *impl_->adam, path, kTextureNet);
+}
+
+absl::Status TextureVae::Load(const std::string& path) {
+  return LoadArchive(*impl_->net, *impl_->adam, path, kTextureNet);
 }
 
 double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {

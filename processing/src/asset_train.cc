@@ -207,10 +207,6 @@ SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<i
   return e;
 }
 
-namespace {
-
-// PCA of the training maps about `mean` (components as the columns of the result, orthonormal), from the frames'
-// Gram matrix.
 Eigen::MatrixXf Pca(const NetMaps& m, const std::vector<int64_t>& train, const std::vector<float>& mean, int k) {
   const size_t d = mean.size();
   Eigen::MatrixXd x(static_cast<Eigen::Index>(d), static_cast<Eigen::Index>(train.size()));
@@ -233,6 +229,8 @@ Eigen::MatrixXf Pca(const NetMaps& m, const std::vector<int64_t>& train, const s
   }
   return basis;
 }
+
+namespace {
 
 absl::StatusOr<TrainedEvaluation> Evaluate(const GeometryVae& net, const NetMaps& m, const AssetDataset& d,
                                            const std::vector<float>& mean) {

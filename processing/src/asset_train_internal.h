@@ -2,6 +2,7 @@
 // expression VAE, the mapping and the driven evaluation). Torch-free.
 #pragma once
 
+#include <Eigen/Core>
 #include <cstdint>
 #include <functional>
 #include <initializer_list>
@@ -51,6 +52,10 @@ std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const s
 // The error of `recovered` maps (frame -> NCHW map) of `frames` against the truth (SplitError).
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered);
+
+// PCA of the training maps (`train` of m.maps) about `mean`: at most k components, the columns of the result
+// (orthonormal), from the frames' Gram matrix; none of the data's null space.
+Eigen::MatrixXf Pca(const NetMaps& m, const std::vector<int64_t>& train, const std::vector<float>& mean, int k);
 
 // A finished run's trainer.json options, of a run of `network` ("geometry", "expression", "mapping"; NotFound naming
 // the file where there is no run, InvalidArgument where it is another network's).

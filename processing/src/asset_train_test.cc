@@ -231,3 +231,77 @@ TEST(AssetTrainTest, TheExportedNetRunsInPythonsTorchAsInTheLibrary) {
 
 }  // namespace
 }  // namespace stage::processing
+
+namespace stage::processing {
+namespace {
+
+// Textures that change with two slow signals of the frame, as wrinkles come and go: stripes darken the albedo and
+// tilt the normals with one signal, a blotch reddens with the other.
+void WriteMadeUpTextures(const std::string& take, int frames, int size) {
+  for (int f = 0; f < frames; ++f) {
+    const float a = 0.5f + 0.5f * std::sin(0.3f * f), b = 0.5f + 0.5f * std::cos(0.17f * f);
+    Image albedo(size, size, 4), material(size, size, 4), normal(size, size, 4);
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        const float u = (x + 0.5f) / size, v = 1 - (y + 0.5f) / size;
+        const float stripe = 0.5f + 0.5f * std::cos(2 * 3.14159265f * v * 6);
+        const float blotch = std::exp(-((u - 0.5f) * (u - 0.5f) + (v - 0.4f) * (v - 0.4f)) / 0.01f);
+        const float r = 0.6f * (1 - 0.3f * a * stripe) + 0.2f * b * blotch, g = 0.4f * (1 - 0.3f * a * stripe);
+        albedo.at(x, y)[0] = r, albedo.at(x, y)[1] = g, albedo.at(x, y)[2] = 0.3f;
+        material.at(x, y)[0] = 0.03f + 0.01f * a * stripe;
+        // The made-up surface's normal (Face's dome is near +z) tilted along y by the stripes.
+        const Eigen::Vector3f n = Eigen::Vector3f(0, 0.3f * a * std::sin(2 * 3.14159265f * v * 6), 1).normalized();
+        std::copy(n.data(), n.data() + 3, normal.at(x, y));
+        albedo.at(x, y)[3] = material.at(x, y)[3] = normal.at(x, y)[3] = 1;
+      }
+    }
+    const std::string dir = FrameDir(take + "/ground_truth", f);
+    EXPECT_TRUE(WriteExr(dir + "/uv_albedo.exr", albedo).ok());
+    EXPECT_TRUE(WriteExr(dir + "/uv_material.exr", material).ok());
+    EXPECT_TRUE(WriteExr(dir + "/uv_normal.exr", normal).ok());
+  }
+}
+
+TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutralFrame) {
+  const std::string take = asset_testing::MakeTruthTake("texture-take", 60, Face, /*size=*/64);
+  WriteMadeUpTextures(take, 60, 64);
+  auto summary = BuildAssetDataset({.take_dir = take, .geometry_size = 32, .texture_size = 32});
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  ASSERT_EQ(summary->texture_size, 32);
+  TextureTrainJob job;
+  job.dataset = summary->path;
+  job.output_dir = ::testing::TempDir() + "/texture-run";
+  std::filesystem::remove_all(job.output_dir);
+  job.texture = {
+      .input_size = 32, .levels = 3, .base_channels = 8, .max_channels = 32, .texture_latent = 4, .threads = 2};
+  job.schedule.iterations = 300;
+  job.schedule.batch = 8;
+  auto result = TrainTextureAsset(job);
+  ASSERT_TRUE(result.ok()) << result.status();
+  ASSERT_EQ(result->losses.size(), 300u);
+  double first = 0, last = 0;
+  for (int i = 0; i < 20; ++i) {
+    first += result->losses[i].reconstruction / 20;
+    last += result->losses[280 + i].reconstruction / 20;
+  }
+  EXPECT_LT(last, first / 4) << first << " -> " << last;
+  const TextureEvaluation& e = result->evaluation;
+  const int held_out = static_cast<int>(SampleSplit::kHeldOutBlock);
+  std::printf("held-out blocks: albedo %.3f levels (neutral %.3f, PCA %.3f), normals %.3f deg (neutral %.3f)\n",
+              e.vae[held_out].albedo_levels, e.neutral[held_out].albedo_levels, e.pca[held_out].albedo_levels,
+              e.vae[held_out].normal_deg, e.neutral[held_out].normal_deg);
+  EXPECT_LT(e.vae[held_out].albedo_levels, e.neutral[held_out].albedo_levels / 2);
+  EXPECT_LT(e.vae[held_out].normal_deg, e.neutral[held_out].normal_deg / 2);
+  EXPECT_TRUE(std::filesystem::exists(job.output_dir + "/texture_vae.pt"));
+  // The finished run evaluates again to the same figures.
+  auto again = EvaluateTextureAsset(job.dataset, job.output_dir);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_DOUBLE_EQ(again->vae[held_out].albedo_levels, e.vae[held_out].albedo_levels);
+  // A dataset without textures is refused, saying how to get them.
+  TextureTrainJob bare = job;
+  bare.dataset = Dataset("texture-bare");
+  EXPECT_THAT(TrainTextureAsset(bare).status().message(), HasSubstr("--uv-textures"));
+}
+
+}  // namespace
+}  // namespace stage::processing

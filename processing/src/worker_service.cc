@@ -289,7 +289,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   if (a.iterations() != 0 || a.batch() != 0 || a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 ||
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
-      a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0) {
+      a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -395,6 +395,21 @@ absl::StatusOr<v1::ProcessingProgress> TrainGeometryJob(const v1::AssetOptions& 
                                FormatTrainedEvaluation(result->evaluation)));
 }
 
+absl::StatusOr<v1::ProcessingProgress> TrainTextureJob(const v1::AssetOptions& a, const std::string& dataset,
+                                                       const TrainingSchedule& schedule, const TrainReport& report) {
+  TextureTrainJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  SetConvolutionalOptions(a, &t.texture);
+  SetIfGiven(a.texture_latent(), &t.texture.texture_latent);
+  t.progress = [&](int64_t step, int64_t total, const TextureLosses& l) { return report(step, total, l.total); };
+  auto result = TrainTextureAsset(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("texture VAE trained ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatTextureEvaluation(result->evaluation)));
+}
+
 }  // namespace
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
@@ -412,13 +427,15 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   const v1::AssetNetwork network =
       a.network() == v1::ASSET_NETWORK_UNSPECIFIED ? v1::ASSET_NETWORK_GEOMETRY : a.network();
   // Each option belongs to some of the networks; one given to another is refused, not ignored.
-  const bool vae = network == v1::ASSET_NETWORK_GEOMETRY || network == v1::ASSET_NETWORK_EXPRESSION;
+  const bool vae = network == v1::ASSET_NETWORK_GEOMETRY || network == v1::ASSET_NETWORK_EXPRESSION ||
+                   network == v1::ASSET_NETWORK_TEXTURE;
   if ((!vae && (a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 || a.max_channels() != 0)) ||
       (network != v1::ASSET_NETWORK_GEOMETRY && (a.geometry_latent() != 0 || a.pose_latent() != 0)) ||
       (network != v1::ASSET_NETWORK_EXPRESSION &&
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
       (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0)) ||
-      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder())) {
+      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
+      (network != v1::ASSET_NETWORK_TEXTURE && a.texture_latent() != 0)) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }
@@ -438,6 +455,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   if (network == v1::ASSET_NETWORK_EXPRESSION) return TrainExpressionJob(a, dataset, schedule, report);
   if (network == v1::ASSET_NETWORK_MAPPING) return TrainMappingJob(a, dataset, schedule, report);
   if (network == v1::ASSET_NETWORK_FINETUNE) return FineTuneJobOf(a, dataset, schedule, report);
+  if (network == v1::ASSET_NETWORK_TEXTURE) return TrainTextureJob(a, dataset, schedule, report);
   return TrainGeometryJob(a, dataset, schedule, report);
 }
 

@@ -92,14 +92,16 @@ void AssetCommands::AddTrain() {
       "expression VAE, on the crops; --held-out-cameras keeps views out of it), mapping (expression latent to "
       "geometry latent, both VAEs frozen: the asset driven from every camera is evaluated at the end) and finetune "
       "(the expression encoder and the mapping trained together on the geometry latents, the crops jittered: the "
-      "driving path inference uses; evaluated as the mapping)");
+      "driving path inference uses; evaluated as the mapping); texture (the texture VAE, on the dataset's textures: "
+      "wrinkle maps over their mean)");
   train_->add_option("--dataset", job.dataset, "The dataset file (build-dataset's)")->required();
-  train_->add_option("--network", network_, "The network: geometry, expression, mapping or finetune")
+  train_->add_option("--network", network_, "The network: geometry, expression, mapping, finetune or texture")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune"}));
+      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune", "texture"}));
   train_->add_option(
       "--output", job.output_dir,
-      "The run's directory (default: the dataset's directory/geometry, /expression, /mapping or /finetune)");
+      "The run's directory (default: the dataset's directory/geometry, /expression, /mapping, /finetune or "
+      "/texture)");
   train_
       ->add_option("--iterations", schedule.iterations,
                    "Adam steps (default 4000; the mapping's 3000, finetune's 6000)")
@@ -157,6 +159,8 @@ void AssetCommands::AddTrainNetworkOptions() {
                    "expression: cameras whose crops it never sees (the view the asset is driven from), "
                    "comma-separated")
       ->delimiter(',');
+  train_->add_option("--texture-latent", texture_job_.texture.texture_latent, "texture: size of the texture latent")
+      ->capture_default_str();
   // The mapping's.
   processing::LatentMappingOptions& m = mapping_job_.mapping;
   train_->add_option("--hidden", m.hidden, "mapping: hidden units")->capture_default_str();
@@ -193,16 +197,18 @@ void AssetCommands::AddEvaluate() {
       "A trained asset against a dataset's frames (each split; the whole face's texels, and the template's "
       "vertices by region: face, eyes, mouth): the geometry VAE's run beside PCA and the neutral frame, or the "
       "asset driven from each camera's crops (--network mapping, or finetune for the fine-tuned driving path: the "
-      "paper's protocol)");
+      "paper's protocol), or the texture VAE's run (--network texture: albedo levels, normal degrees, specular error "
+      "on the skin, beside PCA and the neutral frame)");
   evaluate_->add_option("--dataset", evaluate_dataset_, "The dataset file")->required();
   evaluate_
       ->add_option("--network", evaluate_network_,
-                   "What to evaluate: geometry, mapping (the asset driven through the mapping) or finetune (driven "
-                   "through the fine-tuned path)")
+                   "What to evaluate: geometry, mapping (the asset driven through the mapping), finetune (driven "
+                   "through the fine-tuned path) or texture")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "mapping", "finetune"}));
+      ->check(CLI::IsMember({"geometry", "mapping", "finetune", "texture"}));
   evaluate_->add_option("--run", evaluate_run_,
-                        "The run's directory (default: the dataset's directory/geometry, /mapping or /finetune)");
+                        "The run's directory (default: the dataset's directory/geometry, /mapping, /finetune or "
+                        "/texture)");
   evaluate_->add_option("--mapping-run", evaluate_mapping_run_,
                         "finetune: the mapping's run (default: the dataset's directory/mapping)");
   evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
@@ -349,11 +355,12 @@ namespace {
 // The options given that `network` does not take (each names its network in its help: "geometry: ...").
 absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
   const std::vector<std::pair<std::string, std::vector<std::string>>> only = {
-      {"--input-size", {"geometry", "expression"}},
-      {"--levels", {"geometry", "expression"}},
-      {"--base-channels", {"geometry", "expression"}},
-      {"--max-channels", {"geometry", "expression"}},
-      {"--kl-weight", {"geometry", "expression"}},
+      {"--input-size", {"geometry", "expression", "texture"}},
+      {"--levels", {"geometry", "expression", "texture"}},
+      {"--base-channels", {"geometry", "expression", "texture"}},
+      {"--max-channels", {"geometry", "expression", "texture"}},
+      {"--kl-weight", {"geometry", "expression", "texture"}},
+      {"--texture-latent", {"texture"}},
       {"--geometry-latent", {"geometry"}},
       {"--pose-latent", {"geometry"}},
       {"--augment-rotation", {"geometry"}},
@@ -390,6 +397,7 @@ int AssetCommands::Train() {
   if (network_ == "expression") return TrainExpression();
   if (network_ == "mapping") return TrainMapping();
   if (network_ == "finetune") return FineTune();
+  if (network_ == "texture") return TrainTexture();
   ProgressLine bar("steps");
   train_job_.progress = [&bar](int64_t step, int64_t total, const processing::GeometryLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -464,6 +472,47 @@ int AssetCommands::TrainExpression() {
     std::cout << absl::StrFormat("%-18s %-28.5f %-28.5f %.3f\n", names[s], e.reconstruction_trained[s],
                                  e.reconstruction_held_out[s], e.view_share[s]);
   }
+  return 0;
+}
+
+int AssetCommands::TrainTexture() {
+  processing::TextureTrainJob& job = texture_job_;
+  const processing::GeometryVaeOptions& g = train_job_.geometry;
+  job.dataset = train_job_.dataset;
+  job.output_dir = train_job_.output_dir;
+  job.schedule = train_job_.schedule;
+  job.texture.input_size = g.input_size;
+  job.texture.levels = g.levels;
+  job.texture.base_channels = g.base_channels;
+  job.texture.max_channels = g.max_channels;
+  job.texture.kl_weight = g.kl_weight;
+  job.texture.threads = g.threads;
+  job.texture.seed = g.seed;
+  ProgressLine bar("steps");
+  job.progress = [&bar](int64_t step, int64_t total, const processing::TextureLosses& l) {
+    if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
+    return true;
+  };
+  auto result = processing::TrainTextureAsset(job);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  if (json_) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"steps", result->steps},
+                                {"resumed_from", result->resumed_from},
+                                {"parameters", result->parameters},
+                                {"final_loss", result->losses.empty() ? 0.0 : result->losses.back().total},
+                                {"evaluation",
+                                 nlohmann::json::parse(processing::TextureEvaluationJson(result->evaluation))}}
+                     .dump()
+              << "\n";
+    return 0;
+  }
+  std::cout << "texture VAE (" << result->parameters << " weights) trained " << result->steps << " steps"
+            << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "") << " into "
+            << result->output_dir << "\n"
+            << "The textures encoded and decoded, against the dataset's (at the net's resolution):\n"
+            << processing::FormatTextureEvaluation(result->evaluation);
   return 0;
 }
 
@@ -559,9 +608,18 @@ int AssetCommands::Evaluate() {
         kProgram, absl::InvalidArgumentError(
                       "--geometry-run, --expression-run and --picture are options of --network mapping and finetune"));
   }
-  const std::string run = evaluate_run_.empty()
-                              ? (std::filesystem::path(evaluate_dataset_).parent_path() / "geometry").string()
-                              : evaluate_run_;
+  const bool texture = evaluate_network_ == "texture";
+  const std::string run =
+      evaluate_run_.empty()
+          ? (std::filesystem::path(evaluate_dataset_).parent_path() / (texture ? "texture" : "geometry")).string()
+          : evaluate_run_;
+  if (texture) {
+    auto result = processing::EvaluateTextureAsset(evaluate_dataset_, run);
+    if (!result.ok()) return ReportFatal(kProgram, result.status());
+    std::cout << (json_ ? processing::TextureEvaluationJson(*result) + "\n"
+                        : processing::FormatTextureEvaluation(*result));
+    return 0;
+  }
   auto result = processing::EvaluateGeometryAsset(evaluate_dataset_, run);
   if (!result.ok()) return ReportFatal(kProgram, result.status());
   std::cout << (json_ ? processing::TrainedEvaluationJson(*result) + "\n"

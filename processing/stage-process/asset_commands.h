@@ -26,6 +26,7 @@ class AssetCommands {
   int TrainExpression();
   int TrainMapping();
   int FineTune();
+  int TrainTexture();
   // A mapping's or fine-tuning's result, as JSON or a table (1 and the error on failure).
   int PrintDriven(const std::string& what, const absl::StatusOr<processing::MappingTrainResult>& result);
   int Evaluate();
@@ -43,6 +44,7 @@ class AssetCommands {
   processing::ExpressionTrainJob expression_job_;
   processing::MappingTrainJob mapping_job_;
   processing::FineTuneJob finetune_job_;
+  processing::TextureTrainJob texture_job_;
   bool freeze_encoder_ = false;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;

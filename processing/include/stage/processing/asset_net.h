@@ -107,6 +107,65 @@ class GeometryVae {
   std::unique_ptr<Impl> impl_;
 };
 
+// The texture VAE (the FaStage paper's texture branch): an encoder of a frame's textures (`channels` of them: the
+// dataset's albedo, specular intensity and tangent-space normal; and a validity channel) less the neutral textures,
+// over their spread per channel, to a texture latent; a decoder of the latent to those wrinkle maps, which are added
+// back to the neutral textures. The neutral textures and the per-channel spread are the net's normalization, kept in
+// its weights. The trunks are the geometry VAE's. Losses over valid texels in units of the spread:
+//   reconstruction   mean squared, over channels and texels
+//   kl               the latent's KL divergence from N(0, I), summed over dimensions, mean over the batch
+//   total            reconstruction + kl_weight kl
+struct TextureVaeOptions {
+  int input_size = 128;  // texels across (32..512, divisible by 2^levels)
+  int levels = 5;        // 2..7
+  int base_channels = 8;
+  int max_channels = 128;
+  int channels = 7;         // the textures' channels (1..16)
+  int texture_latent = 32;  // 1..1024
+  double kl_weight = 1e-4;  // >= 0
+  int threads = 0;
+  uint64_t seed = 1;
+  absl::Status Validate() const;
+};
+
+struct TextureBatch {
+  int batch = 0;
+  std::vector<float> textures;  // B x C x S x S
+  std::vector<float> valid;     // B x 1 x S x S, 1 or 0
+  std::vector<float> noise;     // B x texture_latent: N(0, 1) draws
+};
+
+struct TextureLosses {
+  double total = 0, reconstruction = 0, kl = 0;
+};
+
+class TextureVae {
+ public:
+  // `neutral` C x S x S, `scale` C values (> 0). Errors: options out of range, arrays of other sizes.
+  static absl::StatusOr<std::unique_ptr<TextureVae>> Create(const TextureVaeOptions& options,
+                                                            const std::vector<float>& neutral,
+                                                            const std::vector<float>& scale);
+  ~TextureVae();
+  TextureVae(const TextureVae&) = delete;
+  TextureVae& operator=(const TextureVae&) = delete;
+
+  absl::StatusOr<TextureLosses> TrainStep(const TextureBatch& batch, double learning_rate);
+  // The latent's means (B x texture_latent) of `batch` frames' textures (B x C x S x S) and validity (B x S x S).
+  absl::StatusOr<std::vector<float>> Encode(const std::vector<float>& textures, const std::vector<float>& valid,
+                                            int batch) const;
+  // The textures (B x C x S x S: the neutral ones plus the decoded wrinkle maps) of `batch` latents.
+  absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& latents, int batch) const;
+  absl::Status Save(const std::string& path) const;
+  absl::Status Load(const std::string& path);
+  const TextureVaeOptions& options() const;
+  int64_t parameter_count() const;
+
+ private:
+  struct Impl;
+  explicit TextureVae(std::unique_ptr<Impl> impl);
+  std::unique_ptr<Impl> impl_;
+};
+
 // The expression VAE (the FaStage paper's section 4.2): an encoder of one camera's crop about the face (grey, as the
 // dataset holds it, 0..1) to an expression latent and a viewpoint latent, and a decoder of both (and the paper's
 // indicator channel, zeros for the performer: the paper trains it with other people's images too) back to the crop.

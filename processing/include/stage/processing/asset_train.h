@@ -203,6 +203,45 @@ std::string DrivenEvaluationJson(const DrivenEvaluation& e);
 std::string FormatDrivenEvaluation(const DrivenEvaluation& e);
 std::string ExpressionEvaluationJson(const ExpressionEvaluation& e);
 
+// The texture VAE's training on the dataset's textures (its run: DATASET's directory/texture, texture_vae.pt): the
+// training frames' textures at the net's size (the dataset's averaged down), the net's neutral textures their mean
+// and its spread each channel's RMS about it.
+struct TextureTrainJob {
+  std::string dataset;
+  std::string output_dir;     // default: DATASET's directory/texture
+  TextureVaeOptions texture;  // channels: the dataset's (left as they are, checked)
+  TrainingSchedule schedule;
+  std::function<bool(int64_t, int64_t, const TextureLosses&)> progress;
+  absl::Status Validate() const;
+};
+
+// Textures recovered against the dataset's, on the skin (texels of the face template's skin triangles, not the eyes'
+// or the mouth's): the albedo's RMSE in 0..255 levels of its sRGB encoding (the paper's measure), the tangent-space
+// normals' mean angle, and the specular intensity's mean relative error.
+struct TextureSplitError {
+  int64_t frames = 0;
+  double albedo_levels = 0, normal_deg = 0, specular_relative = 0;
+};
+// Each split (train, held-out blocks, held-out sequence): the VAE's textures (encoded, the latent's mean decoded),
+// PCA's with as many components as the latent (fitted on the training frames), and the neutral frame's (the dataset's
+// first frame's, for every frame).
+struct TextureEvaluation {
+  TextureSplitError vae[3], pca[3], neutral[3];
+};
+
+struct TextureTrainResult {
+  std::string output_dir;
+  int64_t steps = 0, resumed_from = 0, parameters = 0;
+  std::vector<TextureLosses> losses;
+  TextureEvaluation evaluation;
+};
+// Errors: a dataset without textures (naming it and how to get them), sizes that do not divide.
+absl::StatusOr<TextureTrainResult> TrainTextureAsset(const TextureTrainJob& job);
+// The evaluation of a finished texture run on `dataset`.
+absl::StatusOr<TextureEvaluation> EvaluateTextureAsset(const std::string& dataset, const std::string& run_dir);
+std::string TextureEvaluationJson(const TextureEvaluation& e);
+std::string FormatTextureEvaluation(const TextureEvaluation& e);
+
 // The evaluation as JSON, and as a table in words (the baselines beside the VAE).
 std::string TrainedEvaluationJson(const TrainedEvaluation& e);
 std::string FormatTrainedEvaluation(const TrainedEvaluation& e);

@@ -1,0 +1,341 @@
+// The texture VAE's training and evaluation: see asset_train.h (TrainTextureAsset). Torch-free: the net is reached
+// through asset_net.h.
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "asset_train_internal.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/common/uv_raster.h"
+#include "stage/processing/asset_dataset.h"
+#include "stage/processing/asset_train.h"
+#include "stage/processing/face_template.h"
+#include "stage/processing/warp_net.h"
+#include "training_run.h"
+
+namespace stage::processing {
+namespace {
+
+namespace fs = std::filesystem;
+using asset_internal::NetMaps;
+
+// A dataset's textures at the net's size: each frame's averaged down (a texel valid where any of its sources is),
+// NCHW (C x S x S) with its validity (S x S), the training frames, their mean and each channel's spread about it.
+struct PreparedTextures {
+  AssetDataset dataset;
+  NetMaps maps;
+  std::vector<int64_t> train;
+  std::vector<float> mean, scale;
+};
+
+NetMaps DownsampleTextures(const AssetDataset& d, int size) {
+  NetMaps out;
+  out.size = size;
+  const int in = d.texture_size, k = in / size, c = kTextureChannels;
+  const size_t texels_in = static_cast<size_t>(in) * in, texels = static_cast<size_t>(size) * size;
+  for (int64_t f = 0; f < d.frames(); ++f) {
+    std::vector<float> map(c * texels, 0.f), valid(texels, 0.f);
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        double sum[kTextureChannels] = {};
+        int n = 0;
+        for (int dy = 0; dy < k; ++dy) {
+          for (int dx = 0; dx < k; ++dx) {
+            const size_t t = static_cast<size_t>(f) * texels_in + static_cast<size_t>(y * k + dy) * in + x * k + dx;
+            if (!d.texture_valid[t]) continue;
+            for (int ch = 0; ch < c; ++ch) sum[ch] += d.textures[c * t + ch];
+            ++n;
+          }
+        }
+        if (n == 0) continue;
+        const size_t t = static_cast<size_t>(y) * size + x;
+        for (int ch = 0; ch < c; ++ch) map[ch * texels + t] = static_cast<float>(sum[ch] / n);
+        valid[t] = 1;
+      }
+    }
+    out.maps.push_back(std::move(map));
+    out.valid.push_back(std::move(valid));
+  }
+  return out;
+}
+
+absl::StatusOr<PreparedTextures> PrepareTextures(const std::string& path, int size) {
+  PreparedTextures p;
+  STAGE_ASSIGN_OR_RETURN(p.dataset, ReadAssetDataset(path));
+  const AssetDataset& d = p.dataset;
+  if (d.texture_size == 0) {
+    return absl::FailedPreconditionError(
+        absl::StrCat(path,
+                     ": the dataset holds no textures (build it from a truth rendered with --uv-textures, or "
+                     "after `stage-process textures`)"));
+  }
+  if (d.texture_size % size != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(path, ": its textures (", d.texture_size, " texels across) do not divide into the net's ", size));
+  }
+  p.train = asset_internal::FramesOf(d, SampleSplit::kTrain);
+  if (p.train.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no training frames"));
+  p.maps = DownsampleTextures(d, size);
+  const size_t texels = static_cast<size_t>(size) * size;
+  std::vector<double> sum(kTextureChannels * texels, 0), count(texels, 0);
+  for (int64_t f : p.train) {
+    for (size_t t = 0; t < texels; ++t) {
+      if (!p.maps.valid[f][t]) continue;
+      for (int c = 0; c < kTextureChannels; ++c) sum[c * texels + t] += p.maps.maps[f][c * texels + t];
+      ++count[t];
+    }
+  }
+  p.mean.assign(kTextureChannels * texels, 0.f);
+  for (size_t t = 0; t < texels; ++t) {
+    for (int c = 0; c < kTextureChannels; ++c) {
+      if (count[t] > 0) p.mean[c * texels + t] = static_cast<float>(sum[c * texels + t] / count[t]);
+    }
+  }
+  std::vector<double> se(kTextureChannels, 0);
+  double n = 0;
+  for (int64_t f : p.train) {
+    for (size_t t = 0; t < texels; ++t) {
+      if (!p.maps.valid[f][t]) continue;
+      for (int c = 0; c < kTextureChannels; ++c) {
+        se[c] += std::pow(p.maps.maps[f][c * texels + t] - p.mean[c * texels + t], 2);
+      }
+      ++n;
+    }
+  }
+  // A channel that never changes (a material the expressions leave alone) gets a floor, not a division by zero.
+  for (int c = 0; c < kTextureChannels; ++c) {
+    p.scale.push_back(static_cast<float>(std::max(1e-4, std::sqrt(se[c] / std::max(1.0, n)))));
+  }
+  return p;
+}
+
+// The skin's texels at `size`: those a triangle of the template covers whose corners are all skin.
+std::vector<uint8_t> SkinMask(const FaceTemplate& face, int size) {
+  const std::vector<UvTexel> texels = RasterizeUv(face.mesh, size, /*part=*/-1);
+  std::vector<uint8_t> skin(texels.size(), 0);
+  for (size_t t = 0; t < texels.size(); ++t) {
+    if (!texels[t].covered()) continue;
+    const auto& tri = face.mesh.triangles[static_cast<size_t>(texels[t].triangle)];
+    skin[t] = std::all_of(tri.begin(), tri.end(), [&](int32_t v) { return face.regions[v] == FaceRegion::kSkin; });
+  }
+  return skin;
+}
+
+// Linear albedo to 0..255 levels of its sRGB encoding.
+double SrgbLevels(double linear) {
+  const double x = std::clamp(linear, 0.0, 1.0);
+  return 255 * (x <= 0.0031308 ? 12.92 * x : 1.055 * std::pow(x, 1 / 2.4) - 0.055);
+}
+
+TextureSplitError TextureError(const NetMaps& m, const std::vector<uint8_t>& skin, const std::vector<int64_t>& frames,
+                               const std::function<std::vector<float>(int64_t)>& recovered) {
+  TextureSplitError e;
+  e.frames = static_cast<int64_t>(frames.size());
+  const size_t texels = static_cast<size_t>(m.size) * m.size;
+  double albedo_se = 0, angle = 0, specular = 0, n = 0, ns = 0;
+  for (int64_t f : frames) {
+    const std::vector<float> r = recovered(f);
+    const std::vector<float>& truth = m.maps[f];
+    for (size_t t = 0; t < texels; ++t) {
+      if (!skin[t] || !m.valid[f][t]) continue;
+      for (int c = 0; c < 3; ++c) {
+        albedo_se += std::pow(SrgbLevels(r[c * texels + t]) - SrgbLevels(truth[c * texels + t]), 2);
+      }
+      const Eigen::Vector3d a(r[4 * texels + t], r[5 * texels + t], r[6 * texels + t]);
+      const Eigen::Vector3d b(truth[4 * texels + t], truth[5 * texels + t], truth[6 * texels + t]);
+      if (a.norm() > 0 && b.norm() > 0) {
+        angle += std::acos(std::clamp(a.normalized().dot(b.normalized()), -1.0, 1.0)) * 180 / M_PI;
+      }
+      ++n;
+      if (truth[3 * texels + t] > 0) {
+        specular += std::abs(r[3 * texels + t] / truth[3 * texels + t] - 1);
+        ++ns;
+      }
+    }
+  }
+  if (n > 0) {
+    e.albedo_levels = std::sqrt(albedo_se / (3 * n));
+    e.normal_deg = angle / n;
+  }
+  if (ns > 0) e.specular_relative = specular / ns;
+  return e;
+}
+
+absl::StatusOr<TextureEvaluation> Evaluate(const TextureVae& net, const PreparedTextures& p) {
+  std::vector<int64_t> split[3];
+  for (int64_t f = 0; f < p.dataset.frames(); ++f) split[static_cast<int>(p.dataset.split[f])].push_back(f);
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  const std::vector<uint8_t> skin = SkinMask(face, p.maps.size);
+  const Eigen::MatrixXf basis = asset_internal::Pca(p.maps, p.train, p.mean, net.options().texture_latent);
+  const Eigen::Map<const Eigen::VectorXf> mu(p.mean.data(), static_cast<Eigen::Index>(p.mean.size()));
+  TextureEvaluation e;
+  absl::Status failed;
+  for (int s = 0; s < 3; ++s) {
+    e.vae[s] = TextureError(p.maps, skin, split[s], [&](int64_t f) {
+      absl::StatusOr<std::vector<float>> out = net.Encode(p.maps.maps[f], p.maps.valid[f], 1);
+      if (out.ok()) out = net.Decode(*out, 1);
+      if (!out.ok()) failed = out.status();
+      return out.ok() ? *out : p.mean;
+    });
+    e.pca[s] = TextureError(p.maps, skin, split[s], [&](int64_t f) {
+      // The texels a frame does not hold are the mean's.
+      Eigen::VectorXf x = Eigen::Map<const Eigen::VectorXf>(p.maps.maps[f].data(), mu.size());
+      const size_t texels = p.maps.valid[f].size();
+      for (Eigen::Index i = 0; i < x.size(); ++i) {
+        if (!p.maps.valid[f][static_cast<size_t>(i) % texels]) x[i] = mu[i];
+      }
+      const Eigen::VectorXf r = mu + basis * (basis.transpose() * (x - mu));
+      return std::vector<float>(r.data(), r.data() + r.size());
+    });
+    e.neutral[s] = TextureError(p.maps, skin, split[s], [&](int64_t) { return p.maps.maps[0]; });
+  }
+  if (!failed.ok()) return failed;
+  return e;
+}
+
+TextureBatch DrawBatch(const PreparedTextures& p, const TextureTrainJob& job, std::mt19937_64& rng) {
+  TextureBatch batch;
+  batch.batch = job.schedule.batch;
+  for (int i = 0; i < batch.batch; ++i) {
+    const int64_t f = p.train[static_cast<size_t>(rng() % p.train.size())];
+    batch.textures.insert(batch.textures.end(), p.maps.maps[f].begin(), p.maps.maps[f].end());
+    batch.valid.insert(batch.valid.end(), p.maps.valid[f].begin(), p.maps.valid[f].end());
+    for (int l = 0; l < job.texture.texture_latent; ++l) batch.noise.push_back(internal::Normal(rng));
+  }
+  return batch;
+}
+
+nlohmann::json OptionsJson(const TextureTrainJob& job, const std::string& dataset_id) {
+  const TextureVaeOptions& t = job.texture;
+  nlohmann::json j = {{"network", "texture"},
+                      {"input_size", t.input_size},
+                      {"levels", t.levels},
+                      {"base_channels", t.base_channels},
+                      {"max_channels", t.max_channels},
+                      {"channels", t.channels},
+                      {"texture_latent", t.texture_latent},
+                      {"kl_weight", t.kl_weight},
+                      {"seed", t.seed},
+                      {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                      {"dataset_id", dataset_id},
+                      {"threads", TorchThreadCount(t.threads)}};
+  asset_internal::AddScheduleJson(job.schedule, &j);
+  return j;
+}
+
+absl::StatusOr<std::unique_ptr<TextureVae>> LoadTextureNet(const std::string& run_dir, int threads) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(run_dir, "texture"));
+  TextureVaeOptions options;
+  options.threads = threads;
+  STAGE_RETURN_IF_ERROR(asset_internal::ReadIntOptions(run_dir, o,
+                                                       {{"input_size", &options.input_size},
+                                                        {"levels", &options.levels},
+                                                        {"base_channels", &options.base_channels},
+                                                        {"max_channels", &options.max_channels},
+                                                        {"channels", &options.channels},
+                                                        {"texture_latent", &options.texture_latent}}));
+  // The normalization is the trained net's (buffers of its weights, loaded below).
+  const size_t texels = static_cast<size_t>(options.input_size) * options.input_size;
+  STAGE_ASSIGN_OR_RETURN(auto net, TextureVae::Create(options, std::vector<float>(options.channels * texels, 0.f),
+                                                      std::vector<float>(options.channels, 1.f)));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/texture_vae.pt"));
+  return net;
+}
+
+nlohmann::json SplitJson(const TextureSplitError& x) {
+  return {{"frames", x.frames},
+          {"albedo_levels", x.albedo_levels},
+          {"normal_deg", x.normal_deg},
+          {"specular_relative", x.specular_relative}};
+}
+
+}  // namespace
+
+absl::Status TextureTrainJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("texture training: no dataset");
+  STAGE_RETURN_IF_ERROR(texture.Validate());
+  if (texture.channels != kTextureChannels) {
+    return absl::InvalidArgumentError(absl::StrCat("texture training: the dataset's textures have ", kTextureChannels,
+                                                   " channels, not ", texture.channels));
+  }
+  return schedule.Validate();
+}
+
+absl::StatusOr<TextureTrainResult> TrainTextureAsset(const TextureTrainJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  STAGE_ASSIGN_OR_RETURN(const PreparedTextures data, PrepareTextures(job.dataset, job.texture.input_size));
+  TextureTrainResult result;
+  result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "texture");
+  STAGE_ASSIGN_OR_RETURN(auto net, TextureVae::Create(job.texture, data.mean, data.scale));
+  result.parameters = net->parameter_count();
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "texture VAE";
+  loop.options = OptionsJson(job, asset_internal::DatasetId(data.dataset));
+  loop.loss_names = {"total", "reconstruction", "kl"};
+  loop.schedule = job.schedule;
+  loop.seed = job.texture.seed;
+  loop.save = [&net](const std::string& path) { return net->Save(path); };
+  loop.load = [&net](const std::string& path) { return net->Load(path); };
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    STAGE_ASSIGN_OR_RETURN(const TextureLosses l, net->TrainStep(DrawBatch(data, job, rng), rate));
+    return std::vector<double>{l.total, l.reconstruction, l.kl};
+  };
+  auto losses_of = [](const std::vector<double>& v) { return TextureLosses{v[0], v[1], v[2]}; };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, losses_of(l));
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(losses_of(l));
+  result.steps = job.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/texture_vae.pt"));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, Evaluate(*net, data));
+  STAGE_RETURN_IF_ERROR(
+      WriteFileAtomically(result.output_dir + "/evaluation.json", TextureEvaluationJson(result.evaluation) + "\n"));
+  return result;
+}
+
+absl::StatusOr<TextureEvaluation> EvaluateTextureAsset(const std::string& dataset, const std::string& run_dir) {
+  STAGE_ASSIGN_OR_RETURN(auto net, LoadTextureNet(run_dir, 0));
+  STAGE_ASSIGN_OR_RETURN(const PreparedTextures data, PrepareTextures(dataset, net->options().input_size));
+  return Evaluate(*net, data);
+}
+
+std::string TextureEvaluationJson(const TextureEvaluation& e) {
+  nlohmann::json j;
+  const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
+  for (int s = 0; s < 3; ++s) {
+    for (auto [model, errors] : {std::pair{"vae", e.vae}, std::pair{"pca", e.pca}, std::pair{"neutral", e.neutral}}) {
+      j[names[s]][model] = SplitJson(errors[s]);
+    }
+  }
+  return j.dump();
+}
+
+std::string FormatTextureEvaluation(const TextureEvaluation& e) {
+  std::string out = absl::StrFormat("%-18s %6s  %-8s %14s %12s %12s\n", "split", "frames", "model", "albedo levels",
+                                    "normal deg", "specular %");
+  const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
+  for (int s = 0; s < 3; ++s) {
+    for (auto [model, errors] : {std::pair{"VAE", e.vae}, std::pair{"PCA", e.pca}, std::pair{"neutral", e.neutral}}) {
+      const TextureSplitError& x = errors[s];
+      absl::StrAppendFormat(&out, "%-18s %6d  %-8s %14.3f %12.3f %12.2f\n", names[s], x.frames, model, x.albedo_levels,
+                            x.normal_deg, 100 * x.specular_relative);
+    }
+  }
+  absl::StrAppend(&out,
+                  "(albedo: RMSE in 0..255 levels of its sRGB encoding on the skin; the goal driven from a held-out "
+                  "view is 3 levels; these are the textures encoded and decoded)\n");
+  return out;
+}
+
+}  // namespace stage::processing
