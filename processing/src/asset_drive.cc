@@ -441,6 +441,23 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> CreateMapping(const DrivenAsset& 
 
 namespace asset_internal {
 
+absl::StatusOr<DrivenAsset> LoadDriven(const std::string& dataset, const std::string& geometry_run,
+                                       const std::string& expression_run, const std::string& mapping_run,
+                                       const std::string& finetune_run, int threads) {
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a, LoadDrivenAsset(dataset, RunDir(geometry_run, dataset, "geometry"),
+                                                        RunDir(expression_run, dataset, "expression"), threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping, LoadMappingNet(RunDir(mapping_run, dataset, "mapping"), a.ExpressionSize(),
+                                                   a.GeometrySize(), threads));
+  if (!finetune_run.empty()) {
+    STAGE_ASSIGN_OR_RETURN(
+        a.driver, LoadDrivingNet(finetune_run, RunDir(geometry_run, dataset, "geometry"),
+                                 RunDir(expression_run, dataset, "expression"), RunDir(mapping_run, dataset, "mapping"),
+                                 *a.expression, *a.mapping, threads));
+  }
+  STAGE_RETURN_IF_ERROR(Drive(&a));
+  return a;
+}
+
 void CropToNetInput(const uint8_t* crop, int size, int input, float* out) {
   const int k = size / input;
   for (int y = 0; y < input; ++y) {
@@ -476,8 +493,8 @@ absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::stri
 }
 
 absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string& run_dir, int input, int output,
-                                                              int threads) {
-  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "mapping"));
+                                                              int threads, const std::string& network) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, network));
   LatentMappingOptions options;
   options.threads = threads;
   STAGE_RETURN_IF_ERROR(ReadIntOptions(run_dir, o,
@@ -492,7 +509,7 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string&
   // The normalization is the trained net's (buffers of its weights, loaded below).
   STAGE_ASSIGN_OR_RETURN(
       auto net, LatentMapping::Create(options, std::vector<float>(output, 0.f), std::vector<float>(output, 1.f)));
-  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/mapping.pt"));
+  STAGE_RETURN_IF_ERROR(net->Load(run_dir + "/" + network + ".pt"));
   return net;
 }
 
@@ -623,21 +640,9 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                                      const std::string& expression_run, const std::string& mapping_run,
                                                      const std::string& picture, const std::string& finetune_run) {
-  STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
-                         LoadDrivenAsset(dataset, asset_internal::RunDir(geometry_run, dataset, "geometry"),
-                                         asset_internal::RunDir(expression_run, dataset, "expression"), /*threads=*/0));
-  STAGE_ASSIGN_OR_RETURN(a.mapping,
-                         asset_internal::LoadMappingNet(asset_internal::RunDir(mapping_run, dataset, "mapping"),
-                                                        a.ExpressionSize(), a.GeometrySize(), /*threads=*/0));
-  if (finetune_run != "none") {
-    STAGE_ASSIGN_OR_RETURN(
-        a.driver, asset_internal::LoadDrivingNet(asset_internal::RunDir(finetune_run, dataset, "finetune"),
-                                                 asset_internal::RunDir(geometry_run, dataset, "geometry"),
-                                                 asset_internal::RunDir(expression_run, dataset, "expression"),
-                                                 asset_internal::RunDir(mapping_run, dataset, "mapping"), *a.expression,
-                                                 *a.mapping, /*threads=*/0));
-  }
-  STAGE_RETURN_IF_ERROR(Drive(&a));
+  const std::string finetune = finetune_run == "none" ? "" : asset_internal::RunDir(finetune_run, dataset, "finetune");
+  STAGE_ASSIGN_OR_RETURN(const DrivenAsset a,
+                         asset_internal::LoadDriven(dataset, geometry_run, expression_run, mapping_run, finetune, 0));
   if (!picture.empty()) STAGE_RETURN_IF_ERROR(WritePicture(a, picture));
   return EvaluateDriven(a);
 }

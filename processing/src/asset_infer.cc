@@ -15,6 +15,7 @@
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
 #include "stage/processing/mesh_sequence.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/uv_geometry.h"
@@ -32,6 +33,10 @@ struct Asset {
   // The driving path: the fine-tuned run's (driver_run), or the expression VAE's encoder and the mapping as trained.
   std::unique_ptr<DrivingNet> driver;
   std::string driver_run;
+  // The textures' nets, where the asset drives its textures (texture_mapping_run).
+  std::unique_ptr<TextureVae> texture;
+  std::unique_ptr<LatentMapping> texture_mapping;
+  std::string texture_mapping_run;
   FaceTemplate face;
   int image_size = 0;                 // the dataset's crops'
   std::vector<std::string> held_out;  // the cameras the expression VAE did not train on
@@ -66,8 +71,40 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
     return absl::FailedPreconditionError(absl::StrCat(options.dataset, ": its crops (", d.image_size,
                                                       " px) are not the expression VAE's input size's multiple"));
   }
+  if (options.texture_mapping_run != "none") {
+    const std::string run = RunDir(options.texture_mapping_run, options.dataset, "texture_mapping");
+    if (!options.texture_mapping_run.empty() || fs::exists(run + "/texture_mapping.pt")) {
+      const std::string texture_run = RunDir(options.texture_run, options.dataset, "texture");
+      STAGE_ASSIGN_OR_RETURN(a.texture, asset_internal::LoadTextureNet(texture_run, options.threads));
+      STAGE_ASSIGN_OR_RETURN(a.texture_mapping, asset_internal::LoadTextureMappingNet(
+                                                    run, RunDir(options.geometry_run, options.dataset, "geometry"),
+                                                    texture_run, a.geometry->options().geometry_latent,
+                                                    a.texture->options().texture_latent, options.threads));
+      a.texture_mapping_run = run;
+    }
+  }
   STAGE_ASSIGN_OR_RETURN(a.face, ShippedFaceTemplate());
   return a;
+}
+
+// The textures of a geometry latent (the texture mapping, then the texture VAE's decoder) into `dir`: albedo.exr,
+// specular.exr, normal_tangent.exr.
+absl::Status WriteDrivenTextures(const Asset& a, const std::vector<float>& geometry_latent, const std::string& dir) {
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> latent, a.texture_mapping->Map(geometry_latent, 1));
+  STAGE_ASSIGN_OR_RETURN(const std::vector<float> chw, a.texture->Decode(latent, 1));
+  const int s = a.texture->options().input_size;
+  const size_t texels = static_cast<size_t>(s) * s;
+  Image albedo(s, s, 3), specular(s, s, 1), normal(s, s, 3);
+  for (size_t t = 0; t < texels; ++t) {
+    for (int c = 0; c < 3; ++c) albedo.pixels[3 * t + c] = std::max(0.f, chw[c * texels + t]);
+    specular.pixels[t] = std::max(0.f, chw[3 * texels + t]);
+    Eigen::Vector3f n(chw[4 * texels + t], chw[5 * texels + t], chw[6 * texels + t]);
+    n = n.norm() > 0 ? n.normalized() : Eigen::Vector3f::UnitZ();
+    std::copy(n.data(), n.data() + 3, &normal.pixels[3 * t]);
+  }
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/albedo.exr", albedo));
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/specular.exr", specular));
+  return WriteExr(dir + "/normal_tangent.exr", normal);
 }
 
 // The output directory: the options', or the take's derived/asset/infer/<camera>, or <video's name>-asset beside it.
@@ -101,6 +138,7 @@ absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const st
   if (!cv::imwrite(dir + "/crop.png", image))
     return absl::UnavailableError(absl::StrCat(dir, "/crop.png: cannot write"));
   STAGE_RETURN_IF_ERROR(WriteGeometryMap(dir + "/geometry_map.exr", map));
+  if (a.texture_mapping != nullptr) STAGE_RETURN_IF_ERROR(WriteDrivenTextures(a, geometry_latent, dir));
   TriangleMesh mesh = a.face.mesh;
   for (size_t v = 0; v < mesh.positions.size(); ++v) {
     if (const auto p = SampleGeometryMap(map, mesh.uvs[v])) mesh.positions[v] = *p;
@@ -233,6 +271,7 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   }
   STAGE_RETURN_IF_ERROR(gltf.Flush());
   for (const auto& file : gltf.files()) result.gltf_files.push_back(file["file"].get<std::string>());
+  result.textures = a.texture_mapping != nullptr;
   const nlohmann::json summary = {
       {"camera", options.camera},
       {"driven_through", a.driver_run.empty() ? "mapping" : "finetune"},
@@ -241,6 +280,8 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
       {"source", options.take_dir.empty() ? "video" : "take"},
       {"frames", result.frames},
       {"geometry_size", a.geometry->options().input_size},
+      {"texture_mapping_run", a.texture_mapping_run},
+      {"texture_size", a.texture == nullptr ? 0 : a.texture->options().input_size},
       {"gltf", gltf.files()}};
   STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/frames.json", summary.dump(2) + "\n"));
   return result;

@@ -767,6 +767,20 @@ absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs
   }
 }
 
+absl::StatusOr<std::vector<float>> LatentMapping::Map(const std::vector<float>& inputs, int batch) const {
+  const LatentMappingOptions& o = impl_->options;
+  STAGE_RETURN_IF_ERROR(CheckSize(inputs, int64_t{batch} * o.input, "the inputs", kMappingNet));
+  try {
+    SetTorchThreads(o.threads);
+    torch::NoGradGuard no_grad;
+    MappingNet& net = impl_->net;
+    net->eval();
+    return ToVector(net->target_mean + net->target_scale * net->forward(FromVector(inputs, {batch, o.input})));
+  } catch (const std::exception& e) {
+    return internal::TorchError(kMappingNet, "mapping", e);
+  }
+}
+
 absl::Status LatentMapping::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kMappingNet);
 }

@@ -24,6 +24,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using asset_internal::NetMaps;
+using asset_internal::PreparedData;
 
 // A dataset's textures at the net's size: each frame's averaged down (a texel valid where any of its sources is),
 // NCHW (C x S x S) with its validity (S x S), the training frames, their mean and each channel's spread about it.
@@ -229,6 +230,10 @@ nlohmann::json OptionsJson(const TextureTrainJob& job, const std::string& datase
   return j;
 }
 
+}  // namespace
+
+namespace asset_internal {
+
 absl::StatusOr<std::unique_ptr<TextureVae>> LoadTextureNet(const std::string& run_dir, int threads) {
   STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(run_dir, "texture"));
   TextureVaeOptions options;
@@ -248,6 +253,23 @@ absl::StatusOr<std::unique_ptr<TextureVae>> LoadTextureNet(const std::string& ru
   return net;
 }
 
+absl::StatusOr<std::unique_ptr<LatentMapping>> LoadTextureMappingNet(const std::string& run_dir,
+                                                                     const std::string& geometry_run,
+                                                                     const std::string& texture_run,
+                                                                     int geometry_latent, int texture_latent,
+                                                                     int threads) {
+  STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, RunOptions(run_dir, "texture_mapping"));
+  STAGE_RETURN_IF_ERROR(
+      CheckTrainedFrom(run_dir, o, "texture mapping trained", {{"geometry", geometry_run}, {"texture", texture_run}}));
+  return LoadMappingNet(run_dir, geometry_latent, texture_latent, threads, "texture_mapping");
+}
+
+}  // namespace asset_internal
+
+namespace {
+
+using asset_internal::LoadTextureNet;
+
 nlohmann::json SplitJson(const TextureSplitError& x) {
   return {{"frames", x.frames},
           {"albedo_levels", x.albedo_levels},
@@ -255,7 +277,224 @@ nlohmann::json SplitJson(const TextureSplitError& x) {
           {"specular_relative", x.specular_relative}};
 }
 
+// The nets and latents the texture mapping trains and is evaluated on.
+struct TextureAsset {
+  PreparedData geometry_data;  // at the geometry net's size
+  PreparedTextures textures;   // at the texture net's size
+  std::unique_ptr<GeometryVae> geometry;
+  std::unique_ptr<TextureVae> texture;
+  std::unique_ptr<LatentMapping> mapping;
+  std::vector<std::vector<float>> geometry_latents, texture_latents;  // per frame, the means
+};
+
+absl::StatusOr<TextureAsset> LoadTextureAsset(const std::string& dataset, const std::string& geometry_run,
+                                              const std::string& texture_run, int threads) {
+  TextureAsset a;
+  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryRun(geometry_run, dataset, &a.geometry_data, threads));
+  STAGE_ASSIGN_OR_RETURN(a.texture, LoadTextureNet(texture_run, threads));
+  STAGE_ASSIGN_OR_RETURN(a.textures, PrepareTextures(dataset, a.texture->options().input_size));
+  const int g = a.geometry->options().geometry_latent;
+  for (int64_t f = 0; f < a.textures.dataset.frames(); ++f) {
+    const NetMaps& m = a.geometry_data.maps;
+    STAGE_ASSIGN_OR_RETURN(std::vector<float> z, a.geometry->Encode(m.maps[f], m.valid[f], 1));
+    z.resize(static_cast<size_t>(g));
+    a.geometry_latents.push_back(std::move(z));
+    STAGE_ASSIGN_OR_RETURN(std::vector<float> t,
+                           a.texture->Encode(a.textures.maps.maps[f], a.textures.maps.valid[f], 1));
+    a.texture_latents.push_back(std::move(t));
+  }
+  return a;
+}
+
+// The evaluation of `a.mapping` (see TextureDrivenEvaluation); driven where the dataset's directory holds a mapping
+// run (and through its fine-tuned path where one is finished).
+absl::StatusOr<TextureDrivenEvaluation> EvaluateTextureMapping(const TextureAsset& a, const std::string& dataset,
+                                                               const std::string& geometry_run) {
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  const NetMaps& m = a.textures.maps;
+  const AssetDataset& d = a.textures.dataset;
+  const std::vector<uint8_t> skin = SkinMask(face, m.size);
+  absl::Status failed;
+  auto textures_of = [&](const std::vector<float>& geometry_latent) {
+    absl::StatusOr<std::vector<float>> out = a.mapping->Map(geometry_latent, 1);
+    if (out.ok()) out = a.texture->Decode(*out, 1);
+    if (!out.ok()) failed = out.status();
+    return out.ok() ? *out : m.maps[0];
+  };
+  TextureDrivenEvaluation e;
+  for (int s = 0; s < 3; ++s) {
+    const std::vector<int64_t> frames = asset_internal::FramesOf(d, static_cast<SampleSplit>(s));
+    e.from_geometry[s] = TextureError(m, skin, frames, [&](int64_t f) { return textures_of(a.geometry_latents[f]); });
+    e.autoencoded[s] = TextureError(m, skin, frames, [&](int64_t f) {
+      absl::StatusOr<std::vector<float>> out = a.texture->Decode(a.texture_latents[f], 1);
+      if (!out.ok()) failed = out.status();
+      return out.ok() ? *out : m.maps[0];
+    });
+    e.neutral[s] = TextureError(m, skin, frames, [&](int64_t) { return m.maps[0]; });
+  }
+  const std::string mapping_run = asset_internal::RunDir("", dataset, "mapping");
+  if (!d.cameras.empty() && fs::exists(mapping_run + "/mapping.pt")) {
+    const std::string finetune = asset_internal::FineTuneRun("", dataset);
+    STAGE_ASSIGN_OR_RETURN(const asset_internal::DrivenAsset driven,
+                           asset_internal::LoadDriven(dataset, geometry_run, "", "", finetune, 0));
+    e.driven_through = finetune.empty() ? "mapping" : "finetune";
+    for (int c = 0; c < driven.crops.cameras; ++c) {
+      TextureDrivenEvaluation::Camera camera;
+      camera.id = d.cameras[c];
+      camera.trained = std::find(driven.trained.begin(), driven.trained.end(), c) != driven.trained.end();
+      for (int s = 0; s < 3; ++s) {
+        std::vector<int64_t> frames;
+        for (int64_t f : asset_internal::FramesOf(d, static_cast<SampleSplit>(s))) {
+          if (asset_internal::ImageValid(d, f, c)) frames.push_back(f);
+        }
+        camera.error[s] = TextureError(m, skin, frames, [&](int64_t f) { return textures_of(driven.DrivenOf(f, c)); });
+      }
+      e.cameras.push_back(camera);
+    }
+  }
+  if (!failed.ok()) return failed;
+  return e;
+}
+
 }  // namespace
+
+absl::Status TextureMappingJob::Validate() const {
+  if (dataset.empty()) return absl::InvalidArgumentError("texture mapping: no dataset");
+  if (mapping.input != 0 || mapping.output != 0) {
+    return absl::InvalidArgumentError("texture mapping: its sizes are the VAEs' latents' (leave them 0)");
+  }
+  if (!(input_noise >= 0 && input_noise <= 2)) {
+    return absl::InvalidArgumentError(absl::StrCat("texture mapping: input noise ", input_noise, " is not in 0..2"));
+  }
+  return schedule.Validate();
+}
+
+absl::StatusOr<TextureMappingResult> TrainTextureMapping(const TextureMappingJob& job) {
+  STAGE_RETURN_IF_ERROR(job.Validate());
+  const std::string geometry_run = asset_internal::RunDir(job.geometry_run, job.dataset, "geometry");
+  const std::string texture_run = asset_internal::RunDir(job.texture_run, job.dataset, "texture");
+  STAGE_ASSIGN_OR_RETURN(TextureAsset a, LoadTextureAsset(job.dataset, geometry_run, texture_run, job.mapping.threads));
+  const std::vector<int64_t>& train = a.textures.train;
+  LatentMappingOptions o = job.mapping;
+  o.input = a.geometry->options().geometry_latent;
+  o.output = a.texture->options().texture_latent;
+  std::vector<std::vector<float>> inputs, targets;
+  for (int64_t f : train) {
+    inputs.push_back(a.geometry_latents[f]);
+    targets.push_back(a.texture_latents[f]);
+  }
+  std::vector<float> input_mean, input_spread, target_mean, target_spread;
+  asset_internal::MeanAndSpread(inputs, o.input, &input_mean, &input_spread);
+  asset_internal::MeanAndSpread(targets, o.output, &target_mean, &target_spread);
+  STAGE_ASSIGN_OR_RETURN(a.mapping, LatentMapping::Create(o, target_mean, target_spread));
+
+  TextureMappingResult result;
+  result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "texture_mapping");
+  result.parameters = a.mapping->parameter_count();
+  LatentMapping& net = *a.mapping;
+  internal::TrainingLoop loop;
+  loop.dir = result.output_dir;
+  loop.what = "texture mapping";
+  loop.options = {{"network", "texture_mapping"},
+                  {"input", o.input},
+                  {"output", o.output},
+                  {"hidden", o.hidden},
+                  {"layers", o.layers},
+                  {"seed", o.seed},
+                  {"input_noise", job.input_noise},
+                  {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
+                  {"dataset_id", asset_internal::DatasetId(a.textures.dataset)},
+                  {"threads", TorchThreadCount(o.threads)}};
+  STAGE_RETURN_IF_ERROR(
+      asset_internal::AddRunIdentities({{"geometry", geometry_run}, {"texture", texture_run}}, &loop.options));
+  asset_internal::AddScheduleJson(job.schedule, &loop.options);
+  loop.loss_names = {"total"};
+  loop.schedule = job.schedule;
+  loop.seed = o.seed;
+  loop.save = [&net](const std::string& path) { return net.Save(path); };
+  loop.load = [&net](const std::string& path) { return net.Load(path); };
+  loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
+    const int b = job.schedule.batch;
+    std::vector<float> x, y, noise;
+    for (int n = 0; n < b; ++n) {
+      const size_t i = rng() % train.size();
+      x.insert(x.end(), inputs[i].begin(), inputs[i].end());
+      y.insert(y.end(), targets[i].begin(), targets[i].end());
+      for (int k = 0; k < o.input; ++k) {
+        noise.push_back(static_cast<float>(job.input_noise) * input_spread[k] * internal::Normal(rng));
+      }
+    }
+    STAGE_ASSIGN_OR_RETURN(const double loss, net.TrainStep(x, y, noise, b, rate));
+    return std::vector<double>{loss};
+  };
+  if (job.progress) {
+    loop.progress = [&](int64_t step, int64_t total, const std::vector<double>& l) {
+      return job.progress(step, total, l[0]);
+    };
+  }
+  STAGE_ASSIGN_OR_RETURN(const internal::TrainingOutcome outcome, internal::RunTraining(loop));
+  result.resumed_from = outcome.resumed_from;
+  for (const auto& l : outcome.losses) result.losses.push_back(l[0]);
+  result.steps = job.schedule.iterations;
+  STAGE_RETURN_IF_ERROR(net.Save(result.output_dir + "/texture_mapping.pt"));
+  STAGE_ASSIGN_OR_RETURN(result.evaluation, EvaluateTextureMapping(a, job.dataset, geometry_run));
+  STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/evaluation.json",
+                                            TextureDrivenEvaluationJson(result.evaluation) + "\n"));
+  return result;
+}
+
+absl::StatusOr<TextureDrivenEvaluation> EvaluateDrivenTextures(const std::string& dataset,
+                                                               const std::string& geometry_run,
+                                                               const std::string& texture_run,
+                                                               const std::string& texture_mapping_run) {
+  const std::string geometry = asset_internal::RunDir(geometry_run, dataset, "geometry");
+  const std::string texture = asset_internal::RunDir(texture_run, dataset, "texture");
+  STAGE_ASSIGN_OR_RETURN(TextureAsset a, LoadTextureAsset(dataset, geometry, texture, 0));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadTextureMappingNet(
+                             asset_internal::RunDir(texture_mapping_run, dataset, "texture_mapping"), geometry, texture,
+                             a.geometry->options().geometry_latent, a.texture->options().texture_latent, 0));
+  return EvaluateTextureMapping(a, dataset, geometry);
+}
+
+std::string TextureDrivenEvaluationJson(const TextureDrivenEvaluation& e) {
+  nlohmann::json j;
+  const char* names[3] = {"train", "held_out_block", "held_out_sequence"};
+  for (int s = 0; s < 3; ++s) {
+    j[names[s]]["from_geometry"] = SplitJson(e.from_geometry[s]);
+    j[names[s]]["autoencoded"] = SplitJson(e.autoencoded[s]);
+    j[names[s]]["neutral"] = SplitJson(e.neutral[s]);
+    for (const auto& c : e.cameras) {
+      j[names[s]]["cameras"][c.id] = SplitJson(c.error[s]);
+      j[names[s]]["cameras"][c.id]["trained"] = c.trained;
+    }
+  }
+  j["driven_through"] = e.driven_through;
+  return j.dump();
+}
+
+std::string FormatTextureDrivenEvaluation(const TextureDrivenEvaluation& e) {
+  std::string out = absl::StrFormat("%-18s %6s  %-26s %14s %12s %12s\n", "split", "frames", "textures", "albedo levels",
+                                    "normal deg", "specular %");
+  const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
+  auto row = [&](int s, const std::string& what, const TextureSplitError& x) {
+    absl::StrAppendFormat(&out, "%-18s %6d  %-26s %14.3f %12.3f %12.2f\n", names[s], x.frames, what, x.albedo_levels,
+                          x.normal_deg, 100 * x.specular_relative);
+  };
+  for (int s = 0; s < 3; ++s) {
+    for (const auto& c : e.cameras) {
+      row(s, absl::StrCat("driven from ", c.id, c.trained ? "" : " (held out)"), c.error[s]);
+    }
+    row(s, "from the frame's geometry", e.from_geometry[s]);
+    row(s, "texture VAE (ceiling)", e.autoencoded[s]);
+    row(s, "neutral frame", e.neutral[s]);
+  }
+  absl::StrAppend(&out, e.driven_through.empty()
+                            ? "(not driven from images: the dataset's directory has no mapping run)\n"
+                            : absl::StrCat("(driven through the ", e.driven_through,
+                                           "; the goal from a held-out view: 3 albedo levels on the skin)\n"));
+  return out;
+}
 
 absl::Status TextureTrainJob::Validate() const {
   if (dataset.empty()) return absl::InvalidArgumentError("texture training: no dataset");

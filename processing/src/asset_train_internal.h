@@ -66,12 +66,22 @@ absl::Status ReadIntOptions(const std::string& run_dir, const nlohmann::json& o,
 
 // Finished runs' nets: their options from trainer.json, their weights (and normalizations) from the run's net file
 // (geometry_vae.pt, expression_vae.pt, mapping.pt). The expression run's held-out cameras into `held_out`; the
-// mapping's sizes are checked against `input` and `output`.
+// mapping's sizes are checked against `input` and `output`; `network`: the mapping's ("mapping") or the texture
+// mapping's ("texture_mapping"), its net in <network>.pt.
 absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryNet(const std::string& run_dir, int threads);
 absl::StatusOr<std::unique_ptr<ExpressionVae>> LoadExpressionNet(const std::string& run_dir, int threads,
                                                                  std::vector<std::string>* held_out);
 absl::StatusOr<std::unique_ptr<LatentMapping>> LoadMappingNet(const std::string& run_dir, int input, int output,
-                                                              int threads);
+                                                              int threads, const std::string& network = "mapping");
+
+// A finished texture run's net (texture_vae.pt); a finished texture mapping run's net, refused (FailedPrecondition
+// naming the run) unless trained from the geometry and texture runs given as they are now.
+absl::StatusOr<std::unique_ptr<TextureVae>> LoadTextureNet(const std::string& run_dir, int threads);
+absl::StatusOr<std::unique_ptr<LatentMapping>> LoadTextureMappingNet(const std::string& run_dir,
+                                                                     const std::string& geometry_run,
+                                                                     const std::string& texture_run,
+                                                                     int geometry_latent, int texture_latent,
+                                                                     int threads);
 
 // A finished geometry run's net with `data`, the dataset prepared at the net's input size.
 absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& run_dir, const std::string& dataset,
@@ -132,6 +142,11 @@ struct DrivenAsset {
 // every frame's map's geometry latent.
 absl::StatusOr<DrivenAsset> LoadDrivenAsset(const std::string& dataset, const std::string& geometry_run,
                                             const std::string& expression_run, int threads);
+// The finished runs (empty names: beside the dataset) loaded and driven from every crop (Drive): through the
+// fine-tuned path of `finetune_run` (a run's directory), or through the mapping where it is empty.
+absl::StatusOr<DrivenAsset> LoadDriven(const std::string& dataset, const std::string& geometry_run,
+                                       const std::string& expression_run, const std::string& mapping_run,
+                                       const std::string& finetune_run, int threads);
 // `a.driven`: every crop's geometry latent through the fine-tuned driver where there is one, else through the
 // expression VAE's encoder and the mapping.
 absl::Status Drive(DrivenAsset* a);

@@ -297,6 +297,35 @@ TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutr
   auto again = EvaluateTextureAsset(job.dataset, job.output_dir);
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_DOUBLE_EQ(again->vae[held_out].albedo_levels, e.vae[held_out].albedo_levels);
+  // The textures driven from the geometry: the geometry VAE (default run beside the dataset), then the texture
+  // mapping from its latent to the texture latent. The made-up textures follow the same two signals as the geometry.
+  AssetTrainJob geometry = TinyJob(job.dataset, "");
+  geometry.schedule.iterations = 300;
+  ASSERT_TRUE(TrainGeometryAsset(geometry).ok());
+  TextureMappingJob mapping;
+  mapping.dataset = job.dataset;
+  mapping.texture_run = job.output_dir;
+  mapping.mapping.hidden = 64;
+  mapping.mapping.threads = 2;
+  mapping.schedule.iterations = 400;
+  mapping.schedule.batch = 16;
+  auto mapped = TrainTextureMapping(mapping);
+  ASSERT_TRUE(mapped.ok()) << mapped.status();
+  const TextureDrivenEvaluation& m = mapped->evaluation;
+  std::printf("held-out blocks, textures from the geometry: albedo %.3f levels, normals %.3f deg\n",
+              m.from_geometry[held_out].albedo_levels, m.from_geometry[held_out].normal_deg);
+  EXPECT_LT(m.from_geometry[held_out].albedo_levels, m.neutral[held_out].albedo_levels / 2);
+  EXPECT_LT(m.from_geometry[held_out].normal_deg, m.neutral[held_out].normal_deg / 2);
+  EXPECT_TRUE(m.driven_through.empty()) << "no crops, no driving path";
+  EXPECT_TRUE(m.cameras.empty());
+  auto evaluated = EvaluateDrivenTextures(job.dataset, "", job.output_dir, "");
+  ASSERT_TRUE(evaluated.ok()) << evaluated.status();
+  EXPECT_DOUBLE_EQ(evaluated->from_geometry[held_out].albedo_levels, m.from_geometry[held_out].albedo_levels);
+  // A texture VAE trained again since is not driven through the old mapping.
+  job.schedule.iterations = 20;
+  ASSERT_TRUE(TrainTextureAsset(job).ok());
+  EXPECT_THAT(EvaluateDrivenTextures(job.dataset, "", job.output_dir, "").status().message(),
+              HasSubstr("train it again"));
   // A dataset without textures is refused, saying how to get them.
   TextureTrainJob bare = job;
   bare.dataset = Dataset("texture-bare");

@@ -410,6 +410,23 @@ absl::StatusOr<v1::ProcessingProgress> TrainTextureJob(const v1::AssetOptions& a
                                FormatTextureEvaluation(result->evaluation)));
 }
 
+absl::StatusOr<v1::ProcessingProgress> TrainTextureMappingJob(const v1::AssetOptions& a, const std::string& dataset,
+                                                              const TrainingSchedule& schedule,
+                                                              const TrainReport& report) {
+  TextureMappingJob t;
+  t.dataset = dataset;
+  t.schedule = schedule;
+  SetIfGiven(a.hidden(), &t.mapping.hidden);
+  SetIfGiven(a.layers(), &t.mapping.layers);
+  SetIfGiven(a.seed(), &t.mapping.seed);
+  t.progress = report;
+  auto result = TrainTextureMapping(t);
+  if (!result.ok()) return result.status();
+  return Finished(result->steps, result->output_dir,
+                  absl::StrCat("texture mapping trained ", result->steps, " steps into ", result->output_dir, "\n",
+                               FormatTextureDrivenEvaluation(result->evaluation)));
+}
+
 }  // namespace
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
@@ -433,13 +450,15 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
       (network != v1::ASSET_NETWORK_GEOMETRY && (a.geometry_latent() != 0 || a.pose_latent() != 0)) ||
       (network != v1::ASSET_NETWORK_EXPRESSION &&
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
-      (network != v1::ASSET_NETWORK_MAPPING && (a.hidden() != 0 || a.layers() != 0)) ||
+      (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING &&
+       (a.hidden() != 0 || a.layers() != 0)) ||
       (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
       (network != v1::ASSET_NETWORK_TEXTURE && a.texture_latent() != 0)) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }
-  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING    ? MappingTrainJob{}.schedule
+  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING || network == v1::ASSET_NETWORK_TEXTURE_MAPPING
+                                  ? MappingTrainJob{}.schedule
                               : network == v1::ASSET_NETWORK_FINETUNE ? FineTuneJob{}.schedule
                                                                       : TrainingSchedule{};
   if (a.iterations() != 0) schedule.iterations = a.iterations();
@@ -456,6 +475,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   if (network == v1::ASSET_NETWORK_MAPPING) return TrainMappingJob(a, dataset, schedule, report);
   if (network == v1::ASSET_NETWORK_FINETUNE) return FineTuneJobOf(a, dataset, schedule, report);
   if (network == v1::ASSET_NETWORK_TEXTURE) return TrainTextureJob(a, dataset, schedule, report);
+  if (network == v1::ASSET_NETWORK_TEXTURE_MAPPING) return TrainTextureMappingJob(a, dataset, schedule, report);
   return TrainGeometryJob(a, dataset, schedule, report);
 }
 

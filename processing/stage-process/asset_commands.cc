@@ -93,11 +93,14 @@ void AssetCommands::AddTrain() {
       "geometry latent, both VAEs frozen: the asset driven from every camera is evaluated at the end) and finetune "
       "(the expression encoder and the mapping trained together on the geometry latents, the crops jittered: the "
       "driving path inference uses; evaluated as the mapping); texture (the texture VAE, on the dataset's textures: "
-      "wrinkle maps over their mean)");
+      "wrinkle maps over their mean) and texture-mapping (geometry latent to texture latent, both VAEs frozen: "
+      "whatever drives the geometry then drives the textures)");
   train_->add_option("--dataset", job.dataset, "The dataset file (build-dataset's)")->required();
-  train_->add_option("--network", network_, "The network: geometry, expression, mapping, finetune or texture")
+  train_
+      ->add_option("--network", network_,
+                   "The network: geometry, expression, mapping, finetune, texture or texture-mapping")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune", "texture"}));
+      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune", "texture", "texture-mapping"}));
   train_->add_option(
       "--output", job.output_dir,
       "The run's directory (default: the dataset's directory/geometry, /expression, /mapping, /finetune or "
@@ -169,8 +172,11 @@ void AssetCommands::AddTrainNetworkOptions() {
       ->add_option("--input-noise", mapping_job_.input_noise,
                    "mapping: noise added to its inputs, in units of their spread")
       ->capture_default_str();
-  train_->add_option("--geometry-run", mapping_job_.geometry_run,
-                     "mapping, finetune: the geometry VAE's run (default: the dataset's directory/geometry)");
+  train_->add_option("--texture-run", texture_mapping_job_.texture_run,
+                     "texture-mapping: the texture VAE's run (default: the dataset's directory/texture)");
+  train_->add_option(
+      "--geometry-run", mapping_job_.geometry_run,
+      "mapping, finetune, texture-mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
   train_->add_option("--expression-run", mapping_job_.expression_run,
                      "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
   // The fine-tuning's.
@@ -205,14 +211,17 @@ void AssetCommands::AddEvaluate() {
                    "What to evaluate: geometry, mapping (the asset driven through the mapping), finetune (driven "
                    "through the fine-tuned path) or texture")
       ->capture_default_str()
-      ->check(CLI::IsMember({"geometry", "mapping", "finetune", "texture"}));
+      ->check(CLI::IsMember({"geometry", "mapping", "finetune", "texture", "texture-mapping"}));
   evaluate_->add_option("--run", evaluate_run_,
-                        "The run's directory (default: the dataset's directory/geometry, /mapping, /finetune or "
-                        "/texture)");
+                        "The run's directory (default: the dataset's directory/geometry, /mapping, /finetune, "
+                        "/texture or /texture_mapping)");
+  evaluate_->add_option("--texture-run", evaluate_texture_run_,
+                        "texture-mapping: the texture VAE's run (default: the dataset's directory/texture)");
   evaluate_->add_option("--mapping-run", evaluate_mapping_run_,
                         "finetune: the mapping's run (default: the dataset's directory/mapping)");
   evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
-                        "mapping, finetune: the geometry VAE's run (default: the dataset's directory/geometry)");
+                        "mapping, finetune, texture-mapping: the geometry VAE's run (default: the dataset's "
+                        "directory/geometry)");
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
                         "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
   evaluate_->add_option("--picture", evaluate_picture_,
@@ -243,6 +252,10 @@ void AssetCommands::AddInfer() {
   infer_app_->add_option("--geometry-run", o.geometry_run, "The geometry VAE's run (default: beside the dataset)");
   infer_app_->add_option("--expression-run", o.expression_run, "The expression VAE's run (default: beside it)");
   infer_app_->add_option("--mapping-run", o.mapping_run, "The mapping's run (default: beside it)");
+  infer_app_->add_option("--texture-mapping-run", o.texture_mapping_run,
+                         "The texture mapping the textures are driven through (default: the dataset's "
+                         "directory/texture_mapping where it holds a finished run, else no textures; none: none)");
+  infer_app_->add_option("--texture-run", o.texture_run, "The texture VAE's run (default: beside the dataset)");
   infer_app_->add_option("--finetune-run", o.finetune_run,
                          "The fine-tuned driving path's run (default: beside the dataset where there is one, else "
                          "the mapping alone; none: the mapping alone)");
@@ -281,12 +294,14 @@ int AssetCommands::Infer() {
   if (json_) {
     std::cout << nlohmann::json{{"output_dir", result->output_dir},
                                 {"frames", result->frames},
-                                {"gltf", result->gltf_files}}
+                                {"gltf", result->gltf_files},
+                                {"textures", result->textures}}
                      .dump()
               << "\n";
   } else {
     std::cout << result->frames.size() << " frame(s) of " << o.camera << " drove the asset into " << result->output_dir
-              << " (" << result->gltf_files.size() << " glTF animation(s))\n";
+              << " (" << result->gltf_files.size() << " glTF animation(s)"
+              << (result->textures ? "; textures" : "; no textures: no texture mapping trained") << ")\n";
   }
   return 0;
 }
@@ -370,10 +385,11 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
       {"--swap-weight", {"expression"}},
       {"--cycle-weight", {"expression"}},
       {"--held-out-cameras", {"expression"}},
-      {"--hidden", {"mapping"}},
-      {"--layers", {"mapping"}},
-      {"--input-noise", {"mapping"}},
-      {"--geometry-run", {"mapping", "finetune"}},
+      {"--hidden", {"mapping", "texture-mapping"}},
+      {"--layers", {"mapping", "texture-mapping"}},
+      {"--input-noise", {"mapping", "texture-mapping"}},
+      {"--geometry-run", {"mapping", "finetune", "texture-mapping"}},
+      {"--texture-run", {"texture-mapping"}},
       {"--expression-run", {"mapping", "finetune"}},
       {"--mapping-run", {"finetune"}},
       {"--freeze-encoder", {"finetune"}},
@@ -398,6 +414,7 @@ int AssetCommands::Train() {
   if (network_ == "mapping") return TrainMapping();
   if (network_ == "finetune") return FineTune();
   if (network_ == "texture") return TrainTexture();
+  if (network_ == "texture-mapping") return TrainTextureMapping();
   ProgressLine bar("steps");
   train_job_.progress = [&bar](int64_t step, int64_t total, const processing::GeometryLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -516,6 +533,50 @@ int AssetCommands::TrainTexture() {
   return 0;
 }
 
+int AssetCommands::TrainTextureMapping() {
+  processing::TextureMappingJob& job = texture_mapping_job_;
+  job.dataset = train_job_.dataset;
+  job.output_dir = train_job_.output_dir;
+  job.geometry_run = mapping_job_.geometry_run;
+  const processing::TrainingSchedule given = train_job_.schedule;
+  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
+  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
+  job.schedule.learning_rate = given.learning_rate;
+  job.schedule.checkpoint_every = given.checkpoint_every;
+  job.schedule.resume = given.resume;
+  job.mapping.hidden = mapping_job_.mapping.hidden;
+  job.mapping.layers = mapping_job_.mapping.layers;
+  job.input_noise = mapping_job_.input_noise;
+  job.mapping.threads = train_job_.geometry.threads;
+  job.mapping.seed = train_job_.geometry.seed;
+  ProgressLine bar("steps");
+  job.progress = [&bar](int64_t step, int64_t total, double loss) {
+    if (step % 50 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", loss));
+    return true;
+  };
+  auto result = processing::TrainTextureMapping(job);
+  bar.Finish();
+  if (!result.ok()) return ReportFatal(kProgram, result.status());
+  if (json_) {
+    std::cout << nlohmann::json{{"output_dir", result->output_dir},
+                                {"steps", result->steps},
+                                {"resumed_from", result->resumed_from},
+                                {"parameters", result->parameters},
+                                {"final_loss", result->losses.empty() ? 0.0 : result->losses.back()},
+                                {"evaluation",
+                                 nlohmann::json::parse(processing::TextureDrivenEvaluationJson(result->evaluation))}}
+                     .dump()
+              << "\n";
+    return 0;
+  }
+  std::cout << "texture mapping (" << result->parameters << " weights) trained " << result->steps << " steps"
+            << (result->resumed_from > 0 ? absl::StrCat(" (resumed at ", result->resumed_from, ")") : "") << " into "
+            << result->output_dir << "\n"
+            << "The textures through it, against the dataset's (at the texture net's resolution):\n"
+            << processing::FormatTextureDrivenEvaluation(result->evaluation);
+  return 0;
+}
+
 int AssetCommands::TrainMapping() {
   processing::MappingTrainJob& job = mapping_job_;
   job.dataset = train_job_.dataset;
@@ -600,6 +661,21 @@ int AssetCommands::Evaluate() {
     if (!result.ok()) return ReportFatal(kProgram, result.status());
     std::cout << (json_ ? processing::DrivenEvaluationJson(*result) + "\n"
                         : processing::FormatDrivenEvaluation(*result));
+    return 0;
+  }
+  if (evaluate_network_ != "texture-mapping" && evaluate_->count("--texture-run") > 0) {
+    return ReportFatal(kProgram, absl::InvalidArgumentError("--texture-run is an option of --network texture-mapping"));
+  }
+  if (evaluate_network_ == "texture-mapping") {
+    if (evaluate_->count("--expression-run") > 0 || evaluate_->count("--picture") > 0) {
+      return ReportFatal(kProgram, absl::InvalidArgumentError(
+                                       "--expression-run and --picture are options of --network mapping and finetune"));
+    }
+    auto result = processing::EvaluateDrivenTextures(evaluate_dataset_, evaluate_geometry_run_, evaluate_texture_run_,
+                                                     evaluate_run_);
+    if (!result.ok()) return ReportFatal(kProgram, result.status());
+    std::cout << (json_ ? processing::TextureDrivenEvaluationJson(*result) + "\n"
+                        : processing::FormatTextureDrivenEvaluation(*result));
     return 0;
   }
   if (evaluate_->count("--geometry-run") > 0 || evaluate_->count("--expression-run") > 0 ||

@@ -27,6 +27,7 @@ class AssetCommands {
   int TrainMapping();
   int FineTune();
   int TrainTexture();
+  int TrainTextureMapping();
   // A mapping's or fine-tuning's result, as JSON or a table (1 and the error on failure).
   int PrintDriven(const std::string& what, const absl::StatusOr<processing::MappingTrainResult>& result);
   int Evaluate();
@@ -37,7 +38,7 @@ class AssetCommands {
   CLI::App* train_ = nullptr;
   CLI::App* evaluate_ = nullptr;
   std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_, evaluate_picture_,
-      evaluate_mapping_run_;
+      evaluate_mapping_run_, evaluate_texture_run_;
   std::string evaluate_network_ = "geometry";
   // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed).
   processing::AssetTrainJob train_job_;
@@ -45,6 +46,7 @@ class AssetCommands {
   processing::MappingTrainJob mapping_job_;
   processing::FineTuneJob finetune_job_;
   processing::TextureTrainJob texture_job_;
+  processing::TextureMappingJob texture_mapping_job_;
   bool freeze_encoder_ = false;
   std::string network_ = "geometry";
   processing::DatasetOptions dataset_;

@@ -12,7 +12,10 @@
 // every `gltf_segment_frames` frames animation-<first frame>.glb, those frames' meshes as one glTF binary (the
 // template with a morph target per frame and their animation: stage/processing/mesh_sequence.h), and frames.json
 // (the camera, the source, the frames, the glTF files) once all are written.
-// Textures (the texture VAE's wrinkle maps over the neutral textures) are not built yet.
+// and, where the asset has a texture mapping (asset_train.h's TrainTextureMapping: the geometry latent to the texture
+// latent), the frame's textures at the texture VAE's resolution: albedo.exr (linear RGB), specular.exr and
+// normal_tangent.exr (unit, +y along +v), float32 OpenEXR in the template's layout. Not yet at a neutral texture's
+// full resolution.
 #pragma once
 
 #include <cstdint>
@@ -33,6 +36,10 @@ struct AssetInferOptions {
   // The fine-tuned driving path (asset_train.h's FineTuneDrivingAsset) the images drive through: its run; empty:
   // the dataset's directory/finetune where it holds a finished run, else the mapping; "none": the mapping.
   std::string finetune_run;
+  // The texture mapping the textures are driven through (its run); empty: the dataset's directory/texture_mapping
+  // where it holds a finished run, else no textures; "none": no textures. The texture VAE's run: `texture_run`
+  // (default: the dataset's directory/texture).
+  std::string texture_mapping_run, texture_run;
   // The camera the images are of (one the dataset cropped).
   std::string camera;
   // The images, from one of: a take's full-lit frames of the camera, frames [first_frame, last_frame) (last < 0: to
@@ -61,6 +68,7 @@ struct AssetInferResult {
   std::string output_dir;
   std::vector<int64_t> frames;
   std::vector<std::string> gltf_files;  // in the output directory, in frame order
+  bool textures = false;                // written per frame
 };
 
 // Errors name the file or the camera: no crop of the camera in the dataset, a run missing, a video that does not

@@ -265,7 +265,9 @@ class LatentMapping {
   // the inputs); the mean squared error in the targets' normalized units.
   absl::StatusOr<double> TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
                                    const std::vector<float>& noise, int batch, double learning_rate);
-  // Applied to images by DrivingNet (the expression VAE's encoder and the mapping as one net).
+  // Applied to images by DrivingNet (the expression VAE's encoder and the mapping as one net); to latents by Map (the
+  // texture mapping's geometry latents): the targets (B x output, their own units) of `batch` inputs (B x input).
+  absl::StatusOr<std::vector<float>> Map(const std::vector<float>& inputs, int batch) const;
   absl::Status Save(const std::string& path) const;
   absl::Status Load(const std::string& path);
   const LatentMappingOptions& options() const;

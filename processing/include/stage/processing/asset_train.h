@@ -242,6 +242,54 @@ absl::StatusOr<TextureEvaluation> EvaluateTextureAsset(const std::string& datase
 std::string TextureEvaluationJson(const TextureEvaluation& e);
 std::string FormatTextureEvaluation(const TextureEvaluation& e);
 
+// The textures driven (docs/asset.md#driving-the-textures): an MLP from the geometry latent to the texture latent,
+// both VAEs frozen, trained on the training frames (each frame's map's geometry latent mean -> its textures' texture
+// latent mean; inputs noised as the mapping's). Our own design, where the paper maps the expression latent to both:
+// whatever drives the geometry (the mapping, or the fine-tuned path, whose encoder no longer gives the expression
+// VAE's latent) then drives the textures through it, one driving path. Its run: DATASET's directory/texture_mapping,
+// texture_mapping.pt; its options hold the two VAE runs' identities.
+struct TextureMappingJob {
+  std::string dataset;
+  std::string output_dir;                                 // default: DATASET's directory/texture_mapping
+  std::string geometry_run;                               // default: DATASET's directory/geometry
+  std::string texture_run;                                // default: DATASET's directory/texture
+  LatentMappingOptions mapping{.input = 0, .output = 0};  // sizes set from the runs
+  double input_noise = 0.1;                               // in units of the inputs' spread per dimension (0..2)
+  TrainingSchedule schedule{.iterations = 3000, .batch = 64};
+  std::function<bool(int64_t, int64_t, double)> progress;
+  absl::Status Validate() const;
+};
+
+// Textures through the texture mapping, on the skin (TextureSplitError), per split: from each frame's own geometry
+// latent (what the texture mapping can reach), and driven from each camera's crops where the asset has a driving
+// path (its mapping run; through its fine-tuned path where one is trained); beside the texture VAE encoding the
+// frame's own textures and the neutral frame.
+struct TextureDrivenEvaluation {
+  struct Camera {
+    std::string id;
+    bool trained = false;
+    TextureSplitError error[3];
+  };
+  TextureSplitError from_geometry[3], autoencoded[3], neutral[3];
+  std::vector<Camera> cameras;
+  std::string driven_through;  // "finetune", "mapping", or empty where the asset has no driving path
+};
+
+struct TextureMappingResult {
+  std::string output_dir;
+  int64_t steps = 0, resumed_from = 0, parameters = 0;
+  std::vector<double> losses;
+  TextureDrivenEvaluation evaluation;
+};
+absl::StatusOr<TextureMappingResult> TrainTextureMapping(const TextureMappingJob& job);
+// Finished runs (empty: beside the dataset) evaluated on `dataset`.
+absl::StatusOr<TextureDrivenEvaluation> EvaluateDrivenTextures(const std::string& dataset,
+                                                               const std::string& geometry_run = "",
+                                                               const std::string& texture_run = "",
+                                                               const std::string& texture_mapping_run = "");
+std::string TextureDrivenEvaluationJson(const TextureDrivenEvaluation& e);
+std::string FormatTextureDrivenEvaluation(const TextureDrivenEvaluation& e);
+
 // The evaluation as JSON, and as a table in words (the baselines beside the VAE).
 std::string TrainedEvaluationJson(const TrainedEvaluation& e);
 std::string FormatTrainedEvaluation(const TrainedEvaluation& e);
