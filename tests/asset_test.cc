@@ -1,5 +1,6 @@
 // The neural asset's stages three ways (stage-process asset ..., the library, the processing worker's job) on a take
-// the simulator renders: the dataset, the geometry VAE, the expression VAE and the mapping give the same bytes each
+// the simulator renders: the dataset, the geometry VAE, the expression VAE, the mapping, the fine-tuning, the texture
+// VAE and the texture mapping give the same bytes each
 // way; the dataset opens in h5py; clear errors.
 #include <tiny_gltf.h>
 
@@ -57,11 +58,14 @@ void MakeTake(const std::string& dir) {
   ASSERT_TRUE(rig.ok()) << rig.status();
   auto scene = sim::SimScene::FromLoadedRig(*rig);
   ASSERT_TRUE(scene.ok()) << scene.status();
-  ASSERT_TRUE(
-      sim::WriteRenderedTake(
-          *scene, dir,
-          {.first_frame = 0, .last_frame = 2400, .frame_step = 200, .cameras = {"mv-01", "mv-05"}, .uv_size = 128})
-          .ok());
+  ASSERT_TRUE(sim::WriteRenderedTake(*scene, dir,
+                                     {.first_frame = 0,
+                                      .last_frame = 2400,
+                                      .frame_step = 200,
+                                      .cameras = {"mv-01", "mv-05"},
+                                      .truth_textures = true,
+                                      .uv_size = 128})
+                  .ok());
 }
 
 TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
@@ -70,34 +74,41 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   const std::string asset = take.path() + "/derived/asset";
 
   // The dataset.
-  CommandResult batch = RunCommand({"stage-process", "asset", "build-dataset", "--take", take.path(), "--geometry-size",
-                                    "32", "--image-size", "32", "--output", asset + "/batch.h5", "--json"},
-                                   std::chrono::seconds(120));
+  CommandResult batch =
+      RunCommand({"stage-process", "asset", "build-dataset", "--take", take.path(), "--geometry-size", "32",
+                  "--image-size", "32", "--texture-size", "32", "--output", asset + "/batch.h5", "--json"},
+                 std::chrono::seconds(120));
   ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
   const nlohmann::json summary = nlohmann::json::parse(batch.out);
   EXPECT_EQ(summary["frames"], 12);
   EXPECT_EQ(summary["cameras"].size(), 2u);
-  processing::DatasetOptions options{
-      .take_dir = take.path(), .output = asset + "/library.h5", .geometry_size = 32, .image_size = 32};
+  EXPECT_EQ(summary["texture_size"], 32);
+  processing::DatasetOptions options{.take_dir = take.path(),
+                                     .output = asset + "/library.h5",
+                                     .geometry_size = 32,
+                                     .texture_size = 32,
+                                     .image_size = 32};
   ASSERT_TRUE(processing::BuildAssetDataset(options).ok());
   v1::ProcessingJob request;
   request.set_stage(v1::PROCESSING_STAGE_ASSET_DATASET);
   request.set_take_dir(take.path());
   request.mutable_asset()->set_geometry_size(32);
   request.mutable_asset()->set_image_size(32);
+  request.set_texture_size(32);
   v1::ProcessingProgress last;
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/dataset.h5");
   const std::string dataset = ReadFile(asset + "/dataset.h5");
   EXPECT_TRUE(ReadFile(asset + "/batch.h5") == dataset);
   EXPECT_TRUE(ReadFile(asset + "/library.h5") == dataset);
-  CommandResult h5py = RunCommand(
-      {"/usr/bin/python3", "-c",
-       "import h5py, sys; f = h5py.File(sys.argv[1]); print(f['geometry'].shape, f['images'].shape, f.attrs['format'])",
-       asset + "/dataset.h5"},
-      std::chrono::seconds(60));
+  CommandResult h5py =
+      RunCommand({"/usr/bin/python3", "-c",
+                  "import h5py, sys; f = h5py.File(sys.argv[1]); "
+                  "print(f['geometry'].shape, f['images'].shape, f['textures'].shape, f.attrs['format'])",
+                  asset + "/dataset.h5"},
+                 std::chrono::seconds(60));
   ASSERT_EQ(h5py.exit.exit_code, 0) << h5py.err;
-  EXPECT_THAT(h5py.out, HasSubstr("(12, 32, 32, 3) (12, 2, 32, 32) fastage-asset-dataset-1"));
+  EXPECT_THAT(h5py.out, HasSubstr("(12, 32, 32, 3) (12, 2, 32, 32) (12, 32, 32, 7) fastage-asset-dataset-1"));
 
   // The training, tiny.
   const std::vector<std::string> tiny = {"--iterations",  "30", "--batch",        "4",  "--input-size",      "32",
@@ -261,6 +272,69 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   EXPECT_EQ(last.output_dir(), asset + "/finetune");
   same_runs("finetune", "driving_net.pt");
 
+  // The texture VAE and the texture mapping (from the worker's geometry and texture runs; evaluated driven through the
+  // worker's fine-tuned path), the same three ways; inference below then writes each frame's textures.
+  const std::vector<std::string> tiny_texture = {"--iterations", "20", "--batch",        "4",  "--input-size",     "32",
+                                                 "--levels",     "3",  "--max-channels", "32", "--texture-latent", "4"};
+  argv = {"stage-process",
+          "asset",
+          "train",
+          "--network",
+          "texture",
+          "--dataset",
+          asset + "/dataset.h5",
+          "--output",
+          asset + "/texture-batch",
+          "--json"};
+  argv.insert(argv.end(), tiny_texture.begin(), tiny_texture.end());
+  CommandResult texture = RunCommand(argv, std::chrono::seconds(300));
+  ASSERT_EQ(texture.exit.exit_code, 0) << texture.err;
+  EXPECT_EQ(nlohmann::json::parse(texture.out)["steps"], 20);
+  processing::TextureTrainJob texture_job;
+  texture_job.dataset = asset + "/dataset.h5";
+  texture_job.output_dir = asset + "/texture-library";
+  texture_job.schedule.iterations = 20;
+  texture_job.schedule.batch = 4;
+  texture_job.texture = {.input_size = 32, .levels = 3, .max_channels = 32, .texture_latent = 4};
+  ASSERT_TRUE(processing::TrainTextureAsset(texture_job).ok());
+  v1::ProcessingJob texture_request = train_request;
+  a = texture_request.mutable_asset();
+  a->set_network(v1::ASSET_NETWORK_TEXTURE);
+  a->clear_geometry_latent();
+  a->clear_pose_latent();
+  a->set_iterations(20);
+  a->set_texture_latent(4);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), texture_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/texture");
+  same_runs("texture", "texture_vae.pt");
+
+  CommandResult texture_mapping = RunCommand(
+      {"stage-process", "asset", "train", "--network", "texture-mapping", "--dataset", asset + "/dataset.h5",
+       "--output", asset + "/texture_mapping-batch", "--iterations", "20", "--batch", "8", "--hidden", "16", "--json"},
+      std::chrono::seconds(300));
+  ASSERT_EQ(texture_mapping.exit.exit_code, 0) << texture_mapping.err;
+  const nlohmann::json textures_driven = nlohmann::json::parse(texture_mapping.out)["evaluation"];
+  EXPECT_EQ(textures_driven["driven_through"], "finetune");
+  EXPECT_EQ(textures_driven["held_out_block"]["cameras"].size(), 2u);
+  processing::TextureMappingJob texture_mapping_job;
+  texture_mapping_job.dataset = asset + "/dataset.h5";
+  texture_mapping_job.output_dir = asset + "/texture_mapping-library";
+  texture_mapping_job.schedule.iterations = 20;
+  texture_mapping_job.schedule.batch = 8;
+  texture_mapping_job.mapping.hidden = 16;
+  ASSERT_TRUE(processing::TrainTextureMapping(texture_mapping_job).ok());
+  v1::ProcessingJob texture_mapping_request = mapping_request;
+  texture_mapping_request.mutable_asset()->set_network(v1::ASSET_NETWORK_TEXTURE_MAPPING);
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), texture_mapping_request, &last));
+  EXPECT_EQ(last.output_dir(), asset + "/texture_mapping");
+  same_runs("texture_mapping", "texture_mapping.pt");
+  CommandResult textures_evaluated = RunCommand({"stage-process", "asset", "evaluate", "--network", "texture-mapping",
+                                                 "--dataset", asset + "/dataset.h5", "--json"},
+                                                std::chrono::seconds(120));
+  ASSERT_EQ(textures_evaluated.exit.exit_code, 0) << textures_evaluated.err;
+  EXPECT_EQ(nlohmann::json::parse(textures_evaluated.out),
+            nlohmann::json::parse(ReadFile(asset + "/texture_mapping/evaluation.json")));
+
   // The asset driven from mv-05's frames of the take, three ways: the same files; each frame's crop is the dataset's
   // own crop of that camera and frame, and the mesh opens in Open3D with the template's UVs.
   CommandResult infer = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
@@ -280,8 +354,10 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), infer_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/infer/mv-05");
   const auto inferred = FilesUnder(asset + "/infer-batch");
-  // crop.png, geometry_map.exr, mesh.obj a frame; the twelve meshes as one glTF animation; frames.json
-  EXPECT_EQ(inferred.size(), 12u * 3 + 2);
+  // crop.png, geometry_map.exr, mesh.obj, albedo.exr, specular.exr, normal_tangent.exr a frame; the twelve meshes as
+  // one glTF animation; frames.json
+  EXPECT_EQ(inferred.size(), 12u * 6 + 2);
+  EXPECT_EQ(nlohmann::json::parse(infer.out)["textures"], true);
   EXPECT_EQ(nlohmann::json::parse(infer.out)["gltf"], nlohmann::json::array({"animation-000000.glb"}));
   for (const char* other : {"infer-library", "infer/mv-05"}) {
     const auto theirs = FilesUnder(asset + "/" + other);
