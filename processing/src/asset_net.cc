@@ -438,23 +438,44 @@ namespace {
 // TorchScript's source of the net (the same operations as the modules above, by aten's names: the C++ compiler of
 // TorchScript resolves torch.* builtins, not torch.nn.functional). Parameters are attributes named by their path,
 // dots as underscores.
-std::string ScriptSource(const GeometryVaeOptions& o) {
+// TorchScript of the decoder trunk (DecoderImpl) ending in `x`, from `z`, its parameters under "decoder_".
+std::string DecoderScript(const ConvShape& shape) {
   const std::string conv = ", [1, 1], [1, 1], [1, 1], 1)";
+  std::string src = "    x = self.leaky(torch.linear(z, self.decoder_input_weight, self.decoder_input_bias))\n";
+  src += absl::StrCat("    x = x.view(z.size(0), ", shape.Channels(shape.levels), ", ", shape.side(), ", ",
+                      shape.side(), ")\n");
+  for (int i = shape.levels - 1; i >= 0; --i) {
+    src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])\n";
+    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i, "_bias",
+                        conv, ")\n");
+  }
+  return src + absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "\n");
+}
+
+// TorchScript of the encoder trunk (EncoderImpl) from `x` to the first `latents` of its outputs (the means).
+std::string EncoderScript(const ConvShape& shape, int latents) {
+  std::string src =
+      "    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias, [1, 1], [1, 1], "
+      "[1, 1], 1))\n";
+  for (int i = 0; i < shape.levels; ++i) {
+    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
+                        "_bias, [2, 2], [1, 1], [1, 1], 1))\n");
+  }
+  src += "    x = torch.linear(x.flatten(1), self.encoder_head_weight, self.encoder_head_bias)\n";
+  return src + absl::StrCat("    return x[:, :", latents, "]\n");
+}
+
+// TorchScript's source of the net (the same operations as the modules above, by aten's names: the C++ compiler of
+// TorchScript resolves torch.* builtins, not torch.nn.functional). Parameters are attributes named by their path,
+// dots as underscores.
+std::string ScriptSource(const GeometryVaeOptions& o) {
   std::string src = R"(
 def leaky(self, x: Tensor) -> Tensor:
     return torch.leaky_relu(x, 0.1)
 
 def decode(self, z: Tensor) -> Tensor:
-    x = self.leaky(torch.linear(z, self.decoder_input_weight, self.decoder_input_bias))
 )";
-  src += absl::StrCat("    x = x.view(z.size(0), ", Channels(o, o.levels), ", ", o.input_size >> o.levels, ", ",
-                      o.input_size >> o.levels, ")\n");
-  for (int i = o.levels - 1; i >= 0; --i) {
-    src += "    x = torch.upsample_bilinear2d(x, None, False, [2.0, 2.0])\n";
-    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.decoder_up", i, "_weight, self.decoder_up", i, "_bias",
-                        conv, ")\n");
-  }
-  src += absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "\n");
+  src += DecoderScript(ShapeOf(o));
   src += "    return self.mean + self.scale * x\n";
   src += R"(
 def forward(self, z: Tensor) -> Tensor:
@@ -474,32 +495,25 @@ def encode(self, maps: Tensor, valid: Tensor) -> Tensor:
     aligned = torch.einsum("bij,bjhw->bihw", [r, maps - map_centre.view(b, 3, 1, 1)]) + mean_centre.view(b, 3, 1, 1)
     x = torch.cat([(aligned - self.mean) / self.scale * valid, valid], 1)
 )";
-  src +=
-      absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_stem_weight, self.encoder_stem_bias", conv, ")\n");
-  for (int i = 0; i < o.levels; ++i) {
-    src += absl::StrCat("    x = self.leaky(torch.conv2d(x, self.encoder_down", i, "_weight, self.encoder_down", i,
-                        "_bias, [2, 2], [1, 1], [1, 1], 1))\n");
-  }
-  src += "    x = torch.linear(x.flatten(1), self.encoder_head_weight, self.encoder_head_bias)\n";
-  src += absl::StrCat("    return x[:, :", o.geometry_latent + o.pose_latent, "]\n");
-  return src;
+  return src + EncoderScript(ShapeOf(o), o.geometry_latent + o.pose_latent);
 }
 
-}  // namespace
-
-absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
+// `net`'s parameters and buffers (dots in their names as underscores) with `source`'s methods, as a TorchScript
+// module named `name` written atomically to `path`.
+absl::Status ExportScript(const torch::nn::Module& net, const char* name, const std::string& source,
+                          const std::string& path, const char* what) {
   try {
     torch::NoGradGuard no_grad;
-    torch::jit::Module script("FaStageGeometryVae");
-    auto name = [](std::string n) {
+    torch::jit::Module script(name);
+    auto attribute = [](std::string n) {
       std::replace(n.begin(), n.end(), '.', '_');
       return n;
     };
-    for (const auto& p : impl_->net->named_parameters()) {
-      script.register_parameter(name(p.key()), p.value().detach().clone(), /*is_buffer=*/false);
+    for (const auto& p : net.named_parameters()) {
+      script.register_parameter(attribute(p.key()), p.value().detach().clone(), /*is_buffer=*/false);
     }
-    for (const auto& b : impl_->net->named_buffers()) script.register_buffer(name(b.key()), b.value().clone());
-    script.define(ScriptSource(impl_->options));
+    for (const auto& b : net.named_buffers()) script.register_buffer(attribute(b.key()), b.value().clone());
+    script.define(source);
     const std::string tmp = path + ".tmp";
     script.save(tmp);
     std::error_code ec;
@@ -507,8 +521,14 @@ absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
     if (ec) return absl::UnavailableError(absl::StrCat(path, ": ", ec.message()));
     return absl::OkStatus();
   } catch (const std::exception& e) {
-    return internal::TorchError(kNet, absl::StrCat("exporting ", path), e);
+    return internal::TorchError(what, absl::StrCat("exporting ", path), e);
   }
+}
+
+}  // namespace
+
+absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
+  return ExportScript(*impl_->net, "FaStageGeometryVae", ScriptSource(impl_->options), path, kNet);
 }
 
 absl::Status GeometryVae::Load(const std::string& path) { return LoadArchive(*impl_->net, *impl_->adam, path, kNet); }
@@ -1066,6 +1086,27 @@ absl::StatusOr<std::vector<float>> TextureVae::Decode(const std::vector<float>& 
 
 absl::Status TextureVae::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kTextureNet);
+}
+
+absl::Status TextureVae::ExportTorchScript(const std::string& path) const {
+  const TextureVaeOptions& o = impl_->options;
+  std::string src = R"(
+def leaky(self, x: Tensor) -> Tensor:
+    return torch.leaky_relu(x, 0.1)
+
+def decode(self, z: Tensor) -> Tensor:
+)";
+  src += DecoderScript(ShapeOf(o));
+  src += "    return self.neutral + self.scale * x\n";
+  src += R"(
+def forward(self, z: Tensor) -> Tensor:
+    return self.decode(z)
+
+def encode(self, textures: Tensor, valid: Tensor) -> Tensor:
+    x = torch.cat([(textures - self.neutral) / self.scale * valid, valid], 1)
+)";
+  src += EncoderScript(ShapeOf(o), o.texture_latent);
+  return ExportScript(*impl_->net, "FaStageTextureVae", src, path, kTextureNet);
 }
 
 absl::Status TextureVae::Load(const std::string& path) {

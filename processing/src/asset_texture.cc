@@ -474,11 +474,11 @@ std::string TextureDrivenEvaluationJson(const TextureDrivenEvaluation& e) {
 }
 
 std::string FormatTextureDrivenEvaluation(const TextureDrivenEvaluation& e) {
-  std::string out = absl::StrFormat("%-18s %6s  %-26s %14s %12s %12s\n", "split", "frames", "textures", "albedo levels",
+  std::string out = absl::StrFormat("%-18s %6s  %-30s %14s %12s %12s\n", "split", "frames", "textures", "albedo levels",
                                     "normal deg", "specular %");
   const char* names[3] = {"train", "held-out blocks", "held-out sequence"};
   auto row = [&](int s, const std::string& what, const TextureSplitError& x) {
-    absl::StrAppendFormat(&out, "%-18s %6d  %-26s %14.3f %12.3f %12.2f\n", names[s], x.frames, what, x.albedo_levels,
+    absl::StrAppendFormat(&out, "%-18s %6d  %-30s %14.3f %12.3f %12.2f\n", names[s], x.frames, what, x.albedo_levels,
                           x.normal_deg, 100 * x.specular_relative);
   };
   for (int s = 0; s < 3; ++s) {
@@ -537,6 +537,7 @@ absl::StatusOr<TextureTrainResult> TrainTextureAsset(const TextureTrainJob& job)
   for (const auto& l : outcome.losses) result.losses.push_back(losses_of(l));
   result.steps = job.schedule.iterations;
   STAGE_RETURN_IF_ERROR(net->Save(result.output_dir + "/texture_vae.pt"));
+  STAGE_RETURN_IF_ERROR(net->ExportTorchScript(result.output_dir + "/texture_vae.torchscript.pt"));
   STAGE_ASSIGN_OR_RETURN(result.evaluation, Evaluate(*net, data));
   STAGE_RETURN_IF_ERROR(
       WriteFileAtomically(result.output_dir + "/evaluation.json", TextureEvaluationJson(result.evaluation) + "\n"));

@@ -297,6 +297,51 @@ TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutr
   auto again = EvaluateTextureAsset(job.dataset, job.output_dir);
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_DOUBLE_EQ(again->vae[held_out].albedo_levels, e.vae[held_out].albedo_levels);
+  // The exported net runs in Python's torch as in the library.
+  auto net = TextureVae::Create(job.texture, std::vector<float>(7 * 32 * 32, 0.f), std::vector<float>(7, 1.f));
+  ASSERT_TRUE(net.ok()) << net.status();
+  ASSERT_TRUE((*net)->Load(job.output_dir + "/texture_vae.pt").ok());
+  auto data = ReadAssetDataset(job.dataset);
+  ASSERT_TRUE(data.ok());
+  std::vector<float> textures(2 * 7 * 1024), valid(2 * 1024);
+  for (int b = 0; b < 2; ++b) {
+    for (int t = 0; t < 1024; ++t) {
+      valid[b * 1024 + t] = data->texture_valid[(b * 9) * 1024 + t];
+      for (int c = 0; c < 7; ++c) textures[(b * 7 + c) * 1024 + t] = data->textures[((b * 9) * 1024 + t) * 7 + c];
+    }
+  }
+  auto latents = (*net)->Encode(textures, valid, 2);
+  ASSERT_TRUE(latents.ok());
+  auto decoded = (*net)->Decode(*latents, 2);
+  ASSERT_TRUE(decoded.ok());
+  auto write = [&](const std::string& name, const std::vector<float>& v) {
+    std::ofstream(job.output_dir + "/" + name, std::ios::binary)
+        .write(reinterpret_cast<const char*>(v.data()), static_cast<std::streamsize>(v.size() * 4));
+  };
+  write("textures.f32", textures);
+  write("valid.f32", valid);
+  write("latents.f32", *latents);
+  write("decoded.f32", *decoded);
+  std::ofstream(job.output_dir + "/check.py")
+      << "import sys, numpy as np, torch\n"
+         "d = sys.argv[1]\n"
+         "f = lambda n, *s: torch.from_numpy(np.fromfile(d + '/' + n, dtype=np.float32).reshape(*s))\n"
+         "m = torch.jit.load(d + '/texture_vae.torchscript.pt')\n"
+         "with torch.no_grad():\n"
+         "    lat = m.encode(f('textures.f32', 2, 7, 32, 32), f('valid.f32', 2, 1, 32, 32))\n"
+         "    dec = m(lat)\n"
+         "e1 = (lat - f('latents.f32', 2, 4)).abs().max().item()\n"
+         "e2 = (dec - f('decoded.f32', 2, 7, 32, 32)).abs().max().item()\n"
+         "print('encode', e1, 'decode', e2)\n"
+         "sys.exit(0 if e1 < 1e-3 and e2 < 1e-3 else 1)\n";
+  const std::string command =
+      "/usr/bin/python3 " + job.output_dir + "/check.py " + job.output_dir + " > " + job.output_dir + "/check.log 2>&1";
+  const int rc = std::system(command.c_str());
+  std::ifstream log(job.output_dir + "/check.log");
+  const std::string text((std::istreambuf_iterator<char>(log)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(rc, 0) << text;
+  EXPECT_THAT(text, HasSubstr("encode"));
+
   // The textures driven from the geometry: the geometry VAE (default run beside the dataset), then the texture
   // mapping from its latent to the texture latent. The made-up textures follow the same two signals as the geometry.
   AssetTrainJob geometry = TinyJob(job.dataset, "");

@@ -157,6 +157,9 @@ class TextureVae {
   absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& latents, int batch) const;
   absl::Status Save(const std::string& path) const;
   absl::Status Load(const std::string& path);
+  // As TorchScript, which Python's torch.jit.load runs: encode(textures B x C x S x S, valid B x 1 x S x S) -> the
+  // latent's means, decode(latents) -> textures, forward = decode. Written atomically.
+  absl::Status ExportTorchScript(const std::string& path) const;
   const TextureVaeOptions& options() const;
   int64_t parameter_count() const;
 
