@@ -562,6 +562,11 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
       check.InRange("sim.subject.board.pixels_per_mm", board.pixels_per_mm(), 0.5, 100);
     }
     check.InRange("sim.subject.head_resolution", subject.head_resolution(), 16, 4096);
+    check.InRange("sim.subject.blood_flow", subject.blood_flow(), 0.0, 1.0);
+    if (subject.blood_flow() != 0 && (subject.kind() != "head" || !subject.asset().neutral_obj().empty())) {
+      check.Add("sim.subject.blood_flow",
+                "flushes the procedural head's skin: it needs kind \"head\" without an asset");
+    }
     if (subject.identity() != 0 && (subject.kind() != "head" || !subject.asset().neutral_obj().empty())) {
       check.Add("sim.subject.identity",
                 "draws the procedural head's proportions: it needs kind \"head\" without an asset");

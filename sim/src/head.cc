@@ -898,9 +898,11 @@ HeadShape HeadShape::Drawn(uint64_t identity) {
   return s;
 }
 
-std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution, const HeadShape& shape) {
+std::shared_ptr<const HeadModel> HeadModel::Procedural(uint64_t seed, int resolution, const HeadShape& shape,
+                                                       float blood_flow) {
   std::shared_ptr<HeadModel> head(new HeadModel());
   head->seed_ = seed;
+  head->blood_flow_ = std::clamp(blood_flow, 0.0f, 1.0f);
   head->pivot_ = kPivot;
   TriangleMesh& m = head->neutral_;
   const int cols = std::max(16, resolution), rows = std::max(8, resolution / 2);
@@ -1043,6 +1045,17 @@ SurfaceSample HeadModel::Surface(const Eigen::Vector2f& uv, int part,
   albedo.y() *= 1 - 0.12f * std::min(1.0f, red);
   albedo *= 1 - 0.35f * face * Freckles(seed_ + 3, uv);
   albedo *= 1 - 0.12f * pore;
+  if (blood_flow_ > 0) {
+    // Blood flow (as Jimenez et al. 2010 measure it): where an expression works the face, the skin flushes, green and
+    // blue absorbed by the blood that comes: the cheeks with a smile, the forehead with a frown or a brow raise, the
+    // chin with the jaw open.
+    const float flush =
+        blood_flow_ * std::min(1.0f, e[kSmileL] * Blob(th, ph, 0.5f, -0.15f, 0.25f, 0.18f) +
+                                         e[kSmileR] * Blob(th, ph, -0.5f, -0.15f, 0.25f, 0.18f) +
+                                         (0.7f * e[kFrown] + 0.5f * e[kBrow]) * Blob(th, ph, 0, 0.4f, 0.4f, 0.15f) +
+                                         0.6f * e[kJaw] * Blob(th, ph, 0, -0.75f, 0.25f, 0.12f));
+    albedo = albedo.cwiseProduct(Eigen::Vector3f(1 + 0.05f * flush, 1 - 0.35f * flush, 1 - 0.25f * flush));
+  }
   albedo = (1 - lips) * albedo + lips * Eigen::Vector3f(0.52f, 0.22f, 0.22f);
   albedo = (1 - brows) * albedo + brows * Eigen::Vector3f(0.10f, 0.07f, 0.05f);
   // The open mouth is dark inside.

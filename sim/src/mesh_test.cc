@@ -207,6 +207,28 @@ TEST(HeadTest, ExpressionsMoveTheirRegionsAndABlinkCoversTheEye) {
   EXPECT_GT(variation(brow), 1.5 * variation({}));
 }
 
+// With blood flow the cheeks flush with a smile (green and blue fall, where the smile works the face), and only then;
+// without it the smile leaves the albedo alone.
+TEST(HeadTest, BloodFlowFlushesTheCheeksOfASmile) {
+  auto still = HeadModel::Procedural(1, 64), flushing = HeadModel::Procedural(1, 64, HeadShape(), 1.0f);
+  std::array<float, kExpressionCount> smile{};
+  smile[ExpressionIndex("smile_left")] = 1;
+  // The left cheek (azimuth +0.5 rad, elevation -0.15 rad) and the right one, in the skin's layout.
+  const Eigen::Vector2f left(0.5f / (2 * 3.14159265f) + 0.5f, -0.15f / 3.14159265f + 0.5f);
+  const Eigen::Vector2f right(-0.5f / (2 * 3.14159265f) + 0.5f, left.y());
+  const Eigen::Vector3f rest = flushing->Surface(left, 0, {}).material.albedo;
+  const Eigen::Vector3f flushed = flushing->Surface(left, 0, smile).material.albedo;
+  EXPECT_EQ(rest, still->Surface(left, 0, {}).material.albedo) << "no expression, no flush";
+  EXPECT_NEAR(flushed.y() / rest.y(), 0.65, 0.01);
+  EXPECT_NEAR(flushed.z() / rest.z(), 0.75, 0.01);
+  EXPECT_GT(flushed.x(), rest.x());
+  EXPECT_NEAR(
+      flushing->Surface(right, 0, smile).material.albedo.y() / flushing->Surface(right, 0, {}).material.albedo.y(), 1,
+      0.01)
+      << "the other cheek stays";
+  EXPECT_EQ(still->Surface(left, 0, smile).material.albedo, still->Surface(left, 0, {}).material.albedo);
+}
+
 TEST(HeadTest, PerformancesEaseBetweenKeysAndLoadFromYaml) {
   Performance p = Performance::Default();
   ASSERT_GE(p.keys.size(), 8u);

@@ -111,7 +111,7 @@ absl::Status SimScene::MakeSubject(const std::string& base_dir) {
     model_ = head_;
   } else {
     head_ = HeadModel::Procedural(rig_.sim().seed(), static_cast<int>(config.head_resolution()),
-                                  HeadShape::Drawn(config.identity()));
+                                  HeadShape::Drawn(config.identity()), static_cast<float>(config.blood_flow()));
     model_ = head_;
   }
   if (config.performance() == "default") {

@@ -127,8 +127,9 @@ struct HeadShape {
 class HeadModel final : public RiggedModel {
  public:
   // The procedural head; `seed` varies the skin detail; `resolution` columns around the head (rows are half that);
-  // `shape` its proportions.
-  static std::shared_ptr<const HeadModel> Procedural(uint64_t seed, int resolution = 256, const HeadShape& shape = {});
+  // `shape` its proportions; `blood_flow` (0..1) how much its skin flushes where an expression works it.
+  static std::shared_ptr<const HeadModel> Procedural(uint64_t seed, int resolution = 256, const HeadShape& shape = {},
+                                                     float blood_flow = 0);
   // A user's head: errors name the file (and line, or the expression) at fault.
   static absl::StatusOr<std::shared_ptr<const HeadModel>> FromAsset(const HeadAssetFiles& files);
 
@@ -149,6 +150,7 @@ class HeadModel final : public RiggedModel {
   HeadModel() = default;
   float Height(const Eigen::Vector2f& uv, const std::array<float, kExpressionCount>& expr) const;
   uint64_t seed_ = 1;
+  float blood_flow_ = 0;
   std::shared_ptr<const Maps> maps_;  // a loaded head's images
   std::string maps_origin_;
   std::vector<std::string> notes_;
