@@ -400,6 +400,9 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   v1::ProcessingJob wrong = request;
   wrong.set_stage(v1::PROCESSING_STAGE_PHOTOMETRIC);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("takes no asset options"));
+  wrong = request;
+  wrong.mutable_asset()->set_freeze_encoder(true);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("takes no training options"));
   wrong = train_request;
   wrong.set_first_frame(3);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));

@@ -289,7 +289,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   if (a.iterations() != 0 || a.batch() != 0 || a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 ||
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
-      a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0) {
+      a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0 ||
+      a.freeze_encoder()) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
