@@ -345,14 +345,14 @@ TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutr
   // The textures driven from the geometry: the geometry VAE (default run beside the dataset), then the texture
   // mapping from its latent to the texture latent. The made-up textures follow the same two signals as the geometry.
   AssetTrainJob geometry = TinyJob(job.dataset, "");
-  geometry.schedule.iterations = 300;
+  geometry.schedule.iterations = 150;
   ASSERT_TRUE(TrainGeometryAsset(geometry).ok());
   TextureMappingJob mapping;
   mapping.dataset = job.dataset;
   mapping.texture_run = job.output_dir;
   mapping.mapping.hidden = 64;
   mapping.mapping.threads = 2;
-  mapping.schedule.iterations = 400;
+  mapping.schedule.iterations = 300;
   mapping.schedule.batch = 16;
   auto mapped = TrainTextureMapping(mapping);
   ASSERT_TRUE(mapped.ok()) << mapped.status();
