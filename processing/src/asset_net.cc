@@ -452,6 +452,16 @@ std::string DecoderScript(const ConvShape& shape) {
   return src + absl::StrCat("    x = torch.conv2d(x, self.decoder_out_weight, self.decoder_out_bias", conv, "\n");
 }
 
+// TorchScript's leaky(x) and the start of decode(z): the decoder trunk up to its output `x`, for the net to finish.
+std::string DecodeScript(const ConvShape& shape) {
+  return R"(
+def leaky(self, x: Tensor) -> Tensor:
+    return torch.leaky_relu(x, 0.1)
+
+def decode(self, z: Tensor) -> Tensor:
+)" + DecoderScript(shape);
+}
+
 // TorchScript of the encoder trunk (EncoderImpl) from `x` to the first `latents` of its outputs (the means).
 std::string EncoderScript(const ConvShape& shape, int latents) {
   std::string src =
@@ -469,13 +479,7 @@ std::string EncoderScript(const ConvShape& shape, int latents) {
 // TorchScript resolves torch.* builtins, not torch.nn.functional). Parameters are attributes named by their path,
 // dots as underscores.
 std::string ScriptSource(const GeometryVaeOptions& o) {
-  std::string src = R"(
-def leaky(self, x: Tensor) -> Tensor:
-    return torch.leaky_relu(x, 0.1)
-
-def decode(self, z: Tensor) -> Tensor:
-)";
-  src += DecoderScript(ShapeOf(o));
+  std::string src = DecodeScript(ShapeOf(o));
   src += "    return self.mean + self.scale * x\n";
   src += R"(
 def forward(self, z: Tensor) -> Tensor:
@@ -1090,13 +1094,7 @@ absl::Status TextureVae::Save(const std::string& path) const {
 
 absl::Status TextureVae::ExportTorchScript(const std::string& path) const {
   const TextureVaeOptions& o = impl_->options;
-  std::string src = R"(
-def leaky(self, x: Tensor) -> Tensor:
-    return torch.leaky_relu(x, 0.1)
-
-def decode(self, z: Tensor) -> Tensor:
-)";
-  src += DecoderScript(ShapeOf(o));
+  std::string src = DecodeScript(ShapeOf(o));
   src += "    return self.neutral + self.scale * x\n";
   src += R"(
 def forward(self, z: Tensor) -> Tensor:
