@@ -57,9 +57,16 @@ void World::Stop() {
 }
 
 void World::OnRealEdge(const timing::SlotEdge& edge) {
+  if (options_.before_real_edge) options_.before_real_edge(edge.slot);
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (NextEdge(edge.slot) != edge.slot) {
+      // A clock late by a slot or more skips edges: when it skipped a run's last slots, this silent edge is the first
+      // after them, and the world has passed them (each device counts them as missed). Without this the world would
+      // stand short of the run's end until the next run, and whoever waits for the run to end would wait for ever.
+      for (const WorldRun& r : runs_) {
+        if (r.end <= edge.slot) current_ = std::max(current_, r.end - 1);
+      }
       // The bus is silent between runs: from the end of the last run that is over, through this edge.
       int64_t ended = -1;
       for (const WorldRun& r : runs_) {

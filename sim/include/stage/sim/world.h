@@ -18,6 +18,7 @@
 #include <climits>
 #include <condition_variable>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -50,6 +51,9 @@ struct WorldOptions {
   // The bus carries edges only in runs, as a sync generator drives its lines only during a take. true: one run from
   // slot 0 on, from Start() (until end_slot); false: none until Run() asks for one (the controller's takes).
   bool open_run = true;
+  // Tests only: called on the real-time clock's thread before the world takes each edge. A hook that sleeps makes the
+  // clock late, as a loaded machine does, so that it skips slots. Empty: none.
+  std::function<void(int64_t slot)> before_real_edge;
 };
 
 // A run of the bus: edges in slots [first, end).
