@@ -109,6 +109,11 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                  std::chrono::seconds(60));
   ASSERT_EQ(h5py.exit.exit_code, 0) << h5py.err;
   EXPECT_THAT(h5py.out, HasSubstr("(12, 32, 32, 3) (12, 2, 32, 32) (12, 32, 32, 7) fastage-asset-dataset-1"));
+  // Beside each, the neutral frame's textures at full resolution (the truth's, 128 texels across): the same bytes.
+  const auto neutral = FilesUnder(asset + "/dataset-neutral");
+  EXPECT_EQ(neutral.size(), 3u);
+  EXPECT_TRUE(FilesUnder(asset + "/batch-neutral") == neutral);
+  EXPECT_TRUE(FilesUnder(asset + "/library-neutral") == neutral);
 
   // The training, tiny.
   const std::vector<std::string> tiny = {"--iterations",  "30", "--batch",        "4",  "--input-size",      "32",
@@ -359,6 +364,13 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   // one glTF animation; frames.json
   EXPECT_EQ(inferred.size(), 12u * 6 + 2);
   EXPECT_EQ(nlohmann::json::parse(infer.out)["textures"], true);
+  // At the neutral textures' full resolution (the wrinkle maps of the 32-texel net added to them), as OpenImageIO
+  // reads them.
+  EXPECT_EQ(nlohmann::json::parse(infer.out)["texture_size"], 128);
+  CommandResult oiio =
+      RunCommand({"/usr/bin/oiiotool", "--info", asset + "/infer-batch/frame-000400/albedo.exr"}, std::chrono::seconds(60));
+  ASSERT_EQ(oiio.exit.exit_code, 0) << oiio.err;
+  EXPECT_THAT(oiio.out, HasSubstr("128 x  128, 3 channel, float openexr"));
   EXPECT_EQ(nlohmann::json::parse(infer.out)["gltf"], nlohmann::json::array({"animation-000000.glb"}));
   for (const char* other : {"infer-library", "infer/mv-05"}) {
     const auto theirs = FilesUnder(asset + "/" + other);

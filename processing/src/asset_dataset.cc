@@ -258,6 +258,55 @@ absl::StatusOr<FrameTextures> FusedFrameTextures(int size, const std::string& fr
   return t;
 }
 
+// Where a dataset's full-resolution neutral textures are: beside its file, named for it (the file is the same bytes
+// wherever it was written, so that the three ways of building it agree).
+std::string NeutralTexturesDir(const std::string& dataset_path) {
+  const fs::path p(dataset_path);
+  return (p.parent_path() / (p.stem().string() + "-neutral")).string();
+}
+
+// The textures of the source's frame `frame_dir` at `size` texels across (the truth's or texture fusion's).
+absl::StatusOr<FrameTextures> SourceTextures(const FaceTemplate& face, bool truth, int size,
+                                             const std::string& frame_dir) {
+  if (!truth) return FusedFrameTextures(size, frame_dir);
+  STAGE_ASSIGN_OR_RETURN(const GeometryMap map,
+                         MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = size}));
+  std::vector<uint8_t> layout(map.state.size());
+  for (size_t t = 0; t < map.state.size(); ++t) layout[t] = map.state[t] != TexelState::kEmpty;
+  return TruthTextures(face, layout, size, frame_dir);
+}
+
+// The neutral frame's (`frame_dir`'s) textures at full resolution beside the dataset (DatasetOptions::
+// neutral_texture_size); 0 takes the size of the source's albedo.
+absl::Status WriteNeutralTextures(const DatasetOptions& options, const FaceTemplate& face, bool truth,
+                                  const std::string& frame_dir, DatasetSummary* summary) {
+  int size = options.neutral_texture_size;
+  if (size == 0) {
+    const std::string albedo = frame_dir + (truth ? "/uv_albedo.exr" : "/albedo.exr");
+    STAGE_ASSIGN_OR_RETURN(const Image source, ReadImageFile(albedo));
+    size = source.width;
+  }
+  STAGE_ASSIGN_OR_RETURN(const FrameTextures t, SourceTextures(face, truth, size, frame_dir));
+  const std::string dir = NeutralTexturesDir(summary->path);
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  Image albedo(size, size, 4), specular(size, size, 1), normal(size, size, 3);
+  for (size_t i = 0; i < t.valid.size(); ++i) {
+    const float* m = &t.maps[kTextureChannels * i];
+    std::copy(m, m + 3, &albedo.pixels[4 * i]);
+    albedo.pixels[4 * i + 3] = t.valid[i];
+    specular.pixels[i] = m[3];
+    std::copy(m + 4, m + 7, &normal.pixels[3 * i]);
+  }
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/albedo.exr", albedo));
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/specular.exr", specular));
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/normal_tangent.exr", normal));
+  summary->neutral_textures_dir = dir;
+  summary->neutral_texture_size = size;
+  return absl::OkStatus();
+}
+
 // The sequence each frame's truth names ("" where there is no truth or it names none).
 std::vector<std::string> FrameSequences(const std::string& take_dir, const std::vector<int64_t>& frames) {
   std::vector<std::string> out;
@@ -521,6 +570,11 @@ absl::Status DatasetOptions::Validate() const {
   if (texture_size != 0 && (texture_size < 16 || texture_size > 1024)) {
     return absl::InvalidArgumentError(absl::StrCat("dataset: texture size ", texture_size, " is not 0 or 16..1024"));
   }
+  if (neutral_texture_size != 0 && neutral_texture_size != -1 &&
+      (neutral_texture_size < 16 || neutral_texture_size > 8192)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("dataset: neutral texture size ", neutral_texture_size, " is not -1, 0 or 16..8192"));
+  }
   if (image_size < 16 || image_size > 512) {
     return absl::InvalidArgumentError(absl::StrCat("dataset: image size ", image_size, " is not in 16..512"));
   }
@@ -661,10 +715,17 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     spread.Add(g->points, g->valid);
     if (options.progress) options.progress(static_cast<int64_t>(i) + 1, static_cast<int64_t>(frames.size()));
   }
+  if (summary.texture_size > 0 && options.neutral_texture_size >= 0) {
+    STAGE_RETURN_IF_ERROR(WriteNeutralTextures(options, face, truth, FrameDir(texture_root, frames.front()), &summary));
+  }
   summary.valid_texels = valid_texels / static_cast<double>(frames.size());
   summary.rms_from_mean_mm = spread.Rms();
   STAGE_RETURN_IF_ERROR(writer->SetAttribute("format", kFormat));
   STAGE_RETURN_IF_ERROR(writer->SetAttribute("description", Description(options, face, summary, crops).dump()));
+  if (summary.neutral_texture_size > 0) {
+    const nlohmann::json neutral = {{"size", summary.neutral_texture_size}};
+    STAGE_RETURN_IF_ERROR(writer->SetAttribute("neutral_textures", neutral.dump()));
+  }
   STAGE_RETURN_IF_ERROR(writer->Close());
   return summary;
 }
@@ -690,6 +751,11 @@ absl::Status ReadDescription(const storage::ArrayFileReader& reader, const std::
     d->cameras = j.value("cameras", std::vector<std::string>());
     d->image_size = j.value("image_size", 0);
     d->texture_size = j.value("texture_size", 0);
+    // Apart from the description, which is the dataset's identity for training (the nets never see these).
+    if (auto neutral = reader.Attribute("neutral_textures"); neutral.ok()) {
+      d->neutral_textures_dir = NeutralTexturesDir(path);
+      d->neutral_texture_size = nlohmann::json::parse(*neutral).at("size").get<int>();
+    }
     for (const nlohmann::json& box : j.value("crops", nlohmann::json::array())) {
       if (!box.contains("white_dn")) continue;  // written before the white was kept
       d->crops.push_back({box.at("camera").get<std::string>(), box.at("centre_px").at(0).get<double>(),
@@ -709,6 +775,18 @@ absl::StatusOr<AssetDataset> ReadAssetDatasetDescription(const std::string& path
   AssetDataset d;
   STAGE_RETURN_IF_ERROR(ReadDescription(*reader, path, &d));
   return d;
+}
+
+absl::Status ReadDatasetFrameTextures(const AssetDataset& d, int64_t i, std::vector<float>* maps,
+                                      std::vector<uint8_t>* valid) {
+  if (d.texture_size == 0)
+    return absl::FailedPreconditionError(absl::StrCat(d.path, ": the dataset holds no textures"));
+  STAGE_ASSIGN_OR_RETURN(auto reader, storage::ArrayFileReader::Open(d.path));
+  const size_t texels = static_cast<size_t>(d.texture_size) * d.texture_size;
+  maps->resize(texels * kTextureChannels);
+  valid->resize(texels);
+  STAGE_RETURN_IF_ERROR(reader->ReadRows("textures", ArrayType::kFloat32, i, 1, maps->data()));
+  return reader->ReadRows("texture_valid", ArrayType::kUint8, i, 1, valid->data());
 }
 
 absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path) {

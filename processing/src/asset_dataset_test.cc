@@ -130,6 +130,64 @@ TEST(AssetDatasetTest, TheTruthsTexturesAreDrawnIntoTheLayoutWithTangentSpaceNor
   EXPECT_LT(worst_albedo, 1e-4);
   EXPECT_LT(worst_specular, 1e-6);
   EXPECT_LT(worst_angle, 0.05) << "degrees";
+  // The neutral (first) frame's textures at full resolution beside the dataset: by default at the truth's own size,
+  // drawn as the dataset's are.
+  EXPECT_EQ(summary->neutral_texture_size, 128);
+  EXPECT_EQ(dataset->neutral_texture_size, 128);
+  EXPECT_EQ(dataset->neutral_textures_dir, summary->neutral_textures_dir);
+  auto full_albedo = ReadImageFile(dataset->neutral_textures_dir + "/albedo.exr");
+  auto full_specular = ReadImageFile(dataset->neutral_textures_dir + "/specular.exr");
+  auto full_normal = ReadImageFile(dataset->neutral_textures_dir + "/normal_tangent.exr");
+  ASSERT_TRUE(full_albedo.ok() && full_specular.ok() && full_normal.ok()) << full_albedo.status();
+  ASSERT_EQ(full_albedo->width, 128);
+  ASSERT_EQ(full_albedo->channels, 4);
+  int64_t full_valid = 0;
+  worst_albedo = worst_angle = worst_specular = 0;
+  for (int y = 0; y < 128; ++y) {
+    for (int x = 0; x < 128; ++x) {
+      if (full_albedo->at(x, y)[3] != 1) continue;
+      ++full_valid;
+      const float* a = full_albedo->at(x, y);
+      const Eigen::Vector2f uv((x + 0.5f) / 128, 1 - (y + 0.5f) / 128);
+      worst_albedo =
+          std::max(worst_albedo,
+                   static_cast<double>(
+                       (Eigen::Vector3f(a[0], a[1], a[2]) - albedo(face->HeadLayoutUv(uv))).cwiseAbs().maxCoeff()));
+      worst_specular = std::max(worst_specular, std::abs(full_specular->at(x, y)[0] - 0.05));
+      const Eigen::Vector3f n(full_normal->at(x, y)[0], full_normal->at(x, y)[1], full_normal->at(x, y)[2]);
+      worst_angle = std::max(worst_angle, std::acos(std::clamp<double>(n.dot(tilt), -1, 1)) * 180 / M_PI);
+    }
+  }
+  EXPECT_GT(full_valid, 128 * 128 / 2);
+  EXPECT_LT(worst_albedo, 1e-4);
+  EXPECT_LT(worst_specular, 1e-6);
+  EXPECT_LT(worst_angle, 0.05) << "degrees";
+  // At the dataset's own size they are its first frame's textures; -1 keeps none.
+  auto same = BuildAssetDataset({.take_dir = take,
+                                 .output = take + "/same.h5",
+                                 .geometry_size = 32,
+                                 .texture_size = 48,
+                                 .neutral_texture_size = 48});
+  ASSERT_TRUE(same.ok()) << same.status();
+  EXPECT_EQ(same->neutral_textures_dir, take + "/same-neutral");
+  auto same_albedo = ReadImageFile(same->neutral_textures_dir + "/albedo.exr");
+  auto same_normal = ReadImageFile(same->neutral_textures_dir + "/normal_tangent.exr");
+  ASSERT_TRUE(same_albedo.ok() && same_normal.ok());
+  for (int t = 0; t < 48 * 48; ++t) {
+    const float* want = &dataset->textures[t * kTextureChannels];
+    ASSERT_EQ(same_albedo->pixels[4 * t + 3], dataset->texture_valid[t]) << t;
+    for (int c = 0; c < 3; ++c) ASSERT_EQ(same_albedo->pixels[4 * t + c], want[c]) << t;
+    for (int c = 0; c < 3; ++c) ASSERT_EQ(same_normal->pixels[3 * t + c], want[4 + c]) << t;
+  }
+  auto kept_none = BuildAssetDataset({.take_dir = take,
+                                      .output = take + "/none.h5",
+                                      .geometry_size = 32,
+                                      .texture_size = 48,
+                                      .neutral_texture_size = -1});
+  ASSERT_TRUE(kept_none.ok()) << kept_none.status();
+  EXPECT_EQ(kept_none->neutral_texture_size, 0);
+  EXPECT_EQ(ReadAssetDatasetDescription(kept_none->path)->neutral_texture_size, 0);
+  EXPECT_FALSE(std::filesystem::exists(take + "/none-neutral"));
   // Without the textures in the truth (or asked for none) the dataset has none, and says why.
   auto none = BuildAssetDataset({.take_dir = MakeTake("asset-no-textures", 3), .geometry_size = 32});
   ASSERT_TRUE(none.ok()) << none.status();

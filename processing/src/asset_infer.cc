@@ -6,6 +6,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/videoio.hpp>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -37,6 +38,8 @@ struct Asset {
   std::unique_ptr<TextureVae> texture;
   std::unique_ptr<LatentMapping> texture_mapping;
   std::string texture_mapping_run;
+  // The neutral frame's full-resolution textures the wrinkle maps are added to, where the dataset keeps them.
+  std::optional<asset_internal::NeutralTextures> neutral;
   FaceTemplate face;
   int image_size = 0;                 // the dataset's crops'
   std::vector<std::string> held_out;  // the cameras the expression VAE did not train on
@@ -81,6 +84,9 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
                                                     texture_run, a.geometry->options().geometry_latent,
                                                     a.texture->options().texture_latent, options.threads));
       a.texture_mapping_run = run;
+      if (!d.neutral_textures_dir.empty()) {
+        STAGE_ASSIGN_OR_RETURN(a.neutral, asset_internal::LoadNeutralTextures(d, a.texture->options().input_size));
+      }
     }
   }
   STAGE_ASSIGN_OR_RETURN(a.face, ShippedFaceTemplate());
@@ -88,23 +94,17 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
 }
 
 // The textures of a geometry latent (the texture mapping, then the texture VAE's decoder) into `dir`: albedo.exr,
-// specular.exr, normal_tangent.exr.
+// specular.exr, normal_tangent.exr; at the neutral textures' full resolution where the asset has them, else at the
+// net's.
 absl::Status WriteDrivenTextures(const Asset& a, const std::vector<float>& geometry_latent, const std::string& dir) {
   STAGE_ASSIGN_OR_RETURN(const std::vector<float> latent, a.texture_mapping->Map(geometry_latent, 1));
   STAGE_ASSIGN_OR_RETURN(const std::vector<float> chw, a.texture->Decode(latent, 1));
-  const int s = a.texture->options().input_size;
-  const size_t texels = static_cast<size_t>(s) * s;
-  Image albedo(s, s, 3), specular(s, s, 1), normal(s, s, 3);
-  for (size_t t = 0; t < texels; ++t) {
-    for (int c = 0; c < 3; ++c) albedo.pixels[3 * t + c] = std::max(0.f, chw[c * texels + t]);
-    specular.pixels[t] = std::max(0.f, chw[3 * texels + t]);
-    Eigen::Vector3f n(chw[4 * texels + t], chw[5 * texels + t], chw[6 * texels + t]);
-    n = n.norm() > 0 ? n.normalized() : Eigen::Vector3f::UnitZ();
-    std::copy(n.data(), n.data() + 3, &normal.pixels[3 * t]);
-  }
-  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/albedo.exr", albedo));
-  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/specular.exr", specular));
-  return WriteExr(dir + "/normal_tangent.exr", normal);
+  const asset_internal::TextureImages t = a.neutral
+                                              ? asset_internal::ApplyWrinkleMaps(*a.neutral, chw)
+                                              : asset_internal::NetTextureImages(chw, a.texture->options().input_size);
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/albedo.exr", t.albedo));
+  STAGE_RETURN_IF_ERROR(WriteExr(dir + "/specular.exr", t.specular));
+  return WriteExr(dir + "/normal_tangent.exr", t.normal);
 }
 
 // The output directory: the options', or the take's derived/asset/infer/<camera>, or <video's name>-asset beside it.
@@ -272,6 +272,7 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   STAGE_RETURN_IF_ERROR(gltf.Flush());
   for (const auto& file : gltf.files()) result.gltf_files.push_back(file["file"].get<std::string>());
   result.textures = a.texture_mapping != nullptr;
+  if (result.textures) result.texture_size = a.neutral ? a.neutral->albedo.width : a.texture->options().input_size;
   const nlohmann::json summary = {
       {"camera", options.camera},
       {"driven_through", a.driver_run.empty() ? "mapping" : "finetune"},
@@ -281,7 +282,11 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
       {"frames", result.frames},
       {"geometry_size", a.geometry->options().input_size},
       {"texture_mapping_run", a.texture_mapping_run},
-      {"texture_size", a.texture == nullptr ? 0 : a.texture->options().input_size},
+      {"texture_size", result.texture_size},
+      {"texture_net_size", a.texture == nullptr ? 0 : a.texture->options().input_size},
+      {"textures_over", a.neutral ? "the neutral frame's textures at full resolution, plus the wrinkle maps"
+                        : a.texture != nullptr ? "none: the decoded textures at the net's size"
+                                               : ""},
       {"gltf", gltf.files()}};
   STAGE_RETURN_IF_ERROR(WriteFileAtomically(result.output_dir + "/frames.json", summary.dump(2) + "\n"));
   return result;

@@ -16,6 +16,7 @@
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
 #include "stage/processing/warp_net.h"
 #include "training_run.h"
 
@@ -38,28 +39,12 @@ struct PreparedTextures {
 NetMaps DownsampleTextures(const AssetDataset& d, int size) {
   NetMaps out;
   out.size = size;
-  const int in = d.texture_size, k = in / size, c = kTextureChannels;
-  const size_t texels_in = static_cast<size_t>(in) * in, texels = static_cast<size_t>(size) * size;
+  const size_t texels_in = static_cast<size_t>(d.texture_size) * d.texture_size;
   for (int64_t f = 0; f < d.frames(); ++f) {
-    std::vector<float> map(c * texels, 0.f), valid(texels, 0.f);
-    for (int y = 0; y < size; ++y) {
-      for (int x = 0; x < size; ++x) {
-        double sum[kTextureChannels] = {};
-        int n = 0;
-        for (int dy = 0; dy < k; ++dy) {
-          for (int dx = 0; dx < k; ++dx) {
-            const size_t t = static_cast<size_t>(f) * texels_in + static_cast<size_t>(y * k + dy) * in + x * k + dx;
-            if (!d.texture_valid[t]) continue;
-            for (int ch = 0; ch < c; ++ch) sum[ch] += d.textures[c * t + ch];
-            ++n;
-          }
-        }
-        if (n == 0) continue;
-        const size_t t = static_cast<size_t>(y) * size + x;
-        for (int ch = 0; ch < c; ++ch) map[ch * texels + t] = static_cast<float>(sum[ch] / n);
-        valid[t] = 1;
-      }
-    }
+    std::vector<float> map, valid;
+    asset_internal::DownsampleTextureMap(&d.textures[static_cast<size_t>(f) * texels_in * kTextureChannels],
+                                         &d.texture_valid[static_cast<size_t>(f) * texels_in], d.texture_size, size,
+                                         &map, &valid);
     out.maps.push_back(std::move(map));
     out.valid.push_back(std::move(valid));
   }
@@ -262,6 +247,113 @@ absl::StatusOr<std::unique_ptr<LatentMapping>> LoadTextureMappingNet(const std::
   STAGE_RETURN_IF_ERROR(
       CheckTrainedFrom(run_dir, o, "texture mapping trained", {{"geometry", geometry_run}, {"texture", texture_run}}));
   return LoadMappingNet(run_dir, geometry_latent, texture_latent, threads, "texture_mapping");
+}
+
+void DownsampleTextureMap(const float* maps, const uint8_t* valid, int in, int size, std::vector<float>* out,
+                          std::vector<float>* out_valid) {
+  const int k = in / size, c = kTextureChannels;
+  const size_t texels = static_cast<size_t>(size) * size;
+  out->assign(c * texels, 0.f);
+  out_valid->assign(texels, 0.f);
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      double sum[kTextureChannels] = {};
+      int n = 0;
+      for (int dy = 0; dy < k; ++dy) {
+        for (int dx = 0; dx < k; ++dx) {
+          const size_t t = static_cast<size_t>(y * k + dy) * in + x * k + dx;
+          if (!valid[t]) continue;
+          for (int ch = 0; ch < c; ++ch) sum[ch] += maps[c * t + ch];
+          ++n;
+        }
+      }
+      if (n == 0) continue;
+      const size_t t = static_cast<size_t>(y) * size + x;
+      for (int ch = 0; ch < c; ++ch) (*out)[ch * texels + t] = static_cast<float>(sum[ch] / n);
+      (*out_valid)[t] = 1;
+    }
+  }
+}
+
+absl::StatusOr<NeutralTextures> LoadNeutralTextures(const AssetDataset& d, int net_size) {
+  NeutralTextures n;
+  const std::string& dir = d.neutral_textures_dir;
+  const int size = d.neutral_texture_size;
+  Image* images[] = {&n.albedo, &n.specular, &n.normal};
+  const char* names[] = {"albedo.exr", "specular.exr", "normal_tangent.exr"};
+  const int channels[] = {4, 1, 3};
+  for (int i = 0; i < 3; ++i) {
+    const std::string path = dir + "/" + names[i];
+    STAGE_ASSIGN_OR_RETURN(*images[i], ReadImageFile(path));
+    if (images[i]->width != size || images[i]->height != size || images[i]->channels != channels[i]) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": ", images[i]->width, " x ", images[i]->height, " x ",
+                                                     images[i]->channels, ", not the ", size, " x ", size, " x ",
+                                                     channels[i], " the dataset ", d.path, " says"));
+    }
+  }
+  if (d.texture_size % net_size != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(d.path, ": its textures (", d.texture_size,
+                                                   " texels across) do not divide into the net's ", net_size));
+  }
+  std::vector<float> maps;
+  std::vector<uint8_t> valid;
+  STAGE_RETURN_IF_ERROR(ReadDatasetFrameTextures(d, 0, &maps, &valid));
+  n.net_size = net_size;
+  DownsampleTextureMap(maps.data(), valid.data(), d.texture_size, net_size, &n.net, &n.net_valid);
+  return n;
+}
+
+TextureImages NetTextureImages(const std::vector<float>& decoded, int size) {
+  const size_t texels = static_cast<size_t>(size) * size;
+  TextureImages out{Image(size, size, 3), Image(size, size, 1), Image(size, size, 3)};
+  for (size_t t = 0; t < texels; ++t) {
+    for (int c = 0; c < 3; ++c) out.albedo.pixels[3 * t + c] = std::max(0.f, decoded[c * texels + t]);
+    out.specular.pixels[t] = std::max(0.f, decoded[3 * texels + t]);
+    Eigen::Vector3f n(decoded[4 * texels + t], decoded[5 * texels + t], decoded[6 * texels + t]);
+    n = n.norm() > 0 ? n.normalized() : Eigen::Vector3f::UnitZ();
+    std::copy(n.data(), n.data() + 3, &out.normal.pixels[3 * t]);
+  }
+  return out;
+}
+
+TextureImages ApplyWrinkleMaps(const NeutralTextures& neutral, const std::vector<float>& decoded) {
+  const int s = neutral.net_size, size = neutral.albedo.width, c = kTextureChannels;
+  const size_t net_texels = static_cast<size_t>(s) * s;
+  // The wrinkle maps at the net's size, texel-interleaved.
+  std::vector<float> wrinkle(c * net_texels, 0.f);
+  for (size_t t = 0; t < net_texels; ++t) {
+    if (!neutral.net_valid[t]) continue;
+    for (int ch = 0; ch < c; ++ch)
+      wrinkle[c * t + ch] = decoded[ch * net_texels + t] - neutral.net[ch * net_texels + t];
+  }
+  TextureImages out{Image(size, size, 3), Image(size, size, 1), Image(size, size, 3)};
+  const double ratio = static_cast<double>(s) / size;
+  for (int y = 0; y < size; ++y) {
+    // Texel centres: (i + 0.5) at the full size is (i + 0.5) * ratio at the net's; bilinear, clamped at the edge.
+    const double sy = std::clamp((y + 0.5) * ratio - 0.5, 0.0, s - 1.0);
+    const int y0 = static_cast<int>(sy), y1 = std::min(y0 + 1, s - 1);
+    const float fy = static_cast<float>(sy - y0);
+    for (int x = 0; x < size; ++x) {
+      const size_t t = static_cast<size_t>(y) * size + x;
+      if (neutral.albedo.pixels[4 * t + 3] < 0.5f) continue;
+      const double sx = std::clamp((x + 0.5) * ratio - 0.5, 0.0, s - 1.0);
+      const int x0 = static_cast<int>(sx), x1 = std::min(x0 + 1, s - 1);
+      const float fx = static_cast<float>(sx - x0);
+      float w[kTextureChannels];
+      for (int ch = 0; ch < c; ++ch) {
+        auto at = [&](int yy, int xx) { return wrinkle[c * (static_cast<size_t>(yy) * s + xx) + ch]; };
+        w[ch] = (1 - fy) * ((1 - fx) * at(y0, x0) + fx * at(y0, x1)) + fy * ((1 - fx) * at(y1, x0) + fx * at(y1, x1));
+      }
+      for (int ch = 0; ch < 3; ++ch)
+        out.albedo.pixels[3 * t + ch] = std::max(0.f, neutral.albedo.pixels[4 * t + ch] + w[ch]);
+      out.specular.pixels[t] = std::max(0.f, neutral.specular.pixels[t] + w[3]);
+      const Eigen::Vector3f n =
+          Eigen::Map<const Eigen::Vector3f>(&neutral.normal.pixels[3 * t]) + Eigen::Vector3f(w[4], w[5], w[6]);
+      const Eigen::Vector3f unit = n.norm() > 0 ? n.normalized() : Eigen::Vector3f::UnitZ();
+      std::copy(unit.data(), unit.data() + 3, &out.normal.pixels[3 * t]);
+    }
+  }
+  return out;
 }
 
 }  // namespace asset_internal

@@ -17,6 +17,7 @@
 #include "stage/processing/asset_net.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/photometric.h"
 #include "training_run.h"
 
 namespace stage::processing::asset_internal {
@@ -37,6 +38,32 @@ struct PreparedData {
   float scale = 0;
 };
 absl::StatusOr<PreparedData> Prepare(const std::string& path, int size);
+
+// A frame's textures (in x in x kTextureChannels, and their validity) at the net's `size` (in a multiple of it),
+// averaged down, a texel valid where any of its sources is: C x S x S and S x S (1 or 0).
+void DownsampleTextureMap(const float* maps, const uint8_t* valid, int in, int size, std::vector<float>* out,
+                          std::vector<float>* out_valid);
+
+// The neutral frame's textures at full resolution (the dataset's neutral_textures) and at the texture VAE's size.
+struct NeutralTextures {
+  Image albedo;  // RGBA, linear; alpha 1 where the skin's textures are
+  Image specular, normal;
+  int net_size = 0;
+  std::vector<float> net, net_valid;  // C x S x S and S x S: the dataset's first frame at the net's size
+};
+// Errors name the files: missing, or not of the size the dataset says.
+absl::StatusOr<NeutralTextures> LoadNeutralTextures(const AssetDataset& d, int net_size);
+
+// A frame's textures as images: linear albedo (RGB), specular intensity, unit tangent-space normals.
+struct TextureImages {
+  Image albedo, specular, normal;
+};
+// The decoded textures (C x S x S) as they are, at the net's size.
+TextureImages NetTextureImages(const std::vector<float>& decoded, int size);
+// The decoded textures at the neutral textures' full resolution: the wrinkle maps (decoded less the neutral frame's
+// at the net's size, where both hold the skin; 0 elsewhere) upsampled bilinearly and added to the neutral textures.
+// Albedo and specular >= 0, normals unit; texels the neutral textures do not hold are 0.
+TextureImages ApplyWrinkleMaps(const NeutralTextures& neutral, const std::vector<float>& decoded);
 
 // The frames of each split, in take order.
 std::vector<int64_t> FramesOf(const AssetDataset& d, SampleSplit split);

@@ -301,6 +301,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   if (a.geometry_size() != 0) d.geometry_size = a.geometry_size();
   if (a.image_size() != 0) d.image_size = a.image_size();
   if (job.texture_size() != 0) d.texture_size = job.texture_size();  // taken where the source has textures
+  d.neutral_texture_size = a.neutral_texture_size();
   d.cameras.assign(job.cameras().begin(), job.cameras().end());
   d.calibration = job.calibration();
   d.progress = [&](int64_t done, int64_t total) { progress({done, total, "frames"}); };
@@ -436,7 +437,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   const v1::AssetOptions& a = job.asset();
   if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0 ||
       job.cameras_size() > 0 || !job.calibration().empty() || job.first_frame() != 0 || job.last_frame() != 0 ||
-      a.source() != v1::ASSET_SOURCE_UNSPECIFIED || a.geometry_size() != 0 || a.image_size() != 0) {
+      a.source() != v1::ASSET_SOURCE_UNSPECIFIED || a.geometry_size() != 0 || a.image_size() != 0 ||
+      a.neutral_texture_size() != 0) {
     return absl::InvalidArgumentError(
         "the asset's training takes no frames, cameras, calibration, geometry or dataset options: it reads "
         "TAKE/derived/asset/dataset.h5");

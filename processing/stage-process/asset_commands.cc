@@ -68,6 +68,13 @@ void AssetCommands::Add(CLI::App& parent) {
                    "them; 0: none")
       ->capture_default_str()
       ->check(CLI::IsMember({0}) | CLI::Range(16, 1024));
+  build_dataset_
+      ->add_option("--neutral-texture-size", dataset_.neutral_texture_size,
+                   "Texels across the neutral (first) frame's textures kept at full resolution beside the dataset "
+                   "(DATASET-neutral/), which inference adds the driven wrinkle maps to; 0: the source's own size; "
+                   "-1: none")
+      ->capture_default_str()
+      ->check(CLI::IsMember({-1, 0}) | CLI::Range(16, 8192));
   build_dataset_->add_option("--image-size", dataset_.image_size, "Pixels across a crop")
       ->capture_default_str()
       ->check(CLI::Range(16, 512));
@@ -295,13 +302,16 @@ int AssetCommands::Infer() {
     std::cout << nlohmann::json{{"output_dir", result->output_dir},
                                 {"frames", result->frames},
                                 {"gltf", result->gltf_files},
-                                {"textures", result->textures}}
+                                {"textures", result->textures},
+                                {"texture_size", result->texture_size}}
                      .dump()
               << "\n";
   } else {
     std::cout << result->frames.size() << " frame(s) of " << o.camera << " drove the asset into " << result->output_dir
               << " (" << result->gltf_files.size() << " glTF animation(s)"
-              << (result->textures ? "; textures" : "; no textures: no texture mapping trained") << ")\n";
+              << (result->textures ? absl::StrCat("; textures ", result->texture_size, " texels across")
+                                   : "; no textures: no texture mapping trained")
+              << ")\n";
   }
   return 0;
 }
@@ -342,6 +352,8 @@ int AssetCommands::BuildDataset() {
                                 {"image_size", summary->image_size},
                                 {"texture_size", summary->texture_size},
                                 {"textures_note", summary->textures_note},
+                                {"neutral_texture_size", summary->neutral_texture_size},
+                                {"neutral_textures_dir", summary->neutral_textures_dir},
                                 {"valid_texels", summary->valid_texels},
                                 {"rms_from_mean_mm", summary->rms_from_mean_mm}}
                      .dump()
@@ -355,6 +367,10 @@ int AssetCommands::BuildDataset() {
               << "; textures "
               << (summary->texture_size > 0 ? absl::StrCat(summary->texture_size, " texels across")
                                             : summary->textures_note)
+              << (summary->neutral_texture_size > 0
+                      ? absl::StrCat(" (the neutral frame's at ", summary->neutral_texture_size, " in ",
+                                     summary->neutral_textures_dir, ")")
+                      : "")
               << "; " << static_cast<int64_t>(summary->valid_texels) << " texels a frame, " << summary->rms_from_mean_mm
               << " mm RMS about the mean\n";
   }

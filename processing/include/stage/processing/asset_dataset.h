@@ -19,7 +19,9 @@
 //                                             z out); 0 where not valid. Only when the source has them
 //   texture_valid    uint8 (N, T, T)          1 where the texel holds the skin's textures
 //   attributes: format ("fastage-asset-dataset-1"), description (JSON: source, take, size, sequences, the split, the
-//   cameras and their crops).
+//   cameras and their crops), neutral_textures (JSON: the full-resolution neutral textures' texels across, where
+//   they were written, in the directory beside the file named for it, DATASET-neutral/; apart from the description,
+//   which is the dataset's identity for training).
 //
 // The crops are fixed per camera, as a stage's cameras are: a square of `crop_mm` at the face's place when the head
 // is at rest (the face template's centre at the stage's origin pose), wherever the head then moves, so that a new
@@ -83,6 +85,11 @@ struct DatasetOptions {
   // Texels across the textures (16..1024), taken where the source has them for the first frame (then every frame
   // must); 0: none.
   int texture_size = 128;
+  // The neutral frame's (the first frame's) textures at full resolution, written beside the dataset (its file's name
+  // less .h5, plus "-neutral/": albedo.exr with validity as alpha, specular.exr, normal_tangent.exr, in the
+  // template's layout as the dataset's): inference adds the driven wrinkle maps to them. Texels across (16..8192); 0:
+  // the source's own (the truth's UV maps', texture fusion's textures'); -1: none. Only with textures.
+  int neutral_texture_size = 0;
   // Texels across a crop (16..512), and the crop's side at the face, mm (50..1000).
   int image_size = 128;
   double crop_mm = 280;
@@ -106,6 +113,9 @@ struct DatasetSummary {
   // Texels across the textures; 0: none, and `textures_note` says why.
   int texture_size = 0;
   std::string textures_note;
+  // The neutral frame's full-resolution textures: their directory and texels across (0: none).
+  std::string neutral_textures_dir;
+  int neutral_texture_size = 0;
   // Over the frames' valid texels: the mean count per frame, and how far the geometry moves from the dataset's mean
   // (RMS, mm): what a model of it has to explain.
   double valid_texels = 0, rms_from_mean_mm = 0;
@@ -141,6 +151,10 @@ struct AssetDataset {
   int texture_size = 0;              // 0: no textures
   std::vector<float> textures;       // frames x texture_size^2 x kTextureChannels
   std::vector<uint8_t> texture_valid;  // frames x texture_size^2
+  // The neutral frame's full-resolution textures (DatasetOptions::neutral_texture_size): their directory (absolute
+  // or relative to the working directory) and texels across; empty and 0 where the dataset has none.
+  std::string neutral_textures_dir;
+  int neutral_texture_size = 0;
   std::string description;           // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };
@@ -148,6 +162,11 @@ struct AssetDataset {
 absl::StatusOr<AssetDataset> ReadAssetDataset(const std::string& path);
 // The description alone (sizes, sequences, cameras and crops; no arrays read).
 absl::StatusOr<AssetDataset> ReadAssetDatasetDescription(const std::string& path);
+
+// The textures of the dataset's frame at index `i` (texture_size^2 x kTextureChannels, and their validity) read alone
+// from its file (`d` from ReadAssetDatasetDescription is enough). Errors name the file.
+absl::Status ReadDatasetFrameTextures(const AssetDataset& d, int64_t i, std::vector<float>* maps,
+                                      std::vector<uint8_t>* valid);
 
 // The crop box of `camera` in `d` (errors name the dataset, and the cameras it cropped).
 absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string& camera);

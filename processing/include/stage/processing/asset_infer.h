@@ -13,9 +13,10 @@
 // template with a morph target per frame and their animation: stage/processing/mesh_sequence.h), and frames.json
 // (the camera, the source, the frames, the glTF files) once all are written.
 // and, where the asset has a texture mapping (asset_train.h's TrainTextureMapping: the geometry latent to the texture
-// latent), the frame's textures at the texture VAE's resolution: albedo.exr (linear RGB), specular.exr and
-// normal_tangent.exr (unit, +y along +v), float32 OpenEXR in the template's layout. Not yet at a neutral texture's
-// full resolution.
+// latent), the frame's textures: albedo.exr (linear RGB), specular.exr and normal_tangent.exr (unit, +y along +v),
+// float32 OpenEXR in the template's layout; where the dataset keeps the neutral frame's textures at full resolution
+// (DatasetOptions::neutral_texture_size), at theirs: the decoded wrinkle maps (the decoded textures less the neutral
+// frame's at the net's size) upsampled and added to them; else the decoded textures at the texture VAE's size.
 #pragma once
 
 #include <cstdint>
@@ -69,6 +70,9 @@ struct AssetInferResult {
   std::vector<int64_t> frames;
   std::vector<std::string> gltf_files;  // in the output directory, in frame order
   bool textures = false;                // written per frame
+  // Texels across them: the neutral frame's full-resolution textures' where the dataset keeps them (the wrinkle maps
+  // upsampled and added to them), else the texture VAE's.
+  int texture_size = 0;
 };
 
 // Errors name the file or the camera: no crop of the camera in the dataset, a run missing, a video that does not
