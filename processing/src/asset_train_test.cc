@@ -93,6 +93,10 @@ TEST(AssetTrainTest, TheLossesFallAndHeldOutFramesComeBackBetterThanTheNeutralFr
   // Two signals: PCA with four components holds them nearly exactly; the tiny net comes within a few mm.
   EXPECT_LT(e.pca[1].rmse_mm, 0.5);
   EXPECT_LT(e.vae[1].rmse_mm, 3.0);
+  // Each map first moved rigidly (up to 5 degrees and 5 mm): the same geometry, since the encoder aligns its input
+  // first (a geometry that followed the pose estimate would shake over a clip).
+  EXPECT_GT(e.vae_moved[1].frames, 0);
+  EXPECT_NEAR(e.vae_moved[1].rmse_mm, e.vae[1].rmse_mm, 0.02 * e.vae[1].rmse_mm);
 }
 
 TEST(AssetTrainTest, AKilledRunResumesBitForBitAndOtherOptionsAreRefused) {

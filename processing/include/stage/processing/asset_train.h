@@ -62,11 +62,15 @@ struct SplitError {
   double rmse_mm = 0, p99_mm = 0;
   double face_mm = 0, eyes_mm = 0, mouth_mm = 0;  // RMSE
 };
+inline constexpr double kMovedRotationDeg = 5, kMovedTranslationMm = 5;
 struct TrainedEvaluation {
   // Each split of the dataset (train, held-out blocks, held-out sequence): the VAE's maps (encoded unmoved, the
   // geometry latent's mean decoded), PCA's with as many components as the geometry latent (fitted on the training
-  // frames, the map projected), and the neutral frame's (the dataset's first frame, for every frame).
-  SplitError vae[3], pca[3], neutral[3];
+  // frames, the map projected), and the neutral frame's (the dataset's first frame, for every frame). vae_moved: the
+  // VAE's maps of the input first moved rigidly (each frame by its own motion, seeded by its index, up to
+  // kMovedRotationDeg about each axis and kMovedTranslationMm along it: a head pose a fit leaves off), against the
+  // unmoved truth: what the pose augmentation buys (a geometry that does not shake as the pose estimate does).
+  SplitError vae[3], vae_moved[3], pca[3], neutral[3];
 };
 
 struct AssetTrainResult {
