@@ -427,6 +427,14 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                                        std::chrono::seconds(60));
   EXPECT_EQ(misplaced.exit.exit_code, 2);
   EXPECT_THAT(misplaced.err, HasSubstr("--pose-latent is not an option of the mapping network"));
+  wrong = mapping_request;
+  wrong.mutable_asset()->set_direct_textures(true);  // the texture VAE's ablation
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_MAPPING network's"));
+  wrong = request;
+  wrong.mutable_asset()->set_neutral_texture_size(64);  // the dataset's option, not a training one
+  wrong.set_stage(v1::PROCESSING_STAGE_ASSET_TRAIN);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));
   wrong = finetune_request;
   wrong.mutable_asset()->set_hidden(8);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),

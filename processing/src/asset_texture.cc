@@ -197,6 +197,25 @@ TextureBatch DrawBatch(const PreparedTextures& p, const TextureTrainJob& job, st
   return batch;
 }
 
+// Each channel's RMS about zero over the training frames' valid texels (the direct textures' spread).
+std::vector<float> DirectScale(const PreparedTextures& p) {
+  const size_t texels = static_cast<size_t>(p.maps.size) * p.maps.size;
+  std::vector<double> ss(kTextureChannels, 0);
+  double n = 0;
+  for (int64_t f : p.train) {
+    for (size_t t = 0; t < texels; ++t) {
+      if (!p.maps.valid[f][t]) continue;
+      for (int c = 0; c < kTextureChannels; ++c) ss[c] += std::pow(p.maps.maps[f][c * texels + t], 2);
+      ++n;
+    }
+  }
+  std::vector<float> scale;
+  for (int c = 0; c < kTextureChannels; ++c) {
+    scale.push_back(static_cast<float>(std::max(1e-4, std::sqrt(ss[c] / std::max(1.0, n)))));
+  }
+  return scale;
+}
+
 nlohmann::json OptionsJson(const TextureTrainJob& job, const std::string& dataset_id) {
   const TextureVaeOptions& t = job.texture;
   nlohmann::json j = {{"network", "texture"},
@@ -206,6 +225,7 @@ nlohmann::json OptionsJson(const TextureTrainJob& job, const std::string& datase
                       {"max_channels", t.max_channels},
                       {"channels", t.channels},
                       {"texture_latent", t.texture_latent},
+                      {"direct", job.direct},
                       {"kl_weight", t.kl_weight},
                       {"seed", t.seed},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
@@ -603,7 +623,10 @@ absl::StatusOr<TextureTrainResult> TrainTextureAsset(const TextureTrainJob& job)
   STAGE_ASSIGN_OR_RETURN(const PreparedTextures data, PrepareTextures(job.dataset, job.texture.input_size));
   TextureTrainResult result;
   result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "texture");
-  STAGE_ASSIGN_OR_RETURN(auto net, TextureVae::Create(job.texture, data.mean, data.scale));
+  STAGE_ASSIGN_OR_RETURN(
+      auto net, job.direct
+                    ? TextureVae::Create(job.texture, std::vector<float>(data.mean.size(), 0.f), DirectScale(data))
+                    : TextureVae::Create(job.texture, data.mean, data.scale));
   result.parameters = net->parameter_count();
   internal::TrainingLoop loop;
   loop.dir = result.output_dir;

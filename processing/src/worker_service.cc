@@ -290,7 +290,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
       a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0 ||
-      a.freeze_encoder()) {
+      a.direct_textures() || a.freeze_encoder()) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -404,6 +404,7 @@ absl::StatusOr<v1::ProcessingProgress> TrainTextureJob(const v1::AssetOptions& a
   t.schedule = schedule;
   SetConvolutionalOptions(a, &t.texture);
   SetIfGiven(a.texture_latent(), &t.texture.texture_latent);
+  t.direct = a.direct_textures();
   t.progress = [&](int64_t step, int64_t total, const TextureLosses& l) { return report(step, total, l.total); };
   auto result = TrainTextureAsset(t);
   if (!result.ok()) return result.status();
@@ -456,7 +457,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
       (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING &&
        (a.hidden() != 0 || a.layers() != 0)) ||
       (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
-      (network != v1::ASSET_NETWORK_TEXTURE && a.texture_latent() != 0)) {
+      (network != v1::ASSET_NETWORK_TEXTURE && (a.texture_latent() != 0 || a.direct_textures()))) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }

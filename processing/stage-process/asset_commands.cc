@@ -171,6 +171,9 @@ void AssetCommands::AddTrainNetworkOptions() {
       ->delimiter(',');
   train_->add_option("--texture-latent", texture_job_.texture.texture_latent, "texture: size of the texture latent")
       ->capture_default_str();
+  train_->add_flag("--direct-textures", texture_job_.direct,
+                   "texture: decode the textures themselves, not wrinkle maps over the training mean (the paper's "
+                   "ablation)");
   // The mapping's.
   processing::LatentMappingOptions& m = mapping_job_.mapping;
   train_->add_option("--hidden", m.hidden, "mapping: hidden units")->capture_default_str();
@@ -392,6 +395,7 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
       {"--max-channels", {"geometry", "expression", "texture"}},
       {"--kl-weight", {"geometry", "expression", "texture"}},
       {"--texture-latent", {"texture"}},
+      {"--direct-textures", {"texture"}},
       {"--geometry-latent", {"geometry"}},
       {"--pose-latent", {"geometry"}},
       {"--augment-rotation", {"geometry"}},

@@ -214,6 +214,9 @@ struct TextureTrainJob {
   std::string dataset;
   std::string output_dir;     // default: DATASET's directory/texture
   TextureVaeOptions texture;  // channels: the dataset's (left as they are, checked)
+  // The ablation without wrinkle maps (the paper's 6.3): the net decodes the textures themselves, its neutral
+  // textures zero and its spread each channel's RMS about zero, instead of wrinkle maps over the training mean.
+  bool direct = false;
   TrainingSchedule schedule;
   std::function<bool(int64_t, int64_t, const TextureLosses&)> progress;
   absl::Status Validate() const;
