@@ -4,6 +4,7 @@
 // way; the dataset opens in h5py; clear errors.
 #include <tiny_gltf.h>
 
+#include <cmath>
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
@@ -16,6 +17,7 @@
 #include "stage/processing/asset_infer.h"
 #include "stage/processing/asset_train.h"
 #include "stage/processing/face_template.h"
+#include "stage/processing/map_files.h"
 #include "stage/sim/rendered_take.h"
 #include "test_support.h"
 #include "worker_support.h"
@@ -401,6 +403,32 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
     worst = std::max<double>(worst, (from_glb[v] - mesh->positions[v]).norm());
   }
   EXPECT_LT(worst, 1e-3) << "mm (the OBJ's 6 decimals)";
+  // Its material: the neutral frame's textures at full resolution, a base colour and a normal map, as tinygltf
+  // decodes them.
+  {
+    tinygltf::TinyGLTF loader;
+    tinygltf::Model model;
+    std::string error, warning;
+    ASSERT_TRUE(loader.LoadBinaryFromFile(&model, &error, &warning, asset + "/infer-batch/animation-000000.glb"));
+    ASSERT_EQ(model.materials.size(), 1u);
+    EXPECT_EQ(model.meshes[0].primitives[0].material, 0);
+    const tinygltf::Material& m = model.materials[0];
+    ASSERT_EQ(model.images.size(), 2u);
+    const tinygltf::Image& colour =
+        model.images.at(model.textures.at(m.pbrMetallicRoughness.baseColorTexture.index).source);
+    const tinygltf::Image& normal = model.images.at(model.textures.at(m.normalTexture.index).source);
+    EXPECT_EQ(colour.width, 128);
+    EXPECT_EQ(normal.height, 128);
+    EXPECT_EQ(colour.mimeType, "image/png");
+    // A skin texel's colour is the neutral albedo's, in sRGB.
+    auto neutral_albedo = processing::ReadImageFile(asset + "/dataset-neutral/albedo.exr");
+    ASSERT_TRUE(neutral_albedo.ok());
+    const int x = 64, y = 64;
+    ASSERT_EQ(neutral_albedo->at(x, y)[3], 1.f) << "texel (64, 64) is not skin";
+    const double linear = neutral_albedo->at(x, y)[1];
+    const double srgb = linear <= 0.0031308 ? 12.92 * linear : 1.055 * std::pow(linear, 1 / 2.4) - 0.055;
+    EXPECT_NEAR(colour.image[(y * colour.width + x) * colour.component + 1], 255 * srgb, 1.0);
+  }
   EXPECT_GT((mesh->positions[0] - face->mesh.positions[0]).norm(), 1e-3) << "the frame's mesh is not the rest's";
   CommandResult unknown = RunCommand({"stage-process", "asset", "infer", "--dataset", asset + "/dataset.h5", "--camera",
                                       "mv-09", "--take", take.path()},

@@ -46,8 +46,12 @@ for f, name in enumerate(names):
     base = 3 * n * f
     worst.append(max(tree.find(Vector(values[base + 3 * i:base + 3 * i + 3]))[2] for i in range(n)))
     obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).to_mesh_clear()
+nodes = obj.active_material.node_tree.nodes if obj.active_material else []
+images = sorted(list(t.image.size) for t in nodes if t.type == 'TEX_IMAGE' and t.image)
 print("RESULT " + json.dumps({"vertices": n, "polygons": len(me.polygons), "uv_layers": len(me.uv_layers),
-                              "names": names, "peaks": [peaks[k] for k in names], "worst_m": worst}))
+                              "names": names, "peaks": [peaks[k] for k in names], "worst_m": worst,
+                              "materials": len(me.materials), "images": images,
+                              "normal_maps": len([t for t in nodes if t.type == 'NORMAL_MAP'])}))
 )";
 
 TEST(MeshSequenceBlenderTest, BlenderImportsEveryFrameAsAShapeKeyOnTheAnimation) {
@@ -64,7 +68,20 @@ TEST(MeshSequenceBlenderTest, BlenderImportsEveryFrameAsAShapeKeyOnTheAnimation)
   }
   TempDir dir;
   const std::string glb = dir.path() + "/sequence.glb";
-  ASSERT_TRUE(processing::WriteMeshSequenceGlb(glb, rest, frames, {.frames_per_second = 24}).ok());
+  // A material of a 4 x 2 base colour and a 2 x 2 flat normal map (PNG files' bytes).
+  const std::string colour(
+      "\x89\x50\x4e\x47\x0d\x0a\x1a\x0a\x00\x00\x00\x0d\x49\x48\x44\x52\x00\x00\x00\x04\x00\x00\x00\x02\x08\x02\x00"
+      "\x00\x00\xf0\xca\xea\x34\x00\x00\x00\x10\x49\x44\x41\x54\x78\xda\x63\x38\x31\xad\x02\x8e\x18\x90\x39\x00\xc1"
+      "\x8a\x0e\xb1\xd0\xc1\xce\xb9\x00\x00\x00\x00\x49\x45\x4e\x44\xae\x42\x60\x82",
+      73);
+  const std::string normal(
+      "\x89\x50\x4e\x47\x0d\x0a\x1a\x0a\x00\x00\x00\x0d\x49\x48\x44\x52\x00\x00\x00\x02\x00\x00\x00\x02\x08\x02\x00"
+      "\x00\x00\xfd\xd4\x9a\x73\x00\x00\x00\x10\x49\x44\x41\x54\x78\xda\x63\x68\x68\xf8\x0f\x44\x0c\x10\x0a\x00\x35"
+      "\xf6\x07\xfd\xa1\x29\xec\x43\x00\x00\x00\x00\x49\x45\x4e\x44\xae\x42\x60\x82",
+      73);
+  ASSERT_TRUE(processing::WriteMeshSequenceGlb(
+                  glb, rest, frames, {.frames_per_second = 24, .base_color_png = colour, .normal_png = normal})
+                  .ok());
   // The expected positions in Blender's axes (glTF's +y up becomes +z; its +z, -y) and metres.
   std::vector<float> expected;
   for (const auto& f : frames) {
@@ -89,6 +106,9 @@ TEST(MeshSequenceBlenderTest, BlenderImportsEveryFrameAsAShapeKeyOnTheAnimation)
   EXPECT_EQ(r["vertices"], rest.positions.size());
   EXPECT_EQ(r["polygons"], rest.triangles.size());
   EXPECT_EQ(r["uv_layers"], 1);
+  EXPECT_EQ(r["materials"], 1);
+  EXPECT_EQ(r["images"], nlohmann::json::array({{2, 2}, {4, 2}}));
+  EXPECT_EQ(r["normal_maps"], 1);
   EXPECT_EQ(r["names"], nlohmann::json::array({"frame-000100", "frame-000103", "frame-000106", "frame-000109"}));
   ASSERT_EQ(r["peaks"].size(), 4u);
   for (size_t k = 1; k < 4; ++k) {  // 24 frames a second in the file, Blender's default scene rate

@@ -1,6 +1,8 @@
 // The trained asset driven from images: see asset_infer.h.
 #include "stage/processing/asset_infer.h"
 
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -150,11 +152,46 @@ absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const st
   return std::move(mesh.positions);
 }
 
+// The glTF material's textures: the neutral frame's full-resolution albedo (sRGB, 8 bits; black where it holds no
+// skin) and its tangent-space normals (n / 2 + 1/2, 8 bits; +z where none), as PNG files' bytes; none without them.
+absl::StatusOr<MeshSequenceOptions> GltfTextures(const Asset& a) {
+  MeshSequenceOptions o;
+  if (!a.neutral) return o;
+  const Image& albedo = a.neutral->albedo;
+  const Image& normal = a.neutral->normal;
+  cv::Mat colour(albedo.height, albedo.width, CV_8UC3), bump(albedo.height, albedo.width, CV_8UC3);
+  auto byte = [](double x) { return static_cast<uint8_t>(std::lround(255 * std::clamp(x, 0.0, 1.0))); };
+  auto srgb = [](double x) {
+    x = std::clamp(x, 0.0, 1.0);
+    return x <= 0.0031308 ? 12.92 * x : 1.055 * std::pow(x, 1 / 2.4) - 0.055;
+  };
+  for (int y = 0; y < albedo.height; ++y) {
+    for (int x = 0; x < albedo.width; ++x) {
+      const float* p = albedo.at(x, y);
+      const float* n = normal.at(x, y);
+      const bool skin = p[3] >= 0.5f;
+      // OpenCV's channel order is BGR.
+      colour.at<cv::Vec3b>(y, x) =
+          skin ? cv::Vec3b(byte(srgb(p[2])), byte(srgb(p[1])), byte(srgb(p[0]))) : cv::Vec3b(0, 0, 0);
+      bump.at<cv::Vec3b>(y, x) =
+          skin ? cv::Vec3b(byte(n[2] / 2 + 0.5), byte(n[1] / 2 + 0.5), byte(n[0] / 2 + 0.5)) : cv::Vec3b(255, 128, 128);
+    }
+  }
+  std::vector<uint8_t> bytes;
+  if (!cv::imencode(".png", colour, bytes)) return absl::InternalError("the glTF's base colour: PNG encoding failed");
+  o.base_color_png.assign(bytes.begin(), bytes.end());
+  if (!cv::imencode(".png", bump, bytes)) return absl::InternalError("the glTF's normal map: PNG encoding failed");
+  o.normal_png.assign(bytes.begin(), bytes.end());
+  return o;
+}
+
 // The driven frames gathered into glTF binaries of `segment` frames each, `animation-<first frame>.glb`.
 class GltfSegments {
  public:
-  GltfSegments(const AssetInferOptions& options, const TriangleMesh& rest, std::string dir)
-      : options_(options), rest_(rest), dir_(std::move(dir)) {}
+  // `textures`: the material's (MeshSequenceOptions' base_color_png and normal_png; empty: none).
+  GltfSegments(const AssetInferOptions& options, const TriangleMesh& rest, std::string dir,
+               const MeshSequenceOptions& textures)
+      : options_(options), rest_(rest), dir_(std::move(dir)), textures_(textures) {}
 
   absl::Status Add(int64_t frame, std::vector<Eigen::Vector3f> positions) {
     if (options_.gltf_segment_frames == 0) return absl::OkStatus();
@@ -166,7 +203,7 @@ class GltfSegments {
   absl::Status Flush() {
     if (pending_.empty()) return absl::OkStatus();
     const std::string name = absl::StrFormat("animation-%06d.glb", pending_.front().frame);
-    MeshSequenceOptions sequence;
+    MeshSequenceOptions sequence = textures_;
     sequence.frames_per_second = options_.gltf_frames_per_second;
     sequence.generator = "FaStage neural asset, driven from camera " + options_.camera;
     STAGE_RETURN_IF_ERROR(WriteMeshSequenceGlb(dir_ + "/" + name, rest_, pending_, sequence));
@@ -181,6 +218,7 @@ class GltfSegments {
   const AssetInferOptions& options_;
   const TriangleMesh& rest_;
   const std::string dir_;
+  const MeshSequenceOptions textures_;
   std::vector<MeshSequenceFrame> pending_;
   nlohmann::json files_ = nlohmann::json::array();
 };
@@ -246,7 +284,8 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   STAGE_ASSIGN_OR_RETURN(const Asset a, LoadAsset(options, d));
   AssetInferResult result;
   result.output_dir = OutputDir(options);
-  GltfSegments gltf(options, a.face.mesh, result.output_dir);
+  STAGE_ASSIGN_OR_RETURN(const MeshSequenceOptions textures, GltfTextures(a));
+  GltfSegments gltf(options, a.face.mesh, result.output_dir, textures);
   auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
     if (options.cancelled && options.cancelled()) {
       return absl::CancelledError(absl::StrCat("asset inference stopped before frame ", frame, " (",

@@ -24,6 +24,7 @@ class BufferBuilder {
   // A view of `bytes` bytes of `data`; `target` 0 for animation data.
   int AddView(const void* data, size_t bytes, int target) {
     std::vector<unsigned char>& buffer = model_->buffers[0].data;
+    buffer.resize((buffer.size() + 3) / 4 * 4);  // after an image of any length
     tinygltf::BufferView view;
     view.buffer = 0;
     view.byteOffset = buffer.size();
@@ -147,11 +148,41 @@ tinygltf::Animation BuildAnimation(BufferBuilder& b, size_t keys, double frames_
   return animation;
 }
 
+// The material of the options' textures (the mesh's only): an image per PNG in the buffer, a texture of each.
+void AddMaterial(BufferBuilder& b, const MeshSequenceOptions& options, tinygltf::Model* model) {
+  auto texture = [&](const std::string& png, const char* name) {
+    tinygltf::Image image;
+    image.name = name;
+    image.mimeType = "image/png";
+    image.bufferView = b.AddView(png.data(), png.size(), 0);
+    model->images.push_back(image);
+    tinygltf::Texture t;
+    t.source = static_cast<int>(model->images.size()) - 1;
+    t.sampler = 0;
+    model->textures.push_back(t);
+    return static_cast<int>(model->textures.size()) - 1;
+  };
+  tinygltf::Sampler sampler;
+  sampler.magFilter = TINYGLTF_TEXTURE_FILTER_LINEAR;
+  sampler.minFilter = TINYGLTF_TEXTURE_FILTER_LINEAR_MIPMAP_LINEAR;
+  model->samplers.push_back(sampler);
+  tinygltf::Material material;
+  material.name = "skin";
+  material.pbrMetallicRoughness.baseColorTexture.index = texture(options.base_color_png, "base_color");
+  material.pbrMetallicRoughness.metallicFactor = 0;
+  material.pbrMetallicRoughness.roughnessFactor = 0.5;
+  if (!options.normal_png.empty()) material.normalTexture.index = texture(options.normal_png, "normal");
+  model->materials.push_back(material);
+}
+
 }  // namespace
 
 absl::Status MeshSequenceOptions::Validate() const {
   if (!(frames_per_second > 0)) {
     return absl::InvalidArgumentError(absl::StrCat("mesh sequence: frames_per_second ", frames_per_second));
+  }
+  if (base_color_png.empty() && !normal_png.empty()) {
+    return absl::InvalidArgumentError("mesh sequence: a normal map without a base colour");
   }
   return absl::OkStatus();
 }
@@ -171,6 +202,10 @@ absl::Status WriteMeshSequenceGlb(const std::string& path, const TriangleMesh& r
   model.asset.generator = options.generator.empty() ? "FaStage" : options.generator;
   BufferBuilder b(&model);
   model.meshes.push_back(BuildMesh(b, rest, frames));
+  if (!options.base_color_png.empty()) {
+    AddMaterial(b, options, &model);
+    model.meshes[0].primitives[0].material = 0;
+  }
   tinygltf::Node node;
   node.name = "face";
   node.mesh = 0;

@@ -8,7 +8,8 @@
 //
 // Units and axes: glTF's are metres, +y up, +z the front of the asset, +x its left: the head frame's axes (+y up,
 // +z the way the face looks, +x the performer's left), so positions in mm are only scaled by 1/1000. Texture
-// coordinates are flipped to glTF's top-left origin (v' = 1 - v).
+// coordinates are flipped to glTF's top-left origin (v' = 1 - v). With textures (MeshSequenceOptions), one material
+// (metallic 0, roughness 0.5) holds them.
 #pragma once
 
 #include <Eigen/Core>
@@ -24,6 +25,10 @@ namespace stage::processing {
 struct MeshSequenceOptions {
   double frames_per_second = 24;  // the animation's keys' spacing; > 0
   std::string generator;          // the file's asset.generator (default: "FaStage")
+  // The mesh's material, its textures in the mesh's UV layout as PNG files' bytes, embedded in the file: the base
+  // colour (sRGB) and the normal map (tangent space, +y along +v: glTF's convention), rows from v = 1 down (as the
+  // project's textures are stored; glTF's top-left origin). Empty: no material (the normal map only with a colour).
+  std::string base_color_png, normal_png;
   absl::Status Validate() const;
 };
 
