@@ -575,6 +575,10 @@ absl::Status DatasetOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("dataset: neutral texture size ", neutral_texture_size, " is not -1, 0 or 16..8192"));
   }
+  if (neutral_texture_size > 0 && texture_size == 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("dataset: neutral texture size ", neutral_texture_size, " with no textures (texture size 0)"));
+  }
   if (image_size < 16 || image_size > 512) {
     return absl::InvalidArgumentError(absl::StrCat("dataset: image size ", image_size, " is not in 16..512"));
   }

@@ -197,6 +197,9 @@ TEST(AssetDatasetTest, TheTruthsTexturesAreDrawnIntoTheLayoutWithTangentSpaceNor
   ASSERT_TRUE(off.ok()) << off.status();
   EXPECT_EQ(off->texture_size, 0);
   EXPECT_EQ(ReadAssetDataset(off->path)->textures.size(), 0u);
+  auto neutral_alone =
+      BuildAssetDataset({.take_dir = take, .geometry_size = 32, .texture_size = 0, .neutral_texture_size = 64});
+  EXPECT_THAT(neutral_alone.status().message(), HasSubstr("neutral texture size 64 with no textures"));
 }
 
 TEST(AssetDatasetTest, TheSplitHoldsOutOneSequenceWholeAndEvenContiguousBlocks) {

@@ -154,9 +154,9 @@ absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const st
 
 // The glTF material's textures: the neutral frame's full-resolution albedo (sRGB, 8 bits; black where it holds no
 // skin) and its tangent-space normals (n / 2 + 1/2, 8 bits; +z where none), as PNG files' bytes; none without them.
-absl::StatusOr<MeshSequenceOptions> GltfTextures(const Asset& a) {
+absl::StatusOr<MeshSequenceOptions> GltfTextures(const Asset& a, const AssetInferOptions& options) {
   MeshSequenceOptions o;
-  if (!a.neutral) return o;
+  if (!a.neutral || options.gltf_segment_frames == 0) return o;
   const Image& albedo = a.neutral->albedo;
   const Image& normal = a.neutral->normal;
   cv::Mat colour(albedo.height, albedo.width, CV_8UC3), bump(albedo.height, albedo.width, CV_8UC3);
@@ -284,7 +284,7 @@ absl::StatusOr<AssetInferResult> InferAsset(const AssetInferOptions& options) {
   STAGE_ASSIGN_OR_RETURN(const Asset a, LoadAsset(options, d));
   AssetInferResult result;
   result.output_dir = OutputDir(options);
-  STAGE_ASSIGN_OR_RETURN(const MeshSequenceOptions textures, GltfTextures(a));
+  STAGE_ASSIGN_OR_RETURN(const MeshSequenceOptions textures, GltfTextures(a, options));
   GltfSegments gltf(options, a.face.mesh, result.output_dir, textures);
   auto drive = [&](int64_t frame, const std::vector<uint8_t>& crop) -> absl::Status {
     if (options.cancelled && options.cancelled()) {

@@ -90,6 +90,14 @@ tinygltf::Mesh BuildMesh(BufferBuilder& b, const TriangleMesh& rest, const std::
   primitive.attributes["POSITION"] =
       b.AddBounded(b.AddView(positions.data(), 4 * positions.size(), TINYGLTF_TARGET_ARRAY_BUFFER), 0, positions.data(),
                    n, TINYGLTF_TYPE_VEC3, 3);
+  // The rest's smooth (area-weighted) vertex normals: without them viewers shade the mesh flat, and a normal map is
+  // made for the smooth surface. The targets carry none: the frames' normals are the rest's.
+  std::vector<float> normals;
+  normals.reserve(3 * n);
+  for (const Eigen::Vector3f& v : rest.VertexNormals()) normals.insert(normals.end(), {v.x(), v.y(), v.z()});
+  primitive.attributes["NORMAL"] =
+      b.AddAccessor(b.AddView(normals.data(), 4 * normals.size(), TINYGLTF_TARGET_ARRAY_BUFFER), 0, n,
+                    TINYGLTF_COMPONENT_TYPE_FLOAT, TINYGLTF_TYPE_VEC3);
   if (rest.uvs.size() == n) {
     std::vector<float> uvs(2 * n);
     for (size_t v = 0; v < n; ++v) {

@@ -42,6 +42,8 @@ void World::Start() {
     if (clock.ok()) {
       clock_ = std::move(*clock);
       clock_->AddListener([this](const timing::SlotEdge& e) { OnRealEdge(e); });
+      // The clock's end (end_slot) with its last slots skipped: no edge follows to move the world past them.
+      clock_->AddEndListener([this](int64_t) { OnRealEnd(); });
       (void)clock_->Start();
     }
   }
@@ -62,8 +64,9 @@ void World::OnRealEdge(const timing::SlotEdge& edge) {
     std::lock_guard<std::mutex> lock(mutex_);
     if (NextEdge(edge.slot) != edge.slot) {
       // A clock late by a slot or more skips edges: when it skipped a run's last slots, this silent edge is the first
-      // after them, and the world has passed them (each device counts them as missed). Without this the world would
-      // stand short of the run's end until the next run, and whoever waits for the run to end would wait for ever.
+      // after them, and the world has passed them: it stands at the run's last slot (delivered late, the ones before
+      // it counted as missed, as inside a run). Without this the world would stand short of the run's end until the
+      // next run, and whoever waits for the run to end would wait for ever.
       for (const WorldRun& r : runs_) {
         if (r.end <= edge.slot) current_ = std::max(current_, r.end - 1);
       }
@@ -77,6 +80,16 @@ void World::OnRealEdge(const timing::SlotEdge& edge) {
       quiet_through_ns_ = EdgeNs(edge.slot);
     } else {
       current_ = edge.slot;
+    }
+  }
+  changed_.notify_all();
+}
+
+void World::OnRealEnd() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const WorldRun& r : runs_) {
+      if (r.first < options_.end_slot) current_ = std::max(current_, std::min(r.end, options_.end_slot) - 1);
     }
   }
   changed_.notify_all();

@@ -10,6 +10,7 @@
 #include <thread>
 
 #include "gtest/gtest.h"
+#include "stage/common/clock.h"
 
 namespace stage::sim {
 namespace {
@@ -219,6 +220,28 @@ TEST(WorldTest, RealTimeRunWhoseLastEdgesTheClockSkippedStillEnds) {
   EXPECT_EQ(edge->slot, run->end - 1);
   EXPECT_EQ(edge->missed, 1);  // end - 2: skipped
   EXPECT_EQ(world.current_slot(), run->end - 1);
+  world.Stop();
+}
+
+// The same at the world's own end (end_slot): no edge follows the skipped last slots, the clock's end moves it.
+TEST(WorldTest, RealTimeWorldWhoseLastEdgesTheClockSkippedStillEnds) {
+  Dome dome = TwoNodeDome();
+  const int64_t t0 = RealClock(RealClock::Kind::kMonotonic).NowNs() + 200'000'000;
+  World world(
+      dome,
+      {.slot_rate_hz = 1000, .lockstep = false, .t0_ns = t0, .end_slot = 20, .before_real_edge = [](int64_t slot) {
+         if (slot == 17) std::this_thread::sleep_for(std::chrono::milliseconds(30));
+       }});
+  const int dev = world.Register("cam", -1);
+  world.Start();
+  auto last = std::async(std::launch::async, [&] { return world.WaitForEdge(dev, 18); });
+  const bool ready = last.wait_for(std::chrono::seconds(10)) == std::future_status::ready;
+  if (!ready) world.Stop();
+  ASSERT_TRUE(ready) << "the world stood short of its end at slot " << world.current_slot();
+  const std::optional<WorldEdge> edge = last.get();
+  ASSERT_TRUE(edge.has_value());
+  EXPECT_EQ(edge->slot, 19);
+  EXPECT_EQ(edge->missed, 1);
   world.Stop();
 }
 

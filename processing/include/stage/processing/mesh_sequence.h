@@ -1,9 +1,10 @@
 // A mesh of one topology moving over frames (the face template driven by the neural asset, docs/asset.md#export)
 // written as one glTF 2.0 binary file (.glb) that Blender, three.js and the like import as an animation.
 //
-// The layout: one mesh (the rest positions, the triangles, the texture coordinates) with one morph target per frame
-// (its positions less the rest's), and one animation of the morph weights: at frame k's time (k / frames per second)
-// target k weighs 1 and every other 0, linear between keys, so the mesh passes through every frame's positions.
+// The layout: one mesh (the rest positions, its smooth vertex normals, the triangles, the texture coordinates) with
+// one morph target per frame (its positions less the rest's), and one animation of the morph weights: at frame k's
+// time (k / frames per second) target k weighs 1 and every other 0, linear between keys, so the mesh passes through
+// every frame's positions.
 // Blender imports the targets as shape keys named `frame-NNNNNN` (the mesh's extras.targetNames).
 //
 // Units and axes: glTF's are metres, +y up, +z the front of the asset, +x its left: the head frame's axes (+y up,

@@ -151,6 +151,7 @@ class World {
   };
   void MaybeAdvance();  // mutex_ held
   void OnRealEdge(const timing::SlotEdge& edge);
+  void OnRealEnd();  // the clock passed end_slot
   // The first slot at or after `slot` that lies in a run, or -1 (mutex_ held); the run of an in-run slot.
   int64_t NextEdge(int64_t slot) const;
   WorldRun RunOf(int64_t slot) const;
