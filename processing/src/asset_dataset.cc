@@ -265,15 +265,21 @@ std::string NeutralTexturesDir(const std::string& dataset_path) {
   return (p.parent_path() / (p.stem().string() + "-neutral")).string();
 }
 
-// The textures of the source's frame `frame_dir` at `size` texels across (the truth's or texture fusion's).
-absl::StatusOr<FrameTextures> SourceTextures(const FaceTemplate& face, bool truth, int size,
-                                             const std::string& frame_dir) {
-  if (!truth) return FusedFrameTextures(size, frame_dir);
+// The texels the template's layout covers at `size` (with the map's dilation past its edges): the truth is drawn
+// there.
+absl::StatusOr<std::vector<uint8_t>> TemplateLayout(const FaceTemplate& face, int size) {
   STAGE_ASSIGN_OR_RETURN(const GeometryMap map,
                          MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = size}));
   std::vector<uint8_t> layout(map.state.size());
   for (size_t t = 0; t < map.state.size(); ++t) layout[t] = map.state[t] != TexelState::kEmpty;
-  return TruthTextures(face, layout, size, frame_dir);
+  return layout;
+}
+
+// The textures of the source's frame `frame_dir` at `size` texels across: the truth's (drawn where `layout`,
+// TemplateLayout's at that size, covers) or texture fusion's.
+absl::StatusOr<FrameTextures> SourceTextures(const FaceTemplate& face, bool truth, const std::vector<uint8_t>& layout,
+                                             int size, const std::string& frame_dir) {
+  return truth ? TruthTextures(face, layout, size, frame_dir) : FusedFrameTextures(size, frame_dir);
 }
 
 // The neutral frame's (`frame_dir`'s) textures at full resolution beside the dataset (DatasetOptions::
@@ -286,7 +292,11 @@ absl::Status WriteNeutralTextures(const DatasetOptions& options, const FaceTempl
     STAGE_ASSIGN_OR_RETURN(const Image source, ReadImageFile(albedo));
     size = source.width;
   }
-  STAGE_ASSIGN_OR_RETURN(const FrameTextures t, SourceTextures(face, truth, size, frame_dir));
+  std::vector<uint8_t> layout;  // the truth's only
+  if (truth) {
+    STAGE_ASSIGN_OR_RETURN(layout, TemplateLayout(face, size));
+  }
+  STAGE_ASSIGN_OR_RETURN(const FrameTextures t, SourceTextures(face, truth, layout, size, frame_dir));
   const std::string dir = NeutralTexturesDir(summary->path);
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -634,11 +644,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
   }
   STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
   const int size = options.geometry_size;
-  // The texels the template's layout covers (with the map's dilation past its edges): the truth is drawn there.
-  STAGE_ASSIGN_OR_RETURN(const GeometryMap layout_map,
-                         MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = size}));
-  std::vector<uint8_t> layout(layout_map.state.size());
-  for (size_t t = 0; t < layout.size(); ++t) layout[t] = layout_map.state[t] != TexelState::kEmpty;
+  STAGE_ASSIGN_OR_RETURN(const std::vector<uint8_t> layout, TemplateLayout(face, size));
 
   std::vector<std::string> sequences;
   const std::vector<int32_t> ids = NumberSequences(FrameSequences(options.take_dir, frames), &sequences);
@@ -674,10 +680,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
                      truth ? " (render the truth with --uv-textures)" : " (run `stage-process textures` first)");
   } else {
     summary.texture_size = options.texture_size;
-    STAGE_ASSIGN_OR_RETURN(const GeometryMap map,
-                           MakeGeometryMap(face.mesh, Eigen::Isometry3f::Identity(), {.size = options.texture_size}));
-    texture_layout.resize(map.state.size());
-    for (size_t t = 0; t < map.state.size(); ++t) texture_layout[t] = map.state[t] != TexelState::kEmpty;
+    STAGE_ASSIGN_OR_RETURN(texture_layout, TemplateLayout(face, options.texture_size));
   }
   STAGE_ASSIGN_OR_RETURN(auto writer, storage::ArrayFileWriter::Create(summary.path));
   STAGE_ASSIGN_OR_RETURN(const Crops crops, CropImages(options, face, frames));
@@ -709,8 +712,7 @@ absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options) 
     }
     if (summary.texture_size > 0) {
       const std::string dir = FrameDir(texture_root, frames[i]);
-      absl::StatusOr<FrameTextures> t = truth ? TruthTextures(face, texture_layout, summary.texture_size, dir)
-                                              : FusedFrameTextures(summary.texture_size, dir);
+      absl::StatusOr<FrameTextures> t = SourceTextures(face, truth, texture_layout, summary.texture_size, dir);
       if (!t.ok()) return t.status();
       STAGE_RETURN_IF_ERROR(writer->Append("textures", t->maps.data()));
       STAGE_RETURN_IF_ERROR(writer->Append("texture_valid", t->valid.data()));
