@@ -67,9 +67,7 @@ void World::OnRealEdge(const timing::SlotEdge& edge) {
       // after them, and the world has passed them: it stands at the run's last slot (delivered late, the ones before
       // it counted as missed, as inside a run). Without this the world would stand short of the run's end until the
       // next run, and whoever waits for the run to end would wait for ever.
-      for (const WorldRun& r : runs_) {
-        if (r.end <= edge.slot) current_ = std::max(current_, r.end - 1);
-      }
+      PassRunSlotsBefore(edge.slot);
       // The bus is silent between runs: from the end of the last run that is over, through this edge.
       int64_t ended = -1;
       for (const WorldRun& r : runs_) {
@@ -88,11 +86,15 @@ void World::OnRealEdge(const timing::SlotEdge& edge) {
 void World::OnRealEnd() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    for (const WorldRun& r : runs_) {
-      if (r.first < options_.end_slot) current_ = std::max(current_, std::min(r.end, options_.end_slot) - 1);
-    }
+    PassRunSlotsBefore(options_.end_slot);
   }
   changed_.notify_all();
+}
+
+void World::PassRunSlotsBefore(int64_t slot) {
+  for (const WorldRun& r : runs_) {
+    if (r.first < slot) current_ = std::max(current_, std::min(r.end, slot) - 1);
+  }
 }
 
 int64_t World::NextEdge(int64_t slot) const {

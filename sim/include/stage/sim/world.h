@@ -152,6 +152,9 @@ class World {
   void MaybeAdvance();  // mutex_ held
   void OnRealEdge(const timing::SlotEdge& edge);
   void OnRealEnd();  // the clock passed end_slot
+  // Every run slot before `slot` has passed (the clock skipped the last of them): the world stands at least at the
+  // last one (mutex_ held).
+  void PassRunSlotsBefore(int64_t slot);
   // The first slot at or after `slot` that lies in a run, or -1 (mutex_ held); the run of an in-run slot.
   int64_t NextEdge(int64_t slot) const;
   WorldRun RunOf(int64_t slot) const;
