@@ -2,7 +2,6 @@
 #include "stage/processing/asset_infer.h"
 
 #include <algorithm>
-#include <cmath>
 #include <filesystem>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -13,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "asset_train_internal.h"
+#include "contact_sheet.h"
 #include "stage/common/file_util.h"
 #include "stage/common/mesh.h"
 #include "stage/common/status.h"
@@ -152,35 +152,20 @@ absl::StatusOr<std::vector<Eigen::Vector3f>> DriveFrame(const Asset& a, const st
   return std::move(mesh.positions);
 }
 
-// The glTF material's textures: the neutral frame's full-resolution albedo (sRGB, 8 bits; black where it holds no
-// skin) and its tangent-space normals (n / 2 + 1/2, 8 bits; +z where none), as PNG files' bytes; none without them.
+// The glTF material's textures: the neutral frame's full-resolution albedo in sRGB (black where it holds no skin:
+// its albedo is zero there) and its tangent-space normals as (n + 1) / 2 (+z where none), as PNG files' bytes; none
+// without them.
 absl::StatusOr<MeshSequenceOptions> GltfTextures(const Asset& a, const AssetInferOptions& options) {
   MeshSequenceOptions o;
   if (!a.neutral || options.gltf_segment_frames == 0) return o;
-  const Image& albedo = a.neutral->albedo;
-  const Image& normal = a.neutral->normal;
-  cv::Mat colour(albedo.height, albedo.width, CV_8UC3), bump(albedo.height, albedo.width, CV_8UC3);
-  auto byte = [](double x) { return static_cast<uint8_t>(std::lround(255 * std::clamp(x, 0.0, 1.0))); };
-  auto srgb = [](double x) {
-    x = std::clamp(x, 0.0, 1.0);
-    return x <= 0.0031308 ? 12.92 * x : 1.055 * std::pow(x, 1 / 2.4) - 0.055;
-  };
-  for (int y = 0; y < albedo.height; ++y) {
-    for (int x = 0; x < albedo.width; ++x) {
-      const float* p = albedo.at(x, y);
-      const float* n = normal.at(x, y);
-      const bool skin = p[3] >= 0.5f;
-      // OpenCV's channel order is BGR.
-      colour.at<cv::Vec3b>(y, x) =
-          skin ? cv::Vec3b(byte(srgb(p[2])), byte(srgb(p[1])), byte(srgb(p[0]))) : cv::Vec3b(0, 0, 0);
-      bump.at<cv::Vec3b>(y, x) =
-          skin ? cv::Vec3b(byte(n[2] / 2 + 0.5), byte(n[1] / 2 + 0.5), byte(n[0] / 2 + 0.5)) : cv::Vec3b(255, 128, 128);
-    }
-  }
   std::vector<uint8_t> bytes;
-  if (!cv::imencode(".png", colour, bytes)) return absl::InternalError("the glTF's base colour: PNG encoding failed");
+  if (!cv::imencode(".png", AlbedoPreview(a.neutral->albedo), bytes)) {
+    return absl::InternalError("the glTF's base colour: PNG encoding failed");
+  }
   o.base_color_png.assign(bytes.begin(), bytes.end());
-  if (!cv::imencode(".png", bump, bytes)) return absl::InternalError("the glTF's normal map: PNG encoding failed");
+  if (!cv::imencode(".png", NormalPreview(a.neutral->normal, /*empty=*/{255, 128, 128}), bytes)) {
+    return absl::InternalError("the glTF's normal map: PNG encoding failed");
+  }
   o.normal_png.assign(bytes.begin(), bytes.end());
   return o;
 }

@@ -1,5 +1,5 @@
 // Labelled tiles under a title, as one picture (the photometric maps' and textures' contact sheets, the asset's
-// driven frame). Internal to processing: it takes OpenCV's images.
+// driven frame), and the maps' 8-bit previews. Internal to processing: it takes OpenCV's images.
 #pragma once
 
 #include <opencv2/core.hpp>
@@ -8,6 +8,13 @@
 #include <vector>
 
 namespace stage::processing {
+
+struct Image;
+
+// 8-bit previews (BGR) of the maps: albedo (linear RGB) in sRGB; a unit normal as (n + 1) / 2, `empty` where the
+// normal is zero (no surface).
+cv::Mat AlbedoPreview(const Image& albedo);
+cv::Mat NormalPreview(const Image& normal, const cv::Vec3b& empty = {0, 0, 0});
 
 // Tiles (8-bit BGR, all of the first's size) of at least 256 pixels across (nearest-neighbour enlargement of small
 // images), `columns` a row, each under its label, under `title`.

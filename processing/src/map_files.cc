@@ -54,9 +54,22 @@ float Srgb(float linear) {
   return linear <= 0.0031308f ? 12.92f * linear : 1.055f * std::pow(linear, 1 / 2.4f) - 0.055f;
 }
 
-// 8-bit previews (BGR): a normal as (n + 1) / 2, albedo in sRGB, a scalar over [0, full].
-cv::Mat NormalPreview(const Image& n) {
-  cv::Mat m(n.height, n.width, CV_8UC3, cv::Scalar::all(0));
+// An 8-bit preview (BGR) of a scalar over [0, full].
+cv::Mat ScalarPreview(const Image& s, float full) {
+  cv::Mat m(s.height, s.width, CV_8UC3);
+  for (int y = 0; y < s.height; ++y) {
+    for (int x = 0; x < s.width; ++x) {
+      const uint8_t b = Byte(s.at(x, y)[0] / full);
+      m.at<cv::Vec3b>(y, x) = {b, b, b};
+    }
+  }
+  return m;
+}
+
+}  // namespace
+
+cv::Mat NormalPreview(const Image& n, const cv::Vec3b& empty) {
+  cv::Mat m(n.height, n.width, CV_8UC3, cv::Scalar(empty[0], empty[1], empty[2]));
   for (int y = 0; y < n.height; ++y) {
     for (int x = 0; x < n.width; ++x) {
       const float* v = n.at(x, y);
@@ -77,19 +90,6 @@ cv::Mat AlbedoPreview(const Image& a) {
   }
   return m;
 }
-
-cv::Mat ScalarPreview(const Image& s, float full) {
-  cv::Mat m(s.height, s.width, CV_8UC3);
-  for (int y = 0; y < s.height; ++y) {
-    for (int x = 0; x < s.width; ++x) {
-      const uint8_t b = Byte(s.at(x, y)[0] / full);
-      m.at<cv::Vec3b>(y, x) = {b, b, b};
-    }
-  }
-  return m;
-}
-
-}  // namespace
 
 cv::Mat ContactSheet(const std::vector<std::pair<std::string, cv::Mat>>& tiles, const std::string& title, int columns) {
   const int w = tiles[0].second.cols, h = tiles[0].second.rows;
