@@ -22,13 +22,12 @@ int64_t RealClock::NowNs() const {
   return static_cast<int64_t>(ts.tv_sec) * kNsPerSec + ts.tv_nsec;
 }
 
-bool RealClock::SleepUntilNs(int64_t t_ns) {
+bool RealClock::SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) {
   std::unique_lock<std::mutex> lock(mutex_);
-  const uint64_t interrupts = interrupts_;
   // Absolute deadlines on the same clock, so sleeps do not accumulate drift. libstdc++ waits on CLOCK_MONOTONIC for
   // steady_clock and CLOCK_REALTIME for system_clock, the clocks NowNs() reads.
   while (true) {
-    if (interrupts_ != interrupts) return false;
+    if (stop.load()) return false;
     if (NowNs() >= t_ns) return true;
     if (kind_ == Kind::kMonotonic) {
       wake_.wait_until(lock, std::chrono::steady_clock::time_point(std::chrono::nanoseconds(t_ns)));
@@ -41,10 +40,9 @@ bool RealClock::SleepUntilNs(int64_t t_ns) {
 }
 
 void RealClock::Interrupt() {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    ++interrupts_;
-  }
+  // Taking the lock orders this wake-up after any sleeper's read of its flag: it is either before the sleeper's
+  // check (which then sees the flag) or while the sleeper waits (which this notify ends).
+  { std::lock_guard<std::mutex> lock(mutex_); }
   wake_.notify_all();
 }
 
@@ -53,20 +51,16 @@ int64_t SimClock::NowNs() const {
   return now_ns_;
 }
 
-bool SimClock::SleepUntilNs(int64_t t_ns) {
+bool SimClock::SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) {
   std::unique_lock<std::mutex> lock(mutex_);
-  const uint64_t interrupts = interrupts_;
   ++sleepers_;
-  changed_.wait(lock, [&] { return now_ns_ >= t_ns || interrupts_ != interrupts; });
+  changed_.wait(lock, [&] { return now_ns_ >= t_ns || stop.load(); });
   --sleepers_;
-  return now_ns_ >= t_ns;
+  return !stop.load();
 }
 
 void SimClock::Interrupt() {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    ++interrupts_;
-  }
+  { std::lock_guard<std::mutex> lock(mutex_); }  // see RealClock::Interrupt
   changed_.notify_all();
 }
 

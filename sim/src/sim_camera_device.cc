@@ -106,6 +106,7 @@ absl::Status SimCameraDevice::Start(camera::FrameSink* sink) {
   }
   sink_ = sink;
   running_ = true;
+  stopping_.store(false);
   pending_triggers_ = 0;
   next_frame_id_ = 0;
   thread_ = std::thread([this] { Run(); });
@@ -123,7 +124,8 @@ absl::Status SimCameraDevice::Stop() {
   if (world_) {
     world_->world->Leave(world_device_);  // wakes the trigger thread
   } else {
-    clock_->Interrupt();  // a free-running acquisition sleeps on the clock
+    stopping_.store(true);  // a free-running acquisition sleeps on the clock until this is set
+    clock_->Interrupt();
   }
   if (thread_.joinable()) thread_.join();
   if (render_thread_.joinable()) render_thread_.join();
@@ -337,10 +339,9 @@ void SimCameraDevice::Run() {
   while (true) {
     int64_t start_ns;
     if (s.trigger == camera::TriggerMode::kFreeRun) {
-      bool reached = clock_->SleepUntilNs(next_ns);
+      if (!clock_->SleepUntilNs(next_ns, stopping_)) return;
       std::lock_guard<std::mutex> lock(mutex_);
       if (!running_) return;
-      if (!reached) continue;
       start_ns = next_ns;
       next_ns += period_ns;
     } else {

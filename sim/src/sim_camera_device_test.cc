@@ -2,8 +2,10 @@
 // free run follows the virtual clock.
 #include "stage/sim/sim_camera_device.h"
 
+#include <atomic>
 #include <condition_variable>
 #include <mutex>
+#include <thread>
 #include <vector>
 
 #include "gmock/gmock.h"
@@ -91,6 +93,45 @@ TEST(SimCameraDeviceTest, FreeRunFollowsTheClock) {
   EXPECT_EQ(frames[1]->device_timestamp_ns, 10'000'000);
   EXPECT_EQ(frames[2]->device_timestamp_ns, 20'000'000);
   EXPECT_FALSE(cam.Trigger().ok());
+}
+
+// A clock that tells when it was interrupted, so a test can hold the acquisition thread until Stop() has done so.
+class InterruptSignallingClock final : public Clock {
+ public:
+  int64_t NowNs() const override { return clock_.NowNs(); }
+  bool SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) override { return clock_.SleepUntilNs(t_ns, stop); }
+  void Interrupt() override {
+    clock_.Interrupt();
+    interrupted_.store(true);
+  }
+  bool interrupted() const { return interrupted_.load(); }
+
+ private:
+  SimClock clock_;
+  std::atomic<bool> interrupted_{false};
+};
+
+// Stop() while the free run is delivering a frame: the thread goes back to sleep on the clock only after Stop() has
+// interrupted it. That sleep must still end (it once slept for ever: the interrupt had come and gone).
+TEST(SimCameraDeviceTest, StopWhileAFrameIsDeliveredDoesNotStrandTheFreeRun) {
+  InterruptSignallingClock clock;
+  SimCameraDevice cam(&clock, "sn");
+  ASSERT_TRUE(cam.Configure(Small(camera::TriggerMode::kFreeRun)).ok());
+  class HoldingSink : public camera::FrameSink {
+   public:
+    explicit HoldingSink(const InterruptSignallingClock* clock) : clock_(clock) {}
+    void OnFrame(std::shared_ptr<const camera::Frame>) override {
+      delivering_.store(true);
+      while (!clock_->interrupted()) std::this_thread::yield();  // held until Stop() has interrupted the clock
+    }
+    std::atomic<bool> delivering_{false};
+
+   private:
+    const InterruptSignallingClock* clock_;
+  } sink(&clock);
+  ASSERT_TRUE(cam.Start(&sink).ok());  // the first frame is due at once
+  while (!sink.delivering_.load()) std::this_thread::yield();
+  EXPECT_TRUE(cam.Stop().ok());  // returns only when the acquisition thread has ended
 }
 
 }  // namespace

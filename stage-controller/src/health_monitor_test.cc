@@ -161,7 +161,7 @@ class SkewedClock final : public Clock {
     const int64_t now = host_.NowNs();
     return now + offset_ns_ + static_cast<int64_t>(static_cast<double>(now - start_) * drift_ppm_ * 1e-6);
   }
-  bool SleepUntilNs(int64_t) override { return false; }
+  bool SleepUntilNs(int64_t, const std::atomic<bool>&) override { return false; }
   void Interrupt() override {}
   int64_t Offset(int64_t host_ns) const {
     return offset_ns_ + static_cast<int64_t>(static_cast<double>(host_ns - start_) * drift_ppm_ * 1e-6);

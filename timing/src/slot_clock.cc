@@ -79,10 +79,7 @@ void SlotClock::AddEndListener(SlotRunEndListener listener) { end_listeners_.pus
 absl::Status SlotClock::Start() {
   if (thread_.joinable()) return absl::FailedPreconditionError("the slot clock is already started");
   if (clock_ != nullptr) {
-    thread_ = std::thread([this] {
-      RunVirtual();
-      finished_.store(true);
-    });
+    thread_ = std::thread([this] { RunVirtual(); });
     return absl::OkStatus();
   }
   std::promise<absl::Status> ready;
@@ -110,14 +107,7 @@ absl::Status SlotClock::Start() {
 
 void SlotClock::Stop() {
   stop_.store(true);
-  if (clock_ != nullptr && thread_.joinable()) {
-    // An Interrupt() that lands between the thread's check of stop_ and its next sleep is not seen by that sleep:
-    // repeat until the thread is out.
-    while (!finished_.load()) {
-      clock_->Interrupt();
-      std::this_thread::sleep_for(std::chrono::microseconds(200));
-    }
-  }
+  if (clock_ != nullptr) clock_->Interrupt();  // the virtual-mode thread sleeps on the clock with stop_
   if (thread_.joinable()) thread_.join();
 }
 
@@ -146,9 +136,7 @@ void SlotClock::RunVirtual() {
   const int64_t end = options_.slot_count < 0 ? INT64_MAX : options_.first_slot + options_.slot_count;
   for (int64_t k = options_.first_slot; k < end && !stop_.load(); ++k) {
     const int64_t due = EdgeNs(k);
-    while (!stop_.load() && !clock_->SleepUntilNs(due)) {
-    }
-    if (stop_.load()) return;
+    if (!clock_->SleepUntilNs(due, stop_)) return;
     Deliver({k, due, clock_->NowNs(), 0});
   }
   if (!stop_.load() && options_.slot_count >= 0) DeliverEnd(0);

@@ -2,6 +2,7 @@
 // production runs it on the host clock (RealClock). Times are int64 nanoseconds on the clock's own epoch.
 #pragma once
 
+#include <atomic>
 #include <condition_variable>
 #include <cstdint>
 #include <mutex>
@@ -13,10 +14,11 @@ class Clock {
   virtual ~Clock() = default;
   // Current time, ns. Monotonic: never goes backwards. Thread-safe.
   virtual int64_t NowNs() const = 0;
-  // Blocks the calling thread until NowNs() >= t_ns (returns true) or until Interrupt() is called (returns false;
-  // the caller re-checks whatever it waits for). Returns true at once if that time has passed.
-  virtual bool SleepUntilNs(int64_t t_ns) = 0;
-  // Wakes every thread sleeping in SleepUntilNs now, so that a worker can notice it is being stopped.
+  // Blocks the calling thread until NowNs() >= t_ns (returns true) or until `stop` is set (returns false). Returns
+  // at once if that time has passed or `stop` is already set. `stop` is read under the clock's own lock, so a thread
+  // that sets it and then calls Interrupt() always wakes the sleeper, however the two race (no lost wake-up).
+  virtual bool SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) = 0;
+  // Wakes every sleeper so that it re-reads its `stop` flag; sleepers whose flag is clear sleep on.
   virtual void Interrupt() = 0;
 };
 
@@ -27,14 +29,13 @@ class RealClock final : public Clock {
   enum class Kind { kMonotonic, kRealtime };
   explicit RealClock(Kind kind = Kind::kMonotonic) : kind_(kind) {}
   int64_t NowNs() const override;
-  bool SleepUntilNs(int64_t t_ns) override;
+  bool SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) override;
   void Interrupt() override;
 
  private:
   Kind kind_;
   std::mutex mutex_;
   std::condition_variable wake_;
-  uint64_t interrupts_ = 0;  // guarded by mutex_
 };
 
 // A virtual clock that moves only when told to. Sleepers wake when the time they wait for is reached.
@@ -42,7 +43,7 @@ class SimClock final : public Clock {
  public:
   explicit SimClock(int64_t start_ns = 0) : now_ns_(start_ns) {}
   int64_t NowNs() const override;
-  bool SleepUntilNs(int64_t t_ns) override;
+  bool SleepUntilNs(int64_t t_ns, const std::atomic<bool>& stop) override;
   void Interrupt() override;
   // Moves time forward to `t_ns` (ignored if that is in the past) and wakes the sleepers it releases.
   void AdvanceTo(int64_t t_ns);
@@ -55,7 +56,6 @@ class SimClock final : public Clock {
   std::condition_variable changed_;
   int64_t now_ns_;           // guarded by mutex_
   int sleepers_ = 0;         // guarded by mutex_
-  uint64_t interrupts_ = 0;  // guarded by mutex_
 };
 
 }  // namespace stage

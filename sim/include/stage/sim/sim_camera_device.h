@@ -114,6 +114,7 @@ class SimCameraDevice final : public camera::CameraDevice {
   camera::CameraSettings settings_;  // guarded by mutex_
   bool configured_ = false;          // guarded by mutex_
   bool running_ = false;             // guarded by mutex_
+  std::atomic<bool> stopping_{false};  // set by Stop() before it interrupts a free run's sleep on the clock
   uint64_t pending_triggers_ = 0;    // guarded by mutex_
   uint64_t next_frame_id_ = 0;       // acquisition thread only
   camera::FrameSink* sink_ = nullptr;

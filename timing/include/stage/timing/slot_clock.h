@@ -107,7 +107,6 @@ class SlotClock {
   std::vector<SlotRunEndListener> end_listeners_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
-  std::atomic<bool> finished_{false};  // the virtual-mode thread has returned
   absl::Status start_status_;          // the thread's setup result (real-time priority)
   mutable std::mutex mutex_;
   SlotClockStats stats_;  // guarded by mutex_
