@@ -271,9 +271,9 @@ absl::Status LoadArchive(torch::nn::Module& net, torch::optim::Adam& adam, const
   }
 }
 
-// Masked mean of the squared difference over valid texels (3 channels each).
-torch::Tensor MaskedMse(const torch::Tensor& a, const torch::Tensor& b, const torch::Tensor& valid) {
-  return ((a - b).pow(2) * valid).sum() / (3 * valid.sum()).clamp_min(1);
+// Weighted mean of the squared difference over the texels (3 channels each); `weight` 0 where not valid.
+torch::Tensor MaskedMse(const torch::Tensor& a, const torch::Tensor& b, const torch::Tensor& weight) {
+  return ((a - b).pow(2) * weight).sum() / (3 * weight.sum()).clamp_min(1);
 }
 
 }  // namespace
@@ -348,6 +348,9 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
         std::tuple{&batch.valid, b * s * s, "the validity"}, std::tuple{&batch.noise, b * latents, "the noise"}}) {
     if (auto st = CheckSize(*v, n, what); !st.ok()) return st;
   }
+  if (!batch.weight.empty()) {
+    if (auto st = CheckSize(batch.weight, b * s * s, "the texels' weights"); !st.ok()) return st;
+  }
   try {
     SetTorchThreads(o.threads);
     Vae& net = impl_->net;
@@ -357,6 +360,7 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     const torch::Tensor canonical = FromVector(batch.canonical, {b, 3, s, s});
     const torch::Tensor valid = FromVector(batch.valid, {b, 1, s, s});
     const torch::Tensor noise = FromVector(batch.noise, {b, latents});
+    const torch::Tensor weight = batch.weight.empty() ? valid : FromVector(batch.weight, {b, 1, s, s});
     impl_->adam->zero_grad();
     const VaeImpl::Alignment alignment = net->Align(posed, valid);
     const torch::Tensor stats = net->encoder->forward(net->Normalize(net->Aligned(posed, alignment), valid));
@@ -370,8 +374,8 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     const torch::Tensor moved_mm =
         net->Posed(net->mean + net->scale * decoded.detach(), z.slice(1, o.geometry_latent, latents), alignment);
     const torch::Tensor moved_n = (moved_mm - net->mean) / net->scale;
-    const torch::Tensor canonical_loss = MaskedMse(decoded, canonical_n, valid);
-    const torch::Tensor posed_loss = MaskedMse(moved_n, posed_n, valid);
+    const torch::Tensor canonical_loss = MaskedMse(decoded, canonical_n, weight);
+    const torch::Tensor posed_loss = MaskedMse(moved_n, posed_n, weight);
     const torch::Tensor kl = Kl(mu, logvar);
     const torch::Tensor total = canonical_loss + posed_loss + o.kl_weight * kl;
     total.backward();

@@ -118,7 +118,7 @@ void AppendMoved(const std::vector<float>& map, size_t texels, const RigidMotion
 }
 
 GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, const AssetTrainJob& job,
-                        std::mt19937_64& rng) {
+                        const std::vector<float>& region_weights, std::mt19937_64& rng) {
   const int b = job.schedule.batch, s = m.size;
   const size_t texels = static_cast<size_t>(s) * s;
   const int latents = job.geometry.geometry_latent + job.geometry.pose_latent;
@@ -132,6 +132,9 @@ GeometryBatch DrawBatch(const NetMaps& m, const std::vector<int64_t>& train, con
     AppendMoved(map, texels, motion, &batch.posed);
     const std::vector<float>& valid = m.valid[static_cast<size_t>(f)];
     batch.valid.insert(batch.valid.end(), valid.begin(), valid.end());
+    if (!region_weights.empty()) {
+      for (size_t t = 0; t < texels; ++t) batch.weight.push_back(valid[t] * region_weights[t]);
+    }
     for (int l = 0; l < latents; ++l) batch.noise.push_back(Normal(rng));
   }
   return batch;
@@ -153,6 +156,7 @@ nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_
                       {"seed", g.seed},
                       {"augment_rotation_deg", job.augment_rotation_deg},
                       {"augment_translation_mm", job.augment_translation_mm},
+                      {"region_weight", job.region_weight},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", dataset_id},
                       {"threads", TorchThreadCount(g.threads)}};
@@ -179,6 +183,25 @@ std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const s
     }
   }
   return p;
+}
+
+std::vector<float> RegionWeights(const FaceTemplate& face, int size, double weight) {
+  if (weight == 1) return {};
+  std::vector<float> w(static_cast<size_t>(size) * size, 1.f);
+  for (size_t v = 0; v < face.mesh.uvs.size(); ++v) {
+    if (face.regions[v] == FaceRegion::kSkin) continue;
+    const Eigen::Vector2f& uv = face.mesh.uvs[v];
+    // SampleNchw's four texels, and the ring about them.
+    const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
+    const double y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
+    const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
+    for (int ty = std::max(0, y0 - 1); ty <= std::min(size - 1, y0 + 2); ++ty) {
+      for (int tx = std::max(0, x0 - 1); tx <= std::min(size - 1, x0 + 2); ++tx) {
+        w[static_cast<size_t>(ty) * size + tx] = static_cast<float>(weight);
+      }
+    }
+  }
+  return w;
 }
 
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
@@ -411,6 +434,10 @@ absl::Status AssetTrainJob::Validate() const {
       !(augment_translation_mm >= 0 && augment_translation_mm <= 200)) {
     return absl::InvalidArgumentError("asset training: augmentation out of range (0..90 deg, 0..200 mm)");
   }
+  if (!(region_weight >= 1 && region_weight <= 1000)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("asset training: region weight ", region_weight, " is not in 1..1000"));
+  }
   return absl::OkStatus();
 }
 
@@ -443,8 +470,11 @@ absl::StatusOr<AssetTrainResult> TrainGeometryAsset(const AssetTrainJob& job) {
   loop.seed = job.geometry.seed;
   loop.save = [&net](const std::string& path) { return net->Save(path); };
   loop.load = [&net](const std::string& path) { return net->Load(path); };
+  STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+  const std::vector<float> region_weights = RegionWeights(face, maps.size, job.region_weight);
   loop.step = [&](std::mt19937_64& rng, double rate) -> absl::StatusOr<std::vector<double>> {
-    STAGE_ASSIGN_OR_RETURN(const GeometryLosses l, net->TrainStep(DrawBatch(maps, train, job, rng), rate));
+    STAGE_ASSIGN_OR_RETURN(const GeometryLosses l,
+                           net->TrainStep(DrawBatch(maps, train, job, region_weights, rng), rate));
     return std::vector<double>{l.total, l.canonical, l.posed, l.kl};
   };
   auto losses_of = [](const std::vector<double>& v) { return GeometryLosses{v[0], v[1], v[2], v[3]}; };

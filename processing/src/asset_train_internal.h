@@ -76,6 +76,11 @@ std::string DatasetId(const AssetDataset& d);
 std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const std::vector<float>& valid, int size,
                                           const Eigen::Vector2f& uv);
 
+// Each texel's weight in the geometry VAE's map losses at `size` (before validity), S x S: `weight` on the texels a
+// kEye or kMouth vertex of `face` samples (SampleNchw's four) and the ring about them, 1 elsewhere. Empty when
+// `weight` is 1 (AssetTrainJob::region_weight).
+std::vector<float> RegionWeights(const FaceTemplate& face, int size, double weight);
+
 // The error of `recovered` maps (frame -> NCHW map) of `frames` against the truth (SplitError).
 SplitError Error(const NetMaps& m, const FaceTemplate& face, const std::vector<int64_t>& frames,
                  const std::function<std::vector<float>(int64_t)>& recovered);

@@ -290,7 +290,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
       a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0 ||
-      a.direct_textures() || a.freeze_encoder()) {
+      a.direct_textures() || a.freeze_encoder() || a.region_weight() != 0) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -389,6 +389,7 @@ absl::StatusOr<v1::ProcessingProgress> TrainGeometryJob(const v1::AssetOptions& 
   SetConvolutionalOptions(a, &t.geometry);
   SetIfGiven(a.geometry_latent(), &t.geometry.geometry_latent);
   SetIfGiven(a.pose_latent(), &t.geometry.pose_latent);
+  if (a.region_weight() != 0) t.region_weight = a.region_weight();
   t.progress = [&](int64_t step, int64_t total, const GeometryLosses& l) { return report(step, total, l.total); };
   auto result = TrainGeometryAsset(t);
   if (!result.ok()) return result.status();
@@ -451,7 +452,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   const bool vae = network == v1::ASSET_NETWORK_GEOMETRY || network == v1::ASSET_NETWORK_EXPRESSION ||
                    network == v1::ASSET_NETWORK_TEXTURE;
   if ((!vae && (a.input_size() != 0 || a.levels() != 0 || a.base_channels() != 0 || a.max_channels() != 0)) ||
-      (network != v1::ASSET_NETWORK_GEOMETRY && (a.geometry_latent() != 0 || a.pose_latent() != 0)) ||
+      (network != v1::ASSET_NETWORK_GEOMETRY &&
+       (a.geometry_latent() != 0 || a.pose_latent() != 0 || a.region_weight() != 0)) ||
       (network != v1::ASSET_NETWORK_EXPRESSION &&
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
       (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING &&

@@ -147,6 +147,11 @@ void AssetCommands::AddTrain() {
       ->add_option("--augment-translation", job.augment_translation_mm,
                    "geometry: random shifts of the training maps, mm")
       ->capture_default_str();
+  train_
+      ->add_option("--region-weight", job.region_weight,
+                   "geometry: how many times a texel about the eyes' and the mouth's openings counts in the maps' "
+                   "losses (1: as any other)")
+      ->capture_default_str();
   AddTrainNetworkOptions();
   train_->add_option("--threads", g.threads, "Torch's threads (0: the cores this process may use)")
       ->capture_default_str()
@@ -400,6 +405,7 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
       {"--pose-latent", {"geometry"}},
       {"--augment-rotation", {"geometry"}},
       {"--augment-translation", {"geometry"}},
+      {"--region-weight", {"geometry"}},
       {"--expression-latent", {"expression"}},
       {"--view-latent", {"expression"}},
       {"--swap-weight", {"expression"}},

@@ -60,6 +60,8 @@ struct GeometryBatch {
   std::vector<float> canonical;  // B x 3 x S x S, mm: the input as it is (head frame)
   std::vector<float> valid;      // B x 1 x S x S, 1 or 0
   std::vector<float> noise;      // B x (geometry_latent + pose_latent): N(0, 1) draws for the reparameterization
+  // B x 1 x S x S: each texel's weight in the maps' losses (0 where not valid); empty: the validity.
+  std::vector<float> weight;
 };
 
 struct GeometryLosses {
