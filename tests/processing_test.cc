@@ -17,6 +17,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using ::testing::HasSubstr;
+using ::testing::Not;
 
 using ProcessingTest = SimulatedStageTest;
 
@@ -134,7 +135,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
       RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "uv-maps"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
   EXPECT_THAT(stage_name.err,
-              HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize)"));
+              HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize, "
+                        "asset-dataset, asset-train, asset-infer)"));
   CommandResult no_take =
       RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"}, std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);
@@ -165,6 +167,26 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
       {"stagectl", "--endpoints", endpoints, "process", id, "--calibration", "ground_truth"}, std::chrono::seconds(60));
   EXPECT_NE(no_mvs_worker.exit.exit_code, 0);
   EXPECT_THAT(no_mvs_worker.err, HasSubstr("or take --geometry none"));
+
+  // The asset's stages by their names, their options carried through the controller to the worker, which refuses an
+  // option of another network, any with inference, and a training without a dataset, saying so.
+  CommandResult other_network = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage",
+                                            "asset-train", "--network", "expression", "--region-weight", "5"},
+                                           std::chrono::seconds(60));
+  EXPECT_NE(other_network.exit.exit_code, 0);
+  EXPECT_THAT(other_network.err, HasSubstr("an option given is not one of the ASSET_NETWORK_EXPRESSION network's"));
+  CommandResult infer_options = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage",
+                                            "asset-infer", "--cameras", "mv-13", "--iterations", "5"},
+                                           std::chrono::seconds(60));
+  EXPECT_NE(infer_options.exit.exit_code, 0);
+  EXPECT_THAT(infer_options.err,
+              HasSubstr(": worker \"worker-1\": PROCESSING_STAGE_ASSET_INFER takes no asset options"));
+  EXPECT_THAT(infer_options.err, Not(HasSubstr("worker \"worker-1\": worker")));  // named once
+  CommandResult no_dataset = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "asset-train",
+                                         "--network", "geometry", "--region-weight", "5", "--iterations", "2"},
+                                        std::chrono::seconds(60));
+  EXPECT_NE(no_dataset.exit.exit_code, 0);
+  EXPECT_THAT(no_dataset.err, HasSubstr(dir + "/derived/asset/dataset.h5"));
 }
 
 }  // namespace

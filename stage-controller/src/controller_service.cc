@@ -13,6 +13,7 @@
 #include <mutex>
 #include <thread>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "event_writer.h"
@@ -487,6 +488,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_calibration(request->calibration());
   job.set_texture_size(request->texture_size());
   job.set_stabilize_method(request->stabilize_method());
+  if (request->has_asset()) *job.mutable_asset() = request->asset();  // infer and the other stages refuse one
   Logger("controller")
       ->info("take {}: {} on worker {} ({})", request->take_id(), v1::ProcessingStage_Name(job.stage()), worker->id(),
              worker->address());
@@ -513,7 +515,11 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   done = true;
   watch.join();
   if (!status.ok()) {
-    return grpc::Status(status.error_code(), absl::StrCat("worker \"", worker->id(), "\": ", status.error_message()));
+    // The worker names itself in its own errors; one that did not come from it (unreachable) is named here.
+    const std::string name = absl::StrCat("worker \"", worker->id(), "\": ");
+    return grpc::Status(status.error_code(), absl::StartsWith(status.error_message(), name)
+                                                 ? status.error_message()
+                                                 : absl::StrCat(name, status.error_message()));
   }
   return grpc::Status::OK;
 }

@@ -18,6 +18,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/str_replace.h"
 #include "absl/strings/str_split.h"
 #include "fmt/format.h"
 #include "stage/common/cli.h"
@@ -670,8 +671,43 @@ struct ProcessFlags {
   std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, calibration, worker;
   std::string stabilize_method;  // empty: the worker's default (the flow)
   int32_t texture_size = 0;      // 0: the worker's default
+  // The asset's stages (0 and empty: the worker's defaults).
+  std::string asset_source, network, held_out_cameras;
+  int32_t iterations = 0, batch = 0, input_size = 0, levels = 0, geometry_size = 0, image_size = 0;
+  double region_weight = 0;
   bool json = false;
 };
+
+// The asset's options of `f`, set on `request` only when one is given (the worker refuses options a stage does not
+// take, and an asset message at all with --stage asset-infer).
+absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeRequest* request) {
+  stage::v1::AssetOptions a;
+  if (!f.asset_source.empty()) {
+    a.set_source(f.asset_source == "truth" ? stage::v1::ASSET_SOURCE_TRUTH : stage::v1::ASSET_SOURCE_RECONSTRUCTION);
+  }
+  if (!f.network.empty()) {
+    stage::v1::AssetNetwork network;
+    std::string name = absl::AsciiStrToUpper(f.network);
+    absl::StrReplaceAll({{"-", "_"}}, &name);
+    if (!stage::v1::AssetNetwork_Parse("ASSET_NETWORK_" + name, &network) ||
+        network == stage::v1::ASSET_NETWORK_UNSPECIFIED) {
+      return absl::InvalidArgumentError(absl::StrCat("--network: \"", f.network, "\" is not a network of the asset"));
+    }
+    a.set_network(network);
+  }
+  for (absl::string_view id : absl::StrSplit(f.held_out_cameras, ',', absl::SkipEmpty())) {
+    a.add_held_out_cameras(std::string(id));
+  }
+  a.set_iterations(f.iterations);
+  a.set_batch(f.batch);
+  a.set_input_size(f.input_size);
+  a.set_levels(f.levels);
+  a.set_geometry_size(f.geometry_size);
+  a.set_image_size(f.image_size);
+  a.set_region_weight(f.region_weight);
+  if (a.ByteSizeLong() > 0) *request->mutable_asset() = a;
+  return absl::OkStatus();
+}
 
 // A processing stage over a take on one of the stage's workers, with a progress bar; no deadline (it takes as long as
 // the work), Ctrl-C cancels it on the worker.
@@ -682,13 +718,16 @@ int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
   stage::v1::ProcessingStage kind;
-  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + absl::AsciiStrToUpper(f.stage), &kind) ||
+  std::string stage_name = absl::AsciiStrToUpper(f.stage);
+  absl::StrReplaceAll({{"-", "_"}}, &stage_name);
+  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + stage_name, &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
-    return stage::ReportFatal(
-        kProgram,
-        absl::InvalidArgumentError(absl::StrCat(
-            "--stage: \"", f.stage, "\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize)")));
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
+                                            "--stage: \"", f.stage,
+                                            "\" is not a stage (photometric, calibration, mvs, fit, textures, "
+                                            "stabilize, asset-dataset, asset-train, asset-infer)")));
   }
+  if (auto s = SetAssetOptions(f, &request); !s.ok()) return stage::ReportFatal(kProgram, s);
   request.set_stage(kind);
   int64_t first = 0, last = -1;
   if (auto s = stage::ParseFrameRange("--frames", f.frames, &first, &last); !s.ok()) {
@@ -713,7 +752,8 @@ int Process(const Connection& c, const ProcessFlags& f) {
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
-  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
+  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION   ? "cameras"
+                          : kind == stage::v1::PROCESSING_STAGE_ASSET_TRAIN ? "steps"
                           : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
                                   kind == stage::v1::PROCESSING_STAGE_TEXTURES ||
                                   kind == stage::v1::PROCESSING_STAGE_STABILIZE
@@ -1038,8 +1078,10 @@ int main(int argc, char** argv) {
   process
       ->add_option("--stage", pf.stage,
                    "The stage: photometric, calibration, mvs, fit (the face template on multi-view stereo's "
-                   "meshes, or on --geometry's), textures (the photometric maps fused into the fit's UV layout) or "
-                   "stabilize (the textures warped onto the first frame's)")
+                   "meshes, or on --geometry's), textures (the photometric maps fused into the fit's UV layout), "
+                   "stabilize (the textures warped onto the first frame's), or the neural asset's: asset-dataset "
+                   "(TAKE/derived/asset/dataset.h5), asset-train (a network on it, --network) and asset-infer (the "
+                   "asset driven from --cameras' one camera; docs/asset.md)")
       ->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
@@ -1060,6 +1102,30 @@ int main(int argc, char** argv) {
                    "--stage stabilize: flow (OpenCV's DIS, the default) or unet (the self-supervised U-Net, "
                    "trained on the frames)")
       ->check(CLI::IsMember({"flow", "unet"}));
+  process->add_option("--source", pf.asset_source, "--stage asset-dataset: where the geometry comes from")
+      ->check(CLI::IsMember({"truth", "reconstruction"}));
+  process->add_option("--geometry-size", pf.geometry_size, "--stage asset-dataset: texels across the geometry maps")
+      ->check(CLI::Range(16, 1024));
+  process->add_option("--image-size", pf.image_size, "--stage asset-dataset: pixels across a crop")
+      ->check(CLI::Range(16, 512));
+  process
+      ->add_option("--network", pf.network,
+                   "--stage asset-train: geometry (the default), expression, mapping, finetune, texture or "
+                   "texture-mapping")
+      ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune", "texture", "texture-mapping"}));
+  process->add_option("--iterations", pf.iterations, "--stage asset-train: Adam steps (default: the network's)")
+      ->check(CLI::Range(1, 10000000));
+  process->add_option("--batch", pf.batch, "--stage asset-train: samples a step (default: the network's)")
+      ->check(CLI::Range(1, 1024));
+  process->add_option("--input-size", pf.input_size, "--stage asset-train: texels (pixels) across the net's input")
+      ->check(CLI::Range(16, 1024));
+  process->add_option("--levels", pf.levels, "--stage asset-train: stride-2 levels of a VAE")->check(CLI::Range(1, 8));
+  process->add_option("--held-out-cameras", pf.held_out_cameras,
+                      "--stage asset-train --network expression: cameras it never sees, comma-separated");
+  process
+      ->add_option("--region-weight", pf.region_weight,
+                   "--stage asset-train --network geometry: weight of the texels about the eyes and the mouth")
+      ->check(CLI::Range(1.0, 1000.0));
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
 
