@@ -60,6 +60,10 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
                        .threads = 2,
                        .seed = 3};
   geometry.schedule = {.iterations = 200, .batch = 8, .learning_rate = 3e-3, .checkpoint_every = 100};
+  // Every texel alike: this made-up face moves as a whole, and a 4-number latent weighting the template's eyes and
+  // mouth gives the rest up (the face's ceiling 1.78 mm on the training frames at the default 10, against the neutral
+  // frame's 3.36); the driving path, not the weighting, is what this test is about.
+  geometry.region_weight = 1;
   ASSERT_TRUE(TrainGeometryAsset(geometry).ok());
 
   ExpressionTrainJob expression;
