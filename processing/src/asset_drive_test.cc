@@ -241,6 +241,11 @@ TEST(AssetDriveTest, ErrorsNameTheCameraTheDatasetAndWhatIsMissing) {
               HasSubstr("camera \"cam-7\" is not among its crops' (cam-0, cam-1)"));
   job.held_out_cameras = {"cam-1"};
   EXPECT_THAT(TrainExpressionAsset(job).status().message(), HasSubstr("1 camera(s) left to train on"));
+  FineTuneJob finetune;
+  finetune.dataset = dataset;
+  finetune.map_loss_region_weight = 0.5;
+  EXPECT_THAT(FineTuneDrivingAsset(finetune).status().message(),
+              HasSubstr("map loss region weight 0.5 is neither 0 nor in 1..1000"));
   job.held_out_cameras = {};
   job.expression.input_size = 64;
   job.expression.levels = 3;

@@ -12,6 +12,7 @@
 #include "stage/common/file_util.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_train.h"
+#include "stage/processing/face_template.h"
 #include "stage/processing/warp_net.h"
 #include "training_run.h"
 
@@ -61,6 +62,7 @@ absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const
                       {"jitter_shift", job.jitter_shift},
                       {"jitter_gain", job.jitter_gain},
                       {"jitter_noise", job.jitter_noise},
+                      {"map_loss_region_weight", job.map_loss_region_weight},
                       {"seed", job.seed},
                       {"dataset", fs::absolute(job.dataset).lexically_normal().string()},
                       {"dataset_id", asset_internal::DatasetId(a.data.dataset)},
@@ -72,6 +74,18 @@ absl::StatusOr<nlohmann::json> FineTuneOptionsJson(const FineTuneJob& job, const
 }
 
 bool InRange(double v, double high) { return v >= 0 && v <= high; }
+
+// The map loss's texel weights: 0 where no training frame holds the texel, the region weights elsewhere.
+std::vector<float> MapLossWeights(const asset_internal::PreparedData& data, const FaceTemplate& face, double weight) {
+  std::vector<float> w = asset_internal::RegionWeights(face, data.maps.size, weight);
+  if (w.empty()) w.assign(static_cast<size_t>(data.maps.size) * data.maps.size, 1.f);
+  for (size_t t = 0; t < w.size(); ++t) {
+    bool held = false;
+    for (int64_t f : data.train) held = held || data.maps.valid[static_cast<size_t>(f)][t] > 0;
+    if (!held) w[t] = 0;
+  }
+  return w;
+}
 
 // The step a run's trainer.json says it reached, and its options' iterations (-1 each where unreadable).
 std::pair<int64_t, int64_t> StepsOf(const std::string& run_dir) {
@@ -130,6 +144,9 @@ absl::Status FineTuneJob::Validate() const {
         std::tuple{"jitter_noise", jitter_noise, 0.5}}) {
     if (!InRange(v, high)) return bad(absl::StrCat(name, " ", v, " is not in 0..", high));
   }
+  if (map_loss_region_weight != 0 && !(map_loss_region_weight >= 1 && map_loss_region_weight <= 1000)) {
+    return bad(absl::StrCat("map loss region weight ", map_loss_region_weight, " is neither 0 nor in 1..1000"));
+  }
   return schedule.Validate();
 }
 
@@ -153,6 +170,10 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
     return absl::FailedPreconditionError(absl::StrCat(job.dataset, ": no training frame seen by a trained camera"));
   }
   STAGE_ASSIGN_OR_RETURN(a.driver, DrivingNet::Create(*a.expression, *a.mapping, job.driving));
+  if (job.map_loss_region_weight != 0) {
+    STAGE_ASSIGN_OR_RETURN(const FaceTemplate face, ShippedFaceTemplate());
+    STAGE_RETURN_IF_ERROR(a.driver->UseMapLoss(*a.geometry, MapLossWeights(a.data, face, job.map_loss_region_weight)));
+  }
   MappingTrainResult result;
   result.output_dir = asset_internal::RunDir(job.output_dir, job.dataset, "finetune");
   result.parameters = a.driver->trained_parameters();

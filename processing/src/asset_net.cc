@@ -860,6 +860,9 @@ struct DrivingNet::Impl {
   int input_size = 0;
   DrivingModule net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
+  // UseMapLoss's: the geometry VAE's decoder (a frozen copy) and the texels' weights (1 x 1 x S x S); empty: none.
+  Decoder map_decoder{nullptr};
+  torch::Tensor map_weights;
   std::vector<torch::Tensor> Trained() const {
     return options.train_encoder ? net->parameters() : net->mapping->parameters();
   }
@@ -919,14 +922,49 @@ absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, c
         (FromVector(targets, {batch, out}) - net->mapping->target_mean) / net->mapping->target_scale;
     // Each dimension weighed by its variance (the mapping's normalization undone, over the mean variance): a latent
     // dimension the geometry VAE barely uses does not count as much as one that moves the face.
-    const torch::Tensor variance = net->mapping->target_scale.pow(2);
-    const torch::Tensor weight = variance / variance.mean();
-    const torch::Tensor loss = ((net->forward(FromVector(images, {batch, 1, s, s})) - y).pow(2) * weight).mean();
+    const torch::Tensor driven = net->forward(FromVector(images, {batch, 1, s, s}));
+    torch::Tensor loss;
+    if (impl_->map_decoder) {
+      // Both latents back in the geometry VAE's units, decoded; the target's map needs no gradient.
+      const torch::Tensor& mean = net->mapping->target_mean;
+      const torch::Tensor& scale = net->mapping->target_scale;
+      torch::Tensor target_map;
+      {
+        torch::NoGradGuard no_grad;
+        target_map = impl_->map_decoder->forward(y * scale + mean);
+      }
+      const torch::Tensor& w = impl_->map_weights;
+      loss = MaskedMse(impl_->map_decoder->forward(driven * scale + mean), target_map, w.expand({batch, 1, -1, -1}));
+    } else {
+      const torch::Tensor variance = net->mapping->target_scale.pow(2);
+      const torch::Tensor weight = variance / variance.mean();
+      loss = ((driven - y).pow(2) * weight).mean();
+    }
     loss.backward();
     impl_->adam->step();
     return loss.item<double>();
   } catch (const std::exception& e) {
     return internal::TorchError(kDrivingNet, "training", e);
+  }
+}
+
+absl::Status DrivingNet::UseMapLoss(const GeometryVae& geometry, const std::vector<float>& weights) {
+  const GeometryVaeOptions& g = geometry.options();
+  if (g.geometry_latent != output()) {
+    return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": the geometry VAE's latent has ", g.geometry_latent,
+                                                   " numbers, the mapping gives ", output()));
+  }
+  const int64_t s = g.input_size;
+  if (auto st = CheckSize(weights, s * s, "the texels' weights", kDrivingNet); !st.ok()) return st;
+  try {
+    impl_->map_decoder = Decoder(ShapeOf(g), g.geometry_latent, 3);
+    CopyWeights(*geometry.impl_->net->decoder, *impl_->map_decoder);
+    for (auto& p : impl_->map_decoder->parameters()) p.set_requires_grad(false);
+    impl_->map_decoder->eval();
+    impl_->map_weights = FromVector(weights, {1, 1, s, s});
+    return absl::OkStatus();
+  } catch (const std::exception& e) {
+    return internal::TorchError(kDrivingNet, "taking the geometry VAE's decoder", e);
   }
 }
 

@@ -89,5 +89,57 @@ TEST(ExpressionVaeTest, TrainingOnTripletsLowersTheLossesAndSeparatesExpressionF
               ::testing::HasSubstr("expression VAE: the images holds 2 values"));
 }
 
+// The driving path's map loss: the driven and the target latents decoded by the geometry VAE's decoder, compared
+// texel by texel as the weights say; a geometry VAE of another latent and weights of another size are refused.
+TEST(DrivingNetTest, TheMapLossComparesTheDecodedMapsWhereTheWeightsSay) {
+  auto expression = ExpressionVae::Create(
+      {.input_size = kSize, .levels = 3, .max_channels = 32, .expression_latent = 4, .view_latent = 2, .threads = 1});
+  ASSERT_TRUE(expression.ok()) << expression.status();
+  auto mapping = LatentMapping::Create({.input = 4, .output = 3, .hidden = 16, .layers = 2, .threads = 1},
+                                       std::vector<float>(3, 0.f), std::vector<float>(3, 1.f));
+  ASSERT_TRUE(mapping.ok()) << mapping.status();
+  const GeometryVaeOptions g{
+      .input_size = 32, .levels = 3, .max_channels = 16, .geometry_latent = 3, .pose_latent = 2, .threads = 1};
+  auto geometry = GeometryVae::Create(g, std::vector<float>(3 * 32 * 32, 0.f), 1.f);
+  ASSERT_TRUE(geometry.ok()) << geometry.status();
+  std::vector<float> images = Crop(3, 0);
+  const std::vector<float> second = Crop(9, 1);
+  images.insert(images.end(), second.begin(), second.end());
+  auto make = [&] { return DrivingNet::Create(**expression, **mapping, {.threads = 1}); };
+  auto latent = make(), map = make(), nowhere = make();
+  ASSERT_TRUE(latent.ok() && map.ok() && nowhere.ok());
+  auto driven = (*latent)->Drive(images, 2);
+  ASSERT_TRUE(driven.ok()) << driven.status();
+  std::vector<float> moved = *driven;
+  moved[1] += 2;  // the first crop's target, one latent number off
+
+  EXPECT_THAT(std::string((*map)->UseMapLoss(**geometry, std::vector<float>(31 * 31, 1.f)).message()),
+              ::testing::HasSubstr("the texels' weights holds 961 values"));
+  auto other = GeometryVae::Create({.input_size = 32, .levels = 3, .max_channels = 16, .geometry_latent = 5},
+                                   std::vector<float>(3 * 32 * 32, 0.f), 1.f);
+  ASSERT_TRUE(other.ok());
+  EXPECT_THAT(std::string((*map)->UseMapLoss(**other, std::vector<float>(32 * 32, 1.f)).message()),
+              ::testing::HasSubstr("the geometry VAE's latent has 5 numbers, the mapping gives 3"));
+  ASSERT_TRUE((*map)->UseMapLoss(**geometry, std::vector<float>(32 * 32, 1.f)).ok());
+  ASSERT_TRUE((*nowhere)->UseMapLoss(**geometry, std::vector<float>(32 * 32, 0.f)).ok());
+
+  // A step at a negligible rate reads the loss without moving the nets. On its own targets each loss is 0; one
+  // latent number off, the latent loss and the map loss see it, weights of 0 everywhere do not.
+  constexpr double kRate = 1e-12;
+  for (auto* net : {&*latent, &*map, &*nowhere}) {
+    auto same = (*net)->TrainStep(images, *driven, 2, kRate);
+    ASSERT_TRUE(same.ok()) << same.status();
+    EXPECT_NEAR(*same, 0, 1e-9);
+  }
+  auto latent_off = (*latent)->TrainStep(images, moved, 2, kRate);
+  auto map_off = (*map)->TrainStep(images, moved, 2, kRate);
+  auto nowhere_off = (*nowhere)->TrainStep(images, moved, 2, kRate);
+  ASSERT_TRUE(latent_off.ok() && map_off.ok() && nowhere_off.ok());
+  EXPECT_GT(*latent_off, 0.1);
+  EXPECT_GT(*map_off, 1e-6);
+  EXPECT_NE(*map_off, *latent_off);
+  EXPECT_EQ(*nowhere_off, 0);
+}
+
 }  // namespace
 }  // namespace stage::processing

@@ -210,6 +210,11 @@ void AssetCommands::AddTrainNetworkOptions() {
       ->capture_default_str();
   train_->add_option("--jitter-noise", f.jitter_noise, "finetune: noise on the crops' pixels (0..1 units)")
       ->capture_default_str();
+  train_
+      ->add_option("--map-loss", f.map_loss_region_weight,
+                   "finetune: 0 (the loss on the geometry latents), or the loss on the maps they decode to with the "
+                   "eyes' and the mouth's texels weighing this many times (1..1000)")
+      ->capture_default_str();
 }
 
 void AssetCommands::AddEvaluate() {
@@ -423,7 +428,8 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
       {"--jitter-rotation", {"finetune"}},
       {"--jitter-shift", {"finetune"}},
       {"--jitter-gain", {"finetune"}},
-      {"--jitter-noise", {"finetune"}}};
+      {"--jitter-noise", {"finetune"}},
+      {"--map-loss", {"finetune"}}};
   for (const auto& [option, networks] : only) {
     if (app.count(option) > 0 && std::find(networks.begin(), networks.end(), network) == networks.end()) {
       return absl::InvalidArgumentError(absl::StrCat(option, " is not an option of the ", network, " network"));

@@ -104,6 +104,7 @@ class GeometryVae {
   int64_t parameter_count() const;
 
  private:
+  friend class DrivingNet;
   struct Impl;
   explicit GeometryVae(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
@@ -317,6 +318,12 @@ class DrivingNet {
   // uses counts for little).
   absl::StatusOr<double> TrainStep(const std::vector<float>& images, const std::vector<float>& targets, int batch,
                                    double learning_rate);
+  // From now on TrainStep's loss is taken on the maps instead: the driven and the target latents decoded by a copy of
+  // `geometry`'s decoder (frozen, not saved with this net), the squared difference in the geometry VAE's normalized
+  // units weighed per texel by `weights` (S x S at its input size: 0 outside the face, more about the eyes and the
+  // mouth). A latent error counts as much as it moves the face where the evaluation looks. Errors: a geometry VAE
+  // whose latent is not the mapping's output, weights of another size.
+  absl::Status UseMapLoss(const GeometryVae& geometry, const std::vector<float>& weights);
   // The geometry latents (B x geometry latent) of `batch` crops (B x 1 x I x I).
   absl::StatusOr<std::vector<float>> Drive(const std::vector<float>& images, int batch) const;
   absl::Status Save(const std::string& path) const;

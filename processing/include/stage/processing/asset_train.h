@@ -190,6 +190,10 @@ struct FineTuneJob {
   // 6000 steps: on the simulated performance the held-out camera's error still fell from 3000 to 6000 (1.53 to 1.21
   // mm over the face of held-out frames; docs/asset.md).
   TrainingSchedule schedule{.iterations = 6000, .batch = 32, .learning_rate = 3e-4};
+  // The loss: 0, on the geometry latents (DrivingNet::TrainStep); >= 1 (up to 1000), on the maps they decode to
+  // (DrivingNet::UseMapLoss), over the texels the training frames hold, those about the eyes and the mouth weighing
+  // this many times (as AssetTrainJob::region_weight).
+  double map_loss_region_weight = 0;
   uint64_t seed = 1;  // the run's generator's (the batches, the jitter)
   std::function<bool(int64_t, int64_t, double)> progress;
   absl::Status Validate() const;
