@@ -467,6 +467,18 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   wrong.mutable_asset()->set_hidden(8);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
               HasSubstr("not one of the ASSET_NETWORK_FINETUNE network's"));
+  wrong = mapping_request;
+  wrong.mutable_asset()->set_map_loss(10);  // the fine-tuning's
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_MAPPING network's"));
+  wrong = finetune_request;
+  wrong.mutable_asset()->set_region_weight(5);  // the geometry VAE's
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_FINETUNE network's"));
+  wrong = finetune_request;
+  wrong.mutable_asset()->set_map_loss(0.5);
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("map loss region weight 0.5 is neither 0 nor in 1..1000"));
   CommandResult missing =
       RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);

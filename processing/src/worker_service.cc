@@ -290,7 +290,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
       a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0 ||
-      a.direct_textures() || a.freeze_encoder() || a.region_weight() != 0) {
+      a.direct_textures() || a.freeze_encoder() || a.region_weight() != 0 || a.map_loss() != 0) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -372,6 +372,7 @@ absl::StatusOr<v1::ProcessingProgress> FineTuneJobOf(const v1::AssetOptions& a, 
   t.dataset = dataset;
   t.schedule = schedule;
   t.driving.train_encoder = !a.freeze_encoder();
+  t.map_loss_region_weight = a.map_loss();
   SetIfGiven(a.seed(), &t.seed);
   t.progress = report;
   auto result = FineTuneDrivingAsset(t);
@@ -458,7 +459,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
       (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING &&
        (a.hidden() != 0 || a.layers() != 0)) ||
-      (network != v1::ASSET_NETWORK_FINETUNE && a.freeze_encoder()) ||
+      (network != v1::ASSET_NETWORK_FINETUNE && (a.freeze_encoder() || a.map_loss() != 0)) ||
       (network != v1::ASSET_NETWORK_TEXTURE && (a.texture_latent() != 0 || a.direct_textures()))) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));

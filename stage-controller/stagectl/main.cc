@@ -674,7 +674,7 @@ struct ProcessFlags {
   // The asset's stages (0 and empty: the worker's defaults).
   std::string asset_source, network, held_out_cameras;
   int32_t iterations = 0, batch = 0, input_size = 0, levels = 0, geometry_size = 0, image_size = 0;
-  double region_weight = 0;
+  double region_weight = 0, map_loss = 0;
   bool json = false;
 };
 
@@ -705,6 +705,7 @@ absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeReques
   a.set_geometry_size(f.geometry_size);
   a.set_image_size(f.image_size);
   a.set_region_weight(f.region_weight);
+  a.set_map_loss(f.map_loss);
   if (a.ByteSizeLong() > 0) *request->mutable_asset() = a;
   return absl::OkStatus();
 }
@@ -1125,6 +1126,11 @@ int main(int argc, char** argv) {
   process
       ->add_option("--region-weight", pf.region_weight,
                    "--stage asset-train --network geometry: weight of the texels about the eyes and the mouth")
+      ->check(CLI::Range(1.0, 1000.0));
+  process
+      ->add_option("--map-loss", pf.map_loss,
+                   "--stage asset-train --network finetune: the loss on the decoded maps, the eyes' and the mouth's "
+                   "texels weighing this many times")
       ->check(CLI::Range(1.0, 1000.0));
   process->add_option("--worker", pf.worker, "The worker's id (default: the first that is up)");
   process->add_flag("--json", pf.json, "Print the result as JSON");
