@@ -360,7 +360,7 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     const torch::Tensor canonical = FromVector(batch.canonical, {b, 3, s, s});
     const torch::Tensor valid = FromVector(batch.valid, {b, 1, s, s});
     const torch::Tensor noise = FromVector(batch.noise, {b, latents});
-    const torch::Tensor weight = batch.weight.empty() ? valid : FromVector(batch.weight, {b, 1, s, s});
+    const torch::Tensor weight = batch.weight.empty() ? valid : FromVector(batch.weight, {b, 1, s, s}) * valid;
     impl_->adam->zero_grad();
     const VaeImpl::Alignment alignment = net->Align(posed, valid);
     const torch::Tensor stats = net->encoder->forward(net->Normalize(net->Aligned(posed, alignment), valid));
@@ -920,8 +920,6 @@ absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, c
     impl_->adam->zero_grad();
     const torch::Tensor y =
         (FromVector(targets, {batch, out}) - net->mapping->target_mean) / net->mapping->target_scale;
-    // Each dimension weighed by its variance (the mapping's normalization undone, over the mean variance): a latent
-    // dimension the geometry VAE barely uses does not count as much as one that moves the face.
     const torch::Tensor driven = net->forward(FromVector(images, {batch, 1, s, s}));
     torch::Tensor loss;
     if (impl_->map_decoder) {
@@ -936,6 +934,8 @@ absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, c
       const torch::Tensor& w = impl_->map_weights;
       loss = MaskedMse(impl_->map_decoder->forward(driven * scale + mean), target_map, w.expand({batch, 1, -1, -1}));
     } else {
+      // Each dimension weighed by its variance (the mapping's normalization undone, over the mean variance): a latent
+      // dimension the geometry VAE barely uses does not count as much as one that moves the face.
       const torch::Tensor variance = net->mapping->target_scale.pow(2);
       const torch::Tensor weight = variance / variance.mean();
       loss = ((driven - y).pow(2) * weight).mean();

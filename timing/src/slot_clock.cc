@@ -107,7 +107,8 @@ absl::Status SlotClock::Start() {
 
 void SlotClock::Stop() {
   stop_.store(true);
-  if (clock_ != nullptr) clock_->Interrupt();  // the virtual-mode thread sleeps on the clock with stop_
+  // The virtual-mode thread sleeps on the clock with stop_ (a clock never started is not touched: it may be gone).
+  if (clock_ != nullptr && thread_.joinable()) clock_->Interrupt();
   if (thread_.joinable()) thread_.join();
 }
 
