@@ -164,14 +164,24 @@ nlohmann::json OptionsJson(const AssetTrainJob& job, const std::string& dataset_
   return j;
 }
 
+// The 2 x 2 texels a bilinear lookup at `uv` reads in a map of `size` (texel centres at (i + 0.5) / size, row 0 at
+// v = 1, clamped): the top-left one and the lookup's fractions past it.
+struct BilinearCell {
+  int x0, y0;
+  double fx, fy;
+};
+BilinearCell CellAt(const Eigen::Vector2f& uv, int size) {
+  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
+  const double y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
+  const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
+  return {x0, y0, x - x0, y - y0};
+}
+
 }  // namespace
 
 std::optional<Eigen::Vector3d> SampleNchw(const std::vector<float>& map, const std::vector<float>& valid, int size,
                                           const Eigen::Vector2f& uv) {
-  const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
-  const double y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
-  const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
-  const double fx = x - x0, fy = y - y0;
+  const auto [x0, y0, fx, fy] = CellAt(uv, size);
   const size_t texels = static_cast<size_t>(size) * size;
   Eigen::Vector3d p = Eigen::Vector3d::Zero();
   for (int dy = 0; dy < 2; ++dy) {
@@ -190,11 +200,8 @@ std::vector<float> RegionWeights(const FaceTemplate& face, int size, double weig
   std::vector<float> w(static_cast<size_t>(size) * size, 1.f);
   for (size_t v = 0; v < face.mesh.uvs.size(); ++v) {
     if (face.regions[v] == FaceRegion::kSkin) continue;
-    const Eigen::Vector2f& uv = face.mesh.uvs[v];
-    // SampleNchw's four texels, and the ring about them.
-    const double x = std::clamp(uv.x() * size - 0.5, 0.0, size - 1.0);
-    const double y = std::clamp((1 - uv.y()) * size - 0.5, 0.0, size - 1.0);
-    const int x0 = std::min(size - 2, static_cast<int>(x)), y0 = std::min(size - 2, static_cast<int>(y));
+    const BilinearCell cell = CellAt(face.mesh.uvs[v], size);  // SampleNchw's four texels, and the ring about them
+    const int x0 = cell.x0, y0 = cell.y0;
     for (int ty = std::max(0, y0 - 1); ty <= std::min(size - 1, y0 + 2); ++ty) {
       for (int tx = std::max(0, x0 - 1); tx <= std::min(size - 1, x0 + 2); ++tx) {
         w[static_cast<size_t>(ty) * size + tx] = static_cast<float>(weight);

@@ -678,6 +678,13 @@ struct ProcessFlags {
   bool json = false;
 };
 
+// A flag's value as the suffix of its enum's value names: "asset-train" -> "ASSET_TRAIN".
+std::string EnumSuffix(absl::string_view value) {
+  std::string name = absl::AsciiStrToUpper(value);
+  absl::StrReplaceAll({{"-", "_"}}, &name);
+  return name;
+}
+
 // The asset's options of `f`, set on `request` only when one is given (the worker refuses options a stage does not
 // take, and an asset message at all with --stage asset-infer).
 absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeRequest* request) {
@@ -687,9 +694,7 @@ absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeReques
   }
   if (!f.network.empty()) {
     stage::v1::AssetNetwork network;
-    std::string name = absl::AsciiStrToUpper(f.network);
-    absl::StrReplaceAll({{"-", "_"}}, &name);
-    if (!stage::v1::AssetNetwork_Parse("ASSET_NETWORK_" + name, &network) ||
+    if (!stage::v1::AssetNetwork_Parse("ASSET_NETWORK_" + EnumSuffix(f.network), &network) ||
         network == stage::v1::ASSET_NETWORK_UNSPECIFIED) {
       return absl::InvalidArgumentError(absl::StrCat("--network: \"", f.network, "\" is not a network of the asset"));
     }
@@ -719,9 +724,7 @@ int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
   stage::v1::ProcessingStage kind;
-  std::string stage_name = absl::AsciiStrToUpper(f.stage);
-  absl::StrReplaceAll({{"-", "_"}}, &stage_name);
-  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + stage_name, &kind) ||
+  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + EnumSuffix(f.stage), &kind) ||
       kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
                                             "--stage: \"", f.stage,
@@ -753,13 +756,14 @@ int Process(const Connection& c, const ProcessFlags& f) {
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
-  stage::ProgressLine bar(kind == stage::v1::PROCESSING_STAGE_CALIBRATION   ? "cameras"
-                          : kind == stage::v1::PROCESSING_STAGE_ASSET_TRAIN ? "steps"
-                          : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
-                                  kind == stage::v1::PROCESSING_STAGE_TEXTURES ||
-                                  kind == stage::v1::PROCESSING_STAGE_STABILIZE
-                              ? "frames"
-                              : "camera frames");
+  stage::ProgressLine bar(
+      kind == stage::v1::PROCESSING_STAGE_CALIBRATION   ? "cameras"
+      : kind == stage::v1::PROCESSING_STAGE_ASSET_TRAIN ? "steps"
+      : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
+              kind == stage::v1::PROCESSING_STAGE_TEXTURES || kind == stage::v1::PROCESSING_STAGE_STABILIZE ||
+              kind == stage::v1::PROCESSING_STAGE_ASSET_DATASET || kind == stage::v1::PROCESSING_STAGE_ASSET_INFER
+          ? "frames"
+          : "camera frames");
   while (reader->Read(&progress)) {
     if (progress.finished()) {
       last_message = progress;
