@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "controller_metrics.h"
 #include "controller_service.h"
 #include "external_sync_generator.h"
 #include "health_monitor.h"
@@ -81,6 +82,7 @@ int main(int argc, char** argv) {
                   rig.stage().id(), rig.stage().name(), rig.cameras_size(), rig.light_nodes_size(),
                   rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
   monitor.Start();
+  const stage::metrics::Registration node_metrics = stage::controller::CollectNodeHealth(&monitor);
   stage::controller::ControllerService service(*loaded, &monitor);
   {
     stage::controller::CaptureOptions capture;

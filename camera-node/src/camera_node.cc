@@ -71,7 +71,36 @@ absl::StatusOr<std::unique_ptr<CameraNode>> CameraNode::Create(const v1::CameraC
                                                                std::string rig_hash) {
   STAGE_ASSIGN_OR_RETURN(CameraSettings settings, SettingsFromConfig(config));
   STAGE_RETURN_IF_ERROR(Annotate(device->Configure(settings), absl::StrCat("camera \"", config.id(), "\"")));
-  return std::unique_ptr<CameraNode>(new CameraNode(config, std::move(device), std::move(rig_hash)));
+  auto node = std::unique_ptr<CameraNode>(new CameraNode(config, std::move(device), std::move(rig_hash)));
+  node->metrics_ =
+      metrics::Registry::Default().AddCollector([n = node.get()](metrics::Writer& w) { n->CollectMetrics(w); });
+  return node;
+}
+
+void CameraNode::CollectMetrics(metrics::Writer& w) const {
+  const v1::CameraStats s = Stats();
+  const metrics::Labels camera = {{"camera", config_.id()}};
+  auto count = [&](const char* name, const char* help, double v) { w.Counter(name, help, camera, v); };
+  auto gauge = [&](const char* name, const char* help, double v) { w.Gauge(name, help, camera, v); };
+  count("stage_camera_frames_received_total", "Frames the camera delivered complete",
+        static_cast<double>(s.frames_completed()));
+  count("stage_camera_frames_failed_total", "Frames the camera delivered incomplete or corrupt",
+        static_cast<double>(s.frames_failed()));
+  count("stage_camera_packets_missing_total", "Stream packets that never arrived (GigE Vision)",
+        static_cast<double>(s.packets_missing()));
+  count("stage_camera_packets_resent_total", "Stream packets the camera resent on request (GigE Vision)",
+        static_cast<double>(s.packets_resent()));
+  count("stage_camera_buffer_underruns_total", "Frames the camera had no buffer for",
+        static_cast<double>(s.buffer_underruns()));
+  count("stage_camera_link_losses_total", "Times control of the camera was lost", static_cast<double>(s.link_losses()));
+  gauge("stage_camera_link_up", "1 while the node controls its camera, else 0", s.link_up() ? 1 : 0);
+  gauge("stage_camera_frames_owed", "Frames triggered and not delivered yet", static_cast<double>(s.frames_owed()));
+  gauge("stage_camera_take_frames_expected", "Frames the take being recorded expects from this camera (0: no take)",
+        static_cast<double>(s.take_frames_expected()));
+  gauge("stage_camera_take_frames_written", "Frames of the take being recorded written so far",
+        static_cast<double>(s.take_frames_written()));
+  gauge("stage_camera_take_frames_lost", "Frames of the take being recorded lost so far",
+        static_cast<double>(s.take_frames_lost()));
 }
 
 CameraNode::CameraNode(v1::CameraConfig config, std::unique_ptr<CameraDevice> device, std::string rig_hash)
@@ -334,6 +363,16 @@ absl::StatusOr<v1::CameraTakeReport> CameraNode::Finish(const v1::FinishCameraRe
   }
   report.set_frames_received(rec.frames_received);
   report.set_frames_written(rec.frames_written);
+  const metrics::Labels camera = {{"camera", config_.id()}};
+  auto& registry = metrics::Registry::Default();
+  registry
+      .GetCounter("stage_camera_frames_written_total", "Frames of finished takes written to their frame files", camera)
+      ->Increment(static_cast<double>(rec.frames_written));
+  registry
+      .GetCounter("stage_camera_frames_dropped_total",
+                  "Frames of finished takes not written: expected from the camera and lost (the ledger says why)",
+                  camera)
+      ->Increment(static_cast<double>(std::max<int64_t>(0, expected - rec.frames_written)));
   report.set_frames_unmatched(rec.frames_unmatched);
   report.set_bytes(rec.bytes);
   report.set_max_timing_error_ns(rec.max_timing_error_ns);
@@ -353,9 +392,14 @@ class TriggerSessionImpl final : public TriggerSession {
         clock_(header.clock()),
         stop_device_(stop_device),
         scheduler_(
-            timing::TriggerSchedulerOptions{.max_late_ns = header.max_late_ns() > 0 ? header.max_late_ns() : 100'000,
-                                            .keep_all_leads = header.report_leads(),
-                                            .realtime_priority = static_cast<int>(header.realtime_priority())},
+            timing::TriggerSchedulerOptions{
+                .max_late_ns = header.max_late_ns() > 0 ? header.max_late_ns() : 100'000,
+                .keep_all_leads = header.report_leads(),
+                .realtime_priority = static_cast<int>(header.realtime_priority()),
+                .fire_lateness = metrics::Registry::Default().GetHistogram(
+                    "stage_camera_trigger_lateness_seconds",
+                    "How late scheduled software triggers fired after their time",
+                    metrics::ExponentialBounds(1e-6, 2, 15), {{"camera", node->config_.id()}})},
             [node](int64_t) { return node->device().Trigger(); }) {}
 
   void Submit(int64_t slot, int64_t time_ns) override {
@@ -400,6 +444,14 @@ class TriggerSessionImpl final : public TriggerSession {
     report.set_warning(stats.warning);
     auto log = Logger("camera.triggers");
     const std::string& id = node_->config_.id();
+    for (const auto& [outcome, n] : {std::pair{"fired", stats.fired}, {"late", stats.late}, {"missed", stats.missed}}) {
+      metrics::Registry::Default()
+          .GetCounter("stage_camera_triggers_total",
+                      "Scheduled software triggers by outcome: fired, late (not fired: past the late slack), missed "
+                      "(arrived too late, or the stream stopped first)",
+                      {{"camera", id}, {"outcome", outcome}})
+          ->Increment(static_cast<double>(n));
+    }
     if (stats.late + stats.missed > 0) {
       log->warn("{}: take {}: {} of {} scheduled triggers not fired ({} late, {} missed)", id, header_.take_id(),
                 stats.late + stats.missed, stats.received, stats.late, stats.missed);

@@ -9,6 +9,7 @@
 #include "absl/status/statusor.h"
 #include "recorder.h"
 #include "stage/camera/camera_device.h"
+#include "stage/common/metrics.h"
 #include "stage/v1/camera_node.pb.h"
 #include "stage/v1/node.pb.h"
 #include "stage/v1/rig.pb.h"
@@ -77,6 +78,9 @@ class CameraNode : public FrameSink {
   // The take being finished (its burst offload), for Stats; guarded by take_mutex_.
   std::shared_ptr<TakeRecorder> finishing_;
   std::string finishing_id_;
+  // The node's families for the metrics, from Stats(); the registration goes first when the node does.
+  void CollectMetrics(metrics::Writer& w) const;
+  metrics::Registration metrics_;
   friend class TriggerSessionImpl;
 };
 

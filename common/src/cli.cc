@@ -14,9 +14,11 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_replace.h"
 #include "stage/common/logging.h"
+#include "stage/common/metrics_server.h"
 #include "stage/common/node_clock.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
+#include "stage/common/status.h"
 #include "stage/common/version.h"
 
 namespace stage {
@@ -39,6 +41,11 @@ void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves) {
     app.add_option("--listen", flags->listen, "Address to serve gRPC on, host:port (port 0 picks a free port)");
     app.add_option("--port-file", flags->port_file,
                    "Write the bound host:port to this file once serving (used by stage-sim)");
+    app.add_option("--metrics-listen", flags->metrics_listen,
+                   "Serve Prometheus metrics over HTTP at http://HOST:PORT/metrics (port 0 picks a free port); off "
+                   "when not given");
+    app.add_option("--metrics-port-file", flags->metrics_port_file,
+                   "Write the metrics endpoint's bound host:port to this file once serving (used by stage-sim)");
     app.add_option("--ptp-uds", flags->ptp_uds,
                    "ptp4l management socket whose PTP state this node reports (default: /var/run/ptp4l if it "
                    "exists; none: off)");
@@ -92,6 +99,8 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
   auto server = RpcServer::Start(options, all);
   if (!server.ok()) return ReportFatal(program, server.status());
   auto log = Logger("rpc");
+  auto metrics = StartMetrics(program, flags);
+  if (!metrics.ok()) return ReportFatal(program, metrics.status());
   if (!flags.port_file.empty()) {
     if (absl::Status s = WriteAddressFile(flags.port_file, (*server)->address()); !s.ok()) {
       return ReportFatal(program, s);
@@ -102,6 +111,35 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
   log->info("{} received; shutting down", sig && *sig == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->Shutdown();
   return 0;
+}
+
+MetricsEndpoint::MetricsEndpoint() = default;
+MetricsEndpoint::MetricsEndpoint(MetricsEndpoint&&) noexcept = default;
+MetricsEndpoint& MetricsEndpoint::operator=(MetricsEndpoint&&) noexcept = default;
+MetricsEndpoint::~MetricsEndpoint() = default;
+
+std::string MetricsEndpoint::address() const { return server ? server->address() : std::string(); }
+
+absl::StatusOr<MetricsEndpoint> StartMetrics(absl::string_view program, const CommonFlags& flags) {
+  MetricsEndpoint endpoint;
+  if (flags.metrics_listen.empty()) {
+    if (!flags.metrics_port_file.empty()) {
+      return absl::InvalidArgumentError("--metrics-port-file needs --metrics-listen");
+    }
+    return endpoint;
+  }
+  metrics::Registry& registry = metrics::Registry::Default();
+  endpoint.process = metrics::RegisterProcessCollector(registry, program);
+  metrics::MetricsServerOptions options;
+  options.listen = flags.metrics_listen;
+  auto server = metrics::MetricsServer::Start(options, &registry);
+  if (!server.ok()) return Annotate(server.status(), "--metrics-listen");
+  endpoint.server = *std::move(server);
+  if (!flags.metrics_port_file.empty()) {
+    STAGE_RETURN_IF_ERROR(WriteAddressFile(flags.metrics_port_file, endpoint.server->address()));
+  }
+  Logger("metrics")->info("metrics on http://{}/metrics", endpoint.server->address());
+  return endpoint;
 }
 
 std::string Plural(int64_t n, absl::string_view noun) { return absl::StrCat(n, " ", noun, n == 1 ? "" : "s"); }

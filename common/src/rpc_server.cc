@@ -9,7 +9,9 @@
 #include <cstdio>
 
 #include "absl/strings/str_cat.h"
+#include "rpc_metrics.h"
 #include "stage/common/file_util.h"
+#include "stage/common/metrics.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 
@@ -43,6 +45,10 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
   builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS, 1000);
   // A port in use must be an error, not a second server sharing it.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
+  std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+  interceptors.push_back(
+      NewRpcMetricsInterceptorFactory(options.metrics != nullptr ? options.metrics : &metrics::Registry::Default()));
+  builder.experimental().SetInterceptorCreators(std::move(interceptors));
   for (grpc::Service* service : services) builder.RegisterService(service);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (server == nullptr || port == 0) {

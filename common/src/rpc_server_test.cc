@@ -9,6 +9,7 @@
 #include "gmock/gmock.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "gtest/gtest.h"
+#include "stage/common/metrics.h"
 #include "stage/v1/controller.grpc.pb.h"
 
 namespace stage {
@@ -62,6 +63,29 @@ TEST(RpcServerTest, AfterShutdownNothingAnswers) {
   grpc::Status rpc;
   Check(address, &rpc);
   EXPECT_FALSE(rpc.ok());
+}
+
+TEST(RpcServerTest, EveryCallIsCountedAndTimedByMethodAndCode) {
+  metrics::Registry registry;
+  auto server = RpcServer::Start({.listen = "127.0.0.1:0", .metrics = &registry}, {&g_service});
+  ASSERT_TRUE(server.ok()) << server.status();
+  grpc::Status rpc;
+  Check((*server)->address(), &rpc);
+  Check((*server)->address(), &rpc);
+  // The bare service answers Unimplemented: a failure is handled too, under its code.
+  auto stub =
+      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  v1::NodeInfo info;
+  EXPECT_EQ(stub->GetInfo(&context, v1::GetInfoRequest(), &info).error_code(), grpc::StatusCode::UNIMPLEMENTED);
+  const std::string text = registry.Render();
+  const std::string check = "grpc_type=\"unary\",grpc_service=\"grpc.health.v1.Health\",grpc_method=\"Check\"";
+  EXPECT_THAT(text, HasSubstr("grpc_server_started_total{" + check + "} 2\n")) << text;
+  EXPECT_THAT(text, HasSubstr("grpc_server_handled_total{" + check + ",grpc_code=\"OK\"} 2\n")) << text;
+  EXPECT_THAT(text, HasSubstr("grpc_server_handling_seconds_count{" + check + "} 2\n")) << text;
+  EXPECT_THAT(text, HasSubstr("grpc_server_handled_total{grpc_type=\"unary\",grpc_service=\"stage.v1.StageController\","
+                              "grpc_method=\"GetInfo\",grpc_code=\"Unimplemented\"} 1\n"))
+      << text;
 }
 
 TEST(RpcServerTest, AddressFileIsWrittenWhole) {

@@ -24,7 +24,51 @@ absl::StatusOr<std::unique_ptr<LightNode>> LightNode::Create(const v1::LightNode
     return absl::InvalidArgumentError(
         absl::StrCat("light node \"", config.id(), "\": slot rate, take length and heartbeat timeout must be > 0"));
   }
-  return std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash), options));
+  auto node = std::unique_ptr<LightNode>(new LightNode(config, std::move(driver), std::move(rig_hash), options));
+  node->metrics_ =
+      metrics::Registry::Default().AddCollector([n = node.get()](metrics::Writer& w) { n->CollectMetrics(w); });
+  return node;
+}
+
+void LightNode::CollectMetrics(metrics::Writer& w) const {
+  const v1::LightStats s = Stats();
+  const metrics::Labels node = {{"node", config_.id()}};
+  for (const auto& [mode, name] : {std::pair{v1::LIGHT_MODE_IDLE, "idle"},
+                                   {v1::LIGHT_MODE_ARMED, "armed"},
+                                   {v1::LIGHT_MODE_BLACKOUT, "blackout"}}) {
+    w.Gauge("stage_light_mode",
+            "The light node's mode: 1 for the current one (idle, armed, blackout), 0 for the others",
+            {{"node", config_.id()}, {"mode", name}}, s.mode() == mode ? 1 : 0);
+  }
+  w.Gauge("stage_light_table_steps", "Rows the pattern table has stepped through since the node was armed", node,
+          static_cast<double>(s.steps()));
+  w.Gauge("stage_light_faults", "Faults the LED board reports now", node, s.faults_size());
+  if (s.temperature_c() != 0) {
+    w.Gauge("stage_light_temperature_celsius", "The LED board's temperature", node, s.temperature_c());
+  }
+  TableLoad load;
+  uint64_t trips = 0;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (s.mode() == v1::LIGHT_MODE_ARMED) load = armed_load_;
+    trips = watchdog_trips_;
+  }
+  w.Gauge("stage_light_duty_ratio",
+          "The armed table's highest mean drive of one channel, of full drive (0 when not armed; the arming check "
+          "holds it under the channel's max_duty_cycle)",
+          node, load.duty);
+  w.Gauge("stage_light_thermal_load_ratio",
+          "The armed table's highest thermal load of one channel during the take, of full drive (0 when not armed)",
+          node, load.peak);
+  w.Counter("stage_light_watchdog_trips_total", "Blackouts because the controller's heartbeat stopped", node,
+            static_cast<double>(trips));
+  if (s.has_slot_clock()) {
+    const v1::MeasuredSlotClock& c = s.slot_clock();
+    w.Gauge("stage_light_slot_clock_lost_edges", "Slot clock edges that never reached the node since arming", node,
+            static_cast<double>(c.lost_edges()));
+    w.Gauge("stage_light_step_latency_max_seconds", "Longest time from a slot edge to the outputs set, since arming",
+            node, c.max_step_latency_us() * 1e-6);
+  }
 }
 
 LightNode::LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
@@ -87,7 +131,7 @@ v1::LightStats LightNode::Stats() const {
   return stats;
 }
 
-absl::Status LightNode::CheckLoad(const PatternTable& table, int64_t take_slots) const {
+absl::Status LightNode::CheckLoad(const PatternTable& table, int64_t take_slots, TableLoad* most) const {
   const double slot_s = 1.0 / options_.slot_rate_hz;
   std::vector<double> drive(table.rows.size());
   for (const v1::LedUnit& u : config_.units()) {
@@ -97,6 +141,8 @@ absl::Status LightNode::CheckLoad(const PatternTable& table, int64_t take_slots)
       for (size_t r = 0; r < table.rows.size(); ++r) drive[r] = table.rows[r][ch] / 65535.0;
       const timing::LedLoad load = timing::ComputeLedLoad(drive, slot_s, limits.thermal_time_constant_s(), take_slots);
       const double limit = limits.max_duty_cycle();
+      most->duty = std::max(most->duty, load.duty);
+      most->peak = std::max(most->peak, load.peak);
       if (load.duty > limit + 1e-12) {
         return absl::FailedPreconditionError(absl::StrFormat(
             "light node \"%s\": channel %d (%s %s) would average %.3f of full drive over the %d-row table, above "
@@ -154,7 +200,8 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
   const int64_t take_slots = request.take_slots() > 0
                                  ? request.take_slots()
                                  : static_cast<int64_t>(std::ceil(options_.take_length_s * options_.slot_rate_hz));
-  if (absl::Status s = CheckLoad(t, take_slots); !s.ok()) {
+  TableLoad load;
+  if (absl::Status s = CheckLoad(t, take_slots, &load); !s.ok()) {
     Logger("light.node")->error("{}", s.message());
     return s;
   }
@@ -179,6 +226,7 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     watching_ = true;
+    armed_load_ = load;
     take_id_ = request.take_id();
     heartbeat_ = HeartbeatWatch(std::chrono::milliseconds(
         request.heartbeat_timeout_ms() > 0 ? request.heartbeat_timeout_ms() : options_.heartbeat_timeout_ms));

@@ -12,6 +12,7 @@
 
 #include "absl/status/statusor.h"
 #include "heartbeat_watch.h"
+#include "stage/common/metrics.h"
 #include "stage/light/light_driver.h"
 #include "stage/light/slot_clock.h"
 #include "stage/v1/light_node.pb.h"
@@ -68,7 +69,14 @@ class LightNode {
  private:
   LightNode(v1::LightNodeConfig config, std::unique_ptr<LightDriver> driver, std::string rig_hash,
             LightNodeOptions options);
-  absl::Status CheckLoad(const PatternTable& table, int64_t take_slots) const;
+  // The highest load of one channel of a table, of full drive: its mean (duty) and its thermal peak.
+  struct TableLoad {
+    double duty = 0;
+    double peak = 0;
+  };
+  // FailedPrecondition when a channel would exceed its limits; `most` gets the highest loads checked.
+  absl::Status CheckLoad(const PatternTable& table, int64_t take_slots, TableLoad* most) const;
+  void CollectMetrics(metrics::Writer& w) const;
   absl::Status NoSlotClock() const;
   void Watchdog();
 
@@ -86,9 +94,12 @@ class LightNode {
   HeartbeatWatch heartbeat_;     // guarded by mutex_
   std::string blackout_reason_;  // guarded by mutex_
   uint64_t watchdog_trips_ = 0;  // guarded by mutex_
+  TableLoad armed_load_;         // of the table armed last; guarded by mutex_
   std::thread watchdog_;
   std::unique_ptr<SlotClockGenerator> owned_slot_clock_;
   SlotClockGenerator* slot_clock_ = nullptr;  // owned_slot_clock_, or the driver's
+  // The node's families for the metrics (last: the collector goes before what it reads).
+  metrics::Registration metrics_;
 };
 
 }  // namespace stage::light

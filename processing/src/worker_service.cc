@@ -2,10 +2,14 @@
 #include "worker_service.h"
 
 #include <algorithm>
+#include <chrono>
 
+#include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
+#include "stage/common/metrics.h"
 #include "stage/common/node_info.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/asset_infer.h"
@@ -48,6 +52,27 @@ grpc::Status WorkerService::GetWorkerStatus(grpc::ServerContext*, const v1::GetW
   return grpc::Status::OK;
 }
 
+namespace {
+
+// A finished job in the metrics: stage_processing_jobs_total{stage,outcome} and its time by stage.
+void CountJob(v1::ProcessingStage stage, const char* outcome, double seconds) {
+  std::string name = absl::AsciiStrToLower(v1::ProcessingStage_Name(stage));
+  if (absl::StartsWith(name, "processing_stage_")) name = name.substr(17);
+  auto& registry = metrics::Registry::Default();
+  registry
+      .GetCounter("stage_processing_jobs_total",
+                  "Processing jobs finished, by stage and outcome (ok, failed, "
+                  "cancelled)",
+                  {{"stage", name}, {"outcome", outcome}})
+      ->Increment();
+  registry
+      .GetHistogram("stage_processing_job_seconds", "Wall time of processing jobs, by stage",
+                    metrics::ExponentialBounds(0.1, 2, 16), {{"stage", name}})
+      ->Observe(seconds);
+}
+
+}  // namespace
+
 grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::ProcessingJob* job,
                                     grpc::ServerWriter<v1::ProcessingProgress>* writer) {
   if (job->stage() != v1::PROCESSING_STAGE_PHOTOMETRIC && job->stage() != v1::PROCESSING_STAGE_CALIBRATION &&
@@ -88,6 +113,7 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     if (!context->IsCancelled()) writer->Write(m);
   };
   auto cancelled = [&] { return context->IsCancelled(); };
+  const auto started = std::chrono::steady_clock::now();
   absl::StatusOr<v1::ProcessingProgress> result;
   switch (job->stage()) {
     case v1::PROCESSING_STAGE_CALIBRATION:
@@ -121,6 +147,11 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
     std::lock_guard<std::mutex> lock(mutex_);
     running_.erase(std::find(running_.begin(), running_.end(), job));
   }
+  CountJob(job->stage(),
+           result.ok()              ? "ok"
+           : context->IsCancelled() ? "cancelled"
+                                    : "failed",
+           std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
   if (!result.ok()) {
     ++jobs_failed_;
     Logger("worker")->warn("worker {}: {}", id_, result.status().message());

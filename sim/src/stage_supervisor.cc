@@ -138,6 +138,11 @@ absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::
     sp.argv.push_back("--log-level");
     sp.argv.push_back(options_.child_log_level);
   }
+  if (options_.metrics) {
+    child.metrics_file = absl::StrCat(options_.run_dir, "/ports/", id, ".metrics");
+    for (const char* a : {"--metrics-listen", "127.0.0.1:0", "--metrics-port-file"}) sp.argv.emplace_back(a);
+    sp.argv.push_back(child.metrics_file);
+  }
   for (std::string& a : extra_args) sp.argv.push_back(std::move(a));
   sp.stdout_path = child.log_file;
   sp.stderr_path = child.log_file;
@@ -169,8 +174,19 @@ absl::Status StageSupervisor::WaitForAddresses(std::chrono::steady_clock::time_p
       absl::string_view address = absl::StripAsciiWhitespace(text);
       if (address.empty()) {
         ++pending;
-      } else {
-        child.address = std::string(address);
+        continue;
+      }
+      child.address = std::string(address);
+      if (!child.metrics_file.empty()) {
+        // Written before the address file (StartMetrics, then the gRPC address): there once the address is.
+        std::string metrics = ReadFile(child.metrics_file);
+        child.metrics = std::string(absl::StripAsciiWhitespace(metrics));
+        if (child.metrics.empty()) {
+          return absl::InternalError(absl::StrCat(child.program, " ", child.id,
+                                                  " serves gRPC but wrote no metrics "
+                                                  "address to ",
+                                                  child.metrics_file, "; log ", child.log_file));
+        }
       }
     }
     if (pending == 0) return absl::OkStatus();
@@ -254,6 +270,7 @@ absl::Status StageSupervisor::WriteEndpoints() {
   endpoints_.set_rig_file(options_.run_dir + "/rig.json");
   endpoints_.set_log_dir(options_.run_dir + "/logs");
   endpoints_.set_world(options_.world_address);
+  endpoints_.set_metrics(options_.own_metrics);
   for (const Child& c : children_) {
     auto* p = endpoints_.add_processes();
     p->set_id(c.id);
@@ -261,6 +278,7 @@ absl::Status StageSupervisor::WriteEndpoints() {
     p->set_address(c.address);
     p->set_pid(c.process->pid());
     p->set_log_file(c.log_file);
+    p->set_metrics(c.metrics);
   }
   STAGE_ASSIGN_OR_RETURN(std::string json, ToJson(endpoints_));
   return WriteFileAtomically(endpoints_path(), json);

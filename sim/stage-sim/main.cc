@@ -235,6 +235,9 @@ int main(int argc, char** argv) {
   app.add_flag("--json", json, "--until-rendered: print the summary as JSON");
   app.add_option("--take-root", options.take_root,
                  "Where the controller records takes (default: the rig's storage.root, relative to here)");
+  app.add_flag("--metrics", options.metrics,
+               "Serve Prometheus metrics from stage-sim (its world) and from every process it starts, each on a "
+               "loopback port of its own: the endpoint file lists them (metrics, processes[].metrics)");
   bool check_config = false;
   app.add_flag("--check-config", check_config,
                "Check the rig as stage-sim runs it (node addresses are stage-sim's to assign; --set applied): print "
@@ -292,11 +295,20 @@ int main(int argc, char** argv) {
   }
 
   auto log = stage::Logger("sim.stage");
+  stage::MetricsEndpoint metrics;
+  if (options.metrics) {
+    flags.metrics_listen = "127.0.0.1:0";
+    auto started = stage::StartMetrics(kProgram, flags);
+    if (!started.ok()) return stage::ReportFatal(kProgram, started.status());
+    metrics = *std::move(started);
+    options.own_metrics = metrics.address();
+  }
   // The world first: the nodes join it as they start.
   std::shared_ptr<const stage::sim::SimScene> scene;
   std::unique_ptr<stage::sim::World> world;
   std::unique_ptr<stage::sim::WorldService> world_service;
   std::unique_ptr<stage::RpcServer> world_server;
+  stage::metrics::Registration world_metrics;  // before `world` is destroyed, the collector that reads it is gone
   if (world_mode != "none") {
     auto loaded = stage::LoadRig(options.rig);
     if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
@@ -315,6 +327,10 @@ int main(int argc, char** argv) {
     options.self_armed_world = world_slots > 0;
     world = std::make_unique<stage::sim::World>(scene->dome(), world_options);
     stage::sim::ApplyUnitFaults(*scene, world.get());
+    world_metrics = stage::metrics::Registry::Default().AddCollector([w = world.get()](stage::metrics::Writer& out) {
+      out.Gauge("stage_sim_world_slot", "The slot edge the simulated world stands at (lockstep) or last passed", {},
+                static_cast<double>(w->current_slot()));
+    });
     stage::v1::WorldInfo info;
     info.set_slot_rate_hz(world_options.slot_rate_hz);
     info.set_lockstep(lockstep);

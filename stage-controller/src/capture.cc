@@ -13,6 +13,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "controller_metrics.h"
 #include "stage/common/clock.h"
 #include "stage/common/file_util.h"
 #include "stage/common/logging.h"
@@ -162,6 +163,7 @@ absl::StatusOr<std::unique_ptr<Capturer>> Capturer::Create(LoadedRig rig, v1::Sc
       Logger("controller")->warn("no alignment self-test for this pattern set: {}", signature.status().message());
     }
   }
+  c->session_metrics_ = CollectSessionState(c.get());
   return c;
 }
 
@@ -976,6 +978,7 @@ absl::StatusOr<v1::TakeSummary> Capturer::FinalizeTake(Take& take) {
     SetState(v1::SESSION_STATE_ERROR);
     return kept;
   }
+  CountTake(row.state, row.frames_expected, row.frames_stored);
   EmitDone(take, cameras);
   Logger("controller")
       ->info("take {}: {} ({} of {} frames stored)", take.id, TakeOutcomeName(outcome), total.stored(),

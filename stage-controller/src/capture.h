@@ -23,6 +23,7 @@
 #include "emergency_stop.h"
 #include "node_clients.h"
 #include "session_state.h"
+#include "stage/common/metrics.h"
 #include "stage/common/rig.h"
 #include "stage/timing/alignment.h"
 #include "stage/v1/controller.pb.h"
@@ -188,6 +189,8 @@ class Capturer {
   // The take being captured (owned by its Capture call); guarded by mutex_.
   Take* running_ = nullptr;
   std::map<std::string, v1::Preview> previews_;  // by camera id; guarded by mutex_
+  // The session's state for the metrics (last: the collector goes before what it reads).
+  metrics::Registration session_metrics_;
 };
 
 }  // namespace stage::controller

@@ -9,6 +9,8 @@
 #include <chrono>
 #include <cstring>
 
+#include "stage/common/metrics.h"
+
 namespace stage::timing {
 namespace {
 
@@ -94,6 +96,8 @@ void TriggerScheduler::Run() {
     if (in_time && fired.ok()) {
       ++stats_.fired;
       stats_.max_fire_late_ns = std::max(stats_.max_fire_late_ns, now - next.due_ns);
+      if (options_.fire_lateness != nullptr)
+        options_.fire_lateness->Observe(static_cast<double>(now - next.due_ns) * 1e-9);
     } else {
       CountLate(next.slot);
     }

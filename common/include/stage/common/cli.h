@@ -5,18 +5,24 @@
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "absl/strings/string_view.h"
+#include "stage/common/metrics.h"
 
 namespace grpc {
 class Service;
 }  // namespace grpc
 
 namespace stage {
+namespace metrics {
+class MetricsServer;
+}  // namespace metrics
 
 // Flags every FaStage program takes.
 struct CommonFlags {
@@ -28,11 +34,16 @@ struct CommonFlags {
   std::string log_level;
   // After binding, write the bound "host:port" to this file (for supervisors such as stage-sim).
   std::string port_file;
+  // Where to serve Prometheus metrics over HTTP ("host:port"; port 0 picks a free one); empty: no metrics endpoint.
+  std::string metrics_listen;
+  // After binding the metrics endpoint, write its "host:port" to this file (needs metrics_listen).
+  std::string metrics_port_file;
   // ptp4l's management socket for the PTP state this node reports; "" = /var/run/ptp4l if it exists; "none" = off.
   std::string ptp_uds;
 };
 
-// Adds --config, --log-level and --version (and --listen and --port-file when `serves`) to `app`.
+// Adds --config, --log-level and --version (and --listen, --port-file, --metrics-listen, --metrics-port-file and
+// --ptp-uds when `serves`) to `app`.
 void AddCommonFlags(CLI::App& app, CommonFlags* flags, bool serves);
 
 // For programs that run OpenMP loops (libtorch's, Open3D's: libgomp): its waiting threads spin unless
@@ -53,11 +64,28 @@ int ReportFatal(absl::string_view program, const absl::Status& status);
 
 // Serves `services` and the NodeClock service (on CLOCK_REALTIME, with the PTP state of flags.ptp_uds) on
 // flags.listen (or `default_listen` when the flag is empty) until SIGINT or SIGTERM, writing
-// flags.port_file once serving; then shuts down gracefully. Once serving it logs "serving on ADDRESS: <summary>"
-// (the effective configuration in a line). Returns the process exit code. Call BlockShutdownSignals() first thing
-// in main().
+// flags.port_file once serving, with the metrics endpoint flags.metrics_listen asks for (StartMetrics); then shuts down
+// gracefully. Once serving it logs "serving on ADDRESS: <summary>" (the effective configuration in a line). Returns the
+// process exit code. Call BlockShutdownSignals() first thing in main().
 int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const std::string& default_listen,
                      const std::vector<grpc::Service*>& services, const std::string& summary);
+
+// The process's metrics endpoint (metrics::Registry::Default() over HTTP, with the process collector), kept for as
+// long as the process serves.
+struct MetricsEndpoint {
+  MetricsEndpoint();
+  MetricsEndpoint(MetricsEndpoint&&) noexcept;
+  MetricsEndpoint& operator=(MetricsEndpoint&&) noexcept;
+  ~MetricsEndpoint();
+  // "host:port" of the endpoint; "" when there is none.
+  std::string address() const;
+  metrics::Registration process;
+  std::unique_ptr<metrics::MetricsServer> server;  // null when flags.metrics_listen is empty
+};
+
+// Starts the metrics endpoint flags.metrics_listen asks for (nothing when it is empty) and writes
+// flags.metrics_port_file. ServeUntilSignal calls it; programs that serve otherwise (stage-sim) call it themselves.
+absl::StatusOr<MetricsEndpoint> StartMetrics(absl::string_view program, const CommonFlags& flags);
 
 // A range of virtual frames from the command line: "A:B" is [A, B), "A:" from A to the end (last = -1), "A" the one
 // frame A. InvalidArgument names the flag.

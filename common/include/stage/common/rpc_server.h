@@ -1,5 +1,6 @@
 // A gRPC server as every FaStage process runs it: one listen address (port 0 picks a free port, reported back),
-// message size raised for frames, keepalive, the standard grpc.health.v1 service, and graceful shutdown.
+// message size raised for frames, keepalive, the standard grpc.health.v1 service, every call counted and timed for
+// the metrics, and graceful shutdown.
 #pragma once
 
 #include <atomic>
@@ -15,6 +16,9 @@ class Service;
 }  // namespace grpc
 
 namespace stage {
+namespace metrics {
+class Registry;
+}  // namespace metrics
 
 struct RpcServerOptions {
   // "host:port"; port 0 lets the kernel choose. Plain text: FaStage listens without TLS only where told to, and the
@@ -27,6 +31,8 @@ struct RpcServerOptions {
   int keepalive_timeout_ms = 5000;
   // Time in-flight calls get to finish on Shutdown() before they are cancelled, ms.
   int shutdown_grace_ms = 2000;
+  // Where every call is counted and timed (grpc_server_* families, rpc_metrics.h); nullptr: the process's registry.
+  metrics::Registry* metrics = nullptr;
 
   absl::Status Validate() const;
 };

@@ -41,6 +41,11 @@ struct StageSupervisorOptions {
   bool self_armed_world = false;
   // Where the controller records takes (--take-root); empty: the rig's storage.root against the working directory.
   std::string take_root;
+  // Every child serves Prometheus metrics on a loopback port it picks (--metrics-listen 127.0.0.1:0); the endpoint
+  // file lists each one's (SimProcess.metrics).
+  bool metrics = false;
+  // stage-sim's own metrics endpoint (host:port), for the endpoint file; empty when it serves none.
+  std::string own_metrics;
 
   absl::Status Validate() const;
 };
@@ -73,8 +78,10 @@ class StageSupervisor {
     v1::NodeKind kind;
     std::string program;
     std::string port_file;
+    std::string metrics_file;
     std::string log_file;
     std::string address;
+    std::string metrics;
     std::unique_ptr<Subprocess> process;
     bool reported = false;
   };

@@ -18,6 +18,10 @@
 
 #include "absl/status/status.h"
 
+namespace stage::metrics {
+class Histogram;
+}  // namespace stage::metrics
+
 namespace stage::timing {
 
 struct TriggerSchedulerOptions {
@@ -32,6 +36,8 @@ struct TriggerSchedulerOptions {
   // SCHED_FIFO priority of the firing thread, 1..99; 0 = normal scheduling. Without CAP_SYS_NICE the thread runs
   // normally and `stats().warning` says so.
   int realtime_priority = 0;
+  // Where each fired trigger's lateness (fire time minus due time, seconds) is observed; nullptr: nowhere.
+  metrics::Histogram* fire_lateness = nullptr;
 };
 
 struct TriggerSchedulerStats {
