@@ -19,6 +19,7 @@
 #include "light_node.h"
 #include "light_service.h"
 #include "modbus_light_driver.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/light/led_board_map.h"
 #include "stage/sim/fake_led_board.h"
@@ -94,7 +95,7 @@ int main(int argc, char** argv) {
   stage::controller::EmergencyStop estop(live);
   std::vector<std::shared_ptr<grpc::Channel>> channels;
   for (const auto& n : nodes) {
-    channels.push_back(grpc::CreateChannel(n.server->address(), grpc::InsecureChannelCredentials()));
+    channels.push_back(stage::MakeChannel(n.server->address()));
   }
   auto arm_all = [&] {
     for (auto& n : nodes) {

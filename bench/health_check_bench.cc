@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "grpc/health/v1/health.grpc.pb.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/v1/controller.grpc.pb.h"
 
@@ -57,8 +58,7 @@ void BM_HealthCheckThroughRpcServer(benchmark::State& state) {
     state.SkipWithError("server did not start");
     return;
   }
-  auto stub =
-      grpc::health::v1::Health::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub = grpc::health::v1::Health::NewStub(stage::MakeChannel((*server)->address()));
   for (auto _ : state) {
     grpc::ClientContext context;
     grpc::health::v1::HealthCheckResponse response;

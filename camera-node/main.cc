@@ -10,6 +10,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
 #include "stage/common/shutdown.h"
 #ifdef STAGE_WITH_SIM
 #include "stage/sim/node_backends.h"
@@ -84,6 +85,7 @@ int main(int argc, char** argv) {
 
   auto loaded = stage::LoadRig(flags.config);
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  if (auto s = stage::UseRigTransportSecurity(*loaded, "camera/" + id); !s.ok()) return stage::ReportFatal(kProgram, s);
   auto camera = stage::FindCamera(*loaded, id);
   if (!camera.ok()) return stage::ReportFatal(kProgram, camera.status());
   const stage::v1::CameraConfig& config = **camera;

@@ -9,6 +9,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
 #include "stage/common/shutdown.h"
 #ifdef STAGE_WITH_SIM
 #include "stage/sim/node_backends.h"
@@ -44,6 +45,7 @@ int main(int argc, char** argv) {
 
   auto loaded = stage::LoadRig(flags.config);
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  if (auto s = stage::UseRigTransportSecurity(*loaded, "light/" + id); !s.ok()) return stage::ReportFatal(kProgram, s);
   auto entry = stage::FindLightNode(*loaded, id);
   if (!entry.ok()) return stage::ReportFatal(kProgram, entry.status());
   const stage::v1::LightNodeConfig& config = **entry;

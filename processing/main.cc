@@ -4,6 +4,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
 #include "stage/common/shutdown.h"
 #include "worker_service.h"
 
@@ -22,6 +23,7 @@ int main(int argc, char** argv) {
 
   auto loaded = stage::LoadRig(flags.config);
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  if (auto s = stage::UseRigTransportSecurity(*loaded, "worker/" + id); !s.ok()) return stage::ReportFatal(kProgram, s);
   auto entry = stage::FindProcessingWorker(*loaded, id);
   if (!entry.ok()) return stage::ReportFatal(kProgram, entry.status());
   const stage::v1::ProcessingWorkerConfig& config = **entry;

@@ -12,6 +12,7 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
 #include "stage/common/shutdown.h"
 #ifdef STAGE_WITH_SIM
 #include "stage/sim/world_sync_generator.h"
@@ -66,6 +67,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  if (auto s = stage::UseRigTransportSecurity(*loaded, "controller"); !s.ok()) return stage::ReportFatal(kProgram, s);
   const stage::v1::RigConfig& rig = loaded->rig;
 
   stage::controller::HealthMonitorOptions monitor_options;

@@ -21,6 +21,7 @@
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/take_names.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
@@ -68,7 +69,7 @@ class CaptureTest : public SimulatedStageTest {
   // The frames a camera node has written of its take, asked every 100 ms until there are `at_least` (or `within` has
   // passed: the last answer).
   int64_t FramesWritten(const v1::SimProcess& node, int64_t at_least, std::chrono::seconds within) {
-    auto camera = v1::CameraNode::NewStub(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials()));
+    auto camera = v1::CameraNode::NewStub(MakeChannel(node.address()));
     const auto deadline = std::chrono::steady_clock::now() + within;
     int64_t written = 0;
     while (written < at_least && std::chrono::steady_clock::now() < deadline) {
@@ -82,7 +83,7 @@ class CaptureTest : public SimulatedStageTest {
 
   // The world's bus as the test sees it: who started its last run, and who has called Run, EndRun and GetRun.
   v1::WorldRunReply WorldBus() {
-    auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
+    auto world = v1::SimWorld::NewStub(MakeChannel(endpoints_.world()));
     grpc::ClientContext context;
     v1::GetRunRequest get;
     get.set_requested_by("test");
@@ -115,8 +116,7 @@ TEST_F(CaptureTest, PauseAndResumeGiveOneTakeWithAGapAndNothingElseLost) {
   std::mutex states_mutex;
   std::vector<std::string> states;
   grpc::ClientContext watch_context;
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel(endpoints_.controller()));
   std::thread watcher([&] {
     v1::WatchStageStatusRequest request;
     request.set_heartbeat_ms(5000);
@@ -349,7 +349,7 @@ TEST_F(CaptureTest, TheGeneratorLightNodeDrivesTheClockAndItsDeathEndsTheTake) {
   EXPECT_EQ(WorldBus().bus_calls().count("controller"), 0u);
   for (const auto& p : endpoints_.processes()) {
     if (p.kind() != v1::NODE_KIND_LIGHT || p.id() == "lights-gpio-1") continue;
-    auto light = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    auto light = v1::LightNode::NewStub(MakeChannel(p.address()));
     grpc::ClientContext context;
     v1::LightStats stats;
     ASSERT_TRUE(light->GetStats(&context, v1::GetLightStatsRequest(), &stats).ok()) << p.id();
@@ -369,7 +369,7 @@ TEST_F(CaptureTest, AnExternalGeneratorRunningBeforeTheTakeGivesItsT0FromTheWitn
       ControlPlaneScene({"--set", "sim.modbus_fakes=false", "--set", "timing.sync_generator=\"\"", "--set",
                          "timing.clock_witness=lights-gpio-2", "--set",
                          "light_nodes[lights-gpio-1].gpiod.drives_slot_clock=false", "--take-root", root.path()})));
-  auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
+  auto world = v1::SimWorld::NewStub(MakeChannel(endpoints_.world()));
   {
     // The operator starts the signal generator: it runs until stopped (a run of a billion slots, 12 days).
     grpc::ClientContext context;
@@ -407,7 +407,7 @@ TEST_F(CaptureTest, AnExternalGeneratorRunningBeforeTheTakeGivesItsT0FromTheWitn
   }
   for (const auto& p : endpoints_.processes()) {
     if (p.kind() != v1::NODE_KIND_LIGHT) continue;
-    auto light = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    auto light = v1::LightNode::NewStub(MakeChannel(p.address()));
     grpc::ClientContext context;
     v1::LightStats stats;
     ASSERT_TRUE(light->GetStats(&context, v1::GetLightStatsRequest(), &stats).ok()) << p.id();

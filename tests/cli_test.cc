@@ -97,9 +97,10 @@ TEST(CliTest, BadListenAddress) {
   ExpectOneLineError(
       RunCommand({"camera-node", "--id", "mv-01", "--backend", "sim", "--listen", "not-an-address"}, kTimeout), 2,
       "listen: \"not-an-address\" is not host:port");
+  // Plain text serves loopback only (docs/security.md).
   ExpectOneLineError(
-      RunCommand({"camera-node", "--id", "mv-01", "--backend", "sim", "--listen", "192.0.2.1:0"}, kTimeout), 1,
-      "cannot listen on 192.0.2.1:0");
+      RunCommand({"camera-node", "--id", "mv-01", "--backend", "sim", "--listen", "192.0.2.1:0"}, kTimeout), 2,
+      "will not listen on 192.0.2.1:0 in plain text: plain text is for loopback only");
 }
 
 TEST(CliTest, BadLogLevel) {

@@ -18,6 +18,7 @@
 #include "gtest/gtest.h"
 #include "net_namespace.h"
 #include "simulated_stage.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "test_support.h"
 
@@ -78,7 +79,7 @@ class GigEStageTest : public SimulatedStageTest {
   v1::CameraStats Stats(const std::string& id) {
     for (const auto& p : endpoints_.processes()) {
       if (p.id() != id) continue;
-      auto stub = v1::CameraNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+      auto stub = v1::CameraNode::NewStub(MakeChannel(p.address()));
       grpc::ClientContext context;
       context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
       v1::CameraStats stats;

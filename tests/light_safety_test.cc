@@ -11,6 +11,7 @@
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
 #include "stage/common/clock.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
 #include "stage/v1/sim.grpc.pb.h"
@@ -34,7 +35,7 @@ class LightSafetyTest : public SimulatedStageTest {
 
   // Total light every LED emitted over [t0, t1] (monotonic ns: the real-time world's clock), both emitters.
   double LightBetween(int64_t t0, int64_t t1) {
-    auto world = v1::SimWorld::NewStub(grpc::CreateChannel(endpoints_.world(), grpc::InsecureChannelCredentials()));
+    auto world = v1::SimWorld::NewStub(MakeChannel(endpoints_.world()));
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + 20s);
     v1::ExposureRequest request;
@@ -54,7 +55,7 @@ class LightSafetyTest : public SimulatedStageTest {
     std::vector<v1::LightStats> all;
     for (const auto& p : endpoints_.processes()) {
       if (p.kind() != v1::NODE_KIND_LIGHT) continue;
-      auto stub = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+      auto stub = v1::LightNode::NewStub(MakeChannel(p.address()));
       grpc::ClientContext context;
       context.set_deadline(std::chrono::system_clock::now() + 5s);
       v1::LightStats stats;
@@ -74,8 +75,7 @@ TEST_F(LightSafetyTest, TheEmergencyStopDarkensEveryLightBeforeItAnswersAndLatch
   ASSERT_TRUE(WaitForSession("capturing", 120s)) << ReadFile(run_dir_.path() + "/capture.err");
   std::this_thread::sleep_for(500ms);
 
-  auto controller =
-      v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  auto controller = v1::StageController::NewStub(MakeChannel(endpoints_.controller()));
   v1::EmergencyStopRequest request;
   request.set_reason("test");
   v1::EmergencyStopReply reply;

@@ -58,9 +58,9 @@ std::string Promtool(const std::string& text, const std::string& dir, const std:
   return code == 0 && said.empty() ? "" : absl::StrCat("exit ", code, ": ", said);
 }
 
-class MetricsTest : public SimulatedStageTest {};
+class StageMetricsTest : public SimulatedStageTest {};
 
-TEST_F(MetricsTest, EveryProcessServesMetricsThatPromtoolAcceptsAndThatFollowATake) {
+TEST_F(StageMetricsTest, EveryProcessServesMetricsThatPromtoolAcceptsAndThatFollowATake) {
   TempDir root;
   ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--metrics", "--take-root", root.path()})));
   ASSERT_FALSE(endpoints_.metrics().empty());
@@ -105,7 +105,7 @@ TEST_F(MetricsTest, EveryProcessServesMetricsThatPromtoolAcceptsAndThatFollowATa
     if (p.kind() == v1::NODE_KIND_CONTROLLER) continue;
     const std::string kind = p.kind() == v1::NODE_KIND_CAMERA  ? "camera"
                              : p.kind() == v1::NODE_KIND_LIGHT ? "light"
-                                                               : "processing_worker";
+                                                               : "processing-worker";
     EXPECT_EQ(Value(controller, "stage_node_state{node=\"" + p.id() + "\",kind=\"" + kind + "\",state=\"up\"}"), 1)
         << p.id() << "\n"
         << controller;

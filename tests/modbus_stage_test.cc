@@ -15,6 +15,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/light_node.grpc.pb.h"
 #include "test_support.h"
 
@@ -40,7 +41,7 @@ class ModbusStageTest : public SimulatedStageTest {
     std::map<std::string, std::string> backends;
     for (const auto& p : endpoints_.processes()) {
       if (p.kind() != v1::NODE_KIND_LIGHT) continue;
-      auto stub = v1::LightNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+      auto stub = v1::LightNode::NewStub(MakeChannel(p.address()));
       grpc::ClientContext context;
       context.set_deadline(std::chrono::system_clock::now() + 10s);
       v1::NodeInfo info;

@@ -10,6 +10,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/controller.grpc.pb.h"
 #include "test_support.h"
 
@@ -102,8 +103,7 @@ TEST_F(PythonClientTest, StatusCaptureWatchAndLedgerFromPython) {
 TEST_F(PythonClientTest, ACaptureWithFramesAndSecondsIsRefused) {
   TempDir root;
   ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel(endpoints_.controller()));
   grpc::ClientContext context;
   v1::CaptureRequest request;
   request.set_frames(2);

@@ -10,6 +10,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/subprocess.h"
 #include "stage/timing/schedule.h"
@@ -77,7 +78,7 @@ class ScheduledTriggersTest : public ::testing::Test {
   }
 
   uint64_t FramesOf(const std::string& id) {
-    auto stub = v1::CameraNode::NewStub(grpc::CreateChannel(addresses_.at(id), grpc::InsecureChannelCredentials()));
+    auto stub = v1::CameraNode::NewStub(MakeChannel(addresses_.at(id)));
     grpc::ClientContext context;
     v1::CameraStats stats;
     EXPECT_TRUE(stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok());

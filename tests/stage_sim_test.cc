@@ -19,6 +19,7 @@
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/timing/pattern_set.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/controller.grpc.pb.h"
@@ -76,8 +77,7 @@ TEST_F(StageSimTest, FullRigComesUpReportsAKilledCameraAndGoesDownClean) {
     if (p.id() == "mv-07") victim = p.pid();
   }
   ASSERT_GT(victim, 0);
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel(endpoints_.controller(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel(endpoints_.controller()));
   int64_t killed_at = UnixNowNs();
   ASSERT_EQ(kill(victim, SIGKILL), 0);
   v1::StageStatus seen;
@@ -212,7 +212,7 @@ TEST_F(StageSimTest, TheWorldAcrossProcessesTriggersEveryCameraAndStepsEveryLigh
   int cameras = 0, lights = 0;
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
   for (const auto& p : endpoints_.processes()) {
-    auto channel = grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials());
+    auto channel = MakeChannel(p.address());
     if (p.kind() == v1::NODE_KIND_CAMERA) {
       auto stub = v1::CameraNode::NewStub(channel);
       v1::CameraStats stats;
@@ -244,7 +244,7 @@ TEST_F(StageSimTest, TheWorldAcrossProcessesTriggersEveryCameraAndStepsEveryLigh
   std::this_thread::sleep_for(std::chrono::milliseconds(500));
   for (const auto& p : endpoints_.processes()) {
     if (p.kind() != v1::NODE_KIND_CAMERA) continue;
-    auto stub = v1::CameraNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    auto stub = v1::CameraNode::NewStub(MakeChannel(p.address()));
     grpc::ClientContext context;
     v1::CameraStats stats;
     ASSERT_TRUE(stub->GetStats(&context, v1::GetStatsRequest(), &stats).ok());

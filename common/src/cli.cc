@@ -16,6 +16,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/metrics_server.h"
 #include "stage/common/node_clock.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/status.h"
@@ -106,7 +107,7 @@ int ServeUntilSignal(absl::string_view program, const CommonFlags& flags, const 
       return ReportFatal(program, s);
     }
   }
-  log->info("serving on {}: {}", (*server)->address(), summary);
+  log->info("serving on {} ({}): {}", (*server)->address(), DescribeTransportSecurity(), summary);
   std::optional<int> sig = WaitForShutdownSignal();
   log->info("{} received; shutting down", sig && *sig == SIGINT ? "SIGINT" : "SIGTERM");
   (*server)->Shutdown();

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "spdlog/cfg/helpers.h"
@@ -31,6 +32,19 @@ spdlog::sink_ptr Sink() {
 // a level spec names it (SPDLOG_LEVEL=grpc=debug).
 void GrpcLogToSpdlog(gpr_log_func_args* args) {
   static auto logger = Logger("grpc");
+  // A refused TLS handshake (a certificate of another CA, a plain-text peer) is only ever seen here: said always, in
+  // words, on "rpc.tls".
+  const absl::string_view message = args->message;
+  if (absl::StrContains(message, "Handshake failed")) {
+    static auto tls = Logger("rpc.tls");
+    const char* why = absl::StrContains(message, "certificate verify failed")
+                          ? "the peer's certificate is not signed by this stage's CA, or is not valid now"
+                      : absl::StrContains(message, "wrong version number")
+                          ? "the peer does not speak TLS (a plain-text client, or another protocol)"
+                      : absl::StrContains(message, "did not return a certificate") ? "the peer presented no certificate"
+                                                                                   : "see gRPC's words";
+    tls->warn("refused a connection: TLS handshake failed: {} ({})", why, message);
+  }
   spdlog::level::level_enum level = spdlog::level::debug;
   if (args->severity == GPR_LOG_SEVERITY_ERROR) level = spdlog::level::warn;
   if (args->severity == GPR_LOG_SEVERITY_INFO) level = spdlog::level::info;

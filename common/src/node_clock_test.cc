@@ -4,6 +4,7 @@
 #include <grpcpp/grpcpp.h>
 
 #include "gtest/gtest.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 
 namespace stage {
@@ -80,7 +81,7 @@ TEST(NodeClockServiceTest, StampsArrivalAndDepartureOnTheNodeClock) {
   NodeClockService service(&clock, "CLOCK_REALTIME", &ptp);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
-  auto stub = v1::NodeClock::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::NodeClock::NewStub(MakeChannel((*server)->address()));
   grpc::ClientContext context;
   v1::SyncRequest request;
   request.set_t1_ns(123);

@@ -312,6 +312,7 @@ void ApplyRigDefaults(RigConfig* rig) {
   auto* controller = rig->mutable_controller();
   if (controller->listen().empty()) controller->set_listen("127.0.0.1:50050");
   if (!controller->has_health_poll_interval_ms()) controller->set_health_poll_interval_ms(200);
+  if (!rig->security().has_reload_interval_s()) rig->mutable_security()->set_reload_interval_s(5);
   if (!controller->has_health_timeout_ms()) controller->set_health_timeout_ms(500);
   if (!controller->has_clock_sync_interval_ms()) controller->set_clock_sync_interval_ms(1000);
   if (!controller->has_clock_sync_burst()) controller->set_clock_sync_burst(8);
@@ -498,6 +499,15 @@ std::vector<RigError> ValidateRig(const RigConfig& rig, absl::string_view base_d
   check.InRange("timing.flicker_error_modulation", timing.flicker_error_modulation(), 0, 10);
   check.InRange("timing.trigger_realtime_priority", timing.trigger_realtime_priority(), 0, 99);
 
+  const v1::SecurityConfig& security = rig.security();
+  check.InRange("security.reload_interval_s", security.reload_interval_s(), 1, 3600);
+  if (security.transport() == v1::TRANSPORT_MODE_MUTUAL_TLS) {
+    for (const auto& [field, value] : {std::pair{"ca_file", security.ca_file()}, {"cert_dir", security.cert_dir()}}) {
+      if (value.empty()) check.Add(absl::StrCat("security.", field), "mutual TLS needs it");
+    }
+  } else if (!security.ca_file().empty() || !security.cert_dir().empty()) {
+    check.Add("security.transport", "ca_file and cert_dir are set, but the transport is plain text (set MUTUAL_TLS)");
+  }
   if (!IsBuiltinPatternSet(rig.pattern_set())) {
     std::filesystem::path p(rig.pattern_set());
     if (p.is_relative()) p = std::filesystem::path(std::string(base_dir)) / p;

@@ -209,6 +209,18 @@ TEST(RigErrorTest, MissingStageId) {
               StartsWith("rig.yaml:1:1: stage.id: required field is missing"));
 }
 
+TEST(RigErrorTest, MutualTlsNeedsItsFilesAndPlainTextTakesNone) {
+  EXPECT_THAT(LoadError(kGoodRig + std::string("security: {transport: mutual-tls, cert_dir: pki}\n")),
+              HasSubstr("security.ca_file: mutual TLS needs it"));
+  EXPECT_THAT(LoadError(kGoodRig + std::string("security: {cert_dir: pki}\n")),
+              HasSubstr("security.transport: ca_file and cert_dir are set, but the transport is plain text"));
+  EXPECT_THAT(LoadError(kGoodRig + std::string("security: {reload_interval_s: 0}\n")),
+              HasSubstr("security.reload_interval_s"));
+  EXPECT_EQ(LoadError(kGoodRig + std::string("security: {transport: mutual-tls, ca_file: pki/ca.crt, cert_dir: "
+                                             "pki}\n")),
+            "");
+}
+
 TEST(RigErrorTest, OutOfRangeValue) {
   EXPECT_THAT(LoadError(Replace("    exposure_us: 500", "    exposure_us: 0")),
               StartsWith("rig.yaml:11:5: cameras[0].exposure_us: 0 is not > 0"));

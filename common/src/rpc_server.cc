@@ -8,11 +8,13 @@
 #include <chrono>
 #include <cstdio>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "rpc_metrics.h"
 #include "stage/common/file_util.h"
 #include "stage/common/metrics.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 
 namespace stage {
@@ -33,10 +35,24 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
                                                             const std::vector<grpc::Service*>& services) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   if (services.empty()) return absl::InvalidArgumentError("RpcServer needs at least one service");
+  const TransportSecurity& security = options.security != nullptr ? *options.security : ProcessTransportSecurity();
+  if (security.mode == TransportSecurity::Mode::kPlainText) {
+    std::string host;
+    int ignored;
+    (void)ParseHostPort(options.listen, &host, &ignored);
+    if (!IsLoopbackHost(host)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("will not listen on ", options.listen,
+                       " in plain text: plain text is for loopback only (127.0.0.0/8, ::1); "
+                       "serving other hosts needs the rig's security.transport: mutual-tls (docs/security.md)"));
+    }
+  }
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(options.listen, grpc::InsecureServerCredentials(), &port);
+  builder.AddListeningPort(
+      options.listen, options.security != nullptr ? MakeServerCredentials(*options.security) : MakeServerCredentials(),
+      &port);
   builder.SetMaxReceiveMessageSize(options.max_message_bytes);
   builder.SetMaxSendMessageSize(options.max_message_bytes);
   builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_time_ms);
@@ -83,6 +99,11 @@ void RpcServer::Shutdown() {
 }
 
 void RpcServer::Wait() { server_->Wait(); }
+
+bool IsLoopbackHost(absl::string_view host) {
+  if (absl::StartsWith(host, "[") && absl::EndsWith(host, "]")) host = host.substr(1, host.size() - 2);
+  return absl::StartsWith(host, "127.") || host == "::1" || host == "localhost";
+}
 
 absl::Status WriteAddressFile(const std::string& path, const std::string& address) {
   return WriteFileAtomically(path, address + "\n");

@@ -10,6 +10,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "stage/common/metrics.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/controller.grpc.pb.h"
 
 namespace stage {
@@ -21,7 +22,7 @@ using ::testing::HasSubstr;
 v1::StageController::Service g_service;
 
 grpc::health::v1::HealthCheckResponse::ServingStatus Check(const std::string& address, grpc::Status* rpc) {
-  auto stub = grpc::health::v1::Health::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  auto stub = grpc::health::v1::Health::NewStub(MakeChannel(address));
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
   grpc::health::v1::HealthCheckResponse response;
@@ -73,8 +74,7 @@ TEST(RpcServerTest, EveryCallIsCountedAndTimedByMethodAndCode) {
   Check((*server)->address(), &rpc);
   Check((*server)->address(), &rpc);
   // The bare service answers Unimplemented: a failure is handled too, under its code.
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel((*server)->address()));
   grpc::ClientContext context;
   v1::NodeInfo info;
   EXPECT_EQ(stub->GetInfo(&context, v1::GetInfoRequest(), &info).error_code(), grpc::StatusCode::UNIMPLEMENTED);

@@ -17,6 +17,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/proto_json.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/status.h"
 #include "stage/v1/controller.grpc.pb.h"
@@ -44,8 +45,8 @@ absl::StatusOr<std::string> ToJson(const google::protobuf::Message& message) {
 bool ProcessAlive(pid_t pid) { return pid > 0 && (kill(pid, 0) == 0 || errno == EPERM); }
 
 // The effective rig lives in the run directory: every path the rig file gave relative to itself (a pattern-set file,
-// the take root, a performance, a head asset's mesh, blendshapes and maps) is made absolute against the file's folder,
-// so that it still points where it did.
+// the certificates, the take root, a performance, a head asset's mesh, blendshapes and maps) is made absolute against
+// the file's folder, so that it still points where it did.
 void MakeRigPathsAbsolute(v1::RigConfig* rig, const std::string& base_dir) {
   auto absolute = [&](std::string* file) {
     if (file->empty()) return;
@@ -53,6 +54,8 @@ void MakeRigPathsAbsolute(v1::RigConfig* rig, const std::string& base_dir) {
     if (given.is_relative()) *file = std::filesystem::absolute(std::filesystem::path(base_dir) / given).string();
   };
   if (!IsBuiltinPatternSet(rig->pattern_set())) absolute(rig->mutable_pattern_set());
+  absolute(rig->mutable_security()->mutable_ca_file());
+  absolute(rig->mutable_security()->mutable_cert_dir());
   absolute(rig->mutable_storage()->mutable_root());
   v1::SimSubject* subject = rig->mutable_sim()->mutable_subject();
   const std::string& performance = subject->performance();
@@ -223,7 +226,7 @@ absl::Status StageSupervisor::WriteEffectiveRig(const std::string& path, bool wi
 
 absl::Status StageSupervisor::WaitForStageUp(std::chrono::steady_clock::time_point deadline) {
   const Child& controller = children_.back();
-  auto channel = grpc::CreateChannel(controller.address, grpc::InsecureChannelCredentials());
+  auto channel = MakeChannel(controller.address);
   auto stub = v1::StageController::NewStub(channel);
   auto log = Logger("sim.stage");
   int last_up = -1;

@@ -5,14 +5,13 @@
 
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 
 namespace stage::sim {
 
 WorldBus::WorldBus(const std::string& address, std::string caller)
-    : address_(address),
-      caller_(std::move(caller)),
-      world_(v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
+    : address_(address), caller_(std::move(caller)), world_(v1::SimWorld::NewStub(MakeChannel(address))) {}
 
 absl::StatusOr<v1::WorldRunReply> WorldBus::Run(v1::RunWorldRequest request,
                                                 std::chrono::steady_clock::time_point give_up) {

@@ -10,6 +10,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/sim/world_client.h"
 
 namespace stage::sim {
@@ -286,7 +287,7 @@ std::unique_ptr<WorldClient> LocalWorldClient(World* world) { return std::make_u
 absl::StatusOr<std::unique_ptr<WorldClient>> ConnectWorld(const std::string& address) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(64 << 20);
-  auto channel = grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
+  auto channel = MakeChannel(address, args);
   if (!channel->WaitForConnected(std::chrono::system_clock::now() + std::chrono::seconds(10))) {
     return absl::UnavailableError(absl::StrCat("the simulated world at ", address, " does not answer"));
   }

@@ -6,6 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 #include "stage/sim/world_bus.h"
 
@@ -65,8 +66,7 @@ class WorldSyncGenerator final : public controller::SyncGenerator {
 
 class WorldTakeTruth final : public controller::TakeTruth {
  public:
-  explicit WorldTakeTruth(const std::string& address)
-      : world_(v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
+  explicit WorldTakeTruth(const std::string& address) : world_(v1::SimWorld::NewStub(MakeChannel(address))) {}
 
   absl::Status Write(const std::string& dir, int64_t name_offset, int64_t first_frame, int64_t frames,
                      bool scene_only) override {

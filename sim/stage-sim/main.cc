@@ -16,6 +16,8 @@
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/common/shutdown.h"
 #include "stage/common/subprocess.h"
@@ -64,7 +66,7 @@ absl::Status WaitUntilRendered(const stage::sim::SimScene& scene, const stage::v
     Cam c;
     c.id = p.id();
     c.expected = ExpectedFrames(scene, index, slots);
-    c.stub = stage::v1::CameraNode::NewStub(grpc::CreateChannel(p.address(), grpc::InsecureChannelCredentials()));
+    c.stub = stage::v1::CameraNode::NewStub(stage::MakeChannel(p.address()));
     total += c.expected;
     cams.push_back(std::move(c));
   }
@@ -295,6 +297,14 @@ int main(int argc, char** argv) {
   }
 
   auto log = stage::Logger("sim.stage");
+  {
+    // stage-sim serves the world and asks the controller whether the stage is up: as "sim" when the rig says mutual
+    // TLS.
+    auto loaded = stage::LoadRig(options.rig);
+    if (loaded.ok() && !options.overrides.empty()) loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
+    if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+    if (auto s = stage::UseRigTransportSecurity(*loaded, "sim"); !s.ok()) return stage::ReportFatal(kProgram, s);
+  }
   stage::MetricsEndpoint metrics;
   if (options.metrics) {
     flags.metrics_listen = "127.0.0.1:0";

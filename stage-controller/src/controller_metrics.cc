@@ -3,50 +3,21 @@
 
 #include "capture.h"
 #include "health_monitor.h"
+#include "stage/common/node_info.h"
 #include "stage/common/take_names.h"
 
 namespace stage::controller {
-namespace {
-
-// "up", "down", "unreachable", "unknown".
-std::string StateLabel(v1::NodeState state) {
-  switch (state) {
-    case v1::NODE_STATE_UP:
-      return "up";
-    case v1::NODE_STATE_DOWN:
-      return "down";
-    case v1::NODE_STATE_UNREACHABLE:
-      return "unreachable";
-    default:
-      return "unknown";
-  }
-}
-
-std::string KindLabel(v1::NodeKind kind) {
-  switch (kind) {
-    case v1::NODE_KIND_CAMERA:
-      return "camera";
-    case v1::NODE_KIND_LIGHT:
-      return "light";
-    case v1::NODE_KIND_PROCESSING_WORKER:
-      return "processing_worker";
-    default:
-      return "other";
-  }
-}
-
-}  // namespace
 
 metrics::Registration CollectNodeHealth(const HealthMonitor* monitor, metrics::Registry& registry) {
   return registry.AddCollector([monitor](metrics::Writer& w) {
     for (const v1::NodeStatus& n : monitor->Snapshot()) {
-      const metrics::Labels node = {{"node", n.id()}, {"kind", KindLabel(n.kind())}};
+      const metrics::Labels node = {{"node", n.id()}, {"kind", NodeKindName(n.kind())}};
       for (v1::NodeState s :
            {v1::NODE_STATE_UNKNOWN, v1::NODE_STATE_UP, v1::NODE_STATE_DOWN, v1::NODE_STATE_UNREACHABLE}) {
         metrics::Labels labels = node;
-        labels.emplace_back("state", StateLabel(s));
+        labels.emplace_back("state", NodeStateName(s));
         w.Gauge("stage_node_state", "The node's health as the controller polls it: 1 for its state, 0 for the others",
-                labels, StateLabel(n.state()) == StateLabel(s) ? 1 : 0);
+                labels, NodeStateName(n.state()) == NodeStateName(s) ? 1 : 0);
       }
       if (n.state() == v1::NODE_STATE_UP) {
         w.Gauge("stage_node_health_rtt_seconds", "Round trip of the node's last health check", node,

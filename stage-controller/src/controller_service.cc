@@ -21,6 +21,7 @@
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/timing_tool.h"
@@ -492,7 +493,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   Logger("controller")
       ->info("take {}: {} on worker {} ({})", request->take_id(), v1::ProcessingStage_Name(job.stage()), worker->id(),
              worker->address());
-  auto stub = v1::ProcessingWorker::NewStub(grpc::CreateChannel(worker->address(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::ProcessingWorker::NewStub(MakeChannel(worker->address()));
   grpc::ClientContext client;
   // The operator's cancel (Ctrl-C on stagectl) reaches the worker.
   std::atomic<bool> done{false};

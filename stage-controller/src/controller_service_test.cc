@@ -8,6 +8,7 @@
 
 #include "gtest/gtest.h"
 #include "stage/common/rig.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/rpc_server.h"
 #include "stage/v1/processing_worker.grpc.pb.h"
 
@@ -43,8 +44,7 @@ TEST(ControllerServiceTest, StatusAndWatch) {
   ControllerService service(loaded, &monitor);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel((*server)->address()));
 
   // GetStageStatus: the worker comes up.
   v1::StageStatus status;
@@ -88,8 +88,7 @@ TEST(ControllerServiceTest, TimingCheckAndExportOnTheLiveRig) {
   EXPECT_EQ(service.timing().errors(), 0);
   auto server = RpcServer::Start({.listen = "127.0.0.1:0"}, {&service});
   ASSERT_TRUE(server.ok());
-  auto stub =
-      v1::StageController::NewStub(grpc::CreateChannel((*server)->address(), grpc::InsecureChannelCredentials()));
+  auto stub = v1::StageController::NewStub(MakeChannel((*server)->address()));
 
   v1::TimingQuery query;
   v1::TimingReport report;

@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "stage/common/logging.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/light_node.grpc.pb.h"
 
 namespace stage::controller {
@@ -21,7 +22,7 @@ EmergencyStop::EmergencyStop(const v1::RigConfig& rig) : rig_(rig) {
       channels_.push_back(nullptr);
       continue;
     }
-    channels_.push_back(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials()));
+    channels_.push_back(MakeChannel(node.address()));
     channels_.back()->GetState(/*try_to_connect=*/true);
   }
 }

@@ -7,6 +7,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/timing/clock_sync.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
@@ -77,7 +78,7 @@ HealthMonitor::HealthMonitor(std::vector<NodeTarget> targets, HealthMonitorOptio
     args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
     // One connection per node, not shared with other channels to the same address.
     args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
-    node->channel = grpc::CreateCustomChannel(t.address, grpc::InsecureChannelCredentials(), args);
+    node->channel = MakeChannel(t.address, args);
     node->health = grpc::health::v1::Health::NewStub(node->channel);
     node->clock = v1::NodeClock::NewStub(node->channel);
     node->status.set_id(t.id);

@@ -6,6 +6,7 @@
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 #include "stage/v1/light_node.grpc.pb.h"
 
@@ -19,9 +20,7 @@ SyncRun FromReply(const v1::SlotClockRun& r) {
 class LightSyncGenerator final : public SyncGenerator {
  public:
   explicit LightSyncGenerator(const v1::LightNodeConfig& node)
-      : id_(node.id()),
-        address_(node.address()),
-        stub_(v1::LightNode::NewStub(grpc::CreateChannel(node.address(), grpc::InsecureChannelCredentials()))) {}
+      : id_(node.id()), address_(node.address()), stub_(v1::LightNode::NewStub(MakeChannel(node.address()))) {}
 
   std::string Describe() const override { return absl::StrCat("light node ", id_, " at ", address_); }
 

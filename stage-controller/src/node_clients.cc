@@ -5,6 +5,7 @@
 
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/v1/camera_node.grpc.pb.h"
 #include "stage/v1/light_node.grpc.pb.h"
 
@@ -14,8 +15,7 @@ namespace {
 class GrpcCameraClient final : public CameraClient {
  public:
   GrpcCameraClient(const std::string& address, std::chrono::milliseconds answer)
-      : answer_(answer),
-        stub_(v1::CameraNode::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
+      : answer_(answer), stub_(v1::CameraNode::NewStub(MakeChannel(address))) {}
 
   absl::Status Arm(const v1::ArmCameraRequest& request, SteadyTime give_up, v1::ArmCameraResponse* reply) override {
     return Patiently(answer_, give_up, [&](grpc::ClientContext* c) { return stub_->Arm(c, request, reply); });
@@ -50,8 +50,7 @@ class GrpcCameraClient final : public CameraClient {
 class GrpcLightClient final : public LightClient {
  public:
   GrpcLightClient(const std::string& address, std::chrono::milliseconds answer)
-      : answer_(answer),
-        stub_(v1::LightNode::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {}
+      : answer_(answer), stub_(v1::LightNode::NewStub(MakeChannel(address))) {}
 
   absl::Status Arm(const v1::ArmLightRequest& request, SteadyTime give_up, v1::LightStats* stats) override {
     return Patiently(answer_, give_up, [&](grpc::ClientContext* c) { return stub_->Arm(c, request, stats); });

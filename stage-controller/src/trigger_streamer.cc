@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/grpc_status.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 #include "stage/timing/schedule.h"
 #include "stage/timing/slot_clock.h"
@@ -58,7 +59,7 @@ void TriggerStreamer::Send(size_t index) {
   const v1::CameraTiming& camera = target.timing;
   grpc::ChannelArguments args;
   args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
-  auto channel = grpc::CreateCustomChannel(target.address, grpc::InsecureChannelCredentials(), args);
+  auto channel = MakeChannel(target.address, args);
   auto stub = v1::CameraNode::NewStub(channel);
   v1::TriggerReport report;
   auto writer = stub->StreamTriggers(contexts_[index].get(), &report);

@@ -28,6 +28,8 @@
 #include "stage/common/logging.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/rig.h"
+#include "stage/common/rig_security.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
 #include "stage/common/version.h"
@@ -48,6 +50,8 @@ struct Connection {
   std::string endpoints;
   std::string rig_path;
   int timeout_ms = 3000;
+  // Who stagectl is, to a stage on mutual TLS ("operator/ana").
+  std::string identity;
 };
 
 // stage-sim's endpoint file: --endpoints, $FASTAGE_ENDPOINTS, or the default run directory's.
@@ -85,11 +89,32 @@ absl::StatusOr<std::string> ResolveController(const Connection& c) {
   return endpoints->controller();
 }
 
+// The stage's transport security, from its rig (--config, or the effective rig of the stage-sim endpoint file): on
+// mutual TLS, stagectl presents the certificate of --as (or $FASTAGE_IDENTITY, or operator/$USER). Without a rig to
+// read, plain text.
+absl::Status UseStageSecurity(Connection& c) {
+  std::string rig_path = c.rig_path;
+  if (rig_path.empty() && c.controller.empty()) {
+    auto endpoints = ReadEndpoints(c, "endpoint file");
+    if (endpoints.ok()) rig_path = endpoints->rig_file();
+  }
+  if (rig_path.empty()) return absl::OkStatus();
+  auto loaded = stage::LoadRig(rig_path);
+  if (!loaded.ok()) return loaded.status();
+  if (loaded->rig.security().transport() != stage::v1::TRANSPORT_MODE_MUTUAL_TLS) return absl::OkStatus();
+  if (c.identity.empty()) {
+    const char* env = std::getenv("FASTAGE_IDENTITY");
+    const char* user = std::getenv("USER");
+    c.identity = env != nullptr && *env != '\0' ? env : absl::StrCat("operator/", user != nullptr ? user : "root");
+  }
+  return stage::UseRigTransportSecurity(*loaded, c.identity);
+}
+
 absl::StatusOr<std::unique_ptr<stage::v1::StageController::Stub>> Connect(const Connection& c, std::string* address) {
   auto resolved = ResolveController(c);
   if (!resolved.ok()) return resolved.status();
   *address = *resolved;
-  return stage::v1::StageController::NewStub(grpc::CreateChannel(*address, grpc::InsecureChannelCredentials()));
+  return stage::v1::StageController::NewStub(stage::MakeChannel(*address));
 }
 
 void SetDeadline(grpc::ClientContext* context, const Connection& c) {
@@ -113,7 +138,7 @@ int CameraStatus(const Connection& c, const stage::v1::StageStatus& status, bool
     stage::v1::CameraStats stats;
     grpc::Status rpc = grpc::Status(grpc::StatusCode::UNAVAILABLE, "no address");
     if (!n.address().empty()) {
-      auto stub = stage::v1::CameraNode::NewStub(grpc::CreateChannel(n.address(), grpc::InsecureChannelCredentials()));
+      auto stub = stage::v1::CameraNode::NewStub(stage::MakeChannel(n.address()));
       grpc::ClientContext context;
       SetDeadline(&context, c);
       rpc = stub->GetStats(&context, stage::v1::GetStatsRequest(), &stats);
@@ -894,7 +919,7 @@ int SimFault(const Connection& c, const FaultFlags& f) {
   if (f.crash_at_s) fault.set_crash_at_s(*f.crash_at_s);
   if (f.extra_steps) fault.set_extra_steps(*f.extra_steps);
   for (int64_t k : f.drop_slots) fault.add_drop_slots(k);
-  auto stub = stage::v1::SimWorld::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  auto stub = stage::v1::SimWorld::NewStub(stage::MakeChannel(address));
   grpc::ClientContext context;
   SetDeadline(&context, c);
   stage::v1::WorldAck ack;
@@ -936,6 +961,9 @@ int main(int argc, char** argv) {
       "--endpoints", c.endpoints,
       "stage-sim endpoint file (default: $FASTAGE_ENDPOINTS or " + stage::DefaultSimRunDir() + "/endpoints.json)");
   app.add_option("--timeout-ms", c.timeout_ms, "Deadline of each call to the controller")->check(CLI::Range(1, 600000));
+  app.add_option("--as", c.identity,
+                 "Identity to present when the rig says mutual TLS: operator/NAME or observer/NAME, whose certificate "
+                 "and key are in the rig's security.cert_dir (default: $FASTAGE_IDENTITY, else operator/$USER)");
   app.add_option("--log-level", log_level, "Log levels (spdlog syntax)");
   app.require_subcommand(1);
   bool json = false;
@@ -1183,6 +1211,7 @@ int main(int argc, char** argv) {
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (auto s = UseStageSecurity(c); !s.ok()) return stage::ReportFatal(kProgram, s);
 
   if (status->parsed()) return Status(c, json, status_cameras);
   if (cameras->parsed()) return Cameras(json);

@@ -6,6 +6,7 @@
 #include <thread>
 
 #include "gtest/gtest.h"
+#include "stage/common/rpc_channel.h"
 #include "stage/common/subprocess.h"
 #include "stage/v1/processing_worker.grpc.pb.h"
 #include "test_support.h"
@@ -27,8 +28,7 @@ grpc::Status RunOnWorkerStatus(const std::string& dir, const v1::ProcessingJob& 
     (*worker)->Terminate(std::chrono::milliseconds(2000));
     return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the worker wrote no port: " + ReadFile(dir + "/worker.log"));
   }
-  auto stub =
-      v1::ProcessingWorker::NewStub(grpc::CreateChannel(ReadFile(port_file), grpc::InsecureChannelCredentials()));
+  auto stub = v1::ProcessingWorker::NewStub(MakeChannel(ReadFile(port_file)));
   grpc::ClientContext context;
   auto reader = stub->Process(&context, request);
   v1::ProcessingProgress progress;

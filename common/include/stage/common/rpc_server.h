@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/strings/string_view.h"
 
 namespace grpc {
 class Server;
@@ -19,10 +20,11 @@ namespace stage {
 namespace metrics {
 class Registry;
 }  // namespace metrics
+struct TransportSecurity;
 
 struct RpcServerOptions {
-  // "host:port"; port 0 lets the kernel choose. Plain text: FaStage listens without TLS only where told to, and the
-  // shipped configurations bind loopback.
+  // "host:port"; port 0 lets the kernel choose. In plain text only a loopback address (IsLoopbackHost): serving other
+  // hosts needs mutual TLS.
   std::string listen = "127.0.0.1:0";
   // Largest message accepted or sent, bytes. Default 64 MiB: a full 4096x2304 16-bit frame is 18 MiB.
   int max_message_bytes = 64 << 20;
@@ -33,6 +35,8 @@ struct RpcServerOptions {
   int shutdown_grace_ms = 2000;
   // Where every call is counted and timed (grpc_server_* families, rpc_metrics.h); nullptr: the process's registry.
   metrics::Registry* metrics = nullptr;
+  // How the server's transport is secured (rpc_channel.h); nullptr: the process's (SetTransportSecurity).
+  const TransportSecurity* security = nullptr;
 
   absl::Status Validate() const;
 };
@@ -68,6 +72,9 @@ class RpcServer {
   int grace_ms_;
   std::atomic<bool> shut_down_{false};
 };
+
+// Whether `host` (of "host:port") is this machine's loopback: 127.0.0.0/8, ::1 or localhost.
+bool IsLoopbackHost(absl::string_view host);
 
 // Writes `address` to `path` atomically (temporary file + rename), so a reader never sees a partial address.
 // Used by programs started with --port-file to tell their parent where they listen.
