@@ -15,6 +15,7 @@
 
 #include <array>
 #include <cstdio>
+#include <map>
 #include <mutex>
 #include <vector>
 
@@ -98,10 +99,13 @@ absl::StatusOr<std::string> CheckFiles(const TransportSecurity& s) {
     return absl::InvalidArgumentError(
         absl::StrCat("key_file: ", s.key_file, " is not the key of the certificate ", s.cert_file));
   }
+  // Every certificate of the CA file (a bundle, during a CA's rollover), as gRPC reads it.
   StorePtr store(X509_STORE_new());
-  X509_STORE_add_cert(store.get(), ca->get());
   StoreCtxPtr ctx(X509_STORE_CTX_new());
-  X509_STORE_CTX_init(ctx.get(), store.get(), cert->get(), nullptr);
+  if (!store || !ctx || X509_STORE_load_file(store.get(), s.ca_file.c_str()) != 1 ||
+      X509_STORE_CTX_init(ctx.get(), store.get(), cert->get(), nullptr) != 1) {
+    return absl::InvalidArgumentError(absl::StrCat("ca_file: ", s.ca_file, " could not be loaded as CA certificates"));
+  }
   if (X509_verify_cert(ctx.get()) != 1) {
     return absl::InvalidArgumentError(absl::StrCat("cert_file: ", s.cert_file, " does not verify against the CA ",
                                                    s.ca_file, ": ",
@@ -128,9 +132,21 @@ ProcessSecurity& Process() {
   return *process;
 }
 
+// One watcher per set of files, shared by every channel and server that uses them while any does (each watcher is a
+// thread that reads the files every interval).
 std::shared_ptr<grpc::experimental::FileWatcherCertificateProvider> Provider(const TransportSecurity& s) {
-  return std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
-      s.key_file, s.cert_file, s.ca_file, static_cast<unsigned>(s.reload_interval_s));
+  static std::mutex mutex;
+  static auto* providers =
+      new std::map<std::string, std::weak_ptr<grpc::experimental::FileWatcherCertificateProvider>>();
+  const std::string key = absl::StrCat(s.ca_file, "\n", s.cert_file, "\n", s.key_file, "\n", s.reload_interval_s);
+  std::lock_guard<std::mutex> lock(mutex);
+  std::shared_ptr<grpc::experimental::FileWatcherCertificateProvider> provider = (*providers)[key].lock();
+  if (provider == nullptr) {  // none yet, or every user of the last one is gone
+    provider = std::make_shared<grpc::experimental::FileWatcherCertificateProvider>(
+        s.key_file, s.cert_file, s.ca_file, static_cast<unsigned>(s.reload_interval_s));
+    (*providers)[key] = provider;
+  }
+  return provider;
 }
 
 // Every call to a mutual-TLS server, before its handler: the caller's identity against the method.
@@ -184,7 +200,7 @@ absl::Status SetTransportSecurity(const TransportSecurity& security) {
   return absl::OkStatus();
 }
 
-const TransportSecurity& ProcessTransportSecurity() {
+TransportSecurity ProcessTransportSecurity() {
   ProcessSecurity& p = Process();
   std::lock_guard<std::mutex> lock(p.mutex);
   return p.security;
@@ -260,6 +276,10 @@ bool AuthorizeCall(absl::string_view identity, absl::string_view method, std::st
     *why = "the peer presented no certificate";
     return false;
   }
+  if (!ValidIdentity(identity)) {
+    *why = absl::StrCat("its certificate names \"", identity, "\", not a FaStage identity");
+    return false;
+  }
   const bool reads = absl::StartsWith(call, "Get") || absl::StartsWith(call, "List") ||
                      absl::StartsWith(call, "Watch") || absl::StartsWith(call, "Check") ||
                      absl::StartsWith(call, "Export");
@@ -274,7 +294,11 @@ bool AuthorizeCall(absl::string_view identity, absl::string_view method, std::st
     allowed = reads ? std::vector<absl::string_view>{"operator", "observer", "sim"}
                     : std::vector<absl::string_view>{"operator"};
   } else if (service == "stage.v1.SimWorld") {
-    allowed = {"sim", "camera", "light", "controller", "operator"};
+    // Devices join the world and run its bus; faults and ground truth (files written where the request says) are the
+    // operator's and the controller's.
+    const bool devices = call != "InjectFault" && call != "WriteGroundTruth";
+    allowed = devices ? std::vector<absl::string_view>{"sim", "camera", "light", "controller", "operator"}
+                      : std::vector<absl::string_view>{"sim", "controller", "operator"};
   } else {
     *why = absl::StrCat("no identity may call ", service, " (not a FaStage service)");
     return false;

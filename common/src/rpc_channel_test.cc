@@ -175,12 +175,29 @@ TEST(RpcChannelTest, WhoMayCallWhat) {
   EXPECT_TRUE(AuthorizeCall("operator/ana", "/stage.v1.CameraNode/GetStats", &why));
   EXPECT_FALSE(AuthorizeCall("operator/ana", "/stage.v1.CameraNode/Arm", &why));
   EXPECT_FALSE(AuthorizeCall("worker/w1", "/stage.v1.StageController/GetStageStatus", &why));
-  EXPECT_TRUE(AuthorizeCall("camera/mv-01", "/stage.v1.SimWorld/JoinWorld", &why));
+  EXPECT_TRUE(AuthorizeCall("camera/mv-01", "/stage.v1.SimWorld/Join", &why));
+  EXPECT_TRUE(AuthorizeCall("light/L1", "/stage.v1.SimWorld/Run", &why));
+  EXPECT_FALSE(AuthorizeCall("camera/mv-01", "/stage.v1.SimWorld/WriteGroundTruth", &why));
+  EXPECT_FALSE(AuthorizeCall("light/L1", "/stage.v1.SimWorld/InjectFault", &why));
+  EXPECT_TRUE(AuthorizeCall("operator/ana", "/stage.v1.SimWorld/InjectFault", &why));
+  // An identity is a whole name, not a prefix.
+  EXPECT_FALSE(AuthorizeCall("controller/x", "/stage.v1.LightNode/Arm", &why));
+  EXPECT_THAT(why, HasSubstr("not a FaStage identity"));
+  EXPECT_FALSE(AuthorizeCall("camera/", "/stage.v1.SimWorld/Join", &why));
   EXPECT_TRUE(AuthorizeCall("light/L1", "/grpc.health.v1.Health/Check", &why));
   EXPECT_FALSE(AuthorizeCall("controller", "/other.Service/Call", &why));
   EXPECT_THAT(why, HasSubstr("not a FaStage service"));
   EXPECT_FALSE(AuthorizeCall("", "/grpc.health.v1.Health/Check", &why));
   EXPECT_EQ(why, "the peer presented no certificate");
+}
+
+TEST(RpcServerLoopbackTest, OnlyLoopbackAddressesAreLoopback) {
+  for (const char* host : {"127.0.0.1", "127.8.9.10", "localhost", "::1", "[::1]", "::ffff:127.0.0.1"}) {
+    EXPECT_TRUE(IsLoopbackHost(host)) << host;
+  }
+  for (const char* host : {"0.0.0.0", "10.0.0.2", "::", "127.attacker.example", "example.org", "128.0.0.1", ""}) {
+    EXPECT_FALSE(IsLoopbackHost(host)) << host;
+  }
 }
 
 }  // namespace

@@ -1,8 +1,10 @@
 // gRPC server wrapper.
 #include "stage/common/rpc_server.h"
 
+#include <arpa/inet.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <netinet/in.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -35,7 +37,7 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
                                                             const std::vector<grpc::Service*>& services) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   if (services.empty()) return absl::InvalidArgumentError("RpcServer needs at least one service");
-  const TransportSecurity& security = options.security != nullptr ? *options.security : ProcessTransportSecurity();
+  const TransportSecurity security = options.security != nullptr ? *options.security : ProcessTransportSecurity();
   if (security.mode == TransportSecurity::Mode::kPlainText) {
     std::string host;
     int ignored;
@@ -102,7 +104,14 @@ void RpcServer::Wait() { server_->Wait(); }
 
 bool IsLoopbackHost(absl::string_view host) {
   if (absl::StartsWith(host, "[") && absl::EndsWith(host, "]")) host = host.substr(1, host.size() - 2);
-  return absl::StartsWith(host, "127.") || host == "::1" || host == "localhost";
+  if (host == "localhost") return true;
+  const std::string text(host);
+  in_addr v4{};
+  if (inet_pton(AF_INET, text.c_str(), &v4) == 1) return (ntohl(v4.s_addr) >> 24) == 127;
+  in6_addr v6{};
+  if (inet_pton(AF_INET6, text.c_str(), &v6) != 1) return false;  // a name: it could resolve anywhere
+  if (IN6_IS_ADDR_LOOPBACK(&v6)) return true;
+  return IN6_IS_ADDR_V4MAPPED(&v6) && v6.s6_addr[12] == 127;
 }
 
 absl::Status WriteAddressFile(const std::string& path, const std::string& address) {

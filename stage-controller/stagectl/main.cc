@@ -93,12 +93,21 @@ absl::StatusOr<std::string> ResolveController(const Connection& c) {
 // mutual TLS, stagectl presents the certificate of --as (or $FASTAGE_IDENTITY, or operator/$USER). Without a rig to
 // read, plain text.
 absl::Status UseStageSecurity(Connection& c) {
+  // The rig of the stage ResolveController finds: --config, else (without --controller or $FASTAGE_CONTROLLER) the
+  // endpoint file's.
   std::string rig_path = c.rig_path;
-  if (rig_path.empty() && c.controller.empty()) {
+  const char* env_controller = std::getenv("FASTAGE_CONTROLLER");
+  if (rig_path.empty() && c.controller.empty() && (env_controller == nullptr || *env_controller == '\0')) {
     auto endpoints = ReadEndpoints(c, "endpoint file");
     if (endpoints.ok()) rig_path = endpoints->rig_file();
   }
-  if (rig_path.empty()) return absl::OkStatus();
+  if (rig_path.empty()) {
+    if (!c.identity.empty()) {
+      return absl::InvalidArgumentError(
+          "--as: no rig to read the stage's security from (pass --config RIG, or use a stage-sim endpoint file)");
+    }
+    return absl::OkStatus();
+  }
   auto loaded = stage::LoadRig(rig_path);
   if (!loaded.ok()) return loaded.status();
   if (loaded->rig.security().transport() != stage::v1::TRANSPORT_MODE_MUTUAL_TLS) return absl::OkStatus();

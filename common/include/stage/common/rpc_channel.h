@@ -43,7 +43,7 @@ struct TransportSecurity {
 // Sets the process's transport security, for every channel and server made after it: call once at start-up, before
 // any. Validates first (nothing changes on an error).
 absl::Status SetTransportSecurity(const TransportSecurity& security);
-const TransportSecurity& ProcessTransportSecurity();
+TransportSecurity ProcessTransportSecurity();
 // "plain text, loopback only", or "mutual TLS as camera/mv-01, CA /etc/fastage/ca.crt": for start-up logs.
 std::string DescribeTransportSecurity();
 
