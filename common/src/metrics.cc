@@ -51,9 +51,9 @@ std::string Escape(absl::string_view text, bool quotes) {
   return out;
 }
 
-// {a="b",c="d"}, or "" without labels; `extra` (le="...") last.
-std::string RenderLabels(absl::string_view family, const Labels& labels, const std::string& extra = "") {
-  if (labels.empty() && extra.empty()) return "";
+// {a="b",c="d"}, or "" without labels.
+std::string RenderLabels(absl::string_view family, const Labels& labels) {
+  if (labels.empty()) return "";
   std::string out = "{";
   for (const auto& [k, v] : labels) {
     if (!ValidName(k, /*label=*/true) || k == "le" || k == "quantile") {
@@ -62,7 +62,6 @@ std::string RenderLabels(absl::string_view family, const Labels& labels, const s
     if (out.size() > 1) out += ",";
     absl::StrAppend(&out, k, "=\"", Escape(v, /*quotes=*/true), "\"");
   }
-  if (!extra.empty()) absl::StrAppend(&out, out.size() > 1 ? "," : "", extra);
   return out + "}";
 }
 

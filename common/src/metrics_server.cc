@@ -59,9 +59,7 @@ absl::StatusOr<std::unique_ptr<MetricsServer>> MetricsServer::Start(const Metric
                                                " (address in use, or not an address of this host)"));
   }
   impl->port = bound;
-  if (host == "0.0.0.0" || host == "::") host = "127.0.0.1";
-  impl->address =
-      host.find(':') != std::string::npos ? absl::StrCat("[", host, "]:", bound) : absl::StrCat(host, ":", bound);
+  impl->address = DialAddress(host, bound);
   Impl* raw = impl.get();
   impl->thread = std::thread([raw] {
     raw->http.listen_after_bind();

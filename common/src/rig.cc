@@ -308,6 +308,12 @@ absl::Status ParseHostPort(absl::string_view address, std::string* host, int* po
   return absl::OkStatus();
 }
 
+std::string DialAddress(absl::string_view host, int port) {
+  if (host == "0.0.0.0" || host == "::") host = "127.0.0.1";
+  return host.find(':') != absl::string_view::npos ? absl::StrCat("[", host, "]:", port)
+                                                   : absl::StrCat(host, ":", port);
+}
+
 void ApplyRigDefaults(RigConfig* rig) {
   auto* controller = rig->mutable_controller();
   if (controller->listen().empty()) controller->set_listen("127.0.0.1:50050");

@@ -170,33 +170,31 @@ class Authorizer final : public grpc::AuthMetadataProcessor {
 
 }  // namespace
 
-absl::Status TransportSecurity::Validate() const {
-  if (reload_interval_s < 1 || reload_interval_s > 3600) {
+namespace {
+
+// Validate()'s checks; the identity the certificate names ("" in plain text).
+absl::StatusOr<std::string> CheckedIdentity(const TransportSecurity& s) {
+  if (s.reload_interval_s < 1 || s.reload_interval_s > 3600) {
     return absl::InvalidArgumentError("reload_interval_s must be 1..3600");
   }
-  if (mode == Mode::kPlainText) {
-    if (!ca_file.empty() || !cert_file.empty() || !key_file.empty()) {
-      return absl::InvalidArgumentError("plain text takes no certificate files (set mutual TLS to use them)");
-    }
-    return absl::OkStatus();
+  if (s.mode == TransportSecurity::Mode::kMutualTls) return CheckFiles(s);
+  if (!s.ca_file.empty() || !s.cert_file.empty() || !s.key_file.empty()) {
+    return absl::InvalidArgumentError("plain text takes no certificate files (set mutual TLS to use them)");
   }
-  return CheckFiles(*this).status();
+  return std::string();
 }
 
+}  // namespace
+
+absl::Status TransportSecurity::Validate() const { return CheckedIdentity(*this).status(); }
+
 absl::Status SetTransportSecurity(const TransportSecurity& security) {
-  std::string identity;
-  if (security.mode == TransportSecurity::Mode::kMutualTls) {
-    if (security.reload_interval_s < 1 || security.reload_interval_s > 3600) return security.Validate();
-    auto checked = CheckFiles(security);
-    if (!checked.ok()) return checked.status();
-    identity = *checked;
-  } else if (absl::Status s = security.Validate(); !s.ok()) {
-    return s;
-  }
+  auto identity = CheckedIdentity(security);
+  if (!identity.ok()) return identity.status();
   ProcessSecurity& p = Process();
   std::lock_guard<std::mutex> lock(p.mutex);
   p.security = security;
-  p.identity = identity;
+  p.identity = *identity;
   return absl::OkStatus();
 }
 

@@ -37,11 +37,11 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
                                                             const std::vector<grpc::Service*>& services) {
   STAGE_RETURN_IF_ERROR(options.Validate());
   if (services.empty()) return absl::InvalidArgumentError("RpcServer needs at least one service");
+  std::string host;
+  int ignored;
+  (void)ParseHostPort(options.listen, &host, &ignored);  // valid: Validate() parsed it
   const TransportSecurity security = options.security != nullptr ? *options.security : ProcessTransportSecurity();
   if (security.mode == TransportSecurity::Mode::kPlainText) {
-    std::string host;
-    int ignored;
-    (void)ParseHostPort(options.listen, &host, &ignored);
     if (!IsLoopbackHost(host)) {
       return absl::FailedPreconditionError(
           absl::StrCat("will not listen on ", options.listen,
@@ -52,9 +52,7 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
   int port = 0;
-  builder.AddListeningPort(
-      options.listen, options.security != nullptr ? MakeServerCredentials(*options.security) : MakeServerCredentials(),
-      &port);
+  builder.AddListeningPort(options.listen, MakeServerCredentials(security), &port);
   builder.SetMaxReceiveMessageSize(options.max_message_bytes);
   builder.SetMaxSendMessageSize(options.max_message_bytes);
   builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, options.keepalive_time_ms);
@@ -73,13 +71,8 @@ absl::StatusOr<std::unique_ptr<RpcServer>> RpcServer::Start(const RpcServerOptio
     return absl::UnavailableError(
         absl::StrCat("cannot listen on ", options.listen, " (address in use, or not an address of this host)"));
   }
-  std::string host;
-  int ignored;
-  (void)ParseHostPort(options.listen, &host, &ignored);
-  if (host == "0.0.0.0" || host == "::" || host == "[::]") host = "127.0.0.1";
-  std::string address =
-      host.find(':') != std::string::npos ? absl::StrCat("[", host, "]:", port) : absl::StrCat(host, ":", port);
-  auto result = std::unique_ptr<RpcServer>(new RpcServer(std::move(server), port, address, options.shutdown_grace_ms));
+  auto result = std::unique_ptr<RpcServer>(
+      new RpcServer(std::move(server), port, DialAddress(host, port), options.shutdown_grace_ms));
   result->SetServing(true);
   return result;
 }

@@ -297,14 +297,11 @@ int main(int argc, char** argv) {
   }
 
   auto log = stage::Logger("sim.stage");
-  {
-    // stage-sim serves the world and asks the controller whether the stage is up: as "sim" when the rig says mutual
-    // TLS.
-    auto loaded = stage::LoadRig(options.rig);
-    if (loaded.ok() && !options.overrides.empty()) loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
-    if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
-    if (auto s = stage::UseRigTransportSecurity(*loaded, "sim"); !s.ok()) return stage::ReportFatal(kProgram, s);
-  }
+  auto loaded = stage::LoadRig(options.rig);
+  if (loaded.ok() && !options.overrides.empty()) loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
+  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  // stage-sim serves the world and asks the controller whether the stage is up: as "sim" when the rig says mutual TLS.
+  if (auto s = stage::UseRigTransportSecurity(*loaded, "sim"); !s.ok()) return stage::ReportFatal(kProgram, s);
   stage::MetricsEndpoint metrics;
   if (options.metrics) {
     flags.metrics_listen = "127.0.0.1:0";
@@ -320,12 +317,6 @@ int main(int argc, char** argv) {
   std::unique_ptr<stage::RpcServer> world_server;
   stage::metrics::Registration world_metrics;  // before `world` is destroyed, the collector that reads it is gone
   if (world_mode != "none") {
-    auto loaded = stage::LoadRig(options.rig);
-    if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
-    if (!options.overrides.empty()) {
-      loaded = stage::ApplyRigOverrides(*loaded, options.overrides);
-      if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
-    }
     auto created = stage::sim::SimScene::FromLoadedRig(*loaded);
     if (!created.ok()) return stage::ReportFatal(kProgram, created.status());
     scene = *created;

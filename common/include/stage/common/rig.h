@@ -105,5 +105,8 @@ bool IsBuiltinPatternSet(absl::string_view name);
 
 // Splits "host:port" (or "[v6]:port"); port must be 0..65535. Errors name the address.
 absl::Status ParseHostPort(absl::string_view address, std::string* host, int* port);
+// "host:port" for clients of a server bound to `host` (as ParseHostPort returned it) and `port`: a wildcard (0.0.0.0,
+// ::) is dialled on loopback, an IPv6 address is bracketed.
+std::string DialAddress(absl::string_view host, int port);
 
 }  // namespace stage
