@@ -6,6 +6,7 @@
 
 #include "controller_metrics.h"
 #include "controller_service.h"
+#include "device_monitor.h"
 #include "external_sync_generator.h"
 #include "health_monitor.h"
 #include "light_sync_generator.h"
@@ -85,7 +86,14 @@ int main(int argc, char** argv) {
                   rig.processing_workers_size(), loaded->source_name, rig.controller().health_poll_interval_ms());
   monitor.Start();
   const stage::metrics::Registration node_metrics = stage::controller::CollectNodeHealth(&monitor);
+  // The nodes' devices, read once a second (a light node's mode, temperature and duty; a camera's link and frames).
+  stage::controller::DeviceMonitorOptions device_options;
+  device_options.timeout = monitor_options.timeout;
+  stage::controller::DeviceMonitor device_monitor(stage::controller::DeviceTargetsFromRig(rig), device_options,
+                                                  [&monitor] { monitor.NotifyChange(); });
+  device_monitor.Start();
   stage::controller::ControllerService service(*loaded, &monitor);
+  service.ShowDevices(&device_monitor);
   {
     stage::controller::CaptureOptions capture;
     std::error_code ec;
@@ -141,6 +149,7 @@ int main(int argc, char** argv) {
     }
   }
   int code = stage::ServeUntilSignal(kProgram, flags, rig.controller().listen(), {&service}, summary);
+  device_monitor.Stop();
   monitor.Stop();
   return code;
 }

@@ -46,11 +46,10 @@ void LightNode::CollectMetrics(metrics::Writer& w) const {
   if (s.temperature_c() != 0) {
     w.Gauge("stage_light_temperature_celsius", "The LED board's temperature", node, s.temperature_c());
   }
-  TableLoad load;
+  const TableLoad load{.duty = s.max_channel_duty(), .peak = s.max_thermal_load()};
   uint64_t trips = 0;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (s.mode() == v1::LIGHT_MODE_ARMED) load = armed_load_;
     trips = watchdog_trips_;
   }
   w.Gauge("stage_light_duty_ratio",
@@ -124,6 +123,10 @@ v1::LightStats LightNode::Stats() const {
     clock->set_lost_edges(state.edges->lost_edges);
   }
   std::lock_guard<std::mutex> lock(mutex_);
+  if (state.mode == DriverMode::kArmed) {
+    stats.set_max_channel_duty(armed_load_.duty);
+    stats.set_max_thermal_load(armed_load_.peak);
+  }
   if (state.mode == DriverMode::kBlackout) {
     stats.set_blackout_reason(blackout_reason_.empty() ? "blackout by the board itself (see faults)"
                                                        : blackout_reason_);

@@ -99,7 +99,12 @@ TEST(LightNodeTest, ATableAboveAChannelsDutyOrThermalBudgetIsRefused) {
   EXPECT_EQ((*node)->Stats().mode(), v1::LIGHT_MODE_IDLE);
   // 18 of 38 spread out (0.474, its thermal ripple small against a 2 s time constant): armed.
   ASSERT_TRUE((*node)->Arm(Request("t", TableLighting(config.channel_count(), 18, false))).ok());
+  // The stats carry the armed table's load, as the controller shows it; none once disarmed.
+  EXPECT_NEAR((*node)->Stats().max_channel_duty(), 18.0 / 38, 1e-9);
+  EXPECT_GT((*node)->Stats().max_thermal_load(), 0.0);
+  EXPECT_LT((*node)->Stats().max_thermal_load(), 1.0);
   ASSERT_TRUE((*node)->Disarm("t").ok());
+  EXPECT_EQ((*node)->Stats().max_channel_duty(), 0.0);
   // Within duty on average but hotter than the limit: a thermal time constant of 2 ms (a tiny heat sink) with 19 rows
   // in a row heats the emitter to nearly full load.
   config.mutable_unit_limits()->set_thermal_time_constant_s(0.002);

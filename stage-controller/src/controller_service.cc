@@ -127,6 +127,9 @@ v1::StageStatus ControllerService::Status() const {
   std::string why;
   status.set_estop_latched(estop_->latched(&why));
   status.set_estop_reason(why);
+  if (devices_ != nullptr) {
+    for (v1::NodeDevice& d : devices_->Snapshot()) *status.add_devices() = std::move(d);
+  }
   return status;
 }
 

@@ -7,6 +7,7 @@
 #include <thread>
 
 #include "capture.h"
+#include "device_monitor.h"
 #include "health_monitor.h"
 #include "stage/common/rig.h"
 #include "stage/v1/camera_node.pb.h"
@@ -57,6 +58,10 @@ class ControllerService final : public v1::StageController::Service {
   grpc::Status ProcessTake(grpc::ServerContext* context, const v1::ProcessTakeRequest* request,
                            grpc::ServerWriter<v1::ProcessingProgress>* writer) override;
 
+  // Shows what `devices` last read of the nodes' devices in every status (StageStatus.devices). Not owned; it must
+  // outlive the service. Without it the status has no devices.
+  void ShowDevices(const DeviceMonitor* devices) { devices_ = devices; }
+
   v1::StageStatus Status() const;
 
   // The live rig's verifier report (the schedule inside), or empty with the error when it could not be compiled.
@@ -69,6 +74,7 @@ class ControllerService final : public v1::StageController::Service {
   std::string stage_name_;
   std::string rig_hash_;
   HealthMonitor* monitor_;
+  const DeviceMonitor* devices_ = nullptr;
   std::unique_ptr<controller::EmergencyStop> estop_;
   std::mutex estop_abort_mutex_;
   std::thread estop_abort_;  // aborts the take after an emergency stop has answered
