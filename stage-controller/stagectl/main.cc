@@ -30,6 +30,7 @@
 #include "stage/common/rig.h"
 #include "stage/common/rig_security.h"
 #include "stage/common/rpc_channel.h"
+#include "stage/common/stage_locator.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
 #include "stage/common/version.h"
@@ -45,82 +46,13 @@ constexpr const char* kProgram = "stagectl";
 // Exit code when the answer is "not ready": nodes not up (status), or timing errors (timing check).
 constexpr int kExitNotReady = 3;
 
-struct Connection {
-  std::string controller;
-  std::string endpoints;
-  std::string rig_path;
+// Where the stage is (--controller, --endpoints, --config, --as), and the deadline of each call.
+struct Connection : stage::StageLocator {
   int timeout_ms = 3000;
-  // Who stagectl is, to a stage on mutual TLS ("operator/ana").
-  std::string identity;
 };
 
-// stage-sim's endpoint file: --endpoints, $FASTAGE_ENDPOINTS, or the default run directory's.
-absl::StatusOr<stage::v1::SimEndpoints> ReadEndpoints(const Connection& c, const std::string& wanted) {
-  std::string path = c.endpoints;
-  if (path.empty()) {
-    const char* env = std::getenv("FASTAGE_ENDPOINTS");
-    path = env != nullptr && *env != '\0' ? env : stage::DefaultSimRunDir() + "/endpoints.json";
-  }
-  auto text = stage::ReadFileToString(path);
-  if (!text.ok()) {
-    return absl::NotFoundError(absl::StrCat("no ", wanted, " (no stage-sim endpoint file at ", path, ")"));
-  }
-  stage::v1::SimEndpoints endpoints;
-  if (absl::Status s = stage::FromContractJson(*text, &endpoints); !s.ok()) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a stage-sim endpoint file: ", s.message()));
-  }
-  return endpoints;
-}
-
-// Where the controller is: --controller, the rig's controller.listen (--config), $FASTAGE_CONTROLLER, the endpoint
-// file (--endpoints, $FASTAGE_ENDPOINTS, or stage-sim's default run directory), in that order.
-absl::StatusOr<std::string> ResolveController(const Connection& c) {
-  if (!c.controller.empty()) return c.controller;
-  if (!c.rig_path.empty()) {
-    auto loaded = stage::LoadRig(c.rig_path);
-    if (!loaded.ok()) return loaded.status();
-    return loaded->rig.controller().listen();
-  }
-  if (const char* env = std::getenv("FASTAGE_CONTROLLER"); env != nullptr && *env != '\0') return std::string(env);
-  auto endpoints =
-      ReadEndpoints(c, "controller address: pass --controller HOST:PORT or --config RIG, or start stage-sim");
-  if (!endpoints.ok()) return endpoints.status();
-  if (endpoints->controller().empty()) return absl::InvalidArgumentError("the endpoint file has no controller address");
-  return endpoints->controller();
-}
-
-// The stage's transport security, from its rig (--config, or the effective rig of the stage-sim endpoint file): on
-// mutual TLS, stagectl presents the certificate of --as (or $FASTAGE_IDENTITY, or operator/$USER). Without a rig to
-// read, plain text.
-absl::Status UseStageSecurity(Connection& c) {
-  // The rig of the stage ResolveController finds: --config, else (without --controller or $FASTAGE_CONTROLLER) the
-  // endpoint file's.
-  std::string rig_path = c.rig_path;
-  const char* env_controller = std::getenv("FASTAGE_CONTROLLER");
-  if (rig_path.empty() && c.controller.empty() && (env_controller == nullptr || *env_controller == '\0')) {
-    auto endpoints = ReadEndpoints(c, "endpoint file");
-    if (endpoints.ok()) rig_path = endpoints->rig_file();
-  }
-  if (rig_path.empty()) {
-    if (!c.identity.empty()) {
-      return absl::InvalidArgumentError(
-          "--as: no rig to read the stage's security from (pass --config RIG, or use a stage-sim endpoint file)");
-    }
-    return absl::OkStatus();
-  }
-  auto loaded = stage::LoadRig(rig_path);
-  if (!loaded.ok()) return loaded.status();
-  if (loaded->rig.security().transport() != stage::v1::TRANSPORT_MODE_MUTUAL_TLS) return absl::OkStatus();
-  if (c.identity.empty()) {
-    const char* env = std::getenv("FASTAGE_IDENTITY");
-    const char* user = std::getenv("USER");
-    c.identity = env != nullptr && *env != '\0' ? env : absl::StrCat("operator/", user != nullptr ? user : "root");
-  }
-  return stage::UseRigTransportSecurity(*loaded, c.identity);
-}
-
 absl::StatusOr<std::unique_ptr<stage::v1::StageController::Stub>> Connect(const Connection& c, std::string* address) {
-  auto resolved = ResolveController(c);
+  auto resolved = stage::ResolveController(c);
   if (!resolved.ok()) return resolved.status();
   *address = *resolved;
   return stage::v1::StageController::NewStub(stage::MakeChannel(*address));
@@ -909,7 +841,7 @@ struct FaultFlags {
 int SimFault(const Connection& c, const FaultFlags& f) {
   std::string address = f.world;
   if (address.empty()) {
-    auto endpoints = ReadEndpoints(c, "simulated world");
+    auto endpoints = stage::ReadSimEndpoints(c, "simulated world");
     if (!endpoints.ok()) return stage::ReportFatal(kProgram, endpoints.status());
     if (endpoints->world().empty()) {
       return stage::ReportFatal(
@@ -1220,7 +1152,10 @@ int main(int argc, char** argv) {
 
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
-  if (auto s = UseStageSecurity(c); !s.ok()) return stage::ReportFatal(kProgram, s);
+  const char* user = std::getenv("USER");
+  if (auto s = stage::UseStageSecurity(&c, absl::StrCat("operator/", user != nullptr ? user : "root")); !s.ok()) {
+    return stage::ReportFatal(kProgram, s);
+  }
 
   if (status->parsed()) return Status(c, json, status_cameras);
   if (cameras->parsed()) return Cameras(json);
