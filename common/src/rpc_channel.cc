@@ -57,7 +57,7 @@ absl::StatusOr<X509Ptr> ReadCertificate(absl::string_view field, const std::stri
 }
 
 bool ValidIdentity(absl::string_view id) {
-  if (id == "controller" || id == "sim") return true;
+  if (id == "controller" || id == "sim" || id == "console") return true;
   for (absl::string_view kind : {"camera/", "light/", "worker/", "operator/", "observer/"}) {
     if (absl::StartsWith(id, kind) && id.size() > kind.size()) return true;
   }
@@ -289,8 +289,9 @@ bool AuthorizeCall(absl::string_view identity, absl::string_view method, std::st
     allowed = reads ? std::vector<absl::string_view>{"controller", "operator", "observer", "sim"}
                     : std::vector<absl::string_view>{"controller"};
   } else if (service == "stage.v1.StageController") {
-    allowed = reads ? std::vector<absl::string_view>{"operator", "observer", "sim"}
-                    : std::vector<absl::string_view>{"operator"};
+    // The console (stage-console) acts for its logged-in users, whose roles it checks itself.
+    allowed = reads ? std::vector<absl::string_view>{"operator", "observer", "sim", "console"}
+                    : std::vector<absl::string_view>{"operator", "console"};
   } else if (service == "stage.v1.SimWorld") {
     // Devices join the world and run its bus; faults and ground truth (files written where the request says) are the
     // operator's and the controller's.

@@ -171,7 +171,12 @@ TEST(RpcChannelTest, WhoMayCallWhat) {
   EXPECT_TRUE(AuthorizeCall("observer/bo", "/stage.v1.StageController/GetStageStatus", &why));
   EXPECT_TRUE(AuthorizeCall("observer/bo", "/stage.v1.StageController/WatchStageStatus", &why));
   EXPECT_FALSE(AuthorizeCall("observer/bo", "/stage.v1.StageController/Capture", &why));
-  EXPECT_EQ(why, "stage.v1.StageController (its commands) takes calls from operator only");
+  EXPECT_EQ(why, "stage.v1.StageController (its commands) takes calls from operator, console only");
+  // The console commands the stage for its users (it checks their roles), and drives no node.
+  EXPECT_TRUE(AuthorizeCall("console", "/stage.v1.StageController/EmergencyStop", &why));
+  EXPECT_TRUE(AuthorizeCall("console", "/stage.v1.StageController/WatchStageStatus", &why));
+  EXPECT_FALSE(AuthorizeCall("console", "/stage.v1.LightNode/Blackout", &why));
+  EXPECT_FALSE(AuthorizeCall("console/x", "/stage.v1.StageController/Capture", &why));
   EXPECT_TRUE(AuthorizeCall("operator/ana", "/stage.v1.CameraNode/GetStats", &why));
   EXPECT_FALSE(AuthorizeCall("operator/ana", "/stage.v1.CameraNode/Arm", &why));
   EXPECT_FALSE(AuthorizeCall("worker/w1", "/stage.v1.StageController/GetStageStatus", &why));

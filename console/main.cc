@@ -1,0 +1,169 @@
+// stage-console: the stage's console in a browser. A gRPC client of the controller (a console that fails never touches
+// the stage) serving pages, a JSON API and one event stream over HTTP, behind a login (docs/console.md).
+#include <termios.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+
+#include "alarms.h"
+#include "console_server.h"
+#include "event_log.h"
+#include "log_tail.h"
+#include "stage/common/cli.h"
+#include "stage/common/logging.h"
+#include "stage/common/rig.h"
+#include "stage/common/rpc_server.h"
+#include "stage/common/shutdown.h"
+#include "stage/common/stage_locator.h"
+#include "stage_link.h"
+#include "users.h"
+
+namespace {
+
+constexpr const char* kProgram = "stage-console";
+
+// A password from stdin: one line, not echoed when stdin is a terminal.
+std::string ReadPassword() {
+  const bool tty = isatty(STDIN_FILENO) != 0;
+  termios saved{};
+  if (tty) {
+    std::cerr << "password: " << std::flush;
+    tcgetattr(STDIN_FILENO, &saved);
+    termios quiet = saved;
+    quiet.c_lflag &= ~static_cast<tcflag_t>(ECHO);
+    tcsetattr(STDIN_FILENO, TCSANOW, &quiet);
+  }
+  std::string password;
+  std::getline(std::cin, password);
+  if (tty) {
+    tcsetattr(STDIN_FILENO, TCSANOW, &saved);
+    std::cerr << "\n";
+  }
+  return password;
+}
+
+int AddUserCommand(const std::string& users_file, const std::string& name, const std::string& role_name) {
+  auto role = stage::console::ParseRole(role_name);
+  if (!role.ok()) return stage::ReportFatal(kProgram, role.status());
+  if (users_file.empty()) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--users: the users file to write is needed"));
+  }
+  if (auto s = stage::console::AddUser(users_file, name, *role, ReadPassword()); !s.ok()) {
+    return stage::ReportFatal(kProgram, s);
+  }
+  std::cout << "user " << name << " (" << role_name << ") written to " << users_file << "\n";
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  stage::BlockShutdownSignals();
+  CLI::App app{
+      "The FaStage console in a browser: serves the stage at a glance, previews, takes, timing, alarms and logs over "
+      "HTTP to logged-in users (observers read; operators arm, capture and reset the emergency stop), as a client of "
+      "the controller.",
+      kProgram};
+  stage::CommonFlags flags;
+  stage::AddCommonFlags(app, &flags, /*serves=*/false);
+  stage::StageLocator where;
+  app.add_option("--controller", where.controller,
+                 "Controller address host:port (default: the rig's controller.listen with --config, "
+                 "$FASTAGE_CONTROLLER, or the stage-sim endpoint file)");
+  app.add_option("--endpoints", where.endpoints,
+                 "stage-sim endpoint file (default: $FASTAGE_ENDPOINTS or /tmp/fastage-0/stage-sim/endpoints.json)");
+  app.add_option("--as", where.identity,
+                 "Identity to present when the rig says mutual TLS (default: $FASTAGE_IDENTITY, else console)");
+  stage::console::ConsoleServerOptions server;
+  app.add_option("--listen", server.listen, "Where to serve HTTP, host:port (port 0 picks a free one)")
+      ->capture_default_str();
+  std::string port_file;
+  app.add_option("--port-file", port_file, "After binding, write the bound host:port to this file");
+  std::string users_file;
+  app.add_option("--users", users_file,
+                 "Users file (NAME:ROLE:pbkdf2-sha256:...; `stage-console users add` writes it)");
+  std::string alarm_db;
+  app.add_option("--alarm-db", alarm_db,
+                 "SQLite file of the alarms and their acknowledgements (default: console-alarms.sqlite beside the "
+                 "users file)");
+  std::vector<std::string> tail;
+  app.add_option("--tail-log", tail, "A log file, or a directory whose *.log files, the log page follows; repeatable");
+  app.add_option("--max-streams", server.max_streams, "Event streams (open pages) served at once")
+      ->capture_default_str();
+  double session_hours = server.session_lifetime_s / 3600.0;
+  app.add_option("--session-hours", session_hours, "A login lasts this long after its last use")->capture_default_str();
+  stage::console::StageLinkOptions link_options;
+  app.add_option("--thermal-alarm", link_options.alarms.thermal_load,
+                 "Raise a thermal alarm when a light node's armed table reaches this much of its thermal limit")
+      ->capture_default_str();
+
+  CLI::App* users = app.add_subcommand("users", "Manage the users file");
+  CLI::App* add = users->add_subcommand("add", "Add or replace a user; the password is read from stdin (one line)");
+  std::string user_name, user_role = "observer";
+  add->add_option("name", user_name, "User name")->required();
+  add->add_option("--role", user_role, "observer or operator")->capture_default_str();
+  users->require_subcommand(1);
+  // --users and the other options of the program may come after the subcommand too.
+  users->fallthrough();
+  add->fallthrough();
+
+  if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
+  if (add->parsed()) return AddUserCommand(users_file, user_name, user_role);
+  if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
+  server.session_lifetime_s = static_cast<int>(session_hours * 3600);
+
+  if (users_file.empty()) {
+    return stage::ReportFatal(
+        kProgram, absl::InvalidArgumentError("--users: the console needs a users file (stage-console users add NAME "
+                                             "--role operator --users FILE)"));
+  }
+  auto book = stage::console::UserBook::Load(users_file);
+  if (!book.ok()) return stage::ReportFatal(kProgram, book.status());
+  if (book->size() == 0) {
+    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("users file " + users_file + " has no users"));
+  }
+  if (auto s = stage::UseStageSecurity(&where, "console"); !s.ok()) return stage::ReportFatal(kProgram, s);
+  auto controller = stage::ResolveController(where);
+  if (!controller.ok()) return stage::ReportFatal(kProgram, controller.status());
+  link_options.controller = *controller;
+  if (auto s = link_options.Validate(); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (alarm_db.empty()) {
+    alarm_db = (std::filesystem::path(users_file).parent_path() / "console-alarms.sqlite").string();
+  }
+  auto alarms = stage::console::AlarmBook::Open(alarm_db);
+  if (!alarms.ok()) return stage::ReportFatal(kProgram, alarms.status());
+
+  stage::console::EventLog events(4096);
+  stage::console::StageLink link(link_options, &events, alarms->get());
+  stage::console::LogTail logs({.paths = tail}, &events);
+  auto started = stage::console::ConsoleServer::Start(
+      server, {.link = &link, .events = &events, .alarms = alarms->get(), .logs = &logs, .users = &*book});
+  if (!started.ok()) return stage::ReportFatal(kProgram, started.status());
+  link.Start();
+  logs.Start();
+  std::string host;
+  int port = 0;
+  (void)stage::ParseHostPort(server.listen, &host, &port);
+  if (!port_file.empty()) {
+    const std::string bound = stage::DialAddress(host, (*started)->port());
+    std::ofstream(port_file + ".tmp") << bound << "\n";
+    std::filesystem::rename(port_file + ".tmp", port_file);
+  }
+  auto log = stage::Logger("console");
+  log->info("serving the console on {} for the controller at {} ({} users, alarms in {})", (*started)->url(),
+            *controller, book->size(), alarm_db);
+  if (!stage::IsLoopbackHost(host)) {
+    log->warn(
+        "{} is not a loopback address: passwords and the session cookie cross the network in plain HTTP; put "
+        "the console behind a TLS proxy",
+        host);
+  }
+  stage::WaitForShutdownSignal();
+  log->info("stopping");
+  started->reset();
+  logs.Stop();
+  link.Stop();
+  return 0;
+}
