@@ -91,6 +91,16 @@ absl::Status StageSupervisorOptions::Validate() const {
   std::string host;
   int port;
   STAGE_RETURN_IF_ERROR(Annotate(ParseHostPort(controller_listen, &host, &port), "--listen"));
+  for (const auto& [who, place] : placements) {
+    const std::string what = absl::StrCat("--place ", who);
+    if (place.netns.empty() || place.netns.find('/') != std::string::npos) {
+      return absl::InvalidArgumentError(absl::StrCat(what, ": the network namespace needs a name (ip netns list)"));
+    }
+    if (access(absl::StrCat("/run/netns/", place.netns).c_str(), F_OK) != 0) {
+      return absl::NotFoundError(absl::StrCat(what, ": no network namespace ", place.netns, " (ip netns add it)"));
+    }
+    STAGE_RETURN_IF_ERROR(Annotate(ParseHostPort(absl::StrCat(place.host, ":0"), &host, &port), what));
+  }
   if (startup_timeout.count() <= 0) return absl::InvalidArgumentError("startup timeout must be > 0");
   if (grace.count() < 0) return absl::InvalidArgumentError("grace period must be >= 0");
   return absl::OkStatus();
@@ -129,21 +139,24 @@ absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::
   child.program = program;
   child.port_file = absl::StrCat(options_.run_dir, "/ports/", id, ".addr");
   child.log_file = absl::StrCat(options_.run_dir, "/logs/", id, ".log");
+  const StageSupervisorOptions::Placement* place = PlacementOf(id, kind);
   SubprocessOptions sp;
-  sp.argv = {absl::StrCat(options_.bin_dir, "/", program),
-             "--config",
-             config,
-             "--listen",
-             listen,
-             "--port-file",
-             child.port_file};
+  if (place != nullptr) sp.argv = {"ip", "netns", "exec", place->netns};  // ip execs the node: the same pid
+  const std::string local = place != nullptr ? place->host : "127.0.0.1";
+  for (std::string a : {absl::StrCat(options_.bin_dir, "/", program), std::string("--config"), config,
+                        std::string("--listen"), place != nullptr ? absl::StrCat(place->host, ":0") : listen,
+                        std::string("--port-file"), child.port_file}) {
+    sp.argv.push_back(std::move(a));
+  }
   if (!options_.child_log_level.empty()) {
     sp.argv.push_back("--log-level");
     sp.argv.push_back(options_.child_log_level);
   }
   if (options_.metrics) {
     child.metrics_file = absl::StrCat(options_.run_dir, "/ports/", id, ".metrics");
-    for (const char* a : {"--metrics-listen", "127.0.0.1:0", "--metrics-port-file"}) sp.argv.emplace_back(a);
+    for (std::string a : {std::string("--metrics-listen"), absl::StrCat(local, ":0"), std::string("--metrics-port-file")}) {
+      sp.argv.push_back(std::move(a));
+    }
     sp.argv.push_back(child.metrics_file);
   }
   for (std::string& a : extra_args) sp.argv.push_back(std::move(a));
@@ -155,6 +168,17 @@ absl::Status StageSupervisor::SpawnChild(const std::string& program, const std::
   Logger("sim.stage")->debug("started {} {} (pid {})", program, id, child.process->pid());
   children_.push_back(std::move(child));
   return absl::OkStatus();
+}
+
+const StageSupervisorOptions::Placement* StageSupervisor::PlacementOf(const std::string& id, v1::NodeKind kind) const {
+  if (auto it = options_.placements.find(id); it != options_.placements.end()) return &it->second;
+  const char* name = kind == v1::NODE_KIND_CAMERA                ? "camera"
+                     : kind == v1::NODE_KIND_LIGHT               ? "light"
+                     : kind == v1::NODE_KIND_PROCESSING_WORKER   ? "worker"
+                     : kind == v1::NODE_KIND_CONTROLLER          ? "controller"
+                                                                 : "";
+  if (auto it = options_.placements.find(name); it != options_.placements.end()) return &it->second;
+  return nullptr;
 }
 
 std::string StageSupervisor::DescribeExit(const Child& child) const {

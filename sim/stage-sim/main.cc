@@ -249,6 +249,16 @@ int main(int argc, char** argv) {
   app.add_option("--ground-truth", ground_truth_dir,
                  "With --world-slots: also write the simulator's ground truth of the virtual frames the world runs "
                  "(every camera) into this directory (docs/simulator.md#ground-truth)");
+  std::string world_listen = "127.0.0.1:0";
+  app.add_option("--world-listen", world_listen,
+                 "Where the simulated world serves its nodes, host:port (another address than loopback needs the "
+                 "rig's mutual TLS)")
+      ->capture_default_str();
+  std::vector<std::string> places;
+  app.add_option("--place", places,
+                 "WHO=NETNS/HOST: run WHO (a node id, or camera, light, worker, controller) in network namespace NETNS "
+                 "(ip netns exec), listening on HOST there: hosts a test makes (the rig's mutual TLS needed); "
+                 "repeatable");
   std::string export_template_dir;
   app.add_option(
       "--export-face-template", export_template_dir,
@@ -260,6 +270,14 @@ int main(int argc, char** argv) {
       "Examples: stage-sim -- stagectl status\n"
       "          stage-sim --world-slots 912 --until-rendered --set sim.render_scale=0.03  # one second");
   if (auto code = stage::ParseCommandLine(app, own_argc, argv)) return *code;
+  for (const std::string& place : places) {
+    const size_t eq = place.find('='), slash = place.find('/', eq == std::string::npos ? 0 : eq);
+    if (eq == std::string::npos || slash == std::string::npos || eq == 0) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
+                                              "--place ", place, ": expected WHO=NETNS/HOST (e.g. camera=h1/10.77.0.11)")));
+    }
+    options.placements[place.substr(0, eq)] = {place.substr(eq + 1, slash - eq - 1), place.substr(slash + 1)};
+  }
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
   if (!export_template_dir.empty()) {
     const auto head = stage::sim::HeadModel::Procedural(/*seed=*/1);
@@ -359,6 +377,7 @@ int main(int argc, char** argv) {
     // to answer a keepalive ping (a starved machine, a stopped process) is still in the world: the lockstep world waits
     // for it, so the ping's timeout is long rather than the default's 5 s.
     stage::RpcServerOptions world_server_options;
+    world_server_options.listen = world_listen;
     world_server_options.keepalive_timeout_ms = 600'000;
     auto server = stage::RpcServer::Start(world_server_options, {world_service.get()});
     if (!server.ok()) return stage::ReportFatal(kProgram, server.status());

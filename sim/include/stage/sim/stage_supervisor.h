@@ -5,6 +5,7 @@
 #pragma once
 
 #include <chrono>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -46,6 +47,14 @@ struct StageSupervisorOptions {
   bool metrics = false;
   // stage-sim's own metrics endpoint (host:port), for the endpoint file; empty when it serves none.
   std::string own_metrics;
+  // Where a node runs (stage-sim --place): in a network namespace of this machine (ip netns exec), listening on its
+  // address there: hosts of a stage a test makes. Keyed by node id, or by kind ("camera", "light", "worker",
+  // "controller"; an id's placement comes first). Unplaced nodes run in stage-sim's namespace on 127.0.0.1.
+  struct Placement {
+    std::string netns;  // a name under /run/netns
+    std::string host;   // the node's address in it
+  };
+  std::map<std::string, Placement> placements;
 
   absl::Status Validate() const;
 };
@@ -93,6 +102,8 @@ class StageSupervisor {
   absl::Status WaitForStageUp(std::chrono::steady_clock::time_point deadline);
   absl::Status WriteEffectiveRig(const std::string& path, bool with_addresses = true);
   absl::Status WriteEndpoints();
+  // The placement of node `id` of `kind`, or nullptr (options_.placements).
+  const StageSupervisorOptions::Placement* PlacementOf(const std::string& id, v1::NodeKind kind) const;
   std::string DescribeExit(const Child& child) const;
 
   StageSupervisorOptions options_;
