@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "stage/common/http_server_thread.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
@@ -91,12 +92,10 @@ struct ConsoleServer::Impl {
   ConsoleParts parts;
   Sessions sessions;
   httplib::Server http;
-  std::thread thread;
-  std::atomic<bool> ended{false};
   std::atomic<bool> closing{false};
   std::atomic<int> streams{0};
-  int port = 0;
   std::string url;
+  std::unique_ptr<HttpServerThread> serving;  // stopped (the destructor) before the rest goes
 
   using Handler = std::function<absl::StatusOr<Reply>(const httplib::Request&, const Sessions::Session&)>;
 
@@ -312,17 +311,9 @@ void ConsoleServer::Impl::Stream() {
 absl::StatusOr<std::unique_ptr<ConsoleServer>> ConsoleServer::Start(const ConsoleServerOptions& options,
                                                                     ConsoleParts parts) {
   STAGE_RETURN_IF_ERROR(options.Validate());
-  std::string host;
-  int port = 0;
-  STAGE_RETURN_IF_ERROR(ParseHostPort(options.listen, &host, &port));
   auto impl = std::make_unique<Impl>(options, parts);
   const size_t threads = static_cast<size_t>(options.max_streams + options.request_threads);
   impl->http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
-  impl->http.set_socket_options([](socket_t sock) {
-    int yes = 1;
-    setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof(yes));
-    setsockopt(sock, IPPROTO_TCP, TCP_NODELAY, &yes, sizeof(yes));
-  });
   impl->http.set_read_timeout(10, 0);
   impl->http.set_write_timeout(10, 0);
   impl->Pages();
@@ -330,23 +321,8 @@ absl::StatusOr<std::unique_ptr<ConsoleServer>> ConsoleServer::Start(const Consol
   impl->Commands();
   impl->Reads();
   impl->Stream();
-  const int bound = port == 0 ? impl->http.bind_to_any_port(host) : (impl->http.bind_to_port(host, port) ? port : -1);
-  if (bound <= 0) {
-    return absl::UnavailableError(absl::StrCat("console: cannot listen on ", options.listen,
-                                               " (address in use, or not an address of this host)"));
-  }
-  impl->port = bound;
-  impl->url = absl::StrCat("http://", DialAddress(host, bound), "/");
-  Impl* raw = impl.get();
-  impl->thread = std::thread([raw] {
-    raw->http.listen_after_bind();
-    raw->ended = true;
-  });
-  while (!raw->http.is_running() && !raw->ended) std::this_thread::sleep_for(std::chrono::milliseconds(1));
-  if (raw->ended) {
-    raw->thread.join();
-    return absl::UnavailableError(absl::StrCat("console: the HTTP server on ", raw->url, " did not start"));
-  }
+  STAGE_ASSIGN_OR_RETURN(impl->serving, HttpServerThread::Start(&impl->http, options.listen, "console"));
+  impl->url = absl::StrCat("http://", impl->serving->address(), "/");
   return std::unique_ptr<ConsoleServer>(new ConsoleServer(std::move(impl)));
 }
 
@@ -355,11 +331,10 @@ ConsoleServer::ConsoleServer(std::unique_ptr<Impl> impl) : impl_(std::move(impl)
 ConsoleServer::~ConsoleServer() {
   impl_->closing = true;
   impl_->parts.events->Close();
-  impl_->http.stop();
-  if (impl_->thread.joinable()) impl_->thread.join();
+  impl_->serving.reset();
 }
 
 const std::string& ConsoleServer::url() const { return impl_->url; }
-int ConsoleServer::port() const { return impl_->port; }
+int ConsoleServer::port() const { return impl_->serving->port(); }
 
 }  // namespace stage::console
