@@ -81,6 +81,10 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   std::string port_file;
   app.add_option("--port-file", port_file, "After binding, write the bound host:port to this file");
+  app.add_option("--metrics-listen", flags.metrics_listen,
+                 "Where to serve Prometheus metrics over HTTP, host:port (port 0 picks a free one); empty: none");
+  app.add_option("--metrics-port-file", flags.metrics_port_file,
+                 "After binding the metrics endpoint, write its host:port to this file");
   std::string users_file;
   app.add_option("--users", users_file,
                  "Users file (NAME:ROLE:pbkdf2-sha256:...; `stage-console users add` writes it)");
@@ -151,6 +155,8 @@ int main(int argc, char** argv) {
     std::ofstream(port_file + ".tmp") << bound << "\n";
     std::filesystem::rename(port_file + ".tmp", port_file);
   }
+  auto metrics = stage::StartMetrics(kProgram, flags);
+  if (!metrics.ok()) return stage::ReportFatal(kProgram, metrics.status());
   auto log = stage::Logger("console");
   log->info("serving the console on {} for the controller at {} ({} users, alarms in {})", (*started)->url(),
             *controller, book->size(), alarm_db);

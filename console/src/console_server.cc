@@ -14,6 +14,7 @@
 #include "absl/strings/strip.h"
 #include "stage/common/http_server_thread.h"
 #include "stage/common/logging.h"
+#include "stage/common/metrics.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 
@@ -95,6 +96,7 @@ struct ConsoleServer::Impl {
   std::atomic<bool> closing{false};
   std::atomic<int> streams{0};
   std::string url;
+  metrics::Registration collector;            // before `serving`: removed after the server has stopped
   std::unique_ptr<HttpServerThread> serving;  // stopped (the destructor) before the rest goes
 
   using Handler = std::function<absl::StatusOr<Reply>(const httplib::Request&, const Sessions::Session&)>;
@@ -104,12 +106,22 @@ struct ConsoleServer::Impl {
   // cookie, no other site can drive the stage through a logged-in browser.
   void Route(bool post, const std::string& path, Role role, Handler handler) {
     auto wrapped = [this, post, role, handler, path](const httplib::Request& req, httplib::Response& res) {
+      // Commands are counted by path and outcome: ok, forbidden (the role or the header), failed (the stage said no).
+      auto count = [&](const char* outcome) {
+        if (!post) return;
+        metrics::Registry::Default()
+            .GetCounter("stage_console_commands_total", "Commands the console's users gave, by path and outcome",
+                        {{"path", path}, {"outcome", outcome}})
+            ->Increment();
+      };
       auto session = sessions.Find(CookieToken(req));
       if (!session) return SendError(res, absl::UnauthenticatedError("log in first"));
       if (post && req.get_header_value("X-FaStage") != "1") {
+        count("forbidden");
         return SendError(res, absl::PermissionDeniedError("a command needs the header X-FaStage: 1"));
       }
       if (role == Role::kOperator && session->role != Role::kOperator) {
+        count("forbidden");
         return SendError(res, absl::PermissionDeniedError(
                                   absl::StrCat(session->user, " is an observer: ", path, " needs an operator")));
       }
@@ -117,6 +129,7 @@ struct ConsoleServer::Impl {
       if (post) {
         Logger("console")->info("{} ({}) {}: {}", session->user, RoleName(session->role), path,
                                 reply.ok() ? "ok" : std::string(reply.status().message()));
+        count(reply.ok() ? "ok" : "failed");
       }
       if (!reply.ok()) return SendError(res, reply.status());
       res.set_content(reply->body, reply->content_type);
@@ -160,6 +173,10 @@ void ConsoleServer::Impl::Login() {
     }
     const std::string user = body["user"];
     auto role = parts.users->Verify(user, body["password"].get<std::string>());
+    metrics::Registry::Default()
+        .GetCounter("stage_console_logins_total", "Logins to the console, by outcome",
+                    {{"outcome", role.ok() ? "ok" : "refused"}})
+        ->Increment();
     if (!role.ok()) {
       Logger("console")->warn("login refused for '{}' from {}", user, req.remote_addr);
       return SendError(res, role.status());
@@ -321,6 +338,13 @@ absl::StatusOr<std::unique_ptr<ConsoleServer>> ConsoleServer::Start(const Consol
   impl->Commands();
   impl->Reads();
   impl->Stream();
+  Impl* raw = impl.get();
+  impl->collector = metrics::Registry::Default().AddCollector([raw](metrics::Writer& w) {
+    w.Gauge("stage_console_event_streams", "Event streams (open pages) the console serves now", {},
+            raw->streams.load());
+    w.Gauge("stage_console_controller_up", "1 while the console follows the controller, else 0", {},
+            raw->parts.link->connected() ? 1 : 0);
+  });
   STAGE_ASSIGN_OR_RETURN(impl->serving, HttpServerThread::Start(&impl->http, options.listen, "console"));
   impl->url = absl::StrCat("http://", impl->serving->address(), "/");
   return std::unique_ptr<ConsoleServer>(new ConsoleServer(std::move(impl)));
