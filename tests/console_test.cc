@@ -5,6 +5,7 @@
 #include <signal.h>
 
 #include <filesystem>
+#include <iostream>
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
@@ -114,6 +115,7 @@ TEST_F(ConsoleTest, AnOperatorAndAnObserverDriveTheStageInChromium) {
   ASSERT_FALSE(e2e.timed_out) << e2e.err;
   ASSERT_EQ(e2e.exit.exit_code, 0) << e2e.out << e2e.err << ReadFile(console_dir_.path() + "/console.log");
   const nlohmann::json measured = nlohmann::json::parse(e2e.out.substr(e2e.out.rfind('{')));
+  std::cout << "measured in Chromium: " << measured.dump() << "\n";
   EXPECT_EQ(measured["outcome"], "COMPLETE");
   EXPECT_LT(measured["red_after_ms"].get<int>(), 1000);
   EXPECT_EQ(measured["lights_dark"].get<int>(), lights);
