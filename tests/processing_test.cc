@@ -41,6 +41,15 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_EQ(done["output_dir"], dir + "/derived/photometric");
   EXPECT_EQ(done["frames_done"], "3");  // one frame of three high-speed cameras
   EXPECT_THAT(worker.err, HasSubstr("3/3 camera frames"));
+  // The catalog says which stages have results (the console's Takes page shows them).
+  CommandResult takes = RunCommand({"stagectl", "--endpoints", endpoints, "takes", "--json"}, std::chrono::seconds(30));
+  ASSERT_EQ(takes.exit.exit_code, 0) << takes.err;
+  const nlohmann::json listed = nlohmann::json::parse(takes.out);
+  nlohmann::json processed;
+  for (const auto& t : listed["takes"]) {
+    if (t["id"] == id) processed = t["processed"];
+  }
+  EXPECT_EQ(processed, nlohmann::json::array({"photometric"})) << takes.out;
 
   // The batch command and the library, each into a directory of its own.
   CommandResult batch = RunCommand({"stage-process", "photometric", "--take", dir, "--geometry", "ground_truth",

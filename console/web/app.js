@@ -359,11 +359,19 @@ async function refreshTakes() {
   try {
     const list = await api('/api/takes');
     $('takes-root').textContent = list.take_root || '';
-    $('takes-table').tBodies[0].innerHTML = (list.takes || []).slice().reverse().map((t) =>
-      `<tr data-take="${t.id}"><td><a href="#/takes" data-take="${t.id}">${t.id}</a></td><td>${t.name}</td>` +
-      `<td>${enumName(t.state, 'TAKE_STATE_')}</td><td>${enumName(t.outcome, 'TAKE_OUTCOME_')}</td>` +
-      `<td>${t.frames_stored}/${t.frames_expected}</td><td>${(Number(t.size_bytes) / 1e6).toFixed(1)} MB</td>` +
-      '<td class="selftest"></td></tr>').join('');
+    $('takes-table').tBodies[0].innerHTML =
+        (list.takes || [])
+            .slice()
+            .reverse()
+            .map(
+                (t) => `<tr data-take="${t.id}"><td><a href="#/takes" data-take="${t.id}">${t.id}</a></td><td>${
+                           t.name}</td>` +
+                    `<td>${enumName(t.state, 'TAKE_STATE_')}</td><td>${enumName(t.outcome, 'TAKE_OUTCOME_')}</td>` +
+                    `<td>${t.frames_stored}/${t.frames_expected}</td><td>${
+                           (Number(t.size_bytes) / 1e6).toFixed(1)} MB</td>` +
+                    `<td class="processed">${(t.processed || []).join(', ') || '—'}</td>` +
+                    '<td class="selftest" title="click the take for its self-test"></td></tr>')
+            .join('');
   } catch (e) {
     toast(e.message);
   }

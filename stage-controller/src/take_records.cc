@@ -319,6 +319,13 @@ absl::StatusOr<v1::TakeList> TakeRecords::ListTakes() const {
     t->set_frames_expected(r.frames_expected);
     t->set_frames_stored(r.frames_stored);
     t->set_dir((fs::path(take_root_) / r.dir).string());
+    std::error_code ec;
+    std::vector<std::string> stages;
+    for (const auto& entry : fs::directory_iterator(fs::path(t->dir()) / "derived", ec)) {
+      if (entry.is_directory(ec)) stages.push_back(entry.path().filename().string());
+    }
+    std::sort(stages.begin(), stages.end());
+    for (std::string& stage : stages) t->add_processed(std::move(stage));
   }
   return list;
 }
