@@ -5,6 +5,11 @@ const $ = (id) => document.getElementById(id);
 const state = { me: null, status: null, take: null, summary: null, alarms: { active: [], history: [] }, events: null,
   ledgerLost: [], previewTimer: null };
 
+// Text for HTML: names, reasons and messages come from the stage and its users, not from this page.
+function esc(text) {
+  return String(text ?? '').replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' })[c]);
+}
+
 function enumName(value, prefix) { return String(value || '').replace(prefix, ''); }
 function ms(unixMs) { return unixMs ? new Date(Number(unixMs)).toLocaleTimeString() : ''; }
 function toast(text) {
@@ -118,17 +123,17 @@ function deviceLine(d) {
     if (l.temperature_c) parts.push(`${Number(l.temperature_c).toFixed(1)} °C`);
     parts.push(`duty ${(Number(l.max_channel_duty || 0) * 100).toFixed(0)} %`);
     parts.push(`thermal ${(Number(l.max_thermal_load || 0) * 100).toFixed(0)} %`);
-    if (l.faults && l.faults.length) parts.push(`faults: ${l.faults.join('; ')}`);
+    if (l.faults && l.faults.length) parts.push(`faults: ${esc(l.faults.join('; '))}`);
     return parts.join(' · ');
   }
   if (d.camera) {
     const c = d.camera;
-    const parts = [c.link_up ? 'camera linked' : `camera link down ${c.link_detail || ''}`];
+    const parts = [c.link_up ? 'camera linked' : `camera link down ${esc(c.link_detail)}`];
     parts.push(`${c.frames_completed} frames, ${c.frames_dropped} dropped`);
     if (c.take_id) parts.push(`take ${c.take_frames_received}/${c.take_frames_expected}, lost ${c.take_frames_lost}`);
     return parts.join(' · ');
   }
-  return d.error ? `device: ${d.error}` : '';
+  return d.error ? `device: ${esc(d.error)}` : '';
 }
 
 function renderStatus(s) {
@@ -155,9 +160,9 @@ function renderStatus(s) {
     const rtt = n.rtt_ns ? `rtt ${(Number(n.rtt_ns) / 1e6).toFixed(2)} ms` : '';
     const d = devices[n.id];
     const dark = d && d.light && d.light.mode === 'LIGHT_MODE_BLACKOUT' ? 'dark' : '';
-    return `<div class="card link-${link}" data-node="${n.id}" data-link="${link}" data-light="${dark}">
-      <h3>${n.id} <small>${kind}${role}</small></h3>
-      <div>link ${link.toUpperCase()}${n.reason ? `: ${n.reason}` : ''}</div>
+    return `<div class="card link-${link}" data-node="${esc(n.id)}" data-link="${link}" data-light="${dark}">
+      <h3>${esc(n.id)} <small>${kind}${role}</small></h3>
+      <div>link ${link.toUpperCase()}${n.reason ? `: ${esc(n.reason)}` : ''}</div>
       <div>${clock} ${rtt}</div>
       <div class="device">${deviceLine(d)}</div></div>`;
   }).join('');
@@ -175,7 +180,7 @@ function fillCameraChoices(s) {
     ...cameraNodes.filter((n) => n.camera_role !== 'CAMERA_ROLE_HIGH_SPEED')].map((n) => n.id);
   if (select.options.length === cameras.length) return;
   const chosen = select.value;
-  select.innerHTML = cameras.map((c) => `<option>${c}</option>`).join('');
+  select.innerHTML = cameras.map((c) => `<option>${esc(c)}</option>`).join('');
   if (cameras.includes(chosen)) select.value = chosen;
 }
 
@@ -284,7 +289,7 @@ function onTakeEvent(e) {
 }
 
 function ledgerRow(camera, cells) {
-  return `<div class="row" data-camera="${camera}"><span class="label">${camera}</span>${cells.join('')}</div>`;
+  return `<div class="row" data-camera="${esc(camera)}"><span class="label">${esc(camera)}</span>${cells.join('')}</div>`;
 }
 
 // While the take runs: each camera's frames received of those expected, from its device's counters.
@@ -313,7 +318,7 @@ function renderLedgerFinal() {
       if (inBin.length) {
         const why = inBin.slice(0, 8).map((e) => `slot ${e.slot}: ${enumName(e.reason, 'LOSS_REASON_')}` +
           (e.detail ? ` (${e.detail})` : '')).join('\n') + (inBin.length > 8 ? `\n… ${inBin.length - 8} more` : '');
-        return `<span class="cell lost" title="${why.replace(/"/g, '&quot;')}"></span>`;
+        return `<span class="cell lost" title="${esc(why)}"></span>`;
       }
       return `<span class="cell ${paused ? 'paused' : 'stored'}"></span>`;
     });
@@ -347,7 +352,7 @@ async function refreshTiming() {
     const report = await api('/api/timing');
     $('timing-summary').textContent = `${report.errors} errors, ${report.warnings} warnings`;
     $('timing-findings').innerHTML = (report.violations || []).map((f) =>
-      `<li>${enumName(f.severity, 'SEVERITY_')}: ${f.message}</li>`).join('');
+      `<li>${enumName(f.severity, 'SEVERITY_')}: ${esc(f.message)}</li>`).join('');
     $('timing-waveform').innerHTML = `<img alt="one frame's schedule" src="/api/timing.svg?t=${Date.now()}">`;
   } catch (e) {
     $('timing-summary').textContent = e.message;
@@ -364,12 +369,12 @@ async function refreshTakes() {
             .slice()
             .reverse()
             .map(
-                (t) => `<tr data-take="${t.id}"><td><a href="#/takes" data-take="${t.id}">${t.id}</a></td><td>${
-                           t.name}</td>` +
+                (t) => `<tr data-take="${esc(t.id)}"><td><a href="#/takes" data-take="${esc(t.id)}">${esc(t.id)}</a></td>` +
+                           `<td>${esc(t.name)}</td>` +
                     `<td>${enumName(t.state, 'TAKE_STATE_')}</td><td>${enumName(t.outcome, 'TAKE_OUTCOME_')}</td>` +
                     `<td>${t.frames_stored}/${t.frames_expected}</td><td>${
                            (Number(t.size_bytes) / 1e6).toFixed(1)} MB</td>` +
-                    `<td class="processed">${(t.processed || []).join(', ') || '—'}</td>` +
+                    `<td class="processed">${esc((t.processed || []).join(', ')) || '—'}</td>` +
                     '<td class="selftest" title="click the take for its self-test"></td></tr>')
             .join('');
   } catch (e) {
@@ -409,17 +414,20 @@ function renderAlarms() {
   $('alarm-count').className = `pill ${unacked ? 'bad' : 'ok'}`;
   const operator = state.me && state.me.role === 'operator';
   $('alarms-active').tBodies[0].innerHTML = state.alarms.active.map((a) =>
-    `<tr class="active ${a.acked_unix_ms ? 'acked' : ''}" data-alarm="${a.id}" data-key="${a.key}">` +
-    `<td>${ms(a.raised_unix_ms)}</td><td>${a.kind}</td><td>${a.source}</td><td>${a.message}</td>` +
-    `<td>${a.acked_unix_ms ? `${a.acked_by} ${ms(a.acked_unix_ms)}` : ''}</td>` +
+    `<tr class="active ${a.acked_unix_ms ? 'acked' : ''}" data-alarm="${a.id}" data-key="${esc(a.key)}">` +
+    `<td>${ms(a.raised_unix_ms)}</td><td>${esc(a.kind)}</td><td>${esc(a.source)}</td><td>${esc(a.message)}</td>` +
+    `<td>${a.acked_unix_ms ? `${esc(a.acked_by)} ${ms(a.acked_unix_ms)}` : ''}</td>` +
     `<td>${!a.acked_unix_ms && operator ? `<button type="button" data-ack="${a.id}">Acknowledge</button>` : ''}</td></tr>`).join('');
   $('alarms-history').tBodies[0].innerHTML = state.alarms.history.map((a) =>
-    `<tr data-alarm="${a.id}"><td>${ms(a.raised_unix_ms)}</td><td>${ms(a.cleared_unix_ms)}</td><td>${a.kind}</td>` +
-    `<td>${a.message}</td><td>${a.acked_unix_ms ? `${a.acked_by} ${ms(a.acked_unix_ms)}` : ''}</td></tr>`).join('');
+    `<tr data-alarm="${a.id}"><td>${ms(a.raised_unix_ms)}</td><td>${ms(a.cleared_unix_ms)}</td><td>${esc(a.kind)}</td>` +
+    `<td>${esc(a.message)}</td><td>${a.acked_unix_ms ? `${esc(a.acked_by)} ${ms(a.acked_unix_ms)}` : ''}</td></tr>`).join('');
 }
 $('alarms-active').addEventListener('click', async (ev) => {
   const id = ev.target.dataset.ack;
-  if (id) await command('/api/alarms/ack', { id: Number(id) });
+  if (!id) return;
+  // The answer is the alarm as acknowledged: shown at once (the event stream brings it to the other pages).
+  const alarm = await command('/api/alarms/ack', { id: Number(id) });
+  if (alarm) onAlarm(alarm);
 });
 
 // ---- log ----

@@ -144,7 +144,8 @@ try {
   const row = `#alarms-active tr[data-key="node-down:${victim}"]`;
   await page.waitForSelector(`${row} button[data-ack]`, { timeout: 10000 });
   await page.click(`${row} button[data-ack]`);
-  await page.waitForFunction((sel) => document.querySelector(sel)?.classList.contains('acked'), row);
+  await page.waitForFunction((sel) => document.querySelector(sel)?.classList.contains('acked'), row,
+    { timeout: 60000 });
   await shot(page, 'alarms');
 
   // 10. The log tail.
