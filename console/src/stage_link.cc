@@ -42,7 +42,14 @@ struct StageLink::Impl {
   std::shared_ptr<grpc::ClientContext> take_call;    // guarded by mutex
   std::string followed_take;                         // guarded by mutex
   std::thread take_thread;                           // guarded by mutex
-  std::vector<std::thread> command_threads;          // guarded by mutex: the take streams commands started
+  // The take streams arm and capture started (each as long as its take): cancelled by Stop (the take runs on),
+  // reaped once finished.
+  struct CommandCall {
+    std::thread thread;
+    std::shared_ptr<grpc::ClientContext> context;
+    std::shared_ptr<std::atomic<bool>> finished;
+  };
+  std::vector<CommandCall> command_calls;  // guarded by mutex
 };
 
 StageLink::StageLink(StageLinkOptions options, EventLog* events, AlarmBook* alarms)
@@ -64,7 +71,11 @@ void StageLink::Stop() {
     if (impl_->status_call) impl_->status_call->TryCancel();
     if (impl_->take_call) impl_->take_call->TryCancel();
     impl_->wake.notify_all();
-    threads.swap(impl_->command_threads);
+    for (Impl::CommandCall& c : impl_->command_calls) {
+      c.context->TryCancel();
+      threads.push_back(std::move(c.thread));
+    }
+    impl_->command_calls.clear();
     if (impl_->take_thread.joinable()) threads.push_back(std::move(impl_->take_thread));
   }
   if (status_thread_.joinable()) status_thread_.join();
@@ -164,7 +175,8 @@ absl::StatusOr<Reply> StageLink::StartTake(bool capture, const std::string& requ
   };
   auto first = std::make_shared<First>();
   auto context = std::make_shared<grpc::ClientContext>();
-  std::thread call([this, capture, request, first, context] {
+  auto finished = std::make_shared<std::atomic<bool>>(false);
+  std::thread call([this, capture, request, first, context, finished] {
     auto reader = capture ? impl_->stub->Capture(context.get(), request) : impl_->stub->Arm(context.get(), request);
     v1::CaptureEvent e;
     bool answered = false;
@@ -184,10 +196,20 @@ absl::StatusOr<Reply> StageLink::StartTake(bool capture, const std::string& requ
     } else if (!end.ok() && end.error_code() != grpc::StatusCode::CANCELLED) {
       events_->Publish("message", nlohmann::json{{"text", end.error_message()}}.dump());
     }
+    *finished = true;
   });
   {
     std::lock_guard<std::mutex> lock(impl_->mutex);
-    impl_->command_threads.push_back(std::move(call));
+    auto& calls = impl_->command_calls;
+    for (auto it = calls.begin(); it != calls.end();) {
+      if (!*it->finished) {
+        ++it;
+        continue;
+      }
+      it->thread.join();
+      it = calls.erase(it);
+    }
+    calls.push_back({std::move(call), context, finished});
   }
   std::unique_lock<std::mutex> lock(first->mutex);
   if (!first->ready.wait_for(lock, std::chrono::milliseconds(options_.call_timeout_ms), [&] { return first->done; })) {
