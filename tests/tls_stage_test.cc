@@ -152,7 +152,8 @@ TEST_F(TlsStageTest, AcrossHostsTheStageRunsOnMutualTlsAndAReplacedCertificateIs
   // Three hosts on a bridge: the cameras on one, the light nodes on another, the controller and the processing worker
   // on a third; stage-sim's world on the bridge's own address.
   TestHosts hosts(3);
-  ASSERT_EQ(hosts.why_not(), "");
+  // As the suite's own namespace: without the privilege to make them (root), it says so and skips.
+  if (!hosts.why_not().empty()) GTEST_SKIP() << hosts.why_not();
   TempDir certs, root;
   ASSERT_NO_FATAL_FAILURE(MakeCerts(certs.path(), {TestHosts::Hub(), TestHosts::Address(1), TestHosts::Address(2),
                                                    TestHosts::Address(3)}));
