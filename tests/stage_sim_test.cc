@@ -18,6 +18,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "simulated_stage.h"
+#include "stage/common/clock.h"
 #include "stage/common/rig.h"
 #include "stage/common/rpc_channel.h"
 #include "stage/timing/pattern_set.h"
@@ -29,11 +30,6 @@
 
 namespace stage::testing {
 namespace {
-
-int64_t UnixNowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 using StageSimTest = SimulatedStageTest;
 

@@ -87,4 +87,9 @@ int SimClock::sleepers() const {
   return sleepers_;
 }
 
+int64_t UnixNowNs() {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
+      .count();
+}
+
 }  // namespace stage

@@ -10,6 +10,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "stage/common/clock.h"
 #include "stage/common/file_util.h"
 #include "stage/common/subprocess.h"
 
@@ -17,11 +18,6 @@ namespace stage {
 namespace {
 
 constexpr const char* kDefaultPtp4lSocket = "/var/run/ptp4l";
-
-int64_t UnixNowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 }  // namespace
 

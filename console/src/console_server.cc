@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "stage/common/clock.h"
 #include "stage/common/http_server_thread.h"
 #include "stage/common/logging.h"
 #include "stage/common/metrics.h"
@@ -224,10 +225,7 @@ void ConsoleServer::Impl::Commands() {
           if (body.is_discarded() || !body.contains("id") || !body["id"].is_number_integer()) {
             return absl::InvalidArgumentError("expected {\"id\": ALARM}");
           }
-          const int64_t now =
-              std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-                  .count();
-          auto alarm = alarms->Acknowledge(body["id"].get<int64_t>(), s.user, now);
+          auto alarm = alarms->Acknowledge(body["id"].get<int64_t>(), s.user, UnixNowNs());
           if (!alarm.ok()) return alarm.status();
           events->Publish("alarm", alarm->ToJson());
           return Reply{"application/json", alarm->ToJson()};

@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/clock.h"
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
@@ -15,11 +16,6 @@
 
 namespace stage::console {
 namespace {
-
-int64_t NowUnixNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 Reply Json(const google::protobuf::Message& m) { return {"application/json", ToContractJson(m)}; }
 
@@ -115,7 +111,7 @@ void StageLink::FollowStatus() {
         impl_->latest_status = json;
       }
       events_->Publish("status", std::move(json));
-      auto changed = alarms_->Update(ConditionsOf(status, options_.alarms), NowUnixNs());
+      auto changed = alarms_->Update(ConditionsOf(status, options_.alarms), UnixNowNs());
       if (!changed.ok()) {
         log->error("alarms: {}", changed.status().message());
       } else {

@@ -17,6 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "event_writer.h"
+#include "stage/common/clock.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
@@ -107,9 +108,7 @@ v1::StageStatus ControllerService::Status() const {
   v1::StageStatus status;
   status.set_stage_id(stage_id_);
   status.set_stage_name(stage_name_);
-  status.set_time_unix_ns(
-      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-          .count());
+  status.set_time_unix_ns(UnixNowNs());
   int up = 0;
   for (v1::NodeStatus& node : monitor_->Snapshot()) {
     if (node.state() == v1::NODE_STATE_UP) ++up;
@@ -213,9 +212,7 @@ grpc::Status ControllerService::RehearseTriggers(grpc::ServerContext* context,
   options.take_id = "rehearsal";
   options.slot_rate_hz = schedule.time_base().slot_rate_hz();
   options.t0_unix_ns =
-      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-          .count() +
-      static_cast<int64_t>(request->start_in_ms() > 0 ? request->start_in_ms() : 500) * 1'000'000;
+      UnixNowNs() + static_cast<int64_t>(request->start_in_ms() > 0 ? request->start_in_ms() : 500) * 1'000'000;
   options.slot_count = slots;
   options.lead_ns =
       schedule.trigger_lead_slots() * schedule.time_base().ticks_per_slot() / schedule.time_base().ticks_per_ns();

@@ -4,6 +4,7 @@
 
 #include <utility>
 
+#include "stage/common/clock.h"
 #include "stage/common/grpc_call.h"
 #include "stage/common/grpc_status.h"
 #include "stage/common/rpc_channel.h"
@@ -12,11 +13,6 @@
 
 namespace stage::controller {
 namespace {
-
-int64_t NowUnixNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 // What of a device the stage shows as its state: a change wakes the watchers; counters and temperatures do not.
 std::string ShownState(const v1::NodeDevice& d) {
@@ -82,7 +78,7 @@ void DeviceMonitor::Read(size_t index) {
       if (status.ok()) {
         read.set_id(target.id);
         read.set_kind(target.kind);
-        read.set_read_unix_ns(NowUnixNs());
+        read.set_read_unix_ns(UnixNowNs());
         d = std::move(read);
       } else {
         d.set_error(std::string(status.message()));  // the last good read stays, with its time

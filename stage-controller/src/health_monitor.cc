@@ -5,6 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "grpc/health/v1/health.grpc.pb.h"
+#include "stage/common/clock.h"
 #include "stage/common/logging.h"
 #include "stage/common/node_info.h"
 #include "stage/common/rpc_channel.h"
@@ -16,11 +17,6 @@
 
 namespace stage::controller {
 namespace {
-
-int64_t UnixNowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
 
 // GetInfo through the service of the node's kind.
 grpc::Status CallGetInfo(v1::NodeKind kind, const std::shared_ptr<grpc::Channel>& channel,

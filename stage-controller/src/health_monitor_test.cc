@@ -174,11 +174,6 @@ class SkewedClock final : public Clock {
   int64_t start_;
 };
 
-int64_t UnixNowNs() {
-  return std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
-}
-
 // A camera node whose clock is 3 ms ahead and 200 ppm fast: the controller measures both, within its uncertainty, and
 // flags the node against a limit tighter than that uncertainty.
 TEST(HealthMonitorClockTest, MeasuresOffsetAndDriftAndFlagsTooUncertainClocks) {

@@ -58,4 +58,7 @@ class SimClock final : public Clock {
   int sleepers_ = 0;         // guarded by mutex_
 };
 
+// Wall-clock time now (std::chrono::system_clock), Unix ns: the timestamps of statuses, records and logs.
+int64_t UnixNowNs();
+
 }  // namespace stage
