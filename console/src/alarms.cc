@@ -263,25 +263,27 @@ absl::StatusOr<std::vector<Alarm>> AlarmBook::Update(const std::vector<AlarmCond
 
 absl::StatusOr<Alarm> AlarmBook::Acknowledge(int64_t id, const std::string& user, int64_t now_unix_ns) {
   std::lock_guard<std::mutex> lock(mutex_);
+  // An active alarm, or one of the history.
+  Alarm* active = nullptr;
   for (auto& [key, a] : active_) {
-    if (a.id != id) continue;
-    if (a.acked_unix_ns == 0) {
-      a.acked_unix_ns = now_unix_ns;
-      a.acked_by = user;
-      if (auto s = Save(a); !s.ok()) return s;
-    }
-    return a;
+    if (a.id == id) active = &a;
   }
-  auto rows = Query(absl::StrCat("id = ", id), 1);
-  if (!rows.ok()) return rows.status();
-  if (rows->empty()) return absl::NotFoundError(absl::StrCat("no alarm ", id));
-  Alarm a = rows->front();
-  if (a.acked_unix_ns == 0) {
-    a.acked_unix_ns = now_unix_ns;
-    a.acked_by = user;
-    if (auto s = Save(a); !s.ok()) return s;
+  Alarm alarm;
+  if (active != nullptr) {
+    alarm = *active;
+  } else {
+    auto rows = Query(absl::StrCat("id = ", id), 1);
+    if (!rows.ok()) return rows.status();
+    if (rows->empty()) return absl::NotFoundError(absl::StrCat("no alarm ", id));
+    alarm = rows->front();
   }
-  return a;
+  if (alarm.acked_unix_ns == 0) {
+    alarm.acked_unix_ns = now_unix_ns;
+    alarm.acked_by = user;
+    if (auto s = Save(alarm); !s.ok()) return s;
+    if (active != nullptr) *active = alarm;
+  }
+  return alarm;
 }
 
 std::vector<Alarm> AlarmBook::Active() const {
