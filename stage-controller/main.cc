@@ -89,6 +89,7 @@ int main(int argc, char** argv) {
   // The nodes' devices, read once a second (a light node's mode, temperature and duty; a camera's link and frames).
   stage::controller::DeviceMonitorOptions device_options;
   device_options.timeout = monitor_options.timeout;
+  if (auto s = device_options.Validate(); !s.ok()) return stage::ReportFatal(kProgram, s);
   stage::controller::DeviceMonitor device_monitor(stage::controller::DeviceTargetsFromRig(rig), device_options,
                                                   [&monitor] { monitor.NotifyChange(); });
   device_monitor.Start();

@@ -10,6 +10,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
 #include "stage/common/clock.h"
@@ -263,10 +264,13 @@ void ConsoleServer::Impl::Reads() {
         [alarms](const httplib::Request&, const Sessions::Session&) -> absl::StatusOr<Reply> {
           auto history = alarms->History(200);
           if (!history.ok()) return history.status();
-          nlohmann::json active = nlohmann::json::array(), past = nlohmann::json::array();
-          for (const Alarm& a : alarms->Active()) active.push_back(nlohmann::json::parse(a.ToJson()));
-          for (const Alarm& a : *history) past.push_back(nlohmann::json::parse(a.ToJson()));
-          return Reply{"application/json", nlohmann::json{{"active", active}, {"history", past}}.dump()};
+          // Each alarm is JSON already: joined, not parsed again.
+          auto json = [](const std::vector<Alarm>& list) {
+            return absl::StrCat(
+                "[", absl::StrJoin(list, ",", [](std::string* out, const Alarm& a) { out->append(a.ToJson()); }), "]");
+          };
+          return Reply{"application/json",
+                       absl::StrCat(R"({"active":)", json(alarms->Active()), R"(,"history":)", json(*history), "}")};
         });
   LogTail* logs = parts.logs;
   Route(false, "/api/log", Role::kObserver, [logs](const httplib::Request&, const Sessions::Session&) {
@@ -358,5 +362,6 @@ ConsoleServer::~ConsoleServer() {
 
 const std::string& ConsoleServer::url() const { return impl_->url; }
 int ConsoleServer::port() const { return impl_->serving->port(); }
+const std::string& ConsoleServer::address() const { return impl_->serving->address(); }
 
 }  // namespace stage::console

@@ -48,8 +48,9 @@ class ConsoleServer {
   // Stops serving; the event streams end.
   ~ConsoleServer();
 
-  // "http://host:port/".
+  // "http://host:port/", and "host:port" as clients dial it.
   const std::string& url() const;
+  const std::string& address() const;
   int port() const;
 
  private:

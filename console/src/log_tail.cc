@@ -4,12 +4,28 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/strip.h"
 
 namespace stage::console {
 
 namespace fs = std::filesystem;
+
+absl::Status LogTailOptions::Validate() const {
+  for (const std::string& p : paths) {
+    // A file may come later (a process not started yet), in a directory that is there.
+    std::error_code ec;
+    const fs::path parent = fs::path(p).parent_path();
+    if (!fs::exists(p, ec) && !fs::is_directory(parent.empty() ? fs::path(".") : parent, ec)) {
+      return absl::InvalidArgumentError(absl::StrCat("--tail-log ", p, ": neither it nor its directory exists"));
+    }
+  }
+  if (keep_lines < 1) return absl::InvalidArgumentError("log tail: keep_lines must be at least 1");
+  if (poll_ms < 1) return absl::InvalidArgumentError("log tail: poll_ms must be positive");
+  if (start_bytes < 0) return absl::InvalidArgumentError("log tail: start_bytes must not be negative");
+  return absl::OkStatus();
+}
 
 LogTail::LogTail(LogTailOptions options, EventLog* events) : options_(std::move(options)), events_(events) {}
 

@@ -12,6 +12,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "event_log.h"
 
 namespace stage::console {
@@ -25,6 +26,10 @@ struct LogTailOptions {
   int poll_ms = 200;
   // Of a file found when the tail starts, its last bytes only.
   int64_t start_bytes = 16384;
+
+  // InvalidArgument naming the field: a path whose directory does not exist (--tail-log), a count that is not
+  // positive.
+  absl::Status Validate() const;
 };
 
 class LogTail {
