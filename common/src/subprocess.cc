@@ -79,9 +79,10 @@ absl::StatusOr<std::unique_ptr<Subprocess>> Subprocess::Spawn(const SubprocessOp
   for (std::string& e : env_storage) envp.push_back(e.data());
   envp.push_back(nullptr);
 
-  auto open_out = [](const std::string& path) -> absl::StatusOr<int> {
+  const int mode = options.append ? O_APPEND : O_TRUNC;
+  auto open_out = [mode](const std::string& path) -> absl::StatusOr<int> {
     if (path.empty()) return -1;
-    int fd = open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    int fd = open(path.c_str(), O_WRONLY | O_CREAT | mode | O_CLOEXEC, 0644);
     if (fd < 0) return ErrnoToStatus(errno, absl::StrCat("cannot open ", path));
     return fd;
   };

@@ -6,6 +6,7 @@
 
 #include "absl/strings/str_split.h"
 #include "asset_commands.h"
+#include "graph_commands.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/version.h"
@@ -391,6 +392,8 @@ int main(int argc, char** argv) {
   stabilize.Add(app);
   stage::process::AssetCommands asset;
   asset.Add(app);
+  stage::process::GraphCommands graph;
+  graph.Add(app);
 
   stage::processing::CalibrationJob cal;
   std::string cal_frames = "0:", cal_cameras;
@@ -520,6 +523,7 @@ int main(int argc, char** argv) {
   if (*textures.app) return textures.Run();
   if (*stabilize.app) return stabilize.Run();
   if (asset.Parsed()) return asset.Run();
+  if (graph.Parsed()) return graph.Run(stage::processing::DefaultTaskProgram());
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {

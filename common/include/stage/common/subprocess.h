@@ -22,6 +22,8 @@ struct SubprocessOptions {
   // Files to send the child's stdout / stderr to (created or truncated); empty = inherit the parent's.
   std::string stdout_path;
   std::string stderr_path;
+  // Append to those files instead of truncating them (one file for both then holds both streams in order).
+  bool append = false;
   // stdin from /dev/null (the default) rather than the parent's.
   bool null_stdin = true;
   // The kernel sends SIGKILL to the child when the parent thread that spawned it exits (PR_SET_PDEATHSIG), so a

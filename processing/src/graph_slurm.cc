@@ -1,0 +1,364 @@
+// The Slurm executor (graph_executor.h): a first tiny job checks that a compute node reads the take; then one job array
+// per stage (an element per chunk of frames that must run), each after the arrays it reads (aftercorr where chunk i
+// needs only chunk i, afterok otherwise; --kill-on-invalid-dep, so a failure cancels what waits for it), submitted
+// with sbatch --parsable and watched through squeue --json and the tasks' status files.
+#include <unistd.h>
+
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <random>
+#include <set>
+#include <thread>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "absl/strings/strip.h"
+#include "graph_internal.h"
+#include "stage/common/file_util.h"
+#include "stage/common/status.h"
+#include "stage/common/subprocess.h"
+#include "stage/processing/graph_executor.h"
+
+namespace stage::processing {
+namespace fs = std::filesystem;
+
+absl::Status SlurmOptions::Validate() const {
+  if (poll_ms < 10 || poll_ms > 600000) {
+    return absl::InvalidArgumentError(absl::StrCat("slurm executor: poll_ms ", poll_ms, " is not in 10..600000"));
+  }
+  if (probe_timeout_s < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("slurm executor: probe_timeout_s ", probe_timeout_s, " is not >= 1"));
+  }
+  for (const auto& [stage, r] : resources) {
+    if (r.cpus < 1 || r.cpus > 4096) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("slurm executor: ", GraphStageName(stage), "'s cpus ", r.cpus, " is not in 1..4096"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+namespace {
+
+// The batch script every array runs: task BASE + the array index, up to ATTEMPTS times, then its failure recorded.
+constexpr const char* kTaskScript = R"SH(#!/bin/bash
+# A FaStage processing task on a Slurm node (written by stage-process run --executor slurm; docs/processing.md).
+# Arguments: PROGRAM RUN_DIR BASE ATTEMPTS. Runs task BASE + SLURM_ARRAY_TASK_ID of RUN_DIR/plan.json, again when it
+# fails, ATTEMPTS times in all; after the last failure the task's status file says so.
+set -u
+program=$1 run_dir=$2 base=$3 attempts=$4
+task=$((base + ${SLURM_ARRAY_TASK_ID:-0}))
+code=0
+for ((attempt = 1; attempt <= attempts; ++attempt)); do
+  echo "fastage: task $task attempt $attempt on $(hostname), job ${SLURM_JOB_ID:-?}" >&2
+  "$program" task --run-dir "$run_dir" --task "$task" --attempt "$attempt" && exit 0
+  code=$?
+  echo "fastage: task $task attempt $attempt failed (exit code $code)" >&2
+done
+"$program" task --run-dir "$run_dir" --task "$task" --give-up "failed $attempts time(s), the last with exit code $code"
+exit 1
+)SH";
+
+struct Submitted {
+  GraphStage stage;
+  std::string job;          // the array's job id
+  std::vector<int> chunks;  // its elements
+};
+
+// One job's element as squeue shows it: in the queue (pending, running, completing) or ended, with Slurm's reason.
+struct QueueEntry {
+  bool in_queue = false;
+  std::string state, reason;
+};
+
+class SlurmExecutor final : public GraphExecutor {
+ public:
+  explicit SlurmExecutor(SlurmOptions options) : options_(std::move(options)) {
+    if (options_.program.empty()) options_.program = DefaultTaskProgram();
+  }
+  absl::string_view name() const override { return "slurm"; }
+
+  absl::Status Execute(const GraphPlan& plan, const GraphEvents& events,
+                       const std::function<bool()>& cancelled) override {
+    STAGE_RETURN_IF_ERROR(options_.Validate());
+    scratch_ = plan.run_dir + "/slurm";
+    std::error_code ec;
+    fs::create_directories(scratch_, ec);
+    if (ec) return absl::PermissionDeniedError(absl::StrCat(scratch_, ": cannot create: ", ec.message()));
+    STAGE_RETURN_IF_ERROR(WriteFileAtomically(scratch_ + "/task.sh", kTaskScript));
+    fs::permissions(scratch_ + "/task.sh", fs::perms::owner_all | fs::perms::group_read | fs::perms::group_exec |
+                                               fs::perms::others_read | fs::perms::others_exec);
+    STAGE_RETURN_IF_ERROR(Probe(plan, events, cancelled));
+    std::vector<Submitted> submitted;
+    for (GraphStage stage : plan.stages) {
+      auto job = SubmitStage(plan, stage, submitted);
+      if (!job.ok()) {
+        Cancel(submitted);
+        return job.status();
+      }
+      if (!job->job.empty()) {
+        if (events) {
+          events(absl::StrCat(GraphStageName(stage), ": Slurm job ", job->job, ", array ",
+                              absl::StrJoin(job->chunks, ",")));
+        }
+        submitted.push_back(*std::move(job));
+      }
+    }
+    return Watch(plan, submitted, events, cancelled);
+  }
+
+ private:
+  std::string Tool(const std::string& name) const {
+    return options_.bin_dir.empty() ? name : options_.bin_dir + "/" + name;
+  }
+
+  // Runs a Slurm command: its stdout, or an error with its stderr.
+  absl::StatusOr<std::string> Command(const std::vector<std::string>& argv) const {
+    const std::string out = absl::StrCat(scratch_, "/cmd.", getpid(), ".out");
+    const std::string err = absl::StrCat(scratch_, "/cmd.", getpid(), ".err");
+    SubprocessOptions o;
+    o.argv = argv;
+    o.stdout_path = out;
+    o.stderr_path = err;
+    STAGE_ASSIGN_OR_RETURN(auto child, Subprocess::Spawn(o));
+    const std::optional<ExitInfo> exit = child->Wait(std::chrono::seconds(120));
+    if (!exit) {
+      child->Terminate(std::chrono::seconds(1));
+      return absl::DeadlineExceededError(absl::StrCat(argv[0], " did not answer in 120 s"));
+    }
+    auto text = ReadFileToString(out, "output");
+    auto message = ReadFileToString(err, "errors");
+    if (!exit->ok()) {
+      return absl::UnavailableError(absl::StrCat(absl::StrJoin(argv, " "), ": ", exit->Describe(), ": ",
+                                                 absl::StripAsciiWhitespace(message.ok() ? *message : "")));
+    }
+    return text.ok() ? *text : "";
+  }
+
+  std::vector<std::string> CommonFlags(const GraphPlan& plan) const {
+    std::vector<std::string> flags = {"--parsable", "--chdir=" + plan.run_dir};
+    if (!options_.partition.empty()) flags.push_back("--partition=" + options_.partition);
+    if (!options_.account.empty()) flags.push_back("--account=" + options_.account);
+    flags.insert(flags.end(), options_.sbatch_args.begin(), options_.sbatch_args.end());
+    return flags;
+  }
+
+  // A first tiny job: can a compute node read the take and write beside it?
+  absl::Status Probe(const GraphPlan& plan, const GraphEvents& events, const std::function<bool()>& cancelled) {
+    const std::string mark = absl::StrCat(scratch_, "/probe.", std::random_device{}());
+    const std::string log = plan.run_dir + "/logs/probe.log";
+    std::vector<std::string> argv = {Tool("sbatch")};
+    for (std::string& f : CommonFlags(plan)) argv.push_back(std::move(f));
+    argv.insert(argv.end(), {"--job-name=fastage-probe", "--output=" + log, "--time=" + ProbeTime(), "--wrap",
+                             absl::StrCat("test -r '", plan.take_dir, "/take.json' && hostname > '", mark, "'")});
+    STAGE_ASSIGN_OR_RETURN(const std::string out, Command(argv));
+    const std::string job = ParsableId(out);
+    if (events) events(absl::StrCat("probe: Slurm job ", job, " (does a compute node read the take?)"));
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(options_.probe_timeout_s);
+    while (true) {
+      STAGE_ASSIGN_OR_RETURN(auto queue, Queue());
+      const auto it = queue.find({job, -1});
+      if (it == queue.end() || !it->second.in_queue) break;
+      if ((cancelled && cancelled()) || std::chrono::steady_clock::now() > deadline) {
+        (void)Command({Tool("scancel"), job});
+        return cancelled && cancelled()
+                   ? absl::CancelledError("processing cancelled while the probe job waited")
+                   : absl::DeadlineExceededError(absl::StrCat("the probe job ", job, " did not run within ",
+                                                              options_.probe_timeout_s, " s (is the partition up?)"));
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(options_.poll_ms));
+    }
+    auto host = ReadFileToString(mark, "probe");
+    if (!host.ok()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "the take ", plan.take_dir,
+          " is not readable, or its processing directory not writable, from the compute "
+          "nodes (probe job ",
+          job, " left no mark; its log: ", log, "): put the take on a file system every node mounts at the same path"));
+    }
+    std::error_code ec;
+    fs::remove(mark, ec);
+    if (events) events(absl::StrCat("probe: ", absl::StripAsciiWhitespace(*host), " reads the take"));
+    return absl::OkStatus();
+  }
+
+  std::string ProbeTime() const { return "5"; }
+
+  static std::string ParsableId(const std::string& out) {
+    // "JOBID" or "JOBID;CLUSTER"
+    std::string id(absl::StripAsciiWhitespace(out));
+    return id.substr(0, id.find(';'));
+  }
+
+  absl::StatusOr<Submitted> SubmitStage(const GraphPlan& plan, GraphStage stage,
+                                        const std::vector<Submitted>& before) const {
+    Submitted s{stage, "", {}};
+    int base = -1;
+    for (const GraphTask* t : plan.TasksOf(stage)) {
+      if (base < 0) base = plan.Find(stage, t->chunk);
+      if (t->needed) s.chunks.push_back(t->chunk);
+    }
+    if (s.chunks.empty()) return s;
+    // What it waits for: the arrays of the stages it reads; chunk to chunk when both run the same chunks.
+    std::vector<std::string> after;
+    for (const StageInput& in : SpecOf(stage).inputs) {
+      for (const Submitted& b : before) {
+        if (b.stage != in.stage) continue;
+        const bool corr = plan.ChunkToChunk(stage) && b.chunks == s.chunks;
+        after.push_back(absl::StrCat(corr ? "aftercorr:" : "afterok:", b.job));
+      }
+    }
+    const auto r = options_.resources.find(stage);
+    const SlurmStageResources res = r == options_.resources.end() ? SlurmStageResources{} : r->second;
+    std::vector<std::string> argv = {Tool("sbatch")};
+    for (std::string& f : CommonFlags(plan)) argv.push_back(std::move(f));
+    argv.push_back(absl::StrCat("--job-name=fastage-", GraphStageName(stage)));
+    argv.push_back("--array=" + absl::StrJoin(s.chunks, ","));
+    argv.push_back(absl::StrCat("--output=", plan.run_dir, "/logs/", GraphStageName(stage), ".%a.log"));
+    argv.push_back("--open-mode=append");
+    argv.push_back(absl::StrCat("--cpus-per-task=", res.cpus));
+    if (!res.memory.empty()) argv.push_back("--mem=" + res.memory);
+    const std::string time = res.time_limit.empty() ? options_.time_limit : res.time_limit;
+    if (!time.empty()) argv.push_back("--time=" + time);
+    if (!after.empty()) {
+      argv.push_back("--dependency=" + absl::StrJoin(after, ","));
+      argv.push_back("--kill-on-invalid-dep=yes");
+    }
+    argv.insert(argv.end(), {scratch_ + "/task.sh", options_.program, plan.run_dir, std::to_string(base),
+                             std::to_string(plan.options.retries + 1)});
+    STAGE_ASSIGN_OR_RETURN(const std::string out, Command(argv));
+    s.job = ParsableId(out);
+    if (s.job.empty())
+      return absl::UnavailableError(absl::StrCat("sbatch printed no job id for ", GraphStageName(stage)));
+    return s;
+  }
+
+  // This user's jobs in squeue, by (job id, array element; -1 for a job that is not an array's element).
+  absl::StatusOr<std::map<std::pair<std::string, int>, QueueEntry>> Queue() const {
+    STAGE_ASSIGN_OR_RETURN(const std::string out, Command({Tool("squeue"), "--json", "--me"}));
+    const nlohmann::json j = nlohmann::json::parse(out, nullptr, false);
+    if (j.is_discarded() || !j.contains("jobs")) return absl::DataLossError("squeue --json: not the JSON expected");
+    std::map<std::pair<std::string, int>, QueueEntry> queue;
+    static const std::set<std::string> kInQueue = {"PENDING",   "RUNNING",  "CONFIGURING", "COMPLETING",
+                                                   "SUSPENDED", "REQUEUED", "RESIZING",    "SIGNALING"};
+    for (const auto& job : j["jobs"]) {
+      QueueEntry e;
+      e.state = job.value("job_state", "");
+      e.reason = job.value("state_reason", "");
+      e.in_queue = kInQueue.count(e.state) > 0;
+      const std::string id = std::to_string(job.value("job_id", int64_t{0}));
+      const int64_t array = job.value("array_job_id", int64_t{0});
+      const auto& task = job.contains("array_task_id") ? job["array_task_id"] : nlohmann::json();
+      if (array != 0 && task.is_number_integer()) {
+        queue[{std::to_string(array), task.get<int>()}] = e;
+      } else if (array != 0) {
+        // A pending array's elements not yet split out: "0-3", "1,4-5", "0-9%2".
+        for (absl::string_view part : absl::StrSplit(job.value("array_task_string", ""), ',', absl::SkipEmpty())) {
+          part = part.substr(0, part.find('%'));
+          const std::vector<std::string> ends = absl::StrSplit(part, '-');
+          int a = 0, b = 0;
+          if (!absl::SimpleAtoi(ends[0], &a)) continue;
+          b = a;
+          if (ends.size() > 1 && !absl::SimpleAtoi(ends[1], &b)) continue;
+          for (int k = a; k <= b; ++k) queue[{std::to_string(array), k}] = e;
+        }
+      }
+      queue[{id, -1}] = e;
+    }
+    return queue;
+  }
+
+  void Cancel(const std::vector<Submitted>& submitted) const {
+    for (const Submitted& s : submitted) (void)Command({Tool("scancel"), s.job});
+  }
+
+  absl::Status Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted, const GraphEvents& events,
+                     const std::function<bool()>& cancelled) const;
+
+  SlurmOptions options_;
+  std::string scratch_;
+};
+
+absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted,
+                                  const GraphEvents& events, const std::function<bool()>& cancelled) const {
+  struct Watched {
+    int task;
+    std::string job;
+    int chunk;
+    bool finished = false;
+    int attempt = 0;
+  };
+  std::vector<Watched> watched;
+  for (const Submitted& s : submitted) {
+    for (int c : s.chunks) watched.push_back({plan.Find(s.stage, c), s.job, c});
+  }
+  while (true) {
+    if (cancelled && cancelled()) {
+      Cancel(submitted);
+      for (Watched& w : watched) {
+        if (w.finished) continue;
+        TaskStatus s;
+        s.state = TaskState::kCancelled;
+        s.message = "the run was cancelled";
+        s.log = LogPath(plan, plan.tasks[w.task]);
+        (void)WriteTaskStatus(StatusPath(plan, plan.tasks[w.task]), s);
+      }
+      return absl::CancelledError(absl::StrCat("processing of ", plan.take_dir, " cancelled"));
+    }
+    STAGE_ASSIGN_OR_RETURN(const auto queue, Queue());
+    size_t open = 0;
+    for (Watched& w : watched) {
+      if (w.finished) continue;
+      const GraphTask& task = plan.tasks[w.task];
+      const std::string name = plan.TaskName(task), path = StatusPath(plan, task);
+      const auto q = queue.find({w.job, w.chunk});
+      const bool in_queue = q != queue.end() && q->second.in_queue;
+      auto status = ReadTaskStatus(path);
+      if (status.ok() && status->attempt > w.attempt) {
+        if (w.attempt > 0 && events) events(absl::StrCat(name, ": attempt ", status->attempt, " (a retry)"));
+        if (events && status->state == TaskState::kRunning) {
+          events(absl::StrCat(name, " running on ", status->host, " (pid ", status->pid, ")"));
+        }
+        w.attempt = status->attempt;
+      }
+      if (status.ok() && status->state == TaskState::kDone) {
+        w.finished = true;
+        if (events) events(absl::StrCat(name, " done: ", status->message));
+        continue;
+      }
+      if (in_queue) {
+        ++open;
+        continue;
+      }
+      // Out of the queue without being done: failed (its status says so), or ended by Slurm.
+      w.finished = true;
+      if (status.ok() && status->state == TaskState::kFailed) {
+        if (events) events(absl::StrCat(name, " failed: ", status->message, " (log: ", status->log, ")"));
+        continue;
+      }
+      TaskStatus s = status.ok() ? *status : TaskStatus{};
+      const std::string slurm =
+          q == queue.end() ? "gone from the queue" : absl::StrCat(q->second.state, ", ", q->second.reason);
+      s.state = status.ok() ? TaskState::kFailed : TaskState::kCancelled;
+      s.message = status.ok() ? absl::StrCat("its Slurm job ended while it ran (", slurm, ")")
+                              : absl::StrCat("not run: Slurm ended its job (", slurm, ")");
+      s.log = LogPath(plan, task);
+      (void)WriteTaskStatus(path, s);
+      if (events) events(absl::StrCat(name, " ", TaskStateName(s.state), ": ", s.message));
+    }
+    (void)WriteGraphSummary(plan, GraphProgress(plan), false);
+    if (open == 0) return absl::OkStatus();
+    std::this_thread::sleep_for(std::chrono::milliseconds(options_.poll_ms));
+  }
+}
+
+}  // namespace
+
+std::unique_ptr<GraphExecutor> MakeSlurmExecutor(const SlurmOptions& options) {
+  return std::make_unique<SlurmExecutor>(options);
+}
+
+}  // namespace stage::processing

@@ -1,0 +1,40 @@
+// `stage-process run` (the processing graph over a take, docs/processing.md#the-graph) and `stage-process task` (one
+// of its tasks: what the executors start, locally or on a Slurm node).
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <string>
+#include <vector>
+
+#include "stage/processing/graph_executor.h"
+
+namespace stage::process {
+
+class GraphCommands {
+ public:
+  void Add(CLI::App& parent);
+  // True when one of them was given on the command line.
+  bool Parsed() const;
+  // `self`: this program's path (argv[0]), which a task re-runs for its stage.
+  int Run(const std::string& self);
+
+ private:
+  int RunGraph();
+  int RunTask(const std::string& self);
+  // Fills options_ and the executor's from the flags; an error names the flag.
+  absl::Status Collect();
+
+  CLI::App* run_ = nullptr;
+  CLI::App* task_ = nullptr;
+  processing::GraphOptions options_;
+  std::string stages_, frames_ = "0:", executor_ = "local";
+  std::vector<std::string> with_, cpus_, mem_;
+  processing::LocalExecutorOptions local_;
+  processing::SlurmOptions slurm_;
+  bool dry_run_ = false, json_ = false;
+  // task
+  std::string run_dir_, give_up_;
+  int task_index_ = -1, attempt_ = 1;
+};
+
+}  // namespace stage::process
