@@ -123,10 +123,10 @@ TEST_F(LoadTest, TheDemosPhotometricTakeStaysCompleteOnABusyMachineWithItsNodesS
   EXPECT_EQ(take["hint"], "");
 }
 
-// The demo's one-second take (912 slots, 3312 frames at render scale 0.02; the head held still, so that the busy loops
-// and the stops, not the rendering, make the load) on busy cores, its devices stopped and continued: COMPLETE, every
-// frame stored.
-TEST_F(LoadTest, TheDemosOneSecondTakeStaysCompleteOnABusyMachineWithItsNodesStoppedAndContinued) {
+// Half of the demo's one-second take (456 slots, 1656 frames at render scale 0.02; the head held still, so that the
+// busy loops and the stops, not the rendering, make the load; on this machine it still lasts over a minute, several
+// rounds of stops) on busy cores, its devices stopped and continued: COMPLETE, every frame stored.
+TEST_F(LoadTest, AHalfSecondTakeOfTheDemosSceneStaysCompleteOnABusyMachineWithItsNodesStoppedAndContinued) {
   TempDir root;
   BusyLoops busy(2);
   ASSERT_NO_FATAL_FAILURE(StartStage(ControlPlaneScene({"--take-root", root.path()})));
@@ -137,7 +137,7 @@ TEST_F(LoadTest, TheDemosOneSecondTakeStaysCompleteOnABusyMachineWithItsNodesSto
   devices.push_back(endpoints_.stage_sim_pid());
   Stopper stopper(devices, 3, std::chrono::seconds(8), std::chrono::seconds(4));
   CommandResult capture =
-      Stagectl({"capture", "--seconds", "1", "--name", "demo", "--json"}, std::chrono::seconds(900));
+      Stagectl({"capture", "--seconds", "0.5", "--name", "demo", "--json"}, std::chrono::seconds(900));
   stopper.Stop();
   ASSERT_FALSE(capture.timed_out) << capture.err;
   EXPECT_EQ(capture.exit.exit_code, 0) << capture.out << capture.err;
@@ -145,8 +145,8 @@ TEST_F(LoadTest, TheDemosOneSecondTakeStaysCompleteOnABusyMachineWithItsNodesSto
   EXPECT_GE(stopper.stops(), 6);
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE") << take.dump(2) << "\n" << capture.err;
-  EXPECT_EQ(take["total"]["expected"], "3312");
-  EXPECT_EQ(take["total"]["stored"], "3312");
+  EXPECT_EQ(take["total"]["expected"], "1656");
+  EXPECT_EQ(take["total"]["stored"], "1656");
 }
 
 }  // namespace

@@ -33,8 +33,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   ASSERT_TRUE(fs::exists(dir + "/ground_truth/frame-000000/mesh.obj"));
 
   // The worker, through the controller: results in the take's derived/photometric.
-  CommandResult worker = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--geometry", "ground_truth",
-                                     "--calibration", "ground_truth", "--json"},
+  CommandResult worker = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "photometric",
+                                     "--geometry", "ground_truth", "--calibration", "ground_truth", "--json"},
                                     std::chrono::seconds(300));
   ASSERT_EQ(worker.exit.exit_code, 0) << worker.err;
   const nlohmann::json done = nlohmann::json::parse(worker.out);
@@ -143,9 +143,10 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   CommandResult stage_name =
       RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "uv-maps"}, std::chrono::seconds(30));
   EXPECT_EQ(stage_name.exit.exit_code, 2);
-  EXPECT_THAT(stage_name.err,
-              HasSubstr("--stage: \"uv-maps\" is not a stage (photometric, calibration, mvs, fit, textures, stabilize, "
-                        "asset-dataset, asset-train, asset-infer)"));
+  EXPECT_THAT(
+      stage_name.err,
+      HasSubstr("--stage: \"uv-maps\" is not a stage (graph, photometric, calibration, mvs, fit, textures, stabilize, "
+                "asset-dataset, asset-train, asset-infer)"));
   CommandResult no_take =
       RunCommand({"stage-process", "photometric", "--take", root.path() + "/missing"}, std::chrono::seconds(30));
   EXPECT_EQ(no_take.exit.exit_code, 2);
@@ -173,7 +174,8 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
                                           "mvs stage first"));
   EXPECT_FALSE(fs::exists(dir + "/derived/no-mvs/run.json"));
   CommandResult no_mvs_worker = RunCommand(
-      {"stagectl", "--endpoints", endpoints, "process", id, "--calibration", "ground_truth"}, std::chrono::seconds(60));
+      {"stagectl", "--endpoints", endpoints, "process", id, "--stage", "photometric", "--calibration", "ground_truth"},
+      std::chrono::seconds(60));
   EXPECT_NE(no_mvs_worker.exit.exit_code, 0);
   EXPECT_THAT(no_mvs_worker.err, HasSubstr("or take --geometry none"));
 

@@ -360,6 +360,22 @@ async function refreshTiming() {
 }
 
 // ---- takes ----
+// A take's processing: per stage of its last graph run (done, or its state and units up to date); else the stages with
+// results.
+function processingCell(t) {
+  const stages = t.processing || [];
+  if (!stages.length) return esc((t.processed || []).join(', ')) || '—';
+  return stages
+      .map((p) => {
+        const name = enumName(p.stage, 'PROCESSING_STAGE_').toLowerCase();
+        const state = enumName(p.state, 'STAGE_PROCESSING_STATE_').toLowerCase();
+        const count = `${Number(p.up_to_date || 0)}/${Number(p.units || 0)}`;
+        return `<span class="stage-${esc(state)}" title="${esc(state)}: ${count} up to date">${esc(name)} ${
+            state === 'done' ? '✓' : `${esc(state)} ${count}`}</span>`;
+      })
+      .join(', ');
+}
+// ---- takes ----
 async function refreshTakes() {
   try {
     const list = await api('/api/takes');
@@ -374,7 +390,7 @@ async function refreshTakes() {
                     `<td>${enumName(t.state, 'TAKE_STATE_')}</td><td>${enumName(t.outcome, 'TAKE_OUTCOME_')}</td>` +
                     `<td>${t.frames_stored}/${t.frames_expected}</td><td>${
                            (Number(t.size_bytes) / 1e6).toFixed(1)} MB</td>` +
-                    `<td class="processed">${esc((t.processed || []).join(', ')) || '—'}</td>` +
+                    `<td class="processed">${processingCell(t)}</td>` +
                     '<td class="selftest" title="click the take for its self-test"></td></tr>')
             .join('');
   } catch (e) {

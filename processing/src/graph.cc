@@ -265,6 +265,8 @@ absl::Status WriteTaskStatus(const std::string& path, const TaskStatus& status) 
   j["message"] = status.message;
   j["units_made"] = status.made;
   j["units_up_to_date"] = status.up_to_date;
+  j["wall_s"] = status.wall_s;
+  j["cpu_s"] = status.cpu_s;
   std::error_code ec;
   fs::create_directories(fs::path(path).parent_path(), ec);
   return WriteFileAtomically(path, j.dump(2) + "\n");
@@ -292,6 +294,8 @@ absl::StatusOr<TaskStatus> ReadTaskStatus(const std::string& path) {
   s.message = j.value("message", "");
   s.made = j.value("units_made", int64_t{0});
   s.up_to_date = j.value("units_up_to_date", int64_t{0});
+  s.wall_s = j.value("wall_s", 0.0);
+  s.cpu_s = j.value("cpu_s", 0.0);
   return s;
 }
 

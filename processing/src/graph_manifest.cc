@@ -1,8 +1,10 @@
 // The processing graph's units, keys and manifests, its plan file, and one task's run (graph.h, graph_internal.h).
 #include <openssl/evp.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -331,6 +333,14 @@ absl::StatusOr<GraphPlan> ReadPlan(const std::string& run_dir) {
 
 namespace {
 
+// This process's CPU time so far, every thread, seconds.
+double ProcessCpuSeconds() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return static_cast<double>(u.ru_utime.tv_sec + u.ru_stime.tv_sec) +
+         1e-6 * static_cast<double>(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
+}
+
 std::string HostName() {
   char host[256] = {};
   gethostname(host, sizeof(host) - 1);
@@ -412,6 +422,8 @@ absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const S
         absl::StrCat("task ", index, " is not in ", plan.run_dir, "/plan.json (", plan.tasks.size(), " tasks)"));
   }
   const GraphTask& task = plan.tasks[index];
+  const auto started = std::chrono::steady_clock::now();
+  const double cpu_before = ProcessCpuSeconds();
   TaskStatus status;
   status.state = TaskState::kRunning;
   status.attempt = attempt;
@@ -420,7 +432,12 @@ absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const S
   status.log = LogPath(plan, task);
   const std::string status_path = StatusPath(plan, task);
   STAGE_RETURN_IF_ERROR(WriteTaskStatus(status_path, status));
+  auto times = [&] {
+    status.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+    status.cpu_s = ProcessCpuSeconds() - cpu_before;
+  };
   auto fail = [&](const absl::Status& s) {
+    times();
     status.state = TaskState::kFailed;
     status.message = std::string(s.message());
     (void)WriteTaskStatus(status_path, status);
@@ -442,6 +459,13 @@ absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const S
     if (auto s = RunStale(plan, task, attempt, run, stale); !s.ok()) return fail(s);
     status.made = static_cast<int64_t>(stale.size());
   }
+  // What earlier attempts of it left (a killed one's half-made units).
+  std::error_code ec;
+  const std::string prefix = plan.TaskName(task) + "-a";
+  for (fs::directory_iterator it(plan.run_dir + "/work", ec), end; !ec && it != end; it.increment(ec)) {
+    if (it->path().filename().string().rfind(prefix, 0) == 0) fs::remove_all(it->path(), ec);
+  }
+  times();
   status.state = TaskState::kDone;
   status.message = absl::StrCat(status.made, " unit(s) made, ", status.up_to_date, " up to date");
   return WriteTaskStatus(status_path, status);

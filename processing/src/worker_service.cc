@@ -79,16 +79,20 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       job->stage() != v1::PROCESSING_STAGE_MVS && job->stage() != v1::PROCESSING_STAGE_FIT &&
       job->stage() != v1::PROCESSING_STAGE_TEXTURES && job->stage() != v1::PROCESSING_STAGE_STABILIZE &&
       job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET && job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN &&
-      job->stage() != v1::PROCESSING_STAGE_ASSET_INFER) {
+      job->stage() != v1::PROCESSING_STAGE_ASSET_INFER && job->stage() != v1::PROCESSING_STAGE_GRAPH) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat(
         "worker \"", id_, "\": no stage ", v1::ProcessingStage_Name(job->stage()),
         " (stages: photometric, calibration, mvs, fit, textures, stabilize, asset dataset, asset train, asset "
-        "infer)")));
+        "infer, graph)")));
   }
   if (job->has_asset() && job->stage() != v1::PROCESSING_STAGE_ASSET_DATASET &&
       job->stage() != v1::PROCESSING_STAGE_ASSET_TRAIN) {
     return ToGrpcStatus(absl::InvalidArgumentError(
         absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no asset options")));
+  }
+  if (job->has_graph() && job->stage() != v1::PROCESSING_STAGE_GRAPH) {
+    return ToGrpcStatus(absl::InvalidArgumentError(
+        absl::StrCat("worker \"", id_, "\": ", v1::ProcessingStage_Name(job->stage()), " takes no graph request")));
   }
   if (job->take_dir().empty()) {
     return ToGrpcStatus(absl::InvalidArgumentError(absl::StrCat("worker \"", id_, "\": the job names no take")));
@@ -139,6 +143,9 @@ grpc::Status WorkerService::Process(grpc::ServerContext* context, const v1::Proc
       break;
     case v1::PROCESSING_STAGE_ASSET_INFER:
       result = RunAssetInferJob(*job, report, cancelled);
+      break;
+    case v1::PROCESSING_STAGE_GRAPH:
+      result = RunGraphJob(*job, report, cancelled);
       break;
     default:
       result = RunPhotometricJob(*job, report, cancelled);

@@ -56,6 +56,10 @@ class WorkerService final : public v1::ProcessingWorker::Service {
   absl::StatusOr<v1::ProcessingProgress> RunAssetInferJob(const v1::ProcessingJob& job,
                                                           const std::function<void(const JobProgress&)>& progress,
                                                           const std::function<bool()>& cancelled) const;
+  // worker_graph.cc: the processing graph on this machine (the local executor).
+  absl::StatusOr<v1::ProcessingProgress> RunGraphJob(const v1::ProcessingJob& job,
+                                                     const std::function<void(const JobProgress&)>& progress,
+                                                     const std::function<bool()>& cancelled) const;
   std::string id_;
   std::string rig_hash_;
   uint32_t threads_;

@@ -6,12 +6,16 @@
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
+#include <nlohmann/json.hpp>
+#include <optional>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
-#include "stage/common/subprocess.h"
+#include "stage/common/status.h"
 
 namespace stage::process {
 namespace {
@@ -42,6 +46,19 @@ std::string LastError(const std::string& log) {
     if (absl::ConsumePrefix(&line, "stage-process: error: ")) last = std::string(line);
   }
   return last;
+}
+
+// "mvs 2/2, photometric 1/2 (1 running)": units up to date per stage.
+std::string ProgressWords(const std::vector<processing::StageProgress>& progress) {
+  std::vector<std::string> words;
+  for (const processing::StageProgress& p : progress) {
+    std::string w = absl::StrCat(processing::GraphStageName(p.stage), " ", p.up_to_date, "/", p.units);
+    if (p.running > 0) absl::StrAppend(&w, " (", p.running, " running)");
+    if (p.failed > 0) absl::StrAppend(&w, " (", p.failed, " failed)");
+    if (p.cancelled > 0) absl::StrAppend(&w, " (", p.cancelled, " cancelled)");
+    words.push_back(std::move(w));
+  }
+  return absl::StrJoin(words, ", ");
 }
 
 }  // namespace
@@ -85,6 +102,13 @@ void GraphCommands::Add(CLI::App& parent) {
   run_->add_flag("--dry-run", dry_run_, "Print the plan (each task, whether it runs and why) and run nothing");
   run_->add_flag("--json", json_, "Print the report (or with --dry-run the plan) as JSON on stdout");
 
+  status_ = parent.add_subcommand(
+      "status",
+      "Where a take's processing stands (its last or running graph run, TAKE/processing): per stage, its units up to "
+      "date and its tasks running, failed or cancelled");
+  status_->add_option("--take", options_.take_dir, "The take directory")->required();
+  status_->add_flag("--json", json_, "Print it as JSON on stdout");
+
   task_ = parent.add_subcommand(
       "task",
       "One task of a processing run (what the executors start; docs/processing.md): a stage over the task's frames "
@@ -96,9 +120,44 @@ void GraphCommands::Add(CLI::App& parent) {
   task_->add_option("--give-up", give_up_, "Record the task failed with this message, and run nothing");
 }
 
-bool GraphCommands::Parsed() const { return run_->parsed() || task_->parsed(); }
+bool GraphCommands::Parsed() const { return run_->parsed() || task_->parsed() || status_->parsed(); }
 
-int GraphCommands::Run(const std::string& self) { return run_->parsed() ? RunGraph() : RunTask(self); }
+int GraphCommands::Run(const StageCommand& stage_command) {
+  if (status_->parsed()) return Status();
+  return run_->parsed() ? RunGraph() : RunTask(stage_command);
+}
+
+int GraphCommands::Status() {
+  const std::string run_dir = fs::absolute(options_.take_dir).lexically_normal().string() + "/processing";
+  auto plan = processing::ReadPlan(run_dir);
+  if (!plan.ok()) {
+    return ReportFatal(kProgram, absl::NotFoundError(absl::StrCat(
+                                     options_.take_dir,
+                                     ": no processing run (stage-process run starts one): ", plan.status().message())));
+  }
+  const std::vector<processing::StageProgress> progress = processing::GraphProgress(*plan);
+  if (json_) {
+    nlohmann::ordered_json j;
+    j["take_dir"] = plan->take_dir;
+    j["frames"] = {plan->first_frame, plan->last_frame};
+    j["stages"] = nlohmann::json::array();
+    for (const processing::StageProgress& p : progress) {
+      j["stages"].push_back({{"stage", processing::GraphStageName(p.stage)},
+                             {"units", p.units},
+                             {"up_to_date", p.up_to_date},
+                             {"tasks", p.tasks},
+                             {"running", p.running},
+                             {"done", p.done},
+                             {"failed", p.failed},
+                             {"cancelled", p.cancelled}});
+    }
+    std::cout << j.dump() << "\n";
+  } else {
+    std::cout << plan->take_dir << " frames " << plan->first_frame << ":" << plan->last_frame << ": "
+              << ProgressWords(progress) << "\n";
+  }
+  return 0;
+}
 
 absl::Status GraphCommands::Collect() {
   STAGE_RETURN_IF_ERROR(ParseFrameRange("--frames", frames_, &options_.first_frame, &options_.last_frame));
@@ -161,14 +220,24 @@ int GraphCommands::RunGraph() {
   }
   std::unique_ptr<processing::GraphExecutor> executor =
       executor_ == "slurm" ? processing::MakeSlurmExecutor(slurm_) : processing::MakeLocalExecutor(local_);
-  auto report = processing::RunGraph(
-      options_, *executor, [](const std::string& line) { std::cerr << "stage-process run: " << line << std::endl; });
+  // Each task's news, and after each that ends, where every stage stands.
+  std::optional<processing::GraphPlan> plan;
+  auto report = processing::RunGraph(options_, *executor, [&](const std::string& line) {
+    std::cerr << "stage-process run: " << line << std::endl;
+    if (line.find(" done: ") == std::string::npos && line.find(" failed") == std::string::npos) return;
+    if (!plan) {
+      auto read = processing::ReadPlan(fs::absolute(options_.take_dir).lexically_normal().string() + "/processing");
+      if (!read.ok()) return;
+      plan = *std::move(read);
+    }
+    std::cerr << "stage-process run: progress: " << ProgressWords(processing::GraphProgress(*plan)) << std::endl;
+  });
   if (!report.ok()) return ReportFatal(kProgram, report.status());
   std::cout << (json_ ? processing::GraphReportJson(*report) + "\n" : processing::FormatGraphReport(*report));
   return report->ok() ? 0 : 2;
 }
 
-int GraphCommands::RunTask(const std::string& self) {
+int GraphCommands::RunTask(const StageCommand& stage_command) {
   auto plan = processing::ReadPlan(run_dir_);
   if (!plan.ok()) return ReportFatal(kProgram, plan.status());
   if (task_index_ < 0 || task_index_ >= static_cast<int>(plan->tasks.size())) {
@@ -201,15 +270,12 @@ int GraphCommands::RunTask(const std::string& self) {
       std::cerr << "stage-process task: held (STAGE_GRAPH_HOLD_TASK) until killed" << std::endl;
       while (true) pause();
     }
-    SubprocessOptions o;
-    o.argv = {self};
-    o.argv.insert(o.argv.end(), argv.begin(), argv.end());
-    STAGE_ASSIGN_OR_RETURN(auto child, Subprocess::Spawn(o));
-    const ExitInfo exit = *child->Wait();
-    if (exit.ok()) return absl::OkStatus();
+    // In this process: a second one would load the program's libraries again (about 2 s).
+    const int code = stage_command(argv);
+    if (code == 0) return absl::OkStatus();
     const std::string last = LastError(processing::LogPath(*plan, task));
     return absl::InternalError(
-        absl::StrCat("stage-process ", argv[0], " ", exit.Describe(), last.empty() ? "" : ": ", last));
+        absl::StrCat("stage-process ", argv[0], ": exit code ", code, last.empty() ? "" : ": ", last));
   };
   if (auto s = processing::RunGraphTask(*plan, task_index_, attempt_, run); !s.ok()) return ReportFatal(kProgram, s);
   return 0;

@@ -1,8 +1,9 @@
-// `stage-process run` (the processing graph over a take, docs/processing.md#the-graph) and `stage-process task` (one
-// of its tasks: what the executors start, locally or on a Slurm node).
+// `stage-process run` (the processing graph over a take, docs/processing.md#the-graph), `stage-process status` (where
+// a take's run stands) and `stage-process task` (one of its tasks: what the executors start, here or on a Slurm node).
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -15,17 +16,20 @@ class GraphCommands {
   void Add(CLI::App& parent);
   // True when one of them was given on the command line.
   bool Parsed() const;
-  // `self`: this program's path (argv[0]), which a task re-runs for its stage.
-  int Run(const std::string& self);
+  // Runs a stage's command line (["mvs", "--take", ...]) in this process: its exit code. A task's stage.
+  using StageCommand = std::function<int(const std::vector<std::string>& args)>;
+  int Run(const StageCommand& stage_command);
 
  private:
   int RunGraph();
-  int RunTask(const std::string& self);
+  int Status();
+  int RunTask(const StageCommand& stage_command);
   // Fills options_ and the executor's from the flags; an error names the flag.
   absl::Status Collect();
 
   CLI::App* run_ = nullptr;
   CLI::App* task_ = nullptr;
+  CLI::App* status_ = nullptr;
   processing::GraphOptions options_;
   std::string stages_, frames_ = "0:", executor_ = "local";
   std::vector<std::string> with_, cpus_, mem_;

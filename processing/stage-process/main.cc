@@ -323,8 +323,8 @@ struct StabilizeCommand {
 
 }  // namespace
 
-int main(int argc, char** argv) {
-  stage::ExecWithPassiveOpenMp(argv);  // torch's and Open3D's OpenMP loops
+// The command line's work, once the process is set up: also what a graph task calls for its stage, in process.
+int Dispatch(int argc, char** argv) {
   CLI::App app{
       "Runs FaStage processing stages on a take (the batch form of the ProcessingWorker service), and "
       "evaluates their results against the simulator's ground truth.",
@@ -523,7 +523,16 @@ int main(int argc, char** argv) {
   if (*textures.app) return textures.Run();
   if (*stabilize.app) return stabilize.Run();
   if (asset.Parsed()) return asset.Run();
-  if (graph.Parsed()) return graph.Run(stage::processing::DefaultTaskProgram());
+  if (graph.Parsed()) {
+    return graph.Run([](const std::vector<std::string>& args) {
+      std::vector<std::string> storage = {kProgram};
+      storage.insert(storage.end(), args.begin(), args.end());
+      std::vector<char*> stage_argv;
+      for (std::string& a : storage) stage_argv.push_back(a.data());
+      stage_argv.push_back(nullptr);
+      return Dispatch(static_cast<int>(storage.size()), stage_argv.data());
+    });
+  }
   if (*calibrate) {
     if (auto s = stage::ParseFrameRange("--frames", cal_frames, &cal.options.first_frame, &cal.options.last_frame);
         !s.ok()) {
@@ -589,4 +598,9 @@ int main(int argc, char** argv) {
     return 0;
   }
   return 0;
+}
+
+int main(int argc, char** argv) {
+  stage::ExecWithPassiveOpenMp(argv);  // torch's and Open3D's OpenMP loops
+  return Dispatch(argc, argv);
 }

@@ -490,6 +490,7 @@ grpc::Status ControllerService::ProcessTake(grpc::ServerContext* context, const 
   job.set_texture_size(request->texture_size());
   job.set_stabilize_method(request->stabilize_method());
   if (request->has_asset()) *job.mutable_asset() = request->asset();  // infer and the other stages refuse one
+  if (request->has_graph()) *job.mutable_graph() = request->graph();  // the single stages refuse one
   Logger("controller")
       ->info("take {}: {} on worker {} ({})", request->take_id(), v1::ProcessingStage_Name(job.stage()), worker->id(),
              worker->address());

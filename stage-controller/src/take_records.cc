@@ -11,6 +11,7 @@
 #include "absl/strings/str_join.h"
 #include "stage/common/file_util.h"
 #include "stage/common/ledger_counts.h"
+#include "stage/common/logging.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
@@ -303,6 +304,46 @@ absl::StatusOr<v1::LedgerPage> TakeRecords::GetLedger(const v1::GetLedgerRequest
   return page;
 }
 
+namespace {
+
+// The processing graph's stage names (stage-process run --stages) as the contract's enum.
+v1::ProcessingStage StageOfName(const std::string& name) {
+  v1::ProcessingStage stage = v1::PROCESSING_STAGE_UNSPECIFIED;
+  if (name == "calibrate") return v1::PROCESSING_STAGE_CALIBRATION;
+  std::string upper = name;
+  for (char& c : upper) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  v1::ProcessingStage_Parse("PROCESSING_STAGE_" + upper, &stage);
+  return stage;
+}
+
+}  // namespace
+
+// The take's last processing graph run, from <take>/processing/status.json (written by its executors): nothing when
+// there is none, or it cannot be read (logged; the catalog still lists the take).
+void TakeRecords::AddGraphStatus(const std::string& take_dir, v1::TakeRecord* t) {
+  const std::string path = take_dir + "/processing/status.json";
+  std::error_code ec;
+  if (!fs::exists(path, ec)) return;
+  auto text = ReadFileToString(path, "processing status");
+  const nlohmann::json j = text.ok() ? nlohmann::json::parse(*text, nullptr, false) : nlohmann::json();
+  if (!j.is_object() || !j.contains("stages") || !j["stages"].is_array()) {
+    Logger("controller")->warn("{}: not a processing status; the take's catalog entry goes without it", path);
+    return;
+  }
+  static const std::map<std::string, v1::StageProcessingState> kStates = {
+      {"done", v1::STAGE_PROCESSING_STATE_DONE},           {"running", v1::STAGE_PROCESSING_STATE_RUNNING},
+      {"pending", v1::STAGE_PROCESSING_STATE_PENDING},     {"failed", v1::STAGE_PROCESSING_STATE_FAILED},
+      {"cancelled", v1::STAGE_PROCESSING_STATE_CANCELLED}, {"incomplete", v1::STAGE_PROCESSING_STATE_INCOMPLETE}};
+  for (const auto& s : j["stages"]) {
+    v1::StageProcessing* p = t->add_processing();
+    p->set_stage(StageOfName(s.value("stage", "")));
+    const auto state = kStates.find(s.value("state", ""));
+    p->set_state(state == kStates.end() ? v1::STAGE_PROCESSING_STATE_UNSPECIFIED : state->second);
+    p->set_units(s.value("units", int64_t{0}));
+    p->set_up_to_date(s.value("up_to_date", int64_t{0}));
+  }
+}
+
 absl::StatusOr<v1::TakeList> TakeRecords::ListTakes() const {
   STAGE_ASSIGN_OR_RETURN(std::vector<storage::TakeRow> rows, catalog_->ListTakes());
   v1::TakeList list;
@@ -326,6 +367,7 @@ absl::StatusOr<v1::TakeList> TakeRecords::ListTakes() const {
     }
     std::sort(stages.begin(), stages.end());
     for (std::string& stage : stages) t->add_processed(std::move(stage));
+    AddGraphStatus(t->dir(), t);
   }
   return list;
 }

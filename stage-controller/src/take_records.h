@@ -100,6 +100,8 @@ class TakeRecords {
   absl::StatusOr<v1::TakeSummary> GetTake(const std::string& id) const;
 
  private:
+  // TakeRecord.processing from the take's processing/status.json.
+  static void AddGraphStatus(const std::string& take_dir, v1::TakeRecord* t);
   TakeRecords() = default;
   // The id, with "latest" the newest take's.
   absl::StatusOr<storage::TakeRow> Row(const std::string& id) const;

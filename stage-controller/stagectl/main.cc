@@ -20,6 +20,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
 #include "absl/strings/str_split.h"
+#include "absl/strings/strip.h"
 #include "fmt/format.h"
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
@@ -634,7 +635,13 @@ int Preview(const Connection& c, const std::string& camera, const std::string& o
 }
 
 struct ProcessFlags {
-  std::string take_id, stage = "photometric", frames = "0:", cameras, geometry, calibration, worker;
+  std::string take_id, stage = "graph", frames = "0:", cameras, geometry, calibration, worker;
+  // --stage graph (the processing graph): the outputs asked for, frames per task, each stage's own flags
+  // (STAGE:FLAG), retries of a failed task, tasks at a time.
+  std::string graph_stages;
+  int64_t chunk_frames = 0;
+  std::vector<std::string> with;
+  int32_t retries = 1, jobs = 0;
   std::string stabilize_method;  // empty: the worker's default (the flow)
   int32_t texture_size = 0;      // 0: the worker's default
   // The asset's stages (0 and empty: the worker's defaults).
@@ -681,6 +688,47 @@ absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeReques
   return absl::OkStatus();
 }
 
+// "mvs" -> PROCESSING_STAGE_MVS ("calibrate" too names calibration, as stage-process run's --stages has it).
+bool ParseStage(const std::string& word, stage::v1::ProcessingStage* kind) {
+  return stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + EnumSuffix(word == "calibrate" ? "calibration" : word),
+                                          kind) &&
+         *kind != stage::v1::PROCESSING_STAGE_UNSPECIFIED;
+}
+
+// The graph's options of `f` on `request` with --stage graph; refused with another stage.
+absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage kind,
+                             stage::v1::ProcessTakeRequest* request) {
+  if (kind != stage::v1::PROCESSING_STAGE_GRAPH) {
+    if (!f.graph_stages.empty() || f.chunk_frames != 0 || !f.with.empty() || f.jobs != 0) {
+      return absl::InvalidArgumentError("--stages, --chunk-frames, --with and --jobs apply to --stage graph");
+    }
+    return absl::OkStatus();
+  }
+  stage::v1::GraphRequest* g = request->mutable_graph();
+  for (absl::string_view word : absl::StrSplit(f.graph_stages, ',', absl::SkipEmpty())) {
+    stage::v1::ProcessingStage s;
+    if (!ParseStage(std::string(word), &s)) {
+      return absl::InvalidArgumentError(absl::StrCat("--stages: \"", word, "\" is not a stage"));
+    }
+    g->add_stages(s);
+  }
+  for (const std::string& w : f.with) {
+    const size_t colon = w.find(':');
+    stage::v1::ProcessingStage s;
+    if (colon == std::string::npos || !ParseStage(w.substr(0, colon), &s)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--with ", w, ": expected STAGE:FLAG (e.g. mvs:--image-scale=0.5)"));
+    }
+    stage::v1::StageFlags* flags = g->add_flags();
+    flags->set_stage(s);
+    flags->add_args(w.substr(colon + 1));
+  }
+  g->set_chunk_frames(f.chunk_frames);
+  g->set_retries(f.retries);
+  g->set_jobs(f.jobs);
+  return absl::OkStatus();
+}
+
 // A processing stage over a take on one of the stage's workers, with a progress bar; no deadline (it takes as long as
 // the work), Ctrl-C cancels it on the worker.
 int Process(const Connection& c, const ProcessFlags& f) {
@@ -690,14 +738,14 @@ int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
   stage::v1::ProcessingStage kind;
-  if (!stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + EnumSuffix(f.stage), &kind) ||
-      kind == stage::v1::PROCESSING_STAGE_UNSPECIFIED) {
+  if (!ParseStage(f.stage, &kind)) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
                                             "--stage: \"", f.stage,
-                                            "\" is not a stage (photometric, calibration, mvs, fit, textures, "
+                                            "\" is not a stage (graph, photometric, calibration, mvs, fit, textures, "
                                             "stabilize, asset-dataset, asset-train, asset-infer)")));
   }
   if (auto s = SetAssetOptions(f, &request); !s.ok()) return stage::ReportFatal(kProgram, s);
+  if (auto s = SetGraphRequest(f, kind, &request); !s.ok()) return stage::ReportFatal(kProgram, s);
   request.set_stage(kind);
   int64_t first = 0, last = -1;
   if (auto s = stage::ParseFrameRange("--frames", f.frames, &first, &last); !s.ok()) {
@@ -723,7 +771,8 @@ int Process(const Connection& c, const ProcessFlags& f) {
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
   stage::ProgressLine bar(
-      kind == stage::v1::PROCESSING_STAGE_CALIBRATION   ? "cameras"
+      kind == stage::v1::PROCESSING_STAGE_GRAPH         ? "units"
+      : kind == stage::v1::PROCESSING_STAGE_CALIBRATION ? "cameras"
       : kind == stage::v1::PROCESSING_STAGE_ASSET_TRAIN ? "steps"
       : kind == stage::v1::PROCESSING_STAGE_MVS || kind == stage::v1::PROCESSING_STAGE_FIT ||
               kind == stage::v1::PROCESSING_STAGE_TEXTURES || kind == stage::v1::PROCESSING_STAGE_STABILIZE ||
@@ -783,6 +832,19 @@ int Calibrate(const Connection& c, const CalibrateFlags& f) {
   return Process(c, p);
 }
 
+// A take's processing graph status in words: "mvs done 2/2, photometric failed 1/2, ...".
+std::string ProcessingWords(const stage::v1::TakeRecord& t) {
+  std::vector<std::string> words;
+  for (const auto& p : t.processing()) {
+    const std::string stage = stage::v1::ProcessingStage_Name(p.stage());
+    const std::string state = stage::v1::StageProcessingState_Name(p.state());
+    words.push_back(absl::AsciiStrToLower(absl::StrCat(absl::StripPrefix(stage, "PROCESSING_STAGE_"), " ",
+                                                       absl::StripPrefix(state, "STAGE_PROCESSING_STATE_"), " ",
+                                                       p.up_to_date(), "/", p.units())));
+  }
+  return absl::StrJoin(words, ", ");
+}
+
 int Takes(const Connection& c, bool json) {
   std::string address;
   auto stub = Connect(c, &address);
@@ -803,6 +865,7 @@ int Takes(const Connection& c, bool json) {
                                  stage::TakeOutcomeName(t.outcome()), t.duration_s(),
                                  absl::StrCat(t.frames_stored(), "/", t.frames_expected()),
                                  static_cast<double>(t.size_bytes()) / 1e6, t.name());
+    if (t.processing_size() > 0) std::cout << "    processing: " << ProcessingWords(t) << "\n";
   }
   std::cout << list.takes_size() << " take(s) in " << list.take_root() << "\n";
   return 0;
@@ -1051,7 +1114,9 @@ int main(int argc, char** argv) {
   process->add_option("id", pf.take_id, "Take id (stagectl takes lists them), or latest")->required();
   process
       ->add_option("--stage", pf.stage,
-                   "The stage: photometric, calibration, mvs, fit (the face template on multi-view stereo's "
+                   "The stage: graph (every stage the outputs asked for need, what is up to date skipped: "
+                   "--stages, --with; docs/processing.md#the-graph), photometric, calibration, mvs, fit (the face "
+                   "template on multi-view stereo's "
                    "meshes, or on --geometry's), textures (the photometric maps fused into the fit's UV layout), "
                    "stabilize (the textures warped onto the first frame's), or the neural asset's: asset-dataset "
                    "(TAKE/derived/asset/dataset.h5), asset-train (a network on it, --network) and asset-infer (the "
@@ -1059,6 +1124,18 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   process->add_option("--frames", pf.frames, "Virtual frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
+  process->add_option("--stages", pf.graph_stages,
+                      "--stage graph: the outputs asked for, comma-separated (calibration, mvs, photometric, fit, "
+                      "textures, stabilize; default: all but calibration)");
+  process->add_option("--chunk-frames", pf.chunk_frames, "--stage graph: frames per task (default 4)");
+  process->add_option("--with", pf.with,
+                      "--stage graph: a stage's own flag as stage-process takes it, STAGE:FLAG (e.g. "
+                      "textures:--size=512); repeat for more");
+  process->add_option("--retries", pf.retries, "--stage graph: runs a failed task again this many times")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 100));
+  process->add_option("--jobs", pf.jobs, "--stage graph: tasks at a time on the worker (default 1)")
+      ->check(CLI::Range(0, 256));
   process->add_option("--cameras", pf.cameras,
                       "Camera ids, comma-separated (default: the stage's; photometric: every high-speed camera, "
                       "calibration: every camera)");

@@ -136,6 +136,8 @@ struct TaskStatus {
   std::string log;      // the task's log file
   std::string message;  // why it failed; what it did ("3 frame(s) made, 1 up to date")
   int64_t made = 0, up_to_date = 0;
+  // This attempt's wall time and CPU time (every thread of the task's process), seconds.
+  double wall_s = 0, cpu_s = 0;
 };
 std::string StatusPath(const GraphPlan& plan, const GraphTask& task);
 std::string LogPath(const GraphPlan& plan, const GraphTask& task);
