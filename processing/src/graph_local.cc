@@ -93,11 +93,12 @@ class LocalExecutor final : public GraphExecutor {
   absl::Status Start(const GraphPlan& plan, size_t i, int attempt, const GraphEvents& events,
                      std::vector<std::unique_ptr<Subprocess>>* running) const {
     SubprocessOptions o;
-    o.argv = {options_.program,       "task", "--run-dir", plan.run_dir, "--task", std::to_string(i), "--attempt",
-              std::to_string(attempt)};
+    o.argv = {options_.program,        "task",     "--run-dir", plan.run_dir, "--task", std::to_string(i), "--attempt",
+              std::to_string(attempt), "--run-id", plan.run_id};
     o.stdout_path = o.stderr_path = LogPath(plan, plan.tasks[i]);
     o.append = true;
     STAGE_ASSIGN_OR_RETURN((*running)[i], Subprocess::Spawn(o));
+    (void)WriteGraphSummary(plan, GraphProgress(plan), false);
     if (events) {
       events(absl::StrCat(plan.TaskName(plan.tasks[i]), " started (frames ", plan.tasks[i].first, ":",
                           plan.tasks[i].last, ", attempt ", attempt, ", pid ", (*running)[i]->pid(), ")"));
@@ -111,6 +112,10 @@ class LocalExecutor final : public GraphExecutor {
     const std::optional<ExitInfo> exit = (*running)[i]->Poll();
     if (!exit) return;
     (*running)[i].reset();
+    struct Summary {
+      const GraphPlan& plan;
+      ~Summary() { (void)WriteGraphSummary(plan, GraphProgress(plan), false); }
+    } summary{plan};  // once this task's end is in its status file
     const std::string name = plan.TaskName(plan.tasks[i]);
     const std::string path = StatusPath(plan, plan.tasks[i]);
     auto status = ReadTaskStatus(path);

@@ -1,11 +1,14 @@
 // The processing graph's units, keys and manifests, its plan file, and one task's run (graph.h, graph_internal.h).
+#include <fcntl.h>
 #include <openssl/evp.h>
+#include <stdio.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -59,9 +62,15 @@ absl::StatusOr<ordered_json> ReadManifest(const std::string& dir) {
   const std::string path = dir + "/manifest.json";
   STAGE_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, "manifest"));
   ordered_json j = ordered_json::parse(text, nullptr, false);
-  if (j.is_discarded() || !j.is_object() || !j.contains("key") || !j.contains("output_sha256")) {
-    return absl::DataLossError(absl::StrCat(path, ": not a processing manifest"));
+  bool ok = !j.is_discarded() && j.is_object() && j.contains("key") && j["key"].is_string() &&
+            j.contains("output_sha256") && j["output_sha256"].is_string() && j.contains("made_from") &&
+            j["made_from"].is_object() && j.contains("outputs") && j["outputs"].is_array();
+  for (size_t i = 0; ok && i < j["outputs"].size(); ++i) {
+    const ordered_json& f = j["outputs"][i];
+    ok = f.is_object() && f.contains("path") && f["path"].is_string() && f.contains("bytes") &&
+         f["bytes"].is_number_unsigned();
   }
+  if (!ok) return absl::DataLossError(absl::StrCat(path, ": not a processing manifest"));
   return j;
 }
 
@@ -190,15 +199,17 @@ absl::StatusOr<UnitKey> MakeUnitKey(const GraphPlan& plan, const GraphTask& task
 std::string CompareManifest(const GraphPlan& plan, const GraphTask& task, const Unit& unit, const UnitKey& key) {
   const std::string dir = UnitDir(plan, task.stage, unit);
   auto manifest = ReadManifest(dir);
+  if (absl::IsDataLoss(manifest.status())) return "stale: its manifest is unreadable";
   if (!manifest.ok()) return "missing";
   if ((*manifest)["key"] != key.key) {
     const ordered_json now = ordered_json::parse(key.parts);
     const ordered_json& then = (*manifest)["made_from"];
     for (const auto& [name, value] : now.items()) {
-      if (!then.contains(name) || then[name] != value) {
-        if (name == "inputs") {
+      if (!then.contains(name) || then.at(name) != value) {
+        if (name == "inputs" && then.contains(name) && then.at(name).is_object()) {
           for (const auto& [stage, hash] : value.items()) {
-            if (!then[name].contains(stage) || then[name][stage] != hash) return "stale: " + stage + " changed";
+            if (!then.at(name).contains(stage) || then.at(name).at(stage) != hash)
+              return "stale: " + stage + " changed";
           }
         }
         return "stale: " + name + " changed";
@@ -239,6 +250,7 @@ namespace {
 
 ordered_json PlanJson(const GraphPlan& plan) {
   ordered_json j;
+  j["run_id"] = plan.run_id;
   j["take_dir"] = plan.take_dir;
   j["frames"] = {plan.first_frame, plan.last_frame};
   j["chunk_frames"] = plan.options.chunk_frames;
@@ -292,6 +304,7 @@ absl::StatusOr<GraphPlan> ReadPlan(const std::string& run_dir) {
   if (j.is_discarded() || !j.is_object()) return absl::DataLossError(absl::StrCat(path, ": not a processing plan"));
   try {
     GraphPlan plan;
+    plan.run_id = j.at("run_id").get<std::string>();
     plan.take_dir = j.at("take_dir").get<std::string>();
     plan.run_dir = run_dir;
     plan.first_frame = j.at("frames").at(0).get<int64_t>();
@@ -347,18 +360,20 @@ std::string HostName() {
   return host;
 }
 
-// Puts `from` (a unit made in the work directory) where `to` is, replacing what was there: two renames, the old
-// unit moved aside first (rename cannot replace a directory that holds files).
-absl::Status PutInPlace(const std::string& from, const std::string& to, const std::string& aside) {
+// Puts `from` (a unit made in the work directory) where `to` is, replacing what was there.
+absl::Status PutInPlace(const std::string& from, const std::string& to) {
   std::error_code ec;
   fs::create_directories(fs::path(to).parent_path(), ec);
-  if (fs::exists(to)) {
-    fs::rename(to, aside, ec);
-    if (ec) return absl::InternalError(absl::StrCat("cannot move ", to, " aside: ", ec.message()));
+  if (!fs::exists(to)) {
+    fs::rename(from, to, ec);
+    if (ec) return absl::InternalError(absl::StrCat("cannot move ", from, " to ", to, ": ", ec.message()));
+    return absl::OkStatus();
   }
-  fs::rename(from, to, ec);
-  if (ec) return absl::InternalError(absl::StrCat("cannot move ", from, " to ", to, ": ", ec.message()));
-  fs::remove_all(aside, ec);
+  // One step: the new unit and the old swap places (Linux 3.15+); the old, now at `from`, is then removed.
+  if (renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_EXCHANGE) != 0) {
+    return absl::InternalError(absl::StrCat("cannot put ", from, " in place of ", to, ": ", std::strerror(errno)));
+  }
+  fs::remove_all(from, ec);
   return absl::OkStatus();
 }
 
@@ -367,7 +382,6 @@ absl::Status PutInPlace(const std::string& from, const std::string& to, const st
 // alike.
 absl::Status InstallUnits(const GraphPlan& plan, const GraphTask& task, const std::string& work,
                           const std::vector<std::pair<internal::Unit, internal::UnitKey>>& stale) {
-  int n = 0;
   for (const auto& [unit, key] : stale) {
     const std::string made = unit.rel.empty() ? work : work + "/" + unit.rel;
     if (!fs::is_directory(made)) {
@@ -375,8 +389,7 @@ absl::Status InstallUnits(const GraphPlan& plan, const GraphTask& task, const st
           absl::StrCat(GraphStageName(task.stage), " made no ", unit.rel.empty() ? "output" : unit.rel, " in ", work));
     }
     STAGE_RETURN_IF_ERROR(internal::WriteManifest(made, task, unit, key));
-    STAGE_RETURN_IF_ERROR(
-        PutInPlace(made, internal::UnitDir(plan, task.stage, unit), absl::StrCat(work, ".aside-", n++)));
+    STAGE_RETURN_IF_ERROR(PutInPlace(made, internal::UnitDir(plan, task.stage, unit)));
   }
   if (SpecOf(task.stage).grain == Grain::kTake || task.chunk != 0) return absl::OkStatus();
   std::error_code ec;
@@ -416,7 +429,13 @@ absl::Status RunStale(const GraphPlan& plan, const GraphTask& task, int attempt,
 
 }  // namespace
 
-absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const StageRunner& run) {
+absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const StageRunner& run,
+                          const std::string& run_id) {
+  if (!run_id.empty() && run_id != plan.run_id) {
+    return absl::FailedPreconditionError(absl::StrCat("task of run ", run_id, ", but ", plan.run_dir,
+                                                      "/plan.json is run ", plan.run_id,
+                                                      "'s: a job an earlier run left queued; not run"));
+  }
   if (index < 0 || index >= static_cast<int>(plan.tasks.size())) {
     return absl::InvalidArgumentError(
         absl::StrCat("task ", index, " is not in ", plan.run_dir, "/plan.json (", plan.tasks.size(), " tasks)"));

@@ -5,6 +5,7 @@
 
 #include <filesystem>
 #include <nlohmann/json.hpp>
+#include <random>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -85,13 +86,16 @@ absl::StatusOr<GraphReport> RunGraph(const GraphOptions& options, GraphExecutor&
   report.executor = std::string(executor.name());
   STAGE_ASSIGN_OR_RETURN(report.plan, PlanGraph(options));
   const GraphPlan& plan = report.plan;
+  report.plan.run_id = absl::StrFormat("%016x", std::random_device{}() * 0x100000000ull + std::random_device{}());
+  // Written even when nothing is to do: the take's books then say so, not what an earlier run left.
+  STAGE_RETURN_IF_ERROR(WritePlan(plan));
   if (plan.needed_tasks() == 0) {
     report.nothing_to_do = true;
     report.stages = GraphProgress(plan);
+    STAGE_RETURN_IF_ERROR(WriteGraphSummary(plan, report.stages, true));
     if (events) events("every output asked for is up to date: nothing to do");
     return report;
   }
-  STAGE_RETURN_IF_ERROR(WritePlan(plan));
   STAGE_RETURN_IF_ERROR(WriteGraphSummary(plan, GraphProgress(plan), false));
   if (events) {
     events(absl::StrCat(plan.needed_tasks(), " of ", plan.tasks.size(), " task(s) to run, frames [", plan.first_frame,

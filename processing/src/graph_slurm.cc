@@ -4,8 +4,10 @@
 // with sbatch --parsable and watched through squeue --json and the tasks' status files.
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <random>
 #include <set>
 #include <thread>
@@ -46,19 +48,21 @@ namespace {
 // The batch script every array runs: task BASE + the array index, up to ATTEMPTS times, then its failure recorded.
 constexpr const char* kTaskScript = R"SH(#!/bin/bash
 # A FaStage processing task on a Slurm node (written by stage-process run --executor slurm; docs/processing.md).
-# Arguments: PROGRAM RUN_DIR BASE ATTEMPTS. Runs task BASE + SLURM_ARRAY_TASK_ID of RUN_DIR/plan.json, again when it
-# fails, ATTEMPTS times in all; after the last failure the task's status file says so.
+# Arguments: PROGRAM RUN_DIR BASE ATTEMPTS RUN_ID. Runs task BASE + SLURM_ARRAY_TASK_ID of RUN_DIR/plan.json (of run
+# RUN_ID), again when it fails, ATTEMPTS times in all (within this job: a timeout or a lost node ends them all); after
+# the last failure the task's status file says so.
 set -u
-program=$1 run_dir=$2 base=$3 attempts=$4
+program=$1 run_dir=$2 base=$3 attempts=$4 run_id=$5
 task=$((base + ${SLURM_ARRAY_TASK_ID:-0}))
 code=0
 for ((attempt = 1; attempt <= attempts; ++attempt)); do
   echo "fastage: task $task attempt $attempt on $(hostname), job ${SLURM_JOB_ID:-?}" >&2
-  "$program" task --run-dir "$run_dir" --task "$task" --attempt "$attempt" && exit 0
+  "$program" task --run-dir "$run_dir" --task "$task" --attempt "$attempt" --run-id "$run_id" && exit 0
   code=$?
   echo "fastage: task $task attempt $attempt failed (exit code $code)" >&2
 done
-"$program" task --run-dir "$run_dir" --task "$task" --give-up "failed $attempts time(s), the last with exit code $code"
+"$program" task --run-dir "$run_dir" --task "$task" --attempt "$attempts" --run-id "$run_id" \
+  --give-up "failed $attempts time(s), the last with exit code $code"
 exit 1
 )SH";
 
@@ -91,6 +95,7 @@ class SlurmExecutor final : public GraphExecutor {
     STAGE_RETURN_IF_ERROR(WriteFileAtomically(scratch_ + "/task.sh", kTaskScript));
     fs::permissions(scratch_ + "/task.sh", fs::perms::owner_all | fs::perms::group_read | fs::perms::group_exec |
                                                fs::perms::others_read | fs::perms::others_exec);
+    STAGE_RETURN_IF_ERROR(CheckArraySize(plan));
     STAGE_RETURN_IF_ERROR(Probe(plan, events, cancelled));
     std::vector<Submitted> submitted;
     for (GraphStage stage : plan.stages) {
@@ -107,7 +112,10 @@ class SlurmExecutor final : public GraphExecutor {
         submitted.push_back(*std::move(job));
       }
     }
-    return Watch(plan, submitted, events, cancelled);
+    absl::Status watched = Watch(plan, submitted, events, cancelled);
+    // Whatever ended the watch, no job of this run outlives it unwatched.
+    if (!watched.ok()) Cancel(submitted);
+    return watched;
   }
 
  private:
@@ -187,6 +195,27 @@ class SlurmExecutor final : public GraphExecutor {
 
   std::string ProbeTime() const { return "5"; }
 
+  // A stage's chunks are its array's indices: the cluster's MaxArraySize (scontrol show config) bounds them.
+  absl::Status CheckArraySize(const GraphPlan& plan) const {
+    int chunks = 0;
+    for (const GraphTask& t : plan.tasks) chunks = std::max(chunks, t.chunk + 1);
+    STAGE_ASSIGN_OR_RETURN(const std::string config, Command({Tool("scontrol"), "show", "config"}));
+    for (absl::string_view line : absl::StrSplit(config, '\n')) {
+      if (!absl::ConsumePrefix(&line, "MaxArraySize")) continue;
+      int max = 0;
+      const size_t eq = line.find('=');
+      if (eq == absl::string_view::npos || !absl::SimpleAtoi(absl::StripAsciiWhitespace(line.substr(eq + 1)), &max)) {
+        break;
+      }
+      if (chunks >= max) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            plan.take_dir, ": ", chunks, " chunks of a stage, but the cluster's MaxArraySize is ", max,
+            ": give --chunk-frames at least ", (plan.last_frame - plan.first_frame + max - 2) / (max - 1)));
+      }
+    }
+    return absl::OkStatus();
+  }
+
   static std::string ParsableId(const std::string& out) {
     // "JOBID" or "JOBID;CLUSTER"
     std::string id(absl::StripAsciiWhitespace(out));
@@ -215,7 +244,9 @@ class SlurmExecutor final : public GraphExecutor {
     const SlurmStageResources res = r == options_.resources.end() ? SlurmStageResources{} : r->second;
     std::vector<std::string> argv = {Tool("sbatch")};
     for (std::string& f : CommonFlags(plan)) argv.push_back(std::move(f));
-    argv.push_back(absl::StrCat("--job-name=fastage-", GraphStageName(stage)));
+    // The take and the stage in the name: `squeue` shows whose they are, `scancel --name` ends a run's jobs.
+    argv.push_back(
+        absl::StrCat("--job-name=fastage-", fs::path(plan.take_dir).filename().string(), "-", GraphStageName(stage)));
     argv.push_back("--array=" + absl::StrJoin(s.chunks, ","));
     argv.push_back(absl::StrCat("--output=", plan.run_dir, "/logs/", GraphStageName(stage), ".%a.log"));
     argv.push_back("--open-mode=append");
@@ -228,7 +259,7 @@ class SlurmExecutor final : public GraphExecutor {
       argv.push_back("--kill-on-invalid-dep=yes");
     }
     argv.insert(argv.end(), {scratch_ + "/task.sh", options_.program, plan.run_dir, std::to_string(base),
-                             std::to_string(plan.options.retries + 1)});
+                             std::to_string(plan.options.retries + 1), plan.run_id});
     STAGE_ASSIGN_OR_RETURN(const std::string out, Command(argv));
     s.job = ParsableId(out);
     if (s.job.empty())
@@ -238,25 +269,55 @@ class SlurmExecutor final : public GraphExecutor {
 
   // This user's jobs in squeue, by (job id, array element; -1 for a job that is not an array's element).
   absl::StatusOr<std::map<std::pair<std::string, int>, QueueEntry>> Queue() const {
-    STAGE_ASSIGN_OR_RETURN(const std::string out, Command({Tool("squeue"), "--json", "--me"}));
-    const nlohmann::json j = nlohmann::json::parse(out, nullptr, false);
+    // A busy controller may not answer once: three tries, a few seconds apart.
+    absl::StatusOr<std::string> out;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if (attempt > 0) std::this_thread::sleep_for(std::chrono::seconds(3));
+      out = Command({Tool("squeue"), "--json", "--me"});
+      if (out.ok()) break;
+    }
+    if (!out.ok()) return out.status();
+    const nlohmann::json j = nlohmann::json::parse(*out, nullptr, false);
     if (j.is_discarded() || !j.contains("jobs")) return absl::DataLossError("squeue --json: not the JSON expected");
+    try {
+      return ParseQueue(j);
+    } catch (const nlohmann::json::exception& e) {
+      return absl::DataLossError(absl::StrCat("squeue --json: ", e.what()));
+    }
+  }
+
+  // Slurm 22.05's squeue JSON; later releases' shapes too (a state as a list, numbers as {"set", "number"} objects).
+  static std::map<std::pair<std::string, int>, QueueEntry> ParseQueue(const nlohmann::json& j) {
+    auto number = [](const nlohmann::json& job, const char* key) -> std::optional<int64_t> {
+      if (!job.contains(key)) return std::nullopt;
+      const nlohmann::json& v = job[key];
+      if (v.is_number_integer()) return v.get<int64_t>();
+      if (v.is_object() && v.value("set", false) && v.contains("number")) return v["number"].get<int64_t>();
+      return std::nullopt;
+    };
+    auto text = [](const nlohmann::json& job, const char* key) -> std::string {
+      if (!job.contains(key)) return "";
+      const nlohmann::json& v = job[key];
+      if (v.is_string()) return v.get<std::string>();
+      if (v.is_array() && !v.empty() && v[0].is_string()) return v[0].get<std::string>();
+      return "";
+    };
     std::map<std::pair<std::string, int>, QueueEntry> queue;
     static const std::set<std::string> kInQueue = {"PENDING",   "RUNNING",  "CONFIGURING", "COMPLETING",
                                                    "SUSPENDED", "REQUEUED", "RESIZING",    "SIGNALING"};
     for (const auto& job : j["jobs"]) {
       QueueEntry e;
-      e.state = job.value("job_state", "");
-      e.reason = job.value("state_reason", "");
+      e.state = text(job, "job_state");
+      e.reason = text(job, "state_reason");
       e.in_queue = kInQueue.count(e.state) > 0;
-      const std::string id = std::to_string(job.value("job_id", int64_t{0}));
-      const int64_t array = job.value("array_job_id", int64_t{0});
-      const auto& task = job.contains("array_task_id") ? job["array_task_id"] : nlohmann::json();
-      if (array != 0 && task.is_number_integer()) {
-        queue[{std::to_string(array), task.get<int>()}] = e;
+      const std::string id = std::to_string(number(job, "job_id").value_or(0));
+      const int64_t array = number(job, "array_job_id").value_or(0);
+      const std::optional<int64_t> task = number(job, "array_task_id");
+      if (array != 0 && task) {
+        queue[{std::to_string(array), static_cast<int>(*task)}] = e;
       } else if (array != 0) {
         // A pending array's elements not yet split out: "0-3", "1,4-5", "0-9%2".
-        for (absl::string_view part : absl::StrSplit(job.value("array_task_string", ""), ',', absl::SkipEmpty())) {
+        for (absl::string_view part : absl::StrSplit(text(job, "array_task_string"), ',', absl::SkipEmpty())) {
           part = part.substr(0, part.find('%'));
           const std::vector<std::string> ends = absl::StrSplit(part, '-');
           int a = 0, b = 0;
@@ -290,6 +351,7 @@ absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submi
     int chunk;
     bool finished = false;
     int attempt = 0;
+    std::chrono::steady_clock::time_point completed_at{};
   };
   std::vector<Watched> watched;
   for (const Submitted& s : submitted) {
@@ -332,6 +394,16 @@ absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submi
       if (in_queue) {
         ++open;
         continue;
+      }
+      // Slurm says it completed but its status file does not say done yet (a shared file system's cache): wait for
+      // it a while before calling it anything else.
+      if (q != queue.end() && q->second.state == "COMPLETED" && !(status.ok() && status->state == TaskState::kFailed)) {
+        if (w.completed_at == std::chrono::steady_clock::time_point{})
+          w.completed_at = std::chrono::steady_clock::now();
+        if (std::chrono::steady_clock::now() - w.completed_at < std::chrono::seconds(60)) {
+          ++open;
+          continue;
+        }
       }
       // Out of the queue without being done: failed (its status says so), or ended by Slurm.
       w.finished = true;

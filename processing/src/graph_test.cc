@@ -197,6 +197,24 @@ TEST_F(GraphTest, AFailedTaskLeavesWhatWasInPlaceAndSaysWhy) {
   EXPECT_EQ(status->message, "fit failed on purpose");
 }
 
+TEST_F(GraphTest, AGarbledManifestIsStaleAndATaskOfAnotherRunIsRefused) {
+  ASSERT_EQ(RunAll(), 11);
+  ASSERT_TRUE(WriteFileAtomically(take_ + "/derived/mvs/frame-000001/manifest.json", R"({"key": 3})").ok());
+  auto plan = PlanGraph(options_);
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  EXPECT_EQ(plan->tasks[0].reason, "stale: its manifest is unreadable");
+  plan->run_id = "run-a";
+  ASSERT_TRUE(WritePlan(*plan).ok());
+  const absl::Status other = RunGraphTask(
+      *plan, 0, 1, [this](const std::vector<std::string>& argv) { return FakeStage(argv); }, "run-b");
+  EXPECT_EQ(other.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(other.message().find("a job an earlier run left queued"), std::string::npos) << other;
+  EXPECT_TRUE(RunGraphTask(
+                  *plan, 0, 1, [this](const std::vector<std::string>& argv) { return FakeStage(argv); }, "run-a")
+                  .ok());
+  EXPECT_EQ(ReadPlan(plan->run_dir)->run_id, "run-a");
+}
+
 TEST_F(GraphTest, APlanReadsBackAsWritten) {
   options_.stage_args[GraphStage::kMvs] = {"--image-scale", "0.25"};
   options_.calibration = "cameras.json";

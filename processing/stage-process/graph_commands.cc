@@ -15,6 +15,7 @@
 #include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
 #include "stage/common/file_util.h"
+#include "stage/common/shutdown.h"
 #include "stage/common/status.h"
 
 namespace stage::process {
@@ -118,6 +119,8 @@ void GraphCommands::Add(CLI::App& parent) {
   task_->add_option("--task", task_index_, "The task's index in plan.json")->required();
   task_->add_option("--attempt", attempt_, "Its attempt, from 1")->capture_default_str()->check(CLI::Range(1, 1000));
   task_->add_option("--give-up", give_up_, "Record the task failed with this message, and run nothing");
+  task_->add_option("--run-id", run_id_,
+                    "The run it belongs to: refused when plan.json is another run's (a job an earlier run left)");
 }
 
 bool GraphCommands::Parsed() const { return run_->parsed() || task_->parsed() || status_->parsed(); }
@@ -218,20 +221,30 @@ int GraphCommands::RunGraph() {
     }
     return 0;
   }
+  // Ctrl-C or SIGTERM ends the run: local tasks stopped, Slurm jobs cancelled (scancel), each task's status saying so.
+  BlockShutdownSignals();
+  bool stopping = false;
+  auto cancelled = [&stopping] {
+    if (!stopping) stopping = WaitForShutdownSignal(std::chrono::milliseconds(0)).has_value();
+    return stopping;
+  };
   std::unique_ptr<processing::GraphExecutor> executor =
       executor_ == "slurm" ? processing::MakeSlurmExecutor(slurm_) : processing::MakeLocalExecutor(local_);
   // Each task's news, and after each that ends, where every stage stands.
   std::optional<processing::GraphPlan> plan;
-  auto report = processing::RunGraph(options_, *executor, [&](const std::string& line) {
-    std::cerr << "stage-process run: " << line << std::endl;
-    if (line.find(" done: ") == std::string::npos && line.find(" failed") == std::string::npos) return;
-    if (!plan) {
-      auto read = processing::ReadPlan(fs::absolute(options_.take_dir).lexically_normal().string() + "/processing");
-      if (!read.ok()) return;
-      plan = *std::move(read);
-    }
-    std::cerr << "stage-process run: progress: " << ProgressWords(processing::GraphProgress(*plan)) << std::endl;
-  });
+  auto report = processing::RunGraph(
+      options_, *executor,
+      [&](const std::string& line) {
+        std::cerr << "stage-process run: " << line << std::endl;
+        if (line.find(" done: ") == std::string::npos && line.find(" failed") == std::string::npos) return;
+        if (!plan) {
+          auto read = processing::ReadPlan(fs::absolute(options_.take_dir).lexically_normal().string() + "/processing");
+          if (!read.ok()) return;
+          plan = *std::move(read);
+        }
+        std::cerr << "stage-process run: progress: " << ProgressWords(processing::GraphProgress(*plan)) << std::endl;
+      },
+      cancelled);
   if (!report.ok()) return ReportFatal(kProgram, report.status());
   std::cout << (json_ ? processing::GraphReportJson(*report) + "\n" : processing::FormatGraphReport(*report));
   return report->ok() ? 0 : 2;
@@ -246,6 +259,11 @@ int GraphCommands::RunTask(const StageCommand& stage_command) {
   }
   const processing::GraphTask& task = plan->tasks[task_index_];
   const std::string name = plan->TaskName(task);
+  if (!run_id_.empty() && run_id_ != plan->run_id) {
+    return ReportFatal(kProgram, absl::FailedPreconditionError(
+                                     absl::StrCat(name, " of run ", run_id_, ", but ", run_dir_, "/plan.json is run ",
+                                                  plan->run_id, "'s: a job an earlier run left queued; not run")));
+  }
   if (!give_up_.empty()) {
     processing::TaskStatus s;
     s.state = processing::TaskState::kFailed;
@@ -277,7 +295,9 @@ int GraphCommands::RunTask(const StageCommand& stage_command) {
     return absl::InternalError(
         absl::StrCat("stage-process ", argv[0], ": exit code ", code, last.empty() ? "" : ": ", last));
   };
-  if (auto s = processing::RunGraphTask(*plan, task_index_, attempt_, run); !s.ok()) return ReportFatal(kProgram, s);
+  if (auto s = processing::RunGraphTask(*plan, task_index_, attempt_, run, run_id_); !s.ok()) {
+    return ReportFatal(kProgram, s);
+  }
   return 0;
 }
 

@@ -37,7 +37,7 @@ class GraphCommands {
   processing::SlurmOptions slurm_;
   bool dry_run_ = false, json_ = false;
   // task
-  std::string run_dir_, give_up_;
+  std::string run_dir_, give_up_, run_id_;
   int task_index_ = -1, attempt_ = 1;
 };
 

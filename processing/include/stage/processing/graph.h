@@ -101,6 +101,9 @@ struct GraphPlan {
   std::string recording_sha256, calibration_sha256;
   // <take>/processing: plan.json, status/<task>.json, logs/<task>.log, work/ (outputs before they are put in place)
   std::string run_dir;
+  // This run's id (random, set when the plan is written): a task started for another run (a Slurm job an earlier,
+  // killed run left queued) refuses to run against this one's plan.
+  std::string run_id;
 
   // The tasks of `stage`, by chunk.
   std::vector<const GraphTask*> TasksOf(GraphStage stage) const;
@@ -149,11 +152,12 @@ absl::StatusOr<TaskStatus> ReadTaskStatus(const std::string& path);
 // [--calibration C] ARGS...` would: the executable's side of a task (stage-process passes its own commands).
 using StageRunner = std::function<absl::Status(const std::vector<std::string>& argv)>;
 
-// Runs task `index` of the plan (attempt `attempt`, counted from 1): for each unit of its frames, whether its manifest
+// Runs task `index` of the plan (attempt `attempt`, counted from 1; `run_id`, when not empty, must be the plan's): for each unit of its frames, whether its manifest
 // says it is up to date; if any is not, the stage runs over the task's frames into a work directory, each unit gets
 // its manifest, and the units replace the old ones one rename each (a killed task leaves the old outputs or the new,
 // never half of either). Writes the task's status file as it goes.
-absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const StageRunner& run);
+absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const StageRunner& run,
+                          const std::string& run_id = "");
 
 // Per stage of the run: its units, and how many are up to date now (stagectl takes and the console show this).
 struct StageProgress {
