@@ -49,6 +49,13 @@ TEST(AlarmsTest, ConditionsComeFromTheStatus) {
 TEST(AlarmsTest, AlarmsRiseClearAndKeepTheirAcknowledgementAcrossARestart) {
   const std::string path = ::testing::TempDir() + "/alarms_test_" + std::to_string(::getpid()) + ".sqlite";
   std::filesystem::remove(path);
+  // The file and SQLite's journal beside it go when the test ends, after the books are closed.
+  struct Cleanup {
+    std::string path;
+    ~Cleanup() {
+      for (const char* suffix : {"", "-wal", "-shm"}) std::filesystem::remove(path + suffix);
+    }
+  } cleanup{path};
   int64_t id = 0;
   {
     auto book = AlarmBook::Open(path);
