@@ -10,6 +10,7 @@
 #include <optional>
 
 #include "absl/strings/numbers.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
@@ -38,12 +39,14 @@ absl::StatusOr<std::pair<GraphStage, std::string>> StagePrefixed(const std::stri
   return std::make_pair(*stage, text.substr(at + 1));
 }
 
-// The last "stage-process: error: ..." line of a task's log: the stage's own error.
+// The last "stage-process: error: ..." line of a task's log since its last attempt began (the log holds every
+// attempt's): the stage's own error; "" when that attempt wrote none (killed).
 std::string LastError(const std::string& log) {
   auto text = ReadFileToString(log, "log");
   if (!text.ok()) return "";
   std::string last;
   for (absl::string_view line : absl::StrSplit(*text, '\n')) {
+    if (absl::StartsWith(line, "stage-process task: ") && absl::StrContains(line, " attempt ")) last.clear();
     if (absl::ConsumePrefix(&line, "stage-process: error: ")) last = std::string(line);
   }
   return last;
