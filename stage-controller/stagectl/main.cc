@@ -641,7 +641,7 @@ struct ProcessFlags {
   std::string graph_stages;
   int64_t chunk_frames = 0;
   std::vector<std::string> with;
-  int32_t retries = 1, jobs = 0;
+  int32_t retries = -1, jobs = 0;  // retries -1: not given (the graph's default, 1)
   std::string stabilize_method;  // empty: the worker's default (the flow)
   int32_t texture_size = 0;      // 0: the worker's default
   // The asset's stages (0 and empty: the worker's defaults).
@@ -699,8 +699,8 @@ bool ParseStage(const std::string& word, stage::v1::ProcessingStage* kind) {
 absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage kind,
                              stage::v1::ProcessTakeRequest* request) {
   if (kind != stage::v1::PROCESSING_STAGE_GRAPH) {
-    if (!f.graph_stages.empty() || f.chunk_frames != 0 || !f.with.empty() || f.jobs != 0) {
-      return absl::InvalidArgumentError("--stages, --chunk-frames, --with and --jobs apply to --stage graph");
+    if (!f.graph_stages.empty() || f.chunk_frames != 0 || !f.with.empty() || f.jobs != 0 || f.retries >= 0) {
+      return absl::InvalidArgumentError("--stages, --chunk-frames, --with, --retries and --jobs apply to --stage graph");
     }
     return absl::OkStatus();
   }
@@ -724,7 +724,7 @@ absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage k
     flags->add_args(w.substr(colon + 1));
   }
   g->set_chunk_frames(f.chunk_frames);
-  g->set_retries(f.retries);
+  g->set_retries(f.retries < 0 ? 1 : f.retries);
   g->set_jobs(f.jobs);
   return absl::OkStatus();
 }
@@ -732,9 +732,6 @@ absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage k
 // A processing stage over a take on one of the stage's workers, with a progress bar; no deadline (it takes as long as
 // the work), Ctrl-C cancels it on the worker.
 int Process(const Connection& c, const ProcessFlags& f) {
-  std::string address;
-  auto stub = Connect(c, &address);
-  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
   stage::v1::ProcessingStage kind;
@@ -767,6 +764,10 @@ int Process(const Connection& c, const ProcessFlags& f) {
   if (f.stabilize_method == "flow") request.set_stabilize_method(stage::v1::STABILIZE_METHOD_FLOW);
   if (f.stabilize_method == "unet") request.set_stabilize_method(stage::v1::STABILIZE_METHOD_UNET);
   request.set_worker_id(f.worker);
+  // The flags are checked before the stage is looked for: a bad one is named whether or not the stage is up.
+  std::string address;
+  auto stub = Connect(c, &address);
+  if (!stub.ok()) return stage::ReportFatal(kProgram, stub.status());
   grpc::ClientContext context;
   auto reader = (*stub)->ProcessTake(&context, request);
   stage::v1::ProcessingProgress progress, last_message;
@@ -1131,8 +1132,7 @@ int main(int argc, char** argv) {
   process->add_option("--with", pf.with,
                       "--stage graph: a stage's own flag as stage-process takes it, STAGE:FLAG (e.g. "
                       "textures:--size=512); repeat for more");
-  process->add_option("--retries", pf.retries, "--stage graph: runs a failed task again this many times")
-      ->capture_default_str()
+  process->add_option("--retries", pf.retries, "--stage graph: runs a failed task again this many times (default 1)")
       ->check(CLI::Range(0, 100));
   process->add_option("--jobs", pf.jobs, "--stage graph: tasks at a time on the worker (default 1)")
       ->check(CLI::Range(0, 256));
