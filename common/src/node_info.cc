@@ -13,13 +13,13 @@ namespace {
 // Taken during static initialization: close enough to process start for an uptime display.
 const auto g_process_start = std::chrono::steady_clock::now();
 
+}  // namespace
+
 std::string HostName() {
   char buffer[256] = {};
   if (gethostname(buffer, sizeof(buffer) - 1) != 0) return "";
   return buffer;
 }
-
-}  // namespace
 
 v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, v1::CameraRole role, const std::string& backend,
                           const std::string& rig_hash) {

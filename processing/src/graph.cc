@@ -185,16 +185,24 @@ std::vector<GraphStage> Closure(const std::vector<GraphStage>& asked) {
 
 // Why `task` must run, or "" when its units' manifests match what the task would make them from.
 std::string Staleness(const GraphPlan& plan, const GraphTask& task) {
-  for (const internal::Unit& unit : internal::UnitsOf(plan, task)) {
-    auto key = internal::MakeUnitKey(plan, task, unit);
-    if (!key.ok()) return absl::StrCat("inputs not ready (", key.status().message(), ")");
-    const std::string why = internal::CompareManifest(plan, task, unit, *key);
+  const std::vector<internal::Unit> units = internal::UnitsOf(plan, task);
+  auto keys = internal::TaskUnitKeys(plan, task, units);
+  if (!keys.ok()) return absl::StrCat("inputs not ready (", keys.status().message(), ")");
+  for (size_t i = 0; i < units.size(); ++i) {
+    const std::string why = internal::CompareManifest(plan, task, units[i], (*keys)[i]);
     if (!why.empty()) return why;
   }
   return "";
 }
 
 }  // namespace
+
+std::string GraphRunDir(const std::string& take_dir) {
+  std::error_code ec;
+  fs::path take = fs::absolute(take_dir, ec).lexically_normal();
+  if (!take.has_filename()) take = take.parent_path();  // "takes/t/" as "takes/t"
+  return (take / "processing").string();
+}
 
 absl::StatusOr<GraphPlan> PlanGraph(const GraphOptions& options) {
   STAGE_RETURN_IF_ERROR(options.Validate());
@@ -204,7 +212,7 @@ absl::StatusOr<GraphPlan> PlanGraph(const GraphOptions& options) {
   plan.take_dir = fs::absolute(options.take_dir, ec).lexically_normal().string();
   while (plan.take_dir.size() > 1 && plan.take_dir.back() == '/') plan.take_dir.pop_back();
   plan.options.take_dir = plan.take_dir;
-  plan.run_dir = plan.take_dir + "/processing";
+  plan.run_dir = GraphRunDir(plan.take_dir);
   STAGE_ASSIGN_OR_RETURN(const int64_t frames, internal::TakeFrames(plan.take_dir));
   plan.first_frame = options.first_frame;
   plan.last_frame = options.last_frame < 0 ? frames : options.last_frame;
@@ -272,6 +280,18 @@ absl::Status WriteTaskStatus(const std::string& path, const TaskStatus& status) 
   return WriteFileAtomically(path, j.dump(2) + "\n");
 }
 
+namespace internal {
+
+absl::Status WriteCancelled(const GraphPlan& plan, const GraphTask& task, const std::string& why) {
+  TaskStatus s;
+  s.state = TaskState::kCancelled;
+  s.message = why;
+  s.log = LogPath(plan, task);
+  return WriteTaskStatus(StatusPath(plan, task), s);
+}
+
+}  // namespace internal
+
 absl::StatusOr<TaskStatus> ReadTaskStatus(const std::string& path) {
   STAGE_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, "task status"));
   const nlohmann::json j = nlohmann::json::parse(text, nullptr, false);
@@ -300,20 +320,30 @@ absl::StatusOr<TaskStatus> ReadTaskStatus(const std::string& path) {
 }
 
 std::vector<StageProgress> GraphProgress(const GraphPlan& plan) {
+  std::vector<TaskState> states(plan.tasks.size(), TaskState::kPending);
+  for (size_t i = 0; i < plan.tasks.size(); ++i) {
+    if (!plan.tasks[i].needed) continue;
+    auto status = ReadTaskStatus(StatusPath(plan, plan.tasks[i]));
+    if (status.ok()) states[i] = status->state;
+  }
+  return GraphProgress(plan, states);
+}
+
+std::vector<StageProgress> GraphProgress(const GraphPlan& plan, const std::vector<TaskState>& states) {
   std::vector<StageProgress> out;
   for (GraphStage s : plan.stages) {
     StageProgress p{s};
-    for (const GraphTask* t : plan.TasksOf(s)) {
-      const int64_t units = SpecOf(s).grain == Grain::kTake ? 1 : t->last - t->first;
+    for (size_t i = 0; i < plan.tasks.size(); ++i) {
+      const GraphTask& t = plan.tasks[i];
+      if (t.stage != s) continue;
+      const int64_t units = SpecOf(s).grain == Grain::kTake ? 1 : t.last - t.first;
       p.units += units;
-      if (!t->needed) {
+      if (!t.needed) {
         p.up_to_date += units;
         continue;
       }
       ++p.tasks;
-      auto status = ReadTaskStatus(StatusPath(plan, *t));
-      if (!status.ok()) continue;
-      switch (status->state) {
+      switch (states[i]) {
         case TaskState::kDone:
           ++p.done;
           p.up_to_date += units;
@@ -336,30 +366,61 @@ std::vector<StageProgress> GraphProgress(const GraphPlan& plan) {
   return out;
 }
 
+namespace internal {
+
+nlohmann::ordered_json StageJson(const StageProgress& p, bool finished) {
+  return {{"stage", GraphStageName(p.stage)},
+          {"state", StageStateName(p, finished)},
+          {"units", p.units},
+          {"up_to_date", p.up_to_date},
+          {"tasks", p.tasks},
+          {"tasks_running", p.running},
+          {"tasks_done", p.done},
+          {"tasks_failed", p.failed},
+          {"tasks_cancelled", p.cancelled}};
+}
+
+}  // namespace internal
+
+std::string StageStateName(const StageProgress& p, bool finished) {
+  if (p.failed > 0) return "failed";
+  if (p.cancelled > 0) return "cancelled";
+  if (p.up_to_date >= p.units) return "done";
+  if (finished) return "incomplete";
+  return p.running > 0 ? "running" : "pending";
+}
+
 absl::Status WriteGraphSummary(const GraphPlan& plan, const std::vector<StageProgress>& progress, bool finished) {
   nlohmann::ordered_json j;
   j["frames"] = {plan.first_frame, plan.last_frame};
   j["finished"] = finished;
   j["stages"] = nlohmann::json::array();
-  for (const StageProgress& p : progress) {
-    std::string state = "done";
-    if (p.failed > 0) {
-      state = "failed";
-    } else if (p.cancelled > 0) {
-      state = "cancelled";
-    } else if (p.up_to_date < p.units) {
-      state = finished ? "incomplete" : (p.running > 0 ? "running" : "pending");
-    }
-    j["stages"].push_back({{"stage", GraphStageName(p.stage)},
-                           {"state", state},
-                           {"units", p.units},
-                           {"up_to_date", p.up_to_date},
-                           {"tasks", p.tasks},
-                           {"tasks_done", p.done},
-                           {"tasks_failed", p.failed},
-                           {"tasks_cancelled", p.cancelled}});
-  }
+  for (const StageProgress& p : progress) j["stages"].push_back(internal::StageJson(p, finished));
   return WriteFileAtomically(plan.run_dir + "/status.json", j.dump(2) + "\n");
+}
+
+absl::StatusOr<std::vector<StageProgress>> ReadGraphSummary(const std::string& run_dir) {
+  const std::string path = run_dir + "/status.json";
+  STAGE_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, "processing status"));
+  const nlohmann::json j = nlohmann::json::parse(text, nullptr, false);
+  if (j.is_discarded() || !j.contains("stages") || !j["stages"].is_array()) {
+    return absl::DataLossError(absl::StrCat(path, ": not a processing status"));
+  }
+  std::vector<StageProgress> out;
+  for (const auto& s : j["stages"]) {
+    const auto stage = ParseGraphStage(s.value("stage", ""));
+    if (!stage) return absl::DataLossError(absl::StrCat(path, ": unknown stage ", s.value("stage", "")));
+    StageProgress p{*stage};
+    p.units = s.value("units", int64_t{0});
+    p.up_to_date = s.value("up_to_date", int64_t{0});
+    p.tasks = s.value("tasks", 0);
+    p.running = s.value("tasks_running", 0);
+    p.done = s.value("tasks_done", 0);
+    p.failed = s.value("tasks_failed", 0);
+    p.cancelled = s.value("tasks_cancelled", 0);
+    out.push_back(p);
+  }
+  return out;
 }
 
 }  // namespace stage::processing

@@ -3,12 +3,12 @@
 #pragma once
 
 #include <cstdint>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
 #include "stage/processing/graph.h"
-#include "stage/processing/graph_executor.h"
 
 namespace stage::processing::internal {
 
@@ -31,6 +31,10 @@ struct UnitKey {
   std::string key;    // hex SHA-256 of parts
 };
 absl::StatusOr<UnitKey> MakeUnitKey(const GraphPlan& plan, const GraphTask& task, const Unit& unit);
+// The keys of `units` (a task's, from UnitsOf). A tracked or per-take task's units share one key (each is made from
+// every frame the task reads): it is worked out once, not once per frame of a long take.
+absl::StatusOr<std::vector<UnitKey>> TaskUnitKeys(const GraphPlan& plan, const GraphTask& task,
+                                                  const std::vector<Unit>& units);
 
 // "" when the unit's manifest holds `key` and its files are there with their sizes; otherwise why not ("missing",
 // "stale: the mvs stage's flags changed", "outputs changed: mesh.obj").
@@ -51,7 +55,10 @@ std::string Sha256Hex(const std::string& bytes);
 // The tasks `task` reads from (indices into plan.tasks); with `needed_only`, those that run.
 std::vector<int> Dependencies(const GraphPlan& plan, int task, bool needed_only);
 
-// Marks every needed task still pending after `failed` (transitively) cancelled: in `state` and its status file.
-void CancelAfter(const GraphPlan& plan, int failed, std::vector<TaskState>* state, const GraphEvents& events);
+// A stage's progress as status.json and the run's --json report carry it.
+nlohmann::ordered_json StageJson(const StageProgress& p, bool finished);
+
+// Writes `task`'s status file: cancelled (never run, or stopped) for `why`, its log named.
+absl::Status WriteCancelled(const GraphPlan& plan, const GraphTask& task, const std::string& why);
 
 }  // namespace stage::processing::internal

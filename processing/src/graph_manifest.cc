@@ -17,6 +17,7 @@
 #include "absl/strings/str_format.h"
 #include "graph_internal.h"
 #include "stage/common/file_util.h"
+#include "stage/common/node_info.h"
 #include "stage/common/status.h"
 #include "stage/common/version.h"
 
@@ -196,6 +197,20 @@ absl::StatusOr<UnitKey> MakeUnitKey(const GraphPlan& plan, const GraphTask& task
   return key;
 }
 
+absl::StatusOr<std::vector<UnitKey>> TaskUnitKeys(const GraphPlan& plan, const GraphTask& task,
+                                                  const std::vector<Unit>& units) {
+  std::vector<UnitKey> keys;
+  for (const Unit& unit : units) {
+    if (!keys.empty() && SpecOf(task.stage).grain != Grain::kFrame) {
+      keys.push_back(keys.back());
+      continue;
+    }
+    STAGE_ASSIGN_OR_RETURN(UnitKey key, MakeUnitKey(plan, task, unit));
+    keys.push_back(std::move(key));
+  }
+  return keys;
+}
+
 std::string CompareManifest(const GraphPlan& plan, const GraphTask& task, const Unit& unit, const UnitKey& key) {
   const std::string dir = UnitDir(plan, task.stage, unit);
   auto manifest = ReadManifest(dir);
@@ -354,12 +369,6 @@ double ProcessCpuSeconds() {
          1e-6 * static_cast<double>(u.ru_utime.tv_usec + u.ru_stime.tv_usec);
 }
 
-std::string HostName() {
-  char host[256] = {};
-  gethostname(host, sizeof(host) - 1);
-  return host;
-}
-
 // Puts `from` (a unit made in the work directory) where `to` is, replacing what was there.
 absl::Status PutInPlace(const std::string& from, const std::string& to) {
   std::error_code ec;
@@ -464,13 +473,14 @@ absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const S
   };
   // Its units looked at again now that the tasks before it have run: what they made may be what was there.
   std::vector<std::pair<internal::Unit, internal::UnitKey>> stale;
-  for (const internal::Unit& unit : internal::UnitsOf(plan, task)) {
-    auto key = internal::MakeUnitKey(plan, task, unit);
-    if (!key.ok()) return fail(key.status());
-    if (internal::CompareManifest(plan, task, unit, *key).empty()) {
+  const std::vector<internal::Unit> units = internal::UnitsOf(plan, task);
+  auto keys = internal::TaskUnitKeys(plan, task, units);
+  if (!keys.ok()) return fail(keys.status());
+  for (size_t i = 0; i < units.size(); ++i) {
+    if (internal::CompareManifest(plan, task, units[i], (*keys)[i]).empty()) {
       ++status.up_to_date;
     } else {
-      stale.emplace_back(unit, *std::move(key));
+      stale.emplace_back(units[i], std::move((*keys)[i]));
     }
   }
   if (!stale.empty()) {

@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "graph_internal.h"
 #include "stage/common/file_util.h"
 #include "stage/common/status.h"
 #include "stage/processing/graph_executor.h"
@@ -79,9 +80,7 @@ std::vector<TaskFailure> Failures(const GraphPlan& plan) {
 absl::StatusOr<GraphReport> RunGraph(const GraphOptions& options, GraphExecutor& executor, const GraphEvents& events,
                                      const std::function<bool()>& cancelled) {
   STAGE_RETURN_IF_ERROR(options.Validate());
-  std::error_code ec;
-  const std::string run_dir = (fs::absolute(options.take_dir, ec).lexically_normal() / "processing").string();
-  STAGE_ASSIGN_OR_RETURN(auto lock, RunLock::Take(run_dir));
+  STAGE_ASSIGN_OR_RETURN(auto lock, RunLock::Take(GraphRunDir(options.take_dir)));
   GraphReport report;
   report.executor = std::string(executor.name());
   STAGE_ASSIGN_OR_RETURN(report.plan, PlanGraph(options));
@@ -96,7 +95,8 @@ absl::StatusOr<GraphReport> RunGraph(const GraphOptions& options, GraphExecutor&
     if (events) events("every output asked for is up to date: nothing to do");
     return report;
   }
-  STAGE_RETURN_IF_ERROR(WriteGraphSummary(plan, GraphProgress(plan), false));
+  STAGE_RETURN_IF_ERROR(WriteGraphSummary(
+      plan, GraphProgress(plan, std::vector<TaskState>(plan.tasks.size(), TaskState::kPending)), false));
   if (events) {
     events(absl::StrCat(plan.needed_tasks(), " of ", plan.tasks.size(), " task(s) to run, frames [", plan.first_frame,
                         ", ", plan.last_frame, "), executor ", executor.name()));
@@ -140,14 +140,7 @@ std::string GraphReportJson(const GraphReport& report) {
   j["nothing_to_do"] = report.nothing_to_do;
   j["ok"] = report.ok();
   j["stages"] = nlohmann::json::array();
-  for (const StageProgress& p : report.stages) {
-    j["stages"].push_back({{"stage", GraphStageName(p.stage)},
-                           {"units", p.units},
-                           {"up_to_date", p.up_to_date},
-                           {"tasks_run", p.tasks},
-                           {"tasks_failed", p.failed},
-                           {"tasks_cancelled", p.cancelled}});
-  }
+  for (const StageProgress& p : report.stages) j["stages"].push_back(internal::StageJson(p, true));
   j["tasks"] = nlohmann::json::array();
   for (const GraphTask& t : report.plan.tasks) {
     nlohmann::ordered_json task{

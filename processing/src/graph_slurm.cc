@@ -336,15 +336,7 @@ class SlurmExecutor final : public GraphExecutor {
     for (const Submitted& s : submitted) (void)Command({Tool("scancel"), s.job});
   }
 
-  absl::Status Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted, const GraphEvents& events,
-                     const std::function<bool()>& cancelled) const;
-
-  SlurmOptions options_;
-  std::string scratch_;
-};
-
-absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted,
-                                  const GraphEvents& events, const std::function<bool()>& cancelled) const {
+  // A task the watch follows: its array and element, whether it has ended, the attempt last seen.
   struct Watched {
     int task;
     std::string job;
@@ -353,78 +345,99 @@ absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submi
     int attempt = 0;
     std::chrono::steady_clock::time_point completed_at{};
   };
+  using QueueView = std::map<std::pair<std::string, int>, QueueEntry>;
+
+  absl::Status Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted, const GraphEvents& events,
+                     const std::function<bool()>& cancelled) const;
+  // One look at a task still open: its state (from its status file, or written here when Slurm ended it), lines of
+  // news; true while it is still to end.
+  static bool Look(const GraphPlan& plan, const QueueView& queue, Watched* w, TaskState* state,
+                   std::vector<std::string>* news);
+
+  SlurmOptions options_;
+  std::string scratch_;
+};
+
+absl::Status SlurmExecutor::Watch(const GraphPlan& plan, const std::vector<Submitted>& submitted,
+                                  const GraphEvents& events, const std::function<bool()>& cancelled) const {
   std::vector<Watched> watched;
   for (const Submitted& s : submitted) {
     for (int c : s.chunks) watched.push_back({plan.Find(s.stage, c), s.job, c});
   }
+  // The tasks' states as last seen: status.json is written when they change, before the news of it goes out.
+  std::vector<TaskState> states(plan.tasks.size(), TaskState::kPending), written = states;
   while (true) {
     if (cancelled && cancelled()) {
       Cancel(submitted);
-      for (Watched& w : watched) {
-        if (w.finished) continue;
-        TaskStatus s;
-        s.state = TaskState::kCancelled;
-        s.message = "the run was cancelled";
-        s.log = LogPath(plan, plan.tasks[w.task]);
-        (void)WriteTaskStatus(StatusPath(plan, plan.tasks[w.task]), s);
+      for (const Watched& w : watched) {
+        if (!w.finished) (void)internal::WriteCancelled(plan, plan.tasks[w.task], "the run was cancelled");
       }
       return absl::CancelledError(absl::StrCat("processing of ", plan.take_dir, " cancelled"));
     }
     STAGE_ASSIGN_OR_RETURN(const auto queue, Queue());
     size_t open = 0;
+    std::vector<std::string> news;
     for (Watched& w : watched) {
-      if (w.finished) continue;
-      const GraphTask& task = plan.tasks[w.task];
-      const std::string name = plan.TaskName(task), path = StatusPath(plan, task);
-      const auto q = queue.find({w.job, w.chunk});
-      const bool in_queue = q != queue.end() && q->second.in_queue;
-      auto status = ReadTaskStatus(path);
-      if (status.ok() && status->attempt > w.attempt) {
-        if (w.attempt > 0 && events) events(absl::StrCat(name, ": attempt ", status->attempt, " (a retry)"));
-        if (events && status->state == TaskState::kRunning) {
-          events(absl::StrCat(name, " running on ", status->host, " (pid ", status->pid, ")"));
-        }
-        w.attempt = status->attempt;
-      }
-      if (status.ok() && status->state == TaskState::kDone) {
-        w.finished = true;
-        if (events) events(absl::StrCat(name, " done: ", status->message));
-        continue;
-      }
-      if (in_queue) {
-        ++open;
-        continue;
-      }
-      // Slurm says it completed but its status file does not say done yet (a shared file system's cache): wait for
-      // it a while before calling it anything else.
-      if (q != queue.end() && q->second.state == "COMPLETED" && !(status.ok() && status->state == TaskState::kFailed)) {
-        if (w.completed_at == std::chrono::steady_clock::time_point{})
-          w.completed_at = std::chrono::steady_clock::now();
-        if (std::chrono::steady_clock::now() - w.completed_at < std::chrono::seconds(60)) {
-          ++open;
-          continue;
-        }
-      }
-      // Out of the queue without being done: failed (its status says so), or ended by Slurm.
-      w.finished = true;
-      if (status.ok() && status->state == TaskState::kFailed) {
-        if (events) events(absl::StrCat(name, " failed: ", status->message, " (log: ", status->log, ")"));
-        continue;
-      }
-      TaskStatus s = status.ok() ? *status : TaskStatus{};
-      const std::string slurm =
-          q == queue.end() ? "gone from the queue" : absl::StrCat(q->second.state, ", ", q->second.reason);
-      s.state = status.ok() ? TaskState::kFailed : TaskState::kCancelled;
-      s.message = status.ok() ? absl::StrCat("its Slurm job ended while it ran (", slurm, ")")
-                              : absl::StrCat("not run: Slurm ended its job (", slurm, ")");
-      s.log = LogPath(plan, task);
-      (void)WriteTaskStatus(path, s);
-      if (events) events(absl::StrCat(name, " ", TaskStateName(s.state), ": ", s.message));
+      if (!w.finished && Look(plan, queue, &w, &states[w.task], &news)) ++open;
     }
-    (void)WriteGraphSummary(plan, GraphProgress(plan), false);
+    if (states != written) {
+      (void)WriteGraphSummary(plan, GraphProgress(plan, states), false);
+      written = states;
+    }
+    if (events) {
+      for (const std::string& line : news) events(line);
+    }
     if (open == 0) return absl::OkStatus();
     std::this_thread::sleep_for(std::chrono::milliseconds(options_.poll_ms));
   }
+}
+
+bool SlurmExecutor::Look(const GraphPlan& plan, const QueueView& queue, Watched* w, TaskState* state,
+                         std::vector<std::string>* news) {
+  const GraphTask& task = plan.tasks[w->task];
+  const std::string name = plan.TaskName(task), path = StatusPath(plan, task);
+  const auto q = queue.find({w->job, w->chunk});
+  const bool in_queue = q != queue.end() && q->second.in_queue;
+  auto status = ReadTaskStatus(path);
+  if (status.ok()) {
+    *state = status->state;
+    if (status->attempt > w->attempt) {
+      if (w->attempt > 0) news->push_back(absl::StrCat(name, ": attempt ", status->attempt, " (a retry)"));
+      if (status->state == TaskState::kRunning) {
+        news->push_back(absl::StrCat(name, " running on ", status->host, " (pid ", status->pid, ")"));
+      }
+      w->attempt = status->attempt;
+    }
+  }
+  if (status.ok() && status->state == TaskState::kDone) {
+    w->finished = true;
+    news->push_back(absl::StrCat(name, " done: ", status->message));
+    return false;
+  }
+  if (in_queue) return true;
+  // Slurm says it completed but its status file does not say done yet (a shared file system's cache): wait for it a
+  // while before calling it anything else.
+  if (q != queue.end() && q->second.state == "COMPLETED" && !(status.ok() && status->state == TaskState::kFailed)) {
+    if (w->completed_at == std::chrono::steady_clock::time_point{}) w->completed_at = std::chrono::steady_clock::now();
+    if (std::chrono::steady_clock::now() - w->completed_at < std::chrono::seconds(60)) return true;
+  }
+  // Out of the queue without being done: failed (its status says so), or ended by Slurm.
+  w->finished = true;
+  if (status.ok() && status->state == TaskState::kFailed) {
+    news->push_back(absl::StrCat(name, " failed: ", status->message, " (log: ", status->log, ")"));
+    return false;
+  }
+  TaskStatus s = status.ok() ? *status : TaskStatus{};
+  const std::string slurm =
+      q == queue.end() ? "gone from the queue" : absl::StrCat(q->second.state, ", ", q->second.reason);
+  s.state = status.ok() ? TaskState::kFailed : TaskState::kCancelled;
+  s.message = status.ok() ? absl::StrCat("its Slurm job ended while it ran (", slurm, ")")
+                          : absl::StrCat("not run: Slurm ended its job (", slurm, ")");
+  s.log = LogPath(plan, task);
+  (void)WriteTaskStatus(path, s);
+  *state = s.state;
+  news->push_back(absl::StrCat(name, " ", TaskStateName(s.state), ": ", s.message));
+  return false;
 }
 
 }  // namespace

@@ -4,13 +4,10 @@
 #include <unistd.h>
 
 #include <cstdlib>
-#include <filesystem>
 #include <iostream>
-#include <nlohmann/json.hpp>
-#include <optional>
 
-#include "absl/strings/numbers.h"
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
@@ -23,7 +20,6 @@ namespace stage::process {
 namespace {
 
 constexpr const char* kProgram = "stage-process";
-namespace fs = std::filesystem;
 using processing::GraphStage;
 
 // "mvs:VALUE" -> (kMvs, VALUE); an error naming the flag otherwise.
@@ -134,33 +130,20 @@ int GraphCommands::Run(const StageCommand& stage_command) {
 }
 
 int GraphCommands::Status() {
-  const std::string run_dir = fs::absolute(options_.take_dir).lexically_normal().string() + "/processing";
-  auto plan = processing::ReadPlan(run_dir);
-  if (!plan.ok()) {
-    return ReportFatal(kProgram, absl::NotFoundError(absl::StrCat(
-                                     options_.take_dir,
-                                     ": no processing run (stage-process run starts one): ", plan.status().message())));
+  // status.json, as the executors keep it up to date (and the controller's catalog reads it).
+  const std::string run_dir = processing::GraphRunDir(options_.take_dir);
+  auto progress = processing::ReadGraphSummary(run_dir);
+  if (!progress.ok()) {
+    return ReportFatal(kProgram,
+                       absl::Status(progress.status().code(), absl::StrCat(options_.take_dir,
+                                                                           ": no processing run (stage-process "
+                                                                           "run starts one): ",
+                                                                           progress.status().message())));
   }
-  const std::vector<processing::StageProgress> progress = processing::GraphProgress(*plan);
   if (json_) {
-    nlohmann::ordered_json j;
-    j["take_dir"] = plan->take_dir;
-    j["frames"] = {plan->first_frame, plan->last_frame};
-    j["stages"] = nlohmann::json::array();
-    for (const processing::StageProgress& p : progress) {
-      j["stages"].push_back({{"stage", processing::GraphStageName(p.stage)},
-                             {"units", p.units},
-                             {"up_to_date", p.up_to_date},
-                             {"tasks", p.tasks},
-                             {"running", p.running},
-                             {"done", p.done},
-                             {"failed", p.failed},
-                             {"cancelled", p.cancelled}});
-    }
-    std::cout << j.dump() << "\n";
+    std::cout << ReadFileToString(run_dir + "/status.json").value_or("{}");
   } else {
-    std::cout << plan->take_dir << " frames " << plan->first_frame << ":" << plan->last_frame << ": "
-              << ProgressWords(progress) << "\n";
+    std::cout << options_.take_dir << ": " << ProgressWords(*progress) << "\n";
   }
   return 0;
 }
@@ -234,18 +217,15 @@ int GraphCommands::RunGraph() {
   std::unique_ptr<processing::GraphExecutor> executor =
       executor_ == "slurm" ? processing::MakeSlurmExecutor(slurm_) : processing::MakeLocalExecutor(local_);
   // Each task's news, and after each that ends, where every stage stands.
-  std::optional<processing::GraphPlan> plan;
   auto report = processing::RunGraph(
       options_, *executor,
       [&](const std::string& line) {
         std::cerr << "stage-process run: " << line << std::endl;
         if (line.find(" done: ") == std::string::npos && line.find(" failed") == std::string::npos) return;
-        if (!plan) {
-          auto read = processing::ReadPlan(fs::absolute(options_.take_dir).lexically_normal().string() + "/processing");
-          if (!read.ok()) return;
-          plan = *std::move(read);
+        // The executors write status.json before they tell of a task's end.
+        if (auto progress = processing::ReadGraphSummary(processing::GraphRunDir(options_.take_dir)); progress.ok()) {
+          std::cerr << "stage-process run: progress: " << ProgressWords(*progress) << std::endl;
         }
-        std::cerr << "stage-process run: progress: " << ProgressWords(processing::GraphProgress(*plan)) << std::endl;
       },
       cancelled);
   if (!report.ok()) return ReportFatal(kProgram, report.status());

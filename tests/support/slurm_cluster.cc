@@ -10,6 +10,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "stage/common/node_info.h"
 #include "test_support.h"
 
 namespace stage::testing {
@@ -31,12 +32,6 @@ int FreePort() {
   return port;
 }
 
-std::string HostName() {
-  char host[256] = {};
-  gethostname(host, sizeof(host) - 1);
-  return host;
-}
-
 std::string UserName() {
   const passwd* pw = getpwuid(getuid());
   return pw != nullptr ? pw->pw_name : "root";
@@ -47,7 +42,7 @@ std::string UserName() {
 SlurmCluster::SlurmCluster(const std::string& dir, int cpus) : dir_(dir), conf_(dir + "/slurm.conf") {
   for (const char* d : {"state", "spool", "logs"}) std::filesystem::create_directories(dir_ + "/" + d);
   const int controller_port = FreePort(), node_port = FreePort();
-  const std::string host = HostName(), user = UserName();
+  const std::string host = stage::HostName(), user = UserName();
   std::ofstream(conf_) << "# A single-node cluster for FaStage's tests (tests/support/slurm_cluster.cc)\n"
                        << "ClusterName=fastage-test\n"
                        << "SlurmctldHost=" << host << "(127.0.0.1)\n"

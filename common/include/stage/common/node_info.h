@@ -12,6 +12,9 @@ namespace stage {
 v1::NodeInfo MakeNodeInfo(const std::string& id, v1::NodeKind kind, v1::CameraRole role, const std::string& backend,
                           const std::string& rig_hash);
 
+// This machine's host name ("" if it has none).
+std::string HostName();
+
 // "camera", "light", "processing-worker", "controller".
 std::string NodeKindName(v1::NodeKind kind);
 // "up", "down", "unreachable", "unknown".

@@ -120,6 +120,9 @@ struct GraphPlan {
   int needed_tasks() const;
 };
 
+// A take's processing directory (<take>/processing, absolute): a run's books.
+std::string GraphRunDir(const std::string& take_dir);
+
 // Plans a run: which tasks bring the outputs asked for up to date. Reads the manifests in place; writes nothing.
 absl::StatusOr<GraphPlan> PlanGraph(const GraphOptions& options);
 
@@ -152,10 +155,10 @@ absl::StatusOr<TaskStatus> ReadTaskStatus(const std::string& path);
 // [--calibration C] ARGS...` would: the executable's side of a task (stage-process passes its own commands).
 using StageRunner = std::function<absl::Status(const std::vector<std::string>& argv)>;
 
-// Runs task `index` of the plan (attempt `attempt`, counted from 1; `run_id`, when not empty, must be the plan's): for each unit of its frames, whether its manifest
-// says it is up to date; if any is not, the stage runs over the task's frames into a work directory, each unit gets
-// its manifest, and the units replace the old ones one rename each (a killed task leaves the old outputs or the new,
-// never half of either). Writes the task's status file as it goes.
+// Runs task `index` of the plan (attempt `attempt`, counted from 1; `run_id`, when not empty, must be the plan's): for
+// each unit of its frames, whether its manifest says it is up to date; if any is not, the stage runs over the task's
+// frames into a work directory, each unit gets its manifest, and the units replace the old ones one rename each (a
+// killed task leaves the old outputs or the new, never half of either). Writes the task's status file as it goes.
 absl::Status RunGraphTask(const GraphPlan& plan, int index, int attempt, const StageRunner& run,
                           const std::string& run_id = "");
 
@@ -165,9 +168,16 @@ struct StageProgress {
   int64_t units = 0, up_to_date = 0;
   int tasks = 0, done = 0, failed = 0, cancelled = 0, running = 0;
 };
+// From the tasks' states as an executor holds them (indexed as plan.tasks; a task not needed counts up to date).
+std::vector<StageProgress> GraphProgress(const GraphPlan& plan, const std::vector<TaskState>& states);
+// From the tasks' status files (one read each: for a run's end, not for every task's).
 std::vector<StageProgress> GraphProgress(const GraphPlan& plan);
-// <take>/processing/status.json: the stages' progress, written by the executors as tasks end (and read by the
-// controller's take catalog).
+// A stage's state in words: done, failed, cancelled, running, pending, or (once the run is over) incomplete.
+std::string StageStateName(const StageProgress& p, bool finished);
+// <take>/processing/status.json: the stages' progress, written by the executors as tasks start and end, read by the
+// controller's take catalog, `stage-process status` and `run`'s progress lines.
 absl::Status WriteGraphSummary(const GraphPlan& plan, const std::vector<StageProgress>& progress, bool finished);
+// What WriteGraphSummary wrote; NotFound when no run has.
+absl::StatusOr<std::vector<StageProgress>> ReadGraphSummary(const std::string& run_dir);
 
 }  // namespace stage::processing
