@@ -12,6 +12,7 @@
 #include "stage/common/file_util.h"
 #include "stage/common/ledger_counts.h"
 #include "stage/common/logging.h"
+#include "stage/common/processing_names.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/status.h"
 #include "stage/common/take_names.h"
@@ -304,20 +305,6 @@ absl::StatusOr<v1::LedgerPage> TakeRecords::GetLedger(const v1::GetLedgerRequest
   return page;
 }
 
-namespace {
-
-// The processing graph's stage names (stage-process run --stages) as the contract's enum.
-v1::ProcessingStage StageOfName(const std::string& name) {
-  v1::ProcessingStage stage = v1::PROCESSING_STAGE_UNSPECIFIED;
-  if (name == "calibrate") return v1::PROCESSING_STAGE_CALIBRATION;
-  std::string upper = name;
-  for (char& c : upper) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-  v1::ProcessingStage_Parse("PROCESSING_STAGE_" + upper, &stage);
-  return stage;
-}
-
-}  // namespace
-
 // The take's last processing graph run, from <take>/processing/status.json (written by its executors): nothing when
 // there is none, or it cannot be read (logged; the catalog still lists the take).
 void TakeRecords::AddGraphStatus(const std::string& take_dir, v1::TakeRecord* t) {
@@ -336,7 +323,7 @@ void TakeRecords::AddGraphStatus(const std::string& take_dir, v1::TakeRecord* t)
       {"cancelled", v1::STAGE_PROCESSING_STATE_CANCELLED}, {"incomplete", v1::STAGE_PROCESSING_STATE_INCOMPLETE}};
   for (const auto& s : j["stages"]) {
     v1::StageProcessing* p = t->add_processing();
-    p->set_stage(StageOfName(s.value("stage", "")));
+    p->set_stage(ParseProcessingStage(s.value("stage", "")).value_or(v1::PROCESSING_STAGE_UNSPECIFIED));
     const auto state = kStates.find(s.value("state", ""));
     p->set_state(state == kStates.end() ? v1::STAGE_PROCESSING_STATE_UNSPECIFIED : state->second);
     p->set_units(s.value("units", int64_t{0}));

@@ -27,6 +27,7 @@
 #include "stage/common/grpc_status.h"
 #include "stage/common/ledger_counts.h"
 #include "stage/common/logging.h"
+#include "stage/common/processing_names.h"
 #include "stage/common/proto_json.h"
 #include "stage/common/rig.h"
 #include "stage/common/rig_security.h"
@@ -688,13 +689,6 @@ absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeReques
   return absl::OkStatus();
 }
 
-// "mvs" -> PROCESSING_STAGE_MVS ("calibrate" too names calibration, as stage-process run's --stages has it).
-bool ParseStage(const std::string& word, stage::v1::ProcessingStage* kind) {
-  return stage::v1::ProcessingStage_Parse("PROCESSING_STAGE_" + EnumSuffix(word == "calibrate" ? "calibration" : word),
-                                          kind) &&
-         *kind != stage::v1::PROCESSING_STAGE_UNSPECIFIED;
-}
-
 // The graph's options of `f` on `request` with --stage graph; refused with another stage.
 absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage kind,
                              stage::v1::ProcessTakeRequest* request) {
@@ -706,21 +700,19 @@ absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage k
   }
   stage::v1::GraphRequest* g = request->mutable_graph();
   for (absl::string_view word : absl::StrSplit(f.graph_stages, ',', absl::SkipEmpty())) {
-    stage::v1::ProcessingStage s;
-    if (!ParseStage(std::string(word), &s)) {
-      return absl::InvalidArgumentError(absl::StrCat("--stages: \"", word, "\" is not a stage"));
-    }
-    g->add_stages(s);
+    const auto s = stage::ParseProcessingStage(word);
+    if (!s) return absl::InvalidArgumentError(absl::StrCat("--stages: \"", word, "\" is not a stage"));
+    g->add_stages(*s);
   }
   for (const std::string& w : f.with) {
     const size_t colon = w.find(':');
-    stage::v1::ProcessingStage s;
-    if (colon == std::string::npos || !ParseStage(w.substr(0, colon), &s)) {
+    const auto s = colon == std::string::npos ? std::nullopt : stage::ParseProcessingStage(w.substr(0, colon));
+    if (!s) {
       return absl::InvalidArgumentError(
           absl::StrCat("--with ", w, ": expected STAGE:FLAG (e.g. mvs:--image-scale=0.5)"));
     }
     stage::v1::StageFlags* flags = g->add_flags();
-    flags->set_stage(s);
+    flags->set_stage(*s);
     flags->add_args(w.substr(colon + 1));
   }
   g->set_chunk_frames(f.chunk_frames);
@@ -734,13 +726,14 @@ absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage k
 int Process(const Connection& c, const ProcessFlags& f) {
   stage::v1::ProcessTakeRequest request;
   request.set_take_id(f.take_id);
-  stage::v1::ProcessingStage kind;
-  if (!ParseStage(f.stage, &kind)) {
+  const auto parsed = stage::ParseProcessingStage(f.stage);
+  if (!parsed) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
                                             "--stage: \"", f.stage,
                                             "\" is not a stage (graph, photometric, calibration, mvs, fit, textures, "
                                             "stabilize, asset-dataset, asset-train, asset-infer)")));
   }
+  const stage::v1::ProcessingStage kind = *parsed;
   if (auto s = SetAssetOptions(f, &request); !s.ok()) return stage::ReportFatal(kProgram, s);
   if (auto s = SetGraphRequest(f, kind, &request); !s.ok()) return stage::ReportFatal(kProgram, s);
   request.set_stage(kind);
