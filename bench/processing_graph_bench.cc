@@ -87,6 +87,29 @@ std::map<std::string, Timed> TaskTimes(const std::string& take) {
   return out;
 }
 
+// The baseline: each stage once over every frame of `take`, in one process.
+std::map<std::string, Timed> Baseline(const std::string& take, const std::string& calibration, const std::string& log) {
+  std::map<std::string, Timed> out;
+  for (const char* stage : kStages) {
+    std::vector<std::string> command = {Bin() + "/stage-process", stage, "--take", take};
+    const std::string name = stage;
+    if (name != "fit" && name != "stabilize") command.insert(command.end(), {"--calibration", calibration});
+    if (name == "textures") command.push_back("--size=512");
+    out[stage] = Run(command, log);
+  }
+  return out;
+}
+
+// The two graphs' outputs, file by file: the same bytes, or the benchmark fails.
+void CompareOutputs(const std::string& local, const std::string& slurm) {
+  const auto a = stage::testing::FilesUnder(local + "/derived"), b = stage::testing::FilesUnder(slurm + "/derived");
+  size_t same = 0;
+  for (const auto& [name, bytes] : a) same += b.count(name) && b.at(name) == bytes ? 1 : 0;
+  std::cout << "local and Slurm outputs: " << same << " of " << a.size() << " files identical (" << b.size()
+            << " from Slurm)\n";
+  if (same != a.size() || a.size() != b.size()) Die(kProgram, "the two graphs' outputs differ");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -110,21 +133,13 @@ int main(int argc, char** argv) {
     std::cout << "capturing a take of " << frames << " frames at render scale " << scale << " ..." << std::endl;
     take = Capture(root.path(), frames, scale);
   }
-  const std::vector<std::string> common = {"--calibration", calibration};
   const std::string log = root.path() + "/bench.log";
 
-  // The baseline: each stage once over every frame, in one process.
-  const std::string base = Copy(take, root.path(), "baseline");
-  std::map<std::string, Timed> baseline;
+  std::map<std::string, Timed> baseline = Baseline(Copy(take, root.path(), "baseline"), calibration, log);
   Timed base_total;
-  for (const char* stage : kStages) {
-    std::vector<std::string> command = {Bin() + "/stage-process", stage, "--take", base};
-    const std::string name = stage;
-    if (name != "fit" && name != "stabilize") command.insert(command.end(), common.begin(), common.end());
-    if (name == "textures") command.push_back("--size=512");
-    baseline[stage] = Run(command, log);
-    base_total.wall_s += baseline[stage].wall_s;
-    base_total.cpu_s += baseline[stage].cpu_s;
+  for (const auto& [stage, t] : baseline) {
+    base_total.wall_s += t.wall_s;
+    base_total.cpu_s += t.cpu_s;
   }
   // The graph, here and on Slurm.
   std::vector<std::string> graph = {"--calibration",       calibration,      "--with",
@@ -166,12 +181,7 @@ int main(int argc, char** argv) {
         "%-34s %8.1f %8s   overhead %+.1f s wall (%+.0f %%) beside the local graph %+.1f s\n",
         "graph, slurm executor (1 node)", slurm_total.wall_s, "-", slurm_total.wall_s - base_total.wall_s,
         100 * (slurm_total.wall_s / base_total.wall_s - 1), slurm_total.wall_s - local_total.wall_s);
-    const auto a = stage::testing::FilesUnder(local + "/derived"), b = stage::testing::FilesUnder(slurm + "/derived");
-    size_t same = 0;
-    for (const auto& [name, bytes] : a) same += b.count(name) && b.at(name) == bytes ? 1 : 0;
-    std::cout << "local and Slurm outputs: " << same << " of " << a.size() << " files identical (" << b.size()
-              << " from Slurm)\n";
-    if (same != a.size() || a.size() != b.size()) Die(kProgram, "the two graphs' outputs differ");
+    CompareOutputs(local, slurm);
   }
   return 0;
 }

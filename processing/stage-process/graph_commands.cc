@@ -64,6 +64,11 @@ std::string ProgressWords(const std::vector<processing::StageProgress>& progress
 }  // namespace
 
 void GraphCommands::Add(CLI::App& parent) {
+  AddRun(parent);
+  AddStatusAndTask(parent);
+}
+
+void GraphCommands::AddRun(CLI::App& parent) {
   run_ = parent.add_subcommand(
       "run",
       "The processing graph over a take (docs/processing.md#the-graph): runs, on this machine or on a Slurm cluster, "
@@ -90,6 +95,12 @@ void GraphCommands::Add(CLI::App& parent) {
   run_->add_option("--executor", executor_, "local (this machine) or slurm (sbatch job arrays)")
       ->capture_default_str()
       ->check(CLI::IsMember({"local", "slurm"}));
+  run_->add_flag("--dry-run", dry_run_, "Print the plan (each task, whether it runs and why) and run nothing");
+  run_->add_flag("--json", json_, "Print the report (or with --dry-run the plan) as JSON on stdout");
+  AddExecutorOptions();
+}
+
+void GraphCommands::AddExecutorOptions() {
   run_->add_option("--jobs", local_.jobs, "local: tasks at a time")->capture_default_str()->check(CLI::Range(1, 256));
   run_->add_option("--partition", slurm_.partition, "slurm: sbatch --partition");
   run_->add_option("--account", slurm_.account, "slurm: sbatch --account");
@@ -99,9 +110,9 @@ void GraphCommands::Add(CLI::App& parent) {
   run_->add_option("--sbatch-arg", slurm_.sbatch_args, "slurm: a further sbatch flag for every job; repeat for more");
   run_->add_option("--slurm-bin-dir", slurm_.bin_dir, "slurm: where sbatch, squeue and scancel are (default: PATH)");
   run_->add_option("--poll-ms", slurm_.poll_ms, "slurm: how often the queue is looked at, ms")->capture_default_str();
-  run_->add_flag("--dry-run", dry_run_, "Print the plan (each task, whether it runs and why) and run nothing");
-  run_->add_flag("--json", json_, "Print the report (or with --dry-run the plan) as JSON on stdout");
+}
 
+void GraphCommands::AddStatusAndTask(CLI::App& parent) {
   status_ = parent.add_subcommand(
       "status",
       "Where a take's processing stands (its last or running graph run, TAKE/processing): per stage, its units up to "

@@ -21,6 +21,9 @@ class GraphCommands {
   int Run(const StageCommand& stage_command);
 
  private:
+  void AddRun(CLI::App& parent);
+  void AddExecutorOptions();  // run's --executor local and slurm options
+  void AddStatusAndTask(CLI::App& parent);
   int RunGraph();
   int Status();
   int RunTask(const StageCommand& stage_command);
