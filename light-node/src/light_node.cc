@@ -245,23 +245,30 @@ absl::Status LightNode::Arm(const v1::ArmLightRequest& request) {
 absl::Status LightNode::StartTable(const std::string& take_id, int64_t first_edge_ns) {
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (!watching_ || take_id_ != take_id) {
+    if (take_id_ != take_id) {
       return absl::FailedPreconditionError(absl::StrCat("light node \"", config_.id(), "\": not armed for take \"",
                                                         take_id, "\"", take_id_.empty() ? "" : " (armed for \"",
                                                         take_id_, take_id_.empty() ? "" : "\")"));
+    }
+    if (!watching_) {
+      // Armed for this take once, and no more: say what ended it (a blackout's reason, the watchdog's included).
+      return absl::FailedPreconditionError(absl::StrCat(
+          "light node \"", config_.id(), "\": no longer armed for take \"", take_id, "\": ",
+          blackout_reason_.empty() ? std::string("disarmed") : absl::StrCat("in blackout (", blackout_reason_, ")")));
     }
   }
   if (absl::Status s = driver_->StartAt(first_edge_ns); !s.ok()) {
     return absl::Status(s.code(), absl::StrCat("light node \"", config_.id(), "\": ", s.message()));
   }
-  Logger("light.node")->info("{}: take {}: the table starts at the edge at {} ns", config_.id(), take_id, first_edge_ns);
+  Logger("light.node")
+      ->info("{}: take {}: the table starts at the edge at {} ns", config_.id(), take_id, first_edge_ns);
   return absl::OkStatus();
 }
 
 absl::StatusOr<v1::ClockInput> LightNode::ClockInput() const {
   auto in = driver_->SlotClockInput();
-  if (!in.ok()) return absl::Status(in.status().code(), absl::StrCat("light node \"", config_.id(), "\": ",
-                                                                     in.status().message()));
+  if (!in.ok())
+    return absl::Status(in.status().code(), absl::StrCat("light node \"", config_.id(), "\": ", in.status().message()));
   v1::ClockInput out;
   out.set_running(in->running);
   out.set_last_slot(in->last_slot);

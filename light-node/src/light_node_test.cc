@@ -140,6 +140,11 @@ TEST(LightNodeTest, WithoutTheControllersHeartbeatAnArmedNodeGoesDarkAndSaysWhy)
   EXPECT_EQ(stats.blackout_reason(), "controller heartbeat lost: none for 200 ms while armed for take take-1");
   EXPECT_EQ(sim->Outputs()[0], 0);
   EXPECT_EQ((*node)->watchdog_trips(), 1u);
+  // The take's table can no longer start, and the refusal says why (not "armed for" the take it names).
+  const absl::Status late = (*node)->StartTable("take-1", 0);
+  EXPECT_EQ(late.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(std::string(late.message()),
+              ::testing::HasSubstr("no longer armed for take \"take-1\": in blackout (controller heartbeat lost"));
   // Latched: the next take is refused until the blackout is reset.
   const absl::Status again = (*node)->Arm(Request("take-2", table));
   EXPECT_EQ(again.code(), absl::StatusCode::kFailedPrecondition);
@@ -148,6 +153,10 @@ TEST(LightNodeTest, WithoutTheControllersHeartbeatAnArmedNodeGoesDarkAndSaysWhy)
   ASSERT_TRUE((*node)->Arm(Request("take-2", table)).ok());
   // Disarmed, the watchdog rests: no heartbeat needed.
   ASSERT_TRUE((*node)->Disarm("take-2").ok());
+  EXPECT_THAT(std::string((*node)->StartTable("take-2", 0).message()),
+              ::testing::HasSubstr("no longer armed for take \"take-2\": disarmed"));
+  EXPECT_THAT(std::string((*node)->StartTable("take-3", 0).message()),
+              ::testing::HasSubstr("not armed for take \"take-3\" (armed for \"take-2\")"));
   std::this_thread::sleep_for(std::chrono::milliseconds(1200));
   EXPECT_EQ((*node)->Stats().mode(), v1::LIGHT_MODE_IDLE);
   EXPECT_EQ((*node)->watchdog_trips(), 1u);
