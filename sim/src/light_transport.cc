@@ -38,6 +38,94 @@ void ParallelFor(size_t n, int threads, WorkProgress* progress, F&& body) {
   for (auto& th : pool) th.join();
 }
 
+// The dome's units as arrays of floats: the loop over units below reads them with unit stride.
+struct UnitArrays {
+  explicit UnitArrays(const Dome& dome) {
+    for (const auto& u : dome.units) {
+      x.push_back(static_cast<float>(u.position.x()));
+      y.push_back(static_cast<float>(u.position.y()));
+      z.push_back(static_cast<float>(u.position.z()));
+      intensity.push_back(static_cast<float>(u.intensity));
+    }
+  }
+  std::vector<float> x, y, z, intensity;
+};
+
+// What the loop over units needs of one ray's hit.
+struct HitTerms {
+  float px, py, pz;  // the point
+  float nx, ny, nz;  // the shading normal
+  float gx, gy, gz;  // the geometric normal
+  float vx, vy, vz;  // towards the camera
+  float a2;          // the roughness squared
+  float view;        // the specular lobe's terms of the view alone (0: the view is behind the shading normal)
+  Eigen::Vector3f start;
+};
+
+// The hit's diffuse and specular response to every unit, added to `d` and `s`. Without an occluder (kShadows false)
+// the loop has no branch and GCC vectorizes it (-O3, no errno or traps: sqrt, and the divisions of units behind the
+// surface, are computed and not selected).
+template <bool kShadows>
+void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const Subject* occluder, float weight, float* d,
+                      float* s) {
+  // Copies and plain pointers: the rows written cannot alias them.
+  const HitTerms t = terms;
+  const float *ux = units.x.data(), *uy = units.y.data(), *uz = units.z.data(), *ui = units.intensity.data();
+  const size_t count = units.x.size();
+  for (size_t l = 0; l < count; ++l) {
+    const float tx = ux[l] - t.px, ty = uy[l] - t.py, tz = uz[l] - t.pz;
+    const float d2 = tx * tx + ty * ty + tz * tz;
+    const float inv = 1.0f / std::sqrt(d2);
+    const float wx = tx * inv, wy = ty * inv, wz = tz * inv;
+    const float n_dot_w = t.nx * wx + t.ny * wy + t.nz * wz;
+    bool lit = (n_dot_w > 0) & (t.gx * wx + t.gy * wy + t.gz * wz > 0);  // no short cut: no branch
+    if constexpr (kShadows) {
+      if (lit) lit = !occluder->Occluded(t.start, Eigen::Vector3f(ux[l], uy[l], uz[l]));
+    }
+    const float irradiance = weight * ui[l] / d2;
+    const float hx = wx + t.vx, hy = wy + t.vy, hz = wz + t.vz;
+    const float n_dot_h = (t.nx * hx + t.ny * hy + t.nz * hz) / std::sqrt(hx * hx + hy * hy + hz * hz);
+    const float q = n_dot_h * n_dot_h * (t.a2 - 1) + 1;
+    const float distribution = n_dot_h > 0 ? t.a2 / (kPi * q * q) : 0.0f;
+    const float g1_w = 2 * n_dot_w / (n_dot_w + std::sqrt(t.a2 + (1 - t.a2) * n_dot_w * n_dot_w));
+    // Both computed for every unit, then selected: GCC vectorizes a select, not a condition around arithmetic.
+    const float diffuse = n_dot_w * irradiance / kPi;
+    const float specular = distribution * g1_w * t.view * irradiance;
+    d[l] += lit ? diffuse : 0.0f;
+    s[l] += lit ? specular : 0.0f;
+  }
+}
+
+// One ray's hit: its responses to every unit (weighted by `weight`, its share of the pixel), added to the pixel's rows
+// `d` and `s`. `occluder`: the subject where it may shadow itself, null where it cannot (a convex subject shadows none
+// of itself where the light is in front of the surface).
+void AddHitResponses(const Hit& h, const Eigen::Vector3f& origin, const UnitArrays& units, const Subject* occluder,
+                     float weight, float* d, float* s) {
+  const Eigen::Vector3f v = (origin - h.point).normalized();
+  const float n_dot_v = h.normal.dot(v);
+  const float alpha = std::max(h.material.roughness, 1e-3f);
+  HitTerms t{h.point.x(),
+             h.point.y(),
+             h.point.z(),
+             h.normal.x(),
+             h.normal.y(),
+             h.normal.z(),
+             h.geometric_normal.x(),
+             h.geometric_normal.y(),
+             h.geometric_normal.z(),
+             v.x(),
+             v.y(),
+             v.z(),
+             alpha * alpha,
+             n_dot_v > 0 ? h.material.specular * SmithG1(n_dot_v, alpha) / (4 * n_dot_v) : 0.0f,
+             h.point + kShadowEpsilon * h.geometric_normal};
+  if (occluder != nullptr) {
+    AddUnitResponses<true>(t, units, occluder, weight, d, s);
+  } else {
+    AddUnitResponses<false>(t, units, nullptr, weight, d, s);
+  }
+}
+
 }  // namespace
 
 float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
@@ -159,6 +247,7 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   const bool shadows = !subject.Convex();
   if (progress != nullptr) progress->total.store(progress->done.load() + count);
   const float weight = 1.0f / static_cast<float>(n * n);
+  const UnitArrays unit_arrays(dome);
   // Left uninitialized here and zeroed a row at a time by the thread that fills it: one pass over memory the kernel
   // hands out fresh for every pose, not a single-threaded memset first (it and its page faults were 40 % of a moving
   // board's render).
@@ -169,28 +258,8 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
     r.diffuse.row(row).setZero();
     r.specular.row(row).setZero();
     for (const Hit& h : *rows[i]) {
-      const Eigen::Vector3f v = (origin - h.point).normalized();
-      const Eigen::Vector3f& nrm = h.normal;
-      const float n_dot_v = nrm.dot(v);
-      const Eigen::Vector3f start = h.point + kShadowEpsilon * h.geometric_normal;
-      for (size_t l = 0; l < units; ++l) {
-        const Eigen::Vector3f to_led = dome.units[l].position.cast<float>() - h.point;
-        const float d2 = to_led.squaredNorm();
-        const Eigen::Vector3f w = to_led / std::sqrt(d2);
-        const float n_dot_w = nrm.dot(w);
-        if (n_dot_w <= 0 || h.geometric_normal.dot(w) <= 0) continue;
-        if (shadows && subject.Occluded(start, dome.units[l].position.cast<float>())) continue;
-        const float irradiance = weight * static_cast<float>(dome.units[l].intensity) / d2;
-        const auto col = static_cast<Eigen::Index>(l);
-        r.diffuse(row, col) += n_dot_w * irradiance / kPi;
-        if (n_dot_v > 0) {
-          const Eigen::Vector3f half = (w + v).normalized();
-          const float alpha = std::max(h.material.roughness, 1e-3f);
-          const float spec = h.material.specular * GgxDistribution(nrm.dot(half), alpha) * SmithG1(n_dot_w, alpha) *
-                             SmithG1(n_dot_v, alpha) / (4 * n_dot_v);
-          r.specular(row, col) += spec * irradiance;
-        }
-      }
+      AddHitResponses(h, origin, unit_arrays, shadows ? &subject : nullptr, weight, r.diffuse.row(row).data(),
+                      r.specular.row(row).data());
     }
   });
   return r;
