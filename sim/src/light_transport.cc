@@ -57,7 +57,7 @@ struct HitTerms {
   float nx, ny, nz;  // the shading normal
   float gx, gy, gz;  // the geometric normal
   float vx, vy, vz;  // towards the camera
-  float a2;          // the roughness squared
+  float alpha;       // the roughness (at least 1e-3)
   float view;        // the specular lobe's terms of the view alone (0: the view is behind the shading normal)
   Eigen::Vector3f start;
 };
@@ -85,12 +85,9 @@ void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const Subj
     const float irradiance = weight * ui[l] / d2;
     const float hx = wx + t.vx, hy = wy + t.vy, hz = wz + t.vz;
     const float n_dot_h = (t.nx * hx + t.ny * hy + t.nz * hz) / std::sqrt(hx * hx + hy * hy + hz * hz);
-    const float q = n_dot_h * n_dot_h * (t.a2 - 1) + 1;
-    const float distribution = n_dot_h > 0 ? t.a2 / (kPi * q * q) : 0.0f;
-    const float g1_w = 2 * n_dot_w / (n_dot_w + std::sqrt(t.a2 + (1 - t.a2) * n_dot_w * n_dot_w));
     // Both computed for every unit, then selected: GCC vectorizes a select, not a condition around arithmetic.
     const float diffuse = n_dot_w * irradiance / kPi;
-    const float specular = distribution * g1_w * t.view * irradiance;
+    const float specular = GgxDistribution(n_dot_h, t.alpha) * SmithG1(n_dot_w, t.alpha) * t.view * irradiance;
     d[l] += lit ? diffuse : 0.0f;
     s[l] += lit ? specular : 0.0f;
   }
@@ -116,7 +113,7 @@ void AddHitResponses(const Hit& h, const Eigen::Vector3f& origin, const UnitArra
              v.x(),
              v.y(),
              v.z(),
-             alpha * alpha,
+             alpha,
              n_dot_v > 0 ? h.material.specular * SmithG1(n_dot_v, alpha) / (4 * n_dot_v) : 0.0f,
              h.point + kShadowEpsilon * h.geometric_normal};
   if (occluder != nullptr) {
