@@ -6,6 +6,7 @@
 #include <array>
 #include <cstdint>
 #include <iosfwd>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -52,28 +53,20 @@ struct MeshHit {
   float b1 = 0, b2 = 0;
 };
 
-// A bounding volume hierarchy over a mesh it owns (median splits, 4 triangles a leaf). Const methods are thread-safe.
+// Rays through a mesh it owns: Embree's bounding volume hierarchy (docs/dependencies.md), built once. Const methods
+// are thread-safe; copies share the mesh and the hierarchy.
 class MeshBvh {
  public:
   explicit MeshBvh(TriangleMesh mesh);
-  const TriangleMesh& mesh() const { return mesh_; }
+  const TriangleMesh& mesh() const;
   // The nearest triangle along the ray (unit `direction`) within (1e-4, tmax); false if none.
   bool Nearest(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, float tmax, MeshHit* hit) const;
-  // Whether anything lies on the segment from `from` to `to`.
+  // Whether anything lies on the segment from `from` to `to` (more than 1e-4 from `from`).
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const;
 
  private:
-  struct Node {
-    Eigen::Vector3f lo = Eigen::Vector3f::Zero(), hi = Eigen::Vector3f::Zero();
-    int32_t first = 0;  // leaf: first index into order_; inner: right child (left is this + 1)
-    int32_t count = 0;  // leaf: triangles; inner: 0
-  };
-  int32_t Build(int32_t first, int32_t count, const std::vector<Eigen::Vector3f>& centroids);
-  bool Trace(const Eigen::Vector3f& o, const Eigen::Vector3f& d, float tmax, bool any, MeshHit* hit) const;
-
-  TriangleMesh mesh_;
-  std::vector<int32_t> order_;
-  std::vector<Node> nodes_;
+  struct Scene;
+  std::shared_ptr<const Scene> scene_;
 };
 
 }  // namespace stage

@@ -1,0 +1,85 @@
+// MeshBvh: rays aimed exactly at the edges and corners a closed mesh's triangles share still meet it (no shadow ray
+// slips into a closed head); hits carry the triangle and barycentrics that give the point back; the segment's ends
+// are kept out of Occluded; copies outlive the original; an empty mesh is hit by nothing.
+#include <Eigen/Geometry>
+#include <cmath>
+
+#include "gtest/gtest.h"
+#include "stage/common/mesh.h"
+
+namespace stage {
+namespace {
+
+// An axis-aligned cube of side 2 centred at the origin, two triangles a face (each face's diagonal an inner edge).
+TriangleMesh Cube() {
+  TriangleMesh m;
+  for (int i = 0; i < 8; ++i) m.positions.emplace_back(i & 1 ? 1 : -1, i & 2 ? 1 : -1, i & 4 ? 1 : -1);
+  const int faces[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+  for (const auto& f : faces) {
+    m.triangles.push_back({f[0], f[1], f[2]});
+    m.triangles.push_back({f[0], f[2], f[3]});
+  }
+  return m;
+}
+
+TEST(MeshBvhTest, RaysThroughSharedEdgesAndCornersDoNotSlipThrough) {
+  const MeshBvh bvh(Cube());
+  int rays = 0;
+  // From outside towards points on every edge and corner of the top face (z = 1), its diagonal included, and from
+  // inside the cube out through them: every one meets the cube.
+  for (int i = 0; i <= 8; ++i) {
+    const float s = -1 + i * 0.25f;
+    for (const Eigen::Vector3f& target :
+         {Eigen::Vector3f(s, -1, 1), Eigen::Vector3f(s, 1, 1), Eigen::Vector3f(-1, s, 1), Eigen::Vector3f(1, s, 1),
+          Eigen::Vector3f(s, s, 1), Eigen::Vector3f(s, -s, 1)}) {
+      for (const Eigen::Vector3f& origin : {Eigen::Vector3f(0.3f, 0.2f, 5), Eigen::Vector3f(0.1f, -0.2f, 0)}) {
+        const Eigen::Vector3f d = (target - origin).normalized();
+        MeshHit hit;
+        ASSERT_TRUE(bvh.Nearest(origin, d, INFINITY, &hit))
+            << "from " << origin.transpose() << " to " << target.transpose();
+        EXPECT_NEAR(hit.t, (target - origin).norm(), 1e-4f);
+        EXPECT_TRUE(bvh.Occluded(origin, target + d)) << target.transpose();
+        ++rays;
+      }
+    }
+  }
+  EXPECT_EQ(rays, 9 * 6 * 2);
+}
+
+TEST(MeshBvhTest, HitsGiveThePointBackAndOccludedKeepsTheSegmentsEndsOut) {
+  const TriangleMesh cube = Cube();
+  const MeshBvh bvh(cube);
+  const Eigen::Vector3f origin(0.2f, 0.35f, 4), d(0, 0, -1);
+  MeshHit hit;
+  ASSERT_TRUE(bvh.Nearest(origin, d, INFINITY, &hit));
+  ASSERT_GE(hit.triangle, 0);
+  const auto& t = cube.triangles[static_cast<size_t>(hit.triangle)];
+  const Eigen::Vector3f p =
+      (1 - hit.b1 - hit.b2) * cube.positions[t[0]] + hit.b1 * cube.positions[t[1]] + hit.b2 * cube.positions[t[2]];
+  EXPECT_LT((p - (origin + hit.t * d)).norm(), 1e-5f);
+  EXPECT_NEAR(p.z(), 1, 1e-6f);
+  // Short of the surface: no hit within tmax, nothing between.
+  EXPECT_FALSE(bvh.Nearest(origin, d, 2.9f, &hit));
+  EXPECT_FALSE(bvh.Occluded(origin, origin + 2.9f * d));
+  // A shadow ray leaving the surface (lifted as the renderer lifts it) is not stopped by the surface it leaves.
+  EXPECT_FALSE(bvh.Occluded({0.2f, 0.35f, 1.001f}, {0.2f, 0.35f, 100}));
+  EXPECT_TRUE(bvh.Occluded({0.2f, 0.35f, 1.001f}, {0.2f, 0.35f, -100}));
+  // A segment of no length holds nothing.
+  EXPECT_FALSE(bvh.Occluded(origin, origin));
+}
+
+TEST(MeshBvhTest, CopiesOutliveTheOriginalAndAnEmptyMeshIsHitByNothing) {
+  auto original = std::make_unique<MeshBvh>(Cube());
+  const MeshBvh copy = *original;
+  original.reset();
+  MeshHit hit;
+  EXPECT_TRUE(copy.Nearest({0, 0, 5}, {0, 0, -1}, INFINITY, &hit));
+  EXPECT_EQ(copy.mesh().triangles.size(), 12u);
+
+  const MeshBvh empty{TriangleMesh{}};
+  EXPECT_FALSE(empty.Nearest({0, 0, 5}, {0, 0, -1}, INFINITY, &hit));
+  EXPECT_FALSE(empty.Occluded({0, 0, 5}, {0, 0, -5}));
+}
+
+}  // namespace
+}  // namespace stage
