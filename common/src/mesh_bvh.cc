@@ -90,6 +90,14 @@ MeshBvh::MeshBvh(TriangleMesh mesh) {
     rtcReleaseGeometry(g);
   }
   rtcCommitScene(s->scene);
+  // Embree reports a failed build (out of memory, a buffer it could not make) only through its error code; a scene
+  // left half built would miss rays without a word.
+  if (const RTCError e = rtcGetDeviceError(Device()); e != RTC_ERROR_NONE) {
+    Logger("geometry")
+        ->critical("Embree could not build the hierarchy of a mesh of {} triangles (error {})", m.triangles.size(),
+                   static_cast<int>(e));
+    std::abort();
+  }
   scene_ = std::move(s);
 }
 
