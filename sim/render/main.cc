@@ -137,7 +137,7 @@ int main(int argc, char** argv) {
                "Ground truth and take: the skin's textures in the UV layout too (uv_albedo.exr, uv_material.exr, "
                "uv_normal.exr: what a neural asset's textures learn from)");
   std::string take_dir, take_cameras;
-  bool all_patterns = false;
+  bool all_patterns = false, take_truth_maps = false;
   app.add_option("--take", take_dir,
                  "Write a take (docs/asset.md#a-performance-to-learn-from) to this directory instead of a contact "
                  "sheet: each camera's frames of --frames (every --frame-step) in its frame file, take.json and the "
@@ -145,6 +145,9 @@ int main(int argc, char** argv) {
   app.add_option("--take-cameras", take_cameras,
                  "Take: camera ids, comma-separated (default: every machine-vision camera)");
   app.add_flag("--all-patterns", all_patterns, "Take: every pattern of the cycle (default: the full-on ones only)");
+  app.add_flag("--take-truth-maps", take_truth_maps,
+               "Take: the ground truth's per-camera maps and a mesh per frame too (what `stage-process evaluate` "
+               "compares with; default: poses and UV position maps only)");
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -170,8 +173,9 @@ int main(int argc, char** argv) {
         kProgram, absl::InvalidArgumentError("--take writes its own truth (poses and UV position maps): it takes no "
                                              "--ground-truth, --cameras, --no-camera-maps or --no-meshes"));
   }
-  if (take_dir.empty() && (!take_cameras.empty() || all_patterns)) {
-    return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--take-cameras and --all-patterns need --take"));
+  if (take_dir.empty() && (!take_cameras.empty() || all_patterns || take_truth_maps)) {
+    return stage::ReportFatal(
+        kProgram, absl::InvalidArgumentError("--take-cameras, --all-patterns and --take-truth-maps need --take"));
   }
   if (take_dir.empty() && truth_dir.empty() && frame_step != 1) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--frame-step needs --take or --ground-truth"));
@@ -183,6 +187,8 @@ int main(int argc, char** argv) {
     options.frame_step = frame_step;
     options.cameras = absl::StrSplit(take_cameras, ',', absl::SkipEmpty());
     options.full_lit_only = !all_patterns;
+    options.truth_camera_maps = take_truth_maps;
+    options.truth_meshes = take_truth_maps;
     options.uv_size = uv_size;
     options.truth_textures = uv_textures;
     return WriteTake(*scene, take_dir, options, json);
