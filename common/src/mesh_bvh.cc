@@ -1,7 +1,6 @@
 // Rays through triangle meshes: Embree's hierarchy and intersectors (docs/dependencies.md says why not our own).
 #include <embree3/rtcore.h>
 
-#include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <limits>
@@ -51,6 +50,16 @@ RTCRay MakeRay(const Eigen::Vector3f& o, const Eigen::Vector3f& d, float tnear, 
   return ray;
 }
 
+// Embree reports a failed call (out of memory, a buffer it could not make, a build that failed) only through its
+// error code; a scene left half built would miss rays without a word, so the process stops and says what failed.
+void StopOnEmbreeError(const char* what, size_t triangles) {
+  if (const RTCError e = rtcGetDeviceError(Device()); e != RTC_ERROR_NONE) {
+    Logger("geometry")
+        ->critical("Embree could not {} for a mesh of {} triangles (error {})", what, triangles, static_cast<int>(e));
+    std::abort();
+  }
+}
+
 // Where a hit closer than this is the ray's own surface (the shadow rays' start is lifted 1e-3 mm off it).
 constexpr float kNear = 1e-4f;
 
@@ -79,9 +88,10 @@ MeshBvh::MeshBvh(TriangleMesh mesh) {
     // Embree's own buffers (padded as its vector loads need), filled from the mesh.
     auto* v = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                                                           3 * sizeof(float), m.positions.size()));
-    for (size_t i = 0; i < m.positions.size(); ++i) std::memcpy(v + 3 * i, m.positions[i].data(), 3 * sizeof(float));
     auto* t = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
                                                              3 * sizeof(uint32_t), m.triangles.size()));
+    StopOnEmbreeError("make its buffers", m.triangles.size());
+    for (size_t i = 0; i < m.positions.size(); ++i) std::memcpy(v + 3 * i, m.positions[i].data(), 3 * sizeof(float));
     for (size_t i = 0; i < m.triangles.size(); ++i) {
       for (int k = 0; k < 3; ++k) t[3 * i + k] = static_cast<uint32_t>(m.triangles[i][k]);
     }
@@ -90,14 +100,7 @@ MeshBvh::MeshBvh(TriangleMesh mesh) {
     rtcReleaseGeometry(g);
   }
   rtcCommitScene(s->scene);
-  // Embree reports a failed build (out of memory, a buffer it could not make) only through its error code; a scene
-  // left half built would miss rays without a word.
-  if (const RTCError e = rtcGetDeviceError(Device()); e != RTC_ERROR_NONE) {
-    Logger("geometry")
-        ->critical("Embree could not build the hierarchy of a mesh of {} triangles (error {})", m.triangles.size(),
-                   static_cast<int>(e));
-    std::abort();
-  }
+  StopOnEmbreeError("build the hierarchy", m.triangles.size());
   scene_ = std::move(s);
 }
 

@@ -24,7 +24,6 @@ TriangleMesh Cube() {
 
 TEST(MeshBvhTest, RaysThroughSharedEdgesAndCornersDoNotSlipThrough) {
   const MeshBvh bvh(Cube());
-  int rays = 0;
   // From outside towards points on every edge and corner of the top face (z = 1), its diagonal included, and from
   // inside the cube out through them: every one meets the cube.
   for (int i = 0; i <= 8; ++i) {
@@ -39,11 +38,9 @@ TEST(MeshBvhTest, RaysThroughSharedEdgesAndCornersDoNotSlipThrough) {
             << "from " << origin.transpose() << " to " << target.transpose();
         EXPECT_NEAR(hit.t, (target - origin).norm(), 1e-4f);
         EXPECT_TRUE(bvh.Occluded(origin, target + d)) << target.transpose();
-        ++rays;
       }
     }
   }
-  EXPECT_EQ(rays, 9 * 6 * 2);
 }
 
 TEST(MeshBvhTest, HitsGiveThePointBackAndOccludedKeepsTheSegmentsEndsOut) {
