@@ -1,7 +1,5 @@
-// The neural asset's networks (docs/asset.md#the-networks): see asset_net.h. With warp_net.cc, the only sources that
-// include torch's headers.
-#include "stage/processing/asset_net.h"
-
+// The neural asset's networks (docs/asset.md#the-networks), as the torch module implements them (torch_nets.h): see
+// asset_net.h. With warp_net.cc, the only sources that include torch's headers.
 #include <torch/script.h>
 #include <torch/torch.h>
 
@@ -11,29 +9,20 @@
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
-#include "stage/processing/warp_net.h"
+#include "torch_nets.h"
 #include "torch_support.h"
 
 namespace stage::processing {
 namespace {
 
 namespace nnf = torch::nn::functional;
+using internal::ConvShape;
+using internal::ShapeOf;
 constexpr const char* kNet = "geometry VAE";
 
 torch::Tensor Leaky(const torch::Tensor& x) {
   return nnf::leaky_relu(x, nnf::LeakyReLUFuncOptions().negative_slope(0.1));
 }
-
-// The convolutional trunks' shape: input size, levels, channels at full resolution doubling to a cap.
-struct ConvShape {
-  int input_size, levels, base_channels, max_channels;
-  int Channels(int level) const { return std::min(max_channels, base_channels << std::min(level, 20)); }
-  int side() const { return input_size >> levels; }  // of the coarsest level
-};
-
-ConvShape ShapeOf(const GeometryVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
-
-int Channels(const GeometryVaeOptions& o, int level) { return ShapeOf(o).Channels(level); }
 
 // An image of `in` channels -> `outputs` numbers (the latents' means and log-variances): a 3 x 3 convolution, then
 // stride-2 3 x 3 convolutions down the levels, and a linear layer.
@@ -196,21 +185,6 @@ torch::Tensor Kl(const torch::Tensor& mu, const torch::Tensor& logvar) {
   return (-0.5 * (1 + logvar - mu.pow(2) - logvar.exp())).sum(1).mean();
 }
 
-// The trunks' shape within the ranges the options' comments give; `bad` names the net.
-template <typename Bad>
-absl::Status ValidateShape(const ConvShape& shape, Bad bad) {
-  if (shape.levels < 2 || shape.levels > 7) return bad(absl::StrCat("levels ", shape.levels, " is not in 2..7"));
-  if (shape.input_size < 32 || shape.input_size > 512 || shape.input_size % (1 << shape.levels) != 0) {
-    return bad(absl::StrCat("input size ", shape.input_size, " is not in 32..512 and divisible by 2^", shape.levels));
-  }
-  if (shape.base_channels < 4 || shape.base_channels > 256 || shape.max_channels < shape.base_channels ||
-      shape.max_channels > 256) {
-    return bad(
-        absl::StrCat("channels ", shape.base_channels, " to ", shape.max_channels, " are not within 4..256, rising"));
-  }
-  return absl::OkStatus();
-}
-
 int64_t CountParameters(const torch::nn::Module& net) {
   int64_t n = 0;
   for (const auto& p : net.parameters()) n += p.numel();
@@ -278,17 +252,7 @@ torch::Tensor MaskedMse(const torch::Tensor& a, const torch::Tensor& b, const to
 
 }  // namespace
 
-absl::Status GeometryVaeOptions::Validate() const {
-  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kNet, ": ", what)); };
-  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
-  if (geometry_latent < 1 || geometry_latent > 1024) return bad(absl::StrCat("geometry latent ", geometry_latent));
-  if (pose_latent < 1 || pose_latent > 64) return bad(absl::StrCat("pose latent ", pose_latent, " is not in 1..64"));
-  if (!(kl_weight >= 0)) return bad(absl::StrCat("KL weight ", kl_weight, " is negative"));
-  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
-  return absl::OkStatus();
-}
-
-struct GeometryVae::Impl {
+struct GeometryVaeState {
   GeometryVaeOptions options;
   Vae net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
@@ -311,34 +275,48 @@ struct GeometryVae::Impl {
   }
 };
 
-GeometryVae::GeometryVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-GeometryVae::~GeometryVae() = default;
+class TorchGeometryVae final : public internal::GeometryVaeNet {
+ public:
+  explicit TorchGeometryVae(std::unique_ptr<GeometryVaeState> impl) : impl_(std::move(impl)) {}
+  absl::StatusOr<GeometryLosses> TrainStep(const GeometryBatch& batch, double learning_rate) override;
+  absl::StatusOr<std::vector<float>> Encode(const std::vector<float>& maps, const std::vector<float>& valid,
+                                            int batch) const override;
+  absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& geometry_latents, int batch) const override;
+  absl::StatusOr<std::vector<float>> Reposed(const std::vector<float>& maps, const std::vector<float>& valid,
+                                             int batch) const override;
+  absl::Status Save(const std::string& path) const override;
+  absl::Status Load(const std::string& path) override;
+  absl::Status ExportTorchScript(const std::string& path) const override;
+  const GeometryVaeOptions& options() const override;
+  int64_t parameter_count() const override;
+  std::unique_ptr<GeometryVaeState> impl_;
+};
 
-absl::StatusOr<std::unique_ptr<GeometryVae>> GeometryVae::Create(const GeometryVaeOptions& options,
-                                                                 const std::vector<float>& mean, float scale) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<std::unique_ptr<internal::GeometryVaeNet>> internal::MakeGeometryVae(const GeometryVaeOptions& options,
+                                                                                    const std::vector<float>& mean,
+                                                                                    float scale) {
   const int64_t s2 = static_cast<int64_t>(options.input_size) * options.input_size;
   if (auto s = CheckSize(mean, 3 * s2, "the mean map"); !s.ok()) return s;
   if (!(scale > 0)) return absl::InvalidArgumentError(absl::StrCat(kNet, ": scale ", scale, " is not positive"));
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<GeometryVaeState>();
     impl->options = options;
     impl->net = internal::Seeded(options.seed, [&] {
       return Vae(options, FromVector(mean, {1, 3, options.input_size, options.input_size}), scale);
     });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
-    return std::unique_ptr<GeometryVae>(new GeometryVae(std::move(impl)));
+    return std::unique_ptr<internal::GeometryVaeNet>(new TorchGeometryVae(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError(kNet, "creating the net", e);
   }
 }
 
-const GeometryVaeOptions& GeometryVae::options() const { return impl_->options; }
+const GeometryVaeOptions& TorchGeometryVae::options() const { return impl_->options; }
 
-int64_t GeometryVae::parameter_count() const { return CountParameters(*impl_->net); }
+int64_t TorchGeometryVae::parameter_count() const { return CountParameters(*impl_->net); }
 
-absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch, double learning_rate) {
+absl::StatusOr<GeometryLosses> TorchGeometryVae::TrainStep(const GeometryBatch& batch, double learning_rate) {
   const GeometryVaeOptions& o = impl_->options;
   const int64_t b = batch.batch, s = o.input_size, latents = o.geometry_latent + o.pose_latent;
   if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kNet, ": an empty batch"));
@@ -352,7 +330,7 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
     if (auto st = CheckSize(batch.weight, b * s * s, "the texels' weights"); !st.ok()) return st;
   }
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     Vae& net = impl_->net;
     net->train();
     SetLearningRate(*impl_->adam, learning_rate);
@@ -387,11 +365,11 @@ absl::StatusOr<GeometryLosses> GeometryVae::TrainStep(const GeometryBatch& batch
   }
 }
 
-absl::StatusOr<std::vector<float>> GeometryVae::Encode(const std::vector<float>& maps, const std::vector<float>& valid,
-                                                       int batch) const {
+absl::StatusOr<std::vector<float>> TorchGeometryVae::Encode(const std::vector<float>& maps,
+                                                            const std::vector<float>& valid, int batch) const {
   if (auto st = impl_->CheckMaps(maps, valid, batch); !st.ok()) return st;
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
     VaeImpl::Alignment alignment;
     return ToVector(impl_->Means(maps, valid, batch, &alignment));
@@ -400,13 +378,14 @@ absl::StatusOr<std::vector<float>> GeometryVae::Encode(const std::vector<float>&
   }
 }
 
-absl::StatusOr<std::vector<float>> GeometryVae::Decode(const std::vector<float>& geometry_latents, int batch) const {
+absl::StatusOr<std::vector<float>> TorchGeometryVae::Decode(const std::vector<float>& geometry_latents,
+                                                            int batch) const {
   const GeometryVaeOptions& o = impl_->options;
   if (auto st = CheckSize(geometry_latents, int64_t{batch} * o.geometry_latent, "the geometry latents"); !st.ok()) {
     return st;
   }
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     const torch::Tensor d = impl_->net->decoder->forward(FromVector(geometry_latents, {batch, o.geometry_latent}));
@@ -416,12 +395,12 @@ absl::StatusOr<std::vector<float>> GeometryVae::Decode(const std::vector<float>&
   }
 }
 
-absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>& maps, const std::vector<float>& valid,
-                                                        int batch) const {
+absl::StatusOr<std::vector<float>> TorchGeometryVae::Reposed(const std::vector<float>& maps,
+                                                             const std::vector<float>& valid, int batch) const {
   const GeometryVaeOptions& o = impl_->options;
   if (auto st = impl_->CheckMaps(maps, valid, batch); !st.ok()) return st;
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     torch::NoGradGuard no_grad;
     VaeImpl::Alignment alignment;
     const torch::Tensor mu = impl_->Means(maps, valid, batch, &alignment);
@@ -433,7 +412,7 @@ absl::StatusOr<std::vector<float>> GeometryVae::Reposed(const std::vector<float>
   }
 }
 
-absl::Status GeometryVae::Save(const std::string& path) const {
+absl::Status TorchGeometryVae::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kNet);
 }
 
@@ -535,17 +514,17 @@ absl::Status ExportScript(const torch::nn::Module& net, const char* name, const 
 
 }  // namespace
 
-absl::Status GeometryVae::ExportTorchScript(const std::string& path) const {
+absl::Status TorchGeometryVae::ExportTorchScript(const std::string& path) const {
   return ExportScript(*impl_->net, "FaStageGeometryVae", ScriptSource(impl_->options), path, kNet);
 }
 
-absl::Status GeometryVae::Load(const std::string& path) { return LoadArchive(*impl_->net, *impl_->adam, path, kNet); }
+absl::Status TorchGeometryVae::Load(const std::string& path) {
+  return LoadArchive(*impl_->net, *impl_->adam, path, kNet);
+}
 
 namespace {
 
 constexpr const char* kExpressionNet = "expression VAE";
-
-ConvShape ShapeOf(const ExpressionVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
 
 struct ExpressionNetImpl : torch::nn::Module {
   explicit ExpressionNetImpl(const ExpressionVaeOptions& o)
@@ -574,21 +553,7 @@ TORCH_MODULE(ExpressionNet);
 
 }  // namespace
 
-absl::Status ExpressionVaeOptions::Validate() const {
-  auto bad = [](const std::string& what) {
-    return absl::InvalidArgumentError(absl::StrCat(kExpressionNet, ": ", what));
-  };
-  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
-  if (expression_latent < 1 || expression_latent > 1024) {
-    return bad(absl::StrCat("expression latent ", expression_latent, " is not in 1..1024"));
-  }
-  if (view_latent < 1 || view_latent > 64) return bad(absl::StrCat("view latent ", view_latent, " is not in 1..64"));
-  if (!(kl_weight >= 0) || !(swap_weight >= 0) || !(cycle_weight >= 0)) return bad("a loss weight is negative");
-  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
-  return absl::OkStatus();
-}
-
-struct ExpressionVae::Impl {
+struct ExpressionVaeState {
   ExpressionVaeOptions options;
   ExpressionNet net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
@@ -596,27 +561,37 @@ struct ExpressionVae::Impl {
   int64_t pixels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
 };
 
-ExpressionVae::ExpressionVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-ExpressionVae::~ExpressionVae() = default;
-const ExpressionVaeOptions& ExpressionVae::options() const { return impl_->options; }
+class TorchExpressionVae final : public internal::ExpressionVaeNet {
+ public:
+  explicit TorchExpressionVae(std::unique_ptr<ExpressionVaeState> impl) : impl_(std::move(impl)) {}
+  absl::StatusOr<ExpressionLosses> TrainStep(const ExpressionBatch& batch, double learning_rate) override;
+  absl::StatusOr<std::vector<float>> Encode(const std::vector<float>& images, int batch) const override;
+  absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& latents, int batch) const override;
+  absl::Status Save(const std::string& path) const override;
+  absl::Status Load(const std::string& path) override;
+  const ExpressionVaeOptions& options() const override;
+  int64_t parameter_count() const override;
+  std::unique_ptr<ExpressionVaeState> impl_;
+};
+const ExpressionVaeOptions& TorchExpressionVae::options() const { return impl_->options; }
 
-int64_t ExpressionVae::parameter_count() const { return CountParameters(*impl_->net); }
+int64_t TorchExpressionVae::parameter_count() const { return CountParameters(*impl_->net); }
 
-absl::StatusOr<std::unique_ptr<ExpressionVae>> ExpressionVae::Create(const ExpressionVaeOptions& options) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<std::unique_ptr<internal::ExpressionVaeNet>> internal::MakeExpressionVae(
+    const ExpressionVaeOptions& options) {
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<ExpressionVaeState>();
     impl->options = options;
     impl->net = internal::Seeded(options.seed, [&] { return ExpressionNet(options); });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
-    return std::unique_ptr<ExpressionVae>(new ExpressionVae(std::move(impl)));
+    return std::unique_ptr<internal::ExpressionVaeNet>(new TorchExpressionVae(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError(kExpressionNet, "creating the net", e);
   }
 }
 
-absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch& batch, double learning_rate) {
+absl::StatusOr<ExpressionLosses> TorchExpressionVae::TrainStep(const ExpressionBatch& batch, double learning_rate) {
   const ExpressionVaeOptions& o = impl_->options;
   const int64_t b = batch.batch, s = o.input_size, l = impl_->latents();
   if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kExpressionNet, ": an empty batch"));
@@ -627,7 +602,7 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
     if (auto st = CheckSize(*v, n, what, kExpressionNet); !st.ok()) return st;
   }
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     ExpressionNet& net = impl_->net;
     net->train();
     SetLearningRate(*impl_->adam, learning_rate);
@@ -662,11 +637,11 @@ absl::StatusOr<ExpressionLosses> ExpressionVae::TrainStep(const ExpressionBatch&
   }
 }
 
-absl::StatusOr<std::vector<float>> ExpressionVae::Encode(const std::vector<float>& images, int batch) const {
+absl::StatusOr<std::vector<float>> TorchExpressionVae::Encode(const std::vector<float>& images, int batch) const {
   const int64_t s = impl_->options.input_size;
   if (auto st = CheckSize(images, batch * impl_->pixels(), "the images", kExpressionNet); !st.ok()) return st;
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     return ToVector(impl_->net->Encode(FromVector(images, {batch, 1, s, s})).first);
@@ -675,10 +650,10 @@ absl::StatusOr<std::vector<float>> ExpressionVae::Encode(const std::vector<float
   }
 }
 
-absl::StatusOr<std::vector<float>> ExpressionVae::Decode(const std::vector<float>& latents, int batch) const {
+absl::StatusOr<std::vector<float>> TorchExpressionVae::Decode(const std::vector<float>& latents, int batch) const {
   if (auto st = CheckSize(latents, batch * impl_->latents(), "the latents", kExpressionNet); !st.ok()) return st;
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     return ToVector(impl_->net->Decode(FromVector(latents, {batch, impl_->latents()})));
@@ -687,11 +662,11 @@ absl::StatusOr<std::vector<float>> ExpressionVae::Decode(const std::vector<float
   }
 }
 
-absl::Status ExpressionVae::Save(const std::string& path) const {
+absl::Status TorchExpressionVae::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kExpressionNet);
 }
 
-absl::Status ExpressionVae::Load(const std::string& path) {
+absl::Status TorchExpressionVae::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kExpressionNet);
 }
 
@@ -723,54 +698,53 @@ TORCH_MODULE(MappingNet);
 
 }  // namespace
 
-absl::Status LatentMappingOptions::Validate() const {
-  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": ", what)); };
-  if (input < 1 || input > 1024 || output < 1 || output > 1024) {
-    return bad(absl::StrCat("sizes ", input, " -> ", output, " are not in 1..1024"));
-  }
-  if (hidden < 8 || hidden > 4096) return bad(absl::StrCat("hidden units ", hidden, " are not in 8..4096"));
-  if (layers < 2 || layers > 8) return bad(absl::StrCat("layers ", layers, " are not in 2..8"));
-  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
-  return absl::OkStatus();
-}
-
-struct LatentMapping::Impl {
+struct LatentMappingState {
   LatentMappingOptions options;
   MappingNet net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
 };
 
-LatentMapping::LatentMapping(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-LatentMapping::~LatentMapping() = default;
-const LatentMappingOptions& LatentMapping::options() const { return impl_->options; }
-int64_t LatentMapping::parameter_count() const { return CountParameters(*impl_->net); }
+class TorchLatentMapping final : public internal::LatentMappingNet {
+ public:
+  explicit TorchLatentMapping(std::unique_ptr<LatentMappingState> impl) : impl_(std::move(impl)) {}
+  absl::StatusOr<double> TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
+                                   const std::vector<float>& noise, int batch, double learning_rate) override;
+  absl::StatusOr<std::vector<float>> Map(const std::vector<float>& inputs, int batch) const override;
+  absl::Status Save(const std::string& path) const override;
+  absl::Status Load(const std::string& path) override;
+  const LatentMappingOptions& options() const override;
+  int64_t parameter_count() const override;
+  std::unique_ptr<LatentMappingState> impl_;
+};
+const LatentMappingOptions& TorchLatentMapping::options() const { return impl_->options; }
+int64_t TorchLatentMapping::parameter_count() const { return CountParameters(*impl_->net); }
 
-absl::StatusOr<std::unique_ptr<LatentMapping>> LatentMapping::Create(const LatentMappingOptions& options,
-                                                                     const std::vector<float>& target_mean,
-                                                                     const std::vector<float>& target_scale) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<std::unique_ptr<internal::LatentMappingNet>> internal::MakeLatentMapping(
+    const LatentMappingOptions& options, const std::vector<float>& target_mean,
+    const std::vector<float>& target_scale) {
   if (auto s = CheckSize(target_mean, options.output, "the targets' mean", kMappingNet); !s.ok()) return s;
   if (auto s = CheckSize(target_scale, options.output, "the targets' scale", kMappingNet); !s.ok()) return s;
   if (*std::min_element(target_scale.begin(), target_scale.end()) <= 0) {
     return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": a target's scale is not positive"));
   }
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<LatentMappingState>();
     impl->options = options;
     impl->net = internal::Seeded(options.seed, [&] {
       return MappingNet(options, FromVector(target_mean, {1, options.output}),
                         FromVector(target_scale, {1, options.output}));
     });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
-    return std::unique_ptr<LatentMapping>(new LatentMapping(std::move(impl)));
+    return std::unique_ptr<internal::LatentMappingNet>(new TorchLatentMapping(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError(kMappingNet, "creating the net", e);
   }
 }
 
-absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs, const std::vector<float>& targets,
-                                                const std::vector<float>& noise, int batch, double learning_rate) {
+absl::StatusOr<double> TorchLatentMapping::TrainStep(const std::vector<float>& inputs,
+                                                     const std::vector<float>& targets, const std::vector<float>& noise,
+                                                     int batch, double learning_rate) {
   const LatentMappingOptions& o = impl_->options;
   if (batch < 1) return absl::InvalidArgumentError(absl::StrCat(kMappingNet, ": an empty batch"));
   for (auto [v, n, what] : {std::tuple{&inputs, int64_t{batch} * o.input, "the inputs"},
@@ -779,7 +753,7 @@ absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs
     if (auto st = CheckSize(*v, n, what, kMappingNet); !st.ok()) return st;
   }
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     MappingNet& net = impl_->net;
     net->train();
     SetLearningRate(*impl_->adam, learning_rate);
@@ -795,11 +769,11 @@ absl::StatusOr<double> LatentMapping::TrainStep(const std::vector<float>& inputs
   }
 }
 
-absl::StatusOr<std::vector<float>> LatentMapping::Map(const std::vector<float>& inputs, int batch) const {
+absl::StatusOr<std::vector<float>> TorchLatentMapping::Map(const std::vector<float>& inputs, int batch) const {
   const LatentMappingOptions& o = impl_->options;
   STAGE_RETURN_IF_ERROR(CheckSize(inputs, int64_t{batch} * o.input, "the inputs", kMappingNet));
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     torch::NoGradGuard no_grad;
     MappingNet& net = impl_->net;
     net->eval();
@@ -809,11 +783,11 @@ absl::StatusOr<std::vector<float>> LatentMapping::Map(const std::vector<float>& 
   }
 }
 
-absl::Status LatentMapping::Save(const std::string& path) const {
+absl::Status TorchLatentMapping::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kMappingNet);
 }
 
-absl::Status LatentMapping::Load(const std::string& path) {
+absl::Status TorchLatentMapping::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kMappingNet);
 }
 
@@ -850,12 +824,7 @@ void CopyWeights(const torch::nn::Module& from, torch::nn::Module& to) {
 
 }  // namespace
 
-absl::Status DrivingNetOptions::Validate() const {
-  if (threads < 0) return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": threads ", threads, " is negative"));
-  return absl::OkStatus();
-}
-
-struct DrivingNet::Impl {
+struct DrivingNetState {
   DrivingNetOptions options;
   int input_size = 0;
   DrivingModule net{nullptr};
@@ -868,30 +837,44 @@ struct DrivingNet::Impl {
   }
 };
 
-DrivingNet::DrivingNet(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-DrivingNet::~DrivingNet() = default;
-const DrivingNetOptions& DrivingNet::options() const { return impl_->options; }
-int DrivingNet::input_size() const { return impl_->input_size; }
-int DrivingNet::output() const { return static_cast<int>(impl_->net->mapping->target_mean.size(1)); }
+class TorchDrivingNet final : public internal::DrivingNetNet {
+ public:
+  explicit TorchDrivingNet(std::unique_ptr<DrivingNetState> impl) : impl_(std::move(impl)) {}
+  absl::StatusOr<double> TrainStep(const std::vector<float>& images, const std::vector<float>& targets, int batch,
+                                   double learning_rate) override;
+  absl::Status UseMapLoss(const internal::GeometryVaeNet& geometry, const std::vector<float>& weights) override;
+  absl::StatusOr<std::vector<float>> Drive(const std::vector<float>& images, int batch) const override;
+  absl::Status Save(const std::string& path) const override;
+  absl::Status Load(const std::string& path) override;
+  const DrivingNetOptions& options() const override;
+  int input_size() const override;
+  int output() const override;
+  int64_t trained_parameters() const override;
+  std::unique_ptr<DrivingNetState> impl_;
+};
+const DrivingNetOptions& TorchDrivingNet::options() const { return impl_->options; }
+int TorchDrivingNet::input_size() const { return impl_->input_size; }
+int TorchDrivingNet::output() const { return static_cast<int>(impl_->net->mapping->target_mean.size(1)); }
 
-int64_t DrivingNet::trained_parameters() const {
+int64_t TorchDrivingNet::trained_parameters() const {
   int64_t n = 0;
   for (const auto& p : impl_->Trained()) n += p.numel();
   return n;
 }
 
-absl::StatusOr<std::unique_ptr<DrivingNet>> DrivingNet::Create(const ExpressionVae& expression,
-                                                               const LatentMapping& mapping,
-                                                               const DrivingNetOptions& options) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<std::unique_ptr<internal::DrivingNetNet>> internal::MakeDrivingNet(
+    const internal::ExpressionVaeNet& expression_net, const internal::LatentMappingNet& mapping_net,
+    const DrivingNetOptions& options) {
+  const auto& expression = static_cast<const TorchExpressionVae&>(expression_net);
+  const auto& mapping = static_cast<const TorchLatentMapping&>(mapping_net);
   const ExpressionVaeOptions& eo = expression.options();
   if (mapping.options().input != eo.expression_latent) {
     return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": the mapping takes ", mapping.options().input,
                                                    " numbers, the expression latent has ", eo.expression_latent));
   }
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<DrivingNetState>();
     impl->options = options;
     impl->input_size = eo.input_size;
     const MappingNet& m = mapping.impl_->net;
@@ -900,20 +883,20 @@ absl::StatusOr<std::unique_ptr<DrivingNet>> DrivingNet::Create(const ExpressionV
     CopyWeights(*m, *impl->net->mapping);
     for (auto& p : impl->net->encoder->parameters()) p.set_requires_grad(options.train_encoder);
     impl->adam = std::make_unique<torch::optim::Adam>(impl->Trained(), torch::optim::AdamOptions(1e-4));
-    return std::unique_ptr<DrivingNet>(new DrivingNet(std::move(impl)));
+    return std::unique_ptr<internal::DrivingNetNet>(new TorchDrivingNet(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError(kDrivingNet, "creating the net", e);
   }
 }
 
-absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, const std::vector<float>& targets,
-                                             int batch, double learning_rate) {
+absl::StatusOr<double> TorchDrivingNet::TrainStep(const std::vector<float>& images, const std::vector<float>& targets,
+                                                  int batch, double learning_rate) {
   const int64_t s = impl_->input_size, out = output();
   if (batch < 1) return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": an empty batch"));
   if (auto st = CheckSize(images, batch * s * s, "the images", kDrivingNet); !st.ok()) return st;
   if (auto st = CheckSize(targets, batch * out, "the targets", kDrivingNet); !st.ok()) return st;
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     DrivingModule& net = impl_->net;
     net->train();
     SetLearningRate(*impl_->adam, learning_rate);
@@ -948,7 +931,9 @@ absl::StatusOr<double> DrivingNet::TrainStep(const std::vector<float>& images, c
   }
 }
 
-absl::Status DrivingNet::UseMapLoss(const GeometryVae& geometry, const std::vector<float>& weights) {
+absl::Status TorchDrivingNet::UseMapLoss(const internal::GeometryVaeNet& geometry_net,
+                                         const std::vector<float>& weights) {
+  const auto& geometry = static_cast<const TorchGeometryVae&>(geometry_net);
   const GeometryVaeOptions& g = geometry.options();
   if (g.geometry_latent != output()) {
     return absl::InvalidArgumentError(absl::StrCat(kDrivingNet, ": the geometry VAE's latent has ", g.geometry_latent,
@@ -968,11 +953,11 @@ absl::Status DrivingNet::UseMapLoss(const GeometryVae& geometry, const std::vect
   }
 }
 
-absl::StatusOr<std::vector<float>> DrivingNet::Drive(const std::vector<float>& images, int batch) const {
+absl::StatusOr<std::vector<float>> TorchDrivingNet::Drive(const std::vector<float>& images, int batch) const {
   const int64_t s = impl_->input_size;
   if (auto st = CheckSize(images, batch * s * s, "the images", kDrivingNet); !st.ok()) return st;
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
     DrivingModule& net = impl_->net;
     net->eval();
@@ -983,11 +968,11 @@ absl::StatusOr<std::vector<float>> DrivingNet::Drive(const std::vector<float>& i
   }
 }
 
-absl::Status DrivingNet::Save(const std::string& path) const {
+absl::Status TorchDrivingNet::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kDrivingNet);
 }
 
-absl::Status DrivingNet::Load(const std::string& path) {
+absl::Status TorchDrivingNet::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kDrivingNet);
 }
 
@@ -995,8 +980,6 @@ absl::Status DrivingNet::Load(const std::string& path) {
 namespace {
 
 constexpr const char* kTextureNet = "texture VAE";
-
-ConvShape ShapeOf(const TextureVaeOptions& o) { return {o.input_size, o.levels, o.base_channels, o.max_channels}; }
 
 struct TextureNetImpl : torch::nn::Module {
   TextureNetImpl(const TextureVaeOptions& o, const torch::Tensor& neutral_textures, const torch::Tensor& spread)
@@ -1020,34 +1003,33 @@ TORCH_MODULE(TextureNet);
 
 }  // namespace
 
-absl::Status TextureVaeOptions::Validate() const {
-  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": ", what)); };
-  if (auto st = ValidateShape(ShapeOf(*this), bad); !st.ok()) return st;
-  if (channels < 1 || channels > 16) return bad(absl::StrCat("channels ", channels, " is not in 1..16"));
-  if (texture_latent < 1 || texture_latent > 1024) {
-    return bad(absl::StrCat("texture latent ", texture_latent, " is not in 1..1024"));
-  }
-  if (!(kl_weight >= 0)) return bad(absl::StrCat("KL weight ", kl_weight, " is negative"));
-  if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
-  return absl::OkStatus();
-}
-
-struct TextureVae::Impl {
+struct TextureVaeState {
   TextureVaeOptions options;
   TextureNet net{nullptr};
   std::unique_ptr<torch::optim::Adam> adam;
   int64_t texels() const { return static_cast<int64_t>(options.input_size) * options.input_size; }
 };
 
-TextureVae::TextureVae(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-TextureVae::~TextureVae() = default;
-const TextureVaeOptions& TextureVae::options() const { return impl_->options; }
-int64_t TextureVae::parameter_count() const { return CountParameters(*impl_->net); }
+class TorchTextureVae final : public internal::TextureVaeNet {
+ public:
+  explicit TorchTextureVae(std::unique_ptr<TextureVaeState> impl) : impl_(std::move(impl)) {}
+  absl::StatusOr<TextureLosses> TrainStep(const TextureBatch& batch, double learning_rate) override;
+  absl::StatusOr<std::vector<float>> Encode(const std::vector<float>& textures, const std::vector<float>& valid,
+                                            int batch) const override;
+  absl::StatusOr<std::vector<float>> Decode(const std::vector<float>& latents, int batch) const override;
+  absl::Status Save(const std::string& path) const override;
+  absl::Status Load(const std::string& path) override;
+  absl::Status ExportTorchScript(const std::string& path) const override;
+  const TextureVaeOptions& options() const override;
+  int64_t parameter_count() const override;
+  std::unique_ptr<TextureVaeState> impl_;
+};
+const TextureVaeOptions& TorchTextureVae::options() const { return impl_->options; }
+int64_t TorchTextureVae::parameter_count() const { return CountParameters(*impl_->net); }
 
-absl::StatusOr<std::unique_ptr<TextureVae>> TextureVae::Create(const TextureVaeOptions& options,
-                                                               const std::vector<float>& neutral,
-                                                               const std::vector<float>& scale) {
-  STAGE_RETURN_IF_ERROR(options.Validate());
+absl::StatusOr<std::unique_ptr<internal::TextureVaeNet>> internal::MakeTextureVae(const TextureVaeOptions& options,
+                                                                                  const std::vector<float>& neutral,
+                                                                                  const std::vector<float>& scale) {
   const int64_t s = options.input_size, c = options.channels;
   STAGE_RETURN_IF_ERROR(CheckSize(neutral, c * s * s, "the neutral textures", kTextureNet));
   STAGE_RETURN_IF_ERROR(CheckSize(scale, c, "the spread", kTextureNet));
@@ -1055,20 +1037,20 @@ absl::StatusOr<std::unique_ptr<TextureVae>> TextureVae::Create(const TextureVaeO
     if (!(x > 0)) return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": a spread of ", x, " is not positive"));
   }
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<TextureVaeState>();
     impl->options = options;
     impl->net = internal::Seeded(options.seed, [&] {
       return TextureNet(options, FromVector(neutral, {1, c, s, s}), FromVector(scale, {1, c, 1, 1}));
     });
     impl->adam = std::make_unique<torch::optim::Adam>(impl->net->parameters(), torch::optim::AdamOptions(1e-3));
-    return std::unique_ptr<TextureVae>(new TextureVae(std::move(impl)));
+    return std::unique_ptr<internal::TextureVaeNet>(new TorchTextureVae(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError(kTextureNet, "creating the net", e);
   }
 }
 
-absl::StatusOr<TextureLosses> TextureVae::TrainStep(const TextureBatch& batch, double learning_rate) {
+absl::StatusOr<TextureLosses> TorchTextureVae::TrainStep(const TextureBatch& batch, double learning_rate) {
   const TextureVaeOptions& o = impl_->options;
   const int64_t b = batch.batch, s = o.input_size, c = o.channels;
   if (b < 1) return absl::InvalidArgumentError(absl::StrCat(kTextureNet, ": an empty batch"));
@@ -1076,7 +1058,7 @@ absl::StatusOr<TextureLosses> TextureVae::TrainStep(const TextureBatch& batch, d
   STAGE_RETURN_IF_ERROR(CheckSize(batch.valid, b * s * s, "the validity", kTextureNet));
   STAGE_RETURN_IF_ERROR(CheckSize(batch.noise, b * o.texture_latent, "the noise", kTextureNet));
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     TextureNet& net = impl_->net;
     net->train();
     SetLearningRate(*impl_->adam, learning_rate);
@@ -1098,15 +1080,15 @@ absl::StatusOr<TextureLosses> TextureVae::TrainStep(const TextureBatch& batch, d
   }
 }
 
-absl::StatusOr<std::vector<float>> TextureVae::Encode(const std::vector<float>& textures,
-                                                      const std::vector<float>& valid, int batch) const {
+absl::StatusOr<std::vector<float>> TorchTextureVae::Encode(const std::vector<float>& textures,
+                                                           const std::vector<float>& valid, int batch) const {
   const TextureVaeOptions& o = impl_->options;
   const int64_t s = o.input_size;
   STAGE_RETURN_IF_ERROR(
       CheckSize(textures, int64_t{batch} * o.channels * impl_->texels(), "the textures", kTextureNet));
   STAGE_RETURN_IF_ERROR(CheckSize(valid, int64_t{batch} * impl_->texels(), "the validity", kTextureNet));
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     return ToVector(
@@ -1116,11 +1098,11 @@ absl::StatusOr<std::vector<float>> TextureVae::Encode(const std::vector<float>& 
   }
 }
 
-absl::StatusOr<std::vector<float>> TextureVae::Decode(const std::vector<float>& latents, int batch) const {
+absl::StatusOr<std::vector<float>> TorchTextureVae::Decode(const std::vector<float>& latents, int batch) const {
   const TextureVaeOptions& o = impl_->options;
   STAGE_RETURN_IF_ERROR(CheckSize(latents, int64_t{batch} * o.texture_latent, "the texture latents", kTextureNet));
   try {
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     const torch::Tensor d = impl_->net->decoder->forward(FromVector(latents, {batch, o.texture_latent}));
@@ -1130,11 +1112,11 @@ absl::StatusOr<std::vector<float>> TextureVae::Decode(const std::vector<float>& 
   }
 }
 
-absl::Status TextureVae::Save(const std::string& path) const {
+absl::Status TorchTextureVae::Save(const std::string& path) const {
   return SaveArchive(*impl_->net, *impl_->adam, path, kTextureNet);
 }
 
-absl::Status TextureVae::ExportTorchScript(const std::string& path) const {
+absl::Status TorchTextureVae::ExportTorchScript(const std::string& path) const {
   const TextureVaeOptions& o = impl_->options;
   std::string src = DecodeScript(ShapeOf(o));
   src += "    return self.neutral + self.scale * x\n";
@@ -1149,34 +1131,13 @@ def encode(self, textures: Tensor, valid: Tensor) -> Tensor:
   return ExportScript(*impl_->net, "FaStageTextureVae", src, path, kTextureNet);
 }
 
-absl::Status TextureVae::Load(const std::string& path) {
+absl::Status TorchTextureVae::Load(const std::string& path) {
   return LoadArchive(*impl_->net, *impl_->adam, path, kTextureNet);
 }
 
-double GeometryVaeForwardMacs(const GeometryVaeOptions& o) {
-  const double s = o.input_size;
-  double macs = s * s * 4 * Channels(o, 0) * 9;  // the stem
-  for (int i = 0; i < o.levels; ++i) {
-    const double r = s / (2 << i);  // each stride-2 level's output
-    macs += r * r * Channels(o, i) * Channels(o, i + 1) * 9;
-  }
-  const double side = o.input_size >> o.levels, top = Channels(o, o.levels) * side * side;
-  macs += top * 2 * (o.geometry_latent + o.pose_latent);  // the encoder's head
-  macs += o.geometry_latent * top;                        // the decoder's input
-  for (int i = o.levels - 1; i >= 0; --i) {
-    const double r = s / (1 << i);
-    macs += r * r * Channels(o, i + 1) * Channels(o, i) * 9;
-  }
-  macs += s * s * Channels(o, 0) * 3 * 9;  // the decoder's output
-  return macs + o.pose_latent * 64 + 64 * 9;
-}
-
-absl::StatusOr<double> ConvFloorMacsPerSecond(int size, int channels, int batch, int steps, int threads) {
-  if (size < 4 || channels < 1 || batch < 1 || steps < 1) {
-    return absl::InvalidArgumentError("conv floor: size, channels, batch and steps must be positive");
-  }
+absl::StatusOr<double> internal::ConvFloor(int size, int channels, int batch, int steps, int threads) {
   try {
-    SetTorchThreads(threads);
+    internal::SetThreads(threads);
     auto [conv, x] = internal::Seeded(1, [&] {
       return std::pair{torch::nn::Conv2d(torch::nn::Conv2dOptions(channels, channels, 3).padding(1)),
                        torch::randn({batch, channels, size, size})};

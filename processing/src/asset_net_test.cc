@@ -5,6 +5,8 @@
 #include "stage/processing/asset_net.h"
 
 #include <cmath>
+#include <cstdlib>
+#include <iostream>
 #include <random>
 
 #include "gmock/gmock.h"
@@ -139,6 +141,21 @@ TEST(DrivingNetTest, TheMapLossComparesTheDecodedMapsWhereTheWeightsSay) {
   EXPECT_GT(*map_off, 1e-6);
   EXPECT_NE(*map_off, *latent_off);
   EXPECT_EQ(*nowhere_off, 0);
+}
+
+// The nets live in a module that a process opens the first time it makes one (torch_nets.h). Without it, making a net
+// is an error that names the file, not a crash at the process's start. In a fresh process (the threadsafe death test
+// runs this test alone in a new one): the module is opened once per process.
+TEST(TorchNetsDeathTest, AMissingModuleIsAnErrorThatNamesIt) {
+  GTEST_FLAG_SET(death_test_style, "threadsafe");
+  EXPECT_EXIT(
+      {
+        setenv("FASTAGE_TORCH_NETS", "/nonexistent/libstage_torch_nets.so", 1);
+        auto net = ExpressionVae::Create({.input_size = kSize, .levels = 2});
+        std::cerr << net.status() << "\n";
+        std::exit(net.ok() ? 1 : 0);
+      },
+      ::testing::ExitedWithCode(0), "FAILED_PRECONDITION.*/nonexistent/libstage_torch_nets.so: no such file");
 }
 
 }  // namespace

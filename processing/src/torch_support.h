@@ -1,5 +1,6 @@
-// What the processing library's torch sources (warp_net.cc, asset_net.cc) share, without torch's headers: torch's
-// exceptions turned into statuses, and nets drawn under the lock about torch's process-wide random generator.
+// What the torch module's sources (warp_net.cc, asset_net.cc, torch_module.cc) share, without torch's headers: their
+// factories and settings, which the module's entry point gathers; torch's exceptions turned into statuses; nets drawn
+// under the lock about torch's process-wide random generator.
 #pragma once
 
 #include <cstdint>
@@ -8,8 +9,33 @@
 #include <string>
 
 #include "absl/status/status.h"
+#include "torch_nets.h"
 
 namespace stage::processing::internal {
+
+// The factories of TorchNets (torch_nets.h), for options already validated.
+absl::StatusOr<std::unique_ptr<GeometryVaeNet>> MakeGeometryVae(const GeometryVaeOptions& options,
+                                                                const std::vector<float>& mean, float scale);
+absl::StatusOr<std::unique_ptr<TextureVaeNet>> MakeTextureVae(const TextureVaeOptions& options,
+                                                              const std::vector<float>& neutral,
+                                                              const std::vector<float>& scale);
+absl::StatusOr<std::unique_ptr<ExpressionVaeNet>> MakeExpressionVae(const ExpressionVaeOptions& options);
+absl::StatusOr<std::unique_ptr<LatentMappingNet>> MakeLatentMapping(const LatentMappingOptions& options,
+                                                                    const std::vector<float>& target_mean,
+                                                                    const std::vector<float>& target_scale);
+// `expression` and `mapping` are the module's own.
+absl::StatusOr<std::unique_ptr<DrivingNetNet>> MakeDrivingNet(const ExpressionVaeNet& expression,
+                                                              const LatentMappingNet& mapping,
+                                                              const DrivingNetOptions& options);
+absl::StatusOr<std::unique_ptr<WarpNetNet>> MakeWarpNet(const WarpNetOptions& options);
+
+// SetTorchThreads, TorchBlasLibrary and ConvFloorMacsPerSecond (its arguments checked) of warp_net.h and asset_net.h.
+int SetThreads(int threads);
+std::string BlasLibrary();
+absl::StatusOr<double> ConvFloor(int size, int channels, int batch, int steps, int threads);
+
+// A warning through the programs' loggers (TorchHost).
+void Warn(const std::string& message);
 
 // ResourceExhausted for an allocation that failed, else Internal: "<net>: <doing>: <the exception's first line>".
 absl::Status TorchError(const std::string& net, const std::string& doing, const std::exception& e);

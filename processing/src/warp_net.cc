@@ -1,10 +1,7 @@
-// The stabilization's self-supervised U-Net (docs/assets.md#the-u-net). The project's only translation unit that
-// includes torch's headers for it: the rest sees warp_net.h.
-#include "stage/processing/warp_net.h"
-
+// The stabilization's self-supervised U-Net (docs/assets.md#the-u-net) and torch's process-wide settings, in the torch
+// module (torch_nets.h): the rest sees warp_net.h.
 #include <ATen/Parallel.h>
 #include <dlfcn.h>
-#include <sched.h>
 #include <torch/torch.h>
 
 #include <algorithm>
@@ -15,7 +12,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
-#include "stage/common/logging.h"
+#include "torch_nets.h"
 #include "torch_support.h"
 
 // OpenBLAS, linked ahead of the reference BLAS Debian's libtorch names (processing/CMakeLists.txt).
@@ -141,34 +138,6 @@ torch::Tensor GradientAbs(const torch::Tensor& t) {
 
 }  // namespace
 
-absl::Status WarpNetOptions::Validate() const {
-  auto bad = [](const std::string& what) { return absl::InvalidArgumentError(absl::StrCat("warp net: ", what)); };
-  if (levels < 2 || levels > 6) return bad(absl::StrCat("levels ", levels, " is not in 2..6"));
-  if (base_channels < 4 || base_channels > 64) {
-    return bad(absl::StrCat("base_channels ", base_channels, " is not in 4..64"));
-  }
-  if (iterations < 1 || iterations > 100000)
-    return bad(absl::StrCat("iterations ", iterations, " is not in 1..100000"));
-  if (!(learning_rate > 0) || learning_rate > 1) {
-    return bad(absl::StrCat("learning_rate ", learning_rate, " is not in (0, 1]"));
-  }
-  if (loss_scales < 1 || loss_scales > 6) return bad(absl::StrCat("loss_scales ", loss_scales, " is not in 1..6"));
-  if (!(smoothness >= 0)) return bad(absl::StrCat("smoothness ", smoothness, " is below 0"));
-  if (!(wrinkle_sparsity >= 0)) return bad(absl::StrCat("wrinkle_sparsity ", wrinkle_sparsity, " is below 0"));
-  if (!(wrinkle_smoothness >= 0)) return bad(absl::StrCat("wrinkle_smoothness ", wrinkle_smoothness, " is below 0"));
-  if (threads < 0 || threads > 256) return bad(absl::StrCat("threads ", threads, " is not in 0..256"));
-  return absl::OkStatus();
-}
-
-int TorchThreadCount(int threads) {
-  if (threads > 0) return threads;
-  // The cores this process may run on (its affinity: a cgroup's or taskset's cpuset).
-  cpu_set_t set;
-  const int n = sched_getaffinity(0, sizeof(set), &set) == 0 ? CPU_COUNT(&set)
-                                                             : static_cast<int>(std::thread::hardware_concurrency());
-  return std::max(1, n);
-}
-
 namespace internal {
 
 absl::Status TorchError(const std::string& net, const std::string& doing, const std::exception& e) {
@@ -189,14 +158,13 @@ void SeedTorch(uint64_t seed) { torch::manual_seed(seed); }
 
 }  // namespace internal
 
-int SetTorchThreads(int threads) {
-  const int n = TorchThreadCount(threads);
+int internal::SetThreads(int threads) {
+  const int n = ThreadCount(threads);
   static std::once_flag once;
   std::call_once(once, [] {
-    if (const std::string blas = TorchBlasLibrary(); blas.find("openblas") == std::string::npos) {
-      Logger("processing.torch")
-          ->warn("torch's BLAS is {}, not OpenBLAS (see processing/CMakeLists.txt's link order): training runs slower",
-                 blas.empty() ? "missing" : blas);
+    if (const std::string blas = BlasLibrary(); blas.find("openblas") == std::string::npos) {
+      Warn(absl::StrCat("torch's BLAS is ", blas.empty() ? "missing" : blas,
+                        ", not OpenBLAS (see processing/CMakeLists.txt's link order): training runs slower"));
     }
     at::set_num_interop_threads(1);
     // Torch's own loops are the parallelism; a BLAS call inside one runs on its thread.
@@ -206,14 +174,14 @@ int SetTorchThreads(int threads) {
   return n;
 }
 
-std::string TorchBlasLibrary() {
+std::string internal::BlasLibrary() {
   void* sgemm = dlsym(RTLD_DEFAULT, "sgemm_");
   Dl_info info;
   if (sgemm == nullptr || dladdr(sgemm, &info) == 0 || info.dli_fname == nullptr) return "";
   return info.dli_fname;
 }
 
-struct WarpNet::Impl {
+struct WarpNetState {
   WarpNetOptions options;
   UNet net{nullptr};
   std::vector<double> losses;
@@ -275,17 +243,24 @@ struct WarpNet::Impl {
   }
 };
 
-WarpNet::WarpNet(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
-WarpNet::~WarpNet() = default;
+class TorchWarpNet final : public internal::WarpNetNet {
+ public:
+  explicit TorchWarpNet(std::unique_ptr<WarpNetState> impl) : impl_(std::move(impl)) {}
+  absl::Status Train(const Image& reference, const std::vector<Image>& frames, const std::vector<Image>& bases,
+                     const std::function<bool(int step, double loss)>& step) override;
+  absl::StatusOr<WarpNetPrediction> Predict(const Image& reference, const Image& frame,
+                                            const Image& base) const override;
+  const std::vector<double>& losses() const override;
+  std::unique_ptr<WarpNetState> impl_;
+};
 
-absl::StatusOr<std::unique_ptr<WarpNet>> WarpNet::Create(const WarpNetOptions& options) {
-  if (auto s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<std::unique_ptr<internal::WarpNetNet>> internal::MakeWarpNet(const WarpNetOptions& options) {
   try {
-    SetTorchThreads(options.threads);
-    auto impl = std::make_unique<Impl>();
+    internal::SetThreads(options.threads);
+    auto impl = std::make_unique<WarpNetState>();
     impl->options = options;
     impl->net = internal::Seeded(options.seed, [&] { return UNet(options.levels, options.base_channels); });
-    return std::unique_ptr<WarpNet>(new WarpNet(std::move(impl)));
+    return std::unique_ptr<internal::WarpNetNet>(new TorchWarpNet(std::move(impl)));
   } catch (const std::exception& e) {
     return internal::TorchError("warp net", "creating the net", e);
   }
@@ -317,8 +292,8 @@ absl::Status CheckInput(const Image& image, const Image& reference, int levels, 
 
 }  // namespace
 
-absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& frames, const std::vector<Image>& bases,
-                            const std::function<bool(int, double)>& progress) {
+absl::Status TorchWarpNet::Train(const Image& reference, const std::vector<Image>& frames,
+                                 const std::vector<Image>& bases, const std::function<bool(int, double)>& progress) {
   const WarpNetOptions& o = impl_->options;
   if (frames.empty()) return absl::InvalidArgumentError("warp net: no frames to train on");
   if (!bases.empty() && bases.size() != frames.size()) {
@@ -339,7 +314,7 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
                                            : ToTensor(bases[i]));
     }
     impl_->with_bases = !bases.empty();
-    SetTorchThreads(o.threads);
+    internal::SetThreads(o.threads);
     const torch::Tensor ref = ToTensor(reference);
     impl_->net->train();
     torch::optim::Adam adam(impl_->net->parameters(), torch::optim::AdamOptions(o.learning_rate));
@@ -368,8 +343,8 @@ absl::Status WarpNet::Train(const Image& reference, const std::vector<Image>& fr
   }
 }
 
-absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const Image& frame,
-                                                   const Image& base) const {
+absl::StatusOr<WarpNetPrediction> TorchWarpNet::Predict(const Image& reference, const Image& frame,
+                                                        const Image& base) const {
   if (auto s = CheckInput(reference, reference, impl_->options.levels, "the reference"); !s.ok()) return s;
   if (auto s = CheckInput(frame, reference, impl_->options.levels, "the frame"); !s.ok()) return s;
   const bool has_base = base.width > 0;
@@ -381,7 +356,7 @@ absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const
     if (auto s = CheckInput(base, reference, impl_->options.levels, "the base warp", "x, y"); !s.ok()) return s;
   }
   try {
-    SetTorchThreads(impl_->options.threads);
+    internal::SetThreads(impl_->options.threads);
     torch::NoGradGuard no_grad;
     impl_->net->eval();
     const torch::Tensor b = has_base ? ToTensor(base) : torch::zeros({1, 2, reference.height, reference.width});
@@ -392,6 +367,6 @@ absl::StatusOr<WarpNetPrediction> WarpNet::Predict(const Image& reference, const
   }
 }
 
-const std::vector<double>& WarpNet::losses() const { return impl_->losses; }
+const std::vector<double>& TorchWarpNet::losses() const { return impl_->losses; }
 
 }  // namespace stage::processing

@@ -36,6 +36,14 @@
 
 namespace stage::processing {
 
+namespace internal {  // the nets in the torch module (src/torch_nets.h)
+class GeometryVaeNet;
+class TextureVaeNet;
+class ExpressionVaeNet;
+class LatentMappingNet;
+class DrivingNetNet;
+}  // namespace internal
+
 struct GeometryVaeOptions {
   // Texels across the maps the net sees (32..512, divisible by 2^levels).
   int input_size = 128;
@@ -105,7 +113,7 @@ class GeometryVae {
 
  private:
   friend class DrivingNet;
-  struct Impl;
+  using Impl = internal::GeometryVaeNet;
   explicit GeometryVae(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
@@ -167,7 +175,7 @@ class TextureVae {
   int64_t parameter_count() const;
 
  private:
-  struct Impl;
+  using Impl = internal::TextureVaeNet;
   explicit TextureVae(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
@@ -237,7 +245,7 @@ class ExpressionVae {
 
  private:
   friend class DrivingNet;
-  struct Impl;
+  using Impl = internal::ExpressionVaeNet;
   explicit ExpressionVae(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
@@ -281,7 +289,7 @@ class LatentMapping {
 
  private:
   friend class DrivingNet;
-  struct Impl;
+  using Impl = internal::LatentMappingNet;
   explicit LatentMapping(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
@@ -334,7 +342,7 @@ class DrivingNet {
   int64_t trained_parameters() const;
 
  private:
-  struct Impl;
+  using Impl = internal::DrivingNetNet;
   explicit DrivingNet(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };

@@ -34,6 +34,10 @@
 
 namespace stage::processing {
 
+namespace internal {  // the nets in the torch module (src/torch_nets.h)
+class WarpNetNet;
+}  // namespace internal
+
 struct WarpNetOptions {
   // U-Net levels (2..6) below the input's 2 x 2 folding: the input's size must divide by 2^levels, twice.
   int levels = 4;
@@ -83,7 +87,7 @@ class WarpNet {
   const std::vector<double>& losses() const;
 
  private:
-  struct Impl;
+  using Impl = internal::WarpNetNet;
   explicit WarpNet(std::unique_ptr<Impl> impl);
   std::unique_ptr<Impl> impl_;
 };
