@@ -22,6 +22,20 @@ function(stage_library name)
   stage_warnings(${name})
 endfunction()
 
+# stage_module(NAME SOURCES ... DEPS ...): a plugin module (stage/common/module.h) that programs open when they first
+# need it: lib<NAME>.so in build/lib (beside build/bin and build/tests, where OpenModule looks), exporting only what
+# is marked visible (its extern "C" entry point), every symbol resolved when it is linked.
+function(stage_module name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  add_library(${name} MODULE ${ARG_SOURCES})
+  target_include_directories(${name} PRIVATE ${CMAKE_CURRENT_SOURCE_DIR}/src)
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS})
+  set_target_properties(${name} PROPERTIES PREFIX "lib" LIBRARY_OUTPUT_DIRECTORY ${CMAKE_BINARY_DIR}/lib
+                                           CXX_VISIBILITY_PRESET hidden VISIBILITY_INLINES_HIDDEN ON)
+  target_link_options(${name} PRIVATE -Wl,-z,defs)
+  stage_warnings(${name})
+endfunction()
+
 # stage_program(NAME SOURCES ... DEPS ...): one thin executable.
 function(stage_program name)
   cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})

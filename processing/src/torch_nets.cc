@@ -2,49 +2,30 @@
 // checks, and every call forwarded to the module, which is opened the first time a net is made.
 #include "torch_nets.h"
 
-#include <dlfcn.h>
-
-#include <cstdlib>
-#include <filesystem>
-
 #include "stage/common/logging.h"
+#include "stage/common/module.h"
 #include "stage/common/status.h"
 
 namespace stage::processing {
 namespace internal {
 namespace {
 
-// The module's path: $FASTAGE_TORCH_NETS, else lib/ beside the directory of the running program.
-std::string TorchNetsPath() {
-  if (const char* path = std::getenv("FASTAGE_TORCH_NETS"); path != nullptr && *path != '\0') return path;
-  std::error_code ec;
-  const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);
-  if (ec) return kTorchNetsFile;
-  return (self.parent_path().parent_path() / "lib" / kTorchNetsFile).string();
-}
-
 void WarnFromTorch(const std::string& message) { Logger("processing.torch")->warn("{}", message); }
 
 absl::StatusOr<const TorchNets*> OpenTorchNets() {
-  const std::string path = TorchNetsPath();
-  auto missing = [&](const std::string& why) {
-    return absl::FailedPreconditionError(absl::StrCat("the torch nets' module ", path, ": ", why,
-                                                      " (built with the programs as target stage_torch_nets; "
-                                                      "$FASTAGE_TORCH_NETS names another)"));
-  };
-  std::error_code ec;
-  if (!std::filesystem::exists(path, ec)) return missing("no such file");
-  void* module = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL);
-  if (module == nullptr) return missing(dlerror());
-  auto entry = reinterpret_cast<TorchNetsEntry>(dlsym(module, kTorchNetsEntry));
-  if (entry == nullptr) return missing(absl::StrCat("no entry point ", kTorchNetsEntry));
+  const ModuleSpec spec{.file = kTorchNetsFile,
+                        .env = "FASTAGE_TORCH_NETS",
+                        .entry = kTorchNetsEntry,
+                        .what = "the torch nets' module",
+                        .target = "stage_torch_nets"};
+  STAGE_ASSIGN_OR_RETURN(void* entry, OpenModule(spec));
   static const TorchHost host{&WarnFromTorch};
-  const TorchNets* nets = entry(&host);
+  const TorchNets* nets = reinterpret_cast<TorchNetsEntry>(entry)(&host);
   if (nets == nullptr || nets->abi != kTorchNetsAbi) {
-    return missing(absl::StrCat("interface version ", nets == nullptr ? 0 : nets->abi, ", not ", kTorchNetsAbi,
-                                " (a module of another build)"));
+    return absl::FailedPreconditionError(absl::StrCat("the torch nets' module ", ModulePath(spec),
+                                                      ": interface version ", nets == nullptr ? 0 : nets->abi, ", not ",
+                                                      kTorchNetsAbi, " (a module of another build)"));
   }
-  Logger("processing.torch")->debug("opened {}", path);
   return nets;  // never closed: torch's threads and registrations live as long as the process
 }
 
