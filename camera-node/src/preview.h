@@ -1,5 +1,5 @@
 // Previews: a frame shrunk to a few hundred pixels and PNG-encoded, for the console during a take (no full frame
-// crosses the controller). OpenCV stays inside preview.cc.
+// crosses the controller). OpenCV (the shrinking) and libpng stay inside preview.cc.
 #pragma once
 
 #include <cstdint>

@@ -18,8 +18,6 @@
 #include <functional>
 #include <map>
 #include <numeric>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 #include <optional>
 #include <random>
 #include <set>
@@ -30,7 +28,9 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "image_decoder.h"
 #include "stage/common/logging.h"
+#include "stage/common/module.h"
 #include "stage/common/rig.h"
 #include "stage/common/status.h"
 
@@ -231,44 +231,35 @@ struct Image {
 
 enum class Encoding { kSrgb, kLinear, kSigned };
 
+// The image decoder (image_decoder.h), its module opened the first time a process decodes an image.
+absl::StatusOr<internal::DecodeImageFn> ImageDecoder() {
+  static const absl::StatusOr<internal::DecodeImageFn> decoder = []() -> absl::StatusOr<internal::DecodeImageFn> {
+    STAGE_ASSIGN_OR_RETURN(void* entry, OpenModule({.file = internal::kSimImagesFile,
+                                                    .env = "FASTAGE_SIM_IMAGES",
+                                                    .entry = internal::kSimImagesEntry,
+                                                    .what = "the simulator's image decoder module",
+                                                    .target = "stage_sim_images"}));
+    return reinterpret_cast<internal::DecodeImageFn (*)()>(entry)();
+  }();
+  return decoder;
+}
+
 // Reads `path` (what rig field `field` names) as `channels` (1: grey, 3: RGB) floats. Integer images map to [0, 1],
 // then through the sRGB curve (kSrgb) or to [-1, 1] (kSigned); OpenEXR values are taken as they are.
 absl::StatusOr<Image> ReadImage(const std::string& path, const std::string& field, int channels, Encoding encoding) {
-  setenv("OPENCV_IO_ENABLE_OPENEXR", "1", 0);
-  cv::Mat m = cv::imread(path, cv::IMREAD_UNCHANGED);
-  if (m.empty()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat(field, ": cannot read the image \"", path, "\" (missing, or not PNG, JPEG, TIFF or OpenEXR)"));
+  STAGE_ASSIGN_OR_RETURN(internal::DecodeImageFn decode, ImageDecoder());
+  internal::DecodedImage decoded;
+  if (absl::Status s = decode(path, channels, &decoded); !s.ok()) {
+    return absl::InvalidArgumentError(absl::StrCat(field, ": \"", path, "\": ", s.message()));
   }
-  double scale = 1;
-  bool integer = true;
-  switch (m.depth()) {
-    case CV_8U:
-      scale = 1.0 / 255;
-      break;
-    case CV_16U:
-      scale = 1.0 / 65535;
-      break;
-    case CV_32F:
-      integer = false;
-      break;
-    default:
-      return absl::InvalidArgumentError(absl::StrCat(field, ": \"", path, "\" is neither 8 nor 16-bit nor float"));
-  }
-  cv::Mat f;
-  m.convertTo(f, CV_32F, scale);
-  if (f.channels() == 4) cv::cvtColor(f, f, cv::COLOR_BGRA2BGR);
-  if (channels == 1 && f.channels() == 3) cv::cvtColor(f, f, cv::COLOR_BGR2GRAY);
-  if (channels == 3 && f.channels() == 1) cv::cvtColor(f, f, cv::COLOR_GRAY2BGR);
-  if (channels == 3) cv::cvtColor(f, f, cv::COLOR_BGR2RGB);
-  std::vector<float> texels(f.ptr<float>(0), f.ptr<float>(0) + static_cast<size_t>(f.total()) * channels);
-  if (integer && encoding == Encoding::kSrgb) {
+  std::vector<float>& texels = decoded.texels;
+  if (decoded.integer && encoding == Encoding::kSrgb) {
     for (float& v : texels) v = v <= 0.04045f ? v / 12.92f : std::pow((v + 0.055f) / 1.055f, 2.4f);
   }
-  if (integer && encoding == Encoding::kSigned) {
+  if (decoded.integer && encoding == Encoding::kSigned) {
     for (float& v : texels) v = 2 * v - 1;
   }
-  return Image::Own(f.cols, f.rows, channels, std::move(texels));
+  return Image::Own(decoded.width, decoded.height, channels, std::move(texels));
 }
 
 // ---- the decoded maps, shared by the processes of a stage ---------------------------------------------------------
