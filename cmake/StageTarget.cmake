@@ -23,8 +23,9 @@ function(stage_library name)
 endfunction()
 
 # stage_module(NAME SOURCES ... DEPS ...): a plugin module (stage/common/module.h) that programs open when they first
-# need it: lib<NAME>.so in build/lib (beside build/bin and build/tests, where OpenModule looks), exporting only what
-# is marked visible (its extern "C" entry point), every symbol resolved when it is linked.
+# need it: lib<NAME>.so in build/lib (beside build/bin and build/tests, where OpenModule looks), its own symbols hidden
+# but its extern "C" entry point (a library's headers may still mark theirs visible: torch's templates), every symbol
+# resolved when it is linked.
 function(stage_module name)
   cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
   add_library(${name} MODULE ${ARG_SOURCES})

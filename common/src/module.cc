@@ -27,7 +27,8 @@ absl::StatusOr<void*> OpenModule(const ModuleSpec& spec) {
                                                       spec.env, " names another)"));
   };
   std::error_code ec;
-  if (!std::filesystem::exists(path, ec)) return failed("no such file");
+  // A bare name is dlopen's to find on the library path.
+  if (path.find('/') != std::string::npos && !std::filesystem::exists(path, ec)) return failed("no such file");
   void* module = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL);
   if (module == nullptr) return failed(dlerror());
   void* entry = dlsym(module, spec.entry.c_str());

@@ -1,7 +1,7 @@
 // The torch library (libstage_torch_nets.so, loaded on first use) and what the rest of processing sees of it, without
 // torch's headers.
 //
-// Loading libtorch costs a process about 2 s of CPU (its symbols' relocations and its operators' registration), and
+// Loading libtorch costs a process about 0.9 s of CPU (its symbols' relocations and its operators' registration), and
 // most processes of the stage never train or run a net: every `stage-process` command, a graph's tasks and the
 // processing worker of every simulated stage. So the nets (asset_net.cc, warp_net.cc) live in a module of their own
 // that LoadTorchNets() opens the first time a net is made; the public classes (asset_net.h, warp_net.h) forward to the
