@@ -6,7 +6,6 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
-#include <opencv2/videoio.hpp>
 #include <optional>
 
 #include "absl/strings/str_cat.h"
@@ -15,6 +14,7 @@
 #include "contact_sheet.h"
 #include "stage/common/file_util.h"
 #include "stage/common/mesh.h"
+#include "stage/common/module.h"
 #include "stage/common/status.h"
 #include "stage/processing/asset_dataset.h"
 #include "stage/processing/face_template.h"
@@ -22,6 +22,7 @@
 #include "stage/processing/mesh_sequence.h"
 #include "stage/processing/photometric_stage.h"
 #include "stage/processing/uv_geometry.h"
+#include "video_reader.h"
 
 namespace stage::processing {
 namespace {
@@ -212,30 +213,27 @@ class GltfSegments {
 // frames: the first crop's white, no gamma).
 absl::Status ForEachVideoCrop(const std::string& path, const CropBox& box, int size,
                               const std::function<absl::Status(int64_t, const std::vector<uint8_t>&)>& fn) {
-  cv::VideoCapture video(path);
-  if (!video.isOpened()) return absl::NotFoundError(absl::StrCat(path, ": OpenCV cannot open it as a video"));
-  cv::Mat frame, grey, values;
+  // The reader's module, opened the first time a video is read (video_reader.h).
+  static const absl::StatusOr<void*> entry = OpenModule({.file = internal::kVideoReaderFile,
+                                                         .env = "FASTAGE_VIDEO_READER",
+                                                         .entry = internal::kVideoReaderEntry,
+                                                         .what = "the video reader module",
+                                                         .target = "stage_video_reader"});
+  if (!entry.ok()) return entry.status();
+  const internal::ReadVideoFn read = reinterpret_cast<internal::ReadVideoFn (*)()>(*entry)();
   double white = 0;
-  for (int64_t index = 0; video.read(frame); ++index) {
-    if (frame.channels() == 3) {
-      cv::cvtColor(frame, grey, cv::COLOR_BGR2GRAY);
-    } else {
-      grey = frame;
-    }
-    grey.convertTo(values, CV_32F);
+  return read(path, [&](int64_t index, int width, int height, const float* pixels) -> absl::Status {
     const double half = box.side / 2;
-    if (box.centre_x - half < 0 || box.centre_y - half < 0 || box.centre_x + half > values.cols ||
-        box.centre_y + half > values.rows) {
+    if (box.centre_x - half < 0 || box.centre_y - half < 0 || box.centre_x + half > width ||
+        box.centre_y + half > height) {
       return absl::InvalidArgumentError(
           absl::StrFormat("%s: frames of %dx%d do not hold camera %s's crop box (%.0f px about %.0f, %.0f): are they "
                           "of that camera, at its resolution?",
-                          path, values.cols, values.rows, box.camera, box.side, box.centre_x, box.centre_y));
+                          path, width, height, box.camera, box.side, box.centre_x, box.centre_y));
     }
-    const float* pixels = values.ptr<float>();  // convertTo's output is continuous
-    if (white == 0) white = CropWhite(pixels, values.cols, values.rows, box);
-    STAGE_RETURN_IF_ERROR(fn(index, CropFrame(pixels, values.cols, values.rows, box, size, white, /*gamma=*/1)));
-  }
-  return absl::OkStatus();
+    if (white == 0) white = CropWhite(pixels, width, height, box);
+    return fn(index, CropFrame(pixels, width, height, box, size, white, /*gamma=*/1));
+  });
 }
 
 }  // namespace
