@@ -14,6 +14,7 @@
 #include "mvs_internal.h"
 #include "parallel.h"
 #include "stage/common/file_util.h"
+#include "stage/common/module.h"
 #include "stage/common/status.h"
 #include "stage/processing/calibration.h"
 #include "stage/processing/light_model.h"
@@ -22,6 +23,17 @@
 #include "statistics.h"
 
 namespace stage::processing {
+
+absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
+                                           double voxel_mm, const MvsOptions& options) {
+  static const absl::StatusOr<void*> entry = OpenModule({.file = kTsdfFusionFile,
+                                                         .env = "FASTAGE_TSDF_FUSION",
+                                                         .entry = kTsdfFusionEntry,
+                                                         .what = "the depth maps' fusion module",
+                                                         .target = "stage_tsdf_fusion"});
+  if (!entry.ok()) return entry.status();
+  return reinterpret_cast<FuseDepthMapsFn (*)()>(*entry)()(views, depths, voxel_mm, options);
+}
 namespace {
 
 namespace fs = std::filesystem;

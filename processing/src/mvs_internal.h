@@ -52,9 +52,16 @@ int64_t KeepConsistent(const std::vector<MvsView>& views, const std::vector<Dept
                        const std::vector<int>& neighbours, const MvsOptions& options, DepthMap* out);
 
 // The surface the depth maps agree on: fused into a truncated signed distance volume of `voxel_mm` voxels and meshed
-// where at least options.min_views views saw it (stage frame, mm).
+// where at least options.min_views views saw it (stage frame, mm). By Open3D, in a module of its own that the first
+// fusion opens (libstage_tsdf_fusion.so, tsdf_fusion.cc; stage/common/module.h): Open3D brings VTK and 45 more
+// libraries, 104,750 symbol relocations, into the start of every processing program, and only MVS fuses.
 absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
                                            double voxel_mm, const MvsOptions& options);
+using FuseDepthMapsFn = absl::StatusOr<TriangleMesh> (*)(const std::vector<MvsView>& views,
+                                                         const std::vector<DepthMap>& depths, double voxel_mm,
+                                                         const MvsOptions& options);
+inline constexpr const char* kTsdfFusionFile = "libstage_tsdf_fusion.so";
+inline constexpr const char* kTsdfFusionEntry = "StageFuseDepthMaps";  // returns a FuseDepthMapsFn
 
 // The largest connected piece of `mesh` with its vertices inside the sphere (centre, radius); unused vertices dropped.
 TriangleMesh TrimToHead(const TriangleMesh& mesh, const Eigen::Vector3d& centre, double radius_mm);

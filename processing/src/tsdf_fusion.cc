@@ -50,10 +50,8 @@ TriangleMesh CanonicalOrder(const TriangleMesh& in) {
   return out;
 }
 
-}  // namespace
-
-absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
-                                           double voxel_mm, const MvsOptions& options) {
+absl::StatusOr<TriangleMesh> Fuse(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
+                                  double voxel_mm, const MvsOptions& options) {
   const core::Device cpu("CPU:0");
   // Open3D's kernels run OpenMP loops on every core unless OMP_NUM_THREADS is set (then on omp_get_max_threads()).
   // On a busy machine OpenMP's spinning threads slow them several times (measured: fusion 0.7 s on one thread, 2.7-5.9
@@ -116,4 +114,9 @@ absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, co
   }
 }
 
+}  // namespace
 }  // namespace stage::processing
+
+extern "C" __attribute__((visibility("default"))) stage::processing::FuseDepthMapsFn StageFuseDepthMaps() {
+  return &stage::processing::Fuse;
+}
