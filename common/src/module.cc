@@ -6,17 +6,25 @@
 #include <cstdlib>
 #include <filesystem>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/strip.h"
 #include "stage/common/logging.h"
 
 namespace stage {
 
+std::string ModuleVariable(const ModuleSpec& spec) {
+  return absl::AsciiStrToUpper(absl::StrCat("FASTAGE_", absl::StripPrefix(spec.target, "stage_")));
+}
+
 std::string ModulePath(const ModuleSpec& spec) {
-  if (const char* path = std::getenv(spec.env.c_str()); path != nullptr && *path != '\0') return path;
+  const std::string variable = ModuleVariable(spec);
+  if (const char* path = std::getenv(variable.c_str()); path != nullptr && *path != '\0') return path;
+  const std::string file = absl::StrCat("lib", spec.target, ".so");
   std::error_code ec;
   const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);
-  if (ec) return spec.file;
-  return (self.parent_path().parent_path() / "lib" / spec.file).string();
+  if (ec) return file;
+  return (self.parent_path().parent_path() / "lib" / file).string();
 }
 
 absl::StatusOr<void*> OpenModule(const ModuleSpec& spec) {
@@ -24,7 +32,7 @@ absl::StatusOr<void*> OpenModule(const ModuleSpec& spec) {
   auto failed = [&](const std::string& why) {
     return absl::FailedPreconditionError(absl::StrCat(spec.what, " ", path, ": ", why,
                                                       " (built with the programs as target ", spec.target, "; $",
-                                                      spec.env, " names another)"));
+                                                      ModuleVariable(spec), " names another)"));
   };
   std::error_code ec;
   // A bare name is dlopen's to find on the library path.

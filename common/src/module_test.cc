@@ -15,19 +15,16 @@ namespace {
 using ::testing::HasSubstr;
 
 ModuleSpec Spec(const std::string& entry) {
-  return {.file = "libstage_no_such_module.so",
-          .env = "FASTAGE_MODULE_TEST",
-          .entry = entry,
-          .what = "the test's module",
-          .target = "stage_no_such_module"};
+  return {.target = "stage_no_such_module", .entry = entry, .what = "the test's module"};
 }
 
 class ModuleTest : public ::testing::Test {
  protected:
-  void TearDown() override { unsetenv("FASTAGE_MODULE_TEST"); }
+  void TearDown() override { unsetenv("FASTAGE_NO_SUCH_MODULE"); }
 };
 
 TEST_F(ModuleTest, ItIsLookedForInLibBesideTheProgramsDirectory) {
+  EXPECT_EQ(ModuleVariable(Spec("f")), "FASTAGE_NO_SUCH_MODULE");
   EXPECT_THAT(ModulePath(Spec("f")), ::testing::EndsWith("/lib/libstage_no_such_module.so"));
   auto entry = OpenModule(Spec("f"));
   ASSERT_FALSE(entry.ok());
@@ -41,7 +38,7 @@ TEST_F(ModuleTest, TheVariableNamesAnotherFileAndItsEntryPointIsFound) {
   // libm is a shared library every program here has: its cos is the entry point asked for.
   Dl_info info{};
   ASSERT_NE(dladdr(reinterpret_cast<void*>(static_cast<double (*)(double)>(&::cos)), &info), 0);
-  setenv("FASTAGE_MODULE_TEST", info.dli_fname, 1);
+  setenv("FASTAGE_NO_SUCH_MODULE", info.dli_fname, 1);
   EXPECT_EQ(ModulePath(Spec("cos")), info.dli_fname);
   auto entry = OpenModule(Spec("cos"));
   ASSERT_TRUE(entry.ok()) << entry.status();
@@ -53,7 +50,7 @@ TEST_F(ModuleTest, TheVariableNamesAnotherFileAndItsEntryPointIsFound) {
 }
 
 TEST_F(ModuleTest, AFileThatIsNoLibraryIsRefusedInDlopensWords) {
-  setenv("FASTAGE_MODULE_TEST", "/proc/self/cmdline", 1);
+  setenv("FASTAGE_NO_SUCH_MODULE", "/proc/self/cmdline", 1);
   auto entry = OpenModule(Spec("f"));
   ASSERT_FALSE(entry.ok());
   EXPECT_THAT(entry.status().message(), HasSubstr("/proc/self/cmdline: "));

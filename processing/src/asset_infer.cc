@@ -214,15 +214,13 @@ class GltfSegments {
 absl::Status ForEachVideoCrop(const std::string& path, const CropBox& box, int size,
                               const std::function<absl::Status(int64_t, const std::vector<uint8_t>&)>& fn) {
   // The reader's module, opened the first time a video is read (video_reader.h).
-  static const absl::StatusOr<void*> entry = OpenModule({.file = internal::kVideoReaderFile,
-                                                         .env = "FASTAGE_VIDEO_READER",
-                                                         .entry = internal::kVideoReaderEntry,
-                                                         .what = "the video reader module",
-                                                         .target = "stage_video_reader"});
-  if (!entry.ok()) return entry.status();
-  const internal::ReadVideoFn read = reinterpret_cast<internal::ReadVideoFn (*)()>(*entry)();
+  static const absl::StatusOr<internal::ReadVideoFn> read =
+      OpenModuleAs<internal::ReadVideoFn>({.target = internal::kVideoReaderTarget,
+                                           .entry = internal::kVideoReaderEntry,
+                                           .what = "the video reader module"});
+  if (!read.ok()) return read.status();
   double white = 0;
-  return read(path, [&](int64_t index, int width, int height, const float* pixels) -> absl::Status {
+  return (*read)(path, [&](int64_t index, int width, int height, const float* pixels) -> absl::Status {
     const double half = box.side / 2;
     if (box.centre_x - half < 0 || box.centre_y - half < 0 || box.centre_x + half > width ||
         box.centre_y + half > height) {

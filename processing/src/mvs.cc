@@ -26,14 +26,12 @@ namespace stage::processing {
 
 absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, const std::vector<DepthMap>& depths,
                                            double voxel_mm, const MvsOptions& options) {
-  static const absl::StatusOr<void*> entry = OpenModule({.file = kTsdfFusionFile,
-                                                         .env = "FASTAGE_TSDF_FUSION",
-                                                         .entry = kTsdfFusionEntry,
-                                                         .what = "the depth maps' fusion module",
-                                                         .target = "stage_tsdf_fusion"});
-  if (!entry.ok()) return entry.status();
-  return reinterpret_cast<FuseDepthMapsFn (*)()>(*entry)()(views, depths, voxel_mm, options);
+  static const absl::StatusOr<FuseDepthMapsFn> fuse = OpenModuleAs<FuseDepthMapsFn>(
+      {.target = kTsdfFusionTarget, .entry = kTsdfFusionEntry, .what = "the depth maps' fusion module"});
+  if (!fuse.ok()) return fuse.status();
+  return (*fuse)(views, depths, voxel_mm, options);
 }
+
 namespace {
 
 namespace fs = std::filesystem;

@@ -60,7 +60,7 @@ absl::StatusOr<TriangleMesh> FuseDepthMaps(const std::vector<MvsView>& views, co
 using FuseDepthMapsFn = absl::StatusOr<TriangleMesh> (*)(const std::vector<MvsView>& views,
                                                          const std::vector<DepthMap>& depths, double voxel_mm,
                                                          const MvsOptions& options);
-inline constexpr const char* kTsdfFusionFile = "libstage_tsdf_fusion.so";
+inline constexpr const char* kTsdfFusionTarget = "stage_tsdf_fusion";
 inline constexpr const char* kTsdfFusionEntry = "StageFuseDepthMaps";  // returns a FuseDepthMapsFn
 
 // The largest connected piece of `mesh` with its vertices inside the sphere (centre, radius); unused vertices dropped.

@@ -13,11 +13,7 @@ namespace {
 void WarnFromTorch(const std::string& message) { Logger("processing.torch")->warn("{}", message); }
 
 absl::StatusOr<const TorchNets*> OpenTorchNets() {
-  const ModuleSpec spec{.file = kTorchNetsFile,
-                        .env = "FASTAGE_TORCH_NETS",
-                        .entry = kTorchNetsEntry,
-                        .what = "the torch nets' module",
-                        .target = "stage_torch_nets"};
+  const ModuleSpec spec{.target = kTorchNetsTarget, .entry = kTorchNetsEntry, .what = "the torch nets' module"};
   STAGE_ASSIGN_OR_RETURN(void* entry, OpenModule(spec));
   static const TorchHost host{&WarnFromTorch};
   const TorchNets* nets = reinterpret_cast<TorchNetsEntry>(entry)(&host);

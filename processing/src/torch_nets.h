@@ -176,7 +176,7 @@ struct TorchHost {
 // The module's entry point (extern "C", the one symbol it exports).
 using TorchNetsEntry = const TorchNets* (*)(const TorchHost* host);
 inline constexpr const char* kTorchNetsEntry = "StageTorchNets";
-inline constexpr const char* kTorchNetsFile = "libstage_torch_nets.so";
+inline constexpr const char* kTorchNetsTarget = "stage_torch_nets";
 
 // The module, opened once per process (thread-safe): from lib/ beside the program's directory (build/bin and
 // build/tests share build/lib), or from $FASTAGE_TORCH_NETS where set. FailedPrecondition naming the file when it is

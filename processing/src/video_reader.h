@@ -16,7 +16,7 @@ namespace stage::processing::internal {
 // be opened as a video; `fn`'s first error ends the reading and is returned.
 using FrameFn = std::function<absl::Status(int64_t index, int width, int height, const float* grey)>;
 using ReadVideoFn = absl::Status (*)(const std::string& path, const FrameFn& fn);
-inline constexpr const char* kVideoReaderFile = "libstage_video_reader.so";
+inline constexpr const char* kVideoReaderTarget = "stage_video_reader";
 inline constexpr const char* kVideoReaderEntry = "StageReadVideo";
 
 }  // namespace stage::processing::internal

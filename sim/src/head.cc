@@ -231,25 +231,17 @@ struct Image {
 
 enum class Encoding { kSrgb, kLinear, kSigned };
 
-// The image decoder (image_decoder.h), its module opened the first time a process decodes an image.
-absl::StatusOr<internal::DecodeImageFn> ImageDecoder() {
-  static const absl::StatusOr<internal::DecodeImageFn> decoder = []() -> absl::StatusOr<internal::DecodeImageFn> {
-    STAGE_ASSIGN_OR_RETURN(void* entry, OpenModule({.file = internal::kSimImagesFile,
-                                                    .env = "FASTAGE_SIM_IMAGES",
-                                                    .entry = internal::kSimImagesEntry,
-                                                    .what = "the simulator's image decoder module",
-                                                    .target = "stage_sim_images"}));
-    return reinterpret_cast<internal::DecodeImageFn (*)()>(entry)();
-  }();
-  return decoder;
-}
-
 // Reads `path` (what rig field `field` names) as `channels` (1: grey, 3: RGB) floats. Integer images map to [0, 1],
 // then through the sRGB curve (kSrgb) or to [-1, 1] (kSigned); OpenEXR values are taken as they are.
 absl::StatusOr<Image> ReadImage(const std::string& path, const std::string& field, int channels, Encoding encoding) {
-  STAGE_ASSIGN_OR_RETURN(internal::DecodeImageFn decode, ImageDecoder());
+  // The decoder's module (image_decoder.h), opened the first time a process decodes an image.
+  static const absl::StatusOr<internal::DecodeImageFn> decode =
+      OpenModuleAs<internal::DecodeImageFn>({.target = internal::kSimImagesTarget,
+                                             .entry = internal::kSimImagesEntry,
+                                             .what = "the simulator's image decoder module"});
+  if (!decode.ok()) return decode.status();
   internal::DecodedImage decoded;
-  if (absl::Status s = decode(path, channels, &decoded); !s.ok()) {
+  if (absl::Status s = (*decode)(path, channels, &decoded); !s.ok()) {
     return absl::InvalidArgumentError(absl::StrCat(field, ": \"", path, "\": ", s.message()));
   }
   std::vector<float>& texels = decoded.texels;

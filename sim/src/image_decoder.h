@@ -21,7 +21,7 @@ struct DecodedImage {
 // Decodes `path` into `channels` (1: grey, 3: RGB) floats. InvalidArgument without the file's name (the caller names
 // it and its rig field): "cannot read it (...)" or "neither 8 nor 16-bit nor float".
 using DecodeImageFn = absl::Status (*)(const std::string& path, int channels, DecodedImage* out);
-inline constexpr const char* kSimImagesFile = "libstage_sim_images.so";
+inline constexpr const char* kSimImagesTarget = "stage_sim_images";
 inline constexpr const char* kSimImagesEntry = "StageSimDecodeImage";
 
 }  // namespace stage::sim::internal

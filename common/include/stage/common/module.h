@@ -10,18 +10,30 @@
 namespace stage {
 
 struct ModuleSpec {
-  std::string file;    // "libstage_torch_nets.so"
-  std::string env;     // a variable naming the file elsewhere, e.g. "FASTAGE_TORCH_NETS"
-  std::string entry;   // the extern "C" symbol
-  std::string what;    // for errors: "the torch nets' module"
-  std::string target;  // the CMake target that builds it
+  // The CMake target that builds it (stage_module), "stage_torch_nets": the file is lib<target>.so, and
+  // $FASTAGE_<target without "stage_", in capitals> (FASTAGE_TORCH_NETS) may name another.
+  std::string target;
+  std::string entry;  // the extern "C" symbol
+  std::string what;   // for errors: "the torch nets' module"
 };
 
-// The path `spec` resolves to: $<env> where set, else lib/<file> beside the running program's directory.
+// The variable that may name the module's file: "FASTAGE_TORCH_NETS" for target "stage_torch_nets".
+std::string ModuleVariable(const ModuleSpec& spec);
+// The path `spec` resolves to: the file the variable names where set, else lib/lib<target>.so beside the running
+// program's directory.
 std::string ModulePath(const ModuleSpec& spec);
 
 // Opens the module (RTLD_NOW | RTLD_LOCAL; never closed) and returns its entry point's address. FailedPrecondition
 // naming the file and why (missing, dlopen's words, no entry point). Each call opens again: callers keep the result.
 absl::StatusOr<void*> OpenModule(const ModuleSpec& spec);
+
+// OpenModule for a module whose entry point takes nothing and returns a `T` (a function of the module): the entry
+// called.
+template <typename T>
+absl::StatusOr<T> OpenModuleAs(const ModuleSpec& spec) {
+  absl::StatusOr<void*> entry = OpenModule(spec);
+  if (!entry.ok()) return entry.status();
+  return reinterpret_cast<T (*)()>(*entry)();
+}
 
 }  // namespace stage
