@@ -1,4 +1,4 @@
-// The neural asset's networks (docs/asset.md#the-networks), as the torch module implements them (torch_nets.h): see
+// The neural asset's networks (docs/asset.md), as the torch module implements them (torch_nets.h): see
 // asset_net.h. With warp_net.cc, the only sources that include torch's headers.
 #include <torch/script.h>
 #include <torch/torch.h>

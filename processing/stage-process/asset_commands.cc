@@ -22,8 +22,8 @@ void AssetCommands::Add(CLI::App& parent) {
   app_ = parent.add_subcommand(
       "asset",
       "The neural facial asset (docs/asset.md): its dataset from a take and the training of its "
-      "geometry VAE, expression VAE and the mapping between their latents, their evaluation, and the asset driven "
-      "from a camera's images (the texture network is to come)");
+      "geometry VAE, expression VAE and the mapping between their latents, the fine-tuned driving path, the texture "
+      "VAE and its mapping, their evaluation, and the asset driven from a camera's images");
   app_->require_subcommand(1);
   build_dataset_ = app_->add_subcommand(
       "build-dataset",
@@ -110,8 +110,8 @@ void AssetCommands::AddTrain() {
       ->check(CLI::IsMember({"geometry", "expression", "mapping", "finetune", "texture", "texture-mapping"}));
   train_->add_option(
       "--output", job.output_dir,
-      "The run's directory (default: the dataset's directory/geometry, /expression, /mapping, /finetune or "
-      "/texture)");
+      "The run's directory (default: the dataset's directory/geometry, /expression, /mapping, /finetune, "
+      "/texture or /texture_mapping)");
   train_
       ->add_option("--iterations", schedule.iterations,
                    "Adam steps (default 4000; the mapping's 3000, finetune's 6000)")
@@ -224,12 +224,13 @@ void AssetCommands::AddEvaluate() {
       "vertices by region: face, eyes, mouth): the geometry VAE's run beside PCA and the neutral frame, or the "
       "asset driven from each camera's crops (--network mapping, or finetune for the fine-tuned driving path: the "
       "paper's protocol), or the texture VAE's run (--network texture: albedo levels, normal degrees, specular error "
-      "on the skin, beside PCA and the neutral frame)");
+      "on the skin, beside PCA and the neutral frame), or the texture mapping's run (--network texture-mapping: the "
+      "textures driven from each camera)");
   evaluate_->add_option("--dataset", evaluate_dataset_, "The dataset file")->required();
   evaluate_
       ->add_option("--network", evaluate_network_,
                    "What to evaluate: geometry, mapping (the asset driven through the mapping), finetune (driven "
-                   "through the fine-tuned path) or texture")
+                   "through the fine-tuned path), texture or texture-mapping")
       ->capture_default_str()
       ->check(CLI::IsMember({"geometry", "mapping", "finetune", "texture", "texture-mapping"}));
   evaluate_->add_option("--run", evaluate_run_,

@@ -1,4 +1,4 @@
-// The neural asset's networks (docs/asset.md#the-networks), behind a torch-free interface: processing/src/asset_net.cc
+// The neural asset's networks (docs/asset.md), behind a torch-free interface: processing/src/asset_net.cc
 // is the one translation unit that includes torch's headers for them. Callers hand in batches as plain arrays (NCHW
 // floats, millimetres) with every random draw already made (the augmentation, the reparameterization's noise), so
 // that the training's randomness is the caller's one generator: a run is the same for a seed and a thread count, and
@@ -294,15 +294,15 @@ class LatentMapping {
   std::unique_ptr<Impl> impl_;
 };
 
-// The driving path fine-tuned (the third training stage, docs/asset.md#fine-tuning): the expression VAE's encoder and
-// the mapping as one net, image -> expression latent's mean -> mapping -> geometry latent, trained together on the
-// frames' geometry latents (in the mapping's normalized units: mean squared error). The paper's third stage fine-tunes
-// all but the expression network; trained that way (`train_encoder` false) the driving path cannot learn what its
-// frozen expression latent does not hold, and on the simulated performance it did not generalize to frames it never
-// saw (docs/asset.md). With the encoder trained too, the geometry decides what the encoder keeps of an image: the
-// expression, not the head's pose or the camera's view. Created from the two finished nets (their weights copied);
-// the expression VAE's decoder and view latent play no part. Untrained, it is the mapping's own driving path (encoder,
-// then mapping), which is how the driven evaluation and inference apply a mapping that was not fine-tuned.
+// The driving path fine-tuned (the third training stage, docs/asset.md#fine-tuning-the-driving-path): the expression
+// VAE's encoder and the mapping as one net, image -> expression latent's mean -> mapping -> geometry latent, trained
+// together on the frames' geometry latents (in the mapping's normalized units: mean squared error). The paper's third
+// stage fine-tunes all but the expression network; trained that way (`train_encoder` false) the driving path cannot
+// learn what its frozen expression latent does not hold, and on the simulated performance it did not generalize to
+// frames it never saw (docs/asset.md). With the encoder trained too, the geometry decides what the encoder keeps of an
+// image: the expression, not the head's pose or the camera's view. Created from the two finished nets (their weights
+// copied); the expression VAE's decoder and view latent play no part. Untrained, it is the mapping's own driving path
+// (encoder, then mapping), which is how the driven evaluation and inference apply a mapping that was not fine-tuned.
 struct DrivingNetOptions {
   // Train the expression encoder with the mapping (false: only the mapping, the paper's choice).
   bool train_encoder = true;

@@ -1,7 +1,9 @@
 // Training the neural asset's networks on a dataset (docs/asset.md#training), each resumably in a run directory of its
 // own (processing/src/training_run.h): the geometry VAE (DATASET's directory/geometry), the expression VAE
-// (.../expression) and the mapping from its latent to the geometry latent with both frozen (.../mapping), the stages
-// of the paper's section 4.5. Each run's directory holds:
+// (.../expression), the mapping from its latent to the geometry latent with both frozen (.../mapping) and the driving
+// path fine-tuned (.../finetune), the stages of the paper's section 4.5; the texture VAE and its mapping
+// (TrainTextureAsset, TrainTextureMapping below: .../texture, .../texture_mapping) run the same loop. Each run's
+// directory holds:
 //   checkpoint-NNNNNN.pt  the net and Adam's state at the last checkpoint's step
 //   trainer.json       the step reached, its checkpoint's file, the generator's state, the options, the dataset's
 //                      identity and the thread count (a resume must match them); replaced atomically after the
@@ -9,8 +11,9 @@
 //   loss.csv, loss.png every step's losses, and their curves (log scale)
 //   evaluation.json    the held-out frames' error beside the baselines
 // and its net at the end: geometry_vae.pt (and geometry_vae.torchscript.pt, the same as TorchScript, which Python's
-// torch.jit.load runs: encode, decode), expression_vae.pt, mapping.pt. A run killed at any point resumes from its last
-// checkpoint (`resume`) and ends bit for bit where an unbroken run of the same options and thread count ends.
+// torch.jit.load runs: encode, decode), expression_vae.pt, mapping.pt, driving_net.pt. A run killed at any point
+// resumes from its last checkpoint (`resume`) and ends bit for bit where an unbroken run of the same options and thread
+// count ends.
 #pragma once
 
 #include <cstdint>
@@ -166,13 +169,13 @@ struct MappingTrainResult {
 };
 absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job);
 
-// The third stage (docs/asset.md#fine-tuning): the driving path (DrivingNet: the expression VAE's encoder and the
-// mapping) trained together on the training frames' geometry latents, from the finished runs of the stages before,
-// on the mapping's pairs (a training frame's crop by a trained camera). Each crop is shown under a random jitter of
-// its box (scale, turn, shift) and its exposure (gain, noise): a camera's crop box is fixed while the head moves in
-// it, and the jitter stands in for the views and poses the frames do not hold. The run's directory (default
-// DATASET's directory/finetune) holds the loop's files (training_run.h), driving_net.pt, evaluation.json (the paper's
-// protocol, DrivenEvaluation) and driven.png, as the mapping's.
+// The third stage (docs/asset.md#fine-tuning-the-driving-path): the driving path (DrivingNet: the expression VAE's
+// encoder and the mapping) trained together on the training frames' geometry latents, from the finished runs of the
+// stages before, on the mapping's pairs (a training frame's crop by a trained camera). Each crop is shown under a
+// random jitter of its box (scale, turn, shift) and its exposure (gain, noise): a camera's crop box is fixed while the
+// head moves in it, and the jitter stands in for the views and poses the frames do not hold. The run's directory
+// (default DATASET's directory/finetune) holds the loop's files (training_run.h), driving_net.pt, evaluation.json (the
+// paper's protocol, DrivenEvaluation) and driven.png, as the mapping's.
 struct FineTuneJob {
   std::string dataset;
   std::string output_dir;  // default: DATASET's directory/finetune
