@@ -2,13 +2,19 @@
 //  1. per camera and scale (default hs-2 at full 4096x2304 and at 1/4): the per-pose precompute (every pixel's
 //     response to every LED unit, with shadow rays) and the per-pattern render (two matrix-vector products, then the
 //     sensor model), next to a bare loop computing the same dot products pixel by pixel;
-//  2. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
+//  2. the precompute's shadow rays on that camera's view of the head (every pixel towards every unit it faces), on one
+//     thread, traced as the renderer traces them (the rays of 16 neighbouring pixels towards one unit after another,
+//     as one stream: Subject::OccludedMany) beside the same rays one at a time (Subject::Occluded) and as streams of
+//     one pixel's rays (towards every unit: one origin, directions apart);
+//  3. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
 //     second of take, frames rendered per second.
-// Run: build/bin/sim_render_bench [--scales 1,0.25] [--demo-scale 0.04] [--slots 912] [--camera hs-2]
+// Run: build/bin/sim_render_bench [--scales 1,0.25] [--shadow-scale 0.25] [--demo-scale 0.04] [--slots 912]
+//      [--camera hs-2]
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
 #include <mutex>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -84,6 +90,81 @@ void OneCamera(const std::string& camera, double scale) {
       "radiance %8.2f ms, with sensor %8.2f ms; bare dot-product loop %8.2f ms   [checksum %.3g]\n",
       camera.c_str(), scale, r->width, r->height, r->pixels.size(), scene->dome().units.size(), precompute,
       2.0 * rows * cols * 4 / 1e9, radiance * 1e3, full * 1e3, bare * 1e3, checksum);
+}
+
+// Shadow rays as the renderer makes them: from each hit (lifted 1e-3 mm off along its geometric normal) towards each
+// unit in front of it, grouped in blocks of `block` neighbouring hits, unit-major within a block (`unit_major`) or
+// hit-major (each hit's rays together).
+struct ShadowRays {
+  std::vector<Eigen::Vector3f> from, to;
+  std::vector<size_t> block_starts;
+};
+
+ShadowRays MakeShadowRays(const std::vector<stage::sim::Hit>& hits, const stage::sim::Dome& dome, size_t block,
+                          bool unit_major) {
+  std::vector<const stage::sim::Hit*> seen;
+  for (const auto& h : hits) {
+    if (h.hit) seen.push_back(&h);
+  }
+  ShadowRays rays;
+  auto add = [&](const stage::sim::Hit& h, const stage::sim::LedUnitModel& u) {
+    const Eigen::Vector3f to = u.position.cast<float>();
+    if ((to - h.point).dot(h.geometric_normal) <= 0 || (to - h.point).dot(h.normal) <= 0) return;
+    rays.from.push_back(h.point + 1e-3f * h.geometric_normal);
+    rays.to.push_back(to);
+  };
+  for (size_t first = 0; first < seen.size(); first += block) {
+    rays.block_starts.push_back(rays.from.size());
+    const size_t last = std::min(seen.size(), first + block);
+    if (unit_major) {
+      for (const auto& u : dome.units) {
+        for (size_t k = first; k < last; ++k) add(*seen[k], u);
+      }
+    } else {
+      for (size_t k = first; k < last; ++k) {
+        for (const auto& u : dome.units) add(*seen[k], u);
+      }
+    }
+  }
+  rays.block_starts.push_back(rays.from.size());
+  return rays;
+}
+
+void ShadowRayCost(const std::string& camera, double scale) {
+  auto scene = Scene(scale, "still");
+  const int index = scene->CameraIndex(camera);
+  if (index < 0) Die(absl::NotFoundError("no camera " + camera));
+  const auto subject = scene->SubjectAt(0);
+  const std::vector<stage::sim::Hit> hits = stage::sim::TracePixels(scene->camera(index), *subject, 1);
+  // Each way's rays in its own order, and the blocked ones counted: the three must agree.
+  auto streams = [&](const ShadowRays& rays, size_t* blocked) {
+    std::vector<uint8_t> answers(rays.from.size());
+    const auto t = Clock::now();
+    for (size_t b = 0; b + 1 < rays.block_starts.size(); ++b) {
+      const size_t first = rays.block_starts[b], n = rays.block_starts[b + 1] - first;
+      subject->OccludedMany(std::span(rays.from).subspan(first, n), std::span(rays.to).subspan(first, n),
+                            std::span(answers).subspan(first, n));
+    }
+    const double s = Since(t);
+    *blocked = 0;
+    for (uint8_t a : answers) *blocked += a;
+    return s;
+  };
+  const ShadowRays coherent = MakeShadowRays(hits, scene->dome(), 16, true);
+  size_t blocked_one = 0, blocked_coherent = 0, blocked_pixel = 0;
+  auto t = Clock::now();
+  for (size_t i = 0; i < coherent.from.size(); ++i) blocked_one += subject->Occluded(coherent.from[i], coherent.to[i]);
+  const double one = Since(t);
+  const double as_renderer = streams(coherent, &blocked_coherent);
+  const double per_pixel = streams(MakeShadowRays(hits, scene->dome(), 1, false), &blocked_pixel);
+  const double rays = static_cast<double>(coherent.from.size());
+  std::printf(
+      "%-5s scale %-5g shadow rays, one thread: %zu rays (%.1f %% blocked%s): one at a time %.2f s (%.2f M rays/s); "
+      "16 pixels towards one unit after another, one stream a block %.2f s (%.2f M rays/s, %.2fx); one pixel's rays "
+      "a stream %.2f s (%.2f M rays/s)\n",
+      camera.c_str(), scale, coherent.from.size(), 100.0 * blocked_one / rays,
+      blocked_one == blocked_coherent && blocked_one == blocked_pixel ? "" : ", THE WAYS DISAGREE", one,
+      rays / one / 1e6, as_renderer, rays / as_renderer / 1e6, one / as_renderer, per_pixel, rays / per_pixel / 1e6);
 }
 
 class CountingSink : public stage::camera::FrameSink {
@@ -168,13 +249,17 @@ int main(int argc, char** argv) {
   double demo_scale = 0.04;
   int64_t slots = 912;
   std::string camera = "hs-2";
+  double shadow_scale = 0.25;
   app.add_option("--scales", scales, "Render scales for the one-camera figures")->delimiter(',')->capture_default_str();
+  app.add_option("--shadow-scale", shadow_scale, "Render scale of the shadow rays' figures (0 skips them)")
+      ->capture_default_str();
   app.add_option("--demo-scale", demo_scale, "Render scale of the whole-rig run (0 skips it)")->capture_default_str();
   app.add_option("--slots", slots, "Slots of the whole-rig run")->capture_default_str();
   app.add_option("--camera", camera, "Camera of the one-camera figures")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   std::printf("sim_render_bench on %u hardware threads\n", std::thread::hardware_concurrency());
   for (double s : scales) OneCamera(camera, s);
+  if (shadow_scale > 0) ShadowRayCost(camera, shadow_scale);
   if (demo_scale > 0) WholeRig(demo_scale, slots);
   return 0;
 }

@@ -4,6 +4,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <limits>
+#include <vector>
 
 #include "stage/common/logging.h"
 #include "stage/common/mesh.h"
@@ -132,6 +133,28 @@ bool MeshBvh::Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) c
   rtcOccluded1(scene_->scene, &context, &ray);
   // Embree marks an occluded ray by setting its tfar to -inf.
   return ray.tfar < 0;
+}
+
+void MeshBvh::Occluded(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
+                       std::span<uint8_t> blocked) const {
+  if (from.size() != to.size() || from.size() != blocked.size()) {
+    Logger("geometry")
+        ->critical("MeshBvh::Occluded: {} starts, {} ends, {} answers", from.size(), to.size(), blocked.size());
+    std::abort();
+  }
+  thread_local std::vector<RTCRay> rays;  // reused: a renderer asks for a few thousand at a time, millions of times
+  rays.resize(from.size());
+  for (size_t i = 0; i < from.size(); ++i) {
+    const Eigen::Vector3f d = to[i] - from[i];
+    const float len = d.norm();
+    // A segment too short to trace is left inactive (tnear > tfar), as Occluded answers it: not blocked.
+    rays[i] = len > kNear ? MakeRay(from[i], d / len, kNear, len) : MakeRay(from[i], Eigen::Vector3f::UnitZ(), 1, 0);
+  }
+  RTCIntersectContext context;
+  rtcInitIntersectContext(&context);
+  context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  rtcOccluded1M(scene_->scene, &context, rays.data(), static_cast<unsigned>(rays.size()), sizeof(RTCRay));
+  for (size_t i = 0; i < rays.size(); ++i) blocked[i] = rays[i].tfar < 0 ? 1 : 0;
 }
 
 }  // namespace stage

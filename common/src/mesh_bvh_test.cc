@@ -1,8 +1,11 @@
 // MeshBvh: rays aimed exactly at the edges and corners a closed mesh's triangles share still meet it (no shadow ray
 // slips into a closed head); hits carry the triangle and barycentrics that give the point back; the segment's ends
-// are kept out of Occluded; copies outlive the original; an empty mesh is hit by nothing.
+// are kept out of Occluded; many segments at once get Occluded's answers; copies outlive the original; an empty mesh
+// is hit by nothing.
 #include <Eigen/Geometry>
 #include <cmath>
+#include <random>
+#include <vector>
 
 #include "gtest/gtest.h"
 #include "stage/common/mesh.h"
@@ -63,6 +66,44 @@ TEST(MeshBvhTest, HitsGiveThePointBackAndOccludedKeepsTheSegmentsEndsOut) {
   EXPECT_TRUE(bvh.Occluded({0.2f, 0.35f, 1.001f}, {0.2f, 0.35f, -100}));
   // A segment of no length holds nothing.
   EXPECT_FALSE(bvh.Occluded(origin, origin));
+}
+
+TEST(MeshBvhTest, ManySegmentsAtOnceGetOccludedsAnswers) {
+  const MeshBvh bvh(Cube());
+  std::vector<Eigen::Vector3f> from, to;
+  // Through the top face's edges, corners and diagonals from outside (blocked, as above), in neighbouring groups
+  // towards one end (the renderer's order), and random segments about the cube: some blocked, some not.
+  for (int i = 0; i <= 8; ++i) {
+    const float s = -1 + i * 0.25f;
+    for (const Eigen::Vector3f& target : {Eigen::Vector3f(s, -1, 1), Eigen::Vector3f(s, s, 1)}) {
+      const Eigen::Vector3f origin(0.3f, 0.2f, 5);
+      from.push_back(origin);
+      to.push_back(target + (target - origin).normalized());
+    }
+  }
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(-3, 3);
+  for (int i = 0; i < 2000; ++i) {
+    from.emplace_back(u(rng), u(rng), u(rng));
+    to.emplace_back(u(rng), u(rng), u(rng));
+  }
+  from.emplace_back(0, 0, 5);  // too short to trace: not blocked
+  to.emplace_back(0, 0, 5);
+  std::vector<uint8_t> blocked(from.size(), 7);
+  bvh.Occluded(from, to, blocked);
+  int count = 0;
+  for (size_t i = 0; i < from.size(); ++i) {
+    ASSERT_EQ(blocked[i] != 0, bvh.Occluded(from[i], to[i])) << "segment " << i;
+    ASSERT_LE(blocked[i], 1);
+    if (i < 18) {
+      EXPECT_EQ(blocked[i], 1) << "through the edge, segment " << i;
+    }
+    count += blocked[i];
+  }
+  EXPECT_EQ(blocked.back(), 0);
+  EXPECT_GT(count, 200);  // both answers are exercised
+  EXPECT_LT(count, 1800);
+  bvh.Occluded(std::span<const Eigen::Vector3f>{}, std::span<const Eigen::Vector3f>{}, std::span<uint8_t>{});
 }
 
 TEST(MeshBvhTest, CopiesOutliveTheOriginalAndAnEmptyMeshIsHitByNothing) {

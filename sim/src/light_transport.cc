@@ -4,6 +4,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <span>
 #include <thread>
 
 namespace stage::sim {
@@ -62,11 +63,17 @@ struct HitTerms {
   Eigen::Vector3f start;
 };
 
-// The hit's diffuse and specular response to every unit, added to `d` and `s`. Without an occluder (kShadows false)
-// the loop has no branch and GCC vectorizes it (-O3, no errno or traps: sqrt, and the divisions of units behind the
-// surface, are computed and not selected).
+// Whether a hit faces unit l: in front of its shading and its geometric normal (no short cut: no branch). The one
+// definition of what a shadow ray is traced for and what the loop below lights.
+inline bool Faces(const HitTerms& t, float wx, float wy, float wz) {
+  return (t.nx * wx + t.ny * wy + t.nz * wz > 0) & (t.gx * wx + t.gy * wy + t.gz * wz > 0);
+}
+
+// The hit's diffuse and specular response to every unit, added to `d` and `s`. `blocked` (kShadows): per unit, 1
+// where the subject shadows the hit from it (BlockedUnits). The loop has no branch and GCC vectorizes it (-O3, no
+// errno or traps: sqrt, and the divisions of units behind the surface, are computed and not selected).
 template <bool kShadows>
-void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const Subject* occluder, float weight, float* d,
+void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const uint8_t* blocked, float weight, float* d,
                       float* s) {
   // Copies and plain pointers: the rows written cannot alias them.
   const HitTerms t = terms;
@@ -78,10 +85,8 @@ void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const Subj
     const float inv = 1.0f / std::sqrt(d2);
     const float wx = tx * inv, wy = ty * inv, wz = tz * inv;
     const float n_dot_w = t.nx * wx + t.ny * wy + t.nz * wz;
-    bool lit = (n_dot_w > 0) & (t.gx * wx + t.gy * wy + t.gz * wz > 0);  // no short cut: no branch
-    if constexpr (kShadows) {
-      if (lit) lit = !occluder->Occluded(t.start, Eigen::Vector3f(ux[l], uy[l], uz[l]));
-    }
+    bool lit = Faces(t, wx, wy, wz);
+    if constexpr (kShadows) lit = lit & (blocked[l] == 0);
     const float irradiance = weight * ui[l] / d2;
     const float hx = wx + t.vx, hy = wy + t.vy, hz = wz + t.vz;
     const float n_dot_h = (t.nx * hx + t.ny * hy + t.nz * hz) / std::sqrt(hx * hx + hy * hy + hz * hz);
@@ -93,33 +98,95 @@ void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const Subj
   }
 }
 
-// One ray's hit: its responses to every unit (weighted by `weight`, its share of the pixel), added to the pixel's rows
-// `d` and `s`. `occluder`: the subject where it may shadow itself, null where it cannot (a convex subject shadows none
-// of itself where the light is in front of the surface).
-void AddHitResponses(const Hit& h, const Eigen::Vector3f& origin, const UnitArrays& units, const Subject* occluder,
-                     float weight, float* d, float* s) {
+// What the loop over units needs of one ray's hit, seen from the camera at `origin`.
+HitTerms MakeTerms(const Hit& h, const Eigen::Vector3f& origin) {
   const Eigen::Vector3f v = (origin - h.point).normalized();
   const float n_dot_v = h.normal.dot(v);
   const float alpha = std::max(h.material.roughness, 1e-3f);
-  HitTerms t{h.point.x(),
-             h.point.y(),
-             h.point.z(),
-             h.normal.x(),
-             h.normal.y(),
-             h.normal.z(),
-             h.geometric_normal.x(),
-             h.geometric_normal.y(),
-             h.geometric_normal.z(),
-             v.x(),
-             v.y(),
-             v.z(),
-             alpha,
-             n_dot_v > 0 ? h.material.specular * SmithG1(n_dot_v, alpha) / (4 * n_dot_v) : 0.0f,
-             h.point + kShadowEpsilon * h.geometric_normal};
-  if (occluder != nullptr) {
-    AddUnitResponses<true>(t, units, occluder, weight, d, s);
-  } else {
-    AddUnitResponses<false>(t, units, nullptr, weight, d, s);
+  return HitTerms{h.point.x(),
+                  h.point.y(),
+                  h.point.z(),
+                  h.normal.x(),
+                  h.normal.y(),
+                  h.normal.z(),
+                  h.geometric_normal.x(),
+                  h.geometric_normal.y(),
+                  h.geometric_normal.z(),
+                  v.x(),
+                  v.y(),
+                  v.z(),
+                  alpha,
+                  n_dot_v > 0 ? h.material.specular * SmithG1(n_dot_v, alpha) / (4 * n_dot_v) : 0.0f,
+                  h.point + kShadowEpsilon * h.geometric_normal};
+}
+
+// Pixels whose responses are computed together: their shadow rays towards one unit are traced as one stream.
+constexpr size_t kBlockRows = 16;
+
+// A thread's scratch for a block, reused from block to block.
+struct BlockScratch {
+  std::vector<HitTerms> terms;
+  std::vector<Eigen::Index> rows;         // per hit: its row
+  std::vector<uint8_t> blocked;           // hits x units
+  std::vector<Eigen::Vector3f> from, to;  // the shadow rays traced
+  std::vector<uint32_t> ray_of;           // each one's index into `blocked`
+  std::vector<uint8_t> answers;
+};
+
+// For every hit of the block and every unit it faces, whether the occluder shadows it (`blocked`, hits x units; 0
+// where it does not face the unit). The rays go unit by unit, the block's neighbouring hits together: for one light
+// they run side by side, the coherent stream Embree traces in packets.
+void BlockedUnits(const UnitArrays& units, const Subject& occluder, BlockScratch& b) {
+  const size_t hits = b.terms.size(), count = units.x.size();
+  b.blocked.assign(hits * count, 0);
+  b.from.clear();
+  b.to.clear();
+  b.ray_of.clear();
+  for (size_t l = 0; l < count; ++l) {
+    const Eigen::Vector3f unit(units.x[l], units.y[l], units.z[l]);
+    for (size_t k = 0; k < hits; ++k) {
+      const HitTerms& t = b.terms[k];
+      const float tx = unit.x() - t.px, ty = unit.y() - t.py, tz = unit.z() - t.pz;
+      const float inv = 1.0f / std::sqrt(tx * tx + ty * ty + tz * tz);
+      if (!Faces(t, tx * inv, ty * inv, tz * inv)) continue;
+      b.from.push_back(t.start);
+      b.to.push_back(unit);
+      b.ray_of.push_back(static_cast<uint32_t>(k * count + l));
+    }
+  }
+  b.answers.resize(b.from.size());
+  occluder.OccludedMany(b.from, b.to, b.answers);
+  for (size_t i = 0; i < b.answers.size(); ++i) b.blocked[b.ray_of[i]] = b.answers[i];
+}
+
+// The responses of rows [first, last) (their hits weighted by `weight`, a ray's share of the pixel) into `r`.
+// `occluder`: the subject where it may shadow itself, null where it cannot (a convex subject shadows none of itself
+// where the light is in front of the surface).
+void AddBlockResponses(const std::vector<const std::vector<Hit>*>& rows, size_t first, size_t last,
+                       const Eigen::Vector3f& origin, const UnitArrays& units, const Subject* occluder, float weight,
+                       PixelResponses& r) {
+  thread_local BlockScratch b;
+  b.terms.clear();
+  b.rows.clear();
+  for (size_t i = first; i < last; ++i) {
+    const auto row = static_cast<Eigen::Index>(i);
+    r.diffuse.row(row).setZero();
+    r.specular.row(row).setZero();
+    for (const Hit& h : *rows[i]) {
+      b.terms.push_back(MakeTerms(h, origin));
+      b.rows.push_back(row);
+    }
+  }
+  if (occluder != nullptr) BlockedUnits(units, *occluder, b);
+  const size_t count = units.x.size();
+  for (size_t k = 0; k < b.terms.size(); ++k) {
+    float* d = r.diffuse.row(b.rows[k]).data();
+    float* s = r.specular.row(b.rows[k]).data();
+    if (occluder != nullptr) {
+      AddUnitResponses<true>(b.terms[k], units, b.blocked.data() + k * count, weight, d, s);
+    } else {
+      AddUnitResponses<false>(b.terms[k], units, nullptr, weight, d, s);
+    }
   }
 }
 
@@ -242,7 +309,8 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   const size_t units = dome.units.size();
   // A convex subject shadows none of itself where the light is in front of the surface (checked below).
   const bool shadows = !subject.Convex();
-  if (progress != nullptr) progress->total.store(progress->done.load() + count);
+  const size_t blocks = (count + kBlockRows - 1) / kBlockRows;
+  if (progress != nullptr) progress->total.store(progress->done.load() + blocks);
   const float weight = 1.0f / static_cast<float>(n * n);
   const UnitArrays unit_arrays(dome);
   // Left uninitialized here and zeroed a row at a time by the thread that fills it: one pass over memory the kernel
@@ -250,14 +318,9 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   // board's render).
   r.diffuse.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
   r.specular.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
-  ParallelFor(count, threads, progress, [&](size_t i) {
-    const auto row = static_cast<Eigen::Index>(i);
-    r.diffuse.row(row).setZero();
-    r.specular.row(row).setZero();
-    for (const Hit& h : *rows[i]) {
-      AddHitResponses(h, origin, unit_arrays, shadows ? &subject : nullptr, weight, r.diffuse.row(row).data(),
-                      r.specular.row(row).data());
-    }
+  ParallelFor(blocks, threads, progress, [&](size_t b) {
+    AddBlockResponses(rows, b * kBlockRows, std::min(count, (b + 1) * kBlockRows), origin, unit_arrays,
+                      shadows ? &subject : nullptr, weight, r);
   });
   return r;
 }

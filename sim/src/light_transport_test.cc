@@ -321,6 +321,43 @@ TEST(LightTransportTest, AConvexSubjectNeedsNoShadowRays) {
   EXPECT_FALSE(HeadModel::Procedural(1, 32, HeadShape())->Posed(HeadPose())->Convex());
 }
 
+// A subject whose every shadow ray gets through.
+class Unshadowed final : public Subject {
+ public:
+  explicit Unshadowed(const Subject& s) : s_(s) {}
+  Hit Intersect(const Eigen::Vector3f& o, const Eigen::Vector3f& d) const override { return s_.Intersect(o, d); }
+  bool Occluded(const Eigen::Vector3f&, const Eigen::Vector3f&) const override { return false; }
+
+ private:
+  const Subject& s_;
+};
+
+// The head's shadow rays traced together (MeshSubject::OccludedMany: a block of neighbouring pixels towards one unit
+// after another, as Embree's packets) give the responses, to the bit, that they give traced one at a time; and the
+// head does shadow itself (the check has something to compare).
+TEST(LightTransportTest, ShadowRaysTracedTogetherGiveTheResponsesOfOneAtATime) {
+  const Dome d = Dome::FromDirections(FibonacciSphere(128), 1000, 1e6);
+  auto camera = CameraModel::FromConfig(Camera({150, 40, 600}, 120, 90), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  HeadPose pose;
+  pose.rotation_deg = Eigen::Vector3f(25, -10, 5);
+  const auto model = HeadModel::Procedural(1, 64, HeadShape());  // outlives its posed meshes (their surface)
+  const std::unique_ptr<MeshSubject> head = model->Posed(pose);
+  ASSERT_FALSE(head->Convex());
+  for (const int supersample : {1, 2}) {
+    const PixelResponses together = ComputeResponses(*camera, *head, d, 2, supersample);
+    const PixelResponses one = ComputeResponses(*camera, Traced(*head), d, 2, supersample);
+    const PixelResponses unshadowed = ComputeResponses(*camera, Unshadowed(*head), d, 2, supersample);
+    ASSERT_EQ(together.pixels, one.pixels);
+    ASSERT_GT(together.pixels.size(), 1000u);
+    EXPECT_EQ((together.diffuse - one.diffuse).cwiseAbs().maxCoeff(), 0.0f) << supersample;
+    EXPECT_EQ((together.specular - one.specular).cwiseAbs().maxCoeff(), 0.0f) << supersample;
+    // The head shadows itself: some pixels lose some units' light.
+    ASSERT_EQ(together.pixels, unshadowed.pixels);
+    EXPECT_GT(((unshadowed.diffuse - together.diffuse).array() > 0).count(), 1000) << supersample;
+  }
+}
+
 TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {
   const double far = 1e7;  // distant LEDs
   Material m{Eigen::Vector3f::Constant(0.8f), 0.0f, 0.3f};

@@ -85,4 +85,9 @@ bool MeshSubject::Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& t
   return bvh_.Occluded(from, to);
 }
 
+void MeshSubject::OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
+                               std::span<uint8_t> blocked) const {
+  bvh_.Occluded(from, to, blocked);
+}
+
 }  // namespace stage::sim

@@ -6,6 +6,11 @@
 
 namespace stage::sim {
 
+void Subject::OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
+                           std::span<uint8_t> blocked) const {
+  for (size_t i = 0; i < from.size(); ++i) blocked[i] = Occluded(from[i], to[i]) ? 1 : 0;
+}
+
 Hit SphereSubject::Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const {
   // |o + t d - c|^2 = r^2 with |d| = 1: t^2 + 2 b t + c = 0, in double precision: near the silhouette the root is
   // ill-conditioned and float would move the hit point by millimetres.

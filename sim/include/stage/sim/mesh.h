@@ -40,6 +40,8 @@ class MeshSubject final : public Subject {
   MeshSubject(TriangleMesh mesh, SurfaceFunction surface, bool convex = false);
   Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
+  void OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
+                    std::span<uint8_t> blocked) const override;
   bool Convex() const override { return convex_; }
   const TriangleMesh& mesh() const { return bvh_.mesh(); }
 

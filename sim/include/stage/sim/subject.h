@@ -4,7 +4,9 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
 #include <memory>
+#include <span>
 
 namespace stage::sim {
 
@@ -40,6 +42,11 @@ class Subject {
   // True if the segment from `from` towards `to` is blocked by the subject before reaching `to`. `from` is a surface
   // point: the caller offsets it along the normal.
   virtual bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const = 0;
+  // Occluded for many segments at once (`blocked[i]` for from[i] -> to[i], spans of one size). The renderer hands in
+  // neighbouring points' segments towards one light after another; a mesh traces them together (MeshSubject: Embree's
+  // packets), any other subject one at a time (this default).
+  virtual void OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
+                            std::span<uint8_t> blocked) const;
   // True if no point of the subject's surface can shadow another: a surface point sees every point in front of its
   // tangent plane, so the renderer skips shadow rays towards those (a sphere, a plate; never a head).
   virtual bool Convex() const { return false; }
