@@ -8,8 +8,9 @@
 //     one pixel's rays (towards every unit: one origin, directions apart);
 //  3. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
 //     second of take, frames rendered per second.
-// Run: build/bin/sim_render_bench [--scales 1,0.25] [--shadow-scale 0.25] [--demo-scale 0.04] [--slots 912]
-//      [--camera hs-2]
+// Run: build/bin/sim_render_bench [--scales 1,0.25] [--shadow-scale 0.25] [--shadow-rounds 3] [--demo-scale 0.04]
+//      [--slots 912] [--camera hs-2]
+#include <algorithm>
 #include <chrono>
 #include <condition_variable>
 #include <cstdio>
@@ -130,41 +131,53 @@ ShadowRays MakeShadowRays(const std::vector<stage::sim::Hit>& hits, const stage:
   return rays;
 }
 
-void ShadowRayCost(const std::string& camera, double scale) {
+void ShadowRayCost(const std::string& camera, double scale, int rounds) {
   auto scene = Scene(scale, "still");
   const int index = scene->CameraIndex(camera);
   if (index < 0) Die(absl::NotFoundError("no camera " + camera));
   const auto subject = scene->SubjectAt(0);
   const std::vector<stage::sim::Hit> hits = stage::sim::TracePixels(scene->camera(index), *subject, 1);
-  // Each way's rays in its own order, and the blocked ones counted: the three must agree.
-  auto streams = [&](const ShadowRays& rays, size_t* blocked) {
-    std::vector<uint8_t> answers(rays.from.size());
+  // Each way's answers in its rays' order.
+  auto streams = [&](const ShadowRays& rays, std::vector<uint8_t>* answers) {
+    answers->assign(rays.from.size(), 0);
     const auto t = Clock::now();
     for (size_t b = 0; b + 1 < rays.block_starts.size(); ++b) {
       const size_t first = rays.block_starts[b], n = rays.block_starts[b + 1] - first;
       subject->OccludedMany(std::span(rays.from).subspan(first, n), std::span(rays.to).subspan(first, n),
-                            std::span(answers).subspan(first, n));
+                            std::span(*answers).subspan(first, n));
     }
-    const double s = Since(t);
-    *blocked = 0;
-    for (uint8_t a : answers) *blocked += a;
-    return s;
+    return Since(t);
   };
   const ShadowRays coherent = MakeShadowRays(hits, scene->dome(), 16, true);
-  size_t blocked_one = 0, blocked_coherent = 0, blocked_pixel = 0;
-  auto t = Clock::now();
-  for (size_t i = 0; i < coherent.from.size(); ++i) blocked_one += subject->Occluded(coherent.from[i], coherent.to[i]);
-  const double one = Since(t);
-  const double as_renderer = streams(coherent, &blocked_coherent);
-  const double per_pixel = streams(MakeShadowRays(hits, scene->dome(), 1, false), &blocked_pixel);
+  const ShadowRays per_pixel = MakeShadowRays(hits, scene->dome(), 1, false);
+  // The three ways in turn, `rounds` times; each way's median. The one at a time and the renderer's way trace the
+  // same rays in the same order, compared answer by answer; one pixel's streams hold them in another order, compared
+  // by their count.
+  std::vector<double> one_s, coherent_s, pixel_s;
+  std::vector<uint8_t> one(coherent.from.size()), together, pixel;
+  for (int round = 0; round < rounds; ++round) {
+    const auto t = Clock::now();
+    for (size_t i = 0; i < coherent.from.size(); ++i) one[i] = subject->Occluded(coherent.from[i], coherent.to[i]);
+    one_s.push_back(Since(t));
+    coherent_s.push_back(streams(coherent, &together));
+    pixel_s.push_back(streams(per_pixel, &pixel));
+  }
+  const auto median = [](std::vector<double> v) {
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+  };
+  const size_t blocked = std::count(one.begin(), one.end(), 1);
+  const bool agree = one == together && static_cast<size_t>(std::count(pixel.begin(), pixel.end(), 1)) == blocked;
   const double rays = static_cast<double>(coherent.from.size());
+  const double a = median(one_s), b = median(coherent_s), c = median(pixel_s);
   std::printf(
-      "%-5s scale %-5g shadow rays, one thread: %zu rays (%.1f %% blocked%s): one at a time %.2f s (%.2f M rays/s); "
-      "16 pixels towards one unit after another, one stream a block %.2f s (%.2f M rays/s, %.2fx); one pixel's rays "
-      "a stream %.2f s (%.2f M rays/s)\n",
-      camera.c_str(), scale, coherent.from.size(), 100.0 * blocked_one / rays,
-      blocked_one == blocked_coherent && blocked_one == blocked_pixel ? "" : ", THE WAYS DISAGREE", one,
-      rays / one / 1e6, as_renderer, rays / as_renderer / 1e6, one / as_renderer, per_pixel, rays / per_pixel / 1e6);
+      "%-5s scale %-5g shadow rays, one thread, median of %d rounds: %zu rays (%.1f %% blocked%s): one at a time "
+      "%.2f s (%.2f M rays/s); 16 pixels towards one unit after another, one stream a block (the renderer) %.2f s "
+      "(%.2f M rays/s, %.2fx); one pixel's rays a stream %.2f s (%.2f M rays/s, %.2fx)\n",
+      camera.c_str(), scale, rounds, coherent.from.size(), 100.0 * static_cast<double>(blocked) / rays,
+      agree ? ", the same answers" : ", THE WAYS DISAGREE", a, rays / a / 1e6, b, rays / b / 1e6, a / b, c,
+      rays / c / 1e6, a / c);
+  if (!agree) std::exit(1);
 }
 
 class CountingSink : public stage::camera::FrameSink {
@@ -250,8 +263,12 @@ int main(int argc, char** argv) {
   int64_t slots = 912;
   std::string camera = "hs-2";
   double shadow_scale = 0.25;
+  int shadow_rounds = 3;
   app.add_option("--scales", scales, "Render scales for the one-camera figures")->delimiter(',')->capture_default_str();
   app.add_option("--shadow-scale", shadow_scale, "Render scale of the shadow rays' figures (0 skips them)")
+      ->capture_default_str();
+  app.add_option("--shadow-rounds", shadow_rounds, "Rounds of the shadow rays' figures (their medians)")
+      ->check(CLI::Range(1, 100))
       ->capture_default_str();
   app.add_option("--demo-scale", demo_scale, "Render scale of the whole-rig run (0 skips it)")->capture_default_str();
   app.add_option("--slots", slots, "Slots of the whole-rig run")->capture_default_str();
@@ -259,7 +276,7 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   std::printf("sim_render_bench on %u hardware threads\n", std::thread::hardware_concurrency());
   for (double s : scales) OneCamera(camera, s);
-  if (shadow_scale > 0) ShadowRayCost(camera, shadow_scale);
+  if (shadow_scale > 0) ShadowRayCost(camera, shadow_scale, shadow_rounds);
   if (demo_scale > 0) WholeRig(demo_scale, slots);
   return 0;
 }

@@ -142,7 +142,8 @@ void MeshBvh::Occluded(std::span<const Eigen::Vector3f> from, std::span<const Ei
         ->critical("MeshBvh::Occluded: {} starts, {} ends, {} answers", from.size(), to.size(), blocked.size());
     std::abort();
   }
-  thread_local std::vector<RTCRay> rays;  // reused: a renderer asks for a few thousand at a time, millions of times
+  // Reused by the thread's later calls (a renderer asks a few thousand at a time).
+  thread_local std::vector<RTCRay> rays;
   rays.resize(from.size());
   for (size_t i = 0; i < from.size(); ++i) {
     const Eigen::Vector3f d = to[i] - from[i];

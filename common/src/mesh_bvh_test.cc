@@ -71,8 +71,9 @@ TEST(MeshBvhTest, HitsGiveThePointBackAndOccludedKeepsTheSegmentsEndsOut) {
 TEST(MeshBvhTest, ManySegmentsAtOnceGetOccludedsAnswers) {
   const MeshBvh bvh(Cube());
   std::vector<Eigen::Vector3f> from, to;
-  // Through the top face's edges, corners and diagonals from outside (blocked, as above), in neighbouring groups
-  // towards one end (the renderer's order), and random segments about the cube: some blocked, some not.
+  // Through the top face's edges, corners and diagonals from outside (blocked, as above): from one start fanning out,
+  // then from many starts towards one end below the cube (the renderer's order: neighbouring points towards one
+  // light); then random segments about the cube, some blocked, some not.
   for (int i = 0; i <= 8; ++i) {
     const float s = -1 + i * 0.25f;
     for (const Eigen::Vector3f& target : {Eigen::Vector3f(s, -1, 1), Eigen::Vector3f(s, s, 1)}) {
@@ -81,6 +82,15 @@ TEST(MeshBvhTest, ManySegmentsAtOnceGetOccludedsAnswers) {
       to.push_back(target + (target - origin).normalized());
     }
   }
+  const Eigen::Vector3f end(0.1f, -0.2f, -5);
+  for (int i = 0; i <= 8; ++i) {
+    const float s = -1 + i * 0.25f;
+    for (const Eigen::Vector3f& target : {Eigen::Vector3f(s, 1, 1), Eigen::Vector3f(-s, s, 1)}) {
+      from.push_back(target + 3 * (target - end).normalized());
+      to.push_back(end);
+    }
+  }
+  const size_t through_edges = from.size();
   std::mt19937 rng(7);
   std::uniform_real_distribution<float> u(-3, 3);
   for (int i = 0; i < 2000; ++i) {
@@ -95,7 +105,7 @@ TEST(MeshBvhTest, ManySegmentsAtOnceGetOccludedsAnswers) {
   for (size_t i = 0; i < from.size(); ++i) {
     ASSERT_EQ(blocked[i] != 0, bvh.Occluded(from[i], to[i])) << "segment " << i;
     ASSERT_LE(blocked[i], 1);
-    if (i < 18) {
+    if (i < through_edges) {
       EXPECT_EQ(blocked[i], 1) << "through the edge, segment " << i;
     }
     count += blocked[i];

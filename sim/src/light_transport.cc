@@ -14,22 +14,23 @@ constexpr float kPi = 3.14159265358979323846f;
 // Shadow rays start this far off the surface, mm.
 constexpr float kShadowEpsilon = 1e-3f;
 
-// Runs body(0..n-1) on `threads` threads; each thread adds what it has done to `progress` every 64 items.
+// Runs body(0..n-1) on `threads` threads; each thread adds what it has done to `progress` every 64 items, each item
+// `work` units of it. Fewer than `min_parallel` items run on the calling thread.
 template <typename F>
-void ParallelFor(size_t n, int threads, WorkProgress* progress, F&& body) {
+void ParallelFor(size_t n, int threads, WorkProgress* progress, F&& body, uint64_t work = 1, size_t min_parallel = 64) {
   if (threads <= 0) threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   auto run = [&](size_t first, size_t step) {
     uint64_t since = 0;
     for (size_t i = first; i < n; i += step) {
       body(i);
       if (progress != nullptr && ++since == 64) {
-        progress->done.fetch_add(since, std::memory_order_relaxed);
+        progress->done.fetch_add(since * work, std::memory_order_relaxed);
         since = 0;
       }
     }
-    if (progress != nullptr) progress->done.fetch_add(since, std::memory_order_relaxed);
+    if (progress != nullptr) progress->done.fetch_add(since * work, std::memory_order_relaxed);
   };
-  if (threads == 1 || n < 64) {
+  if (threads == 1 || n < min_parallel) {
     run(0, 1);
     return;
   }
@@ -63,17 +64,17 @@ struct HitTerms {
   Eigen::Vector3f start;
 };
 
-// Whether a hit faces unit l: in front of its shading and its geometric normal (no short cut: no branch). The one
-// definition of what a shadow ray is traced for and what the loop below lights.
+// Whether a hit faces unit l: in front of its shading and its geometric normal (no short cut: no branch).
 inline bool Faces(const HitTerms& t, float wx, float wy, float wz) {
   return (t.nx * wx + t.ny * wy + t.nz * wz > 0) & (t.gx * wx + t.gy * wy + t.gz * wz > 0);
 }
 
-// The hit's diffuse and specular response to every unit, added to `d` and `s`. `blocked` (kShadows): per unit, 1
-// where the subject shadows the hit from it (BlockedUnits). The loop has no branch and GCC vectorizes it (-O3, no
-// errno or traps: sqrt, and the divisions of units behind the surface, are computed and not selected).
+// The hit's diffuse and specular response to every unit, added to `d` and `s`. With shadows (kShadows), `dark` says
+// per unit whether it lights the hit (0) or not (1: behind it or shadowed; DarkUnits), the one place that decides;
+// without, the hit's facing does. The loop has no branch and GCC vectorizes it (-O3, no errno or traps: sqrt, and the
+// divisions of units behind the surface, are computed and not selected).
 template <bool kShadows>
-void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const uint8_t* blocked, float weight, float* d,
+void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const uint8_t* dark, float weight, float* d,
                       float* s) {
   // Copies and plain pointers: the rows written cannot alias them.
   const HitTerms t = terms;
@@ -85,8 +86,12 @@ void AddUnitResponses(const HitTerms& terms, const UnitArrays& units, const uint
     const float inv = 1.0f / std::sqrt(d2);
     const float wx = tx * inv, wy = ty * inv, wz = tz * inv;
     const float n_dot_w = t.nx * wx + t.ny * wy + t.nz * wz;
-    bool lit = Faces(t, wx, wy, wz);
-    if constexpr (kShadows) lit = lit & (blocked[l] == 0);
+    bool lit;
+    if constexpr (kShadows) {
+      lit = dark[l] == 0;
+    } else {
+      lit = Faces(t, wx, wy, wz);
+    }
     const float irradiance = weight * ui[l] / d2;
     const float hx = wx + t.vx, hy = wy + t.vy, hz = wz + t.vz;
     const float n_dot_h = (t.nx * hx + t.ny * hy + t.nz * hz) / std::sqrt(hx * hx + hy * hy + hz * hz);
@@ -120,25 +125,26 @@ HitTerms MakeTerms(const Hit& h, const Eigen::Vector3f& origin) {
                   h.point + kShadowEpsilon * h.geometric_normal};
 }
 
-// Pixels whose responses are computed together: their shadow rays towards one unit are traced as one stream.
-constexpr size_t kBlockRows = 16;
+// Hits whose responses are computed together (a block of neighbouring pixels, fewer where a pixel has several rays):
+// their shadow rays towards one unit are traced as one stream.
+constexpr size_t kBlockHits = 16;
 
 // A thread's scratch for a block, reused from block to block.
 struct BlockScratch {
   std::vector<HitTerms> terms;
   std::vector<Eigen::Index> rows;         // per hit: its row
-  std::vector<uint8_t> blocked;           // hits x units
+  std::vector<uint8_t> dark;              // hits x units
   std::vector<Eigen::Vector3f> from, to;  // the shadow rays traced
-  std::vector<uint32_t> ray_of;           // each one's index into `blocked`
+  std::vector<uint32_t> ray_of;           // each one's index into `dark`
   std::vector<uint8_t> answers;
 };
 
-// For every hit of the block and every unit it faces, whether the occluder shadows it (`blocked`, hits x units; 0
-// where it does not face the unit). The rays go unit by unit, the block's neighbouring hits together: for one light
-// they run side by side, the coherent stream Embree traces in packets.
-void BlockedUnits(const UnitArrays& units, const Subject& occluder, BlockScratch& b) {
+// For every hit of the block and every unit, whether the unit leaves it dark (`dark`, hits x units): behind it, or
+// shadowed by the occluder. The rays go unit by unit, the block's neighbouring hits together: for one light they run
+// side by side, the coherent stream Embree traces in packets.
+void DarkUnits(const UnitArrays& units, const Subject& occluder, BlockScratch& b) {
   const size_t hits = b.terms.size(), count = units.x.size();
-  b.blocked.assign(hits * count, 0);
+  b.dark.assign(hits * count, 1);
   b.from.clear();
   b.to.clear();
   b.ray_of.clear();
@@ -156,7 +162,7 @@ void BlockedUnits(const UnitArrays& units, const Subject& occluder, BlockScratch
   }
   b.answers.resize(b.from.size());
   occluder.OccludedMany(b.from, b.to, b.answers);
-  for (size_t i = 0; i < b.answers.size(); ++i) b.blocked[b.ray_of[i]] = b.answers[i];
+  for (size_t i = 0; i < b.answers.size(); ++i) b.dark[b.ray_of[i]] = b.answers[i];
 }
 
 // The responses of rows [first, last) (their hits weighted by `weight`, a ray's share of the pixel) into `r`.
@@ -177,13 +183,13 @@ void AddBlockResponses(const std::vector<const std::vector<Hit>*>& rows, size_t 
       b.rows.push_back(row);
     }
   }
-  if (occluder != nullptr) BlockedUnits(units, *occluder, b);
+  if (occluder != nullptr) DarkUnits(units, *occluder, b);
   const size_t count = units.x.size();
   for (size_t k = 0; k < b.terms.size(); ++k) {
     float* d = r.diffuse.row(b.rows[k]).data();
     float* s = r.specular.row(b.rows[k]).data();
     if (occluder != nullptr) {
-      AddUnitResponses<true>(b.terms[k], units, b.blocked.data() + k * count, weight, d, s);
+      AddUnitResponses<true>(b.terms[k], units, b.dark.data() + k * count, weight, d, s);
     } else {
       AddUnitResponses<false>(b.terms[k], units, nullptr, weight, d, s);
     }
@@ -309,8 +315,10 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   const size_t units = dome.units.size();
   // A convex subject shadows none of itself where the light is in front of the surface (checked below).
   const bool shadows = !subject.Convex();
-  const size_t blocks = (count + kBlockRows - 1) / kBlockRows;
-  if (progress != nullptr) progress->total.store(progress->done.load() + blocks);
+  // Rows a block: kBlockHits hits, at least one row.
+  const size_t block_rows = std::max<size_t>(1, kBlockHits / static_cast<size_t>(n * n));
+  const size_t blocks = (count + block_rows - 1) / block_rows;
+  if (progress != nullptr) progress->total.store(progress->done.load() + blocks * block_rows);
   const float weight = 1.0f / static_cast<float>(n * n);
   const UnitArrays unit_arrays(dome);
   // Left uninitialized here and zeroed a row at a time by the thread that fills it: one pass over memory the kernel
@@ -318,10 +326,13 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   // board's render).
   r.diffuse.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
   r.specular.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
-  ParallelFor(blocks, threads, progress, [&](size_t b) {
-    AddBlockResponses(rows, b * kBlockRows, std::min(count, (b + 1) * kBlockRows), origin, unit_arrays,
-                      shadows ? &subject : nullptr, weight, r);
-  });
+  ParallelFor(
+      blocks, threads, progress,
+      [&](size_t b) {
+        AddBlockResponses(rows, b * block_rows, std::min(count, (b + 1) * block_rows), origin, unit_arrays,
+                          shadows ? &subject : nullptr, weight, r);
+      },
+      /*work=*/block_rows, /*min_parallel=*/2);
   return r;
 }
 

@@ -321,20 +321,23 @@ TEST(LightTransportTest, AConvexSubjectNeedsNoShadowRays) {
   EXPECT_FALSE(HeadModel::Procedural(1, 32, HeadShape())->Posed(HeadPose())->Convex());
 }
 
-// A subject whose every shadow ray gets through.
+// A subject whose every shadow ray gets through; `convex` says whether the renderer may skip them.
 class Unshadowed final : public Subject {
  public:
-  explicit Unshadowed(const Subject& s) : s_(s) {}
+  Unshadowed(const Subject& s, bool convex) : s_(s), convex_(convex) {}
   Hit Intersect(const Eigen::Vector3f& o, const Eigen::Vector3f& d) const override { return s_.Intersect(o, d); }
   bool Occluded(const Eigen::Vector3f&, const Eigen::Vector3f&) const override { return false; }
+  bool Convex() const override { return convex_; }
 
  private:
   const Subject& s_;
+  bool convex_;
 };
 
 // The head's shadow rays traced together (MeshSubject::OccludedMany: a block of neighbouring pixels towards one unit
-// after another, as Embree's packets) give the responses, to the bit, that they give traced one at a time; and the
-// head does shadow itself (the check has something to compare).
+// after another, as Embree's packets) give the responses, to the bit, that they give traced one at a time; every
+// response is its unshadowed one, or zero where the head blocks that pixel's own segment to that unit (asked of the
+// head one segment at a time, apart from the renderer's blocks); and the head does shadow itself.
 TEST(LightTransportTest, ShadowRaysTracedTogetherGiveTheResponsesOfOneAtATime) {
   const Dome d = Dome::FromDirections(FibonacciSphere(128), 1000, 1e6);
   auto camera = CameraModel::FromConfig(Camera({150, 40, 600}, 120, 90), 1.0);
@@ -347,14 +350,39 @@ TEST(LightTransportTest, ShadowRaysTracedTogetherGiveTheResponsesOfOneAtATime) {
   for (const int supersample : {1, 2}) {
     const PixelResponses together = ComputeResponses(*camera, *head, d, 2, supersample);
     const PixelResponses one = ComputeResponses(*camera, Traced(*head), d, 2, supersample);
-    const PixelResponses unshadowed = ComputeResponses(*camera, Unshadowed(*head), d, 2, supersample);
+    const PixelResponses unshadowed = ComputeResponses(*camera, Unshadowed(*head, false), d, 2, supersample);
+    const PixelResponses untraced = ComputeResponses(*camera, Unshadowed(*head, true), d, 2, supersample);
     ASSERT_EQ(together.pixels, one.pixels);
     ASSERT_GT(together.pixels.size(), 1000u);
     EXPECT_EQ((together.diffuse - one.diffuse).cwiseAbs().maxCoeff(), 0.0f) << supersample;
     EXPECT_EQ((together.specular - one.specular).cwiseAbs().maxCoeff(), 0.0f) << supersample;
+    // No shadows with or without their rays: the same units light each hit.
+    ASSERT_EQ(untraced.pixels, unshadowed.pixels);
+    EXPECT_EQ((untraced.diffuse - unshadowed.diffuse).cwiseAbs().maxCoeff(), 0.0f) << supersample;
+    EXPECT_EQ((untraced.specular - unshadowed.specular).cwiseAbs().maxCoeff(), 0.0f) << supersample;
     // The head shadows itself: some pixels lose some units' light.
     ASSERT_EQ(together.pixels, unshadowed.pixels);
     EXPECT_GT(((unshadowed.diffuse - together.diffuse).array() > 0).count(), 1000) << supersample;
+    if (supersample != 1) continue;
+    // One ray a pixel: its row is its hit's alone, each entry its unshadowed one unless that hit's segment is blocked.
+    int blocked = 0, wrong = 0;
+    for (size_t i = 0; i < together.pixels.size(); ++i) {
+      const Hit& h = together.hits[i];
+      const Eigen::Vector3f start = h.point + 1e-3f * h.geometric_normal;
+      for (size_t l = 0; l < d.units.size(); ++l) {
+        const auto row = static_cast<Eigen::Index>(i), col = static_cast<Eigen::Index>(l);
+        const float open = unshadowed.diffuse(row, col);
+        if (open == 0) {
+          wrong += together.diffuse(row, col) != 0;
+          continue;
+        }
+        const bool shadowed = head->Occluded(start, d.units[l].position.cast<float>());
+        blocked += shadowed;
+        wrong += together.diffuse(row, col) != (shadowed ? 0.0f : open);
+      }
+    }
+    EXPECT_EQ(wrong, 0);
+    EXPECT_GT(blocked, 1000);
   }
 }
 

@@ -65,8 +65,8 @@ class MeshBvh {
   // Whether anything lies on the segment from `from` to `to` (more than 1e-4 from `from`).
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const;
   // The same for many segments at once (`blocked[i]` for from[i] -> to[i]; the three spans of one size): Embree traces
-  // them as a stream, in packets where consecutive segments run alike (neighbouring points towards one light), several
-  // times faster than one at a time for such segments. The answers are Occluded's.
+  // them as a stream, in packets where consecutive segments run alike (neighbouring points towards one light), twice as
+  // fast as one at a time for such segments (docs/simulator.md#cost). The answers are Occluded's.
   void Occluded(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
                 std::span<uint8_t> blocked) const;
 
