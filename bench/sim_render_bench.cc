@@ -93,9 +93,9 @@ void OneCamera(const std::string& camera, double scale) {
       2.0 * rows * cols * 4 / 1e9, radiance * 1e3, full * 1e3, bare * 1e3, checksum);
 }
 
-// Shadow rays as the renderer makes them: from each hit (lifted 1e-3 mm off along its geometric normal) towards each
-// unit in front of it, grouped in blocks of `block` neighbouring hits, unit-major within a block (`unit_major`) or
-// hit-major (each hit's rays together).
+// Shadow rays like the renderer's: from each hit (lifted 1e-3 mm off along its geometric normal) towards each unit in
+// front of it (its facing test, written here in its own terms), grouped in blocks of `block` neighbouring hits,
+// unit-major within a block (`unit_major`) or hit-major (each hit's rays together).
 struct ShadowRays {
   std::vector<Eigen::Vector3f> from, to;
   std::vector<size_t> block_starts;

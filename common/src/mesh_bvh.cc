@@ -64,6 +64,14 @@ void StopOnEmbreeError(const char* what, size_t triangles) {
 // Where a hit closer than this is the ray's own surface (the shadow rays' start is lifted 1e-3 mm off it).
 constexpr float kNear = 1e-4f;
 
+// The occlusion ray of the segment from `from` to `to`; inactive (tnear > tfar: Embree traces nothing, and nothing
+// blocks it) where the segment is too short to trace.
+RTCRay SegmentRay(const Eigen::Vector3f& from, const Eigen::Vector3f& to) {
+  const Eigen::Vector3f d = to - from;
+  const float len = d.norm();
+  return len > kNear ? MakeRay(from, d / len, kNear, len) : MakeRay(from, Eigen::Vector3f::UnitZ(), 1, 0);
+}
+
 }  // namespace
 
 struct MeshBvh::Scene {
@@ -124,12 +132,10 @@ bool MeshBvh::Nearest(const Eigen::Vector3f& origin, const Eigen::Vector3f& dire
 }
 
 bool MeshBvh::Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const {
-  const Eigen::Vector3f d = to - from;
-  const float len = d.norm();
-  if (!(len > kNear)) return false;
+  RTCRay ray = SegmentRay(from, to);
+  if (ray.tnear > ray.tfar) return false;
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
-  RTCRay ray = MakeRay(from, d / len, kNear, len);
   rtcOccluded1(scene_->scene, &context, &ray);
   // Embree marks an occluded ray by setting its tfar to -inf.
   return ray.tfar < 0;
@@ -145,12 +151,7 @@ void MeshBvh::Occluded(std::span<const Eigen::Vector3f> from, std::span<const Ei
   // Reused by the thread's later calls (a renderer asks a few thousand at a time).
   thread_local std::vector<RTCRay> rays;
   rays.resize(from.size());
-  for (size_t i = 0; i < from.size(); ++i) {
-    const Eigen::Vector3f d = to[i] - from[i];
-    const float len = d.norm();
-    // A segment too short to trace is left inactive (tnear > tfar), as Occluded answers it: not blocked.
-    rays[i] = len > kNear ? MakeRay(from[i], d / len, kNear, len) : MakeRay(from[i], Eigen::Vector3f::UnitZ(), 1, 0);
-  }
+  for (size_t i = 0; i < from.size(); ++i) rays[i] = SegmentRay(from[i], to[i]);
   RTCIntersectContext context;
   rtcInitIntersectContext(&context);
   context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
