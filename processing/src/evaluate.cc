@@ -46,9 +46,12 @@ Image MaskedBlur(const Image& in, const std::vector<uint8_t>& mask, double sigma
   return out;
 }
 
+constexpr uint8_t kUnsplit = 0xff;  // a pixel's class when the figures are not split by geometry
+
 struct Samples {
   std::vector<double> error, band, floor;
   std::vector<double> confident;  // error of the pixels the solver is confident in
+  std::vector<uint8_t> geometry;  // each error's GeometryClass (kUnsplit: none)
   int64_t mask = 0;
 };
 
@@ -68,7 +71,8 @@ bool Zero(const float* v, int channels) {
 // Compares one map. kind: 0 normal (angle), 1 relative, 2 absolute. `doubtful`: per pixel, 1 where the solver
 // flagged it (its error is left out of the confident figures).
 void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& mask,
-             const std::vector<uint8_t>& doubtful, int kind, double sigma, Samples* out) {
+             const std::vector<uint8_t>& doubtful, const std::vector<uint8_t>& geometry, int kind, double sigma,
+             Samples* out) {
   // Where both have a value.
   std::vector<uint8_t> valid(mask.size(), 0);
   for (size_t i = 0; i < mask.size(); ++i) {
@@ -87,6 +91,7 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
     const float* t = &truth.pixels[i * ch];
     const float* el = &est_low.pixels[i * ch];
     const float* tl = &truth_low.pixels[i * ch];
+    out->geometry.push_back(geometry[i]);
     if (kind == 0) {
       const Eigen::Vector3d a(e[0], e[1], e[2]), b(t[0], t[1], t[2]);
       out->error.push_back(std::atan2(a.cross(b).norm(), a.dot(b)) * kDeg);
@@ -117,7 +122,84 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
   }
 }
 
+// Each mask pixel's GeometryClass from the geometry files in `dir` (WriteGeometryFiles) against the truth's depth.exr
+// in `truth_dir`; the absolute depth errors of the pixels with a point go to `depth_errors` by class.
+absl::StatusOr<std::vector<uint8_t>> ClassifyGeometry(const std::string& dir, const std::string& truth_dir,
+                                                      const std::vector<uint8_t>& mask, double off_mm,
+                                                      std::vector<double> depth_errors[kGeometryClasses]) {
+  auto depth = ReadImageFile(dir + "/geometry_depth.exr");
+  if (!depth.ok()) return depth.status();
+  auto placed = ReadImageFile(dir + "/geometry_placed.png");
+  if (!placed.ok()) return placed.status();
+  auto truth = ReadImageFile(truth_dir + "/depth.exr");
+  if (!truth.ok()) return truth.status();
+  for (const auto* image : {&*depth, &*placed, &*truth}) {
+    if (image->pixels.size() != mask.size()) {
+      return absl::FailedPreconditionError(absl::StrCat(dir, ": the geometry files are ", depth->width, "x",
+                                                        depth->height, " and ", placed->width, "x", placed->height,
+                                                        ", the truth's depth and mask are not"));
+    }
+  }
+  std::vector<uint8_t> classes(mask.size(), kUnsplit);
+  for (size_t i = 0; i < mask.size(); ++i) {
+    if (!mask[i]) continue;
+    const float z = depth->pixels[i];
+    GeometryClass c = GeometryClass::kNone;
+    if (z > 0) {
+      const double error = std::abs(static_cast<double>(z) - truth->pixels[i]);
+      c = placed->pixels[i] > 0.5f ? GeometryClass::kPlaced
+          : error < off_mm         ? GeometryClass::kOnMesh
+                                   : GeometryClass::kOffMesh;
+      depth_errors[static_cast<int>(c)].push_back(error);
+    }
+    classes[i] = static_cast<uint8_t>(c);
+  }
+  return classes;
+}
+
+// The figures of every map split by class.
+std::vector<GeometrySplit> SplitByGeometry(const std::vector<Samples>& samples, const int64_t mask[kGeometryClasses],
+                                           const std::vector<double> depth_errors[kGeometryClasses]) {
+  std::vector<GeometrySplit> out(kGeometryClasses);
+  for (int c = 0; c < kGeometryClasses; ++c) {
+    out[c].geometry = static_cast<GeometryClass>(c);
+    out[c].mask_pixels = mask[c];
+    out[c].depth_error_median = Median(depth_errors[c]);
+  }
+  for (const Samples& map : samples) {
+    std::vector<double> errors[kGeometryClasses];
+    double total = 0;
+    for (size_t i = 0; i < map.error.size(); ++i) {
+      total += map.error[i];
+      if (map.geometry[i] != kUnsplit) errors[map.geometry[i]].push_back(map.error[i]);
+    }
+    for (int c = 0; c < kGeometryClasses; ++c) {
+      GeometrySplit::Map m;
+      m.pixels = static_cast<int64_t>(errors[c].size());
+      m.mean = Mean(errors[c]);
+      m.median = Median(errors[c]);
+      m.share = total > 0 ? m.mean * static_cast<double>(m.pixels) / total : 0;
+      out[c].maps.push_back(m);
+    }
+  }
+  return out;
+}
+
 }  // namespace
+
+const char* GeometryClassName(GeometryClass c) {
+  switch (c) {
+    case GeometryClass::kOnMesh:
+      return "on the mesh";
+    case GeometryClass::kOffMesh:
+      return "on the mesh, off";
+    case GeometryClass::kPlaced:
+      return "placed beyond it";
+    case GeometryClass::kNone:
+      return "no geometry";
+  }
+  return "?";
+}
 
 absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
   const std::string results =
@@ -149,6 +231,15 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     }
   }
   if (units.empty()) return absl::NotFoundError(absl::StrCat(results, ": no results for these frames and cameras"));
+  if (!(options.geometry_off_mm > 0)) {
+    return absl::InvalidArgumentError(absl::StrCat("geometry_off_mm ", options.geometry_off_mm, " is not above 0"));
+  }
+  // Split by geometry: by that of another run when named, else by these results' own when they had geometry.
+  const std::string geometry_from = options.geometry_from.empty() ? results : options.geometry_from;
+  const bool split = !options.geometry_from.empty() ||
+                     fs::exists(UnitDir(results, units.begin()->first, units.begin()->second) + "/geometry_depth.exr");
+  int64_t class_mask[kGeometryClasses] = {};
+  std::vector<double> depth_errors[kGeometryClasses];
   struct Map {
     const char* name;
     const char* file;
@@ -177,6 +268,14 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     // The solver's flags (flags.png, PhotometricFlag bits): where it says its result is doubtful.
     auto flag_image = ReadImageFile(mine + "/flags.png");
     if (!flag_image.ok()) return flag_image.status();
+    std::vector<uint8_t> geometry(mask.size(), kUnsplit);
+    if (split) {
+      auto classes =
+          ClassifyGeometry(UnitDir(geometry_from, frame, camera), theirs, mask, options.geometry_off_mm, depth_errors);
+      if (!classes.ok()) return classes.status();
+      geometry = std::move(*classes);
+      for (uint8_t c : geometry) class_mask[c] += c != kUnsplit;
+    }
     std::vector<uint8_t> doubtful_diffuse(mask.size()), doubtful_specular(mask.size());
     for (size_t i = 0; i < mask.size(); ++i) {
       const auto f = static_cast<uint8_t>(std::lround(flag_image->pixels[i] * 255));
@@ -204,7 +303,7 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
           for (int c = 0; c < est->channels; ++c) est->pixels[i * est->channels + c] = NAN;
         }
       }
-      Compare(*est, *gt, mask, m == 1 || m >= 3 ? doubtful_specular : doubtful_diffuse, maps[m].kind,
+      Compare(*est, *gt, mask, m == 1 || m >= 3 ? doubtful_specular : doubtful_diffuse, geometry, maps[m].kind,
               options.band_sigma_px, &samples[m]);
     }
     ++out.units;
@@ -227,6 +326,10 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     e.confident_median = Median(samples[m].confident);
     out.maps.push_back(e);
   }
+  if (split) {
+    out.geometry_from = geometry_from;
+    out.by_geometry = SplitByGeometry(samples, class_mask, depth_errors);
+  }
   return out;
 }
 
@@ -245,6 +348,24 @@ std::string FormatEvaluation(const Evaluation& e) {
   absl::StrAppend(&s,
                   "confident: pixels not flagged saturated, bad fit, shadowed or implausible (flags.png); left out: "
                   "how many of the compared pixels that excludes\n");
+  if (e.by_geometry.empty()) return s;
+  absl::StrAppend(&s, "\nby the geometry each pixel was solved with (", e.geometry_from,
+                  "): mean, median and share of the map's summed error\n",
+                  absl::StrFormat("%-17s %9s %10s", "geometry", "mask px", "|dz| (mm)"));
+  for (const MapError& m : e.maps) absl::StrAppend(&s, absl::StrFormat("  %-22s", m.map));
+  absl::StrAppend(&s, "\n");
+  for (const GeometrySplit& g : e.by_geometry) {
+    absl::StrAppend(
+        &s, absl::StrFormat("%-17s %9d %10.3f", GeometryClassName(g.geometry), g.mask_pixels, g.depth_error_median));
+    for (const GeometrySplit::Map& m : g.maps) {
+      absl::StrAppend(&s, absl::StrFormat("  %6.3f %6.3f %6.1f%%   ", m.mean, m.median, 100 * m.share));
+    }
+    absl::StrAppend(&s, "\n");
+  }
+  absl::StrAppend(&s,
+                  "on the mesh: within the off distance of the truth's surface (camera z); |dz|: the median distance; "
+                  "placed: beyond the mesh at its neighbours' distance; no geometry: the units seen from the stage "
+                  "origin\n");
   return s;
 }
 
@@ -267,6 +388,23 @@ std::string EvaluationJson(const Evaluation& e) {
                          {"left_out", m.left_out},
                          {"confident_mean", m.confident_mean},
                          {"confident_median", m.confident_median}});
+  }
+  if (e.by_geometry.empty()) return j.dump(2);
+  j["geometry_from"] = e.geometry_from;
+  j["by_geometry"] = nlohmann::ordered_json::array();
+  for (const GeometrySplit& g : e.by_geometry) {
+    nlohmann::ordered_json maps = nlohmann::ordered_json::array();
+    for (size_t m = 0; m < g.maps.size(); ++m) {
+      maps.push_back({{"map", e.maps[m].map},
+                      {"pixels", g.maps[m].pixels},
+                      {"mean", g.maps[m].mean},
+                      {"median", g.maps[m].median},
+                      {"share", g.maps[m].share}});
+    }
+    j["by_geometry"].push_back({{"geometry", GeometryClassName(g.geometry)},
+                                {"mask_pixels", g.mask_pixels},
+                                {"depth_error_median_mm", g.depth_error_median},
+                                {"maps", maps}});
   }
   return j.dump(2);
 }

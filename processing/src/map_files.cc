@@ -175,6 +175,26 @@ absl::Status WriteTextureFiles(const std::string& dir, const std::vector<std::pa
   return WriteFileAtomically(dir + "/metrics.json", metrics_json + "\n");
 }
 
+absl::Status WriteGeometryFiles(const std::string& dir, const PixelGeometry& geometry,
+                                const PhotometricCamera& camera) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
+  const int w = geometry.width, h = geometry.height;
+  Image depth(w, h, 1);
+  cv::Mat placed(h, w, CV_8U, cv::Scalar(0));
+  const Eigen::Matrix3f rotation = camera.world_to_camera.cast<float>();
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  for (size_t i = 0; i < static_cast<size_t>(w) * h; ++i) {
+    if (!geometry.Covers(i)) continue;
+    const Eigen::Vector3f point = Eigen::Map<const Eigen::Vector3f>(&geometry.points[3 * i]);
+    depth.pixels[i] = (rotation * (point - origin)).z();
+    if (!geometry.placed.empty() && geometry.placed[i]) placed.at<uint8_t>(static_cast<int>(i)) = 255;
+  }
+  if (auto s = WriteExr(dir + "/geometry_depth.exr", depth); !s.ok()) return s;
+  return Write(dir + "/geometry_placed.png", placed);
+}
+
 absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,
                            const std::string& title) {
   std::error_code ec;

@@ -744,6 +744,8 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
     const float* v = &frames[full].pixels[3 * i];
     if (v[0] + v[1] + v[2] >= lit) filled.push_back(i);
   }
+  g->placed.assign(pixels, 0);
+  for (size_t i : filled) g->placed[i] = 1;
   const std::vector<Eigen::Vector3f> units = UnitPositions(light);
   const float clearance = static_cast<float>(options.shadow_clearance_mm);
   ParallelRows(static_cast<int>(filled.size()), options.threads, [&](int k0, int k1) {

@@ -285,6 +285,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       if (!raw.ok()) return raw.status();
       absl::Status status;
       int64_t geometry_filled = 0;
+      PixelGeometry geometry;
       if (mesh == nullptr && !job.exact) {
         // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
         if (c.tables == nullptr) {
@@ -296,7 +297,6 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       } else {
         auto frames = DemosaicCycle(*raw, correction);
         if (!frames.ok()) return frames.status();
-        PixelGeometry geometry;
         if (mesh != nullptr) {
           geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light,
                                    job.options.shadow_clearance_mm, job.options.threads);
@@ -323,6 +323,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
               dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, geometry_filled, c.setup.source), title);
           !s.ok()) {
         return s;
+      }
+      if (mesh != nullptr) {
+        if (auto s = WriteGeometryFiles(dir, geometry, c.setup.camera); !s.ok()) return s;
       }
       ++result.units;
       p.done = result.units;

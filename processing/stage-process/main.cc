@@ -438,6 +438,16 @@ int Dispatch(int argc, char** argv) {
   eval_photometric->add_option("--band-sigma", eval.band_sigma_px, "The pore band: detail finer than this, pixels")
       ->capture_default_str()
       ->check(CLI::Range(0.5, 50.0));
+  eval_photometric->add_option("--geometry-from", eval.geometry_from,
+                               "Split the figures by the geometry each pixel was solved with, taken from this run's "
+                               "results directory (default: the results' own, when solved with --geometry), so that "
+                               "two runs are judged over the same pixels");
+  eval_photometric
+      ->add_option("--geometry-off", eval.geometry_off_mm,
+                   "Split: a point on the mesh this far from the truth's surface (mm, camera z) or "
+                   "farther counts as off it")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   eval_photometric->add_flag("--json", eval_json, "Print the table as JSON on stdout");
 
   std::string eval_cal_take, eval_cal_calibration;

@@ -38,12 +38,43 @@ struct EvaluateOptions {
   std::string truth_dir;             // empty: <take>/ground_truth
   // The band: detail finer than a Gaussian of this sigma (pixels).
   double band_sigma_px = 2;
+  // Split the figures by the geometry each pixel was solved with (geometry_depth.exr and geometry_placed.png, written
+  // with --geometry): that of these results (empty), or of another run's results directory, so that two runs (the
+  // true mesh's and a reconstruction's) are judged over the same pixels. Results solved without geometry are not
+  // split unless this names a run that had it.
+  std::string geometry_from;
+  // A point on the mesh this far from the truth's surface (camera-frame z, mm) or farther is counted as off it. > 0.
+  double geometry_off_mm = 0.5;
+};
+
+// Where a pixel's point came from when it was solved (EvaluateOptions::geometry_from).
+enum class GeometryClass : uint8_t {
+  kOnMesh = 0,  // the mesh, within geometry_off_mm of the truth
+  kOffMesh,     // the mesh, geometry_off_mm or more from the truth
+  kPlaced,      // placed beyond the mesh at its neighbours' distance (FillGeometry)
+  kNone,        // no point: the units seen from the stage origin
+};
+constexpr int kGeometryClasses = 4;
+const char* GeometryClassName(GeometryClass c);
+
+struct GeometrySplit {
+  GeometryClass geometry = GeometryClass::kNone;
+  int64_t mask_pixels = 0;        // of the subject mask
+  double depth_error_median = 0;  // |z - the truth's z| (mm), median; 0 for kNone
+  struct Map {
+    int64_t pixels = 0;  // compared
+    double mean = 0, median = 0;
+    double share = 0;  // of the map's summed error over all pixels (0..1)
+  };
+  std::vector<Map> maps;  // in Evaluation::maps' order
 };
 
 struct Evaluation {
   int64_t units = 0;  // camera frames compared
   int64_t mask_pixels = 0;
   std::vector<MapError> maps;
+  std::string geometry_from;               // the run the split's classes came from; empty: not split
+  std::vector<GeometrySplit> by_geometry;  // one per GeometryClass, when split
 };
 
 absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options);

@@ -19,6 +19,12 @@ namespace stage::processing {
 absl::Status WriteMapFiles(const std::string& dir, const PhotometricMaps& maps, const std::string& metrics_json,
                            const std::string& title);
 
+// The geometry a unit was solved with (docs/processing.md#outputs), for evaluation to split its figures by: into
+// `dir` (created), geometry_depth.exr (per pixel, the camera-frame z in mm of the point it was solved at, as the ground
+// truth's depth.exr; 0: none) and geometry_placed.png (255 where FillGeometry placed that point beyond the mesh, else
+// 0).
+absl::Status WriteGeometryFiles(const std::string& dir, const PixelGeometry& geometry, const PhotometricCamera& camera);
+
 // Fused UV textures into `dir` (created): every image of `exr` as NAME.exr, and for albedo, normal_tangent, specular
 // and roughness an 8-bit NAME.png preview, all of them on contact_sheet.png under `title`; `metrics_json` as
 // metrics.json.

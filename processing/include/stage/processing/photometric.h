@@ -86,6 +86,7 @@ struct PixelGeometry {
   int words = 0;                  // 64-bit words of `visible` per pixel
   std::vector<float> points;      // 3 per pixel, stage frame, mm; NaN where the pixel sees no surface
   std::vector<uint64_t> visible;  // per pixel: bit l of the units nothing hides from the point (LightModel::ViewFrom)
+  std::vector<uint8_t> placed;    // per pixel: 1 where FillGeometry placed the point, not the mesh; empty: none placed
 
   bool Covers(size_t pixel) const { return points[3 * pixel] == points[3 * pixel]; }
   const uint64_t* Visible(size_t pixel) const { return &visible[pixel * static_cast<size_t>(words)]; }
@@ -172,7 +173,7 @@ struct PhotometricMaps {
 // (one ring a pass, each the mean of its placed 8-neighbours), with their shadows traced in the mesh from there (from
 // options.shadow_clearance_mm off). A reconstruction ends where the cameras see the skin at grazing angles (the sides
 // of the head, the neck); a pixel without a point sees the units from the stage origin, 0.1 m off there, and its fit
-// fails. Returns how many pixels were placed.
+// fails. Returns how many pixels were placed, and marks them in g->placed.
 absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                      const std::vector<Image>& frames, const PhotometricOptions& options,
                                      PixelGeometry* g);
