@@ -147,9 +147,12 @@ absl::StatusOr<std::vector<uint8_t>> ClassifyGeometry(const std::string& dir, co
     GeometryClass c = GeometryClass::kNone;
     if (z > 0) {
       const double error = std::abs(static_cast<double>(z) - truth->pixels[i]);
-      c = placed->pixels[i] > 0.5f ? GeometryClass::kPlaced
-          : error < off_mm         ? GeometryClass::kOnMesh
-                                   : GeometryClass::kOffMesh;
+      const bool on = error < off_mm;
+      if (placed->pixels[i] > 0.5f) {
+        c = on ? GeometryClass::kPlacedOn : GeometryClass::kPlacedOff;
+      } else {
+        c = on ? GeometryClass::kOnMesh : GeometryClass::kOffMesh;
+      }
       depth_errors[static_cast<int>(c)].push_back(error);
     }
     classes[i] = static_cast<uint8_t>(c);
@@ -193,8 +196,10 @@ const char* GeometryClassName(GeometryClass c) {
       return "on the mesh";
     case GeometryClass::kOffMesh:
       return "on the mesh, off";
-    case GeometryClass::kPlaced:
+    case GeometryClass::kPlacedOn:
       return "placed beyond it";
+    case GeometryClass::kPlacedOff:
+      return "placed, off";
     case GeometryClass::kNone:
       return "no geometry";
   }
@@ -364,7 +369,8 @@ std::string FormatEvaluation(const Evaluation& e) {
   }
   absl::StrAppend(&s,
                   "on the mesh: within the off distance of the truth's surface (camera z); |dz|: the median distance; "
-                  "placed: beyond the mesh at its neighbours' distance; no geometry: the units seen from the stage "
+                  "placed: beyond the mesh, at its neighbours' distance or along the solved normals; no geometry: the "
+                  "units seen from the stage "
                   "origin\n");
   return s;
 }

@@ -127,7 +127,8 @@ TEST(EvaluateTest, FiguresSplitByTheGeometryEachPixelWasSolvedWith) {
     const GeometrySplit& off = e->by_geometry[static_cast<int>(GeometryClass::kOffMesh)];
     EXPECT_EQ(on.mask_pixels, kW * kH - 3);
     EXPECT_EQ(off.mask_pixels, 1);
-    EXPECT_EQ(e->by_geometry[static_cast<int>(GeometryClass::kPlaced)].mask_pixels, 1);
+    EXPECT_EQ(e->by_geometry[static_cast<int>(GeometryClass::kPlacedOn)].mask_pixels, 1);
+    EXPECT_EQ(e->by_geometry[static_cast<int>(GeometryClass::kPlacedOff)].mask_pixels, 0);
     EXPECT_EQ(e->by_geometry[static_cast<int>(GeometryClass::kNone)].mask_pixels, 1);
     EXPECT_NEAR(off.depth_error_median, 1.0, 1e-4);
     EXPECT_NEAR(on.depth_error_median, 0.0, 1e-4);

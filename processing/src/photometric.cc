@@ -759,6 +759,114 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
   return static_cast<int64_t>(filled.size());
 }
 
+namespace {
+
+// Where pixel i's ray meets the planes of its set 8-neighbours (each through the neighbour's point, across the mean of
+// its and the pixel's normal): the mean distance along the ray over the neighbours whose plane faces the ray by more
+// than a grazing angle, else the neighbours' mean distance. `distance`: NaN where not set. `normals`: the solved
+// normals, 0 where not solved.
+float DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen::Vector3f& origin, const PixelGeometry& g,
+                                const std::vector<float>& distance, const Image& normals, int x, int y) {
+  constexpr float kMinFacing = 0.1f;  // cos of the normal to the ray: grazing planes say little about the distance
+  const size_t i = static_cast<size_t>(y) * g.width + x;
+  const Eigen::Vector3f ray = PixelRay(camera, origin, i);
+  const Eigen::Vector3f own = Eigen::Map<const Eigen::Vector3f>(&normals.pixels[3 * i]);
+  float on_planes = 0, flat = 0;
+  int planes = 0, neighbours = 0;
+  for (int dy = -1; dy <= 1; ++dy) {
+    for (int dx = -1; dx <= 1; ++dx) {
+      const int nx = x + dx, ny = y + dy;
+      if ((dx == 0 && dy == 0) || nx < 0 || ny < 0 || nx >= g.width || ny >= g.height) continue;
+      const size_t n = static_cast<size_t>(ny) * g.width + nx;
+      if (distance[n] != distance[n]) continue;
+      flat += distance[n];
+      ++neighbours;
+      const Eigen::Vector3f theirs = Eigen::Map<const Eigen::Vector3f>(&normals.pixels[3 * n]);
+      if (theirs.squaredNorm() == 0) continue;
+      const Eigen::Vector3f normal = (own.squaredNorm() > 0 ? own + theirs : theirs).normalized();
+      const float facing = -normal.dot(ray);
+      if (facing < kMinFacing) continue;
+      const Eigen::Vector3f point = origin + distance[n] * PixelRay(camera, origin, n);
+      on_planes += normal.dot(point - origin) / -facing;  // where the ray meets the plane
+      ++planes;
+    }
+  }
+  if (planes > 0) return on_planes / static_cast<float>(planes);
+  return neighbours > 0 ? flat / static_cast<float>(neighbours) : std::nanf("");
+}
+
+}  // namespace
+
+absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                                       const Image& normals, const PhotometricOptions& options, PixelGeometry* g) {
+  if (g->placed.empty()) return 0;
+  const int w = g->width, h = g->height;
+  const size_t pixels = static_cast<size_t>(w) * h;
+  if (normals.width != w || normals.height != h || normals.channels != 3 || g->placed.size() != pixels) {
+    return absl::InvalidArgumentError("geometry refill: the normals do not match the geometry");
+  }
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  // The mesh's pixels' distances along their rays; the placed ones are grown again from them, ring by ring.
+  std::vector<float> distance(pixels, std::nanf(""));
+  std::vector<uint8_t> queued(pixels, 0);
+  for (size_t i = 0; i < pixels; ++i) {
+    if (!g->Covers(i) || g->placed[i]) continue;
+    distance[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
+  }
+  auto next_ring = [&](const std::vector<size_t>& from, bool everywhere) {
+    std::vector<size_t> ring;
+    auto consider = [&](int x, int y) {
+      if (x < 0 || y < 0 || x >= w || y >= h) return;
+      const size_t j = static_cast<size_t>(y) * w + x;
+      if (!g->placed[j] || queued[j] || distance[j] == distance[j]) return;
+      queued[j] = 1;
+      ring.push_back(j);
+    };
+    if (everywhere) {  // the placed pixels next to the mesh's
+      for (size_t i = 0; i < pixels; ++i) {
+        if (distance[i] != distance[i]) continue;
+        for (int dy = -1; dy <= 1; ++dy) {
+          for (int dx = -1; dx <= 1; ++dx) consider(static_cast<int>(i % w) + dx, static_cast<int>(i / w) + dy);
+        }
+      }
+    } else {
+      for (size_t i : from) {
+        for (int dy = -1; dy <= 1; ++dy) {
+          for (int dx = -1; dx <= 1; ++dx) consider(static_cast<int>(i % w) + dx, static_cast<int>(i / w) + dy);
+        }
+      }
+    }
+    std::sort(ring.begin(), ring.end());
+    return ring;
+  };
+  std::vector<size_t> ring = next_ring({}, true), replaced;
+  std::vector<float> grown;
+  while (!ring.empty()) {
+    grown.resize(ring.size());
+    for (size_t r = 0; r < ring.size(); ++r) {
+      grown[r] = DistanceOnNeighbourPlanes(camera, origin, *g, distance, normals, static_cast<int>(ring[r] % w),
+                                           static_cast<int>(ring[r] / w));
+    }
+    for (size_t r = 0; r < ring.size(); ++r) distance[ring[r]] = grown[r];
+    replaced.insert(replaced.end(), ring.begin(), ring.end());
+    ring = next_ring(ring, false);
+  }
+  // Placed pixels no ring reached (cut off from the mesh's by unplaced ones) keep their point.
+  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
+  const float clearance = static_cast<float>(options.shadow_clearance_mm);
+  ParallelRows(static_cast<int>(replaced.size()), options.threads, [&](int k0, int k1) {
+    for (int k = k0; k < k1; ++k) {
+      const size_t i = replaced[static_cast<size_t>(k)];
+      const Eigen::Vector3f point = origin + distance[i] * PixelRay(camera, origin, i);
+      std::copy(point.data(), point.data() + 3, &g->points[3 * i]);
+      uint64_t* bits = &g->visible[i * static_cast<size_t>(g->words)];
+      std::fill(bits, bits + g->words, 0);
+      MarkVisibleUnits(mesh, point, point, units, clearance, bits);
+    }
+  });
+  return static_cast<int64_t>(replaced.size());
+}
+
 absl::Status PhotometricOptions::Validate() const {
   auto bad = [](const std::string& what) {
     return absl::InvalidArgumentError(absl::StrCat("photometric options: ", what));
@@ -777,6 +885,9 @@ absl::Status PhotometricOptions::Validate() const {
   if (!(shadow_clearance_mm >= 0))
     return bad(absl::StrCat("shadow_clearance_mm ", shadow_clearance_mm, " is negative"));
   if (geometry_fill_px < 0) return bad(absl::StrCat("geometry_fill_px ", geometry_fill_px, " is negative"));
+  if (geometry_refill_passes < 0 || geometry_refill_passes > 4) {
+    return bad(absl::StrCat("geometry_refill_passes ", geometry_refill_passes, " is not in 0..4"));
+  }
   if (threads < 0) return bad(absl::StrCat("threads ", threads, " is negative"));
   return absl::OkStatus();
 }

@@ -307,6 +307,13 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto maps =
             SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
+        for (int pass = 0;
+             mesh != nullptr && geometry_filled > 0 && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
+          auto refilled =
+              RefillGeometry(*mesh, c.setup.camera, *light, maps->diffuse_normal_world, job.options, &geometry);
+          if (!refilled.ok()) return refilled.status();
+          maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options, &geometry);
+        }
         if (maps.ok()) c.maps = std::move(*maps);
         status = maps.status();
       }
@@ -353,7 +360,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                     {"max_specular_sigma_deg", job.options.max_specular_sigma_deg},
                     {"specular_filter_radius", job.options.specular_filter_radius},
                     {"shadow_clearance_mm", job.options.shadow_clearance_mm},
-                    {"geometry_fill_px", job.options.geometry_fill_px}};
+                    {"geometry_fill_px", job.options.geometry_fill_px},
+                    {"geometry_refill_passes", job.options.geometry_refill_passes}};
   for (const CameraJob& c : cameras) {
     run["calibration"][c.id] = {{"source", c.setup.source},
                                 {"white_scale", c.setup.camera.white_scale},

@@ -223,6 +223,77 @@ TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDi
   EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_fill_px"));
 }
 
+// Past the mesh's edge the surface turns away from the camera (a 45-degree slope, as the side of the head past a
+// reconstruction's edge): FillGeometry places those pixels at the edge's distance, millimetres above the slope;
+// RefillGeometry, given the surface's normals, places them on it, and traces their shadows from there.
+TEST(PhotometricTest, PlacedPixelsAreRefilledAlongTheSurfaceTheNormalsDescribe) {
+  const LightModel light = ShippedLight();
+  TriangleMesh m;  // the plane z = 0 for x < 0 only; beyond it the true surface is z = -x
+  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}};
+  const MeshBvh bvh(m);
+  const int w = 20, h = 3;  // rows of 20 pixels 1 mm apart, x = -9.5 .. 9.5, seen from 1 m above
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      camera.rays.push_back((Eigen::Vector3d(x - 9.5, y - 1, 0) - camera.position_mm).normalized().cast<float>());
+    }
+  }
+  std::vector<Image> frames(light.patterns.size(), Image(w, h, 3));
+  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  PhotometricOptions options;
+  options.threads = 1;
+  options.geometry_fill_px = 8;
+  PixelGeometry g = TraceGeometry(bvh, camera, w, h, light, 2, 1);
+  auto filled = FillGeometry(bvh, camera, light, frames, options, &g);
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  ASSERT_EQ(*filled, 8 * h);
+  // The surface's normals: up on the plane, tilted 45 degrees past its edge.
+  Image normals(w, h, 3);
+  const Eigen::Vector3f up(0, 0, 1), slope = Eigen::Vector3f(1, 0, 1).normalized();
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) std::copy_n((x < 10 ? up : slope).data(), 3, normals.at(x, y));
+  }
+  // How far each placed point lies from the slope (along z), before and after.
+  auto off_slope = [&](const PixelGeometry& geometry) {
+    double worst = 0;
+    for (size_t i = 0; i < geometry.placed.size(); ++i) {
+      if (!geometry.placed[i]) continue;
+      worst = std::max(worst, std::abs(static_cast<double>(geometry.points[3 * i + 2] + geometry.points[3 * i])));
+    }
+    return worst;
+  };
+  EXPECT_GT(off_slope(g), 5.0);  // the edge's distance: 7 mm above the slope at the last placed pixel
+  const std::vector<uint64_t> visible_before = g.visible;
+  auto refilled = RefillGeometry(bvh, camera, light, normals, options, &g);
+  ASSERT_TRUE(refilled.ok()) << refilled.status();
+  EXPECT_EQ(*refilled, 8 * h);
+  // Within 0.1 mm: the crease lies between two pixels, and the first one past it is placed across the mean of the two
+  // normals (22.5 degrees: 0.09 mm above the slope); every later one follows the slope from there.
+  EXPECT_LT(off_slope(g), 0.1);
+  // The mesh's own pixels did not move; the placed ones' shadows were traced again from their new points (the plane
+  // now lies above them and hides the units low on the other side).
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < 10; ++x) EXPECT_NEAR(g.points[3 * (y * w + x) + 2], 0, 1e-3);
+  }
+  EXPECT_NE(g.visible, visible_before);
+  // Without normals there is nothing to follow: the neighbours' distance stays.
+  Image none(w, h, 3);
+  PixelGeometry flat = TraceGeometry(bvh, camera, w, h, light, 2, 1);
+  ASSERT_TRUE(FillGeometry(bvh, camera, light, frames, options, &flat).ok());
+  const std::vector<float> before = flat.points;
+  ASSERT_TRUE(RefillGeometry(bvh, camera, light, none, options, &flat).ok());
+  for (size_t i = 0; i < before.size(); ++i) {
+    ASSERT_EQ(std::isnan(flat.points[i]), std::isnan(before[i])) << i;
+    if (!std::isnan(before[i])) {
+      EXPECT_NEAR(flat.points[i], before[i], 1e-3) << i;
+    }
+  }
+  options.geometry_refill_passes = 5;
+  EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_refill_passes"));
+}
+
 // A reconstruction with a hole: the ray through it meets the inside of the far side of the head. The pixel is left
 // uncovered (for FillGeometry), whichever way the mesh is wound.
 TEST(PhotometricTest, ARayThroughAHoleInTheMeshIsNotTakenForTheSurface) {

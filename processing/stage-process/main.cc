@@ -377,6 +377,12 @@ int Dispatch(int argc, char** argv) {
                    "head a reconstruction does not reach) take their neighbours' distance; 0: none")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber);
+  photometric
+      ->add_option("--geometry-refill-passes", job.options.geometry_refill_passes,
+                   "With geometry: then the pixels so placed are placed again on the surface the solved normals "
+                   "describe, and the image solved again, this many times; 0: none")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 4));
   photometric->add_flag("--exact", job.exact,
                         "With --geometry none too, fit the specular lobe per pixel instead of the table-driven "
                         "solver (slower, less noisy specular maps; with geometry it always does)");

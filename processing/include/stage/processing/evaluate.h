@@ -51,10 +51,11 @@ struct EvaluateOptions {
 enum class GeometryClass : uint8_t {
   kOnMesh = 0,  // the mesh, within geometry_off_mm of the truth
   kOffMesh,     // the mesh, geometry_off_mm or more from the truth
-  kPlaced,      // placed beyond the mesh at its neighbours' distance (FillGeometry)
+  kPlacedOn,    // placed beyond the mesh (FillGeometry, RefillGeometry), within geometry_off_mm of the truth
+  kPlacedOff,   // placed beyond the mesh, geometry_off_mm or more from the truth
   kNone,        // no point: the units seen from the stage origin
 };
-constexpr int kGeometryClasses = 4;
+constexpr int kGeometryClasses = 5;
 const char* GeometryClassName(GeometryClass c);
 
 struct GeometrySplit {

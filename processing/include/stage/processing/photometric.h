@@ -132,6 +132,9 @@ struct PhotometricOptions {
   // Pixels the geometry's mesh misses within this many pixels of ones it covers are placed at their neighbours'
   // distance (FillGeometry); 0: none. Default 64.
   int geometry_fill_px = 64;
+  // Then, this many times, the placed pixels are placed again on the surface the solved normals describe
+  // (RefillGeometry) and the image solved again; 0: they keep their neighbours' distance. Default 1; at most 4.
+  int geometry_refill_passes = 1;
   // Worker threads; 0: one per core. Results do not depend on it.
   int threads = 0;
   // InvalidArgument naming the field.
@@ -177,6 +180,14 @@ struct PhotometricMaps {
 absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                      const std::vector<Image>& frames, const PhotometricOptions& options,
                                      PixelGeometry* g);
+
+// The pixels FillGeometry placed (g->placed), placed again along the surface the solved normals describe
+// (`normals`: SolvePhotometric's diffuse_normal_world, 0 where not solved): ring by ring outwards from the pixels the
+// mesh covers, each where its ray meets its set neighbours' tangent planes (the mean over those facing the ray), and
+// their shadows traced again. A surface that turns away from the camera (the side of the head past a reconstruction's
+// edge) is followed, where the neighbours' distance stays flat and lands millimetres off. Returns the pixels placed.
+absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                                       const Image& normals, const PhotometricOptions& options, PixelGeometry* g);
 
 // `frames`: the cycle's images in pattern order (light.patterns), demosaiced RGB, DN above black. InvalidArgument
 // names a missing pattern or a size mismatch. `geometry` (optional) must have the images' size.
