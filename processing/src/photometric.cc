@@ -762,17 +762,25 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
 namespace {
 
 // Where pixel i's ray meets the planes of its set 8-neighbours (each through the neighbour's point, across the mean of
-// its and the pixel's normal): the mean distance along the ray over the neighbours whose plane faces the ray by more
-// than a grazing angle, else the neighbours' mean distance. `distance`: NaN where not set. `normals`: the solved
-// normals, 0 where not solved.
-float DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen::Vector3f& origin, const PixelGeometry& g,
-                                const std::vector<float>& distance, const Image& normals, int x, int y) {
+// its and the pixel's normal), the mean distance along the ray over those that face the ray by more than a grazing
+// angle. Planes of neighbours whose normal agrees with the pixel's (within kAgree) are taken alone when there are any
+// (`agreed`): across a fold or a jump in depth (a chin over the neck) the normals disagree. Without a facing plane, the
+// neighbours' mean distance. `distance`: NaN where not set. `normals`: the solved normals, 0 where not solved.
+struct PlaneMeet {
+  float distance = std::nanf("");
+  bool agreed = false;
+};
+PlaneMeet DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen::Vector3f& origin,
+                                    const PixelGeometry& g, const std::vector<float>& distance, const Image& normals,
+                                    int x, int y) {
   constexpr float kMinFacing = 0.1f;  // cos of the normal to the ray: grazing planes say little about the distance
+  constexpr float kAgree = 0.866f;    // cos 30 degrees
   const size_t i = static_cast<size_t>(y) * g.width + x;
   const Eigen::Vector3f ray = PixelRay(camera, origin, i);
   const Eigen::Vector3f own = Eigen::Map<const Eigen::Vector3f>(&normals.pixels[3 * i]);
-  float on_planes = 0, flat = 0;
-  int planes = 0, neighbours = 0;
+  const bool solved = own.squaredNorm() > 0;
+  float on_planes[2] = {0, 0}, flat = 0;  // [0]: every facing plane, [1]: those agreeing with the pixel's normal
+  int planes[2] = {0, 0}, neighbours = 0;
   for (int dy = -1; dy <= 1; ++dy) {
     for (int dx = -1; dx <= 1; ++dx) {
       const int nx = x + dx, ny = y + dy;
@@ -783,16 +791,28 @@ float DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen::Ve
       ++neighbours;
       const Eigen::Vector3f theirs = Eigen::Map<const Eigen::Vector3f>(&normals.pixels[3 * n]);
       if (theirs.squaredNorm() == 0) continue;
-      const Eigen::Vector3f normal = (own.squaredNorm() > 0 ? own + theirs : theirs).normalized();
+      const Eigen::Vector3f normal = (solved ? own + theirs : theirs).normalized();
       const float facing = -normal.dot(ray);
       if (facing < kMinFacing) continue;
       const Eigen::Vector3f point = origin + distance[n] * PixelRay(camera, origin, n);
-      on_planes += normal.dot(point - origin) / -facing;  // where the ray meets the plane
-      ++planes;
+      const float meet = normal.dot(point - origin) / -facing;  // where the ray meets the plane
+      const int agree = solved && own.dot(theirs) > kAgree ? 1 : 0;
+      for (int k = 0; k <= agree; ++k) {
+        on_planes[k] += meet;
+        ++planes[k];
+      }
     }
   }
-  if (planes > 0) return on_planes / static_cast<float>(planes);
-  return neighbours > 0 ? flat / static_cast<float>(neighbours) : std::nanf("");
+  PlaneMeet out;
+  out.agreed = planes[1] > 0 || (!solved && planes[0] > 0);
+  if (planes[1] > 0) {
+    out.distance = on_planes[1] / static_cast<float>(planes[1]);
+  } else if (planes[0] > 0) {
+    out.distance = on_planes[0] / static_cast<float>(planes[0]);
+  } else if (neighbours > 0) {
+    out.distance = flat / static_cast<float>(neighbours);
+  }
+  return out;
 }
 
 }  // namespace
@@ -839,17 +859,39 @@ absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCam
     std::sort(ring.begin(), ring.end());
     return ring;
   };
-  std::vector<size_t> ring = next_ring({}, true), replaced;
-  std::vector<float> grown;
-  while (!ring.empty()) {
+  // A pixel whose set neighbours' normals all disagree with its own waits (it may lie across a jump from them) until
+  // a ring reaches it from a side that agrees, or no ring is left: then it takes what its neighbours give.
+  std::vector<size_t> ring = next_ring({}, true), replaced, waiting, placed_now;
+  std::vector<PlaneMeet> grown;
+  while (!ring.empty() || !waiting.empty()) {
+    const bool last_resort = ring.empty();
+    if (last_resort) {  // every pixel still waiting (each was met from a set neighbour)
+      for (size_t j : waiting) {
+        if (queued[j] || distance[j] == distance[j]) continue;
+        queued[j] = 1;
+        ring.push_back(j);
+      }
+      waiting.clear();
+      std::sort(ring.begin(), ring.end());
+      if (ring.empty()) break;
+    }
     grown.resize(ring.size());
     for (size_t r = 0; r < ring.size(); ++r) {
       grown[r] = DistanceOnNeighbourPlanes(camera, origin, *g, distance, normals, static_cast<int>(ring[r] % w),
                                            static_cast<int>(ring[r] / w));
     }
-    for (size_t r = 0; r < ring.size(); ++r) distance[ring[r]] = grown[r];
-    replaced.insert(replaced.end(), ring.begin(), ring.end());
-    ring = next_ring(ring, false);
+    placed_now.clear();
+    for (size_t r = 0; r < ring.size(); ++r) {
+      if (grown[r].agreed || last_resort) {
+        distance[ring[r]] = grown[r].distance;
+        placed_now.push_back(ring[r]);
+      } else {
+        queued[ring[r]] = 0;  // to be met again from a pixel set later
+        waiting.push_back(ring[r]);
+      }
+    }
+    replaced.insert(replaced.end(), placed_now.begin(), placed_now.end());
+    ring = next_ring(placed_now, false);
   }
   // Placed pixels no ring reached (cut off from the mesh's by unplaced ones) keep their point.
   const std::vector<Eigen::Vector3f> units = UnitPositions(light);

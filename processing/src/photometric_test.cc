@@ -294,6 +294,40 @@ TEST(PhotometricTest, PlacedPixelsAreRefilledAlongTheSurfaceTheNormalsDescribe) 
   EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_refill_passes"));
 }
 
+// A jump in depth (a chin over the neck): the near surface turns down at its edge and the far one, 40 mm behind, is
+// seen beside it. The pixels between the mesh's two parts are placed from the side whose normals agree with theirs:
+// the far surface's pixels are not grown from the near side across the jump.
+TEST(PhotometricTest, RefilledPixelsAreNotGrownAcrossAJumpInDepth) {
+  const LightModel light = ShippedLight();
+  TriangleMesh m;  // the near plane z = 0 for x < -4, the far plane z = -40 for x > 8
+  m.positions = {{-50, -50, 0}, {-4, -50, 0},   {-4, 50, 0},   {-50, 50, 0},
+                 {8, -50, -40}, {50, -50, -40}, {50, 50, -40}, {8, 50, -40}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}, {4, 5, 6}, {4, 6, 7}};
+  const MeshBvh bvh(m);
+  const int w = 20;  // pixels 1 mm apart at z = 0, x = -9.5 .. 9.5, seen from 1 m above
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int x = 0; x < w; ++x) {
+    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
+  }
+  std::vector<Image> frames(light.patterns.size(), Image(w, 1, 3));
+  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  PhotometricOptions options;
+  options.threads = 1;
+  options.geometry_fill_px = 8;
+  PixelGeometry g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
+  auto filled = FillGeometry(bvh, camera, light, frames, options, &g);
+  ASSERT_TRUE(filled.ok()) << filled.status();
+  ASSERT_EQ(*filled, 12);  // x = -3.5 .. 7.5
+  // Up everywhere but where the near surface turns down towards its edge (x = -1.5, -0.5: 60 degrees).
+  Image normals(w, 1, 3);
+  const Eigen::Vector3f up(0, 0, 1), down(std::sin(M_PI / 3), 0, std::cos(M_PI / 3));
+  for (int x = 0; x < w; ++x) std::copy_n((x == 8 || x == 9 ? down : up).data(), 3, normals.at(x, 0));
+  ASSERT_TRUE(RefillGeometry(bvh, camera, light, normals, options, &g).ok());
+  for (int x = 10; x < 18; ++x) EXPECT_NEAR(g.points[3 * x + 2], -40, 0.05) << "x = " << x - 9.5;
+  for (int x = 6; x < 8; ++x) EXPECT_NEAR(g.points[3 * x + 2], 0, 0.05) << "x = " << x - 9.5;
+}
+
 // A reconstruction with a hole: the ray through it meets the inside of the far side of the head. The pixel is left
 // uncovered (for FillGeometry), whichever way the mesh is wound.
 TEST(PhotometricTest, ARayThroughAHoleInTheMeshIsNotTakenForTheSurface) {
