@@ -815,59 +815,44 @@ PlaneMeet DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen
   return out;
 }
 
-}  // namespace
-
-absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
-                                       const Image& normals, const PhotometricOptions& options, PixelGeometry* g) {
-  if (g->placed.empty()) return 0;
-  const int w = g->width, h = g->height;
-  const size_t pixels = static_cast<size_t>(w) * h;
-  if (normals.width != w || normals.height != h || normals.channels != 3 || g->placed.size() != pixels) {
-    return absl::InvalidArgumentError("geometry refill: the normals do not match the geometry");
-  }
-  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
-  // The mesh's pixels' distances along their rays; the placed ones are grown again from them, ring by ring.
-  std::vector<float> distance(pixels, std::nanf(""));
-  std::vector<uint8_t> queued(pixels, 0);
-  for (size_t i = 0; i < pixels; ++i) {
-    if (!g->Covers(i) || g->placed[i]) continue;
-    distance[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
-  }
-  auto next_ring = [&](const std::vector<size_t>& from, bool everywhere) {
+// The distances along their rays of g's placed pixels, grown ring by ring from the set ones (`distance`: NaN where not
+// set) by DistanceOnNeighbourPlanes. A pixel whose set neighbours' normals all disagree with its own waits (it may lie
+// across a jump from them) until a ring reaches it from a side that agrees, or no ring is left: then it takes what its
+// neighbours give. Returns the pixels set, in the order they were.
+std::vector<size_t> GrowAlongNormals(const PhotometricCamera& camera, const Eigen::Vector3f& origin,
+                                     const Image& normals, const PixelGeometry& g, std::vector<float>* distance) {
+  const int w = g.width, h = g.height;
+  std::vector<float>& d = *distance;
+  std::vector<uint8_t> queued(d.size(), 0);
+  // The placed pixels not yet set next to those of `from`, in raster order.
+  auto next_ring = [&](const std::vector<size_t>& from) {
     std::vector<size_t> ring;
-    auto consider = [&](int x, int y) {
-      if (x < 0 || y < 0 || x >= w || y >= h) return;
-      const size_t j = static_cast<size_t>(y) * w + x;
-      if (!g->placed[j] || queued[j] || distance[j] == distance[j]) return;
-      queued[j] = 1;
-      ring.push_back(j);
-    };
-    if (everywhere) {  // the placed pixels next to the mesh's
-      for (size_t i = 0; i < pixels; ++i) {
-        if (distance[i] != distance[i]) continue;
-        for (int dy = -1; dy <= 1; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) consider(static_cast<int>(i % w) + dx, static_cast<int>(i / w) + dy);
-        }
-      }
-    } else {
-      for (size_t i : from) {
-        for (int dy = -1; dy <= 1; ++dy) {
-          for (int dx = -1; dx <= 1; ++dx) consider(static_cast<int>(i % w) + dx, static_cast<int>(i / w) + dy);
+    for (size_t i : from) {
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int x = static_cast<int>(i % w) + dx, y = static_cast<int>(i / w) + dy;
+          if (x < 0 || y < 0 || x >= w || y >= h) continue;
+          const size_t j = static_cast<size_t>(y) * w + x;
+          if (!g.placed[j] || queued[j] || d[j] == d[j]) continue;
+          queued[j] = 1;
+          ring.push_back(j);
         }
       }
     }
     std::sort(ring.begin(), ring.end());
     return ring;
   };
-  // A pixel whose set neighbours' normals all disagree with its own waits (it may lie across a jump from them) until
-  // a ring reaches it from a side that agrees, or no ring is left: then it takes what its neighbours give.
-  std::vector<size_t> ring = next_ring({}, true), replaced, waiting, placed_now;
+  std::vector<size_t> set_now, placed, waiting;
+  for (size_t i = 0; i < d.size(); ++i) {
+    if (d[i] == d[i]) set_now.push_back(i);
+  }
+  std::vector<size_t> ring = next_ring(set_now);
   std::vector<PlaneMeet> grown;
   while (!ring.empty() || !waiting.empty()) {
     const bool last_resort = ring.empty();
     if (last_resort) {  // every pixel still waiting (each was met from a set neighbour)
       for (size_t j : waiting) {
-        if (queued[j] || distance[j] == distance[j]) continue;
+        if (queued[j] || d[j] == d[j]) continue;
         queued[j] = 1;
         ring.push_back(j);
       }
@@ -877,22 +862,42 @@ absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCam
     }
     grown.resize(ring.size());
     for (size_t r = 0; r < ring.size(); ++r) {
-      grown[r] = DistanceOnNeighbourPlanes(camera, origin, *g, distance, normals, static_cast<int>(ring[r] % w),
+      grown[r] = DistanceOnNeighbourPlanes(camera, origin, g, d, normals, static_cast<int>(ring[r] % w),
                                            static_cast<int>(ring[r] / w));
     }
-    placed_now.clear();
+    set_now.clear();
     for (size_t r = 0; r < ring.size(); ++r) {
       if (grown[r].agreed || last_resort) {
-        distance[ring[r]] = grown[r].distance;
-        placed_now.push_back(ring[r]);
+        d[ring[r]] = grown[r].distance;
+        set_now.push_back(ring[r]);
       } else {
         queued[ring[r]] = 0;  // to be met again from a pixel set later
         waiting.push_back(ring[r]);
       }
     }
-    replaced.insert(replaced.end(), placed_now.begin(), placed_now.end());
-    ring = next_ring(placed_now, false);
+    placed.insert(placed.end(), set_now.begin(), set_now.end());
+    ring = next_ring(set_now);
   }
+  return placed;
+}
+
+}  // namespace
+
+absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                                       const Image& normals, const PhotometricOptions& options, PixelGeometry* g) {
+  if (g->placed.empty()) return 0;
+  const size_t pixels = static_cast<size_t>(g->width) * g->height;
+  if (normals.width != g->width || normals.height != g->height || normals.channels != 3 || g->placed.size() != pixels) {
+    return absl::InvalidArgumentError("geometry refill: the normals do not match the geometry");
+  }
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  // The mesh's pixels' distances along their rays; the placed ones are grown again from them.
+  std::vector<float> distance(pixels, std::nanf(""));
+  for (size_t i = 0; i < pixels; ++i) {
+    if (!g->Covers(i) || g->placed[i]) continue;
+    distance[i] = (Eigen::Map<const Eigen::Vector3f>(&g->points[3 * i]) - origin).dot(PixelRay(camera, origin, i));
+  }
+  const std::vector<size_t> replaced = GrowAlongNormals(camera, origin, normals, *g, &distance);
   // Placed pixels no ring reached (cut off from the mesh's by unplaced ones) keep their point.
   const std::vector<Eigen::Vector3f> units = UnitPositions(light);
   const float clearance = static_cast<float>(options.shadow_clearance_mm);
