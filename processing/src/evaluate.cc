@@ -124,22 +124,24 @@ void Compare(const Image& est, const Image& truth, const std::vector<uint8_t>& m
 
 // Each mask pixel's GeometryClass from the geometry files in `dir` (WriteGeometryFiles) against the truth's depth.exr
 // in `truth_dir`; the absolute depth errors of the pixels with a point go to `depth_errors` by class.
+// `mask`: width x height, the truth's subject mask.
 absl::StatusOr<std::vector<uint8_t>> ClassifyGeometry(const std::string& dir, const std::string& truth_dir,
-                                                      const std::vector<uint8_t>& mask, double off_mm,
+                                                      const std::vector<uint8_t>& mask, int width, int height,
+                                                      double off_mm,
                                                       std::vector<double> depth_errors[kGeometryClasses]) {
-  auto depth = ReadImageFile(dir + "/geometry_depth.exr");
-  if (!depth.ok()) return depth.status();
-  auto placed = ReadImageFile(dir + "/geometry_placed.png");
-  if (!placed.ok()) return placed.status();
-  auto truth = ReadImageFile(truth_dir + "/depth.exr");
-  if (!truth.ok()) return truth.status();
-  for (const auto* image : {&*depth, &*placed, &*truth}) {
-    if (image->pixels.size() != mask.size()) {
-      return absl::FailedPreconditionError(absl::StrCat(dir, ": the geometry files are ", depth->width, "x",
-                                                        depth->height, " and ", placed->width, "x", placed->height,
-                                                        ", the truth's depth and mask are not"));
+  std::vector<Image> images;
+  for (const std::string& path :
+       {dir + "/geometry_depth.exr", dir + "/geometry_placed.png", truth_dir + "/depth.exr"}) {
+    auto image = ReadImageFile(path);
+    if (!image.ok()) return image.status();
+    if (image->width != width || image->height != height || image->channels != 1) {
+      return absl::FailedPreconditionError(absl::StrCat(path, " is ", image->width, "x", image->height, "x",
+                                                        image->channels, ", the subject mask ", width, "x", height,
+                                                        "x1"));
     }
+    images.push_back(std::move(*image));
   }
+  const Image *depth = &images[0], *placed = &images[1], *truth = &images[2];
   std::vector<uint8_t> classes(mask.size(), kUnsplit);
   for (size_t i = 0; i < mask.size(); ++i) {
     if (!mask[i]) continue;
@@ -197,7 +199,7 @@ const char* GeometryClassName(GeometryClass c) {
     case GeometryClass::kOffMesh:
       return "on the mesh, off";
     case GeometryClass::kPlacedOn:
-      return "placed beyond it";
+      return "placed";
     case GeometryClass::kPlacedOff:
       return "placed, off";
     case GeometryClass::kNone:
@@ -275,11 +277,13 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     if (!flag_image.ok()) return flag_image.status();
     std::vector<uint8_t> geometry(mask.size(), kUnsplit);
     if (split) {
-      auto classes =
-          ClassifyGeometry(UnitDir(geometry_from, frame, camera), theirs, mask, options.geometry_off_mm, depth_errors);
+      auto classes = ClassifyGeometry(UnitDir(geometry_from, frame, camera), theirs, mask, mask_image->width,
+                                      mask_image->height, options.geometry_off_mm, depth_errors);
       if (!classes.ok()) return classes.status();
       geometry = std::move(*classes);
-      for (uint8_t c : geometry) class_mask[c] += c != kUnsplit;
+      for (uint8_t c : geometry) {
+        if (c != kUnsplit) ++class_mask[c];
+      }
     }
     std::vector<uint8_t> doubtful_diffuse(mask.size()), doubtful_specular(mask.size());
     for (size_t i = 0; i < mask.size(); ++i) {

@@ -136,11 +136,22 @@ TEST(EvaluateTest, FiguresSplitByTheGeometryEachPixelWasSolvedWith) {
     EXPECT_NEAR(off.maps[albedo].share, 1.0, 1e-6);
     EXPECT_NEAR(on.maps[albedo].mean, 0.0, 1e-4);
     EXPECT_EQ(on.maps[albedo].pixels, kW * kH - 3);
-    EXPECT_THAT(FormatEvaluation(*e), ::testing::HasSubstr("placed beyond it"));
+    EXPECT_THAT(FormatEvaluation(*e), ::testing::HasSubstr("placed, off"));
     EXPECT_THAT(EvaluationJson(*e), ::testing::HasSubstr("\"geometry\": \"on the mesh, off\""));
   }
   EXPECT_EQ(from_other->geometry_from, other);
   EXPECT_EQ(own->geometry_from, results);
+  {
+    // A background pixel (out of the subject mask) is in no class.
+    std::ofstream mask(UnitDir(truth, 0, "hs-2") + "/mask.png", std::ios::binary);
+    mask << "P5\n" << kW << " " << kH << "\n255\n" << std::string(kW * kH - 1, '\xff') << '\0';
+  }
+  auto background = EvaluatePhotometric(options);
+  ASSERT_TRUE(background.ok()) << background.status();
+  int64_t classified = 0;
+  for (const GeometrySplit& split : background->by_geometry) classified += split.mask_pixels;
+  EXPECT_EQ(classified, kW * kH - 1);
+  EXPECT_EQ(background->by_geometry[static_cast<int>(GeometryClass::kOnMesh)].mask_pixels, kW * kH - 4);
 
   // A run named for the split that has no geometry files is an error that names the file.
   options.geometry_from = root + "/missing";

@@ -790,7 +790,7 @@ PlaneMeet DistanceOnNeighbourPlanes(const PhotometricCamera& camera, const Eigen
       flat += distance[n];
       ++neighbours;
       const Eigen::Vector3f theirs = Eigen::Map<const Eigen::Vector3f>(&normals.pixels[3 * n]);
-      if (theirs.squaredNorm() == 0) continue;
+      if (!(theirs.squaredNorm() > 0)) continue;  // not solved (or not finite)
       const Eigen::Vector3f normal = (solved ? own + theirs : theirs).normalized();
       const float facing = -normal.dot(ray);
       if (facing < kMinFacing) continue;
@@ -888,7 +888,9 @@ absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCam
   if (g->placed.empty()) return 0;
   const size_t pixels = static_cast<size_t>(g->width) * g->height;
   if (normals.width != g->width || normals.height != g->height || normals.channels != 3 || g->placed.size() != pixels) {
-    return absl::InvalidArgumentError("geometry refill: the normals do not match the geometry");
+    return absl::InvalidArgumentError(absl::StrCat("geometry refill: the normals are ", normals.width, "x",
+                                                   normals.height, "x", normals.channels, ", the geometry ", g->width,
+                                                   "x", g->height));
   }
   const Eigen::Vector3f origin = camera.position_mm.cast<float>();
   // The mesh's pixels' distances along their rays; the placed ones are grown again from them.

@@ -70,9 +70,10 @@ std::pair<int64_t, int64_t> Solved(const PhotometricMaps& m) {
 }
 
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
-// `geometry_filled`: the pixels FillGeometry placed (with geometry).
+// `geometry_filled`: the pixels FillGeometry placed (with geometry), `geometry_refilled` those RefillGeometry placed
+// again.
 std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera, const std::string& geometry,
-                        int64_t geometry_filled, const std::string& calibration) {
+                        int64_t geometry_filled, int64_t geometry_refilled, const std::string& calibration) {
   const auto [solved, specular] = Solved(m);
   int64_t counts[6] = {0, 0, 0, 0, 0, 0};
   double confidence = 0;
@@ -100,7 +101,10 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
   j["median_specular"] = Median(spec);
   j["median_roughness"] = Median(rough);
   j["geometry"] = geometry.empty() ? "none" : geometry;
-  if (!geometry.empty()) j["geometry_filled_pixels"] = geometry_filled;
+  if (!geometry.empty()) {
+    j["geometry_filled_pixels"] = geometry_filled;
+    j["geometry_refilled_pixels"] = geometry_refilled;
+  }
   j["calibration"] = calibration;
   return j.dump(2);
 }
@@ -284,7 +288,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       auto raw = LoadCycle(c.path, frame, *light);
       if (!raw.ok()) return raw.status();
       absl::Status status;
-      int64_t geometry_filled = 0;
+      int64_t geometry_filled = 0, geometry_refilled = 0;
       PixelGeometry geometry;
       if (mesh == nullptr && !job.exact) {
         // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
@@ -311,7 +315,11 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
              mesh != nullptr && geometry_filled > 0 && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
           auto refilled =
               RefillGeometry(*mesh, c.setup.camera, *light, maps->diffuse_normal_world, job.options, &geometry);
-          if (!refilled.ok()) return refilled.status();
+          if (!refilled.ok()) {
+            maps = refilled.status();
+            break;
+          }
+          geometry_refilled = *refilled;
           maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options, &geometry);
         }
         if (maps.ok()) c.maps = std::move(*maps);
@@ -327,7 +335,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
           absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(), frame, c.id,
                           geometry_file.empty() ? "none" : geometry_file);
       if (auto s = WriteMapFiles(
-              dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, geometry_filled, c.setup.source), title);
+              dir, *maps,
+              UnitMetrics(*maps, frame, c.id, geometry_file, geometry_filled, geometry_refilled, c.setup.source),
+              title);
           !s.ok()) {
         return s;
       }

@@ -43,7 +43,8 @@ struct EvaluateOptions {
   // true mesh's and a reconstruction's) are judged over the same pixels. Results solved without geometry are not
   // split unless this names a run that had it.
   std::string geometry_from;
-  // A point on the mesh this far from the truth's surface (camera-frame z, mm) or farther is counted as off it. > 0.
+  // A point (on the mesh or placed beyond it) this far from the truth's surface (camera-frame z, mm) or farther is
+  // counted as off it. > 0.
   double geometry_off_mm = 0.5;
 };
 

@@ -86,7 +86,8 @@ struct PixelGeometry {
   int words = 0;                  // 64-bit words of `visible` per pixel
   std::vector<float> points;      // 3 per pixel, stage frame, mm; NaN where the pixel sees no surface
   std::vector<uint64_t> visible;  // per pixel: bit l of the units nothing hides from the point (LightModel::ViewFrom)
-  std::vector<uint8_t> placed;    // per pixel: 1 where FillGeometry placed the point, not the mesh; empty: none placed
+  std::vector<uint8_t> placed;    // per pixel: 1 where the point was placed beyond the mesh (FillGeometry, then
+                                  // RefillGeometry), not traced into it; empty: none placed
 
   bool Covers(size_t pixel) const { return points[3 * pixel] == points[3 * pixel]; }
   const uint64_t* Visible(size_t pixel) const { return &visible[pixel * static_cast<size_t>(words)]; }
