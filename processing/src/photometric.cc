@@ -657,6 +657,25 @@ Eigen::Vector3f PixelRay(const PhotometricCamera& camera, const Eigen::Vector3f&
   return camera.rays.empty() ? Eigen::Vector3f(-origin.normalized()) : camera.rays[i];
 }
 
+// Places each of `pixels` at its `distance` along its ray and traces its shadows in `mesh` from there.
+void PlaceAlongRays(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
+                    const PhotometricOptions& options, const std::vector<size_t>& pixels,
+                    const std::vector<float>& distance, PixelGeometry* g) {
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
+  const float clearance = static_cast<float>(options.shadow_clearance_mm);
+  ParallelRows(static_cast<int>(pixels.size()), options.threads, [&](int k0, int k1) {
+    for (int k = k0; k < k1; ++k) {
+      const size_t i = pixels[static_cast<size_t>(k)];
+      const Eigen::Vector3f point = origin + distance[i] * PixelRay(camera, origin, i);
+      std::copy(point.data(), point.data() + 3, &g->points[3 * i]);
+      uint64_t* bits = &g->visible[i * static_cast<size_t>(g->words)];
+      std::fill(bits, bits + g->words, 0);
+      MarkVisibleUnits(mesh, point, point, units, clearance, bits);
+    }
+  });
+}
+
 }  // namespace
 
 PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, int width, int height,
@@ -746,16 +765,7 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
   }
   g->placed.assign(pixels, 0);
   for (size_t i : filled) g->placed[i] = 1;
-  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
-  const float clearance = static_cast<float>(options.shadow_clearance_mm);
-  ParallelRows(static_cast<int>(filled.size()), options.threads, [&](int k0, int k1) {
-    for (int k = k0; k < k1; ++k) {
-      const size_t i = filled[static_cast<size_t>(k)];
-      const Eigen::Vector3f point = origin + depth[i] * PixelRay(camera, origin, i);
-      std::copy(point.data(), point.data() + 3, &g->points[3 * i]);
-      MarkVisibleUnits(mesh, point, point, units, clearance, &g->visible[i * static_cast<size_t>(g->words)]);
-    }
-  });
+  PlaceAlongRays(mesh, camera, light, options, filled, depth, g);
   return static_cast<int64_t>(filled.size());
 }
 
@@ -901,18 +911,7 @@ absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCam
   }
   const std::vector<size_t> replaced = GrowAlongNormals(camera, origin, normals, *g, &distance);
   // Placed pixels no ring reached (cut off from the mesh's by unplaced ones) keep their point.
-  const std::vector<Eigen::Vector3f> units = UnitPositions(light);
-  const float clearance = static_cast<float>(options.shadow_clearance_mm);
-  ParallelRows(static_cast<int>(replaced.size()), options.threads, [&](int k0, int k1) {
-    for (int k = k0; k < k1; ++k) {
-      const size_t i = replaced[static_cast<size_t>(k)];
-      const Eigen::Vector3f point = origin + distance[i] * PixelRay(camera, origin, i);
-      std::copy(point.data(), point.data() + 3, &g->points[3 * i]);
-      uint64_t* bits = &g->visible[i * static_cast<size_t>(g->words)];
-      std::fill(bits, bits + g->words, 0);
-      MarkVisibleUnits(mesh, point, point, units, clearance, bits);
-    }
-  });
+  PlaceAlongRays(mesh, camera, light, options, replaced, distance, g);
   return static_cast<int64_t>(replaced.size());
 }
 
