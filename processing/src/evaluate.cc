@@ -374,8 +374,7 @@ std::string FormatEvaluation(const Evaluation& e) {
   absl::StrAppend(&s,
                   "on the mesh: within the off distance of the truth's surface (camera z); |dz|: the median distance; "
                   "placed: beyond the mesh, at its neighbours' distance or along the solved normals; no geometry: the "
-                  "units seen from the stage "
-                  "origin\n");
+                  "units seen from the stage origin\n");
   return s;
 }
 
