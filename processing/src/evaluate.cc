@@ -192,6 +192,18 @@ std::vector<GeometrySplit> SplitByGeometry(const std::vector<Samples>& samples, 
 
 }  // namespace
 
+absl::Status EvaluateOptions::Validate() const {
+  if (!(band_sigma_px > 0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("evaluate options: band_sigma_px ", band_sigma_px, " is not above 0"));
+  }
+  if (!(geometry_off_mm > 0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("evaluate options: geometry_off_mm ", geometry_off_mm, " is not above 0"));
+  }
+  return absl::OkStatus();
+}
+
 const char* GeometryClassName(GeometryClass c) {
   switch (c) {
     case GeometryClass::kOnMesh:
@@ -238,9 +250,7 @@ absl::StatusOr<Evaluation> EvaluatePhotometric(const EvaluateOptions& options) {
     }
   }
   if (units.empty()) return absl::NotFoundError(absl::StrCat(results, ": no results for these frames and cameras"));
-  if (!(options.geometry_off_mm > 0)) {
-    return absl::InvalidArgumentError(absl::StrCat("geometry_off_mm ", options.geometry_off_mm, " is not above 0"));
-  }
+  if (auto s = options.Validate(); !s.ok()) return s;
   // Split by geometry: by that of another run when named, else by these results' own when they had geometry.
   const std::string geometry_from = options.geometry_from.empty() ? results : options.geometry_from;
   const bool split = !options.geometry_from.empty() ||

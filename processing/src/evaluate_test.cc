@@ -153,6 +153,10 @@ TEST(EvaluateTest, FiguresSplitByTheGeometryEachPixelWasSolvedWith) {
   EXPECT_EQ(classified, kW * kH - 1);
   EXPECT_EQ(background->by_geometry[static_cast<int>(GeometryClass::kOnMesh)].mask_pixels, kW * kH - 4);
 
+  EvaluateOptions bad = options;
+  bad.geometry_off_mm = 0;
+  EXPECT_THAT(std::string(EvaluatePhotometric(bad).status().message()), ::testing::HasSubstr("geometry_off_mm"));
+
   // A run named for the split that has no geometry files is an error that names the file.
   options.geometry_from = root + "/missing";
   auto missing = EvaluatePhotometric(options);

@@ -46,6 +46,9 @@ struct EvaluateOptions {
   // A point (on the mesh or placed beyond it) this far from the truth's surface (camera-frame z, mm) or farther is
   // counted as off it. > 0.
   double geometry_off_mm = 0.5;
+
+  // InvalidArgument naming the field.
+  absl::Status Validate() const;
 };
 
 // Where a pixel's point came from when it was solved (EvaluateOptions::geometry_from).
