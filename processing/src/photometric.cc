@@ -940,9 +940,294 @@ absl::Status PhotometricOptions::Validate() const {
   return absl::OkStatus();
 }
 
-absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
-                                                 const PhotometricCamera& camera, const PhotometricOptions& options,
-                                                 const PixelGeometry* geometry) {
+// The per-image constants of SolvePhotometric and its per-pixel fit. A pixel's fit reads only its own images and
+// geometry: the basis of PhotometricSolver::SolveAgain.
+class PhotometricSolver::Pixels {
+ public:
+  Pixels(const LightModel& light, const std::vector<Image>& frames, const PhotometricCamera& camera,
+         const PhotometricOptions& options, Twins twins)
+      : light_(light),
+        frames_(frames),
+        camera_(camera),
+        options_(options),
+        t_(std::move(twins)),
+        np_(static_cast<int>(t_.cross.size())),
+        pm_(MakePatternMatrix(light, t_)),
+        table_(light, t_.cross, options.table_size),
+        origin_view_(light.ViewFromOrigin()),
+        k_leak_(camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak)),
+        spec_gain_(static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak))),
+        g_(camera.gain_e_per_dn),
+        read_dn2_(internal::ReadVarianceDn2(camera)),  // three channels summed
+        lobe_limits_(options),
+        min_signal_(internal::MinSignalDn(options, camera)),  // below it: not solved
+        to_camera_(camera.world_to_camera.cast<float>()),
+        ws_(static_cast<float>(camera.white_scale)),
+        // The specular images (summed over the three channels) per unit of the model in SpecularFromView: a white
+        // Lambertian surface gives white_scale * n . H, a lobe (2 pi white_scale) * sum w D G G / (4 n.v) (the 1/pi
+        // of the diffuse BRDF), in each channel.
+        spec_scale_(3 * 2 * kPi * ws_),
+        camera_position_(camera.position_mm.cast<float>()) {}
+
+  int width() const { return frames_[0].width; }
+  int patterns() const { return np_; }
+  int height() const { return frames_[0].height; }
+  const PhotometricCamera& camera() const { return camera_; }
+  const PhotometricOptions& options() const { return options_; }
+
+  // One thread's working memory.
+  struct Scratch {
+    explicit Scratch(int np)
+        : c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np), s(np), sw(np), model(np) {}
+    std::vector<float> c, d, hp, wt, s, sw, model;
+    UnitView view, open_view;
+  };
+
+  // Pixel i = (x, y) solved into `m` (its outputs zero beforehand), with its point and shadows from `geometry`.
+  void Solve(int x, int y, const PixelGeometry* geometry, Scratch& s, PhotometricMaps* m) const;
+
+ private:
+  struct Diffuse {
+    Eigen::Vector3f n, rho;
+    float chi2 = 0;
+    bool ok = false;
+  };
+  // The diffuse per pattern and channel (s.c, summed in s.d): the cross image less the leaked specular (parallel -
+  // cross is specular); the specular images summed over the channels (s.s) with their weights (s.sw). Returns
+  // kSaturated where a channel is.
+  uint8_t Measure(int x, int y, Scratch& s) const;
+  // Weighted least squares for u = albedo * n from `copies` images of the diffuse per pattern (s.d, per channel s.c),
+  // re-solved with the lit set of each new normal; then each channel's albedo with the normal fixed, and the fit's
+  // reduced chi-square. `units`: as the pixel's point sees them; null: from the origin, by the table.
+  Diffuse SolveDiffuse(const UnitView* units, const Eigen::Vector3f& start, float copies, Scratch& s) const;
+  // With the lobe `fit` known, the parallel images hold as much diffuse as the cross ones: s.c and s.d from both, less
+  // the lobe (twice the signal).
+  void SubtractLobe(int x, int y, const UnitView& units, const SpecularFit& fit, const Eigen::Vector3f& v,
+                    Scratch& s) const;
+
+  const LightModel& light_;
+  const std::vector<Image>& frames_;
+  const PhotometricCamera& camera_;
+  const PhotometricOptions options_;
+  const Twins t_;
+  const int np_;
+  const PatternMatrix pm_;
+  const DiffuseTable table_;
+  const UnitView origin_view_;
+  const double k_leak_;
+  const float spec_gain_;
+  const double g_, read_dn2_;
+  const internal::LobeLimits lobe_limits_;
+  const double min_signal_;
+  const Eigen::Matrix3f to_camera_;
+  const float ws_, spec_scale_;
+  const Eigen::Vector3f camera_position_;
+};
+
+uint8_t PhotometricSolver::Pixels::Measure(int x, int y, Scratch& s) const {
+  uint8_t flags = 0;
+  for (int p = 0; p < np_; ++p) {
+    const float* cr = frames_[static_cast<size_t>(t_.cross[p])].at(x, y);
+    const float* pa = frames_[static_cast<size_t>(t_.parallel[p])].at(x, y);
+    float sum = 0, spec = 0, level = 0;
+    for (int ch = 0; ch < 3; ++ch) {
+      if (cr[ch] >= camera_.saturation_dn || pa[ch] >= camera_.saturation_dn) flags |= kSaturated;
+      const float v = cr[ch] - static_cast<float>(k_leak_) * (pa[ch] - cr[ch]);
+      s.c[static_cast<size_t>(p) * 3 + ch] = v;
+      sum += v;
+      spec += pa[ch] - cr[ch];
+      level += std::max(0.f, pa[ch]) + std::max(0.f, cr[ch]);
+    }
+    s.d[p] = sum;
+    s.s[p] = spec * spec_gain_;
+    s.sw[p] = 1.f / (spec_gain_ * spec_gain_ * static_cast<float>(level / g_ + 2 * read_dn2_));
+  }
+  return flags;
+}
+
+PhotometricSolver::Pixels::Diffuse PhotometricSolver::Pixels::SolveDiffuse(const UnitView* units,
+                                                                           const Eigen::Vector3f& start, float copies,
+                                                                           Scratch& s) const {
+  auto lookup = [&](const Eigen::Vector3f& n) {
+    if (units != nullptr) {
+      DiffuseFromView(*units, pm_, n, s.hp.data());
+    } else {
+      table_.Lookup(n, s.hp.data());
+    }
+  };
+  auto h_scaled = [&](int p) {
+    return Eigen::Vector3f(Eigen::Map<const Eigen::Vector3f>(&s.hp[static_cast<size_t>(p) * 3]) * ws_ * copies);
+  };
+  Diffuse r;
+  Eigen::Vector3f n = start, u = start;
+  const float read = copies * static_cast<float>(read_dn2_);
+  for (int it = 0; it < std::max(1, options_.iterations); ++it) {
+    lookup(n);
+    Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
+    Eigen::Vector3f b = Eigen::Vector3f::Zero();
+    for (int p = 0; p < np_; ++p) {
+      const Eigen::Vector3f hs = h_scaled(p);
+      // The variance at the level the model predicts (the measured level on the first pass).
+      const float level = r.ok ? std::max(0.f, u.dot(hs)) : std::max(0.f, s.d[p]);
+      s.wt[p] = 1.f / (level / static_cast<float>(g_) + read);
+      a += s.wt[p] * hs * hs.transpose();
+      b += s.wt[p] * s.d[p] * hs;
+    }
+    const Eigen::Vector3f next = a.ldlt().solve(b);
+    if (!next.allFinite() || next.norm() < 1e-9f) break;
+    u = next;
+    n = u.normalized();
+    r.ok = true;
+  }
+  if (!r.ok) return r;
+  lookup(n);
+  float s2 = 0;
+  Eigen::Vector3f num = Eigen::Vector3f::Zero();
+  for (int p = 0; p < np_; ++p) {
+    const Eigen::Vector3f hs = h_scaled(p);
+    const float sp = n.dot(hs);
+    const float level = std::max(0.f, u.dot(hs));
+    s.wt[p] = 1.f / (level / static_cast<float>(g_) + read);
+    s2 += s.wt[p] * sp * sp;
+    for (int ch = 0; ch < 3; ++ch) num[ch] += s.wt[p] * s.c[static_cast<size_t>(p) * 3 + ch] * sp;
+    const float e = s.d[p] - level;
+    r.chi2 += s.wt[p] * e * e;
+  }
+  r.chi2 /= static_cast<float>(std::max(1, np_ - 3));
+  r.n = n;
+  r.rho = num / std::max(1e-12f, s2);
+  return r;
+}
+
+void PhotometricSolver::Pixels::SubtractLobe(int x, int y, const UnitView& units, const SpecularFit& fit,
+                                             const Eigen::Vector3f& v, Scratch& s) const {
+  SpecularFromView(units, pm_, fit.n, v, fit.alpha, s.model.data());
+  for (int p = 0; p < np_; ++p) {
+    const float* cr = frames_[static_cast<size_t>(t_.cross[p])].at(x, y);
+    const float* pa = frames_[static_cast<size_t>(t_.parallel[p])].at(x, y);
+    const float lobe = fit.rho * s.model[static_cast<size_t>(p)] * spec_scale_ / 3;  // per channel
+    float sum = 0;
+    for (int ch = 0; ch < 3; ++ch) {
+      const float v2 = cr[ch] + pa[ch] - (1 + static_cast<float>(camera_.cross_leak)) * lobe;
+      s.c[static_cast<size_t>(p) * 3 + ch] = v2;
+      sum += v2;
+    }
+    s.d[p] = sum;
+  }
+}
+
+void PhotometricSolver::Pixels::Solve(int x, int y, const PixelGeometry* geometry, Scratch& s,
+                                      PhotometricMaps* maps) const {
+  PhotometricMaps& m = *maps;
+  const size_t i = static_cast<size_t>(y) * width() + x;
+  uint8_t flags = Measure(x, y, s);
+  if (s.d[t_.full] < min_signal_) {
+    m.flags[i] = flags | kLowSignal;
+    return;
+  }
+  // The units as this pixel's surface point sees them (with geometry), else from the stage origin.
+  const bool exact = geometry != nullptr && geometry->Covers(i);
+  Eigen::Vector3f point = Eigen::Vector3f::Zero();
+  if (exact) {
+    point = Eigen::Map<const Eigen::Vector3f>(&geometry->points[3 * i]);
+    light_.ViewFrom(point.cast<double>(), geometry->Visible(i), &s.view);
+  }
+  const UnitView& units = exact ? s.view : origin_view_;
+  // First guess: the gradients' differences (exact on a full sphere of light); else facing the camera.
+  Eigen::Vector3f n0 = (camera_position_ - point).normalized();
+  if (t_.xp >= 0 && t_.xm >= 0 && t_.yp >= 0 && t_.ym >= 0 && t_.zp >= 0 && t_.zm >= 0) {
+    const Eigen::Vector3f guess(s.d[t_.xp] - s.d[t_.xm], s.d[t_.yp] - s.d[t_.ym], s.d[t_.zp] - s.d[t_.zm]);
+    if (guess.norm() > 1e-6f) n0 = guess.normalized();
+  }
+  Diffuse diffuse = SolveDiffuse(exact ? &units : nullptr, n0, 1, s);
+  if (!diffuse.ok) {
+    m.flags[i] = flags | kLowSignal;
+    return;
+  }
+
+  // Specular: the lobe fitted to parallel - cross, from the diffuse normal and from the lobe's centroid.
+  const Eigen::Vector3f v = camera_.rays.empty() ? Eigen::Vector3f((camera_position_ - point).normalized())
+                                                 : Eigen::Vector3f(-camera_.rays[i]);
+  const float spec_snr = s.s[t_.full] * std::sqrt(s.sw[t_.full]);
+  // Fitted wherever it can be, faint or not: the diffuse below uses it.
+  std::vector<Eigen::Vector3f> starts = {diffuse.n};
+  const Eigen::Map<const Eigen::VectorXf> sv(s.s.data(), np_);
+  const Eigen::Vector4f mom = pm_.moments.topRows<4>() * sv;
+  if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
+    const Eigen::Vector3f r = mom.tail<3>().normalized();
+    if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
+  }
+  const SpecularFit fit = FitSpecular(units, pm_, s.s.data(), s.sw.data(), v, starts, spec_scale_);
+  const bool measured = fit.ok && internal::LobeMeasured(lobe_limits_, spec_snr, fit.var_n, fit.rho, fit.var_rho,
+                                                         fit.var_log_alpha, fit.alpha);
+  if (!measured) {
+    flags |= kNoSpecular;
+  } else {
+    if (fit.chi2 > 4) flags |= kSpecularBadFit;
+    std::copy(fit.n.data(), fit.n.data() + 3, m.specular_normal_raw.at(x, y));
+    m.specular.at(x, y)[0] = fit.rho;
+    m.roughness.at(x, y)[0] = fit.alpha;
+    internal::Work(&m, internal::kVarNormal)[i] = fit.var_n;
+    m.specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
+    internal::Work(&m, internal::kVarLogAlpha)[i] = fit.var_log_alpha;
+  }
+  const float full_on = s.d[t_.full];  // the cross full-on, for the confidence
+  // Solved again from both polarizations, less the fitted lobe: the lobe fitted to 19 images stands for the specular in
+  // each with a fraction of the noise of parallel - cross itself, measured or not (a faint lobe is fitted as faint,
+  // one that reflects off the dome as none).
+  if (fit.converged && fit.chi2 <= 4) {
+    SubtractLobe(x, y, units, fit, v, s);
+    const Diffuse both = SolveDiffuse(exact ? &units : nullptr, diffuse.n, 2, s);
+    if (both.ok) diffuse = both;
+  }
+  const Eigen::Vector3f n = diffuse.n;
+  if (diffuse.chi2 > 4) flags |= kBadFit;
+  if (exact) {
+    // Shadow: the share of the full-on light nothing hides from the point.
+    light_.ViewFrom(point.cast<double>(), nullptr, &s.open_view);
+    float all = 0, seen = 0;
+    for (size_t l = 0; l < s.open_view.gain.size(); ++l) {
+      const float cosine = std::max(0.f, n.dot(s.open_view.direction[l]));
+      all += s.open_view.gain[l] * cosine;
+      seen += units.gain[l] * cosine;
+    }
+    if (seen < 0.5f * all) flags |= kShadowed;
+  }
+  const Eigen::Vector3f nc = to_camera_ * n;
+  std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
+  std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
+  if (camera_.mosaic.has_value()) {
+    internal::Work(&m, internal::kOwnAlbedo)[i] = diffuse.rho[camera_.mosaic->Color(x, y)];
+  } else {
+    std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
+  }
+  m.fit_residual.at(x, y)[0] = diffuse.chi2;
+  m.confidence.at(x, y)[0] =
+      internal::Confidence(full_on, static_cast<float>(g_), static_cast<float>(read_dn2_), diffuse.chi2, flags);
+  m.flags[i] = flags;
+}
+
+namespace {
+
+// Pixel i's outputs in `m` (and its working memory) zero, as a solve starts from.
+void ClearPixel(size_t i, PhotometricMaps* m) {
+  for (Image* image : {&m->diffuse_normal_world, &m->diffuse_normal_camera, &m->albedo, &m->specular_normal_raw,
+                       &m->specular, &m->roughness, &m->specular_sigma, &m->confidence, &m->fit_residual}) {
+    const size_t c = static_cast<size_t>(image->channels);
+    std::fill_n(&image->pixels[c * i], c, 0.f);
+  }
+  m->flags[i] = 0;
+  for (internal::WorkSlot slot : {internal::kVarNormal, internal::kVarLogAlpha, internal::kOwnAlbedo}) {
+    internal::Work(m, slot)[i] = 0;
+  }
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<PhotometricSolver>> PhotometricSolver::Create(const LightModel& light,
+                                                                             const std::vector<Image>& frames,
+                                                                             const PhotometricCamera& camera,
+                                                                             const PhotometricOptions& options) {
   if (frames.size() != light.patterns.size() || frames.empty()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", frames.size(), " images for ", light.patterns.size(), " patterns"));
@@ -955,241 +1240,93 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
                        "x", frames[i].height, "x", frames[i].channels, ", not ", w, "x", h, "x3"));
     }
   }
-  if (geometry != nullptr && (geometry->width != w || geometry->height != h)) {
-    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the geometry is ", geometry->width, "x",
-                                                   geometry->height, ", the images ", w, "x", h));
-  }
   if (!camera.rays.empty() && camera.rays.size() != static_cast<size_t>(w) * h) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", camera.rays.size(), " camera rays for ", w, "x", h, " pixels"));
   }
   auto twins = PairPatterns(light);
   if (!twins.ok()) return twins.status();
-  const Twins& t = *twins;
-  const int np = static_cast<int>(t.cross.size());
-  const PatternMatrix pm = MakePatternMatrix(light, t);
-  const DiffuseTable table(light, t.cross, options.table_size);
-  const UnitView origin_view = light.ViewFromOrigin();
+  return std::unique_ptr<PhotometricSolver>(
+      new PhotometricSolver(std::make_unique<Pixels>(light, frames, camera, options, std::move(*twins))));
+}
 
-  PhotometricMaps m;
-  internal::PrepareMaps(w, h, &m);
-  // The maps are zero where nothing is solved.
-  for (Image* image : {&m.diffuse_normal_world, &m.diffuse_normal_camera, &m.albedo, &m.specular_normal_raw,
-                       &m.specular, &m.roughness, &m.specular_sigma, &m.confidence, &m.fit_residual}) {
-    std::fill(image->pixels.begin(), image->pixels.end(), 0.f);
+PhotometricSolver::PhotometricSolver(std::unique_ptr<Pixels> pixels) : pixels_(std::move(pixels)) {}
+PhotometricSolver::~PhotometricSolver() = default;
+
+absl::Status PhotometricSolver::CheckGeometry(const PixelGeometry* geometry) const {
+  if (geometry != nullptr && (geometry->width != pixels_->width() || geometry->height != pixels_->height())) {
+    return absl::InvalidArgumentError(absl::StrCat("photometric stereo: the geometry is ", geometry->width, "x",
+                                                   geometry->height, ", the images ", pixels_->width(), "x",
+                                                   pixels_->height()));
   }
-  std::fill(m.flags.begin(), m.flags.end(), 0);
-  // Per-pixel noise of the specular fit, for the regularization.
-  float* var_n = internal::Work(&m, internal::kVarNormal);
-  float* var_log_alpha = internal::Work(&m, internal::kVarLogAlpha);
-  // With a Bayer mosaic: each pixel's albedo in the colour it measures, for DemosaicAlbedo.
-  float* own_albedo = camera.mosaic.has_value() ? internal::Work(&m, internal::kOwnAlbedo) : nullptr;
+  return absl::OkStatus();
+}
 
-  const double k_leak = camera.cross_leak / std::max(1e-9, 1 - camera.cross_leak);
-  const float spec_gain = static_cast<float>(1 / std::max(1e-9, 1 - camera.cross_leak));
-  const double g = camera.gain_e_per_dn;
-  const double read_dn2 = internal::ReadVarianceDn2(camera);  // three channels summed
-  const internal::LobeLimits lobe_limits(options);
-  const double min_signal = internal::MinSignalDn(options, camera);  // below it: not solved
-  const Eigen::Matrix3f to_camera = camera.world_to_camera.cast<float>();
-  const float ws = static_cast<float>(camera.white_scale);
-  // The specular images (summed over the three channels) per unit of the model in SpecularFromView: a white
-  // Lambertian surface gives white_scale * n . H, a lobe (2 pi white_scale) * sum w D G G / (4 n.v) (the 1/pi of the
-  // diffuse BRDF), in each channel.
-  const float spec_scale = 3 * 2 * kPi * ws;
-  const Eigen::Vector3f camera_position = camera.position_mm.cast<float>();
-
-  ParallelRows(h, options.threads, [&](int y0, int y1) {
-    std::vector<float> c(static_cast<size_t>(np) * 3), d(np), hp(static_cast<size_t>(np) * 3), wt(np), s(np), sw(np),
-        model(np);
-    UnitView view, open_view;
+void PhotometricSolver::SolvePixels(const PixelGeometry* geometry, const std::vector<uint8_t>* only) {
+  const int w = pixels_->width();
+  ParallelRows(pixels_->height(), pixels_->options().threads, [&](int y0, int y1) {
+    Pixels::Scratch scratch(pixels_->patterns());
     for (int y = y0; y < y1; ++y) {
       for (int x = 0; x < w; ++x) {
         const size_t i = static_cast<size_t>(y) * w + x;
-        uint8_t flags = 0;
-        // Diffuse per pattern and channel: the cross image less the leaked specular (parallel - cross is specular);
-        // and the specular images, summed over the channels, with their noise.
-        for (int p = 0; p < np; ++p) {
-          const float* cr = frames[static_cast<size_t>(t.cross[p])].at(x, y);
-          const float* pa = frames[static_cast<size_t>(t.parallel[p])].at(x, y);
-          float sum = 0, spec = 0, level = 0;
-          for (int ch = 0; ch < 3; ++ch) {
-            if (cr[ch] >= camera.saturation_dn || pa[ch] >= camera.saturation_dn) flags |= kSaturated;
-            const float v = cr[ch] - static_cast<float>(k_leak) * (pa[ch] - cr[ch]);
-            c[static_cast<size_t>(p) * 3 + ch] = v;
-            sum += v;
-            spec += pa[ch] - cr[ch];
-            level += std::max(0.f, pa[ch]) + std::max(0.f, cr[ch]);
-          }
-          d[p] = sum;
-          s[p] = spec * spec_gain;
-          sw[p] = 1.f / (spec_gain * spec_gain * static_cast<float>(level / g + 2 * read_dn2));
-        }
-        if (d[t.full] < min_signal) {
-          m.flags[i] = flags | kLowSignal;
-          continue;
-        }
-        // The units as this pixel's surface point sees them (with geometry), else from the stage origin.
-        const bool exact = geometry != nullptr && geometry->Covers(i);
-        Eigen::Vector3f point = Eigen::Vector3f::Zero();
-        if (exact) {
-          point = Eigen::Map<const Eigen::Vector3f>(&geometry->points[3 * i]);
-          light.ViewFrom(point.cast<double>(), geometry->Visible(i), &view);
-        }
-        const UnitView& units = exact ? view : origin_view;
-        auto lookup = [&](const Eigen::Vector3f& n) {
-          if (exact) {
-            DiffuseFromView(units, pm, n, hp.data());
-          } else {
-            table.Lookup(n, hp.data());
-          }
-        };
-        // First guess: the gradients' differences (exact on a full sphere of light); else facing the camera.
-        Eigen::Vector3f n0 = (camera_position - point).normalized();
-        if (t.xp >= 0 && t.xm >= 0 && t.yp >= 0 && t.ym >= 0 && t.zp >= 0 && t.zm >= 0) {
-          const Eigen::Vector3f guess(d[t.xp] - d[t.xm], d[t.yp] - d[t.ym], d[t.zp] - d[t.zm]);
-          if (guess.norm() > 1e-6f) n0 = guess.normalized();
-        }
-        // Weighted least squares for u = albedo * n from `copies` images of the diffuse per pattern (summed in d,
-        // per channel in c), re-solved with the lit set of each new normal; then each channel's albedo with the
-        // normal fixed, and the fit's reduced chi-square.
-        struct Diffuse {
-          Eigen::Vector3f n, rho;
-          float chi2 = 0;
-          bool ok = false;
-        };
-        auto solve_diffuse = [&](const Eigen::Vector3f& start, float copies) {
-          Diffuse r;
-          Eigen::Vector3f n = start, u = start;
-          const float read = copies * static_cast<float>(read_dn2);
-          for (int it = 0; it < std::max(1, options.iterations); ++it) {
-            lookup(n);
-            Eigen::Matrix3f a = Eigen::Matrix3f::Zero();
-            Eigen::Vector3f b = Eigen::Vector3f::Zero();
-            for (int p = 0; p < np; ++p) {
-              const Eigen::Vector3f hs =
-                  Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
-              // The variance at the level the model predicts (the measured level on the first pass).
-              const float level = r.ok ? std::max(0.f, u.dot(hs)) : std::max(0.f, d[p]);
-              wt[p] = 1.f / (level / static_cast<float>(g) + read);
-              a += wt[p] * hs * hs.transpose();
-              b += wt[p] * d[p] * hs;
-            }
-            const Eigen::Vector3f next = a.ldlt().solve(b);
-            if (!next.allFinite() || next.norm() < 1e-9f) break;
-            u = next;
-            n = u.normalized();
-            r.ok = true;
-          }
-          if (!r.ok) return r;
-          lookup(n);
-          float s2 = 0;
-          Eigen::Vector3f num = Eigen::Vector3f::Zero();
-          for (int p = 0; p < np; ++p) {
-            const Eigen::Vector3f hs = Eigen::Map<const Eigen::Vector3f>(&hp[static_cast<size_t>(p) * 3]) * ws * copies;
-            const float sp = n.dot(hs);
-            const float level = std::max(0.f, u.dot(hs));
-            wt[p] = 1.f / (level / static_cast<float>(g) + read);
-            s2 += wt[p] * sp * sp;
-            for (int ch = 0; ch < 3; ++ch) num[ch] += wt[p] * c[static_cast<size_t>(p) * 3 + ch] * sp;
-            const float e = d[p] - level;
-            r.chi2 += wt[p] * e * e;
-          }
-          r.chi2 /= static_cast<float>(std::max(1, np - 3));
-          r.n = n;
-          r.rho = num / std::max(1e-12f, s2);
-          return r;
-        };
-        Diffuse diffuse = solve_diffuse(n0, 1);
-        if (!diffuse.ok) {
-          m.flags[i] = flags | kLowSignal;
-          continue;
-        }
-
-        // Specular: the lobe fitted to parallel - cross, from the diffuse normal and from the lobe's centroid.
-        const Eigen::Vector3f v = camera.rays.empty() ? Eigen::Vector3f((camera_position - point).normalized())
-                                                      : Eigen::Vector3f(-camera.rays[i]);
-        const float spec_snr = s[t.full] * std::sqrt(sw[t.full]);
-        // Fitted wherever it can be, faint or not: the diffuse below uses it.
-        std::vector<Eigen::Vector3f> starts = {diffuse.n};
-        const Eigen::Map<const Eigen::VectorXf> sv(s.data(), np);
-        const Eigen::Vector4f mom = pm.moments.topRows<4>() * sv;
-        if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
-          const Eigen::Vector3f r = mom.tail<3>().normalized();
-          if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
-        }
-        const SpecularFit fit = FitSpecular(units, pm, s.data(), sw.data(), v, starts, spec_scale);
-        const bool measured = fit.ok && internal::LobeMeasured(lobe_limits, spec_snr, fit.var_n, fit.rho, fit.var_rho,
-                                                               fit.var_log_alpha, fit.alpha);
-        if (!measured) {
-          flags |= kNoSpecular;
-        } else {
-          if (fit.chi2 > 4) flags |= kSpecularBadFit;
-          std::copy(fit.n.data(), fit.n.data() + 3, m.specular_normal_raw.at(x, y));
-          m.specular.at(x, y)[0] = fit.rho;
-          m.roughness.at(x, y)[0] = fit.alpha;
-          var_n[i] = fit.var_n;
-          m.specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
-          var_log_alpha[i] = fit.var_log_alpha;
-        }
-        const float full_on = d[t.full];  // the cross full-on, for the confidence
-        // With the specular known, the parallel images hold as much diffuse as the cross ones: solve again from
-        // both, less the fitted lobe (twice the signal). The lobe fitted to 19 images stands for the specular in
-        // each with a fraction of the noise of parallel - cross itself, measured or not (a faint lobe is fitted as
-        // faint, one that reflects off the dome as none).
-        if (fit.converged && fit.chi2 <= 4) {
-          SpecularFromView(units, pm, fit.n, v, fit.alpha, model.data());
-          for (int p = 0; p < np; ++p) {
-            const float* cr = frames[static_cast<size_t>(t.cross[p])].at(x, y);
-            const float* pa = frames[static_cast<size_t>(t.parallel[p])].at(x, y);
-            const float lobe = fit.rho * model[static_cast<size_t>(p)] * spec_scale / 3;  // per channel
-            float sum = 0;
-            for (int ch = 0; ch < 3; ++ch) {
-              const float v2 = cr[ch] + pa[ch] - (1 + static_cast<float>(camera.cross_leak)) * lobe;
-              c[static_cast<size_t>(p) * 3 + ch] = v2;
-              sum += v2;
-            }
-            d[p] = sum;
-          }
-          const Diffuse both = solve_diffuse(diffuse.n, 2);
-          if (both.ok) diffuse = both;
-        }
-        const Eigen::Vector3f n = diffuse.n;
-        if (diffuse.chi2 > 4) flags |= kBadFit;
-        if (exact) {
-          // Shadow: the share of the full-on light nothing hides from the point.
-          light.ViewFrom(point.cast<double>(), nullptr, &open_view);
-          float all = 0, seen = 0;
-          for (size_t l = 0; l < open_view.gain.size(); ++l) {
-            const float cosine = std::max(0.f, n.dot(open_view.direction[l]));
-            all += open_view.gain[l] * cosine;
-            seen += units.gain[l] * cosine;
-          }
-          if (seen < 0.5f * all) flags |= kShadowed;
-        }
-        const Eigen::Vector3f nc = to_camera * n;
-        std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
-        std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
-        if (own_albedo != nullptr) {
-          own_albedo[i] = diffuse.rho[camera.mosaic->Color(x, y)];
-        } else {
-          std::copy(diffuse.rho.data(), diffuse.rho.data() + 3, m.albedo.at(x, y));
-        }
-        m.fit_residual.at(x, y)[0] = diffuse.chi2;
-        m.confidence.at(x, y)[0] =
-            internal::Confidence(full_on, static_cast<float>(g), static_cast<float>(read_dn2), diffuse.chi2, flags);
-        m.flags[i] = flags;
+        if (only != nullptr && (*only)[i] == 0) continue;
+        if (only != nullptr) ClearPixel(i, &fits_);
+        pixels_->Solve(x, y, geometry, scratch, &fits_);
       }
     }
   });
+}
 
-  if (own_albedo != nullptr) {
-    internal::DemosaicAlbedo(*camera.mosaic, own_albedo, static_cast<float>(options.max_albedo), options.threads, &m);
+PhotometricMaps PhotometricSolver::Finish() const {
+  PhotometricMaps m = fits_;
+  const PhotometricCamera& camera = pixels_->camera();
+  const PhotometricOptions& options = pixels_->options();
+  if (camera.mosaic.has_value()) {
+    internal::DemosaicAlbedo(*camera.mosaic, internal::Work(&m, internal::kOwnAlbedo),
+                             static_cast<float>(options.max_albedo), options.threads, &m);
   } else {
     internal::FlagImplausibleRgbAlbedo(static_cast<float>(options.max_albedo), &m);
   }
-  internal::RegularizeSpecular(options.specular_filter_radius, options.threads, to_camera, &m);
+  internal::RegularizeSpecular(options.specular_filter_radius, options.threads, camera.world_to_camera.cast<float>(),
+                               &m);
   return m;
+}
+
+absl::StatusOr<PhotometricMaps> PhotometricSolver::Solve(const PixelGeometry* geometry) {
+  if (absl::Status s = CheckGeometry(geometry); !s.ok()) return s;
+  internal::PrepareMaps(pixels_->width(), pixels_->height(), &fits_);
+  // The maps are zero where nothing is solved.
+  for (Image* image :
+       {&fits_.diffuse_normal_world, &fits_.diffuse_normal_camera, &fits_.albedo, &fits_.specular_normal_raw,
+        &fits_.specular, &fits_.roughness, &fits_.specular_sigma, &fits_.confidence, &fits_.fit_residual}) {
+    std::fill(image->pixels.begin(), image->pixels.end(), 0.f);
+  }
+  std::fill(fits_.flags.begin(), fits_.flags.end(), 0);
+  internal::Work(&fits_, internal::kVarNormal);  // sized here, before the threads write it
+  std::fill(fits_.work.begin(), fits_.work.end(), 0.f);
+  SolvePixels(geometry, nullptr);
+  solved_ = true;
+  return Finish();
+}
+
+absl::StatusOr<PhotometricMaps> PhotometricSolver::SolveAgain(const PixelGeometry& geometry,
+                                                              const std::vector<uint8_t>& redo) {
+  if (!solved_) return absl::FailedPreconditionError("photometric stereo: solved again before it was solved once");
+  if (absl::Status s = CheckGeometry(&geometry); !s.ok()) return s;
+  if (redo.size() != fits_.flags.size()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("photometric stereo: ", redo.size(), " pixels to solve again of ", fits_.flags.size()));
+  }
+  SolvePixels(&geometry, &redo);
+  return Finish();
+}
+
+absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
+                                                 const PhotometricCamera& camera, const PhotometricOptions& options,
+                                                 const PixelGeometry* geometry) {
+  auto solver = PhotometricSolver::Create(light, frames, camera, options);
+  if (!solver.ok()) return solver.status();
+  return (*solver)->Solve(geometry);
 }
 
 }  // namespace stage::processing

@@ -309,8 +309,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
           geometry_filled = *filled;
         }
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
-        auto maps =
-            SolvePhotometric(*light, *frames, c.setup.camera, job.options, mesh != nullptr ? &geometry : nullptr);
+        auto solver = PhotometricSolver::Create(*light, *frames, c.setup.camera, job.options);
+        if (!solver.ok()) return solver.status();
+        auto maps = (*solver)->Solve(mesh != nullptr ? &geometry : nullptr);
         for (int pass = 0;
              mesh != nullptr && geometry_filled > 0 && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
           auto refilled =
@@ -320,7 +321,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
             break;
           }
           geometry_refilled = *refilled;
-          maps = SolvePhotometric(*light, *frames, c.setup.camera, job.options, &geometry);
+          // Only the placed pixels moved: only they are solved again.
+          maps = (*solver)->SolveAgain(geometry, geometry.placed);
         }
         if (maps.ok()) c.maps = std::move(*maps);
         status = maps.status();

@@ -173,6 +173,83 @@ TEST(PhotometricTest, ShadowRaysClearTheGeometrysOwnRoughnessButNotARealOccluder
   EXPECT_THAT(std::string(bad.Validate().message()), ::testing::HasSubstr("shadow_clearance_mm"));
 }
 
+// PhotometricSolver::SolveAgain after the geometry of some pixels changed (the refill moves the placed ones): only
+// those are fitted again, and the maps are those a full solve at the new geometry gives, bit for bit, with a Bayer
+// mosaic (the albedo demosaiced across neighbours) and without, on two threads.
+TEST(PhotometricTest, SolvingAgainWhereTheGeometryChangedGivesTheFullSolvesMaps) {
+  const LightModel light = ShippedLight();
+  const int size = 40;
+  Sphere s = MakeSphere(light, size, /*noisy=*/true, /*specular=*/0.03);
+  // The sphere 60 mm across at the origin, every unit in sight; the pixels right of centre then move 8 mm towards the
+  // camera and lose the units below the horizon of +x.
+  const double radius = 30;
+  PixelGeometry before;
+  before.width = before.height = size;
+  before.words = (light.units() + 63) / 64;
+  before.points.assign(3 * static_cast<size_t>(size) * size, std::nanf(""));
+  before.visible.assign(static_cast<size_t>(size) * size * before.words, ~uint64_t{0});
+  before.placed.assign(static_cast<size_t>(size) * size, 0);
+  PixelGeometry after = before;
+  int moved = 0;
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      const size_t i = static_cast<size_t>(y) * size + x;
+      const Eigen::Vector3d& n = s.normals[i];
+      if (n.isZero()) continue;
+      const Eigen::Vector3f point = (radius * n).cast<float>();
+      std::copy_n(point.data(), 3, &before.points[3 * i]);
+      std::copy_n(point.data(), 3, &after.points[3 * i]);
+      if (x < size / 2 + 4) continue;
+      after.placed[i] = 1;
+      after.points[3 * i + 2] += 8;
+      uint64_t* bits = &after.visible[i * static_cast<size_t>(after.words)];
+      for (int l = 0; l < light.units(); ++l) {
+        if (light.directions[static_cast<size_t>(l)].x() < -0.2) bits[l / 64] &= ~(uint64_t{1} << (l % 64));
+      }
+      ++moved;
+    }
+  }
+  ASSERT_GT(moved, 200);
+  for (const bool mosaic : {false, true}) {
+    SCOPED_TRACE(mosaic ? "Bayer mosaic" : "RGB");
+    s.camera.mosaic.reset();
+    if (mosaic) s.camera.mosaic = Mosaic{};
+    PhotometricOptions options;
+    options.threads = 2;
+    auto full = SolvePhotometric(light, s.frames, s.camera, options, &after);
+    ASSERT_TRUE(full.ok()) << full.status();
+    auto solver = PhotometricSolver::Create(light, s.frames, s.camera, options);
+    ASSERT_TRUE(solver.ok()) << solver.status();
+    EXPECT_EQ((*solver)->SolveAgain(after, after.placed).status().code(), absl::StatusCode::kFailedPrecondition);
+    auto first = (*solver)->Solve(&before);
+    ASSERT_TRUE(first.ok()) << first.status();
+    EXPECT_EQ((*solver)->SolveAgain(after, {1, 0}).status().code(), absl::StatusCode::kInvalidArgument);
+    auto again = (*solver)->SolveAgain(after, after.placed);
+    ASSERT_TRUE(again.ok()) << again.status();
+    int changed = 0;
+    for (size_t i = 0; i < after.placed.size(); ++i) {
+      changed += first->diffuse_normal_world.pixels[3 * i] != full->diffuse_normal_world.pixels[3 * i];
+    }
+    EXPECT_GT(changed, moved / 2) << "the new geometry hardly changes the maps: the test sees nothing";
+    const std::vector<std::pair<const char*, const Image PhotometricMaps::*>> images = {
+        {"diffuse_normal_world", &PhotometricMaps::diffuse_normal_world},
+        {"diffuse_normal_camera", &PhotometricMaps::diffuse_normal_camera},
+        {"albedo", &PhotometricMaps::albedo},
+        {"specular_normal_world", &PhotometricMaps::specular_normal_world},
+        {"specular_normal_camera", &PhotometricMaps::specular_normal_camera},
+        {"specular_normal_raw", &PhotometricMaps::specular_normal_raw},
+        {"specular", &PhotometricMaps::specular},
+        {"roughness", &PhotometricMaps::roughness},
+        {"specular_sigma", &PhotometricMaps::specular_sigma},
+        {"confidence", &PhotometricMaps::confidence},
+        {"fit_residual", &PhotometricMaps::fit_residual}};
+    for (const auto& [name, image] : images) {
+      EXPECT_EQ(((*again).*image).pixels, ((*full).*image).pixels) << name;
+    }
+    EXPECT_EQ(again->flags, full->flags);
+  }
+}
+
 // A mesh that stops where the surface goes on (a reconstruction's edge at the side of the head): the pixels beyond
 // it that are lit, and no further than geometry_fill_px, are placed near the surface; dark ones and far ones are not.
 TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDistance) {

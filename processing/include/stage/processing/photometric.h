@@ -19,6 +19,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -131,8 +132,9 @@ struct PhotometricOptions {
   // true mesh the maps change by under 0.01 degrees (docs/geometry.md).
   double shadow_clearance_mm = 2;
   // Pixels the geometry's mesh misses within this many pixels of ones it covers are placed at their neighbours'
-  // distance (FillGeometry); 0: none. Default 64.
-  int geometry_fill_px = 64;
+  // distance (FillGeometry); 0: none. Default 128: with the refill below, no subject pixel of a half-resolution take
+  // is left without a point (docs/geometry.md).
+  int geometry_fill_px = 128;
   // Then, this many times, the placed pixels are placed again on the surface the solved normals describe
   // (RefillGeometry) and the image solved again; 0: they keep their neighbours' distance. Default 1; at most 4.
   int geometry_refill_passes = 1;
@@ -196,6 +198,37 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
                                                  const PhotometricCamera& camera,
                                                  const PhotometricOptions& options = {},
                                                  const PixelGeometry* geometry = nullptr);
+
+// SolvePhotometric in steps, for solving an image again where its geometry changed (RefillGeometry moves only the
+// pixels FillGeometry placed): a pixel's fit reads only its own images and geometry, so SolveAgain keeps the fits of
+// the pixels it is not asked to redo and runs only the passes over neighbourhoods (the albedo's demosaicing, the
+// specular lobe's regularization) over the whole image again. Its maps equal SolvePhotometric's with the new geometry
+// where the geometry changed nowhere else. `light`, `frames` and `camera` must outlive the solver, unchanged.
+class PhotometricSolver {
+ public:
+  // InvalidArgument as SolvePhotometric's.
+  static absl::StatusOr<std::unique_ptr<PhotometricSolver>> Create(const LightModel& light,
+                                                                   const std::vector<Image>& frames,
+                                                                   const PhotometricCamera& camera,
+                                                                   const PhotometricOptions& options);
+  ~PhotometricSolver();
+  // Every pixel, with `geometry` (optional; the images' size) as SolvePhotometric.
+  absl::StatusOr<PhotometricMaps> Solve(const PixelGeometry* geometry);
+  // After Solve: the pixels `redo` marks (non-zero; one per pixel) fitted again at `geometry`, the others' fits kept.
+  absl::StatusOr<PhotometricMaps> SolveAgain(const PixelGeometry& geometry, const std::vector<uint8_t>& redo);
+
+ private:
+  class Pixels;
+  explicit PhotometricSolver(std::unique_ptr<Pixels> pixels);
+  absl::Status CheckGeometry(const PixelGeometry* geometry) const;
+  void SolvePixels(const PixelGeometry* geometry, const std::vector<uint8_t>* only);
+  // The maps from fits_: the passes over neighbourhoods on a copy.
+  PhotometricMaps Finish() const;
+
+  std::unique_ptr<Pixels> pixels_;
+  PhotometricMaps fits_;  // each pixel's own fit, before the passes over neighbourhoods
+  bool solved_ = false;
+};
 
 // Angle between two unit vectors, degrees.
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
