@@ -113,7 +113,7 @@ TEST_F(LoadTest, TheDemosPhotometricTakeStaysCompleteOnABusyMachineWithItsNodesS
       Stagectl({"capture", "--frames", "1", "--name", "photometric", "--json"}, std::chrono::seconds(900));
   stopper.Stop();
   ASSERT_FALSE(capture.timed_out) << capture.err;
-  EXPECT_EQ(capture.exit.exit_code, 0) << capture.out << capture.err;
+  EXPECT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   ASSERT_FALSE(capture.out.empty()) << capture.err;
   EXPECT_GE(stopper.stops(), 6) << "the take ended before the stops could test it";
   const nlohmann::json take = nlohmann::json::parse(capture.out);
@@ -140,7 +140,7 @@ TEST_F(LoadTest, AHalfSecondTakeOfTheDemosSceneStaysCompleteOnABusyMachineWithIt
       Stagectl({"capture", "--seconds", "0.5", "--name", "demo", "--json"}, std::chrono::seconds(900));
   stopper.Stop();
   ASSERT_FALSE(capture.timed_out) << capture.err;
-  EXPECT_EQ(capture.exit.exit_code, 0) << capture.out << capture.err;
+  EXPECT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   ASSERT_FALSE(capture.out.empty()) << capture.err;
   EXPECT_GE(stopper.stops(), 6);
   const nlohmann::json take = nlohmann::json::parse(capture.out);

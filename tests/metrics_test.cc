@@ -86,7 +86,7 @@ TEST_F(StageMetricsTest, EveryProcessServesMetricsThatPromtoolAcceptsAndThatFoll
                                 "grpc_method=\"Arm\",grpc_code=\"OK\"} 1\n"));
   }
   CommandResult capture = Stagectl({"capture", "--json"});
-  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err << capture.out;
+  ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   ASSERT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE");
   const double expected = std::stod(take["total"]["expected"].get<std::string>());  // int64: a string in JSON

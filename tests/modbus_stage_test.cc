@@ -67,7 +67,7 @@ TEST_F(ModbusStageTest, ATakeLitByFakeLedBoardsIsCompleteAndAligned) {
                                                                  {"lights-gpio-1", "sim"},
                                                                  {"lights-gpio-2", "sim"}}));
   CommandResult capture = Stagectl({"capture", "--frames", "8", "--json", "--no-ground-truth"});
-  ASSERT_EQ(capture.exit.exit_code, 0) << capture.out << capture.err;
+  ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   EXPECT_EQ(take["outcome"], "TAKE_OUTCOME_COMPLETE");
   EXPECT_EQ(take["hint"], "");

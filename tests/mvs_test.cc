@@ -45,7 +45,7 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
   const std::string endpoints = run_dir_.path() + "/endpoints.json";
   CommandResult capture = RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--frames", "1", "--json"},
                                      std::chrono::seconds(600));
-  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err << capture.out;
+  ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   const std::string id = take["take_id"], dir = take["dir"];
 

@@ -50,7 +50,7 @@ TEST_F(ProcessingGraphTest, TheWorkerAndSlurmMakeTheSameBytesAndOnlyWhatIsStaleR
   TempDir root, copies;
   ASSERT_NO_FATAL_FAILURE(StartStage({"--set", "sim.render_scale=0.0625", "--take-root", root.path()}));
   CommandResult capture = Stagectl({"capture", "--frames", "2", "--json"}, std::chrono::seconds(300));
-  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err << capture.out;
+  ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   const std::string id = take["take_id"], dir = take["dir"];
   // The copy Slurm processes, as it was recorded (the same directory name: results name their take).

@@ -27,7 +27,7 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   const std::string endpoints = run_dir_.path() + "/endpoints.json";
   CommandResult capture = RunCommand({"stagectl", "--endpoints", endpoints, "capture", "--frames", "1", "--json"},
                                      std::chrono::seconds(300));
-  ASSERT_EQ(capture.exit.exit_code, 0) << capture.err << capture.out;
+  ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
   const nlohmann::json take = nlohmann::json::parse(capture.out);
   const std::string id = take["take_id"], dir = take["dir"];
   ASSERT_TRUE(fs::exists(dir + "/ground_truth/frame-000000/mesh.obj"));

@@ -101,7 +101,7 @@ class TlsStageTest : public SimulatedStageTest {
   // light node; another CA's certificate and plain text are refused. Each refusal is in the refusing side's log.
   void CheckTakeAndRefusals(const std::string& certs) {
     CommandResult capture = Stagectl({"--as", "operator/tester", "capture", "--frames", "2", "--json"});
-    ASSERT_EQ(capture.exit.exit_code, 0) << capture.err << capture.out;
+    ASSERT_EQ(capture.exit.exit_code, 0) << CaptureVerdict(capture) << capture.out;
     EXPECT_EQ(nlohmann::json::parse(capture.out)["outcome"], "TAKE_OUTCOME_COMPLETE");
 
     CommandResult status = Stagectl({"--as", "observer/watcher", "status", "--json"});

@@ -88,6 +88,28 @@ class SimulatedStageTest : public ::testing::Test {
     return nlohmann::json::parse(r.out);
   }
 
+  // Why a capture did not end complete, for a failure message: the take's outcome, its hint and every alignment
+  // check that failed (from `stagectl capture --json`), then the end of stage-sim's log. These come first because a
+  // test runner that keeps only part of a long output would otherwise cut them from the middle of the JSON.
+  std::string CaptureVerdict(const CommandResult& capture) {
+    std::ostringstream out;
+    const nlohmann::json take = nlohmann::json::parse(capture.out, nullptr, /*allow_exceptions=*/false);
+    if (take.is_object()) {
+      out << "outcome " << take.value("outcome", "?") << "; hint: " << take.value("hint", "(none)") << "\n";
+      if (take.contains("alignment")) {
+        for (const auto& a : take["alignment"]) {
+          if (!a.value("ok", false)) out << "alignment " << a.dump() << "\n";
+        }
+      }
+    } else {
+      out << "no take summary on stdout\n";
+    }
+    const std::string log = ReadFile(run_dir_.path() + "/stage-sim.log");
+    out << "stage-sim.log (last 4000 characters):\n" << log.substr(log.size() > 4000 ? log.size() - 4000 : 0) << "\n";
+    out << "stderr:\n" << capture.err;
+    return out.str();
+  }
+
   // The running stage's endpoint file, which stagectl is pointed at.
   std::string Endpoints() const { return run_dir_.path() + "/endpoints.json"; }
 
