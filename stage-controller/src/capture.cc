@@ -1067,6 +1067,12 @@ std::vector<std::string> Capturer::LightFaults(Take& take) {
     } else if (disarmed[i].stats.take_faults_size() > 0) {
       faults.assign(disarmed[i].stats.take_faults().begin(), disarmed[i].stats.take_faults().end());
     }
+    // A node that went dark during the take (its watchdog, the board, an emergency stop): the frames after it are
+    // unlit, and the next take cannot arm it until it is reset.
+    if (disarmed[i].error.empty() && !disarmed[i].stats.blackout_reason().empty()) {
+      faults.push_back(absl::StrCat("went dark during the take (", disarmed[i].stats.blackout_reason(),
+                                    "); reset it before the next take (stagectl estop --reset)"));
+    }
     for (const std::string& f : faults) {
       Say(absl::StrCat("light node ", node_id, ": ", f));
       hints.push_back(absl::StrCat(node_id, ": ", f));

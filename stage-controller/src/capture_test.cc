@@ -292,11 +292,17 @@ class FakeLight final : public LightClient {
     std::lock_guard<std::mutex> lock(mu_);
     return gone_ ? absl::UnavailableError("connection refused") : absl::OkStatus();
   }
-  absl::Status Disarm(const v1::DisarmLightRequest&, SteadyTime, v1::LightStats*) override {
+  absl::Status Disarm(const v1::DisarmLightRequest&, SteadyTime, v1::LightStats* stats) override {
     std::lock_guard<std::mutex> lock(mu_);
     if (gone_) return absl::UnavailableError("connection refused");
     armed_ = false;
+    if (!blackout_reason_.empty()) stats->set_blackout_reason(blackout_reason_);
     return absl::OkStatus();
+  }
+  // The node went dark on its own during the take (as its watchdog does): its disarm answers with the reason.
+  void BlackOut(const std::string& reason) {
+    std::lock_guard<std::mutex> lock(mu_);
+    blackout_reason_ = reason;
   }
   absl::Status StartTable(const v1::StartTableRequest& r, SteadyTime) override {
     std::lock_guard<std::mutex> lock(mu_);
@@ -331,6 +337,7 @@ class FakeLight final : public LightClient {
   bool armed_ = false, gone_ = false, hold_arm_ = false, arming_ = false;
   bool refuse_start_ = false, waits_for_start_ = false;
   std::vector<int64_t> started_at_;
+  std::string blackout_reason_;
 };
 
 // The session owns its clients for a take; the fakes stay with the test, to be looked at after the take.
@@ -424,6 +431,7 @@ class CaptureSessionTest : public ::testing::Test {
       auto light = std::make_shared<FakeLight>();
       if (n.id() == slow_light_) light->HoldArm();
       if (n.id() == light_refuses_start_) light->RefuseStart();
+      if (n.id() == light_dark_) light->BlackOut(light_dark_reason_);
       std::lock_guard<std::mutex> lock(fakes_mu_);
       lights_[n.id()] = light;
       return std::make_unique<LightRef>(light);
@@ -485,7 +493,8 @@ class CaptureSessionTest : public ::testing::Test {
   std::map<std::string, std::shared_ptr<FakeCamera>> cameras_;
   std::map<std::string, std::shared_ptr<FakeLight>> lights_;
   std::string camera_gone_, camera_refuses_, slow_light_, light_refuses_start_;
-  std::mutex fakes_mu_;  // the session makes its clients (and the fakes) on its own thread
+  std::string light_dark_, light_dark_reason_;  // a light node that goes dark during the take, and why
+  std::mutex fakes_mu_;                         // the session makes its clients (and the fakes) on its own thread
   int64_t camera_gone_at_ = -1;
   int64_t free_running_late_ns_ = -1;  // >= 0: the generator runs free, its first edge this late
   std::thread capture_thread_;
@@ -719,6 +728,22 @@ TEST_F(CaptureSessionTest, ALightNodeLostMidTakeUnderAbort) {
       EXPECT_FALSE(light->armed()) << id;
     }
   }
+}
+
+// A light node that went dark during the take (its heartbeat watchdog tripped on a starved host) answers its disarm
+// with the reason: the take is degraded and says which node and why, though every frame was stored.
+TEST_F(CaptureSessionTest, ALightNodeThatWentDarkDuringTheTakeDegradesItByName) {
+  light_dark_ = "lights-gpio-2";
+  light_dark_reason_ = "controller heartbeat lost: none for 1000 ms while armed for take t";
+  Start();
+  v1::CaptureRequest request;
+  request.set_frames(2);
+  auto summary = capturer_->Capture(request, Recorder());
+  ASSERT_TRUE(summary.ok()) << summary.status();
+  EXPECT_EQ(summary->total().stored(), summary->total().expected());
+  EXPECT_EQ(summary->outcome(), v1::TAKE_OUTCOME_DEGRADED);
+  EXPECT_THAT(summary->hint(), HasSubstr("lights-gpio-2: went dark during the take (controller heartbeat lost: none "
+                                         "for 1000 ms while armed for take t); reset it"));
 }
 
 TEST_F(CaptureSessionTest, AGeneratorThatStopsEarlyDeclaresTheRestLost) {
