@@ -5,6 +5,7 @@
 #include <google/protobuf/util/json_util.h>
 #include <signal.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <memory>
@@ -104,6 +105,23 @@ class SimulatedStageTest : public ::testing::Test {
     } else {
       out << "no take summary on stdout\n";
     }
+    // The nodes' warnings and errors (a light node's watchdog, a camera that fell behind), but not the
+    // controller's health checks of nodes still starting.
+    std::vector<std::string> warnings;
+    std::error_code ec;
+    for (const auto& file : std::filesystem::directory_iterator(run_dir_.path() + "/logs", ec)) {
+      std::istringstream lines(ReadFile(file.path().string()));
+      for (std::string line; std::getline(lines, line);) {
+        const bool bad = line.find(" warning ") != std::string::npos || line.find(" error ") != std::string::npos;
+        if (bad && line.find("is unreachable") == std::string::npos) warnings.push_back(line.substr(0, 300));
+      }
+    }
+    // In time order (each line starts with its time), the latest 40: those nearest the take's end.
+    std::sort(warnings.begin(), warnings.end());
+    const size_t from = warnings.size() > 40 ? warnings.size() - 40 : 0;
+    out << warnings.size() << " warning(s) and error(s) in the nodes' logs" << (from > 0 ? ", the last 40" : "")
+        << ":\n";
+    for (size_t k = from; k < warnings.size(); ++k) out << "  " << warnings[k] << "\n";
     const std::string log = ReadFile(run_dir_.path() + "/stage-sim.log");
     out << "stage-sim.log (last 4000 characters):\n" << log.substr(log.size() > 4000 ? log.size() - 4000 : 0) << "\n";
     out << "stderr:\n" << capture.err;
