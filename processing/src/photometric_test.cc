@@ -231,22 +231,7 @@ TEST(PhotometricTest, SolvingAgainWhereTheGeometryChangedGivesTheFullSolvesMaps)
       changed += first->diffuse_normal_world.pixels[3 * i] != full->diffuse_normal_world.pixels[3 * i];
     }
     EXPECT_GT(changed, moved / 2) << "the new geometry hardly changes the maps: the test sees nothing";
-    const std::vector<std::pair<const char*, const Image PhotometricMaps::*>> images = {
-        {"diffuse_normal_world", &PhotometricMaps::diffuse_normal_world},
-        {"diffuse_normal_camera", &PhotometricMaps::diffuse_normal_camera},
-        {"albedo", &PhotometricMaps::albedo},
-        {"specular_normal_world", &PhotometricMaps::specular_normal_world},
-        {"specular_normal_camera", &PhotometricMaps::specular_normal_camera},
-        {"specular_normal_raw", &PhotometricMaps::specular_normal_raw},
-        {"specular", &PhotometricMaps::specular},
-        {"roughness", &PhotometricMaps::roughness},
-        {"specular_sigma", &PhotometricMaps::specular_sigma},
-        {"confidence", &PhotometricMaps::confidence},
-        {"fit_residual", &PhotometricMaps::fit_residual}};
-    for (const auto& [name, image] : images) {
-      EXPECT_EQ(((*again).*image).pixels, ((*full).*image).pixels) << name;
-    }
-    EXPECT_EQ(again->flags, full->flags);
+    ExpectSameMaps(*again, *full);
   }
 }
 

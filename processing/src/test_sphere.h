@@ -3,9 +3,11 @@
 #pragma once
 
 #include <cstdio>
+#include <cstring>
 #include <random>
 #include <vector>
 
+#include "gtest/gtest.h"
 #include "stage/common/ggx.h"
 #include "stage/processing/light_model.h"
 #include "stage/processing/photometric.h"
@@ -139,8 +141,8 @@ inline void Print(const char* label, const Errors& e) {
   std::printf(
       "%s: diffuse normal mean %.3f deg (max %.3f), albedo %.3f %% over %d pixels; specular normal %.3f deg, "
       "intensity %.2f %%, roughness %.4f over %d pixels (%d of %d whose mirror direction meets a unit)\n",
-      label, e.mean_deg, e.max_deg, 100 * e.albedo_rel, e.pixels, e.specular_deg, 100 * e.specular_rel,
-      e.roughness_abs, e.specular_pixels, e.mirrored_with_lobe, e.mirrored);
+      label, e.mean_deg, e.max_deg, 100 * e.albedo_rel, e.pixels, e.specular_deg, 100 * e.specular_rel, e.roughness_abs,
+      e.specular_pixels, e.mirrored_with_lobe, e.mirrored);
 }
 
 // The sphere as a Bayer sensor (RGGB, 12-bit) records it: each pixel keeps the colour it measures.
@@ -160,6 +162,31 @@ inline CycleFrames ToMosaic(const Sphere& s) {
     c.raw.push_back(std::move(raw));
   }
   return c;
+}
+
+// Every map and flag of two solves, byte for byte.
+inline void ExpectSameMaps(const PhotometricMaps& one, const PhotometricMaps& other) {
+  const std::pair<const char*, Image PhotometricMaps::*> maps[] = {
+      {"diffuse_normal_world", &PhotometricMaps::diffuse_normal_world},
+      {"diffuse_normal_camera", &PhotometricMaps::diffuse_normal_camera},
+      {"albedo", &PhotometricMaps::albedo},
+      {"specular_normal_world", &PhotometricMaps::specular_normal_world},
+      {"specular_normal_camera", &PhotometricMaps::specular_normal_camera},
+      {"specular_normal_raw", &PhotometricMaps::specular_normal_raw},
+      {"specular", &PhotometricMaps::specular},
+      {"roughness", &PhotometricMaps::roughness},
+      {"specular_sigma", &PhotometricMaps::specular_sigma},
+      {"confidence", &PhotometricMaps::confidence},
+      {"fit_residual", &PhotometricMaps::fit_residual}};
+  for (const auto& [name, map] : maps) {
+    const std::vector<float>& a = (one.*map).pixels;
+    const std::vector<float>& b = (other.*map).pixels;
+    ASSERT_EQ(a.size(), b.size()) << name;
+    size_t differ = 0;
+    for (size_t i = 0; i < a.size(); ++i) differ += std::memcmp(&a[i], &b[i], sizeof(float)) != 0;
+    EXPECT_EQ(differ, 0u) << name;
+  }
+  EXPECT_EQ(one.flags, other.flags);
 }
 
 }  // namespace stage::processing
