@@ -1067,9 +1067,13 @@ std::vector<std::string> Capturer::LightFaults(Take& take) {
     } else if (disarmed[i].stats.take_faults_size() > 0) {
       faults.assign(disarmed[i].stats.take_faults().begin(), disarmed[i].stats.take_faults().end());
     }
-    // A node that went dark during the take (its watchdog, the board, an emergency stop): the frames after it are
-    // unlit, and the next take cannot arm it until it is reset.
-    if (disarmed[i].error.empty() && !disarmed[i].stats.blackout_reason().empty()) {
+    // A node that went dark during the take on its own (its watchdog, its board): the frames after it are unlit, and
+    // the next take cannot arm it until it is reset. An emergency stop, which darkened every node and aborted the
+    // take, is said once by the abort, not once a node.
+    std::string estop_reason;
+    const bool estop = options_.estop != nullptr && options_.estop->latched(&estop_reason);
+    if (disarmed[i].error.empty() && !disarmed[i].stats.blackout_reason().empty() &&
+        !(estop && disarmed[i].stats.blackout_reason().find(estop_reason) != std::string::npos)) {
       faults.push_back(absl::StrCat("went dark during the take (", disarmed[i].stats.blackout_reason(),
                                     "); reset it before the next take (stagectl estop --reset)"));
     }
