@@ -3,6 +3,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <thread>
@@ -1004,6 +1005,13 @@ class PhotometricSolver::Pixels {
   // the lobe (twice the signal).
   void SubtractLobe(int x, int y, const UnitView& units, const SpecularFit& fit, const Eigen::Vector3f& v,
                     Scratch& s) const;
+  // The specular lobe of pixel (x, y) fitted (s.s, s.sw) from `units` seen along v; where it is measured, its maps
+  // and noise written into `m`, else kNoSpecular added to `flags` (kSpecularBadFit where the fit is poor).
+  SpecularFit FitLobe(int x, int y, const UnitView& units, const Eigen::Vector3f& diffuse_n, const Eigen::Vector3f& v,
+                      Scratch& s, uint8_t* flags, PhotometricMaps* m) const;
+  // Whether the units `units` leaves in sight of `point` give under half the full-on light a surface with normal n
+  // would get with nothing hidden.
+  bool Shadowed(const Eigen::Vector3f& point, const Eigen::Vector3f& n, const UnitView& units, Scratch& s) const;
 
   const LightModel& light_;
   const std::vector<Image>& frames_;
@@ -1116,6 +1124,49 @@ void PhotometricSolver::Pixels::SubtractLobe(int x, int y, const UnitView& units
   }
 }
 
+SpecularFit PhotometricSolver::Pixels::FitLobe(int x, int y, const UnitView& units, const Eigen::Vector3f& diffuse_n,
+                                               const Eigen::Vector3f& v, Scratch& s, uint8_t* flags,
+                                               PhotometricMaps* m) const {
+  const size_t i = static_cast<size_t>(y) * width() + x;
+  const float spec_snr = s.s[t_.full] * std::sqrt(s.sw[t_.full]);
+  // From the diffuse normal and from the lobe's centroid; fitted wherever it can be, faint or not: the diffuse solved
+  // again after it uses it.
+  std::vector<Eigen::Vector3f> starts = {diffuse_n};
+  const Eigen::Map<const Eigen::VectorXf> sv(s.s.data(), np_);
+  const Eigen::Vector4f mom = pm_.moments.topRows<4>() * sv;
+  if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
+    const Eigen::Vector3f r = mom.tail<3>().normalized();
+    if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
+  }
+  const SpecularFit fit = FitSpecular(units, pm_, s.s.data(), s.sw.data(), v, starts, spec_scale_);
+  const bool measured = fit.ok && internal::LobeMeasured(lobe_limits_, spec_snr, fit.var_n, fit.rho, fit.var_rho,
+                                                         fit.var_log_alpha, fit.alpha);
+  if (!measured) {
+    *flags |= kNoSpecular;
+    return fit;
+  }
+  if (fit.chi2 > 4) *flags |= kSpecularBadFit;
+  std::copy(fit.n.data(), fit.n.data() + 3, m->specular_normal_raw.at(x, y));
+  m->specular.at(x, y)[0] = fit.rho;
+  m->roughness.at(x, y)[0] = fit.alpha;
+  internal::Work(m, internal::kVarNormal)[i] = fit.var_n;
+  m->specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
+  internal::Work(m, internal::kVarLogAlpha)[i] = fit.var_log_alpha;
+  return fit;
+}
+
+bool PhotometricSolver::Pixels::Shadowed(const Eigen::Vector3f& point, const Eigen::Vector3f& n, const UnitView& units,
+                                         Scratch& s) const {
+  light_.ViewFrom(point.cast<double>(), nullptr, &s.open_view);
+  float all = 0, seen = 0;
+  for (size_t l = 0; l < s.open_view.gain.size(); ++l) {
+    const float cosine = std::max(0.f, n.dot(s.open_view.direction[l]));
+    all += s.open_view.gain[l] * cosine;
+    seen += units.gain[l] * cosine;
+  }
+  return seen < 0.5f * all;
+}
+
 void PhotometricSolver::Pixels::Solve(int x, int y, const PixelGeometry* geometry, Scratch& s,
                                       PhotometricMaps* maps) const {
   PhotometricMaps& m = *maps;
@@ -1145,32 +1196,10 @@ void PhotometricSolver::Pixels::Solve(int x, int y, const PixelGeometry* geometr
     return;
   }
 
-  // Specular: the lobe fitted to parallel - cross, from the diffuse normal and from the lobe's centroid.
+  // Specular: the lobe fitted to parallel - cross, seen along the pixel's ray.
   const Eigen::Vector3f v = camera_.rays.empty() ? Eigen::Vector3f((camera_position_ - point).normalized())
                                                  : Eigen::Vector3f(-camera_.rays[i]);
-  const float spec_snr = s.s[t_.full] * std::sqrt(s.sw[t_.full]);
-  // Fitted wherever it can be, faint or not: the diffuse below uses it.
-  std::vector<Eigen::Vector3f> starts = {diffuse.n};
-  const Eigen::Map<const Eigen::VectorXf> sv(s.s.data(), np_);
-  const Eigen::Vector4f mom = pm_.moments.topRows<4>() * sv;
-  if (mom[0] > 0 && mom.tail<3>().norm() > 1e-6f) {
-    const Eigen::Vector3f r = mom.tail<3>().normalized();
-    if ((r + v).norm() > 1e-3f) starts.push_back((r + v).normalized());
-  }
-  const SpecularFit fit = FitSpecular(units, pm_, s.s.data(), s.sw.data(), v, starts, spec_scale_);
-  const bool measured = fit.ok && internal::LobeMeasured(lobe_limits_, spec_snr, fit.var_n, fit.rho, fit.var_rho,
-                                                         fit.var_log_alpha, fit.alpha);
-  if (!measured) {
-    flags |= kNoSpecular;
-  } else {
-    if (fit.chi2 > 4) flags |= kSpecularBadFit;
-    std::copy(fit.n.data(), fit.n.data() + 3, m.specular_normal_raw.at(x, y));
-    m.specular.at(x, y)[0] = fit.rho;
-    m.roughness.at(x, y)[0] = fit.alpha;
-    internal::Work(&m, internal::kVarNormal)[i] = fit.var_n;
-    m.specular_sigma.at(x, y)[0] = std::sqrt(fit.var_n) * 180 / kPi;
-    internal::Work(&m, internal::kVarLogAlpha)[i] = fit.var_log_alpha;
-  }
+  const SpecularFit fit = FitLobe(x, y, units, diffuse.n, v, s, &flags, &m);
   const float full_on = s.d[t_.full];  // the cross full-on, for the confidence
   // Solved again from both polarizations, less the fitted lobe: the lobe fitted to 19 images stands for the specular in
   // each with a fraction of the noise of parallel - cross itself, measured or not (a faint lobe is fitted as faint,
@@ -1182,17 +1211,7 @@ void PhotometricSolver::Pixels::Solve(int x, int y, const PixelGeometry* geometr
   }
   const Eigen::Vector3f n = diffuse.n;
   if (diffuse.chi2 > 4) flags |= kBadFit;
-  if (exact) {
-    // Shadow: the share of the full-on light nothing hides from the point.
-    light_.ViewFrom(point.cast<double>(), nullptr, &s.open_view);
-    float all = 0, seen = 0;
-    for (size_t l = 0; l < s.open_view.gain.size(); ++l) {
-      const float cosine = std::max(0.f, n.dot(s.open_view.direction[l]));
-      all += s.open_view.gain[l] * cosine;
-      seen += units.gain[l] * cosine;
-    }
-    if (seen < 0.5f * all) flags |= kShadowed;
-  }
+  if (exact && Shadowed(point, n, units, s)) flags |= kShadowed;
   const Eigen::Vector3f nc = to_camera_ * n;
   std::copy(n.data(), n.data() + 3, m.diffuse_normal_world.at(x, y));
   std::copy(nc.data(), nc.data() + 3, m.diffuse_normal_camera.at(x, y));
@@ -1209,10 +1228,22 @@ void PhotometricSolver::Pixels::Solve(int x, int y, const PixelGeometry* geometr
 
 namespace {
 
+// The maps a pixel's fit writes (the regularized specular normals are the passes' own), zero where nothing is solved.
+std::array<Image*, 9> FitImages(PhotometricMaps* m) {
+  return {&m->diffuse_normal_world,
+          &m->diffuse_normal_camera,
+          &m->albedo,
+          &m->specular_normal_raw,
+          &m->specular,
+          &m->roughness,
+          &m->specular_sigma,
+          &m->confidence,
+          &m->fit_residual};
+}
+
 // Pixel i's outputs in `m` (and its working memory) zero, as a solve starts from.
 void ClearPixel(size_t i, PhotometricMaps* m) {
-  for (Image* image : {&m->diffuse_normal_world, &m->diffuse_normal_camera, &m->albedo, &m->specular_normal_raw,
-                       &m->specular, &m->roughness, &m->specular_sigma, &m->confidence, &m->fit_residual}) {
+  for (Image* image : FitImages(m)) {
     const size_t c = static_cast<size_t>(image->channels);
     std::fill_n(&image->pixels[c * i], c, 0.f);
   }
@@ -1296,11 +1327,7 @@ absl::StatusOr<PhotometricMaps> PhotometricSolver::Solve(const PixelGeometry* ge
   if (absl::Status s = CheckGeometry(geometry); !s.ok()) return s;
   internal::PrepareMaps(pixels_->width(), pixels_->height(), &fits_);
   // The maps are zero where nothing is solved.
-  for (Image* image :
-       {&fits_.diffuse_normal_world, &fits_.diffuse_normal_camera, &fits_.albedo, &fits_.specular_normal_raw,
-        &fits_.specular, &fits_.roughness, &fits_.specular_sigma, &fits_.confidence, &fits_.fit_residual}) {
-    std::fill(image->pixels.begin(), image->pixels.end(), 0.f);
-  }
+  for (Image* image : FitImages(&fits_)) std::fill(image->pixels.begin(), image->pixels.end(), 0.f);
   std::fill(fits_.flags.begin(), fits_.flags.end(), 0);
   internal::Work(&fits_, internal::kVarNormal);  // sized here, before the threads write it
   std::fill(fits_.work.begin(), fits_.work.end(), 0.f);

@@ -380,7 +380,7 @@ int Dispatch(int argc, char** argv) {
   photometric
       ->add_option("--geometry-refill-passes", job.options.geometry_refill_passes,
                    "With geometry: then the pixels so placed are placed again on the surface the solved normals "
-                   "describe, and the image solved again, this many times; 0: none")
+                   "describe and solved again, this many times; 0: none")
       ->capture_default_str()
       ->check(CLI::Range(0, 4));
   photometric->add_flag("--exact", job.exact,

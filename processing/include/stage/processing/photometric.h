@@ -136,7 +136,8 @@ struct PhotometricOptions {
   // is left without a point (docs/geometry.md).
   int geometry_fill_px = 128;
   // Then, this many times, the placed pixels are placed again on the surface the solved normals describe
-  // (RefillGeometry) and the image solved again; 0: they keep their neighbours' distance. Default 1; at most 4.
+  // (RefillGeometry) and solved again (PhotometricSolver::SolveAgain); 0: they keep their neighbours' distance. Default
+  // 1; at most 4.
   int geometry_refill_passes = 1;
   // Worker threads; 0: one per core. Results do not depend on it.
   int threads = 0;
