@@ -1308,8 +1308,7 @@ void PhotometricSolver::SolvePixels(const PixelGeometry* geometry, const std::ve
   });
 }
 
-PhotometricMaps PhotometricSolver::Finish() const {
-  PhotometricMaps m = fits_;
+PhotometricMaps PhotometricSolver::Finish(PhotometricMaps m) const {
   const PhotometricCamera& camera = pixels_->camera();
   const PhotometricOptions& options = pixels_->options();
   if (camera.mosaic.has_value()) {
@@ -1323,7 +1322,7 @@ PhotometricMaps PhotometricSolver::Finish() const {
   return m;
 }
 
-absl::StatusOr<PhotometricMaps> PhotometricSolver::Solve(const PixelGeometry* geometry) {
+absl::StatusOr<PhotometricMaps> PhotometricSolver::Solve(const PixelGeometry* geometry, bool again) {
   if (absl::Status s = CheckGeometry(geometry); !s.ok()) return s;
   internal::PrepareMaps(pixels_->width(), pixels_->height(), &fits_);
   // The maps are zero where nothing is solved.
@@ -1332,20 +1331,23 @@ absl::StatusOr<PhotometricMaps> PhotometricSolver::Solve(const PixelGeometry* ge
   internal::Work(&fits_, internal::kVarNormal);  // sized here, before the threads write it
   std::fill(fits_.work.begin(), fits_.work.end(), 0.f);
   SolvePixels(geometry, nullptr);
-  solved_ = true;
-  return Finish();
+  solved_ = again;
+  return Finish(again ? fits_ : std::move(fits_));
 }
 
 absl::StatusOr<PhotometricMaps> PhotometricSolver::SolveAgain(const PixelGeometry& geometry,
                                                               const std::vector<uint8_t>& redo) {
-  if (!solved_) return absl::FailedPreconditionError("photometric stereo: solved again before it was solved once");
+  if (!solved_) {
+    return absl::FailedPreconditionError(
+        "photometric stereo: solved again before it was solved once to be solved again");
+  }
   if (absl::Status s = CheckGeometry(&geometry); !s.ok()) return s;
   if (redo.size() != fits_.flags.size()) {
     return absl::InvalidArgumentError(
         absl::StrCat("photometric stereo: ", redo.size(), " pixels to solve again of ", fits_.flags.size()));
   }
   SolvePixels(&geometry, &redo);
-  return Finish();
+  return Finish(fits_);
 }
 
 absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const std::vector<Image>& frames,
@@ -1353,7 +1355,7 @@ absl::StatusOr<PhotometricMaps> SolvePhotometric(const LightModel& light, const 
                                                  const PixelGeometry* geometry) {
   auto solver = PhotometricSolver::Create(light, frames, camera, options);
   if (!solver.ok()) return solver.status();
-  return (*solver)->Solve(geometry);
+  return (*solver)->Solve(geometry, /*again=*/false);
 }
 
 }  // namespace stage::processing

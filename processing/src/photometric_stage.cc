@@ -311,9 +311,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto solver = PhotometricSolver::Create(*light, *frames, c.setup.camera, job.options);
         if (!solver.ok()) return solver.status();
-        auto maps = (*solver)->Solve(mesh != nullptr ? &geometry : nullptr);
-        for (int pass = 0;
-             mesh != nullptr && geometry_filled > 0 && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
+        const bool refill = mesh != nullptr && geometry_filled > 0 && job.options.geometry_refill_passes > 0;
+        auto maps = (*solver)->Solve(mesh != nullptr ? &geometry : nullptr, /*again=*/refill);
+        for (int pass = 0; refill && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
           auto refilled =
               RefillGeometry(*mesh, c.setup.camera, *light, maps->diffuse_normal_world, job.options, &geometry);
           if (!refilled.ok()) {

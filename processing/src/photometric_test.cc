@@ -221,6 +221,9 @@ TEST(PhotometricTest, SolvingAgainWhereTheGeometryChangedGivesTheFullSolvesMaps)
     auto solver = PhotometricSolver::Create(light, s.frames, s.camera, options);
     ASSERT_TRUE(solver.ok()) << solver.status();
     EXPECT_EQ((*solver)->SolveAgain(after, after.placed).status().code(), absl::StatusCode::kFailedPrecondition);
+    // Solved without keeping its fits (as SolvePhotometric does): it cannot be solved again either.
+    ASSERT_TRUE((*solver)->Solve(&before, /*again=*/false).ok());
+    EXPECT_EQ((*solver)->SolveAgain(after, after.placed).status().code(), absl::StatusCode::kFailedPrecondition);
     auto first = (*solver)->Solve(&before);
     ASSERT_TRUE(first.ok()) << first.status();
     EXPECT_EQ((*solver)->SolveAgain(after, {1, 0}).status().code(), absl::StatusCode::kInvalidArgument);

@@ -213,9 +213,11 @@ class PhotometricSolver {
                                                                    const PhotometricCamera& camera,
                                                                    const PhotometricOptions& options);
   ~PhotometricSolver();
-  // Every pixel, with `geometry` (optional; the images' size) as SolvePhotometric.
-  absl::StatusOr<PhotometricMaps> Solve(const PixelGeometry* geometry);
-  // After Solve: the pixels `redo` marks (non-zero; one per pixel) fitted again at `geometry`, the others' fits kept.
+  // Every pixel, with `geometry` (optional; the images' size) as SolvePhotometric. `again`: SolveAgain may follow (the
+  // per-pixel fits are kept, memory of the maps' size); without it the fits become the maps, uncopied.
+  absl::StatusOr<PhotometricMaps> Solve(const PixelGeometry* geometry, bool again = true);
+  // After Solve(..., again): the pixels `redo` marks (non-zero; one per pixel) fitted again at `geometry`, the others'
+  // fits kept.
   absl::StatusOr<PhotometricMaps> SolveAgain(const PixelGeometry& geometry, const std::vector<uint8_t>& redo);
 
  private:
@@ -223,8 +225,8 @@ class PhotometricSolver {
   explicit PhotometricSolver(std::unique_ptr<Pixels> pixels);
   absl::Status CheckGeometry(const PixelGeometry* geometry) const;
   void SolvePixels(const PixelGeometry* geometry, const std::vector<uint8_t>* only);
-  // The maps from fits_: the passes over neighbourhoods on a copy.
-  PhotometricMaps Finish() const;
+  // The maps from per-pixel fits (fits_, a copy or moved): the passes over neighbourhoods run on them.
+  PhotometricMaps Finish(PhotometricMaps m) const;
 
   std::unique_ptr<Pixels> pixels_;
   PhotometricMaps fits_;  // each pixel's own fit, before the passes over neighbourhoods
