@@ -216,10 +216,11 @@ TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
     single_albedo = std::min(single_albedo, one->albedo_mean);
     single_specular = std::min(single_specular, one->specular_median);
   }
-  // Measured (2026-11-28): 247,298 texels; albedo 0.79 % (1.01 % where one view sees the skin, 38 % of the texels;
-  // 0.70 % where two do, 0.57 % where three do), each view alone 0.82-0.87 %; diffuse normals 0.86 deg (each alone
-  // 0.97-1.00); specular normals 3.49 deg mean, 2.23 median on 65,798 texels with a lobe (each alone 3.64-4.00);
-  // intensity median 5.2 % (each alone 6.5-6.7 %). docs/assets.md#fusing-the-photometric-solves has the why.
+  // Measured (2026-12-03): 247,298 texels; albedo 0.79 % (1.01 % where one view sees the skin, 38 % of the texels;
+  // 0.70 % where two do, 0.56 % where three do), each view alone 0.82-0.87 %; diffuse normals 0.86 deg (each alone
+  // 0.97-1.00); specular normals 2.76 deg mean, 2.18 median on 64,664 texels with a lobe (each alone 3.28-3.51;
+  // 3.49 and 3.64-4.00 while near-singular lobe fits reported a variance of zero); intensity median 5.1 % (each alone
+  // 6.4-6.6 %). docs/assets.md#fusing-the-photometric-solves has the why.
   EXPECT_GT(all->texels, options.size * options.size * 4 / 5);
   EXPECT_LT(all->albedo_mean, 0.0085);
   EXPECT_LT(all->albedo_mean, single_albedo);
@@ -227,7 +228,7 @@ TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
   EXPECT_GT(by_views[1].albedo_mean, by_views[3].albedo_mean);
   EXPECT_LT(all->normal_mean_deg, 1.2);  // the goal
   EXPECT_LT(all->specular_normal_median_deg, 2.5);
-  EXPECT_LT(all->specular_normal_mean_deg, 5);  // the goal of 2.5 deg is not met on the mean
+  EXPECT_LT(all->specular_normal_mean_deg, 3.1);  // the goal of 2.5 deg is not met on the mean
   EXPECT_GT(all->specular_texels, all->texels / 5);
   EXPECT_LT(all->specular_median, single_specular);
 }
