@@ -50,6 +50,31 @@ FusedTextures FuseTruth(const sim::SimScene& scene, int64_t frame, const Triangl
   return fused.ok() ? *std::move(fused) : FusedTextures{};
 }
 
+// Where on the truth's skin each of `points` (stage frame, near the truth's surface) lies: the layout uv whose point on
+// `truth_map` (MakeGeometryMap of the truth, stage frame) is nearest, by Gauss-Newton from `guess` (where it belongs).
+std::vector<Eigen::Vector2f> SkinPointsUnder(const GeometryMap& truth_map, const std::vector<Eigen::Vector3f>& points,
+                                             const std::vector<Eigen::Vector2f>& guess) {
+  std::vector<Eigen::Vector2f> uvs = guess;
+  const float du = 1.0f / static_cast<float>(truth_map.size);
+  for (size_t i = 0; i < points.size(); ++i) {
+    Eigen::Vector2f uv = guess[i];
+    for (int it = 0; it < 20; ++it) {
+      const auto p = SampleGeometryMap(truth_map, uv), pu = SampleGeometryMap(truth_map, uv + Eigen::Vector2f(du, 0)),
+                 pv = SampleGeometryMap(truth_map, uv + Eigen::Vector2f(0, du));
+      if (!p || !pu || !pv) break;
+      Eigen::Matrix<float, 3, 2> j;
+      j.col(0) = (*pu - *p) / du;
+      j.col(1) = (*pv - *p) / du;
+      const Eigen::Vector2f step = (j.transpose() * j).ldlt().solve(j.transpose() * (points[i] - *p));
+      if (!step.allFinite()) break;
+      uv += step.cwiseMax(-8 * du).cwiseMin(8 * du);
+      if (step.norm() < 0.01f * du) break;
+    }
+    uvs[i] = uv;
+  }
+  return uvs;
+}
+
 TEST(StabilizeSimTest, TheFlowAndTheUNetHoldTheTexturesOfASlidingFitStill) {
   auto face = ShippedFaceTemplate();
   ASSERT_TRUE(face.ok()) << face.status();
@@ -62,8 +87,12 @@ TEST(StabilizeSimTest, TheFlowAndTheUNetHoldTheTexturesOfASlidingFitStill) {
   const sim::HeadModel& head = *(*scene)->head();
   constexpr int kSize = 256;
   const std::vector<int64_t> frames = {0, 12, 24, 36};  // half a second apart at 24 frames a second
-  std::vector<FusedTextures> fitted, placed;
+  std::vector<FusedTextures> fitted, placed, followed;
   std::vector<sim::HeadPose> poses;
+  // The skin points the first frame's fit lies on (the layout's uv of each vertex's point on the truth): the textures
+  // stabilized onto that frame's are those points' textures, and `followed` fuses the truth through a template on
+  // the same points in every frame, the reference for how much the wrinkles bend there.
+  std::vector<Eigen::Vector2f> skin_points;
   TemplateFit previous = StartAt(*face, Eigen::Isometry3f::Identity());
   for (int64_t frame : frames) {
     const sim::HeadPose pose = (*scene)->PoseAt(frame);
@@ -80,6 +109,22 @@ TEST(StabilizeSimTest, TheFlowAndTheUNetHoldTheTexturesOfASlidingFitStill) {
     auto on_truth = TemplateOnTruth(*face, truth);
     ASSERT_TRUE(on_truth.ok());
     placed.push_back(FuseTruth(**scene, frame, *on_truth, fit->stage_from_head.inverse(), kSize));
+    auto truth_map = MakeGeometryMap(truth, Eigen::Isometry3f::Identity(), {.size = 2048, .dilation_px = 2});
+    ASSERT_TRUE(truth_map.ok()) << truth_map.status();
+    if (skin_points.empty()) {
+      std::vector<Eigen::Vector2f> belongs;
+      for (const Eigen::Vector2f& uv : face->mesh.uvs) belongs.push_back(face->HeadLayoutUv(uv));
+      skin_points = SkinPointsUnder(*truth_map, fit->positions, belongs);
+    }
+    TriangleMesh on_points = face->mesh;
+    size_t off_layout = 0;  // vertices whose skin point the layout does not cover (kept where the fit has them)
+    for (size_t v = 0; v < on_points.positions.size(); ++v) {
+      const auto p = SampleGeometryMap(*truth_map, skin_points[v]);
+      on_points.positions[v] = p ? *p : fit->positions[v];
+      off_layout += !p;
+    }
+    ASSERT_LT(off_layout * 100, on_points.positions.size()) << frame;
+    followed.push_back(FuseTruth(**scene, frame, on_points, fit->stage_from_head.inverse(), kSize));
     std::printf("frame %lld: the fit slides %.2f mm rms along the skin\n", static_cast<long long>(frame),
                 e->skin.sliding_rmse_mm);
     previous = *std::move(fit);
@@ -133,34 +178,40 @@ TEST(StabilizeSimTest, TheFlowAndTheUNetHoldTheTexturesOfASlidingFitStill) {
       stabilized += j;
       truth += t;
       before = s.textures;
-      // Wrinkles: where the expression bends the skin's normals since the first frame (by more than 2 deg with the
-      // template where it belongs), how far they bend in the stabilized textures and in those.
-      double bent_truth = 0, bent_stabilized = 0;
+      // Wrinkles: where the expression bends the skin's normals since the first frame by more than 2 deg, at the skin
+      // points the stabilized textures hold (those under the first frame's fit: `followed`), how far they bend in the
+      // stabilized textures. (Measured at the points where the template belongs instead, 4.5 mm from those, the
+      // texels picked for bending most there bent less at the points the textures hold: 0.75 of it in frames 0-12.)
+      double bent_truth = 0, bent_stabilized = 0, bent_fused = 0;
       int64_t bent = 0;
       for (size_t i = 0; i < still.size(); ++i) {
-        if (placed[0].state[i] != TexelState::kCovered || placed[k].state[i] != TexelState::kCovered ||
-            s.textures.state[i] != TexelState::kCovered || fitted[0].state[i] != TexelState::kCovered) {
+        if (followed[0].state[i] != TexelState::kCovered || followed[k].state[i] != TexelState::kCovered ||
+            s.textures.state[i] != TexelState::kCovered || fitted[0].state[i] != TexelState::kCovered ||
+            fitted[k].state[i] != TexelState::kCovered) {
           continue;
         }
         auto angle = [&](const FusedTextures& a, const FusedTextures& b) {
           const float *p = &a.normal_object.pixels[3 * i], *q = &b.normal_object.pixels[3 * i];
           return AngleDeg(Eigen::Vector3d(p[0], p[1], p[2]), Eigen::Vector3d(q[0], q[1], q[2]));
         };
-        const double t_angle = angle(placed[0], placed[k]);
+        const double t_angle = angle(followed[0], followed[k]);
         if (t_angle < 2) continue;
         bent_truth += t_angle;
         bent_stabilized += angle(fitted[0], s.textures);
+        bent_fused += angle(fitted[0], fitted[k]);
         ++bent;
       }
+      const double n_bent = static_cast<double>(std::max<int64_t>(1, bent));
       std::printf(
-          "  wrinkles: %lld texels bent over 2 deg since frame 0, by %.2f deg on average; stabilized %.2f deg\n",
-          static_cast<long long>(bent), bent_truth / std::max<int64_t>(1, bent),
-          bent_stabilized / std::max<int64_t>(1, bent));
-      // Kept, not flattened (measured, flow: 0.75, 1.01 and 1.06 of the bend with the template where it belongs;
-      // U-Net: 0.77, 0.95 and 1.06).
+          "  wrinkles: %lld texels bent over 2 deg since frame 0, by %.2f deg on average; stabilized %.2f deg (%.2f of "
+          "it), as fused %.2f\n",
+          static_cast<long long>(bent), bent_truth / n_bent, bent_stabilized / n_bent,
+          bent_stabilized / std::max(1e-9, bent_truth), bent_fused / n_bent);
+      // Kept, not flattened: the goal is within 10 % (measured 2026-12-03, flow: 0.92, 1.06 and 0.99 of the truth's
+      // bend; U-Net: 0.91, 1.01 and 0.98).
       EXPECT_GT(bent, 1000);
-      EXPECT_GT(bent_stabilized, 0.7 * bent_truth) << frames[k];
-      EXPECT_LT(bent_stabilized, 1.3 * bent_truth) << frames[k];
+      EXPECT_GT(bent_stabilized, 0.85 * bent_truth) << frames[k];
+      EXPECT_LT(bent_stabilized, 1.15 * bent_truth) << frames[k];
     }
     std::printf("mean jitter: %.2f %% as fused, %.2f %% stabilized (%.1fx less), %.2f %% without sliding\n",
                 100 * raw / 3, 100 * stabilized / 3, raw / std::max(1e-9, stabilized), 100 * truth / 3);
