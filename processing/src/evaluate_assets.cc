@@ -101,6 +101,8 @@ absl::StatusOr<TexturesRun> LoadTexturesRun(const std::string& take, const std::
   f.size = o.value("size", f.size);
   f.part = o.value("part", f.part);
   f.max_view_angle_deg = o.value("max_view_angle_deg", f.max_view_angle_deg);
+  // A run written before the option existed fused lobes as far as the other maps.
+  f.max_lobe_view_angle_deg = o.value("max_lobe_view_angle_deg", f.max_view_angle_deg);
   f.min_confidence = o.value("min_confidence", f.min_confidence);
   f.feather_px = o.value("feather_px", f.feather_px);
   f.occlusion_mm = o.value("occlusion_mm", f.occlusion_mm);

@@ -42,6 +42,7 @@ struct PreparedView {
   Eigen::Vector3f centre = Eigen::Vector3f::Zero();  // the camera's, stage frame
   Eigen::Vector3f axis = Eigen::Vector3f::UnitZ();   // its optical axis
   float cos_max = 0;                                 // of the options' largest view angle
+  float cos_lobe_max = 0;                            // of the largest a lobe is fused from
   std::vector<float> depth;                          // camera z of the mesh's first surface, mm
   std::vector<float> feather;                        // 0..1
 };
@@ -52,6 +53,7 @@ PreparedView Prepare(const FusionView& view, const TriangleMesh& mesh, const Fus
   p.centre = view.camera.position().cast<float>();
   p.axis = view.camera.optical_axis().cast<float>();
   p.cos_max = static_cast<float>(std::cos(o.max_view_angle_deg * M_PI / 180));
+  p.cos_lobe_max = static_cast<float>(std::cos(o.max_lobe_view_angle_deg * M_PI / 180));
   p.depth = DepthBuffer(mesh, view.camera);
   const int w = view.camera.width(), h = view.camera.height();
   cv::Mat usable(h, w, CV_8U, cv::Scalar(0));
@@ -185,7 +187,9 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
   }
   acc->weight[t] += weight;
   // The lobe's maps only from pixels where the view measured a lobe (its specular normal solved; a view without
-  // specular normals: every pixel), or the unmeasured pixels' zeros would darken the intensity near their edge.
+  // specular normals: every pixel), or the unmeasured pixels' zeros would darken the intensity near their edge; and
+  // only from a view that sees the point squarely enough for its lobe to be unbiased.
+  if (cos_view <= pv.cos_lobe_max) return true;
   Taps lobe = taps;
   if (v.specular_normal.width > 0 &&
       !MakeTaps(
@@ -423,6 +427,9 @@ absl::Status FusionOptions::Validate() const {
   if (part < -1 || part > 255) return bad(absl::StrCat("part ", part, " is not -1 (every part) or a part"));
   if (!(max_view_angle_deg >= 1 && max_view_angle_deg <= 89)) {
     return bad(absl::StrCat("max_view_angle_deg ", max_view_angle_deg, " is not in 1..89"));
+  }
+  if (!(max_lobe_view_angle_deg >= 1 && max_lobe_view_angle_deg <= 89)) {
+    return bad(absl::StrCat("max_lobe_view_angle_deg ", max_lobe_view_angle_deg, " is not in 1..89"));
   }
   if (!(min_confidence >= 0 && min_confidence <= 1)) {
     return bad(absl::StrCat("min_confidence ", min_confidence, " is not in 0..1"));

@@ -328,6 +328,53 @@ TEST(TextureFusionTest, LobesComeFromWhereTheyWereMeasuredAndOutliersAreFilled) 
   EXPECT_LT(fused->lobes_rejected, 40);
 }
 
+// A view's lobe counts only where the view sees the surface within max_lobe_view_angle_deg of its normal: one camera
+// in front of the sheet, lobes measured everywhere it looks, the lobe angle 20 deg; the diffuse maps go to 75 deg.
+TEST(TextureFusionTest, ALobeSeenTooObliquelyIsNotFused) {
+  Scene s = MakeScene(/*occluder=*/false);
+  FusionView v = s.views[1];  // the centre camera, on the sheet's axis at 500 mm
+  ASSERT_EQ(v.camera_id, "centre");
+  const int w = v.camera.width(), h = v.camera.height();
+  v.specular = Image(w, h, 1);
+  v.roughness = Image(w, h, 1);
+  v.specular_normal = v.diffuse_normal;
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      v.specular.at(x, y)[0] = 0.04f;
+      v.roughness.at(x, y)[0] = 0.3f;
+    }
+  }
+  FusionOptions o = Small();
+  o.max_lobe_view_angle_deg = 20;
+  auto fused = FuseTextures(s.mesh, Eigen::Isometry3f::Identity(), {v}, o);
+  ASSERT_TRUE(fused.ok()) << fused.status();
+  int within = 0, beyond = 0;
+  for (int y = 0; y < o.size; ++y) {
+    for (int x = 0; x < o.size; ++x) {
+      const size_t t = static_cast<size_t>(y) * o.size + x;
+      if (fused->state[t] != TexelState::kCovered) continue;
+      // The texel's point on the sheet and the angle at which the camera sees it.
+      const Eigen::Vector2f uv = TexelUv(x, y, o.size);
+      const float a = (2 * uv.x() - 1) * kHalfAngle, height = (2 * uv.y() - 1) * kHalfHeight;
+      const Eigen::Vector3f point(kRadius * std::sin(a), height, kRadius * std::cos(a)),
+          normal(std::sin(a), 0, std::cos(a));
+      const double angle = AngleDeg(normal.cast<double>(), (v.camera.position().cast<float>() - point).cast<double>());
+      if (angle < 18) {
+        ++within;
+        EXPECT_GT(fused->specular_weight.pixels[t], 0) << x << "," << y << ": seen at " << angle << " deg";
+      } else if (angle > 22) {
+        ++beyond;
+        EXPECT_EQ(fused->specular_weight.pixels[t], 0) << x << "," << y << ": seen at " << angle << " deg";
+        EXPECT_GT(fused->weight.pixels[t], 0);  // its diffuse maps are fused
+      }
+    }
+  }
+  EXPECT_GT(within, 500);
+  EXPECT_GT(beyond, 500);
+  o.max_lobe_view_angle_deg = 0;
+  EXPECT_THAT(std::string(FuseTextures(s.mesh, {}, {v}, o).status().message()), HasSubstr("max_lobe_view_angle_deg"));
+}
+
 // Lobes measured only at scattered pixels (every 9th column of every 9th row): no cell of the layout is a quarter
 // measured, and the lobes measured still say what the rest is; none is taken for an outlier.
 TEST(TextureFusionTest, ScatteredLobesStillFillTheRest) {

@@ -95,6 +95,7 @@ std::string RunJson(const TexturesJob& job, const std::vector<std::string>& came
   run["options"] = {{"size", o.size},
                     {"part", o.part},
                     {"max_view_angle_deg", o.max_view_angle_deg},
+                    {"max_lobe_view_angle_deg", o.max_lobe_view_angle_deg},
                     {"min_confidence", o.min_confidence},
                     {"feather_px", o.feather_px},
                     {"occlusion_mm", o.occlusion_mm},

@@ -233,6 +233,11 @@ struct TexturesCommand {
                     "Views seeing the surface more obliquely weigh nothing, degrees")
         ->capture_default_str()
         ->check(CLI::Range(1.0, 89.0));
+    app->add_option("--max-lobe-view-angle-deg", job.options.max_lobe_view_angle_deg,
+                    "A view's specular lobe is fused only where it sees the surface within this angle of its normal "
+                    "(more obliquely, the solve's specular normal tilts towards the camera), degrees")
+        ->capture_default_str()
+        ->check(CLI::Range(1.0, 89.0));
     app->add_option("--feather-px", job.options.feather_px,
                     "A view's weight rises to full over this many of its pixels from the edge of what it sees")
         ->capture_default_str()
