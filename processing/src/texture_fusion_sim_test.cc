@@ -3,6 +3,7 @@
 // the head's own textures at every texel (docs/assets.md#texture-fusion).
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 
 #include "absl/strings/str_cat.h"
@@ -194,6 +195,15 @@ TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
   };
   const FusedTextures solved = fuse({0, 1, 2}, false), truth = fuse({0, 1, 2}, true);
   ASSERT_EQ(solved.size, options.size);
+  // FASTAGE_FUSION_DIR=DIR: the fused solves and the truth written as the textures stage writes them (DIR/solved,
+  // DIR/truth; the contact sheet in docs/assets.md is DIR/solved's).
+  if (const char* dir = std::getenv("FASTAGE_FUSION_DIR")) {
+    for (const auto& [name, textures] : {std::pair{"solved", &solved}, std::pair{"truth", &truth}}) {
+      const std::string path = absl::StrCat(dir, "/", name);
+      ASSERT_TRUE(WriteFusedTextures(path, *textures, "{}", absl::StrCat("three views fused (", name, ")")).ok())
+          << path;
+    }
+  }
   auto all = CompareTextures(solved, truth);
   ASSERT_TRUE(all.ok()) << all.status();
   PrintErrors("three views fused", *all);
