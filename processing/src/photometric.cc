@@ -486,10 +486,10 @@ struct SpecularFit {
 };
 
 constexpr float kMinAlpha = internal::kMinLobeAlpha, kMaxAlpha = 1.5f;
-// The smallest eigenvalue of a lobe fit's information, relative to its largest, below which the fit's parameters are
-// not determined (its variances infinite): the Jacobian's finite differences of float images (steps of 2e-3) carry
-// about 5e-5 of its scale, so a singular value under that share of the largest (eigenvalues under ~3e-9) is theirs.
-// The figures do not move between 1e-10 and 1e-8.
+// The smallest eigenvalue of a lobe fit's information (its parameters scaled to unit information each), relative to its
+// largest, below which the fit's parameters are not determined (its variances infinite): the Jacobian's finite
+// differences of float images (steps of 2e-3) carry about 5e-5 of each column's scale, so a singular value under that
+// share of the largest (eigenvalues under ~3e-9) is theirs.
 constexpr double kMinInformationRatio = 1e-8;
 
 // A frame of the plane tangent to unit n: the normal is moved as n + a t1 + b t2, normalized.
@@ -622,19 +622,23 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
       }
     }
     for (int p = 0; p < np; ++p) j4(p, 3) = -std::sqrt(wt[p]) * scale * m0[static_cast<size_t>(p)];
-    // In double, through the eigenvalues: where the images barely depend on a combination of the parameters (a lobe
-    // that one unit or none sees, a roughness the intensity trades off exactly) the information is near singular, and
-    // a float inverse of it had come out with variances of zero (clamped from negative): the worst fits passed as the
-    // most precise, and weighed most in the regularization. Such a fit has no finite variance.
+    // In double, through the eigenvalues of the information with each parameter scaled to unit information (so that
+    // the test does not depend on the parameters' units, nor on the lobe's intensity, which scales the first three
+    // columns): where the images barely depend on a combination of the parameters (a lobe that one unit or none sees,
+    // a roughness the intensity trades off exactly) the information is near singular, and a float inverse of it had
+    // come out with variances of zero (clamped from negative): the worst fits passed as the most precise, and weighed
+    // most in the regularization. Such a fit has no finite variance.
     const Eigen::MatrixXd jd = j4.cast<double>();
-    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(jd.transpose() * jd);
+    const Eigen::Matrix4d info = jd.transpose() * jd;
+    const Eigen::Vector4d unit = info.diagonal().cwiseMax(1e-300).cwiseSqrt().cwiseInverse();
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(unit.asDiagonal() * info * unit.asDiagonal());
     const Eigen::Vector4d lambdas = eig.eigenvalues();  // ascending
-    if (eig.info() != Eigen::Success || !lambdas.allFinite() || !(lambdas[3] > 0) ||
+    if (eig.info() != Eigen::Success || !lambdas.allFinite() || !(info.diagonal().minCoeff() > 0) ||
         lambdas[0] <= kMinInformationRatio * lambdas[3]) {
       fit.var_n = fit.var_log_alpha = fit.var_rho = 1e30f;
     } else {
-      const Eigen::Matrix4d cov =
-          eig.eigenvectors() * lambdas.cwiseInverse().asDiagonal() * eig.eigenvectors().transpose();
+      const Eigen::Matrix4d cov = unit.asDiagonal() * eig.eigenvectors() * lambdas.cwiseInverse().asDiagonal() *
+                                  eig.eigenvectors().transpose() * unit.asDiagonal();
       fit.var_n = static_cast<float>(cov(0, 0) + cov(1, 1));
       fit.var_log_alpha = static_cast<float>(cov(2, 2));
       fit.var_rho = static_cast<float>(cov(3, 3));

@@ -45,7 +45,9 @@ struct Result {
   // The albedo's relative error in the channel each Bayer pixel measures (RGGB), and in the two it interpolates.
   double albedo_measured = 0, albedo_interpolated = 0;
   // The share of the measured lobes whose raw fit is off by more than 3 times the standard deviation the fit gives
-  // itself (specular_sigma): its own account of its noise, which the regularization and the fusion weigh it by.
+  // itself (specular_sigma, over both tangent axes): its own account of its noise, which the regularization weighs it
+  // by. For an honest Gaussian fit about exp(-9) = 0.012 %; the model's own errors (the mosaic, the pixel's
+  // footprint) add to that.
   double lobes_beyond_3_sigma = 0;
 };
 

@@ -21,6 +21,8 @@ namespace {
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+// Degrees below FusionOptions::max_lobe_view_angle_deg over which a view's lobe weight fades to nothing.
+constexpr double kLobeFadeDeg = 5;
 
 bool Solved(const float* n) { return n[0] != 0 || n[1] != 0 || n[2] != 0; }
 
@@ -43,6 +45,7 @@ struct PreparedView {
   Eigen::Vector3f axis = Eigen::Vector3f::UnitZ();   // its optical axis
   float cos_max = 0;                                 // of the options' largest view angle
   float cos_lobe_max = 0;                            // of the largest a lobe is fused from
+  float cos_lobe_full = 1;                           // of the largest a lobe weighs fully at (kLobeFadeDeg less)
   std::vector<float> depth;                          // camera z of the mesh's first surface, mm
   std::vector<float> feather;                        // 0..1
 };
@@ -54,6 +57,7 @@ PreparedView Prepare(const FusionView& view, const TriangleMesh& mesh, const Fus
   p.axis = view.camera.optical_axis().cast<float>();
   p.cos_max = static_cast<float>(std::cos(o.max_view_angle_deg * M_PI / 180));
   p.cos_lobe_max = static_cast<float>(std::cos(o.max_lobe_view_angle_deg * M_PI / 180));
+  p.cos_lobe_full = static_cast<float>(std::cos(std::max(0.0, o.max_lobe_view_angle_deg - kLobeFadeDeg) * M_PI / 180));
   p.depth = DepthBuffer(mesh, view.camera);
   const int w = view.camera.width(), h = view.camera.height();
   cv::Mat usable(h, w, CV_8U, cv::Scalar(0));
@@ -188,8 +192,11 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
   acc->weight[t] += weight;
   // The lobe's maps only from pixels where the view measured a lobe (its specular normal solved; a view without
   // specular normals: every pixel), or the unmeasured pixels' zeros would darken the intensity near their edge; and
-  // only from a view that sees the point squarely enough for its lobe to be unbiased.
+  // only from a view that sees the point squarely enough for its lobe to be unbiased, faded out over the last
+  // kLobeFadeDeg so that the lobe's maps do not step where a view's lobe drops out.
   if (cos_view <= pv.cos_lobe_max) return true;
+  const float fade = std::min(1.0f, (cos_view - pv.cos_lobe_max) / std::max(1e-6f, pv.cos_lobe_full - pv.cos_lobe_max));
+  const float lobe_weight = weight * fade * fade * (3 - 2 * fade);  // smoothstep
   Taps lobe = taps;
   if (v.specular_normal.width > 0 &&
       !MakeTaps(
@@ -200,18 +207,18 @@ bool AddView(const PreparedView& pv, const FusionOptions& o, const Eigen::Vector
   float value[3];
   if (v.specular.width > 0) {
     lobe.Apply(v.specular, value);
-    acc->specular[t] += weight * value[0];
-    acc->spec_weight[t] += weight;
+    acc->specular[t] += lobe_weight * value[0];
+    acc->spec_weight[t] += lobe_weight;
   }
   if (v.roughness.width > 0) {
     lobe.Apply(v.roughness, value);
-    acc->roughness[t] += weight * value[0];
-    acc->rough_weight[t] += weight;
+    acc->roughness[t] += lobe_weight * value[0];
+    acc->rough_weight[t] += lobe_weight;
   }
   if (v.specular_normal.width > 0) {
     lobe.Apply(v.specular_normal, value);
-    for (int c = 0; c < 3; ++c) acc->spec_normal[3 * t + c] += weight * value[c];
-    acc->spec_normal_weight[t] += weight;
+    for (int c = 0; c < 3; ++c) acc->spec_normal[3 * t + c] += lobe_weight * value[c];
+    acc->spec_normal_weight[t] += lobe_weight;
   }
   return true;
 }

@@ -228,9 +228,9 @@ TEST(TextureFusionSimTest, ThePhotometricSolvesOfTheThreeViewsFuse) {
   }
   // Measured (2026-12-03): 247,298 texels; albedo 0.79 % (1.01 % where one view sees the skin, 38 % of the texels;
   // 0.70 % where two do, 0.56 % where three do), each view alone 0.82-0.87 %; diffuse normals 0.86 deg (each alone
-  // 0.97-1.00); specular normals 2.45 deg mean, 1.98 median on 61,190 texels with a lobe (each alone 2.43-2.89), the
+  // 0.97-1.00); specular normals 2.43 deg mean, 1.95 median on 61,190 texels with a lobe (each alone 2.43-2.89), the
   // lobes fused from views within 50 deg of the normal (to 75 deg: 2.76 on 64,664; 3.49 while near-singular lobe
-  // fits reported a variance of zero); intensity median 5.1 % (each alone 6.0-6.3 %).
+  // fits reported a variance of zero); intensity median 5.2 % (each alone 6.0-6.3 %).
   // docs/assets.md#fusing-the-photometric-solves has the why.
   EXPECT_GT(all->texels, options.size * options.size * 4 / 5);
   EXPECT_LT(all->albedo_mean, 0.0085);

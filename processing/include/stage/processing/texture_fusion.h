@@ -35,10 +35,11 @@ struct FusionOptions {
   int part = 0;
   // Views seeing the surface more obliquely than this (degrees from its normal) weigh nothing (1..89).
   double max_view_angle_deg = 75;
-  // A view's specular lobe (its specular normal, intensity and roughness) is fused only where the view sees the
-  // surface within this many degrees of its normal (1..89; the diffuse maps go to max_view_angle_deg): the solve's
-  // specular normal tilts towards the camera the more obliquely it sees the skin (1-1.5 deg at 30-45 deg, 2-5 at
-  // 45-60, 5-13 beyond; docs/assets.md#fusing-the-photometric-solves), a bias that averaging views does not remove.
+  // A view's specular lobe (its specular normal, intensity and roughness; of every view, with specular normals or
+  // without) is fused only where the view sees the surface within this many degrees of its normal, its weight fading
+  // to nothing over the last 5 degrees (1..89; the diffuse maps go to max_view_angle_deg): the solve's specular normal
+  // tilts towards the camera the more obliquely it sees the skin (1-1.5 deg at 30-45 deg, 2-5 at 45-60, 5-13
+  // beyond; docs/assets.md#fusing-the-photometric-solves), a bias that averaging views does not remove.
   double max_lobe_view_angle_deg = 50;
   // A pixel of a view whose photometric confidence is below this is not used (0..1).
   double min_confidence = 0.05;
