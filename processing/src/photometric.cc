@@ -501,6 +501,31 @@ void TangentFrame(const Eigen::Vector3f& n, Eigen::Vector3f* t1, Eigen::Vector3f
 // The finite-difference steps of the lobe's parameters: tangent offsets of the normal, log alpha.
 constexpr float kStep[3] = {2e-3f, 2e-3f, 1e-2f};
 
+// A lobe fit's variances from `j4`, the weighted residuals' Jacobian over (tangent offsets a, b of the normal; log
+// alpha; rho). In double, through the eigenvalues of the information with each parameter scaled to unit information
+// (so that the test does not depend on the parameters' units, nor on the lobe's intensity, which scales the first three
+// columns): where the images barely depend on a combination of the parameters (a lobe that one unit or none sees,
+// a roughness the intensity trades off exactly) the information is near singular, and a float inverse of it had
+// come out with variances of zero (clamped from negative): the worst fits passed as the most precise, and weighed
+// most in the regularization. Such a fit has no finite variance.
+void SetLobeVariances(const Eigen::MatrixXf& j4, SpecularFit* fit) {
+  const Eigen::MatrixXd jd = j4.cast<double>();
+  const Eigen::Matrix4d info = jd.transpose() * jd;
+  const Eigen::Vector4d unit = info.diagonal().cwiseMax(1e-300).cwiseSqrt().cwiseInverse();
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(unit.asDiagonal() * info * unit.asDiagonal());
+  const Eigen::Vector4d lambdas = eig.eigenvalues();  // ascending
+  if (eig.info() != Eigen::Success || !lambdas.allFinite() || !(info.diagonal().minCoeff() > 0) ||
+      lambdas[0] <= kMinInformationRatio * lambdas[3]) {
+    fit->var_n = fit->var_log_alpha = fit->var_rho = 1e30f;
+  } else {
+    const Eigen::Matrix4d cov = unit.asDiagonal() * eig.eigenvectors() * lambdas.cwiseInverse().asDiagonal() *
+                                eig.eigenvectors().transpose() * unit.asDiagonal();
+    fit->var_n = static_cast<float>(cov(0, 0) + cov(1, 1));
+    fit->var_log_alpha = static_cast<float>(cov(2, 2));
+    fit->var_rho = static_cast<float>(cov(3, 3));
+  }
+}
+
 // Noise-weighted least squares of the specular images `s` (weights `wt`) over normal, roughness and intensity
 // (intensity in closed form for each normal and roughness), Levenberg-Marquardt from the best of the `starts`.
 SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const float* s, const float* wt,
@@ -622,27 +647,7 @@ SpecularFit FitSpecular(const UnitView& view, const PatternMatrix& pm, const flo
       }
     }
     for (int p = 0; p < np; ++p) j4(p, 3) = -std::sqrt(wt[p]) * scale * m0[static_cast<size_t>(p)];
-    // In double, through the eigenvalues of the information with each parameter scaled to unit information (so that
-    // the test does not depend on the parameters' units, nor on the lobe's intensity, which scales the first three
-    // columns): where the images barely depend on a combination of the parameters (a lobe that one unit or none sees,
-    // a roughness the intensity trades off exactly) the information is near singular, and a float inverse of it had
-    // come out with variances of zero (clamped from negative): the worst fits passed as the most precise, and weighed
-    // most in the regularization. Such a fit has no finite variance.
-    const Eigen::MatrixXd jd = j4.cast<double>();
-    const Eigen::Matrix4d info = jd.transpose() * jd;
-    const Eigen::Vector4d unit = info.diagonal().cwiseMax(1e-300).cwiseSqrt().cwiseInverse();
-    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eig(unit.asDiagonal() * info * unit.asDiagonal());
-    const Eigen::Vector4d lambdas = eig.eigenvalues();  // ascending
-    if (eig.info() != Eigen::Success || !lambdas.allFinite() || !(info.diagonal().minCoeff() > 0) ||
-        lambdas[0] <= kMinInformationRatio * lambdas[3]) {
-      fit.var_n = fit.var_log_alpha = fit.var_rho = 1e30f;
-    } else {
-      const Eigen::Matrix4d cov = unit.asDiagonal() * eig.eigenvectors() * lambdas.cwiseInverse().asDiagonal() *
-                                  eig.eigenvectors().transpose() * unit.asDiagonal();
-      fit.var_n = static_cast<float>(cov(0, 0) + cov(1, 1));
-      fit.var_log_alpha = static_cast<float>(cov(2, 2));
-      fit.var_rho = static_cast<float>(cov(3, 3));
-    }
+    SetLobeVariances(j4, &fit);
   }
   fit.converged = fit.n.allFinite() && std::isfinite(fit.chi2);
   fit.ok = fit.converged && rho > 0;
