@@ -339,7 +339,10 @@ void Capturer::ArmLights(Take& take) {
         v1::HeartbeatRequest beat;
         beat.set_take_id(t->id);
         v1::LightStats stats;
-        const absl::Status s = t->lights[i]->Heartbeat(beat, std::chrono::milliseconds(kLightHeartbeatMs), &stats);
+        // The deadline is the node's whole timeout, not the beat's period: on a starved machine a beat that takes
+        // longer than a period to get through still resets the node's watchdog, where a cancelled one would not.
+        const absl::Status s =
+            t->lights[i]->Heartbeat(beat, std::chrono::milliseconds(kLightHeartbeatTimeoutMs), &stats);
         lock.lock();
         const int node = static_cast<int>(i);
         if (s.ok() && stats.take_faults_size() > 0) {
