@@ -72,8 +72,10 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
   ASSERT_TRUE(library.ok()) << library.status();
   const auto a = FilesUnder(dir + "/derived/mvs"), b = FilesUnder(dir + "/derived/mvs-batch"),
              c = FilesUnder(dir + "/derived/mvs-library");
-  EXPECT_EQ(a.size(), 27u);  // mesh, metrics, run.json and 24 depth maps
+  EXPECT_EQ(a.size(), 52u);  // mesh, metrics, run.json, 24 depth maps, 24 silhouettes and their cameras
   EXPECT_TRUE(a.count("frame-000000/depth/mv-05.exr"));
+  EXPECT_TRUE(a.count("frame-000000/silhouette/mv-05.png"));
+  EXPECT_TRUE(a.count("frame-000000/silhouette/cameras.json"));
   for (const auto& [path, bytes] : a) {
     if (path == "run.json") continue;
     EXPECT_TRUE(b.count(path) && b.at(path) == bytes) << path << ": the worker's and the batch's differ";
@@ -173,6 +175,14 @@ TEST_F(MvsTest, TheStageReconstructsTheHeadAndPhotometricStereoStandsOnIt) {
     if (geometry != "mvs") args.insert(args.end(), {"--geometry", geometry});  // mvs: the default
     CommandResult run = RunCommand(args, std::chrono::seconds(600));
     ASSERT_EQ(run.exit.exit_code, 0) << run.err;
+  }
+  // The pixels placed beyond the mesh's edge were kept inside the frame's visual hull (the 24 views' silhouettes).
+  for (const std::string camera : {"hs-1", "hs-2", "hs-3"}) {
+    const nlohmann::json unit =
+        nlohmann::json::parse(FilesUnder(dir + "/derived/ps-mvs/frame-000000/" + camera).at("metrics.json"));
+    EXPECT_EQ(unit["geometry_hull_views"], 24) << camera;
+    EXPECT_GT(unit["geometry_hull_bounded_pixels"].get<int64_t>(), unit["geometry_filled_pixels"].get<int64_t>() / 2)
+        << camera;
   }
   const auto on_mvs = DiffuseNormalError(dir, dir + "/derived/ps-mvs");
   const auto on_truth = DiffuseNormalError(dir, dir + "/derived/ps-ground_truth");

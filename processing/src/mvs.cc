@@ -20,6 +20,7 @@
 #include "stage/processing/light_model.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/take_frames.h"
+#include "stage/processing/visual_hull.h"
 #include "statistics.h"
 
 namespace stage::processing {
@@ -68,9 +69,11 @@ absl::StatusOr<std::vector<MvsCamera>> JobCameras(const MvsJob& job, const Loade
   return OpenTakeCameras(job.take_dir, rig, ids, calibration);
 }
 
-// A view's depth at the pixels of the image as recorded (with its lens's distortion), at the processing size:
-// `camera` is the recorded camera at that size.
-Image DepthAsRecorded(const DepthMap& depth, const CameraModel& camera) {
+// A view's map (`map`, in its undistorted pixels: `width` x `height`) at the pixels of the image as recorded (with its
+// lens's distortion), at the processing size: `camera` is the recorded camera at that size. Pixels whose undistorted
+// place falls outside the map keep `outside`.
+template <typename T>
+std::vector<T> AsRecorded(const std::vector<T>& map, int width, int height, const CameraModel& camera, T outside) {
   std::vector<cv::Point2f> pixels;
   pixels.reserve(static_cast<size_t>(camera.width()) * camera.height());
   for (int y = 0; y < camera.height(); ++y) {
@@ -80,12 +83,33 @@ Image DepthAsRecorded(const DepthMap& depth, const CameraModel& camera) {
   const auto& d = camera.distortion();
   std::vector<cv::Point2f> undistorted;
   cv::undistortPoints(pixels, undistorted, k, std::vector<double>(d.begin(), d.end()), cv::noArray(), k);
-  Image out(camera.width(), camera.height(), 1);
+  std::vector<T> out(pixels.size(), outside);
   for (size_t i = 0; i < undistorted.size(); ++i) {
     const int u = static_cast<int>(std::lround(undistorted[i].x)), v = static_cast<int>(std::lround(undistorted[i].y));
-    if (u < 0 || v < 0 || u >= depth.width || v >= depth.height) continue;
-    out.pixels[i] = depth.depth[static_cast<size_t>(v) * depth.width + u];
+    if (u < 0 || v < 0 || u >= width || v >= height) continue;
+    out[i] = map[static_cast<size_t>(v) * width + u];
   }
+  return out;
+}
+
+Image DepthAsRecorded(const DepthMap& depth, const CameraModel& camera) {
+  Image out(camera.width(), camera.height(), 1);
+  out.pixels = AsRecorded(depth.depth, depth.width, depth.height, camera, 0.0f);
+  return out;
+}
+
+// The views' silhouettes (SilhouetteMask of their full-lit images at the processing size), as recorded.
+std::vector<Silhouette> Silhouettes(const std::vector<MvsView>& views, const std::vector<CameraModel>& processed,
+                                    const MvsOptions& options) {
+  std::vector<Silhouette> out(views.size());
+  internal::ParallelItems(static_cast<int>(views.size()), options.threads, [&](int i) {
+    const MvsView& v = views[static_cast<size_t>(i)];
+    // The background's bar as the sweep's: a fraction of the image's 99th percentile.
+    const float bar = static_cast<float>(options.min_signal * Quantile(v.grey, 99, 100));
+    const std::vector<uint8_t> mask = SilhouetteMask(v.grey, v.width, v.height, bar, options.silhouette_grow_px);
+    out[static_cast<size_t>(i)] = {v.id, processed[static_cast<size_t>(i)],
+                                   AsRecorded(mask, v.width, v.height, processed[static_cast<size_t>(i)], uint8_t{0})};
+  });
   return out;
 }
 
@@ -112,8 +136,9 @@ std::string FrameMetrics(const MvsFrame& f, int64_t frame, const std::vector<std
   return j.dump(2) + "\n";
 }
 
-absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::vector<CameraModel>& processed,
-                        int64_t frame, const std::string& take, const std::vector<std::string>& missing) {
+absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const FrameViews& in, const MvsOptions& options,
+                        int64_t frame, const std::string& take) {
+  const std::vector<CameraModel>& processed = in.processed;
   std::error_code ec;
   fs::create_directories(dir + "/depth", ec);
   if (ec) return absl::InternalError(absl::StrCat(dir, "/depth: cannot create: ", ec.message()));
@@ -124,7 +149,8 @@ absl::Status WriteFrame(const std::string& dir, const MvsFrame& f, const std::ve
   STAGE_RETURN_IF_ERROR(
       WriteObj(dir + "/mesh.obj", f.mesh,
                absl::StrFormat("FaStage multi-view stereo: %s frame %d, stage frame, mm", take, frame)));
-  return WriteFileAtomically(dir + "/metrics.json", FrameMetrics(f, frame, missing));
+  STAGE_RETURN_IF_ERROR(VisualHull::Write(dir + "/silhouette", Silhouettes(in.views, processed, options)));
+  return WriteFileAtomically(dir + "/metrics.json", FrameMetrics(f, frame, in.missing));
 }
 
 }  // namespace
@@ -188,6 +214,7 @@ std::string RunJson(const MvsJob& job, const std::string& take, int64_t first, i
                     {"fine_footprint_mm", o.fine_footprint_mm},
                     {"keep_coarser", o.keep_coarser},
                     {"min_signal", o.min_signal},
+                    {"silhouette_grow_px", o.silhouette_grow_px},
                     {"min_consistent", o.min_consistent},
                     {"consistency_px", o.consistency_px},
                     {"volume_centre_mm", {o.volume_centre_mm.x(), o.volume_centre_mm.y(), o.volume_centre_mm.z()}},
@@ -234,6 +261,9 @@ absl::Status MvsOptions::Validate() const {
   if (!(truncation_voxels >= 1)) return bad(absl::StrCat("truncation_voxels ", truncation_voxels, " is below 1"));
   if (smooth_iterations < 0 || smooth_iterations > 1000) {
     return bad(absl::StrCat("smooth_iterations ", smooth_iterations, " is not in 0..1000"));
+  }
+  if (silhouette_grow_px < 0 || silhouette_grow_px > 16) {
+    return bad(absl::StrCat("silhouette_grow_px ", silhouette_grow_px, " is not in 0..16"));
   }
   if (!(fill_holes_mm >= 0)) return bad(absl::StrCat("fill_holes_mm ", fill_holes_mm, " is negative"));
   if (min_views < 1) return bad(absl::StrCat("min_views ", min_views, " is below 1"));
@@ -353,7 +383,7 @@ absl::StatusOr<JobResult> RunMvs(const MvsJob& job, const std::function<void(con
                           absl::StrCat(job.take_dir, ": frame ", frame, ": ", made.status().message()));
     }
     const std::string dir = FrameDir(result.output_dir, frame);
-    STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, in.processed, frame, take, in.missing));
+    STAGE_RETURN_IF_ERROR(WriteFrame(dir, *made, in, job.options, frame, take));
     ++result.units;
     p.done = result.units;
     p.message = absl::StrFormat("frame %d: %d views, mesh of %d vertices (depth %.1f s, fusion %.1f s)", frame,

@@ -13,6 +13,7 @@
 #include "gap_fill.h"
 #include "photometric_internal.h"
 #include "stage/common/ggx.h"
+#include "stage/processing/visual_hull.h"
 
 namespace stage::processing {
 namespace internal {
@@ -759,9 +760,49 @@ PixelGeometry TraceGeometry(const MeshBvh& mesh, const PhotometricCamera& camera
   return g;
 }
 
+namespace {
+
+// How far about a placed pixel's first distance its ray is searched for the visual hull, and the search's step, mm: the
+// neighbours' distance lands up to a few centimetres off (docs/geometry.md); a step under the hull's thinnest stretch
+// a grazing ray crosses near the mesh's edge.
+constexpr double kHullSearchMm = 100;
+constexpr double kHullStepMm = 1;
+
+// The stretch of each of `pixels`' rays (the placed ones) inside `hull` about its distance, cut to `depth_mm` past the
+// hull's entry (g->hull_in, hull_out; NaN: missed), and each distance moved into it.
+void BoundByHull(const VisualHull& hull, const PhotometricCamera& camera, const std::vector<size_t>& pixels,
+                 double depth_mm, int threads, std::vector<float>* distance, PixelGeometry* g) {
+  const size_t n = static_cast<size_t>(g->width) * g->height;
+  g->hull_in.assign(n, std::nanf(""));
+  g->hull_out.assign(n, std::nanf(""));
+  const Eigen::Vector3f origin = camera.position_mm.cast<float>();
+  ParallelRows(static_cast<int>(pixels.size()), threads, [&](int k0, int k1) {
+    for (int k = k0; k < k1; ++k) {
+      const size_t i = pixels[static_cast<size_t>(k)];
+      const double d = (*distance)[i];
+      double in = 0, out = 0;
+      if (!hull.FirstSpan(origin.cast<double>(), PixelRay(camera, origin, i).cast<double>(),
+                          std::max(0.0, d - kHullSearchMm), d + kHullSearchMm, kHullStepMm, &in, &out)) {
+        continue;
+      }
+      g->hull_in[i] = static_cast<float>(in);
+      g->hull_out[i] = static_cast<float>(std::min(out, in + depth_mm));
+      (*distance)[i] = std::clamp((*distance)[i], g->hull_in[i], g->hull_out[i]);
+    }
+  });
+}
+
+// `d` kept within pixel i's stretch of the visual hull, where it has one.
+float WithinHull(const PixelGeometry& g, size_t i, float d) {
+  if (g.hull_in.empty() || g.hull_in[i] != g.hull_in[i] || d != d) return d;
+  return std::clamp(d, g.hull_in[i], g.hull_out[i]);
+}
+
+}  // namespace
+
 absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                      const std::vector<Image>& frames, const PhotometricOptions& options,
-                                     PixelGeometry* g) {
+                                     PixelGeometry* g, const VisualHull* hull) {
   if (options.geometry_fill_px <= 0) return 0;
   auto twins = internal::PairPatterns(light);
   if (!twins.ok()) return twins.status();
@@ -791,6 +832,11 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
   }
   g->placed.assign(pixels, 0);
   for (size_t i : filled) g->placed[i] = 1;
+  g->hull_in.clear();
+  g->hull_out.clear();
+  if (hull != nullptr && !hull->empty() && options.geometry_hull) {
+    BoundByHull(*hull, camera, filled, options.geometry_hull_depth_mm, options.threads, &depth, g);
+  }
   PlaceAlongRays(mesh, camera, light, options, filled, depth, g);
   return static_cast<int64_t>(filled.size());
 }
@@ -904,7 +950,7 @@ std::vector<size_t> GrowAlongNormals(const PhotometricCamera& camera, const Eige
     set_now.clear();
     for (size_t r = 0; r < ring.size(); ++r) {
       if (grown[r].agreed || last_resort) {
-        d[ring[r]] = grown[r].distance;
+        d[ring[r]] = WithinHull(g, ring[r], grown[r].distance);
         set_now.push_back(ring[r]);
       } else {
         queued[ring[r]] = 0;  // to be met again from a pixel set later
@@ -959,6 +1005,9 @@ absl::Status PhotometricOptions::Validate() const {
   if (!(shadow_clearance_mm >= 0))
     return bad(absl::StrCat("shadow_clearance_mm ", shadow_clearance_mm, " is negative"));
   if (geometry_fill_px < 0) return bad(absl::StrCat("geometry_fill_px ", geometry_fill_px, " is negative"));
+  if (!(geometry_hull_depth_mm > 0)) {
+    return bad(absl::StrCat("geometry_hull_depth_mm ", geometry_hull_depth_mm, " is not positive"));
+  }
   if (geometry_refill_passes < 0 || geometry_refill_passes > 4) {
     return bad(absl::StrCat("geometry_refill_passes ", geometry_refill_passes, " is not in 0..4"));
   }

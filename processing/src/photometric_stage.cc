@@ -21,6 +21,7 @@
 #include "stage/processing/fast_photometric.h"
 #include "stage/processing/map_files.h"
 #include "stage/processing/take_frames.h"
+#include "stage/processing/visual_hull.h"
 #include "statistics.h"
 
 namespace stage::processing {
@@ -69,11 +70,16 @@ std::pair<int64_t, int64_t> Solved(const PhotometricMaps& m) {
   return {solved, specular};
 }
 
+// How a unit's geometry was made: the pixels FillGeometry placed beyond the mesh, those RefillGeometry placed again,
+// and those whose ray the frame's visual hull (of `hull_views` silhouettes; 0: none) bounded.
+struct GeometryCounts {
+  int64_t filled = 0, refilled = 0, hull_views = 0, hull_bounded = 0;
+};
+
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
-// `geometry_filled`: the pixels FillGeometry placed (with geometry), `geometry_refilled` those RefillGeometry placed
-// again.
+
 std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera, const std::string& geometry,
-                        int64_t geometry_filled, int64_t geometry_refilled, const std::string& calibration) {
+                        const GeometryCounts& counts_of_geometry, const std::string& calibration) {
   const auto [solved, specular] = Solved(m);
   int64_t counts[6] = {0, 0, 0, 0, 0, 0};
   double confidence = 0;
@@ -102,8 +108,10 @@ std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::stri
   j["median_roughness"] = Median(rough);
   j["geometry"] = geometry.empty() ? "none" : geometry;
   if (!geometry.empty()) {
-    j["geometry_filled_pixels"] = geometry_filled;
-    j["geometry_refilled_pixels"] = geometry_refilled;
+    j["geometry_filled_pixels"] = counts_of_geometry.filled;
+    j["geometry_refilled_pixels"] = counts_of_geometry.refilled;
+    j["geometry_hull_views"] = counts_of_geometry.hull_views;
+    j["geometry_hull_bounded_pixels"] = counts_of_geometry.hull_bounded;
   }
   j["calibration"] = calibration;
   return j.dump(2);
@@ -270,12 +278,20 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
   if (progress) progress(p);
   for (int64_t frame = first; frame < last; ++frame) {
     std::unique_ptr<MeshBvh> mesh;
+    VisualHull hull;
     std::string geometry_file;
     if (!geometry_root.empty()) {
       auto obj = ReadObj(FrameDir(geometry_root, frame) + "/mesh.obj");
       if (!obj.ok()) return obj.status();
       mesh = std::make_unique<MeshBvh>(std::move(*obj));
       geometry_file = FrameDir(geometry_dir, frame) + "/mesh.obj";
+      // The frame's visual hull, where the geometry has one (multi-view stereo's silhouettes).
+      const std::string silhouettes = FrameDir(geometry_root, frame) + "/silhouette";
+      if (job.options.geometry_hull && fs::exists(silhouettes + "/cameras.json")) {
+        auto read = VisualHull::Read(silhouettes);
+        if (!read.ok()) return read.status();
+        hull = std::move(*read);
+      }
     }
     for (CameraJob& c : cameras) {
       if (cancelled && cancelled()) {
@@ -288,7 +304,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       auto raw = LoadCycle(c.path, frame, *light);
       if (!raw.ok()) return raw.status();
       absl::Status status;
-      int64_t geometry_filled = 0, geometry_refilled = 0;
+      GeometryCounts counts;
+      counts.hull_views = static_cast<int64_t>(hull.views().size());
       PixelGeometry geometry;
       if (mesh == nullptr && !job.exact) {
         // Without geometry: the table-driven solver on the raw mosaic (the tables once per camera).
@@ -304,14 +321,15 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
         if (mesh != nullptr) {
           geometry = TraceGeometry(*mesh, c.setup.camera, c.shape.width, c.shape.height, *light,
                                    job.options.shadow_clearance_mm, job.options.threads);
-          auto filled = FillGeometry(*mesh, c.setup.camera, *light, *frames, job.options, &geometry);
+          auto filled = FillGeometry(*mesh, c.setup.camera, *light, *frames, job.options, &geometry, &hull);
           if (!filled.ok()) return filled.status();
-          geometry_filled = *filled;
+          counts.filled = *filled;
+          for (float t : geometry.hull_in) counts.hull_bounded += t == t;
         }
         c.setup.camera.mosaic = raw->mosaic;  // the images' colours, as recorded
         auto solver = PhotometricSolver::Create(*light, *frames, c.setup.camera, job.options);
         if (!solver.ok()) return solver.status();
-        const bool refill = mesh != nullptr && geometry_filled > 0 && job.options.geometry_refill_passes > 0;
+        const bool refill = mesh != nullptr && counts.filled > 0 && job.options.geometry_refill_passes > 0;
         auto maps = (*solver)->Solve(mesh != nullptr ? &geometry : nullptr, /*again=*/refill);
         for (int pass = 0; refill && maps.ok() && pass < job.options.geometry_refill_passes; ++pass) {
           auto refilled =
@@ -320,7 +338,7 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
             maps = refilled.status();
             break;
           }
-          geometry_refilled = *refilled;
+          counts.refilled = *refilled;
           // Only the placed pixels moved: only they are solved again.
           maps = (*solver)->SolveAgain(geometry, geometry.placed);
         }
@@ -336,10 +354,8 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
       const std::string title =
           absl::StrFormat("%s  frame %d  %s  (geometry: %s)", fs::path(job.take_dir).filename().string(), frame, c.id,
                           geometry_file.empty() ? "none" : geometry_file);
-      if (auto s = WriteMapFiles(
-              dir, *maps,
-              UnitMetrics(*maps, frame, c.id, geometry_file, geometry_filled, geometry_refilled, c.setup.source),
-              title);
+      if (auto s =
+              WriteMapFiles(dir, *maps, UnitMetrics(*maps, frame, c.id, geometry_file, counts, c.setup.source), title);
           !s.ok()) {
         return s;
       }
@@ -373,7 +389,9 @@ absl::StatusOr<JobResult> RunPhotometric(const PhotometricJob& job,
                     {"specular_filter_radius", job.options.specular_filter_radius},
                     {"shadow_clearance_mm", job.options.shadow_clearance_mm},
                     {"geometry_fill_px", job.options.geometry_fill_px},
-                    {"geometry_refill_passes", job.options.geometry_refill_passes}};
+                    {"geometry_refill_passes", job.options.geometry_refill_passes},
+                    {"geometry_hull", job.options.geometry_hull},
+                    {"geometry_hull_depth_mm", job.options.geometry_hull_depth_mm}};
   for (const CameraJob& c : cameras) {
     run["calibration"][c.id] = {{"source", c.setup.source},
                                 {"white_scale", c.setup.camera.white_scale},

@@ -9,6 +9,7 @@
 #include "gtest/gtest.h"
 #include "shipped_light.h"
 #include "stage/common/rig.h"
+#include "stage/processing/visual_hull.h"
 #include "test_sphere.h"
 
 namespace stage::processing {
@@ -286,6 +287,90 @@ TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDi
   EXPECT_FALSE(g.Covers(w - 1));
   options.geometry_fill_px = -1;
   EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_fill_px"));
+}
+
+// Past the mesh's edge a 45-degree slope goes down (the side of the head), or up (a cheek past a fold): a view from the
+// side sees the subject's profile, so the visual hull is the solid under the surface. FillGeometry puts the pixels past
+// the edge at the edge's distance: millimetres above the falling slope, or behind the rising one, inside the solid.
+// Within the hull they land on the falling slope (its entry); behind the rising one they come to within
+// geometry_hull_depth_mm (3 here) of the entry.
+TEST(PhotometricTest, PlacedPixelsAreKeptInsideTheVisualHull) {
+  const LightModel light = ShippedLight();
+  TriangleMesh m;  // the plane z = 0 for x < 0 only
+  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}};
+  const MeshBvh bvh(m);
+  const int w = 20;  // pixels 1 mm apart, x = -9.5 .. 9.5, seen from 1 m above
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int x = 0; x < w; ++x) {
+    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
+  }
+  std::vector<Image> frames(light.patterns.size(), Image(w, 1, 3));
+  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  // The side view, 1 m along -y looking at the origin (image x along +x, image y down along -z), 0.2 mm a pixel over
+  // +-110 mm: the whole stretch the rays are searched over (a view says nothing of what its image does not hold).
+  CameraParameters side;
+  side.width = side.height = 1100;
+  side.fx = side.fy = 5000;
+  side.cx = side.cy = 549.5;
+  side.position = {0, -1000, 0};
+  side.rotation << 1, 0, 0, 0, 0, -1, 0, 1, 0;
+  auto model = CameraModel::FromParameters(side);
+  ASSERT_TRUE(model.ok()) << model.status();
+  PhotometricOptions options;
+  options.threads = 1;
+  options.geometry_fill_px = 10;
+  options.geometry_hull_depth_mm = 3;
+  for (const int rise : {-1, 1}) {  // the surface past the edge: z = rise * x
+    SCOPED_TRACE(rise < 0 ? "falling" : "rising");
+    Silhouette profile{"side", *model, std::vector<uint8_t>(1100 * 1100)};
+    for (int v = 0; v < 1100; ++v) {
+      for (int u = 0; u < 1100; ++u) {
+        const double x = (u - side.cx) / side.fx * 1000, z = -(v - side.cy) / side.fy * 1000;
+        profile.inside[static_cast<size_t>(v) * 1100 + u] = z <= (x < 0 ? 0 : rise * x);
+      }
+    }
+    const VisualHull hull({profile});
+    for (const bool with_hull : {false, true}) {
+      SCOPED_TRACE(with_hull ? "with the hull" : "without");
+      PixelGeometry g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
+      auto filled = FillGeometry(bvh, camera, light, frames, options, &g, with_hull ? &hull : nullptr);
+      ASSERT_TRUE(filled.ok()) << filled.status();
+      ASSERT_EQ(*filled, 10);
+      EXPECT_EQ(g.hull_in.empty(), !with_hull);
+      for (int x = 11; x < w; ++x) {
+        SCOPED_TRACE(x);
+        // Where the pixel's ray, origin + s (a, 0, -1000), meets the slope, and the point's distance along it.
+        const double a = x - 9.5, s = 1000 / (1000 + rise * a);
+        const double slope_z = 1000 - 1000 * s, slope_distance = s * std::hypot(a, 1000.0);
+        const double distance =
+            (Eigen::Map<const Eigen::Vector3f>(&g.points[3 * x]) - Eigen::Vector3f(0, 0, 1000)).norm();
+        if (!with_hull) {
+          EXPECT_NEAR(g.points[3 * x + 2], 0, 0.05);
+          continue;
+        }
+        // The hull's entry at the slope, within the side view's pixel (0.2 mm); its far end 3 mm on.
+        EXPECT_NEAR(g.hull_in[static_cast<size_t>(x)], slope_distance, 0.2);
+        EXPECT_NEAR(g.hull_out[static_cast<size_t>(x)], g.hull_in[static_cast<size_t>(x)] + 3, 0.2);
+        if (rise < 0) {
+          EXPECT_NEAR(g.points[3 * x + 2], slope_z, 0.2);
+        } else {
+          // Up to 9.5 mm behind without the hull (on the plane z = 0).
+          EXPECT_LE(distance, slope_distance + 3.2);
+          EXPECT_GE(distance, slope_distance - 0.2);
+        }
+      }
+    }
+  }
+  // Switched off, the hull is not used.
+  options.geometry_hull = false;
+  PixelGeometry g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
+  const VisualHull hull({Silhouette{"side", *model, std::vector<uint8_t>(1100 * 1100, 1)}});
+  ASSERT_TRUE(FillGeometry(bvh, camera, light, frames, options, &g, &hull).ok());
+  EXPECT_TRUE(g.hull_in.empty());
+  options.geometry_hull_depth_mm = 0;
+  EXPECT_THAT(std::string(options.Validate().message()), ::testing::HasSubstr("geometry_hull_depth_mm"));
 }
 
 // Past the mesh's edge the surface turns away from the camera (a 45-degree slope, as the side of the head past a

@@ -112,6 +112,11 @@ struct MvsCommand {
         ->capture_default_str();
     app->add_option("--volume-radius-mm", o.volume_radius_mm, "Radius of the head's volume about the stage origin")
         ->capture_default_str();
+    app->add_option("--silhouette-grow-px", o.silhouette_grow_px,
+                    "Grow each view's silhouette (the visual hull's evidence, written beside the mesh) by this many "
+                    "pixels")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 16));
     app->add_option("--fill-holes-mm", o.fill_holes_mm, "Close the mesh's holes at most this wide, mm (0: none)")
         ->capture_default_str()
         ->check(CLI::NonNegativeNumber);
@@ -388,6 +393,15 @@ int Dispatch(int argc, char** argv) {
                    "describe and solved again, this many times; 0: none")
       ->capture_default_str()
       ->check(CLI::Range(0, 4));
+  photometric->add_flag("--geometry-hull,!--no-geometry-hull", job.options.geometry_hull,
+                        "With geometry that has silhouettes (multi-view stereo's), keep the placed pixels' points "
+                        "inside the frame's visual hull (default on)");
+  photometric
+      ->add_option(
+          "--geometry-hull-depth-mm", job.options.geometry_hull_depth_mm,
+          "With the visual hull: how far past where its ray enters the hull a placed pixel's point may lie, mm")
+      ->capture_default_str()
+      ->check(CLI::PositiveNumber);
   photometric->add_flag("--exact", job.exact,
                         "With --geometry none too, fit the specular lobe per pixel instead of the table-driven "
                         "solver (slower, less noisy specular maps; with geometry it always does)");

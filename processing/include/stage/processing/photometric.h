@@ -30,6 +30,8 @@
 
 namespace stage::processing {
 
+class VisualHull;
+
 // A float image, channels interleaved.
 struct Image {
   int width = 0;
@@ -89,6 +91,10 @@ struct PixelGeometry {
   std::vector<uint64_t> visible;  // per pixel: bit l of the units nothing hides from the point (LightModel::ViewFrom)
   std::vector<uint8_t> placed;    // per pixel: 1 where the point was placed beyond the mesh (FillGeometry, then
                                   // RefillGeometry), not traced into it; empty: none placed
+  // Per placed pixel, the stretch of its ray (distance from the camera, mm) inside the frame's visual hull, cut to
+  // PhotometricOptions::geometry_hull_depth_mm past its entry, which its point is kept within: [hull_in, hull_out];
+  // NaN where the ray missed the hull. Empty: no hull.
+  std::vector<float> hull_in, hull_out;
 
   bool Covers(size_t pixel) const { return points[3 * pixel] == points[3 * pixel]; }
   const uint64_t* Visible(size_t pixel) const { return &visible[pixel * static_cast<size_t>(words)]; }
@@ -139,6 +145,12 @@ struct PhotometricOptions {
   // (RefillGeometry) and solved again (PhotometricSolver::SolveAgain); 0: they keep their neighbours' distance. Default
   // 1; at most 4.
   int geometry_refill_passes = 1;
+  // Where the geometry comes with a visual hull (multi-view stereo's silhouettes), the placed points are kept inside
+  // it, at most geometry_hull_depth_mm past where their ray enters it (FillGeometry, RefillGeometry). Defaults true
+  // and 2 mm: past a reconstruction's edge the views see the skin at grazing angles, and the hull's entry lies
+  // within 2 mm of it for most placed pixels (docs/geometry.md).
+  bool geometry_hull = true;
+  double geometry_hull_depth_mm = 2;
   // Worker threads; 0: one per core. Results do not depend on it.
   int threads = 0;
   // InvalidArgument naming the field.
@@ -180,16 +192,21 @@ struct PhotometricMaps {
 // (one ring a pass, each the mean of its placed 8-neighbours), with their shadows traced in the mesh from there (from
 // options.shadow_clearance_mm off). A reconstruction ends where the cameras see the skin at grazing angles (the sides
 // of the head, the neck); a pixel without a point sees the units from the stage origin, 0.1 m off there, and its fit
-// fails. Returns how many pixels were placed, and marks them in g->placed.
+// fails. With `hull` (the frame's visual hull; null: none; options.geometry_hull), each placed pixel's distance is
+// kept within the first stretch of its ray inside the hull about it, at most options.geometry_hull_depth_mm past its
+// entry (g->hull_in, hull_out): past the mesh's edge the neighbours' distance lands in the air or centimetres behind
+// the skin, where the hull's entry lies within millimetres of it. Returns how many pixels were placed, and marks them
+// in g->placed.
 absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                      const std::vector<Image>& frames, const PhotometricOptions& options,
-                                     PixelGeometry* g);
+                                     PixelGeometry* g, const VisualHull* hull = nullptr);
 
 // The pixels FillGeometry placed (g->placed), placed again along the surface the solved normals describe
 // (`normals`: SolvePhotometric's diffuse_normal_world, 0 where not solved): ring by ring outwards from the pixels the
 // mesh covers, each where its ray meets its set neighbours' tangent planes (the mean over those facing the ray), and
 // their shadows traced again. A surface that turns away from the camera (the side of the head past a reconstruction's
-// edge) is followed, where the neighbours' distance stays flat and lands millimetres off. Returns the pixels placed.
+// edge) is followed, where the neighbours' distance stays flat and lands millimetres off. Each distance is kept within
+// the pixel's stretch of the visual hull, where FillGeometry found one. Returns the pixels placed.
 absl::StatusOr<int64_t> RefillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                        const Image& normals, const PhotometricOptions& options, PixelGeometry* g);
 
