@@ -104,11 +104,13 @@ std::vector<Silhouette> Silhouettes(const std::vector<MvsView>& views, const std
   std::vector<Silhouette> out(views.size());
   internal::ParallelItems(static_cast<int>(views.size()), options.threads, [&](int i) {
     const MvsView& v = views[static_cast<size_t>(i)];
-    // The background's bar as the sweep's: a fraction of the image's 99th percentile.
-    const float bar = static_cast<float>(options.min_signal * Quantile(v.grey, 99, 100));
+    // The background's bar as the sweep's (SweepDepth): a fraction of the image's 99th percentile.
+    const float bar = static_cast<float>(options.min_signal) * static_cast<float>(Quantile(v.grey, 99, 100));
     const std::vector<uint8_t> mask = SilhouetteMask(v.grey, v.width, v.height, bar, options.silhouette_grow_px);
+    // A recorded pixel the undistorted view does not hold (a corner, under barrel distortion) is no evidence of
+    // background: inside.
     out[static_cast<size_t>(i)] = {v.id, processed[static_cast<size_t>(i)],
-                                   AsRecorded(mask, v.width, v.height, processed[static_cast<size_t>(i)], uint8_t{0})};
+                                   AsRecorded(mask, v.width, v.height, processed[static_cast<size_t>(i)], uint8_t{1})};
   });
   return out;
 }

@@ -168,6 +168,9 @@ TEST(MvsTest, OptionsAreCheckedByNameAndViewsWithoutNeighboursAreRefused) {
   o = MvsOptions();
   o.fill_holes_mm = -1;
   EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("fill_holes_mm"));
+  o = MvsOptions();
+  o.silhouette_grow_px = 17;
+  EXPECT_THAT(std::string(o.Validate().message()), HasSubstr("silhouette_grow_px 17"));
 
   // Two views looking at each other's backs: no neighbour within 50 degrees.
   MvsView a, b;

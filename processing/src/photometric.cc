@@ -780,13 +780,19 @@ void BoundByHull(const VisualHull& hull, const PhotometricCamera& camera, const 
     for (int k = k0; k < k1; ++k) {
       const size_t i = pixels[static_cast<size_t>(k)];
       const double d = (*distance)[i];
-      double in = 0, out = 0;
-      if (!hull.FirstSpan(origin.cast<double>(), PixelRay(camera, origin, i).cast<double>(),
-                          std::max(0.0, d - kHullSearchMm), d + kHullSearchMm, kHullStepMm, &in, &out)) {
-        continue;
+      const Eigen::Vector3d from = origin.cast<double>(), ray = PixelRay(camera, origin, i).cast<double>();
+      double t0 = std::max(0.0, d - kHullSearchMm), in = 0, out = 0;
+      bool entered = false;
+      if (!hull.FirstSpan(from, ray, t0, d + kHullSearchMm, kHullStepMm, &in, &out, &entered)) continue;
+      // Inside the hull where the search began (the neighbours' distance lies over 100 mm behind the skin, as on a
+      // ray that passes a chin onto the neck): searched again from nearer the camera, to where the ray enters.
+      for (int again = 0; again < 3 && !entered && in == t0 && t0 > 0; ++again) {
+        t0 = std::max(0.0, t0 - 2 * kHullSearchMm);
+        if (!hull.FirstSpan(from, ray, t0, d + kHullSearchMm, kHullStepMm, &in, &out, &entered)) break;
       }
       g->hull_in[i] = static_cast<float>(in);
-      g->hull_out[i] = static_cast<float>(std::min(out, in + depth_mm));
+      // The depth is counted from where the ray enters the hull, not from where the search began.
+      g->hull_out[i] = static_cast<float>(entered ? std::min(out, in + depth_mm) : out);
       (*distance)[i] = std::clamp((*distance)[i], g->hull_in[i], g->hull_out[i]);
     }
   });
@@ -803,6 +809,8 @@ float WithinHull(const PixelGeometry& g, size_t i, float d) {
 absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamera& camera, const LightModel& light,
                                      const std::vector<Image>& frames, const PhotometricOptions& options,
                                      PixelGeometry* g, const VisualHull* hull) {
+  g->hull_in.clear();
+  g->hull_out.clear();
   if (options.geometry_fill_px <= 0) return 0;
   auto twins = internal::PairPatterns(light);
   if (!twins.ok()) return twins.status();
@@ -832,8 +840,6 @@ absl::StatusOr<int64_t> FillGeometry(const MeshBvh& mesh, const PhotometricCamer
   }
   g->placed.assign(pixels, 0);
   for (size_t i : filled) g->placed[i] = 1;
-  g->hull_in.clear();
-  g->hull_out.clear();
   if (hull != nullptr && !hull->empty() && options.geometry_hull) {
     BoundByHull(*hull, camera, filled, options.geometry_hull_depth_mm, options.threads, &depth, g);
   }

@@ -77,7 +77,6 @@ struct GeometryCounts {
 };
 
 // A unit's metrics (metrics.json): what was solved and flagged, and typical values; deterministic.
-
 std::string UnitMetrics(const PhotometricMaps& m, int64_t frame, const std::string& camera, const std::string& geometry,
                         const GeometryCounts& counts_of_geometry, const std::string& calibration) {
   const auto [solved, specular] = Solved(m);

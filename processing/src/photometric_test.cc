@@ -15,6 +15,34 @@
 namespace stage::processing {
 namespace {
 
+// The plane z = 0 for x < 0 only: a mesh that ends where the surface goes on (a reconstruction's edge).
+TriangleMesh HalfPlane() {
+  TriangleMesh m;
+  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
+  m.triangles = {{0, 1, 2}, {0, 2, 3}};
+  return m;
+}
+
+// `h` rows of `w` pixels 1 mm apart on z = 0, centred on the origin (x = -(w - 1) / 2 ..), seen from 1 m above.
+PhotometricCamera RowsFromAbove(int w, int h = 1) {
+  PhotometricCamera camera;
+  camera.position_mm = {0, 0, 1000};
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      camera.rays.push_back(
+          (Eigen::Vector3d(x - (w - 1) / 2.0, y - (h - 1) / 2.0, 0) - camera.position_mm).normalized().cast<float>());
+    }
+  }
+  return camera;
+}
+
+// Every pattern's `w` x `h` image, 1000 DN in every channel.
+std::vector<Image> EvenFrames(const LightModel& light, int w, int h = 1) {
+  std::vector<Image> frames(light.patterns.size(), Image(w, h, 3));
+  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  return frames;
+}
+
 // Up to 70 degrees of tilt the solver returns the sphere: diffuse and specular, where the lobe meets the dome.
 TEST(PhotometricTest, ExactImagesGiveTheSpheresMaps) {
   const LightModel light = ShippedLight();
@@ -243,17 +271,9 @@ TEST(PhotometricTest, SolvingAgainWhereTheGeometryChangedGivesTheFullSolvesMaps)
 // it that are lit, and no further than geometry_fill_px, are placed near the surface; dark ones and far ones are not.
 TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDistance) {
   const LightModel light = ShippedLight();
-  TriangleMesh m;  // the plane z = 0 for x < 0 only
-  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
-  m.triangles = {{0, 1, 2}, {0, 2, 3}};
-  const MeshBvh bvh(m);
-  // A row of 20 pixels 1 mm apart on the plane, x = -9.5 .. 9.5, seen from 1 m above.
-  const int w = 20;
-  PhotometricCamera camera;
-  camera.position_mm = {0, 0, 1000};
-  for (int x = 0; x < w; ++x) {
-    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
-  }
+  const MeshBvh bvh(HalfPlane());
+  const int w = 20;  // a row of pixels 1 mm apart on the plane, x = -9.5 .. 9.5
+  const PhotometricCamera camera = RowsFromAbove(w);
   PixelGeometry g = TraceGeometry(bvh, camera, w, 1, light, 2, 1);
   for (int x = 0; x < w; ++x) EXPECT_EQ(g.Covers(static_cast<size_t>(x)), x < 10) << x;
   // Every pattern's image bright but for the last pixel, dark.
@@ -296,18 +316,10 @@ TEST(PhotometricTest, PixelsTheMeshMissesNearItsEdgeArePlacedAtTheirNeighboursDi
 // geometry_hull_depth_mm (3 here) of the entry.
 TEST(PhotometricTest, PlacedPixelsAreKeptInsideTheVisualHull) {
   const LightModel light = ShippedLight();
-  TriangleMesh m;  // the plane z = 0 for x < 0 only
-  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
-  m.triangles = {{0, 1, 2}, {0, 2, 3}};
-  const MeshBvh bvh(m);
-  const int w = 20;  // pixels 1 mm apart, x = -9.5 .. 9.5, seen from 1 m above
-  PhotometricCamera camera;
-  camera.position_mm = {0, 0, 1000};
-  for (int x = 0; x < w; ++x) {
-    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
-  }
-  std::vector<Image> frames(light.patterns.size(), Image(w, 1, 3));
-  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  const MeshBvh bvh(HalfPlane());
+  const int w = 20;  // pixels 1 mm apart, x = -9.5 .. 9.5
+  const PhotometricCamera camera = RowsFromAbove(w);
+  const std::vector<Image> frames = EvenFrames(light, w);
   // The side view, 1 m along -y looking at the origin (image x along +x, image y down along -z), 0.2 mm a pixel over
   // +-110 mm: the whole stretch the rays are searched over (a view says nothing of what its image does not hold).
   CameraParameters side;
@@ -361,6 +373,23 @@ TEST(PhotometricTest, PlacedPixelsAreKeptInsideTheVisualHull) {
           EXPECT_GE(distance, slope_distance - 0.2);
         }
       }
+      if (!with_hull || rise < 0) continue;
+      // Refilled along normals that say the plane goes on flat (as across a fold), the rings carry the plane's
+      // distance out, behind the rising slope: the hull's bound holds each one.
+      Image flat(w, 1, 3);
+      for (int x = 0; x < w; ++x) flat.pixels[3 * x + 2] = 1;
+      auto refilled = RefillGeometry(bvh, camera, light, flat, options, &g);
+      ASSERT_TRUE(refilled.ok()) << refilled.status();
+      ASSERT_EQ(*refilled, 10);
+      for (int x = 14; x < w; ++x) {
+        SCOPED_TRACE(x);
+        const double a = x - 9.5, s = 1000 / (1000 + a);
+        const double slope_distance = s * std::hypot(a, 1000.0);
+        const double distance =
+            (Eigen::Map<const Eigen::Vector3f>(&g.points[3 * x]) - Eigen::Vector3f(0, 0, 1000)).norm();
+        EXPECT_LE(distance, slope_distance + 3.2);
+        EXPECT_GE(distance, slope_distance + 2.8) << "the flat normals should have carried it behind the bound";
+      }
     }
   }
   // Switched off, the hull is not used.
@@ -378,20 +407,10 @@ TEST(PhotometricTest, PlacedPixelsAreKeptInsideTheVisualHull) {
 // RefillGeometry, given the surface's normals, places them on it, and traces their shadows from there.
 TEST(PhotometricTest, PlacedPixelsAreRefilledAlongTheSurfaceTheNormalsDescribe) {
   const LightModel light = ShippedLight();
-  TriangleMesh m;  // the plane z = 0 for x < 0 only; beyond it the true surface is z = -x
-  m.positions = {{-50, -50, 0}, {0, -50, 0}, {0, 50, 0}, {-50, 50, 0}};
-  m.triangles = {{0, 1, 2}, {0, 2, 3}};
-  const MeshBvh bvh(m);
-  const int w = 20, h = 3;  // rows of 20 pixels 1 mm apart, x = -9.5 .. 9.5, seen from 1 m above
-  PhotometricCamera camera;
-  camera.position_mm = {0, 0, 1000};
-  for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x) {
-      camera.rays.push_back((Eigen::Vector3d(x - 9.5, y - 1, 0) - camera.position_mm).normalized().cast<float>());
-    }
-  }
-  std::vector<Image> frames(light.patterns.size(), Image(w, h, 3));
-  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  const MeshBvh bvh(HalfPlane());  // beyond its edge the true surface is z = -x
+  const int w = 20, h = 3;         // rows of 20 pixels 1 mm apart, x = -9.5 .. 9.5
+  const PhotometricCamera camera = RowsFromAbove(w, h);
+  const std::vector<Image> frames = EvenFrames(light, w, h);
   PhotometricOptions options;
   options.threads = 1;
   options.geometry_fill_px = 8;
@@ -454,14 +473,9 @@ TEST(PhotometricTest, RefilledPixelsAreNotGrownAcrossAJumpInDepth) {
                  {8, -50, -40}, {50, -50, -40}, {50, 50, -40}, {8, 50, -40}};
   m.triangles = {{0, 1, 2}, {0, 2, 3}, {4, 5, 6}, {4, 6, 7}};
   const MeshBvh bvh(m);
-  const int w = 20;  // pixels 1 mm apart at z = 0, x = -9.5 .. 9.5, seen from 1 m above
-  PhotometricCamera camera;
-  camera.position_mm = {0, 0, 1000};
-  for (int x = 0; x < w; ++x) {
-    camera.rays.push_back((Eigen::Vector3d(x - 9.5, 0, 0) - camera.position_mm).normalized().cast<float>());
-  }
-  std::vector<Image> frames(light.patterns.size(), Image(w, 1, 3));
-  for (Image& f : frames) std::fill(f.pixels.begin(), f.pixels.end(), 1000.f);
+  const int w = 20;  // pixels 1 mm apart at z = 0, x = -9.5 .. 9.5
+  const PhotometricCamera camera = RowsFromAbove(w);
+  const std::vector<Image> frames = EvenFrames(light, w);
   PhotometricOptions options;
   options.threads = 1;
   options.geometry_fill_px = 8;

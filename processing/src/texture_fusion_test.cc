@@ -7,6 +7,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/common/uv_raster.h"
+#include "test_cameras.h"
 
 namespace stage::processing {
 namespace {
@@ -53,22 +54,7 @@ void AddOccluder(TriangleMesh* m) {
 float Pattern(const Eigen::Vector2f& uv) { return 0.5f + 0.3f * std::sin(6.0f * uv.x()) * std::cos(4.0f * uv.y()); }
 
 CameraModel LookingAt(const Eigen::Vector3d& position, const Eigen::Vector3d& target = Eigen::Vector3d::Zero()) {
-  CameraParameters p;
-  p.width = 320;
-  p.height = 240;
-  p.fx = p.fy = 420;
-  p.cx = 159.5;
-  p.cy = 119.5;
-  p.position = position;
-  const Eigen::Vector3d z = (target - position).normalized();
-  const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized() * -1;  // image x to the right
-  const Eigen::Vector3d y = z.cross(x);                                           // image y down
-  p.rotation.row(0) = x;
-  p.rotation.row(1) = y;
-  p.rotation.row(2) = z;
-  auto model = CameraModel::FromParameters(p);
-  EXPECT_TRUE(model.ok()) << model.status();
-  return *model;
+  return CameraLookingAt(position, target, 320, 240, 420);
 }
 
 // The maps a perfect photometric solve would give: per pixel, the albedo pattern (0.1 on the occluder) and a normal

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -15,6 +16,7 @@ namespace fs = std::filesystem;
 
 std::vector<uint8_t> SilhouetteMask(const std::vector<float>& grey, int width, int height, float min_signal,
                                     int grow_px) {
+  if (width <= 0 || height <= 0 || grey.size() != static_cast<size_t>(width) * height) return {};
   // A frame of background around the image, so that the flood from its corner reaches every border pixel.
   cv::Mat outside(height + 2, width + 2, CV_8U, cv::Scalar(0));
   for (int y = 0; y < height; ++y) {
@@ -101,8 +103,8 @@ VisualHull::Seen VisualHull::Judge(const Eigen::Vector3d& p) const {
 }
 
 bool VisualHull::FirstSpan(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir, double t0, double t1, double step,
-                           double* in, double* out) const {
-  if (!(step > 0) || !(t1 >= t0)) return false;
+                           double* in, double* out, bool* entered) const {
+  if (!std::isfinite(t0) || !std::isfinite(t1) || !(t1 >= t0) || !(step > 0)) return false;
   auto outside = [&](double t) { return Judge(origin + t * dir) == Seen::kOutside; };
   // The boundary between `a` and `b`, one outside and the other not, to step / 32.
   auto boundary = [&](double a, double b) {
@@ -114,14 +116,18 @@ bool VisualHull::FirstSpan(const Eigen::Vector3d& origin, const Eigen::Vector3d&
     return 0.5 * (a + b);
   };
   // Runs of samples no view puts outside; the first that some view sees inside is the span (a run no view sees at all
-  // is no evidence of the subject: the air beyond the views' images).
-  bool in_run = false, run_seen = false;
+  // is no evidence of the subject: the air beyond the views' images). A run is entered from outside when a sample
+  // before it lies outside and its first sample is seen inside.
+  const int64_t samples = static_cast<int64_t>(std::ceil((t1 - t0) / step));
+  bool in_run = false, run_seen = false, from_outside = false;
   double previous = t0;
-  for (double t = t0;; t = std::min(t1, t + step)) {
+  for (int64_t k = 0; k <= samples; ++k) {
+    const double t = std::min(t1, t0 + static_cast<double>(k) * step);
     const Seen at = Judge(origin + t * dir);
     if (at == Seen::kOutside) {
       if (in_run && run_seen) {
         *out = boundary(previous, t);
+        if (entered != nullptr) *entered = from_outside;
         return true;
       }
       in_run = false;
@@ -129,18 +135,17 @@ bool VisualHull::FirstSpan(const Eigen::Vector3d& origin, const Eigen::Vector3d&
       if (!in_run) {
         in_run = true;
         run_seen = false;
-        *in = t == t0 ? t0 : boundary(previous, t);
+        from_outside = k > 0 && at == Seen::kInside;
+        *in = k == 0 ? t0 : boundary(previous, t);
       }
       run_seen |= at == Seen::kInside;
     }
     previous = t;
-    if (t >= t1) break;
   }
-  if (in_run && run_seen) {
-    *out = t1;
-    return true;
-  }
-  return false;
+  if (!(in_run && run_seen)) return false;
+  *out = t1;
+  if (entered != nullptr) *entered = from_outside;
+  return true;
 }
 
 }  // namespace stage::processing

@@ -7,26 +7,16 @@
 #include <cmath>
 #include <filesystem>
 
+#include "test_cameras.h"
+
 namespace stage::processing {
 namespace {
 
 using ::testing::HasSubstr;
 
-// A camera `distance_mm` from the stage origin along `axis` (unit), looking at it; `up` not along the axis.
-CameraModel LookingAtOrigin(const Eigen::Vector3d& axis, const Eigen::Vector3d& up, double distance_mm, int size,
-                            double fx) {
-  CameraParameters p;
-  p.width = p.height = size;
-  p.fx = p.fy = fx;
-  p.cx = p.cy = (size - 1) / 2.0;
-  p.position = distance_mm * axis;
-  const Eigen::Vector3d z = -axis, x = up.cross(z).normalized() * -1, y = z.cross(x);
-  p.rotation.row(0) = x;
-  p.rotation.row(1) = y;
-  p.rotation.row(2) = z;
-  auto model = CameraModel::FromParameters(p);
-  EXPECT_TRUE(model.ok()) << model.status();
-  return *model;
+// A `size`-pixel square camera `distance_mm` from the stage origin along `axis` (unit), looking at it.
+CameraModel LookingAtOrigin(const Eigen::Vector3d& axis, double distance_mm, int size, double fx) {
+  return CameraLookingAt(distance_mm * axis, Eigen::Vector3d::Zero(), size, size, fx);
 }
 
 // The silhouette of the sphere of `radius` mm about the origin through `camera`.
@@ -61,17 +51,17 @@ TEST(SilhouetteMaskTest, ClosesHolesAndGrows) {
   // Below the bar nothing is inside.
   const std::vector<uint8_t> none = SilhouetteMask(grey, w, h, 2.f, 3);
   for (uint8_t v : none) ASSERT_EQ(v, 0);
+  EXPECT_TRUE(SilhouetteMask(grey, w + 1, h, 0.5f, 0).empty()) << "an image of another size";
 }
 
 // Four views about a sphere: the hull holds the sphere, so a ray's first stretch inside it brackets the ray's chord of
-// the sphere; a ray that passes the sphere's silhouette in one view by a few pixels meets no hull.
+// the sphere; a ray that passes the sphere's side by a fifth of its radius meets no hull.
 TEST(VisualHullTest, HoldsTheSubjectAndBoundsARayThroughIt) {
   const double r = 50;
   std::vector<Silhouette> views;
-  const Eigen::Vector3d up(0, 1, 0);
   const Eigen::Vector3d axes[4] = {{0, 0, 1}, {1, 0, 0}, {-1, 0, 0}, Eigen::Vector3d(1, 0, 1).normalized()};
   for (int k = 0; k < 4; ++k) {
-    views.push_back(OfSphere("v" + std::to_string(k), LookingAtOrigin(axes[k], up, 1000, 400, 2000), r));
+    views.push_back(OfSphere("v" + std::to_string(k), LookingAtOrigin(axes[k], 1000, 400, 2000), r));
   }
   const VisualHull hull(views);
   using Seen = VisualHull::Seen;
@@ -95,9 +85,26 @@ TEST(VisualHullTest, HoldsTheSubjectAndBoundsARayThroughIt) {
   // Four views about the equator leave the hull loose at the poles, but not by more than the sphere's radius.
   EXPECT_GT(in, entry - r);
   EXPECT_LT(out, exit + r);
-  // Searched from inside, the stretch starts where the search does.
-  ASSERT_TRUE(hull.FirstSpan(origin, dir, entry + 5, entry + 100, 1, &in, &out));
+  bool entered = false;
+  ASSERT_TRUE(hull.FirstSpan(origin, dir, entry - 40, entry + 100, 1, &in, &out, &entered));
+  EXPECT_TRUE(entered);
+  // Searched from inside, the stretch starts where the search does, and the ray was not seen to enter there.
+  ASSERT_TRUE(hull.FirstSpan(origin, dir, entry + 5, entry + 100, 1, &in, &out, &entered));
   EXPECT_EQ(in, entry + 5);
+  EXPECT_FALSE(entered);
+  // A view whose image ends inside the sphere's outline (+-45 mm): a ray down the y axis goes from air it does not see
+  // straight into the sphere. The unseen stretch widens the span, and the ray was not seen to enter where it begins.
+  const VisualHull cropped({OfSphere("v0", LookingAtOrigin(axes[0], 1000, 180, 2000), r)});
+  ASSERT_TRUE(cropped.FirstSpan({0, 800, 0}, {0, -1, 0}, 600, 1000, 1, &in, &out, &entered));
+  EXPECT_EQ(in, 600);
+  EXPECT_EQ(out, 1000);
+  EXPECT_FALSE(entered);
+  EXPECT_FALSE(cropped.FirstSpan({0, 800, 0}, {0, -1, 0}, 600, 700, 1, &in, &out)) << "seen by none";
+  // A stretch of no length, and bad bounds.
+  ASSERT_TRUE(hull.FirstSpan(origin, dir, entry + 5, entry + 5, 1, &in, &out));
+  EXPECT_EQ(out, entry + 5);
+  EXPECT_FALSE(hull.FirstSpan(origin, dir, entry, INFINITY, 1, &in, &out));
+  EXPECT_FALSE(hull.FirstSpan(origin, dir, entry, entry + 10, 0, &in, &out));
 
   // A ray along z, a fifth of the radius past the sphere's side, over +-100 mm about the sphere: v1's silhouette holds
   // it where it passes the sphere (v1 looks at it from the side), v0's nowhere (it looks along it).
@@ -108,8 +115,8 @@ TEST(VisualHullTest, HoldsTheSubjectAndBoundsARayThroughIt) {
 TEST(VisualHullTest, WritesAndReadsItsSilhouettes) {
   const std::string root = ::testing::TempDir() + "/visual-hull";
   std::filesystem::remove_all(root);
-  std::vector<Silhouette> views = {OfSphere("mv-01", LookingAtOrigin({0, 0, 1}, {0, 1, 0}, 1000, 64, 600), 50),
-                                   OfSphere("mv-02", LookingAtOrigin({1, 0, 0}, {0, 1, 0}, 1000, 64, 600), 50)};
+  std::vector<Silhouette> views = {OfSphere("mv-01", LookingAtOrigin({0, 0, 1}, 1000, 64, 600), 50),
+                                   OfSphere("mv-02", LookingAtOrigin({1, 0, 0}, 1000, 64, 600), 50)};
   ASSERT_TRUE(VisualHull::Write(root + "/silhouette", views).ok());
   auto read = VisualHull::Read(root + "/silhouette");
   ASSERT_TRUE(read.ok()) << read.status();
@@ -117,15 +124,28 @@ TEST(VisualHullTest, WritesAndReadsItsSilhouettes) {
   for (size_t k = 0; k < 2; ++k) {
     EXPECT_EQ(read->views()[k].id, views[k].id);
     EXPECT_EQ(read->views()[k].inside, views[k].inside);
-    EXPECT_NEAR((read->views()[k].camera.position() - views[k].camera.position()).norm(), 0, 1e-9);
+    const CameraParameters got = read->views()[k].camera.parameters(), want = views[k].camera.parameters();
+    EXPECT_EQ(got.width, want.width);
+    EXPECT_NEAR(got.fx, want.fx, 1e-9);
+    EXPECT_NEAR(got.cx, want.cx, 1e-9);
+    EXPECT_NEAR((got.position - want.position).norm(), 0, 1e-9);
+    EXPECT_NEAR((got.rotation - want.rotation).norm(), 0, 1e-9);
   }
-  // A mask whose camera is missing, and a mask of the wrong size, are named.
+  // A mask of another size than its camera's, and a camera without its mask, are named on reading.
+  std::vector<Silhouette> smaller = views;
+  smaller[1].camera = views[1].camera.Resized(32, 32);
+  smaller[1].inside.assign(32 * 32, 1);
+  ASSERT_TRUE(VisualHull::Write(root + "/smaller", smaller).ok());
+  std::filesystem::copy_file(root + "/smaller/mv-02.png", root + "/silhouette/mv-02.png",
+                             std::filesystem::copy_options::overwrite_existing);
+  EXPECT_THAT(std::string(VisualHull::Read(root + "/silhouette").status().message()),
+              HasSubstr("silhouette/mv-02.png: 32x32"));
   std::filesystem::remove(root + "/silhouette/mv-02.png");
-  auto missing = VisualHull::Read(root + "/silhouette");
-  EXPECT_THAT(std::string(missing.status().message()), HasSubstr("silhouette/mv-02.png"));
-  views[1].camera = views[1].camera.Resized(32, 32);
-  views[1].inside.assign(16, 1);
-  EXPECT_THAT(std::string(VisualHull::Write(root + "/other", views).message()), HasSubstr("\"mv-02\""));
+  EXPECT_THAT(std::string(VisualHull::Read(root + "/silhouette").status().message()),
+              HasSubstr("silhouette/mv-02.png"));
+  // A mask that does not fit its camera is refused on writing.
+  smaller[1].inside.assign(16, 1);
+  EXPECT_THAT(std::string(VisualHull::Write(root + "/other", smaller).message()), HasSubstr("\"mv-02\""));
 }
 
 }  // namespace

@@ -56,9 +56,9 @@ struct MvsOptions {
   bool keep_coarser = false;
   // Pixels darker than this fraction of the image's 99th percentile are background. Default 0.04.
   double min_signal = 0.04;
-  // Each view's silhouette (its pixels above min_signal, holes closed; the visual hull's evidence, written beside the
-  // mesh as silhouette/ID.png) is grown by this many pixels at the processing size: a margin for the outline's own
-  // pixel. Default 1.
+  // Each view's silhouette (its pixels at or above the background's bar, holes closed; the visual hull's evidence,
+  // written beside the mesh as silhouette/ID.png) is grown by this many pixels at the processing size: a margin for
+  // the outline's own pixel. At most 16; default 1.
   int silhouette_grow_px = 1;
   // A depth is kept where at least `min_consistent` neighbours' depth maps put the same point within consistency_px
   // of their pixel footprint. Default 1 and 2 px.

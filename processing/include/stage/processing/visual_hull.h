@@ -25,7 +25,7 @@ struct Silhouette {
 
 // The silhouette of a linear grey image (`width` x `height`): the pixels at or above `min_signal`, with every hole
 // closed (what the background does not reach from the image's border is inside: the nostrils, the mouth, the pupils),
-// grown by `grow_px` pixels (a margin for the outline's own pixel).
+// grown by `grow_px` pixels (a margin for the outline's own pixel). Empty when `grey` is not `width` x `height`.
 std::vector<uint8_t> SilhouetteMask(const std::vector<float>& grey, int width, int height, float min_signal,
                                     int grow_px);
 
@@ -47,12 +47,13 @@ class VisualHull {
   enum class Seen { kOutside, kInside, kByNone };
   Seen Judge(const Eigen::Vector3d& p) const;
 
-  // The first stretch of the ray origin + t * dir (dir unit) with t in [t0, t1] that no view puts outside and some
-  // view sees inside, sampled every `step` mm and its ends found to step / 32: [*in, *out]. False when there is none.
-  // A stretch no view sees (beyond their images) is no evidence of the subject and is passed over, unless it runs
-  // into one some view sees inside, which it then widens.
+  // The first stretch of the ray origin + t * dir (dir unit) with t in [t0, t1] (finite) that no view puts outside
+  // and some view sees inside, sampled every `step` mm and its ends found to step / 32: [*in, *out]. False when there
+  // is none. A stretch no view sees (beyond their images) is no evidence of the subject and is passed over, unless it
+  // runs into one some view sees inside, which it then widens. `entered` (optional): whether *in is where the ray
+  // enters the hull from outside it, not where the search began nor where unseen air began.
   bool FirstSpan(const Eigen::Vector3d& origin, const Eigen::Vector3d& dir, double t0, double t1, double step,
-                 double* in, double* out) const;
+                 double* in, double* out, bool* entered = nullptr) const;
 
  private:
   std::vector<Silhouette> views_;
