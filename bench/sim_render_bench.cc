@@ -7,9 +7,13 @@
 //     as one stream: Subject::OccludedMany) beside the same rays one at a time (Subject::Occluded) and as streams of
 //     one pixel's rays (towards every unit: one origin, directions apart);
 //  3. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
-//     second of take, frames rendered per second.
+//     second of take, frames rendered per second;
+//  4. a full-lit take's camera frames (default mv-05 watching the ChArUco board move through 6 poses at render scale
+//     0.5, each pose's full-on patterns, as `stage-sim-render --take` renders a calibration take): each pose's sums
+//     under its exposures alone (ExposureBasis, every sub-pixel offset's rays kept) beside every unit's responses (the
+//     renderer's way for a live stage, rays kept within their default budget), the frames compared.
 // Run: build/bin/sim_render_bench [--scales 1,0.25] [--shadow-scale 0.25] [--shadow-rounds 3] [--demo-scale 0.04]
-//      [--slots 912] [--camera hs-2]
+//      [--slots 912] [--camera hs-2] [--full-lit-scale 0.5] [--full-lit-poses 6] [--full-lit-camera mv-05]
 #include <algorithm>
 #include <chrono>
 #include <condition_variable>
@@ -251,6 +255,61 @@ void WholeRig(double scale, int64_t slots) {
       setup);
 }
 
+void FullLitTake(const std::string& camera, double scale, int poses) {
+  auto loaded = stage::LoadRig(stage::kBuiltinRigName);
+  if (!loaded.ok()) Die(loaded.status());
+  auto rig =
+      stage::ApplyRigOverrides(*loaded, {"sim.render_scale=" + std::to_string(scale), "sim.subject.kind=charuco"});
+  if (!rig.ok()) Die(rig.status());
+  auto made = stage::sim::SimScene::FromLoadedRig(*rig);
+  if (!made.ok()) Die(made.status());
+  const std::shared_ptr<const stage::sim::SimScene> scene = *made;
+  const int index = scene->CameraIndex(camera);
+  if (index < 0) Die(absl::NotFoundError("no camera " + camera));
+  std::vector<stage::sim::EmitterLevels> full_on;
+  for (int p = 0; p < scene->schedule().patterns_size(); ++p) {
+    const stage::sim::EmitterLevels l = scene->PatternLevels(p);
+    const bool parallel = scene->schedule().patterns(p).polarization() == stage::v1::POLARIZATION_PARALLEL;
+    if ((parallel ? l.parallel : l.cross).minCoeff() > 0.999f) full_on.push_back(l);
+  }
+  const double exposure_s = scene->rig().cameras(index).exposure_us() * 1e-6;
+  // Each way renders the same camera frames (pose x full-on pattern, the same noise); its time and its frames.
+  auto render = [&](bool basis, std::vector<stage::sim::RawImage>* frames) {
+    stage::sim::CameraRenderer renderer(scene, index);
+    if (basis) {
+      renderer.ExpectOnly(full_on);
+      renderer.KeepRays(size_t{4} << 30);
+    }
+    const auto t = Clock::now();
+    uint64_t counter = 0;
+    for (int pose = 0; pose < poses; ++pose) {
+      for (const auto& levels : full_on) frames->push_back(renderer.Render(levels, exposure_s, counter++, pose * 2));
+    }
+    return Since(t);
+  };
+  std::vector<stage::sim::RawImage> every, few;
+  const double every_s = render(false, &every);
+  const double few_s = render(true, &few);
+  size_t differ = 0, values = 0;
+  int worst = 0;
+  for (size_t f = 0; f < every.size(); ++f) {
+    for (size_t i = 0; i < every[f].data.size(); ++i) {
+      const int d = std::abs(static_cast<int>(every[f].data[i]) - static_cast<int>(few[f].data[i]));
+      differ += d != 0;
+      worst = std::max(worst, d);
+    }
+    values += every[f].data.size();
+  }
+  const double frames = static_cast<double>(every.size());
+  std::printf(
+      "%-5s scale %-5g full-lit take of the board, %d poses x %zu full-on pattern(s), %dx%d: every unit's responses "
+      "%.2f s (%.2f s a camera frame); the take's exposures alone %.2f s (%.2f s a camera frame, %.2fx); %zu of %zu "
+      "values differ, by at most %d DN\n",
+      camera.c_str(), scale, poses, full_on.size(), every.front().width, every.front().height, every_s,
+      every_s / frames, few_s, few_s / frames, every_s / few_s, differ, values, worst);
+  if (worst > 1) std::exit(1);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -273,10 +332,20 @@ int main(int argc, char** argv) {
   app.add_option("--demo-scale", demo_scale, "Render scale of the whole-rig run (0 skips it)")->capture_default_str();
   app.add_option("--slots", slots, "Slots of the whole-rig run")->capture_default_str();
   app.add_option("--camera", camera, "Camera of the one-camera figures")->capture_default_str();
+  double full_lit_scale = 0.5;
+  int full_lit_poses = 6;
+  std::string full_lit_camera = "mv-05";
+  app.add_option("--full-lit-scale", full_lit_scale, "Render scale of the full-lit take's figures (0 skips them)")
+      ->capture_default_str();
+  app.add_option("--full-lit-poses", full_lit_poses, "Poses of the board in the full-lit take")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--full-lit-camera", full_lit_camera, "Camera of the full-lit take")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   std::printf("sim_render_bench on %u hardware threads\n", std::thread::hardware_concurrency());
   for (double s : scales) OneCamera(camera, s);
   if (shadow_scale > 0) ShadowRayCost(camera, shadow_scale, shadow_rounds);
   if (demo_scale > 0) WholeRig(demo_scale, slots);
+  if (full_lit_scale > 0) FullLitTake(full_lit_camera, full_lit_scale, full_lit_poses);
   return 0;
 }

@@ -4,8 +4,13 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <optional>
 #include <span>
 #include <thread>
+
+#include "absl/strings/str_format.h"
 
 namespace stage::sim {
 namespace {
@@ -165,20 +170,55 @@ void DarkUnits(const UnitArrays& units, const Subject& occluder, BlockScratch& b
   for (size_t i = 0; i < b.answers.size(); ++i) b.dark[b.ray_of[i]] = b.answers[i];
 }
 
-// The responses of rows [first, last) (their hits weighted by `weight`, a ray's share of the pixel) into `r`.
-// `occluder`: the subject where it may shadow itself, null where it cannot (a convex subject shadows none of itself
-// where the light is in front of the surface).
-void AddBlockResponses(const std::vector<const std::vector<Hit>*>& rows, size_t first, size_t last,
+// A basis's drives, units x exposures, column-major: the diffuse (cross + parallel) and the specular (parallel +
+// leakage cross) drive of each exposure.
+struct BasisDrives {
+  BasisDrives(const ExposureBasis& basis, size_t units) : count(basis.levels.size()) {
+    diffuse.resize(units * count);
+    specular.resize(units * count);
+    for (size_t k = 0; k < count; ++k) {
+      const EmitterLevels& l = basis.levels[k];
+      for (size_t u = 0; u < units; ++u) {
+        const auto i = static_cast<Eigen::Index>(u);
+        diffuse[k * units + u] = l.cross[i] + l.parallel[i];
+        specular[k * units + u] = l.parallel[i] + basis.leakage * l.cross[i];
+      }
+    }
+  }
+  size_t count;
+  std::vector<float> diffuse, specular;
+};
+
+// Adds the unit responses `d` and `s` (units long) summed under each exposure's drives to the row's `out_d`, `out_s`.
+void AddProjected(const float* d, const float* s, size_t units, const BasisDrives& drives, float* out_d, float* out_s) {
+  for (size_t k = 0; k < drives.count; ++k) {
+    const float* a = drives.diffuse.data() + k * units;
+    const float* b = drives.specular.data() + k * units;
+    float sum_d = 0, sum_s = 0;
+    for (size_t u = 0; u < units; ++u) {
+      sum_d += d[u] * a[u];
+      sum_s += s[u] * b[u];
+    }
+    out_d[k] += sum_d;
+    out_s[k] += sum_s;
+  }
+}
+
+// The responses of rows [first, last) (their hits weighted by `weight`, a ray's share of the pixel) into `r`: to
+// every unit, or where `drives` is given, summed under its exposures. `occluder`: the subject where it may shadow
+// itself, null where it cannot (a convex subject shadows none of itself where the light is in front of the surface).
+void AddBlockResponses(const std::vector<std::span<const Hit>>& rows, size_t first, size_t last,
                        const Eigen::Vector3f& origin, const UnitArrays& units, const Subject* occluder, float weight,
-                       PixelResponses& r) {
+                       const BasisDrives* drives, PixelResponses& r) {
   thread_local BlockScratch b;
+  thread_local std::vector<float> unit_d, unit_s;  // one hit's responses to every unit, where projected
   b.terms.clear();
   b.rows.clear();
   for (size_t i = first; i < last; ++i) {
     const auto row = static_cast<Eigen::Index>(i);
     r.diffuse.row(row).setZero();
     r.specular.row(row).setZero();
-    for (const Hit& h : *rows[i]) {
+    for (const Hit& h : rows[i]) {
       b.terms.push_back(MakeTerms(h, origin));
       b.rows.push_back(row);
     }
@@ -186,17 +226,38 @@ void AddBlockResponses(const std::vector<const std::vector<Hit>*>& rows, size_t 
   if (occluder != nullptr) DarkUnits(units, *occluder, b);
   const size_t count = units.x.size();
   for (size_t k = 0; k < b.terms.size(); ++k) {
-    float* d = r.diffuse.row(b.rows[k]).data();
-    float* s = r.specular.row(b.rows[k]).data();
+    float* row_d = r.diffuse.row(b.rows[k]).data();
+    float* row_s = r.specular.row(b.rows[k]).data();
+    float* d = row_d;
+    float* s = row_s;
+    if (drives != nullptr) {
+      unit_d.assign(count, 0.0f);
+      unit_s.assign(count, 0.0f);
+      d = unit_d.data();
+      s = unit_s.data();
+    }
     if (occluder != nullptr) {
       AddUnitResponses<true>(b.terms[k], units, b.dark.data() + k * count, weight, d, s);
     } else {
       AddUnitResponses<false>(b.terms[k], units, nullptr, weight, d, s);
     }
+    if (drives != nullptr) AddProjected(d, s, count, *drives, row_d, row_s);
   }
 }
 
 }  // namespace
+
+int ExposureBasis::Find(const EmitterLevels& l, float leakage_of_camera) const {
+  if (leakage_of_camera != leakage) return -1;
+  for (size_t k = 0; k < levels.size(); ++k) {
+    const EmitterLevels& b = levels[k];
+    if (b.cross.size() == l.cross.size() && b.parallel.size() == l.parallel.size() && b.cross == l.cross &&
+        b.parallel == l.parallel) {
+      return static_cast<int>(k);
+    }
+  }
+  return -1;
+}
 
 float CrossLeakage(const CameraModel& camera, double leakage, double growth) {
   const double c = std::clamp(camera.optical_axis().dot(Eigen::Vector3d(0, 0, -1)), -1.0, 1.0);
@@ -238,13 +299,14 @@ AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, in
 }
 
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads,
-                                int supersample, WorkProgress* progress, int texture_samples) {
+                                int supersample, WorkProgress* progress, int texture_samples,
+                                std::shared_ptr<const ExposureBasis> basis) {
   CameraRays rays(camera, /*budget_bytes=*/0);
-  return ComputeResponses(rays, subject, dome, threads, supersample, progress, texture_samples);
+  return ComputeResponses(rays, subject, dome, threads, supersample, progress, texture_samples, std::move(basis));
 }
 
-AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int n, int threads,
-                           WorkProgress* progress) {
+AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int n, int threads, WorkProgress* progress,
+                           const std::vector<int32_t>* only) {
   const CameraModel& camera = camera_rays.camera();
   const size_t count = static_cast<size_t>(camera.width()) * static_cast<size_t>(camera.height());
   AreaAlbedo out;
@@ -255,12 +317,17 @@ AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int 
     for (int sx = 0; sx < n; ++sx) {
       const std::shared_ptr<const std::vector<Eigen::Vector3f>> rays =
           camera_rays.At((sx + 0.5) / n - 0.5, (sy + 0.5) / n - 0.5);
-      ParallelFor(rays->size(), threads, progress, [&](size_t i) {
-        const Hit h = subject.Intersect(origin, (*rays)[i]);
-        if (!h.hit) return;
-        out.albedo[i] += h.material.albedo;
+      auto trace = [&](size_t i) {
+        Eigen::Vector3f albedo;
+        if (!subject.AlbedoAt(origin, (*rays)[i], &albedo)) return;
+        out.albedo[i] += albedo;
         ++out.rays[i];
-      });
+      };
+      if (only == nullptr) {
+        ParallelFor(rays->size(), threads, progress, trace);
+      } else {
+        ParallelFor(only->size(), threads, progress, [&](size_t k) { trace(static_cast<size_t>((*only)[k])); });
+      }
     }
   }
   for (size_t i = 0; i < count; ++i) {
@@ -270,7 +337,8 @@ AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int 
 }
 
 PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject, const Dome& dome, int threads,
-                                int supersample, WorkProgress* progress, int texture_samples) {
+                                int supersample, WorkProgress* progress, int texture_samples,
+                                std::shared_ptr<const ExposureBasis> basis) {
   const CameraModel& camera = camera_rays.camera();
   PixelResponses r;
   r.width = camera.width();
@@ -280,32 +348,51 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   const auto rays = static_cast<uint64_t>(r.width) * r.height * n * n;
   // The rays, then a pixel's responses for each one that hits (at most every pixel; known once traced).
   if (progress != nullptr) progress->total.store(progress->done.load() + 2 * rays);
-  // Every ray that hits, grouped by pixel (rows in pixel order).
-  std::vector<std::vector<Hit>> by_pixel(static_cast<size_t>(r.width) * r.height);
+  // Every ray that hits, grouped by pixel (rows in pixel order): each offset's hits, then one array of them all with
+  // each pixel's span (no vector a pixel: at full scale their allocations were an eighth of a board's render).
+  std::vector<std::vector<Hit>> traced;
   for (int sy = 0; sy < n; ++sy) {
     for (int sx = 0; sx < n; ++sx) {
       const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
-      std::vector<Hit> all = TracePixels(camera_rays, subject, threads, dx, dy, progress);
-      for (size_t i = 0; i < all.size(); ++i) {
-        if (all[i].hit) by_pixel[i].push_back(all[i]);
-      }
+      traced.push_back(TracePixels(camera_rays, subject, threads, dx, dy, progress));
     }
   }
-  std::vector<const std::vector<Hit>*> rows;
-  for (size_t i = 0; i < by_pixel.size(); ++i) {
-    if (by_pixel[i].empty()) continue;
-    r.pixels.push_back(static_cast<int32_t>(i));
-    Eigen::Vector3f albedo = Eigen::Vector3f::Zero();
-    for (const Hit& h : by_pixel[i]) albedo += h.material.albedo;
-    r.albedo.push_back(albedo / static_cast<float>(by_pixel[i].size()));
-    r.hits.push_back(by_pixel[i].front());
-    rows.push_back(&by_pixel[i]);
+  const size_t image = static_cast<size_t>(r.width) * r.height;
+  size_t total_hits = 0;
+  for (size_t i = 0; i < image; ++i) {
+    bool any = false;
+    for (const std::vector<Hit>& all : traced) {
+      total_hits += all[i].hit ? 1 : 0;
+      any |= all[i].hit;
+    }
+    if (any) r.pixels.push_back(static_cast<int32_t>(i));
   }
+  std::vector<Hit> hits;
+  hits.reserve(total_hits);
+  std::vector<std::span<const Hit>> rows;
+  rows.reserve(r.pixels.size());
+  r.albedo.reserve(r.pixels.size());
+  r.hits.reserve(r.pixels.size());
+  for (const int32_t pixel : r.pixels) {
+    const size_t begin = hits.size();
+    for (const std::vector<Hit>& all : traced) {
+      if (all[static_cast<size_t>(pixel)].hit) hits.push_back(all[static_cast<size_t>(pixel)]);
+    }
+    const std::span<const Hit> row(hits.data() + begin, hits.size() - begin);
+    Eigen::Vector3f albedo = Eigen::Vector3f::Zero();
+    for (const Hit& h : row) albedo += h.material.albedo;
+    r.albedo.push_back(albedo / static_cast<float>(row.size()));
+    r.hits.push_back(row.front());
+    rows.push_back(row);
+  }
+  traced.clear();
+  traced.shrink_to_fit();
   if (texture_samples > n) {
     if (progress != nullptr) {
-      progress->total.fetch_add(static_cast<uint64_t>(r.width) * r.height * texture_samples * texture_samples);
+      progress->total.fetch_add(static_cast<uint64_t>(r.pixels.size()) * texture_samples * texture_samples);
     }
-    const AreaAlbedo area = TraceAreaAlbedo(camera_rays, subject, texture_samples, threads, progress);
+    // The pixels the lighting rays met only: no other pixel's albedo is used.
+    const AreaAlbedo area = TraceAreaAlbedo(camera_rays, subject, texture_samples, threads, progress, &r.pixels);
     for (size_t k = 0; k < r.pixels.size(); ++k) {
       const auto p = static_cast<size_t>(r.pixels[k]);
       if (area.rays[p] > 0) r.albedo[k] = area.albedo[p];
@@ -324,31 +411,56 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   // Left uninitialized here and zeroed a row at a time by the thread that fills it: one pass over memory the kernel
   // hands out fresh for every pose, not a single-threaded memset first (it and its page faults were 40 % of a moving
   // board's render).
-  r.diffuse.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
-  r.specular.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(units));
+  std::optional<BasisDrives> drives;
+  if (basis != nullptr) drives.emplace(*basis, units);
+  const size_t columns = drives ? drives->count : units;
+  r.diffuse.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(columns));
+  r.specular.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(columns));
+  r.basis = std::move(basis);
   ParallelFor(
       blocks, threads, progress,
       [&](size_t b) {
         AddBlockResponses(rows, b * block_rows, std::min(count, (b + 1) * block_rows), origin, unit_arrays,
-                          shadows ? &subject : nullptr, weight, r);
+                          shadows ? &subject : nullptr, weight, drives ? &*drives : nullptr, r);
       },
       /*work=*/block_rows, /*min_parallel=*/2);
   return r;
 }
 
-std::vector<float> RenderRadiance(const PixelResponses& responses, const EmitterLevels& levels, float leakage) {
+absl::StatusOr<std::vector<float>> RenderRadianceOf(const PixelResponses& responses, const EmitterLevels& levels,
+                                                    float leakage) {
   std::vector<float> rgb(static_cast<size_t>(responses.width) * responses.height * 3, 0.0f);
   if (responses.pixels.empty()) return rgb;
-  const Eigen::VectorXf diffuse_drive = levels.cross + levels.parallel;
-  const Eigen::VectorXf specular_drive = levels.parallel + leakage * levels.cross;
-  const Eigen::VectorXf d = responses.diffuse * diffuse_drive;
-  const Eigen::VectorXf s = responses.specular * specular_drive;
+  Eigen::VectorXf d, s;
+  if (responses.basis != nullptr) {
+    const int k = responses.basis->Find(levels, leakage);
+    if (k < 0) {
+      return absl::InvalidArgumentError(absl::StrFormat(
+          "the responses were computed for %d exposure(s) only, and this one (leakage %g) is not among them",
+          responses.basis->levels.size(), leakage));
+    }
+    d = responses.diffuse.col(k);
+    s = responses.specular.col(k);
+  } else {
+    d = responses.diffuse * (levels.cross + levels.parallel);
+    s = responses.specular * (levels.parallel + leakage * levels.cross);
+  }
   for (size_t i = 0; i < responses.pixels.size(); ++i) {
     float* out = &rgb[static_cast<size_t>(responses.pixels[i]) * 3];
     const Eigen::Index k = static_cast<Eigen::Index>(i);
     for (int c = 0; c < 3; ++c) out[c] = 0.5f * responses.albedo[i][c] * d[k] + s[k];
   }
   return rgb;
+}
+
+std::vector<float> RenderRadiance(const PixelResponses& responses, const EmitterLevels& levels, float leakage) {
+  absl::StatusOr<std::vector<float>> rgb = RenderRadianceOf(responses, levels, leakage);
+  if (!rgb.ok()) {
+    // Responses to every unit render any exposure; responses with a basis go through RenderRadianceOf.
+    std::fprintf(stderr, "RenderRadiance: %s\n", rgb.status().ToString().c_str());
+    std::abort();
+  }
+  return *std::move(rgb);
 }
 
 }  // namespace stage::sim

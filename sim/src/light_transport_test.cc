@@ -226,6 +226,57 @@ TEST(LightTransportTest, TextureSamplesAverageThePrintNotTheLighting) {
   EXPECT_EQ(area.rays[0], 0);
 }
 
+// A mesh's albedo alone (what texture samples ask for: no normals, no detail) is its Intersect's, to the bit, on the
+// board's print and on the head's skin maps; and the texture samples of the lit pixels alone are the whole image's.
+TEST(LightTransportTest, AMeshsAlbedoAloneIsItsIntersectionsAlbedo) {
+  auto camera = CameraModel::FromConfig(Camera({40, 20, 700}, 96, 72), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  auto loaded = LoadRig(kBuiltinRigName);
+  ASSERT_TRUE(loaded.ok());
+  auto rig = ApplyRigOverrides(*loaded, {"sim.subject.kind=charuco"});
+  ASSERT_TRUE(rig.ok()) << rig.status();
+  auto board = BoardModel::Create(rig->rig.sim().subject().board());
+  ASSERT_TRUE(board.ok()) << board.status();
+  HeadPose pose;
+  pose.rotation_deg = Eigen::Vector3f(30, 15, 5);
+  const auto head_model = HeadModel::Procedural(1, 48, HeadShape());
+  const std::unique_ptr<MeshSubject> plate = (*board)->Posed(pose);
+  const std::unique_ptr<MeshSubject> head = head_model->Posed(pose);
+  const Eigen::Vector3f origin = camera->position().cast<float>();
+  for (const MeshSubject* subject : {plate.get(), head.get()}) {
+    int hits = 0, colours = 0;
+    Eigen::Vector3f last = Eigen::Vector3f::Constant(-1);
+    for (const double offset : {0.0, 0.3}) {
+      for (const Eigen::Vector3f& ray : camera->PixelRays(offset, -offset)) {
+        const Hit h = subject->Intersect(origin, ray);
+        Eigen::Vector3f albedo = Eigen::Vector3f::Constant(-1);
+        ASSERT_EQ(subject->AlbedoAt(origin, ray, &albedo), h.hit);
+        if (!h.hit) continue;
+        ++hits;
+        ASSERT_EQ(albedo, h.material.albedo);
+        colours += albedo != last;
+        last = albedo;
+      }
+    }
+    EXPECT_GT(hits, 1000);
+    EXPECT_GT(colours, 50);  // a print or a skin, not one colour
+  }
+  const PixelResponses lit = ComputeResponses(*camera, *head, Dome::FromDirections(FibonacciSphere(16), 1000, 1e6));
+  const AreaAlbedo whole = TraceAreaAlbedo(*camera, *head, 3);
+  CameraRays rays(*camera);
+  const AreaAlbedo some = TraceAreaAlbedo(rays, *head, 3, 0, nullptr, &lit.pixels);
+  for (const int32_t p : lit.pixels) {
+    EXPECT_EQ(some.albedo[static_cast<size_t>(p)], whole.albedo[static_cast<size_t>(p)]) << p;
+    EXPECT_EQ(some.rays[static_cast<size_t>(p)], whole.rays[static_cast<size_t>(p)]) << p;
+  }
+  const auto met = [](const AreaAlbedo& a) {
+    return std::count_if(a.rays.begin(), a.rays.end(), [](int n) { return n > 0; });
+  };
+  EXPECT_GT(lit.pixels.size(), 500u);
+  EXPECT_EQ(met(some), static_cast<std::ptrdiff_t>(lit.pixels.size()));
+  EXPECT_GT(met(whole), met(some));  // the rim's pixels that only some of their rays meet
+}
+
 // A camera's rays are the camera model's, undistorted once per offset and handed out again while they fit the budget;
 // responses through kept rays are the same to the bit, frame after frame.
 TEST(LightTransportTest, CameraRaysAreTheModelsAndKeptWithinTheirBudget) {
@@ -384,6 +435,56 @@ TEST(LightTransportTest, ShadowRaysTracedTogetherGiveTheResponsesOfOneAtATime) {
     EXPECT_EQ(wrong, 0);
     EXPECT_GT(blocked, 1000);
   }
+}
+
+// Responses computed for a few exposures alone (ExposureBasis: each pixel's sums under them) render those exposures as
+// the responses to every unit do, to float rounding: on the head, which shadows itself, with 2 x 2 rays a pixel and
+// its texture averaged over 3 x 3. Any other exposure, or another leakage, is refused by name, not rendered wrong.
+TEST(LightTransportTest, ResponsesForAFewExposuresRenderThemAsEveryUnitsDo) {
+  const Dome d = Dome::FromDirections(FibonacciSphere(96), 1000, 1e6);
+  auto camera = CameraModel::FromConfig(Camera({120, 30, 600}, 96, 72), 1.0);
+  ASSERT_TRUE(camera.ok()) << camera.status();
+  HeadPose pose;
+  pose.rotation_deg = Eigen::Vector3f(20, -15, 0);
+  const auto model = HeadModel::Procedural(1, 48, HeadShape());
+  const std::unique_ptr<MeshSubject> head = model->Posed(pose);
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(0, 1);
+  const auto n = static_cast<Eigen::Index>(d.units.size());
+  EmitterLevels full{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Ones(n)};
+  EmitterLevels mixed{Eigen::VectorXf(n), Eigen::VectorXf(n)};
+  for (Eigen::Index l = 0; l < n; ++l) {
+    mixed.cross[l] = u(rng);
+    mixed.parallel[l] = u(rng);
+  }
+  const float leakage = 0.03f;
+  auto basis = std::make_shared<ExposureBasis>();
+  basis->levels = {full, mixed};
+  basis->leakage = leakage;
+  const PixelResponses every = ComputeResponses(*camera, *head, d, 2, 2, nullptr, 3);
+  const PixelResponses few = ComputeResponses(*camera, *head, d, 2, 2, nullptr, 3, basis);
+  ASSERT_EQ(few.pixels, every.pixels);
+  ASSERT_GT(few.pixels.size(), 1500u);
+  EXPECT_EQ(few.diffuse.cols(), 2);
+  for (const EmitterLevels& levels : {full, mixed}) {
+    const std::vector<float> want = RenderRadiance(every, levels, leakage);
+    const absl::StatusOr<std::vector<float>> got = RenderRadianceOf(few, levels, leakage);
+    ASSERT_TRUE(got.ok()) << got.status();
+    double worst = 0, brightest = 0;
+    for (size_t i = 0; i < want.size(); ++i) {
+      worst = std::max(worst, static_cast<double>(std::abs((*got)[i] - want[i])));
+      brightest = std::max(brightest, static_cast<double>(want[i]));
+    }
+    EXPECT_GT(brightest, 0);
+    EXPECT_LT(worst, 1e-5 * brightest);
+  }
+  EmitterLevels other = mixed;
+  other.cross[3] += 0.25f;
+  const absl::StatusOr<std::vector<float>> refused = RenderRadianceOf(few, other, leakage);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("2 exposure(s)"), std::string::npos) << refused.status();
+  EXPECT_FALSE(RenderRadianceOf(few, full, 2 * leakage).ok());
+  EXPECT_EQ(basis->Find(mixed, leakage), 1);
 }
 
 TEST(LightTransportTest, LambertianSphereConvergesToTheContinuousDome) {

@@ -81,6 +81,23 @@ Hit MeshSubject::Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f&
   return hit;
 }
 
+bool MeshSubject::AlbedoAt(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction,
+                           Eigen::Vector3f* albedo) const {
+  MeshHit where;
+  if (!bvh_.Nearest(origin, direction, INFINITY, &where)) return false;
+  const TriangleMesh& mesh = bvh_.mesh();
+  // As Intersect finds it: the surface's at the point's texture coordinates, else the default material's.
+  if (mesh.uvs.empty() || !surface_) {
+    *albedo = Material{}.albedo;
+    return true;
+  }
+  const auto& tr = mesh.triangles[where.triangle];
+  const float b1 = where.b1, b2 = where.b2, b0 = 1 - b1 - b2;
+  const Eigen::Vector2f uv = b0 * mesh.uvs[tr[0]] + b1 * mesh.uvs[tr[1]] + b2 * mesh.uvs[tr[2]];
+  *albedo = surface_(uv, mesh.parts.empty() ? 0 : mesh.parts[where.triangle]).material.albedo;
+  return true;
+}
+
 bool MeshSubject::Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const {
   return bvh_.Occluded(from, to);
 }

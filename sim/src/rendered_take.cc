@@ -128,6 +128,12 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
   int64_t done = 0;
   for (int camera : cameras) {
     CameraRenderer renderer(scene, camera, options.threads);
+    // Each pose is rendered under these patterns alone: their sums per pixel, not a response per unit (the bulk of the
+    // memory and of the time at full scale).
+    std::vector<EmitterLevels> exposures;
+    for (int p : patterns) exposures.push_back(scene->PatternLevels(p));
+    if (exposures.size() < scene->dome().units.size()) renderer.ExpectOnly(std::move(exposures));
+    renderer.KeepRays(size_t{4} << 30);  // every pose has the same rays: undistorted once
     const double exposure_s = scene->rig().cameras(camera).exposure_us() * 1e-6;
     const std::string path = absl::StrCat(dir, "/cameras/", scene->rig().cameras(camera).id(), ".h5");
     std::unique_ptr<storage::FrameFileWriter> writer;

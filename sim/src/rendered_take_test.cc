@@ -77,5 +77,46 @@ TEST(RenderedTakeTest, EachCamerasFullOnFramesSitAtTheirSlotsBesideTheRigAndTheT
   EXPECT_THAT(WriteRenderedTake(scene, dir + "-2", options).message(), HasSubstr("camera \"mv-99\" is not in the rig"));
 }
 
+// A renderer told the only exposures it will get (as a take of the full-on patterns tells it) renders them as one that
+// computes every unit's responses, to a digital number where the float sums round apart; asked for another exposure,
+// it renders that one right too (and from then on computes every unit's responses).
+TEST(RenderedTakeTest, ARendererToldItsExposuresRendersThemAsBefore) {
+  auto scene = Scene();
+  const int camera = scene->CameraIndex("mv-05");
+  ASSERT_GE(camera, 0);
+  int full_on = -1, other = -1;
+  for (int p = 0; p < scene->schedule().patterns_size(); ++p) {
+    const EmitterLevels l = scene->PatternLevels(p);
+    if (full_on < 0 && l.parallel.minCoeff() > 0.999f) full_on = p;
+    if (other < 0 && l.parallel.minCoeff() < 0.5f && l.parallel.maxCoeff() > 0.5f) other = p;
+  }
+  ASSERT_GE(full_on, 0);
+  ASSERT_GE(other, 0);
+  const double exposure_s = scene->rig().cameras(camera).exposure_us() * 1e-6;
+  CameraRenderer plain(scene, camera, 2), told(scene, camera, 2);
+  told.ExpectOnly({scene->PatternLevels(full_on)});
+  EXPECT_EQ(told.Responses(12)->diffuse.cols(), 1);
+  auto compare = [&](int pattern, uint64_t counter) {
+    const RawImage want = plain.Render(scene->PatternLevels(pattern), exposure_s, counter, 12);
+    const RawImage got = told.Render(scene->PatternLevels(pattern), exposure_s, counter, 12);
+    ASSERT_EQ(got.data.size(), want.data.size());
+    int differ = 0, worst = 0, lit = 0;
+    const int black = *std::min_element(want.data.begin(), want.data.end());
+    for (size_t i = 0; i < want.data.size(); ++i) {
+      const int d = std::abs(static_cast<int>(got.data[i]) - static_cast<int>(want.data[i]));
+      differ += d != 0;
+      worst = std::max(worst, d);
+      lit += want.data[i] > black + 10;
+    }
+    EXPECT_LE(worst, 1) << "pattern " << pattern;
+    EXPECT_LT(differ, static_cast<int>(want.data.size() / 1000) + 1) << "pattern " << pattern;
+    EXPECT_GT(lit, 100) << "pattern " << pattern;
+  };
+  compare(full_on, 3);
+  compare(other, 4);  // not among the exposures it was told of
+  EXPECT_EQ(told.Responses(12)->basis, nullptr);
+  EXPECT_EQ(told.Responses(12)->diffuse.cols(), static_cast<Eigen::Index>(scene->dome().units.size()));
+}
+
 }  // namespace
 }  // namespace stage::sim

@@ -334,7 +334,7 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
     auto subject = scene_->SubjectAt(pose_frame);
     responses_ = std::make_shared<const PixelResponses>(
         ComputeResponses(rays_, *subject, scene_->dome(), threads_, static_cast<int>(scene_->rig().sim().supersample()),
-                         &compute_, static_cast<int>(scene_->rig().sim().texture_samples())));
+                         &compute_, static_cast<int>(scene_->rig().sim().texture_samples()), basis_));
     responses_frame_ = pose_frame;
     work_before_.fetch_add(compute_.done.exchange(0));  // counted once, whenever a reader looks
     computing_frame_.store(-1);
@@ -342,9 +342,36 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
   return responses_;
 }
 
+void CameraRenderer::ExpectOnly(std::vector<EmitterLevels> levels) {
+  auto basis = std::make_shared<ExposureBasis>();
+  basis->levels = std::move(levels);
+  basis->leakage = scene_->leakage(index_);
+  std::lock_guard<std::mutex> lock(mutex_);
+  basis_ = std::move(basis);
+  responses_ = nullptr;
+}
+
+void CameraRenderer::KeepRays(size_t budget_bytes) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  rays_ = CameraRays(scene_->camera(index_), budget_bytes);
+}
+
 RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame) {
-  const std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
-  const std::vector<float> rgb = RenderRadiance(*r, levels, scene_->leakage(index_));
+  std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
+  absl::StatusOr<std::vector<float>> radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
+  if (!radiance.ok()) {
+    Logger("sim.render")
+        ->warn("camera {}: {}; computing every unit's responses from now on", scene_->rig().cameras(index_).id(),
+               radiance.status().message());
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      basis_ = nullptr;
+      responses_ = nullptr;
+    }
+    r = Responses(pose_frame);
+    radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
+  }
+  const std::vector<float>& rgb = *radiance;
   RawImage raw = ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(),
                               stream_, counter);
   work_before_.fetch_add(1);

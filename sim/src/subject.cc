@@ -6,6 +6,12 @@
 
 namespace stage::sim {
 
+bool Subject::AlbedoAt(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, Eigen::Vector3f* albedo) const {
+  const Hit h = Intersect(origin, direction);
+  if (h.hit) *albedo = h.material.albedo;
+  return h.hit;
+}
+
 void Subject::OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
                            std::span<uint8_t> blocked) const {
   for (size_t i = 0; i < from.size(); ++i) blocked[i] = Occluded(from[i], to[i]) ? 1 : 0;

@@ -18,6 +18,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "stage/common/camera_model.h"
 #include "stage/common/ggx.h"
 #include "stage/sim/dome.h"
@@ -26,6 +27,24 @@
 namespace stage::sim {
 
 using RowMatrixXf = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+// Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
+struct EmitterLevels {
+  Eigen::VectorXf cross;
+  Eigen::VectorXf parallel;
+};
+
+// The few exposures a renderer will be asked for (a take of the full-on patterns only), for responses computed for
+// them alone: a pixel's diffuse and specular sums under each exposure instead of its response to every unit. The
+// arithmetic is the same; what goes is the hits x units matrices (3.9 GB for a 12-megapixel view of the head) and the
+// writing of them, most of a board's render at full scale.
+struct ExposureBasis {
+  std::vector<EmitterLevels> levels;
+  // The crossed polarizers' leakage the specular sums are made with (the camera's, CrossLeakage).
+  float leakage = 0;
+  // The index of the exposure equal to `l` under `leakage_of_camera` (to the bit), -1 if none.
+  int Find(const EmitterLevels& l, float leakage_of_camera) const;
+};
 
 // Supersampled (n x n rays a pixel), a pixel's rows average its rays' (a ray that misses adds nothing, so an edge pixel
 // is partly covered) and its albedo averages the albedo its rays hit: the product of the averages stands for the
@@ -37,9 +56,11 @@ struct PixelResponses {
   std::vector<int32_t> pixels;
   std::vector<Eigen::Vector3f> albedo;
   std::vector<Hit> hits;
-  // hits x units: D and S above, per unit of emitter drive.
+  // hits x units: D and S above, per unit of emitter drive. Where `basis` is set, hits x its exposures instead: each
+  // exposure's sum_l (cross_l + parallel_l) D_l and sum_l (parallel_l + leakage cross_l) S_l.
   RowMatrixXf diffuse;
   RowMatrixXf specular;
+  std::shared_ptr<const ExposureBasis> basis;
 };
 
 // How far a long computation has got, for a reader on another thread: units of work done (rays traced, pixels lit) of
@@ -75,31 +96,32 @@ std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, 
                              double dy = 0, WorkProgress* progress = nullptr);
 
 // Every pixel's albedo averaged over the n x n rays through it that meet the subject (row-major), and how many did
-// (0: none; its albedo is then zero).
+// (0: none; its albedo is then zero). With `only`, those pixels' (row-major indices) alone; the others count none.
 struct AreaAlbedo {
   std::vector<Eigen::Vector3f> albedo;
   std::vector<int> rays;
 };
 AreaAlbedo TraceAreaAlbedo(CameraRays& rays, const Subject& subject, int n, int threads = 0,
-                           WorkProgress* progress = nullptr);
+                           WorkProgress* progress = nullptr, const std::vector<int32_t>* only = nullptr);
 AreaAlbedo TraceAreaAlbedo(const CameraModel& camera, const Subject& subject, int n, int threads = 0,
                            WorkProgress* progress = nullptr);
 
 // Camera direction -> pixel responses, on `threads` threads (0: one per core), with `supersample` x `supersample`
 // rays a pixel (1: through its centre). With `texture_samples` > `supersample` a pixel's albedo is the average of
-// texture_samples x texture_samples rays' (TraceAreaAlbedo) instead of its lighting rays'.
+// texture_samples x texture_samples rays' (TraceAreaAlbedo) instead of its lighting rays'. With `basis`, the responses
+// are each exposure's sums (PixelResponses::basis).
 PixelResponses ComputeResponses(CameraRays& rays, const Subject& subject, const Dome& dome, int threads = 0,
-                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0);
+                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0,
+                                std::shared_ptr<const ExposureBasis> basis = nullptr);
 PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subject, const Dome& dome, int threads = 0,
-                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0);
-
-// Emitter levels of every unit averaged over an exposure, in [0, 1] of full drive.
-struct EmitterLevels {
-  Eigen::VectorXf cross;
-  Eigen::VectorXf parallel;
-};
+                                int supersample = 1, WorkProgress* progress = nullptr, int texture_samples = 0,
+                                std::shared_ptr<const ExposureBasis> basis = nullptr);
 
 // Linear RGB radiance of one exposure, width x height x 3 floats, row-major; pixels that miss the subject are 0.
+// Responses with a basis render only its exposures (under its leakage): InvalidArgument for any other.
+absl::StatusOr<std::vector<float>> RenderRadianceOf(const PixelResponses& responses, const EmitterLevels& levels,
+                                                    float leakage);
+// The same for responses to every unit (no basis), which render any exposure.
 std::vector<float> RenderRadiance(const PixelResponses& responses, const EmitterLevels& levels, float leakage);
 
 // Leakage of crossed polarizers for a camera: leakage + growth * sin^2 of its optical axis' angle from +z.

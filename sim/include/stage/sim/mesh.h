@@ -39,6 +39,8 @@ class MeshSubject final : public Subject {
   // `convex`: the maker vouches that no part of the mesh can shadow another (Subject::Convex).
   MeshSubject(TriangleMesh mesh, SurfaceFunction surface, bool convex = false);
   Hit Intersect(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction) const override;
+  bool AlbedoAt(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction,
+                Eigen::Vector3f* albedo) const override;
   bool Occluded(const Eigen::Vector3f& from, const Eigen::Vector3f& to) const override;
   void OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
                     std::span<uint8_t> blocked) const override;

@@ -121,6 +121,15 @@ class CameraRenderer {
   // The raw sensor frame of an exposure of `exposure_s` under `levels` in virtual frame `pose_frame`; `counter` (the
   // camera's frame counter) selects the noise.
   RawImage Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame = 0);
+  // Tells the renderer the only exposures it will be asked for (a take of the full-on patterns): each pose's
+  // responses are then their sums under those exposures (ExposureBasis), not a row per unit. The frames are the same
+  // to rounding. Should another exposure come, the renderer says so once and computes every unit's responses from then
+  // on.
+  void ExpectOnly(std::vector<EmitterLevels> levels);
+  // How much memory the camera's undistorted pixel rays may keep (CameraRays; 256 MB by default): a batch render of
+  // many poses at full scale keeps every sub-pixel offset's (17 of 64 MB for a 5-megapixel camera with the board's
+  // 4 x 4 texture samples) rather than undistort 13 of them again for each pose.
+  void KeepRays(size_t budget_bytes);
 
   // How far the renderer has got, from any thread: a counter of its work (rays traced, pixels lit, frames rendered)
   // and, while it precomputes a pose, what it does in words ("precomputing the subject's pose of frame 3: 45 %").
@@ -138,6 +147,7 @@ class CameraRenderer {
   int64_t responses_frame_ = -1;                     // guarded by mutex_
   std::shared_ptr<const PixelResponses> responses_;  // guarded by mutex_
   CameraRays rays_;                                  // guarded by mutex_: undistorted once, for every pose
+  std::shared_ptr<const ExposureBasis> basis_;       // guarded by mutex_; null: responses to every unit
   uint64_t stream_;
   // Progress of the pose being precomputed (-1: none), and the work of everything finished before it.
   std::atomic<int64_t> computing_frame_{-1};
@@ -146,8 +156,8 @@ class CameraRenderer {
 };
 
 // `nominal` (a whole sensor) moved as `deviation` draws for camera `index` of a rig seeded `seed`.
-absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation, uint64_t seed,
-                           int index);
+absl::StatusOr<CameraModel> DeviatedCamera(const CameraModel& nominal, const v1::SimCameraDeviation& deviation,
+                                           uint64_t seed, int index);
 
 // Sensor bits and mosaic of a PFNC pixel format ("BayerRG8" -> 8, "RG"; "Mono12" -> 12, "mono"); InvalidArgument for
 // formats the sensor model does not produce (RGB8).
