@@ -361,8 +361,10 @@ RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, 
   absl::StatusOr<std::vector<float>> radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
   if (!radiance.ok()) {
     Logger("sim.render")
-        ->warn("camera {}: {}; computing every unit's responses from now on", scene_->rig().cameras(index_).id(),
-               radiance.status().message());
+        ->warn(
+            "camera {}: {} (the lights did not show one of the patterns it expected); rendering from every unit's "
+            "responses from now on",
+            scene_->rig().cameras(index_).id(), radiance.status().message());
     {
       std::lock_guard<std::mutex> lock(mutex_);
       basis_ = nullptr;

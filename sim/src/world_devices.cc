@@ -2,6 +2,7 @@
 #include "stage/sim/world_devices.h"
 
 #include <cmath>
+#include <set>
 
 #include "absl/strings/str_cat.h"
 #include "stage/common/status.h"
@@ -77,7 +78,18 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   w.clock_drift_ppm = fault.clock_drift_ppm();
   if (fault.has_crash_at_s()) w.crash_at_ns = static_cast<int64_t>(std::llround(fault.crash_at_s() * 1e9));
   w.seed = scene->rig().sim().seed();
+  // The patterns the camera's slots show (a machine-vision camera: its full-on one): the renderer sums each pose's
+  // responses under them alone, unless a mistimed or faulty exposure brings others (CameraRenderer::ExpectOnly).
+  std::set<int64_t> patterns;
+  const int64_t cycle_patterns = std::max(1, scene->schedule().patterns_size());
+  for (int64_t slot = 0; slot < w.cycle_slots; ++slot) {
+    if (timing::FiresInSlot(t, slot)) patterns.insert(slot % cycle_patterns);
+  }
+  std::vector<EmitterLevels> exposures;
+  for (const int64_t p : patterns) exposures.push_back(scene->PatternLevels(static_cast<int>(p)));
+  const size_t units = scene->dome().units.size();
   w.renderer = std::make_shared<CameraRenderer>(std::move(scene), index);
+  if (!exposures.empty() && exposures.size() < units) w.renderer->ExpectOnly(std::move(exposures));
   return w;
 }
 
