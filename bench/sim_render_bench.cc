@@ -7,7 +7,8 @@
 //     as one stream: Subject::OccludedMany) beside the same rays one at a time (Subject::Occluded) and as streams of
 //     one pixel's rays (towards every unit: one origin, directions apart);
 //  3. the whole rig at the demo scale through the lockstep world for a take (default 912 slots = 1 s): wall time per
-//     second of take, frames rendered per second;
+//     second of take, frames rendered per second; each camera's responses summed under the patterns of its slots (as
+//     the stage renders) beside every unit's responses;
 //  4. a full-lit take's camera frames (default mv-05 watching the ChArUco board move through 6 poses at render scale
 //     0.5, each pose's full-on patterns, as `stage-sim-render --take` renders a calibration take): each pose's sums
 //     under its exposures alone (ExposureBasis, every sub-pixel offset's rays kept) beside every unit's responses (the
@@ -202,7 +203,9 @@ class CountingSink : public stage::camera::FrameSink {
   uint64_t frames_ = 0;
 };
 
-void WholeRig(double scale, int64_t slots) {
+// `sums`: each camera's responses summed under the patterns of its slots, as the stage renders them (CameraWorld);
+// false: every unit's responses (the baseline).
+void WholeRig(double scale, int64_t slots, bool sums) {
   auto t = Clock::now();
   auto scene = Scene(scale, "default");
   const double setup = Since(t);
@@ -230,6 +233,7 @@ void WholeRig(double scale, int64_t slots) {
     }
     auto plan = stage::sim::CameraWorld(scene, c.id(), client.get());
     if (!plan.ok()) Die(plan.status());
+    if (!sums) plan->renderer->ExpectOnly({});
     if (auto s = device->AttachWorld(*plan); !s.ok()) Die(s);
     sinks.push_back(std::make_unique<CountingSink>());
     if (auto s = device->Start(sinks.back().get()); !s.ok()) Die(s);
@@ -247,9 +251,9 @@ void WholeRig(double scale, int64_t slots) {
   for (auto& c : cameras) (void)c->Stop();
   const double take_s = static_cast<double>(slots) / scene->base().slot_rate_hz();
   std::printf(
-      "whole rig at scale %g (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
+      "whole rig at scale %g, %s (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
       "%llu frames in %.1f s wall (%.1f s per second of take, %.0f frames/s); scene set-up %.2f s\n",
-      scale, scene->camera(scene->CameraIndex("hs-2")).width(), scene->camera(scene->CameraIndex("hs-2")).height(),
+      scale, sums ? "responses summed under each camera's patterns (the stage)" : "every unit's responses (baseline)", scene->camera(scene->CameraIndex("hs-2")).width(), scene->camera(scene->CameraIndex("hs-2")).height(),
       scene->camera(0).width(), scene->camera(0).height(), static_cast<long long>(slots), take_s, cameras.size(),
       static_cast<int>((slots + 37) / 38), static_cast<unsigned long long>(total), wall, wall / take_s, total / wall,
       setup);
@@ -345,7 +349,10 @@ int main(int argc, char** argv) {
   std::printf("sim_render_bench on %u hardware threads\n", std::thread::hardware_concurrency());
   for (double s : scales) OneCamera(camera, s);
   if (shadow_scale > 0) ShadowRayCost(camera, shadow_scale, shadow_rounds);
-  if (demo_scale > 0) WholeRig(demo_scale, slots);
+  if (demo_scale > 0) {
+    WholeRig(demo_scale, slots, /*sums=*/false);
+    WholeRig(demo_scale, slots, /*sums=*/true);
+  }
   if (full_lit_scale > 0) FullLitTake(full_lit_camera, full_lit_scale, full_lit_poses);
   return 0;
 }

@@ -170,78 +170,65 @@ void DarkUnits(const UnitArrays& units, const Subject& occluder, BlockScratch& b
   for (size_t i = 0; i < b.answers.size(); ++i) b.dark[b.ray_of[i]] = b.answers[i];
 }
 
-// A basis's drives, units x exposures, column-major: the diffuse (cross + parallel) and the specular (parallel +
-// leakage cross) drive of each exposure.
+// A basis's drives, units x exposures: the diffuse (cross + parallel) and the specular (parallel + leakage cross) drive
+// of each exposure.
 struct BasisDrives {
-  BasisDrives(const ExposureBasis& basis, size_t units) : count(basis.levels.size()) {
-    diffuse.resize(units * count);
-    specular.resize(units * count);
-    for (size_t k = 0; k < count; ++k) {
-      const EmitterLevels& l = basis.levels[k];
-      for (size_t u = 0; u < units; ++u) {
-        const auto i = static_cast<Eigen::Index>(u);
-        diffuse[k * units + u] = l.cross[i] + l.parallel[i];
-        specular[k * units + u] = l.parallel[i] + basis.leakage * l.cross[i];
-      }
+  BasisDrives(const ExposureBasis& basis, size_t units)
+      : diffuse(static_cast<Eigen::Index>(units), static_cast<Eigen::Index>(basis.levels.size())),
+        specular(diffuse.rows(), diffuse.cols()) {
+    for (Eigen::Index k = 0; k < diffuse.cols(); ++k) {
+      const EmitterLevels& l = basis.levels[static_cast<size_t>(k)];
+      diffuse.col(k) = l.cross + l.parallel;
+      specular.col(k) = l.parallel + basis.leakage * l.cross;
     }
   }
-  size_t count;
-  std::vector<float> diffuse, specular;
+  Eigen::MatrixXf diffuse, specular;
 };
 
-// Adds the unit responses `d` and `s` (units long) summed under each exposure's drives to the row's `out_d`, `out_s`.
-void AddProjected(const float* d, const float* s, size_t units, const BasisDrives& drives, float* out_d, float* out_s) {
-  for (size_t k = 0; k < drives.count; ++k) {
-    const float* a = drives.diffuse.data() + k * units;
-    const float* b = drives.specular.data() + k * units;
-    float sum_d = 0, sum_s = 0;
-    for (size_t u = 0; u < units; ++u) {
-      sum_d += d[u] * a[u];
-      sum_s += s[u] * b[u];
-    }
-    out_d[k] += sum_d;
-    out_s[k] += sum_s;
-  }
-}
-
 // The responses of rows [first, last) (their hits weighted by `weight`, a ray's share of the pixel) into `r`: to
-// every unit, or where `drives` is given, summed under its exposures. `occluder`: the subject where it may shadow
-// itself, null where it cannot (a convex subject shadows none of itself where the light is in front of the surface).
+// every unit, or where `drives` is given, summed under its exposures (the block's rows of every unit's responses made
+// in a scratch matrix, then one product with the drives). `occluder`: the subject where it may shadow itself, null
+// where it cannot (a convex subject shadows none of itself where the light is in front of the surface).
 void AddBlockResponses(const std::vector<std::span<const Hit>>& rows, size_t first, size_t last,
                        const Eigen::Vector3f& origin, const UnitArrays& units, const Subject* occluder, float weight,
                        const BasisDrives* drives, PixelResponses& r) {
   thread_local BlockScratch b;
-  thread_local std::vector<float> unit_d, unit_s;  // one hit's responses to every unit, where projected
+  thread_local RowMatrixXf unit_d, unit_s;  // the block's rows of every unit's responses, where projected
+  const size_t count = units.x.size();
+  const auto block_rows = static_cast<Eigen::Index>(last - first);
+  if (drives != nullptr) {
+    unit_d.setZero(block_rows, static_cast<Eigen::Index>(count));
+    unit_s.setZero(block_rows, static_cast<Eigen::Index>(count));
+  }
   b.terms.clear();
   b.rows.clear();
   for (size_t i = first; i < last; ++i) {
     const auto row = static_cast<Eigen::Index>(i);
-    r.diffuse.row(row).setZero();
-    r.specular.row(row).setZero();
+    if (drives == nullptr) {
+      r.diffuse.row(row).setZero();
+      r.specular.row(row).setZero();
+    }
     for (const Hit& h : rows[i]) {
       b.terms.push_back(MakeTerms(h, origin));
-      b.rows.push_back(row);
+      b.rows.push_back(drives == nullptr ? row : row - static_cast<Eigen::Index>(first));
     }
   }
   if (occluder != nullptr) DarkUnits(units, *occluder, b);
-  const size_t count = units.x.size();
   for (size_t k = 0; k < b.terms.size(); ++k) {
-    float* row_d = r.diffuse.row(b.rows[k]).data();
-    float* row_s = r.specular.row(b.rows[k]).data();
-    float* d = row_d;
-    float* s = row_s;
-    if (drives != nullptr) {
-      unit_d.assign(count, 0.0f);
-      unit_s.assign(count, 0.0f);
-      d = unit_d.data();
-      s = unit_s.data();
-    }
+    RowMatrixXf& into_d = drives == nullptr ? r.diffuse : unit_d;
+    RowMatrixXf& into_s = drives == nullptr ? r.specular : unit_s;
+    float* d = into_d.row(b.rows[k]).data();
+    float* s = into_s.row(b.rows[k]).data();
     if (occluder != nullptr) {
       AddUnitResponses<true>(b.terms[k], units, b.dark.data() + k * count, weight, d, s);
     } else {
       AddUnitResponses<false>(b.terms[k], units, nullptr, weight, d, s);
     }
-    if (drives != nullptr) AddProjected(d, s, count, *drives, row_d, row_s);
+  }
+  if (drives != nullptr) {
+    const auto at = static_cast<Eigen::Index>(first);
+    r.diffuse.middleRows(at, block_rows).noalias() = unit_d * drives->diffuse;
+    r.specular.middleRows(at, block_rows).noalias() = unit_s * drives->specular;
   }
 }
 
@@ -413,7 +400,7 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   // board's render).
   std::optional<BasisDrives> drives;
   if (basis != nullptr) drives.emplace(*basis, units);
-  const size_t columns = drives ? drives->count : units;
+  const size_t columns = drives ? static_cast<size_t>(drives->diffuse.cols()) : units;
   r.diffuse.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(columns));
   r.specular.resize(static_cast<Eigen::Index>(count), static_cast<Eigen::Index>(columns));
   r.basis = std::move(basis);

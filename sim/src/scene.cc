@@ -343,6 +343,12 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
 }
 
 void CameraRenderer::ExpectOnly(std::vector<EmitterLevels> levels) {
+  if (levels.empty()) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    basis_ = nullptr;
+    responses_ = nullptr;
+    return;
+  }
   auto basis = std::make_shared<ExposureBasis>();
   basis->levels = std::move(levels);
   basis->leakage = scene_->leakage(index_);

@@ -124,7 +124,7 @@ class CameraRenderer {
   // Tells the renderer the only exposures it will be asked for (a take of the full-on patterns): each pose's
   // responses are then their sums under those exposures (ExposureBasis), not a row per unit. The frames are the same
   // to rounding. Should another exposure come, the renderer says so once and computes every unit's responses from then
-  // on.
+  // on. An empty list: any exposure (every unit's responses, the default).
   void ExpectOnly(std::vector<EmitterLevels> levels);
   // How much memory the camera's undistorted pixel rays may keep (CameraRays; 256 MB by default): a batch render of
   // many poses at full scale keeps every sub-pixel offset's (17 of 64 MB for a 5-megapixel camera with the board's
