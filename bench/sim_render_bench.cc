@@ -253,7 +253,8 @@ void WholeRig(double scale, int64_t slots, bool sums) {
   std::printf(
       "whole rig at scale %g, %s (hs %dx%d, mv %dx%d), %lld slots = %.3f s of take, %zu cameras, %d poses: "
       "%llu frames in %.1f s wall (%.1f s per second of take, %.0f frames/s); scene set-up %.2f s\n",
-      scale, sums ? "responses summed under each camera's patterns (the stage)" : "every unit's responses (baseline)", scene->camera(scene->CameraIndex("hs-2")).width(), scene->camera(scene->CameraIndex("hs-2")).height(),
+      scale, sums ? "responses summed under each camera's patterns (the stage)" : "every unit's responses (baseline)",
+      scene->camera(scene->CameraIndex("hs-2")).width(), scene->camera(scene->CameraIndex("hs-2")).height(),
       scene->camera(0).width(), scene->camera(0).height(), static_cast<long long>(slots), take_s, cameras.size(),
       static_cast<int>((slots + 37) / 38), static_cast<unsigned long long>(total), wall, wall / take_s, total / wall,
       setup);
@@ -276,6 +277,7 @@ void FullLitTake(const std::string& camera, double scale, int poses) {
     const bool parallel = scene->schedule().patterns(p).polarization() == stage::v1::POLARIZATION_PARALLEL;
     if ((parallel ? l.parallel : l.cross).minCoeff() > 0.999f) full_on.push_back(l);
   }
+  if (full_on.empty()) Die(absl::FailedPreconditionError("the schedule has no full-on pattern"));
   const double exposure_s = scene->rig().cameras(index).exposure_us() * 1e-6;
   // Each way renders the same camera frames (pose x full-on pattern, the same noise); its time and its frames.
   auto render = [&](bool basis, std::vector<stage::sim::RawImage>* frames) {

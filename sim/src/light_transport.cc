@@ -178,6 +178,13 @@ struct BasisDrives {
         specular(diffuse.rows(), diffuse.cols()) {
     for (Eigen::Index k = 0; k < diffuse.cols(); ++k) {
       const EmitterLevels& l = basis.levels[static_cast<size_t>(k)];
+      if (l.cross.size() != diffuse.rows() || l.parallel.size() != diffuse.rows()) {
+        // The renderer's own callers make the levels from the same dome; anything else is a programming error.
+        std::fprintf(stderr, "ComputeResponses: exposure %ld of the basis has %ld/%ld levels for %ld units\n",
+                     static_cast<long>(k), static_cast<long>(l.cross.size()), static_cast<long>(l.parallel.size()),
+                     static_cast<long>(diffuse.rows()));
+        std::abort();
+      }
       diffuse.col(k) = l.cross + l.parallel;
       specular.col(k) = l.parallel + basis.leakage * l.cross;
     }
@@ -323,6 +330,57 @@ AreaAlbedo TraceAreaAlbedo(CameraRays& camera_rays, const Subject& subject, int 
   return out;
 }
 
+namespace {
+
+// Every ray of n x n a pixel that meets the subject, grouped by pixel: the pixels met (row-major, in order), their hits
+// (a pixel's in the order of its offsets) and where each pixel's begin (pixel k's are [first[k], first[k + 1])). One
+// offset's image of hits at a time: its hits are taken out before the next is traced, and no pixel has a vector of
+// its own (at full scale their allocations were an eighth of a board's render).
+struct PixelHits {
+  std::vector<int32_t> pixels;
+  std::vector<Hit> hits;
+  std::vector<size_t> first;
+};
+
+PixelHits TraceHitsByPixel(CameraRays& camera_rays, const Subject& subject, int threads, int n,
+                           WorkProgress* progress) {
+  std::vector<std::vector<int32_t>> where;  // per offset: the pixels its rays met, in order
+  std::vector<std::vector<Hit>> met;        // and what they met there
+  size_t image = 0;
+  for (int sy = 0; sy < n; ++sy) {
+    for (int sx = 0; sx < n; ++sx) {
+      const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
+      const std::vector<Hit> all = TracePixels(camera_rays, subject, threads, dx, dy, progress);
+      image = all.size();
+      where.emplace_back();
+      met.emplace_back();
+      for (size_t i = 0; i < all.size(); ++i) {
+        if (!all[i].hit) continue;
+        where.back().push_back(static_cast<int32_t>(i));
+        met.back().push_back(all[i]);
+      }
+    }
+  }
+  PixelHits out;
+  size_t total = 0;
+  for (const auto& m : met) total += m.size();
+  out.hits.reserve(total);
+  out.first.push_back(0);
+  std::vector<size_t> next(where.size(), 0);  // each offset's next hit
+  for (size_t i = 0; i < image; ++i) {
+    for (size_t k = 0; k < where.size(); ++k) {
+      if (next[k] < where[k].size() && static_cast<size_t>(where[k][next[k]]) == i)
+        out.hits.push_back(met[k][next[k]++]);
+    }
+    if (out.hits.size() == out.first.back()) continue;
+    out.pixels.push_back(static_cast<int32_t>(i));
+    out.first.push_back(out.hits.size());
+  }
+  return out;
+}
+
+}  // namespace
+
 PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject, const Dome& dome, int threads,
                                 int supersample, WorkProgress* progress, int texture_samples,
                                 std::shared_ptr<const ExposureBasis> basis) {
@@ -335,45 +393,20 @@ PixelResponses ComputeResponses(CameraRays& camera_rays, const Subject& subject,
   const auto rays = static_cast<uint64_t>(r.width) * r.height * n * n;
   // The rays, then a pixel's responses for each one that hits (at most every pixel; known once traced).
   if (progress != nullptr) progress->total.store(progress->done.load() + 2 * rays);
-  // Every ray that hits, grouped by pixel (rows in pixel order): each offset's hits, then one array of them all with
-  // each pixel's span (no vector a pixel: at full scale their allocations were an eighth of a board's render).
-  std::vector<std::vector<Hit>> traced;
-  for (int sy = 0; sy < n; ++sy) {
-    for (int sx = 0; sx < n; ++sx) {
-      const double dx = (sx + 0.5) / n - 0.5, dy = (sy + 0.5) / n - 0.5;
-      traced.push_back(TracePixels(camera_rays, subject, threads, dx, dy, progress));
-    }
-  }
-  const size_t image = static_cast<size_t>(r.width) * r.height;
-  size_t total_hits = 0;
-  for (size_t i = 0; i < image; ++i) {
-    bool any = false;
-    for (const std::vector<Hit>& all : traced) {
-      total_hits += all[i].hit ? 1 : 0;
-      any |= all[i].hit;
-    }
-    if (any) r.pixels.push_back(static_cast<int32_t>(i));
-  }
-  std::vector<Hit> hits;
-  hits.reserve(total_hits);
+  PixelHits met = TraceHitsByPixel(camera_rays, subject, threads, n, progress);
+  r.pixels = std::move(met.pixels);
   std::vector<std::span<const Hit>> rows;
   rows.reserve(r.pixels.size());
   r.albedo.reserve(r.pixels.size());
   r.hits.reserve(r.pixels.size());
-  for (const int32_t pixel : r.pixels) {
-    const size_t begin = hits.size();
-    for (const std::vector<Hit>& all : traced) {
-      if (all[static_cast<size_t>(pixel)].hit) hits.push_back(all[static_cast<size_t>(pixel)]);
-    }
-    const std::span<const Hit> row(hits.data() + begin, hits.size() - begin);
+  for (size_t k = 0; k < r.pixels.size(); ++k) {
+    const std::span<const Hit> row(met.hits.data() + met.first[k], met.first[k + 1] - met.first[k]);
     Eigen::Vector3f albedo = Eigen::Vector3f::Zero();
     for (const Hit& h : row) albedo += h.material.albedo;
     r.albedo.push_back(albedo / static_cast<float>(row.size()));
     r.hits.push_back(row.front());
     rows.push_back(row);
   }
-  traced.clear();
-  traced.shrink_to_fit();
   if (texture_samples > n) {
     if (progress != nullptr) {
       progress->total.fetch_add(static_cast<uint64_t>(r.pixels.size()) * texture_samples * texture_samples);

@@ -366,18 +366,27 @@ RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, 
   std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
   absl::StatusOr<std::vector<float>> radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
   if (!radiance.ok()) {
-    Logger("sim.render")
-        ->warn(
-            "camera {}: {} (the lights did not show one of the patterns it expected); rendering from every unit's "
-            "responses from now on",
-            scene_->rig().cameras(index_).id(), radiance.status().message());
     {
+      // The basis that missed goes (once, should two threads miss it together), and with it the pose's sums.
       std::lock_guard<std::mutex> lock(mutex_);
-      basis_ = nullptr;
-      responses_ = nullptr;
+      if (basis_ != nullptr && basis_ == r->basis) {
+        Logger("sim.render")
+            ->warn(
+                "camera {}: {} (the lights did not show one of the patterns it expected); rendering from every "
+                "unit's responses from now on",
+                scene_->rig().cameras(index_).id(), radiance.status().message());
+        basis_ = nullptr;
+        responses_ = nullptr;
+      }
     }
     r = Responses(pose_frame);
     radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
+    if (!radiance.ok()) {  // only if ExpectOnly set another basis meanwhile: render from every unit's responses
+      radiance = RenderRadiance(ComputeResponses(scene_->camera(index_), *scene_->SubjectAt(pose_frame), scene_->dome(),
+                                                 threads_, static_cast<int>(scene_->rig().sim().supersample()), nullptr,
+                                                 static_cast<int>(scene_->rig().sim().texture_samples())),
+                                levels, scene_->leakage(index_));
+    }
   }
   const std::vector<float>& rgb = *radiance;
   RawImage raw = ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(),

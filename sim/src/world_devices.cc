@@ -82,7 +82,7 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   // responses under them alone, unless a mistimed or faulty exposure brings others (CameraRenderer::ExpectOnly).
   std::set<int64_t> patterns;
   const int64_t cycle_patterns = std::max(1, scene->schedule().patterns_size());
-  for (int64_t slot = 0; slot < w.cycle_slots; ++slot) {
+  for (int64_t slot = 0; slot < w.cycle_slots * w.divider; ++slot) {  // every phase of the divider against the cycle
     if (timing::FiresInSlot(t, slot)) patterns.insert(slot % cycle_patterns);
   }
   std::vector<EmitterLevels> exposures;

@@ -96,7 +96,8 @@ std::vector<Hit> TracePixels(const CameraModel& camera, const Subject& subject, 
                              double dy = 0, WorkProgress* progress = nullptr);
 
 // Every pixel's albedo averaged over the n x n rays through it that meet the subject (row-major), and how many did
-// (0: none; its albedo is then zero). With `only`, those pixels' (row-major indices) alone; the others count none.
+// (0: none; its albedo is then zero). With `only`, those pixels' (distinct row-major indices) alone; the others count
+// none.
 struct AreaAlbedo {
   std::vector<Eigen::Vector3f> albedo;
   std::vector<int> rays;
@@ -118,7 +119,8 @@ PixelResponses ComputeResponses(const CameraModel& camera, const Subject& subjec
                                 std::shared_ptr<const ExposureBasis> basis = nullptr);
 
 // Linear RGB radiance of one exposure, width x height x 3 floats, row-major; pixels that miss the subject are 0.
-// Responses with a basis render only its exposures (under its leakage): InvalidArgument for any other.
+// Responses with a basis render only its exposures (under its leakage): InvalidArgument for any other (unless no
+// pixel sees the subject: black under any light).
 absl::StatusOr<std::vector<float>> RenderRadianceOf(const PixelResponses& responses, const EmitterLevels& levels,
                                                     float leakage);
 // The same for responses to every unit (no basis), which render any exposure.

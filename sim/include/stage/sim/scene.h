@@ -108,15 +108,16 @@ class SimScene {
   std::vector<SensorParams> sensors_;
 };
 
-// Renders one camera's exposures: the per-pixel LED responses are computed on first use (the subject holds still), then
-// each exposure is two matrix products and the sensor model. Thread-safe.
+// Renders one camera's exposures: the per-pixel LED responses are computed once a pose, then each exposure is two
+// matrix products (or, with ExpectOnly, a column of the pose's sums) and the sensor model. Thread-safe.
 class CameraRenderer {
  public:
   CameraRenderer(std::shared_ptr<const SimScene> scene, int camera_index, int threads = 0);
 
   const SimScene& scene() const { return *scene_; }
   int camera_index() const { return index_; }
-  // The responses in virtual frame `pose_frame` (computed when the pose changes; the latest is kept).
+  // The responses in virtual frame `pose_frame` (computed when the pose changes; the latest is kept). After ExpectOnly
+  // they are its exposures' sums (PixelResponses::basis): render them with RenderRadianceOf.
   std::shared_ptr<const PixelResponses> Responses(int64_t pose_frame = 0);
   // The raw sensor frame of an exposure of `exposure_s` under `levels` in virtual frame `pose_frame`; `counter` (the
   // camera's frame counter) selects the noise.

@@ -48,7 +48,7 @@ class Subject {
   virtual void OccludedMany(std::span<const Eigen::Vector3f> from, std::span<const Eigen::Vector3f> to,
                             std::span<uint8_t> blocked) const;
   // The albedo where the ray first meets the subject, false where it misses: Intersect's material.albedo, which a
-  // subject may find without the rest of the hit (a mesh: no normals, no detail). What a pixel's texture samples need.
+  // subject may find without the rest of the hit (a mesh: no normals, no bump). What a pixel's texture samples need.
   virtual bool AlbedoAt(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction, Eigen::Vector3f* albedo) const;
   // True if no point of the subject's surface can shadow another: a surface point sees every point in front of its
   // tangent plane, so the renderer skips shadow rays towards those (a sphere, a plate; never a head).
