@@ -272,11 +272,7 @@ void FullLitTake(const std::string& camera, double scale, int poses) {
   const int index = scene->CameraIndex(camera);
   if (index < 0) Die(absl::NotFoundError("no camera " + camera));
   std::vector<stage::sim::EmitterLevels> full_on;
-  for (int p = 0; p < scene->schedule().patterns_size(); ++p) {
-    const stage::sim::EmitterLevels l = scene->PatternLevels(p);
-    const bool parallel = scene->schedule().patterns(p).polarization() == stage::v1::POLARIZATION_PARALLEL;
-    if ((parallel ? l.parallel : l.cross).minCoeff() > 0.999f) full_on.push_back(l);
-  }
+  for (const int p : scene->FullOnPatterns()) full_on.push_back(scene->PatternLevels(p));
   if (full_on.empty()) Die(absl::FailedPreconditionError("the schedule has no full-on pattern"));
   const double exposure_s = scene->rig().cameras(index).exposure_us() * 1e-6;
   // Each way renders the same camera frames (pose x full-on pattern, the same noise); its time and its frames.

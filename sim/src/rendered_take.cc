@@ -19,18 +19,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// The patterns of the schedule whose levels light every unit of their polarization fully.
-std::vector<int> FullOnPatterns(const SimScene& scene) {
-  std::vector<int> out;
-  for (int p = 0; p < scene.schedule().patterns_size(); ++p) {
-    const EmitterLevels levels = scene.PatternLevels(p);
-    const bool parallel = scene.schedule().patterns(p).polarization() == v1::POLARIZATION_PARALLEL;
-    const Eigen::VectorXf& lit = parallel ? levels.parallel : levels.cross;
-    if (lit.size() > 0 && lit.minCoeff() > 0.999f) out.push_back(p);
-  }
-  return out;
-}
-
 storage::FrameFileInfo FileInfo(const SimScene& scene, int camera, const std::string& take_id, const RawImage& raw) {
   const v1::CameraConfig& config = scene.rig().cameras(camera);
   storage::FrameFileInfo info;
@@ -110,7 +98,7 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
   if (cameras.empty()) return absl::InvalidArgumentError("rendered take: no camera to render");
   std::vector<int> patterns;
   if (options.full_lit_only) {
-    patterns = FullOnPatterns(*scene);
+    patterns = scene->FullOnPatterns();
     if (patterns.empty()) return absl::FailedPreconditionError("rendered take: the schedule has no full-on pattern");
   } else {
     for (int p = 0; p < scene->schedule().patterns_size(); ++p) patterns.push_back(p);
@@ -132,7 +120,7 @@ absl::Status WriteRenderedTake(std::shared_ptr<const SimScene> scene, const std:
     // memory and of the time at full scale).
     std::vector<EmitterLevels> exposures;
     for (int p : patterns) exposures.push_back(scene->PatternLevels(p));
-    if (exposures.size() < scene->dome().units.size()) renderer.ExpectOnly(std::move(exposures));
+    renderer.ExpectOnly(std::move(exposures));
     renderer.KeepRays(size_t{4} << 30);  // every pose has the same rays: undistorted once
     const double exposure_s = scene->rig().cameras(camera).exposure_us() * 1e-6;
     const std::string path = absl::StrCat(dir, "/cameras/", scene->rig().cameras(camera).id(), ".h5");

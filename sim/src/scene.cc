@@ -275,6 +275,17 @@ WorldOptions SimScene::MakeWorldOptions(bool lockstep, int64_t t0_ns) const {
   return o;
 }
 
+std::vector<int> SimScene::FullOnPatterns() const {
+  std::vector<int> out;
+  for (int p = 0; p < schedule_.patterns_size(); ++p) {
+    const EmitterLevels levels = PatternLevels(p);
+    const bool parallel = schedule_.patterns(p).polarization() == v1::POLARIZATION_PARALLEL;
+    const Eigen::VectorXf& lit = parallel ? levels.parallel : levels.cross;
+    if (lit.size() > 0 && lit.minCoeff() > 0.999f) out.push_back(p);
+  }
+  return out;
+}
+
 EmitterLevels SimScene::PatternLevels(int64_t pattern, int dark_node) const {
   const auto n = static_cast<Eigen::Index>(dome_.units.size());
   EmitterLevels levels{Eigen::VectorXf::Zero(n), Eigen::VectorXf::Zero(n)};
@@ -343,15 +354,12 @@ std::shared_ptr<const PixelResponses> CameraRenderer::Responses(int64_t pose_fra
 }
 
 void CameraRenderer::ExpectOnly(std::vector<EmitterLevels> levels) {
-  if (levels.empty()) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    basis_ = nullptr;
-    responses_ = nullptr;
-    return;
+  std::shared_ptr<ExposureBasis> basis;
+  if (!levels.empty() && levels.size() < scene_->dome().units.size()) {
+    basis = std::make_shared<ExposureBasis>();
+    basis->levels = std::move(levels);
+    basis->leakage = scene_->leakage(index_);
   }
-  auto basis = std::make_shared<ExposureBasis>();
-  basis->levels = std::move(levels);
-  basis->leakage = scene_->leakage(index_);
   std::lock_guard<std::mutex> lock(mutex_);
   basis_ = std::move(basis);
   responses_ = nullptr;
@@ -365,9 +373,10 @@ void CameraRenderer::KeepRays(size_t budget_bytes) {
 RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, uint64_t counter, int64_t pose_frame) {
   std::shared_ptr<const PixelResponses> r = Responses(pose_frame);
   absl::StatusOr<std::vector<float>> radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
-  if (!radiance.ok()) {
+  // Only sums under a basis refuse an exposure: the basis that missed goes (once, should two threads miss it
+  // together), and with it the pose's sums; the pose's responses to every unit render any exposure.
+  while (!radiance.ok()) {
     {
-      // The basis that missed goes (once, should two threads miss it together), and with it the pose's sums.
       std::lock_guard<std::mutex> lock(mutex_);
       if (basis_ != nullptr && basis_ == r->basis) {
         Logger("sim.render")
@@ -381,12 +390,6 @@ RawImage CameraRenderer::Render(const EmitterLevels& levels, double exposure_s, 
     }
     r = Responses(pose_frame);
     radiance = RenderRadianceOf(*r, levels, scene_->leakage(index_));
-    if (!radiance.ok()) {  // only if ExpectOnly set another basis meanwhile: render from every unit's responses
-      radiance = RenderRadiance(ComputeResponses(scene_->camera(index_), *scene_->SubjectAt(pose_frame), scene_->dome(),
-                                                 threads_, static_cast<int>(scene_->rig().sim().supersample()), nullptr,
-                                                 static_cast<int>(scene_->rig().sim().texture_samples())),
-                                levels, scene_->leakage(index_));
-    }
   }
   const std::vector<float>& rgb = *radiance;
   RawImage raw = ExposeSensor(rgb, r->width, r->height, exposure_s, scene_->sensor(index_), scene_->rig().sim().seed(),

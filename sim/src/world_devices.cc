@@ -87,9 +87,8 @@ absl::StatusOr<SimCameraWorld> CameraWorld(std::shared_ptr<const SimScene> scene
   }
   std::vector<EmitterLevels> exposures;
   for (const int64_t p : patterns) exposures.push_back(scene->PatternLevels(static_cast<int>(p)));
-  const size_t units = scene->dome().units.size();
   w.renderer = std::make_shared<CameraRenderer>(std::move(scene), index);
-  if (!exposures.empty() && exposures.size() < units) w.renderer->ExpectOnly(std::move(exposures));
+  w.renderer->ExpectOnly(std::move(exposures));
   return w;
 }
 

@@ -78,6 +78,8 @@ class SimScene {
   // Every unit's steady emitter levels under pattern `pattern` of the schedule (its rows in the light nodes' tables),
   // with light node `dark_node` (if any) dark: what an exposure inside a slot's steady light integrates.
   EmitterLevels PatternLevels(int64_t pattern, int dark_node = -1) const;
+  // The patterns of the schedule whose levels light every unit of their polarization fully (the full-on ones).
+  std::vector<int> FullOnPatterns() const;
 
   // Every sim.faults entry for `id` merged (an empty SimFault when none).
   v1::SimFault Fault(const std::string& id) const;
@@ -125,7 +127,8 @@ class CameraRenderer {
   // Tells the renderer the only exposures it will be asked for (a take of the full-on patterns): each pose's
   // responses are then their sums under those exposures (ExposureBasis), not a row per unit. The frames are the same
   // to rounding. Should another exposure come, the renderer says so once and computes every unit's responses from then
-  // on. An empty list: any exposure (every unit's responses, the default).
+  // on. An empty list, or one no shorter than the units (sums that would save nothing): any exposure (every unit's
+  // responses, the default).
   void ExpectOnly(std::vector<EmitterLevels> levels);
   // How much memory the camera's undistorted pixel rays may keep (CameraRays; 256 MB by default): a batch render of
   // many poses at full scale keeps every sub-pixel offset's (17 of 64 MB for a 5-megapixel camera with the board's
