@@ -3,6 +3,9 @@
 #include "stage/processing/asset_dataset.h"
 
 #include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
 #include <filesystem>
 
 #include "asset_test_support.h"
@@ -72,6 +75,18 @@ TEST(AssetDatasetTest, TheTruthIsDrawnIntoTheTemplatesLayoutInTheHeadsFrameAndSp
   EXPECT_GT(valid, 8 * 64 * 64 / 2);
   EXPECT_GT(summary->rms_from_mean_mm, 0);  // the truth is the same surface every frame, but numbers differ by rounding
   EXPECT_LT(summary->rms_from_mean_mm, 1e-3);
+
+  // Every third frame of 5..49: 5, 8, ..., 47.
+  options.first_frame = 5;
+  options.frame_step = 3;
+  options.output = take + "/every-third.h5";
+  options.progress = nullptr;
+  auto every_third = BuildAssetDataset(options);
+  ASSERT_TRUE(every_third.ok()) << every_third.status();
+  auto thinned = ReadAssetDataset(every_third->path);
+  ASSERT_TRUE(thinned.ok()) << thinned.status();
+  ASSERT_EQ(thinned->frames(), 15);
+  for (int64_t i = 0; i < 15; ++i) EXPECT_EQ(thinned->frame[i], 5 + 3 * i);
 }
 
 // The truth's textures (uv_albedo, uv_material, uv_normal in the head's frame) drawn into the template's layout, the
@@ -220,6 +235,58 @@ TEST(AssetDatasetTest, TheSplitHoldsOutOneSequenceWholeAndEvenContiguousBlocks) 
   for (SampleSplit s : SplitFrames(sequence, -1, 0, 5)) EXPECT_EQ(s, SampleSplit::kTrain);
 }
 
+// A dark frame with a bright disc (radius 25 px, shaded from its middle out) about (x, y).
+std::vector<float> DiscFrame(int width, int height, double x, double y) {
+  std::vector<float> grey(static_cast<size_t>(width) * height, 2.0f);
+  for (int v = 0; v < height; ++v) {
+    for (int u = 0; u < width; ++u) {
+      const double r = std::hypot(u - x, v - y);
+      if (r < 25) grey[static_cast<size_t>(v) * width + u] = static_cast<float>(1000 - 20 * r);
+    }
+  }
+  return grey;
+}
+
+TEST(AssetDatasetTest, ATrackingCropFollowsTheLitHeadAndAFixedOneStays) {
+  constexpr int kWidth = 400, kHeight = 300;
+  const CropBox fixed{.camera = "mv-01", .centre_x = 200, .centre_y = 150, .side = 100, .white = 1000};
+  CropBox tracking = fixed;
+  tracking.tracking = CropTracking::kCentroid;
+  const std::vector<float> at_rest = DiscFrame(kWidth, kHeight, 200, 150);
+  const std::vector<float> moved = DiscFrame(kWidth, kHeight, 231.3, 128.6);
+  double x = 0, y = 0;
+  CropCentre(moved.data(), kWidth, kHeight, tracking, &x, &y);
+  EXPECT_NEAR(x, 231.3, 0.5);
+  EXPECT_NEAR(y, 128.6, 0.5);
+  CropCentre(moved.data(), kWidth, kHeight, fixed, &x, &y);
+  EXPECT_EQ(x, 200);
+  EXPECT_EQ(y, 150);
+  // Nothing lit: the rest place.
+  const std::vector<float> dark(static_cast<size_t>(kWidth) * kHeight, 0.0f);
+  CropCentre(dark.data(), kWidth, kHeight, tracking, &x, &y);
+  EXPECT_EQ(x, 200);
+  EXPECT_EQ(y, 150);
+
+  CropCentre(moved.data(), kWidth, kHeight, tracking, &x, &y);
+  // The moved disc's tracked crop is the disc at rest's crop (within a few levels at its edge); the fixed one is not.
+  const std::vector<uint8_t> rest_crop = CropFrame(at_rest.data(), kWidth, kHeight, fixed, 32, 1000, 2.2);
+  const auto largest_difference = [&](const CropBox& box) {
+    const std::vector<uint8_t> crop = CropFrame(moved.data(), kWidth, kHeight, box, 32, 1000, 2.2);
+    int largest = 0;
+    for (size_t i = 0; i < crop.size(); ++i) largest = std::max(largest, std::abs(crop[i] - rest_crop[i]));
+    return largest;
+  };
+  std::printf(
+      "tracked centre off by %.3f, %.3f px; crops' largest difference from the disc at rest: tracked %d, "
+      "fixed %d levels\n",
+      x - 231.3, y - 128.6, largest_difference(tracking), largest_difference(fixed));
+  EXPECT_LT(largest_difference(tracking), 40);
+  EXPECT_GT(largest_difference(fixed), 200);
+  EXPECT_EQ(CropTrackingName(CropTracking::kCentroid), std::string("centroid"));
+  EXPECT_EQ(*ParseCropTracking("fixed"), CropTracking::kFixed);
+  EXPECT_THAT(ParseCropTracking("face").status().message(), HasSubstr("not fixed or centroid"));
+}
+
 TEST(AssetDatasetTest, ErrorsNameTheTakeTheSequenceAndTheFile) {
   EXPECT_THAT(BuildAssetDataset({.take_dir = ::testing::TempDir() + "/no-take"}).status().message(),
               HasSubstr("no-take: no such take directory"));
@@ -230,6 +297,8 @@ TEST(AssetDatasetTest, ErrorsNameTheTakeTheSequenceAndTheFile) {
               HasSubstr("run `stage-process fit` first"));
   EXPECT_THAT(BuildAssetDataset({.take_dir = take, .geometry_size = 8}).status().message(),
               HasSubstr("geometry size 8"));
+  EXPECT_THAT(BuildAssetDataset({.take_dir = take, .frame_step = 0}).status().message(),
+              HasSubstr("frame step 0 is not in 1..1000"));
   std::filesystem::remove(FrameDir(take + "/ground_truth", 3) + "/pose.json");
   EXPECT_THAT(BuildAssetDataset({.take_dir = take, .held_out_sequence = "none"}).status().message(),
               HasSubstr("frame-000003/pose.json"));

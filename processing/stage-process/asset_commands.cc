@@ -39,6 +39,9 @@ void AssetCommands::Add(CLI::App& parent) {
       ->capture_default_str();
   build_dataset_->add_option("--frames", frames_, "Frames A:B (B excluded), A: to the end, or A")
       ->capture_default_str();
+  build_dataset_->add_option("--frame-step", dataset_.frame_step, "Every Nth of the frames the source holds")
+      ->capture_default_str()
+      ->check(CLI::Range(1, 1000));
   build_dataset_->add_option("--output", dataset_.output, "The dataset file (default TAKE/derived/asset/dataset.h5)");
   build_dataset_->add_option("--geometry-size", dataset_.geometry_size, "Texels across the geometry map")
       ->capture_default_str()
@@ -81,6 +84,12 @@ void AssetCommands::Add(CLI::App& parent) {
   build_dataset_->add_option("--crop-mm", dataset_.crop_mm, "The crop's side at the face, mm")
       ->capture_default_str()
       ->check(CLI::Range(50.0, 1000.0));
+  build_dataset_
+      ->add_option("--crop-tracking", crop_tracking_,
+                   "Where each frame's crop sits: fixed (where the face is with the head at rest) or centroid "
+                   "(centred on the lit head in each frame, found from the image alone; inference crops the same "
+                   "way)")
+      ->capture_default_str();
   build_dataset_->add_flag("--json", json_, "Print the summary as JSON on stdout");
   AddTrain();
   AddEvaluate();
@@ -347,6 +356,9 @@ int AssetCommands::BuildDataset() {
   auto source = processing::ParseAssetSource(source_);
   if (!source.ok()) return ReportFatal(kProgram, source.status());
   dataset_.source = *source;
+  auto tracking = processing::ParseCropTracking(crop_tracking_);
+  if (!tracking.ok()) return ReportFatal(kProgram, tracking.status());
+  dataset_.crop_tracking = *tracking;
   ProgressLine bar("frames");
   dataset_.progress = [&bar](int64_t done, int64_t total) { bar.Update(done, total); };
   auto summary = processing::BuildAssetDataset(dataset_);
