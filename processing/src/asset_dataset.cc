@@ -380,8 +380,7 @@ class RunningSpread {
   std::vector<double> count_, mean_, m2_;
 };
 
-// Each camera's crops of the dataset's frames: a square about where the face is when the head is at rest, fixed or
-// following the head (CropTracking).
+// Each camera's crops of the dataset's frames: a fixed square about where the face is when the head is at rest.
 struct Crops {
   std::vector<std::string> cameras;
   std::vector<nlohmann::json> boxes;               // per camera: centre and side, pixels of its frames
@@ -397,45 +396,6 @@ cv::Mat Patch(const float* grey, int width, int height, const Eigen::Vector2d& c
   cv::getRectSubPix(frame, cv::Size(s, s), cv::Point2f(static_cast<float>(centre.x()), static_cast<float>(centre.y())),
                     patch);
   return patch;
-}
-
-// The lit head's centroid in the grey frame's search square (kCropSearchFactor x side about `rest`), found on the
-// square averaged down to kSearchPixels across: the pixels brighter than kLitFraction of its 99.5th percentile,
-// counted alike (the silhouette, not its shading). `rest` where nothing is lit.
-Eigen::Vector2d LitCentroid(const float* grey, int width, int height, const Eigen::Vector2d& rest, double side) {
-  constexpr int kSearchPixels = 128;
-  constexpr double kLitFraction = 0.1;
-  const double search = kCropSearchFactor * side;
-  const cv::Mat patch = Patch(grey, width, height, rest, search);
-  cv::Mat small;
-  cv::resize(patch, small, cv::Size(kSearchPixels, kSearchPixels), 0, 0,
-             patch.cols > kSearchPixels ? cv::INTER_AREA : cv::INTER_LINEAR);
-  std::vector<float> values(small.begin<float>(), small.end<float>());
-  const size_t k = static_cast<size_t>(0.995 * static_cast<double>(values.size() - 1));
-  std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
-  const double threshold = kLitFraction * values[k];
-  if (!(values[k] > 0)) return rest;
-  double sx = 0, sy = 0, n = 0;
-  for (int y = 0; y < kSearchPixels; ++y) {
-    const float* row = small.ptr<float>(y);
-    for (int x = 0; x < kSearchPixels; ++x) {
-      if (row[x] <= threshold) continue;
-      sx += x;
-      sy += y;
-      ++n;
-    }
-  }
-  if (n == 0) return rest;
-  // A small pixel's centre (i + 0.5) / kSearchPixels of the square, which starts search / 2 before `rest`.
-  const double scale = static_cast<double>(patch.cols) / kSearchPixels;
-  return rest + Eigen::Vector2d((sx / n + 0.5) * scale - 0.5 * patch.cols, (sy / n + 0.5) * scale - 0.5 * patch.rows);
-}
-
-// Where `box`'s square sits in the grey frame (CropCentre).
-Eigen::Vector2d BoxCentre(const float* grey, int width, int height, const CropBox& box) {
-  const Eigen::Vector2d rest(box.centre_x, box.centre_y);
-  if (box.tracking == CropTracking::kFixed) return rest;
-  return LitCentroid(grey, width, height, rest, box.side);
 }
 
 // A patch's white: its 99.5th percentile (at least 1 DN).
@@ -502,7 +462,6 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
     }
     const double depth = camera.model.rotation().row(2).dot(centre - camera.model.position());
     const double side = options.crop_mm * camera.model.fx() / depth;
-    const CropBox box{camera.id, pixel.x(), pixel.y(), side, 0, options.crop_tracking};
     crops.cameras.push_back(camera.id);
     double white = 0;  // the camera's first crop's 99.5th percentile: one scale for all its frames
     STAGE_RETURN_IF_ERROR(ForEachFullLitFrame(
@@ -513,8 +472,7 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           }
           auto slot = crops.images.find(frame);
           if (slot == crops.images.end()) return absl::OkStatus();
-          const cv::Mat patch = Patch(grey.pixels.data(), grey.width, grey.height,
-                                      BoxCentre(grey.pixels.data(), grey.width, grey.height, box), side);
+          const cv::Mat patch = Patch(grey.pixels.data(), grey.width, grey.height, pixel, side);
           if (white == 0) white = White(patch);
           const std::vector<uint8_t> image = Crop(patch, options.image_size, white);
           std::copy(image.begin(), image.end(), slot->second.begin() + static_cast<std::ptrdiff_t>(c * texels));
@@ -522,11 +480,8 @@ absl::StatusOr<Crops> CropImages(const DatasetOptions& options, const FaceTempla
           return absl::OkStatus();
         }));
     // Where and how bright: what cropping a new frame of the camera the same way needs (CropBox).
-    nlohmann::json kept = {
-        {"camera", camera.id}, {"centre_px", {pixel.x(), pixel.y()}}, {"side_px", side}, {"white_dn", white}};
-    // Only a tracking box says so: a fixed one's description (the dataset's identity) is as before tracking was.
-    if (box.tracking != CropTracking::kFixed) kept["tracking"] = CropTrackingName(box.tracking);
-    crops.boxes.push_back(std::move(kept));
+    crops.boxes.push_back(
+        {{"camera", camera.id}, {"centre_px", {pixel.x(), pixel.y()}}, {"side_px", side}, {"white_dn", white}});
   }
   return crops;
 }
@@ -599,14 +554,6 @@ absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name) {
   if (name == "truth") return AssetSource::kTruth;
   if (name == "reconstruction") return AssetSource::kReconstruction;
   return absl::InvalidArgumentError(absl::StrCat("source \"", name, "\" is not truth or reconstruction"));
-}
-
-const char* CropTrackingName(CropTracking tracking) { return tracking == CropTracking::kFixed ? "fixed" : "centroid"; }
-
-absl::StatusOr<CropTracking> ParseCropTracking(const std::string& name) {
-  if (name == "fixed") return CropTracking::kFixed;
-  if (name == "centroid") return CropTracking::kCentroid;
-  return absl::InvalidArgumentError(absl::StrCat("crop tracking \"", name, "\" is not fixed or centroid"));
 }
 
 const char* SampleSplitName(SampleSplit split) {
@@ -822,11 +769,9 @@ absl::Status ReadDescription(const storage::ArrayFileReader& reader, const std::
     }
     for (const nlohmann::json& box : j.value("crops", nlohmann::json::array())) {
       if (!box.contains("white_dn")) continue;  // written before the white was kept
-      auto tracking = ParseCropTracking(box.value("tracking", std::string("fixed")));
-      if (!tracking.ok()) return absl::InvalidArgumentError(absl::StrCat(path, ": ", tracking.status().message()));
       d->crops.push_back({box.at("camera").get<std::string>(), box.at("centre_px").at(0).get<double>(),
                           box.at("centre_px").at(1).get<double>(), box.at("side_px").get<double>(),
-                          box.at("white_dn").get<double>(), *tracking});
+                          box.at("white_dn").get<double>()});
     }
   } catch (const nlohmann::json::exception& e) {
     return absl::InvalidArgumentError(absl::StrCat(path, ": the description does not read: ", e.what()));
@@ -903,19 +848,13 @@ absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string&
                                           ids.empty() ? "none kept: rebuild it" : absl::StrJoin(ids, ", "), ")"));
 }
 
-void CropCentre(const float* grey, int width, int height, const CropBox& box, double* x, double* y) {
-  const Eigen::Vector2d centre = BoxCentre(grey, width, height, box);
-  *x = centre.x();
-  *y = centre.y();
-}
-
 std::vector<uint8_t> CropFrame(const float* grey, int width, int height, const CropBox& box, int size, double white,
                                double gamma) {
-  return Crop(Patch(grey, width, height, BoxCentre(grey, width, height, box), box.side), size, white, gamma);
+  return Crop(Patch(grey, width, height, {box.centre_x, box.centre_y}, box.side), size, white, gamma);
 }
 
 double CropWhite(const float* grey, int width, int height, const CropBox& box) {
-  return White(Patch(grey, width, height, BoxCentre(grey, width, height, box), box.side));
+  return White(Patch(grey, width, height, {box.centre_x, box.centre_y}, box.side));
 }
 
 absl::Status ForEachTakeCrop(const std::string& take_dir, const CropBox& box, int size, int64_t first, int64_t last,

@@ -117,37 +117,6 @@ TEST(AssetDatasetSimTest, TheTruthsMapsHoldTheHeadAndTheCropsTheFace) {
       EXPECT_LT(corner, 20) << "frame " << frame << " camera " << c;
     }
   }
-
-  // Crops that follow the head: the description keeps how, so a take's frames cropped from it (as inference crops
-  // them) are the dataset's own, byte for byte; and they differ from the fixed crops (the head has moved).
-  auto tracked = BuildAssetDataset({.take_dir = take,
-                                    .output = take + "/tracked.h5",
-                                    .held_out_fraction = 0,
-                                    .held_out_sequence = "none",
-                                    .texture_size = 0,
-                                    .crop_tracking = CropTracking::kCentroid});
-  ASSERT_TRUE(tracked.ok()) << tracked.status();
-  auto tracked_dataset = ReadAssetDataset(tracked->path);
-  ASSERT_TRUE(tracked_dataset.ok()) << tracked_dataset.status();
-  const size_t crop_pixels = static_cast<size_t>(dataset->image_size) * dataset->image_size;
-  for (int c = 0; c < 3; ++c) {
-    auto box = DatasetCropBox(*tracked_dataset, tracked_dataset->cameras[c]);
-    ASSERT_TRUE(box.ok()) << box.status();
-    EXPECT_EQ(box->tracking, CropTracking::kCentroid);
-    int crops = 0;
-    ASSERT_TRUE(ForEachTakeCrop(take, *box, tracked_dataset->image_size, 200, 561,
-                                [&](int64_t frame, const std::vector<uint8_t>& crop) {
-                                  const int i = frame == 200 ? 0 : 1;
-                                  const uint8_t* own = &tracked_dataset->images[(i * 3 + c) * crop_pixels];
-                                  const uint8_t* fixed = &dataset->images[(i * 3 + c) * crop_pixels];
-                                  EXPECT_TRUE(std::equal(crop.begin(), crop.end(), own)) << frame << " " << c;
-                                  EXPECT_FALSE(std::equal(crop.begin(), crop.end(), fixed)) << frame << " " << c;
-                                  ++crops;
-                                  return absl::OkStatus();
-                                })
-                    .ok());
-    EXPECT_EQ(crops, 2);
-  }
 }
 
 }  // namespace

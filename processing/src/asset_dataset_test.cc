@@ -3,9 +3,6 @@
 #include "stage/processing/asset_dataset.h"
 
 #include <Eigen/Geometry>
-#include <algorithm>
-#include <cmath>
-#include <cstdio>
 #include <filesystem>
 
 #include "asset_test_support.h"
@@ -233,58 +230,6 @@ TEST(AssetDatasetTest, TheSplitHoldsOutOneSequenceWholeAndEvenContiguousBlocks) 
   EXPECT_EQ(runs, 5);
   // Nothing held out without a sequence and with no fraction.
   for (SampleSplit s : SplitFrames(sequence, -1, 0, 5)) EXPECT_EQ(s, SampleSplit::kTrain);
-}
-
-// A dark frame with a bright disc (radius 25 px, shaded from its middle out) about (x, y).
-std::vector<float> DiscFrame(int width, int height, double x, double y) {
-  std::vector<float> grey(static_cast<size_t>(width) * height, 2.0f);
-  for (int v = 0; v < height; ++v) {
-    for (int u = 0; u < width; ++u) {
-      const double r = std::hypot(u - x, v - y);
-      if (r < 25) grey[static_cast<size_t>(v) * width + u] = static_cast<float>(1000 - 20 * r);
-    }
-  }
-  return grey;
-}
-
-TEST(AssetDatasetTest, ATrackingCropFollowsTheLitHeadAndAFixedOneStays) {
-  constexpr int kWidth = 400, kHeight = 300;
-  const CropBox fixed{.camera = "mv-01", .centre_x = 200, .centre_y = 150, .side = 100, .white = 1000};
-  CropBox tracking = fixed;
-  tracking.tracking = CropTracking::kCentroid;
-  const std::vector<float> at_rest = DiscFrame(kWidth, kHeight, 200, 150);
-  const std::vector<float> moved = DiscFrame(kWidth, kHeight, 231.3, 128.6);
-  double x = 0, y = 0;
-  CropCentre(moved.data(), kWidth, kHeight, tracking, &x, &y);
-  EXPECT_NEAR(x, 231.3, 0.5);
-  EXPECT_NEAR(y, 128.6, 0.5);
-  CropCentre(moved.data(), kWidth, kHeight, fixed, &x, &y);
-  EXPECT_EQ(x, 200);
-  EXPECT_EQ(y, 150);
-  // Nothing lit: the rest place.
-  const std::vector<float> dark(static_cast<size_t>(kWidth) * kHeight, 0.0f);
-  CropCentre(dark.data(), kWidth, kHeight, tracking, &x, &y);
-  EXPECT_EQ(x, 200);
-  EXPECT_EQ(y, 150);
-
-  CropCentre(moved.data(), kWidth, kHeight, tracking, &x, &y);
-  // The moved disc's tracked crop is the disc at rest's crop (within a few levels at its edge); the fixed one is not.
-  const std::vector<uint8_t> rest_crop = CropFrame(at_rest.data(), kWidth, kHeight, fixed, 32, 1000, 2.2);
-  const auto largest_difference = [&](const CropBox& box) {
-    const std::vector<uint8_t> crop = CropFrame(moved.data(), kWidth, kHeight, box, 32, 1000, 2.2);
-    int largest = 0;
-    for (size_t i = 0; i < crop.size(); ++i) largest = std::max(largest, std::abs(crop[i] - rest_crop[i]));
-    return largest;
-  };
-  std::printf(
-      "tracked centre off by %.3f, %.3f px; crops' largest difference from the disc at rest: tracked %d, "
-      "fixed %d levels\n",
-      x - 231.3, y - 128.6, largest_difference(tracking), largest_difference(fixed));
-  EXPECT_LT(largest_difference(tracking), 40);
-  EXPECT_GT(largest_difference(fixed), 200);
-  EXPECT_EQ(CropTrackingName(CropTracking::kCentroid), std::string("centroid"));
-  EXPECT_EQ(*ParseCropTracking("fixed"), CropTracking::kFixed);
-  EXPECT_THAT(ParseCropTracking("face").status().message(), HasSubstr("not fixed or centroid"));
 }
 
 TEST(AssetDatasetTest, ErrorsNameTheTakeTheSequenceAndTheFile) {

@@ -84,12 +84,6 @@ void AssetCommands::Add(CLI::App& parent) {
   build_dataset_->add_option("--crop-mm", dataset_.crop_mm, "The crop's side at the face, mm")
       ->capture_default_str()
       ->check(CLI::Range(50.0, 1000.0));
-  build_dataset_
-      ->add_option("--crop-tracking", crop_tracking_,
-                   "Where each frame's crop sits: fixed (where the face is with the head at rest) or centroid "
-                   "(centred on the lit head in each frame, found from the image alone; inference crops the same "
-                   "way)")
-      ->capture_default_str();
   build_dataset_->add_flag("--json", json_, "Print the summary as JSON on stdout");
   AddTrain();
   AddEvaluate();
@@ -356,9 +350,6 @@ int AssetCommands::BuildDataset() {
   auto source = processing::ParseAssetSource(source_);
   if (!source.ok()) return ReportFatal(kProgram, source.status());
   dataset_.source = *source;
-  auto tracking = processing::ParseCropTracking(crop_tracking_);
-  if (!tracking.ok()) return ReportFatal(kProgram, tracking.status());
-  dataset_.crop_tracking = *tracking;
   ProgressLine bar("frames");
   dataset_.progress = [&bar](int64_t done, int64_t total) { bar.Update(done, total); };
   auto summary = processing::BuildAssetDataset(dataset_);

@@ -54,7 +54,7 @@ class AssetCommands {
   processing::AssetInferOptions infer_;
   std::string infer_frames_ = "0:";
   bool no_meshes_ = false;
-  std::string frames_ = "0:", source_ = "truth", crop_tracking_ = "fixed";
+  std::string frames_ = "0:", source_ = "truth";
   bool json_ = false;
 };
 

@@ -23,9 +23,9 @@
 //   they were written, in the directory beside the file named for it, DATASET-neutral/; apart from the description,
 //   which is the dataset's identity for training).
 //
-// The crops are placed per camera from the image alone, so that a new image of the same camera is cropped the same
-// way with no pose known: a square of `crop_mm` at the face's place when the head is at rest (the face template's
-// centre at the stage's origin pose), fixed there or moved in each frame to follow the lit head (CropTracking).
+// The crops are fixed per camera, as a stage's cameras are: a square of `crop_mm` at the face's place when the head
+// is at rest (the face template's centre at the stage's origin pose), wherever the head then moves, so that a new
+// image of the same camera is cropped the same way with no pose known.
 #pragma once
 
 #include <cstdint>
@@ -52,19 +52,6 @@ enum class AssetSource {
 inline constexpr int kTextureChannels = 7;
 const char* AssetSourceName(AssetSource source);  // "truth", "reconstruction"
 absl::StatusOr<AssetSource> ParseAssetSource(const std::string& name);
-
-// How a camera's crop square is placed in each frame.
-enum class CropTracking {
-  // Fixed where the face is with the head at rest, wherever the head then moves.
-  kFixed,
-  // Centred, frame by frame, on the centroid of the lit head (the pixels brighter than a tenth of the bright end)
-  // within a search square of kCropSearchFactor times the crop's side about the rest place: the head against the dark
-  // stage, found from the image alone. The face stays centred while the head turns and moves.
-  kCentroid,
-};
-inline constexpr double kCropSearchFactor = 1.6;
-const char* CropTrackingName(CropTracking tracking);  // "fixed", "centroid"
-absl::StatusOr<CropTracking> ParseCropTracking(const std::string& name);
 
 enum class SampleSplit : uint8_t {
   kTrain = 0,
@@ -108,8 +95,6 @@ struct DatasetOptions {
   // Texels across a crop (16..512), and the crop's side at the face, mm (50..1000).
   int image_size = 128;
   double crop_mm = 280;
-  // Where the crop square sits in each frame (above).
-  CropTracking crop_tracking = CropTracking::kFixed;
   // Called after each frame: (done, total); and asked before each: true stops the build (Cancelled, nothing
   // written).
   std::function<void(int64_t, int64_t)> progress;
@@ -142,13 +127,11 @@ struct DatasetSummary {
 // file, a sequence not in the take, a geometry map of another layout.
 absl::StatusOr<DatasetSummary> BuildAssetDataset(const DatasetOptions& options);
 
-// How the dataset crops a camera's frames (its description's "crops"): the square's centre (at rest) and side in the
-// camera's pixels, the white its crops are scaled to (DN over the black level; 0 where the camera recorded no frame),
-// and how the square follows the head.
+// How the dataset crops a camera's frames (its description's "crops"): the square's centre and side in the camera's
+// pixels, and the white its crops are scaled to (DN over the black level; 0 where the camera recorded no frame).
 struct CropBox {
   std::string camera;
   double centre_x = 0, centre_y = 0, side = 0, white = 0;
-  CropTracking tracking = CropTracking::kFixed;
 };
 
 // A dataset read back whole.
@@ -189,15 +172,12 @@ absl::Status ReadDatasetFrameTextures(const AssetDataset& d, int64_t i, std::vec
 
 // The crop box of `camera` in `d` (errors name the dataset, and the cameras it cropped).
 absl::StatusOr<CropBox> DatasetCropBox(const AssetDataset& d, const std::string& camera);
-// Where the box's square is centred in a grey frame (width x height floats, row-major): its rest centre when fixed;
-// when tracking, the lit head's centroid in the search square (the rest centre where nothing in it is lit).
-void CropCentre(const float* grey, int width, int height, const CropBox& box, double* x, double* y);
-// A grey frame (width x height floats, row-major) cropped as the dataset crops: the box's square (at CropCentre)
-// averaged down to size x size pixels, over `white`, through a 1/gamma curve (2.2 for a camera's linear frames, as
-// the dataset's crops; 1 for display-referred frames), 8 bits.
+// A grey frame (width x height floats, row-major) cropped as the dataset crops: the box's square averaged down to
+// size x size pixels, over `white`, through a 1/gamma curve (2.2 for a camera's linear frames, as the dataset's
+// crops; 1 for display-referred frames), 8 bits.
 std::vector<uint8_t> CropFrame(const float* grey, int width, int height, const CropBox& box, int size, double white,
                                double gamma);
-// The 99.5th percentile of the box's square (at CropCentre) in a grey frame (at least 1).
+// The 99.5th percentile of the box's square in a grey frame (at least 1).
 double CropWhite(const float* grey, int width, int height, const CropBox& box);
 // The full-lit frames [first, last) (last < 0: to the end) of the box's camera in a take, cropped as the dataset
 // cropped its own (black level removed, demosaiced to grey, the box's white, gamma 2.2): fn(frame, crop).
