@@ -9,12 +9,14 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "stage/common/cli.h"
 #include "stage/common/logging.h"
 #include "stage/common/rig.h"
 #include "stage/sim/ground_truth.h"
+#include "stage/sim/performance_yaml.h"
 #include "stage/sim/rendered_take.h"
 #include "stage/sim/scene.h"
 #include "stage/timing/schedule.h"
@@ -22,6 +24,34 @@
 namespace {
 
 constexpr const char* kProgram = "stage-sim-render";
+
+// --range-of-motion-s: the head's range of motion of `seconds`, drawn from the rig's seed, written as
+// DIR/range-of-motion.yaml, and named by the rig (an override added to `overrides`). The rig's own overrides must
+// not name another performance.
+absl::Status WriteRangeOfMotion(const stage::v1::RigConfig& rig, double seconds, const std::string& dir,
+                                std::vector<std::string>* overrides) {
+  if (dir.empty()) {
+    return absl::InvalidArgumentError("--range-of-motion-s is for a take or a ground truth (--take, --ground-truth)");
+  }
+  for (const std::string& o : *overrides) {
+    if (absl::StartsWith(o, "sim.subject.performance=")) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--range-of-motion-s writes its own performance: it takes no --set ", o));
+    }
+  }
+  if (rig.sim().subject().kind() != "head") {
+    return absl::InvalidArgumentError(absl::StrCat("--range-of-motion-s: the range of motion is a head's, not the ",
+                                                   rig.sim().subject().kind(), "'s"));
+  }
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat(dir, ": cannot create: ", ec.message()));
+  const std::string path = std::filesystem::absolute(dir + "/range-of-motion.yaml").lexically_normal().string();
+  const stage::sim::Performance performance = stage::sim::Performance::RangeOfMotion(rig.sim().seed(), seconds);
+  if (auto s = stage::sim::WritePerformanceYaml(performance, path); !s.ok()) return s;
+  overrides->push_back("sim.subject.performance=" + path);
+  return absl::OkStatus();
+}
 
 // A raw frame as a viewable 8-bit BGR image: demosaiced, scaled so full-on white is near 80 % and gamma-encoded.
 cv::Mat Viewable(const stage::sim::RawImage& raw, const stage::sim::SensorParams& sensor, double white_dn) {
@@ -148,6 +178,13 @@ int main(int argc, char** argv) {
   app.add_flag("--take-truth-maps", take_truth_maps,
                "Take: the ground truth's per-camera maps and a mesh per frame too (what `stage-process evaluate` "
                "compares with; default: poses and UV position maps only)");
+  double range_of_motion_s = 0;
+  app.add_option("--range-of-motion-s", range_of_motion_s,
+                 "Take and ground truth: the head's range of motion for this many seconds (the rig's "
+                 "range_of_motion is 180 s: more rounds of every group of expressions), drawn from sim.seed and "
+                 "written as the performance file range-of-motion.yaml in the take's (or the truth's) directory, "
+                 "which the rig then names")
+      ->check(CLI::Range(6.0, 86400.0));
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
@@ -155,6 +192,14 @@ int main(int argc, char** argv) {
   if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
   auto rig = stage::ApplyRigOverrides(*loaded, overrides);
   if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
+  if (range_of_motion_s > 0) {
+    if (auto s = WriteRangeOfMotion(rig->rig, range_of_motion_s, take_dir.empty() ? truth_dir : take_dir, &overrides);
+        !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    rig = stage::ApplyRigOverrides(*loaded, overrides);
+    if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
+  }
   auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
   if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
   int64_t first_frame = 0, last_frame = 0;

@@ -13,6 +13,7 @@
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "stage/sim/head.h"
+#include "stage/sim/performance_yaml.h"
 
 namespace stage::sim {
 namespace {
@@ -298,6 +299,33 @@ TEST(HeadTest, RangeOfMotionWorksEveryExpressionInNamedSequencesUnderHeadMotion)
   // The same seed draws the same performance; another draws another.
   EXPECT_EQ(Performance::RangeOfMotion(7, 180).At(42.3).rotation_deg, p.At(42.3).rotation_deg);
   EXPECT_NE(Performance::RangeOfMotion(8, 180).At(42.3).rotation_deg, p.At(42.3).rotation_deg);
+}
+
+TEST(HeadTest, APerformanceWrittenAsYamlReadsBackToTheBit) {
+  // A range of motion longer than the rig's 180 s (more rounds of every group), written and read back.
+  const Performance p = Performance::RangeOfMotion(7, 600);
+  ASSERT_EQ(p.sequences.size(), 100u);
+  const std::string path = ::testing::TempDir() + "/range-of-motion.yaml";
+  ASSERT_TRUE(WritePerformanceYaml(p, path).ok());
+  auto read = Performance::FromYaml(path);
+  ASSERT_TRUE(read.ok()) << read.status();
+  ASSERT_EQ(read->keys.size(), p.keys.size());
+  for (size_t k = 0; k < p.keys.size(); ++k) {
+    EXPECT_EQ(read->keys[k].first, p.keys[k].first) << k;
+    EXPECT_EQ(read->keys[k].second.expression, p.keys[k].second.expression) << k;
+    EXPECT_EQ(read->keys[k].second.rotation_deg, p.keys[k].second.rotation_deg) << k;
+    EXPECT_EQ(read->keys[k].second.translation_mm, p.keys[k].second.translation_mm) << k;
+  }
+  EXPECT_EQ(read->sequences, p.sequences);
+  EXPECT_EQ(read->At(421.37).expression, p.At(421.37).expression);
+  EXPECT_EQ(read->SequenceAt(421.37), p.SequenceAt(421.37));
+
+  // A sequence that starts between keys cannot be said in the file's terms; an unwritable path is named.
+  Performance between = p;
+  between.sequences.emplace_back(0.25, "odd-1");
+  EXPECT_THAT(WritePerformanceYaml(between, path).message(), HasSubstr("\"odd-1\" starts at 0.25 s, between keys"));
+  EXPECT_THAT(WritePerformanceYaml(p, ::testing::TempDir() + "/no-such-dir/p.yaml").message(),
+              HasSubstr("no-such-dir/p.yaml: cannot write"));
 }
 
 TEST(HeadTest, PoresAreTwoToTenTexelsAcrossAt4K) {
