@@ -147,17 +147,17 @@ struct AssetDataset {
   std::vector<float> stage_from_head;  // frames x 16, row-major
   std::vector<std::string> cameras;    // of the images (empty: none)
   int image_size = 0;
-  std::vector<uint8_t> images;         // frames x cameras x image_size^2
-  std::vector<uint8_t> image_valid;    // frames x cameras
-  std::vector<CropBox> crops;          // per camera (empty in a dataset written before they were kept)
-  int texture_size = 0;                // 0: no textures
-  std::vector<float> textures;         // frames x texture_size^2 x kTextureChannels
+  std::vector<uint8_t> images;       // frames x cameras x image_size^2
+  std::vector<uint8_t> image_valid;  // frames x cameras
+  std::vector<CropBox> crops;        // per camera (empty in a dataset written before they were kept)
+  int texture_size = 0;              // 0: no textures
+  std::vector<float> textures;       // frames x texture_size^2 x kTextureChannels
   std::vector<uint8_t> texture_valid;  // frames x texture_size^2
   // The neutral frame's full-resolution textures (DatasetOptions::neutral_texture_size): their directory (absolute
   // or relative to the working directory) and texels across; empty and 0 where the dataset has none.
   std::string neutral_textures_dir;
   int neutral_texture_size = 0;
-  std::string description;  // the JSON attribute
+  std::string description;           // the JSON attribute
   int64_t frames() const { return static_cast<int64_t>(frame.size()); }
 };
 // Errors name the file: not a dataset, arrays of disagreeing lengths.
