@@ -123,7 +123,7 @@ void AssetCommands::AddTrain() {
       ->check(CLI::Range(1, 1024));
   train_
       ->add_option("--learning-rate", schedule.learning_rate,
-                   "Adam's rate (the last 30 % of the steps at a fifth; default 1e-3, finetune's 3e-4)")
+                   "Adam's rate (the last 30 % of the steps at a fifth; default 1e-3)")
       ->check(CLI::PositiveNumber);
   train_->add_option("--checkpoint-every", schedule.checkpoint_every, "Steps between checkpoints")
       ->capture_default_str()
