@@ -2,6 +2,7 @@
 // module (torch_nets.h): the rest sees warp_net.h.
 #include <ATen/Parallel.h>
 #include <dlfcn.h>
+#include <malloc.h>
 #include <torch/torch.h>
 
 #include <algorithm>
@@ -169,6 +170,12 @@ int internal::SetThreads(int threads) {
     at::set_num_interop_threads(1);
     // Torch's own loops are the parallelism; a BLAS call inside one runs on its thread.
     openblas_set_num_threads(1);
+    // glibc's malloc moves its mmap and trim thresholds with the sizes freed: past some 10000 steps of a fine-tuning
+    // each step's tensors came to be handed back to the kernel and faulted in again (38,000 page faults a second, a
+    // quarter of the time in the kernel, steps three times slower; docs/asset.md#speed). Fixed thresholds keep them
+    // in the heap.
+    mallopt(M_MMAP_THRESHOLD, 64 << 20);
+    mallopt(M_TRIM_THRESHOLD, 256 << 20);
   });
   at::set_num_threads(n);
   return n;
