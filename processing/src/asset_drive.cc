@@ -392,6 +392,14 @@ absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& 
   for (const auto& [name, dir] : runs) {
     STAGE_ASSIGN_OR_RETURN(const std::string id, RunId(dir));
     if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
+      // A run of another directory than the one given: name it (the caller took the default); the same directory:
+      // it was trained again since.
+      const std::string from = o.value(absl::StrCat(name, "_run"), "");
+      if (!from.empty() && from != fs::absolute(dir).lexically_normal().string()) {
+        return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
+                                                          dir, ": from ", from, " (name it: --", name, "-run ", from,
+                                                          ")"));
+      }
       return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
                                                         dir, " (trained again since?): train it again"));
     }
