@@ -218,6 +218,14 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   auto resumed = TrainLatentMapping(mapping);
   ASSERT_TRUE(resumed.ok()) << resumed.status();
   EXPECT_EQ(resumed->resumed_from, 600);
+  // Over a run of another directory it names the run it was trained from, and the flag that names it.
+  const std::string other = e->output_dir + "-other";
+  std::filesystem::copy(e->output_dir, other, std::filesystem::copy_options::recursive);
+  std::ofstream(other + "/trainer.json", std::ios::app) << " ";
+  EXPECT_THAT(EvaluateDrivenAsset(dataset, "", other, "", "", "").status().message(),
+              HasSubstr(absl::StrFormat("another expression run than %s: from %s (name it: --expression-run %s)", other,
+                                        std::filesystem::absolute(e->output_dir).lexically_normal().string(),
+                                        std::filesystem::absolute(e->output_dir).lexically_normal().string())));
   std::ofstream(e->output_dir + "/trainer.json", std::ios::app) << " ";
   EXPECT_THAT(TrainLatentMapping(mapping).status().message(), HasSubstr("trained with expression_run_id"));
   EXPECT_THAT(EvaluateDrivenAsset(dataset, "", "", "", "", "").status().message(),
