@@ -379,9 +379,14 @@ absl::StatusOr<std::string> RunId(const std::string& run_dir) {
   return absl::StrFormat("%016x", Fnv1a64(trainer));
 }
 
+namespace {
+// A run's directory as a run's options record it: absolute, normalized.
+std::string RecordedRunDir(const std::string& dir) { return fs::absolute(dir).lexically_normal().string(); }
+}  // namespace
+
 absl::Status AddRunIdentities(std::initializer_list<std::pair<const char*, std::string>> runs, nlohmann::json* j) {
   for (const auto& [name, dir] : runs) {
-    (*j)[absl::StrCat(name, "_run")] = fs::absolute(dir).lexically_normal().string();
+    (*j)[absl::StrCat(name, "_run")] = RecordedRunDir(dir);
     STAGE_ASSIGN_OR_RETURN((*j)[absl::StrCat(name, "_run_id")], RunId(dir));
   }
   return absl::OkStatus();
@@ -394,14 +399,13 @@ absl::Status CheckTrainedFrom(const std::string& run_dir, const nlohmann::json& 
     if (o.value(absl::StrCat(name, "_run_id"), "") != id) {
       // A run of another directory than the one given: name it (the caller took the default); the same directory:
       // it was trained again since.
+      const std::string refused = absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ", dir);
       const std::string from = o.value(absl::StrCat(name, "_run"), "");
-      if (!from.empty() && from != fs::absolute(dir).lexically_normal().string()) {
-        return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
-                                                          dir, ": from ", from, " (name it: --", name, "-run ", from,
-                                                          ")"));
+      if (!from.empty() && from != RecordedRunDir(dir)) {
+        return absl::FailedPreconditionError(
+            absl::StrCat(refused, ": from ", from, " (name it: --", name, "-run ", from, ")"));
       }
-      return absl::FailedPreconditionError(absl::StrCat(run_dir, ": ", trained, " from another ", name, " run than ",
-                                                        dir, " (trained again since?): train it again"));
+      return absl::FailedPreconditionError(absl::StrCat(refused, " (trained again since?): train it again"));
     }
   }
   return absl::OkStatus();

@@ -222,10 +222,10 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   const std::string other = e->output_dir + "-other";
   std::filesystem::copy(e->output_dir, other, std::filesystem::copy_options::recursive);
   std::ofstream(other + "/trainer.json", std::ios::app) << " ";
+  const std::string trained_from = std::filesystem::absolute(e->output_dir).lexically_normal().string();
   EXPECT_THAT(EvaluateDrivenAsset(dataset, "", other, "", "", "").status().message(),
               HasSubstr(absl::StrFormat("another expression run than %s: from %s (name it: --expression-run %s)", other,
-                                        std::filesystem::absolute(e->output_dir).lexically_normal().string(),
-                                        std::filesystem::absolute(e->output_dir).lexically_normal().string())));
+                                        trained_from, trained_from)));
   std::ofstream(e->output_dir + "/trainer.json", std::ios::app) << " ";
   EXPECT_THAT(TrainLatentMapping(mapping).status().message(), HasSubstr("trained with expression_run_id"));
   EXPECT_THAT(EvaluateDrivenAsset(dataset, "", "", "", "", "").status().message(),
