@@ -46,6 +46,7 @@ int main(int argc, char** argv) {
   app.add_option("--batch", batch, "Maps a step")->capture_default_str();
   app.add_option("--threads", threads, "Torch's threads (0: the cores this process may use)")->capture_default_str();
   app.add_option("--input-size", options.input_size, "Texels across a map")->capture_default_str();
+  app.add_option("--levels", options.levels, "The net's stride-2 levels")->capture_default_str();
   app.add_flag("--json", json, "Print the figures as JSON");
   CLI11_PARSE(app, argc, argv);
   options.threads = threads;

@@ -206,6 +206,38 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                                         std::chrono::seconds(300));
   ASSERT_EQ(expression.exit.exit_code, 0) << expression.err;
   EXPECT_EQ(nlohmann::json::parse(expression.out)["trained_cameras"].size(), 2u);
+  {
+    // Each network's own default schedule where the command line gives none: the expression VAE's batch, not the
+    // geometry VAE's the shared --batch is bound to.
+    const int expression_batch = processing::ExpressionTrainJob{}.schedule.batch;
+    ASSERT_NE(expression_batch, processing::AssetTrainJob{}.schedule.batch);
+    CommandResult defaults = RunCommand({"stage-process",
+                                         "asset",
+                                         "train",
+                                         "--network",
+                                         "expression",
+                                         "--dataset",
+                                         asset + "/dataset.h5",
+                                         "--output",
+                                         asset + "/expression-defaults",
+                                         "--iterations",
+                                         "1",
+                                         "--input-size",
+                                         "32",
+                                         "--levels",
+                                         "3",
+                                         "--max-channels",
+                                         "32",
+                                         "--expression-latent",
+                                         "4",
+                                         "--view-latent",
+                                         "2",
+                                         "--json"},
+                                        std::chrono::seconds(300));
+    ASSERT_EQ(defaults.exit.exit_code, 0) << defaults.err;
+    const nlohmann::json trainer = nlohmann::json::parse(ReadFile(asset + "/expression-defaults/trainer.json"));
+    EXPECT_EQ(trainer["options"]["batch"], expression_batch) << trainer.dump();
+  }
   processing::ExpressionTrainJob expression_job;
   expression_job.dataset = asset + "/dataset.h5";
   expression_job.output_dir = asset + "/expression-library";
@@ -369,8 +401,8 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   // At the neutral textures' full resolution (the wrinkle maps of the 32-texel net added to them), as OpenImageIO
   // reads them.
   EXPECT_EQ(nlohmann::json::parse(infer.out)["texture_size"], 128);
-  CommandResult oiio =
-      RunCommand({"/usr/bin/oiiotool", "--info", asset + "/infer-batch/frame-000400/albedo.exr"}, std::chrono::seconds(60));
+  CommandResult oiio = RunCommand({"/usr/bin/oiiotool", "--info", asset + "/infer-batch/frame-000400/albedo.exr"},
+                                  std::chrono::seconds(60));
   ASSERT_EQ(oiio.exit.exit_code, 0) << oiio.err;
   EXPECT_THAT(oiio.out, HasSubstr("128 x  128, 3 channel, float openexr"));
   EXPECT_EQ(nlohmann::json::parse(infer.out)["gltf"], nlohmann::json::array({"animation-000000.glb"}));

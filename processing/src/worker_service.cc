@@ -470,6 +470,24 @@ absl::StatusOr<v1::ProcessingProgress> TrainTextureMappingJob(const v1::AssetOpt
                                FormatTextureDrivenEvaluation(result->evaluation)));
 }
 
+// Each network's own default schedule, as its job's.
+TrainingSchedule DefaultSchedule(v1::AssetNetwork network) {
+  switch (network) {
+    case v1::ASSET_NETWORK_EXPRESSION:
+      return ExpressionTrainJob{}.schedule;
+    case v1::ASSET_NETWORK_MAPPING:
+      return MappingTrainJob{}.schedule;
+    case v1::ASSET_NETWORK_FINETUNE:
+      return FineTuneJob{}.schedule;
+    case v1::ASSET_NETWORK_TEXTURE:
+      return TextureTrainJob{}.schedule;
+    case v1::ASSET_NETWORK_TEXTURE_MAPPING:
+      return TextureMappingJob{}.schedule;
+    default:
+      return AssetTrainJob{}.schedule;
+  }
+}
+
 }  // namespace
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
@@ -502,10 +520,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
   }
-  TrainingSchedule schedule = network == v1::ASSET_NETWORK_MAPPING || network == v1::ASSET_NETWORK_TEXTURE_MAPPING
-                                  ? MappingTrainJob{}.schedule
-                              : network == v1::ASSET_NETWORK_FINETUNE ? FineTuneJob{}.schedule
-                                                                      : TrainingSchedule{};
+  TrainingSchedule schedule = DefaultSchedule(network);
   if (a.iterations() != 0) schedule.iterations = a.iterations();
   if (a.batch() != 0) schedule.batch = a.batch();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the

@@ -117,9 +117,12 @@ void AssetCommands::AddTrain() {
       "/texture or /texture_mapping)");
   train_
       ->add_option("--iterations", schedule.iterations,
-                   "Adam steps (default 4000; the mapping's 3000, finetune's 6000)")
+                   "Adam steps (default: geometry 6000, expression 1500, mapping 3000, finetune 96000, texture "
+                   "4000, texture-mapping 3000)")
       ->check(CLI::Range(1, 10000000));
-  train_->add_option("--batch", schedule.batch, "Samples a step (default 16; the mapping's 64, finetune's 32)")
+  train_
+      ->add_option("--batch", schedule.batch,
+                   "Samples a step (default 16; the expression's 8, the mappings' 64, finetune's 32)")
       ->check(CLI::Range(1, 1024));
   train_
       ->add_option("--learning-rate", schedule.learning_rate,
@@ -130,11 +133,11 @@ void AssetCommands::AddTrain() {
       ->check(CLI::PositiveNumber);
   train_->add_flag("--resume", schedule.resume, "Continue from the run directory's checkpoint (same options)");
   // The VAEs' trunks (geometry and expression).
-  train_
-      ->add_option("--input-size", g.input_size,
-                   "Texels (pixels) across the maps (crops) the net sees (the dataset's must be a multiple)")
-      ->capture_default_str();
-  train_->add_option("--levels", g.levels, "Stride-2 levels of the encoder and decoder")->capture_default_str();
+  train_->add_option("--input-size", g.input_size,
+                     "Texels (pixels) across the maps (crops) the net sees, the dataset's a multiple of it (default: "
+                     "geometry and expression 64, texture 128)");
+  train_->add_option("--levels", g.levels,
+                     "Stride-2 levels of the encoder and decoder (default: geometry and expression 4, texture 5)");
   train_->add_option("--base-channels", g.base_channels, "Channels at full resolution")->capture_default_str();
   train_->add_option("--max-channels", g.max_channels, "Channels at most")->capture_default_str();
   train_->add_option("--kl-weight", g.kl_weight, "Weight of the KL terms")->capture_default_str();
@@ -442,6 +445,29 @@ absl::Status CheckOptionsFor(const CLI::App& app, const std::string& network) {
   return absl::OkStatus();
 }
 
+// `job`'s schedule: its own defaults (each network's), with what the command line gave of the shared options.
+void TakeGivenSchedule(const CLI::App& train, const processing::TrainingSchedule& given,
+                       processing::TrainingSchedule* job) {
+  if (train.count("--iterations") > 0) job->iterations = given.iterations;
+  if (train.count("--batch") > 0) job->batch = given.batch;
+  if (train.count("--learning-rate") > 0) job->learning_rate = given.learning_rate;
+  job->checkpoint_every = given.checkpoint_every;
+  job->resume = given.resume;
+}
+
+// The expression's or the texture VAE's trunk: its own defaults, with what the command line gave of the options bound
+// to the geometry VAE's (`given`); threads and seed as given or their shared defaults.
+template <typename Trunk>
+void TakeGivenTrunk(const CLI::App& train, const processing::GeometryVaeOptions& given, Trunk* o) {
+  if (train.count("--input-size") > 0) o->input_size = given.input_size;
+  if (train.count("--levels") > 0) o->levels = given.levels;
+  if (train.count("--base-channels") > 0) o->base_channels = given.base_channels;
+  if (train.count("--max-channels") > 0) o->max_channels = given.max_channels;
+  if (train.count("--kl-weight") > 0) o->kl_weight = given.kl_weight;
+  o->threads = given.threads;
+  o->seed = given.seed;
+}
+
 }  // namespace
 
 int AssetCommands::Train() {
@@ -485,14 +511,8 @@ int AssetCommands::TrainExpression() {
   const processing::GeometryVaeOptions& g = train_job_.geometry;
   job.dataset = train_job_.dataset;
   job.output_dir = train_job_.output_dir;
-  job.schedule = train_job_.schedule;
-  job.expression.input_size = g.input_size;
-  job.expression.levels = g.levels;
-  job.expression.base_channels = g.base_channels;
-  job.expression.max_channels = g.max_channels;
-  job.expression.kl_weight = g.kl_weight;
-  job.expression.threads = g.threads;
-  job.expression.seed = g.seed;
+  TakeGivenSchedule(*train_, train_job_.schedule, &job.schedule);
+  TakeGivenTrunk(*train_, g, &job.expression);
   ProgressLine bar("steps");
   job.progress = [&bar](int64_t step, int64_t total, const processing::ExpressionLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -533,14 +553,8 @@ int AssetCommands::TrainTexture() {
   const processing::GeometryVaeOptions& g = train_job_.geometry;
   job.dataset = train_job_.dataset;
   job.output_dir = train_job_.output_dir;
-  job.schedule = train_job_.schedule;
-  job.texture.input_size = g.input_size;
-  job.texture.levels = g.levels;
-  job.texture.base_channels = g.base_channels;
-  job.texture.max_channels = g.max_channels;
-  job.texture.kl_weight = g.kl_weight;
-  job.texture.threads = g.threads;
-  job.texture.seed = g.seed;
+  TakeGivenSchedule(*train_, train_job_.schedule, &job.schedule);
+  TakeGivenTrunk(*train_, g, &job.texture);
   ProgressLine bar("steps");
   job.progress = [&bar](int64_t step, int64_t total, const processing::TextureLosses& l) {
     if (step % 10 == 0 || step == total) bar.Update(step, total, absl::StrFormat("loss %.4g", l.total));
@@ -574,12 +588,7 @@ int AssetCommands::TrainTextureMapping() {
   job.dataset = train_job_.dataset;
   job.output_dir = train_job_.output_dir;
   job.geometry_run = mapping_job_.geometry_run;
-  const processing::TrainingSchedule given = train_job_.schedule;
-  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
-  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
-  job.schedule.learning_rate = given.learning_rate;
-  job.schedule.checkpoint_every = given.checkpoint_every;
-  job.schedule.resume = given.resume;
+  TakeGivenSchedule(*train_, train_job_.schedule, &job.schedule);
   job.mapping.hidden = mapping_job_.mapping.hidden;
   job.mapping.layers = mapping_job_.mapping.layers;
   job.input_noise = mapping_job_.input_noise;
@@ -617,12 +626,7 @@ int AssetCommands::TrainMapping() {
   processing::MappingTrainJob& job = mapping_job_;
   job.dataset = train_job_.dataset;
   job.output_dir = train_job_.output_dir;
-  const processing::TrainingSchedule given = train_job_.schedule;
-  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
-  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
-  job.schedule.learning_rate = given.learning_rate;
-  job.schedule.checkpoint_every = given.checkpoint_every;
-  job.schedule.resume = given.resume;
+  TakeGivenSchedule(*train_, train_job_.schedule, &job.schedule);
   job.mapping.threads = train_job_.geometry.threads;
   job.mapping.seed = train_job_.geometry.seed;
   ProgressLine bar("steps");
@@ -641,12 +645,7 @@ int AssetCommands::FineTune() {
   job.output_dir = train_job_.output_dir;
   job.geometry_run = mapping_job_.geometry_run;
   job.expression_run = mapping_job_.expression_run;
-  const processing::TrainingSchedule given = train_job_.schedule;
-  if (train_->count("--iterations") > 0) job.schedule.iterations = given.iterations;
-  if (train_->count("--batch") > 0) job.schedule.batch = given.batch;
-  if (train_->count("--learning-rate") > 0) job.schedule.learning_rate = given.learning_rate;
-  job.schedule.checkpoint_every = given.checkpoint_every;
-  job.schedule.resume = given.resume;
+  TakeGivenSchedule(*train_, train_job_.schedule, &job.schedule);
   job.driving.train_encoder = !freeze_encoder_;
   job.seed = train_job_.geometry.seed;
   job.driving.threads = train_job_.geometry.threads;

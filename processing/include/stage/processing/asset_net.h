@@ -45,10 +45,12 @@ class DrivingNetNet;
 }  // namespace internal
 
 struct GeometryVaeOptions {
-  // Texels across the maps the net sees (32..512, divisible by 2^levels).
-  int input_size = 128;
+  // Texels across the maps the net sees (32..512, divisible by 2^levels). 64 by default: on two cores the chain at 64
+  // trained long enough drives the asset closer than at 128 in a fraction of the time
+  // (docs/asset.md#the-default-training).
+  int input_size = 64;
   // Stride-2 levels of the encoder (and upsampling levels of the decoder), 2..7.
-  int levels = 5;
+  int levels = 4;
   // Channels at full resolution, doubled at each level below up to max_channels (4..256).
   int base_channels = 8;
   int max_channels = 128;
@@ -195,8 +197,8 @@ class TextureVae {
 // The networks are the geometry VAE's trunks (3 x 3 convolutions, stride-2 levels, bilinear upsampling) on one grey
 // channel. Trained on a dataset's crops by TrainExpressionAsset (asset_train.h).
 struct ExpressionVaeOptions {
-  int input_size = 128;  // pixels across a crop (32..512, divisible by 2^levels)
-  int levels = 5;        // 2..7
+  int input_size = 64;  // pixels across a crop (32..512, divisible by 2^levels); 64 as the geometry VAE's
+  int levels = 4;       // 2..7
   int base_channels = 8;
   int max_channels = 128;
   int expression_latent = 32;  // 1..1024
