@@ -3,7 +3,7 @@
 // at the size and channels where the VAE spends most of its arithmetic (what the CPU gives torch's convolutions when
 // nothing else is asked of it). Maps are made up (a dome and a moving bulge); the step's cost does not depend on
 // them.
-// Run: build/bin/asset_bench [--steps 30] [--batch 16] [--threads 0] [--input-size 128] [--json]
+// Run: build/bin/asset_bench [--steps 30] [--batch 16] [--threads 0] [--input-size 64] [--levels 4] [--json]
 #include <chrono>
 #include <cmath>
 #include <cstdio>

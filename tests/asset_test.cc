@@ -511,6 +511,14 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   wrong.mutable_asset()->set_map_loss(0.5);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
               HasSubstr("map loss region weight 0.5 is neither 0 nor in 1..1000"));
+  // A worker's job takes its network's default schedule where the job gives none: the expression VAE's batch (its
+  // worker run, which nothing after this reads, trained again for one step).
+  v1::ProcessingJob defaults_request = expression_request;
+  defaults_request.mutable_asset()->set_iterations(1);
+  defaults_request.mutable_asset()->clear_batch();
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), defaults_request, &last));
+  EXPECT_EQ(nlohmann::json::parse(ReadFile(asset + "/expression/trainer.json"))["options"]["batch"],
+            processing::ExpressionTrainJob{}.schedule.batch);
   CommandResult missing =
       RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);

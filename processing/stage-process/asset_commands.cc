@@ -132,7 +132,7 @@ void AssetCommands::AddTrain() {
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
   train_->add_flag("--resume", schedule.resume, "Continue from the run directory's checkpoint (same options)");
-  // The VAEs' trunks (geometry and expression).
+  // The VAEs' trunks (geometry, expression and texture; each network keeps its own default where none is given).
   train_->add_option("--input-size", g.input_size,
                      "Texels (pixels) across the maps (crops) the net sees, the dataset's a multiple of it (default: "
                      "geometry and expression 64, texture 128)");

@@ -40,7 +40,8 @@ class AssetCommands {
   std::string evaluate_dataset_, evaluate_run_, evaluate_geometry_run_, evaluate_expression_run_, evaluate_picture_,
       evaluate_mapping_run_, evaluate_texture_run_;
   std::string evaluate_network_ = "geometry";
-  // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed).
+  // The geometry job holds the options the networks share (the schedule, the trunks, threads and seed) as the command
+  // line gives them; another network takes those given and keeps its own defaults for the rest (TakeGivenSchedule).
   processing::AssetTrainJob train_job_;
   processing::ExpressionTrainJob expression_job_;
   processing::MappingTrainJob mapping_job_;
