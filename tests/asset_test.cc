@@ -179,31 +179,32 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
       for (const auto& [file, bytes] : mine) EXPECT_TRUE(theirs.at(file) == bytes) << file << " differs in " << other;
     }
   };
-  CommandResult expression = RunCommand({"stage-process",
-                                         "asset",
-                                         "train",
-                                         "--network",
-                                         "expression",
-                                         "--dataset",
-                                         asset + "/dataset.h5",
-                                         "--output",
-                                         asset + "/expression-batch",
-                                         "--iterations",
-                                         "20",
-                                         "--batch",
-                                         "4",
-                                         "--input-size",
-                                         "32",
-                                         "--levels",
-                                         "3",
-                                         "--max-channels",
-                                         "32",
-                                         "--expression-latent",
-                                         "4",
-                                         "--view-latent",
-                                         "2",
-                                         "--json"},
-                                        std::chrono::seconds(300));
+  // The expression VAE's tiny net through the command line, into `output`, with `schedule`'s options.
+  auto train_expression = [&](const std::string& output, const std::vector<std::string>& schedule) {
+    std::vector<std::string> command = {"stage-process",
+                                        "asset",
+                                        "train",
+                                        "--network",
+                                        "expression",
+                                        "--dataset",
+                                        asset + "/dataset.h5",
+                                        "--output",
+                                        asset + "/" + output,
+                                        "--input-size",
+                                        "32",
+                                        "--levels",
+                                        "3",
+                                        "--max-channels",
+                                        "32",
+                                        "--expression-latent",
+                                        "4",
+                                        "--view-latent",
+                                        "2",
+                                        "--json"};
+    command.insert(command.end(), schedule.begin(), schedule.end());
+    return RunCommand(command, std::chrono::seconds(300));
+  };
+  CommandResult expression = train_expression("expression-batch", {"--iterations", "20", "--batch", "4"});
   ASSERT_EQ(expression.exit.exit_code, 0) << expression.err;
   EXPECT_EQ(nlohmann::json::parse(expression.out)["trained_cameras"].size(), 2u);
   {
@@ -211,29 +212,7 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
     // geometry VAE's the shared --batch is bound to.
     const int expression_batch = processing::ExpressionTrainJob{}.schedule.batch;
     ASSERT_NE(expression_batch, processing::AssetTrainJob{}.schedule.batch);
-    CommandResult defaults = RunCommand({"stage-process",
-                                         "asset",
-                                         "train",
-                                         "--network",
-                                         "expression",
-                                         "--dataset",
-                                         asset + "/dataset.h5",
-                                         "--output",
-                                         asset + "/expression-defaults",
-                                         "--iterations",
-                                         "1",
-                                         "--input-size",
-                                         "32",
-                                         "--levels",
-                                         "3",
-                                         "--max-channels",
-                                         "32",
-                                         "--expression-latent",
-                                         "4",
-                                         "--view-latent",
-                                         "2",
-                                         "--json"},
-                                        std::chrono::seconds(300));
+    CommandResult defaults = train_expression("expression-defaults", {"--iterations", "1"});
     ASSERT_EQ(defaults.exit.exit_code, 0) << defaults.err;
     const nlohmann::json trainer = nlohmann::json::parse(ReadFile(asset + "/expression-defaults/trainer.json"));
     EXPECT_EQ(trainer["options"]["batch"], expression_batch) << trainer.dump();
