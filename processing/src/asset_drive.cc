@@ -456,15 +456,12 @@ namespace asset_internal {
 absl::StatusOr<DrivenAsset> LoadDriven(const std::string& dataset, const std::string& geometry_run,
                                        const std::string& expression_run, const std::string& mapping_run,
                                        const std::string& finetune_run, int threads) {
-  STAGE_ASSIGN_OR_RETURN(DrivenAsset a, LoadDrivenAsset(dataset, RunDir(geometry_run, dataset, "geometry"),
-                                                        RunDir(expression_run, dataset, "expression"), threads));
-  STAGE_ASSIGN_OR_RETURN(a.mapping, LoadMappingNet(RunDir(mapping_run, dataset, "mapping"), a.ExpressionSize(),
-                                                   a.GeometrySize(), threads));
+  const DrivenRuns runs = ResolveDrivenRuns(dataset, geometry_run, expression_run, mapping_run, finetune_run);
+  STAGE_ASSIGN_OR_RETURN(DrivenAsset a, LoadDrivenAsset(dataset, runs.geometry, runs.expression, threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping, LoadMappingNet(runs.mapping, a.ExpressionSize(), a.GeometrySize(), threads));
   if (!finetune_run.empty()) {
-    STAGE_ASSIGN_OR_RETURN(
-        a.driver, LoadDrivingNet(finetune_run, RunDir(geometry_run, dataset, "geometry"),
-                                 RunDir(expression_run, dataset, "expression"), RunDir(mapping_run, dataset, "mapping"),
-                                 *a.expression, *a.mapping, threads));
+    STAGE_ASSIGN_OR_RETURN(a.driver, LoadDrivingNet(finetune_run, runs.geometry, runs.expression, runs.mapping,
+                                                    *a.expression, *a.mapping, threads));
   }
   STAGE_RETURN_IF_ERROR(Drive(&a));
   return a;

@@ -188,6 +188,37 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   EXPECT_THAT(InferAsset({.dataset = dataset, .camera = "cam-1", .video = video + "/tiny-%04d.png"}).status().message(),
               HasSubstr("frames of 16x16 do not hold camera cam-1's crop box"));
 
+  // Runs found by what a later run records: over a copy of the dataset in a directory of its own, with no run beside
+  // it, the fine-tuned run named alone evaluates and drives the same (the geometry, expression and mapping runs those
+  // it was trained from), the mapping's run named alone too, and a fine-tuning over it finds its VAEs; with no run
+  // named, the default is beside the copy, where there is none.
+  const std::string elsewhere = ::testing::TempDir() + "/drive-elsewhere";
+  std::filesystem::remove_all(elsewhere);
+  std::filesystem::create_directories(elsewhere);
+  const std::string copy = elsewhere + "/dataset.h5";
+  std::filesystem::copy_file(dataset, copy);
+  auto recorded = EvaluateDrivenAsset(copy, "", "", "", "", tuned->output_dir);
+  ASSERT_TRUE(recorded.ok()) << recorded.status();
+  EXPECT_DOUBLE_EQ(recorded->cameras[1].error[1].face_mm, tuned->evaluation.cameras[1].error[1].face_mm);
+  auto through_mapping = EvaluateDrivenAsset(copy, "", "", m->output_dir);
+  ASSERT_TRUE(through_mapping.ok()) << through_mapping.status();
+  EXPECT_DOUBLE_EQ(through_mapping->cameras[1].error[1].face_mm, held.error[1].face_mm);
+  auto inferred_elsewhere = InferAsset({.dataset = copy,
+                                        .finetune_run = tuned->output_dir,
+                                        .camera = "cam-1",
+                                        .video = video + "/frame-%04d.png",
+                                        .output_dir = elsewhere + "/infer"});
+  ASSERT_TRUE(inferred_elsewhere.ok()) << inferred_elsewhere.status();
+  EXPECT_EQ(inferred_elsewhere->frames.size(), 3u);
+  FineTuneJob over_mapping = finetune;
+  over_mapping.dataset = copy;
+  over_mapping.mapping_run = m->output_dir;
+  over_mapping.output_dir = elsewhere + "/finetune";
+  over_mapping.schedule.iterations = 2;
+  auto tuned_elsewhere = FineTuneDrivingAsset(over_mapping);
+  ASSERT_TRUE(tuned_elsewhere.ok()) << tuned_elsewhere.status();
+  EXPECT_THAT(EvaluateDrivenAsset(copy).status().message(), HasSubstr(elsewhere + "/geometry/trainer.json"));
+
   // The same evaluation from the finished runs.
   auto again = EvaluateDrivenAsset(dataset);
   ASSERT_TRUE(again.ok()) << again.status();

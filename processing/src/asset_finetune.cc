@@ -152,9 +152,8 @@ absl::Status FineTuneJob::Validate() const {
 
 absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) {
   STAGE_RETURN_IF_ERROR(job.Validate());
-  const std::string geometry_run = asset_internal::RunDir(job.geometry_run, job.dataset, "geometry");
-  const std::string expression_run = asset_internal::RunDir(job.expression_run, job.dataset, "expression");
-  const std::string mapping_run = asset_internal::RunDir(job.mapping_run, job.dataset, "mapping");
+  const auto [geometry_run, expression_run, mapping_run] =
+      asset_internal::ResolveDrivenRuns(job.dataset, job.geometry_run, job.expression_run, job.mapping_run, "");
   const int threads = job.driving.threads;
   STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
                          asset_internal::LoadDrivenAsset(job.dataset, geometry_run, expression_run, threads));

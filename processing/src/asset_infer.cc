@@ -53,22 +53,19 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
   using asset_internal::RunDir;
   Asset a;
   a.image_size = d.image_size;
-  STAGE_ASSIGN_OR_RETURN(
-      a.expression, asset_internal::LoadExpressionNet(RunDir(options.expression_run, options.dataset, "expression"),
-                                                      options.threads, &a.held_out));
-  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(
-                                         RunDir(options.geometry_run, options.dataset, "geometry"), options.threads));
-  STAGE_ASSIGN_OR_RETURN(a.mapping,
-                         asset_internal::LoadMappingNet(RunDir(options.mapping_run, options.dataset, "mapping"),
-                                                        a.expression->options().expression_latent,
-                                                        a.geometry->options().geometry_latent, options.threads));
   a.driver_run = asset_internal::FineTuneRun(options.finetune_run, options.dataset);
+  const asset_internal::DrivenRuns runs = asset_internal::ResolveDrivenRuns(
+      options.dataset, options.geometry_run, options.expression_run, options.mapping_run, a.driver_run);
+  STAGE_ASSIGN_OR_RETURN(a.expression,
+                         asset_internal::LoadExpressionNet(runs.expression, options.threads, &a.held_out));
+  STAGE_ASSIGN_OR_RETURN(a.geometry, asset_internal::LoadGeometryNet(runs.geometry, options.threads));
+  STAGE_ASSIGN_OR_RETURN(a.mapping,
+                         asset_internal::LoadMappingNet(runs.mapping, a.expression->options().expression_latent,
+                                                        a.geometry->options().geometry_latent, options.threads));
   if (!a.driver_run.empty()) {
-    STAGE_ASSIGN_OR_RETURN(a.driver, asset_internal::LoadDrivingNet(
-                                         a.driver_run, RunDir(options.geometry_run, options.dataset, "geometry"),
-                                         RunDir(options.expression_run, options.dataset, "expression"),
-                                         RunDir(options.mapping_run, options.dataset, "mapping"), *a.expression,
-                                         *a.mapping, options.threads));
+    STAGE_ASSIGN_OR_RETURN(a.driver,
+                           asset_internal::LoadDrivingNet(a.driver_run, runs.geometry, runs.expression, runs.mapping,
+                                                          *a.expression, *a.mapping, options.threads));
   } else {
     STAGE_ASSIGN_OR_RETURN(
         a.driver, DrivingNet::Create(*a.expression, *a.mapping, {.train_encoder = false, .threads = options.threads}));
@@ -80,12 +77,13 @@ absl::StatusOr<Asset> LoadAsset(const AssetInferOptions& options, const AssetDat
   if (options.texture_mapping_run != "none") {
     const std::string run = RunDir(options.texture_mapping_run, options.dataset, "texture_mapping");
     if (!options.texture_mapping_run.empty() || fs::exists(run + "/texture_mapping.pt")) {
-      const std::string texture_run = RunDir(options.texture_run, options.dataset, "texture");
+      const std::string texture_run =
+          asset_internal::RunTrainedFrom(options.texture_run, run, "texture", options.dataset);
       STAGE_ASSIGN_OR_RETURN(a.texture, asset_internal::LoadTextureNet(texture_run, options.threads));
-      STAGE_ASSIGN_OR_RETURN(a.texture_mapping, asset_internal::LoadTextureMappingNet(
-                                                    run, RunDir(options.geometry_run, options.dataset, "geometry"),
-                                                    texture_run, a.geometry->options().geometry_latent,
-                                                    a.texture->options().texture_latent, options.threads));
+      STAGE_ASSIGN_OR_RETURN(
+          a.texture_mapping,
+          asset_internal::LoadTextureMappingNet(run, runs.geometry, texture_run, a.geometry->options().geometry_latent,
+                                                a.texture->options().texture_latent, options.threads));
       a.texture_mapping_run = run;
       if (!d.neutral_textures_dir.empty()) {
         STAGE_ASSIGN_OR_RETURN(a.neutral, asset_internal::LoadNeutralTextures(d, a.texture->options().input_size));

@@ -559,13 +559,13 @@ absl::StatusOr<TextureDrivenEvaluation> EvaluateDrivenTextures(const std::string
                                                                const std::string& geometry_run,
                                                                const std::string& texture_run,
                                                                const std::string& texture_mapping_run) {
-  const std::string geometry = asset_internal::RunDir(geometry_run, dataset, "geometry");
-  const std::string texture = asset_internal::RunDir(texture_run, dataset, "texture");
+  const std::string run = asset_internal::RunDir(texture_mapping_run, dataset, "texture_mapping");
+  const std::string geometry = asset_internal::RunTrainedFrom(geometry_run, run, "geometry", dataset);
+  const std::string texture = asset_internal::RunTrainedFrom(texture_run, run, "texture", dataset);
   STAGE_ASSIGN_OR_RETURN(TextureAsset a, LoadTextureAsset(dataset, geometry, texture, 0));
-  STAGE_ASSIGN_OR_RETURN(a.mapping,
-                         asset_internal::LoadTextureMappingNet(
-                             asset_internal::RunDir(texture_mapping_run, dataset, "texture_mapping"), geometry, texture,
-                             a.geometry->options().geometry_latent, a.texture->options().texture_latent, 0));
+  STAGE_ASSIGN_OR_RETURN(
+      a.mapping, asset_internal::LoadTextureMappingNet(run, geometry, texture, a.geometry->options().geometry_latent,
+                                                       a.texture->options().texture_latent, 0));
   return EvaluateTextureMapping(a, dataset, geometry);
 }
 

@@ -404,6 +404,32 @@ std::string RunDir(const std::string& dir, const std::string& dataset, const cha
   return dir.empty() ? (fs::path(dataset).parent_path() / name).string() : dir;
 }
 
+std::string RunTrainedFrom(const std::string& dir, const std::string& later, const char* name,
+                           const std::string& dataset) {
+  if (dir.empty() && !later.empty()) {
+    std::ifstream in(later + "/trainer.json");
+    const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+    if (j.is_object() && j.contains("options") && j["options"].is_object()) {
+      const nlohmann::json recorded = j["options"].value(absl::StrCat(name, "_run"), nlohmann::json());
+      if (recorded.is_string() && fs::exists(fs::path(recorded.get<std::string>()) / "trainer.json")) {
+        return recorded.get<std::string>();
+      }
+    }
+  }
+  return RunDir(dir, dataset, name);
+}
+
+DrivenRuns ResolveDrivenRuns(const std::string& dataset, const std::string& geometry_run,
+                             const std::string& expression_run, const std::string& mapping_run,
+                             const std::string& finetune) {
+  DrivenRuns r;
+  r.mapping = RunTrainedFrom(mapping_run, finetune, "mapping", dataset);
+  const std::string& later = finetune.empty() ? r.mapping : finetune;
+  r.geometry = RunTrainedFrom(geometry_run, later, "geometry", dataset);
+  r.expression = RunTrainedFrom(expression_run, later, "expression", dataset);
+  return r;
+}
+
 nlohmann::json SplitJson(const SplitError& x) {
   return {{"frames", x.frames},   {"rmse_mm", x.rmse_mm}, {"p99_mm", x.p99_mm},
           {"face_mm", x.face_mm}, {"eyes_mm", x.eyes_mm}, {"mouth_mm", x.mouth_mm}};

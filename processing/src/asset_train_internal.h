@@ -121,6 +121,19 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& 
 
 // A run directory: `dir`, or beside the dataset under `name`.
 std::string RunDir(const std::string& dir, const std::string& dataset, const char* name);
+// A run a later run was trained from: `dir` where given; else the `name` run `later`'s trainer.json records it was
+// trained from ("<name>_run") where that directory still holds a run; else beside the dataset (RunDir: a tree moved
+// whole). `later` may be empty (none). Which run it is, is checked after (CheckTrainedFrom), not here.
+std::string RunTrainedFrom(const std::string& dir, const std::string& later, const char* name,
+                           const std::string& dataset);
+// The runs a driven asset loads: each as given, else as the fine-tuning's run (`finetune`, resolved: "" for none)
+// records it, else as the mapping's run records it, else beside the dataset (RunTrainedFrom).
+struct DrivenRuns {
+  std::string geometry, expression, mapping;
+};
+DrivenRuns ResolveDrivenRuns(const std::string& dataset, const std::string& geometry_run,
+                             const std::string& expression_run, const std::string& mapping_run,
+                             const std::string& finetune);
 
 // A crop of `size` pixels across (8 bits) averaged down to `input` pixels across (size a multiple of it), 0..1, into
 // `out` (input^2 values): what the expression VAE sees of a dataset's crop or of a new image's.

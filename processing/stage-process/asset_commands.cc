@@ -197,9 +197,11 @@ void AssetCommands::AddTrainNetworkOptions() {
                      "texture-mapping: the texture VAE's run (default: the dataset's directory/texture)");
   train_->add_option(
       "--geometry-run", mapping_job_.geometry_run,
-      "mapping, finetune, texture-mapping: the geometry VAE's run (default: the dataset's directory/geometry)");
+      "mapping, finetune, texture-mapping: the geometry VAE's run (default: finetune: the one the mapping's run was "
+      "trained from; else the dataset's directory/geometry)");
   train_->add_option("--expression-run", mapping_job_.expression_run,
-                     "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
+                     "mapping, finetune: the expression VAE's run (default: finetune: the one the mapping's run was "
+                     "trained from; else the dataset's directory/expression)");
   // The fine-tuning's.
   processing::FineTuneJob& f = finetune_job_;
   train_->add_option("--mapping-run", f.mapping_run,
@@ -243,14 +245,17 @@ void AssetCommands::AddEvaluate() {
                         "The run's directory (default: the dataset's directory/geometry, /mapping, /finetune, "
                         "/texture or /texture_mapping)");
   evaluate_->add_option("--texture-run", evaluate_texture_run_,
-                        "texture-mapping: the texture VAE's run (default: the dataset's directory/texture)");
+                        "texture-mapping: the texture VAE's run (default: the one the run was trained from, else the "
+                        "dataset's directory/texture)");
   evaluate_->add_option("--mapping-run", evaluate_mapping_run_,
-                        "finetune: the mapping's run (default: the dataset's directory/mapping)");
+                        "finetune: the mapping's run (default: the one the run was trained from, else the dataset's "
+                        "directory/mapping)");
   evaluate_->add_option("--geometry-run", evaluate_geometry_run_,
-                        "mapping, finetune, texture-mapping: the geometry VAE's run (default: the dataset's "
-                        "directory/geometry)");
+                        "mapping, finetune, texture-mapping: the geometry VAE's run (default: the one the run was "
+                        "trained from, else the dataset's directory/geometry)");
   evaluate_->add_option("--expression-run", evaluate_expression_run_,
-                        "mapping, finetune: the expression VAE's run (default: the dataset's directory/expression)");
+                        "mapping, finetune: the expression VAE's run (default: the one the run was trained from, else "
+                        "the dataset's directory/expression)");
   evaluate_->add_option("--picture", evaluate_picture_,
                         "--network mapping: draw one frame into this PNG (the middle held-out block frame driven from "
                         "the held-out camera: its crop, the truth, the driven mesh, the error)");
@@ -276,13 +281,20 @@ void AssetCommands::AddInfer() {
       ->capture_default_str();
   infer_app_->add_option("--output", o.output_dir,
                          "The output directory (default TAKE/derived/asset/infer/CAMERA, or VIDEO-asset beside it)");
-  infer_app_->add_option("--geometry-run", o.geometry_run, "The geometry VAE's run (default: beside the dataset)");
-  infer_app_->add_option("--expression-run", o.expression_run, "The expression VAE's run (default: beside it)");
-  infer_app_->add_option("--mapping-run", o.mapping_run, "The mapping's run (default: beside it)");
+  infer_app_->add_option("--geometry-run", o.geometry_run,
+                         "The geometry VAE's run (default: the one the fine-tuning's run, else the mapping's, was "
+                         "trained from; else beside the dataset)");
+  infer_app_->add_option("--expression-run", o.expression_run,
+                         "The expression VAE's run (default: as the geometry VAE's)");
+  infer_app_->add_option("--mapping-run", o.mapping_run,
+                         "The mapping's run (default: the one the fine-tuning's run was trained from, else beside "
+                         "the dataset)");
   infer_app_->add_option("--texture-mapping-run", o.texture_mapping_run,
                          "The texture mapping the textures are driven through (default: the dataset's "
                          "directory/texture_mapping where it holds a finished run, else no textures; none: none)");
-  infer_app_->add_option("--texture-run", o.texture_run, "The texture VAE's run (default: beside the dataset)");
+  infer_app_->add_option("--texture-run", o.texture_run,
+                         "The texture VAE's run (default: the one the texture mapping was trained from, else beside "
+                         "the dataset)");
   infer_app_->add_option("--finetune-run", o.finetune_run,
                          "The fine-tuned driving path's run (default: beside the dataset where there is one, else "
                          "the mapping alone; none: the mapping alone)");

@@ -32,14 +32,16 @@ namespace stage::processing {
 struct AssetInferOptions {
   // The asset's dataset: its crop of `camera`, and the trained runs beside it.
   std::string dataset;
-  // The runs (default: the dataset's directory/geometry, /expression, /mapping).
+  // The runs (default: those the fine-tuning's run, else the mapping's, was trained from where they are still there,
+  // else the dataset's directory/geometry, /expression, /mapping).
   std::string geometry_run, expression_run, mapping_run;
   // The fine-tuned driving path (asset_train.h's FineTuneDrivingAsset) the images drive through: its run; empty:
   // the dataset's directory/finetune where it holds a finished run, else the mapping; "none": the mapping.
   std::string finetune_run;
   // The texture mapping the textures are driven through (its run); empty: the dataset's directory/texture_mapping
   // where it holds a finished run, else no textures; "none": no textures. The texture VAE's run: `texture_run`
-  // (default: the dataset's directory/texture).
+  // (default: the one the texture mapping was trained from where it is still there, else the dataset's
+  // directory/texture).
   std::string texture_mapping_run, texture_run;
   // The camera the images are of (one the dataset cropped).
   std::string camera;
@@ -57,7 +59,7 @@ struct AssetInferOptions {
   // vertices are 27 MB, and Blender imports them as 240 shape keys.
   int gltf_segment_frames = 240;
   double gltf_frames_per_second = 24;  // the glTF animation's (the stage records 24 frames a second)
-  int threads = 0;     // torch's (0: the cores this process may use)
+  int threads = 0;                     // torch's (0: the cores this process may use)
   // After each frame (frames done); asked before each: true stops (Cancelled; the frames written are kept, the
   // frames.json and the glTF file under way are not).
   std::function<void(int64_t)> progress;

@@ -184,7 +184,8 @@ absl::StatusOr<MappingTrainResult> TrainLatentMapping(const MappingTrainJob& job
 struct FineTuneJob {
   std::string dataset;
   std::string output_dir;  // default: DATASET's directory/finetune
-  // Default: DATASET's directory/geometry, /expression, /mapping.
+  // Default: the mapping's run DATASET's directory/mapping; the geometry and expression runs the mapping's run was
+  // trained from (its trainer.json) where they are still there, else DATASET's directory/geometry, /expression.
   std::string geometry_run, expression_run, mapping_run;
   DrivingNetOptions driving;
   // The jitter, uniform within each bound: scale by 1 +- jitter_scale, turn by +- jitter_rotation_deg about the
@@ -213,10 +214,11 @@ struct FineTuneJob {
 // The result: as the mapping's (its pairs, losses and the driven evaluation), of the fine-tuned path.
 absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job);
 
-// The driven evaluation of finished runs on `dataset` (default run directories as in MappingTrainJob: empty names
-// DATASET's directory/geometry, .../expression, .../mapping), and where `picture` names a PNG file, one frame drawn
-// there as the mapping's training draws it into its run (driven.png: the middle frame of the held-out blocks, driven
-// from the first held-out camera; its crop, the truth, the driven mesh and its error). `finetune_run`: the driving
+// The driven evaluation of finished runs on `dataset` (an empty name: the run the fine-tuning's run, else the
+// mapping's, was trained from where it is still there, else DATASET's directory/geometry, .../expression,
+// .../mapping), and where `picture` names a PNG file, one frame drawn there as the mapping's training draws it into its
+// run (driven.png: the middle frame of the held-out blocks, driven from the first held-out camera; its crop, the
+// truth, the driven mesh and its error). `finetune_run`: the driving
 // path fine-tuned (FineTuneDrivingAsset's run; "" names DATASET's directory/finetune), or "none": the mapping's path.
 // Errors name the file.
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run = "",
@@ -310,7 +312,8 @@ struct TextureMappingResult {
   TextureDrivenEvaluation evaluation;
 };
 absl::StatusOr<TextureMappingResult> TrainTextureMapping(const TextureMappingJob& job);
-// Finished runs (empty: beside the dataset) evaluated on `dataset`.
+// Finished runs evaluated on `dataset` (an empty name: the texture mapping's run beside the dataset; the geometry and
+// texture runs it was trained from where they are still there, else beside the dataset).
 absl::StatusOr<TextureDrivenEvaluation> EvaluateDrivenTextures(const std::string& dataset,
                                                                const std::string& geometry_run = "",
                                                                const std::string& texture_run = "",
