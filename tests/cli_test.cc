@@ -1,5 +1,6 @@
 // Every program, given bad arguments or a bad rig, prints one line naming the problem and exits non-zero; never a
 // crash, a hang or a wall of text. --help and --version work everywhere.
+#include <filesystem>
 #include <string>
 #include <vector>
 
@@ -235,6 +236,23 @@ TEST(CliTest, StageSimRenderTakesTheRigsFirstHighSpeedCamera) {
                                std::chrono::seconds(120));
   ASSERT_EQ(r.exit.exit_code, 0) << r.err;
   EXPECT_THAT(r.out, HasSubstr("\"camera\": \"fast-1\""));
+}
+
+// A take refused for its flags writes nothing: --range-of-motion-s's performance file is written only after the
+// flags are checked (a --take with --ground-truth, a --frame-step without either, bad --frames).
+TEST(CliTest, StageSimRenderRefusesBadFlagsBeforeWritingTheRangeOfMotion) {
+  TempDir dir;
+  const std::string take = dir.path() + "/take";
+  const std::vector<std::pair<std::vector<std::string>, std::string>> refused = {
+      {{"--take", take, "--ground-truth", dir.path() + "/truth"}, "it takes no --ground-truth"},
+      {{"--take", take, "--frames", "a:b"}, "--frames \"a:b\" is not A:B"},
+      {{"--take-cameras", "mv-01", "--ground-truth", take}, "need --take"}};
+  for (const auto& [flags, message] : refused) {
+    std::vector<std::string> args = {"stage-sim-render", "--range-of-motion-s", "60"};
+    args.insert(args.end(), flags.begin(), flags.end());
+    ExpectOneLineError(RunCommand(args, kTimeout), 2, message);
+    EXPECT_FALSE(std::filesystem::exists(take + "/range-of-motion.yaml")) << message;
+  }
 }
 
 }  // namespace

@@ -188,20 +188,7 @@ int main(int argc, char** argv) {
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
-  auto loaded = stage::LoadRig(flags.config);
-  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
-  auto rig = stage::ApplyRigOverrides(*loaded, overrides);
-  if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
-  if (range_of_motion_s > 0) {
-    if (auto s = WriteRangeOfMotion(rig->rig, range_of_motion_s, take_dir.empty() ? truth_dir : take_dir, &overrides);
-        !s.ok()) {
-      return stage::ReportFatal(kProgram, s);
-    }
-    rig = stage::ApplyRigOverrides(*loaded, overrides);
-    if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
-  }
-  auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
-  if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
+  // The flags' own checks first: nothing is written (--range-of-motion-s's file) for a command refused.
   int64_t first_frame = 0, last_frame = 0;
   {
     const auto colon = frames.find(':');
@@ -225,6 +212,20 @@ int main(int argc, char** argv) {
   if (take_dir.empty() && truth_dir.empty() && frame_step != 1) {
     return stage::ReportFatal(kProgram, absl::InvalidArgumentError("--frame-step needs --take or --ground-truth"));
   }
+  auto loaded = stage::LoadRig(flags.config);
+  if (!loaded.ok()) return stage::ReportFatal(kProgram, loaded.status());
+  auto rig = stage::ApplyRigOverrides(*loaded, overrides);
+  if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
+  if (range_of_motion_s > 0) {
+    if (auto s = WriteRangeOfMotion(rig->rig, range_of_motion_s, take_dir.empty() ? truth_dir : take_dir, &overrides);
+        !s.ok()) {
+      return stage::ReportFatal(kProgram, s);
+    }
+    rig = stage::ApplyRigOverrides(*loaded, overrides);
+    if (!rig.ok()) return stage::ReportFatal(kProgram, rig.status());
+  }
+  auto scene = stage::sim::SimScene::FromLoadedRig(*rig);
+  if (!scene.ok()) return stage::ReportFatal(kProgram, scene.status());
   if (!take_dir.empty()) {
     stage::sim::RenderedTakeOptions options;
     options.first_frame = first_frame;
