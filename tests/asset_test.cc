@@ -76,10 +76,10 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   const std::string asset = take.path() + "/derived/asset";
 
   // The dataset.
-  CommandResult batch =
-      RunCommand({"stage-process", "asset", "build-dataset", "--take", take.path(), "--geometry-size", "32",
-                  "--image-size", "32", "--texture-size", "32", "--output", asset + "/batch.h5", "--json"},
-                 std::chrono::seconds(120));
+  CommandResult batch = RunCommand(
+      {"stage-process", "asset", "build-dataset", "--take", take.path(), "--geometry-size", "32", "--image-size", "32",
+       "--texture-size", "32", "--crop-mm", "300", "--output", asset + "/batch.h5", "--json"},
+      std::chrono::seconds(120));
   ASSERT_EQ(batch.exit.exit_code, 0) << batch.err;
   const nlohmann::json summary = nlohmann::json::parse(batch.out);
   EXPECT_EQ(summary["frames"], 12);
@@ -89,13 +89,15 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
                                      .output = asset + "/library.h5",
                                      .geometry_size = 32,
                                      .texture_size = 32,
-                                     .image_size = 32};
+                                     .image_size = 32,
+                                     .crop_mm = 300};
   ASSERT_TRUE(processing::BuildAssetDataset(options).ok());
   v1::ProcessingJob request;
   request.set_stage(v1::PROCESSING_STAGE_ASSET_DATASET);
   request.set_take_dir(take.path());
   request.mutable_asset()->set_geometry_size(32);
   request.mutable_asset()->set_image_size(32);
+  request.mutable_asset()->set_crop_mm(300);
   request.set_texture_size(32);
   v1::ProcessingProgress last;
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), request, &last));
@@ -237,10 +239,10 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   EXPECT_EQ(last.output_dir(), asset + "/expression");
   same_runs("expression", "expression_vae.pt");
 
-  CommandResult mapping = RunCommand(
-      {"stage-process", "asset", "train", "--network", "mapping", "--dataset", asset + "/dataset.h5", "--output",
-       asset + "/mapping-batch", "--iterations", "20", "--batch", "8", "--hidden", "16", "--json"},
-      std::chrono::seconds(300));
+  CommandResult mapping = RunCommand({"stage-process", "asset", "train", "--network", "mapping", "--dataset",
+                                      asset + "/dataset.h5", "--output", asset + "/mapping-batch", "--iterations", "20",
+                                      "--batch", "8", "--hidden", "16", "--input-noise", "0.05", "--json"},
+                                     std::chrono::seconds(300));
   ASSERT_EQ(mapping.exit.exit_code, 0) << mapping.err;
   const nlohmann::json driven = nlohmann::json::parse(mapping.out)["evaluation"];
   ASSERT_EQ(driven["cameras"].size(), 2u);
@@ -251,6 +253,7 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   mapping_job.schedule.iterations = 20;
   mapping_job.schedule.batch = 8;
   mapping_job.mapping.hidden = 16;
+  mapping_job.input_noise = 0.05;
   ASSERT_TRUE(processing::TrainLatentMapping(mapping_job).ok());
   v1::ProcessingJob mapping_request;
   mapping_request.set_stage(v1::PROCESSING_STAGE_ASSET_TRAIN);
@@ -260,6 +263,7 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   a->set_iterations(20);
   a->set_batch(8);
   a->set_hidden(16);
+  a->set_input_noise(0.05);
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), mapping_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/mapping");
   same_runs("mapping", "mapping.pt");
@@ -271,10 +275,33 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
 
   // The third stage (the driving path fine-tuned, from the worker's runs), the same three ways; inference below then
   // drives through the worker's.
-  CommandResult finetune =
-      RunCommand({"stage-process", "asset", "train", "--network", "finetune", "--dataset", asset + "/dataset.h5",
-                  "--output", asset + "/finetune-batch", "--iterations", "20", "--batch", "8", "--json"},
-                 std::chrono::seconds(300));
+  CommandResult finetune = RunCommand({"stage-process",
+                                       "asset",
+                                       "train",
+                                       "--network",
+                                       "finetune",
+                                       "--dataset",
+                                       asset + "/dataset.h5",
+                                       "--output",
+                                       asset + "/finetune-batch",
+                                       "--iterations",
+                                       "20",
+                                       "--batch",
+                                       "8",
+                                       "--learning-rate",
+                                       "2e-3",
+                                       "--jitter-scale",
+                                       "0.05",
+                                       "--jitter-rotation",
+                                       "3",
+                                       "--jitter-shift",
+                                       "0.04",
+                                       "--jitter-gain",
+                                       "0.2",
+                                       "--jitter-noise",
+                                       "0.02",
+                                       "--json"},
+                                      std::chrono::seconds(300));
   ASSERT_EQ(finetune.exit.exit_code, 0) << finetune.err;
   EXPECT_EQ(nlohmann::json::parse(finetune.out)["evaluation"]["cameras"].size(), 2u);
   processing::FineTuneJob finetune_job;
@@ -282,11 +309,25 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   finetune_job.output_dir = asset + "/finetune-library";
   finetune_job.schedule.iterations = 20;
   finetune_job.schedule.batch = 8;
+  finetune_job.schedule.learning_rate = 2e-3;
+  finetune_job.jitter_scale = 0.05;
+  finetune_job.jitter_rotation_deg = 3;
+  finetune_job.jitter_shift = 0.04;
+  finetune_job.jitter_gain = 0.2;
+  finetune_job.jitter_noise = 0.02;
   ASSERT_TRUE(processing::FineTuneDrivingAsset(finetune_job).ok());
   v1::ProcessingJob finetune_request = mapping_request;
   a = finetune_request.mutable_asset();
   a->set_network(v1::ASSET_NETWORK_FINETUNE);
   a->clear_hidden();
+  a->clear_input_noise();
+  a->set_learning_rate(2e-3);
+  v1::CropJitter* jitter = a->mutable_jitter();
+  jitter->set_scale(0.05);
+  jitter->set_rotation_deg(3);
+  jitter->set_shift(0.04);
+  jitter->set_gain(0.2);
+  jitter->set_noise(0.02);
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), finetune_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/finetune");
   same_runs("finetune", "driving_net.pt");
@@ -344,6 +385,7 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_TRUE(processing::TrainTextureMapping(texture_mapping_job).ok());
   v1::ProcessingJob texture_mapping_request = mapping_request;
   texture_mapping_request.mutable_asset()->set_network(v1::ASSET_NETWORK_TEXTURE_MAPPING);
+  texture_mapping_request.mutable_asset()->clear_input_noise();  // the mapping's 0.05; the default here
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), texture_mapping_request, &last));
   EXPECT_EQ(last.output_dir(), asset + "/texture_mapping");
   same_runs("texture_mapping", "texture_mapping.pt");
@@ -478,6 +520,20 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   wrong.mutable_asset()->set_hidden(8);
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
               HasSubstr("not one of the ASSET_NETWORK_FINETUNE network's"));
+  wrong = mapping_request;
+  wrong.mutable_asset()->mutable_jitter()->set_scale(0.1);  // the fine-tuning's
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_MAPPING network's"));
+  wrong = finetune_request;
+  wrong.mutable_asset()->set_input_noise(0.1);  // the mappings'
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),
+              HasSubstr("not one of the ASSET_NETWORK_FINETUNE network's"));
+  wrong = request;
+  wrong.mutable_asset()->set_learning_rate(1e-3);  // the training's, not the dataset's
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("takes no training options"));
+  wrong = train_request;
+  wrong.mutable_asset()->set_crop_mm(250);  // the dataset's, not the training's
+  EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(), HasSubstr("the asset's training takes no frames"));
   wrong = mapping_request;
   wrong.mutable_asset()->set_map_loss(10);  // the fine-tuning's
   EXPECT_THAT(RunOnWorkerStatus(take.path(), wrong).error_message(),

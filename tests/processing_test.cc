@@ -195,6 +195,17 @@ TEST_F(ProcessingTest, TheLibraryTheCommandAndTheWorkerWriteTheSameBytes) {
   EXPECT_THAT(infer_options.err,
               HasSubstr(": worker \"worker-1\": PROCESSING_STAGE_ASSET_INFER takes no asset options"));
   EXPECT_THAT(infer_options.err, Not(HasSubstr("worker \"worker-1\": worker")));  // named once
+  // The dataset's options and the training's reach the worker, which refuses them on the other's stage.
+  CommandResult crop_in_training =
+      RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "asset-train", "--crop-mm", "250"},
+                 std::chrono::seconds(60));
+  EXPECT_NE(crop_in_training.exit.exit_code, 0);
+  EXPECT_THAT(crop_in_training.err, HasSubstr("the asset's training takes no frames, cameras, calibration"));
+  CommandResult rate_in_dataset = RunCommand(
+      {"stagectl", "--endpoints", endpoints, "process", id, "--stage", "asset-dataset", "--learning-rate", "0.001"},
+      std::chrono::seconds(60));
+  EXPECT_NE(rate_in_dataset.exit.exit_code, 0);
+  EXPECT_THAT(rate_in_dataset.err, HasSubstr("the asset's dataset takes no training options"));
   CommandResult no_dataset = RunCommand({"stagectl", "--endpoints", endpoints, "process", id, "--stage", "asset-train",
                                          "--network", "geometry", "--region-weight", "5", "--iterations", "2"},
                                         std::chrono::seconds(60));

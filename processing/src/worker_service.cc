@@ -193,6 +193,12 @@ absl::StatusOr<GeometrySpec> GeometryOf(const v1::ProcessingJob& job) {
   return spec;
 }
 
+// `value` into `field` where the job gives one (0: the default).
+template <typename V, typename T>
+void SetIfGiven(V value, T* field) {
+  if (value != 0) *field = static_cast<T>(value);
+}
+
 }  // namespace
 
 absl::StatusOr<v1::ProcessingProgress> WorkerService::RunPhotometricJob(
@@ -328,7 +334,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
       a.max_channels() != 0 || a.geometry_latent() != 0 || a.pose_latent() != 0 || a.seed() != 0 ||
       a.network() != v1::ASSET_NETWORK_UNSPECIFIED || a.expression_latent() != 0 || a.view_latent() != 0 ||
       a.held_out_cameras_size() > 0 || a.hidden() != 0 || a.layers() != 0 || a.texture_latent() != 0 ||
-      a.direct_textures() || a.freeze_encoder() || a.region_weight() != 0 || a.map_loss() != 0) {
+      a.direct_textures() || a.freeze_encoder() || a.region_weight() != 0 || a.map_loss() != 0 ||
+      a.learning_rate() != 0 || a.has_jitter() || a.has_input_noise()) {
     return absl::InvalidArgumentError("the asset's dataset takes no training options (asset_train's)");
   }
   DatasetOptions d;
@@ -340,6 +347,11 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetDatasetJob(
   if (a.image_size() != 0) d.image_size = a.image_size();
   if (job.texture_size() != 0) d.texture_size = job.texture_size();  // taken where the source has textures
   d.neutral_texture_size = a.neutral_texture_size();
+  SetIfGiven(a.frame_step(), &d.frame_step);
+  SetIfGiven(a.crop_mm(), &d.crop_mm);
+  if (a.has_held_out_fraction()) d.held_out_fraction = a.held_out_fraction();
+  SetIfGiven(a.held_out_blocks(), &d.held_out_blocks);
+  d.held_out_sequence = a.held_out_sequence();
   d.cameras.assign(job.cameras().begin(), job.cameras().end());
   d.calibration = job.calibration();
   d.progress = [&](int64_t done, int64_t total) { progress({done, total, "frames"}); };
@@ -354,12 +366,6 @@ namespace {
 
 // A training job's progress: (step, steps, total loss); false stops it.
 using TrainReport = std::function<bool(int64_t, int64_t, double)>;
-
-// `value` into `field` where the job gives one (0: the default).
-template <typename V, typename T>
-void SetIfGiven(V value, T* field) {
-  if (value != 0) *field = static_cast<T>(value);
-}
 
 // The options both VAEs' convolutional nets have (GeometryVaeOptions, ExpressionVaeOptions), where the job gives them.
 template <typename Net>
@@ -396,6 +402,7 @@ absl::StatusOr<v1::ProcessingProgress> TrainMappingJob(const v1::AssetOptions& a
   SetIfGiven(a.hidden(), &t.mapping.hidden);
   SetIfGiven(a.layers(), &t.mapping.layers);
   SetIfGiven(a.seed(), &t.mapping.seed);
+  if (a.has_input_noise()) t.input_noise = a.input_noise();
   t.progress = report;
   auto result = TrainLatentMapping(t);
   if (!result.ok()) return result.status();
@@ -411,6 +418,13 @@ absl::StatusOr<v1::ProcessingProgress> FineTuneJobOf(const v1::AssetOptions& a, 
   t.schedule = schedule;
   t.driving.train_encoder = !a.freeze_encoder();
   t.map_loss_region_weight = a.map_loss();
+  if (a.has_jitter()) {
+    t.jitter_scale = a.jitter().scale();
+    t.jitter_rotation_deg = a.jitter().rotation_deg();
+    t.jitter_shift = a.jitter().shift();
+    t.jitter_gain = a.jitter().gain();
+    t.jitter_noise = a.jitter().noise();
+  }
   SetIfGiven(a.seed(), &t.seed);
   t.progress = report;
   auto result = FineTuneDrivingAsset(t);
@@ -462,6 +476,7 @@ absl::StatusOr<v1::ProcessingProgress> TrainTextureMappingJob(const v1::AssetOpt
   SetIfGiven(a.hidden(), &t.mapping.hidden);
   SetIfGiven(a.layers(), &t.mapping.layers);
   SetIfGiven(a.seed(), &t.mapping.seed);
+  if (a.has_input_noise()) t.input_noise = a.input_noise();
   t.progress = report;
   auto result = TrainTextureMapping(t);
   if (!result.ok()) return result.status();
@@ -497,7 +512,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   if (job.geometry_source() != v1::GEOMETRY_SOURCE_UNSPECIFIED || !job.geometry().empty() || job.texture_size() != 0 ||
       job.cameras_size() > 0 || !job.calibration().empty() || job.first_frame() != 0 || job.last_frame() != 0 ||
       a.source() != v1::ASSET_SOURCE_UNSPECIFIED || a.geometry_size() != 0 || a.image_size() != 0 ||
-      a.neutral_texture_size() != 0) {
+      a.neutral_texture_size() != 0 || a.frame_step() != 0 || a.crop_mm() != 0 || a.has_held_out_fraction() ||
+      a.held_out_blocks() != 0 || !a.held_out_sequence().empty()) {
     return absl::InvalidArgumentError(
         "the asset's training takes no frames, cameras, calibration, geometry or dataset options: it reads "
         "TAKE/derived/asset/dataset.h5");
@@ -515,7 +531,8 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
        (a.expression_latent() != 0 || a.view_latent() != 0 || a.held_out_cameras_size() > 0)) ||
       (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING &&
        (a.hidden() != 0 || a.layers() != 0)) ||
-      (network != v1::ASSET_NETWORK_FINETUNE && (a.freeze_encoder() || a.map_loss() != 0)) ||
+      (network != v1::ASSET_NETWORK_FINETUNE && (a.freeze_encoder() || a.map_loss() != 0 || a.has_jitter())) ||
+      (network != v1::ASSET_NETWORK_MAPPING && network != v1::ASSET_NETWORK_TEXTURE_MAPPING && a.has_input_noise()) ||
       (network != v1::ASSET_NETWORK_TEXTURE && (a.texture_latent() != 0 || a.direct_textures()))) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: an option given is not one of the ",
                                                    v1::AssetNetwork_Name(network), " network's"));
@@ -523,6 +540,7 @@ absl::StatusOr<v1::ProcessingProgress> WorkerService::RunAssetTrainJob(
   TrainingSchedule schedule = DefaultSchedule(network);
   if (a.iterations() != 0) schedule.iterations = a.iterations();
   if (a.batch() != 0) schedule.batch = a.batch();
+  if (a.learning_rate() != 0) schedule.learning_rate = a.learning_rate();
   // The worker's jobs share its cores: torch's threads as the process's (SetTorchThreads); resumed where a job of the
   // same options, dataset and threads stopped, else started anew.
   schedule.resume = true;

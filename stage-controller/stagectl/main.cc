@@ -643,12 +643,12 @@ struct ProcessFlags {
   int64_t chunk_frames = 0;
   std::vector<std::string> with;
   int32_t retries = -1, jobs = 0;  // retries -1: not given (the graph's default, 1)
-  std::string stabilize_method;  // empty: the worker's default (the flow)
-  int32_t texture_size = 0;      // 0: the worker's default
+  std::string stabilize_method;    // empty: the worker's default (the flow)
+  int32_t texture_size = 0;        // 0: the worker's default
   // The asset's stages (0 and empty: the worker's defaults).
   std::string asset_source, network, held_out_cameras;
-  int32_t iterations = 0, batch = 0, input_size = 0, levels = 0, geometry_size = 0, image_size = 0;
-  double region_weight = 0, map_loss = 0;
+  int32_t iterations = 0, batch = 0, input_size = 0, levels = 0, geometry_size = 0, image_size = 0, frame_step = 0;
+  double region_weight = 0, map_loss = 0, learning_rate = 0, crop_mm = 0;
   bool json = false;
 };
 
@@ -685,6 +685,9 @@ absl::Status SetAssetOptions(const ProcessFlags& f, stage::v1::ProcessTakeReques
   a.set_image_size(f.image_size);
   a.set_region_weight(f.region_weight);
   a.set_map_loss(f.map_loss);
+  a.set_learning_rate(f.learning_rate);
+  a.set_frame_step(f.frame_step);
+  a.set_crop_mm(f.crop_mm);
   if (a.ByteSizeLong() > 0) *request->mutable_asset() = a;
   return absl::OkStatus();
 }
@@ -694,7 +697,8 @@ absl::Status SetGraphRequest(const ProcessFlags& f, stage::v1::ProcessingStage k
                              stage::v1::ProcessTakeRequest* request) {
   if (kind != stage::v1::PROCESSING_STAGE_GRAPH) {
     if (!f.graph_stages.empty() || f.chunk_frames != 0 || !f.with.empty() || f.jobs != 0 || f.retries >= 0) {
-      return absl::InvalidArgumentError("--stages, --chunk-frames, --with, --retries and --jobs apply to --stage graph");
+      return absl::InvalidArgumentError(
+          "--stages, --chunk-frames, --with, --retries and --jobs apply to --stage graph");
     }
     return absl::OkStatus();
   }
@@ -1152,6 +1156,10 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(16, 1024));
   process->add_option("--image-size", pf.image_size, "--stage asset-dataset: pixels across a crop")
       ->check(CLI::Range(16, 512));
+  process->add_option("--frame-step", pf.frame_step, "--stage asset-dataset: every Nth frame (default 1)")
+      ->check(CLI::Range(1, 1000));
+  process->add_option("--crop-mm", pf.crop_mm, "--stage asset-dataset: the square cropped about the face, mm")
+      ->check(CLI::Range(50.0, 1000.0));
   process
       ->add_option("--network", pf.network,
                    "--stage asset-train: geometry (the default), expression, mapping, finetune, texture or "
@@ -1161,6 +1169,8 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(1, 10000000));
   process->add_option("--batch", pf.batch, "--stage asset-train: samples a step (default: the network's)")
       ->check(CLI::Range(1, 1024));
+  process->add_option("--learning-rate", pf.learning_rate, "--stage asset-train: Adam's rate (default: the network's)")
+      ->check(CLI::Range(1e-7, 1.0));
   process->add_option("--input-size", pf.input_size, "--stage asset-train: texels (pixels) across the net's input")
       ->check(CLI::Range(16, 1024));
   process->add_option("--levels", pf.levels, "--stage asset-train: stride-2 levels of a VAE")->check(CLI::Range(1, 8));
