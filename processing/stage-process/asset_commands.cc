@@ -117,7 +117,7 @@ void AssetCommands::AddTrain() {
       "/texture or /texture_mapping)");
   train_
       ->add_option("--iterations", schedule.iterations,
-                   "Adam steps (default: geometry 6000, expression 1500, mapping 3000, finetune 96000, texture "
+                   "Adam steps (default: geometry 6000, expression 1500, mapping 3000, finetune 48000, texture "
                    "4000, texture-mapping 3000)")
       ->check(CLI::Range(1, 10000000));
   train_
@@ -138,7 +138,8 @@ void AssetCommands::AddTrain() {
                      "geometry and expression 64, texture 128)");
   train_->add_option("--levels", g.levels,
                      "Stride-2 levels of the encoder and decoder (default: geometry and expression 4, texture 5)");
-  train_->add_option("--base-channels", g.base_channels, "Channels at full resolution")->capture_default_str();
+  train_->add_option("--base-channels", g.base_channels,
+                     "Channels at full resolution (default: geometry and texture 8, expression 16)");
   train_->add_option("--max-channels", g.max_channels, "Channels at most")->capture_default_str();
   train_->add_option("--kl-weight", g.kl_weight, "Weight of the KL terms")->capture_default_str();
   // The geometry VAE's.

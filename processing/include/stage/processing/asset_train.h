@@ -198,11 +198,11 @@ struct FineTuneJob {
   double jitter_shift = 0.1;       // 0..0.5
   double jitter_gain = 0.1;        // 0..0.9
   double jitter_noise = 0.01;      // 0..0.5
-  // 96000 steps at 1e-3: on the 600-s simulated performance at 64 pixels the held-out camera drove the held-out blocks
-  // to 0.39 / 0.41 / 1.10 mm (face / eyes / mouth); 48000 steps gave 0.47 / 0.46 / 1.30, 6000 steps 0.77 / 1.04 /
-  // 1.95, and 3e-4 or 3e-3 did worse than 1e-3 (docs/asset.md#the-rate-and-the-length-of-the-training). About 40
-  // minutes on one core at 64 pixels.
-  TrainingSchedule schedule{.iterations = 96000, .batch = 32, .learning_rate = 1e-3};
+  // 48000 steps at 1e-3 over the expression VAE's default 16 channels: on the 600-s simulated performance at 64
+  // pixels the held-out camera drove the held-out blocks to 0.34 / 0.39 / 1.02 mm (face / eyes / mouth); 72000 steps
+  // gave 0.33 / 0.36 / 1.02, and at 8 channels 96000 steps 0.39 / 0.41 / 1.10; 3e-4 or 3e-3 did worse than 1e-3
+  // (docs/asset.md#the-rate-and-the-length-of-the-training). About an hour on one core at 64 pixels.
+  TrainingSchedule schedule{.iterations = 48000, .batch = 32, .learning_rate = 1e-3};
   // The loss: 0, on the geometry latents (DrivingNet::TrainStep); >= 1 (up to 1000), on the maps they decode to
   // (DrivingNet::UseMapLoss), over the texels the training frames hold, those about the eyes and the mouth weighing
   // this many times (as AssetTrainJob::region_weight).
