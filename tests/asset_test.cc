@@ -554,6 +554,24 @@ TEST(AssetStageTest, TheDatasetAndTheTrainingRunThreeWaysToTheSameBytes) {
   ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), defaults_request, &last));
   EXPECT_EQ(nlohmann::json::parse(ReadFile(asset + "/expression/trainer.json"))["options"]["batch"],
             processing::ExpressionTrainJob{}.schedule.batch);
+  // The dataset's frame step and split through the worker's job as through the library (last: it replaces the
+  // dataset the runs above read).
+  processing::DatasetOptions split = options;
+  split.output = asset + "/split-library.h5";
+  split.frame_step = 2;
+  split.held_out_fraction = 0.25;
+  split.held_out_blocks = 2;
+  split.held_out_sequence = "none";
+  auto split_library = processing::BuildAssetDataset(split);
+  ASSERT_TRUE(split_library.ok()) << split_library.status();
+  EXPECT_EQ(split_library->frames, 6);
+  v1::ProcessingJob split_request = request;
+  split_request.mutable_asset()->set_frame_step(2);
+  split_request.mutable_asset()->set_held_out_fraction(0.25);
+  split_request.mutable_asset()->set_held_out_blocks(2);
+  split_request.mutable_asset()->set_held_out_sequence("none");
+  ASSERT_NO_FATAL_FAILURE(RunOnWorker(take.path(), split_request, &last));
+  EXPECT_TRUE(ReadFile(asset + "/dataset.h5") == ReadFile(asset + "/split-library.h5"));
   CommandResult missing =
       RunCommand({"stage-process", "asset", "train", "--dataset", asset + "/none.h5"}, std::chrono::seconds(60));
   EXPECT_EQ(missing.exit.exit_code, 2);

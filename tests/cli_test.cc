@@ -239,13 +239,14 @@ TEST(CliTest, StageSimRenderTakesTheRigsFirstHighSpeedCamera) {
 }
 
 // A take refused for its flags writes nothing: --range-of-motion-s's performance file is written only after the
-// flags are checked (a --take with --ground-truth, a --frame-step without either, bad --frames).
+// flags are checked (a --take with --ground-truth, --take-cameras without --take, bad or empty --frames).
 TEST(CliTest, StageSimRenderRefusesBadFlagsBeforeWritingTheRangeOfMotion) {
   TempDir dir;
   const std::string take = dir.path() + "/take";
   const std::vector<std::pair<std::vector<std::string>, std::string>> refused = {
       {{"--take", take, "--ground-truth", dir.path() + "/truth"}, "it takes no --ground-truth"},
       {{"--take", take, "--frames", "a:b"}, "--frames \"a:b\" is not A:B"},
+      {{"--take", take, "--frames", "5:2"}, "--frames \"5:2\" holds no frame"},
       {{"--take-cameras", "mv-01", "--ground-truth", take}, "need --take"}};
   for (const auto& [flags, message] : refused) {
     std::vector<std::string> args = {"stage-sim-render", "--range-of-motion-s", "60"};

@@ -218,6 +218,15 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   auto tuned_elsewhere = FineTuneDrivingAsset(over_mapping);
   ASSERT_TRUE(tuned_elsewhere.ok()) << tuned_elsewhere.status();
   EXPECT_THAT(EvaluateDrivenAsset(copy).status().message(), HasSubstr(elsewhere + "/geometry/trainer.json"));
+  // The dataset and its four runs copied whole, for below (the original expression run trained again).
+  const std::string copied = ::testing::TempDir() + "/drive-copied";
+  std::filesystem::remove_all(copied);
+  std::filesystem::create_directories(copied);
+  std::filesystem::copy_file(dataset, copied + "/dataset.h5");
+  for (const char* run : {"geometry", "expression", "mapping", "finetune"}) {
+    std::filesystem::copy(std::filesystem::path(dataset).parent_path() / run, copied + "/" + run,
+                          std::filesystem::copy_options::recursive);
+  }
 
   // The same evaluation from the finished runs.
   auto again = EvaluateDrivenAsset(dataset);
@@ -258,6 +267,11 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
               HasSubstr(absl::StrFormat("another expression run than %s: from %s (name it: --expression-run %s)", other,
                                         trained_from, trained_from)));
   std::ofstream(e->output_dir + "/trainer.json", std::ios::app) << " ";
+  // The copied tree's fine-tuned run records the original runs; the expression run there is not the very run it
+  // recorded any more, so the copy's own beside its dataset is taken, and evaluates as the original did.
+  auto copied_tree = EvaluateDrivenAsset(copied + "/dataset.h5", "", "", "", "", copied + "/finetune");
+  ASSERT_TRUE(copied_tree.ok()) << copied_tree.status();
+  EXPECT_DOUBLE_EQ(copied_tree->cameras[1].error[1].face_mm, tuned->evaluation.cameras[1].error[1].face_mm);
   EXPECT_THAT(TrainLatentMapping(mapping).status().message(), HasSubstr("trained with expression_run_id"));
   EXPECT_THAT(EvaluateDrivenAsset(dataset, "", "", "", "", "").status().message(),
               HasSubstr("fine-tuned from another expression run"));

@@ -152,8 +152,11 @@ absl::Status FineTuneJob::Validate() const {
 
 absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) {
   STAGE_RETURN_IF_ERROR(job.Validate());
-  const auto [geometry_run, expression_run, mapping_run] =
+  const asset_internal::DrivenRuns runs =
       asset_internal::ResolveDrivenRuns(job.dataset, job.geometry_run, job.expression_run, job.mapping_run, "");
+  const std::string& geometry_run = runs.geometry;
+  const std::string& expression_run = runs.expression;
+  const std::string& mapping_run = runs.mapping;
   const int threads = job.driving.threads;
   STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
                          asset_internal::LoadDrivenAsset(job.dataset, geometry_run, expression_run, threads));

@@ -410,9 +410,13 @@ std::string RunTrainedFrom(const std::string& dir, const std::string& later, con
     std::ifstream in(later + "/trainer.json");
     const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
     if (j.is_object() && j.contains("options") && j["options"].is_object()) {
-      const nlohmann::json recorded = j["options"].value(absl::StrCat(name, "_run"), nlohmann::json());
-      if (recorded.is_string() && fs::exists(fs::path(recorded.get<std::string>()) / "trainer.json")) {
-        return recorded.get<std::string>();
+      const nlohmann::json& o = j["options"];
+      const nlohmann::json recorded = o.value(absl::StrCat(name, "_run"), nlohmann::json());
+      const nlohmann::json id = o.value(absl::StrCat(name, "_run_id"), nlohmann::json());
+      if (recorded.is_string() && id.is_string()) {
+        // Only the very run: one trained again since (a copied tree's original) leaves the one beside the dataset.
+        const absl::StatusOr<std::string> now = RunId(recorded.get<std::string>());
+        if (now.ok() && *now == id.get<std::string>()) return recorded.get<std::string>();
       }
     }
   }
@@ -450,8 +454,8 @@ absl::Status TrainingSchedule::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("asset training: iterations ", iterations, " not in 1..10^7"));
   }
   if (batch < 1 || batch > 1024) return absl::InvalidArgumentError(absl::StrCat("asset training: batch ", batch));
-  if (!(learning_rate > 0)) {
-    return absl::InvalidArgumentError(absl::StrCat("asset training: learning rate ", learning_rate));
+  if (!(learning_rate > 0 && learning_rate <= 1)) {
+    return absl::InvalidArgumentError(absl::StrCat("asset training: learning rate ", learning_rate, " not in (0, 1]"));
   }
   if (checkpoint_every < 1) {
     return absl::InvalidArgumentError(absl::StrCat("asset training: checkpoint every ", checkpoint_every, " steps"));

@@ -122,12 +122,14 @@ absl::StatusOr<std::unique_ptr<GeometryVae>> LoadGeometryRun(const std::string& 
 // A run directory: `dir`, or beside the dataset under `name`.
 std::string RunDir(const std::string& dir, const std::string& dataset, const char* name);
 // A run a later run was trained from: `dir` where given; else the `name` run `later`'s trainer.json records it was
-// trained from ("<name>_run") where that directory still holds a run; else beside the dataset (RunDir: a tree moved
-// whole). `later` may be empty (none). Which run it is, is checked after (CheckTrainedFrom), not here.
+// trained from ("<name>_run") where that directory still holds that very run (its identity, "<name>_run_id", as
+// recorded); else beside the dataset (RunDir: a tree moved or copied whole). `later` may be empty (none). The run
+// taken is checked after (CheckTrainedFrom), as one given is.
 std::string RunTrainedFrom(const std::string& dir, const std::string& later, const char* name,
                            const std::string& dataset);
 // The runs a driven asset loads: each as given, else as the fine-tuning's run (`finetune`, resolved: "" for none)
-// records it, else as the mapping's run records it, else beside the dataset (RunTrainedFrom).
+// records it, or where there is no fine-tuning's run as the mapping's run records its VAEs, else beside the dataset
+// (RunTrainedFrom).
 struct DrivenRuns {
   std::string geometry, expression, mapping;
 };

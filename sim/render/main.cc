@@ -188,7 +188,8 @@ int main(int argc, char** argv) {
   if (auto code = stage::ParseCommandLine(app, argc, argv)) return *code;
   if (auto s = stage::InitLogging(kProgram, flags.log_level); !s.ok()) return stage::ReportFatal(kProgram, s);
 
-  // The flags' own checks first: nothing is written (--range-of-motion-s's file) for a command refused.
+  // The flags' own checks first: a command its flags refuse writes nothing (--range-of-motion-s's file; camera ids are
+  // checked as the take or the truth is written).
   int64_t first_frame = 0, last_frame = 0;
   {
     const auto colon = frames.find(':');
@@ -198,6 +199,10 @@ int main(int argc, char** argv) {
     } catch (const std::exception&) {
       return stage::ReportFatal(
           kProgram, absl::InvalidArgumentError(absl::StrCat("--frames \"", frames, "\" is not A:B (e.g. 0:24)")));
+    }
+    if (first_frame < 0 || last_frame <= first_frame) {
+      return stage::ReportFatal(kProgram, absl::InvalidArgumentError(absl::StrCat(
+                                              "--frames \"", frames, "\" holds no frame (A:B, 0 <= A < B)")));
     }
   }
   if (!take_dir.empty() && (!truth_dir.empty() || no_camera_maps || no_meshes || !truth_cameras.empty())) {

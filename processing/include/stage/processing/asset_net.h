@@ -200,8 +200,8 @@ struct ExpressionVaeOptions {
   int input_size = 64;  // pixels across a crop (32..512, divisible by 2^levels); 64 as the geometry VAE's
   int levels = 4;       // 2..7
   // Twice the geometry VAE's: the fine-tuned driving path's encoder is this one, and at 16 the held-out camera drove
-  // the mouth as well in a quarter of the fine-tuning's steps as at 8 (docs/asset.md#the-rate-and-the-length-of-the-
-  // training).
+  // the mouth as well in a quarter of the fine-tuning's steps as at 8
+  // (docs/asset.md#the-rate-and-the-length-of-the-training).
   int base_channels = 16;
   int max_channels = 128;
   int expression_latent = 32;  // 1..1024

@@ -218,9 +218,8 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job);
 // mapping's, was trained from where it is still there, else DATASET's directory/geometry, .../expression,
 // .../mapping), and where `picture` names a PNG file, one frame drawn there as the mapping's training draws it into its
 // run (driven.png: the middle frame of the held-out blocks, driven from the first held-out camera; its crop, the
-// truth, the driven mesh and its error). `finetune_run`: the driving
-// path fine-tuned (FineTuneDrivingAsset's run; "" names DATASET's directory/finetune), or "none": the mapping's path.
-// Errors name the file.
+// truth, the driven mesh and its error). `finetune_run`: the driving path fine-tuned (FineTuneDrivingAsset's run; ""
+// names DATASET's directory/finetune), or "none": the mapping's path. Errors name the file.
 absl::StatusOr<DrivenEvaluation> EvaluateDrivenAsset(const std::string& dataset, const std::string& geometry_run = "",
                                                      const std::string& expression_run = "",
                                                      const std::string& mapping_run = "",
