@@ -57,7 +57,7 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
                        .max_channels = 32,
                        .geometry_latent = 4,
                        .pose_latent = 3,
-                       .threads = 2,
+                       .threads = 1,
                        .seed = 3};
   geometry.schedule = {.iterations = 200, .batch = 8, .learning_rate = 3e-3, .checkpoint_every = 100};
   // Every texel alike: this made-up face moves as a whole, and a 4-number latent weighting the template's eyes and
@@ -74,7 +74,7 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
                            .max_channels = 32,
                            .expression_latent = 4,
                            .view_latent = 2,
-                           .threads = 2,
+                           .threads = 1,
                            .seed = 5};
   expression.held_out_cameras = {"cam-1"};
   expression.schedule = {.iterations = 300, .batch = 8, .learning_rate = 3e-3, .checkpoint_every = 100};
@@ -87,7 +87,7 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   MappingTrainJob mapping;
   mapping.dataset = dataset;
   mapping.mapping.hidden = 64;
-  mapping.mapping.threads = 2;
+  mapping.mapping.threads = 1;
   mapping.schedule = {.iterations = 600, .batch = 32, .learning_rate = 3e-3, .checkpoint_every = 300};
   auto m = TrainLatentMapping(mapping);
   ASSERT_TRUE(m.ok()) << m.status();
@@ -113,7 +113,7 @@ TEST(AssetDriveTest, TheAssetDrivenFromAHeldOutCameraComesNearItsCeilingOnFrames
   // jittered. Its loss falls, and from the held-out camera it still closes more than half of the gap (the same bound).
   FineTuneJob finetune;
   finetune.dataset = dataset;
-  finetune.driving.threads = 2;
+  finetune.driving.threads = 1;
   finetune.schedule = {.iterations = 300, .batch = 16, .learning_rate = 1e-3, .checkpoint_every = 150};
   auto tuned = FineTuneDrivingAsset(finetune);
   ASSERT_TRUE(tuned.ok()) << tuned.status();

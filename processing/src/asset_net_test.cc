@@ -44,7 +44,7 @@ TEST(ExpressionVaeTest, TrainingOnTripletsLowersTheLossesAndSeparatesExpressionF
                                .max_channels = 32,
                                .expression_latent = 4,
                                .view_latent = 2,
-                               .threads = 2,
+                               .threads = 1,
                                .seed = 5};
   auto net = ExpressionVae::Create(options);
   ASSERT_TRUE(net.ok()) << net.status();

@@ -48,7 +48,7 @@ AssetTrainJob TinyJob(const std::string& dataset, const std::string& out) {
                   .max_channels = 32,
                   .geometry_latent = 4,
                   .pose_latent = 3,
-                  .threads = 2,
+                  .threads = 1,
                   .seed = 3};
   job.schedule.batch = 8;
   job.schedule.iterations = 150;
@@ -327,7 +327,7 @@ TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutr
   job.output_dir = ::testing::TempDir() + "/texture-run";
   std::filesystem::remove_all(job.output_dir);
   job.texture = {
-      .input_size = 32, .levels = 3, .base_channels = 8, .max_channels = 32, .texture_latent = 4, .threads = 2};
+      .input_size = 32, .levels = 3, .base_channels = 8, .max_channels = 32, .texture_latent = 4, .threads = 1};
   job.schedule.iterations = 300;
   job.schedule.batch = 8;
   auto result = TrainTextureAsset(job);
@@ -405,7 +405,7 @@ TEST(TextureTrainTest, TheLossesFallAndHeldOutTexturesComeBackBetterThanTheNeutr
   mapping.dataset = job.dataset;
   mapping.texture_run = job.output_dir;
   mapping.mapping.hidden = 64;
-  mapping.mapping.threads = 2;
+  mapping.mapping.threads = 1;
   mapping.schedule.iterations = 300;
   mapping.schedule.batch = 16;
   auto mapped = TrainTextureMapping(mapping);
