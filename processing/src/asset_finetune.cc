@@ -154,18 +154,15 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
   STAGE_RETURN_IF_ERROR(job.Validate());
   const asset_internal::DrivenRuns runs =
       asset_internal::ResolveDrivenRuns(job.dataset, job.geometry_run, job.expression_run, job.mapping_run, "");
-  const std::string& geometry_run = runs.geometry;
-  const std::string& expression_run = runs.expression;
-  const std::string& mapping_run = runs.mapping;
   const int threads = job.driving.threads;
   STAGE_ASSIGN_OR_RETURN(DrivenAsset a,
-                         asset_internal::LoadDrivenAsset(job.dataset, geometry_run, expression_run, threads));
+                         asset_internal::LoadDrivenAsset(job.dataset, runs.geometry, runs.expression, threads));
   STAGE_ASSIGN_OR_RETURN(a.mapping,
-                         asset_internal::LoadMappingNet(mapping_run, a.ExpressionSize(), a.GeometrySize(), threads));
+                         asset_internal::LoadMappingNet(runs.mapping, a.ExpressionSize(), a.GeometrySize(), threads));
   {
-    STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(mapping_run, "mapping"));
+    STAGE_ASSIGN_OR_RETURN(const nlohmann::json o, asset_internal::RunOptions(runs.mapping, "mapping"));
     STAGE_RETURN_IF_ERROR(asset_internal::CheckTrainedFrom(
-        mapping_run, o, "the mapping was trained", {{"geometry", geometry_run}, {"expression", expression_run}}));
+        runs.mapping, o, "the mapping was trained", {{"geometry", runs.geometry}, {"expression", runs.expression}}));
   }
   const std::vector<std::pair<int64_t, int>> pairs = asset_internal::MappingPairs(a);
   if (pairs.empty()) {
@@ -184,7 +181,7 @@ absl::StatusOr<MappingTrainResult> FineTuneDrivingAsset(const FineTuneJob& job) 
   internal::TrainingLoop loop;
   loop.dir = result.output_dir;
   loop.what = "driving net";
-  STAGE_ASSIGN_OR_RETURN(loop.options, FineTuneOptionsJson(job, a, geometry_run, expression_run, mapping_run));
+  STAGE_ASSIGN_OR_RETURN(loop.options, FineTuneOptionsJson(job, a, runs.geometry, runs.expression, runs.mapping));
   loop.loss_names = {"total"};
   loop.schedule = job.schedule;
   loop.seed = job.seed;

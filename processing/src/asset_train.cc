@@ -347,15 +347,24 @@ absl::StatusOr<PreparedData> Prepare(const std::string& path, int size) {
   return p;
 }
 
-absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir, const std::string& network) {
+namespace {
+
+// The options a run's trainer.json records, of whichever network.
+absl::StatusOr<nlohmann::json> TrainerOptions(const std::string& run_dir) {
   const std::string trainer = run_dir + "/trainer.json";
   std::ifstream in(trainer);
   if (!in) return absl::NotFoundError(absl::StrCat(trainer, ": cannot open (is ", run_dir, " a training run?)"));
-  const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
+  nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
   if (!j.is_object() || !j.contains("options") || !j["options"].is_object()) {
     return absl::InvalidArgumentError(absl::StrCat(trainer, ": not a training run's state"));
   }
-  const nlohmann::json& o = j["options"];
+  return std::move(j["options"]);
+}
+
+}  // namespace
+
+absl::StatusOr<nlohmann::json> RunOptions(const std::string& run_dir, const std::string& network) {
+  STAGE_ASSIGN_OR_RETURN(nlohmann::json o, TrainerOptions(run_dir));
   if (o.value("network", "") != network) {
     return absl::InvalidArgumentError(absl::StrCat(run_dir, ": a run of the ",
                                                    o.value("network", nlohmann::json()).dump(), " network, not the ",
@@ -406,19 +415,15 @@ std::string RunDir(const std::string& dir, const std::string& dataset, const cha
 
 std::string RunTrainedFrom(const std::string& dir, const std::string& later, const char* name,
                            const std::string& dataset) {
-  if (dir.empty() && !later.empty()) {
-    std::ifstream in(later + "/trainer.json");
-    const nlohmann::json j = nlohmann::json::parse(in, nullptr, false);
-    if (j.is_object() && j.contains("options") && j["options"].is_object()) {
-      const nlohmann::json& o = j["options"];
-      const nlohmann::json recorded = o.value(absl::StrCat(name, "_run"), nlohmann::json());
-      const nlohmann::json id = o.value(absl::StrCat(name, "_run_id"), nlohmann::json());
-      if (recorded.is_string() && id.is_string()) {
-        // Only the very run: one trained again since (a copied tree's original) leaves the one beside the dataset.
-        const absl::StatusOr<std::string> now = RunId(recorded.get<std::string>());
-        if (now.ok() && *now == id.get<std::string>()) return recorded.get<std::string>();
-      }
-    }
+  if (!dir.empty() || later.empty()) return RunDir(dir, dataset, name);
+  const absl::StatusOr<nlohmann::json> o = TrainerOptions(later);
+  if (!o.ok()) return RunDir(dir, dataset, name);  // reported as the later run is loaded
+  const nlohmann::json recorded = o->value(absl::StrCat(name, "_run"), nlohmann::json());
+  const nlohmann::json id = o->value(absl::StrCat(name, "_run_id"), nlohmann::json());
+  if (recorded.is_string() && id.is_string()) {
+    // Only the very run: one trained again since (a copied tree's original) leaves the one beside the dataset.
+    const absl::StatusOr<std::string> now = RunId(recorded.get<std::string>());
+    if (now.ok() && *now == id.get<std::string>()) return recorded.get<std::string>();
   }
   return RunDir(dir, dataset, name);
 }
